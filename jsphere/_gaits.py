@@ -1,0 +1,282 @@
+"""Control by gaits (Section 4): prescribed `gamma(t)`, `omega_gamma(t)`; `Omega(t)` from the
+control-free equation; torques `K(t)` and wheel rates `chi_dot(t)` as outputs.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, Sequence
+
+import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from ._dynamics import free_Omega_dot, required_torques
+from ._kinematics import rest_attitude
+from ._linalg import cross, matvec, rotation_between, rotmat
+from ._params import RobotParams, derive
+from ._simulate import Trajectory, _kin_rates, assemble, default_solver, solve_segments
+from ._state import State
+
+
+class SinSquared(eqx.Module):
+    """`amplitude * sin^2(pi t / period)`: the paper's tilt profile of (5.1), (5.3), (5.6).
+
+    Starts and ends (at whole multiples of `period`) with zero value and zero rate, as the
+    Proposition of Section 4 requires.
+    """
+
+    amplitude: Float[Array, ""]
+    period: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.0)
+
+    def __call__(self, t):
+        return self.amplitude * jnp.sin(jnp.pi * t / self.period) ** 2
+
+
+class Constant(eqx.Module):
+    """A constant function of time (e.g. the direction `phi(t) = phi_0` of a gait)."""
+
+    value: Float[Array, ""]
+
+    def __call__(self, t):
+        return self.value + jnp.zeros_like(t)
+
+
+def _zero(t):
+    return jnp.zeros_like(t)
+
+
+class Gait(eqx.Module):
+    """A manoeuvre of Section 4 on `[0, T]`, given by the Euler angles of (4.2) and the spin
+    of the platform about the vertical:
+
+        gamma(t) = Q_m (sin theta cos phi, sin theta sin phi, cos theta),   omega_gamma(t),
+
+    with `Q_m` the rest attitude (the identity for the paper's robot). The platform's angular
+    velocity follows as `omega = gamma omega_gamma + gamma_dot x gamma` (Proposition).
+
+    `theta`, `phi`, `omega_gamma` are JAX-traceable functions of the gait's local time
+    `t in [0, T]`; they may be equinox Modules holding arrays (as `SinSquared` does), so that
+    gradients and vmap over gait parameters work. For the robot to start and end on
+    stationary motions, `theta`, `theta_dot` and `omega_gamma` should vanish at 0 and T.
+    """
+
+    theta: Callable
+    phi: Callable
+    omega_gamma: Callable
+    T: Float[Array, ""]
+
+    def __init__(self, theta: Callable, phi: Callable | float = 0.0, omega_gamma: Callable | None = None, T: float = 2.0):
+        self.theta = theta
+        self.phi = phi if callable(phi) else Constant(jnp.asarray(phi))
+        self.omega_gamma = omega_gamma if omega_gamma is not None else _zero
+        self.T = jnp.asarray(T)
+        if not isinstance(self.T, jax.core.Tracer) and not float(self.T) > 0:
+            raise ValueError(f"Gait.T must be a positive duration in seconds; got {float(self.T)}.")
+
+    def gamma(self, Qm, t):
+        """`gamma(t)` of (4.2), rotated to the robot's rest attitude by `Q_m`."""
+        th, ph = self.theta(t), self.phi(t)
+        st = jnp.sin(th)
+        return matvec(Qm, jnp.stack([st * jnp.cos(ph), st * jnp.sin(ph), jnp.cos(th)]))
+
+    def kinematics(self, Qm, t):
+        """`(gamma, omega, omega_dot)` at local time `t` (derivatives by forward-mode autodiff)."""
+
+        def omega_fn(s):
+            g, g_dot = jax.jvp(lambda u: self.gamma(Qm, u), (s,), (jnp.ones_like(s),))
+            return g * self.omega_gamma(s) + cross(g_dot, g), g
+
+        (omega, gamma), (omega_dot, _) = jax.jvp(omega_fn, (t,), (jnp.ones_like(t),))
+        return gamma, omega, omega_dot
+
+
+def _check_period(T, period, name):
+    if isinstance(T, jax.core.Tracer) or isinstance(period, jax.core.Tracer):
+        return
+    n = float(T) / float(period)
+    if abs(n - round(n)) > 1e-9 or round(n) < 1:
+        raise ValueError(
+            f"{name}: T = {float(T)} s must be a whole multiple of the sin^2 period {float(period)} s, "
+            "or gamma(T) != gamma(0) and the robot does not end on a stationary motion."
+        )
+
+
+def acceleration(theta_max: float = 0.1, phi: float = 0.0, T: float = 2.0, *, period: float = 1.0) -> Gait:
+    """Acceleration (5.1): `theta = theta_max sin^2(pi t)`, `phi = phi_0`, `omega_gamma = 0`.
+
+    For the paper's robot and `phi = 0`, accelerates from rest to `Omega = (0, 0.864, 0)` 1/s,
+    i.e. rolling along the fixed `+X` axis at 0.1296 m/s.
+    """
+    _check_period(jnp.asarray(T), jnp.asarray(period), "acceleration")
+    return Gait(theta=SinSquared(jnp.asarray(theta_max), jnp.asarray(period)), phi=phi, T=T)
+
+
+def braking(theta_max: float = 0.1, phi: float = 0.0, T: float = 2.0, *, period: float = 1.0) -> Gait:
+    """Braking (5.3): `theta = -theta_max sin^2(pi t)`, `phi = phi_0`, `omega_gamma = 0`."""
+    _check_period(jnp.asarray(T), jnp.asarray(period), "braking")
+    return Gait(theta=SinSquared(-jnp.asarray(theta_max), jnp.asarray(period)), phi=phi, T=T)
+
+
+def turn(theta_max: float = 0.1, phi: float = math.pi / 2, T: float = 2.0, *, period: float = 1.0) -> Gait:
+    """Turn (5.6): `theta = theta_max sin^2(pi t)`, `phi = pi/2`, `omega_gamma = 0`: adds a
+    velocity at right angles to the motion after (5.1)."""
+    _check_period(jnp.asarray(T), jnp.asarray(period), "turn")
+    return Gait(theta=SinSquared(jnp.asarray(theta_max), jnp.asarray(period)), phi=phi, T=T)
+
+
+# ----------------------------------------------------------------------- integration
+
+
+def _gait_field(t, z, args):
+    p, d, (gait, Qm), a, _ = args
+    gamma, omega, omega_dot = gait.kinematics(Qm, t - a)
+    Omega = z[11:14]
+    Omega_dot = free_Omega_dot(p, d, gamma, omega, Omega, omega_dot)
+    # positions use the prescribed gamma(t); q is integrated with the same omega(t)
+    q, qs = z[0:4], z[4:8]
+    R = rotmat(q)
+    v = p.R0 * cross(Omega, gamma)
+    dq, dqs, _, _ = _kin_rates(p, d, z, omega, Omega, None)
+    dxy = matvec(R, v)[:2]
+    chi_dot = -matvec(d.Sk, omega - Omega)
+    del qs
+    return jnp.concatenate([dq, dqs, omega_dot, Omega_dot, dxy, chi_dot])
+
+
+def _gait_outputs(p, d, control, t, z, a, b):
+    gait, Qm = control
+    gamma, omega, omega_dot = gait.kinematics(Qm, t - a)
+    Omega = z[11:14]
+    Omega_dot = free_Omega_dot(p, d, gamma, omega, Omega, omega_dot)
+    K = required_torques(p, d, gamma, omega, Omega, omega_dot, Omega_dot)
+    return omega, -matvec(d.Sk, omega - Omega), K
+
+
+def _rolling_direction(gait: Gait, Qm):
+    """Horizontal direction of the shell's angular velocity a gait produces: `Q_m (-sin phi,
+    cos phi, 0)` at the gait's midpoint."""
+    ph = gait.phi(0.5 * gait.T)
+    return matvec(Qm, jnp.stack([-jnp.sin(ph), jnp.cos(ph), jnp.zeros_like(ph)]))
+
+
+def simulate_gaits(
+    params: RobotParams,
+    gaits: Sequence[Gait],
+    *,
+    Omega0: Float[ArrayLike, "3"] = (0.0, 0.0, 0.0),
+    alpha0: Float[ArrayLike, "3"] = (1.0, 0.0, 0.0),
+    beta0: Float[ArrayLike, "3"] = (0.0, 1.0, 0.0),
+    x0: float = 0.0,
+    y0: float = 0.0,
+    ts: Float[ArrayLike, " T"] | None = None,
+    reset: bool | Sequence = False,
+    rate: float = 100.0,
+    rtol: float = 1e-10,
+    atol: float = 1e-12,
+    solver: dfx.AbstractSolver | None = None,
+    max_steps: int = 16384,
+    throw: bool = True,
+    adjoint: dfx.AbstractAdjoint | None = None,
+) -> Trajectory:
+    """Execute a sequence of gaits (Section 4) and return the motion, torques and wheel rates.
+
+    Within each gait, `gamma(t)` and `omega(t)` are prescribed; `Omega(t)` is integrated from
+    the control-free sum of the two equations of (3.4); `K(t)` follows from the second
+    equation (least-norm for `N > 3` wheels); `chi_dot(t)` from (2.4); `x, y` from (2.2),
+    (2.3); `alpha, beta` from the Poisson equations.
+
+    **Arguments:**
+    - `gaits`: a list of `Gait`s, executed one after the other.
+    - `Omega0, alpha0, beta0, x0, y0`: the initial stationary motion ((5.2) by default: at rest,
+      platform axes = fixed axes). `alpha0 x beta0` must equal the first gait's `gamma(0)`.
+    - `ts`: global output times. Default: each gait sampled at `rate` Hz on its own
+      `[start, end]`, so a boundary time appears twice (left and right limits of `K`).
+    - `reset`: `False` (default): each gait starts from the previous gait's end state.
+      `True`: the paper's (5.4)/(5.7) convention before every gait after the first: `alpha,
+      beta` are reset to `alpha0, beta0`, and `Omega` is replaced by its projection onto the
+      span of the rolling directions of the gaits executed so far (dropping the spin about
+      the vertical and the sideways drift caused by the wheels' inertia). A sequence (one
+      entry per boundary) mixes `None`/`False` (continue), `True` (as above), or an explicit
+      `Omega` 3-vector (with `alpha, beta` reset too), e.g. `(-0.868, 0.852, 0)` of (5.7).
+    - `rtol`, `atol`: tolerances (defaults tight enough for 1e-8 agreement of `Omega, K`).
+
+    Returns a `Trajectory`; `segment` tells which gait each sample belongs to.
+    """
+    gaits = list(gaits)
+    if not gaits or not all(isinstance(g, Gait) for g in gaits):
+        raise TypeError("simulate_gaits: gaits must be a non-empty list of jsphere.Gait (e.g. [acceleration(), braking()]).")
+    nb = len(gaits) - 1
+    if isinstance(reset, (bool, np.bool_)):
+        resets = [bool(reset)] * nb
+    else:
+        resets = list(reset)
+        if len(resets) != nb:
+            raise ValueError(f"simulate_gaits: reset needs one entry per gait boundary ({nb}); got {len(resets)}.")
+    dt = params.R0.dtype
+    d = derive(params)
+    e3 = jnp.array([0.0, 0.0, 1.0], dt)
+    Qm = rotation_between(e3, rest_attitude(params))
+    state0 = State.from_axes(params, alpha0, beta0, Omega=Omega0, x=x0, y=y0)
+    g0 = gaits[0].gamma(Qm, jnp.asarray(0.0, dt))
+    if not any(isinstance(v, jax.core.Tracer) for v in (g0, state0.q)):
+        if np.max(np.abs(np.asarray(state0.gamma) - np.asarray(g0))) > 1e-6:
+            raise ValueError(
+                f"simulate_gaits: alpha0 x beta0 = {np.asarray(state0.gamma)} but the first gait starts at "
+                f"gamma(0) = {np.asarray(g0)}; a gait must start from the rest attitude gamma = -r_m/|r_m| "
+                "(Proposition of Section 4)."
+            )
+
+    starts, t = [], jnp.asarray(0.0, dt)
+    for g in gaits:
+        starts.append(t)
+        t = t + jnp.asarray(g.T, dt)
+    segments = [((g, Qm), a, a + jnp.asarray(g.T, dt)) for g, a in zip(gaits, starts)]
+    if ts is None:
+        if any(isinstance(g.T, jax.core.Tracer) for g in gaits):
+            raise ValueError("simulate_gaits: pass `ts` when gait durations are traced (under jit/grad).")
+        grids = [float(a) + np.linspace(0.0, float(g.T), max(2, int(round(float(g.T) * rate)) + 1)) for g, a in zip(gaits, starts)]
+        ts_out = jnp.asarray(np.concatenate(grids), dt)
+    else:
+        ts_out = jnp.asarray(ts, dt)
+
+    q0 = state0.q
+    directions = [_rolling_direction(g, Qm) for g in gaits]
+
+    def jump_fn(k, a, z, control):
+        gait, _ = control
+        _, omega_start, _ = gait.kinematics(Qm, jnp.zeros_like(a))
+        z = jnp.concatenate([z[:8], omega_start, z[11:]])
+        if k == 0:
+            return z
+        r = resets[k - 1]
+        if r is None or r is False:
+            return z
+        if r is True:
+            P = jnp.zeros((3, 3), dt)
+            for dvec in directions[:k]:
+                u = dvec - matvec(P, dvec)
+                nu = jnp.sum(u * u)
+                P = P + jnp.where(nu > 1e-12, 1.0, 0.0) * jnp.outer(u, u) / jnp.where(nu > 1e-12, nu, 1.0)
+            Omega = matvec(P, z[11:14])
+        else:
+            Omega = jnp.asarray(r, dt)
+        return jnp.concatenate([q0, z[4:11], Omega, z[14:]])
+
+    zs, om, cd, Ks, seg, ok, steps = solve_segments(
+        _gait_field, _gait_outputs, params, d, segments, state0.flatten(), ts_out, jump_fn=jump_fn,
+        solver=solver or default_solver(), rtol=rtol, atol=atol, max_steps=max_steps, throw=throw,
+        adjoint=adjoint or dfx.RecursiveCheckpointAdjoint(),
+    )  # fmt: skip
+    traj = assemble(params, d, ts_out, zs, om, cd, Ks, seg, ok, steps)
+    # report the prescribed gamma(t) (the integrated one agrees to the solver tolerance)
+    gam = jax.vmap(lambda t, k: _prescribed_gamma(gaits, Qm, starts, t, k))(ts_out, seg)
+    return eqx.tree_at(lambda tr: tr.gamma, traj, gam)
+
+
+def _prescribed_gamma(gaits, Qm, starts, t, k):
+    branches = [lambda t, g=g, a=a: g.gamma(Qm, t - a) for g, a in zip(gaits, starts)]
+    return jax.lax.switch(k, branches, t)

@@ -1,0 +1,98 @@
+"""File I/O at the edge of the package: parameter files and atomic writes."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+try:  # Python >= 3.11
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover
+    import tomli as tomllib  # type: ignore[no-redef]
+
+
+def atomic_write_text(path, text: str) -> None:
+    """Write `text` to `path` so that a killed process leaves either the old file or the new one."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_savefig(fig, path, **kwargs) -> None:
+    """`fig.savefig` through a temporary file and an atomic rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, **kwargs)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, float)):
+        return repr(float(v))
+    if isinstance(v, str):
+        return json.dumps(v)
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def dumps_toml(d: dict[str, Any], header: str = "") -> str:
+    """A minimal TOML writer for flat tables of numbers and (nested) lists of numbers."""
+    lines = [f"# {line}" for line in header.splitlines()]
+    lines += [f"{k} = {_toml_value(v)}" for k, v in d.items()]
+    return "\n".join(lines) + "\n"
+
+
+def save_params(params, path) -> None:
+    path = Path(path)
+    d = params.to_dict()
+    if path.suffix.lower() == ".toml":
+        text = dumps_toml(d, header="jsphere RobotParams (SI units; vectors in the platform frame)")
+    elif path.suffix.lower() == ".json":
+        text = json.dumps(d, indent=2) + "\n"
+    else:
+        raise ValueError(f"{path}: parameter files must end in .toml or .json.")
+    atomic_write_text(path, text)
+
+
+def load_params(path, *, dtype=None):
+    from ._params import RobotParams
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"parameter file {path} does not exist.")
+    suffix = path.suffix.lower()
+    if suffix == ".toml":
+        d = tomllib.loads(path.read_text())
+    elif suffix == ".json":
+        d = json.loads(path.read_text())
+    else:
+        raise ValueError(f"{path}: parameter files must end in .toml or .json.")
+    if "params" in d and isinstance(d["params"], dict):  # a fit result (`jsphere fit --out`)
+        d = d["params"]
+    try:
+        return RobotParams.from_dict(d, dtype=dtype)
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None

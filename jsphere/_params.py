@@ -1,0 +1,286 @@
+"""Robot parameters (Section 2, 3 and 5 of the paper) and the quantities derived from them.
+
+All quantities are SI (m, kg, kg m^2, s). All vectors are components in the platform frame
+`Cxyz` (origin at the shell centre C). See `docs/model.md` for every convention.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._linalg import cross, dot, inv3, outer
+
+#: Values of the two parameters the paper omits, inferred from its own numbers
+#: (Omega_1 = 0.864 1/s after (5.1) and 0.852 1/s after the turn (5.6)); see MODEL-NOTES.
+PAPER_R_M = 27.0146e-3
+PAPER_J = 2.7395e-4
+
+_FIELDS = ("R0", "m0", "I0", "Rw", "wheel_r", "wheel_n", "wheel_alpha", "m", "I", "r_m", "j", "g")
+
+
+def _is_concrete(x: Any) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+class RobotParams(eqx.Module):
+    """Physical parameters of the spherical robot with an internal omniwheel platform.
+
+    A pytree: every field is an array leaf, so parameter sets can be stacked and vmapped
+    over, and gradients taken with respect to any field.
+
+    **Fields** (paper symbols; SI units):
+
+    - `R0`: shell radius `R_0` [m].
+    - `m0`, `I0`: shell mass [kg] and central moment of inertia (isotropic, `I_0 E`) [kg m^2].
+    - `Rw`: omniwheel radius `R_w` [m].
+    - `wheel_r`: `(N, 3)` wheel centres `r_i` [m]. Only their direction enters the model.
+    - `wheel_n`: `(N, 3)` unit wheel axles `n_i`.
+    - `wheel_alpha`: `(N, 3)` unit roller axes `alpha_i` at the contact with the shell.
+    - `m`: mass of the platform with wheels [kg].
+    - `I`: `(3, 3)` inertia tensor of the platform with wheels about the shell centre C [kg m^2].
+    - `r_m`: `(3,)` centre of mass of the platform with wheels [m]; at rest `r_m = -R_m gamma`.
+    - `j`: axial moment of inertia of one wheel [kg m^2] (identical wheels).
+    - `g`: gravitational acceleration [m/s^2].
+
+    Construction validates every field (positive masses and radii, symmetric positive
+    definite `I`, unit axes, `(s_i, n_i)` away from zero, `s_i` spanning 3-space, lengths that
+    look like metres) and raises `ValueError` naming the field and the expected range.
+    Validation is skipped for traced values (inside `jit`), and pytree operations such as
+    `eqx.tree_at` do not re-validate.
+    """
+
+    R0: Float[Array, ""]
+    m0: Float[Array, ""]
+    I0: Float[Array, ""]
+    Rw: Float[Array, ""]
+    wheel_r: Float[Array, "N 3"]
+    wheel_n: Float[Array, "N 3"]
+    wheel_alpha: Float[Array, "N 3"]
+    m: Float[Array, ""]
+    I: Float[Array, "3 3"]
+    r_m: Float[Array, "3"]
+    j: Float[Array, ""]
+    g: Float[Array, ""]
+
+    def __init__(self, R0, m0, I0, Rw, wheel_r, wheel_n, wheel_alpha, m, I, r_m, j=0.0, g=9.81, *, dtype=None):
+        if dtype is None:
+            dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+        as_ = lambda x: jnp.asarray(x, dtype=dtype)  # noqa: E731
+        self.R0, self.m0, self.I0, self.Rw = as_(R0), as_(m0), as_(I0), as_(Rw)
+        self.wheel_r, self.wheel_n, self.wheel_alpha = as_(wheel_r), as_(wheel_n), as_(wheel_alpha)
+        self.m, self.I, self.r_m, self.j, self.g = as_(m), as_(I), as_(r_m), as_(j), as_(g)
+
+    def __check_init__(self):
+        if all(_is_concrete(getattr(self, f)) for f in _FIELDS):
+            validate(self)
+
+    @property
+    def n_wheels(self) -> int:
+        return self.wheel_r.shape[-2]
+
+    @property
+    def R_m(self) -> Float[Array, ""]:
+        """Distance `R_m = |r_m|` from the shell centre to the platform's centre of mass (2.5)."""
+        return jnp.linalg.norm(self.r_m, axis=-1)
+
+    # ------------------------------------------------------------------ constructors
+
+    @classmethod
+    def paper(cls, *, R_m: float = PAPER_R_M, j: float = PAPER_J, g: float = 9.81, dtype=None) -> "RobotParams":
+        """The experimental robot of Section 5.
+
+        `R0 = 0.15 m, m0 = 0.8 kg, I0 = 0.012 kg m^2, Rw = 0.07 m, m = 2.5 kg,
+        I = diag(0.016, 0.016, 0.023) kg m^2`,
+        `r_i = 0.057 (cos phi_i, sin phi_i, -1)`, `n_i = (cos phi_i, sin phi_i, 1)/sqrt 2`,
+        `alpha_i = (cos(phi_i - pi/4), sin(phi_i - pi/4), 1)/sqrt 2`, `phi_i = 2 pi (i-1)/3`.
+
+        The paper does not give `R_m`, `j` or `g`; the defaults `R_m = 27.0146 mm` and
+        `j = 2.7395e-4 kg m^2` reproduce its `Omega_1 = 0.864 1/s` and the `0.852 1/s` after
+        the turn (set "P1" of MODEL-NOTES.md). `RobotParams.paper(R_m=26.8727e-3, j=0.0)` is
+        set "P0".
+        """
+        phis = 2.0 * np.pi * np.arange(3) / 3.0
+        c, s = np.cos(phis), np.sin(phis)
+        wheel_r = 0.057 * np.stack([c, s, -np.ones(3)], axis=-1)
+        wheel_n = np.stack([c, s, np.ones(3)], axis=-1) / np.sqrt(2.0)
+        wheel_alpha = np.stack([np.cos(phis - np.pi / 4), np.sin(phis - np.pi / 4), np.ones(3)], -1) / np.sqrt(2.0)
+        return cls(
+            R0=0.15, m0=0.8, I0=0.012, Rw=0.07,
+            wheel_r=wheel_r, wheel_n=wheel_n, wheel_alpha=wheel_alpha,
+            m=2.5, I=np.diag([0.016, 0.016, 0.023]), r_m=np.array([0.0, 0.0, -R_m]),
+            j=j, g=g, dtype=dtype,
+        )  # fmt: skip
+
+    def replace(self, **changes) -> "RobotParams":
+        """A copy with some fields changed, validated again (e.g. `p.replace(j=0.0)`).
+
+        `R_m=...` is accepted as a shorthand for `r_m = R_m * r_m/|r_m|`.
+        """
+        kw = {f: getattr(self, f) for f in _FIELDS}
+        if "R_m" in changes:
+            R_m = changes.pop("R_m")
+            kw["r_m"] = kw["r_m"] / jnp.linalg.norm(kw["r_m"]) * R_m
+        unknown = set(changes) - set(_FIELDS)
+        if unknown:
+            raise ValueError(f"RobotParams has no field(s) {sorted(unknown)}; fields are {list(_FIELDS)}.")
+        kw.update(changes)
+        return RobotParams(**kw, dtype=self.R0.dtype)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-Python dictionary (numbers and nested lists), e.g. for JSON."""
+        return {f: np.asarray(getattr(self, f)).tolist() for f in _FIELDS}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], *, dtype=None) -> "RobotParams":
+        """Inverse of `to_dict`. Accepts `r`, `n`, `alpha` as aliases of the wheel fields."""
+        d = dict(d)
+        for alias, field in (("r", "wheel_r"), ("n", "wheel_n"), ("alpha", "wheel_alpha")):
+            if alias in d and field not in d:
+                d[field] = d.pop(alias)
+        missing = [f for f in _FIELDS if f not in d and f not in ("j", "g")]
+        if missing:
+            raise ValueError(f"parameter set is missing field(s) {missing}; expected {list(_FIELDS)}.")
+        unknown = sorted(set(d) - set(_FIELDS))
+        if unknown:
+            raise ValueError(f"parameter set has unknown field(s) {unknown}; expected {list(_FIELDS)}.")
+        return cls(**d, dtype=dtype)
+
+    def save(self, path) -> None:
+        """Write the parameters as TOML or JSON (chosen by the file suffix), atomically."""
+        from ._io import save_params
+
+        save_params(self, path)
+
+    @classmethod
+    def load(cls, path, *, dtype=None) -> "RobotParams":
+        """Read parameters from a `.toml` or `.json` file (see `save`)."""
+        from ._io import load_params
+
+        return load_params(path, dtype=dtype)
+
+
+# ------------------------------------------------------------------------- validation
+
+
+def _fail(field: str, msg: str):
+    raise ValueError(f"RobotParams.{field}: {msg}")
+
+
+def validate(p: RobotParams) -> None:
+    """Check every field of a concrete `RobotParams`; raise `ValueError` naming the field.
+
+    Leading batch dimensions (stacked parameter sets) are allowed on every field.
+    """
+    a = {f: np.asarray(getattr(p, f), dtype=np.float64) for f in _FIELDS}
+    for f, v in a.items():
+        if not np.all(np.isfinite(v)):
+            _fail(f, "must be finite (got NaN or inf).")
+    wr = a["wheel_r"]
+    if wr.ndim < 2 or wr.shape[-1] != 3 or wr.shape[-2] < 3:
+        _fail("wheel_r", f"must have shape (N, 3) with N >= 3 wheels; got {wr.shape}.")
+    N = wr.shape[-2]
+    for f in ("wheel_n", "wheel_alpha"):
+        if a[f].shape[-2:] != (N, 3):
+            _fail(f, f"must have shape ({N}, 3) like wheel_r; got {a[f].shape}.")
+    if a["I"].shape[-2:] != (3, 3):
+        _fail("I", f"must be a 3x3 inertia tensor; got shape {a['I'].shape}.")
+    if a["r_m"].shape[-1:] != (3,):
+        _fail("r_m", f"must be a 3-vector; got shape {a['r_m'].shape}.")
+
+    for f, unit in (("R0", "m"), ("Rw", "m"), ("m0", "kg"), ("m", "kg"), ("I0", "kg m^2")):
+        if np.any(a[f] <= 0):
+            _fail(f, f"must be > 0 {unit}; got {a[f]}.")
+    if np.any(a["j"] < 0):
+        _fail("j", f"wheel axial inertia must be >= 0 kg m^2; got {a['j']}.")
+    if np.any(a["g"] < 0):
+        _fail("g", f"must be >= 0 m/s^2 (use 9.81); got {a['g']}.")
+    if np.any(a["R0"] > 10.0) or np.any(a["Rw"] > 10.0):
+        _fail("R0" if np.any(a["R0"] > 10.0) else "Rw", "is larger than 10 m: lengths are in metres, not millimetres.")
+    if np.any(a["Rw"] >= a["R0"]):
+        _fail("Rw", f"wheel radius must be smaller than the shell radius R0; got Rw={a['Rw']}, R0={a['R0']}.")
+
+    I = a["I"]
+    if not np.allclose(I, np.swapaxes(I, -1, -2), rtol=1e-9, atol=1e-12):
+        _fail("I", "inertia tensor must be symmetric.")
+    eig = np.linalg.eigvalsh(I)
+    if np.any(eig <= 0):
+        _fail("I", f"inertia tensor must be positive definite; eigenvalues {eig}.")
+
+    R0 = a["R0"][..., None]
+    rm = np.linalg.norm(a["r_m"], axis=-1)
+    if np.any(rm >= a["R0"]):
+        _fail("r_m", f"centre of mass must lie inside the shell, |r_m| < R0; got |r_m| = {rm} m.")
+    rn = np.linalg.norm(wr, axis=-1)
+    if np.any(rn <= 0):
+        _fail("wheel_r", "wheel positions must be non-zero (their direction defines s_i = r_i x alpha_i).")
+    if np.any(rn >= R0):
+        _fail("wheel_r", f"wheel centres must lie inside the shell, |r_i| < R0; got |r_i| = {rn} m.")
+    for f in ("wheel_n", "wheel_alpha"):
+        nrm = np.linalg.norm(a[f], axis=-1)
+        if np.any(np.abs(nrm - 1.0) > 1e-6):
+            _fail(f, f"axes must be unit vectors (|v| = 1 within 1e-6); got norms {nrm}.")
+    s = np.cross(wr, a["wheel_alpha"])
+    s_norm = np.linalg.norm(s, axis=-1)
+    if np.any(s_norm < 1e-9):
+        _fail("wheel_alpha", "roller axis alpha_i is parallel to r_i, so s_i = r_i x alpha_i = 0.")
+    sn = np.sum(s * a["wheel_n"], axis=-1) / s_norm
+    if np.any(np.abs(sn) < 1e-3):
+        _fail(
+            "wheel_n",
+            f"(s_i, n_i)/|s_i| must be away from zero (|.| >= 1e-3) or the wheel cannot drive the "
+            f"shell (k_i = R0/(Rw (s_i, n_i)) is infinite); got {sn}.",
+        )
+    sv = np.linalg.svd(s / s_norm[..., None], compute_uv=False)
+    if np.any(sv[..., -1] / sv[..., 0] < 1e-6):
+        _fail("wheel_r", "the vectors s_i = r_i x alpha_i do not span 3-space: the wheels cannot set omega - Omega.")
+
+
+# ------------------------------------------------------------------ derived quantities
+
+
+class Derived(eqx.Module):
+    """Quantities of (2.4) and (3.4) that depend on the parameters only.
+
+    `s (N,3)`: `s_i = r_i x alpha_i`; `k (N,)`: `k_i = R0/(Rw (s_i, n_i))`;
+    `Sk (N,3)`: rows `k_i s_i` (so `chi_dot = -Sk (omega - Omega)`, and the torque term of
+    (3.4) is `Sk^T K`); `Jss, Jsn, Jns`: the wheel-inertia tensors of (3.4);
+    `A`, `A_inv`: the constant `omega`-block `I + Jss - Jns - Jsn` of the mass matrix and its
+    inverse; `Sk_pinv (3,N)`: `(Sk^T Sk)^-1 Sk^T` (least-squares inverse of the wheel map);
+    `Sk_T_pinv (N,3)`: `Sk (Sk^T Sk)^-1`, giving the least-norm torques `K` of a required
+    `Sk^T K`.
+    """
+
+    s: Float[Array, "N 3"]
+    k: Float[Array, "N"]
+    Sk: Float[Array, "N 3"]
+    Jss: Float[Array, "3 3"]
+    Jsn: Float[Array, "3 3"]
+    Jns: Float[Array, "3 3"]
+    A: Float[Array, "3 3"]
+    A_inv: Float[Array, "3 3"]
+    Sk_pinv: Float[Array, "3 N"]
+    Sk_T_pinv: Float[Array, "N 3"]
+
+
+def derive(p: RobotParams) -> Derived:
+    """Compute the parameter-only quantities of (2.4) and (3.4) once (jit folds them)."""
+    s = cross(p.wheel_r, p.wheel_alpha)
+    k = p.R0 / (p.Rw * dot(s, p.wheel_n))
+    j = p.j
+    Sk = k[:, None] * s
+    Jss = jnp.sum((j * k * k)[:, None, None] * outer(s, s), axis=0)
+    Jsn = jnp.sum((j * k)[:, None, None] * outer(s, p.wheel_n), axis=0)
+    Jns = jnp.swapaxes(Jsn, -1, -2)
+    A = p.I + Jss - Jns - Jsn
+    G = inv3(Sk.T @ Sk)
+    return Derived(
+        s=s, k=k, Sk=Sk, Jss=Jss, Jsn=Jsn, Jns=Jns, A=A, A_inv=inv3(A),
+        Sk_pinv=G @ Sk.T, Sk_T_pinv=Sk @ G,
+    )  # fmt: skip
+
