@@ -137,13 +137,11 @@ def _gait_field(t, z, args):
     Omega = z[11:14]
     Omega_dot = free_Omega_dot(p, d, gamma, omega, Omega, omega_dot)
     # positions use the prescribed gamma(t); q is integrated with the same omega(t)
-    q, qs = z[0:4], z[4:8]
-    R = rotmat(q)
+    R = rotmat(z[0:4])
     v = p.R0 * cross(Omega, gamma)
     dq, dqs, _, _ = _kin_rates(p, d, z, omega, Omega, None)
     dxy = matvec(R, v)[:2]
     chi_dot = -matvec(d.Sk, omega - Omega)
-    del qs
     return jnp.concatenate([dq, dqs, omega_dot, Omega_dot, dxy, chi_dot])
 
 
@@ -230,19 +228,36 @@ def simulate_gaits(
                 "(Proposition of Section 4)."
             )
 
+    if ts is None:
+        if any(isinstance(g.T, jax.core.Tracer) for g in gaits):
+            raise ValueError("simulate_gaits: pass `ts` when gait durations are traced (under jit/grad).")
+        starts = np.cumsum([0.0] + [float(g.T) for g in gaits])[:-1]
+        grids = [a + np.linspace(0.0, float(g.T), max(2, int(round(float(g.T) * rate)) + 1)) for g, a in zip(gaits, starts)]
+        ts_out = jnp.asarray(np.concatenate(grids), dt)
+    else:
+        ts_out = jnp.asarray(ts, dt)
+    # one compiled function per number of gaits: reset modes and values are data
+    modes = jnp.asarray([0 if (r is None or r is False) else 1 if r is True else 2 for r in resets], jnp.int32)
+    values = jnp.stack([jnp.zeros(3, dt) if (r is None or isinstance(r, bool)) else jnp.asarray(r, dt) for r in resets]) if nb else jnp.zeros((0, 3), dt)
+    if values.shape != (nb, 3):
+        raise ValueError(f"simulate_gaits: an explicit reset must be an Omega 3-vector; got shapes {values.shape}.")
+    resets = (modes, values)
+    return _simulate_gaits(
+        params, gaits, state0, ts_out, resets, solver or default_solver(), rtol, atol, max_steps, throw,
+        adjoint or dfx.RecursiveCheckpointAdjoint(),
+    )
+
+
+@eqx.filter_jit
+def _simulate_gaits(params, gaits, state0, ts_out, resets, solver, rtol, atol, max_steps, throw, adjoint):
+    dt = params.R0.dtype
+    d = derive(params)
+    Qm = rotation_between(jnp.array([0.0, 0.0, 1.0], dt), rest_attitude(params))
     starts, t = [], jnp.asarray(0.0, dt)
     for g in gaits:
         starts.append(t)
         t = t + jnp.asarray(g.T, dt)
     segments = [((g, Qm), a, a + jnp.asarray(g.T, dt)) for g, a in zip(gaits, starts)]
-    if ts is None:
-        if any(isinstance(g.T, jax.core.Tracer) for g in gaits):
-            raise ValueError("simulate_gaits: pass `ts` when gait durations are traced (under jit/grad).")
-        grids = [float(a) + np.linspace(0.0, float(g.T), max(2, int(round(float(g.T) * rate)) + 1)) for g, a in zip(gaits, starts)]
-        ts_out = jnp.asarray(np.concatenate(grids), dt)
-    else:
-        ts_out = jnp.asarray(ts, dt)
-
     q0 = state0.q
     directions = [_rolling_direction(g, Qm) for g in gaits]
 
@@ -252,24 +267,19 @@ def simulate_gaits(
         z = jnp.concatenate([z[:8], omega_start, z[11:]])
         if k == 0:
             return z
-        r = resets[k - 1]
-        if r is None or r is False:
-            return z
-        if r is True:
-            P = jnp.zeros((3, 3), dt)
-            for dvec in directions[:k]:
-                u = dvec - matvec(P, dvec)
-                nu = jnp.sum(u * u)
-                P = P + jnp.where(nu > 1e-12, 1.0, 0.0) * jnp.outer(u, u) / jnp.where(nu > 1e-12, nu, 1.0)
-            Omega = matvec(P, z[11:14])
-        else:
-            Omega = jnp.asarray(r, dt)
-        return jnp.concatenate([q0, z[4:11], Omega, z[14:]])
+        mode, value = resets[0][k - 1], resets[1][k - 1]
+        P = jnp.zeros((3, 3), dt)
+        for dvec in directions[:k]:  # projector onto the span of the rolling directions so far
+            u = dvec - matvec(P, dvec)
+            nu = jnp.sum(u * u)
+            P = P + jnp.where(nu > 1e-12, 1.0, 0.0) * jnp.outer(u, u) / jnp.where(nu > 1e-12, nu, 1.0)
+        Omega = jnp.where(mode == 1, matvec(P, z[11:14]), value)
+        reset_z = jnp.concatenate([q0, z[4:11], Omega, z[14:]])
+        return jnp.where(mode == 0, z, reset_z)
 
     zs, om, cd, Ks, seg, ok, steps = solve_segments(
         _gait_field, _gait_outputs, params, d, segments, state0.flatten(), ts_out, jump_fn=jump_fn,
-        solver=solver or default_solver(), rtol=rtol, atol=atol, max_steps=max_steps, throw=throw,
-        adjoint=adjoint or dfx.RecursiveCheckpointAdjoint(),
+        solver=solver, rtol=rtol, atol=atol, max_steps=max_steps, throw=throw, adjoint=adjoint,
     )  # fmt: skip
     traj = assemble(params, d, ts_out, zs, om, cd, Ks, seg, ok, steps)
     # report the prescribed gamma(t) (the integrated one agrees to the solver tolerance)

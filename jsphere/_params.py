@@ -17,9 +17,11 @@ from jaxtyping import Array, Float
 from ._linalg import cross, dot, inv3, outer
 
 #: Values of the two parameters the paper omits, inferred from its own numbers
-#: (Omega_1 = 0.864 1/s after (5.1) and 0.852 1/s after the turn (5.6)); see MODEL-NOTES.
-PAPER_R_M = 27.0146e-3
-PAPER_J = 2.7395e-4
+#: (Omega_1 = 0.864 1/s after (5.1) and 0.852 1/s after the turn (5.6)); see docs/model.md.
+#: Rounded, R_m = 27.0146 mm and j = 2.7395e-4 kg m^2; the full digits make Omega_1 = 0.864000
+#: exactly (the rounded values give 0.8640015).
+PAPER_R_M = 27.014555994314536e-3
+PAPER_J = 2.739471996359074e-4
 
 _FIELDS = ("R0", "m0", "I0", "Rw", "wheel_r", "wheel_n", "wheel_alpha", "m", "I", "r_m", "j", "g")
 

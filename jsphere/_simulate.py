@@ -8,6 +8,7 @@ import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._controls import Torques, WheelSpeeds
@@ -248,11 +249,7 @@ def simulate(
     """
     if not isinstance(state0, State):
         raise TypeError(f"simulate: state0 must be a jsphere.State (e.g. State.at_rest(params)); got {type(state0).__name__}.")
-    if isinstance(controls, Torques):
-        field, outputs, jump_fn = _torque_field, _outputs_torque, None
-    elif isinstance(controls, WheelSpeeds):
-        field, outputs = _wheel_field, _outputs_wheel
-    else:
+    if not isinstance(controls, (Torques, WheelSpeeds)):
         raise TypeError(
             "simulate: controls must be jsphere.Torques(fn) or jsphere.WheelSpeeds(fn); "
             f"got {type(controls).__name__}."
@@ -260,21 +257,30 @@ def simulate(
     if state0.chi.shape[-1] != params.n_wheels:
         raise ValueError(f"simulate: state0.chi has {state0.chi.shape[-1]} wheels but params has {params.n_wheels}.")
     dt = params.R0.dtype
-    d = derive(params)
-    t0 = jnp.asarray(t0, dt)
-    t1 = jnp.asarray(t1, dt)
-    ts_out = jnp.stack([t0, t1]) if ts is None else jnp.asarray(ts, dt)
-    if ts is not None and not isinstance(ts_out, jax.core.Tracer):
-        import numpy as np
-
+    ts_out = None if ts is None else jnp.asarray(ts, dt)
+    if ts_out is not None and not isinstance(ts_out, jax.core.Tracer):
         tsn = np.asarray(ts_out)
         if tsn.ndim != 1 or np.any(np.diff(tsn) < 0) or not np.all(np.isfinite(tsn)):
             raise ValueError("simulate: ts must be a finite, non-decreasing 1-D array of times.")
+    return _simulate(
+        params, state0, controls, jnp.asarray(t0, dt), jnp.asarray(t1, dt), ts_out,
+        solver or default_solver(), rtol, atol, max_steps, throw, adjoint or dfx.RecursiveCheckpointAdjoint(),
+    )  # fmt: skip
+
+
+@eqx.filter_jit
+def _simulate(params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_steps, throw, adjoint):
+    dt = params.R0.dtype
+    d = derive(params)
+    if ts_out is None:
+        ts_out = jnp.stack([t0, t1])
+    field, outputs = (_torque_field, _outputs_torque) if isinstance(controls, Torques) else (_wheel_field, _outputs_wheel)
     edges = [t0] + [jnp.clip(jnp.asarray(tj, dt), t0, t1) for tj in controls.jump_ts] + [t1]
     segments = [(controls, a, b) for a, b in zip(edges[:-1], edges[1:])]
     z0 = state0.flatten().astype(dt)
     if throw:
         z0 = check_finite_state(z0, "the initial state")
+    jump_fn = None
     if isinstance(controls, WheelSpeeds):
 
         def jump_fn(k, t, z, control):
@@ -284,8 +290,7 @@ def simulate(
             return jnp.concatenate([z[:8], omega, Omega, z[14:]])
 
     zs, om, cd, Ks, seg, ok, steps = solve_segments(
-        field, outputs, params, d, segments, z0, ts_out, jump_fn=jump_fn,
-        solver=solver or default_solver(), rtol=rtol, atol=atol, max_steps=max_steps, throw=throw,
-        adjoint=adjoint or dfx.RecursiveCheckpointAdjoint(),
+        field, outputs, params, d, segments, z0, ts_out, jump_fn=jump_fn, solver=solver,
+        rtol=rtol, atol=atol, max_steps=max_steps, throw=throw, adjoint=adjoint,
     )  # fmt: skip
     return assemble(params, d, ts_out, zs, om, cd, Ks, seg, ok, steps)
