@@ -1,9 +1,59 @@
-import jax
-jax.config.update("jax_enable_x64", True)
-from ._params import RobotParams
-from ._dynamics import accelerations, energy, power
-from ._kinematics import wheel_speeds
-from ._state import State
-from ._controls import Torques, WheelSpeeds, kinematic_control, straight_line
-from ._simulate import simulate, Trajectory
-from ._gaits import Gait, SinSquared, Constant, acceleration, braking, turn, simulate_gaits
+"""jsphere: a differentiable JAX simulator of a spherical robot driven by an internal omniwheel
+platform, after Karavaev & Kilin, "Nonholonomic dynamics and control of a spherical robot with
+an internal omniwheel platform: theory and experiments", Proc. Steklov Inst. Math. 295 (2016).
+
+Equation numbers in docstrings refer to that paper; `docs/model.md` lists every convention
+and every correction of the paper's typos.
+
+float64 is switched on at import (the paper's numbers are at the 0.1 mm level). Set the
+environment variable `JSPHERE_X64=0` before importing to keep JAX's float32 default.
+"""
+
+import os as _os
+
+import jax as _jax
+
+if _os.environ.get("JSPHERE_X64", "1") != "0":
+    _jax.config.update("jax_enable_x64", True)
+
+from ._controls import (
+    Sampled as Sampled,
+    Torques as Torques,
+    WheelSpeeds as WheelSpeeds,
+    kinematic_control as kinematic_control,
+    straight_line as straight_line,
+)
+from ._dynamics import (
+    accelerations as accelerations,
+    energy as energy,
+    kinetic_energy as kinetic_energy,
+    potential_energy as potential_energy,
+    power as power,
+)
+from ._gaits import (
+    Constant as Constant,
+    Gait as Gait,
+    SinSquared as SinSquared,
+    acceleration as acceleration,
+    braking as braking,
+    simulate_gaits as simulate_gaits,
+    turn as turn,
+)
+from ._kinematics import (
+    constraint_residuals as constraint_residuals,
+    kinematic_wheel_speeds as kinematic_wheel_speeds,
+    relative_rate_from_wheel_speeds as relative_rate_from_wheel_speeds,
+    rolling_velocity as rolling_velocity,
+    wheel_speeds as wheel_speeds,
+)
+from ._params import RobotParams as RobotParams
+from ._reproduce import reproduce as reproduce, to_figure_frame as to_figure_frame
+from ._simulate import Trajectory as Trajectory, simulate as simulate
+from ._state import State as State
+from ._trajectory import (
+    energy_along as energy_along,
+    power_along as power_along,
+    trajectory_residuals as trajectory_residuals,
+)
+
+__version__ = "0.1.0"

@@ -259,21 +259,24 @@ def _simulate_gaits(params, gaits, state0, ts_out, resets, solver, rtol, atol, m
         t = t + jnp.asarray(g.T, dt)
     segments = [((g, Qm), a, a + jnp.asarray(g.T, dt)) for g, a in zip(gaits, starts)]
     q0 = state0.q
-    directions = [_rolling_direction(g, Qm) for g in gaits]
+    # per boundary: reset mode, explicit value, projector onto the rolling directions so far
+    P, projectors = jnp.zeros((3, 3), dt), []
+    for g in gaits[:-1]:
+        dvec = _rolling_direction(g, Qm)
+        u = dvec - matvec(P, dvec)
+        nu = jnp.sum(u * u)
+        P = P + jnp.where(nu > 1e-12, 1.0, 0.0) * jnp.outer(u, u) / jnp.where(nu > 1e-12, nu, 1.0)
+        projectors.append(P)
+    modes = jnp.concatenate([jnp.zeros((1,), jnp.int32), resets[0]])
+    values = jnp.concatenate([jnp.zeros((1, 3), dt), resets[1]])
+    projectors = jnp.stack([jnp.zeros((3, 3), dt)] + projectors)
 
     def jump_fn(k, a, z, control):
         gait, _ = control
         _, omega_start, _ = gait.kinematics(Qm, jnp.zeros_like(a))
         z = jnp.concatenate([z[:8], omega_start, z[11:]])
-        if k == 0:
-            return z
-        mode, value = resets[0][k - 1], resets[1][k - 1]
-        P = jnp.zeros((3, 3), dt)
-        for dvec in directions[:k]:  # projector onto the span of the rolling directions so far
-            u = dvec - matvec(P, dvec)
-            nu = jnp.sum(u * u)
-            P = P + jnp.where(nu > 1e-12, 1.0, 0.0) * jnp.outer(u, u) / jnp.where(nu > 1e-12, nu, 1.0)
-        Omega = jnp.where(mode == 1, matvec(P, z[11:14]), value)
+        mode = modes[k]
+        Omega = jnp.where(mode == 1, matvec(projectors[k], z[11:14]), values[k])
         reset_z = jnp.concatenate([q0, z[4:11], Omega, z[14:]])
         return jnp.where(mode == 0, z, reset_z)
 

@@ -156,6 +156,20 @@ def _sample_masks(ts_out, a, b, last: bool):
     return starts & ends
 
 
+def _homogeneous(controls):
+    """Stack per-segment controls if they share their structure and static parts."""
+    parts = [eqx.partition(c, eqx.is_array) for c in controls]
+    dyn0, st0 = parts[0]
+    tdef = jax.tree_util.tree_structure(dyn0)
+    for dyn, st in parts[1:]:
+        if jax.tree_util.tree_structure(dyn) != tdef or not eqx.tree_equal(st, st0):
+            return None
+        if any(jnp.shape(u) != jnp.shape(v) for u, v in zip(jax.tree_util.tree_leaves(dyn), jax.tree_util.tree_leaves(dyn0))):
+            return None
+    stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *[d for d, _ in parts])
+    return stacked, st0
+
+
 def solve_segments(
     field,
     outputs,
@@ -175,18 +189,19 @@ def solve_segments(
 ):
     """Integrate `field(t, z, (p, d, control, a, b))` over consecutive segments
     `(control, a, b)`, restarting at each (after `z = jump_fn(k, a, z, control)` if given),
-    and sample the flat state and `outputs(p, d, control, t, z, a, b)` at `ts_out`."""
+    and sample the flat state and `outputs(p, d, control, t, z, a, b)` at `ts_out`.
+
+    Segments whose controls share a structure (e.g. the paper's gaits) run in one
+    `lax.scan`, so compile time does not grow with their number.
+    """
     n_seg = len(segments)
-    z = z0
     T = ts_out.shape[0]
     N = d.k.shape[0]
-    zs = jnp.zeros((T, z0.shape[0]), z0.dtype)
-    om, cd, Ks = jnp.zeros((T, 3), z0.dtype), jnp.zeros((T, N), z0.dtype), jnp.zeros((T, N), z0.dtype)
-    seg = jnp.zeros((T,), jnp.int32)
-    code = jnp.array(0)  # 0 ok, 1 solver failure (max_steps, dt), 2 non-finite values
-    steps = jnp.array(0)
+    dt = z0.dtype
     controller = dfx.PIDController(rtol=rtol, atol=atol)
-    for k, (control, a, b) in enumerate(segments):
+
+    def one_segment(carry, k, control, a, b):
+        z, zs, om, cd, Ks, seg, code, steps = carry
         if jump_fn is not None:
             z = jump_fn(k, a, z, control)
         t_save = jnp.clip(ts_out, a, b)
@@ -203,10 +218,32 @@ def solve_segments(
         cd = jnp.where(mask[:, None], out[1], cd)
         Ks = jnp.where(mask[:, None], out[2], Ks)
         seg = jnp.where(mask, k, seg)
-        z = ys[-1]
         finite = jnp.all(jnp.isfinite(ys)) & jnp.all(jnp.isfinite(out[2]))
-        code = jnp.where(code != 0, code, jnp.where(~finite, 2, jnp.where(sol.result == dfx.RESULTS.successful, 0, 1)))
+        status = jnp.where(~finite, 2, jnp.where(sol.result == dfx.RESULTS.successful, 0, 1))
+        code = jnp.where(code != 0, code, status)
         steps = steps + sol.stats["num_accepted_steps"]
+        return (ys[-1], zs, om, cd, Ks, seg, code, steps)
+
+    carry = (
+        z0, jnp.zeros((T, z0.shape[0]), dt), jnp.zeros((T, 3), dt), jnp.zeros((T, N), dt),
+        jnp.zeros((T, N), dt), jnp.zeros((T,), jnp.int32), jnp.array(0, jnp.int32), jnp.array(0, jnp.int32),
+    )  # fmt: skip
+    controls = [c for c, _, _ in segments]
+    stacked = _homogeneous(controls) if n_seg > 1 else None
+    if stacked is None:
+        for k, (control, a, b) in enumerate(segments):
+            carry = one_segment(carry, jnp.array(k, jnp.int32), control, a, b)
+    else:
+        dyn, static = stacked
+        xs = (jnp.arange(n_seg, dtype=jnp.int32), dyn, jnp.stack([a for _, a, _ in segments]),
+              jnp.stack([b for _, _, b in segments]))  # fmt: skip
+
+        def body(c, x):
+            k, dc, a, b = x
+            return one_segment(c, k, eqx.combine(dc, static), a, b), None
+
+        carry, _ = jax.lax.scan(body, carry, xs)
+    _, zs, om, cd, Ks, seg, code, steps = carry
     if throw:
         zs = eqx.branched_error_if(zs, code != 0, code - 1, _FAILURE_MESSAGES)
     return zs, om, cd, Ks, seg, code == 0, steps
