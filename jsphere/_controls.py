@@ -38,6 +38,8 @@ class Sampled(eqx.Module):
         if isinstance(ts, jax.core.Tracer) or isinstance(vals, jax.core.Tracer):
             return
         ts, vals = np.asarray(ts), np.asarray(vals)
+        if vals.ndim != 2:
+            raise ValueError(f"Sampled.values must be a (T, N) table, one column per wheel; got shape {vals.shape}.")
         if ts.ndim != 1 or ts.shape[0] < 2:
             raise ValueError(f"Sampled.ts must be 1-D with at least 2 times; got shape {ts.shape}.")
         if vals.shape[0] != ts.shape[0]:
@@ -91,12 +93,9 @@ class Sampled(eqx.Module):
         return jnp.where(both, central, jnp.where(hl > 0, dl, dr))
 
 
-def _as_fn(fn_or_samples, ts, kind):
-    if ts is not None:
-        return Sampled(jnp.asarray(ts), jnp.asarray(fn_or_samples), kind)
-    if not callable(fn_or_samples):
-        raise TypeError("a control needs a function of time `fn(t) -> (N,)`, or a table with `ts=`.")
-    return fn_or_samples
+def _check_callable(fn, cls: str):
+    if not callable(fn):
+        raise TypeError(f"{cls} needs a function of time fn(t) -> (N,), or use {cls}.from_samples(ts, values); got {type(fn).__name__}.")
 
 
 class Torques(eqx.Module):
@@ -110,6 +109,7 @@ class Torques(eqx.Module):
     jump_ts: tuple[float, ...] = eqx.field(static=True, default=())
 
     def __init__(self, fn: Callable, jump_ts: Sequence[float] = ()):
+        _check_callable(fn, "Torques")
         self.fn = fn
         self.jump_ts = tuple(sorted(float(t) for t in jump_ts))
 
@@ -138,6 +138,7 @@ class WheelSpeeds(eqx.Module):
     jump_ts: tuple[float, ...] = eqx.field(static=True, default=())
 
     def __init__(self, fn: Callable, jump_ts: Sequence[float] = ()):
+        _check_callable(fn, "WheelSpeeds")
         self.fn = fn
         self.jump_ts = tuple(sorted(float(t) for t in jump_ts))
 

@@ -236,6 +236,9 @@ def simulate_gaits(
         ts_out = jnp.asarray(np.concatenate(grids), dt)
     else:
         ts_out = jnp.asarray(ts, dt)
+    for i, r in enumerate(resets):
+        if not (r is None or isinstance(r, bool)) and np.shape(r) != (3,):
+            raise ValueError(f"simulate_gaits: reset[{i}] must be None, True/False or an Omega 3-vector; got shape {np.shape(r)}.")
     # one compiled function per number of gaits: reset modes and values are data
     modes = jnp.asarray([0 if (r is None or r is False) else 1 if r is True else 2 for r in resets], jnp.int32)
     values = jnp.stack([jnp.zeros(3, dt) if (r is None or isinstance(r, bool)) else jnp.asarray(r, dt) for r in resets]) if nb else jnp.zeros((0, 3), dt)

@@ -84,12 +84,17 @@ def load_params(path, *, dtype=None):
     if not path.exists():
         raise FileNotFoundError(f"parameter file {path} does not exist.")
     suffix = path.suffix.lower()
-    if suffix == ".toml":
-        d = tomllib.loads(path.read_text())
-    elif suffix == ".json":
-        d = json.loads(path.read_text())
-    else:
-        raise ValueError(f"{path}: parameter files must end in .toml or .json.")
+    try:
+        if suffix == ".toml":
+            d = tomllib.loads(path.read_text())
+        elif suffix == ".json":
+            d = json.loads(path.read_text())
+        else:
+            raise ValueError("parameter files must end in .toml or .json.")
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: not valid {suffix[1:].upper()}: {e}") from None
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
     if "params" in d and isinstance(d["params"], dict):  # a fit result (`jsphere fit --out`)
         d = d["params"]
     try:

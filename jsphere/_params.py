@@ -127,7 +127,7 @@ class RobotParams(eqx.Module):
         kw = {f: getattr(self, f) for f in _FIELDS}
         if "R_m" in changes:
             R_m = changes.pop("R_m")
-            kw["r_m"] = kw["r_m"] / jnp.linalg.norm(kw["r_m"]) * R_m
+            kw["r_m"] = kw["r_m"] / jnp.linalg.norm(kw["r_m"], axis=-1, keepdims=True) * jnp.asarray(R_m)[..., None]
         unknown = set(changes) - set(_FIELDS)
         if unknown:
             raise ValueError(f"RobotParams has no field(s) {sorted(unknown)}; fields are {list(_FIELDS)}.")
@@ -141,6 +141,8 @@ class RobotParams(eqx.Module):
     @classmethod
     def from_dict(cls, d: dict[str, Any], *, dtype=None) -> "RobotParams":
         """Inverse of `to_dict`. Accepts `r`, `n`, `alpha` as aliases of the wheel fields."""
+        if not isinstance(d, dict):
+            raise ValueError(f"a parameter set must be a table of fields {list(_FIELDS)}; got {type(d).__name__}.")
         d = dict(d)
         for alias, field in (("r", "wheel_r"), ("n", "wheel_n"), ("alpha", "wheel_alpha")):
             if alias in d and field not in d:

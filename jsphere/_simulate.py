@@ -122,9 +122,10 @@ def default_solver():
 
 
 _FAILURE_MESSAGES = (
-    "jsphere: the ODE solver failed (it reached max_steps, or its step size collapsed). Raise "
-    "`max_steps`, loosen `rtol`/`atol`, or check that the controls are smooth between their "
-    "`jump_ts`. Pass throw=False to get `Trajectory.ok` per trial instead of this error.",
+    "jsphere: the ODE solver failed: it reached max_steps (or its step size collapsed). Raise "
+    "`max_steps`, loosen `rtol`/`atol`, check that the controls are smooth between their "
+    "`jump_ts` and stay finite (NaN or inf values make every step fail). Pass throw=False to get "
+    "`Trajectory.ok` per trial instead of this error.",
     "jsphere: the simulation produced NaN or inf. Check the controls (they must be finite) and "
     "the initial state. Pass throw=False to get `Trajectory.ok` per trial instead of this error.",
 )
@@ -218,8 +219,11 @@ def solve_segments(
         cd = jnp.where(mask[:, None], out[1], cd)
         Ks = jnp.where(mask[:, None], out[2], Ks)
         seg = jnp.where(mask, k, seg)
+        failed = sol.result != dfx.RESULTS.successful
+        # diffrax fills the save points it never reached with inf, so decide by its result first
+        bad_start = ~jnp.all(jnp.isfinite(field(a, z, (p, d, control, a, b))))
         finite = jnp.all(jnp.isfinite(ys)) & jnp.all(jnp.isfinite(out[2]))
-        status = jnp.where(~finite, 2, jnp.where(sol.result == dfx.RESULTS.successful, 0, 1))
+        status = jnp.where(failed, jnp.where(bad_start, 2, 1), jnp.where(finite, 0, 2))
         code = jnp.where(code != 0, code, status)
         steps = steps + sol.stats["num_accepted_steps"]
         return (ys[-1], zs, om, cd, Ks, seg, code, steps)
@@ -290,6 +294,12 @@ def simulate(
         raise TypeError(
             "simulate: controls must be jsphere.Torques(fn) or jsphere.WheelSpeeds(fn); "
             f"got {type(controls).__name__}."
+        )
+    out_shape = jax.eval_shape(controls, jnp.asarray(t0, params.R0.dtype)).shape
+    if out_shape != (params.n_wheels,):
+        raise ValueError(
+            f"simulate: the controls return shape {out_shape} at t0 but the robot has {params.n_wheels} wheels; "
+            f"fn(t) must return ({params.n_wheels},)."
         )
     if state0.chi.shape[-1] != params.n_wheels:
         raise ValueError(f"simulate: state0.chi has {state0.chi.shape[-1]} wheels but params has {params.n_wheels}.")

@@ -1,0 +1,38 @@
+import json
+import os
+from pathlib import Path
+
+import jax
+import pytest
+
+jax.config.update("jax_enable_x64", True)
+
+import jsphere  # noqa: E402
+
+REFERENCE = Path(__file__).resolve().parents[1].parent / "shared" / "reference" / "reference_cases.json"
+if "JSPHERE_REFERENCE" in os.environ:
+    REFERENCE = Path(os.environ["JSPHERE_REFERENCE"])
+
+
+@pytest.fixture(scope="session")
+def reference():
+    """The independent derivation's values (../shared/reference); tests skip where it is absent."""
+    if not REFERENCE.exists():
+        pytest.skip(f"reference data not found at {REFERENCE}")
+    return json.loads(REFERENCE.read_text())
+
+
+@pytest.fixture(scope="session")
+def ref_params(reference):
+    return {k: jsphere.RobotParams.from_dict(v) for k, v in reference["param_sets"].items()}
+
+
+@pytest.fixture(scope="session")
+def paper():
+    return jsphere.RobotParams.paper()
+
+
+@pytest.fixture(scope="session")
+def straight(paper):
+    """Acceleration (5.1) + braking (5.3) of the paper's robot, true end states, 100 Hz."""
+    return jsphere.simulate_gaits(paper, [jsphere.acceleration(), jsphere.braking()])

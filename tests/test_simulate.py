@@ -1,0 +1,134 @@
+"""Simulation: closed loops between modes, transformations (jit, vmap, grad), precision."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jsphere
+
+
+def test_gait_torques_drive_the_torque_mode(paper):
+    """The gait's K(t), fed to the torque-driven simulation, reproduces the gait's motion."""
+    tr = jsphere.simulate_gaits(paper, [jsphere.acceleration(), jsphere.braking()], rate=1000)
+    sim = jsphere.simulate(paper, jsphere.State.at_rest(paper), jsphere.Torques.from_samples(tr.ts, tr.K), 4.0, ts=tr.ts)
+    assert np.max(np.abs(sim.x - tr.x)) < 1e-6 and np.max(np.abs(sim.y - tr.y)) < 1e-6
+    np.testing.assert_allclose(sim.Omega, tr.Omega, atol=1e-7)
+    np.testing.assert_allclose(sim.gamma, tr.gamma, atol=1e-7)
+
+
+def test_gait_wheel_speeds_drive_the_wheel_mode(paper):
+    """The gait's chi_dot(t), fed to the wheel-speed (servo) mode, reproduces the motion."""
+    tr = jsphere.simulate_gaits(paper, [jsphere.acceleration(), jsphere.braking()], rate=1000)
+    sim = jsphere.simulate(paper, jsphere.State.at_rest(paper), jsphere.WheelSpeeds.from_samples(tr.ts, tr.chi_dot), 4.0, ts=tr.ts)
+    assert np.max(np.abs(sim.x - tr.x)) < 1e-6 and np.max(np.abs(sim.y - tr.y)) < 1e-6
+    np.testing.assert_allclose(sim.chi_dot, tr.chi_dot, atol=1e-6)
+    interior = np.abs(np.asarray(tr.ts) % 2.0) > 0.01  # cubic slopes are one-sided at the jumps
+    np.testing.assert_allclose(sim.K[interior], tr.K[interior], atol=1e-5)
+
+
+def test_wheel_mode_jump_and_constraints(paper):
+    """Starting the kinematic control from rest is an impulse; afterwards (2.4) holds exactly."""
+    v = 0.15 * 0.864
+    ctrl = jsphere.kinematic_control(paper, jsphere.straight_line(v), t_stop=1.0)
+    tr = jsphere.simulate(paper, jsphere.State.at_rest(paper), ctrl, 2.0, ts=jnp.linspace(0.0, 2.0, 201))
+    u0 = jsphere.kinematic_wheel_speeds(paper, jnp.array([v, 0.0]))
+    np.testing.assert_allclose(tr.chi_dot[0], u0, atol=1e-12)  # command in force from t0
+    np.testing.assert_allclose(tr.chi_dot[-1], 0.0, atol=1e-12)  # wheels stopped after t_stop
+    res = jsphere.trajectory_residuals(paper, tr)
+    assert float(res["wheels"]) < 1e-9 and float(res["gamma_norm"]) < 1e-12
+    E = jsphere.energy_along(paper, tr)
+    after = np.asarray(tr.ts) > 1.0  # wheels locked: no power, energy conserved
+    assert np.ptp(np.asarray(E)[after]) < 1e-8
+
+
+def test_kinematic_wheel_speeds_realise_the_path(paper):
+    """(2.9): the wheel rates give omega - Omega that rolls the shell at the planned velocity."""
+    rdot = jnp.array([0.08, -0.05])
+    u = jsphere.kinematic_wheel_speeds(paper, rdot, Omega_gamma=0.2, omega_gamma=-0.1, psi=0.4)
+    w_minus_W = jsphere.relative_rate_from_wheel_speeds(paper, u)
+    c, s = np.cos(0.4), np.sin(0.4)
+    Q = np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]])
+    gamma = Q[:, 2]
+    Omega = 0.2 * gamma + np.cross(gamma, Q @ np.array([0.08, -0.05, 0.0])) / 0.15
+    np.testing.assert_allclose(w_minus_W, -0.1 * gamma - Omega, atol=1e-12)
+    v = jsphere.rolling_velocity(paper, jnp.asarray(gamma), jnp.asarray(Omega))
+    np.testing.assert_allclose((Q.T @ np.asarray(v))[:2], rdot, atol=1e-12)
+
+
+def _problem1(p, a):
+    return jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + jnp.array([0.0, 2.1, 4.2]))),
+                            1.0, rtol=1e-8, atol=1e-10)  # fmt: skip
+
+
+def test_jit_vmap_over_inputs_params_and_states(paper):
+    A = jnp.array([[0.05, 0.05, 0.05], [0.04, 0.06, 0.05]])
+    f = jax.jit(jax.vmap(lambda a: _problem1(paper, a)))
+    out = f(A)
+    for i in range(2):
+        single = _problem1(paper, A[i])
+        np.testing.assert_allclose(out.x[i, -1], single.x[-1], rtol=1e-12, atol=1e-15)
+    # vmap over parameter sets
+    ps = [paper, paper.replace(R_m=0.025), paper.replace(j=0.0)]
+    stacked = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *ps)
+    outp = jax.jit(jax.vmap(lambda p: _problem1(p, A[0])))(stacked)
+    for i, p in enumerate(ps):
+        np.testing.assert_allclose(outp.x[i, -1], _problem1(p, A[0]).x[-1], rtol=1e-10, atol=1e-14)
+    # vmap over initial states
+    s0 = [jsphere.State.at_rest(paper, x=0.1), jsphere.State.from_axes(paper, Omega=(0.0, 0.5, 0.0))]
+    S = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *s0)
+    ctrl = jsphere.Torques(lambda t: jnp.zeros(3))
+    outs = jax.vmap(lambda s: jsphere.simulate(paper, s, ctrl, 1.0))(S)
+    for i, s in enumerate(s0):
+        np.testing.assert_allclose(outs.x[i, -1], jsphere.simulate(paper, s, ctrl, 1.0).x[-1], rtol=1e-12, atol=1e-15)
+
+
+def _fd(f, x, h):
+    return (f(x + h) - f(x - h)) / (2 * h)
+
+
+def test_grad_of_final_position_wrt_params(paper):
+    """Reverse-mode gradient of a torque-driven final x with respect to R_m, j and I vs finite differences."""
+    a = jnp.array([0.05, 0.045, 0.055])
+
+    def final_x(p):
+        return _problem1(p, a).x[-1]
+
+    g = jax.jit(jax.grad(final_x))(paper)
+    checks = [
+        ("r_m[2]", lambda p, v: eqx.tree_at(lambda q: q.r_m, p, p.r_m.at[2].set(v)), paper.r_m[2], g.r_m[2]),
+        ("j", lambda p, v: eqx.tree_at(lambda q: q.j, p, v), paper.j, g.j),
+        ("I[0,0]", lambda p, v: eqx.tree_at(lambda q: q.I, p, p.I.at[0, 0].set(v)), paper.I[0, 0], g.I[0, 0]),
+        ("I[2,2]", lambda p, v: eqx.tree_at(lambda q: q.I, p, p.I.at[2, 2].set(v)), paper.I[2, 2], g.I[2, 2]),
+    ]
+    fx = jax.jit(lambda p: final_x(p))
+    for name, setter, v0, gv in checks:
+        h = 1e-4 * abs(float(v0))
+        fd = _fd(lambda v: float(fx(setter(paper, v))), float(v0), h)
+        assert abs(float(gv) - fd) <= 1e-4 * abs(fd) + 1e-9, (name, float(gv), fd)
+
+
+def test_grad_wrt_gait_amplitude_and_params(paper):
+    ts = jnp.array([0.0, 4.0])
+
+    def stop(th, Rm):
+        p = eqx.tree_at(lambda q: q.r_m, paper, jnp.array([0.0, 0.0, -Rm]))
+        tr = jsphere.simulate_gaits(p, [jsphere.acceleration(theta_max=th), jsphere.braking(theta_max=th)], ts=ts)
+        return tr.x[-1]
+
+    f = jax.jit(stop)
+    g_th, g_rm = jax.jit(jax.grad(stop, argnums=(0, 1)))(0.1, 0.027)
+    fd_th = _fd(lambda v: float(f(v, 0.027)), 0.1, 1e-5)
+    fd_rm = _fd(lambda v: float(f(0.1, v)), 0.027, 1e-6)
+    assert abs(float(g_th) - fd_th) < 1e-6 * abs(fd_th)
+    assert abs(float(g_rm) - fd_rm) < 1e-5 * abs(fd_rm)
+    # the stop distance grows with R_m: MODEL-NOTES gives dOmega_1/dR_m = +0.036 (1/s)/mm
+    assert 1e-3 * float(g_rm) == pytest.approx(2 * 0.15 * 0.036, rel=0.05)
+
+
+def test_float32_on_request():
+    p32 = jsphere.RobotParams.paper(dtype=jnp.float32)
+    tr = jsphere.simulate_gaits(p32, [jsphere.acceleration(), jsphere.braking()], rtol=1e-6, atol=1e-8)
+    assert tr.x.dtype == jnp.float32
+    assert abs(float(tr.x[-1]) - 0.259199) < 1e-4
