@@ -17,9 +17,12 @@ if _os.environ.get("JSPHERE_X64", "1") != "0":
     _jax.config.update("jax_enable_x64", True)
 
 from ._controls import (
+    Constant as Constant,
     Sampled as Sampled,
+    StraightLine as StraightLine,
     Torques as Torques,
     WheelSpeeds as WheelSpeeds,
+    Zero as Zero,
     kinematic_control as kinematic_control,
     straight_line as straight_line,
 )
@@ -31,7 +34,6 @@ from ._dynamics import (
     power as power,
 )
 from ._gaits import (
-    Constant as Constant,
     Gait as Gait,
     SinSquared as SinSquared,
     acceleration as acceleration,

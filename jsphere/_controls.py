@@ -158,6 +158,31 @@ class WheelSpeeds(eqx.Module):
         return jax.jvp(self.fn, (t,), (jnp.ones_like(t),))
 
 
+class Zero(eqx.Module):
+    """`fn(t) = 0` for `n` wheels (a Module, so repeated simulations share one compilation)."""
+
+    n: int = eqx.field(static=True)
+
+    def __call__(self, t):
+        return jnp.zeros(self.n, dtype=jnp.result_type(t))
+
+
+class _KinematicCommand(eqx.Module):
+    params: RobotParams
+    path: Callable
+    psi: Callable
+    Omega_gamma: Callable
+    t_stop: float | None = eqx.field(static=True)
+
+    def __call__(self, t):
+        rdot = jax.jvp(self.path, (t,), (jnp.ones_like(t),))[1]
+        ps, omega_gamma = jax.jvp(self.psi, (t,), (jnp.ones_like(t),))
+        u = kinematic_wheel_speeds(self.params, rdot, Omega_gamma=self.Omega_gamma(t), omega_gamma=omega_gamma, psi=ps)
+        if self.t_stop is not None:
+            u = jnp.where(t < self.t_stop, u, jnp.zeros_like(u))
+        return u
+
+
 def kinematic_control(
     params: RobotParams,
     path: Callable,
@@ -176,28 +201,34 @@ def kinematic_control(
     - `t_stop`: if given, the wheels are stopped (`chi_dot = 0`) from this time on, as in the
       paper's Fig. 2 experiment.
     """
-    psi = psi if psi is not None else (lambda t: jnp.zeros_like(t))
-    Omega_gamma = Omega_gamma if Omega_gamma is not None else (lambda t: jnp.zeros_like(t))
-
-    def fn(t):
-        rdot = jax.jvp(path, (t,), (jnp.ones_like(t),))[1]
-        ps, omega_gamma = jax.jvp(psi, (t,), (jnp.ones_like(t),))
-        u = kinematic_wheel_speeds(params, rdot, Omega_gamma=Omega_gamma(t), omega_gamma=omega_gamma, psi=ps)
-        if t_stop is not None:
-            u = jnp.where(t < t_stop, u, jnp.zeros_like(u))
-        return u
-
-    return WheelSpeeds(fn, () if t_stop is None else (t_stop,))
+    zero = Constant(0.0)
+    cmd = _KinematicCommand(params, path, psi or zero, Omega_gamma or zero, None if t_stop is None else float(t_stop))
+    return WheelSpeeds(cmd, () if t_stop is None else (t_stop,))
 
 
-def straight_line(speed: float, heading: float = 0.0) -> Callable:
+class Constant(eqx.Module):
+    """A constant function of time."""
+
+    value: Float[Array, ""] = eqx.field(converter=jnp.asarray)
+
+    def __call__(self, t):
+        return self.value + jnp.zeros_like(t)
+
+
+class StraightLine(eqx.Module):
     """`r_c(t) = speed * t * (cos heading, sin heading)`: the straight line of (5.5).
 
     The paper's (5.5) `x = 0, y = 0.13 t` in its figure frame is `heading = 0` here (our `x`
     is the paper's `y`; see `docs/model.md`).
     """
 
-    def path(t):
-        return speed * t * jnp.stack([jnp.cos(jnp.asarray(heading)), jnp.sin(jnp.asarray(heading))])
+    speed: Float[Array, ""] = eqx.field(converter=jnp.asarray)
+    heading: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.0)
 
-    return path
+    def __call__(self, t):
+        return self.speed * t * jnp.stack([jnp.cos(self.heading), jnp.sin(self.heading)])
+
+
+def straight_line(speed: float, heading: float = 0.0) -> StraightLine:
+    """The path of (5.5): see `StraightLine`."""
+    return StraightLine(speed, heading)

@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ._controls import Constant
 from ._dynamics import free_Omega_dot, required_torques
 from ._kinematics import rest_attitude
 from ._linalg import cross, matvec, rotation_between, rotmat
@@ -34,15 +35,6 @@ class SinSquared(eqx.Module):
 
     def __call__(self, t):
         return self.amplitude * jnp.sin(jnp.pi * t / self.period) ** 2
-
-
-class Constant(eqx.Module):
-    """A constant function of time (e.g. the direction `phi(t) = phi_0` of a gait)."""
-
-    value: Float[Array, ""]
-
-    def __call__(self, t):
-        return self.value + jnp.zeros_like(t)
 
 
 def _zero(t):

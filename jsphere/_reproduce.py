@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._controls import Torques, kinematic_control, straight_line
+from ._controls import Torques, Zero, kinematic_control, straight_line
 from ._gaits import acceleration, braking, simulate_gaits, turn
 from ._params import RobotParams
 from ._simulate import Trajectory, simulate
@@ -209,7 +209,7 @@ def _gaits_then_free(p: RobotParams, gaits: Trajectory, ts8) -> Trajectory:
     """The gait motion `gaits` followed by free motion (`K = 0`) until `ts8[-1]`."""
     ts8 = np.asarray(ts8)
     t_end = float(gaits.ts[-1])
-    after = simulate(p, gaits.state(-1), Torques(lambda t: jnp.zeros(p.n_wheels)), float(ts8[-1]), t0=t_end, ts=ts8[ts8 > t_end])
+    after = simulate(p, gaits.state(-1), Torques(Zero(p.n_wheels)), float(ts8[-1]), t0=t_end, ts=ts8[ts8 > t_end])
     return concatenate_trajectories(gaits, after)
 
 

@@ -57,9 +57,21 @@ def test_kinematic_wheel_speeds_realise_the_path(paper):
     np.testing.assert_allclose((Q.T @ np.asarray(v))[:2], rdot, atol=1e-12)
 
 
+class Sines(eqx.Module):
+    """`K_i(t) = a_i sin(pi t + 2.1 (i - 1))`: a control holding arrays, so one compiled
+    simulation serves every amplitude (a new lambda per call would recompile)."""
+
+    a: jax.Array
+
+    def __call__(self, t):
+        return self.a * jnp.sin(jnp.pi * t + jnp.array([0.0, 2.1, 4.2]))
+
+
+ZERO = jsphere.Torques(lambda t: jnp.zeros(3))
+
+
 def _problem1(p, a):
-    return jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + jnp.array([0.0, 2.1, 4.2]))),
-                            1.0, rtol=1e-8, atol=1e-10)  # fmt: skip
+    return jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(Sines(a)), 1.0, rtol=1e-8, atol=1e-10)
 
 
 def test_jit_vmap_over_inputs_params_and_states(paper):
@@ -78,10 +90,9 @@ def test_jit_vmap_over_inputs_params_and_states(paper):
     # vmap over initial states
     s0 = [jsphere.State.at_rest(paper, x=0.1), jsphere.State.from_axes(paper, Omega=(0.0, 0.5, 0.0))]
     S = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *s0)
-    ctrl = jsphere.Torques(lambda t: jnp.zeros(3))
-    outs = jax.vmap(lambda s: jsphere.simulate(paper, s, ctrl, 1.0))(S)
+    outs = jax.vmap(lambda s: jsphere.simulate(paper, s, ZERO, 1.0))(S)
     for i, s in enumerate(s0):
-        np.testing.assert_allclose(outs.x[i, -1], jsphere.simulate(paper, s, ctrl, 1.0).x[-1], rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(outs.x[i, -1], jsphere.simulate(paper, s, ZERO, 1.0).x[-1], rtol=1e-12, atol=1e-15)
 
 
 def _fd(f, x, h):
@@ -102,7 +113,7 @@ def test_grad_of_final_position_wrt_params(paper):
         ("I[0,0]", lambda p, v: eqx.tree_at(lambda q: q.I, p, p.I.at[0, 0].set(v)), paper.I[0, 0], g.I[0, 0]),
         ("I[2,2]", lambda p, v: eqx.tree_at(lambda q: q.I, p, p.I.at[2, 2].set(v)), paper.I[2, 2], g.I[2, 2]),
     ]
-    fx = jax.jit(lambda p: final_x(p))
+    fx = jax.jit(final_x)
     for name, setter, v0, gv in checks:
         h = 1e-4 * abs(float(v0))
         fd = _fd(lambda v: float(fx(setter(paper, v))), float(v0), h)
