@@ -93,25 +93,29 @@ class Sampled(eqx.Module):
         return jnp.where(both, central, jnp.where(hl > 0, dl, dr))
 
 
-def _check_callable(fn, cls: str):
-    if not callable(fn):
-        raise TypeError(f"{cls} needs a function of time fn(t) -> (N,), or use {cls}.from_samples(ts, values); got {type(fn).__name__}.")
-
-
-class Torques(eqx.Module):
-    """Axle torques `K(t)` [N m] (`+K_i n_i` on wheel i, `-K_i n_i` on the platform).
-
-    `Torques(fn)` with `fn(t) -> (N,)` traceable by JAX, or `Torques.from_samples(ts, K)`.
-    `jump_ts`: times where `K` jumps (the integration restarts there).
-    """
+class _Control(eqx.Module):
+    """A function of time `fn(t) -> (N,)` and the static times `jump_ts` where it jumps."""
 
     fn: Callable
     jump_ts: tuple[float, ...] = eqx.field(static=True, default=())
 
     def __init__(self, fn: Callable, jump_ts: Sequence[float] = ()):
-        _check_callable(fn, "Torques")
+        if not callable(fn):
+            name = type(self).__name__
+            raise TypeError(f"{name} needs a function of time fn(t) -> (N,), or use {name}.from_samples(ts, values); got {type(fn).__name__}.")
         self.fn = fn
         self.jump_ts = tuple(sorted(float(t) for t in jump_ts))
+
+    def __call__(self, t):
+        return self.fn(t)
+
+
+class Torques(_Control):
+    """Axle torques `K(t)` [N m] (`+K_i n_i` on wheel i, `-K_i n_i` on the platform).
+
+    `Torques(fn)` with `fn(t) -> (N,)` traceable by JAX, or `Torques.from_samples(ts, K)`.
+    `jump_ts`: times where `K` jumps (the integration restarts there).
+    """
 
     @classmethod
     def from_samples(cls, ts: Float[ArrayLike, " T"], K: Float[ArrayLike, "T N"], *, kind: str = "cubic") -> "Torques":
@@ -120,11 +124,8 @@ class Torques(eqx.Module):
         jumps = f.jump_ts if kind != "zoh" else tuple(float(t) for t in np.asarray(ts)[1:-1])
         return cls(f, jumps)
 
-    def __call__(self, t):
-        return self.fn(t)
 
-
-class WheelSpeeds(eqx.Module):
+class WheelSpeeds(_Control):
     """Commanded wheel rates `chi_dot(t)` [rad/s] relative to the platform (speed-controlled
     motors: servo constraints).
 
@@ -134,14 +135,6 @@ class WheelSpeeds(eqx.Module):
     with the momentum of the control-free equation conserved (see `docs/model.md`).
     """
 
-    fn: Callable
-    jump_ts: tuple[float, ...] = eqx.field(static=True, default=())
-
-    def __init__(self, fn: Callable, jump_ts: Sequence[float] = ()):
-        _check_callable(fn, "WheelSpeeds")
-        self.fn = fn
-        self.jump_ts = tuple(sorted(float(t) for t in jump_ts))
-
     @classmethod
     def from_samples(cls, ts: Float[ArrayLike, " T"], chi_dot: Float[ArrayLike, "T N"], *, kind: str = "cubic") -> "WheelSpeeds":
         """Wheel rates from a table (repeat a time stamp to encode a jump)."""
@@ -149,9 +142,6 @@ class WheelSpeeds(eqx.Module):
         if kind == "zoh":
             raise ValueError("WheelSpeeds.from_samples: kind='zoh' would make every sample a jump; use 'linear' or 'cubic'.")
         return cls(f, f.jump_ts)
-
-    def __call__(self, t):
-        return self.fn(t)
 
     def value_and_rate(self, t):
         """`(chi_dot(t), chi_ddot(t))`, the rate by forward-mode autodiff."""

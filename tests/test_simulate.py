@@ -143,3 +143,20 @@ def test_float32_on_request():
     tr = jsphere.simulate_gaits(p32, [jsphere.acceleration(), jsphere.braking()], rtol=1e-6, atol=1e-8)
     assert tr.x.dtype == jnp.float32
     assert abs(float(tr.x[-1]) - 0.259199) < 1e-4
+
+
+def test_jacfwd_with_forward_mode_adjoint(paper):
+    import diffrax
+
+    def final_xy(a):
+        tr = jsphere.simulate(paper, jsphere.State.at_rest(paper), jsphere.Torques(Sines(a)), 0.5, adjoint=diffrax.ForwardMode())
+        return jnp.stack([tr.x[-1], tr.y[-1]])
+
+    a0 = jnp.array([0.05, 0.045, 0.055])
+    J = jax.jacfwd(final_xy)(a0)
+    Jr = jax.jacrev(lambda a: jnp.stack([_problem1_t(paper, a, 0.5).x[-1], _problem1_t(paper, a, 0.5).y[-1]]))(a0)
+    np.testing.assert_allclose(J, Jr, rtol=1e-6, atol=1e-12)
+
+
+def _problem1_t(p, a, t1):
+    return jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(Sines(a)), t1, rtol=1e-8, atol=1e-10)
