@@ -107,7 +107,7 @@ class _Control(eqx.Module):
         self.jump_ts = tuple(sorted(float(t) for t in jump_ts))
 
     def __call__(self, t):
-        return self.fn(t)
+        return jnp.asarray(self.fn(t), dtype=jnp.result_type(t))
 
 
 class Torques(_Control):
@@ -145,7 +145,7 @@ class WheelSpeeds(_Control):
 
     def value_and_rate(self, t):
         """`(chi_dot(t), chi_ddot(t))`, the rate by forward-mode autodiff."""
-        return jax.jvp(self.fn, (t,), (jnp.ones_like(t),))
+        return jax.jvp(self, (t,), (jnp.ones_like(t),))
 
 
 class Zero(eqx.Module):
