@@ -19,8 +19,15 @@ from ._dynamics import free_Omega_dot, required_torques
 from ._kinematics import rest_attitude
 from ._linalg import cross, matvec, rotation_between, rotmat
 from ._params import RobotParams, derive
-from ._simulate import Trajectory, _kin_rates, assemble, default_solver, solve_segments
+from ._simulate import Trajectory, _kin_rates, assemble, default_solver, raise_on_failure, solve_segments
 from ._state import State
+
+
+def _real(x):
+    """A float array of the default float dtype (strongly typed), so that Python floats and
+    NumPy/JAX scalars give the same compiled function."""
+    dtype = x.dtype if hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.floating) else jnp.result_type(float)
+    return jnp.asarray(x, dtype=dtype)
 
 
 class SinSquared(eqx.Module):
@@ -30,8 +37,8 @@ class SinSquared(eqx.Module):
     Proposition of Section 4 requires.
     """
 
-    amplitude: Float[Array, ""]
-    period: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=1.0)
+    amplitude: Float[Array, ""] = eqx.field(converter=_real)
+    period: Float[Array, ""] = eqx.field(converter=_real, default=1.0)
 
     def __call__(self, t):
         return self.amplitude * jnp.sin(jnp.pi * t / self.period) ** 2
@@ -63,9 +70,9 @@ class Gait(eqx.Module):
 
     def __init__(self, theta: Callable, phi: Callable | float = 0.0, omega_gamma: Callable | None = None, T: float = 2.0):
         self.theta = theta
-        self.phi = phi if callable(phi) else Constant(jnp.asarray(phi))
+        self.phi = phi if callable(phi) else Constant(_real(phi))
         self.omega_gamma = omega_gamma if omega_gamma is not None else _zero
-        self.T = jnp.asarray(T)
+        self.T = _real(T)
         if not isinstance(self.T, jax.core.Tracer) and not float(self.T) > 0:
             raise ValueError(f"Gait.T must be a positive duration in seconds; got {float(self.T)}.")
 
@@ -237,14 +244,19 @@ def simulate_gaits(
     if values.shape != (nb, 3):
         raise ValueError(f"simulate_gaits: an explicit reset must be an Omega 3-vector; got shapes {values.shape}.")
     resets = (modes, values)
-    return _simulate_gaits(
-        params, gaits, state0, ts_out, resets, solver or default_solver(), rtol, atol, max_steps, throw,
+    # gait coefficients in the parameters' precision (float32 robots stay float32)
+    gaits = jax.tree_util.tree_map(
+        lambda x: x.astype(dt) if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) else x, gaits
+    )
+    traj = _simulate_gaits(
+        params, gaits, state0, ts_out, resets, solver or default_solver(), rtol, atol, max_steps,
         adjoint or dfx.RecursiveCheckpointAdjoint(),
     )
+    return raise_on_failure(traj, throw)
 
 
 @eqx.filter_jit
-def _simulate_gaits(params, gaits, state0, ts_out, resets, solver, rtol, atol, max_steps, throw, adjoint):
+def _simulate_gaits(params, gaits, state0, ts_out, resets, solver, rtol, atol, max_steps, adjoint):
     dt = params.R0.dtype
     d = derive(params)
     Qm = rotation_between(jnp.array([0.0, 0.0, 1.0], dt), rest_attitude(params))
@@ -277,7 +289,7 @@ def _simulate_gaits(params, gaits, state0, ts_out, resets, solver, rtol, atol, m
 
     zs, om, cd, Ks, seg, ok, steps = solve_segments(
         _gait_field, _gait_outputs, params, d, segments, state0.flatten(), ts_out, jump_fn=jump_fn,
-        solver=solver, rtol=rtol, atol=atol, max_steps=max_steps, throw=throw, adjoint=adjoint,
+        solver=solver, rtol=rtol, atol=atol, max_steps=max_steps, adjoint=adjoint,
     )  # fmt: skip
     traj = assemble(params, d, ts_out, zs, om, cd, Ks, seg, ok, steps)
     # report the prescribed gamma(t) (the integrated one agrees to the solver tolerance)

@@ -221,5 +221,5 @@ def concatenate_trajectories(a: Trajectory, b: Trajectory) -> Trajectory:
     out = jax.tree_util.tree_map(join, a, b)
     seg = jnp.concatenate([a.segment, b.segment + jnp.max(a.segment) + 1])
     return eqx.tree_at(
-        lambda t: (t.segment, t.ok, t.num_steps), out, (seg, a.ok & b.ok, a.num_steps + b.num_steps)
+        lambda t: (t.segment, t.status, t.num_steps), out, (seg, jnp.maximum(a.status, b.status), a.num_steps + b.num_steps)
     )

@@ -26,8 +26,9 @@ class Trajectory(eqx.Module):
     `chi` [rad], `chi_dot` [rad/s] wheel angles and rates; `K` [N m] axle torques (the input in
     torque mode, the torques the motors must supply in wheel-speed and gait modes);
     `q, q_shell` orientation quaternions; `segment`: index of the gait or control segment of
-    each sample; `ok`: `False` if the solver failed (only with `throw=False`); `num_steps`:
-    accepted solver steps.
+    each sample; `status`: 0 if the solve succeeded, 1 if the solver failed (max steps), 2 if
+    values became non-finite (only seen with `throw=False`; `ok` is `status == 0`);
+    `num_steps`: accepted solver steps.
     """
 
     ts: Float[Array, " T"]
@@ -44,8 +45,13 @@ class Trajectory(eqx.Module):
     q: Float[Array, "T 4"]
     q_shell: Float[Array, "T 4"]
     segment: Int[Array, " T"]
-    ok: Bool[Array, ""]
+    status: Int[Array, ""]
     num_steps: Int[Array, ""]
+
+    @property
+    def ok(self) -> Bool[Array, ""]:
+        """`True` where the solve succeeded (per trial under `vmap`)."""
+        return self.status == 0
 
     def state(self, i: int = -1) -> State:
         """The `State` at sample `i` (default: the last), e.g. to continue a simulation."""
@@ -133,20 +139,35 @@ _FAILURE_MESSAGES = (
 )
 
 
-def check_finite_state(z, what: str):
-    return eqx.error_if(
-        z, ~jnp.all(jnp.isfinite(z)), f"jsphere: {what} contains NaN or inf; check the state and the controls."
-    )
+def raise_on_failure(traj: Trajectory, throw: bool) -> Trajectory:
+    """Turn a failed solve into an error.
+
+    Called outside the compiled solve, so that the compiled function holds no host callback
+    and can be kept in JAX's persistent compilation cache. With concrete results the error
+    is a Python `RuntimeError`; under a user's `jit`/`vmap` it is raised by equinox at run
+    time.
+    """
+    if not throw:
+        return traj
+    if isinstance(traj.status, jax.core.Tracer):
+        status = jnp.max(traj.status)
+        return eqx.tree_at(
+            lambda t: t.x, traj, eqx.branched_error_if(traj.x, status != 0, jnp.maximum(status - 1, 0), _FAILURE_MESSAGES)
+        )
+    status = int(np.max(np.asarray(traj.status)))
+    if status != 0:
+        raise RuntimeError(_FAILURE_MESSAGES[status - 1])
+    return traj
 
 
-def assemble(p, d, ts, zs, omega, chi_dot, K, segment, ok, num_steps) -> Trajectory:
+def assemble(p, d, ts, zs, omega, chi_dot, K, segment, status, num_steps) -> Trajectory:
     """Build a `Trajectory` from flat states `zs (T, 16+N)` and the mode's outputs."""
     q = quat_normalize(zs[:, 0:4])
     R = rotmat(q)
     return Trajectory(
         ts=ts, x=zs[:, 14], y=zs[:, 15], gamma=R[:, 2], alpha=R[:, 0], beta=R[:, 1],
         omega=omega, Omega=zs[:, 11:14], chi=zs[:, 16:], chi_dot=chi_dot, K=K,
-        q=q, q_shell=quat_normalize(zs[:, 4:8]), segment=segment, ok=ok, num_steps=num_steps,
+        q=q, q_shell=quat_normalize(zs[:, 4:8]), segment=segment, status=status, num_steps=num_steps,
     )  # fmt: skip
 
 
@@ -187,7 +208,6 @@ def solve_segments(
     rtol,
     atol,
     max_steps,
-    throw,
     adjoint,
 ):
     """Integrate `field(t, z, (p, d, control, a, b))` over consecutive segments
@@ -250,9 +270,7 @@ def solve_segments(
 
         carry, _ = jax.lax.scan(body, carry, xs)
     _, zs, om, cd, Ks, seg, code, steps = carry
-    if throw:
-        zs = eqx.branched_error_if(zs, code != 0, code - 1, _FAILURE_MESSAGES)
-    return zs, om, cd, Ks, seg, code == 0, steps
+    return zs, om, cd, Ks, seg, code, steps
 
 
 def simulate(
@@ -311,14 +329,15 @@ def simulate(
         tsn = np.asarray(ts_out)
         if tsn.ndim != 1 or np.any(np.diff(tsn) < 0) or not np.all(np.isfinite(tsn)):
             raise ValueError("simulate: ts must be a finite, non-decreasing 1-D array of times.")
-    return _simulate(
+    traj = _simulate(
         params, state0, controls, jnp.asarray(t0, dt), jnp.asarray(t1, dt), ts_out,
-        solver or default_solver(), rtol, atol, max_steps, throw, adjoint or dfx.RecursiveCheckpointAdjoint(),
+        solver or default_solver(), rtol, atol, max_steps, adjoint or dfx.RecursiveCheckpointAdjoint(),
     )  # fmt: skip
+    return raise_on_failure(traj, throw)
 
 
 @eqx.filter_jit
-def _simulate(params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_steps, throw, adjoint):
+def _simulate(params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_steps, adjoint):
     dt = params.R0.dtype
     d = derive(params)
     if ts_out is None:
@@ -327,8 +346,6 @@ def _simulate(params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_
     edges = [t0] + [jnp.clip(jnp.asarray(tj, dt), t0, t1) for tj in controls.jump_ts] + [t1]
     segments = [(controls, a, b) for a, b in zip(edges[:-1], edges[1:])]
     z0 = state0.flatten().astype(dt)
-    if throw:
-        z0 = check_finite_state(z0, "the initial state")
     jump_fn = None
     if isinstance(controls, WheelSpeeds):
 
@@ -340,6 +357,6 @@ def _simulate(params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_
 
     zs, om, cd, Ks, seg, ok, steps = solve_segments(
         field, outputs, params, d, segments, z0, ts_out, jump_fn=jump_fn, solver=solver,
-        rtol=rtol, atol=atol, max_steps=max_steps, throw=throw, adjoint=adjoint,
+        rtol=rtol, atol=atol, max_steps=max_steps, adjoint=adjoint,
     )  # fmt: skip
     return assemble(params, d, ts_out, zs, om, cd, Ks, seg, ok, steps)

@@ -12,8 +12,23 @@ from pathlib import Path
 
 def enable_compilation_cache() -> None:
     """Persist XLA executables between processes (`$JSPHERE_CACHE_DIR`, default
-    `~/.cache/jsphere/jax`), so a second run skips compilation."""
+    `~/.cache/jsphere/jax`), so a second run skips compilation.
+
+    JAX does not persist executables that contain host callbacks, and equinox's run-time
+    checks inside diffrax are host callbacks. For the CLI (whose inputs are validated before
+    any solve, and whose solver failures jsphere reports itself, outside the compiled code)
+    those checks are switched to equinox's `nan` mode unless `EQX_ON_ERROR` is set.
+    """
     import jax
+
+    if "EQX_ON_ERROR" not in os.environ:
+        try:
+            import equinox._errors as eqx_errors
+
+            if getattr(eqx_errors, "EQX_ON_ERROR", None) == "raise":
+                eqx_errors.EQX_ON_ERROR = "nan"
+        except ImportError:  # pragma: no cover - a future equinox without this module
+            pass
 
     path = os.environ.get("JSPHERE_CACHE_DIR", str(Path.home() / ".cache" / "jsphere" / "jax"))
     try:
