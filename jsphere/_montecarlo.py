@@ -23,7 +23,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._controls import Sampled, Torques, WheelSpeeds
 from ._gaits import Gait, simulate_gaits
+from ._simulate import simulate
+from ._state import State
 from ._io import atomic_write_text
 from ._linalg import cross
 from ._names import get_value, parse_name, set_value
@@ -71,24 +74,73 @@ def _sample(kinds: tuple[str, ...], ab, seed, i, dtype):
 CHUNK = 64
 
 
+class Actuators(eqx.Module):
+    """Imperfect execution of a replayed command table (`mode="torques"` or `"wheel_speeds"`).
+
+    Per trial and wheel: a gain `1 + gain_sd z`; per trial: a delay
+    `max(0, delay_s + delay_sd z)` [s]; per sample: white noise of sd `white_sd` and
+    band-limited noise of sd `band_sd` (white noise through a first-order low-pass filter of
+    bandwidth `band_hz`), in the command's units (N m or rad/s). The command is
+    `gain * (plan(t - delay) + noise)`, held at zero before the delayed start.
+    """
+
+    gain_sd: float = 0.0
+    delay_s: float = 0.0
+    delay_sd: float = 0.0
+    white_sd: float = 0.0
+    band_sd: float = 0.0
+    band_hz: float = 5.0
+
+
+def _noisy_table(key, plan_ts, plan_u, act: Actuators):
+    dt_s = plan_ts[-1] / (plan_ts.shape[0] - 1)  # the mean sample interval
+    k1, k2, k3, k4 = jax.random.split(key, 4)
+    N = plan_u.shape[1]
+    gain = 1.0 + act.gain_sd * jax.random.normal(k1, (N,), plan_u.dtype)
+    delay = jnp.maximum(0.0, act.delay_s + act.delay_sd * jax.random.normal(k2, (), plan_u.dtype))
+    u = plan_u + act.white_sd * jax.random.normal(k3, plan_u.shape, plan_u.dtype)
+    if act.band_sd > 0:
+        a = jnp.exp(-2.0 * jnp.pi * act.band_hz * dt_s)
+        e = jax.random.normal(k4, plan_u.shape, plan_u.dtype)
+        _, lp = jax.lax.scan(lambda c, x: (a * c + (1 - a) * x,) * 2, jnp.zeros(N, plan_u.dtype), e)
+        u = u + act.band_sd * lp / jnp.sqrt((1 - a) / (1 + a))
+    u = gain * u
+    # zero until the delayed start (a duplicated time stamp encodes the jump)
+    ts = jnp.concatenate([jnp.zeros((1,), plan_ts.dtype), plan_ts + delay])
+    u = jnp.concatenate([jnp.zeros((1, N), u.dtype), u])
+    return Sampled(ts, u, "cubic")
+
+
 @eqx.filter_jit
-def _run_batch(params, gaits, names, kinds, ab, seed, idx, reset, rtol, atol, mesh=None):
+def _run_batch(params, gaits, names, kinds, ab, seed, idx, reset, rtol, atol, mesh=None, mode="gait", plan=None,
+               actuators=Actuators(), Omega0_sd=0.0, settle=1.0, max_steps=16384):  # fmt: skip
     """Trials `idx` of a study: one compiled function per structure, reused across calls."""
     dt = params.R0.dtype
-    ts = jnp.reshape(sum(jnp.asarray(g.T, dt) for g in gaits), (1,))
+    T = sum(jnp.asarray(g.T, dt) for g in gaits)
+    ts = jnp.reshape(T, (1,))
 
     def one(i):
         vals = _sample(kinds, ab, seed, i, dt)
         p = params
         for j, name in enumerate(names):
             p = set_value(p, name, vals[j])
-        tr = simulate_gaits(p, gaits, ts=ts, reset=reset, rtol=rtol, atol=atol, throw=False)
+        key = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), i), 2**20)
+        k_omega, k_act = jax.random.split(key)
+        dOmega = Omega0_sd * jax.random.normal(k_omega, (3,), dt)
+        if mode == "gait":
+            tr = simulate_gaits(p, gaits, ts=ts, reset=reset, rtol=rtol, atol=atol, throw=False, Omega0=dOmega)
+        else:
+            table = _noisy_table(k_act, plan[0], plan[1], actuators)
+            s0 = State.at_rest(p)
+            s0 = eqx.tree_at(lambda s: s.Omega, s0, s0.Omega + dOmega)
+            ctrl = Torques(table) if mode == "torques" else WheelSpeeds(table)
+            tr = simulate(p, s0, ctrl, T + settle, rtol=rtol, atol=atol, throw=False, max_steps=max_steps)
         speed = p.R0 * jnp.linalg.norm(cross(tr.Omega[-1], tr.gamma[-1]))
         return vals, tr.x[-1], tr.y[-1], speed, tr.status
 
     def local(ii):  # this device's trials, in chunks of CHUNK
         out = jax.lax.map(jax.vmap(one), ii.reshape(-1, CHUNK))
-        return jax.tree_util.tree_map(lambda a: a.reshape((-1,) + a.shape[2:]), out)
+        return jax.tree_util.tree_map(lambda a: a.reshape((a.shape[0] * a.shape[1],) + a.shape[2:]), out)
 
     if mesh is None:
         return local(idx)
@@ -119,6 +171,8 @@ class MonteCarloResult:
         """Stop-point mean, covariance, the `level` confidence ellipse and quantiles (successful
         trials only)."""
         ok = self.status == 0
+        if not ok.any():
+            return {"n": int(self.n), "n_failed": int(self.n)}
         xy = np.stack([self.x_final[ok], self.y_final[ok]], axis=1)
         mean = xy.mean(axis=0)
         cov = np.cov(xy, rowvar=False) if len(xy) > 1 else np.zeros((2, 2))
@@ -165,6 +219,12 @@ def monte_carlo(
     reset=False,
     rtol: float = 1e-8,
     atol: float = 1e-10,
+    mode: str = "gait",
+    actuators: Actuators | None = None,
+    Omega0_sd: float = 0.0,
+    plan_rate: float = 200.0,
+    settle: float = 1.0,
+    max_steps: int = 65536,
     out: str | os.PathLike | None = None,
     progress: bool = True,
 ) -> MonteCarloResult:
@@ -181,6 +241,15 @@ def monte_carlo(
       a multiple of 64 times the number of local devices, over which each batch is sharded.
       Inside, trials run in vmapped chunks of 64 (`CHUNK`), so results are bitwise identical
       for any batch size and device count.
+    - `mode`: `"gait"` (default): each trial executes the gaits exactly (the paper's
+      model: `gamma(t)` prescribed, the motors supply whatever torque it takes). `"torques"` or
+      `"wheel_speeds"`: the commands planned once with the nominal `params` (sampled at
+      `plan_rate` Hz) are replayed open loop on each perturbed robot, through `actuators`
+      (gain, delay, white and band-limited noise; `Actuators`), for the gaits' duration plus
+      `settle` seconds: "where does the real robot stop?".
+    - `max_steps`: solver step limit per trial in the replay modes (noisy commands need many
+      steps: the noise is interpolated smoothly and the solver follows it).
+    - `Omega0_sd`: sd of a perturbation of the initial shell angular velocity [1/s].
     - `out`: a folder. Each finished batch is written there atomically, with a manifest; run
       the same call again after an interruption and it resumes (a folder holding a different
       study is refused).
@@ -190,6 +259,11 @@ def monte_carlo(
     """
     if n < 1:
         raise ValueError(f"monte_carlo: n must be >= 1; got {n}.")
+    if mode not in ("gait", "torques", "wheel_speeds"):
+        raise ValueError(f"monte_carlo: mode must be 'gait', 'torques' or 'wheel_speeds'; got {mode!r}.")
+    if actuators is not None and mode == "gait":
+        raise ValueError("monte_carlo: actuators apply to replayed commands; use mode='torques' or 'wheel_speeds'.")
+    actuators = actuators or Actuators()
     spec = _check_vary(params, vary)
     gaits = list(gaits)
     if not gaits or not all(isinstance(g, Gait) for g in gaits):
@@ -199,9 +273,17 @@ def monte_carlo(
     unit = CHUNK * nd
     B = int(math.ceil(max(1, min(batch_size, n)) / unit) * unit)
     n_batches = int(math.ceil(n / B))
+    plan = None
+    if mode != "gait":
+        nominal = simulate_gaits(params, gaits, reset=reset, rate=plan_rate)
+        tsn = np.asarray(nominal.ts)
+        u = np.asarray(nominal.K if mode == "torques" else nominal.chi_dot)
+        # the motors stop when the plan ends: a jump to zero at its last time stamp
+        tsn, u = np.concatenate([tsn, tsn[-1:]]), np.concatenate([u, np.zeros_like(u[:1])])
+        plan = (jnp.asarray(tsn), jnp.asarray(u))
     names = tuple(name for name, _, _, _ in spec)
     kinds = tuple(kind for _, kind, _, _ in spec)
-    ab = jnp.asarray([[a, b] for _, _, a, b in spec], dtype=params.R0.dtype).reshape(len(spec), 2)
+    ab = jnp.asarray(np.array([[a, b] for _, _, a, b in spec], dtype=np.float64).reshape(len(spec), 2), dtype=params.R0.dtype)
     mesh = None
     if nd > 1:  # each device runs its share of every batch
         from jax.sharding import Mesh
@@ -209,7 +291,7 @@ def monte_carlo(
         mesh = Mesh(np.array(devices), ("trials",))
 
     folder = Path(out) if out is not None else None
-    fp = _fingerprint(params, gaits, spec, seed, B, reset, rtol, atol)
+    fp = _fingerprint(params, gaits, spec, seed, B, (reset, mode, repr(actuators), Omega0_sd, plan_rate, settle), rtol, atol)
     if folder is not None:
         folder.mkdir(parents=True, exist_ok=True)
         manifest = folder / "manifest.json"
@@ -234,7 +316,8 @@ def monte_carlo(
                 parts.append({key: z[key] for key in z.files})
             continue
         idx = jnp.arange(k * B, (k + 1) * B, dtype=jnp.int32)
-        out_k = _run_batch(params, gaits, names, kinds, ab, jnp.asarray(seed, jnp.uint32), idx, reset, rtol, atol, mesh)
+        out_k = _run_batch(params, gaits, names, kinds, ab, jnp.asarray(seed, jnp.uint32), idx, reset, rtol, atol, mesh,
+                           mode, plan, actuators, Omega0_sd, settle, max_steps)  # fmt: skip
         vals, x, y, speed, status = jax.device_get(out_k)
         part = {"vals": np.asarray(vals), "x": np.asarray(x), "y": np.asarray(y), "speed": np.asarray(speed),
                 "status": np.asarray(status)}  # fmt: skip

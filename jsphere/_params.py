@@ -104,7 +104,7 @@ class RobotParams(eqx.Module):
 
         The paper does not give `R_m`, `j` or `g`; the defaults `R_m = 27.0146 mm` and
         `j = 2.7395e-4 kg m^2` reproduce its `Omega_1 = 0.864 1/s` and the `0.852 1/s` after
-        the turn (set "P1" of MODEL-NOTES.md). `RobotParams.paper(R_m=26.8727e-3, j=0.0)` is
+        the turn (set "P1" of docs/model.md, section 7). `RobotParams.paper(R_m=26.8727e-3, j=0.0)` is
         set "P0".
         """
         phis = 2.0 * np.pi * np.arange(3) / 3.0

@@ -125,7 +125,8 @@ def _outputs_wheel(p, d, control, t, z, t_start, t_end):
 def default_solver():
     """The default Runge-Kutta method: `diffrax.Dopri8()` (8th order). At the tolerances the
     paper's millimetre-level numbers need (rtol 1e-8 and below) it takes about 5x fewer steps
-    than `Tsit5` and runs 1.6-1.8x faster (benchmarks/NOTES.md)."""
+    than `Tsit5` and runs 2.5-4x faster for one trial, 1.5-1.8x under `vmap`
+    (benchmarks/NOTES.md)."""
     return dfx.Dopri8()
 
 

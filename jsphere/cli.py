@@ -61,6 +61,93 @@ def _cmd_reproduce(args) -> int:
     return 0
 
 
+GAIT_KINDS = ("acceleration", "braking", "turn")
+
+
+def load_study(path) -> dict:
+    """Read a Monte-Carlo study description (TOML). Schema (every key optional but `vary`):
+
+        trials = 10000            # overridden by --trials
+        seed = 0
+        batch_size = 4096
+        mode = "gait"             # "gait" | "torques" | "wheel_speeds"
+        params = "robot.toml"     # default: the paper's robot (path relative to this file)
+        Omega0_sd = 0.0           # [1/s]
+        settle = 1.0              # [s] (replay modes)
+        reset = false
+        gaits = [{kind = "acceleration", theta_max = 0.1, phi = 0.0, T = 2.0}, {kind = "braking"}]
+        [vary]                    # names as in `jsphere fit --free`
+        "r_m[2]" = ["normal", -0.0270146, 1e-4]
+        j = ["uniform", 2.0e-4, 3.5e-4]
+        [actuators]               # replay modes only; see jsphere.Actuators
+        gain_sd = 0.02
+        delay_s = 0.01
+    """
+    import jsphere
+
+    from ._io import tomllib
+
+    path = Path(path)
+    try:
+        cfg = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such study file.") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ValueError(f"{path}: not valid TOML: {e}") from None
+    known = {"trials", "seed", "batch_size", "mode", "params", "Omega0_sd", "settle", "reset", "gaits", "vary", "actuators"}
+    unknown = sorted(set(cfg) - known)
+    if unknown:
+        raise ValueError(f"{path}: unknown key(s) {unknown}; expected {sorted(known)}.")
+    if "vary" not in cfg:
+        raise ValueError(f"{path}: a study needs a [vary] table, e.g. \"r_m[2]\" = [\"normal\", -0.027, 1e-4].")
+    params = jsphere.RobotParams.paper()
+    if "params" in cfg:
+        params = jsphere.RobotParams.load((path.parent / cfg["params"]).resolve())
+    gaits = []
+    for k, g in enumerate(cfg.get("gaits", [{"kind": "acceleration"}, {"kind": "braking"}])):
+        g = dict(g)
+        kind = g.pop("kind", None)
+        if kind not in GAIT_KINDS:
+            raise ValueError(f"{path}: gaits[{k}].kind must be one of {GAIT_KINDS}; got {kind!r}.")
+        try:
+            gaits.append(getattr(jsphere, kind)(**g))
+        except TypeError as e:
+            raise ValueError(f"{path}: gaits[{k}]: {e}") from None
+    kwargs = dict(
+        vary={name: tuple(v) for name, v in cfg["vary"].items()}, seed=int(cfg.get("seed", 0)),
+        batch_size=int(cfg.get("batch_size", 4096)), mode=cfg.get("mode", "gait"), reset=cfg.get("reset", False),
+        Omega0_sd=float(cfg.get("Omega0_sd", 0.0)), settle=float(cfg.get("settle", 1.0)),
+    )  # fmt: skip
+    if "actuators" in cfg:
+        try:
+            kwargs["actuators"] = jsphere.Actuators(**{k: float(v) for k, v in cfg["actuators"].items()})
+        except TypeError as e:
+            raise ValueError(f"{path}: [actuators]: {e}") from None
+    return {"params": params, "gaits": gaits, "n": int(cfg.get("trials", 1000)), "kwargs": kwargs}
+
+
+def _cmd_montecarlo(args) -> int:
+    import jsphere
+
+    from ._io import atomic_write_text
+
+    study = load_study(args.config)
+    n = args.trials if args.trials is not None else study["n"]
+    out = Path(args.out)
+    res = jsphere.monte_carlo(study["params"], study["gaits"], n=n, out=out, progress=True, **study["kwargs"])
+    st = res.stats()
+    planned = jsphere.simulate_gaits(study["params"], study["gaits"], reset=study["kwargs"]["reset"])
+    st["planned_stop_m"] = [float(planned.x[-1]), float(planned.y[-1])]
+    atomic_write_text(out / "stats.json", json.dumps(st, indent=2) + "\n")
+    print(json.dumps(st, indent=2))
+    if not args.no_plots:
+        from .plots import montecarlo_figure
+
+        montecarlo_figure(res, out / "stop_points.png", planned=st["planned_stop_m"])
+    print(f"{n} trials in {res.elapsed_s:.1f} s; results in {out}/")
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="jsphere", description="Spherical robot with an internal omniwheel platform (JAX).")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -70,11 +157,23 @@ def main(argv=None) -> int:
     rp.add_argument("--no-plots", action="store_true", help="skip the figures")
     rp.add_argument("--no-full-stop", action="store_true", help="skip the search for the braking gait that stops")
     rp.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
+    mc = sub.add_parser("montecarlo", help="a Monte-Carlo study of the gaits (TOML description; see load_study)")
+    mc.add_argument("config", help="study description (.toml)")
+    mc.add_argument("--trials", type=int, help="number of trials (overrides the file)")
+    mc.add_argument("--out", default="study", help="output folder; a killed study resumes there (default: ./study)")
+    mc.add_argument("--no-plots", action="store_true", help="skip the figure")
+    mc.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
     args = parser.parse_args(argv)
     if not args.no_cache:
         enable_compilation_cache()
-    if args.command == "reproduce":
-        return _cmd_reproduce(args)
+    try:
+        if args.command == "reproduce":
+            return _cmd_reproduce(args)
+        if args.command == "montecarlo":
+            return _cmd_montecarlo(args)
+    except (ValueError, FileNotFoundError) as e:
+        print(f"jsphere {args.command}: error: {e}", file=sys.stderr)
+        return 2
     parser.error(f"unknown command {args.command}")
     return 2
 

@@ -103,3 +103,34 @@ def write_reproduction_figures(rep, out_dir) -> list[Path]:
     figure3(rep, paths[1])
     controls_figure(rep.trajectories["straight"], paths[2], title="acceleration (5.1) + braking (5.3): controls")
     return paths
+
+
+def montecarlo_figure(res, path, *, planned=None) -> None:
+    """Stop points of a Monte-Carlo study: scatter with the 95 % ellipse, and a histogram of
+    the distance from the mean stop (paper's figure frame, mm)."""
+    plt = _plt()
+    ok = np.asarray(res.status) == 0
+    xf, yf = -1e3 * np.asarray(res.y_final)[ok], 1e3 * np.asarray(res.x_final)[ok]
+    st = res.stats()
+    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 4.5))
+    a.plot(xf, yf, ".", ms=2, alpha=0.4, label=f"{ok.sum()} trials")
+    minor, major = st["ellipse"]["semi_axes_m"]
+    ang = st["ellipse"]["angle_rad"]
+    t = np.linspace(0, 2 * np.pi, 200)
+    (x0, y0), e1, e2 = st["mean_xy_m"], np.array([np.cos(ang), np.sin(ang)]), np.array([-np.sin(ang), np.cos(ang)])
+    ell = np.array([x0, y0])[:, None] + major * np.outer(e1, np.cos(t)) + minor * np.outer(e2, np.sin(t))
+    a.plot(-1e3 * ell[1], 1e3 * ell[0], "r-", label=f"{100 * st['ellipse']['level']:.0f}% ellipse")
+    mx, my = -1e3 * y0, 1e3 * x0
+    if planned is not None:
+        a.plot([-1e3 * planned[1]], [1e3 * planned[0]], "kx", label="planned stop")
+    a.set_xlabel("x [mm] (paper's frame)")
+    a.set_ylabel("y [mm]")
+    a.axis("equal")
+    a.legend(fontsize=7)
+    d = np.hypot(xf - mx, yf - my)
+    b.hist(d, bins=60)
+    b.set_xlabel("distance from the mean stop [mm]")
+    b.set_ylabel("trials")
+    fig.tight_layout()
+    atomic_savefig(fig, path, dpi=120)
+    plt.close(fig)

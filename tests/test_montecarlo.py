@@ -1,5 +1,6 @@
 """Monte-Carlo runner: statistics against linear sensitivity, determinism, resume, devices."""
 
+import json
 import os
 import subprocess
 import sys
@@ -93,3 +94,32 @@ def test_names_round_trip(paper):
     assert float(p.I[1, 0]) == 1e-4 and float(jsphere.get_value(p, "I[0,1]")) == 1e-4
     assert float(jsphere.get_value(jsphere.set_value(paper, "R_m", 0.03), "r_m[2]")) == pytest.approx(-0.03)
     assert jsphere.parse_name(" r_m [ 2 ] ") == ("r_m", (2,))
+
+
+def test_torque_replay_without_errors_reproduces_the_plan(paper):
+    """The planned torques replayed open loop on the nominal robot stop where the gaits stop."""
+    res = jsphere.monte_carlo(paper, GAITS, vary={}, n=64, batch_size=64, mode="torques", settle=0.5, progress=False)
+    plan = jsphere.simulate_gaits(paper, GAITS)
+    assert np.all(res.status == 0)
+    assert np.max(np.abs(res.x_final - float(plan.x[-1]))) < 2e-5
+    assert np.max(np.abs(res.y_final - float(plan.y[-1]))) < 2e-5
+    assert np.max(res.speed_final) < 2e-4
+
+
+def test_cli_montecarlo(tmp_path, study, capsys):
+    from jsphere.cli import main
+
+    cfg = tmp_path / "study.toml"
+    cfg.write_text(
+        'trials = 256\nseed = 7\nbatch_size = 128\ngaits = [{kind = "acceleration"}, {kind = "braking"}]\n'
+        '[vary]\n"r_m[2]" = ["normal", -0.0270146, 1e-4]\n'
+    )
+    out = tmp_path / "out"
+    assert main(["montecarlo", str(cfg), "--out", str(out), "--no-cache"]) == 0
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["mean_xy_m"] == pytest.approx(study.stats()["mean_xy_m"], abs=1e-15)
+    assert (out / "stop_points.png").stat().st_size > 10_000
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[vary]\nj = ["gauss", 1, 2]\n')
+    assert main(["montecarlo", str(bad), "--out", str(tmp_path / "o2"), "--no-cache"]) == 2
+    assert "normal" in capsys.readouterr().err

@@ -1,0 +1,511 @@
+"""Throughput benchmark of jsphere against a scipy baseline, in one run.
+
+    python benchmarks/run.py [--quick] [--out benchmarks/results.json]
+
+Problem 1: paper robot from rest, torques K_i(t) = a_i sin(pi t + 2.1 (i-1)), a_i = 0.05 (1 + 0.1 z_i),
+           z ~ N(0, 1) per trial (numpy default_rng(0)), [0, 4] s, rtol 1e-8, atol 1e-10, final x, y.
+           jsphere (jit + vmap of the public `simulate`) vs scipy `solve_ivp(DOP853)` on an
+           independent numpy right-hand side (benchmarks/numpy_model.py), one trial at a time.
+Problem 2: acceleration + braking gaits, theta_max ~ U(0.05, 0.15) per trial (default_rng(1)), final x.
+Problem 3: cost of jax.grad of sum(x_f^2 + y_f^2) over a batch of problem 1 with respect to
+           (r_m[2] = -R_m, j, diag I, m0, I0), relative to the forward pass of the same batch.
+
+See benchmarks/README.md for the meaning of every column and JSON field.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import json
+import math
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+sys.path.insert(0, str(ROOT))  # the jsphere of this checkout
+sys.path.insert(0, str(HERE))
+
+import numpy as np  # noqa: E402
+import scipy  # noqa: E402
+from scipy.integrate import solve_ivp  # noqa: E402
+
+import jsphere  # noqa: E402  (enables float64 in JAX)
+import equinox as eqx  # noqa: E402
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+from numpy_model import NumpyRobot, initial_state  # noqa: E402
+
+_SOURCE_AT_IMPORT = None  # set in main(), right after jsphere was imported
+T1 = 4.0
+RTOL, ATOL = 1e-8, 1e-10
+PHASES = np.array([0.0, 2.1, 4.2])  # 2.1 (i - 1), i = 1..3
+ACCURACY_TOL = 1e-6  # m, scipy vs jsphere final x, y
+GRAD_FD_TOL = 1e-3  # relative, jax.grad vs central finite differences
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def amplitudes(z: np.ndarray) -> np.ndarray:
+    return 0.05 * (1.0 + 0.1 * z)
+
+
+# ------------------------------------------------------------------------ timing
+
+
+def time_call(fn, *args, repeats: int, min_total_s: float = 1.0, max_repeats: int = 25) -> dict:
+    """First call (trace + compile + run), then `repeats` steady-state calls (more, up to
+    `max_repeats`, while their total is under `min_total_s`). Returns the timings and the
+    output of the last call."""
+    t = time.perf_counter()
+    out = jax.block_until_ready(fn(*args))
+    first = time.perf_counter() - t
+    times = []
+    while len(times) < repeats or (sum(times) < min_total_s and len(times) < max_repeats):
+        t = time.perf_counter()
+        out = jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t)
+    med = statistics.median(times)
+    return {
+        "first_call_s": first,
+        "median_s": med,
+        "compile_s": max(first - med, 0.0),
+        "compile_s_raw": first - med,
+        "repeats": len(times),
+        "times_s": times,
+        "_out": out,
+    }
+
+
+def public(d: dict) -> dict:
+    return {k: v for k, v in d.items() if not k.startswith("_")}
+
+
+# ------------------------------------------------------------------------ environment
+
+
+def _source_digest() -> str:
+    """sha256 over jsphere/*.py of this checkout (to tell whether the package changed mid-run)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for f in sorted((ROOT / "jsphere").glob("*.py")):
+        h.update(f.name.encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _git(*args):
+    import subprocess
+
+    try:
+        return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, timeout=10).stdout.strip()
+    except Exception:  # noqa: BLE001
+        return None
+
+
+def _checkout_version():
+    try:
+        import tomllib
+
+        return tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
+    except Exception:  # noqa: BLE001
+        return getattr(jsphere, "__version__", None)
+
+
+def environment() -> dict:
+    def ver(name):
+        try:
+            return version(name)
+        except PackageNotFoundError:
+            return None
+
+    dev = jax.devices()[0]
+    return {
+        "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "machine": {
+            "platform": platform.platform(),
+            "processor": platform.processor() or platform.machine(),
+            "python": platform.python_version(),
+            "cpu_count": os.cpu_count(),
+            "loadavg_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        },
+        "jax": {
+            "backend": jax.default_backend(),
+            "device_kind": dev.device_kind,
+            "device": str(dev),
+            "device_count": jax.device_count(),
+            "x64": bool(jax.config.jax_enable_x64),
+        },
+        "versions": {
+            "jax": jax.__version__,
+            "jaxlib": ver("jaxlib"),
+            "diffrax": ver("diffrax"),
+            "equinox": ver("equinox"),
+            "numpy": np.__version__,
+            "scipy": scipy.__version__,
+            "jsphere": _checkout_version(),
+        },
+        "jsphere_path": str(Path(jsphere.__file__).resolve().parent),
+        "jsphere_git": {
+            "commit": _git("rev-parse", "HEAD"),
+            "uncommitted_changes_in_jsphere": _git("status", "--porcelain", "--", "jsphere"),
+            "source_sha256_start": _SOURCE_AT_IMPORT,
+        },
+    }
+
+
+# ------------------------------------------------------------------------ problem 1
+
+
+def problem1_jsphere(p, Z, batches, repeats):
+    # Exactly the public API, as a user writes it.
+    f = jax.jit(
+        jax.vmap(
+            lambda a: jsphere.simulate(
+                p,
+                jsphere.State.at_rest(p),
+                jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + jnp.array([0.0, 2.1, 4.2]))),
+                4.0,
+                rtol=1e-8,
+                atol=1e-10,
+            )
+        )
+    )
+    rows, finals = [], {}
+    for B in batches:
+        log(f"[P1] jsphere batch {B} ...")
+        A = jnp.asarray(amplitudes(Z[:B]))
+        r = time_call(f, A, repeats=repeats)
+        tr = r["_out"]
+        steps = np.asarray(tr.num_steps)
+        finals[B] = np.stack([np.asarray(tr.x[:, -1]), np.asarray(tr.y[:, -1])], -1)
+        rows.append(
+            public(r)
+            | {
+                "batch": B,
+                "trials_per_s": B / r["median_s"],
+                "steps_mean": float(steps.mean()),
+                "steps_max": int(steps.max()),
+                "all_ok": bool(np.all(np.asarray(tr.ok))),
+            }
+        )
+        log(f"      {B / r['median_s']:.1f} trials/s, compile {r['compile_s']:.1f} s")
+    return rows, finals
+
+
+def scipy_trial(model, q0, a, rtol=RTOL, atol=ATOL):
+    K = lambda t: a * np.sin(np.pi * t + PHASES)  # noqa: E731
+    sol = solve_ivp(model.rhs, (0.0, T1), initial_state(q0), method="DOP853", rtol=rtol, atol=atol, args=(K,))
+    if sol.status != 0:
+        raise RuntimeError(f"solve_ivp failed: {sol.message}")
+    return sol
+
+
+def problem1_scipy(p, Z, n_trials, repeats):
+    model = NumpyRobot.from_params(p)
+    q0 = np.asarray(jsphere.State.at_rest(p).q)  # the initial condition, as data
+    A = amplitudes(Z[:n_trials])
+    log(f"[P1] scipy DOP853, {n_trials} trials x {repeats} repeats ...")
+    scipy_trial(model, q0, A[0])  # warm-up (imports, caches)
+    times, sols = [], None
+    for _ in range(repeats):
+        t = time.perf_counter()
+        sols = [scipy_trial(model, q0, a) for a in A]
+        times.append(time.perf_counter() - t)
+    med = statistics.median(times)
+    finals = np.array([s.y[10:12, -1] for s in sols])
+    row = {
+        "trials": n_trials,
+        "repeats": repeats,
+        "times_s": times,
+        "median_s": med,
+        "s_per_trial": med / n_trials,
+        "trials_per_s": n_trials / med,
+        "steps_mean": float(np.mean([len(s.t) - 1 for s in sols])),
+        "nfev_mean": float(np.mean([s.nfev for s in sols])),
+    }
+    log(f"      {row['trials_per_s']:.2f} trials/s")
+    return row, finals, model, q0
+
+
+def problem1_checks(model, q0, Z, scipy_finals, js_finals):
+    """Accuracy: scipy vs jsphere; both vs a tight DOP853 reference on trial 0; vmap consistency;
+    energy balance of the numpy model (an independent check of r1, r2 of (3.4))."""
+    n = scipy_finals.shape[0]
+    B_ref = min(b for b in js_finals if b >= n) if any(b >= n for b in js_finals) else max(js_finals)
+    n = min(n, B_ref)
+    diff = np.abs(scipy_finals[:n] - js_finals[B_ref][:n])
+    out = {
+        "compared_trials": n,
+        "jsphere_batch_used": B_ref,
+        "max_abs_diff_xy_m": float(diff.max()),
+        "tolerance_m": ACCURACY_TOL,
+        "pass": bool(diff.max() < ACCURACY_TOL),
+    }
+    a0 = amplitudes(Z[0])
+    ref = scipy_trial(model, q0, a0, rtol=1e-13, atol=1e-14).y[10:12, -1]
+    out["trial0_reference"] = "DOP853 rtol 1e-13 atol 1e-14 on the numpy model"
+    out["trial0_jsphere_err_m"] = float(np.abs(js_finals[B_ref][0] - ref).max())
+    out["trial0_scipy_err_m"] = float(np.abs(scipy_finals[0] - ref).max())
+    if 1 in js_finals:
+        out["batch1_vs_batched_trial0_m"] = float(np.abs(js_finals[1][0] - js_finals[B_ref][0]).max())
+    # energy balance: E(T) - E(0) = int_0^T sum_i K_i chi_dot_i dt
+    K = lambda t: a0 * np.sin(np.pi * t + PHASES)  # noqa: E731
+
+    def rhs(t, y):
+        return np.concatenate([model.rhs(t, y[:12], K), [model.power(y[:12], K(t))]])
+
+    sol = solve_ivp(rhs, (0.0, T1), np.concatenate([initial_state(q0), [0.0]]), method="DOP853", rtol=1e-12, atol=1e-13)
+    E0, E1, W = model.energy(sol.y[:12, 0]), model.energy(sol.y[:12, -1]), sol.y[12, -1]
+    out["energy_balance_residual_J"] = float(E1 - E0 - W)
+    out["energy_work_J"] = float(W)
+    return out
+
+
+# ------------------------------------------------------------------------ problem 2
+
+
+def problem2(p, batches, repeats):
+    def one(th):
+        tr = jsphere.simulate_gaits(
+            p, [jsphere.acceleration(theta_max=th), jsphere.braking(theta_max=th)], ts=jnp.array([0.0, 4.0])
+        )
+        return tr.x[-1], tr.num_steps
+
+    f = jax.jit(jax.vmap(one))
+    TH = np.random.default_rng(1).uniform(0.05, 0.15, max(batches))
+    rows = []
+    for B in batches:
+        log(f"[P2] gaits batch {B} ...")
+        try:
+            r = time_call(f, jnp.asarray(TH[:B]), repeats=repeats)
+        except Exception as e:  # noqa: BLE001  (report, don't hide: e.g. vmap over theta_max failing)
+            rows.append({"batch": B, "error": f"{type(e).__name__}: {e}"})
+            log(f"      FAILED: {type(e).__name__}: {e}")
+            continue
+        x, steps = (np.asarray(v) for v in r["_out"])
+        rows.append(
+            public(r)
+            | {
+                "batch": B,
+                "trials_per_s": B / r["median_s"],
+                "steps_mean": float(steps.mean()),
+                "steps_max": int(steps.max()),
+                "x_final_first": float(x[0]),
+                "theta_max_first": float(TH[0]),
+            }
+        )
+        log(f"      {B / r['median_s']:.1f} trials/s, compile {r['compile_s']:.1f} s")
+    return rows
+
+
+# ------------------------------------------------------------------------ problem 3
+
+GRAD_NAMES = ["r_m[2] (= -R_m)", "j", "I[0,0]", "I[1,1]", "I[2,2]", "m0", "I0"]
+
+
+def problem3(p0, Z, batches, repeats):
+    PH = jnp.asarray(PHASES)
+
+    def with_theta(theta):
+        I = p0.I.at[jnp.diag_indices(3)].set(theta[2:5])
+        return eqx.tree_at(
+            lambda q: (q.r_m, q.j, q.I, q.m0, q.I0), p0, (p0.r_m.at[2].set(theta[0]), theta[1], I, theta[5], theta[6])
+        )
+
+    def loss(theta, A):
+        p = with_theta(theta)
+        tr = jax.vmap(
+            lambda a: jsphere.simulate(
+                p, jsphere.State.at_rest(p), jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)), T1, rtol=RTOL, atol=ATOL
+            )
+        )(A)
+        return jnp.sum(tr.x[:, -1] ** 2 + tr.y[:, -1] ** 2)
+
+    theta0 = jnp.stack([p0.r_m[2], p0.j, p0.I[0, 0], p0.I[1, 1], p0.I[2, 2], p0.m0, p0.I0])
+    fwd, grad = jax.jit(loss), jax.jit(jax.grad(loss))
+    rows, fd = [], None
+    for B in batches:
+        A = jnp.asarray(amplitudes(Z[:B]))
+        log(f"[P3] forward batch {B} ...")
+        rf = time_call(fwd, theta0, A, repeats=repeats)
+        log(f"[P3] grad batch {B} ...")
+        rg = time_call(grad, theta0, A, repeats=repeats)
+        g = np.asarray(rg["_out"])
+        rows.append(
+            {
+                "batch": B,
+                "forward": public(rf),
+                "grad": public(rg),
+                "grad_over_forward": rg["median_s"] / rf["median_s"],
+                "loss": float(rf["_out"]),
+                "gradient": dict(zip(GRAD_NAMES, g.tolist())),
+            }
+        )
+        log(f"      grad/forward = {rg['median_s'] / rf['median_s']:.2f}, grad compile {rg['compile_s']:.1f} s")
+        if fd is None:  # central differences with the forward already compiled for this batch
+            rel = []
+            for k in range(theta0.shape[0]):
+                h = 1e-5 * abs(float(theta0[k]))
+                e = jnp.zeros_like(theta0).at[k].set(h)
+                d = (float(fwd(theta0 + e, A)) - float(fwd(theta0 - e, A))) / (2 * h)
+                rel.append(abs(d - g[k]) / max(abs(d), 1e-300))
+            fd = {
+                "batch": B,
+                "step": "1e-5 relative, central",
+                "max_rel_diff": float(max(rel)),
+                "rel_diff": dict(zip(GRAD_NAMES, rel)),
+                "tolerance": GRAD_FD_TOL,
+                "pass": bool(max(rel) < GRAD_FD_TOL),
+            }
+    return rows, fd
+
+
+# ------------------------------------------------------------------------ report
+
+
+def fmt_table(res) -> str:
+    L = []
+    hdr = f"{'problem':<34}{'batch':>8}{'trials/s':>12}{'median s':>11}{'compile s':>11}{'reps':>6}{'steps mean/max':>16}{'vs scipy':>10}"
+    L.append(hdr)
+    L.append("-" * len(hdr))
+    sc = res["problem1"]["scipy"]
+    for r in res["problem1"]["jsphere"]:
+        L.append(
+            f"{'P1 torques, jsphere jit+vmap':<34}{r['batch']:>8}{r['trials_per_s']:>12.1f}{r['median_s']:>11.4f}"
+            f"{r['compile_s']:>11.2f}{r['repeats']:>6}{r['steps_mean']:>9.0f}/{r['steps_max']:<6}{r['trials_per_s'] / sc['trials_per_s']:>9.1f}x"
+        )
+    L.append(
+        f"{'P1 torques, scipy DOP853 (serial)':<34}{sc['trials']:>8}{sc['trials_per_s']:>12.2f}{sc['median_s']:>11.4f}"
+        f"{'-':>11}{sc['repeats']:>6}{sc['steps_mean']:>9.0f}{'':<7}{1.0:>9.1f}x"
+    )
+    for r in res["problem2"]:
+        if "error" in r:
+            L.append(f"{'P2 gaits, jsphere jit+vmap':<34}{r['batch']:>8}  FAILED: {r['error'][:60]}")
+            continue
+        L.append(
+            f"{'P2 gaits, jsphere jit+vmap':<34}{r['batch']:>8}{r['trials_per_s']:>12.1f}{r['median_s']:>11.4f}"
+            f"{r['compile_s']:>11.2f}{r['repeats']:>6}{r['steps_mean']:>9.0f}/{r['steps_max']:<6}{'':>10}"
+        )
+    L.append("")
+    hdr3 = f"{'P3 gradient (7 params)':<34}{'batch':>8}{'grad s':>12}{'forward s':>11}{'grad/fwd':>10}{'grad compile s':>16}"
+    L.append(hdr3)
+    L.append("-" * len(hdr3))
+    for r in res["problem3"]["rows"]:
+        L.append(
+            f"{'jax.grad of sum(x^2 + y^2)':<34}{r['batch']:>8}{r['grad']['median_s']:>12.4f}{r['forward']['median_s']:>11.4f}"
+            f"{r['grad_over_forward']:>10.2f}{r['grad']['compile_s']:>16.2f}"
+        )
+    L.append("")
+    c = res["problem1"]["checks"]
+    L.append(
+        f"accuracy P1: max |scipy - jsphere| final (x, y) over {c['compared_trials']} trials = {c['max_abs_diff_xy_m']:.2e} m "
+        f"(< {c['tolerance_m']:.0e}: {'PASS' if c['pass'] else 'FAIL'})"
+    )
+    L.append(
+        f"  trial 0 vs tight reference: jsphere {c['trial0_jsphere_err_m']:.1e} m, scipy {c['trial0_scipy_err_m']:.1e} m; "
+        f"energy balance residual {c['energy_balance_residual_J']:.1e} J"
+        + (f"; batch 1 vs batched {c['batch1_vs_batched_trial0_m']:.1e} m" if "batch1_vs_batched_trial0_m" in c else "")
+    )
+    fd = res["problem3"]["fd_check"]
+    if fd:
+        L.append(
+            f"gradient P3 vs central differences (batch {fd['batch']}): max rel diff {fd['max_rel_diff']:.1e} "
+            f"(< {fd['tolerance']:.0e}: {'PASS' if fd['pass'] else 'FAIL'})"
+        )
+    return "\n".join(L)
+
+
+def write_json_atomic(path: Path, obj) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as fh:
+            json.dump(obj, fh, indent=2)
+            fh.write("\n")
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="smaller run (under 3 minutes on 2 CPU cores)")
+    ap.add_argument("--out", type=Path, default=HERE / "results.json", help="JSON output (written atomically)")
+    args = ap.parse_args(argv)
+    t_start = time.perf_counter()
+    global _SOURCE_AT_IMPORT
+    _SOURCE_AT_IMPORT = _source_digest()
+
+    env = environment()
+    gpu = env["jax"]["backend"] in ("gpu", "cuda", "rocm")
+    repeats = 2 if args.quick else 3
+    b1 = [1, 64, 1024] + ([] if args.quick else [16384]) + ([10**6] if gpu else [])
+    b2 = [1, 64, 1024]
+    b3 = [64] if args.quick else [64, 1024]
+    n_scipy = 3 if args.quick else 10
+    log(f"jsphere benchmark ({'quick' if args.quick else 'full'}): backend {env['jax']['backend']} "
+        f"({env['jax']['device_kind']}), {env['machine']['cpu_count']} CPUs")
+
+    p = jsphere.RobotParams.paper()
+    Z = np.random.default_rng(0).standard_normal((max(b1), 3))
+
+    js_rows, js_finals = problem1_jsphere(p, Z, b1, repeats)
+    sc_row, sc_finals, model, q0 = problem1_scipy(p, Z, n_scipy, repeats)
+    for r in js_rows:
+        r["ratio_vs_scipy"] = r["trials_per_s"] / sc_row["trials_per_s"]
+    checks = problem1_checks(model, q0, Z, sc_finals, js_finals)
+    p2 = problem2(p, b2, repeats)
+    p3_rows, fd = problem3(p, Z, b3, repeats)
+    for r in p3_rows:
+        match = [j for j in js_rows if j["batch"] == r["batch"]]
+        if match:
+            r["problem1_forward_median_s"] = match[0]["median_s"]
+
+    end_digest = _source_digest()
+    env["jsphere_git"]["source_sha256_end"] = end_digest
+    env["jsphere_git"]["changed_during_run"] = end_digest != _SOURCE_AT_IMPORT
+    if end_digest != _SOURCE_AT_IMPORT:
+        log("WARNING: jsphere/*.py changed on disk during the run; the numbers are for the code imported at the start.")
+    env["machine"]["loadavg_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+    res = {
+        **env,
+        "mode": "quick" if args.quick else "full",
+        "settings": {
+            "repeats": repeats,
+            "repeat_rule": "at least `repeats` steady-state calls, more (up to 25) while their total is under 1 s",
+            "compile_s": "first call (trace + compile + one run) minus the steady-state median",
+            "problem1": {"t1": T1, "rtol": RTOL, "atol": ATOL, "amplitudes": "0.05 (1 + 0.1 z), z ~ default_rng(0).standard_normal((B, 3)), rows 0..B-1",
+                         "phases": PHASES.tolist(), "batches": b1, "scipy_trials": n_scipy},
+            "problem2": {"gaits": "acceleration(theta_max=th), braking(theta_max=th)", "theta_max": "default_rng(1).uniform(0.05, 0.15)",
+                         "tolerances": "simulate_gaits defaults (rtol 1e-10, atol 1e-12)", "batches": b2},
+            "problem3": {"params": GRAD_NAMES, "loss": "sum over batch of x_final^2 + y_final^2", "batches": b3},
+        },
+        "problem1": {"jsphere": js_rows, "scipy": sc_row, "checks": checks},
+        "problem2": p2,
+        "problem3": {"rows": p3_rows, "fd_check": fd},
+        "wall_time_s": time.perf_counter() - t_start,
+    }
+    table = fmt_table(res)
+    res["table"] = table.splitlines()
+    write_json_atomic(args.out, res)
+    print(table)
+    print(f"\nwall time {res['wall_time_s']:.0f} s; JSON written to {args.out}")
+    ok = checks["pass"] and (fd is None or fd["pass"]) and all("error" not in r for r in p2)
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
