@@ -28,6 +28,7 @@ from ._controls import (
 )
 from ._dynamics import (
     accelerations as accelerations,
+    dissipation as dissipation,
     energy as energy,
     kinetic_energy as kinetic_energy,
     potential_energy as potential_energy,

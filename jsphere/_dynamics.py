@@ -12,7 +12,10 @@ with `w = omega` (platform), `W = Omega` (shell), both in platform components, a
     D = I0 E + Jss + (m + m0) R0^2 (gamma^2 E - gamma (x) gamma)
     r1 = -w x I w + (Jns (W - w)) x w - m R0 r_m x (gamma x (W x w)) - m g r_m x gamma
     r2 = -(m + m0) R0^2 gamma x (gamma x (W x w)) - m R0 gamma x (w x (w x r_m)) - I0 w x W
-    Sk^T K = sum_i k_i s_i K_i.
+         - c_roll W_h                                            (optional rolling resistance)
+    Sk^T K = sum_i k_i s_i K_i,   K -> K - c_axle chi_dot     (optional axle friction)
+
+`W_h = W - (W, gamma) gamma`. The two damping terms are not in the paper (both 0 by default).
 
 The 6x6 matrix `[[A, B], [B^T, D]]` is the Hessian of the kinetic energy (3.2) with `v` and
 `chi_dot` eliminated by the constraints, hence symmetric positive definite. The *sum* of the
@@ -54,6 +57,7 @@ def forces(p: RobotParams, d: Derived, gamma, omega, Omega) -> tuple[Float[Array
         -(p.m + p.m0) * p.R0**2 * cross(gamma, cross(gamma, Wxw))
         - p.m * p.R0 * cross(gamma, cross(w, cross(w, p.r_m)))
         - p.I0 * cross(w, W)
+        - p.c_roll * (W - dot(W, gamma) * gamma)
     )
     return r1, r2
 
@@ -63,6 +67,7 @@ def solve_accelerations(p: RobotParams, d: Derived, gamma, omega, Omega, K) -> t
     `omega` block (`A^-1` precomputed in `derive`)."""
     B, D = mass_blocks(p, d, gamma)
     r1, r2 = forces(p, d, gamma, omega, Omega)
+    K = K + p.c_axle * matvec(d.Sk, omega - Omega)  # axle friction: K - c_axle chi_dot
     tau = K @ d.Sk  # sum_i k_i s_i K_i
     r1 = r1 - tau
     r2 = r2 + tau
@@ -116,7 +121,8 @@ def required_torques(p: RobotParams, d: Derived, gamma, omega, Omega, omega_dot,
         tau = matvec(B.T, omega_dot) + matvec(D, Omega_dot) - r2
     else:
         tau = r1 - matvec(d.A, omega_dot) - matvec(B, Omega_dot)
-    return matvec(d.Sk_T_pinv, tau)
+    # the motors also overcome the axle friction -c_axle chi_dot
+    return matvec(d.Sk_T_pinv, tau) - p.c_axle * matvec(d.Sk, omega - Omega)
 
 
 def servo_accelerations(p: RobotParams, d: Derived, gamma, Omega, w, w_dot):
@@ -133,7 +139,7 @@ def servo_accelerations(p: RobotParams, d: Derived, gamma, Omega, w, w_dot):
     Omega_dot = solve3(AB + B + D, r1 + r2 - matvec(AB, w_dot))
     omega_dot = Omega_dot + w_dot
     tau = matvec(B.T, omega_dot) + matvec(D, Omega_dot) - r2
-    return omega, omega_dot, Omega_dot, matvec(d.Sk_T_pinv, tau)
+    return omega, omega_dot, Omega_dot, matvec(d.Sk_T_pinv, tau) - p.c_axle * matvec(d.Sk, w)
 
 
 def servo_jump(p: RobotParams, d: Derived, gamma, omega, Omega, w_new):
@@ -187,6 +193,16 @@ def energy(params: RobotParams, gamma, omega, Omega) -> Float[Array, ""]:
     `d(T + U)/dt = sum_i K_i chi_dot_i` (see `power`)."""
     gamma, omega, Omega = (jnp.asarray(x, dtype=params.R0.dtype) for x in (gamma, omega, Omega))
     return kinetic_energy(params, gamma, omega, Omega) + potential_energy(params, gamma)
+
+
+def dissipation(params: RobotParams, gamma, omega, Omega) -> Float[Array, ""]:
+    """Power lost to the optional damping terms, `c_axle sum chi_dot_i^2 + c_roll |Omega_h|^2` [W];
+    `d(T + U)/dt = power - dissipation`."""
+    d = derive(params)
+    gamma, omega, Omega = (jnp.asarray(x) for x in (gamma, omega, Omega))
+    chi_dot = -matvec(d.Sk, omega - Omega)
+    Wh = Omega - dot(Omega, gamma) * gamma
+    return params.c_axle * jnp.sum(chi_dot**2) + params.c_roll * dot(Wh, Wh)
 
 
 def power(params: RobotParams, omega, Omega, K) -> Float[Array, ""]:

@@ -23,7 +23,9 @@ from ._linalg import cross, dot, inv3, outer
 PAPER_R_M = 27.014555994314536e-3
 PAPER_J = 2.739471996359074e-4
 
-_FIELDS = ("R0", "m0", "I0", "Rw", "wheel_r", "wheel_n", "wheel_alpha", "m", "I", "r_m", "j", "g")
+_FIELDS = ("R0", "m0", "I0", "Rw", "wheel_r", "wheel_n", "wheel_alpha", "m", "I", "r_m", "j", "g", "c_roll", "c_axle")
+#: fields with defaults (may be left out of a parameter file)
+_OPTIONAL = ("j", "g", "c_roll", "c_axle")
 
 
 def _is_concrete(x: Any) -> bool:
@@ -49,6 +51,10 @@ class RobotParams(eqx.Module):
     - `r_m`: `(3,)` centre of mass of the platform with wheels [m]; at rest `r_m = -R_m gamma`.
     - `j`: axial moment of inertia of one wheel [kg m^2] (identical wheels).
     - `g`: gravitational acceleration [m/s^2].
+    - `c_roll`: optional viscous rolling resistance [N m s]: a torque `-c_roll Omega_h` on the
+      shell, `Omega_h` the part of `Omega` perpendicular to the vertical (0 in the paper).
+    - `c_axle`: optional viscous friction in each wheel axle [N m s]: a torque `-c_axle chi_dot_i`
+      between wheel i and the platform (0 in the paper).
 
     Construction validates every field (positive masses and radii, symmetric positive
     definite `I`, unit axes, `(s_i, n_i)` away from zero, `s_i` spanning 3-space, lengths that
@@ -69,14 +75,17 @@ class RobotParams(eqx.Module):
     r_m: Float[Array, "3"]
     j: Float[Array, ""]
     g: Float[Array, ""]
+    c_roll: Float[Array, ""]
+    c_axle: Float[Array, ""]
 
-    def __init__(self, R0, m0, I0, Rw, wheel_r, wheel_n, wheel_alpha, m, I, r_m, j=0.0, g=9.81, *, dtype=None):
+    def __init__(self, R0, m0, I0, Rw, wheel_r, wheel_n, wheel_alpha, m, I, r_m, j=0.0, g=9.81, c_roll=0.0, c_axle=0.0, *, dtype=None):
         if dtype is None:
             dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
         as_ = lambda x: jnp.asarray(x, dtype=dtype)  # noqa: E731
         self.R0, self.m0, self.I0, self.Rw = as_(R0), as_(m0), as_(I0), as_(Rw)
         self.wheel_r, self.wheel_n, self.wheel_alpha = as_(wheel_r), as_(wheel_n), as_(wheel_alpha)
         self.m, self.I, self.r_m, self.j, self.g = as_(m), as_(I), as_(r_m), as_(j), as_(g)
+        self.c_roll, self.c_axle = as_(c_roll), as_(c_axle)
 
     def __check_init__(self):
         if all(_is_concrete(getattr(self, f)) for f in _FIELDS):
@@ -147,7 +156,7 @@ class RobotParams(eqx.Module):
         for alias, field in (("r", "wheel_r"), ("n", "wheel_n"), ("alpha", "wheel_alpha")):
             if alias in d and field not in d:
                 d[field] = d.pop(alias)
-        missing = [f for f in _FIELDS if f not in d and f not in ("j", "g")]
+        missing = [f for f in _FIELDS if f not in d and f not in _OPTIONAL]
         if missing:
             raise ValueError(f"parameter set is missing field(s) {missing}; expected {list(_FIELDS)}.")
         unknown = sorted(set(d) - set(_FIELDS))
@@ -202,6 +211,9 @@ def validate(p: RobotParams) -> None:
             _fail(f, f"must be > 0 {unit}; got {a[f]}.")
     if np.any(a["j"] < 0):
         _fail("j", f"wheel axial inertia must be >= 0 kg m^2; got {a['j']}.")
+    for f in ("c_roll", "c_axle"):
+        if np.any(a[f] < 0):
+            _fail(f, f"damping must be >= 0 N m s; got {a[f]}.")
     if np.any(a["g"] < 0):
         _fail("g", f"must be >= 0 m/s^2 (use 9.81); got {a['g']}.")
     if np.any(a["R0"] > 10.0) or np.any(a["Rw"] > 10.0):

@@ -125,3 +125,25 @@ def test_energy_balance_with_torques(paper):
     P = np.asarray(jsphere.power_along(paper, tr))
     work = np.concatenate([[0.0], np.cumsum(0.5 * (P[1:] + P[:-1]) * np.diff(np.asarray(ts)))])
     assert np.max(np.abs(E - E[0] - work)) < 1e-5 * np.max(np.abs(work))  # trapezoid rule, h = 1 ms
+
+
+@pytest.mark.parametrize("spec", ROBOTS[:3], ids=[r[0] for r in ROBOTS[:3]])
+def test_energy_rate_with_damping(spec):
+    """With rolling resistance and axle friction: d(T + U)/dt = sum K chi_dot - dissipation <= power."""
+    p = _robot(spec).replace(c_roll=2e-3, c_axle=5e-4)
+    d = derive(p)
+    for seed in range(3):
+        gamma, omega, Omega, K = random_state(jax.random.PRNGKey(20 + seed), p.n_wheels)
+        wd, Wd = jsphere.accelerations(p, gamma, omega, Omega, K)
+        _, dE = jax.jvp(lambda g, w, W: jsphere.energy(p, g, w, W), (gamma, omega, Omega), (jnp.cross(gamma, omega), wd, Wd))
+        P, Dis = jsphere.power(p, omega, Omega, K), jsphere.dissipation(p, gamma, omega, Omega)
+        assert float(Dis) > 0
+        assert abs(float(dE - (P - Dis))) < 1e-10 * (abs(float(P)) + float(Dis))
+        # the motor torques a prescribed motion needs include the friction they overcome
+        K_back = required_torques(p, d, gamma, omega, Omega, wd, Wd)
+        np.testing.assert_allclose(d.Sk.T @ K_back, d.Sk.T @ K, rtol=1e-8, atol=1e-12)
+
+
+def test_damping_is_validated(paper):
+    with pytest.raises(ValueError, match="RobotParams.c_roll"):
+        paper.replace(c_roll=-1.0)

@@ -13,7 +13,7 @@ import pytest
 import jsphere._io as jio
 from jsphere import RobotParams
 
-FIELDS = ("R0", "m0", "I0", "Rw", "wheel_r", "wheel_n", "wheel_alpha", "m", "I", "r_m", "j", "g")
+FIELDS = ("R0", "m0", "I0", "Rw", "wheel_r", "wheel_n", "wheel_alpha", "m", "I", "r_m", "j", "g", "c_roll", "c_axle")
 REFERENCE = Path(os.environ.get(
     "JSPHERE_REFERENCE", Path(__file__).resolve().parents[2] / "shared" / "reference" / "reference_cases.json"
 ))

@@ -261,7 +261,7 @@ def test_replace_R_m_on_stacked_params(paper):
 
 def test_is_pytree_with_array_leaves(paper):
     leaves = jax.tree_util.tree_leaves(paper)
-    assert len(leaves) == 12
+    assert len(leaves) == 14  # the 12 fields of the paper + the optional c_roll, c_axle
     assert all(isinstance(x, jax.Array) for x in leaves)
 
 
