@@ -134,9 +134,11 @@ def _run_batch(params, gaits, names, kinds, ab, seed, idx, reset, rtol, atol, me
             s0 = State.at_rest(p)
             s0 = eqx.tree_at(lambda s: s.Omega, s0, s0.Omega + dOmega)
             ctrl = Torques(table) if mode == "torques" else WheelSpeeds(table)
-            tr = simulate(p, s0, ctrl, T + settle, rtol=rtol, atol=atol, throw=False, max_steps=max_steps)
+            ts_after = T + settle * jnp.linspace(0.0, 1.0, 51, dtype=dt)  # the settling phase
+            tr = simulate(p, s0, ctrl, T + settle, ts=ts_after, rtol=rtol, atol=atol, throw=False, max_steps=max_steps)
         speed = p.R0 * jnp.linalg.norm(cross(tr.Omega[-1], tr.gamma[-1]))
-        return vals, tr.x[-1], tr.y[-1], speed, tr.status
+        g3 = tr.gamma[:, 2]
+        return vals, tr.x[-1], tr.y[-1], speed, tr.status, jnp.std(g3)
 
     def local(ii):  # this device's trials, in chunks of CHUNK
         out = jax.lax.map(jax.vmap(one), ii.reshape(-1, CHUNK))
@@ -155,7 +157,9 @@ class MonteCarloResult:
 
     `samples[name]`: the drawn values; `x_final, y_final` [m]: stop point; `speed_final` [m/s]:
     speed of the shell centre at the end; `status`: 0 for a successful solve (see
-    `Trajectory.status`).
+    `Trajectory.status`); `gamma3_sd_after`: standard deviation of `gamma_3` over the settling
+    time after the commands end (replay modes; the paper's sigma of Fig. 2; 0 in gait mode,
+    where the gaits end on exact stationary motions).
     """
 
     n: int
@@ -165,6 +169,7 @@ class MonteCarloResult:
     y_final: np.ndarray
     speed_final: np.ndarray
     status: np.ndarray
+    gamma3_sd_after: np.ndarray
     elapsed_s: float = 0.0
 
     def stats(self, level: float = 0.95) -> dict:
@@ -187,6 +192,8 @@ class MonteCarloResult:
             "quantiles": {"q": q, "x_m": np.quantile(xy[:, 0], q).tolist(), "y_m": np.quantile(xy[:, 1], q).tolist()},
             "distance_m": {"mean": float(np.hypot(*xy.T).mean()), "sd": float(np.hypot(*xy.T).std(ddof=1)) if len(xy) > 1 else 0.0},
             "speed_final_m_s": {"mean": float(self.speed_final[ok].mean()), "max": float(self.speed_final[ok].max())},
+            "gamma3_sd_after": {"mean": float(self.gamma3_sd_after[ok].mean()),
+                                "q": q, "quantiles": np.quantile(self.gamma3_sd_after[ok], q).tolist()},
         }  # fmt: skip
 
 
@@ -318,9 +325,9 @@ def monte_carlo(
         idx = jnp.arange(k * B, (k + 1) * B, dtype=jnp.int32)
         out_k = _run_batch(params, gaits, names, kinds, ab, jnp.asarray(seed, jnp.uint32), idx, reset, rtol, atol, mesh,
                            mode, plan, actuators, Omega0_sd, settle, max_steps)  # fmt: skip
-        vals, x, y, speed, status = jax.device_get(out_k)
+        vals, x, y, speed, status, g3 = jax.device_get(out_k)
         part = {"vals": np.asarray(vals), "x": np.asarray(x), "y": np.asarray(y), "speed": np.asarray(speed),
-                "status": np.asarray(status)}  # fmt: skip
+                "status": np.asarray(status), "gamma3_sd": np.asarray(g3)}  # fmt: skip
         if path is not None:
             _save_npz(path, **part)
         parts.append(part)
@@ -336,7 +343,8 @@ def monte_carlo(
     cat = {key: np.concatenate([p[key] for p in parts])[:n] for key in parts[0]}
     samples = {name: cat["vals"][:, j] for j, (name, _, _, _) in enumerate(spec)}
     res = MonteCarloResult(n=n, seed=seed, samples=samples, x_final=cat["x"], y_final=cat["y"],
-                           speed_final=cat["speed"], status=cat["status"], elapsed_s=time.perf_counter() - t_start)  # fmt: skip
+                           speed_final=cat["speed"], status=cat["status"], gamma3_sd_after=cat["gamma3_sd"],
+                           elapsed_s=time.perf_counter() - t_start)  # fmt: skip
     if folder is not None:
         atomic_write_text(folder / "stats.json", json.dumps(res.stats(), indent=2) + "\n")
     return res

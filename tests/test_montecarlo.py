@@ -104,6 +104,7 @@ def test_torque_replay_without_errors_reproduces_the_plan(paper):
     assert np.max(np.abs(res.x_final - float(plan.x[-1]))) < 2e-5
     assert np.max(np.abs(res.y_final - float(plan.y[-1]))) < 2e-5
     assert np.max(res.speed_final) < 2e-4
+    assert np.max(res.gamma3_sd_after) < 1e-4  # the platform stays upright after the plan ends
 
 
 def test_cli_montecarlo(tmp_path, study, capsys):
