@@ -214,18 +214,8 @@ def simulate_gaits(
         if len(resets) != nb:
             raise ValueError(f"simulate_gaits: reset needs one entry per gait boundary ({nb}); got {len(resets)}.")
     dt = params.R0.dtype
-    d = derive(params)
-    e3 = jnp.array([0.0, 0.0, 1.0], dt)
-    Qm = rotation_between(e3, rest_attitude(params))
-    state0 = State.from_axes(params, alpha0, beta0, Omega=Omega0, x=x0, y=y0)
-    g0 = gaits[0].gamma(Qm, jnp.asarray(0.0, dt))
-    if not any(isinstance(v, jax.core.Tracer) for v in (g0, state0.q)):
-        if np.max(np.abs(np.asarray(state0.gamma) - np.asarray(g0))) > 1e-6:
-            raise ValueError(
-                f"simulate_gaits: alpha0 x beta0 = {np.asarray(state0.gamma)} but the first gait starts at "
-                f"gamma(0) = {np.asarray(g0)}; a gait must start from the rest attitude gamma = -r_m/|r_m| "
-                "(Proposition of Section 4)."
-            )
+    initial = tuple(jnp.asarray(v, dt) for v in (alpha0, beta0, Omega0, x0, y0))
+    _check_start(params, gaits[0], initial[0], initial[1])
 
     if ts is None:
         if any(isinstance(g.T, jax.core.Tracer) for g in gaits):
@@ -249,16 +239,41 @@ def simulate_gaits(
         lambda x: x.astype(dt) if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) else x, gaits
     )
     traj = _simulate_gaits(
-        params, gaits, state0, ts_out, resets, solver or default_solver(), rtol, atol, max_steps,
+        params, gaits, initial, ts_out, resets, solver or default_solver(), rtol, atol, max_steps,
         adjoint or dfx.RecursiveCheckpointAdjoint(),
     )
     return raise_on_failure(traj, throw)
 
 
+def _check_start(params, gait, alpha0, beta0) -> None:
+    """With concrete inputs: `alpha0, beta0` orthonormal and `alpha0 x beta0` equal to the first
+    gait's `gamma(0)` (computed with NumPy: no eager JAX dispatch on every call)."""
+    if any(isinstance(v, jax.core.Tracer) for v in (alpha0, beta0, params.r_m)):
+        return
+    a, b = np.asarray(alpha0, np.float64), np.asarray(beta0, np.float64)
+    if abs(np.linalg.norm(a) - 1) > 1e-6 or abs(np.linalg.norm(b) - 1) > 1e-6 or abs(a @ b) > 1e-6:
+        raise ValueError(f"simulate_gaits: alpha0 and beta0 must be orthonormal; got {a}, {b}.")
+    try:
+        th, ph = float(gait.theta(0.0)), float(gait.phi(0.0))
+    except (TypeError, jax.errors.ConcretizationTypeError):  # gait coefficients are traced
+        return
+    gm = -np.asarray(params.r_m, np.float64) / np.linalg.norm(np.asarray(params.r_m, np.float64))
+    Qm = np.asarray(rotation_between(np.array([0.0, 0.0, 1.0]), gm))
+    g0 = Qm @ np.array([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)])
+    gamma0 = np.cross(a, b)
+    if np.max(np.abs(gamma0 - g0)) > 1e-6:
+        raise ValueError(
+            f"simulate_gaits: alpha0 x beta0 = {gamma0} but the first gait starts at gamma(0) = {g0}; a gait "
+            "must start from the rest attitude gamma = -r_m/|r_m| (Proposition of Section 4)."
+        )
+
+
 @eqx.filter_jit
-def _simulate_gaits(params, gaits, state0, ts_out, resets, solver, rtol, atol, max_steps, adjoint):
+def _simulate_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, max_steps, adjoint):
     dt = params.R0.dtype
     d = derive(params)
+    alpha0, beta0, Omega0, x0, y0 = initial
+    state0 = State.from_axes(params, alpha0, beta0, Omega=Omega0, x=x0, y=y0)
     Qm = rotation_between(jnp.array([0.0, 0.0, 1.0], dt), rest_attitude(params))
     starts, t = [], jnp.asarray(0.0, dt)
     for g in gaits:
