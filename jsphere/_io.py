@@ -31,19 +31,24 @@ def atomic_write_text(path, text: str) -> None:
         raise
 
 
-def atomic_savefig(fig, path, **kwargs) -> None:
-    """`fig.savefig` through a temporary file and an atomic rename."""
+def atomic_write(path, write) -> None:
+    """Call `write(tmp_path)` on a temporary file beside `path`, then rename it to `path`."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
     os.close(fd)
     try:
-        fig.savefig(tmp, **kwargs)
+        write(tmp)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def atomic_savefig(fig, path, **kwargs) -> None:
+    """`fig.savefig` through a temporary file and an atomic rename."""
+    atomic_write(path, lambda tmp: fig.savefig(tmp, **kwargs))
 
 
 def _toml_value(v: Any) -> str:

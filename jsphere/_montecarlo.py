@@ -13,7 +13,6 @@ import json
 import math
 import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -27,7 +26,7 @@ from ._controls import Sampled, Torques, WheelSpeeds
 from ._gaits import Gait, simulate_gaits
 from ._simulate import simulate
 from ._state import State
-from ._io import atomic_write_text
+from ._io import atomic_write, atomic_write_text
 from ._linalg import cross
 from ._names import get_value, parse_name, set_value
 from ._params import RobotParams
@@ -204,15 +203,7 @@ def _fingerprint(params, gaits, spec, seed, batch_size, reset, rtol, atol) -> st
 
 
 def _save_npz(path: Path, **arrays) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".npz")
-    os.close(fd)
-    try:
-        np.savez(tmp, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write(path, lambda tmp: np.savez(tmp, **arrays))
 
 
 def monte_carlo(
