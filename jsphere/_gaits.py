@@ -136,10 +136,7 @@ def _gait_field(t, z, args):
     Omega = z[11:14]
     Omega_dot = free_Omega_dot(p, d, gamma, omega, Omega, omega_dot)
     # positions use the prescribed gamma(t); q is integrated with the same omega(t)
-    R = rotmat(z[0:4])
-    v = p.R0 * cross(Omega, gamma)
-    dq, dqs, _, _ = _kin_rates(p, d, z, omega, Omega, None)
-    dxy = matvec(R, v)[:2]
+    dq, dqs, dxy = _kin_rates(p, z, rotmat(z[0:4]), gamma, omega, Omega)
     chi_dot = -matvec(d.Sk, omega - Omega)
     return jnp.concatenate([dq, dqs, omega_dot, Omega_dot, dxy, chi_dot])
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from typing import Any
 
 import diffrax as dfx
 import equinox as eqx
@@ -71,23 +70,22 @@ def _control_time(t, t_end):
     return jnp.where(t >= t_end, _left_limit(t_end), t)
 
 
-def _kin_rates(p: RobotParams, d: Derived, z, omega, Omega, chi_dot):
-    """Rates of `[q, q_shell, x, y, chi]` shared by every mode."""
-    q, qs = z[0:4], z[4:8]
-    R = rotmat(q)
-    gamma = R[2]
+def _kin_rates(p: RobotParams, z, R, gamma, omega, Omega):
+    """Rates of `[q, q_shell]` and `(x, y)` shared by every mode, with `R = Q^T` computed once
+    by the caller (`gamma` is its last row, or the prescribed `gamma(t)` of a gait)."""
     v = p.R0 * cross(Omega, gamma)
     vf = matvec(R, v)  # fixed-frame velocity; (x_dot, y_dot) = ((alpha, v), (beta, v))
-    return quat_rate_body(q, omega), quat_rate_fixed(qs, matvec(R, Omega)), vf[:2], chi_dot
+    return quat_rate_body(z[0:4], omega), quat_rate_fixed(z[4:8], matvec(R, Omega)), vf[:2]
 
 
 def _torque_field(t, z, args):
     p, d, control, _, t_end = args
     omega, Omega = z[8:11], z[11:14]
-    gamma = rotmat(z[0:4])[2]
+    R = rotmat(z[0:4])
+    gamma = R[2]
     K = control(_control_time(t, t_end))
     omega_dot, Omega_dot = solve_accelerations(p, d, gamma, omega, Omega, K)
-    dq, dqs, dxy, _ = _kin_rates(p, d, z, omega, Omega, None)
+    dq, dqs, dxy = _kin_rates(p, z, R, gamma, omega, Omega)
     chi_dot = -matvec(d.Sk, omega - Omega)
     return jnp.concatenate([dq, dqs, omega_dot, Omega_dot, dxy, chi_dot])
 
@@ -100,10 +98,11 @@ def _servo_inputs(d: Derived, control: WheelSpeeds, t):
 def _wheel_field(t, z, args):
     p, d, control, _, t_end = args
     Omega = z[11:14]
-    gamma = rotmat(z[0:4])[2]
+    R = rotmat(z[0:4])
+    gamma = R[2]
     w, w_dot = _servo_inputs(d, control, _control_time(t, t_end))
     omega, omega_dot, Omega_dot, _ = servo_accelerations(p, d, gamma, Omega, w, w_dot)
-    dq, dqs, dxy, _ = _kin_rates(p, d, z, omega, Omega, None)
+    dq, dqs, dxy = _kin_rates(p, z, R, gamma, omega, Omega)
     chi_dot = -matvec(d.Sk, w)
     return jnp.concatenate([dq, dqs, omega_dot, Omega_dot, dxy, chi_dot])
 
