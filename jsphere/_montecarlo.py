@@ -202,6 +202,11 @@ def _fingerprint(params, gaits, spec, seed, batch_size, reset, rtol, atol) -> st
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+def _load_npz(path: Path) -> dict:
+    with np.load(path) as z:
+        return {key: z[key] for key in z.files}
+
+
 def _save_npz(path: Path, **arrays) -> None:
     atomic_write(path, lambda tmp: np.savez(tmp, **arrays))
 
@@ -225,6 +230,9 @@ def monte_carlo(
     max_steps: int = 65536,
     out: str | os.PathLike | None = None,
     progress: bool = True,
+    process_index: int | None = None,
+    process_count: int | None = None,
+    wait_timeout: float = 24 * 3600.0,
 ) -> MonteCarloResult:
     """Run the gaits `n` times with parameters drawn from `vary`; return the stop points.
 
@@ -252,6 +260,11 @@ def monte_carlo(
       the same call again after an interruption and it resumes (a folder holding a different
       study is refused).
     - `progress`: print a progress line to stderr.
+    - `process_index`, `process_count`: for several processes (hosts) sharing one study: each
+      computes the batches `k` with `k % process_count == process_index` and writes them to
+      `out` (which all processes must see), then reads the others' batches from there (waiting
+      up to `wait_timeout` s). Default: `jax.process_index()` / `jax.process_count()`, i.e. one
+      process unless `jax.distributed.initialize()` was called (see docs/montecarlo.md).
 
     Returns a `MonteCarloResult` (`x_final`, `y_final`, ... arrays of length `n`; `.stats()`).
     """
@@ -262,6 +275,12 @@ def monte_carlo(
     if actuators is not None and mode == "gait":
         raise ValueError("monte_carlo: actuators apply to replayed commands; use mode='torques' or 'wheel_speeds'.")
     actuators = actuators or Actuators()
+    pi = jax.process_index() if process_index is None else int(process_index)
+    pc = jax.process_count() if process_count is None else int(process_count)
+    if not 0 <= pi < pc:
+        raise ValueError(f"monte_carlo: process_index must be in [0, process_count); got {pi} of {pc}.")
+    if pc > 1 and out is None:
+        raise ValueError("monte_carlo: with several processes, pass `out`, a folder that every process can read and write.")
     spec = _check_vary(params, vary)
     gaits = list(gaits)
     if not gaits or not all(isinstance(g, Gait) for g in gaits):
@@ -304,14 +323,14 @@ def monte_carlo(
             atomic_write_text(manifest, json.dumps({"fingerprint": fp, "n": n, "seed": seed, "batch_size": B,
                                                     "vary": {k: list(v) for k, v in vary.items()}}, indent=2))  # fmt: skip
 
-    parts = []
+    parts: list = [None] * n_batches
     t_start = time.perf_counter()
     done_new = 0
-    for k in range(n_batches):
+    mine = [k for k in range(n_batches) if k % pc == pi]  # this process's share (all of them on one host)
+    for count, k in enumerate(mine):
         path = folder / f"batch_{k:06d}.npz" if folder is not None else None
         if path is not None and path.exists():
-            with np.load(path) as z:
-                parts.append({key: z[key] for key in z.files})
+            parts[k] = _load_npz(path)
             continue
         idx = jnp.arange(k * B, (k + 1) * B, dtype=jnp.int32)
         out_k = _run_batch(params, gaits, names, kinds, ab, jnp.asarray(seed, jnp.uint32), idx, reset, rtol, atol, mesh,
@@ -321,16 +340,27 @@ def monte_carlo(
                 "status": np.asarray(status), "gamma3_sd": np.asarray(g3)}  # fmt: skip
         if path is not None:
             _save_npz(path, **part)
-        parts.append(part)
+        parts[k] = part
         done_new += B
         if progress:
             el = time.perf_counter() - t_start
             rate = done_new / el if el > 0 else float("nan")
-            left = (n_batches - k - 1) * B / rate if rate > 0 else float("nan")
-            print(f"\r[jsphere montecarlo] batch {k + 1}/{n_batches}  {min((k + 1) * B, n)}/{n} trials  "
+            left = (len(mine) - count - 1) * B / rate if rate > 0 else float("nan")
+            print(f"\r[jsphere montecarlo] batch {count + 1}/{len(mine)}  {min(done_new, n)}/{n} trials  "
                   f"{rate:,.0f} trials/s  eta {left:,.0f} s ", end="", file=sys.stderr, flush=True)  # fmt: skip
     if progress and done_new:
         print(file=sys.stderr)
+    # the other processes' batches, from the shared folder
+    deadline = time.monotonic() + wait_timeout
+    for k in range(n_batches):
+        while parts[k] is None:
+            path = folder / f"batch_{k:06d}.npz"
+            if path.exists():
+                parts[k] = _load_npz(path)
+            elif time.monotonic() > deadline:
+                raise TimeoutError(f"monte_carlo: batch {k} ({path}) did not appear within {wait_timeout} s; is every process running?")
+            else:
+                time.sleep(0.2)
     cat = {key: np.concatenate([p[key] for p in parts])[:n] for key in parts[0]}
     samples = {name: cat["vals"][:, j] for j, (name, _, _, _) in enumerate(spec)}
     res = MonteCarloResult(n=n, seed=seed, samples=samples, x_final=cat["x"], y_final=cat["y"],

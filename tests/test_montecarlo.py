@@ -124,3 +124,30 @@ def test_cli_montecarlo(tmp_path, study, capsys):
     bad.write_text('[vary]\nj = ["gauss", 1, 2]\n')
     assert main(["montecarlo", str(bad), "--out", str(tmp_path / "o2"), "--no-cache"]) == 2
     assert "normal" in capsys.readouterr().err
+
+
+def test_two_processes_share_one_study(study, tmp_path):
+    """Two processes (as on two hosts) split the batches through a shared folder; both return the
+    whole study, identical to a single process."""
+    script = textwrap.dedent(
+        """
+        import sys, numpy as np, jsphere
+        p = jsphere.RobotParams.paper()
+        r = jsphere.monte_carlo(p, [jsphere.acceleration(), jsphere.braking()],
+                                vary={"r_m[2]": ("normal", -0.0270146, 1e-4)}, n=256, seed=7, batch_size=128,
+                                progress=False, out=sys.argv[1], process_index=int(sys.argv[2]), process_count=2,
+                                wait_timeout=600)
+        np.save(sys.argv[3], np.stack([r.x_final, r.y_final]))
+        """
+    )
+    folder = tmp_path / "shared"
+    procs = [
+        subprocess.Popen([sys.executable, "-c", script, str(folder), str(i), str(tmp_path / f"r{i}.npy")])
+        for i in range(2)
+    ]
+    assert all(p.wait(timeout=900) == 0 for p in procs)
+    for i in range(2):
+        xy = np.load(tmp_path / f"r{i}.npy")
+        assert np.array_equal(xy[0], study.x_final) and np.array_equal(xy[1], study.y_final)
+    with pytest.raises(ValueError, match="shared|every process"):
+        jsphere.monte_carlo(jsphere.RobotParams.paper(), GAITS, vary=VARY, n=8, process_index=0, process_count=2)
