@@ -112,10 +112,10 @@ def _noisy_table(key, plan_ts, plan_u, act: Actuators):
 
 @eqx.filter_jit
 def _run_batch(params, gaits, names, kinds, ab, seed, idx, reset, rtol, atol, mesh=None, mode="gait", plan=None,
-               actuators=Actuators(), Omega0_sd=0.0, settle=1.0, max_steps=16384):  # fmt: skip
+               actuators=Actuators(), Omega0_sd=0.0, settle=1.0, max_steps=16384, jump_ts=()):  # fmt: skip
     """Trials `idx` of a study: one compiled function per structure, reused across calls."""
     dt = params.R0.dtype
-    T = sum(jnp.asarray(g.T, dt) for g in gaits)
+    T = sum(jnp.asarray(g.T, dt) for g in gaits) if plan is None else plan[0][-1]
     ts = jnp.reshape(T, (1,))
 
     def one(i):
@@ -132,7 +132,7 @@ def _run_batch(params, gaits, names, kinds, ab, seed, idx, reset, rtol, atol, me
             table = _noisy_table(k_act, plan[0], plan[1], actuators)
             s0 = State.at_rest(p)
             s0 = eqx.tree_at(lambda s: s.Omega, s0, s0.Omega + dOmega)
-            ctrl = Torques(table) if mode == "torques" else WheelSpeeds(table)
+            ctrl = (Torques if mode == "torques" else WheelSpeeds)(table, jump_ts)
             ts_after = T + settle * jnp.linspace(0.0, 1.0, 51, dtype=dt)  # the settling phase
             tr = simulate(p, s0, ctrl, T + settle, ts=ts_after, rtol=rtol, atol=atol, throw=False, max_steps=max_steps)
         speed = p.R0 * jnp.linalg.norm(cross(tr.Omega[-1], tr.gamma[-1]))
@@ -227,6 +227,7 @@ def monte_carlo(
     Omega0_sd: float = 0.0,
     plan_rate: float = 200.0,
     settle: float = 1.0,
+    commands: tuple | None = None,
     max_steps: int = 65536,
     out: str | os.PathLike | None = None,
     progress: bool = True,
@@ -253,6 +254,11 @@ def monte_carlo(
       `plan_rate` Hz) are replayed open loop on each perturbed robot, through `actuators`
       (gain, delay, white and band-limited noise; `Actuators`), for the gaits' duration plus
       `settle` seconds: "where does the real robot stop?".
+    - `commands`: `(ts, values)`, a command table to replay instead of the gaits' plan (e.g.
+      the kinematic control (2.9) for the paper's Fig. 2 comparison); starts at `t = 0`, repeat
+      a time stamp to encode a jump (wheel-speed jumps are impulses, see `simulate`); the motors
+      stop at its last time. `gaits` is then not replayed (pass the gaits the commands belong
+      to, for the record).
     - `max_steps`: solver step limit per trial in the replay modes (noisy commands need many
       steps: the noise is interpolated smoothly and the solver follows it).
     - `Omega0_sd`: sd of a perturbation of the initial shell angular velocity [1/s].
@@ -290,14 +296,24 @@ def monte_carlo(
     unit = CHUNK * nd
     B = int(math.ceil(max(1, min(batch_size, n)) / unit) * unit)
     n_batches = int(math.ceil(n / B))
-    plan = None
+    plan, jump_ts = None, ()
+    if commands is not None and mode == "gait":
+        raise ValueError("monte_carlo: `commands` are replayed; use mode='torques' or 'wheel_speeds'.")
     if mode != "gait":
-        nominal = simulate_gaits(params, gaits, reset=reset, rate=plan_rate)
-        tsn = np.asarray(nominal.ts)
-        u = np.asarray(nominal.K if mode == "torques" else nominal.chi_dot)
+        if commands is None:
+            nominal = simulate_gaits(params, gaits, reset=reset, rate=plan_rate)
+            tsn = np.asarray(nominal.ts)
+            u = np.asarray(nominal.K if mode == "torques" else nominal.chi_dot)
+        else:
+            tsn, u = np.asarray(commands[0], np.float64), np.asarray(commands[1], np.float64)
+            Sampled(jnp.asarray(tsn), jnp.asarray(u))  # validates the table
+            if tsn[0] != 0.0 or u.shape[1:] != (params.n_wheels,):
+                raise ValueError(f"monte_carlo: commands must start at t = 0 and have {params.n_wheels} columns; got t0 = {tsn[0]}, shape {u.shape}.")
         # the motors stop when the plan ends: a jump to zero at its last time stamp
         tsn, u = np.concatenate([tsn, tsn[-1:]]), np.concatenate([u, np.zeros_like(u[:1])])
-        plan = (jnp.asarray(tsn), jnp.asarray(u))
+        plan = (jnp.asarray(tsn, params.R0.dtype), jnp.asarray(u, params.R0.dtype))
+        if actuators.delay_s == 0 and actuators.delay_sd == 0:  # jumps stay where the plan has them
+            jump_ts = tuple(float(t) for t in tsn[1:][np.diff(tsn) == 0] if t > 0)
     names = tuple(name for name, _, _, _ in spec)
     kinds = tuple(kind for _, kind, _, _ in spec)
     ab = jnp.asarray(np.array([[a, b] for _, _, a, b in spec], dtype=np.float64).reshape(len(spec), 2), dtype=params.R0.dtype)
@@ -308,7 +324,8 @@ def monte_carlo(
         mesh = Mesh(np.array(devices), ("trials",))
 
     folder = Path(out) if out is not None else None
-    fp = _fingerprint(params, gaits, spec, seed, B, (reset, mode, repr(actuators), Omega0_sd, plan_rate, settle), rtol, atol)
+    cmd_fp = None if commands is None else hashlib.sha256(np.ascontiguousarray(plan[1]).tobytes() + np.ascontiguousarray(plan[0]).tobytes()).hexdigest()
+    fp = _fingerprint(params, gaits, spec, seed, B, (reset, mode, repr(actuators), Omega0_sd, plan_rate, settle, cmd_fp), rtol, atol)
     if folder is not None:
         folder.mkdir(parents=True, exist_ok=True)
         manifest = folder / "manifest.json"
@@ -334,7 +351,7 @@ def monte_carlo(
             continue
         idx = jnp.arange(k * B, (k + 1) * B, dtype=jnp.int32)
         out_k = _run_batch(params, gaits, names, kinds, ab, jnp.asarray(seed, jnp.uint32), idx, reset, rtol, atol, mesh,
-                           mode, plan, actuators, Omega0_sd, settle, max_steps)  # fmt: skip
+                           mode, plan, actuators, Omega0_sd, settle, max_steps, jump_ts)  # fmt: skip
         vals, x, y, speed, status, g3 = jax.device_get(out_k)
         part = {"vals": np.asarray(vals), "x": np.asarray(x), "y": np.asarray(y), "speed": np.asarray(speed),
                 "status": np.asarray(status), "gamma3_sd": np.asarray(g3)}  # fmt: skip

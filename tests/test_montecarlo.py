@@ -151,3 +151,15 @@ def test_two_processes_share_one_study(study, tmp_path):
         assert np.array_equal(xy[0], study.x_final) and np.array_equal(xy[1], study.y_final)
     with pytest.raises(ValueError, match="shared|every process"):
         jsphere.monte_carlo(jsphere.RobotParams.paper(), GAITS, vary=VARY, n=8, process_index=0, process_count=2)
+
+
+def test_kinematic_command_replay_matches_fig2(paper):
+    """Replaying the kinematic control (2.9) as a command table (jump to zero at 4 s, an impulse)
+    gives the rocking of `jsphere reproduce` (sd of gamma_3 over [4, 8] s about 0.020)."""
+    u = np.asarray(jsphere.kinematic_wheel_speeds(paper, np.array([0.15 * 0.864, 0.0])))
+    cmd = (np.array([0.0, 4.0]), np.stack([u, u]))
+    res = jsphere.monte_carlo(paper, GAITS, vary={}, n=64, batch_size=64, mode="wheel_speeds", commands=cmd,
+                              settle=4.0, progress=False)  # fmt: skip
+    assert np.all(res.status == 0)
+    assert res.gamma3_sd_after[0] == pytest.approx(0.0201, abs=5e-4)
+    assert res.x_final[0] == pytest.approx(0.49858, abs=1e-4)  # as the kinematic run of `reproduce` at t = 8 s
