@@ -14,7 +14,6 @@ resumes where it stopped if interrupted.
 """
 
 import argparse
-import json
 
 import numpy as np
 
