@@ -105,6 +105,16 @@ def write_reproduction_figures(rep, out_dir) -> list[Path]:
     return paths
 
 
+def _ellipse_in_figure_frame(st):
+    """The confidence ellipse of `MonteCarloResult.stats()` as (x, y) in the paper's frame [mm]."""
+    minor, major = st["ellipse"]["semi_axes_m"]
+    ang, (x0, y0) = st["ellipse"]["angle_rad"], st["mean_xy_m"]
+    t = np.linspace(0, 2 * np.pi, 200)
+    e1, e2 = np.array([np.cos(ang), np.sin(ang)]), np.array([-np.sin(ang), np.cos(ang)])
+    ell = np.array([x0, y0])[:, None] + major * np.outer(e1, np.cos(t)) + minor * np.outer(e2, np.sin(t))
+    return -1e3 * ell[1], 1e3 * ell[0]
+
+
 def montecarlo_figure(res, path, *, planned=None) -> None:
     """Stop points of a Monte-Carlo study: scatter with the 95 % ellipse, and a histogram of
     the distance from the mean stop (paper's figure frame, mm)."""
@@ -114,13 +124,8 @@ def montecarlo_figure(res, path, *, planned=None) -> None:
     st = res.stats()
     fig, (a, b) = plt.subplots(1, 2, figsize=(10, 4.5))
     a.plot(xf, yf, ".", ms=2, alpha=0.4, label=f"{ok.sum()} trials")
-    minor, major = st["ellipse"]["semi_axes_m"]
-    ang = st["ellipse"]["angle_rad"]
-    t = np.linspace(0, 2 * np.pi, 200)
-    (x0, y0), e1, e2 = st["mean_xy_m"], np.array([np.cos(ang), np.sin(ang)]), np.array([-np.sin(ang), np.cos(ang)])
-    ell = np.array([x0, y0])[:, None] + major * np.outer(e1, np.cos(t)) + minor * np.outer(e2, np.sin(t))
-    a.plot(-1e3 * ell[1], 1e3 * ell[0], "r-", label=f"{100 * st['ellipse']['level']:.0f}% ellipse")
-    mx, my = -1e3 * y0, 1e3 * x0
+    a.plot(*_ellipse_in_figure_frame(st), "r-", label=f"{100 * st['ellipse']['level']:.0f}% ellipse")
+    mx, my = -1e3 * st["mean_xy_m"][1], 1e3 * st["mean_xy_m"][0]
     if planned is not None:
         a.plot([-1e3 * planned[1]], [1e3 * planned[0]], "kx", label="planned stop")
     a.set_xlabel("x [mm] (paper's frame)")
@@ -147,12 +152,7 @@ def figure2_study(kin, gait, path) -> None:
         a.hist(np.asarray(res.gamma3_sd_after)[ok], bins=60, alpha=0.6, label=lab)
         st = res.stats()
         b.plot(-1e3 * np.asarray(res.y_final)[ok], 1e3 * np.asarray(res.x_final)[ok], ".", ms=1.5, alpha=0.3, label=lab)
-        minor, major = st["ellipse"]["semi_axes_m"]
-        ang, (x0, y0) = st["ellipse"]["angle_rad"], st["mean_xy_m"]
-        t = np.linspace(0, 2 * np.pi, 200)
-        e1, e2 = np.array([np.cos(ang), np.sin(ang)]), np.array([-np.sin(ang), np.cos(ang)])
-        ell = np.array([x0, y0])[:, None] + major * np.outer(e1, np.cos(t)) + minor * np.outer(e2, np.sin(t))
-        b.plot(-1e3 * ell[1], 1e3 * ell[0], "-", lw=1)
+        b.plot(*_ellipse_in_figure_frame(st), "-", lw=1)
     for v, lab in ((0.018, "paper, kinematic (measured)"), (0.001, "paper, gaits (measured)")):
         a.axvline(v, color="k", ls="--" if v > 0.01 else ":", lw=1, label=lab)
     a.set_xlabel(r"sd of $\gamma_3$ after the stop")
