@@ -89,6 +89,14 @@ def public(d: dict) -> dict:
     return {k: v for k, v in d.items() if not k.startswith("_")}
 
 
+def rate_row(r: dict, B: int, steps, **extra) -> dict:
+    """A table row: timing of `B` trials, their solver steps, and `extra` fields."""
+    steps = np.asarray(steps)
+    log(f"      {B / r['median_s']:.1f} trials/s, compile {r['compile_s']:.1f} s")
+    return public(r) | {"batch": B, "trials_per_s": B / r["median_s"], "steps_mean": float(steps.mean()),
+                        "steps_max": int(steps.max())} | extra  # fmt: skip
+
+
 # ------------------------------------------------------------------------ environment
 
 
@@ -185,19 +193,8 @@ def problem1_jsphere(p, Z, batches, repeats):
         A = jnp.asarray(amplitudes(Z[:B]))
         r = time_call(f, A, repeats=repeats)
         tr = r["_out"]
-        steps = np.asarray(tr.num_steps)
         finals[B] = np.stack([np.asarray(tr.x[:, -1]), np.asarray(tr.y[:, -1])], -1)
-        rows.append(
-            public(r)
-            | {
-                "batch": B,
-                "trials_per_s": B / r["median_s"],
-                "steps_mean": float(steps.mean()),
-                "steps_max": int(steps.max()),
-                "all_ok": bool(np.all(np.asarray(tr.ok))),
-            }
-        )
-        log(f"      {B / r['median_s']:.1f} trials/s, compile {r['compile_s']:.1f} s")
+        rows.append(rate_row(r, B, tr.num_steps, all_ok=bool(np.all(np.asarray(tr.ok)))))
     return rows, finals
 
 
@@ -292,18 +289,7 @@ def problem2(p, batches, repeats):
             log(f"      FAILED: {type(e).__name__}: {e}")
             continue
         x, steps = (np.asarray(v) for v in r["_out"])
-        rows.append(
-            public(r)
-            | {
-                "batch": B,
-                "trials_per_s": B / r["median_s"],
-                "steps_mean": float(steps.mean()),
-                "steps_max": int(steps.max()),
-                "x_final_first": float(x[0]),
-                "theta_max_first": float(TH[0]),
-            }
-        )
-        log(f"      {B / r['median_s']:.1f} trials/s, compile {r['compile_s']:.1f} s")
+        rows.append(rate_row(r, B, steps, x_final_first=float(x[0]), theta_max_first=float(TH[0])))
     return rows
 
 

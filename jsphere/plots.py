@@ -18,6 +18,20 @@ def _plt():
     return plt
 
 
+def _xy_axes(ax) -> None:
+    """Axes of a path in the paper's figure frame [mm]."""
+    ax.set_xlabel("x [mm] (paper's frame)")
+    ax.set_ylabel("y [mm]")
+    ax.axis("equal")
+    ax.legend(fontsize=7)
+
+
+def _finish(plt, fig, path) -> None:
+    fig.tight_layout()
+    atomic_savefig(fig, path, dpi=120)
+    plt.close(fig)
+
+
 def _fig_xy(tr):
     return -1e3 * np.asarray(tr.y), 1e3 * np.asarray(tr.x)  # paper's frame, mm
 
@@ -44,9 +58,7 @@ def figure2(rep, path) -> None:
         fontsize=8,
     )
     b.legend()
-    fig.tight_layout()
-    atomic_savefig(fig, path, dpi=120)
-    plt.close(fig)
+    _finish(plt, fig, path)
 
 
 def figure3(rep, path) -> None:
@@ -67,13 +79,8 @@ def figure3(rep, path) -> None:
     b.errorbar([-151.3], [482.4], xerr=[32.4], yerr=[112.1], fmt="ko", ms=3, label="paper, experiment (95%)")
     b.set_title("(b) rectilinear motion with a turn")
     for ax in (a, b):
-        ax.set_xlabel("x [mm] (paper's frame)")
-        ax.set_ylabel("y [mm]")
-        ax.axis("equal")
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    atomic_savefig(fig, path, dpi=120)
-    plt.close(fig)
+        _xy_axes(ax)
+    _finish(plt, fig, path)
 
 
 def controls_figure(tr, path, *, title: str = "") -> None:
@@ -91,9 +98,7 @@ def controls_figure(tr, path, *, title: str = "") -> None:
     axs[0].legend([f"wheel {i + 1}" for i in range(np.asarray(tr.K).shape[1])], fontsize=7)
     if title:
         axs[0].set_title(title)
-    fig.tight_layout()
-    atomic_savefig(fig, path, dpi=120)
-    plt.close(fig)
+    _finish(plt, fig, path)
 
 
 def write_reproduction_figures(rep, out_dir) -> list[Path]:
@@ -128,17 +133,12 @@ def montecarlo_figure(res, path, *, planned=None) -> None:
     mx, my = -1e3 * st["mean_xy_m"][1], 1e3 * st["mean_xy_m"][0]
     if planned is not None:
         a.plot([-1e3 * planned[1]], [1e3 * planned[0]], "kx", label="planned stop")
-    a.set_xlabel("x [mm] (paper's frame)")
-    a.set_ylabel("y [mm]")
-    a.axis("equal")
-    a.legend(fontsize=7)
+    _xy_axes(a)
     d = np.hypot(xf - mx, yf - my)
     b.hist(d, bins=60)
     b.set_xlabel("distance from the mean stop [mm]")
     b.set_ylabel("trials")
-    fig.tight_layout()
-    atomic_savefig(fig, path, dpi=120)
-    plt.close(fig)
+    _finish(plt, fig, path)
 
 
 def figure2_study(kin, gait, path) -> None:
@@ -159,10 +159,5 @@ def figure2_study(kin, gait, path) -> None:
     a.set_ylabel("trials")
     a.legend(fontsize=7)
     b.errorbar([-1.392], [369.2], xerr=[28.9], yerr=[37.7], fmt="ko", ms=3, label="paper, gaits, experiment (95%)")
-    b.set_xlabel("x [mm] (paper's frame)")
-    b.set_ylabel("y [mm]")
-    b.axis("equal")
-    b.legend(fontsize=7)
-    fig.tight_layout()
-    atomic_savefig(fig, path, dpi=120)
-    plt.close(fig)
+    _xy_axes(b)
+    _finish(plt, fig, path)
