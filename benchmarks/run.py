@@ -267,6 +267,26 @@ def problem1_checks(model, q0, Z, scipy_finals, js_finals):
     return out
 
 
+def problem1_casadi(model, q0, Z, B, repeats, sc_row):
+    """CasADi baselines (`casadi_baseline.py`): compiled RK4 and CVODES, mapped over threads.
+    Skipped with a note in the table when CasADi is not installed."""
+    try:
+        from casadi_baseline import casadi_rows
+    except ImportError as e:  # pragma: no cover
+        return [{"name": "CasADi", "error": f"not run: {e}"}]
+    log(f"[P1] CasADi baselines, batch {B} ...")
+    try:
+        rows, finals = casadi_rows(model, q0, amplitudes(Z[:B]), threads=os.cpu_count() or 2, repeats=repeats)
+    except Exception as e:  # noqa: BLE001  (a missing C compiler, a CasADi without cvodes: report it)
+        return [{"name": "CasADi", "error": f"{type(e).__name__}: {e}"}]
+    ref = scipy_trial(model, q0, amplitudes(Z[0]), rtol=1e-13, atol=1e-14).y[10:12, -1]
+    for r, key in zip(rows, ("rk4", "cvodes")):
+        r["ratio_vs_scipy"] = r["trials_per_s"] / sc_row["trials_per_s"]
+        r["trial0_err_m"] = float(np.abs(finals[key][0] - ref).max())
+        log(f"      {r['name']}: {r['trials_per_s']:.1f} trials/s, trial 0 error {r['trial0_err_m']:.1e} m")
+    return rows
+
+
 # ------------------------------------------------------------------------ problem 2
 
 
@@ -373,6 +393,14 @@ def fmt_table(res) -> str:
         f"{'P1 torques, scipy DOP853 (serial)':<34}{sc['trials']:>8}{sc['trials_per_s']:>12.2f}{sc['median_s']:>11.4f}"
         f"{'-':>11}{sc['repeats']:>6}{sc['steps_mean']:>9.0f}{'':<7}{1.0:>9.1f}x"
     )
+    for r in res["problem1"].get("casadi", []):
+        if "error" in r:
+            L.append(f"{'P1 CasADi':<34}{'':>8}  {r['error'][:70]}")
+            continue
+        L.append(
+            f"{r['name'][:33]:<34}{r['batch']:>8}{r['trials_per_s']:>12.1f}{r['median_s']:>11.4f}"
+            f"{r['build_s']:>11.2f}{len(r['times_s']):>6}{'':>16}{r['ratio_vs_scipy']:>9.1f}x"
+        )
     for r in res["problem2"]:
         if "error" in r:
             L.append(f"{'P2 gaits, jsphere jit+vmap':<34}{r['batch']:>8}  FAILED: {r['error'][:60]}")
@@ -401,6 +429,9 @@ def fmt_table(res) -> str:
         f"energy balance residual {c['energy_balance_residual_J']:.1e} J"
         + (f"; batch 1 vs batched {c['batch1_vs_batched_trial0_m']:.1e} m" if "batch1_vs_batched_trial0_m" in c else "")
     )
+    cas = [r for r in res["problem1"].get("casadi", []) if "trial0_err_m" in r]
+    if cas:
+        L.append("  CasADi trial 0 vs the same reference: " + ", ".join(f"{r['name'].split(',')[0]} {r['trial0_err_m']:.1e} m" for r in cas))
     fd = res["problem3"]["fd_check"]
     if fd:
         L.append(
@@ -429,6 +460,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="smaller run (under 3 minutes on 2 CPU cores)")
     ap.add_argument("--out", type=Path, default=HERE / "results.json", help="JSON output (written atomically)")
+    ap.add_argument("--no-casadi", action="store_true", help="skip the CasADi baselines (run when casadi is installed)")
     args = ap.parse_args(argv)
     t_start = time.perf_counter()
     global _SOURCE_AT_IMPORT
@@ -452,6 +484,7 @@ def main(argv=None) -> int:
     for r in js_rows:
         r["ratio_vs_scipy"] = r["trials_per_s"] / sc_row["trials_per_s"]
     checks = problem1_checks(model, q0, Z, sc_finals, js_finals)
+    cas_rows = problem1_casadi(model, q0, Z, 1024, repeats, sc_row) if not args.no_casadi else []
     p2 = problem2(p, b2, repeats)
     p3_rows, fd = problem3(p, Z, b3, repeats)
     for r in p3_rows:
@@ -478,7 +511,7 @@ def main(argv=None) -> int:
                          "tolerances": "simulate_gaits defaults (rtol 1e-10, atol 1e-12)", "batches": b2},
             "problem3": {"params": GRAD_NAMES, "loss": "sum over batch of x_final^2 + y_final^2", "batches": b3},
         },
-        "problem1": {"jsphere": js_rows, "scipy": sc_row, "checks": checks},
+        "problem1": {"jsphere": js_rows, "scipy": sc_row, "casadi": cas_rows, "checks": checks},
         "problem2": p2,
         "problem3": {"rows": p3_rows, "fd_check": fd},
         "wall_time_s": time.perf_counter() - t_start,
