@@ -16,6 +16,17 @@ import jax as _jax
 if _os.environ.get("JSPHERE_X64", "1") != "0":
     _jax.config.update("jax_enable_x64", True)
 
+# --- capture data (issue 3) ---
+from ._capture import (
+    Trial as Trial,
+    random_inputs as random_inputs,
+    read_trial as read_trial,
+    read_trials as read_trials,
+    synthetic_trial as synthetic_trial,
+    write_trial as write_trial,
+)
+
+# --- end capture data ---
 from ._controls import (
     Constant as Constant,
     Sampled as Sampled,
