@@ -271,7 +271,8 @@ class Trial(eqx.Module):
     def replace(self, **changes) -> Trial:
         """A copy with some fields changed (validated again)."""
         d = {"t": self.t, "x": self.x, "y": self.y, "q": self.q, "inputs": self.inputs, "kind": self.kind}
-        d.update(z=self.z, name=self.name, **changes)
+        d.update({"z": self.z, "name": self.name})
+        d.update(changes)
         return Trial(**d)
 
     def __repr__(self) -> str:
