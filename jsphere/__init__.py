@@ -25,6 +25,20 @@ from ._capture import (
     synthetic_trial as synthetic_trial,
     write_trial as write_trial,
 )
+from ._mocap import (
+    MarkerData as MarkerData,
+    convert_raw as convert_raw,
+    markers_to_trial as markers_to_trial,
+    read_c3d as read_c3d,
+    read_inputs_csv as read_inputs_csv,
+    read_motive_csv as read_motive_csv,
+    read_vicon_csv as read_vicon_csv,
+    rigid_body_pose as rigid_body_pose,
+    synthetic_markers as synthetic_markers,
+    write_inputs_csv as write_inputs_csv,
+    write_motive_csv as write_motive_csv,
+    write_vicon_csv as write_vicon_csv,
+)
 
 # --- end capture data ---
 from ._controls import (

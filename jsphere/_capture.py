@@ -527,7 +527,8 @@ def default_amplitude(params: RobotParams, kind: str) -> float:
         from ._kinematics import kinematic_wheel_speeds
 
         h = np.linspace(0.0, 2 * np.pi, 8, endpoint=False)
-        return max(float(np.max(np.abs(kinematic_wheel_speeds(params, 0.3 * np.array([np.cos(a), np.sin(a)]))))) for a in h)
+        v = jnp.asarray(0.3 * np.stack([np.cos(h), np.sin(h)], axis=1), params.R0.dtype)
+        return float(jnp.max(jnp.abs(jax.vmap(lambda r: kinematic_wheel_speeds(params, r))(v))))
     return float(0.05 * params.m * params.g * params.R_m)
 
 
@@ -569,6 +570,12 @@ def random_inputs(
     dt = params.R0.dtype
     fn = RandomSines(jnp.asarray(amp, dt), jnp.asarray(freq, dt), jnp.asarray(phase, dt), jnp.asarray(ramp_time, dt))
     return WheelSpeeds(fn) if kind == "wheel_speeds" else Torques(fn)
+
+
+@eqx.filter_jit
+def eval_controls(controls, ts: Float[Array, " T"]) -> Float[Array, "T N"]:
+    """`controls(t)` at each of `ts` (compiled once per control structure)."""
+    return jax.vmap(controls)(ts)
 
 
 def _dropout_mask(rng: np.random.Generator, M: int, dropout: float, max_burst: int = 5) -> np.ndarray:
@@ -631,7 +638,7 @@ def synthetic_trial(
     y = np.asarray(traj.y) + rng.normal(0.0, pos_sd, M)
     noise = quat_from_rotvec_np(rng.normal(0.0, np.deg2rad(rot_sd_deg), (M, 3)))
     q = quat_mul_np(np.asarray(traj.q), noise)
-    u = np.asarray(jax.vmap(controls)(jnp.asarray(ts, params.R0.dtype)))
+    u = np.asarray(eval_controls(controls, jnp.asarray(ts, params.R0.dtype)))
     drop = _dropout_mask(rng, M, dropout)
     x[drop], y[drop], q[drop] = np.nan, np.nan, np.nan
     kind = "wheel_speeds" if isinstance(controls, WheelSpeeds) else "torques"

@@ -13,6 +13,7 @@ from jsphere._capture import (
     MIN_VALID_FRAMES,
     RandomSines,
     detect_position_units,
+    eval_controls,
     quat_from_rotvec_np,
     quat_mul_np,
     trial_to_csv,
@@ -376,11 +377,11 @@ def test_random_inputs_is_a_module_ramped_from_zero(paper):
     np.testing.assert_allclose(np.asarray(a(jnp.array(0.0))), 0.0, atol=1e-15)
     _, rate0 = a.value_and_rate(jnp.array(0.0))
     np.testing.assert_allclose(np.asarray(rate0), 0.0, atol=1e-12)
-    u = np.asarray(jax.vmap(a)(jnp.linspace(0, 10, 2001)))
+    u = np.asarray(eval_controls(a, jnp.linspace(0, 10, 2001)))
     amp = 3.0
     c = jsphere.random_inputs(paper, 2.0, amplitude=amp, kind="torques", seed=3)
     assert isinstance(c, jsphere.Torques)
-    uc = np.asarray(jax.vmap(c)(jnp.linspace(0, 10, 2001)))
+    uc = np.asarray(eval_controls(c, jnp.linspace(0, 10, 2001)))
     assert np.abs(uc).max() <= amp and np.abs(uc).max() > 0.3 * amp
     assert np.abs(u).max() > 1.0
     with pytest.raises(ValueError, match="kind must be one of"):
@@ -395,7 +396,7 @@ def test_synthetic_trial_noise_and_gaps(truth_ws, noisy_ws):
     # the robot moved and tilted: an exciting trial
     assert np.hypot(truth.x - truth.x[0], truth.y - truth.y[0]).max() > 0.02
     # recorded inputs are the commands at the sample times
-    np.testing.assert_allclose(truth.inputs, np.asarray(jax.vmap(c)(jnp.asarray(truth.t))), atol=1e-14)
+    np.testing.assert_allclose(truth.inputs, np.asarray(eval_controls(c, jnp.asarray(truth.t))), atol=1e-14)
     np.testing.assert_array_equal(noisy_ws.inputs, truth.inputs)
     # noise levels
     v = noisy_ws.valid
@@ -425,7 +426,7 @@ def test_synthetic_trial_is_deterministic(paper, noisy_ws):
 def test_synthetic_torque_trial(torque_trial, paper):
     tr, c = torque_trial
     assert tr.kind == "torques" and tr.input_names == ["K_1", "K_2", "K_3"]
-    np.testing.assert_allclose(tr.inputs, np.asarray(jax.vmap(c)(jnp.asarray(tr.t))), atol=1e-15)
+    np.testing.assert_allclose(tr.inputs, np.asarray(eval_controls(c, jnp.asarray(tr.t))), atol=1e-15)
     # the platform stays near its rest attitude (gamma_z close to 1) but does move
     g = np.asarray(rotmat(jnp.asarray(tr.q[tr.valid])))[:, 2, 2]
     assert g.min() > 0.8 and g.min() < 0.9999
@@ -450,3 +451,301 @@ def test_synthetic_trial_round_trips_through_csv(tmp_path, torque_trial):
     assert back.kind == "torques"
     np.testing.assert_array_equal(back.valid, tr.valid)
     assert re.search(r"^t,x,y,qw,qx,qy,qz,K_1,K_2,K_3$", p.read_text(), re.MULTILINE)
+
+
+# --------------------------------------------------------------------------- raw marker exports
+
+from jsphere._mocap import (
+    UP_TO_Z,
+    default_marker_set,
+    quat_from_rotmat_np,
+    rotmat_np,
+)
+
+BODY = default_marker_set(0.15)
+NAMES = ["a", "b", "c", "d"]
+
+
+def _angle_deg(q1, q2):
+    d = quat_mul_np(q1 * np.array([1, -1, -1, -1]), q2)
+    return np.rad2deg(2 * np.arcsin(np.clip(np.linalg.norm(d[:, 1:], axis=1), 0, 1)))
+
+
+def _random_rotations(rng, n):
+    return rotmat_np(quat_from_rotvec_np(rng.normal(0, 1.0, (n, 3))))
+
+
+def test_rigid_body_pose_exact_gaps_and_reflection():
+    rng = np.random.default_rng(0)
+    M = 50
+    R = _random_rotations(rng, M)
+    p = rng.normal(0, 1.0, (M, 3))
+    m = np.einsum("mij,kj->mki", R, BODY) + p[:, None]
+    m[3, 1] = np.nan  # 3 markers left: still a pose
+    m[4, :2] = np.nan  # 2 markers: a gap
+    q, pp, rms = jsphere.rigid_body_pose(m, BODY)
+    ok = np.ones(M, bool)
+    ok[4] = False
+    np.testing.assert_array_equal(np.isfinite(rms), ok)
+    np.testing.assert_allclose(rotmat_np(q[ok]), R[ok], atol=1e-12)
+    np.testing.assert_allclose(pp[ok], p[ok], atol=1e-12)
+    assert np.nanmax(rms) < 1e-12
+    # a mirrored marker set: the best proper rotation, never a reflection
+    mirror = m.copy()
+    mirror[..., 0] *= -1
+    qm, _, rms_m = jsphere.rigid_body_pose(mirror, BODY)
+    Rm = rotmat_np(qm[ok])
+    np.testing.assert_allclose(np.linalg.det(Rm), 1.0, atol=1e-12)
+    full = ok.copy()
+    full[3] = False  # three points can always be mirrored by a rotation
+    assert np.min(rms_m[full]) > 1e-3
+    # collinear markers: a gap; a swapped marker beyond max_rms: a gap
+    line = np.array([[0.0, 0, 0], [0.05, 0, 0], [0.1, 0, 0]])
+    ql, _, _ = jsphere.rigid_body_pose(np.tile(line, (2, 1, 1)), line)
+    assert np.all(np.isnan(ql))
+    sw = m.copy()
+    sw[0, [0, 1]] = sw[0, [1, 0]]
+    qs, _, _ = jsphere.rigid_body_pose(sw, BODY, max_rms=0.005)
+    assert np.all(np.isnan(qs[0])) and np.all(np.isfinite(qs[1]))
+
+
+def test_up_axis_conversion_is_a_rotation():
+    C = UP_TO_Z["y"]
+    np.testing.assert_allclose(C @ [0, 1, 0], [0, 0, 1])
+    assert np.linalg.det(C) == pytest.approx(1.0)
+    np.testing.assert_allclose(rotmat_np(quat_from_rotmat_np(C)), C, atol=1e-15)
+
+
+@pytest.fixture(scope="module")
+def markers_truth(truth_ws):
+    """Noisy markers (0.1 mm, 3% missing) of the noiseless trial; the truth trial."""
+    truth, _ = truth_ws
+    m = jsphere.synthetic_markers(truth, BODY, marker_sd=1e-4, dropout=0.03, seed=5)
+    return m, truth
+
+
+def _inputs_file(tmp_path, truth):
+    p = tmp_path / "inputs.csv"
+    jsphere.write_inputs_csv(p, truth.t, truth.inputs, truth.kind)
+    return p
+
+
+def _check_recovery(tr, truth, pos=1e-3, ang=1.0):
+    v = tr.valid
+    assert v.mean() > 0.9
+    dpos = np.hypot(tr.x[v] - truth.x[v], tr.y[v] - truth.y[v])
+    assert dpos.max() < pos
+    assert _angle_deg(tr.q[v], truth.q[v]).max() < ang
+    np.testing.assert_allclose(tr.z[v], 0.15, atol=pos)
+    np.testing.assert_allclose(tr.inputs, truth.inputs, rtol=1e-8, atol=1e-9)
+    return dpos.max(), _angle_deg(tr.q[v], truth.q[v]).max()
+
+
+def test_motive_round_trip_mm_y_up(tmp_path, markers_truth):
+    m, truth = markers_truth
+    raw = tmp_path / "take.csv"
+    jsphere.write_motive_csv(raw, truth.t, m, NAMES, units="mm")
+    data = jsphere.read_motive_csv(raw)
+    assert data.names == tuple(f"robot:{n}" for n in NAMES)
+    # blank cells are gaps, not zeros
+    np.testing.assert_array_equal(np.isnan(data.markers), np.isnan(m))
+    np.testing.assert_allclose(data.markers, m, atol=1e-6, equal_nan=True)
+    tr = jsphere.markers_to_trial(data, _inputs_file(tmp_path, truth), body_markers=BODY)
+    _check_recovery(tr, truth, pos=5e-4, ang=0.5)
+    assert tr.name == "take"
+
+
+def test_motive_estimated_body_and_offset(tmp_path, markers_truth):
+    """Body markers from the first full frame (platform at rest, q = 1 there), the shell centre
+    given as an offset from the marker centroid."""
+    m, truth = markers_truth
+    raw = tmp_path / "take.csv"
+    jsphere.write_motive_csv(raw, truth.t, m, NAMES, units="m")
+    tr = jsphere.convert_raw(raw, _inputs_file(tmp_path, truth), format="motive", body_offset=-BODY.mean(0))
+    _check_recovery(tr, truth, pos=1e-3, ang=1.0)
+
+
+def test_motive_rigid_body_columns_xyzw(tmp_path, truth_ws):
+    """Motive's own pose: quaternion columns X, Y, Z, W in a Y-up frame."""
+    truth, _ = truth_ws
+    z = np.full(truth.n_frames, 0.15)
+    p = np.stack([truth.x, truth.y, z], 1)
+    raw = tmp_path / "rb.csv"
+    m = jsphere.synthetic_markers(truth, BODY, marker_sd=0.0)
+    jsphere.write_motive_csv(raw, truth.t, m, NAMES, rb_q=truth.q, rb_p=p, units="mm")
+    assert "Rotation,Rotation,Rotation,Rotation,Position" in raw.read_text()
+    data = jsphere.read_motive_csv(raw, use="rigid_body", rigid_body="robot")
+    tr = jsphere.markers_to_trial(data, _inputs_file(tmp_path, truth))
+    np.testing.assert_allclose(tr.x, truth.x, atol=1e-6)
+    assert _angle_deg(tr.q, truth.q).max() < 1e-3
+
+
+def test_vicon_round_trip(tmp_path, markers_truth):
+    m, truth = markers_truth
+    raw = tmp_path / "trial01.csv"
+    jsphere.write_vicon_csv(raw, truth.t, m, NAMES)
+    text = raw.read_text().splitlines()
+    assert text[0] == "Trajectories" and text[3].startswith("Frame,Sub Frame,X,Y,Z") and ",mm,mm" in text[4]
+    data = jsphere.read_vicon_csv(raw)
+    np.testing.assert_allclose(data.t, truth.t, atol=1e-12)
+    np.testing.assert_array_equal(np.isnan(data.markers), np.isnan(m))
+    tr = jsphere.markers_to_trial(data, _inputs_file(tmp_path, truth), body_markers=BODY)
+    _check_recovery(tr, truth, pos=5e-4, ang=0.5)
+
+
+class _FakeEzc3d:
+    """Stands in for the `ezc3d` module: `ezc3d.c3d(path)` returns the dict layout of ezc3d."""
+
+    def __init__(self, points, residuals, labels, rate=100.0, units="mm"):
+        self.content = {
+            "parameters": {"POINT": {"LABELS": {"value": labels}, "RATE": {"value": [rate]}, "UNITS": {"value": [units]}}},
+            "data": {"points": points, "meta_points": {"residuals": residuals}},
+        }
+
+    def c3d(self, path):
+        return self.content
+
+
+def test_c3d_through_ezc3d(tmp_path, monkeypatch, markers_truth):
+    import sys
+
+    m, truth = markers_truth
+    M, K = m.shape[:2]
+    pts = np.ones((4, K, M))
+    pts[:3] = np.transpose(np.nan_to_num(m, nan=0.0), (2, 1, 0)) * 1000.0  # gaps as zeros ...
+    res = np.where(np.isnan(m[..., 0]).T, -1.0, 0.5)[None]  # ... flagged by residual -1
+    monkeypatch.setitem(sys.modules, "ezc3d", _FakeEzc3d(pts, res, NAMES))
+    raw = tmp_path / "trial.c3d"
+    raw.write_bytes(b"not read by the fake")
+    data = jsphere.read_c3d(raw)
+    np.testing.assert_array_equal(np.isnan(data.markers), np.isnan(m))
+    tr = jsphere.markers_to_trial(data, _inputs_file(tmp_path, truth), body_markers=BODY)
+    _check_recovery(tr, truth, pos=5e-4, ang=0.5)
+
+
+def test_c3d_without_ezc3d(tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "ezc3d", None)
+    with pytest.raises(ImportError, match=r"pip install jsphere\[c3d\]"):
+        jsphere.read_c3d(tmp_path / "x.c3d")
+
+
+# --------------------------------------------------------------------------- raw exports: bad input
+
+
+def test_raw_error_units_mismatch(tmp_path, markers_truth):
+    m, truth = markers_truth
+    raw = tmp_path / "take.csv"
+    jsphere.write_motive_csv(raw, truth.t, m, NAMES, units="mm")
+    with pytest.raises(ValueError, match=r"take\.csv: units='m' was declared but the file says its lengths are in 'mm'"):
+        jsphere.read_motive_csv(raw, units="m")
+    # a file whose header lies: says Meters, holds millimetres
+    bad = tmp_path / "bad.csv"
+    bad.write_text(raw.read_text().replace("Length Units,Millimeters", "Length Units,Meters"))
+    with pytest.raises(ValueError, match=r"declared in 'm' but the marker spread looks like millimetres"):
+        jsphere.read_motive_csv(bad)
+    # no units anywhere: detected from the spread
+    vic = tmp_path / "v.csv"
+    jsphere.write_vicon_csv(vic, truth.t, m, NAMES)
+    nounits = tmp_path / "nounits.csv"
+    lines = vic.read_text().splitlines()
+    lines[4] = ","
+    nounits.write_text("\n".join(lines) + "\n")
+    np.testing.assert_allclose(jsphere.read_vicon_csv(nounits).markers, m, atol=1e-6, equal_nan=True)
+    with pytest.raises(ValueError, match=r"declared in 'm' but the marker spread looks like millimetres"):
+        jsphere.read_vicon_csv(nounits, units="m")
+
+
+def test_raw_error_not_the_format(tmp_path):
+    p = tmp_path / "x.csv"
+    p.write_text("t,x\n0,1\n")
+    with pytest.raises(ValueError, match=r"x\.csv, line 1: not a Motive CSV export"):
+        jsphere.read_motive_csv(p)
+    with pytest.raises(ValueError, match=r"no 'Trajectories' section"):
+        jsphere.read_vicon_csv(p)
+    with pytest.raises(ValueError, match=r"format must be one of"):
+        jsphere.convert_raw(p, p, format="qualisys")
+
+
+def test_raw_error_times(tmp_path, markers_truth):
+    m, truth = markers_truth
+    t = truth.t.copy()
+    t[20] = t[19]
+    raw = tmp_path / "take.csv"
+    jsphere.write_motive_csv(raw, t, m, NAMES)
+    with pytest.raises(
+        ValueError, match=r"take\.csv, line 28: time stamps are duplicated: t = 0\.19 s follows t = 0\.19 s \(line 27\)"
+    ):
+        jsphere.read_motive_csv(raw)
+    vic = tmp_path / "v.csv"
+    jsphere.write_vicon_csv(vic, truth.t, m, NAMES)
+    lines = vic.read_text().splitlines()
+    lines[10] = "3," + lines[10].split(",", 1)[1]  # frame 3 after frame 6
+    vic.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ValueError, match=r"v\.csv, line 11: time stamps are not increasing"):
+        jsphere.read_vicon_csv(vic)
+
+
+def test_raw_error_too_few_markers_and_too_many_gaps(tmp_path, markers_truth):
+    m, truth = markers_truth
+    raw = tmp_path / "two.csv"
+    jsphere.write_motive_csv(raw, truth.t, m[:, :2], NAMES[:2])
+    with pytest.raises(ValueError, match=r"two\.csv: no complete rigid-body columns .* and fewer than 3 marker columns"):
+        jsphere.read_motive_csv(raw)
+    vic = tmp_path / "two_v.csv"
+    jsphere.write_vicon_csv(vic, truth.t, m[:, :2], NAMES[:2])
+    with pytest.raises(ValueError, match=r"two_v\.csv: 2 marker\(s\) .* a pose needs at least 3 markers"):
+        jsphere.markers_to_trial(jsphere.read_vicon_csv(vic), _inputs_file(tmp_path, truth))
+    mm = m.copy()
+    mm[::2, :2] = np.nan  # every other frame keeps only 2 markers
+    raw2 = tmp_path / "gappy.csv"
+    jsphere.write_motive_csv(raw2, truth.t, mm, NAMES)
+    with pytest.raises(ValueError, match=r"gappy\.csv: too many gaps: 50% .*|gappy\.csv: too many gaps"):
+        jsphere.markers_to_trial(jsphere.read_motive_csv(raw2), _inputs_file(tmp_path, truth), body_markers=BODY,
+                                 max_gap_fraction=0.4)  # fmt: skip
+
+
+def test_inputs_table_errors(tmp_path, markers_truth):
+    m, truth = markers_truth
+    p = tmp_path / "in.csv"
+    p.write_text("t,chi_dot_1,chi_dot_2\n0,1,2\n0.1,1,\n0.2,1,2\n")
+    with pytest.raises(ValueError, match=r"in\.csv, line 3: input column chi_dot_2 is blank"):
+        jsphere.read_inputs_csv(p)
+    p.write_text("t,K_1\n0,1\n0.2,1\n0.1,1\n")
+    with pytest.raises(ValueError, match=r"in\.csv, line 4: time stamps are not increasing"):
+        jsphere.read_inputs_csv(p)
+    p.write_text("time,K_1\n0,1\n")
+    with pytest.raises(ValueError, match=r"line 1: missing required column t"):
+        jsphere.read_inputs_csv(p)
+    p.write_text("t,K_1,chi_dot_1\n0,1,1\n1,1,1\n")
+    with pytest.raises(ValueError, match=r"both chi_dot_\* and K_\* columns"):
+        jsphere.read_inputs_csv(p)
+    raw = tmp_path / "take.csv"
+    jsphere.write_motive_csv(raw, truth.t, m, NAMES)
+    late = (truth.t + 100.0, truth.inputs, "wheel_speeds")
+    with pytest.raises(ValueError, match=r"do not overlap the inputs' .* share a clock \(use time_offset\)"):
+        jsphere.markers_to_trial(jsphere.read_motive_csv(raw), late, body_markers=BODY)
+    tr = jsphere.markers_to_trial(jsphere.read_motive_csv(raw), late, body_markers=BODY, time_offset=100.0)
+    assert tr.t[0] == pytest.approx(100.0)
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def test_cli_synth_and_convert(tmp_path, markers_truth, capsys):
+    from jsphere.cli import main
+
+    assert main(["synth", "--out", str(tmp_path / "syn"), "--trials", "1", "--duration", str(T1), "--no-cache"]) == 0
+    [f] = sorted((tmp_path / "syn").glob("*.csv"))
+    tr = jsphere.read_trial(f)
+    assert tr.kind == "wheel_speeds" and tr.n_frames == int(T1 * 100) + 1 and f.name == "wheel_speeds_00.csv"
+    m, truth = markers_truth
+    raw = tmp_path / "v.csv"
+    jsphere.write_vicon_csv(raw, truth.t, m, NAMES)
+    out = tmp_path / "conv.csv"
+    args = ["convert", str(raw), "--format", "vicon", "--inputs", str(_inputs_file(tmp_path, truth)), "--out", str(out)]
+    assert main([*args, "--body-offset", *(str(v) for v in -BODY.mean(0))]) == 0
+    _check_recovery(jsphere.read_trial(out), truth, pos=1e-3, ang=1.0)
+    assert main([*args, "--units", "m"]) == 2
+    assert "units='m' was declared but the file says its lengths are in 'mm'" in capsys.readouterr().err
