@@ -1,6 +1,7 @@
 """Capture data: the trial CSV format, synthetic trials, raw marker exports (issue 3)."""
 
 import re
+from pathlib import Path
 
 import equinox as eqx
 import jax
@@ -749,3 +750,25 @@ def test_cli_synth_and_convert(tmp_path, markers_truth, capsys):
     _check_recovery(jsphere.read_trial(out), truth, pos=1e-3, ang=1.0)
     assert main([*args, "--units", "m"]) == 2
     assert "units='m' was declared but the file says its lengths are in 'mm'" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------- the shipped example dataset
+
+DATA = Path(__file__).resolve().parents[1] / "examples" / "data"
+
+
+def test_example_dataset_reads_and_converts():
+    trials = jsphere.read_trials([DATA])
+    assert [t.name for t in trials] == ["tq_01", "tq_02", "ws_01", "ws_02", "ws_03"]
+    assert all(abs(np.median(np.diff(t.t)) - 0.01) < 1e-9 and t.valid.mean() > 0.95 for t in trials)
+    assert sum(f.stat().st_size for f in DATA.rglob("*") if f.is_file()) < 300 * 1024
+    truth = jsphere.RobotParams.load(DATA / "truth.toml")
+    assert float(truth.R_m) != pytest.approx(float(jsphere.RobotParams.paper().R_m), rel=1e-3)  # perturbed
+    body = np.loadtxt(DATA / "raw" / "body_markers.csv", delimiter=",", skiprows=2, usecols=(1, 2, 3))
+    inputs = DATA / "raw" / "inputs.csv"
+    a = jsphere.convert_raw(DATA / "raw" / "motive.csv", inputs, format="motive", body_markers=body)
+    b = jsphere.convert_raw(DATA / "raw" / "vicon.csv", inputs, format="vicon", body_markers=body)
+    v = a.valid & b.valid
+    assert v.mean() > 0.95
+    np.testing.assert_allclose(a.x[v], b.x[v], atol=2e-6)  # one motion, two exporters
+    np.testing.assert_allclose(a.z[v], float(truth.R0), atol=1e-3)
