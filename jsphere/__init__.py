@@ -29,6 +29,7 @@ from ._mocap import (
     MarkerData as MarkerData,
     convert_raw as convert_raw,
     markers_to_trial as markers_to_trial,
+    read_body_markers as read_body_markers,
     read_c3d as read_c3d,
     read_inputs_csv as read_inputs_csv,
     read_motive_csv as read_motive_csv,

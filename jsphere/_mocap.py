@@ -152,6 +152,46 @@ def rigid_body_pose(
     return sign_continuous(q), p, rms
 
 
+def read_body_markers(path) -> dict[str, np.ndarray]:
+    """Read marker coordinates in the platform frame [m]: a CSV with columns `name, x, y, z`
+    (`#` lines are comments). Returns `{name: (3,) array}` for `markers_to_trial`."""
+    path, rows = _read_lines(path)
+    source = str(path)
+    rows = [(i + 1, r) for i, r in enumerate(rows) if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")]
+    if not rows or [c.strip() for c in rows[0][1]] != ["name", "x", "y", "z"]:
+        raise ValueError(
+            f"{source}: the first line must be the header 'name,x,y,z' (marker coordinates in the platform frame, m)."
+        )
+    out = {}
+    for line, r in rows[1:]:
+        if len(r) != 4:
+            raise ValueError(f"{source}, line {line}: expected 4 cells (name, x, y, z); got {len(r)}.")
+        xyz = np.array([_parse_cell(c, source, line, k) for c, k in zip(r[1:], "xyz")])
+        if not np.all(np.isfinite(xyz)):
+            raise ValueError(f"{source}, line {line}: marker {r[0].strip()!r} has a blank coordinate.")
+        out[r[0].strip()] = xyz
+    if len(out) < 3:
+        raise ValueError(f"{source}: {len(out)} marker(s); a pose needs at least 3.")
+    return out
+
+
+def _match_body_markers(body: dict, names: tuple[str, ...], source: str) -> np.ndarray:
+    """Rows of `body` in the order of `names` (full name, or the part after `Subject:`); NaN rows
+    for markers that `body` does not list (they are then left out of the fit)."""
+    out = np.full((len(names), 3), np.nan)
+    for k, n in enumerate(names):
+        for key in (n, n.split(":", 1)[-1]):
+            if key in body:
+                out[k] = np.asarray(body[key], float)
+                break
+    if np.sum(np.all(np.isfinite(out), axis=1)) < 3:
+        raise ValueError(
+            f"{source}: fewer than 3 of the export's markers {list(names)} are in body_markers {sorted(body)}; "
+            "name them as in the export (with or without the 'Subject:' prefix)."
+        )
+    return out
+
+
 def estimate_body_markers(markers: np.ndarray, source: str = "markers") -> tuple[np.ndarray, int]:
     """Body-frame marker coordinates from the first frame where every marker is seen: the
     positions minus their centroid, in the fixed axes of that frame. Returns `(body, frame)`."""
@@ -499,7 +539,7 @@ def markers_to_trial(
     data: MarkerData,
     inputs,
     *,
-    body_markers: np.ndarray | None = None,
+    body_markers: np.ndarray | dict[str, np.ndarray] | None = None,
     alignment: np.ndarray | None = None,
     body_offset=(0.0, 0.0, 0.0),
     max_rms: float = 0.005,
@@ -515,7 +555,10 @@ def markers_to_trial(
       The inputs are interpolated linearly to the capture times; capture frames outside the
       table's time range are dropped (the two must share a clock: `t_trial = t_capture +
       time_offset`).
-    - `body_markers`, `alignment`, `body_offset`: see the module docstring. If the data carry
+    - `body_markers`, `alignment`, `body_offset`: see the module docstring. `body_markers` may
+      be a `(K, 3)` array in the order of `data.names`, or a dict `{name: (x, y, z)}` (e.g. from
+      `read_body_markers`), matched by full name or by the part after `Subject:`; markers of
+      the export not in the dict are ignored. If the data carry
       the exporter's rigid-body pose (`rb_q`), it is used instead of the markers, as the body
       frame.
     - `max_rms`: frames whose marker fit has an RMS residual above this [m] are gaps.
@@ -537,10 +580,13 @@ def markers_to_trial(
             raise ValueError(f"{source}: {len(data.names)} marker(s) {list(data.names)}; a pose needs at least 3 markers.")
         if body_markers is None:
             body_markers, _ = estimate_body_markers(data.markers, source)
+        elif isinstance(body_markers, dict):
+            body_markers = _match_body_markers(body_markers, data.names, source)
         body_markers = np.asarray(body_markers, float)
         if body_markers.shape != (len(data.names), 3):
             raise ValueError(f"{source}: body_markers must be ({len(data.names)}, 3), one row per marker {list(data.names)}.")
-        q_body, p_body, _ = rigid_body_pose(data.markers, body_markers, max_rms=max_rms)
+        known = np.all(np.isfinite(body_markers), axis=1)  # markers left out of a body_markers dict
+        q_body, p_body, _ = rigid_body_pose(data.markers[:, known], body_markers[known], max_rms=max_rms)
     R_body = rotmat_np(np.where(np.isfinite(q_body), q_body, 1.0))
     R = R_body @ A  # platform -> fixed
     centre = p_body + np.einsum("mij,j->mi", R, off)

@@ -154,9 +154,10 @@ def _cmd_convert(args) -> int:
     import jsphere
 
     try:
+        body = jsphere.read_body_markers(args.body_markers) if args.body_markers else None
         trial = jsphere.convert_raw(
             args.raw, args.inputs, format=args.format, units=args.units, up_axis=args.up_axis, rigid_body=args.rigid_body,
-            body_offset=tuple(args.body_offset), time_offset=args.time_offset,
+            body_markers=body, body_offset=tuple(args.body_offset), time_offset=args.time_offset,
         )  # fmt: skip
     except ImportError as e:  # read_c3d without ezc3d
         print(f"jsphere convert: error: {e}", file=sys.stderr)
@@ -192,6 +193,7 @@ def _add_capture_parsers(sub) -> None:
     cv.add_argument("--units", default="auto", choices=("auto", "m", "mm"), help="length units of the export (default: auto)")
     cv.add_argument("--up-axis", choices=("y", "z"), help="the export's up axis (default: y for Motive, z otherwise)")
     cv.add_argument("--rigid-body", help="Motive rigid body / Vicon subject whose markers to use")
+    cv.add_argument("--body-markers", help="CSV name,x,y,z: the markers in the platform frame [m] (default: from the first full frame)")
     cv.add_argument("--body-offset", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"),
                     help="shell centre relative to the marker centroid, platform frame [m]")  # fmt: skip
     cv.add_argument("--time-offset", type=float, default=0.0, help="added to the capture times to match the inputs' clock [s]")

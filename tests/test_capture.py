@@ -748,6 +748,10 @@ def test_cli_synth_and_convert(tmp_path, markers_truth, capsys):
     args = ["convert", str(raw), "--format", "vicon", "--inputs", str(_inputs_file(tmp_path, truth)), "--out", str(out)]
     assert main([*args, "--body-offset", *(str(v) for v in -BODY.mean(0))]) == 0
     _check_recovery(jsphere.read_trial(out), truth, pos=1e-3, ang=1.0)
+    body = tmp_path / "body.csv"
+    body.write_text("name,x,y,z\n" + "".join(f"{n},{b[0]},{b[1]},{b[2]}\n" for n, b in zip(NAMES, BODY)))
+    assert main([*args, "--body-markers", str(body)]) == 0
+    _check_recovery(jsphere.read_trial(out), truth, pos=5e-4, ang=0.5)
     assert main([*args, "--units", "m"]) == 2
     assert "units='m' was declared but the file says its lengths are in 'mm'" in capsys.readouterr().err
 
@@ -764,7 +768,8 @@ def test_example_dataset_reads_and_converts():
     assert sum(f.stat().st_size for f in DATA.rglob("*") if f.is_file()) < 300 * 1024
     truth = jsphere.RobotParams.load(DATA / "truth.toml")
     assert float(truth.R_m) != pytest.approx(float(jsphere.RobotParams.paper().R_m), rel=1e-3)  # perturbed
-    body = np.loadtxt(DATA / "raw" / "body_markers.csv", delimiter=",", skiprows=2, usecols=(1, 2, 3))
+    body = jsphere.read_body_markers(DATA / "raw" / "body_markers.csv")
+    assert sorted(body) == ["m1", "m2", "m3", "m4"]
     inputs = DATA / "raw" / "inputs.csv"
     a = jsphere.convert_raw(DATA / "raw" / "motive.csv", inputs, format="motive", body_markers=body)
     b = jsphere.convert_raw(DATA / "raw" / "vicon.csv", inputs, format="vicon", body_markers=body)
@@ -772,3 +777,31 @@ def test_example_dataset_reads_and_converts():
     assert v.mean() > 0.95
     np.testing.assert_allclose(a.x[v], b.x[v], atol=2e-6)  # one motion, two exporters
     np.testing.assert_allclose(a.z[v], float(truth.R0), atol=1e-3)
+
+
+def test_body_markers_by_name(tmp_path, markers_truth):
+    """A body-marker table matched by name (with or without 'Subject:'), in any order, with a
+    marker of the export that it does not list left out of the fit."""
+    m, truth = markers_truth
+    raw = tmp_path / "v.csv"
+    jsphere.write_vicon_csv(raw, truth.t, m, NAMES)
+    f = tmp_path / "body.csv"
+    f.write_text(
+        "# platform frame, m\nname,x,y,z\n" + "".join(f"{n},{b[0]},{b[1]},{b[2]}\n" for n, b in zip(NAMES[::-1], BODY[::-1]))
+    )
+    body = jsphere.read_body_markers(f)
+    tr = jsphere.convert_raw(raw, _inputs_file(tmp_path, truth), format="vicon", body_markers=body)
+    _check_recovery(tr, truth, pos=5e-4, ang=0.5)
+    three = {k: body[k] for k in ("a", "b", "d")}
+    tr3 = jsphere.convert_raw(raw, _inputs_file(tmp_path, truth), format="vicon", body_markers=three)
+    _check_recovery(tr3, truth, pos=1e-3, ang=1.5)
+    with pytest.raises(ValueError, match=r"fewer than 3 of the export's markers .* are in body_markers \['a', 'x', 'y'\]"):
+        jsphere.convert_raw(
+            raw, _inputs_file(tmp_path, truth), format="vicon", body_markers={"a": BODY[0], "x": BODY[1], "y": BODY[2]}
+        )
+    f.write_text("marker,x,y,z\na,0,0,0\n")
+    with pytest.raises(ValueError, match=r"body\.csv: the first line must be the header 'name,x,y,z'"):
+        jsphere.read_body_markers(f)
+    f.write_text("name,x,y,z\na,0,0,0\nb,0,,0\nc,1,1,1\n")
+    with pytest.raises(ValueError, match=r"body\.csv, line 3: marker 'b' has a blank coordinate"):
+        jsphere.read_body_markers(f)
