@@ -148,14 +148,12 @@ def _checked(
             f"({_where(source, lines, k).split(', ')[-1]}); times must be strictly increasing (remove duplicated frames, sort by time)."
         )
 
-    pose = [x, y, q] + ([z] if z is not None else [])
     gap = ~np.isfinite(x) | ~np.isfinite(y) | ~np.all(np.isfinite(q), axis=1)
     if z is not None:
         gap |= ~np.isfinite(z)
     x[gap], y[gap], q[gap] = np.nan, np.nan, np.nan
     if z is not None:
         z[gap] = np.nan
-    del pose
     norms = np.linalg.norm(q, axis=1)
     off = np.nonzero(~gap & (np.abs(norms - 1.0) > QUAT_NORM_TOL))[0]
     if off.size:
@@ -334,7 +332,7 @@ def _input_columns(header: list[str], source: str) -> tuple[str, list[int]]:
             found[kind] = cols
     if len(found) == 2:
         raise ValueError(
-            f"{source}, line of the header: both chi_dot_* and K_* columns are present; a trial holds one kind of input "
+            f"{source}: both chi_dot_* and K_* columns are present; a trial holds one kind of input "
             "(wheel speeds or torques): keep one set of columns."
         )
     if not found:
