@@ -404,7 +404,8 @@ def read_vicon_csv(path, *, subject: str | None = None, units: str = "auto", up_
     Layout (e.g. https://ccu.uni-konstanz.de/wiki/ , Vicon Nexus reference guide): a line
     `Trajectories`, the frame rate [Hz], a row with each marker's name `Subject:Marker` in the
     column of its X, then `Frame,Sub Frame,X,Y,Z,...`, a units row (`mm`), then one row per
-    frame. Blank cells are gaps. Time is `(Frame - first Frame) / rate` [s] (`Sub Frame` is 0
+    frame, up to a blank line (other sections, e.g. `Devices`, may come before or after). Blank
+    cells are gaps. Time is `(Frame - first Frame) / rate` [s] (`Sub Frame` is 0
     in trajectory exports; other values are an error).
 
     `subject` keeps the markers named `"<subject>:..."` (default: all). `units`: `"auto"` (the
@@ -440,7 +441,8 @@ def read_vicon_csv(path, *, subject: str | None = None, units: str = "auto", up_
         raise ValueError(f"{source}, line {i0 + 3}: no marker trajectories" + (f" of subject {subject!r}." if subject else "."))
     cols = [0, 1] + [j + a for _, j in mk for a in range(3)]
     colnames = ["Frame", "Sub Frame"] + [f"{n} {a}" for n, _ in mk for a in "XYZ"]
-    data, lines = _numbers(rows, i0 + 5, cols, source, colnames)
+    end = next((i for i in range(i0 + 5, len(rows)) if not any(c.strip() for c in rows[i])), len(rows))
+    data, lines = _numbers(rows[:end], i0 + 5, cols, source, colnames)  # the section ends at a blank line
     sub = np.nonzero(np.nan_to_num(data[:, 1]) != 0)[0]
     if sub.size:
         raise ValueError(f"{source}, line {lines[sub[0]]}: Sub Frame is not 0; export the trajectories at the camera rate.")

@@ -587,6 +587,8 @@ def test_vicon_round_trip(tmp_path, markers_truth):
     jsphere.write_vicon_csv(raw, truth.t, m, NAMES)
     text = raw.read_text().splitlines()
     assert text[0] == "Trajectories" and text[3].startswith("Frame,Sub Frame,X,Y,Z") and ",mm,mm" in text[4]
+    # other sections before and after the trajectories are skipped
+    raw.write_text("Devices\n1000\n,,Force\nFrame,Sub Frame,Fx\n,,N\n1,0,0.5\n\n" + raw.read_text() + "\nModel Outputs\n100\n")
     data = jsphere.read_vicon_csv(raw)
     np.testing.assert_allclose(data.t, truth.t, atol=1e-12)
     np.testing.assert_array_equal(np.isnan(data.markers), np.isnan(m))
