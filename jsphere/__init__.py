@@ -16,6 +16,31 @@ import jax as _jax
 if _os.environ.get("JSPHERE_X64", "1") != "0":
     _jax.config.update("jax_enable_x64", True)
 
+# --- capture data (issue 3) ---
+from ._capture import (
+    Trial as Trial,
+    random_inputs as random_inputs,
+    read_trial as read_trial,
+    read_trials as read_trials,
+    synthetic_trial as synthetic_trial,
+    write_trial as write_trial,
+)
+from ._mocap import (
+    MarkerData as MarkerData,
+    convert_raw as convert_raw,
+    markers_to_trial as markers_to_trial,
+    read_c3d as read_c3d,
+    read_inputs_csv as read_inputs_csv,
+    read_motive_csv as read_motive_csv,
+    read_vicon_csv as read_vicon_csv,
+    rigid_body_pose as rigid_body_pose,
+    synthetic_markers as synthetic_markers,
+    write_inputs_csv as write_inputs_csv,
+    write_motive_csv as write_motive_csv,
+    write_vicon_csv as write_vicon_csv,
+)
+
+# --- end capture data ---
 from ._controls import (
     Constant as Constant,
     Sampled as Sampled,

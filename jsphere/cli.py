@@ -147,6 +147,71 @@ def _cmd_montecarlo(args) -> int:
     print(f"{n} trials in {res.elapsed_s:.1f} s; results in {out}/")
     return 0
 
+# --- capture data (issue 3): `jsphere convert`, `jsphere synth` ---
+
+
+def _cmd_convert(args) -> int:
+    import jsphere
+
+    try:
+        trial = jsphere.convert_raw(
+            args.raw, args.inputs, format=args.format, units=args.units, up_axis=args.up_axis, rigid_body=args.rigid_body,
+            body_offset=tuple(args.body_offset), time_offset=args.time_offset,
+        )  # fmt: skip
+    except ImportError as e:  # read_c3d without ezc3d
+        print(f"jsphere convert: error: {e}", file=sys.stderr)
+        return 2
+    jsphere.write_trial(args.out, trial)
+    print(f"{trial!r} -> {args.out}")
+    return 0
+
+
+def _cmd_synth(args) -> int:
+    import jsphere
+
+    params = jsphere.RobotParams.load(args.params) if args.params else jsphere.RobotParams.paper()
+    out = Path(args.out)
+    for i in range(args.trials):
+        seed = args.seed + i
+        controls = jsphere.random_inputs(params, args.duration, kind=args.kind, seed=seed)
+        trial = jsphere.synthetic_trial(
+            params, controls, args.duration, pos_sd=args.pos_sd, rot_sd_deg=args.rot_sd_deg, dropout=args.dropout,
+            seed=seed, name=f"{args.kind}_{i:02d}",
+        )  # fmt: skip
+        jsphere.write_trial(out / f"{trial.name}.csv", trial)
+        print(f"{trial!r} -> {out / (trial.name + '.csv')}")
+    return 0
+
+
+def _add_capture_parsers(sub) -> None:
+    cv = sub.add_parser("convert", help="raw motion-capture export + inputs table -> trial CSV (docs/capture.md)")
+    cv.add_argument("raw", help="the raw export (Motive CSV, Vicon Nexus CSV, or C3D)")
+    cv.add_argument("--format", required=True, choices=("motive", "vicon", "c3d"))
+    cv.add_argument("--inputs", required=True, help="inputs table: t, chi_dot_1..N or t, K_1..N")
+    cv.add_argument("--out", required=True, help="the trial CSV to write")
+    cv.add_argument("--units", default="auto", choices=("auto", "m", "mm"), help="length units of the export (default: auto)")
+    cv.add_argument("--up-axis", choices=("y", "z"), help="the export's up axis (default: y for Motive, z otherwise)")
+    cv.add_argument("--rigid-body", help="Motive rigid body / Vicon subject whose markers to use")
+    cv.add_argument("--body-offset", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"),
+                    help="shell centre relative to the marker centroid, platform frame [m]")  # fmt: skip
+    cv.add_argument("--time-offset", type=float, default=0.0, help="added to the capture times to match the inputs' clock [s]")
+    cv.add_argument("--no-cache", action="store_true", help=argparse.SUPPRESS)
+    sy = sub.add_parser("synth", help="synthetic capture-like trial CSVs from random input programs")
+    sy.add_argument("--out", required=True, help="output folder")
+    sy.add_argument("--trials", type=int, default=3, help="number of trials (default 3)")
+    sy.add_argument("--kind", default="wheel_speeds", choices=("wheel_speeds", "torques"))
+    sy.add_argument("--params", help="a parameter file (.toml or .json); default: the paper's robot")
+    sy.add_argument("--duration", type=float, default=6.0, help="trial length [s] (default 6)")
+    sy.add_argument("--seed", type=int, default=0, help="trial i uses seed + i")
+    sy.add_argument("--pos-sd", type=float, default=1e-3, help="position noise [m] (default 1e-3)")
+    sy.add_argument("--rot-sd-deg", type=float, default=0.5, help="orientation noise per axis [deg] (default 0.5)")
+    sy.add_argument("--dropout", type=float, default=0.02, help="fraction of frames lost (default 0.02)")
+    sy.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
+
+
+_CAPTURE_COMMANDS = {"convert": _cmd_convert, "synth": _cmd_synth}
+# --- end capture data ---
+
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="jsphere", description="Spherical robot with an internal omniwheel platform (JAX).")
@@ -163,6 +228,7 @@ def main(argv=None) -> int:
     mc.add_argument("--out", default="study", help="output folder; a killed study resumes there (default: ./study)")
     mc.add_argument("--no-plots", action="store_true", help="skip the figure")
     mc.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
+    _add_capture_parsers(sub)  # capture data (issue 3)
     args = parser.parse_args(argv)
     if not args.no_cache:
         enable_compilation_cache()
@@ -171,6 +237,8 @@ def main(argv=None) -> int:
             return _cmd_reproduce(args)
         if args.command == "montecarlo":
             return _cmd_montecarlo(args)
+        if args.command in _CAPTURE_COMMANDS:  # capture data (issue 3)
+            return _CAPTURE_COMMANDS[args.command](args)
     except (ValueError, FileNotFoundError) as e:
         print(f"jsphere {args.command}: error: {e}", file=sys.stderr)
         return 2
