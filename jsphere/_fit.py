@@ -37,8 +37,9 @@ import json
 import math
 import sys
 import time
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any
 
 import diffrax as dfx
 import jax
@@ -148,7 +149,7 @@ def pack_trials(trials: Sequence, params: RobotParams) -> FitData:
         raise ValueError(f"fit: all trials must have the same input kind, one of {KINDS}; got {sorted(map(str, kinds))}.")
     kind = next(iter(kinds))
     N = params.n_wheels
-    T, M = len(trials), max(len(np.asarray(t.t)) for t in trials)
+    M = max(len(np.asarray(t.t)) for t in trials)
     out = {k: [] for k in ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0")}
     names, lengths, starts = [], [], []
     for k, tr in enumerate(trials):
@@ -158,10 +159,14 @@ def pack_trials(trials: Sequence, params: RobotParams) -> FitData:
         x, y = np.asarray(tr.x, np.float64), np.asarray(tr.y, np.float64)
         q = np.asarray(tr.q, np.float64)
         if u.ndim != 2 or u.shape[1] != N:
-            raise ValueError(f"fit: trial {name!r} has inputs for {u.shape[-1] if u.ndim == 2 else '?'} wheels (shape {u.shape}) but the robot has {N}; use parameters with the same wheel count.")
+            raise ValueError(
+                f"fit: trial {name!r} has inputs for {u.shape[-1] if u.ndim == 2 else '?'} wheels (shape {u.shape}) but the robot has {N}; use parameters with the same wheel count."
+            )
         m = len(t)
         if m < 4 or u.shape[0] != m or x.shape != (m,) or y.shape != (m,) or q.shape != (m, 4):
-            raise ValueError(f"fit: trial {name!r}: t, x, y, q, inputs must have the same number of samples (>= 4); got {m}, {x.shape}, {y.shape}, {q.shape}, {u.shape}.")
+            raise ValueError(
+                f"fit: trial {name!r}: t, x, y, q, inputs must have the same number of samples (>= 4); got {m}, {x.shape}, {y.shape}, {q.shape}, {u.shape}."
+            )
         if not np.all(np.diff(t) > 0):
             raise ValueError(f"fit: trial {name!r}: times must be strictly increasing.")
         if not np.all(np.isfinite(u)):
@@ -176,7 +181,10 @@ def pack_trials(trials: Sequence, params: RobotParams) -> FitData:
         ts = np.concatenate([t - t0, np.full(M - m, t[-1] - t0)])
         dt = (t[-1] - t[0]) / (m - 1)
         tc = np.concatenate([t - t0, t[-1] - t0 + dt * np.arange(1, M - m + 1)])
-        pad = lambda a, v: np.concatenate([a, np.broadcast_to(v, (M - m,) + a.shape[1:])])  # noqa: E731
+
+        def pad(a, v, m=m):
+            return np.concatenate([a, np.broadcast_to(v, (M - m,) + a.shape[1:])])
+
         out["ts"].append(ts)
         out["tc"].append(tc)
         out["u"].append(pad(u, u[-1]))
@@ -270,7 +278,7 @@ class _Functions:
     free names, input kind and shapes does not compile again)."""
 
     def __init__(self, free: FreeParams, kind: str, rtol: float, atol: float, max_steps: int):
-        one = lambda adj: lambda base, th, nu, d, sig: _trial_outputs(free, kind, rtol, atol, max_steps, adj, base, th, nu, d, sig)  # noqa: E731
+        one = lambda adj: lambda base, th, nu, d, sig: _trial_outputs(free, kind, rtol, atol, max_steps, adj, base, th, nu, d, sig)
         fwd = one(dfx.RecursiveCheckpointAdjoint())
         P = free.size
 
@@ -282,13 +290,13 @@ class _Functions:
             J, (res, ok, pose) = jax.jacfwd(f, has_aux=True)(jnp.concatenate([th, nu]))
             return res, ok, J, pose
 
-        over_trials = lambda f: jax.vmap(f, in_axes=(None, None, 0, 0, None))  # noqa: E731
-        over_starts = lambda f: jax.vmap(f, in_axes=(None, 0, 0, None, None))  # noqa: E731
+        over_trials = lambda f: jax.vmap(f, in_axes=(None, None, 0, 0, None))
+        over_starts = lambda f: jax.vmap(f, in_axes=(None, 0, 0, None, None))
         self.jacobian = jax.jit(over_starts(over_trials(jac_one)))
         self.step = jax.jit(jax.vmap(functools.partial(_lm_step, P=P)))
 
         def loss(base, th, nu, d, sig):
-            res, ok, _ = over_trials(fwd)(base, th, nu, d, sig)
+            res, _, _ = over_trials(fwd)(base, th, nu, d, sig)
             return 0.5 * jnp.sum(res * res)
 
         self.loss = jax.jit(loss)
@@ -385,7 +393,7 @@ class FitResult:
 
     def to_json(self) -> dict[str, Any]:
         """The JSON document (`RobotParams.load` reads its `params`)."""
-        fin = lambda v: _finite(v)  # noqa: E731
+        fin = lambda v: _finite(v)
         return {
             "params": self.params.to_dict(),
             "free": list(self.free),
@@ -448,48 +456,86 @@ def _finite(v):
     return v
 
 
-def identifiability(free: FreeParams, values: np.ndarray, F_phys: np.ndarray, s2: float, *, rel_tol: float = 0.1) -> dict[str, Any]:
+def symmetry_directions(names: Sequence[str], values: np.ndarray, params: RobotParams) -> dict[str, np.ndarray]:
+    """Directions (physical units, one entry per free name) of two exact invariances of (3.4).
+
+    - `"mass_split"`: the platform mass enters only through `m0 + m` and `m r_m` (its inertia
+      `I` is about C), so `m -> m (1+e)`, `m0 -> m0 - e m`, `r_m -> r_m (1-e)` changes nothing.
+    - `"mass_scale"`: multiplying every inertia (`I0, I, j`), dampings, `m0 + m` and `m r_m`
+      by `1+e` multiplies every force of (3.4) by `1+e`. With wheel-speed inputs (servo
+      constraints) the motion is then unchanged; torque inputs fix the scale.
+    Only the free names appear; a direction that needs a fixed name to move is no symmetry of
+    the fit (the information along it is then large and nothing is reported).
+    """
+    fields = [parse_name(n)[0] for n in names]
+    m_free = "m" in fields
+    m, m0 = float(params.m), float(params.m0)
+    split, scale = np.zeros(len(names)), np.zeros(len(names))
+    for i, f in enumerate(fields):
+        v = float(values[i])
+        if f == "m":
+            split[i], scale[i] = m, m
+        elif f == "m0":
+            split[i], scale[i] = -m, (m0 if m_free else m0 + m)
+        elif f in ("R_m", "r_m"):
+            split[i], scale[i] = -v, (0.0 if m_free else v)
+        elif f in MASS_LIKE:
+            scale[i] = v
+    return {"mass_split": split, "mass_scale": scale}
+
+
+_SYMMETRY_TEXT = {
+    "mass_split": "only m0 + m and m r_m enter the model (I is about the shell centre), so m, m0 and R_m (r_m) cannot be told apart: "
+    "fix the platform mass, e.g. --fix m=<value>.",
+    "mass_scale": "scaling every inertia, the total mass m0 + m and the mass moment m r_m together changes nothing the data can see "
+    "(with wheel-speed inputs the motion does not depend on the mass scale; fixing m alone does not set it): "
+    "fix a mass or inertia you can measure, e.g. --fix {hint}=<value>, or use torque inputs.",
+}
+
+
+def identifiability(
+    free: FreeParams, values: np.ndarray, F_phys: np.ndarray, s2: float, params: RobotParams, *, rel_tol: float = 0.1
+) -> dict[str, Any]:
     """Which directions of the free parameters the data determine.
 
     `F_phys` is the information matrix in physical units. Each name is scaled by its size
     (`|value|`, or a tenth of its field's size for values near 0), so eigenvalues `lam` of the
     scaled information give relative standard deviations `sqrt(s^2/lam)` along their
-    eigenvectors. Directions with a relative sd above `rel_tol` are reported, with their
-    components; the mass scaling of `MASS_LIKE` parameters is checked by name.
+    eigenvectors. The known invariances (`symmetry_directions`) are checked by name; other
+    directions with a relative sd above `rel_tol` are reported with their components.
     """
     names = free.names
     sc = np.maximum(np.abs(values), 0.1 * free.scales())
     Fs = sc[:, None] * F_phys * sc[None, :]
     lam, V = np.linalg.eigh(Fs)
     lam_max = max(float(lam[-1]), 1e-300)
-    out: dict[str, Any] = {"condition_number": float(lam_max / max(lam[0], 1e-300 * lam_max)), "directions": [], "warnings": []}
+    rel_sd = lambda info: math.sqrt(s2 / info) if info > 1e-14 * lam_max else math.inf
+    out: dict[str, Any] = {"condition_number": float(lam_max / max(lam[0], 1e-300 * lam_max)), "symmetries": {}, "directions": [], "warnings": []}
+    named = []
+    for key, vec in symmetry_directions(names, values, params).items():
+        e = vec / sc
+        if np.count_nonzero(e) < 2:
+            continue
+        e = e / np.linalg.norm(e)
+        rel = rel_sd(float(e @ Fs @ e))
+        out["symmetries"][key] = {"relative_sd": rel, "combination": {n: float(w) for n, w in zip(names, e) if w != 0.0}}
+        if rel > rel_tol:
+            named.append(e)
+            fields = [parse_name(n)[0] for n in names]
+            hint = next((f for f in ("m0", "I0", "m") if f in fields), fields[0])
+            out["warnings"].append(_SYMMETRY_TEXT[key].format(hint=hint) + f" (relative sd along it {rel:.3g})")
     for k in range(len(lam)):
-        rel = math.sqrt(s2 / lam[k]) if lam[k] > 1e-14 * lam_max else math.inf
-        if rel <= rel_tol:
+        rel = rel_sd(float(lam[k]))
+        if rel <= rel_tol or any(abs(float(V[:, k] @ e)) > 0.9 for e in named):
             continue
         v = V[:, k] * np.sign(V[np.argmax(np.abs(V[:, k])), k])
         terms = [(names[i], float(v[i])) for i in np.argsort(-np.abs(v)) if abs(v[i]) >= 0.15]
         text = " ".join(f"{w:+.2f} {n}" for n, w in terms)
         out["directions"].append({"relative_sd": rel, "combination": dict(terms), "text": text})
         out["warnings"].append(
-            f"the data do not determine the direction {text} (relative changes; relative sd {rel:.3g}): fix one of {', '.join(n for n, _ in terms)} or add exciting trials."
+            f"the data do not determine the direction {text} (relative changes; relative sd {rel:.3g}): "
+            f"fix one of {', '.join(n for n, _ in terms)} or add more exciting trials."
         )
-    mass = [i for i, n in enumerate(names) if parse_name(n)[0] in MASS_LIKE]
-    if len(mass) >= 2:
-        e = np.zeros(len(names))
-        e[mass] = values[mass] / sc[mass]
-        e /= np.linalg.norm(e)
-        info = float(e @ Fs @ e)
-        rel = math.sqrt(s2 / info) if info > 1e-14 * lam_max else math.inf
-        out["mass_scaling_relative_sd"] = rel
-        if rel > rel_tol:
-            hint = "m" if "m" in names else names[mass[0]]
-            out["warnings"].insert(
-                0,
-                f"scaling every mass and inertia together ({', '.join(names[i] for i in mass)}) changes nothing the data can "
-                f"see (relative sd {rel:.3g}; with wheel-speed inputs the motion does not depend on the mass scale): "
-                f"fix one of them, e.g. --fix {hint}=<value>.",
-            )
     return out
 
 
@@ -515,7 +561,13 @@ def _assemble_named(free: FreeParams, per_name: dict[str, float], params: RobotP
 
 def _config_fingerprint(data: FitData, free: FreeParams, cfg: dict) -> str:
     h = hashlib.sha256(data.fingerprint().encode())
-    h.update(json.dumps({"free": free.names, "slots": [dataclasses.astuple(s) for s in free.slots], "base": free.base.to_dict(), **cfg}, sort_keys=True, default=str).encode())
+    h.update(
+        json.dumps(
+            {"free": free.names, "slots": [dataclasses.astuple(s) for s in free.slots], "base": free.base.to_dict(), **cfg},
+            sort_keys=True,
+            default=str,
+        ).encode()
+    )
     return h.hexdigest()
 
 
@@ -545,7 +597,7 @@ def fit(
     n_starts: int = 2,
     spread: float = 0.2,
     seed: int = 0,
-    adam_steps: int = 5,
+    adam_steps: int = 3,
     adam_lr: float = 0.1,
     max_iter: int = 40,
     ftol: float = 1e-10,
@@ -615,7 +667,16 @@ def fit(
     base = params
     estimate_sigma = sigma_pos is None or sigma_rot is None
     sig = np.array([sigma_pos or 1e-3, sigma_rot or math.radians(0.5)])
-    cfg = dict(n_starts=S, spread=spread, seed=seed, adam_steps=adam_steps, adam_lr=adam_lr, sig=sig.tolist(), rtol=rtol, atol=atol, kind=kind)
+    cfg = {
+        "n_starts": S,
+        "spread": spread,
+        "seed": seed,
+        "adam_steps": adam_steps,
+        "adam_lr": adam_lr,
+        "sig": sig.tolist(),
+        "rtol": rtol,
+        "atol": atol,
+    }
     fingerprint = _config_fingerprint(data, fp_, cfg)
     ckpt_path = Path(checkpoint) if checkpoint is not None else None
 
@@ -636,7 +697,9 @@ def fit(
 
     def save():
         if ckpt_path is not None:
-            _save_checkpoint(ckpt_path, fingerprint, theta=theta, nu=nu, lam=lam, sig=sig, stage=stage, it=it, total_it=total_it, converged=stage_converged)
+            _save_checkpoint(
+                ckpt_path, fingerprint, theta=theta, nu=nu, lam=lam, sig=sig, stage=stage, it=it, total_it=total_it, converged=stage_converged
+            )
 
     poses = [None]
 
@@ -665,7 +728,11 @@ def fit(
                 best = (cost.copy(), np.asarray(zz["theta"]).copy(), np.asarray(zz["nu"]).copy())
             else:
                 better = cost < best[0]
-                best = (np.where(better, cost, best[0]), np.where(better[:, None], zz["theta"], best[1]), np.where(better[:, None, None], zz["nu"], best[2]))
+                best = (
+                    np.where(better, cost, best[0]),
+                    np.where(better[:, None], zz["theta"], best[1]),
+                    np.where(better[:, None, None], zz["nu"], best[2]),
+                )
             gg = jnp.einsum("stkp,stk->sp", J[..., :P], res)
             gn = jnp.einsum("stkn,stk->stn", J[..., P:], res)
             g = {"theta": gg * scale["theta"], "nu": gn * scale["nu"]}
@@ -684,7 +751,7 @@ def fit(
     converged = np.zeros(S, bool)
     rejected = np.zeros(S, int)
     while stage in (1, 2):
-        while it < max_iter and not converged.all():
+        while it < max_iter and not converged[int(np.argmin(cost))]:
             dg, dn, pred = fns.step(jnp.asarray(res), J, jnp.asarray(lam))
             th_new, nu_new = theta + np.asarray(dg), nu + np.asarray(dn)
             bad = ~np.all(np.isfinite(th_new), 1)
@@ -701,7 +768,7 @@ def fit(
             nu = np.where(acc[:, None, None], nu_new, nu)
             res = np.where(acc[:, None, None], res_n, res)
             J = jnp.where(jnp.asarray(acc)[:, None, None, None], J_n, J)
-            pose = jax.tree_util.tree_map(lambda a, b: jnp.where(jnp.asarray(acc).reshape((-1,) + (1,) * (a.ndim - 1)), a, b), pose_n, pose)
+            pose = _select(acc, pose_n, pose)
             cost = np.where(acc, cost_n, cost)
             lam = np.where(acc, np.maximum(lam / 5.0, 1e-12), lam * 10.0)
             converged |= newly
@@ -736,9 +803,15 @@ def fit(
     return _result(fp_, data, base, pose, theta, nu, res, J, cost, sig, b, stage_converged, total_it, t_begin)
 
 
+def _select(acc, new, old):
+    """Per start: `new` where accepted, else `old` (pytrees with a leading start axis)."""
+    a = jnp.asarray(acc)
+    return jax.tree_util.tree_map(lambda x, y: jnp.where(a.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), new, old)
+
+
 def _estimate_sigma(res_b, data: FitData, sig, n_par: int) -> np.ndarray:
     """Noise levels from the whitened residuals of the best start (dof-corrected)."""
-    T, M = data.ts.shape
+    M = data.ts.shape[1]
     pos = res_b[:, : 2 * M] * sig[0]
     rot = res_b[:, 2 * M :] * sig[1]
     n_pos, n_rot = 2 * data.wpos.sum(), 3 * data.wrot.sum()
@@ -748,7 +821,7 @@ def _estimate_sigma(res_b, data: FitData, sig, n_par: int) -> np.ndarray:
 
 def _result(fp_: FreeParams, data, base, pose, theta, nu, res, J, cost, sig, b, converged, iterations, t_begin) -> FitResult:
     P = fp_.size
-    T, M = data.ts.shape
+    T = data.ts.shape[0]
     n_nu = nu.shape[-1]
     th_b = theta[b]
     res_b, J_b = np.asarray(res[b]), J[b]
@@ -775,7 +848,7 @@ def _result(fp_: FreeParams, data, base, pose, theta, nu, res, J, cost, sig, b, 
     np.fill_diagonal(corr, 1.0)
     params = fp_.to_params(jnp.asarray(th_b), base)
     params = RobotParams(**{f: getattr(params, f) for f in _FIELDS}, dtype=base.R0.dtype)
-    ident = identifiability(fp_, values, F_phys, s2)
+    ident = identifiability(fp_, values, F_phys, s2, params)
     ident["sigma_note"] = "relative sd of each direction; warnings list directions with relative sd > 10%"
     # the fitted trajectories, for the RMS values and the plots
     xs, ys, qs = (np.asarray(a[b]) for a in pose)
@@ -795,10 +868,14 @@ def _result(fp_: FreeParams, data, base, pose, theta, nu, res, J, cost, sig, b, 
                 "rms_rot_deg": float(np.degrees(np.sqrt((er[wr] ** 2).sum(1).mean()))),
                 "nuisance": {k: float(v) for k, v in zip(names_nu, nu[b, i])},
                 "series": {
-                    "t": data.ts[i, :m] + data.t_start[i], "x": np.where(wp, data.x[i, :m], np.nan), "y": np.where(wp, data.y[i, :m], np.nan),
-                    "x_sim": xs[i, :m], "y_sim": ys[i, :m], "pos_err": np.where(wp[:, None], ep, np.nan),
+                    "t": data.ts[i, :m] + data.t_start[i],
+                    "x": np.where(wp, data.x[i, :m], np.nan),
+                    "y": np.where(wp, data.y[i, :m], np.nan),
+                    "x_sim": xs[i, :m],
+                    "y_sim": ys[i, :m],
+                    "pos_err": np.where(wp[:, None], ep, np.nan),
                     "rot_err_deg": np.where(wr[:, None], np.degrees(er), np.nan),
-                },  # fmt: skip
+                },
             }
         )
     per_val = {n: float(v) for n, v in zip(fp_.names, values)}

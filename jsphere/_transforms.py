@@ -20,7 +20,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from typing import Any, Mapping, Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -142,7 +143,7 @@ def apply_fixes(params: RobotParams, fix: Mapping[str, Any] | None) -> RobotPara
         return params
     p = params
     for name, value in fix.items():
-        field, index = parse_name(name)
+        field, _ = parse_name(name)
         arr = parse_fix_value(name, value)
         if field != "R_m":
             target = get_value(params, name)
@@ -244,7 +245,9 @@ class FreeParams:
             field, index = parse_name(given)
             if field == "I" and not index:
                 if any(c in bounds for c in comps):
-                    raise ValueError("bounds on entries of a whole free 'I' are not supported (it is kept positive definite by a Cholesky factor); free the entries one by one to bound them.")
+                    raise ValueError(
+                        "bounds on entries of a whole free 'I' are not supported (it is kept positive definite by a Cholesky factor); free the entries one by one to bound them."
+                    )
                 I = np.asarray(params.I, np.float64)
                 slots.append(Slot(tuple(comps), "cholesky", scale=float(np.max(np.abs(I)))))
                 continue
@@ -274,7 +277,9 @@ class FreeParams:
         if not lo < hi:
             raise ValueError(f"bounds[{name!r}] = ({lo}, {hi}): the lower bound must be below the upper bound.")
         if not lo < v < hi:
-            raise ValueError(f"bounds[{name!r}] = ({lo}, {hi}) exclude the start value {v}; move the start (e.g. --fix/--params) or widen the bounds.")
+            raise ValueError(
+                f"bounds[{name!r}] = ({lo}, {hi}) exclude the start value {v}; move the start (e.g. --fix/--params) or widen the bounds."
+            )
         if math.isfinite(lo) and math.isfinite(hi):
             kind = "interval"
         elif math.isfinite(lo):
