@@ -123,7 +123,9 @@ def test_result_json_loads_as_params_and_plots_are_written(small_fit, tmp_path):
 
 def test_gradient_of_the_loss_agrees_with_finite_differences(small_trials):
     """`J^T r` (forward mode through diffrax) against central differences of the cost, with
-    respect to the free parameters and one nuisance parameter."""
+    respect to the free parameters and one nuisance parameter. At the fit's `rtol = 1e-6` the
+    cost has jumps of ~0.01-0.3 from the adaptive step control, so the differences use steps
+    of 1e-2 (agreement ~0.3%; at `rtol = 1e-10` they agree to 1e-5 with steps of 1e-3)."""
     p = jsphere.RobotParams.paper()
     fp = FreeParams(p, FREE)
     data = pack_trials(small_trials, p)
@@ -136,42 +138,47 @@ def test_gradient_of_the_loss_agrees_with_finite_differences(small_trials):
     def cost_and_grad(th, nu):
         res, ok, J, _ = fns.jacobian(p, jnp.asarray(th), jnp.asarray(nu), d, sig)
         assert bool(np.all(ok))
-        res = np.asarray(res)
-        g = np.einsum("stkp,stk->sp", np.asarray(J), res)
-        return 0.5 * float((res * res).sum()), g
+        res, J = np.asarray(res), np.asarray(J)
+        return 0.5 * float((res * res).sum()), np.einsum("stkp,stk->sp", J[..., : fp.size], res), np.einsum("stkn,stk->stn", J[..., fp.size :], res)
 
-    _, g = cost_and_grad(th, nu)
-    P = fp.size
-    for k, h in ((0, 1e-5), (1, 1e-5)):
+    _, g, g_nu = cost_and_grad(th, nu)
+    for k in range(fp.size):
         e = np.zeros_like(th)
-        e[0, k] = h
-        fd = (cost_and_grad(th + e, nu)[0] - cost_and_grad(th - e, nu)[0]) / (2 * h)
-        assert fd == pytest.approx(g[0, 0, k] if g.ndim == 3 else g[0, k], rel=2e-3)
-    # dcost/d Omega0_y of trial 0: the trial's block of J^T r
+        e[0, k] = 1e-2
+        fd = (cost_and_grad(th + e, nu)[0] - cost_and_grad(th - e, nu)[0]) / 2e-2
+        assert fd == pytest.approx(g[0, k], rel=1e-2)
+    assert abs(g[0, 0]) > 100 and abs(g[0, 1]) > 10  # far from the optimum: a real test
     e = np.zeros_like(nu)
-    e[0, 0, 1] = 1e-6
-    fd = (cost_and_grad(th, nu + e)[0] - cost_and_grad(th, nu - e)[0]) / 2e-6
-    res, _, J, _ = fns.jacobian(p, jnp.asarray(th), jnp.asarray(nu), d, sig)
-    g_nu = float(np.asarray(J)[0, 0, :, P + 1] @ np.asarray(res)[0, 0])
-    assert fd == pytest.approx(g_nu, rel=2e-3)
+    e[0, 0, 1] = 1e-3  # Omega0_y of trial 0 [1/s]
+    fd = (cost_and_grad(th, nu + e)[0] - cost_and_grad(th, nu - e)[0]) / 2e-3
+    assert fd == pytest.approx(g_nu[0, 0, 1], rel=1e-2)
 
 
 def test_killed_fit_resumes_from_checkpoint(small_trials, small_fit, tmp_path):
     res_full, _ = small_fit
     ckpt = tmp_path / "c.npz"
-    partial = jsphere.fit(small_trials, jsphere.RobotParams.paper(), FREE, fix={"m": 2.5}, checkpoint=ckpt, **{**OPTS, "max_iter": 1})
-    assert ckpt.exists() and not partial.converged
+
+    def kill_at_second_step(line):
+        if "LM stage 1 it   2" in line:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        jsphere.fit(small_trials, jsphere.RobotParams.paper(), FREE, fix={"m": 2.5}, checkpoint=ckpt, progress=kill_at_second_step, **OPTS)
+    assert ckpt.exists()
     lines = []
     res = jsphere.fit(small_trials, jsphere.RobotParams.paper(), FREE, fix={"m": 2.5}, checkpoint=ckpt, progress=lines.append, **OPTS)
-    assert any("resuming" in s for s in lines)
-    assert not any("adam" in s for s in lines)  # the warm start is not repeated
+    assert any("resuming" in s and "stage 1, iteration 2" in s for s in lines)
+    assert not any("adam" in s or "LM stage 1 it   1 " in s for s in lines)  # nothing is repeated
+    assert res.converged
     for n in res.free:
-        assert res.values[n] == pytest.approx(res_full.values[n], abs=0.05 * res_full.stderr[n])
+        assert res.values[n] == pytest.approx(res_full.values[n], abs=0.2 * res_full.stderr[n])
     # another configuration does not pick up this checkpoint
     lines = []
-    jsphere.fit(
-        small_trials, jsphere.RobotParams.paper(), FREE, fix={"m": 2.5}, checkpoint=ckpt, progress=lines.append, **{**OPTS, "max_iter": 1, "seed": 1}
-    )
+    with pytest.raises(KeyboardInterrupt):
+        jsphere.fit(
+            small_trials, jsphere.RobotParams.paper(), FREE, fix={"m": 2.5}, checkpoint=ckpt, seed=1,
+            progress=lambda s: lines.append(s) or kill_at_second_step(s), **{k: v for k, v in OPTS.items()},
+        )  # fmt: skip
     assert not any("resuming" in s for s in lines)
 
 
@@ -313,6 +320,9 @@ def _study(kind, free, fix_names, n=5, seed=0, durations=(4.0, 8.0), **kw):
     fix = {k: np.asarray(jsphere.get_value(truth, k)).tolist() for k in fix_names}
     res = jsphere.fit(trials, jsphere.RobotParams.paper(), free, fix=fix, seed=seed, **kw)
     z = {n: (res.values[n] - float(jsphere.get_value(truth, n))) / res.stderr[n] for n in res.free}
+    print(
+        f"\n{kind} seed {seed}: {n} trials, {res.elapsed_s:.0f} s, {res.iterations} iterations, errors in SE:", {k: round(v, 2) for k, v in z.items()}
+    )
     return res, z
 
 
@@ -347,6 +357,7 @@ def test_standard_errors_are_honest_over_20_seeds():
         )
         inside += sum(abs(v) < 2 for v in z.values())
         total += len(z)
+    print(f"truth within 2 SE: {inside}/{total}")
     assert inside >= 0.8 * total, (inside, total)
 
 
