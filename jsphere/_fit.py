@@ -540,11 +540,14 @@ def identifiability(
 
 
 def _assemble_named(free: FreeParams, per_name: dict[str, float], params: RobotParams, fill: float) -> dict[str, Any]:
-    """Add an entry for each whole field given as free (`"I"`: 3x3 nested list)."""
+    """Add an entry for each whole field given as free (`"I"`: 3x3 nested list), and one per
+    name as given where it differs from its canonical spelling (`"I[1,0]"` is `"I[0,1]"`)."""
     out = dict(per_name)
     for given, comps in free.given:
         field, index = parse_name(given)
         if index or len(comps) == 1:
+            if given not in out:  # spelled differently from the canonical name (`I[1,0]`, `I[0, 0]`)
+                out[given] = per_name[comps[0]]
             continue
         arr = np.full(np.shape(getattr(params, field)), fill)
         for c in comps:

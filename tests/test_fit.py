@@ -260,6 +260,20 @@ def test_trials_that_do_not_fit_the_robot_are_reported(small_trials):
         jsphere.fit([t], p, "R_m", n_starts=0)
 
 
+def test_whole_field_and_alias_entries_of_stderr():
+    from jsphere._fit import _assemble_named
+
+    p = jsphere.RobotParams.paper()
+    fp = FreeParams(p, ["I", "r_m[2]", "j"])
+    se = {n: float(k + 1) for k, n in enumerate(fp.names)}
+    out = _assemble_named(fp, se, p, 0.0)
+    assert np.asarray(out["I"]).shape == (3, 3) and out["I"][1][0] == out["I"][0][1] == se["I[0,1]"]
+    assert out["r_m[2]"] == se["r_m[2]"] and out["j"] == se["j"]
+    fp2 = FreeParams(p, ["I[1,0]", "I[0, 0]"])
+    out2 = _assemble_named(fp2, {"I[0,1]": 1.0, "I[0,0]": 2.0}, p, 0.0)
+    assert out2["I[1,0]"] == 1.0 and out2["I[0, 0]"] == 2.0
+
+
 def test_apply_fixes_accepts_json_lists():
     p = apply_fixes(jsphere.RobotParams.paper(), {"m": "2.0", "I": "[[0.02,0,0],[0,0.02,0],[0,0,0.03]]", "R_m": 0.03})
     assert float(p.m) == 2.0 and float(p.I[2, 2]) == 0.03 and float(p.R_m) == pytest.approx(0.03)
@@ -352,7 +366,7 @@ def test_standard_errors_are_honest_over_20_seeds():
     """Truth within 2 SE for most of 20 seeds (expected 95%; at least 80% of all (seed, name))."""
     inside, total = 0, 0
     for seed in range(20):
-        res, z = _study(
+        _, z = _study(
             "wheel_speeds", "R_m,j,I[2,2],I0", ["m", "m0", "I[0,0]", "I[1,1]"], n=3, durations=(4.0, 4.0), n_starts=1, adam_steps=0, seed=seed
         )
         inside += sum(abs(v) < 2 for v in z.values())
