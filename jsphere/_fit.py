@@ -794,14 +794,19 @@ def fit(
             )
         if stage == 1 and estimate_sigma:
             b = int(np.argmin(cost))
+            sig_old = sig
             sig = _estimate_sigma(res[b], data, sig, P + T * n_nu)
             say(f"fit: noise estimated: sigma_pos {sig[0] * 1e3:.4f} mm, sigma_rot {math.degrees(sig[1]):.4f} deg; refitting")
             stage, it = 2, 0
             lam = np.full(S, 1e-3)
             converged = np.zeros(S, bool)
             rejected = np.zeros(S, int)
-            res, J, cost = evaluate_jac(theta, nu)
-            pose = poses[0]
+            # reweight: the residuals and their Jacobian scale with 1/sigma (no new solve)
+            M = data.ts.shape[1]
+            w = np.concatenate([np.full(2 * M, sig_old[0] / sig[0]), np.full(3 * M, sig_old[1] / sig[1])])
+            res = res * w
+            J = J * jnp.asarray(w)[:, None]
+            cost = np.where(np.isfinite(cost), 0.5 * (res * res).sum((1, 2)), np.inf)
             save()
         else:
             stage_converged = bool(converged[int(np.argmin(cost))])
