@@ -275,16 +275,19 @@ def _trial_outputs(free: FreeParams, kind, rtol, atol, max_steps, adjoint, base,
 
 class _Functions:
     """The compiled functions of one fit configuration (cached: a second fit with the same
-    free names, input kind and shapes does not compile again)."""
+    free names, transforms, input kind and shapes does not compile again).
+
+    `jacobian(base, theta (S,P), nu (S,T,n), data, sigmas)`: whitened residuals `(S,T,K)`,
+    solver status `(S,T)`, their Jacobian `(S,T,K,P+n)` with respect to `(theta, nu_i)` and
+    the simulated poses, vmapped over starts and trials; `step(res, J, lam)`: the LM step.
+    """
 
     def __init__(self, free: FreeParams, kind: str, rtol: float, atol: float, max_steps: int):
-        one = lambda adj: lambda base, th, nu, d, sig: _trial_outputs(free, kind, rtol, atol, max_steps, adj, base, th, nu, d, sig)
-        fwd = one(dfx.RecursiveCheckpointAdjoint())
         P = free.size
 
         def jac_one(base, th, nu, d, sig):
             def f(z):
-                res, ok, pose = one(dfx.ForwardMode())(base, z[:P], z[P:], d, sig)
+                res, ok, pose = _trial_outputs(free, kind, rtol, atol, max_steps, dfx.ForwardMode(), base, z[:P], z[P:], d, sig)
                 return res, (res, ok, pose)
 
             J, (res, ok, pose) = jax.jacfwd(f, has_aux=True)(jnp.concatenate([th, nu]))
@@ -294,12 +297,6 @@ class _Functions:
         over_starts = lambda f: jax.vmap(f, in_axes=(None, 0, 0, None, None))
         self.jacobian = jax.jit(over_starts(over_trials(jac_one)))
         self.step = jax.jit(jax.vmap(functools.partial(_lm_step, P=P)))
-
-        def loss(base, th, nu, d, sig):
-            res, _, _ = over_trials(fwd)(base, th, nu, d, sig)
-            return 0.5 * jnp.sum(res * res)
-
-        self.loss = jax.jit(loss)
 
 
 _CACHE: dict[Any, _Functions] = {}
