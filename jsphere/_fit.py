@@ -626,11 +626,11 @@ def fit(
     - `max_iter`, `ftol`, `gtol`, `noise`: Levenberg-Marquardt iterations per stage; a stage
       ends when the predicted decrease of the cost is below `gtol` (in units of chi^2/2: 0.01
       is a step of ~0.14 standard errors along the worst direction), when an accepted step
-      changes the cost by less than `ftol` (relative), or after 3 steps that do not lower the
-      best cost by `gtol`. The adaptive ODE solver makes the cost piecewise smooth with jumps
-      (~0.1 at `rtol=1e-6` for a few thousand samples) while its Jacobian stays accurate, so
-      steps predicted to gain less than `noise` are accepted unless the cost rises by more
-      than `noise`.
+      changes the cost by less than `ftol` (relative), after 3 accepted steps that do not
+      lower the best cost by `gtol`, or after 8 rejected steps in a row. The adaptive ODE
+      solver makes the cost piecewise smooth with jumps (~0.1 at `rtol=1e-6` for a few
+      thousand samples) while its Jacobian stays accurate, so steps predicted to gain less
+      than `noise` are accepted unless the cost rises by more than `noise`.
     - `sigma_pos` [m], `sigma_rot` [rad]: noise levels. If not given they start at 1 mm and
       0.5 deg and are estimated from the residuals after the first stage, and the fit is
       finished with the estimates.
@@ -754,7 +754,7 @@ def fit(
     res, J, cost = evaluate_jac(theta, nu)
     pose = poses[0]
     converged = np.zeros(S, bool)
-    stalled, best_cost = np.zeros(S, int), cost.copy()
+    stalled, rejected, best_cost = np.zeros(S, int), np.zeros(S, int), cost.copy()
     while stage in (1, 2):
         while it < max_iter and not converged[int(np.argmin(cost))]:
             dg, dn, pred = fns.step(jnp.asarray(res), J, jnp.asarray(lam))
@@ -770,13 +770,13 @@ def fit(
             near = (pred_n < noise) & (cost_n < cost + noise)
             acc = np.isfinite(cost_n) & ((cost_n < cost) | near) & ~converged
             rel = (cost - cost_n) / np.maximum(cost, 1e-300)
-            # no progress: the best cost so far not lowered by at least gtol
-            progress_ = acc & (cost_n < best_cost - gtol)
-            stalled = np.where(progress_, 0, stalled + 1)
+            # accepted steps that do not lower the best cost by gtol (the solver's noise floor)
+            stalled = np.where(acc, np.where(cost_n < best_cost - gtol, 0, stalled + 1), stalled)
+            rejected = np.where(acc, 0, rejected + 1)
             best_cost = np.where(acc, np.minimum(best_cost, cost_n), best_cost)
-            # done: a negligible predicted or relative decrease, or 3 steps without progress
-            # (rejected, or accepted at the solver's noise floor)
-            newly = (acc & (np.abs(rel) < ftol)) | ((pred_n < gtol) & (lam <= 1.0)) | (stalled >= 3)
+            # done: a negligible predicted or relative decrease, 3 accepted steps without
+            # progress, or 8 rejections in a row (lambda grown by 1e8)
+            newly = (acc & (np.abs(rel) < ftol)) | ((pred_n < gtol) & (lam <= 1.0)) | (stalled >= 3) | (rejected >= 8)
             theta = np.where(acc[:, None], th_new, theta)
             nu = np.where(acc[:, None, None], nu_new, nu)
             res = np.where(acc[:, None, None], res_n, res)
@@ -801,7 +801,7 @@ def fit(
             stage, it = 2, 0
             lam = np.full(S, 1e-3)
             converged = np.zeros(S, bool)
-            stalled = np.zeros(S, int)
+            stalled, rejected = np.zeros(S, int), np.zeros(S, int)
             # reweight: the residuals and their Jacobian scale with 1/sigma (no new solve)
             M = data.ts.shape[1]
             w = np.concatenate([np.full(2 * M, sig_old[0] / sig[0]), np.full(3 * M, sig_old[1] / sig[1])])
@@ -939,7 +939,7 @@ def least_squares(
     `fun` is a pure JAX function of `x (P,)` returning whitened residuals `(K,)`; its
     Jacobian is taken by `jax.jacrev` (`jac="rev"`, for few residuals or simulations with the
     default adjoint) or `jax.jacfwd` (`jac="fwd"`, with `adjoint=diffrax.ForwardMode()`).
-    Used by `examples/paper_Rm_j.py` together with `FreeParams`.
+    Used by `examples/fit_paper_Rm_j.py` together with `FreeParams`.
     """
     jf = jax.jit(jax.jacrev(fun) if jac == "rev" else jax.jacfwd(fun))
     f = jax.jit(fun)
