@@ -42,6 +42,16 @@ from ._mocap import (
 )
 
 # --- end capture data ---
+# --- system identification (issue 3: the fit) ---
+from ._fit import (
+    FitResult as FitResult,
+    LeastSquaresResult as LeastSquaresResult,
+    fit as fit,
+    least_squares as least_squares,
+)
+from ._transforms import FreeParams as FreeParams
+
+# --- end system identification ---
 from ._controls import (
     Constant as Constant,
     Sampled as Sampled,

@@ -214,6 +214,81 @@ def _add_capture_parsers(sub) -> None:
 _CAPTURE_COMMANDS = {"convert": _cmd_convert, "synth": _cmd_synth}
 # --- end capture data ---
 
+# --- system identification (issue 3): `jsphere fit` ---
+
+
+def _parse_assignments(items, option: str) -> dict:
+    out = {}
+    for item in items or []:
+        name, eq, value = item.partition("=")
+        if not eq or not name.strip() or not value.strip():
+            raise ValueError(f"{option} expects NAME=VALUE (e.g. {option} m=2.5); got {item!r}.")
+        if name.strip() in out:
+            raise ValueError(f"{option}: {name.strip()!r} is given twice.")
+        out[name.strip()] = value.strip()
+    return out
+
+
+def _parse_bounds(items) -> dict:
+    out = {}
+    for name, value in _parse_assignments(items, "--bound").items():
+        lo, colon, hi = value.partition(":")
+        if not colon:
+            raise ValueError(f"--bound {name}={value}: expected LO:HI with either side empty for an open end (e.g. j=0:1e-3).")
+        try:
+            out[name] = (float(lo) if lo.strip() else None, float(hi) if hi.strip() else None)
+        except ValueError:
+            raise ValueError(f"--bound {name}={value}: LO and HI must be numbers.") from None
+    return out
+
+
+def _cmd_fit(args) -> int:
+    import jsphere
+
+    out = Path(args.out)
+    if out.suffix.lower() != ".json":
+        raise ValueError(f"--out {out}: the result is JSON; give a path ending in .json.")
+    fix = _parse_assignments(args.fix, "--fix")
+    bounds = _parse_bounds(args.bound)
+    params = jsphere.RobotParams.load(args.params) if args.params else jsphere.RobotParams.paper()
+    trials = jsphere.read_trials(args.trials)
+    ckpt = out.with_name(out.name + ".ckpt.npz")
+    sigma_rot = None if args.sigma_rot_deg is None else args.sigma_rot_deg * 3.141592653589793 / 180.0
+    res = jsphere.fit(
+        trials, params, args.free, fix=fix, bounds=bounds, n_starts=args.n_starts, seed=args.seed, max_iter=args.max_iter,
+        sigma_pos=args.sigma_pos, sigma_rot=sigma_rot, checkpoint=ckpt, restart=args.restart, progress=not args.quiet,
+    )  # fmt: skip
+    written = res.save(out, plots=not args.no_plots)
+    if ckpt.exists():
+        ckpt.unlink()
+    print(res.table())
+    for w in res.identifiability["warnings"]:
+        print(f"jsphere fit: warning: {w}", file=sys.stderr)
+    print(f"wrote {', '.join(str(p) for p in written)}  ({res.elapsed_s:.1f} s)")
+    return 0
+
+
+def _add_fit_parser(sub) -> None:
+    ft = sub.add_parser("fit", help="fit robot parameters to captured trials (docs/identification.md)")
+    ft.add_argument("trials", nargs="+", help="trial CSV files (docs/capture.md)")
+    ft.add_argument("--free", required=True, help="comma-separated names to fit: fields (j, m0, I0, I, r_m) or components (I[0,0], r_m[2]), or R_m")
+    ft.add_argument("--fix", nargs="+", action="extend", metavar="NAME=VALUE", help="set and hold a parameter (e.g. m=2.5; a JSON list for a whole field)")
+    ft.add_argument("--bound", nargs="+", action="extend", metavar="NAME=LO:HI", help="bounds of a free name (e.g. j=0:1e-3; an empty side is open)")
+    ft.add_argument("--params", help="start values (.toml or .json; default: the paper's robot)")
+    ft.add_argument("--out", default="fit.json", help="result JSON (default fit.json); plots and the checkpoint go beside it")
+    ft.add_argument("--n-starts", type=int, default=2, help="starts vmapped together (default 2)")
+    ft.add_argument("--seed", type=int, default=0, help="seed of the start perturbations")
+    ft.add_argument("--max-iter", type=int, default=40, help="Levenberg-Marquardt iterations per stage (default 40)")
+    ft.add_argument("--sigma-pos", type=float, help="position noise [m] (default: estimated)")
+    ft.add_argument("--sigma-rot-deg", type=float, help="orientation noise [deg] (default: estimated)")
+    ft.add_argument("--restart", action="store_true", help="ignore a checkpoint left by a killed fit")
+    ft.add_argument("--no-plots", action="store_true", help="skip the figures")
+    ft.add_argument("--quiet", action="store_true", help="no progress lines")
+    ft.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
+
+
+# --- end system identification ---
+
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="jsphere", description="Spherical robot with an internal omniwheel platform (JAX).")
@@ -231,6 +306,7 @@ def main(argv=None) -> int:
     mc.add_argument("--no-plots", action="store_true", help="skip the figure")
     mc.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
     _add_capture_parsers(sub)  # capture data (issue 3)
+    _add_fit_parser(sub)  # system identification (issue 3)
     args = parser.parse_args(argv)
     if not args.no_cache:
         enable_compilation_cache()
@@ -241,6 +317,8 @@ def main(argv=None) -> int:
             return _cmd_montecarlo(args)
         if args.command in _CAPTURE_COMMANDS:  # capture data (issue 3)
             return _CAPTURE_COMMANDS[args.command](args)
+        if args.command == "fit":  # system identification (issue 3)
+            return _cmd_fit(args)
     except (ValueError, FileNotFoundError) as e:
         print(f"jsphere {args.command}: error: {e}", file=sys.stderr)
         return 2

@@ -161,3 +161,54 @@ def figure2_study(kin, gait, path) -> None:
     b.errorbar([-1.392], [369.2], xerr=[28.9], yerr=[37.7], fmt="ko", ms=3, label="paper, gaits, experiment (95%)")
     _xy_axes(b)
     _finish(plt, fig, path)
+
+
+# --- system identification (issue 3: the fit) ---
+
+
+def fit_figures(result, out_dir, *, stem: str = "fit") -> list[Path]:
+    """`<stem>_overlay.png` (captured and fitted paths, one colour per trial) and
+    `<stem>_residuals.png` (position [mm] and orientation [deg] residuals vs time per trial)
+    for a `jsphere.FitResult`; written atomically into `out_dir`."""
+    plt = _plt()
+    out_dir = Path(out_dir)
+    trials = result.trials
+    fig, ax = plt.subplots(figsize=(6.5, 6))
+    for k, tr in enumerate(trials):
+        s = tr["series"]
+        c = f"C{k % 10}"
+        ax.plot(1e3 * s["x"], 1e3 * s["y"], ".", ms=1.5, color=c, alpha=0.5)
+        ax.plot(1e3 * s["x_sim"], 1e3 * s["y_sim"], "-", lw=1, color=c, label=f"{tr['name']} ({1e3 * tr['rms_pos_m']:.2f} mm)")
+    ax.set_xlabel("x [mm]")
+    ax.set_ylabel("y [mm]")
+    ax.set_title("captured (dots) and fitted (lines) paths; RMS position residual", fontsize=9)
+    ax.axis("equal")
+    if len(trials) <= 12:
+        ax.legend(fontsize=7)
+    overlay = out_dir / f"{stem}_overlay.png"
+    _finish(plt, fig, overlay)
+
+    n = len(trials)
+    fig, axes = plt.subplots(n, 2, figsize=(10, 1.6 * n + 0.8), sharex="row", squeeze=False)
+    for k, tr in enumerate(trials):
+        s = tr["series"]
+        a, b = axes[k]
+        a.plot(s["t"], 1e3 * s["pos_err"][:, 0], lw=0.6, label="x")
+        a.plot(s["t"], 1e3 * s["pos_err"][:, 1], lw=0.6, label="y")
+        for i, lab in enumerate("xyz"):
+            b.plot(s["t"], s["rot_err_deg"][:, i], lw=0.6, label=lab)
+        a.set_ylabel(f"{tr['name']}\n[mm]", fontsize=7)
+        b.set_ylabel("[deg]", fontsize=7)
+        if k == 0:
+            a.set_title(f"position residual (sigma {1e3 * result.sigma_pos:.3f} mm)", fontsize=9)
+            b.set_title(f"orientation residual (sigma {np.degrees(result.sigma_rot):.3f} deg)", fontsize=9)
+            a.legend(fontsize=6, loc="upper right")
+            b.legend(fontsize=6, loc="upper right")
+    axes[-1, 0].set_xlabel("t [s]")
+    axes[-1, 1].set_xlabel("t [s]")
+    residuals = out_dir / f"{stem}_residuals.png"
+    _finish(plt, fig, residuals)
+    return [overlay, residuals]
+
+
+# --- end system identification ---

@@ -1,0 +1,974 @@
+"""System identification: fit `RobotParams` to captured trials (issue 3).
+
+The model of a trial is `simulate(params, state0(nu), controls)` sampled at the capture times;
+the residuals are the captured minus the simulated position and orientation, whitened by
+`sigma_pos` [m] and `sigma_rot` [rad]:
+
+    r_pos = (x_sim - x_meas, y_sim - y_meas) / sigma_pos
+    r_rot = Log(q_sim^-1 q_meas) / sigma_rot          (rotation vector, platform frame)
+
+with gap frames masked. The cost `1/2 sum r^2` over all trials is minimised over the free
+parameters `theta` (see `FreeParams`) and, per trial, the nuisance parameters `nu`:
+
+    wheel speeds: nu = (Omega(0) [3], initial rotation offset [3], x0, y0 offsets [2])
+    torques:      nu = (Omega(0) [3], initial rotation offset [3], x0, y0 offsets [2], omega(0) [3])
+
+In wheel-speed mode `omega(0) = Omega(0) + w(0)` follows from the command (2.4), so the
+impulsive start of `simulate` changes nothing. All trials run in one compiled function
+(vmapped over trials, padded to a common length with masked samples) and all starts in the
+same call (vmapped over starts). The Jacobian of each trial's residuals with respect to
+`(theta, nu_i)` comes from forward-mode autodiff through diffrax (`ForwardMode`): a few dozen
+tangent columns instead of a reverse pass per residual. The normal equations have a block-arrow
+structure; the nuisance blocks are eliminated (Schur complement), so the cost of a step grows
+linearly with the number of trials.
+
+Optimisation: a few Adam steps (optax) on every start, then Levenberg-Marquardt to
+convergence; the noise levels are then estimated from the residuals, the trials reweighted and
+LM run again; the best start is kept. Covariance: `s^2 F^-1` with `F` the Gauss-Newton
+information of `theta` after eliminating the nuisance parameters, mapped to physical units.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import json
+import math
+import sys
+import time
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import diffrax as dfx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from ._controls import Sampled, Torques, WheelSpeeds
+from ._io import atomic_write, atomic_write_text
+from ._kinematics import relative_rate_from_wheel_speeds
+from ._linalg import dot, quat_mul, rotmat
+from ._names import parse_name
+from ._params import _FIELDS, RobotParams
+from ._simulate import simulate
+from ._state import State
+from ._transforms import MASS_LIKE, FreeParams, _overlaps, _split_names, apply_fixes
+
+KINDS = ("wheel_speeds", "torques")
+#: nuisance parameters per trial, in order
+NUISANCE = {
+    "wheel_speeds": ("Omega0_x", "Omega0_y", "Omega0_z", "rot0_x", "rot0_y", "rot0_z", "x0", "y0"),
+    "torques": ("Omega0_x", "Omega0_y", "Omega0_z", "rot0_x", "rot0_y", "rot0_z", "x0", "y0", "omega0_x", "omega0_y", "omega0_z"),
+}
+#: typical step of each nuisance parameter (1/s, rad, m): for Adam and the start spread
+_NU_SCALE = {"Omega0": 0.05, "rot0": 0.01, "x0": 0.002, "y0": 0.002, "omega0": 0.05}
+
+
+# ----------------------------------------------------------------------------- quaternions
+
+
+def quat_exp(v):
+    """Unit quaternion of the rotation vector `v` [rad] (smooth at 0)."""
+    a2 = dot(v, v)
+    small = a2 < 1e-16
+    a = jnp.sqrt(jnp.where(small, 1.0, a2))
+    s = jnp.where(small, 0.5 - a2 / 48.0, jnp.sin(0.5 * a) / a)
+    c = jnp.where(small, 1.0 - a2 / 8.0, jnp.cos(0.5 * a))
+    return jnp.concatenate([c[..., None], s[..., None] * v], axis=-1)
+
+
+def quat_log(q):
+    """Rotation vector [rad] of a unit quaternion (the shorter of the two rotations; smooth at 0)."""
+    q = jnp.where(q[..., :1] < 0, -q, q)
+    w, v = q[..., 0], q[..., 1:]
+    n2 = dot(v, v)
+    small = n2 < 1e-16
+    n = jnp.sqrt(jnp.where(small, 1.0, n2))
+    f = jnp.where(small, 2.0 / w, 2.0 * jnp.arctan2(n, w) / n)
+    return f[..., None] * v
+
+
+def quat_conj(q):
+    return q * jnp.array([1.0, -1.0, -1.0, -1.0], q.dtype)
+
+
+# ----------------------------------------------------------------------------- data
+
+
+@dataclasses.dataclass(frozen=True)
+class FitData:
+    """Trials packed into arrays of a common length `M` (padded samples are masked).
+
+    `ts (T, M)`: capture times from 0 (padded with the last time); `tc (T, M)`: control knot
+    times (padded beyond the end, values held); `u (T, M, N)`: inputs; `t1 (T,)`: durations;
+    `x, y (T, M)`, `q (T, M, 4)`: measurements (0 / identity at gaps); `wpos, wrot (T, M)`:
+    1.0 where the position / orientation was measured; `xy0 (T, 2)`, `q0 (T, 4)`: the first
+    measured pose of each trial.
+    """
+
+    ts: np.ndarray
+    tc: np.ndarray
+    u: np.ndarray
+    t1: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    q: np.ndarray
+    wpos: np.ndarray
+    wrot: np.ndarray
+    xy0: np.ndarray
+    q0: np.ndarray
+    kind: str
+    names: tuple[str, ...]
+    lengths: tuple[int, ...]
+    t_start: tuple[float, ...]
+
+    def arrays(self) -> dict[str, jax.Array]:
+        return {k: jnp.asarray(getattr(self, k)) for k in ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0")}
+
+    def fingerprint(self) -> str:
+        h = hashlib.sha256(self.kind.encode())
+        for k in ("ts", "u", "x", "y", "q", "wpos", "wrot"):
+            h.update(np.ascontiguousarray(getattr(self, k)).tobytes())
+        return h.hexdigest()
+
+
+def pack_trials(trials: Sequence, params: RobotParams) -> FitData:
+    """Check the trials against `params` and pack them (see `FitData`).
+
+    A trial needs `t (M,)`, `x, y (M,)` [m] (NaN at gaps), `q (M, 4)` (platform -> fixed,
+    NaN rows at gaps), `inputs (M, N)`, `kind` and `name` (the `Trial` of `jsphere._capture`).
+    """
+    trials = list(trials)
+    if not trials:
+        raise ValueError("fit: no trials given.")
+    kinds = {getattr(t, "kind", None) for t in trials}
+    if len(kinds) != 1 or next(iter(kinds)) not in KINDS:
+        raise ValueError(f"fit: all trials must have the same input kind, one of {KINDS}; got {sorted(map(str, kinds))}.")
+    kind = next(iter(kinds))
+    N = params.n_wheels
+    M = max(len(np.asarray(t.t)) for t in trials)
+    out = {k: [] for k in ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0")}
+    names, lengths, starts = [], [], []
+    for k, tr in enumerate(trials):
+        name = str(getattr(tr, "name", f"trial{k}"))
+        t = np.asarray(tr.t, np.float64)
+        u = np.asarray(tr.inputs, np.float64)
+        x, y = np.asarray(tr.x, np.float64), np.asarray(tr.y, np.float64)
+        q = np.asarray(tr.q, np.float64)
+        if u.ndim != 2 or u.shape[1] != N:
+            raise ValueError(
+                f"fit: trial {name!r} has inputs for {u.shape[-1] if u.ndim == 2 else '?'} wheels (shape {u.shape}) but the robot has {N}; use parameters with the same wheel count."
+            )
+        m = len(t)
+        if m < 4 or u.shape[0] != m or x.shape != (m,) or y.shape != (m,) or q.shape != (m, 4):
+            raise ValueError(
+                f"fit: trial {name!r}: t, x, y, q, inputs must have the same number of samples (>= 4); got {m}, {x.shape}, {y.shape}, {q.shape}, {u.shape}."
+            )
+        if not np.all(np.diff(t) > 0):
+            raise ValueError(f"fit: trial {name!r}: times must be strictly increasing.")
+        if not np.all(np.isfinite(u)):
+            raise ValueError(f"fit: trial {name!r}: the inputs contain NaN or inf.")
+        vp = np.isfinite(x) & np.isfinite(y)
+        vr = np.all(np.isfinite(q), axis=1)
+        if vp.sum() < 2 or vr.sum() < 2:
+            raise ValueError(f"fit: trial {name!r} has fewer than 2 measured frames.")
+        qn = np.where(vr[:, None], q, [1.0, 0.0, 0.0, 0.0])
+        qn = qn / np.linalg.norm(qn, axis=1, keepdims=True)
+        t0 = t[0]
+        ts = np.concatenate([t - t0, np.full(M - m, t[-1] - t0)])
+        dt = (t[-1] - t[0]) / (m - 1)
+        tc = np.concatenate([t - t0, t[-1] - t0 + dt * np.arange(1, M - m + 1)])
+
+        def pad(a, v, m=m):
+            return np.concatenate([a, np.broadcast_to(v, (M - m,) + a.shape[1:])])
+
+        out["ts"].append(ts)
+        out["tc"].append(tc)
+        out["u"].append(pad(u, u[-1]))
+        out["t1"].append(t[-1] - t0)
+        out["x"].append(pad(np.where(vp, x, 0.0), 0.0))
+        out["y"].append(pad(np.where(vp, y, 0.0), 0.0))
+        out["q"].append(pad(qn, np.array([1.0, 0.0, 0.0, 0.0])))
+        out["wpos"].append(pad(vp.astype(np.float64), 0.0))
+        out["wrot"].append(pad(vr.astype(np.float64), 0.0))
+        out["xy0"].append(np.array([x[vp][0], y[vp][0]]))
+        out["q0"].append(qn[vr][0])
+        names.append(name)
+        lengths.append(m)
+        starts.append(float(t0))
+    arrs = {k: np.stack(v) for k, v in out.items()}
+    return FitData(**arrs, kind=kind, names=tuple(names), lengths=tuple(lengths), t_start=tuple(starts))
+
+
+def _line_rate(t, y):
+    """Slope of a least-squares line through `(t, y)` (y may be (n, d))."""
+    tt = t - t.mean()
+    return (tt[:, None] * (y - y.mean(0))).sum(0) / max((tt * tt).sum(), 1e-300)
+
+
+def nuisance_guess(data: FitData, params: RobotParams, *, window: float = 0.1) -> np.ndarray:
+    """Initial nuisance parameters `(T, n)` from the first `window` seconds of each trial:
+    the platform's angular velocity from the orientations, the horizontal shell rate from
+    the rolling velocity `v = R0 Omega x gamma` (2.3); offsets 0."""
+    T = data.ts.shape[0]
+    n = len(NUISANCE[data.kind])
+    nu = np.zeros((T, n))
+    R0 = float(params.R0)
+    for i in range(T):
+        m = data.lengths[i]
+        t = data.ts[i, :m]
+        sel = t <= t[0] + window
+        if sel.sum() < 3:
+            sel = np.arange(m) < 3
+        pr, rr = sel & (data.wpos[i, :m] > 0), sel & (data.wrot[i, :m] > 0)
+        q0 = data.q0[i]
+        R = np.asarray(rotmat(jnp.asarray(q0)))  # platform -> fixed
+        omega = np.zeros(3)
+        if rr.sum() >= 3:
+            rv = np.asarray(quat_log(quat_mul(quat_conj(jnp.asarray(q0)), jnp.asarray(data.q[i, :m][rr]))))
+            omega = _line_rate(t[rr], rv)
+        v = np.zeros(2)
+        if pr.sum() >= 3:
+            v = _line_rate(t[pr], np.stack([data.x[i, :m][pr], data.y[i, :m][pr]], 1))
+        if data.kind == "wheel_speeds":
+            w0 = np.asarray(relative_rate_from_wheel_speeds(params, jnp.asarray(data.u[i, 0])))
+            nu[i, 0:3] = omega - w0
+        else:
+            Om_f = np.array([-v[1] / R0, v[0] / R0, (R @ omega)[2]])
+            nu[i, 0:3] = R.T @ Om_f
+            nu[i, 8:11] = omega
+    return nu
+
+
+# ----------------------------------------------------------------------------- the model
+
+
+def _trial_outputs(free: FreeParams, kind, rtol, atol, max_steps, adjoint, base, theta, nu, d, sig):
+    """Whitened residuals `(5 M,)` of one trial, its solver status and the simulated pose."""
+    p = free.to_params(theta, base)
+    dt = p.R0.dtype
+    q0 = quat_mul(d["q0"], quat_exp(nu[3:6]))
+    Omega = nu[0:3]
+    table = Sampled(d["tc"], d["u"], "cubic")
+    if kind == "wheel_speeds":
+        controls = WheelSpeeds(table, ())
+        omega = Omega + relative_rate_from_wheel_speeds(p, d["u"][0])
+    else:
+        controls = Torques(table, ())
+        omega = nu[8:11]
+    state0 = State(
+        q=q0, q_shell=jnp.array([1.0, 0.0, 0.0, 0.0], dt), omega=omega, Omega=Omega,
+        x=d["xy0"][0] + nu[6], y=d["xy0"][1] + nu[7], chi=jnp.zeros(p.n_wheels, dt),
+    )  # fmt: skip
+    tr = simulate(p, state0, controls, d["t1"], ts=d["ts"], rtol=rtol, atol=atol, max_steps=max_steps, throw=False, adjoint=adjoint)
+    ex = (tr.x - d["x"]) * d["wpos"] / sig[0]
+    ey = (tr.y - d["y"]) * d["wpos"] / sig[0]
+    er = quat_log(quat_mul(quat_conj(tr.q), d["q"])) * d["wrot"][:, None] / sig[1]
+    res = jnp.concatenate([ex, ey, er.reshape(-1)])
+    ok = tr.ok & jnp.all(jnp.isfinite(res))
+    res = jnp.where(ok, res, 0.0)
+    return res, ok, (tr.x, tr.y, tr.q)
+
+
+class _Functions:
+    """The compiled functions of one fit configuration (cached: a second fit with the same
+    free names, transforms, input kind and shapes does not compile again).
+
+    `jacobian(base, theta (S,P), nu (S,T,n), data, sigmas)`: whitened residuals `(S,T,K)`,
+    solver status `(S,T)`, their Jacobian `(S,T,K,P+n)` with respect to `(theta, nu_i)` and
+    the simulated poses, vmapped over starts and trials; `step(res, J, lam)`: the LM step.
+    """
+
+    def __init__(self, free: FreeParams, kind: str, rtol: float, atol: float, max_steps: int):
+        P = free.size
+
+        def jac_one(base, th, nu, d, sig):
+            def f(z):
+                res, ok, pose = _trial_outputs(free, kind, rtol, atol, max_steps, dfx.ForwardMode(), base, z[:P], z[P:], d, sig)
+                return res, (res, ok, pose)
+
+            J, (res, ok, pose) = jax.jacfwd(f, has_aux=True)(jnp.concatenate([th, nu]))
+            return res, ok, J, pose
+
+        over_trials = lambda f: jax.vmap(f, in_axes=(None, None, 0, 0, None))
+        over_starts = lambda f: jax.vmap(f, in_axes=(None, 0, 0, None, None))
+        self.jacobian = jax.jit(over_starts(over_trials(jac_one)))
+        self.step = jax.jit(jax.vmap(functools.partial(_lm_step, P=P)))
+
+
+_CACHE: dict[Any, _Functions] = {}
+
+
+def _functions(free: FreeParams, kind: str, rtol: float, atol: float, max_steps: int) -> _Functions:
+    key = (free.slots, kind, rtol, atol, max_steps)
+    if key not in _CACHE:
+        _CACHE[key] = _Functions(free, kind, rtol, atol, max_steps)
+    return _CACHE[key]
+
+
+# ----------------------------------------------------------------------------- Levenberg-Marquardt
+
+
+def _blocks(res, J, P):
+    """Gauss-Newton blocks of the block-arrow normal equations: `Hgg (P,P)`, `Hgn (T,P,n)`,
+    `Hnn (T,n,n)`, gradients `gg (P,)`, `gn (T,n)`."""
+    Jg, Jn = J[..., :P], J[..., P:]
+    Hgg = jnp.einsum("tkp,tkq->pq", Jg, Jg)
+    Hgn = jnp.einsum("tkp,tkn->tpn", Jg, Jn)
+    Hnn = jnp.einsum("tkn,tkm->tnm", Jn, Jn)
+    return Hgg, Hgn, Hnn, jnp.einsum("tkp,tk->p", Jg, res), jnp.einsum("tkn,tk->tn", Jn, res)
+
+
+def _damp(H, lam):
+    d = jnp.diagonal(H, axis1=-2, axis2=-1)
+    floor = 1e-12 * jnp.max(d, axis=-1, keepdims=True) + 1e-300
+    return H + (lam * d + floor)[..., None] * jnp.eye(H.shape[-1], dtype=H.dtype)
+
+
+def _lm_step(res, J, lam, P: int):
+    """Levenberg-Marquardt step `(H + lam diag H) delta = -g`, nuisance blocks eliminated.
+    Returns `(d_theta (P,), d_nu (T,n), predicted cost decrease)`."""
+    Hgg, Hgn, Hnn, gg, gn = _blocks(res, J, P)
+    Hnn_d = _damp(Hnn, lam)
+    Hnn_inv = jnp.linalg.inv(Hnn_d)
+    X = jnp.einsum("tpn,tnm->tpm", Hgn, Hnn_inv)
+    S = _damp(Hgg, lam) - jnp.einsum("tpm,tqm->pq", X, Hgn)
+    rhs = gg - jnp.einsum("tpm,tm->p", X, gn)
+    dg = -jnp.linalg.solve(S, rhs)
+    dn = -jnp.einsum("tnm,tm->tn", Hnn_inv, gn + jnp.einsum("tpn,p->tn", Hgn, dg))
+    g_dot = gg @ dg + jnp.sum(gn * dn)
+    Jd = jnp.einsum("tkp,p->tk", J[..., :P], dg) + jnp.einsum("tkn,tn->tk", J[..., P:], dn)
+    predicted = -(g_dot + 0.5 * jnp.sum(Jd * Jd))
+    return dg, dn, predicted
+
+
+def marginal_information(res, J, P: int) -> np.ndarray:
+    """Gauss-Newton information of `theta` with the nuisance parameters eliminated:
+    `F = Hgg - sum_t Hgn_t Hnn_t^-1 Hng_t` (numpy, float64)."""
+    Hgg, Hgn, Hnn, _, _ = (np.asarray(a) for a in _blocks(res, J, P))
+    F = Hgg.copy()
+    for t in range(Hnn.shape[0]):
+        F -= Hgn[t] @ np.linalg.pinv(Hnn[t], rcond=1e-13, hermitian=True) @ Hgn[t].T
+    return 0.5 * (F + F.T)
+
+
+# ----------------------------------------------------------------------------- results
+
+
+@dataclasses.dataclass
+class FitResult:
+    """What `fit` returns. `params`: the fitted `RobotParams` (fixed values included);
+    `free`: the expanded free names; `values`, `stderr`: per free name (physical units), and
+    for a whole field given as free (`"I"`, `"r_m"`) nested lists of the field's shape;
+    `covariance`, `correlation`: of the expanded names (stderr is `inf` along directions the
+    data do not determine); `identifiability`: condition number, poorly determined directions,
+    warnings; `sigma_pos` [m], `sigma_rot` [rad]: noise levels (estimated unless given);
+    `trials`: per trial its RMS residuals, nuisance values and, under `"series"`, the measured
+    and simulated paths (for the plots; not written to JSON)."""
+
+    params: RobotParams
+    free: list[str]
+    given: list[tuple[str, list[str]]]
+    values: dict[str, Any]
+    stderr: dict[str, Any]
+    covariance: np.ndarray
+    correlation: np.ndarray
+    cost: float
+    iterations: int
+    converged: bool
+    sigma_pos: float
+    sigma_rot: float
+    n_residuals: int
+    identifiability: dict[str, Any]
+    trials: list[dict[str, Any]]
+    starts: list[float]
+    kind: str
+    elapsed_s: float
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON document (`RobotParams.load` reads its `params`)."""
+        fin = lambda v: _finite(v)
+        return {
+            "params": self.params.to_dict(),
+            "free": list(self.free),
+            "values": fin(self.values),
+            "stderr": fin(self.stderr),
+            "correlation": fin(np.asarray(self.correlation).tolist()),
+            "cost": self.cost,
+            "iterations": self.iterations,
+            "converged": self.converged,
+            "sigma_pos_m": self.sigma_pos,
+            "sigma_rot_deg": math.degrees(self.sigma_rot),
+            "n_residuals": self.n_residuals,
+            "kind": self.kind,
+            "identifiability": fin(self.identifiability),
+            "trials": [{k: fin(v) for k, v in t.items() if k != "series"} for t in self.trials],
+            "rms_pos_m": [t["rms_pos_m"] for t in self.trials],
+            "rms_rot_deg": [t["rms_rot_deg"] for t in self.trials],
+            "starts_cost": fin(self.starts),
+            "elapsed_s": self.elapsed_s,
+        }
+
+    def save(self, path, *, plots: bool = True) -> list[Path]:
+        """Write the JSON atomically and, unless `plots=False`, `<stem>_overlay.png` and
+        `<stem>_residuals.png` beside it. Returns the paths written."""
+        path = Path(path)
+        atomic_write_text(path, json.dumps(self.to_json(), indent=2) + "\n")
+        written = [path]
+        if plots:
+            from .plots import fit_figures
+
+            written += fit_figures(self, path.parent, stem=path.stem)
+        return written
+
+    def table(self) -> str:
+        """A plain-text summary: value +- stderr per free name, noise levels, warnings."""
+        lines = [f"{'name':<10} {'value':>14} {'stderr':>12} {'rel':>9}"]
+        for n in self.free:
+            v, s = self.values[n], self.stderr[n]
+            rel = abs(s / v) if v else float("inf")
+            lines.append(f"{n:<10} {v:>14.6g} {s:>12.3g} {rel:>9.2%}")
+        lines.append(
+            f"cost {self.cost:.6g} over {self.n_residuals} residuals, {self.iterations} iterations, "
+            f"converged: {self.converged}; sigma_pos {self.sigma_pos * 1e3:.3f} mm, sigma_rot {math.degrees(self.sigma_rot):.3f} deg"
+        )
+        for w in self.identifiability.get("warnings", []):
+            lines.append(f"warning: {w}")
+        return "\n".join(lines)
+
+
+def _finite(v):
+    """Replace non-finite floats by None (JSON has no inf/NaN)."""
+    if isinstance(v, dict):
+        return {k: _finite(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_finite(x) for x in v]
+    if isinstance(v, (float, np.floating)):
+        return float(v) if math.isfinite(v) else None
+    if isinstance(v, np.ndarray):
+        return _finite(v.tolist())
+    return v
+
+
+def symmetry_directions(names: Sequence[str], values: np.ndarray, params: RobotParams) -> dict[str, np.ndarray]:
+    """Directions (physical units, one entry per free name) of two exact invariances of (3.4).
+
+    - `"mass_split"`: the platform mass enters only through `m0 + m` and `m r_m` (its inertia
+      `I` is about C), so `m -> m (1+e)`, `m0 -> m0 - e m`, `r_m -> r_m (1-e)` changes nothing.
+    - `"mass_scale"`: multiplying every inertia (`I0, I, j`), dampings, `m0 + m` and `m r_m`
+      by `1+e` multiplies every force of (3.4) by `1+e`. With wheel-speed inputs (servo
+      constraints) the motion is then unchanged; torque inputs fix the scale.
+    Only the free names appear; a direction that needs a fixed name to move is no symmetry of
+    the fit (the information along it is then large and nothing is reported).
+    """
+    fields = [parse_name(n)[0] for n in names]
+    m_free = "m" in fields
+    m, m0 = float(params.m), float(params.m0)
+    split, scale = np.zeros(len(names)), np.zeros(len(names))
+    for i, f in enumerate(fields):
+        v = float(values[i])
+        if f == "m":
+            split[i], scale[i] = m, m
+        elif f == "m0":
+            split[i], scale[i] = -m, (m0 if m_free else m0 + m)
+        elif f in ("R_m", "r_m"):
+            split[i], scale[i] = -v, (0.0 if m_free else v)
+        elif f in MASS_LIKE:
+            scale[i] = v
+    return {"mass_split": split, "mass_scale": scale}
+
+
+_SYMMETRY_TEXT = {
+    "mass_split": "only m0 + m and m r_m enter the model (I is about the shell centre), so m, m0 and R_m (r_m) cannot be told apart: "
+    "fix the platform mass, e.g. --fix m=<value>.",
+    "mass_scale": "scaling every inertia, the total mass m0 + m and the mass moment m r_m together changes nothing the data can see "
+    "(with wheel-speed inputs the motion does not depend on the mass scale; fixing m alone does not set it): "
+    "fix a mass or inertia you can measure, e.g. --fix {hint}=<value>, or use torque inputs.",
+}
+
+
+def identifiability(
+    free: FreeParams, values: np.ndarray, F_phys: np.ndarray, s2: float, params: RobotParams, *, rel_tol: float = 0.1
+) -> dict[str, Any]:
+    """Which directions of the free parameters the data determine.
+
+    `F_phys` is the information matrix in physical units. Each name is scaled by its size
+    (`|value|`, or a tenth of its field's size for values near 0), so eigenvalues `lam` of the
+    scaled information give relative standard deviations `sqrt(s^2/lam)` along their
+    eigenvectors. The known invariances (`symmetry_directions`) are checked by name; other
+    directions with a relative sd above `rel_tol` are reported with their components.
+    """
+    names = free.names
+    sc = np.maximum(np.abs(values), 0.1 * free.scales())
+    Fs = sc[:, None] * F_phys * sc[None, :]
+    lam, V = np.linalg.eigh(Fs)
+    lam_max = max(float(lam[-1]), 1e-300)
+    rel_sd = lambda info: math.sqrt(s2 / info) if info > 1e-14 * lam_max else math.inf
+    out: dict[str, Any] = {"condition_number": float(lam_max / max(lam[0], 1e-300 * lam_max)), "symmetries": {}, "directions": [], "warnings": []}
+    named = []
+    for key, vec in symmetry_directions(names, values, params).items():
+        e = vec / sc
+        if np.count_nonzero(e) < 2:
+            continue
+        e = e / np.linalg.norm(e)
+        rel = rel_sd(float(e @ Fs @ e))
+        out["symmetries"][key] = {"relative_sd": rel, "combination": {n: float(w) for n, w in zip(names, e) if w != 0.0}}
+        if rel > rel_tol:
+            named.append(e)
+            fields = [parse_name(n)[0] for n in names]
+            hint = next((f for f in ("m0", "I0", "m") if f in fields), fields[0])
+            out["warnings"].append(_SYMMETRY_TEXT[key].format(hint=hint) + f" (relative sd along it {rel:.3g})")
+    for k in range(len(lam)):
+        rel = rel_sd(float(lam[k]))
+        if rel <= rel_tol or any(abs(float(V[:, k] @ e)) > 0.9 for e in named):
+            continue
+        v = V[:, k] * np.sign(V[np.argmax(np.abs(V[:, k])), k])
+        terms = [(names[i], float(v[i])) for i in np.argsort(-np.abs(v)) if abs(v[i]) >= 0.15]
+        text = " ".join(f"{w:+.2f} {n}" for n, w in terms)
+        out["directions"].append({"relative_sd": rel, "combination": dict(terms), "text": text})
+        out["warnings"].append(
+            f"the data do not determine the direction {text} (relative changes; relative sd {rel:.3g}): "
+            f"fix one of {', '.join(n for n, _ in terms)} or add more exciting trials."
+        )
+    return out
+
+
+def _assemble_named(free: FreeParams, per_name: dict[str, float], params: RobotParams, fill: float) -> dict[str, Any]:
+    """Add an entry for each whole field given as free (`"I"`: 3x3 nested list), and one per
+    name as given where it differs from its canonical spelling (`"I[1,0]"` is `"I[0,1]"`)."""
+    out = dict(per_name)
+    for given, comps in free.given:
+        field, index = parse_name(given)
+        if index or len(comps) == 1:
+            if given not in out:  # spelled differently from the canonical name (`I[1,0]`, `I[0, 0]`)
+                out[given] = per_name[comps[0]]
+            continue
+        arr = np.full(np.shape(getattr(params, field)), fill)
+        for c in comps:
+            ix = parse_name(c)[1]
+            arr[ix] = per_name[c]
+            if field == "I":
+                arr[ix[::-1]] = per_name[c]
+        out[given] = arr.tolist()
+    return out
+
+
+# ----------------------------------------------------------------------------- the fit
+
+
+def _config_fingerprint(data: FitData, free: FreeParams, cfg: dict) -> str:
+    h = hashlib.sha256(data.fingerprint().encode())
+    h.update(
+        json.dumps(
+            {"free": free.names, "slots": [dataclasses.astuple(s) for s in free.slots], "base": free.base.to_dict(), **cfg},
+            sort_keys=True,
+            default=str,
+        ).encode()
+    )
+    return h.hexdigest()
+
+
+def _load_checkpoint(path: Path, fp: str):
+    if not path.exists():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if str(z["fingerprint"]) != fp:
+                return None
+            return {k: np.asarray(z[k]) for k in z.files}
+    except (OSError, ValueError, KeyError):
+        return None
+
+
+def _save_checkpoint(path: Path, fp: str, **state) -> None:
+    atomic_write(path, lambda tmp: np.savez(tmp, fingerprint=np.array(fp), **state))
+
+
+def fit(
+    trials: Sequence,
+    params: RobotParams,
+    free: str | Sequence[str],
+    *,
+    fix: Mapping[str, Any] | None = None,
+    bounds: Mapping[str, Sequence] | None = None,
+    n_starts: int = 2,
+    spread: float = 0.2,
+    seed: int = 0,
+    adam_steps: int = 3,
+    adam_lr: float = 0.1,
+    max_iter: int = 40,
+    ftol: float = 1e-10,
+    gtol: float = 1e-2,
+    noise: float = 1.0,
+    sigma_pos: float | None = None,
+    sigma_rot: float | None = None,
+    rtol: float = 1e-6,
+    atol: float = 1e-8,
+    max_steps: int = 16384,
+    checkpoint: str | Path | None = None,
+    restart: bool = False,
+    progress: bool | Callable[[str], None] = False,
+) -> FitResult:
+    """Fit the free parameters of `params` to captured trials (position and orientation).
+
+    **Arguments:**
+    - `trials`: `Trial`s (same input kind, wheel count of `params`).
+    - `params`: start values of every parameter; `fix` sets some first (`{"m": 2.5}`).
+    - `free`: names to fit, `"r_m[2],j,I"` or a list (see `FreeParams`): whole fields free all
+      their independent entries (`I`: 6, kept positive definite).
+    - `bounds`: `{name: (lo, hi)}` (None for an open end) by reparameterisation.
+    - `n_starts`, `spread`, `seed`: starts vmapped together: the first at `params`, the others
+      perturbed by `spread` (relative, log-normal for positive values).
+    - `adam_steps`, `adam_lr`: optax Adam warm-start steps (per-coordinate scaled units).
+    - `max_iter`, `ftol`, `gtol`, `noise`: Levenberg-Marquardt iterations per stage; a stage
+      ends when the predicted decrease of the cost is below `gtol` (in units of chi^2/2: 0.01
+      is a step of ~0.14 standard errors along the worst direction), when an accepted step
+      changes the cost by less than `ftol` (relative), after 3 accepted steps that do not
+      lower the best cost by `gtol`, or after 8 rejected steps in a row. The adaptive ODE
+      solver makes the cost piecewise smooth with jumps (~0.1 at `rtol=1e-6` for a few
+      thousand samples) while its Jacobian stays accurate, so steps predicted to gain less
+      than `noise` are accepted unless the cost rises by more than `noise`.
+    - `sigma_pos` [m], `sigma_rot` [rad]: noise levels. If not given they start at 1 mm and
+      0.5 deg and are estimated from the residuals after the first stage, and the fit is
+      finished with the estimates.
+    - `rtol`, `atol`, `max_steps`: the ODE solver's (see `simulate`). The defaults keep the
+      simulated positions within ~2 um of a 1e-11 solution over a few seconds of exciting
+      input (100 Hz tables: the cubic command has a kink in its rate at every sample, which
+      makes tighter tolerances several times slower), far below capture noise.
+    - `checkpoint`: a file (`.npz`) written atomically after every iteration; a fit with the
+      same data and configuration resumes from it (`restart=True` ignores it).
+    - `progress`: `True` prints one line per iteration to stderr (or a callable gets it).
+
+    Returns a `FitResult`. Raises `ValueError` for unknown or overlapping names, a name both
+    free and fixed, bounds that exclude the start, trials that do not fit `params`.
+    """
+    t_begin = time.perf_counter()
+    say = (lambda s: print(s, file=sys.stderr, flush=True)) if progress is True else (progress or (lambda s: None))
+    if fix:
+        free_list = _split_names(free) if isinstance(free, str) else list(free)
+        for fname in fix:
+            parse_name(fname)
+            for fr in free_list:
+                if _overlaps(fname, fr.strip()):
+                    raise ValueError(f"{fname!r} is both free ({fr!r}) and fixed; choose one.")
+    params = apply_fixes(params, fix)
+    fp_ = FreeParams(params, free, bounds)
+    data = pack_trials(trials, params)
+    for name, val in (("n_starts", n_starts), ("max_iter", max_iter)):
+        if int(val) < 1:
+            raise ValueError(f"fit: {name} must be >= 1; got {val}.")
+    for name, val in (("sigma_pos", sigma_pos), ("sigma_rot", sigma_rot)):
+        if val is not None and not val > 0:
+            raise ValueError(f"fit: {name} must be > 0; got {val}.")
+    kind = data.kind
+    P, T = fp_.size, data.ts.shape[0]
+    n_nu = len(NUISANCE[kind])
+    S = int(n_starts)
+    fns = _functions(fp_, kind, float(rtol), float(atol), int(max_steps))
+    d = data.arrays()
+    base = params
+    estimate_sigma = sigma_pos is None or sigma_rot is None
+    sig = np.array([sigma_pos or 1e-3, sigma_rot or math.radians(0.5)])
+    cfg = {
+        "n_starts": S,
+        "spread": spread,
+        "seed": seed,
+        "adam_steps": adam_steps,
+        "adam_lr": adam_lr,
+        "sig": sig.tolist(),
+        "rtol": rtol,
+        "atol": atol,
+    }
+    fingerprint = _config_fingerprint(data, fp_, cfg)
+    ckpt_path = Path(checkpoint) if checkpoint is not None else None
+
+    # starts
+    rng = np.random.default_rng(seed)
+    ts_th = fp_.theta_scales()
+    theta = np.repeat(fp_.theta0[None], S, 0)
+    theta[1:] += spread * ts_th * rng.standard_normal((S - 1, P))
+    nu = np.repeat(nuisance_guess(data, params)[None], S, 0)
+    lam = np.full(S, 1e-3)
+    stage, it, total_it, stage_converged = 0, 0, 0, False
+    state = _load_checkpoint(ckpt_path, fingerprint) if (ckpt_path and not restart) else None
+    if state is not None:
+        theta, nu, lam, sig = state["theta"], state["nu"], state["lam"], state["sig"]
+        stage, it, total_it = int(state["stage"]), int(state["it"]), int(state["total_it"])
+        stage_converged = bool(state["converged"])
+        say(f"fit: resuming from {ckpt_path} (stage {stage}, iteration {it})")
+
+    def save():
+        if ckpt_path is not None:
+            _save_checkpoint(
+                ckpt_path, fingerprint, theta=theta, nu=nu, lam=lam, sig=sig, stage=stage, it=it, total_it=total_it, converged=stage_converged
+            )
+
+    poses = [None]
+
+    def evaluate_jac(th, n):
+        res, ok, J, pose = fns.jacobian(base, jnp.asarray(th), jnp.asarray(n), d, jnp.asarray(sig))
+        res, ok = np.asarray(res), np.asarray(ok)
+        cost = np.where(ok.all(1), 0.5 * (res * res).sum((1, 2)), np.inf)
+        poses[0] = pose
+        return res, J, cost
+
+    say(f"fit: {T} trials ({kind}), {sum(data.lengths)} samples, {P} free parameters + {n_nu} nuisance per trial, {S} start(s); compiling ...")
+    # ---------------------------------------------------------------- stage 0: Adam warm start
+    if stage == 0:
+        nu_scale = np.array([_NU_SCALE[n.split("_")[0]] for n in NUISANCE[kind]])
+        scale = {"theta": jnp.asarray(np.broadcast_to(ts_th, (S, P))), "nu": jnp.asarray(np.broadcast_to(nu_scale, (S, T, n_nu)))}
+        opt = optax.chain(optax.scale_by_adam(), optax.scale(-adam_lr))
+        z = {"theta": jnp.asarray(theta), "nu": jnp.asarray(nu)}
+        # optimise in units of `scale`: z = scale * w
+        w = jax.tree_util.tree_map(lambda a, s: a / s, z, scale)
+        ost = opt.init(w)
+        best = None
+        for k in range(adam_steps):
+            zz = jax.tree_util.tree_map(lambda a, s: a * s, w, scale)
+            res, J, cost = evaluate_jac(zz["theta"], zz["nu"])
+            if best is None:
+                best = (cost.copy(), np.asarray(zz["theta"]).copy(), np.asarray(zz["nu"]).copy())
+            else:
+                better = cost < best[0]
+                best = (
+                    np.where(better, cost, best[0]),
+                    np.where(better[:, None], zz["theta"], best[1]),
+                    np.where(better[:, None, None], zz["nu"], best[2]),
+                )
+            gg = jnp.einsum("stkp,stk->sp", J[..., :P], res)
+            gn = jnp.einsum("stkn,stk->stn", J[..., P:], res)
+            g = {"theta": gg * scale["theta"], "nu": gn * scale["nu"]}
+            g = jax.tree_util.tree_map(lambda a: jnp.nan_to_num(a), g)
+            upd, ost = opt.update(g, ost)
+            w = optax.apply_updates(w, upd)
+            say(f"fit: adam {k + 1:3d}/{adam_steps}  cost {np.min(cost):.6e}  ({time.perf_counter() - t_begin:.1f} s)")
+        if best is not None:
+            theta, nu = best[1], best[2]
+        stage = 1
+        save()
+
+    # ---------------------------------------------------------------- stages 1, 2: LM
+    res, J, cost = evaluate_jac(theta, nu)
+    pose = poses[0]
+    converged = np.zeros(S, bool)
+    stalled, rejected, best_cost = np.zeros(S, int), np.zeros(S, int), cost.copy()
+    while stage in (1, 2):
+        while it < max_iter and not converged[int(np.argmin(cost))]:
+            dg, dn, pred = fns.step(jnp.asarray(res), J, jnp.asarray(lam))
+            th_new, nu_new = theta + np.asarray(dg), nu + np.asarray(dn)
+            bad = ~np.all(np.isfinite(th_new), 1)
+            th_new, nu_new = np.where(bad[:, None], theta, th_new), np.where(bad[:, None, None], nu, nu_new)
+            res_n, J_n, cost_n = evaluate_jac(th_new, nu_new)
+            pose_n = poses[0]
+            # accept a decrease; near the optimum (predicted decrease below `noise`), accept the
+            # Gauss-Newton step unless the cost rises by more than the solver's noise floor: its
+            # Jacobian is accurate where cost differences are not
+            pred_n = np.asarray(pred)
+            near = (pred_n < noise) & (cost_n < cost + noise)
+            acc = np.isfinite(cost_n) & ((cost_n < cost) | near) & ~converged
+            rel = (cost - cost_n) / np.maximum(cost, 1e-300)
+            # accepted steps that do not lower the best cost by gtol (the solver's noise floor)
+            stalled = np.where(acc, np.where(cost_n < best_cost - gtol, 0, stalled + 1), stalled)
+            rejected = np.where(acc, 0, rejected + 1)
+            best_cost = np.where(acc, np.minimum(best_cost, cost_n), best_cost)
+            # done: a negligible predicted or relative decrease, 3 accepted steps without
+            # progress, or 8 rejections in a row (lambda grown by 1e8)
+            newly = (acc & (np.abs(rel) < ftol)) | ((pred_n < gtol) & (lam <= 1.0)) | (stalled >= 3) | (rejected >= 8)
+            theta = np.where(acc[:, None], th_new, theta)
+            nu = np.where(acc[:, None, None], nu_new, nu)
+            res = np.where(acc[:, None, None], res_n, res)
+            J = jnp.where(jnp.asarray(acc)[:, None, None, None], J_n, J)
+            pose = _select(acc, pose_n, pose)
+            cost = np.where(acc, cost_n, cost)
+            lam = np.where(acc, np.maximum(lam / 5.0, 1e-12), lam * 10.0)
+            converged |= newly
+            it += 1
+            total_it += 1
+            save()
+            step = float(np.max(np.abs(np.asarray(dg)) / ts_th)) if P else 0.0
+            say(
+                f"fit: LM stage {stage} it {it:3d}  cost {np.min(cost):.6e}  lambda {lam[np.argmin(cost)]:.1e}  "
+                f"step {step:.2e}  accepted {int(acc.sum())}/{S}  ({time.perf_counter() - t_begin:.1f} s)"
+            )
+        if stage == 1 and estimate_sigma:
+            b = int(np.argmin(cost))
+            sig_old = sig
+            sig = _estimate_sigma(res[b], data, sig, P + T * n_nu)
+            say(f"fit: noise estimated: sigma_pos {sig[0] * 1e3:.4f} mm, sigma_rot {math.degrees(sig[1]):.4f} deg; refitting")
+            stage, it = 2, 0
+            lam = np.full(S, 1e-3)
+            converged = np.zeros(S, bool)
+            stalled, rejected = np.zeros(S, int), np.zeros(S, int)
+            # reweight: the residuals and their Jacobian scale with 1/sigma (no new solve)
+            M = data.ts.shape[1]
+            w = np.concatenate([np.full(2 * M, sig_old[0] / sig[0]), np.full(3 * M, sig_old[1] / sig[1])])
+            res = res * w
+            J = J * jnp.asarray(w)[:, None]
+            cost = np.where(np.isfinite(cost), 0.5 * (res * res).sum((1, 2)), np.inf)
+            best_cost = cost.copy()
+            save()
+        else:
+            stage_converged = bool(converged[int(np.argmin(cost))])
+            stage = 3
+    # ---------------------------------------------------------------- result
+    b = int(np.argmin(cost))
+    if not np.isfinite(cost[b]):
+        raise RuntimeError("fit: every start failed (the ODE solver failed or gave NaN); check the trials, the start values and the bounds.")
+    if ckpt_path is not None:
+        save()
+    return _result(fp_, data, base, pose, theta, nu, res, J, cost, sig, b, stage_converged, total_it, t_begin)
+
+
+def _select(acc, new, old):
+    """Per start: `new` where accepted, else `old` (pytrees with a leading start axis)."""
+    a = jnp.asarray(acc)
+    return jax.tree_util.tree_map(lambda x, y: jnp.where(a.reshape((-1,) + (1,) * (x.ndim - 1)), x, y), new, old)
+
+
+def _estimate_sigma(res_b, data: FitData, sig, n_par: int) -> np.ndarray:
+    """Noise levels from the whitened residuals of the best start (dof-corrected)."""
+    M = data.ts.shape[1]
+    pos = res_b[:, : 2 * M] * sig[0]
+    rot = res_b[:, 2 * M :] * sig[1]
+    n_pos, n_rot = 2 * data.wpos.sum(), 3 * data.wrot.sum()
+    frac = 1.0 - n_par / (n_pos + n_rot)
+    return np.array([math.sqrt((pos * pos).sum() / (n_pos * frac)), math.sqrt((rot * rot).sum() / (n_rot * frac))])
+
+
+def _result(fp_: FreeParams, data, base, pose, theta, nu, res, J, cost, sig, b, converged, iterations, t_begin) -> FitResult:
+    P = fp_.size
+    T = data.ts.shape[0]
+    n_nu = nu.shape[-1]
+    th_b = theta[b]
+    res_b, J_b = np.asarray(res[b]), J[b]
+    n_res = int(2 * data.wpos.sum() + 3 * data.wrot.sum())
+    dof = max(n_res - P - T * n_nu, 1)
+    s2 = float(2.0 * cost[b] / dof)
+    F = marginal_information(jnp.asarray(res_b), J_b, P)  # information of theta (whitened)
+    A = np.asarray(jax.jacfwd(fp_.physical)(jnp.asarray(th_b)))
+    Ainv = np.linalg.inv(A)
+    F_phys = Ainv.T @ F @ Ainv
+    values = np.asarray(fp_.physical(jnp.asarray(th_b)))
+    sc = np.maximum(np.abs(values), 0.1 * fp_.scales())
+    Fs = sc[:, None] * F_phys * sc[None, :]
+    lam, V = np.linalg.eigh(Fs)
+    keep = lam > 1e-14 * max(lam[-1], 1e-300)
+    cov_s = (V[:, keep] / lam[keep]) @ V[:, keep].T * s2
+    cov = sc[:, None] * cov_s * sc[None, :]
+    se = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    null_w = np.abs(V[:, ~keep]).max(1) if (~keep).any() else np.zeros(P)
+    se = np.where(null_w > 1e-6, np.inf, se)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(se, se)
+    corr = np.where(np.isfinite(corr), corr, np.nan)
+    np.fill_diagonal(corr, 1.0)
+    params = fp_.to_params(jnp.asarray(th_b), base)
+    params = RobotParams(**{f: getattr(params, f) for f in _FIELDS}, dtype=base.R0.dtype)
+    ident = identifiability(fp_, values, F_phys, s2, params)
+    ident["sigma_note"] = "relative sd of each direction; warnings list directions with relative sd > 10%"
+    # the fitted trajectories, for the RMS values and the plots
+    xs, ys, qs = (np.asarray(a[b]) for a in pose)
+    rot_err = np.asarray(quat_log(quat_mul(quat_conj(jnp.asarray(qs)), jnp.asarray(data.q))))
+    trials = []
+    names_nu = NUISANCE[data.kind]
+    for i in range(T):
+        m = data.lengths[i]
+        wp, wr = data.wpos[i, :m] > 0, data.wrot[i, :m] > 0
+        ep = np.stack([xs[i, :m] - data.x[i, :m], ys[i, :m] - data.y[i, :m]], 1)
+        er = rot_err[i, :m]
+        trials.append(
+            {
+                "name": data.names[i],
+                "samples": m,
+                "rms_pos_m": float(np.sqrt((ep[wp] ** 2).sum(1).mean())),
+                "rms_rot_deg": float(np.degrees(np.sqrt((er[wr] ** 2).sum(1).mean()))),
+                "nuisance": {k: float(v) for k, v in zip(names_nu, nu[b, i])},
+                "series": {
+                    "t": data.ts[i, :m] + data.t_start[i],
+                    "x": np.where(wp, data.x[i, :m], np.nan),
+                    "y": np.where(wp, data.y[i, :m], np.nan),
+                    "x_sim": xs[i, :m],
+                    "y_sim": ys[i, :m],
+                    "pos_err": np.where(wp[:, None], ep, np.nan),
+                    "rot_err_deg": np.where(wr[:, None], np.degrees(er), np.nan),
+                },
+            }
+        )
+    per_val = {n: float(v) for n, v in zip(fp_.names, values)}
+    per_se = {n: float(s) for n, s in zip(fp_.names, se)}
+    return FitResult(
+        params=params, free=list(fp_.names), given=fp_.given,
+        values=_assemble_named(fp_, per_val, params, np.nan), stderr=_assemble_named(fp_, per_se, params, 0.0),
+        covariance=cov, correlation=corr, cost=float(cost[b]), iterations=int(iterations), converged=bool(converged),
+        sigma_pos=float(sig[0]), sigma_rot=float(sig[1]), n_residuals=n_res, identifiability=ident, trials=trials,
+        starts=[float(c) for c in cost], kind=data.kind, elapsed_s=time.perf_counter() - t_begin,
+    )  # fmt: skip
+
+
+# ----------------------------------------------------------------------------- generic least squares
+
+
+@dataclasses.dataclass
+class LeastSquaresResult:
+    """`x`: the solution; `cost = 1/2 |r|^2`; `jac`: `dr/dx` at `x`; `covariance`:
+    `s2 (J^T J)^-1` with `s2 = 1` (the residuals are taken as whitened) unless `scale_by_residual`."""
+
+    x: np.ndarray
+    cost: float
+    jac: np.ndarray
+    covariance: np.ndarray
+    iterations: int
+    converged: bool
+
+
+def least_squares(
+    fun: Callable,
+    x0,
+    *,
+    max_iter: int = 50,
+    ftol: float = 1e-14,
+    xtol: float = 1e-12,
+    jac: str = "rev",
+    scale_by_residual: bool = False,
+) -> LeastSquaresResult:
+    """Levenberg-Marquardt on a small dense problem: minimise `1/2 |fun(x)|^2`.
+
+    `fun` is a pure JAX function of `x (P,)` returning whitened residuals `(K,)`; its
+    Jacobian is taken by `jax.jacrev` (`jac="rev"`, for few residuals or simulations with the
+    default adjoint) or `jax.jacfwd` (`jac="fwd"`, with `adjoint=diffrax.ForwardMode()`).
+    Used by `examples/fit_paper_Rm_j.py` together with `FreeParams`.
+    """
+    jf = jax.jit(jax.jacrev(fun) if jac == "rev" else jax.jacfwd(fun))
+    f = jax.jit(fun)
+    x = np.asarray(x0, np.float64)
+    r = np.asarray(f(x))
+    Jm = np.asarray(jf(x))
+    cost = 0.5 * float(r @ r)
+    lam, converged, k = 1e-3, False, 0
+    for k in range(1, max_iter + 1):
+        H = Jm.T @ Jm
+        g = Jm.T @ r
+        D = np.diag(np.diag(H)) + 1e-300 * np.eye(len(x))
+        dx = -np.linalg.solve(H + lam * D, g)
+        xn = x + dx
+        rn = np.asarray(f(xn))
+        cn = 0.5 * float(rn @ rn)
+        if np.isfinite(cn) and cn < cost:
+            small = (cost - cn) <= ftol * max(cost, 1e-300) or np.max(np.abs(dx) / np.maximum(np.abs(x), 1.0)) < xtol
+            x, r, cost = xn, rn, cn
+            Jm = np.asarray(jf(x))
+            lam = max(lam / 5.0, 1e-15)
+            if small or cost == 0.0:
+                converged = True
+                break
+        else:
+            lam *= 10.0
+            if lam > 1e15:
+                converged = True
+                break
+    s2 = 2 * cost / max(len(r) - len(x), 1) if scale_by_residual else 1.0
+    cov = s2 * np.linalg.pinv(Jm.T @ Jm, rcond=1e-14, hermitian=True)
+    return LeastSquaresResult(x=x, cost=cost, jac=Jm, covariance=cov, iterations=k, converged=converged)
