@@ -1,0 +1,88 @@
+"""Planning benchmark (issue 4): restarts x targets optimised in one vmapped, compiled call.
+
+    python benchmarks/plan.py                       # measure 16 x 16, extrapolate to 256 x 16
+    python benchmarks/plan.py --restarts 256        # the full 256 x 16 run (about an hour on 2 cores)
+
+Prints a table and writes `benchmarks/results-plan.json` with machine information. The search
+cost is linear in restarts x targets x iterations (every problem runs the same fixed number of
+Adam and LM iterations), so time per (problem x iteration) measured at one size extrapolates.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+import jsphere  # noqa: E402
+from jsphere._plan import _initial_guesses, _search, _vec_targets  # noqa: E402
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--restarts", type=int, default=16)
+    ap.add_argument("--targets", type=int, default=16, help="targets on a grid over the 2 m x 2 m square")
+    ap.add_argument("--out", default=str(Path(__file__).with_name("results-plan.json")))
+    args = ap.parse_args(argv)
+    p = jsphere.RobotParams.paper()
+    s = jsphere.PlanSettings()
+    lim, obj = jsphere.Limits(), jsphere.Objective()
+    lim_a, obj_a = (jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64), m) for m in (lim, obj))
+    k = int(round(np.sqrt(args.targets)))
+    xs = np.linspace(-1.0, 1.0, k)
+    tg = _vec_targets([(x, y) for x in xs for y in xs][: args.targets])
+    B, R = len(tg), args.restarts
+    z0 = _initial_guesses(p, tg, R, lim, s, 0)
+    t0 = time.perf_counter()
+    lowered = _search.lower(p, jnp.asarray(tg), z0, lim_a, obj_a, s)
+    compiled = lowered.compile()
+    t_compile = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    zf, loss, best, _, hist = jax.block_until_ready(compiled(p, jnp.asarray(tg), z0, lim_a, obj_a, s))
+    t_run = time.perf_counter() - t0
+    iters = s.adam_steps + s.lm_steps + 1
+    per = t_run / (B * R * iters)
+    full = 256 * 16 * iters * per
+    best_loss = np.asarray(jnp.min(loss, axis=1))
+    # search-model terminal errors of the best restart per target
+    errs = []
+    for b in range(B):
+        ro = jsphere._plan.rollout(p, jsphere._plan.gait_from_vector(jnp.asarray(zf[b]), lim, s), s.n_steps)
+        errs.append(float(np.hypot(ro.x[-1] - tg[b, 0], ro.y[-1] - tg[b, 1])))
+    rows = [
+        ("problems (targets x restarts)", f"{B} x {R} = {B * R}"),
+        ("iterations per problem (Adam + LM)", f"{s.adam_steps} + {s.lm_steps + 1}"),
+        ("RK4 steps per simulation", f"{s.n_steps}"),
+        ("compile [s]", f"{t_compile:.1f}"),
+        ("search [s]", f"{t_run:.1f}"),
+        ("per problem x iteration [ms]", f"{1e3 * per:.3f}"),
+        ("256 x 16 extrapolated [s]", f"{full:.0f}"),
+        ("best restarts: max search-model position error [mm]", f"{1e3 * max(errs):.4f}"),
+        ("best restarts: max loss", f"{float(np.max(best_loss)):.3g}"),
+    ]
+    w = max(len(a) for a, _ in rows)
+    for a, b_ in rows:
+        print(f"{a.ljust(w)}  {b_}")
+    info = {
+        "machine": {"platform": platform.platform(), "processor": platform.processor(), "cpu_count": os.cpu_count(),
+                    "jax": jax.__version__, "devices": [str(d) for d in jax.devices()], "python": platform.python_version()},
+        "targets": B, "restarts": R, "iterations": iters, "n_steps": s.n_steps, "compile_s": t_compile, "search_s": t_run,
+        "per_problem_iteration_s": per, "extrapolated_256x16_s": full, "max_position_error_m": max(errs),
+        "best_loss": best_loss.tolist(),
+    }  # fmt: skip
+    Path(args.out).write_text(json.dumps(info, indent=2) + "\n")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
