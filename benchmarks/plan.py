@@ -23,8 +23,8 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-import jsphere  # noqa: E402
-from jsphere._plan import _initial_guesses, _search, _vec_targets  # noqa: E402
+import jsphere
+from jsphere._plan import _initial_guesses, _search, _vec_targets
 
 
 def main(argv=None) -> int:
@@ -37,7 +37,7 @@ def main(argv=None) -> int:
     s = jsphere.PlanSettings()
     lim, obj = jsphere.Limits(), jsphere.Objective()
     lim_a, obj_a = (jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64), m) for m in (lim, obj))
-    k = int(round(np.sqrt(args.targets)))
+    k = round(np.sqrt(args.targets))
     xs = np.linspace(-1.0, 1.0, k)
     tg = _vec_targets([(x, y) for x in xs for y in xs][: args.targets])
     B, R = len(tg), args.restarts
@@ -47,7 +47,7 @@ def main(argv=None) -> int:
     compiled = lowered.compile()
     t_compile = time.perf_counter() - t0
     t0 = time.perf_counter()
-    zf, loss, best, _, hist = jax.block_until_ready(compiled(p, jnp.asarray(tg), z0, lim_a, obj_a, s))
+    zf, loss, _, _, _ = jax.block_until_ready(compiled(p, jnp.asarray(tg), z0, lim_a, obj_a, s))
     t_run = time.perf_counter() - t0
     iters = s.adam_steps + s.lm_steps + 1
     per = t_run / (B * R * iters)

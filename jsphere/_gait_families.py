@@ -20,7 +20,7 @@ exactly `c = (2 theta_max, 0, 2 theta_max)` with `p = 2`.
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
@@ -62,7 +62,7 @@ def _sinc_cos(s):
     return sinc, cos
 
 
-def tilt_to_gamma(u: Float[Array, "2"]) -> Float[Array, "3"]:
+def tilt_to_gamma(u: Float[Array, " 2"]) -> Float[Array, " 3"]:
     """`gamma` (before the rest-attitude rotation `Q_m`) for the tilt vector `u` [rad]:
     `(sin|u| u/|u|, cos|u|)`, i.e. (4.2) with `theta = |u|`, `phi = atan2(u_2, u_1)`."""
     sinc, cos = _sinc_cos(u[0] ** 2 + u[1] ** 2)
@@ -140,7 +140,7 @@ def paper_gait(theta_max: float, phi: float = 0.0, T: float = 2.0) -> TiltGait:
     in direction `phi`, as a member of the `Smooth` family (`p = 2`): `sin^2(pi t) =
     sin^2(pi s) * (sum of cosines)` with `s = t/T`. Equal to `acceleration(theta_max, phi, T)`
     (test `test_paper_gaits_are_special_cases`)."""
-    n = int(round(float(T)))
+    n = round(float(T))
     # sin^2(n pi s) / sin^2(pi s) = (sin(n x)/sin x)^2, x = pi s, a cosine polynomial of degree 2(n-1)
     # with coefficients c_0 = n, c_{2j} = 2 (n - j)   (Fejer kernel)
     c = jnp.zeros(2 * n - 1).at[0].set(n)
@@ -149,4 +149,3 @@ def paper_gait(theta_max: float, phi: float = 0.0, T: float = 2.0) -> TiltGait:
     direction = jnp.stack([jnp.cos(_real(phi)), jnp.sin(_real(phi))])
     coeffs = _real(theta_max) * direction[:, None] * c[None, :]
     return TiltGait(Smooth(coeffs, T, 2), None, T)
-

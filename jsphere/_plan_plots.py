@@ -46,7 +46,7 @@ def plan_figure(plan, path, *, compare=None, title: str = "") -> None:
     rep = plan.limits_report
     for ax, key, scale in ((b, "torque_N_m", 1e3), (c, "wheel_speed_rad_s", 1.0), (d, "tilt_rad", 180 / np.pi)):
         if key in rep and rep[key]["max"] > 0.5 * rep[key]["limit"]:
-            for sgn in ((1, -1) if ax is not d else (1,)):
+            for sgn in (1, -1) if ax is not d else (1,):
                 ax.axhline(sgn * scale * rep[key]["limit"], color="r", ls="--", lw=0.8)
     b.set_ylabel("K [mN m]")
     b.legend(fontsize=7)

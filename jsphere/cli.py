@@ -150,6 +150,8 @@ def _cmd_montecarlo(args) -> int:
 
 # ---- plan (issue 4: gait optimisation / motion planning) -------------------------------------
 def _cmd_plan(args) -> int:
+    import math
+
     import jsphere
 
     from ._io import atomic_write_text
@@ -170,7 +172,7 @@ def _cmd_plan(args) -> int:
     print(pl.summary())
     out = Path(args.out)
     pl.to_csv(out)
-    info = {"feasible": pl.feasible, "shortfall": pl.shortfall, "target": [None if v != v else v for v in pl.target.tolist()],
+    info = {"feasible": pl.feasible, "shortfall": pl.shortfall, "target": [None if math.isnan(v) else v for v in pl.target.tolist()],
             "duration_s": pl.duration, "errors": pl.errors, "limits": pl.limits_report, "iterations": pl.iterations,
             "elapsed_s": pl.elapsed_s, "restarts": pl.restarts, "rate_hz": pl.rate}  # fmt: skip
     atomic_write_text(out.with_suffix(".json"), json.dumps(info, indent=2) + "\n")
