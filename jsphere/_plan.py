@@ -380,7 +380,7 @@ def _distance_gain(params: RobotParams) -> float:
 def _initial_guesses(params, targets, restarts, lim, s, seed):
     """Restarts: the accelerate-brake profile towards the target (amplitude from the small-tilt
     distance estimate `_distance_gain`), random durations, random extra Fourier terms and spin;
-    restart 0 without noise at `0.95 max_time`."""
+    restart 0 without noise, at the duration where its peak tilt is half the tilt limit."""
     kappa = _distance_gain(params)
     n, m = s.n_tilt, s.n_spin
     B = targets.shape[0]
@@ -391,7 +391,12 @@ def _initial_guesses(params, targets, restarts, lim, s, seed):
         xt, yt, psi, has = (float(v) for v in targets[b])
         dist, ang = math.hypot(xt, yt), math.atan2(yt, xt)
         for r in range(restarts):
-            T = lim.max_time * 0.95 if r == 0 else rng.uniform(tmin, lim.max_time * 0.95)
+            if r == 0:  # the duration at which the peak tilt is half the limit (0.15 rad without one)
+                a_ref = (0.5 * lim.max_tilt if lim.max_tilt is not None else 0.15) / 0.3248  # max sin^3 cos = 0.3248
+                T = math.sqrt(dist / (kappa * a_ref * 3 / (32 * math.pi)))
+                T = min(max(T, 1.5 * lim.min_time), 0.95 * lim.max_time)
+            else:
+                T = rng.uniform(tmin, lim.max_time * 0.95)
             a = dist / (kappa * T**2 * 3 / (32 * math.pi)) * (1.0 + (0.1 * rng.normal() if r else 0.0))
             ang_r = ang + (0.15 * rng.normal() if r else 0.0)
             z[b, r, 1] = a * math.cos(ang_r)
