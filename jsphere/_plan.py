@@ -639,7 +639,7 @@ def plan_many(
             err = _terminal_errors(params, tr, tg[b])
             # Newton correction of the RK4 bias: accurate residual, search-model Jacobian (min-norm step)
             for _ in range(3):
-                if err["position_m"] <= 0.2 * tol_position and err["speed_m_s"] <= 0.2 * tol_speed:
+                if err["position_m"] <= 0.05 * tol_position and err["speed_m_s"] <= 0.05 * tol_speed:
                     break
                 # rows 0-5 of the residual Jacobian: (x, y) / position_scale, R0 Omega / speed_scale, heading
                 scales = np.array([obj.position_scale] * 2 + [obj.speed_scale] * 3 + [obj.heading_scale])
