@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 import jsphere
-from jsphere._plan_plots import plan_figure
+from jsphere.plots import plan_figure
 
 WAYPOINTS = [(0.45, 0.3), (0.9, -0.3), (1.35, 0.3)]
 
@@ -40,7 +40,8 @@ def hand_made(p):
 def main(out="plan-slalom"):
     out = Path(out)
     p = jsphere.RobotParams.paper()
-    pl = jsphere.plan_route(p, WAYPOINTS, restarts=4, rate=1000.0, progress=True)
+    # at most 4.5 s per leg, to compare with the hand-made gaits' 4 s per leg
+    pl = jsphere.plan_route(p, WAYPOINTS, limits=jsphere.Limits(max_time=4.5), restarts=4, rate=1000.0, progress=True)
     print(pl.summary())
     pl.to_csv(out / "slalom.csv")
     tr_h, stops_h = hand_made(p)

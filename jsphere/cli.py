@@ -178,7 +178,7 @@ def _cmd_plan(args) -> int:
     atomic_write_text(out.with_suffix(".json"), json.dumps(info, indent=2) + "\n")
     written = [out, out.with_suffix(".json")]
     if not args.no_plots:
-        from ._plan_plots import plan_figure
+        from .plots import plan_figure
 
         plan_figure(pl, out.with_suffix(".png"))
         written.append(out.with_suffix(".png"))

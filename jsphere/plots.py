@@ -161,3 +161,15 @@ def figure2_study(kin, gait, path) -> None:
     b.errorbar([-1.392], [369.2], xerr=[28.9], yerr=[37.7], fmt="ko", ms=3, label="paper, gaits, experiment (95%)")
     _xy_axes(b)
     _finish(plt, fig, path)
+
+
+# ---- planning (issue 4) ----------------------------------------------------------------------
+def plan_figure(plan, path, *, compare=None, title: str = "") -> None:
+    """A `Plan`: path with target and heading arrows, `K(t)`, `chi_dot(t)`, tilt with limits
+    (see `jsphere._plan_plots.plan_figure`)."""
+    from ._plan_plots import plan_figure as _plan_figure
+
+    _plan_figure(plan, path, compare=compare, title=title)
+
+
+# ---- end planning ----------------------------------------------------------------------------
