@@ -648,8 +648,8 @@ def plan_many(
                 Om = float(params.R0) * np.asarray(tr.Omega[-1])
                 r = np.concatenate([[fin[0] - tg[b, 0], fin[1] - tg[b, 1]], Om,
                                     [tg[b, 3] * math.remainder(fin[2] - tg[b, 2], 2 * math.pi)]])  # fmt: skip
-                Ju = J.copy()
-                z_new = z - np.linalg.lstsq(Ju, r, rcond=None)[0]
+                rows = [0, 1, 2, 3, 5]  # position, horizontal Omega, heading (the slow shell spin is left alone)
+                z_new = z - np.linalg.lstsq(J[rows], r[rows], rcond=None)[0]
                 g_new = gait_from_vector(jnp.asarray(z_new), lim, s)
                 tr_new = _accurate(params, g_new, rate, alpha0, beta0, lim.max_time)
                 err_new = _terminal_errors(params, tr_new, tg[b])
