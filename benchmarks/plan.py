@@ -28,7 +28,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import jsphere
 from jsphere._plan import _initial_guesses, _search, _vec_targets
 
-
 PLAN_DEFAULT_ITERATIONS = jsphere.PlanSettings().adam_steps + jsphere.PlanSettings().lm_steps + 1
 
 
