@@ -96,5 +96,26 @@ from ._trajectory import (
     power_along as power_along,
     trajectory_residuals as trajectory_residuals,
 )
+# ---- gait optimisation / motion planning (issue 4) ----
+from ._gait_families import (
+    Smooth as Smooth,
+    TiltGait as TiltGait,
+    paper_gait as paper_gait,
+    smooth_gait as smooth_gait,
+    tilt_to_gamma as tilt_to_gamma,
+)
+from ._plan import (
+    Limits as Limits,
+    Objective as Objective,
+    Plan as Plan,
+    PlanInfeasibleError as PlanInfeasibleError,
+    PlanSettings as PlanSettings,
+    optimise_gaits as optimise_gaits,
+    plan as plan,
+    plan_many as plan_many,
+    plan_route as plan_route,
+    replay_errors as replay_errors,
+)
+# ---- end planning ----
 
 __version__ = "0.1.0"

@@ -290,6 +290,69 @@ def _add_fit_parser(sub) -> None:
 # --- end system identification ---
 
 
+# ---- plan (issue 4: gait optimisation / motion planning) -------------------------------------
+def _cmd_plan(args) -> int:
+    import math
+
+    import jsphere
+
+    from ._io import atomic_write_text
+
+    params = jsphere.RobotParams.load(args.params) if args.params else jsphere.RobotParams.paper()
+    none = {"none", "off", "inf"}
+    lim_kw = {}
+    for name in ("max_torque", "max_wheel_speed", "max_tilt", "max_torque_rate"):
+        v = getattr(args, name)
+        if v is not None:
+            lim_kw[name] = None if str(v).lower() in none else float(v)
+    if args.max_time is not None:
+        lim_kw["max_time"] = float(args.max_time)
+    limits = jsphere.Limits(**lim_kw)
+    obj = jsphere.Objective(energy=args.energy_weight, time=args.time_weight)
+    pl = jsphere.plan(params, tuple(args.to), heading=args.heading, limits=limits, objective=obj,
+                      restarts=args.restarts, rate=args.rate, seed=args.seed, allow_infeasible=True, progress=True)  # fmt: skip
+    print(pl.summary())
+    out = Path(args.out)
+    pl.to_csv(out)
+    info = {"feasible": pl.feasible, "shortfall": pl.shortfall, "target": [None if math.isnan(v) else v for v in pl.target.tolist()],
+            "duration_s": pl.duration, "errors": pl.errors, "limits": pl.limits_report, "iterations": pl.iterations,
+            "elapsed_s": pl.elapsed_s, "restarts": pl.restarts, "rate_hz": pl.rate}  # fmt: skip
+    atomic_write_text(out.with_suffix(".json"), json.dumps(info, indent=2) + "\n")
+    written = [out, out.with_suffix(".json")]
+    if not args.no_plots:
+        from .plots import plan_figure
+
+        plan_figure(pl, out.with_suffix(".png"))
+        written.append(out.with_suffix(".png"))
+    print(f"wrote {', '.join(str(p) for p in written)}")
+    if not pl.feasible:
+        print("jsphere plan: WARNING: the request cannot be met within the limits; the files hold the best plan "
+              "found: " + "; ".join(pl.shortfall), file=sys.stderr)  # fmt: skip
+        return 3
+    return 0
+
+
+def _add_plan_parser(sub) -> None:
+    pp = sub.add_parser("plan", help="plan a rest-to-rest manoeuvre to (X, Y) within motor limits; CSV of wheel commands")
+    pp.add_argument("--to", nargs=2, type=float, required=True, metavar=("X", "Y"), help="target position [m] (robot starts at rest at the origin)")
+    pp.add_argument("--heading", type=float, help="final platform heading [rad] (default: free)")
+    pp.add_argument("--max-torque", help="wheel torque limit [N m] (default 0.1; 'none' for no limit)")
+    pp.add_argument("--max-wheel-speed", help="wheel speed limit [rad/s] (default 20)")
+    pp.add_argument("--max-tilt", help="platform tilt limit [rad] (default 0.35)")
+    pp.add_argument("--max-torque-rate", help="torque rate limit [N m/s] (default 1)")
+    pp.add_argument("--max-time", type=float, help="longest manoeuvre [s] (default 12)")
+    pp.add_argument("--energy-weight", type=float, default=0.0, help="cost per joule of motor energy (default 0)")
+    pp.add_argument("--time-weight", type=float, default=1e-3, help="cost per second of duration (default 1e-3)")
+    pp.add_argument("--rate", type=float, default=1000.0, help="rows per second of the CSV (default 1000)")
+    pp.add_argument("--restarts", type=int, default=8, help="random restarts (default 8)")
+    pp.add_argument("--seed", type=int, default=0)
+    pp.add_argument("--params", help="a parameter file (.toml or .json) instead of the paper's robot")
+    pp.add_argument("--out", default="plan.csv", help="CSV of t, K_i, chi_dot_i, x, y, gamma_1..3, heading, tilt (default plan.csv); .json and .png beside it")
+    pp.add_argument("--no-plots", action="store_true", help="skip the figure")
+    pp.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
+# ---- end plan ---------------------------------------------------------------------------------
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="jsphere", description="Spherical robot with an internal omniwheel platform (JAX).")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -307,6 +370,7 @@ def main(argv=None) -> int:
     mc.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
     _add_capture_parsers(sub)  # capture data (issue 3)
     _add_fit_parser(sub)  # system identification (issue 3)
+    _add_plan_parser(sub)  # plan (issue 4)
     args = parser.parse_args(argv)
     if not args.no_cache:
         enable_compilation_cache()
@@ -319,6 +383,8 @@ def main(argv=None) -> int:
             return _CAPTURE_COMMANDS[args.command](args)
         if args.command == "fit":  # system identification (issue 3)
             return _cmd_fit(args)
+        if args.command == "plan":  # plan (issue 4)
+            return _cmd_plan(args)
     except (ValueError, FileNotFoundError) as e:
         print(f"jsphere {args.command}: error: {e}", file=sys.stderr)
         return 2

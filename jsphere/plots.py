@@ -212,3 +212,15 @@ def fit_figures(result, out_dir, *, stem: str = "fit") -> list[Path]:
 
 
 # --- end system identification ---
+
+
+# ---- planning (issue 4) ----------------------------------------------------------------------
+def plan_figure(plan, path, *, compare=None, title: str = "") -> None:
+    """A `Plan`: path with target and heading arrows, `K(t)`, `chi_dot(t)`, tilt with limits
+    (see `jsphere._plan_plots.plan_figure`)."""
+    from ._plan_plots import plan_figure as _plan_figure
+
+    _plan_figure(plan, path, compare=compare, title=title)
+
+
+# ---- end planning ----------------------------------------------------------------------------

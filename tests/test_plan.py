@@ -1,0 +1,190 @@
+"""Gait families and planning (issue 4): boundary conditions, the paper's gaits as special
+cases, a rest-to-rest plan to a pose behind and beside the robot, the exported table replayed
+through the plain simulator, infeasible requests, the full-stop braking of Section 5.2."""
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jsphere
+from jsphere._plan import rollout
+
+# small search: 4 Fourier terms per tilt axis, 2 spin terms, 32 RK4 steps
+SMALL = jsphere.PlanSettings(n_tilt=4, n_spin=2, n_steps=32, adam_steps=60, lm_steps=30)
+
+
+@pytest.fixture(scope="module")
+def planned(paper):
+    """Behind and to the right of the robot, with a final heading: one target, 2 restarts."""
+    return jsphere.plan(paper, (-0.5, -0.4), heading=0.8, restarts=2, settings=SMALL, rate=200.0)
+
+
+def test_smooth_profile_vanishes_with_derivatives_at_the_ends():
+    c = jnp.array([[0.1, -0.03, 0.02], [0.05, 0.01, -0.04]])
+    for power, order in ((2, 1), (3, 2)):
+        f = jsphere.Smooth(c, 3.0, power)
+        derivs = [f]
+        for _ in range(order + 1):
+            prev = derivs[-1]
+            derivs.append(lambda t, prev=prev: jax.jvp(prev, (t,), (jnp.ones_like(t),))[1])
+        for t in (0.0, 3.0):
+            for k in range(order + 1):
+                assert np.max(np.abs(derivs[k](jnp.asarray(t)))) < 1e-12, (power, k, t)
+            # the next derivative does not vanish in general
+            assert np.max(np.abs(derivs[order + 1](jnp.asarray(t)))) > 1e-3
+
+
+def test_tilt_to_gamma_is_smooth_through_upright_and_matches_euler_angles():
+    th, ph = 0.23, -2.1
+    g = jsphere.tilt_to_gamma(jnp.array([th * math.cos(ph), th * math.sin(ph)]))
+    ref = np.array([math.sin(th) * math.cos(ph), math.sin(th) * math.sin(ph), math.cos(th)])
+    np.testing.assert_allclose(g, ref, atol=1e-15)
+    # second derivatives at u = 0 are finite and equal to the exact Hessian of (u1, u2, 1 - |u|^2/2)
+    H = jax.jit(jax.hessian(jsphere.tilt_to_gamma))(jnp.zeros(2))
+    np.testing.assert_allclose(H[2], -np.eye(2), atol=1e-12)
+    np.testing.assert_allclose(H[:2], 0.0, atol=1e-12)
+    assert np.all(np.isfinite(jax.jit(jax.jacfwd(jax.hessian(lambda u: jsphere.tilt_to_gamma(u)[2])))(jnp.zeros(2))))
+
+
+def test_paper_gaits_are_special_cases(paper, straight):
+    """Acceleration (5.1) and braking (5.3) written as members of the Smooth family (Fejer
+    kernel, `paper_gait`) give the same motion and torques as the paper's sin^2 gaits."""
+    fam = jsphere.simulate_gaits(paper, [jsphere.paper_gait(0.1), jsphere.paper_gait(-0.1)])
+    np.testing.assert_allclose(fam.K, straight.K, atol=1e-12)
+    np.testing.assert_allclose(fam.Omega, straight.Omega, atol=1e-10)
+    np.testing.assert_allclose([fam.x[-1], fam.y[-1]], [straight.x[-1], straight.y[-1]], atol=1e-10)
+    # and in any direction: a sin^2 turn at phi = pi/2 as a tilt vector along e2
+    g = jsphere.paper_gait(0.1, math.pi / 2)
+    ref = jsphere.turn()
+    for t in (0.1, 0.5, 1.3):
+        np.testing.assert_allclose(
+            g.gamma(jnp.eye(3), jnp.asarray(t)), ref.gamma(jnp.eye(3), jnp.asarray(t)), atol=1e-15
+        )
+
+
+def test_rollout_matches_accurate_solver(paper, planned):
+    """The search model (RK4, 32 steps) and simulate_gaits (Dopri8, rtol 1e-10) agree on the plan."""
+    ro = eqx.filter_jit(rollout)(paper, planned.gaits[0], 32)
+    tr = planned.trajectory
+    assert abs(float(ro.x[-1]) - float(tr.x[-1])) < 2e-5
+    assert abs(float(ro.y[-1]) - float(tr.y[-1])) < 2e-5
+    np.testing.assert_allclose(ro.Omega[-1], tr.Omega[-1], atol=1e-4)
+
+
+def test_plan_reaches_pose_at_rest_within_limits(paper, planned):
+    pl = planned
+    assert pl.feasible, pl.summary()
+    assert pl.errors["position_m"] < 1e-3
+    assert pl.errors["speed_m_s"] < 1e-3
+    assert pl.errors["heading_rad"] < 1e-3
+    assert all(r["ok"] for r in pl.limits_report.values())
+    # the accurate trajectory itself ends there, at rest, upright, with zero torques (C2 ends)
+    tr = pl.trajectory
+    assert math.hypot(float(tr.x[-1]) + 0.5, float(tr.y[-1]) + 0.4) < 1e-3
+    np.testing.assert_allclose(tr.gamma[-1], [0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(tr.K[0], 0.0, atol=1e-12)
+    np.testing.assert_allclose(tr.K[-1], 0.0, atol=1e-12)
+    assert 0 < pl.limits_report["torque_N_m"]["max"] < 0.1
+
+
+def test_csv_table_and_torque_replay(paper, planned, tmp_path):
+    path = tmp_path / "plan.csv"
+    planned.to_csv(path)
+    header = path.read_text().splitlines()[0].split(",")
+    N = paper.n_wheels
+    want = ["t"] + [f"K_{i + 1}" for i in range(N)] + [f"chi_dot_{i + 1}" for i in range(N)] + ["x", "y"]
+    assert header[: len(want)] == want
+    assert header[len(want) : len(want) + 3] == ["gamma_1", "gamma_2", "gamma_3"]
+    data = np.loadtxt(path, delimiter=",", skiprows=1)
+    t = data[:, 0]
+    np.testing.assert_allclose(np.diff(t)[:-1], 1 / 200.0, rtol=1e-9)
+    assert abs(t[-1] - planned.duration) < 1e-12
+    # at rest at the last row: no torque (C2 ends), wheels stopped up to the small residual spin of the shell
+    np.testing.assert_allclose(data[-1, 1 : 1 + N], 0.0, atol=1e-9)
+    assert np.max(np.abs(data[-1, 1 + N : 1 + 2 * N])) < 5e-3
+    rep = jsphere.replay_errors(planned, mode="torques")
+    assert rep["target_error_m"] < 2e-3, rep
+    assert rep["path_deviation_m"] < 1e-4
+
+
+def test_infeasible_request_says_how_far_and_which_limit(paper):
+    lim = jsphere.Limits(max_time=3.0, max_tilt=0.05)
+    with pytest.raises(jsphere.PlanInfeasibleError) as e:
+        jsphere.plan(paper, (-0.5, -0.4), heading=0.8, restarts=2, settings=SMALL, rate=200.0, limits=lim)
+    msg = str(e.value)
+    assert "mm" in msg and "tilt" in msg
+    best = e.value.plan
+    assert isinstance(best, jsphere.Plan) and not best.feasible
+    assert best.errors["position_m"] > 1e-3 or not all(r["ok"] for r in best.limits_report.values())
+
+
+@pytest.mark.slow
+def test_full_stop_braking_of_the_paper(paper):
+    """The braking gait (theta_max, phi) that stops the robot after acceleration and turn (5.2):
+    theta_max = 0.14162, phi = 0.78539 (MODEL-NOTES: about 0.1416), found through the simulator."""
+
+    def build(x):
+        return [jsphere.acceleration(), jsphere.turn(), jsphere.braking(theta_max=x[0], phi=x[1])]
+
+    x, info = jsphere.optimise_gaits(paper, build, jnp.array([0.1, math.pi / 4]), lambda tr: tr.Omega[-1, :2])
+    assert info["residual"] < 1e-10
+    assert abs(x[0] - 0.14162) < 5e-5 and abs(x[1] - 0.78539) < 5e-5
+
+
+@pytest.mark.slow
+def test_replay_wheel_speeds(planned):
+    rep = jsphere.replay_errors(planned, mode="wheel_speeds")
+    assert rep["target_error_m"] < 2e-3, rep
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("half", [0, 1])
+def test_target_sweep_2m_square_and_replays(paper, half):
+    """Targets over the 2 m x 2 m square around the start (behind and beside included), default
+    settings, 1 kHz tables: < 1 mm, < 1 mm/s, limits respected; K and chi_dot replays < 2 mm."""
+    xs = [-1.0, -0.35, 0.35, 1.0]
+    targets = [(x, y) for x in xs for y in xs][8 * half : 8 * half + 8]
+    plans = jsphere.plan_many(paper, targets, restarts=4, rate=1000.0)
+    for pl in plans:
+        rep = {m: jsphere.replay_errors(pl, mode=m) for m in ("torques", "wheel_speeds")}
+        print(
+            f"target {pl.target[:2]}: T {pl.duration:.2f} s, error {1e3 * pl.errors['position_m']:.4f} mm, "
+            f"speed {1e3 * pl.errors['speed_m_s']:.4f} mm/s, spin {pl.errors['spin_rad_s']:.1e} 1/s, "
+            f"max |K| {pl.limits_report['torque_N_m']['max']:.4f} N m, max |chi_dot| "
+            f"{pl.limits_report['wheel_speed_rad_s']['max']:.2f} rad/s, max tilt {pl.limits_report['tilt_rad']['max']:.3f}, "
+            f"replay K {1e3 * rep['torques']['target_error_m']:.4f} mm, chi_dot {1e3 * rep['wheel_speeds']['target_error_m']:.4f} mm"
+        )
+        assert pl.feasible, pl.summary()
+        assert pl.errors["position_m"] < 1e-3 and pl.errors["speed_m_s"] < 1e-3
+        for m in rep:
+            assert rep[m]["target_error_m"] < 2e-3
+
+
+@pytest.mark.slow
+def test_cli_plan(tmp_path):
+    from jsphere.cli import main
+
+    out = tmp_path / "plan.csv"
+    rc = main(
+        [
+            "plan",
+            "--to",
+            "-0.3",
+            "0.6",
+            "--rate",
+            "1000",
+            "--out",
+            str(out),
+            "--no-plots",
+            "--no-cache",
+            "--restarts",
+            "2",
+        ]
+    )
+    assert rc == 0
+    data = np.loadtxt(out, delimiter=",", skiprows=1)
+    assert math.hypot(data[-1, 7] + 0.3, data[-1, 8] - 0.6) < 1e-3
