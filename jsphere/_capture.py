@@ -97,6 +97,18 @@ def _where(source: str, lines: np.ndarray | None, k: int) -> str:
     return f"{source}, line {int(lines[k])}"
 
 
+def _check_increasing(t: np.ndarray, source: str, lines: np.ndarray | None, hint: str = "") -> None:
+    """Raise a `ValueError` naming the first row whose time stamp is duplicated or goes back."""
+    dt = np.diff(t)
+    if np.any(dt <= 0):
+        k = int(np.nonzero(dt <= 0)[0][0])
+        what = "duplicated" if dt[k] == 0 else "not increasing"
+        raise ValueError(
+            f"{_where(source, lines, k + 1)}: time stamps are {what}: t = {t[k + 1]:.9g} s follows t = {t[k]:.9g} s "
+            f"({_where(source, lines, k).split(', ')[-1]}); times must be strictly increasing{hint}."
+        )
+
+
 def _checked(
     t, x, y, q, inputs, kind: str, z, *, source: str, lines: np.ndarray | None = None,
     input_names: Sequence[str] | None = None, check_length: bool = True, max_gap_fraction: float = 1.0,
@@ -139,14 +151,7 @@ def _checked(
             f"{_where(source, lines, k)}: input column {names[c]} is blank or not finite (t = {t[k]:g} s); "
             "inputs may not have gaps: fill them in (e.g. interpolate the commands) or cut the trial."
         )
-    dt = np.diff(t)
-    if np.any(dt <= 0):
-        k = int(np.nonzero(dt <= 0)[0][0])
-        what = "duplicated" if dt[k] == 0 else "not increasing"
-        raise ValueError(
-            f"{_where(source, lines, k + 1)}: time stamps are {what}: t = {t[k + 1]:.9g} s follows t = {t[k]:.9g} s "
-            f"({_where(source, lines, k).split(', ')[-1]}); times must be strictly increasing (remove duplicated frames, sort by time)."
-        )
+    _check_increasing(t, source, lines, " (remove duplicated frames, sort by time)")
 
     gap = ~np.isfinite(x) | ~np.isfinite(y) | ~np.all(np.isfinite(q), axis=1)
     if z is not None:

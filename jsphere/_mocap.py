@@ -28,6 +28,7 @@ from ._capture import (
     INPUT_PREFIX,
     KINDS,
     Trial,
+    _check_increasing,
     _checked,
     _input_columns,
     _parse_cell,
@@ -275,14 +276,7 @@ def _check_times(t: np.ndarray, lines: np.ndarray, source: str) -> None:
     bad = np.nonzero(~np.isfinite(t))[0]
     if bad.size:
         raise ValueError(f"{source}, line {lines[bad[0]]}: the time (or frame number) is blank; every row needs one.")
-    dt = np.diff(t)
-    if np.any(dt <= 0):
-        k = int(np.nonzero(dt <= 0)[0][0])
-        what = "duplicated" if dt[k] == 0 else "not increasing"
-        raise ValueError(
-            f"{source}, line {lines[k + 1]}: time stamps are {what}: t = {t[k + 1]:.9g} s follows t = {t[k]:.9g} s "
-            f"(line {lines[k]}); times must be strictly increasing."
-        )
+    _check_increasing(t, source, lines)
 
 
 def read_motive_csv(
