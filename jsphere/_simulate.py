@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+from typing import Any, Callable
 
 import diffrax as dfx
 import equinox as eqx
@@ -14,6 +16,7 @@ from ._controls import Torques, WheelSpeeds
 from ._dynamics import servo_accelerations, servo_jump, solve_accelerations
 from ._linalg import cross, matvec, quat_normalize, quat_rate_body, quat_rate_fixed, rotmat
 from ._params import Derived, RobotParams, derive
+from ._soa import from_components, to_components, torque_field_components
 from ._state import State, _unflatten
 
 
@@ -67,7 +70,7 @@ def _left_limit(b):
 
 
 def _control_time(t, t_end):
-    return jnp.where(t >= t_end, _left_limit(t_end), t)
+    return jnp.where(t >= t_end, _left_limit(jax.lax.stop_gradient(t_end)), t)
 
 
 def _kin_rates(p: RobotParams, z, R, gamma, omega, Omega):
@@ -88,6 +91,13 @@ def _torque_field(t, z, args):
     dq, dqs, dxy = _kin_rates(p, z, R, gamma, omega, Omega)
     chi_dot = -matvec(d.Sk, omega - Omega)
     return jnp.concatenate([dq, dqs, omega_dot, Omega_dot, dxy, chi_dot])
+
+
+def _torque_field_soa(t, y, args):
+    """`_torque_field` on a tuple of scalar components (`jsphere._soa`), for batched solves."""
+    p, d, control, _, t_end = args
+    K = control(_control_time(t, t_end))
+    return torque_field_components(p, d, tuple(K[..., i] for i in range(K.shape[-1])), y)
 
 
 def _servo_inputs(d: Derived, control: WheelSpeeds, t):
@@ -209,13 +219,16 @@ def solve_segments(
     atol,
     max_steps,
     adjoint,
+    component_field=None,
 ):
     """Integrate `field(t, z, (p, d, control, a, b))` over consecutive segments
     `(control, a, b)`, restarting at each (after `z = jump_fn(k, a, z, control)` if given),
     and sample the flat state and `outputs(p, d, control, t, z, a, b)` at `ts_out`.
 
     Segments whose controls share a structure (e.g. the paper's gaits) run in one
-    `lax.scan`, so compile time does not grow with their number.
+    `lax.scan`, so compile time does not grow with their number. With `component_field`
+    (the same field on a tuple of scalar components, `jsphere._soa`) the solver carries the
+    state as that tuple: faster under `vmap` (contiguous components), slower unbatched.
     """
     n_seg = len(segments)
     T = ts_out.shape[0]
@@ -228,12 +241,13 @@ def solve_segments(
         if jump_fn is not None:
             z = jump_fn(k, a, z, control)
         t_save = jnp.clip(ts_out, a, b)
+        term, y0 = (dfx.ODETerm(field), z) if component_field is None else (dfx.ODETerm(component_field), to_components(z))
         sol = dfx.diffeqsolve(
-            dfx.ODETerm(field), solver, a, b, None, z, (p, d, control, a, b),
+            term, solver, a, b, None, y0, (p, d, control, a, b),
             saveat=dfx.SaveAt(ts=t_save, t1=True), stepsize_controller=controller,
             max_steps=max_steps, throw=False, adjoint=adjoint,
         )  # fmt: skip
-        ys = sol.ys
+        ys = sol.ys if component_field is None else from_components(sol.ys)
         mask = _sample_masks(ts_out, a, b, k == n_seg - 1)
         out = jax.vmap(lambda t, zz: outputs(p, d, control, t, zz, a, b))(t_save, ys[:-1])
         zs = jnp.where(mask[:, None], ys[:-1], zs)
@@ -329,15 +343,205 @@ def simulate(
         tsn = np.asarray(ts_out)
         if tsn.ndim != 1 or np.any(np.diff(tsn) < 0) or not np.all(np.isfinite(tsn)):
             raise ValueError("simulate: ts must be a finite, non-decreasing 1-D array of times.")
-    traj = _simulate(
+    traj = _solve(
         params, state0, controls, jnp.asarray(t0, dt), jnp.asarray(t1, dt), ts_out,
         solver or default_solver(), rtol, atol, max_steps, adjoint or dfx.RecursiveCheckpointAdjoint(),
     )  # fmt: skip
     return raise_on_failure(traj, throw)
 
 
+# ----------------------------------------------------------------- batched layout dispatch
+#
+# Under `vmap`, torque-mode solves carry the state as a tuple of scalar components
+# (`jsphere._soa`): each component is then one contiguous `(batch,)` vector and XLA on CPU
+# vectorises the right-hand side (3.4) over the batch, about 3x faster at batch 1024 than the
+# flat `(batch, 16+N)` layout, which in turn is faster for a single trial. `simulate` cannot
+# see a `vmap` from inside, so the choice is made by `jax.custom_batching.custom_vmap`: the
+# unbatched call runs the flat layout, the batching rule vmaps the component layout (in
+# chunks of `BATCH_CHUNK`). As `custom_vmap` has no reverse mode, the default adjoint wraps it
+# in a custom VJP: the forward pass is the dispatched solve with diffrax's plain loop, the
+# backward pass the VJP (diffrax's checkpointed adjoint) of the same dispatched solve, taken
+# again. `ForwardMode` uses the `custom_vmap` directly (its `jvp` is supported). Other
+# adjoints, wheel-speed mode and concrete (untraced) calls keep the flat layout.
+
+
+class _ClosedControl(eqx.Module):
+    """A control function with every tracer it closed over made an explicit leaf, so that a
+    `vmap`ped amplitude inside a `lambda` is an input of the dispatched solve.
+    (`jax.closure_convert` hoists only values that may carry a tangent, not batched ones;
+    `eqx.filter_closure_convert` hoists every array.)"""
+
+    fn: Callable  # eqx.filter_closure_convert(lambda dyn, t: ..., dyn, t0)
+    dyn: Any
+
+    def __call__(self, t):
+        return self.fn(self.dyn, t)
+
+
+def _explicit_closure(controls, t0):
+    fn = controls.fn
+    dyn, static = eqx.partition(fn, eqx.is_array)
+    conv = eqx.filter_closure_convert(lambda dy, t: eqx.combine(dy, static)(t), dyn, t0)
+    if not any(isinstance(c, jax.core.Tracer) for c in jax.tree_util.tree_leaves(conv)):
+        return controls  # nothing traced is closed over: keep the control (and its compilation)
+    return type(controls)(_ClosedControl(conv, dyn), controls.jump_ts)
+
+
+def _traced(tree) -> bool:
+    if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree)):
+        return True
+    return isinstance(jnp.zeros(()) + 0.0, jax.core.Tracer)  # inside a jit trace
+
+
+def _dispatched(run):
+    """`run(leaves, components)` as a `custom_vmap` over a flat list of arrays: the flat layout
+    unbatched, the component layout batched. (A flat list: `custom_vmap`'s JVP rule does not
+    accept `None` nodes in its inputs.)"""
+
+    @jax.custom_batching.custom_vmap
+    def f(leaves):
+        return run(leaves, False)
+
+    @f.def_vmap
+    def _rule(axis_size, in_batched, leaves):
+        if not any(jax.tree_util.tree_leaves(in_batched)):  # e.g. the primal part of a batched jvp
+            out = run(leaves, False)
+            return out, jax.tree_util.tree_map(lambda _: False, out)
+        out = _chunked_vmap(lambda lv: run(lv, True), axis_size, in_batched, leaves)
+        return out, jax.tree_util.tree_map(lambda _: True, out)
+
+    return f
+
+
+#: Largest batch one vectorised solve takes; bigger batches run as a `lax.map` over chunks of
+#: this many trials, so the solver's working set (stage buffers of every component) stays in
+#: cache on CPU (benchmarks/NOTES.md: a single vmap of 16384 trials ran 4x slower per trial).
+BATCH_CHUNK = 1024
+
+
+def _chunked_vmap(fn, axis_size, in_batched, *args):
+    """`vmap(fn)` over the batched leaves of `args`, in chunks of at most `BATCH_CHUNK`."""
+    in_axes = tuple(jax.tree_util.tree_map(lambda b: 0 if b else None, b) for b in in_batched)
+    if axis_size <= BATCH_CHUNK:
+        return jax.vmap(fn, in_axes=in_axes, axis_size=axis_size)(*args)
+    n = -(-axis_size // BATCH_CHUNK)
+    pad = n * BATCH_CHUNK - axis_size
+
+    def split(x):  # pad with copies of the last trial (valid inputs), then (n, chunk, ...)
+        x = jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]) if pad else x
+        return x.reshape((n, BATCH_CHUNK) + x.shape[1:])
+
+    batched = [eqx.partition(a, b) for a, b in zip(args, in_batched)]
+    chunks = tuple(jax.tree_util.tree_map(split, bt) for bt, _ in batched)
+
+    def one(ch):
+        full = tuple(eqx.combine(c, un) for c, (_, un) in zip(ch, batched))
+        return jax.vmap(fn, in_axes=in_axes, axis_size=BATCH_CHUNK)(*full)
+
+    out = jax.lax.map(one, chunks)
+    return jax.tree_util.tree_map(lambda x: x.reshape((n * BATCH_CHUNK,) + x.shape[2:])[:axis_size], out)
+
+
+def _inexact(x) -> bool:
+    return jnp.issubdtype(x.dtype, jnp.inexact)
+
+
+def _pullback(run, components, perturbed, leaves, cts):
+    """VJP of `run(leaves, components)` w.r.t. the `perturbed` leaves; `cts`: one cotangent per
+    inexact output leaf. Returns one cotangent (or `None`) per input leaf."""
+    idx = [i for i, pt in enumerate(perturbed) if pt]
+
+    def f(diff):
+        lv = list(leaves)
+        for i, x in zip(idx, diff):
+            lv[i] = x
+        return [o for o in jax.tree_util.tree_leaves(run(lv, components)) if _inexact(o)]
+
+    _, pull = jax.vjp(f, [leaves[i] for i in idx])
+    (g,) = pull(list(cts))
+    out = [None] * len(leaves)
+    for i, gi in zip(idx, g):
+        out[i] = gi
+    return out
+
+
+def _dispatched_pullback(run, perturbed):
+    @jax.custom_batching.custom_vmap
+    def f(leaves, cts):
+        return _pullback(run, False, perturbed, leaves, cts)
+
+    @f.def_vmap
+    def _rule(axis_size, in_batched, leaves, cts):
+        if not any(jax.tree_util.tree_leaves(in_batched)):
+            out = _pullback(run, False, perturbed, leaves, cts)
+            return out, jax.tree_util.tree_map(lambda _: False, out)
+        # differentiate w.r.t. per-trial copies of unbatched inputs (the caller sums them): a
+        # VJP w.r.t. an unbatched input inside vmap trips equinox's checkpointed loop
+        lb, cb = in_batched
+        leaves = [x if b or not pt else jnp.broadcast_to(x, (axis_size,) + x.shape) for x, b, pt in zip(leaves, lb, perturbed)]
+        lb = [b or pt for b, pt in zip(lb, perturbed)]
+        out = _chunked_vmap(lambda lv, c: _pullback(run, True, perturbed, lv, c), axis_size, (lb, cb), leaves, cts)
+        return out, jax.tree_util.tree_map(lambda _: True, out)
+
+    return f
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _reverse(run, leaves):
+    return _dispatched(run)(leaves)
+
+
+def _reverse_fwd(run, leaves):
+    # the forward pass needs no differentiable loop (the backward pass takes its own VJP), so
+    # it runs diffrax's plain `lax.while_loop` (`ForwardMode`), which is also cheaper
+    return _dispatched(functools.partial(run, adjoint=dfx.ForwardMode()))(leaves), leaves
+
+
+def _reverse_bwd(run, leaves, grad_obj):
+    perturbed = [_inexact(x) for x in leaves]
+    outs = jax.tree_util.tree_leaves(jax.eval_shape(lambda lv: run(lv, False), leaves))
+    gs = jax.tree_util.tree_leaves(grad_obj)
+    cts = [g for o, g in zip(outs, gs, strict=True) if _inexact(o)]
+    g = _dispatched_pullback(run, perturbed)(list(leaves), cts)
+    return ([gi if pt else np.zeros(x.shape, jax.dtypes.float0) for gi, x, pt in zip(g, leaves, perturbed)],)
+
+
+_reverse.defvjp(_reverse_fwd, _reverse_bwd)
+
+
+#: Batched torque-mode solves use the component layout; `False` keeps the flat layout
+#: everywhere (for A/B measurements: benchmarks/layouts.py).
+COMPONENT_LAYOUT = True
+
+
+def _solve(params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_steps, adjoint) -> Trajectory:
+    """`_simulate` with the state layout chosen by batching (see the comment above)."""
+    flat = (solver, rtol, atol, max_steps, adjoint)
+    if (
+        not COMPONENT_LAYOUT
+        or not isinstance(controls, Torques)
+        or type(adjoint) not in (dfx.RecursiveCheckpointAdjoint, dfx.ForwardMode)
+    ):
+        return _simulate(params, state0, controls, t0, t1, ts_out, *flat)
+    controls = _explicit_closure(controls, t0)
+    args = (params, state0, controls, t0, t1, ts_out)
+    if not _traced(args):  # concrete inputs: no vmap can be around this call
+        return _simulate(*args, *flat)
+    # only traced leaves are inputs of the dispatched solve; concrete ones stay constants (folded by XLA)
+    dyn, static = eqx.partition(args, lambda x: isinstance(x, jax.core.Tracer))
+    leaves, treedef = jax.tree_util.tree_flatten(dyn)
+
+    def run(lv, components, adjoint=adjoint):
+        args = eqx.combine(jax.tree_util.tree_unflatten(treedef, lv), static)
+        return _simulate(*args, solver, rtol, atol, max_steps, adjoint, components=components)
+
+    if isinstance(adjoint, dfx.ForwardMode):
+        return _dispatched(run)(leaves)
+    return _reverse(run, leaves)
+
+
 @eqx.filter_jit
-def _simulate(params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_steps, adjoint):
+def _simulate(params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_steps, adjoint, components=False):
     dt = params.R0.dtype
     d = derive(params)
     if ts_out is None:
@@ -358,5 +562,6 @@ def _simulate(params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_
     zs, om, cd, Ks, seg, ok, steps = solve_segments(
         field, outputs, params, d, segments, z0, ts_out, jump_fn=jump_fn, solver=solver,
         rtol=rtol, atol=atol, max_steps=max_steps, adjoint=adjoint,
+        component_field=_torque_field_soa if components else None,
     )  # fmt: skip
     return assemble(params, d, ts_out, zs, om, cd, Ks, seg, ok, steps)

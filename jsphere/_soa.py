@@ -1,0 +1,152 @@
+"""The torque-mode vector field on scalar components ("struct of arrays"), for batched solves.
+
+Under `jax.vmap` a state stored as one `(16+N,)` array becomes a `(batch, 16+N)` array whose
+components are strided, and every 3-vector of (3.4) a `(batch, 3)` array: XLA on CPU then
+splits the right-hand side into dozens of small, badly vectorised kernels (about 450 ns per
+trial and evaluation at batch 1024, `benchmarks/NOTES.md`). Here the state is a *tuple of
+scalars*, so that under `vmap` each component is one contiguous `(batch,)` vector, and (3.4) is
+written out component by component: about 100 ns per trial and evaluation at batch 1024.
+
+For a single trial the same code is slower (every scalar becomes its own small operation in
+the integrator's loop), which is why `simulate` uses this layout only when it is batched
+(`jsphere._simulate`). The equations are those of `jsphere._dynamics` (docstrings there);
+`tests/test_soa.py` checks the two implementations against each other to rounding.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from ._params import Derived, RobotParams
+
+# ------------------------------------------------------------- 3-vectors as tuples of scalars
+
+
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _dot(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+def _mv(M, v):
+    """`M v` for `M` given as rows."""
+    return tuple(_dot(r, v) for r in M)
+
+
+def _mtv(M, v):
+    """`M^T v` for `M` given as rows."""
+    return tuple(M[0][j] * v[0] + M[1][j] * v[1] + M[2][j] * v[2] for j in range(3))
+
+
+def _rows(A):
+    """A constant or traced `(m, n)` array as a tuple of rows of scalars."""
+    return tuple(tuple(A[i, j] for j in range(A.shape[1])) for i in range(A.shape[0]))
+
+
+def _add(a, b):
+    return tuple(x + y for x, y in zip(a, b))
+
+
+def _sub(a, b):
+    return tuple(x - y for x, y in zip(a, b))
+
+
+def _scale(s, a):
+    return tuple(s * x for x in a)
+
+
+# --------------------------------------------------------------------------- layout
+
+
+def to_components(z):
+    """`(16+N,)` flat state -> tuple of `16+N` scalars."""
+    return tuple(z[..., i] for i in range(z.shape[-1]))
+
+
+def from_components(c):
+    """Tuple of scalars (or of `(T,)` arrays) -> flat state(s) along the last axis."""
+    return jnp.stack(c, axis=-1)
+
+
+# --------------------------------------------------------------------------- the field
+
+
+def torque_field_components(p: RobotParams, d: Derived, K, z):
+    """Rates of the flat state `[q, q_shell, omega, Omega, x, y, chi]` in torque mode, as a tuple.
+
+    (3.4) with (3.5) for `(omega_dot, Omega_dot)` (the Schur complement of the constant
+    `omega` block, Cramer's rule for the 3x3 solve, as in `solve_accelerations`), the
+    quaternion kinematics of platform and shell, (2.3) for `(x_dot, y_dot)` and (2.4) for
+    `chi_dot`. `K` is a tuple of the `N` axle torques; `z` a tuple of the `16+N` state
+    components. Identical in value to `jsphere._simulate._torque_field` (to rounding).
+    """
+    n = len(K)
+    qw, qx, qy, qz, sw, sx, sy, sz = z[0:8]
+    w, W = tuple(z[8:11]), tuple(z[11:14])
+    # platform attitude: rows alpha, beta, gamma of Q^T (rotmat of the normalised quaternion)
+    inv = 1.0 / jnp.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    a, b, c, e = qw * inv, qx * inv, qy * inv, qz * inv
+    R = (
+        (1 - 2 * (c * c + e * e), 2 * (b * c - a * e), 2 * (b * e + a * c)),
+        (2 * (b * c + a * e), 1 - 2 * (b * b + e * e), 2 * (c * e - a * b)),
+        (2 * (b * e - a * c), 2 * (c * e + a * b), 1 - 2 * (b * b + c * c)),
+    )
+    g = R[2]
+    rm = tuple(p.r_m[i] for i in range(3))
+    Jns, Jss, I, Ainv, Sk = _rows(d.Jns), _rows(d.Jss), _rows(p.I), _rows(d.A_inv), _rows(d.Sk)
+    mR0 = p.m * p.R0
+    MR2 = (p.m + p.m0) * p.R0**2
+    # mass blocks B, D of (3.4)
+    grm, gg = _dot(g, rm), _dot(g, g)
+    B = tuple(
+        tuple(Jns[i][j] - Jss[i][j] + mR0 * ((grm if i == j else 0.0) - g[i] * rm[j]) for j in range(3)) for i in range(3)
+    )
+    D = tuple(
+        tuple((p.I0 if i == j else 0.0) + Jss[i][j] + MR2 * ((gg if i == j else 0.0) - g[i] * g[j]) for j in range(3))
+        for i in range(3)
+    )
+    # forces r1, r2 of (3.4)
+    gWxw = _cross(g, _cross(W, w))
+    r1 = _sub(
+        _sub(_add(_scale(-1.0, _cross(w, _mv(I, w))), _cross(_mv(Jns, _sub(W, w)), w)), _scale(mR0, _cross(rm, gWxw))),
+        _scale(p.m * p.g, _cross(rm, g)),
+    )
+    Wg = _dot(W, g)
+    r2 = _sub(
+        _sub(_sub(_scale(-MR2, _cross(g, gWxw)), _scale(mR0, _cross(g, _cross(w, _cross(w, rm))))), _scale(p.I0, _cross(w, W))),
+        _scale(p.c_roll, _sub(W, _scale(Wg, g))),
+    )
+    # axle torques (with the optional axle friction) and their moment Sk^T K
+    dw = _sub(w, W)
+    Ke = tuple(K[i] + p.c_axle * _dot(Sk[i], dw) for i in range(n))
+    tau = tuple(sum(Ke[i] * Sk[i][j] for i in range(n)) for j in range(3))
+    r1, r2 = _sub(r1, tau), _add(r2, tau)
+    # Schur complement S = D - B^T A^-1 B, then Omega_dot = S^-1 (r2 - B^T A^-1 r1)
+    X = tuple(tuple(sum(Ainv[i][k] * B[k][j] for k in range(3)) for j in range(3)) for i in range(3))
+    S = tuple(tuple(D[i][j] - sum(B[k][i] * X[k][j] for k in range(3)) for j in range(3)) for i in range(3))
+    a1 = _mv(Ainv, r1)
+    rhs = _sub(r2, _mtv(B, a1))
+    c0, c1, c2 = _cross(S[1], S[2]), _cross(S[2], S[0]), _cross(S[0], S[1])
+    idet = 1.0 / _dot(S[0], c0)
+    Wd = tuple((c0[i] * rhs[0] + c1[i] * rhs[1] + c2[i] * rhs[2]) * idet for i in range(3))
+    wd = _sub(a1, _mv(X, Wd))
+    # kinematics: q_dot = q (x) (0, omega) / 2, q_shell_dot = (0, Q^T Omega) (x) q_shell / 2
+    w0, w1, w2 = w
+    dq = (
+        0.5 * (-qx * w0 - qy * w1 - qz * w2),
+        0.5 * (qw * w0 + qy * w2 - qz * w1),
+        0.5 * (qw * w1 + qz * w0 - qx * w2),
+        0.5 * (qw * w2 + qx * w1 - qy * w0),
+    )
+    f0, f1, f2 = _mv(R, W)
+    dqs = (
+        0.5 * (-f0 * sx - f1 * sy - f2 * sz),
+        0.5 * (f0 * sw + f1 * sz - f2 * sy),
+        0.5 * (f1 * sw + f2 * sx - f0 * sz),
+        0.5 * (f2 * sw + f0 * sy - f1 * sx),
+    )
+    vf = _mv(R, _scale(p.R0, _cross(W, g)))  # (2.3) in fixed components
+    chi_dot = tuple(-_dot(Sk[i], dw) for i in range(n))
+    return dq + dqs + wd + Wd + (vf[0], vf[1]) + chi_dot
