@@ -52,27 +52,37 @@ def test_component_field_equals_flat_field(n_wheels, damping):
         np.testing.assert_allclose(comp, flat, rtol=1e-11, atol=1e-13 * float(jnp.max(jnp.abs(flat))))
 
 
-def _final(p, a, **kw):
-    tr = jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)), 2.0, **kw)
-    return jnp.stack([tr.x[-1], tr.y[-1]])
+class Flip(eqx.Module):
+    """`K = a` before t = 1 s, `-a` after: a jump (the solve restarts there)."""
+
+    a: jax.Array
+
+    def __call__(self, t):
+        return jnp.where(t < 1.0, self.a, -self.a)
 
 
 def test_batched_equals_single_and_chooses_the_layout():
-    """jit(vmap) of the public API (problem 1 of benchmarks/) against one trial at a time: the two
-    layouts agree far below the solver tolerance, and the trajectory fields all come back."""
+    """jit(vmap) of the public API with a closure (problem 1 of benchmarks/) against one trial at
+    a time: the two layouts agree far below the solver tolerance, and every field comes back."""
     p = jsphere.RobotParams.paper()
-    A = 0.05 * (1 + 0.1 * jax.random.normal(jax.random.PRNGKey(0), (5, 3)))
-    batched = jax.jit(jax.vmap(lambda a: _final(p, a)))(A)
+    A = 0.05 * (1 + 0.1 * jax.random.normal(jax.random.PRNGKey(0), (4, 3)))
+
+    def final(a):  # the lambda closes over the vmapped amplitude
+        tr = jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)), 2.0)
+        return jnp.stack([tr.x[-1], tr.y[-1]])
+
+    batched = jax.jit(jax.vmap(final))(A)
+    single = jax.jit(final)
     for i in range(A.shape[0]):
         # rounding differs between the layouts, so a marginal step may be taken or rejected
         # differently: agreement to ~1e-10 m, 1e4 times below the 1e-3 mm the tolerances aim at
-        np.testing.assert_allclose(batched[i], _final(p, A[i]), rtol=0, atol=1e-9)
+        np.testing.assert_allclose(batched[i], single(A[i]), rtol=0, atol=1e-9)
     # a full trajectory under vmap: every field, several samples, a jump in the torques
     ts = jnp.linspace(0.0, 2.0, 7)
-    ctrl = lambda a: jsphere.Torques(lambda t: jnp.where(t < 1.0, a, -a), jump_ts=(1.0,))  # noqa: E731
-    trb = jax.vmap(lambda a: jsphere.simulate(p, jsphere.State.at_rest(p), ctrl(a), 2.0, ts=ts))(A[:2])
+    sim = lambda a: jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(Flip(a), jump_ts=(1.0,)), 2.0, ts=ts)  # noqa: E731
+    trb = jax.vmap(sim)(A[:2])
     for i in range(2):
-        tr1 = jsphere.simulate(p, jsphere.State.at_rest(p), ctrl(A[i]), 2.0, ts=ts)
+        tr1 = sim(A[i])
         for name in ("x", "y", "gamma", "omega", "Omega", "chi", "chi_dot", "K", "q", "q_shell"):
             np.testing.assert_allclose(getattr(trb, name)[i], getattr(tr1, name), rtol=1e-8, atol=1e-9, err_msg=name)
         assert int(trb.status[i]) == 0 and int(trb.segment[i, -1]) == 1
@@ -101,9 +111,11 @@ def _sines_final(p, a, t1=1.0, **kw):
 A3 = jnp.array([[0.05, 0.045, 0.055], [0.04, 0.06, 0.05], [0.055, 0.05, 0.045]])
 
 
+@pytest.mark.slow
 def test_grad_under_vmap_against_finite_differences():
     """Problem 3 of benchmarks/: reverse mode of a batch-summed loss w.r.t. parameters goes
-    through the custom VJP around the batched layout; checked against central differences."""
+    through the custom VJP around the batched layout; checked against central differences.
+    (Slow: ~80 s of compilation. `benchmarks/run.py` checks the same gradient at batch 64.)"""
     p = jsphere.RobotParams.paper()
 
     def loss(j, rm):
@@ -167,7 +179,10 @@ def test_failures_are_reported_per_trial_under_vmap():
         lambda a: jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(Sines(a)), 1.0, throw=False, max_steps=5)
     )(A[:1])
     assert int(few.status[0]) == 1
-    with pytest.raises(Exception, match="max_steps"):
-        jax.block_until_ready(
-            jax.vmap(lambda a: jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(Sines(a)), 1.0, max_steps=5))(A[:1]).x
-        )
+    # throw=True under vmap: equinox raises at run time, or poisons the output with NaN where
+    # equinox's on-error mode is "nan" (as the CLI sets it; an earlier test may have)
+    try:
+        x = jax.vmap(lambda a: jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(Sines(a)), 1.0, max_steps=5))(A[:1]).x
+        assert not np.all(np.isfinite(np.asarray(x)))
+    except Exception as e:  # noqa: BLE001
+        assert "max_steps" in str(e)
