@@ -357,11 +357,11 @@ def simulate(
 # vectorises the right-hand side (3.4) over the batch, about 3x faster at batch 1024 than the
 # flat `(batch, 16+N)` layout, which in turn is faster for a single trial. `simulate` cannot
 # see a `vmap` from inside, so the choice is made by `jax.custom_batching.custom_vmap`: the
-# unbatched call runs the flat layout, the batching rule vmaps the component layout (in
-# chunks of `BATCH_CHUNK`). As `custom_vmap` has no reverse mode, the default adjoint wraps it
-# in a custom VJP: the forward pass is the dispatched solve with diffrax's plain loop, the
-# backward pass the VJP (diffrax's checkpointed adjoint) of the same dispatched solve, taken
-# again. `ForwardMode` uses the `custom_vmap` directly (its `jvp` is supported). Other
+# unbatched call runs the flat layout, the batching rule vmaps the component layout (batches
+# of at least `COMPONENT_MIN_BATCH`, in chunks of `BATCH_CHUNK`). As `custom_vmap` has no
+# reverse mode, the default adjoint wraps it in a custom VJP whose differentiated pass is the
+# flat layout with diffrax's own VJP (so gradients are unchanged; only undifferentiated solves
+# are faster). `ForwardMode` uses the `custom_vmap` directly (its `jvp` is supported). Other
 # adjoints, wheel-speed mode and concrete (untraced) calls keep the flat layout.
 
 
@@ -407,10 +407,16 @@ def _dispatched(run):
         if not any(jax.tree_util.tree_leaves(in_batched)):  # e.g. the primal part of a batched jvp
             out = run(leaves, False)
             return out, jax.tree_util.tree_map(lambda _: False, out)
-        out = _chunked_vmap(lambda lv: run(lv, True), axis_size, in_batched, leaves)
+        components = axis_size >= COMPONENT_MIN_BATCH
+        out = _chunked_vmap(lambda lv: run(lv, components), axis_size, in_batched, leaves)
         return out, jax.tree_util.tree_map(lambda _: True, out)
 
     return f
+
+
+#: Smallest batch that uses the component layout (`layouts.py`: at 64 trials the flat layout
+#: was 1.1x faster, at 1024 the component layout 2.6x).
+COMPONENT_MIN_BATCH = 256
 
 
 #: Largest batch one vectorised solve takes; bigger batches run as a `lax.map` over chunks of
@@ -442,68 +448,21 @@ def _chunked_vmap(fn, axis_size, in_batched, *args):
     return jax.tree_util.tree_map(lambda x: x.reshape((n * BATCH_CHUNK,) + x.shape[2:])[:axis_size], out)
 
 
-def _inexact(x) -> bool:
-    return jnp.issubdtype(x.dtype, jnp.inexact)
-
-
-def _pullback(run, components, perturbed, leaves, cts):
-    """VJP of `run(leaves, components)` w.r.t. the `perturbed` leaves; `cts`: one cotangent per
-    inexact output leaf. Returns one cotangent (or `None`) per input leaf."""
-    idx = [i for i, pt in enumerate(perturbed) if pt]
-
-    def f(diff):
-        lv = list(leaves)
-        for i, x in zip(idx, diff):
-            lv[i] = x
-        return [o for o in jax.tree_util.tree_leaves(run(lv, components)) if _inexact(o)]
-
-    _, pull = jax.vjp(f, [leaves[i] for i in idx])
-    (g,) = pull(list(cts))
-    out = [None] * len(leaves)
-    for i, gi in zip(idx, g):
-        out[i] = gi
-    return out
-
-
-def _dispatched_pullback(run, perturbed):
-    @jax.custom_batching.custom_vmap
-    def f(leaves, cts):
-        return _pullback(run, False, perturbed, leaves, cts)
-
-    @f.def_vmap
-    def _rule(axis_size, in_batched, leaves, cts):
-        if not any(jax.tree_util.tree_leaves(in_batched)):
-            out = _pullback(run, False, perturbed, leaves, cts)
-            return out, jax.tree_util.tree_map(lambda _: False, out)
-        # differentiate w.r.t. per-trial copies of unbatched inputs (the caller sums them): a
-        # VJP w.r.t. an unbatched input inside vmap trips equinox's checkpointed loop
-        lb, cb = in_batched
-        leaves = [x if b or not pt else jnp.broadcast_to(x, (axis_size,) + x.shape) for x, b, pt in zip(leaves, lb, perturbed)]
-        lb = [b or pt for b, pt in zip(lb, perturbed)]
-        out = _chunked_vmap(lambda lv, c: _pullback(run, True, perturbed, lv, c), axis_size, (lb, cb), leaves, cts)
-        return out, jax.tree_util.tree_map(lambda _: True, out)
-
-    return f
-
-
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
 def _reverse(run, leaves):
     return _dispatched(run)(leaves)
 
 
 def _reverse_fwd(run, leaves):
-    # the forward pass needs no differentiable loop (the backward pass takes its own VJP), so
-    # it runs diffrax's plain `lax.while_loop` (`ForwardMode`), which is also cheaper
-    return _dispatched(functools.partial(run, adjoint=dfx.ForwardMode()))(leaves), leaves
+    # Differentiated: the flat layout and diffrax's own VJP (checkpointed adjoint), exactly as
+    # without the dispatch, so gradients cost what they did. (A VJP of the component layout
+    # compiled for minutes at batch 64: XLA's algebraic simplifier loops on its reverse pass.)
+    out, pull = jax.vjp(lambda lv: run(lv, False), list(leaves))
+    return out, pull
 
 
-def _reverse_bwd(run, leaves, grad_obj):
-    perturbed = [_inexact(x) for x in leaves]
-    outs = jax.tree_util.tree_leaves(jax.eval_shape(lambda lv: run(lv, False), leaves))
-    gs = jax.tree_util.tree_leaves(grad_obj)
-    cts = [g for o, g in zip(outs, gs, strict=True) if _inexact(o)]
-    g = _dispatched_pullback(run, perturbed)(list(leaves), cts)
-    return ([gi if pt else np.zeros(x.shape, jax.dtypes.float0) for gi, x, pt in zip(g, leaves, perturbed)],)
+def _reverse_bwd(run, pull, ct):
+    return pull(ct)
 
 
 _reverse.defvjp(_reverse_fwd, _reverse_bwd)

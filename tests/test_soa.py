@@ -14,11 +14,19 @@ import numpy as np
 import pytest
 
 import jsphere
+import jsphere._simulate as S
 from jsphere._params import derive
 from jsphere._simulate import _torque_field, _torque_field_soa
 from jsphere._soa import from_components, to_components
 
 PH = jnp.array([0.0, 2.1, 4.2])
+
+
+@pytest.fixture(autouse=True)
+def _component_layout_for_small_batches(monkeypatch):
+    """The batches here are a few trials; let them take the component layout (by default only
+    batches of `COMPONENT_MIN_BATCH` and more do)."""
+    monkeypatch.setattr(S, "COMPONENT_MIN_BATCH", 1)
 
 
 class Sines(eqx.Module):
@@ -111,11 +119,9 @@ def _sines_final(p, a, t1=1.0, **kw):
 A3 = jnp.array([[0.05, 0.045, 0.055], [0.04, 0.06, 0.05], [0.055, 0.05, 0.045]])
 
 
-@pytest.mark.slow
 def test_grad_under_vmap_against_finite_differences():
     """Problem 3 of benchmarks/: reverse mode of a batch-summed loss w.r.t. parameters goes
-    through the custom VJP around the batched layout; checked against central differences.
-    (Slow: ~80 s of compilation. `benchmarks/run.py` checks the same gradient at batch 64.)"""
+    through the custom VJP around the batched layout; checked against central differences."""
     p = jsphere.RobotParams.paper()
 
     def loss(j, rm):
@@ -186,3 +192,16 @@ def test_failures_are_reported_per_trial_under_vmap():
         assert not np.all(np.isfinite(np.asarray(x)))
     except Exception as e:  # noqa: BLE001
         assert "max_steps" in str(e)
+
+
+def test_chunked_batches_and_the_small_batch_threshold(monkeypatch):
+    """A batch above `BATCH_CHUNK` runs as chunks (padded), one below `COMPONENT_MIN_BATCH` in the
+    flat layout: both give the per-trial results."""
+    p = jsphere.RobotParams.paper()
+    A = 0.05 * (1 + 0.1 * jax.random.normal(jax.random.PRNGKey(3), (5, 3)))
+    single = jax.jit(lambda a: _sines_final(p, a, 0.5))
+    want = np.stack([single(a) for a in A])
+    monkeypatch.setattr(S, "BATCH_CHUNK", 2)  # 5 trials -> 3 chunks of 2, the last padded
+    np.testing.assert_allclose(jax.jit(jax.vmap(lambda a: _sines_final(p, a, 0.5)))(A), want, rtol=0, atol=1e-9)
+    monkeypatch.setattr(S, "COMPONENT_MIN_BATCH", 256)  # flat layout under vmap: same arithmetic
+    np.testing.assert_allclose(jax.jit(jax.vmap(lambda a: _sines_final(p, a, 0.5)))(A), want, rtol=0, atol=1e-12)
