@@ -119,9 +119,12 @@ def _sines_final(p, a, t1=1.0, **kw):
 A3 = jnp.array([[0.05, 0.045, 0.055], [0.04, 0.06, 0.05], [0.055, 0.05, 0.045]])
 
 
-def test_grad_under_vmap_against_finite_differences():
+def test_grad_under_vmap_against_finite_differences(monkeypatch):
     """Problem 3 of benchmarks/: reverse mode of a batch-summed loss w.r.t. parameters goes
-    through the custom VJP around the batched layout; checked against central differences."""
+    through the custom VJP around the batched layout (here the large-batch path: component
+    layout forward, the flat VJP recomputed in chunks of 2, the last one padded); checked
+    against central differences."""
+    monkeypatch.setattr(S, "GRAD_CHUNK", 2)
     p = jsphere.RobotParams.paper()
 
     def loss(j, rm):
@@ -149,9 +152,13 @@ def test_forward_mode_under_vmap_against_finite_differences():
 
 
 @pytest.mark.slow
-def test_derivatives_under_vmap_match_unbatched():
+@pytest.mark.parametrize("min_batch", [1, 10**6])
+def test_derivatives_under_vmap_match_unbatched(monkeypatch, min_batch):
     """Per-trial reverse-mode gradients w.r.t. a batched input and parameters, and forward-mode
-    Jacobians, batched (component layout) against one trial at a time (flat layout)."""
+    Jacobians, batched against one trial at a time (flat layout). `min_batch` 1: the large-batch
+    paths (component layout, recomputed backward pass); 10**6: the small-batch paths (flat
+    layout, the pullback's residuals kept)."""
+    monkeypatch.setattr(S, "COMPONENT_MIN_BATCH", min_batch)
     p = jsphere.RobotParams.paper()
 
     def loss(p, a):
