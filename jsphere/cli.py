@@ -18,6 +18,11 @@ def enable_compilation_cache() -> None:
     checks inside diffrax are host callbacks. For the CLI (whose inputs are validated before
     any solve, and whose solver failures jsphere reports itself, outside the compiled code)
     those checks are switched to equinox's `nan` mode unless `EQX_ON_ERROR` is set.
+
+    Every executable is kept, however quick its compilation: `jsphere reproduce` compiles ~100
+    small programs (eager operations between the solves) besides its solves, and with JAX's
+    default threshold (1 s; 0.5 s here before) recompiling them took ~6 s of a second run's
+    ~16 s (benchmarks/NOTES.md, session 4).
     """
     import jax
 
@@ -34,7 +39,7 @@ def enable_compilation_cache() -> None:
     try:
         Path(path).mkdir(parents=True, exist_ok=True)
         jax.config.update("jax_compilation_cache_dir", path)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
     except Exception as e:  # a read-only home must not stop the run
         print(f"jsphere: compilation cache disabled ({e})", file=sys.stderr)
