@@ -360,9 +360,12 @@ def simulate(
 # unbatched call runs the flat layout, the batching rule vmaps the component layout (batches
 # of at least `COMPONENT_MIN_BATCH`, in chunks of `BATCH_CHUNK`). As `custom_vmap` has no
 # reverse mode, the default adjoint wraps it in a custom VJP whose differentiated pass is the
-# flat layout with diffrax's own VJP (so gradients are unchanged; only undifferentiated solves
-# are faster). `ForwardMode` uses the `custom_vmap` directly (its `jvp` is supported). Other
-# adjoints, wheel-speed mode and concrete (untraced) calls keep the flat layout.
+# flat layout with diffrax's own VJP (the component layout's VJP is ~200x slower: XLA handles
+# the transposed scalar code badly). Its forward pass is again a `custom_vmap`: small batches
+# keep the pullback's residuals; large ones run the component layout and recompute the flat
+# VJP in the backward pass, in chunks of `GRAD_CHUNK` trials. `ForwardMode` uses the
+# `custom_vmap` directly (its `jvp` is supported). Other adjoints, wheel-speed mode and
+# concrete (untraced) calls keep the flat layout.
 
 
 class _ClosedControl(eqx.Module):
@@ -426,7 +429,8 @@ BATCH_CHUNK = 1024
 
 
 def _chunked_vmap(fn, axis_size, in_batched, *args, chunk=None):
-    """`vmap(fn)` over the batched leaves of `args`, in chunks of at most `BATCH_CHUNK`."""
+    """`vmap(fn)` over the batched leaves of `args`, in chunks of at most `chunk` trials
+    (default `BATCH_CHUNK`)."""
     chunk = chunk or BATCH_CHUNK
     in_axes = tuple(jax.tree_util.tree_map(lambda b: 0 if b else None, b) for b in in_batched)
     if axis_size <= chunk:
@@ -482,9 +486,10 @@ def _reverse_fwd(run, leaves):
         (batched,) = in_batched
         if _large(axis_size, batched):
             out = _chunked_vmap(lambda l: run(l, True), axis_size, in_batched, lv)
-            one = [jax.ShapeDtypeStruct(jnp.shape(x)[1:] if b else jnp.shape(x), jnp.result_type(x)) for x, b in zip(lv, batched)]
+            # unbatched placeholders (one trial's worth) for the residuals the backward pass won't read
+            one = [jax.ShapeDtypeStruct(jnp.shape(x)[int(b):], jnp.result_type(x)) for x, b in zip(lv, batched)]
             res = [jnp.zeros(r.shape, r.dtype) for r in jax.eval_shape(lambda l: flat_vjp(l)[1], one)]
-            return (out, res), (jax.tree_util.tree_map(lambda _: True, out), [False] * len(res))  # one placeholder
+            return (out, res), (jax.tree_util.tree_map(lambda _: True, out), [False] * len(res))
         out, res = jax.vmap(flat_vjp, in_axes=([0 if b else None for b in batched],), axis_size=axis_size)(lv)
         return (out, res), jax.tree_util.tree_map(lambda _: True, (out, res))
 
@@ -494,7 +499,7 @@ def _reverse_fwd(run, leaves):
 
 def _reverse_bwd(run, residuals, ct):
     """Apply the pullback saved by `_reverse_fwd`; in large batches recompute the flat layout's
-    VJP in chunks of `GRAD_CHUNK` trials (1.6x faster per trial at 1024 than one vmap of it)."""
+    VJP in chunks of `GRAD_CHUNK` trials (~1.5x faster at 1024 than one vmap of it)."""
     leaves, res = residuals
     res_def = run.cell["res_def"]
     flat_ct, ct_def = jax.tree_util.tree_flatten(ct)
