@@ -14,12 +14,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from . import _aot
 from ._controls import Constant
 from ._dynamics import free_Omega_dot, required_torques
 from ._kinematics import rest_attitude
 from ._linalg import cross, matvec, rotation_between, rotmat
 from ._params import RobotParams, derive
-from ._simulate import Trajectory, _kin_rates, assemble, default_solver, raise_on_failure, solve_segments
+from ._simulate import Trajectory, _kin_rates, _rebuild, assemble, default_solver, raise_on_failure, solve_segments
 from ._state import State
 
 
@@ -235,10 +236,10 @@ def simulate_gaits(
     gaits = jax.tree_util.tree_map(
         lambda x: x.astype(dt) if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) else x, gaits
     )
-    traj = _simulate_gaits(
-        params, gaits, initial, ts_out, resets, solver or default_solver(), rtol, atol, max_steps,
-        adjoint or dfx.RecursiveCheckpointAdjoint(),
-    )
+    traj = _aot.call(
+        "simulate_gaits", _simulate_gaits, _rebuild, params, gaits, initial, ts_out, resets, solver or default_solver(),
+        rtol, atol, max_steps, adjoint or dfx.RecursiveCheckpointAdjoint(),
+    )  # fmt: skip
     return raise_on_failure(traj, throw)
 
 

@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from . import _aot
 from ._controls import Torques, WheelSpeeds
 from ._dynamics import servo_accelerations, servo_jump, solve_accelerations
 from ._linalg import cross, matvec, quat_normalize, quat_rate_body, quat_rate_fixed, rotmat
@@ -62,6 +63,11 @@ class Trajectory(eqx.Module):
              jnp.stack([self.x[..., i], self.y[..., i]], -1), self.chi[..., i, :]], axis=-1,
         )  # fmt: skip
         return _unflatten(z)
+
+
+def _rebuild(leaves) -> Trajectory:
+    """A `Trajectory` from its leaves (in field order; for `jsphere._aot`)."""
+    return Trajectory(*leaves)
 
 
 def _left_limit(b):
@@ -553,11 +559,11 @@ def _solve(params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_ste
         or not isinstance(controls, Torques)
         or type(adjoint) not in (dfx.RecursiveCheckpointAdjoint, dfx.ForwardMode)
     ):
-        return _simulate(params, state0, controls, t0, t1, ts_out, *flat)
+        return _aot.call("simulate", _simulate, _rebuild, params, state0, controls, t0, t1, ts_out, *flat)
     controls = _explicit_closure(controls, t0)
     args = (params, state0, controls, t0, t1, ts_out)
     if not _traced(args):  # concrete inputs: no vmap can be around this call
-        return _simulate(*args, *flat)
+        return _aot.call("simulate", _simulate, _rebuild, *args, *flat)
     # only traced leaves are inputs of the dispatched solve; concrete ones stay constants (folded by XLA)
     dyn, static = eqx.partition(args, lambda x: isinstance(x, jax.core.Tracer))
     leaves, treedef = jax.tree_util.tree_flatten(dyn)

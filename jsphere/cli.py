@@ -26,6 +26,8 @@ def enable_compilation_cache() -> None:
     """
     import jax
 
+    from . import _aot
+
     if "EQX_ON_ERROR" not in os.environ:
         try:
             import equinox._errors as eqx_errors
@@ -41,6 +43,7 @@ def enable_compilation_cache() -> None:
         jax.config.update("jax_compilation_cache_dir", path)
         jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
         jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+        _aot.enable(path)  # exported solves: a second run skips their tracing too
     except Exception as e:  # a read-only home must not stop the run
         print(f"jsphere: compilation cache disabled ({e})", file=sys.stderr)
 
