@@ -1,0 +1,145 @@
+"""A/B in one process: problem 1 as one system with a shared step size, against the public API.
+
+    python benchmarks/ensemble.py [--batches 64 1024 4096] [--out benchmarks/results-ensemble.json]
+
+A measurement of a design the package does not use yet (benchmarks/NOTES.md, session 4). Under
+`jax.vmap`, diffrax runs one adaptive step-size controller per trial: every step of the batched
+while loop carries per-trial times, step sizes, accept/reject selects and save logic, and runs
+as many iterations as the slowest trial. Here the whole batch is *one* ODE system whose state
+is a tuple of `(batch,)` component vectors (the right-hand side of `jsphere._soa`, as in the
+component layout), integrated by one unbatched `diffeqsolve` with one step size for all trials.
+The error norm is the largest per-trial RMS norm, so every trial meets its own tolerance (the
+shared step is the smallest any trial needs). Ensemble methods of other ODE suites share a step
+in the same way; the price is that trials are no longer independent: a trial that needs tiny
+steps slows its whole batch, and `max_steps` is shared.
+
+Both variants are compiled and timed in the same process (medians of 3 calls after the first);
+the final positions are compared. Prints a table; writes JSON atomically.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+
+import diffrax as dfx  # noqa: E402
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+
+import jsphere  # noqa: E402
+from jsphere._params import derive  # noqa: E402
+from jsphere._soa import torque_field_components  # noqa: E402
+
+PH = jnp.array([0.0, 2.1, 4.2])
+RTOL, ATOL, T1 = 1e-8, 1e-10, 4.0
+
+
+def ensemble_solver(p):
+    """`A (B, 3) -> (x_final, y_final, accepted steps, rejected steps)` with one shared step."""
+    d = derive(p)
+    z0 = jsphere.State.at_rest(p).flatten()
+
+    def field(t, y, a):
+        K = tuple(a[i] * jnp.sin(jnp.pi * t + PH[i]) for i in range(3))
+        return torque_field_components(p, d, K, y)
+
+    def worst_trial_rms(err):  # err: tuple of (B,) scaled errors; the max over trials of their RMS
+        return jnp.sqrt(jnp.max(sum(e * e for e in err) / len(err)))
+
+    @jax.jit
+    def solve(A):
+        y0 = tuple(jnp.full((A.shape[0],), z0[i]) for i in range(z0.shape[0]))
+        sol = dfx.diffeqsolve(
+            dfx.ODETerm(field), dfx.Dopri8(), 0.0, T1, None, y0, tuple(A[:, i] for i in range(3)),
+            saveat=dfx.SaveAt(t1=True), stepsize_controller=dfx.PIDController(rtol=RTOL, atol=ATOL, norm=worst_trial_rms),
+            max_steps=16384,
+        )  # fmt: skip
+        return sol.ys[14][-1], sol.ys[15][-1], sol.stats["num_accepted_steps"], sol.stats["num_rejected_steps"]
+
+    return solve
+
+
+def public_solver(p):
+    return jax.jit(jax.vmap(lambda a: jsphere.simulate(
+        p, jsphere.State.at_rest(p), jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)), T1, rtol=RTOL, atol=ATOL)))  # fmt: skip
+
+
+def timed(fn, A, repeats=3):
+    t = time.perf_counter()
+    out = jax.block_until_ready(fn(A))
+    first = time.perf_counter() - t
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        out = jax.block_until_ready(fn(A))
+        times.append(time.perf_counter() - t)
+    med = statistics.median(times)
+    return out, {"median_s": med, "compile_s": max(first - med, 0.0), "times_s": times}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--batches", type=int, nargs="+", default=[64, 1024, 4096])
+    ap.add_argument("--out", type=Path, default=HERE / "results-ensemble.json")
+    args = ap.parse_args(argv)
+    p = jsphere.RobotParams.paper()
+    ens, pub = ensemble_solver(p), public_solver(p)
+    Z = np.random.default_rng(0).standard_normal((max(args.batches), 3))
+    rows = []
+    for B in args.batches:
+        A = jnp.asarray(0.05 * (1.0 + 0.1 * Z[:B]))
+        (xe, ye, acc, rej), te = timed(ens, A)
+        tr, tp = timed(pub, A)
+        dx = float(max(jnp.max(jnp.abs(xe - tr.x[:, -1])), jnp.max(jnp.abs(ye - tr.y[:, -1]))))
+        rows.append({
+            "batch": B, "ensemble": te, "public": tp, "ensemble_trials_per_s": B / te["median_s"],
+            "public_trials_per_s": B / tp["median_s"], "ratio": tp["median_s"] / te["median_s"],
+            "ensemble_steps": {"accepted": int(acc), "rejected": int(rej)},
+            "public_steps": {"mean": float(jnp.mean(tr.num_steps)), "max": int(jnp.max(tr.num_steps))},
+            "max_abs_diff_final_xy_m": dx,
+        })  # fmt: skip
+    hdr = f"{'batch':>6}{'public /s':>11}{'shared step /s':>16}{'ratio':>7}{'steps shared (rej)':>20}{'per-trial mean/max':>20}{'max |dxy| m':>13}"
+    print(hdr)
+    print("-" * len(hdr))
+    for r in rows:
+        st = f"{r['ensemble_steps']['accepted']} ({r['ensemble_steps']['rejected']})"
+        pt = f"{r['public_steps']['mean']:.0f}/{r['public_steps']['max']}"
+        print(f"{r['batch']:>6}{r['public_trials_per_s']:>11.0f}{r['ensemble_trials_per_s']:>16.0f}{r['ratio']:>7.2f}{st:>20}{pt:>20}{r['max_abs_diff_final_xy_m']:>13.1e}")
+    res = {
+        "problem": "problem 1 of run.py (paper robot, K_i = a_i sin(pi t + 2.1 (i-1)), [0, 4] s, rtol 1e-8, atol 1e-10)",
+        "variants": {"public": "jax.jit(jax.vmap(simulate)) (per-trial steps)", "ensemble": "one diffeqsolve, shared step, max-over-trials RMS norm"},
+        "device": str(jax.devices()[0].device_kind), "cpu_count": os.cpu_count(), "python": platform.python_version(),
+        "jax": jax.__version__, "diffrax": dfx.__version__, "jsphere_commit": _commit(),
+        "loadavg": list(os.getloadavg()) if hasattr(os, "getloadavg") else None, "rows": rows,
+    }  # fmt: skip
+    fd, tmp = tempfile.mkstemp(dir=args.out.parent, suffix=".tmp")
+    with os.fdopen(fd, "w") as f:
+        json.dump(res, f, indent=2)
+        f.write("\n")
+    os.replace(tmp, args.out)
+    return 0
+
+
+def _commit():
+    import subprocess
+
+    try:
+        return subprocess.run(["git", "rev-parse", "HEAD"], cwd=HERE, capture_output=True, text=True, check=True).stdout.strip()
+    except Exception:  # noqa: BLE001 - not a checkout
+        return None
+
+
+if __name__ == "__main__":
+    sys.exit(main())
