@@ -13,7 +13,7 @@ shared step is the smallest any trial needs). Ensemble methods of other ODE suit
 in the same way; the price is that trials are no longer independent: a trial that needs tiny
 steps slows its whole batch, and `max_steps` is shared.
 
-Both variants are compiled and timed in the same process (medians of 3 calls after the first);
+Both variants are compiled and timed in the same process (`run.time_call`: medians of 3 or more calls after the first);
 the final positions are compared. Prints a table; writes JSON atomically.
 """
 
@@ -23,16 +23,15 @@ import argparse
 import json
 import os
 import platform
-import statistics
 import sys
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
+sys.path.insert(0, str(HERE))
 
 import diffrax as dfx  # noqa: E402
 import jax  # noqa: E402
@@ -41,6 +40,7 @@ import jax.numpy as jnp  # noqa: E402
 import jsphere  # noqa: E402
 from jsphere._params import derive  # noqa: E402
 from jsphere._soa import torque_field_components  # noqa: E402
+from run import public as timings, time_call  # noqa: E402
 
 PH = jnp.array([0.0, 2.1, 4.2])
 RTOL, ATOL, T1 = 1e-8, 1e-10, 4.0
@@ -76,19 +76,6 @@ def public_solver(p):
         p, jsphere.State.at_rest(p), jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)), T1, rtol=RTOL, atol=ATOL)))  # fmt: skip
 
 
-def timed(fn, A, repeats=3):
-    t = time.perf_counter()
-    out = jax.block_until_ready(fn(A))
-    first = time.perf_counter() - t
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = jax.block_until_ready(fn(A))
-        times.append(time.perf_counter() - t)
-    med = statistics.median(times)
-    return out, {"median_s": med, "compile_s": max(first - med, 0.0), "times_s": times}
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--batches", type=int, nargs="+", default=[64, 1024, 4096])
@@ -100,8 +87,9 @@ def main(argv=None) -> int:
     rows = []
     for B in args.batches:
         A = jnp.asarray(0.05 * (1.0 + 0.1 * Z[:B]))
-        (xe, ye, acc, rej), te = timed(ens, A)
-        tr, tp = timed(pub, A)
+        te, tp = time_call(ens, A, repeats=3), time_call(pub, A, repeats=3)
+        (xe, ye, acc, rej), tr = te["_out"], tp["_out"]
+        te, tp = timings(te), timings(tp)
         dx = float(max(jnp.max(jnp.abs(xe - tr.x[:, -1])), jnp.max(jnp.abs(ye - tr.y[:, -1]))))
         rows.append({
             "batch": B, "ensemble": te, "public": tp, "ensemble_trials_per_s": B / te["median_s"],

@@ -35,7 +35,7 @@ import numpy as np
 _DIR: Path | None = None
 _LOADED: dict[str, Callable] = {}
 _FAILED: set[str] = set()  # keys whose export failed in this process (e.g. host callbacks)
-_SOURCE_DIGEST: str | None = None
+_ENVIRONMENT: str | None = None
 _PLAIN = (bool, int, float, complex, str, type(None))
 _FUNCTION_MODULES = ("jsphere.", "jax.", "jax", "numpy")
 
@@ -48,14 +48,21 @@ def enable(path: str | os.PathLike | None) -> None:
     _FAILED.clear()
 
 
-def _source_digest() -> str:
-    global _SOURCE_DIGEST
-    if _SOURCE_DIGEST is None:
+def _environment() -> str:
+    """What every exported program depends on besides its arguments (computed once): the
+    source of every jsphere module, library versions, backend and float precision."""
+    global _ENVIRONMENT
+    if _ENVIRONMENT is None:
+        import diffrax
+        import jaxlib
+
         h = hashlib.sha256()
         for f in sorted(Path(__file__).parent.glob("*.py")):
             h.update(f.name.encode() + b"\0" + f.read_bytes())
-        _SOURCE_DIGEST = h.hexdigest()
-    return _SOURCE_DIGEST
+        for item in (jax.__version__, jaxlib.__version__, diffrax.__version__, eqx.__version__, jax.default_backend()):
+            h.update(str(item).encode() + b"\0")
+        _ENVIRONMENT = h.hexdigest()
+    return _ENVIRONMENT
 
 
 def _stable(x: Any) -> str | None:
@@ -79,13 +86,9 @@ def _key(name: str, leaves, treedef, static) -> str | None:
     tree = f"{treedef}|{s_def}"
     if " at 0x" in tree:  # an object identified by its address
         return None
-    import diffrax
-    import jaxlib
-
     h = hashlib.sha256()
     for item in (
-        "jsphere-aot-1", name, _source_digest(), jax.__version__, jaxlib.__version__, diffrax.__version__,
-        eqx.__version__, jax.default_backend(), str(jax.config.jax_enable_x64), tree, *parts,
+        "jsphere-aot-1", name, _environment(), str(jax.config.jax_enable_x64), tree, *parts,
         *(f"{np.shape(x)}:{jnp.result_type(x)}:{bool(getattr(x, 'weak_type', False))}" for x in leaves),
     ):  # fmt: skip
         h.update(str(item).encode() + b"\0")
