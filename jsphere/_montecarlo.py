@@ -134,7 +134,11 @@ def _run_batch(params, gaits, names, kinds, ab, seed, idx, reset, rtol, atol, me
             s0 = eqx.tree_at(lambda s: s.Omega, s0, s0.Omega + dOmega)
             ctrl = (Torques if mode == "torques" else WheelSpeeds)(table, jump_ts)
             ts_after = T + settle * jnp.linspace(0.0, 1.0, 51, dtype=dt)  # the settling phase
-            tr = simulate(p, s0, ctrl, T + settle, ts=ts_after, rtol=rtol, atol=atol, throw=False, max_steps=max_steps)
+            # per-trial steps: every trial's result is independent of the other trials of its chunk
+            tr = simulate(
+                p, s0, ctrl, T + settle, ts=ts_after, rtol=rtol, atol=atol, throw=False, max_steps=max_steps,
+                batch_steps="per_trial",
+            )  # fmt: skip
         speed = p.R0 * jnp.linalg.norm(cross(tr.Omega[-1], tr.gamma[-1]))
         g3 = tr.gamma[:, 2]
         return vals, tr.x[-1], tr.y[-1], speed, tr.status, jnp.std(g3)

@@ -25,8 +25,11 @@ PH = jnp.array([0.0, 2.1, 4.2])
 @pytest.fixture(autouse=True)
 def _component_layout_for_small_batches(monkeypatch):
     """The batches here are a few trials; let them take the component layout (by default only
-    batches of `COMPONENT_MIN_BATCH` and more do)."""
+    batches of `COMPONENT_MIN_BATCH` and more do) ..."""
     monkeypatch.setattr(S, "COMPONENT_MIN_BATCH", 1)
+    # ... with per-trial step sizes: the layouts must agree to rounding (the shared step
+    # sequence of `batch_steps="shared"` is tested in test_ensemble.py)
+    monkeypatch.setattr(S, "SHARED_MIN_BATCH", 10**9)
 
 
 class Sines(eqx.Module):

@@ -1,0 +1,156 @@
+"""Batched solves with one step-size sequence for the whole batch ("ensemble" integration).
+
+Under `jax.vmap`, diffrax runs one adaptive controller per trial: every iteration of the
+batched while loop carries per-trial times, step sizes, accept/reject selects and save logic,
+and the batch runs as many iterations as its slowest trial. `solve` is a
+`jax.custom_batching.custom_vmap` around one segment's `diffeqsolve`: unbatched it is the
+ordinary solve; in its batching rule the whole batch is *one* ODE system whose state is the
+tuple of `(batch,)` component vectors of `jsphere._soa`, integrated by a single unbatched
+`diffeqsolve` whose step is accepted only if every trial meets its own tolerance (the error
+norm is the largest per-trial RMS norm). At 1024 trials of the issue-6 problem this is about
+2.5x faster than per-trial steps (benchmarks/NOTES.md, session 5): a few more steps (the
+smallest any trial needs at each time), at a third of the cost per trial-step.
+
+What it changes, and why it is still each trial's solution to its tolerance:
+- every trial satisfies `rtol`/`atol` at every step (its error is at most the largest);
+- results depend on the other trials of the batch, within the tolerance (~1e-9 m here);
+- `max_steps` and `num_steps` count the shared steps; a trial that needs tiny steps slows the
+  whole batch (under `vmap` it already did: the loop runs until the slowest trial ends);
+- a trial whose rates are non-finite at the start (e.g. NaN inputs) is left out of the
+  step-size control, so it does not stall the others; it is reported by `Trajectory.status`
+  as before. A trial that turns non-finite later fails the whole batch (max steps), as it
+  fails a per-trial solve.
+
+The rule falls back to a per-trial `vmap` when the segment's times (`t0`, `t1`, the save
+times) are batched: then there is no shared time axis.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+
+def _trial_ok(tree) -> jax.Array:
+    """Per trial (the trailing batch axis of every leaf): all components finite."""
+    leaves = jax.tree_util.tree_leaves(tree)
+    ok = jnp.isfinite(leaves[0])
+    for x in leaves[1:]:
+        ok = ok & jnp.isfinite(x)
+    return ok
+
+
+def _mask(tree, ok):
+    return jax.tree_util.tree_map(lambda x: jnp.where(ok, x, jnp.zeros_like(x)), tree)
+
+
+def worst_trial_rms(err) -> jax.Array:
+    """The largest over trials of each trial's RMS norm; `err` is a tuple of `(batch,)` vectors."""
+    leaves = jax.tree_util.tree_leaves(err)
+    ms = sum(e * e for e in leaves) / len(leaves)
+    return jnp.sqrt(jnp.max(ms))
+
+
+class SharedPIDController(dfx.AbstractAdaptiveStepSizeController):
+    """`diffrax.PIDController` for a batch sharing one step: the error norm is the worst trial's
+    RMS norm. Trials that cannot be integrated at any step size (non-finite rates at the
+    start, e.g. NaN inputs, or a non-finite state) are left out of the control."""
+
+    pid: dfx.PIDController
+    rtol: float
+    atol: float
+    norm: Callable = worst_trial_rms
+
+    def __init__(self, rtol, atol):
+        self.rtol, self.atol = rtol, atol
+        self.pid = dfx.PIDController(rtol=rtol, atol=atol, norm=worst_trial_rms)
+
+    def wrap(self, direction):
+        return eqx.tree_at(lambda c: c.pid, self, self.pid.wrap(direction))
+
+    def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
+        live = _trial_ok(y0) & _trial_ok(func(terms, t0, y0, args))
+
+        def masked_func(terms_, t, y, args_):
+            return _mask(func(terms_, t, y, args_), live)
+
+        dt, state = self.pid.init(terms, t0, t1, _mask(y0, live), dt0, args, masked_func, error_order)
+        return dt, (state, live)
+
+    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
+        state, live = controller_state
+        ok = live & _trial_ok(y0)
+        keep, t_next, t_after, jump, state, result = self.pid.adapt_step_size(
+            t0, t1, _mask(y0, ok), _mask(y1_candidate, ok), args, _mask(y_error, ok), error_order, state
+        )
+        return keep, t_next, t_after, jump, (state, live), result
+
+
+def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_save):
+    """One segment of `solve_segments`: `diffeqsolve(field)` of the component tuple `y0` from
+    `args[3]` to `args[4]` (`args = (p, d, control, a, b)`), saving at `t_save` and `t1`.
+    `field(t, y, args, K=None)` may be given the inputs `K = control(t, args)` (a `(N,)`
+    array per trial) as a tuple of scalars.
+
+    Returns `(ys, failed, num_accepted_steps)` with `ys` the tuple of saved components. Batched
+    (under `vmap`), trials share one step sequence (module docstring).
+    """
+    dyn, static = eqx.partition(args[:3], eqx.is_array)
+    p_leaves, p_def = jax.tree_util.tree_flatten(dyn)
+    times = [args[3], args[4], t_save]
+
+    def rebuild(lv, a, b):
+        return (*eqx.combine(jax.tree_util.tree_unflatten(p_def, lv), static), a, b)
+
+    def one(times, y0, lv):
+        a, b, ts = times
+        sol = dfx.diffeqsolve(
+            dfx.ODETerm(field), solver, a, b, None, tuple(y0), rebuild(lv, a, b),
+            saveat=dfx.SaveAt(ts=ts, t1=True), stepsize_controller=dfx.PIDController(rtol=rtol, atol=atol),
+            max_steps=max_steps, throw=False, adjoint=adjoint,
+        )  # fmt: skip
+        return list(sol.ys), sol.result != dfx.RESULTS.successful, sol.stats["num_accepted_steps"]
+
+    @jax.custom_batching.custom_vmap
+    def f(times, y0, lv):
+        return one(times, y0, lv)
+
+    @f.def_vmap
+    def _rule(axis_size, in_batched, times, y0, lv):
+        t_b, y_b, l_b = in_batched
+        if any(t_b):  # no shared time axis: one solve per trial
+            out = jax.vmap(one, in_axes=([0 if b else None for b in t_b], [0 if b else None for b in y_b], [0 if b else None for b in l_b]), axis_size=axis_size)(times, y0, lv)  # fmt: skip
+            return out, jax.tree_util.tree_map(lambda _: True, out)
+        a, b, ts = times
+        yb = tuple(y if bt else jnp.broadcast_to(y, (axis_size,) + jnp.shape(y)) for y, bt in zip(y0, y_b))
+        # batch axis last: then e.g. a per-trial amplitude vector `a (batch, 3)` becomes `(3, batch)`,
+        # and each of its components, as the field reads them, a contiguous `(batch,)` vector
+        lv = [jnp.moveaxis(x, 0, -1) if bt else x for x, bt in zip(lv, l_b)]
+        l_axes = [-1 if bt else None for bt in l_b]
+
+        def inputs(t, lv):  # (N, batch): each input one contiguous vector
+            return jax.vmap(lambda l: control(t, rebuild(l, a, b)), in_axes=(l_axes,), out_axes=1)(lv)
+
+        def batch_field(t, y, lv):
+            # The inputs are computed in a branch of their own: XLA cannot fuse them into the
+            # field's kernels, which would read a batched `(batch, N)` control output strided
+            # (2.4x slower at 1024 trials, benchmarks/NOTES.md session 5).
+            K = jax.lax.cond(jnp.isfinite(t), inputs, lambda t, lv: jnp.full(jax.eval_shape(inputs, t, lv).shape, jnp.nan, y[0].dtype), t, lv)
+            K = tuple(K[i] for i in range(K.shape[0]))
+            return jax.vmap(lambda z, k, l: field(t, z, rebuild(l, a, b), k), in_axes=(0, 0, l_axes))(y, K, lv)
+
+        sol = dfx.diffeqsolve(
+            dfx.ODETerm(batch_field), solver, a, b, None, yb, lv,
+            saveat=dfx.SaveAt(ts=ts, t1=True), stepsize_controller=SharedPIDController(rtol, atol),
+            max_steps=max_steps, throw=False, adjoint=adjoint,
+        )  # fmt: skip
+        ys = [jnp.moveaxis(y, 0, 1) for y in sol.ys]  # (T+1, batch) -> (batch, T+1)
+        failed = sol.result != dfx.RESULTS.successful
+        return (ys, failed, sol.stats["num_accepted_steps"]), ([True] * len(ys), False, False)
+
+    ys, failed, steps = f(times, list(y0), p_leaves)
+    return tuple(ys), failed, steps
