@@ -1,8 +1,10 @@
-"""A/B in one process: problem 1 as one system with a shared step size, against the public API.
+"""A/B in one process: problem 1 with a step size shared by the batch, against per-trial steps.
 
     python benchmarks/ensemble.py [--batches 64 1024 4096] [--out benchmarks/results-ensemble.json]
 
-A measurement of a design the package does not use yet (benchmarks/NOTES.md, session 4). Under
+Three variants, compiled and timed in the same process: the public API as a user writes it
+(`jax.jit(jax.vmap(simulate))`; since session 5 its default, `batch_steps="shared"`), the public
+API with `batch_steps="per_trial"`, and the session-4 prototype below (benchmarks/NOTES.md). Under
 `jax.vmap`, diffrax runs one adaptive step-size controller per trial: every step of the batched
 while loop carries per-trial times, step sizes, accept/reject selects and save logic, and runs
 as many iterations as the slowest trial. Here the whole batch is *one* ODE system whose state
@@ -71,9 +73,10 @@ def ensemble_solver(p):
     return solve
 
 
-def public_solver(p):
+def public_solver(p, batch_steps="shared"):
     return jax.jit(jax.vmap(lambda a: jsphere.simulate(
-        p, jsphere.State.at_rest(p), jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)), T1, rtol=RTOL, atol=ATOL)))  # fmt: skip
+        p, jsphere.State.at_rest(p), jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)), T1, rtol=RTOL, atol=ATOL,
+        batch_steps=batch_steps)))  # fmt: skip
 
 
 def main(argv=None) -> int:
@@ -82,32 +85,40 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=HERE / "results-ensemble.json")
     args = ap.parse_args(argv)
     p = jsphere.RobotParams.paper()
-    ens, pub = ensemble_solver(p), public_solver(p)
+    ens, pub, per = ensemble_solver(p), public_solver(p), public_solver(p, "per_trial")
     Z = np.random.default_rng(0).standard_normal((max(args.batches), 3))
     rows = []
     for B in args.batches:
         A = jnp.asarray(0.05 * (1.0 + 0.1 * Z[:B]))
-        te, tp = time_call(ens, A, repeats=3), time_call(pub, A, repeats=3)
-        (xe, ye, acc, rej), tr = te["_out"], tp["_out"]
-        te, tp = timings(te), timings(tp)
-        dx = float(max(jnp.max(jnp.abs(xe - tr.x[:, -1])), jnp.max(jnp.abs(ye - tr.y[:, -1]))))
+        te, tp, tq = (time_call(f, A, repeats=3) for f in (ens, pub, per))
+        (xe, ye, acc, rej), tr, tt = te["_out"], tp["_out"], tq["_out"]
+        te, tp, tq = timings(te), timings(tp), timings(tq)
+
+        def dxy(x, y):
+            return float(max(jnp.max(jnp.abs(x - tt.x[:, -1])), jnp.max(jnp.abs(y - tt.y[:, -1]))))
+
         rows.append({
-            "batch": B, "ensemble": te, "public": tp, "ensemble_trials_per_s": B / te["median_s"],
-            "public_trials_per_s": B / tp["median_s"], "ratio": tp["median_s"] / te["median_s"],
+            "batch": B, "ensemble": te, "public": tp, "per_trial": tq, "ensemble_trials_per_s": B / te["median_s"],
+            "public_trials_per_s": B / tp["median_s"], "per_trial_trials_per_s": B / tq["median_s"],
+            "ratio_public_vs_per_trial": tq["median_s"] / tp["median_s"],
             "ensemble_steps": {"accepted": int(acc), "rejected": int(rej)},
-            "public_steps": {"mean": float(jnp.mean(tr.num_steps)), "max": int(jnp.max(tr.num_steps))},
-            "max_abs_diff_final_xy_m": dx,
+            "public_steps": int(jnp.max(tr.num_steps)),
+            "per_trial_steps": {"mean": float(jnp.mean(tt.num_steps)), "max": int(jnp.max(tt.num_steps))},
+            "max_abs_diff_final_xy_m": {"public": dxy(tr.x[:, -1], tr.y[:, -1]), "ensemble": dxy(xe, ye)},
         })  # fmt: skip
-    hdr = f"{'batch':>6}{'public /s':>11}{'shared step /s':>16}{'ratio':>7}{'steps shared (rej)':>20}{'per-trial mean/max':>20}{'max |dxy| m':>13}"
+    hdr = (f"{'batch':>6}{'per-trial /s':>14}{'public (shared) /s':>20}{'ratio':>7}{'prototype /s':>14}"
+           f"{'steps shared':>14}{'per-trial mean/max':>20}{'max |dxy| m':>13}")  # fmt: skip
     print(hdr)
     print("-" * len(hdr))
     for r in rows:
-        st = f"{r['ensemble_steps']['accepted']} ({r['ensemble_steps']['rejected']})"
-        pt = f"{r['public_steps']['mean']:.0f}/{r['public_steps']['max']}"
-        print(f"{r['batch']:>6}{r['public_trials_per_s']:>11.0f}{r['ensemble_trials_per_s']:>16.0f}{r['ratio']:>7.2f}{st:>20}{pt:>20}{r['max_abs_diff_final_xy_m']:>13.1e}")
+        pt = f"{r['per_trial_steps']['mean']:.0f}/{r['per_trial_steps']['max']}"
+        print(f"{r['batch']:>6}{r['per_trial_trials_per_s']:>14.0f}{r['public_trials_per_s']:>20.0f}"
+              f"{r['ratio_public_vs_per_trial']:>7.2f}{r['ensemble_trials_per_s']:>14.0f}{r['public_steps']:>14}"
+              f"{pt:>20}{r['max_abs_diff_final_xy_m']['public']:>13.1e}")  # fmt: skip
     res = {
         "problem": "problem 1 of run.py (paper robot, K_i = a_i sin(pi t + 2.1 (i-1)), [0, 4] s, rtol 1e-8, atol 1e-10)",
-        "variants": {"public": "jax.jit(jax.vmap(simulate)) (per-trial steps)", "ensemble": "one diffeqsolve, shared step, max-over-trials RMS norm"},
+        "variants": {"public": "jax.jit(jax.vmap(simulate)), default batch_steps='shared'", "per_trial": "the same with batch_steps='per_trial'",
+                     "ensemble": "session-4 prototype: one diffeqsolve, shared step, max-over-trials RMS norm"},
         "device": str(jax.devices()[0].device_kind), "cpu_count": os.cpu_count(), "python": platform.python_version(),
         "jax": jax.__version__, "diffrax": dfx.__version__, "jsphere_commit": _commit(),
         "loadavg": list(os.getloadavg()) if hasattr(os, "getloadavg") else None, "rows": rows,

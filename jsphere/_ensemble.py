@@ -127,13 +127,10 @@ def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_sa
             return out, jax.tree_util.tree_map(lambda _: True, out)
         a, b, ts = times
         yb = tuple(y if bt else jnp.broadcast_to(y, (axis_size,) + jnp.shape(y)) for y, bt in zip(y0, y_b))
-        # batch axis last: then e.g. a per-trial amplitude vector `a (batch, 3)` becomes `(3, batch)`,
-        # and each of its components, as the field reads them, a contiguous `(batch,)` vector
-        lv = [jnp.moveaxis(x, 0, -1) if bt else x for x, bt in zip(lv, l_b)]
-        l_axes = [-1 if bt else None for bt in l_b]
+        l_axes = [0 if bt else None for bt in l_b]
 
         def inputs(t, lv):  # (N, batch): each input one contiguous vector
-            return jax.vmap(lambda l: control(t, rebuild(l, a, b)), in_axes=(l_axes,), out_axes=1)(lv)
+            return jax.vmap(lambda l: control(t, rebuild(l, a, b)), in_axes=(l_axes,), out_axes=1, axis_size=axis_size)(lv)
 
         def batch_field(t, y, lv):
             # The inputs are computed in a branch of their own: XLA cannot fuse them into the
@@ -141,7 +138,7 @@ def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_sa
             # (2.4x slower at 1024 trials, benchmarks/NOTES.md session 5).
             K = jax.lax.cond(jnp.isfinite(t), inputs, lambda t, lv: jnp.full(jax.eval_shape(inputs, t, lv).shape, jnp.nan, y[0].dtype), t, lv)
             K = tuple(K[i] for i in range(K.shape[0]))
-            return jax.vmap(lambda z, k, l: field(t, z, rebuild(l, a, b), k), in_axes=(0, 0, l_axes))(y, K, lv)
+            return jax.vmap(lambda z, k, l: field(t, z, rebuild(l, a, b), k), in_axes=(0, 0, l_axes), axis_size=axis_size)(y, K, lv)
 
         sol = dfx.diffeqsolve(
             dfx.ODETerm(batch_field), solver, a, b, None, yb, lv,
