@@ -343,8 +343,8 @@ def simulate(
       `RecursiveCheckpointAdjoint`; use `diffrax.ForwardMode()` for `jax.jacfwd`).
     - `throw`: raise on solver failure (max steps, NaN). With `throw=False` the failure is
       reported in `Trajectory.ok` instead (per trial under `vmap`).
-    - `batch_steps`: under `vmap`, in torque mode with the default adjoint, `"shared"` (default)
-      integrates the batch with one step sequence, accepted only when every trial meets its
+    - `batch_steps`: under `vmap` (from 64 trials, `SHARED_MIN_BATCH`), in torque mode with the
+      default adjoint, `"shared"` (default) integrates the batch with one step sequence, accepted only when every trial meets its
       tolerance (~2.5x faster at 1024 trials; results depend on the batch within the
       tolerance; `max_steps` and `num_steps` count the shared steps; `jsphere._ensemble`).
       `"per_trial"` gives each trial its own step-size control, as for a single call. It
@@ -460,8 +460,9 @@ def _batched_layout(run, axis_size):
 
 
 #: Smallest batch that shares one step sequence (`simulate(..., batch_steps="shared")`, the
-#: default; `jsphere._ensemble`).
-SHARED_MIN_BATCH = 2
+#: default; `jsphere._ensemble`). Problem 1 of benchmarks/: no gain at 8 trials (354 against
+#: 383 trials/s), 2.7x at 64; smaller batches keep per-trial steps and compile ~2x faster.
+SHARED_MIN_BATCH = 64
 
 
 #: Smallest batch that uses the component layout (`layouts.py`: at 64 trials the flat layout

@@ -34,6 +34,12 @@ class Flip(eqx.Module):
         return jnp.where(t < 1.0, self.a, -self.a)
 
 
+@pytest.fixture(autouse=True)
+def _share_small_batches(monkeypatch):
+    """The batches here are a few trials; by default only batches of `SHARED_MIN_BATCH` share."""
+    monkeypatch.setattr(S, "SHARED_MIN_BATCH", 2)
+
+
 P = jsphere.RobotParams.paper()
 A = 0.05 * (1 + 0.1 * jax.random.normal(jax.random.PRNGKey(0), (4, 3)))
 TS = jnp.linspace(0.0, 2.0, 5)
@@ -74,6 +80,15 @@ def test_shared_steps_across_jumps_and_batched_times_fall_back():
     tb = jax.vmap(lambda a, t: _sim(a, t1=t, ctrl=Flip, jump_ts=(1.0,)).x[-1])(A[:2], t1)
     for i in range(2):
         assert abs(float(tb[i] - _sim(A[i], t1=t1[i], ctrl=Flip, jump_ts=(1.0,)).x[-1])) < 1e-9
+
+
+def test_shared_steps_over_initial_states_with_one_control():
+    """Only the states batched (the control is the same for every trial)."""
+    s0 = [jsphere.State.at_rest(P, x=0.1), jsphere.State.from_axes(P, Omega=(0.0, 0.5, 0.0))]
+    S0 = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *s0)
+    out = jax.vmap(lambda s: jsphere.simulate(P, s, jsphere.Torques(jsphere.Zero(P.n_wheels)), 1.0))(S0)
+    for i, s in enumerate(s0):
+        np.testing.assert_allclose(out.x[i, -1], jsphere.simulate(P, s, jsphere.Torques(jsphere.Zero(P.n_wheels)), 1.0).x[-1], rtol=0, atol=1e-8)
 
 
 def test_a_failing_trial_does_not_stall_the_batch():

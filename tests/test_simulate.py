@@ -70,31 +70,29 @@ class Sines(eqx.Module):
 ZERO = jsphere.Torques(lambda t: jnp.zeros(3))
 
 
-def _problem1(p, a, **kw):
-    return jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(Sines(a)), 1.0, rtol=1e-8, atol=1e-10, **kw)
+def _problem1(p, a):
+    return jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(Sines(a)), 1.0, rtol=1e-8, atol=1e-10)
 
 
 def test_jit_vmap_over_inputs_params_and_states(paper):
     A = jnp.array([[0.05, 0.05, 0.05], [0.04, 0.06, 0.05]])
-    # a batch shares one step sequence (batch_steps="shared"): each trial agrees with the single
-    # call to its tolerance, not to rounding (tests/test_ensemble.py, tests/test_soa.py)
     f = jax.jit(jax.vmap(lambda a: _problem1(paper, a)))
     out = f(A)
     for i in range(2):
         single = _problem1(paper, A[i])
-        np.testing.assert_allclose(out.x[i, -1], single.x[-1], rtol=0, atol=1e-8)
+        np.testing.assert_allclose(out.x[i, -1], single.x[-1], rtol=1e-12, atol=1e-15)
     # vmap over parameter sets
     ps = [paper, paper.replace(R_m=0.025), paper.replace(j=0.0)]
     stacked = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *ps)
     outp = jax.jit(jax.vmap(lambda p: _problem1(p, A[0])))(stacked)
     for i, p in enumerate(ps):
-        np.testing.assert_allclose(outp.x[i, -1], _problem1(p, A[0]).x[-1], rtol=0, atol=1e-8)
+        np.testing.assert_allclose(outp.x[i, -1], _problem1(p, A[0]).x[-1], rtol=1e-10, atol=1e-14)
     # vmap over initial states
     s0 = [jsphere.State.at_rest(paper, x=0.1), jsphere.State.from_axes(paper, Omega=(0.0, 0.5, 0.0))]
     S = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *s0)
     outs = jax.vmap(lambda s: jsphere.simulate(paper, s, ZERO, 1.0))(S)
     for i, s in enumerate(s0):
-        np.testing.assert_allclose(outs.x[i, -1], jsphere.simulate(paper, s, ZERO, 1.0).x[-1], rtol=0, atol=1e-8)
+        np.testing.assert_allclose(outs.x[i, -1], jsphere.simulate(paper, s, ZERO, 1.0).x[-1], rtol=1e-12, atol=1e-15)
 
 
 def _fd(f, x, h):
