@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import functools
-from typing import Any, Callable
+from typing import Any, Callable, Literal
 
 import diffrax as dfx
 import equinox as eqx
@@ -324,7 +324,7 @@ def simulate(
     max_steps: int = 16384,
     throw: bool = True,
     adjoint: dfx.AbstractAdjoint | None = None,
-    batch_steps: str = "shared",
+    batch_steps: Literal["shared", "per_trial"] = "shared",
 ) -> Trajectory:
     """Integrate the equations of motion (3.4), (3.5) with (2.2)-(2.4) from `state0`.
 
@@ -344,11 +344,12 @@ def simulate(
     - `throw`: raise on solver failure (max steps, NaN). With `throw=False` the failure is
       reported in `Trajectory.ok` instead (per trial under `vmap`).
     - `batch_steps`: under `vmap` (from 64 trials, `SHARED_MIN_BATCH`), in torque mode with the
-      default adjoint, `"shared"` (default) integrates the batch with one step sequence, accepted only when every trial meets its
-      tolerance (~2.5x faster at 1024 trials; results depend on the batch within the
-      tolerance; `max_steps` and `num_steps` count the shared steps; `jsphere._ensemble`).
-      `"per_trial"` gives each trial its own step-size control, as for a single call. It
-      changes nothing for unbatched calls, nor when `t0`, `t1`, `ts` or `jump_ts` are batched.
+      default adjoint, `"shared"` (default) integrates the batch with one step sequence,
+      accepted only when every trial meets its tolerance (~2.5x faster at 1024 trials;
+      results depend on the batch within the tolerance; `max_steps` and `num_steps` count
+      the shared steps; `jsphere._ensemble`). `"per_trial"` gives each trial its own
+      step-size control, as for a single call. It changes nothing for unbatched calls, nor
+      when `t0`, `t1`, `ts` or `jump_ts` are batched.
 
     Pure JAX: jit, vmap (over parameters, states, controls) and grad work.
     """
@@ -397,7 +398,10 @@ def simulate(
 # keep the pullback's residuals; large ones run the component layout and recompute the flat
 # VJP in the backward pass, in chunks of `GRAD_CHUNK` trials. `ForwardMode` uses the
 # `custom_vmap` directly (its `jvp` is supported). Other adjoints, wheel-speed mode and
-# concrete (untraced) calls keep the flat layout.
+# concrete (untraced) calls keep the flat layout. From `SHARED_MIN_BATCH` trials (and unless
+# `batch_steps="per_trial"`) the undifferentiated batched pass also shares one step sequence
+# over the batch (`jsphere._ensemble`, a `custom_vmap` around each segment's solve); the
+# backward pass of a gradient still recomputes each trial's own per-trial solve.
 
 
 class _ClosedControl(eqx.Module):
@@ -427,7 +431,7 @@ def _has_tracer(tree) -> bool:
 
 
 def _traced(tree) -> bool:
-    if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree)):
+    if _has_tracer(tree):
         return True
     return isinstance(jnp.zeros(()) + 0.0, jax.core.Tracer)  # inside a jit trace
 
