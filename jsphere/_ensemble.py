@@ -132,7 +132,8 @@ def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_sa
         def batch_field(t, y, lv):
             # The inputs are computed in a branch of their own: XLA cannot fuse them into the
             # field's kernels, which would read a batched `(batch, N)` control output strided
-            # (2.4x slower at 1024 trials, benchmarks/NOTES.md session 5).
+            # (2.4x slower at 1024 trials, benchmarks/NOTES.md session 5). The predicate is true
+            # at every finite time; being a run-time value, it keeps XLA from inlining the branch.
             K = jax.lax.cond(jnp.isfinite(t), inputs, lambda t, lv: jnp.full(jax.eval_shape(inputs, t, lv).shape, jnp.nan, y[0].dtype), t, lv)
             K = tuple(K[i] for i in range(K.shape[0]))
             rates = jax.vmap(lambda z, k, l: field(t, z, rebuild(l, a, b), k), in_axes=(0, 0, l_axes), axis_size=axis_size)(tuple(y), K, lv)  # fmt: skip
