@@ -234,7 +234,7 @@ def simulate_gaits(
     resets = (modes, values)
     # gait coefficients in the parameters' precision (float32 robots stay float32)
     gaits = jax.tree_util.tree_map(
-        lambda x: x.astype(dt) if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) else x, gaits
+        lambda x: x.astype(dt) if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) and x.dtype != dt else x, gaits
     )
     traj = _aot.call(
         "simulate_gaits", _simulate_gaits, _rebuild, params, gaits, initial, ts_out, resets, solver or default_solver(),
@@ -243,16 +243,22 @@ def simulate_gaits(
     return raise_on_failure(traj, throw)
 
 
+@eqx.filter_jit  # one compiled program per kind of gait, not one per operation
+def _start_angles(gait: Gait):
+    return gait.theta(0.0), gait.phi(0.0)
+
+
 def _check_start(params, gait, alpha0, beta0) -> None:
     """With concrete inputs: `alpha0, beta0` orthonormal and `alpha0 x beta0` equal to the first
-    gait's `gamma(0)` (computed with NumPy: no eager JAX dispatch on every call)."""
+    gait's `gamma(0)` (NumPy, and one compiled call for the gait's angles at 0: no eager JAX
+    operations, each of which would be a small program to compile or load from the cache)."""
     if any(isinstance(v, jax.core.Tracer) for v in (alpha0, beta0, params.r_m)):
         return
     a, b = np.asarray(alpha0, np.float64), np.asarray(beta0, np.float64)
     if abs(np.linalg.norm(a) - 1) > 1e-6 or abs(np.linalg.norm(b) - 1) > 1e-6 or abs(a @ b) > 1e-6:
         raise ValueError(f"simulate_gaits: alpha0 and beta0 must be orthonormal; got {a}, {b}.")
     try:
-        th, ph = float(gait.theta(0.0)), float(gait.phi(0.0))
+        th, ph = (float(v) for v in _start_angles(gait))
     except (TypeError, jax.errors.ConcretizationTypeError):  # gait coefficients are traced
         return
     gm = -np.asarray(params.r_m, np.float64) / np.linalg.norm(np.asarray(params.r_m, np.float64))

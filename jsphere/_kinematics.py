@@ -5,6 +5,7 @@ No time integration here. All vectors are platform-frame components.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
@@ -64,6 +65,7 @@ def rest_attitude(params: RobotParams) -> Float[Array, "3"]:
     return -params.r_m / jnp.linalg.norm(params.r_m)
 
 
+@jax.jit  # one compiled program when called eagerly
 def attitude_matrix(params: RobotParams, psi: Float[ArrayLike, ""] = 0.0) -> Float[Array, "3 3"]:
     """`Q = Q_m Q_psi` of (2.6)-(2.8): fixed -> platform components for a platform at rest
     attitude (`gamma = gamma_m`) turned by the precession angle `psi` about the vertical.

@@ -11,6 +11,7 @@ Quaternions are `(w, x, y, z)`, scalar first. `rotmat(q)` rotates *body* compone
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -98,6 +99,7 @@ def rotmat(q: Float[Array, "... 4"]) -> Float[Array, "... 3 3"]:
     return jnp.stack([r0, r1, r2], axis=-2)
 
 
+@jax.jit  # one compiled program when called eagerly (State constructors), not ~25 small ones
 def quat_from_rotmat(R: Float[Array, "3 3"]) -> Float[Array, "4"]:
     """Unit quaternion (w >= 0) of a rotation matrix (Shepperd's method, branch-free)."""
     R = jnp.asarray(R)
@@ -116,6 +118,7 @@ def quat_from_rotmat(R: Float[Array, "3 3"]) -> Float[Array, "4"]:
     return jnp.where(q[0] < 0, -q, q)
 
 
+@jax.jit
 def rotation_between(a: Float[Array, "3"], b: Float[Array, "3"]) -> Float[Array, "3 3"]:
     """The smallest rotation taking unit vector `a` onto unit vector `b` (Rodrigues).
 

@@ -58,11 +58,16 @@ class Trajectory(eqx.Module):
 
     def state(self, i: int = -1) -> State:
         """The `State` at sample `i` (default: the last), e.g. to continue a simulation."""
-        z = jnp.concatenate(
-            [self.q[..., i, :], self.q_shell[..., i, :], self.omega[..., i, :], self.Omega[..., i, :],
-             jnp.stack([self.x[..., i], self.y[..., i]], -1), self.chi[..., i, :]], axis=-1,
-        )  # fmt: skip
-        return _unflatten(z)
+        return _state_at(self, i)
+
+
+@jax.jit  # one compiled program when called eagerly, not one per operation
+def _state_at(traj: Trajectory, i) -> "State":
+    z = jnp.concatenate(
+        [traj.q[..., i, :], traj.q_shell[..., i, :], traj.omega[..., i, :], traj.Omega[..., i, :],
+         jnp.stack([traj.x[..., i], traj.y[..., i]], -1), traj.chi[..., i, :]], axis=-1,
+    )  # fmt: skip
+    return _unflatten(z)
 
 
 def _rebuild(leaves) -> Trajectory:

@@ -73,14 +73,7 @@ class State(eqx.Module):
         """At rest, the platform's centre of mass straight below C (`gamma = -r_m/|r_m|`), turned
         by the precession angle `psi` about the vertical; for the paper's robot and `psi = 0`,
         `alpha, beta, gamma` are the fixed axes. Shell frame aligned with the fixed frame."""
-        dt = params.R0.dtype
-        Q = attitude_matrix(params, psi)
-        q = quat_from_rotmat(Q.T).astype(dt)
-        z3 = jnp.zeros(3, dt)
-        return cls(
-            q=q, q_shell=jnp.array([1.0, 0.0, 0.0, 0.0], dt), omega=z3, Omega=z3,
-            x=jnp.asarray(x, dt), y=jnp.asarray(y, dt), chi=jnp.zeros(params.n_wheels, dt),
-        )  # fmt: skip
+        return cls(**_rest_fields(params, x, y, psi))
 
     @classmethod
     def from_axes(
@@ -121,6 +114,17 @@ class State(eqx.Module):
     @classmethod
     def unflatten(cls, z: Float[Array, "... 16+N"]) -> "State":
         return _unflatten(z)
+
+
+@jax.jit  # one compiled program when called eagerly, not one per operation
+def _rest_fields(params: RobotParams, x, y, psi) -> dict:
+    dt = params.R0.dtype
+    Q = attitude_matrix(params, psi)
+    z3 = jnp.zeros(3, dt)
+    return dict(
+        q=quat_from_rotmat(Q.T).astype(dt), q_shell=jnp.array([1.0, 0.0, 0.0, 0.0], dt), omega=z3, Omega=z3,
+        x=jnp.asarray(x, dt), y=jnp.asarray(y, dt), chi=jnp.zeros(params.n_wheels, dt),
+    )  # fmt: skip
 
 
 def _unflatten(z) -> State:
