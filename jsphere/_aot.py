@@ -5,18 +5,19 @@ tracing and lowering that produce its key: for `jsphere reproduce` these took ~5
 ~10 s second run (four `diffeqsolve` traces, benchmarks/NOTES.md). Here a compiled entry point
 (`_simulate`, `_simulate_gaits`) called with concrete inputs is exported once with
 `jax.export` (which cannot serialise host callbacks: the CLI switches equinox's run-time
-checks to their `nan` mode), serialised to `<cache>/aot/<key>.jaxexport`, and its compiled executable to
-`<cache>/aot/<key>.xla` (`jax.experimental.serialize_executable`); later calls, in this
-process or the next, run the loaded executable (or, if it cannot be loaded, the deserialised
-program, whose executable then comes from the compilation cache).
+checks to their `nan` mode) and serialised to `<cache>/aot/<key>.jaxexport`, and its compiled
+executable to `<cache>/aot/<key>.xla` (`jax.experimental.serialize_executable`). Later calls,
+in this process or the next, run the loaded executable (or, if it cannot be loaded, the
+deserialised program, whose executable then comes from the compilation cache).
 
 The key hashes everything the program depends on: the entry point's name, the source of every
 `jsphere` module, the versions of jax, jaxlib, diffrax and equinox, the backend, the processor
 (architecture and instruction-set flags) and float precision, the tree structure of the
-arguments, the shapes and dtypes of their arrays, and the values of their non-array parts. A call whose non-array parts have no stable value (a
-`lambda`, a function defined outside jsphere, any object printed with its address) is not
-exported: it runs as usual. Off unless `enable(path)` was called (the CLI does, next to the
-compilation cache); any failure of the exported path falls back to the ordinary call.
+arguments, the shapes and dtypes of their arrays, and the values of their non-array parts. A
+call whose non-array parts have no stable value (a `lambda`, a function defined outside
+jsphere, any object printed with its address) is not exported: it runs as usual. Off unless
+`enable(path)` was called (the CLI does, next to the compilation cache); any failure of the
+exported path falls back to the ordinary call.
 """
 
 from __future__ import annotations
@@ -147,6 +148,10 @@ def call(name: str, fn: Callable, rebuild: Callable, *args):
         return fn(*args)
 
 
+def _avals(leaves) -> list:
+    return [jax.ShapeDtypeStruct(np.shape(x), jnp.result_type(x), weak_type=bool(getattr(x, "weak_type", False))) for x in leaves]
+
+
 def _load_or_export(key, fn, treedef, static, leaves) -> Callable:
     path = _DIR / f"{key}.jaxexport"
     exported = None
@@ -161,8 +166,7 @@ def _load_or_export(key, fn, treedef, static, leaves) -> Callable:
             out = fn(*eqx.combine(jax.tree_util.tree_unflatten(treedef, lv), static))
             return jax.tree_util.tree_leaves(out)
 
-        avals = [jax.ShapeDtypeStruct(np.shape(x), jnp.result_type(x), weak_type=bool(getattr(x, "weak_type", False))) for x in leaves]
-        exported = jax.export.export(jax.jit(flat))(*avals)
+        exported = jax.export.export(jax.jit(flat))(*_avals(leaves))
         _write_atomic(path, bytes(exported.serialize()))
     run = _executable(key, jax.jit(exported.call), leaves)
     _LOADED[key] = run
@@ -186,8 +190,7 @@ def _executable(key, run, leaves) -> Callable:
         except Exception:  # noqa: BLE001 - a truncated or foreign file: compile again
             pass
     try:
-        avals = [jax.ShapeDtypeStruct(np.shape(x), jnp.result_type(x), weak_type=bool(getattr(x, "weak_type", False))) for x in leaves]
-        compiled = run.lower(*avals).compile()
+        compiled = run.lower(*_avals(leaves)).compile()
         _write_atomic(path, pickle.dumps(se.serialize(compiled)))
         return compiled
     except Exception:  # noqa: BLE001 - an optimisation only
