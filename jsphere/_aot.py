@@ -153,45 +153,61 @@ def _avals(leaves) -> list:
 
 
 def _load_or_export(key, fn, treedef, static, leaves) -> Callable:
-    path = _DIR / f"{key}.jaxexport"
-    exported = None
-    if path.exists():
-        try:
-            exported = jax.export.deserialize(bytearray(path.read_bytes()))
-        except Exception:  # noqa: BLE001 - a truncated or foreign file: export it again
-            exported = None
-    if exported is None:
-
-        def flat(*lv):
-            out = fn(*eqx.combine(jax.tree_util.tree_unflatten(treedef, lv), static))
-            return jax.tree_util.tree_leaves(out)
-
-        exported = jax.export.export(jax.jit(flat))(*_avals(leaves))
-        _write_atomic(path, bytes(exported.serialize()))
-    run = _executable(key, jax.jit(exported.call), leaves)
+    """The kept executable of `key` if it loads; otherwise the exported program (exported
+    now if its file is missing or damaged), compiled, its executable kept for next time."""
+    run = _load_executable(key)
+    if run is None:
+        run = _compile_and_keep(key, jax.jit(_load_or_export_program(key, fn, treedef, static, leaves).call), leaves)
     _LOADED[key] = run
     return run
 
 
-def _executable(key, run, leaves) -> Callable:
-    """`run` compiled for `leaves`, kept as a serialised executable next to the exported
-    program: a later process loads it without lowering the program again or looking it up in
-    the compilation cache (about 0.5 s of `jsphere reproduce`'s second run). Falls back to
-    `run` if the executable cannot be serialised or loaded."""
+def _load_or_export_program(key, fn, treedef, static, leaves) -> jax.export.Exported:
+    path = _DIR / f"{key}.jaxexport"
+    if path.exists():
+        try:
+            return jax.export.deserialize(bytearray(path.read_bytes()))
+        except Exception:  # noqa: BLE001 - a truncated or foreign file: export it again
+            pass
+
+    def flat(*lv):
+        out = fn(*eqx.combine(jax.tree_util.tree_unflatten(treedef, lv), static))
+        return jax.tree_util.tree_leaves(out)
+
+    exported = jax.export.export(jax.jit(flat))(*_avals(leaves))
+    _write_atomic(path, bytes(exported.serialize()))
+    return exported
+
+
+def _load_executable(key) -> Callable | None:
+    """The executable kept for `key` (a serialised file next to the exported program), or
+    `None` if there is none or it cannot be loaded. Loading it skips lowering the program and
+    looking it up in the compilation cache: about 0.5 s of `jsphere reproduce`'s second run
+    (benchmarks/NOTES.md, session 6)."""
     import pickle
 
     from jax.experimental import serialize_executable as se
 
     path = _DIR / f"{key}.xla"
-    if path.exists():
-        try:
-            payload, in_tree, out_tree = pickle.loads(path.read_bytes())
-            return se.deserialize_and_load(payload, in_tree, out_tree)
-        except Exception:  # noqa: BLE001 - a truncated or foreign file: compile again
-            pass
+    if not path.exists():
+        return None
+    try:
+        payload, in_tree, out_tree = pickle.loads(path.read_bytes())
+        return se.deserialize_and_load(payload, in_tree, out_tree)
+    except Exception:  # noqa: BLE001 - a truncated or foreign file: compile again
+        return None
+
+
+def _compile_and_keep(key, run, leaves) -> Callable:
+    """`run` compiled for `leaves`, its executable written for `_load_executable`; `run`
+    itself if the executable cannot be serialised."""
+    import pickle
+
+    from jax.experimental import serialize_executable as se
+
     try:
         compiled = run.lower(*_avals(leaves)).compile()
-        _write_atomic(path, pickle.dumps(se.serialize(compiled)))
+        _write_atomic(_DIR / f"{key}.xla", pickle.dumps(se.serialize(compiled)))
         return compiled
     except Exception:  # noqa: BLE001 - an optimisation only
         return run
