@@ -5,19 +5,19 @@ tracing and lowering that produce its key: for `jsphere reproduce` these took ~5
 ~10 s second run (four `diffeqsolve` traces, benchmarks/NOTES.md). Here a compiled entry point
 (`_simulate`, `_simulate_gaits`) called with concrete inputs is exported once with
 `jax.export` (which cannot serialise host callbacks: the CLI switches equinox's run-time
-checks to their `nan` mode) and serialised to `<cache>/aot/<key>.jaxexport`, and its compiled
-executable to `<cache>/aot/<key>.xla` (`jax.experimental.serialize_executable`). Later calls,
-in this process or the next, run the loaded executable (or, if it cannot be loaded, the
-deserialised program, whose executable then comes from the compilation cache).
+checks to their `nan` mode) and serialised to `<cache>/aot/<key>.jaxexport`; later calls, in
+this process or the next, run the deserialised program, whose executable then comes from the
+compilation cache. (Keeping the executable itself, `jax.experimental.serialize_executable`,
+saved ~0.5 s more but broke later, unrelated programs of the same process on the CI machine,
+"NOT_FOUND: Function ... not found": not done, benchmarks/NOTES.md, session 7.)
 
 The key hashes everything the program depends on: the entry point's name, the source of every
-`jsphere` module, the versions of jax, jaxlib, diffrax and equinox, the backend, the processor
-(architecture and instruction-set flags) and float precision, the tree structure of the
-arguments, the shapes and dtypes of their arrays, and the values of their non-array parts. A
-call whose non-array parts have no stable value (a `lambda`, a function defined outside
-jsphere, any object printed with its address) is not exported: it runs as usual. Off unless
-`enable(path)` was called (the CLI does, next to the compilation cache); any failure of the
-exported path falls back to the ordinary call.
+`jsphere` module, the versions of jax, jaxlib, diffrax and equinox, the backend and float
+precision, the tree structure of the arguments, the shapes and dtypes of their arrays, and the
+values of their non-array parts. A call whose non-array parts have no stable value (a
+`lambda`, a function defined outside jsphere, any object printed with its address) is not
+exported: it runs as usual. Off unless `enable(path)` was called (the CLI does, next to the
+compilation cache); any failure of the exported path falls back to the ordinary call.
 """
 
 from __future__ import annotations
@@ -61,25 +61,10 @@ def _environment() -> str:
         h = hashlib.sha256()
         for f in sorted(Path(__file__).parent.glob("*.py")):
             h.update(f.name.encode() + b"\0" + f.read_bytes())
-        for item in (jax.__version__, jaxlib.__version__, diffrax.__version__, eqx.__version__, jax.default_backend(), _host_cpu()):
+        for item in (jax.__version__, jaxlib.__version__, diffrax.__version__, eqx.__version__, jax.default_backend()):
             h.update(str(item).encode() + b"\0")
         _ENVIRONMENT = h.hexdigest()
     return _ENVIRONMENT
-
-
-def _host_cpu() -> str:
-    """The processor's architecture and instruction-set flags: a compiled executable is only
-    loaded on the kind of processor it was compiled for (a cache directory may be shared
-    between machines, e.g. a network home)."""
-    import platform
-
-    flags = ""
-    try:
-        with open("/proc/cpuinfo") as f:
-            flags = next((line for line in f if line.startswith(("flags", "Features"))), "")
-    except OSError:
-        pass
-    return f"{platform.machine()}|{platform.processor()}|{flags.strip()}"
 
 
 def _stable(x: Any) -> str | None:
@@ -153,11 +138,8 @@ def _avals(leaves) -> list:
 
 
 def _load_or_export(key, fn, treedef, static, leaves) -> Callable:
-    """The kept executable of `key` if it loads; otherwise the exported program (exported
-    now if its file is missing or damaged), compiled, its executable kept for next time."""
-    run = _load_executable(key)
-    if run is None:
-        run = _compile_and_keep(key, jax.jit(_load_or_export_program(key, fn, treedef, static, leaves).call), leaves)
+    """The exported program of `key` (exported now if its file is missing or damaged), jitted."""
+    run = jax.jit(_load_or_export_program(key, fn, treedef, static, leaves).call)
     _LOADED[key] = run
     return run
 
@@ -177,37 +159,3 @@ def _load_or_export_program(key, fn, treedef, static, leaves) -> jax.export.Expo
     exported = jax.export.export(jax.jit(flat))(*_avals(leaves))
     _write_atomic(path, bytes(exported.serialize()))
     return exported
-
-
-def _load_executable(key) -> Callable | None:
-    """The executable kept for `key` (a serialised file next to the exported program), or
-    `None` if there is none or it cannot be loaded. Loading it skips lowering the program and
-    looking it up in the compilation cache: about 0.5 s of `jsphere reproduce`'s second run
-    (benchmarks/NOTES.md, session 6)."""
-    import pickle
-
-    from jax.experimental import serialize_executable as se
-
-    path = _DIR / f"{key}.xla"
-    if not path.exists():
-        return None
-    try:
-        payload, in_tree, out_tree = pickle.loads(path.read_bytes())
-        return se.deserialize_and_load(payload, in_tree, out_tree)
-    except Exception:  # noqa: BLE001 - a truncated or foreign file: compile again
-        return None
-
-
-def _compile_and_keep(key, run, leaves) -> Callable:
-    """`run` compiled for `leaves`, its executable written for `_load_executable`; `run`
-    itself if the executable cannot be serialised."""
-    import pickle
-
-    from jax.experimental import serialize_executable as se
-
-    try:
-        compiled = run.lower(*_avals(leaves)).compile()
-        _write_atomic(_DIR / f"{key}.xla", pickle.dumps(se.serialize(compiled)))
-        return compiled
-    except Exception:  # noqa: BLE001 - an optimisation only
-        return run
