@@ -20,7 +20,20 @@ from ._dynamics import free_Omega_dot, required_torques
 from ._kinematics import rest_attitude
 from ._linalg import cross, matvec, rotation_between, rotmat
 from ._params import RobotParams, derive
-from ._simulate import Trajectory, _kin_rates, _rebuild, assemble, default_solver, raise_on_failure, solve_segments
+from ._simulate import (
+    Trajectory,
+    _dispatched,
+    _has_tracer,
+    _kin_rates,
+    _rebuild,
+    _reverse,
+    _traced,
+    assemble,
+    default_solver,
+    raise_on_failure,
+    solve_segments,
+)
+from ._soa import gait_field_components
 from ._state import State
 
 
@@ -142,6 +155,22 @@ def _gait_field(t, z, args):
     return jnp.concatenate([dq, dqs, omega_dot, Omega_dot, dxy, chi_dot])
 
 
+def _gait_inputs(t, args):
+    """`(gamma, omega, omega_dot)` the gait prescribes at time `t`, as one `(9,)` array (the
+    inputs of `_gait_field_soa`)."""
+    _, _, (gait, Qm), a, _ = args
+    return jnp.concatenate(gait.kinematics(Qm, t - a))
+
+
+def _gait_field_soa(t, y, args, kin=None):
+    """`_gait_field` on a tuple of scalar components (`jsphere._soa`), for batched solves;
+    `kin`: the gait's `(gamma, omega, omega_dot)` as a 9-tuple, if the caller has evaluated it."""
+    if kin is None:
+        k = _gait_inputs(t, args)
+        kin = tuple(k[..., i] for i in range(9))
+    return gait_field_components(args[0], args[1], kin, y)
+
+
 def _gait_outputs(p, d, control, t, z, a, b):
     gait, Qm = control
     gamma, omega, omega_dot = gait.kinematics(Qm, t - a)
@@ -176,6 +205,7 @@ def simulate_gaits(
     max_steps: int = 16384,
     throw: bool = True,
     adjoint: dfx.AbstractAdjoint | None = None,
+    batch_steps: str = "shared",
 ) -> Trajectory:
     """Execute a sequence of gaits (Section 4) and return the motion, torques and wheel rates.
 
@@ -198,6 +228,10 @@ def simulate_gaits(
       entry per boundary) mixes `None`/`False` (continue), `True` (as above), or an explicit
       `Omega` 3-vector (with `alpha, beta` reset too), e.g. `(-0.868, 0.852, 0)` of (5.7).
     - `rtol`, `atol`: tolerances (defaults tight enough for 1e-8 agreement of `Omega, K`).
+    - `batch_steps`: under `jax.vmap`, `"shared"` (default) integrates a batch of at least 64
+      trials with one step sequence on contiguous components (`jsphere._ensemble`; each
+      trial still meets its tolerance), `"per_trial"` gives every trial its own steps, as
+      `simulate` does.
 
     Returns a `Trajectory`; `segment` tells which gait each sample belongs to.
     """
@@ -236,11 +270,39 @@ def simulate_gaits(
     gaits = jax.tree_util.tree_map(
         lambda x: x.astype(dt) if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) and x.dtype != dt else x, gaits
     )
-    traj = _aot.call(
-        "simulate_gaits", _simulate_gaits, _rebuild, params, gaits, initial, ts_out, resets, solver or default_solver(),
-        rtol, atol, max_steps, adjoint or dfx.RecursiveCheckpointAdjoint(),
+    if batch_steps not in ("shared", "per_trial"):
+        raise ValueError(f"simulate_gaits: batch_steps must be 'shared' or 'per_trial'; got {batch_steps!r}.")
+    traj = _solve_gaits(
+        params, gaits, initial, ts_out, resets, solver or default_solver(), rtol, atol, max_steps,
+        adjoint or dfx.RecursiveCheckpointAdjoint(), batch_steps,
     )  # fmt: skip
     return raise_on_failure(traj, throw)
+
+
+def _solve_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, max_steps, adjoint, batch_steps):
+    """`_simulate_gaits` with the state layout chosen by batching, as `jsphere._simulate._solve`
+    does for torques: the flat state for a single call, contiguous components (and one step
+    sequence, with `batch_steps="shared"`) under `vmap`; reverse mode through `_reverse`."""
+    flat = (solver, rtol, atol, max_steps, adjoint)
+    args = (params, gaits, initial, ts_out, resets)
+    if not _traced(args) or type(adjoint) not in (dfx.RecursiveCheckpointAdjoint, dfx.ForwardMode):
+        return _aot.call("simulate_gaits", _simulate_gaits, _rebuild, *args, *flat)
+    dyn, static = eqx.partition(args, lambda x: isinstance(x, jax.core.Tracer))
+    leaves, treedef = jax.tree_util.tree_flatten(dyn)
+    derived = None
+    if not _has_tracer(params):  # concrete parameters: (3.4)'s constants folded by XLA
+        with jax.ensure_compile_time_eval():
+            derived = derive(params)
+
+    def run(lv, components, adjoint=adjoint):
+        a = eqx.combine(jax.tree_util.tree_unflatten(treedef, lv), static)
+        return _simulate_gaits(*a, solver, rtol, atol, max_steps, adjoint, components=components, derived=derived)
+
+    run.cell = {}
+    run.shared = batch_steps == "shared" and not isinstance(adjoint, dfx.ForwardMode)
+    if isinstance(adjoint, dfx.ForwardMode):
+        return _dispatched(run)(leaves)
+    return _reverse(run, leaves)
 
 
 @eqx.filter_jit  # one compiled program per kind of gait, not one per operation
@@ -273,9 +335,9 @@ def _check_start(params, gait, alpha0, beta0) -> None:
 
 
 @eqx.filter_jit
-def _simulate_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, max_steps, adjoint):
+def _simulate_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, max_steps, adjoint, components=False, derived=None):
     dt = params.R0.dtype
-    d = derive(params)
+    d = derive(params) if derived is None else derived
     alpha0, beta0, Omega0, x0, y0 = initial
     state0 = State.from_axes(params, alpha0, beta0, Omega=Omega0, x=x0, y=y0)
     Qm = rotation_between(jnp.array([0.0, 0.0, 1.0], dt), rest_attitude(params))
@@ -309,6 +371,8 @@ def _simulate_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, 
     zs, om, cd, Ks, seg, ok, steps = solve_segments(
         _gait_field, _gait_outputs, params, d, segments, state0.flatten(), ts_out, jump_fn=jump_fn,
         solver=solver, rtol=rtol, atol=atol, max_steps=max_steps, adjoint=adjoint,
+        component_field=_gait_field_soa if components else None, component_control=_gait_inputs,
+        shared=components == "shared",
     )  # fmt: skip
     traj = assemble(params, d, ts_out, zs, om, cd, Ks, seg, ok, steps)
     # report the prescribed gamma(t) (the integrated one agrees to the solver tolerance)

@@ -126,8 +126,8 @@ def _run_batch(params, gaits, names, kinds, ab, seed, idx, reset, rtol, atol, me
         key = jax.random.fold_in(jax.random.fold_in(jax.random.PRNGKey(seed), i), 2**20)
         k_omega, k_act = jax.random.split(key)
         dOmega = Omega0_sd * jax.random.normal(k_omega, (3,), dt)
-        if mode == "gait":
-            tr = simulate_gaits(p, gaits, ts=ts, reset=reset, rtol=rtol, atol=atol, throw=False, Omega0=dOmega)
+        if mode == "gait":  # per-trial steps, as below
+            tr = simulate_gaits(p, gaits, ts=ts, reset=reset, rtol=rtol, atol=atol, throw=False, Omega0=dOmega, batch_steps="per_trial")
         else:
             table = _noisy_table(k_act, plan[0], plan[1], actuators)
             s0 = State.at_rest(p)

@@ -240,6 +240,7 @@ def solve_segments(
     max_steps,
     adjoint,
     component_field=None,
+    component_control=None,
     shared=False,
 ):
     """Integrate `field(t, z, (p, d, control, a, b))` over consecutive segments
@@ -250,7 +251,8 @@ def solve_segments(
     `lax.scan`, so compile time does not grow with their number. With `component_field`
     (the same field on a tuple of scalar components, `jsphere._soa`) the solver carries the
     state as that tuple: faster under `vmap` (contiguous components), slower unbatched; with
-    `shared` as well, a batch under `vmap` shares one step sequence (`jsphere._ensemble`).
+    `shared` as well, a batch under `vmap` shares one step sequence (`jsphere._ensemble`), the
+    field's inputs given by `component_control(t, args)` (default: the torques).
     """
     n_seg = len(segments)
     T = ts_out.shape[0]
@@ -265,7 +267,7 @@ def solve_segments(
         t_save = jnp.clip(ts_out, a, b)
         if shared:
             ys, failed, n_acc = _ensemble.solve(
-                component_field, _torque_control, solver, rtol, atol, max_steps, adjoint, to_components(z), (p, d, control, a, b), t_save
+                component_field, component_control or _torque_control, solver, rtol, atol, max_steps, adjoint, to_components(z), (p, d, control, a, b), t_save
             )
             ys = from_components(ys)
         else:

@@ -1,4 +1,5 @@
-"""The torque-mode vector field on scalar components ("struct of arrays"), for batched solves.
+"""The torque- and gait-mode vector fields on scalar components ("struct of arrays"), for
+batched solves.
 
 Under `jax.vmap` a state stored as one `(16+N,)` array becomes a `(batch, 16+N)` array whose
 components are strided, and every 3-vector of (3.4) a `(batch, 3)` array: XLA on CPU then
@@ -10,7 +11,8 @@ written out component by component: about 100 ns per trial and evaluation at bat
 For a single trial the same code is slower (every scalar becomes its own small operation in
 the integrator's loop), which is why `simulate` uses this layout only when it is batched
 (`jsphere._simulate`). The equations are those of `jsphere._dynamics` (docstrings there);
-`tests/test_soa.py` checks the two implementations against each other to rounding.
+`tests/test_soa.py` checks the two implementations against each other to rounding (the gait
+field against `jsphere._gaits._gait_field`).
 """
 
 from __future__ import annotations
@@ -83,41 +85,11 @@ def torque_field_components(p: RobotParams, d: Derived, K, z):
     components. Identical in value to `jsphere._simulate._torque_field` (to rounding).
     """
     n = len(K)
-    qw, qx, qy, qz, sw, sx, sy, sz = z[0:8]
     w, W = tuple(z[8:11]), tuple(z[11:14])
-    # platform attitude: rows alpha, beta, gamma of Q^T (rotmat of the normalised quaternion)
-    inv = 1.0 / jnp.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-    a, b, c, e = qw * inv, qx * inv, qy * inv, qz * inv
-    R = (
-        (1 - 2 * (c * c + e * e), 2 * (b * c - a * e), 2 * (b * e + a * c)),
-        (2 * (b * c + a * e), 1 - 2 * (b * b + e * e), 2 * (c * e - a * b)),
-        (2 * (b * e - a * c), 2 * (c * e + a * b), 1 - 2 * (b * b + c * c)),
-    )
+    R = _platform_rows(z[0:4])
     g = R[2]
-    rm = tuple(p.r_m[i] for i in range(3))
-    Jns, Jss, I, Ainv, Sk = _rows(d.Jns), _rows(d.Jss), _rows(p.I), _rows(d.A_inv), _rows(d.Sk)
-    mR0 = p.m * p.R0
-    MR2 = (p.m + p.m0) * p.R0**2
-    # mass blocks B, D of (3.4)
-    grm, gg = _dot(g, rm), _dot(g, g)
-    B = tuple(
-        tuple(Jns[i][j] - Jss[i][j] + mR0 * ((grm if i == j else 0.0) - g[i] * rm[j]) for j in range(3)) for i in range(3)
-    )
-    D = tuple(
-        tuple((p.I0 if i == j else 0.0) + Jss[i][j] + MR2 * ((gg if i == j else 0.0) - g[i] * g[j]) for j in range(3))
-        for i in range(3)
-    )
-    # forces r1, r2 of (3.4)
-    gWxw = _cross(g, _cross(W, w))
-    r1 = _sub(
-        _sub(_add(_scale(-1.0, _cross(w, _mv(I, w))), _cross(_mv(Jns, _sub(W, w)), w)), _scale(mR0, _cross(rm, gWxw))),
-        _scale(p.m * p.g, _cross(rm, g)),
-    )
-    Wg = _dot(W, g)
-    r2 = _sub(
-        _sub(_sub(_scale(-MR2, _cross(g, gWxw)), _scale(mR0, _cross(g, _cross(w, _cross(w, rm))))), _scale(p.I0, _cross(w, W))),
-        _scale(p.c_roll, _sub(W, _scale(Wg, g))),
-    )
+    B, D, r1, r2 = _blocks_and_forces(p, d, g, w, W)
+    Ainv, Sk = _rows(d.A_inv), _rows(d.Sk)
     # axle torques (with the optional axle friction) and their moment Sk^T K
     dw = _sub(w, W)
     Ke = tuple(K[i] + p.c_axle * _dot(Sk[i], dw) for i in range(n))
@@ -128,11 +100,63 @@ def torque_field_components(p: RobotParams, d: Derived, K, z):
     S = tuple(tuple(D[i][j] - sum(B[k][i] * X[k][j] for k in range(3)) for j in range(3)) for i in range(3))
     a1 = _mv(Ainv, r1)
     rhs = _sub(r2, _mtv(B, a1))
-    c0, c1, c2 = _cross(S[1], S[2]), _cross(S[2], S[0]), _cross(S[0], S[1])
-    idet = 1.0 / _dot(S[0], c0)
-    Wd = tuple((c0[i] * rhs[0] + c1[i] * rhs[1] + c2[i] * rhs[2]) * idet for i in range(3))
+    Wd = _solve3(S, rhs)
     wd = _sub(a1, _mv(X, Wd))
-    # kinematics: q_dot = q (x) (0, omega) / 2, q_shell_dot = (0, Q^T Omega) (x) q_shell / 2
+    return _kinematic_rates(p, d, z, R, g, w, W, wd, Wd)
+
+
+def _blocks_and_forces(p: RobotParams, d: Derived, g, w, W):
+    """`B`, `D` (`mass_blocks`) and `r1`, `r2` (`forces`) of (3.4) as tuples, for the attitude
+    `g = gamma` and the rates `w = omega`, `W = Omega` (3-tuples of scalars)."""
+    rm = tuple(p.r_m[i] for i in range(3))
+    Jns, Jss, I = _rows(d.Jns), _rows(d.Jss), _rows(p.I)
+    mR0 = p.m * p.R0
+    MR2 = (p.m + p.m0) * p.R0**2
+    grm, gg = _dot(g, rm), _dot(g, g)
+    B = tuple(
+        tuple(Jns[i][j] - Jss[i][j] + mR0 * ((grm if i == j else 0.0) - g[i] * rm[j]) for j in range(3)) for i in range(3)
+    )
+    D = tuple(
+        tuple((p.I0 if i == j else 0.0) + Jss[i][j] + MR2 * ((gg if i == j else 0.0) - g[i] * g[j]) for j in range(3))
+        for i in range(3)
+    )
+    gWxw = _cross(g, _cross(W, w))
+    r1 = _sub(
+        _sub(_add(_scale(-1.0, _cross(w, _mv(I, w))), _cross(_mv(Jns, _sub(W, w)), w)), _scale(mR0, _cross(rm, gWxw))),
+        _scale(p.m * p.g, _cross(rm, g)),
+    )
+    Wg = _dot(W, g)
+    r2 = _sub(
+        _sub(_sub(_scale(-MR2, _cross(g, gWxw)), _scale(mR0, _cross(g, _cross(w, _cross(w, rm))))), _scale(p.I0, _cross(w, W))),
+        _scale(p.c_roll, _sub(W, _scale(Wg, g))),
+    )
+    return B, D, r1, r2
+
+
+def _solve3(M, r):
+    """`M^-1 r` for a 3x3 `M` given as rows (Cramer's rule, as `jsphere._linalg.solve3`)."""
+    c0, c1, c2 = _cross(M[1], M[2]), _cross(M[2], M[0]), _cross(M[0], M[1])
+    idet = 1.0 / _dot(M[0], c0)
+    return tuple((c0[i] * r[0] + c1[i] * r[1] + c2[i] * r[2]) * idet for i in range(3))
+
+
+def _platform_rows(q):
+    """Rows alpha, beta, gamma of `Q^T` (the rotation matrix of the normalised quaternion)."""
+    qw, qx, qy, qz = q
+    inv = 1.0 / jnp.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    a, b, c, e = qw * inv, qx * inv, qy * inv, qz * inv
+    return (
+        (1 - 2 * (c * c + e * e), 2 * (b * c - a * e), 2 * (b * e + a * c)),
+        (2 * (b * c + a * e), 1 - 2 * (b * b + e * e), 2 * (c * e - a * b)),
+        (2 * (b * e - a * c), 2 * (c * e + a * b), 1 - 2 * (b * b + c * c)),
+    )
+
+
+def _kinematic_rates(p: RobotParams, d: Derived, z, R, g, w, W, wd, Wd):
+    """The flat state's rates from the accelerations `wd`, `Wd`: the quaternion kinematics of
+    platform and shell, (2.3) for `(x_dot, y_dot)` (with the attitude `g`) and (2.4)."""
+    qw, qx, qy, qz, sw, sx, sy, sz = z[0:8]
+    # q_dot = q (x) (0, omega) / 2, q_shell_dot = (0, Q^T Omega) (x) q_shell / 2
     w0, w1, w2 = w
     dq = (
         0.5 * (-qx * w0 - qy * w1 - qz * w2),
@@ -148,5 +172,24 @@ def torque_field_components(p: RobotParams, d: Derived, K, z):
         0.5 * (f2 * sw + f0 * sy - f1 * sx),
     )
     vf = _mv(R, _scale(p.R0, _cross(W, g)))  # (2.3) in fixed components
-    chi_dot = tuple(-_dot(Sk[i], dw) for i in range(n))
-    return dq + dqs + wd + Wd + (vf[0], vf[1]) + chi_dot
+    Sk = _rows(d.Sk)
+    dw = _sub(w, W)
+    chi_dot = tuple(-_dot(Sk[i], dw) for i in range(len(Sk)))
+    return dq + dqs + tuple(wd) + tuple(Wd) + (vf[0], vf[1]) + chi_dot
+
+
+def gait_field_components(p: RobotParams, d: Derived, kin, z):
+    """Rates of the flat state in gait mode (`jsphere._gaits._gait_field`), as a tuple.
+
+    `kin` is the 9-tuple `(gamma, omega, omega_dot)` the gait prescribes at this time;
+    `Omega_dot` from the control-free sum of (3.4), `(B + D) Omega_dot = r1 + r2 - (A + B^T)
+    omega_dot` (`free_Omega_dot`), then the kinematics with the prescribed `gamma`.
+    """
+    g, w, wd = tuple(kin[0:3]), tuple(kin[3:6]), tuple(kin[6:9])
+    W = tuple(z[11:14])
+    B, D, r1, r2 = _blocks_and_forces(p, d, g, w, W)
+    A = _rows(d.A)
+    M = tuple(tuple(B[i][j] + D[i][j] for j in range(3)) for i in range(3))
+    Aw = tuple(_dot(A[i], wd) + B[0][i] * wd[0] + B[1][i] * wd[1] + B[2][i] * wd[2] for i in range(3))
+    Wd = _solve3(M, _sub(_add(r1, r2), Aw))
+    return _kinematic_rates(p, d, z, _platform_rows(z[0:4]), g, w, W, wd, Wd)

@@ -1,4 +1,4 @@
-"""Batched torque-mode solves with one step sequence for the batch (`batch_steps="shared"`,
+"""Batched torque- and gait-mode solves with one step sequence for the batch (`batch_steps="shared"`,
 the default under `vmap`; jsphere._ensemble).
 
 Every trial must still be integrated to its own tolerance: the tests compare each trial with a
@@ -126,3 +126,24 @@ def test_shared_forward_with_reverse_mode_of_a_large_batch(monkeypatch):
     (v1, g1) = jax.jit(jax.value_and_grad(lambda j: loss(j, "per_trial")))(P.j)
     assert abs(float(v - v1)) < 1e-9 * abs(float(v1))
     assert abs(float(g - g1)) < 1e-9 * abs(float(g1))
+
+
+def test_shared_steps_for_gaits():
+    """`simulate_gaits` under `vmap` over a gait parameter (problem 2 of benchmarks/): one step
+    sequence for the batch on the component layout, each trial as a single call gives it (the
+    gait tolerances rtol 1e-10, atol 1e-12: agreement ~1e-12 m); a reset between the gaits."""
+    th = jnp.array([0.05, 0.08, 0.11, 0.15])
+    ts = jnp.linspace(0.0, 4.0, 9)
+
+    def run(t):
+        return jsphere.simulate_gaits(P, [jsphere.acceleration(theta_max=t), jsphere.braking(theta_max=t)], ts=ts, reset=True)
+
+    tr = jax.jit(jax.vmap(run))(th)
+    assert np.all(np.asarray(tr.ok)) and len(set(np.asarray(tr.num_steps).tolist())) == 1
+    for i in (0, 3):
+        one = run(th[i])
+        for name in ("x", "y", "gamma", "omega", "Omega", "chi_dot", "K", "q_shell"):
+            np.testing.assert_allclose(getattr(tr, name)[i], getattr(one, name), rtol=1e-8, atol=1e-10, err_msg=name)
+        assert int(one.num_steps) <= int(tr.num_steps[i])
+    with pytest.raises(ValueError, match="batch_steps"):
+        jsphere.simulate_gaits(P, [jsphere.acceleration()], batch_steps="together")

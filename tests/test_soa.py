@@ -63,6 +63,27 @@ def test_component_field_equals_flat_field(n_wheels, damping):
         np.testing.assert_allclose(comp, flat, rtol=1e-11, atol=1e-13 * float(jnp.max(jnp.abs(flat))))
 
 
+@pytest.mark.parametrize("n_wheels,damping", [(3, True), (4, False)])
+def test_gait_component_field_equals_flat_field(n_wheels, damping):
+    """The gait-mode field on components (batched `simulate_gaits`) against `_gait_field`."""
+    from jsphere._gaits import _gait_field, _gait_field_soa
+    from jsphere._kinematics import rest_attitude
+    from jsphere._linalg import rotation_between
+
+    rng = np.random.default_rng(7 + n_wheels)
+    p = _random_robot(20 + n_wheels, n_wheels, damping)
+    d = derive(p)
+    Qm = rotation_between(jnp.array([0.0, 0.0, 1.0]), rest_attitude(p))
+    gait = jsphere.Gait(theta=jsphere.SinSquared(0.12), phi=0.4, omega_gamma=lambda t: 0.3 * jnp.sin(t), T=2.0)
+    for t in (0.1, 0.7, 1.9):
+        q, qs = rng.normal(size=4), rng.normal(size=4)
+        z = jnp.asarray(np.concatenate([q / np.linalg.norm(q), qs / np.linalg.norm(qs), rng.normal(size=6) * 3, rng.normal(size=2 + n_wheels)]))
+        args = (p, d, (gait, Qm), 0.5, 2.5)
+        flat = _gait_field(t, z, args)
+        comp = from_components(_gait_field_soa(t, to_components(z), args))
+        np.testing.assert_allclose(comp, flat, rtol=1e-11, atol=1e-13 * float(jnp.max(jnp.abs(flat))))
+
+
 class Flip(eqx.Module):
     """`K = a` before t = 1 s, `-a` after: a jump (the solve restarts there)."""
 
