@@ -89,7 +89,7 @@ def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_sa
     """One segment of `solve_segments`: `diffeqsolve(field)` of the component tuple `y0` from
     `args[3]` to `args[4]` (`args = (p, d, control, a, b)`), saving at `t_save` and `t1`.
     `field(t, y, args, K=None)` may be given the inputs `K = control(t, args)` (a `(N,)`
-    array per trial) as a tuple of scalars.
+    array or an `N`-tuple of scalars per trial) as a tuple of scalars.
 
     Returns `(ys, failed, num_accepted_steps)` with `ys` the tuple of saved components. Batched
     (under `vmap`), trials share one step sequence (module docstring).
@@ -126,16 +126,18 @@ def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_sa
         yb = jnp.stack([y if bt else jnp.broadcast_to(y, (axis_size,)) for y, bt in zip(y0, y_b)])
         l_axes = [0 if bt else None for bt in l_b]
 
-        def inputs(t, lv):  # (N, batch): each input one contiguous vector
-            return jax.vmap(lambda l: control(t, rebuild(l, a, b)), in_axes=(l_axes,), out_axes=1, axis_size=axis_size)(lv)
+        def inputs(t, lv):  # (N, batch), or N vectors of (batch,): each input contiguous
+            k = jax.vmap(lambda l: control(t, rebuild(l, a, b)), in_axes=(l_axes,), axis_size=axis_size)(lv)
+            return k if isinstance(k, tuple) else k.T
 
         def batch_field(t, y, lv):
             # The inputs are computed in a branch of their own: XLA cannot fuse them into the
             # field's kernels, which would read a batched `(batch, N)` control output strided
             # (2.4x slower at 1024 trials, benchmarks/NOTES.md session 5). The predicate is true
             # at every finite time; being a run-time value, it keeps XLA from inlining the branch.
-            K = jax.lax.cond(jnp.isfinite(t), inputs, lambda t, lv: jnp.full(jax.eval_shape(inputs, t, lv).shape, jnp.nan, y[0].dtype), t, lv)
-            K = tuple(K[i] for i in range(K.shape[0]))
+            nan = lambda t, lv: jax.tree_util.tree_map(lambda s: jnp.full(s.shape, jnp.nan, s.dtype), jax.eval_shape(inputs, t, lv))  # noqa: E731
+            K = jax.lax.cond(jnp.isfinite(t), inputs, nan, t, lv)
+            K = K if isinstance(K, tuple) else tuple(K[i] for i in range(K.shape[0]))
             rates = jax.vmap(lambda z, k, l: field(t, z, rebuild(l, a, b), k), in_axes=(0, 0, l_axes), axis_size=axis_size)(tuple(y), K, lv)  # fmt: skip
             return jnp.stack(rates)
 

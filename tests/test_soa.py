@@ -82,6 +82,11 @@ def test_gait_component_field_equals_flat_field(n_wheels, damping):
         flat = _gait_field(t, z, args)
         comp = from_components(_gait_field_soa(t, to_components(z), args))
         np.testing.assert_allclose(comp, flat, rtol=1e-11, atol=1e-13 * float(jnp.max(jnp.abs(flat))))
+    # the component kinematics, for the base class and for a subclass with its own gamma
+    for g in (gait, jsphere.smooth_gait(jnp.array([[0.1, 0.02], [-0.05, 0.03]]), jnp.array([0.2]), T=2.0)):
+        for t in (0.3, 1.4):
+            want = jnp.concatenate(g.kinematics(Qm, t))
+            np.testing.assert_allclose(jnp.stack(g.kinematics_components(Qm, t)), want, rtol=1e-12, atol=1e-14)
 
 
 class Flip(eqx.Module):
