@@ -1,6 +1,12 @@
-"""A/B in one process: problem 1 with a step size shared by the batch, against per-trial steps.
+"""A/B in one process: problems 1 and 2 with a step size shared by the batch, against per-trial steps.
 
     python benchmarks/ensemble.py [--batches 64 1024 4096] [--out benchmarks/results-ensemble.json]
+
+Problem 2 (the paper's acceleration + braking gaits, `theta_max` per trial, `simulate_gaits`
+under `vmap`, since session 7 on the shared path too) is timed in three variants: the default
+(shared steps, components), `batch_steps="per_trial"` (components from 256 trials), and the
+flat layout with per-trial steps (`jsphere._simulate.COMPONENT_LAYOUT = False`: the library
+before session 7).
 
 Three variants, compiled and timed in the same process: the public API as a user writes it
 (`jax.jit(jax.vmap(simulate))`; since session 5 its default, `batch_steps="shared"`), the public
@@ -79,6 +85,42 @@ def public_solver(p, batch_steps="shared"):
         batch_steps=batch_steps)))  # fmt: skip
 
 
+def problem2_rows(p, batches):
+    """Problem 2 (`run.problem2`) per batch: shared, per-trial (components), per-trial flat."""
+    import jsphere._simulate as S
+
+    TH = np.random.default_rng(1).uniform(0.05, 0.15, max(batches))
+    rows = []
+    for B in batches:
+        th = jnp.asarray(TH[:B])
+        out = {}
+        for name, steps, flat in (("shared", "shared", False), ("per_trial", "per_trial", False), ("per_trial_flat", "per_trial", True)):
+            old, S.COMPONENT_LAYOUT = S.COMPONENT_LAYOUT, not flat  # traced (and read) at the first call
+            try:
+                f = jax.jit(jax.vmap(lambda t, steps=steps: jsphere.simulate_gaits(
+                    p, [jsphere.acceleration(theta_max=t), jsphere.braking(theta_max=t)], ts=jnp.array([0.0, 4.0]), batch_steps=steps)))  # fmt: skip
+                r = time_call(f, th, repeats=3)
+            finally:
+                S.COMPONENT_LAYOUT = old
+            out[name] = r
+        ref = out["per_trial_flat"]["_out"]
+        row = {"batch": B}
+        for name, r in out.items():
+            tr = r["_out"]
+            row[name] = {**timings(r), "trials_per_s": B / r["median_s"], "steps_max": int(jnp.max(tr.num_steps)),
+                         "max_abs_diff_final_xy_m": float(max(jnp.max(jnp.abs(tr.x[:, -1] - ref.x[:, -1])), jnp.max(jnp.abs(tr.y[:, -1] - ref.y[:, -1]))))}  # fmt: skip
+        row["ratio_shared_vs_flat"] = out["per_trial_flat"]["median_s"] / out["shared"]["median_s"]
+        rows.append(row)
+    hdr = f"{'P2 batch':>9}{'flat per-trial /s':>19}{'per-trial /s':>14}{'shared /s':>11}{'ratio':>7}{'steps':>7}{'max |dxy| m':>13}"
+    print(hdr)
+    print("-" * len(hdr))
+    for r in rows:
+        print(f"{r['batch']:>9}{r['per_trial_flat']['trials_per_s']:>19.0f}{r['per_trial']['trials_per_s']:>14.0f}"
+              f"{r['shared']['trials_per_s']:>11.0f}{r['ratio_shared_vs_flat']:>7.2f}{r['shared']['steps_max']:>7}"
+              f"{r['shared']['max_abs_diff_final_xy_m']:>13.1e}")  # fmt: skip
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--batches", type=int, nargs="+", default=[64, 1024, 4096])
@@ -115,6 +157,7 @@ def main(argv=None) -> int:
         print(f"{r['batch']:>6}{r['per_trial_trials_per_s']:>14.0f}{r['public_trials_per_s']:>20.0f}"
               f"{r['ratio_public_vs_per_trial']:>7.2f}{r['ensemble_trials_per_s']:>14.0f}{r['public_steps']:>14}"
               f"{pt:>20}{r['max_abs_diff_final_xy_m']['public']:>13.1e}")  # fmt: skip
+    rows2 = problem2_rows(p, args.batches)
     res = {
         "problem": "problem 1 of run.py (paper robot, K_i = a_i sin(pi t + 2.1 (i-1)), [0, 4] s, rtol 1e-8, atol 1e-10)",
         "variants": {"public": "jax.jit(jax.vmap(simulate)), default batch_steps='shared'", "per_trial": "the same with batch_steps='per_trial'",
@@ -122,6 +165,8 @@ def main(argv=None) -> int:
         "device": str(jax.devices()[0].device_kind), "cpu_count": os.cpu_count(), "python": platform.python_version(),
         "jax": jax.__version__, "diffrax": dfx.__version__, "jsphere_commit": _commit(),
         "loadavg": list(os.getloadavg()) if hasattr(os, "getloadavg") else None, "rows": rows,
+        "problem2": "problem 2 of run.py (acceleration + braking gaits, theta_max ~ U(0.05, 0.15), simulate_gaits defaults rtol 1e-10)",
+        "problem2_rows": rows2,
     }  # fmt: skip
     fd, tmp = tempfile.mkstemp(dir=args.out.parent, suffix=".tmp")
     with os.fdopen(fd, "w") as f:

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from . import _aot
+from . import _aot, _simulate
 from ._controls import Constant
 from ._dynamics import free_Omega_dot, required_torques
 from ._kinematics import rest_attitude
@@ -309,7 +309,7 @@ def _solve_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, max
     sequence, with `batch_steps="shared"`) under `vmap`; reverse mode through `_reverse`."""
     flat = (solver, rtol, atol, max_steps, adjoint)
     args = (params, gaits, initial, ts_out, resets)
-    if not _traced(args) or type(adjoint) not in (dfx.RecursiveCheckpointAdjoint, dfx.ForwardMode):
+    if not _simulate.COMPONENT_LAYOUT or not _traced(args) or type(adjoint) not in (dfx.RecursiveCheckpointAdjoint, dfx.ForwardMode):
         return _aot.call("simulate_gaits", _simulate_gaits, _rebuild, *args, *flat)
     dyn, static = eqx.partition(args, lambda x: isinstance(x, jax.core.Tracer))
     leaves, treedef = jax.tree_util.tree_flatten(dyn)

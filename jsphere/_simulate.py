@@ -599,8 +599,8 @@ GRAD_CHUNK = 64
 _reverse.defvjp(_reverse_fwd, _reverse_bwd)
 
 
-#: Batched torque-mode solves use the component layout; `False` keeps the flat layout
-#: everywhere (for A/B measurements: benchmarks/layouts.py).
+#: Batched torque- and gait-mode solves use the component layout; `False` keeps the flat
+#: layout everywhere (for A/B measurements: benchmarks/layouts.py, benchmarks/ensemble.py).
 COMPONENT_LAYOUT = True
 
 
