@@ -22,13 +22,11 @@ from ._linalg import cross, matvec, rotation_between, rotmat
 from ._params import RobotParams, derive
 from ._simulate import (
     Trajectory,
-    _dispatched,
-    _has_tracer,
     _kin_rates,
     _rebuild,
-    _reverse,
     _traced,
     assemble,
+    by_layout,
     default_solver,
     raise_on_failure,
     solve_segments,
@@ -311,22 +309,7 @@ def _solve_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, max
     args = (params, gaits, initial, ts_out, resets)
     if not _simulate.COMPONENT_LAYOUT or not _traced(args) or type(adjoint) not in (dfx.RecursiveCheckpointAdjoint, dfx.ForwardMode):
         return _aot.call("simulate_gaits", _simulate_gaits, _rebuild, *args, *flat)
-    dyn, static = eqx.partition(args, lambda x: isinstance(x, jax.core.Tracer))
-    leaves, treedef = jax.tree_util.tree_flatten(dyn)
-    derived = None
-    if not _has_tracer(params):  # concrete parameters: (3.4)'s constants folded by XLA
-        with jax.ensure_compile_time_eval():
-            derived = derive(params)
-
-    def run(lv, components, adjoint=adjoint):
-        a = eqx.combine(jax.tree_util.tree_unflatten(treedef, lv), static)
-        return _simulate_gaits(*a, solver, rtol, atol, max_steps, adjoint, components=components, derived=derived)
-
-    run.cell = {}
-    run.shared = batch_steps == "shared" and not isinstance(adjoint, dfx.ForwardMode)
-    if isinstance(adjoint, dfx.ForwardMode):
-        return _dispatched(run)(leaves)
-    return _reverse(run, leaves)
+    return by_layout(_simulate_gaits, args, flat, batch_steps)
 
 
 @eqx.filter_jit  # one compiled program per kind of gait, not one per operation

@@ -617,18 +617,28 @@ def _solve(params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_ste
     args = (params, state0, controls, t0, t1, ts_out)
     if not _traced(args):  # concrete inputs: no vmap can be around this call
         return _aot.call("simulate", _simulate, _rebuild, *args, *flat)
+    return by_layout(_simulate, args, flat, batch_steps)
+
+
+def by_layout(fn, args, flat, batch_steps):
+    """`fn(*args, *flat, components=..., derived=...)` with the state layout chosen by batching:
+    the flat state for a single call, the component layout under `vmap` (with one step
+    sequence for the batch when `batch_steps == "shared"`); reverse mode through `_reverse`,
+    forward mode (`flat[-1]` a `diffrax.ForwardMode`) through `_dispatched`. `args[0]` are the
+    `RobotParams`; `flat` ends with the adjoint."""
+    adjoint = flat[-1]
     # only traced leaves are inputs of the dispatched solve; concrete ones stay constants (folded by XLA)
     dyn, static = eqx.partition(args, lambda x: isinstance(x, jax.core.Tracer))
     leaves, treedef = jax.tree_util.tree_flatten(dyn)
 
     derived = None
-    if not _has_tracer(params):  # concrete parameters: (2.4), (3.4)'s constants as constants (folded by XLA)
+    if not _has_tracer(args[0]):  # concrete parameters: (2.4), (3.4)'s constants as constants (folded by XLA)
         with jax.ensure_compile_time_eval():
-            derived = derive(params)
+            derived = derive(args[0])
 
-    def run(lv, components, adjoint=adjoint):
-        args = eqx.combine(jax.tree_util.tree_unflatten(treedef, lv), static)
-        return _simulate(*args, solver, rtol, atol, max_steps, adjoint, components=components, derived=derived)
+    def run(lv, components):
+        a = eqx.combine(jax.tree_util.tree_unflatten(treedef, lv), static)
+        return fn(*a, *flat, components=components, derived=derived)
 
     run.cell = {}
     run.shared = batch_steps == "shared" and not isinstance(adjoint, dfx.ForwardMode)
