@@ -133,29 +133,23 @@ def call(name: str, fn: Callable, rebuild: Callable, *args):
         return fn(*args)
 
 
-def _avals(leaves) -> list:
-    return [jax.ShapeDtypeStruct(np.shape(x), jnp.result_type(x), weak_type=bool(getattr(x, "weak_type", False))) for x in leaves]
-
-
 def _load_or_export(key, fn, treedef, static, leaves) -> Callable:
-    """The exported program of `key` (exported now if its file is missing or damaged), jitted."""
-    run = jax.jit(_load_or_export_program(key, fn, treedef, static, leaves).call)
-    _LOADED[key] = run
-    return run
-
-
-def _load_or_export_program(key, fn, treedef, static, leaves) -> jax.export.Exported:
     path = _DIR / f"{key}.jaxexport"
+    exported = None
     if path.exists():
         try:
-            return jax.export.deserialize(bytearray(path.read_bytes()))
+            exported = jax.export.deserialize(bytearray(path.read_bytes()))
         except Exception:  # noqa: BLE001 - a truncated or foreign file: export it again
-            pass
+            exported = None
+    if exported is None:
 
-    def flat(*lv):
-        out = fn(*eqx.combine(jax.tree_util.tree_unflatten(treedef, lv), static))
-        return jax.tree_util.tree_leaves(out)
+        def flat(*lv):
+            out = fn(*eqx.combine(jax.tree_util.tree_unflatten(treedef, lv), static))
+            return jax.tree_util.tree_leaves(out)
 
-    exported = jax.export.export(jax.jit(flat))(*_avals(leaves))
-    _write_atomic(path, bytes(exported.serialize()))
-    return exported
+        avals = [jax.ShapeDtypeStruct(np.shape(x), jnp.result_type(x), weak_type=bool(getattr(x, "weak_type", False))) for x in leaves]
+        exported = jax.export.export(jax.jit(flat))(*avals)
+        _write_atomic(path, bytes(exported.serialize()))
+    run = jax.jit(exported.call)
+    _LOADED[key] = run
+    return run
