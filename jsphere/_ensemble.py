@@ -6,11 +6,14 @@ and the batch runs as many iterations as its slowest trial. `solve` is a
 `jax.custom_batching.custom_vmap` around one segment's `diffeqsolve`: unbatched it is the
 ordinary solve; in its batching rule the whole batch is *one* ODE system whose state is an
 `(n, batch)` array (row i: component i of every trial, the right-hand side of `jsphere._soa`
-on its rows), integrated by a single unbatched
-`diffeqsolve` whose step is accepted only if every trial meets its own tolerance (the error
-norm is the largest per-trial RMS norm). At 1024 trials of the issue-6 problem this is about
-2.5x faster than per-trial steps (benchmarks/NOTES.md, session 5): a few more steps (the
-smallest any trial needs at each time), at a third of the cost per trial-step.
+on its rows), integrated with one step sequence whose steps are accepted only if every trial
+meets its own tolerance (the error norm is the largest per-trial RMS norm). For diffrax's
+Dopri8 (the default), Dopri5 and Tsit5 the integrator is `jsphere._shared_rk` (the same
+tableaus and dense output in a loop written for this layout); for any other solver it is
+`diffeqsolve` with `SharedPIDController`. At 1024 trials of the issue-6 problem the shared
+steps were 2.5x faster than per-trial steps with `diffeqsolve` (benchmarks/NOTES.md,
+session 5: a few more steps, the smallest any trial needs at each time, at a third of the
+cost per trial-step), and `_shared_rk` is another ~1.7x (session 8).
 
 What it changes, and why it is still each trial's solution to its tolerance:
 - every trial satisfies `rtol`/`atol` at every step (its error is at most the largest);
@@ -19,8 +22,8 @@ What it changes, and why it is still each trial's solution to its tolerance:
   whole batch (under `vmap` it already did: the loop runs until the slowest trial ends);
 - a trial whose rates are non-finite at the start (e.g. NaN inputs) is left out of the
   step-size control, so it does not stall the others; it is reported by `Trajectory.status`
-  as before. A trial that turns non-finite later fails the whole batch (max steps), as it
-  fails a per-trial solve.
+  as before. A trial that turns non-finite later fails the whole batch (its step size
+  collapses; with `diffeqsolve`, max steps), as it fails a per-trial solve.
 
 The rule falls back to a per-trial `vmap` when the segment's times (`t0`, `t1`, the save
 times) are batched: then there is no shared time axis.
@@ -34,6 +37,8 @@ import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+
+from . import _shared_rk
 
 
 def _trial_ok(y) -> jax.Array:
@@ -141,14 +146,21 @@ def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_sa
             rates = jax.vmap(lambda z, k, l: field(t, z, rebuild(l, a, b), k), in_axes=(0, 0, l_axes), axis_size=axis_size)(tuple(y), K, lv)  # fmt: skip
             return jnp.stack(rates)
 
-        sol = dfx.diffeqsolve(
-            dfx.ODETerm(batch_field), solver, a, b, None, yb, lv,
-            saveat=dfx.SaveAt(ts=ts, t1=True), stepsize_controller=SharedPIDController(rtol, atol),
-            max_steps=max_steps, throw=False, adjoint=adjoint,
-        )  # fmt: skip
-        ys = [sol.ys[:, i, :].T for i in range(len(y0))]  # (T+1, n, batch) -> n x (batch, T+1)
-        failed = sol.result != dfx.RESULTS.successful
-        return (ys, failed, sol.stats["num_accepted_steps"]), ([True] * len(ys), False, False)
+        tab = _shared_rk.tableau(solver)
+        if tab is not None:  # the lean loop (Dopri8, Dopri5, Tsit5)
+            live = _trial_ok(yb) & _trial_ok(batch_field(a, yb, lv))
+            out, failed, accepted = _shared_rk.solve(
+                lambda t, y: batch_field(t, y, lv), a, b, yb, ts, tab=tab, rtol=rtol, atol=atol, max_steps=max_steps, live=live
+            )
+        else:  # any other diffrax solver, in diffeqsolve
+            sol = dfx.diffeqsolve(
+                dfx.ODETerm(batch_field), solver, a, b, None, yb, lv,
+                saveat=dfx.SaveAt(ts=ts, t1=True), stepsize_controller=SharedPIDController(rtol, atol),
+                max_steps=max_steps, throw=False, adjoint=adjoint,
+            )  # fmt: skip
+            out, failed, accepted = sol.ys, sol.result != dfx.RESULTS.successful, sol.stats["num_accepted_steps"]
+        ys = [out[:, i, :].T for i in range(len(y0))]  # (T+1, n, batch) -> n x (batch, T+1)
+        return (ys, failed, accepted), ([True] * len(ys), False, False)
 
     ys, failed, steps = f(times, list(y0), p_leaves)
     return tuple(ys), failed, steps
