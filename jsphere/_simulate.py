@@ -352,7 +352,7 @@ def simulate(
       reported in `Trajectory.ok` instead (per trial under `vmap`).
     - `batch_steps`: under `vmap` (from 64 trials, `SHARED_MIN_BATCH`), in torque mode with the
       default adjoint, `"shared"` (default) integrates the batch with one step sequence,
-      accepted only when every trial meets its tolerance (~2.5x faster at 1024 trials;
+      accepted only when every trial meets its tolerance (~3.6x faster at 1024 trials;
       results depend on the batch within the tolerance; `max_steps` and `num_steps` count
       the shared steps; `jsphere._ensemble`). `"per_trial"` gives each trial its own
       step-size control, as for a single call. It changes nothing for unbatched calls, nor
