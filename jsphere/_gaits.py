@@ -250,7 +250,7 @@ def simulate_gaits(
       entry per boundary) mixes `None`/`False` (continue), `True` (as above), or an explicit
       `Omega` 3-vector (with `alpha, beta` reset too), e.g. `(-0.868, 0.852, 0)` of (5.7).
     - `rtol`, `atol`: tolerances (defaults tight enough for 1e-8 agreement of `Omega, K`).
-    - `batch_steps`: under `jax.vmap`, `"shared"` (default) integrates a batch of at least 64
+    - `batch_steps`: under `jax.vmap`, `"shared"` (default) integrates a batch of at least 32
       trials with one step sequence on contiguous components (`jsphere._ensemble`; each
       trial still meets its tolerance), `"per_trial"` gives every trial its own steps, as
       `simulate` does.

@@ -350,7 +350,7 @@ def simulate(
       `RecursiveCheckpointAdjoint`; use `diffrax.ForwardMode()` for `jax.jacfwd`).
     - `throw`: raise on solver failure (max steps, NaN). With `throw=False` the failure is
       reported in `Trajectory.ok` instead (per trial under `vmap`).
-    - `batch_steps`: under `vmap` (from 64 trials, `SHARED_MIN_BATCH`), in torque mode with the
+    - `batch_steps`: under `vmap` (from 32 trials, `SHARED_MIN_BATCH`), in torque mode with the
       default adjoint, `"shared"` (default) integrates the batch with one step sequence,
       accepted only when every trial meets its tolerance (~3.6x faster at 1024 trials;
       results depend on the batch within the tolerance; `max_steps` and `num_steps` count
@@ -471,9 +471,10 @@ def _batched_layout(run, axis_size):
 
 
 #: Smallest batch that shares one step sequence (`simulate(..., batch_steps="shared")`, the
-#: default; `jsphere._ensemble`). Problem 1 of benchmarks/: no gain at 8 trials (354 against
-#: 383 trials/s), 2.7x at 64; smaller batches keep per-trial steps and compile ~2x faster.
-SHARED_MIN_BATCH = 64
+#: default; `jsphere._ensemble`). Problem 1 of benchmarks/ with `jsphere._shared_rk` (session
+#: 8, against per-trial steps): 1.2x at 8 trials, 1.4x at 16, 2.1x at 32; smaller batches keep
+#: per-trial steps, which compile ~2x faster (5 against 10 s).
+SHARED_MIN_BATCH = 32
 
 
 #: Smallest batch that uses the component layout (`layouts.py`: at 64 trials the flat layout
