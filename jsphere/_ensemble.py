@@ -140,17 +140,15 @@ def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_sa
             # field's kernels, which would read a batched `(batch, N)` control output strided
             # (2.4x slower at 1024 trials, benchmarks/NOTES.md session 5). The predicate is true
             # at every finite time; being a run-time value, it keeps XLA from inlining the branch.
-            nan = lambda t, lv: jax.tree_util.tree_map(lambda s: jnp.full(s.shape, jnp.nan, s.dtype), jax.eval_shape(inputs, t, lv))  # noqa: E731
-            K = jax.lax.cond(jnp.isfinite(t), inputs, nan, t, lv)
+            K = _shared_rk.in_branch(inputs, t, lv)
             K = K if isinstance(K, tuple) else tuple(K[i] for i in range(K.shape[0]))
             rates = jax.vmap(lambda z, k, l: field(t, z, rebuild(l, a, b), k), in_axes=(0, 0, l_axes), axis_size=axis_size)(tuple(y), K, lv)  # fmt: skip
             return jnp.stack(rates)
 
         tab = _shared_rk.tableau(solver)
         if tab is not None:  # the lean loop (Dopri8, Dopri5, Tsit5)
-            live = _trial_ok(yb) & _trial_ok(batch_field(a, yb, lv))
             out, failed, accepted = _shared_rk.solve(
-                lambda t, y: batch_field(t, y, lv), a, b, yb, ts, tab=tab, rtol=rtol, atol=atol, max_steps=max_steps, live=live
+                lambda t, y: batch_field(t, y, lv), a, b, yb, ts, tab=tab, rtol=rtol, atol=atol, max_steps=max_steps
             )
         else:  # any other diffrax solver, in diffeqsolve
             sol = dfx.diffeqsolve(

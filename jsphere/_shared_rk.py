@@ -74,7 +74,7 @@ def _mean_sq_rows(x):
     return sum(x[i] * x[i] for i in range(x.shape[0])) / x.shape[0]
 
 
-def _in_branch(f, t, y):
+def in_branch(f, t, y):
     """`f(t, y)` evaluated in a `lax.cond` branch of its own: its output is materialised."""
 
     def nan(t, y):
@@ -83,13 +83,13 @@ def _in_branch(f, t, y):
     return jax.lax.cond(jnp.isfinite(t), f, nan, t, y)
 
 
-def solve(f, t0, t1, y0, ts, *, tab: Tableau, rtol, atol, max_steps: int, live):
+def solve(f, t0, t1, y0, ts, *, tab: Tableau, rtol, atol, max_steps: int):
     """Integrate `y' = f(t, y)` for the `(n, batch)` state `y0` from `t0` to `t1 >= t0`, with one
     step sequence for all columns (trials), saving at the sorted times `ts` (within
     `[t0, t1]`) and at `t1`.
 
-    `live` (`(batch,)` bool) marks the trials that take part in the step-size control (the
-    others, e.g. trials with non-finite inputs, are integrated but not controlled).
+    Trials (columns) whose state or rates are non-finite at `t0` (e.g. NaN inputs) are
+    integrated but left out of the step-size control.
 
     Returns `(ys, failed, num_accepted_steps)`: `ys` is `(len(ts) + 1, n, batch)`, its last row
     the state at `t1`; `failed` is true if `max_steps` steps (accepted or rejected) were taken
@@ -102,22 +102,22 @@ def solve(f, t0, t1, y0, ts, *, tab: Tableau, rtol, atol, max_steps: int, live):
     T = ts.shape[0]
     t0, t1, ts = jnp.asarray(t0, dtype), jnp.asarray(t1, dtype), jnp.asarray(ts, dtype)
     a, c = jnp.asarray(tab.a, dtype), jnp.asarray(tab.c, dtype)
-    field = f
 
-    def f(t, y):  # rates in the state's dtype
-        return field(t, y).astype(dtype)
+    def rates(t, y):  # in the state's dtype
+        return f(t, y).astype(dtype)
 
+    f0 = in_branch(rates, t0, y0)
+    live = jnp.all(jnp.isfinite(y0), axis=0) & jnp.all(jnp.isfinite(f0), axis=0)  # controlled trials
 
     def rms(x):  # the largest per-trial RMS norm over the controlled trials
         return jnp.sqrt(jnp.max(jnp.where(live, _mean_sq_rows(x), 0.0)))
 
     # the starting step (diffrax's `_select_initial_step`, with this norm)
-    f0 = _in_branch(f, t0, y0)
     scale = atol + rtol * jnp.abs(y0)
     d0, d1 = rms(y0 / scale), rms(f0 / scale)
     small = (d0 < 1e-5) | (d1 < 1e-5)
     h0 = jnp.where(small, 1e-6, 0.01 * d0 / jnp.where(small, 1.0, d1))
-    f1 = _in_branch(f, t0 + h0, y0 + h0 * f0)
+    f1 = in_branch(rates, t0 + h0, y0 + h0 * f0)
     d2 = rms((f1 - f0) / scale) / h0
     dmax = jnp.maximum(d1, d2)
     h1 = jnp.where(dmax <= 1e-15, jnp.maximum(1e-6, h0 * 1e-3), (0.01 / jnp.where(dmax <= 1e-15, 1.0, dmax)) ** (1.0 / tab.order))
@@ -131,7 +131,7 @@ def solve(f, t0, t1, y0, ts, *, tab: Tableau, rtol, atol, max_steps: int, live):
             K, _ = carry
             ai = a[i]
             yi = y + sum(jnp.where(j < i, ai[j] * K[j], 0.0) for j in range(s - 1))
-            return K.at[i].set(h * _in_branch(f, t + c[i] * h, yi)), yi
+            return K.at[i].set(h * in_branch(rates, t + c[i] * h, yi)), yi
 
         K, y1 = jax.lax.fori_loop(1, s, body, (K, y))
         err = sum(float(e) * K[j] for j, e in enumerate(tab.b_error) if e != 0.0)
@@ -158,8 +158,7 @@ def solve(f, t0, t1, y0, ts, *, tab: Tableau, rtol, atol, max_steps: int, live):
         t, h, y, k0, K, ys, j, accepted, steps, bad = carry
         h = jnp.minimum(h, t1 - t)
         y1, err, K = stages(t, h, y, k0, K)
-        sc = err / (atol + rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1)))
-        e = jnp.sqrt(jnp.max(jnp.where(live, _mean_sq_rows(sc), 0.0)))
+        e = rms(err / (atol + rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1))))
         ok = e < 1.0
         inv = jnp.where(jnp.isfinite(e), 1.0 / jnp.maximum(e, jnp.finfo(dtype).tiny), 0.0)
         factor = jnp.clip(0.9 * inv ** (1.0 / tab.order), 0.2, jnp.where(ok, 10.0, 0.9))

@@ -24,10 +24,9 @@ def _exact(t):
     return np.stack([np.cos(np.asarray(W) * t), -np.asarray(W) * np.sin(np.asarray(W) * t)])
 
 
-def _solve(solver, f=_oscillators, y0=None, t1=3.0, ts=TS, live=None, max_steps=4096, rtol=1e-8, atol=1e-10):
+def _solve(solver, f=_oscillators, y0=None, t1=3.0, ts=TS, max_steps=4096, rtol=1e-8, atol=1e-10):
     y0 = jnp.stack([jnp.ones(4), jnp.zeros(4)]) if y0 is None else y0
-    live = jnp.ones(y0.shape[1], bool) if live is None else live
-    return jax.jit(lambda y0: R.solve(f, 0.0, t1, y0, ts, tab=R.tableau(solver), rtol=rtol, atol=atol, max_steps=max_steps, live=live))(y0)
+    return jax.jit(lambda y0: R.solve(f, 0.0, t1, y0, ts, tab=R.tableau(solver), rtol=rtol, atol=atol, max_steps=max_steps))(y0)
 
 
 @pytest.mark.parametrize("solver", [dfx.Dopri8(), dfx.Dopri5(), dfx.Tsit5()], ids=lambda s: type(s).__name__)
@@ -50,8 +49,8 @@ def test_meets_the_tolerance_at_the_save_times(solver):
 
 def test_a_trial_left_out_of_the_control_does_not_change_the_others():
     y0 = jnp.stack([jnp.ones(4), jnp.zeros(4)]).at[0, 3].set(jnp.nan)
-    ys, failed, accepted = _solve(dfx.Dopri8(), y0=y0, live=jnp.array([True, True, True, False]))
-    ys3, _, accepted3 = _solve(dfx.Dopri8(), f=lambda t, y: jnp.stack([y[1], -(W[:3] ** 2) * y[0]]), y0=y0[:, :3], live=jnp.ones(3, bool))
+    ys, failed, accepted = _solve(dfx.Dopri8(), y0=y0)
+    ys3, _, accepted3 = _solve(dfx.Dopri8(), f=lambda t, y: jnp.stack([y[1], -(W[:3] ** 2) * y[0]]), y0=y0[:, :3])
     assert not bool(failed) and int(accepted) == int(accepted3)
     np.testing.assert_array_equal(ys[:, :, :3], ys3)
     assert np.all(np.isnan(np.asarray(ys[1:, :, 3])))
@@ -71,7 +70,7 @@ def test_failures_are_reported():
 
 def test_an_empty_interval_and_float32():
     y0 = jnp.stack([jnp.ones(4), jnp.zeros(4)])
-    ys, failed, accepted = jax.jit(lambda y0: R.solve(_oscillators, 1.0, 1.0, y0, jnp.array([1.0]), tab=R.tableau(dfx.Dopri8()), rtol=1e-8, atol=1e-10, max_steps=16, live=jnp.ones(4, bool)))(y0)  # fmt: skip
+    ys, failed, accepted = jax.jit(lambda y0: R.solve(_oscillators, 1.0, 1.0, y0, jnp.array([1.0]), tab=R.tableau(dfx.Dopri8()), rtol=1e-8, atol=1e-10, max_steps=16))(y0)  # fmt: skip
     assert not bool(failed) and int(accepted) == 0
     np.testing.assert_array_equal(ys, jnp.stack([y0, y0]))
     ys32, failed32, _ = _solve(dfx.Tsit5(), y0=y0.astype(jnp.float32), rtol=1e-5, atol=1e-7)
