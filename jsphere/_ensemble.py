@@ -129,30 +129,38 @@ def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_sa
         # the batch as one `(n, batch)` array: row i is component i of every trial, contiguous
         # (one leaf: diffrax's per-leaf code once, compiles ~1.5x faster than a tuple of rows)
         yb = jnp.stack([y if bt else jnp.broadcast_to(y, (axis_size,)) for y, bt in zip(y0, y_b)])
-        l_axes = [0 if bt else None for bt in l_b]
 
-        def inputs(t, lv):  # (N, batch), or N vectors of (batch,): each input contiguous
-            k = jax.vmap(lambda l: control(t, rebuild(l, a, b)), in_axes=(l_axes,), axis_size=axis_size)(lv)
+        def axes(batched):
+            return [0 if bt else None for bt in batched]
+
+        def inputs(t, args, batched):  # (N, batch), or N vectors of (batch,): each input contiguous
+            k = jax.vmap(lambda l, a, b: control(t, rebuild(l, a, b)), in_axes=(axes(batched[:-2]), *axes(batched[-2:])), axis_size=axis_size)(args[:-2], *args[-2:])  # fmt: skip
             return k if isinstance(k, tuple) else k.T
 
-        def batch_field(t, y, lv):
+        def batch_field(t, y, args, batched):
+            """The field on the batch; `args = lv + [a, b]`, `batched` says which have a
+            trial axis (the backward pass of `_shared_rk` gives shared parameters one)."""
             # The inputs are computed in a branch of their own: XLA cannot fuse them into the
             # field's kernels, which would read a batched `(batch, N)` control output strided
             # (2.4x slower at 1024 trials, benchmarks/NOTES.md session 5). The predicate is true
             # at every finite time; being a run-time value, it keeps XLA from inlining the branch.
-            K = _shared_rk.in_branch(inputs, t, lv)
+            K = _shared_rk.in_branch(lambda t, args: inputs(t, args, batched), t, args)
             K = K if isinstance(K, tuple) else tuple(K[i] for i in range(K.shape[0]))
-            rates = jax.vmap(lambda z, k, l: field(t, z, rebuild(l, a, b), k), in_axes=(0, 0, l_axes), axis_size=axis_size)(tuple(y), K, lv)  # fmt: skip
+            rates = jax.vmap(
+                lambda z, k, l, a, b: field(t, z, rebuild(l, a, b), k),
+                in_axes=(0, 0, axes(batched[:-2]), *axes(batched[-2:])), axis_size=axis_size,
+            )(tuple(y), K, args[:-2], *args[-2:])  # fmt: skip
             return jnp.stack(rates)
 
         tab = _shared_rk.tableau(solver)
         if tab is not None:  # the lean loop (Dopri8, Dopri5, Tsit5)
             out, failed, accepted = _shared_rk.solve(
-                lambda t, y: batch_field(t, y, lv), a, b, yb, ts, tab=tab, rtol=rtol, atol=atol, max_steps=max_steps
-            )
+                batch_field, a, b, yb, ts, [*lv, a, b], [*l_b, False, False], tab=tab, rtol=rtol, atol=atol, max_steps=max_steps
+            )  # fmt: skip
         else:  # any other diffrax solver, in diffeqsolve
+            flags = [*l_b, False, False]
             sol = dfx.diffeqsolve(
-                dfx.ODETerm(batch_field), solver, a, b, None, yb, lv,
+                dfx.ODETerm(lambda t, y, args: batch_field(t, y, args, flags)), solver, a, b, None, yb, [*lv, a, b],
                 saveat=dfx.SaveAt(ts=ts, t1=True), stepsize_controller=SharedPIDController(rtol, atol),
                 max_steps=max_steps, throw=False, adjoint=adjoint,
             )  # fmt: skip

@@ -24,8 +24,13 @@ dynamic-update-slice, each step a pad. Here:
   slower than that);
 - the error norm sums over the state's rows explicitly, for the same reason.
 
-The loop is forward-only: `jsphere._simulate` differentiates batched solves through the
-per-trial diffrax adjoint (`_reverse`), never through this loop.
+Reverse mode: `solve` has a discrete adjoint (a `jax.custom_vjp`): the forward pass records
+the accepted steps and checkpoints their states (`checkpoints`); the backward pass replays
+each stretch between checkpoints and runs its steps, and each step's stages, in reverse, with
+one VJP of the field per stage; parameters shared by the batch get per-trial cotangents,
+summed once. It matches diffrax's autodiff of per-trial solves (tests/test_shared_rk.py), but
+`jsphere._simulate` does not use it yet (`SHARED_ADJOINT`): on the robot's field its compiled
+backward pass was far slower than the per-trial VJP (benchmarks/NOTES.md, session 9).
 """
 
 from __future__ import annotations
@@ -83,30 +88,74 @@ def in_branch(f, t, y):
     return jax.lax.cond(jnp.isfinite(t), f, nan, t, y)
 
 
-def solve(f, t0, t1, y0, ts, *, tab: Tableau, rtol, atol, max_steps: int):
-    """Integrate `y' = f(t, y)` for the `(n, batch)` state `y0` from `t0` to `t1 >= t0`, with one
-    step sequence for all columns (trials), saving at the sorted times `ts` (within
-    `[t0, t1]`) and at `t1`.
+#: Checkpoints the forward pass of a gradient keeps (`checkpoints`): states at most this
+#: many accepted steps apart are stored, every step while the solve is short.
+CHECKPOINTS = 256
 
-    Trials (columns) whose state or rates are non-finite at `t0` (e.g. NaN inputs) are
-    integrated but left out of the step-size control.
 
-    Returns `(ys, failed, num_accepted_steps)`: `ys` is `(len(ts) + 1, n, batch)`, its last row
-    the state at `t1`; `failed` is true if `max_steps` steps (accepted or rejected) were taken
-    or the step size collapsed (e.g. a controlled trial turned non-finite) before `t1`; save
-    rows never reached are NaN.
-    """
+def checkpoints(max_steps: int) -> tuple[int, int]:
+    """`(C, S)`: the forward pass of a gradient stores the state at every `s`-th accepted step
+    in `C` slots (`s = 1`, doubled whenever the slots are full, so `s < 2 N / C` after `N`
+    steps); the backward pass replays one stretch of `s` steps at a time into `S` slots."""
+    C = max(2, min(CHECKPOINTS, max_steps))
+    C += C % 2
+    return C, max(1, -(-2 * max_steps // C))
+
+
+class _Method:
+    """One Runge-Kutta method on an `(n, batch)` state, for the field
+    `f(t, y, args, batched)` (`batched[i]`: whether `args[i]` has a leading trial axis)."""
+
+    def __init__(self, f, tab: Tableau, dtype):
+        self.f, self.tab, self.dtype = f, tab, dtype  # no arrays here: rules trace later
+        self.s = tab.a.shape[0]
+
+    def rates(self, t, y, args, batched):
+        """`f(t, y)` in the state's dtype, materialised (`in_branch`)."""
+        return in_branch(lambda t, y: self.f(t, y, args, batched).astype(self.dtype), t, y)
+
+    def stages(self, t, h, y, K, args, batched, last=True):
+        """The stage increments `K[i] = h f(t + c_i h, y + sum_j a_ij K[j])` for `i >= 1`, `K[0]`
+        given, and `y1` (the last stage's argument: first same as last). With `last=False`
+        the last stage's rates are not evaluated (`K[-1]` is left as given)."""
+        a, c, s = jnp.asarray(self.tab.a, self.dtype), jnp.asarray(self.tab.c, self.dtype), self.s
+
+        def arg(i, K):
+            ai = a[i]
+            return y + sum(jnp.where(j < i, ai[j] * K[j], 0.0) for j in range(s - 1))
+
+        def body(i, carry):
+            K, _ = carry
+            yi = arg(i, K)
+            return K.at[i].set(h * self.rates(t + c[i] * h, yi, args, batched)), yi
+
+        if last:
+            K, y1 = jax.lax.fori_loop(1, s, body, (K, y))
+        else:
+            K, _ = jax.lax.fori_loop(1, s - 1, body, (K, y))
+            y1 = y + sum(float(a_j) * K[j] for j, a_j in enumerate(self.tab.a[-1]) if a_j != 0.0)
+        return y1, K
+
+    def step(self, t, h, y, args, batched, last=True):
+        """One step from `(t, y)`, its first stage evaluated here: `(y1, K)`."""
+        K = jnp.zeros((self.s,) + y.shape, self.dtype).at[0].set(h * self.rates(t, y, args, batched))
+        return self.stages(t, h, y, K, args, batched, last)
+
+    def dense(self, t, h, y, y1, K, tj):
+        """The dense output of the step `(t, t + h]` at `tj`."""
+        return self.tab.interpolation_cls(t0=t, t1=t + h, y0=y, y1=y1, k=K).evaluate(tj).astype(self.dtype)
+
+
+def _forward(m: _Method, args, batched, t0, t1, y0, ts, *, rtol, atol, max_steps, record):
+    """The integration of `solve`; with `record`, also what its backward pass needs: the
+    accepted steps' `(t_k, h_k)`, the states at every `stride`-th of them (`checkpoints`),
+    and for each save time the index of the step that saved it (-1: none)."""
     dtype = y0.dtype
     n, B = y0.shape
-    s = tab.a.shape[0]
     T = ts.shape[0]
-    t0, t1, ts = jnp.asarray(t0, dtype), jnp.asarray(t1, dtype), jnp.asarray(ts, dtype)
-    a, c = jnp.asarray(tab.a, dtype), jnp.asarray(tab.c, dtype)
+    tab = m.tab
 
-    def rates(t, y):  # in the state's dtype
-        return f(t, y).astype(dtype)
-
-    f0 = in_branch(rates, t0, y0)
+    f0 = m.rates(t0, y0, args, batched)
     live = jnp.all(jnp.isfinite(y0), axis=0) & jnp.all(jnp.isfinite(f0), axis=0)  # controlled trials
 
     def rms(x):  # the largest per-trial RMS norm over the controlled trials
@@ -117,47 +166,50 @@ def solve(f, t0, t1, y0, ts, *, tab: Tableau, rtol, atol, max_steps: int):
     d0, d1 = rms(y0 / scale), rms(f0 / scale)
     small = (d0 < 1e-5) | (d1 < 1e-5)
     h0 = jnp.where(small, 1e-6, 0.01 * d0 / jnp.where(small, 1.0, d1))
-    f1 = in_branch(rates, t0 + h0, y0 + h0 * f0)
+    f1 = m.rates(t0 + h0, y0 + h0 * f0, args, batched)
     d2 = rms((f1 - f0) / scale) / h0
     dmax = jnp.maximum(d1, d2)
     h1 = jnp.where(dmax <= 1e-15, jnp.maximum(1e-6, h0 * 1e-3), (0.01 / jnp.where(dmax <= 1e-15, 1.0, dmax)) ** (1.0 / tab.order))
     h_init = jnp.minimum(100 * h0, h1).astype(dtype)
 
-    def stages(t, h, y, k0, K):
-        """One step's stage increments `K[i] = h f(t + c_i h, y + sum_j a_ij K[j])`."""
-        K = K.at[0].set(h * k0)
+    def save(t, h, y, y1, K, ys, j, at, k):
+        """Dense output at the save times in `(t, t + h]` (step `k`)."""
 
-        def body(i, carry):
-            K, _ = carry
-            ai = a[i]
-            yi = y + sum(jnp.where(j < i, ai[j] * K[j], 0.0) for j in range(s - 1))
-            return K.at[i].set(h * in_branch(rates, t + c[i] * h, yi)), yi
+        def more(c):
+            return (c[1] < T) & (ts[jnp.minimum(c[1], T - 1)] <= t + h)
 
-        K, y1 = jax.lax.fori_loop(1, s, body, (K, y))
-        err = sum(float(e) * K[j] for j, e in enumerate(tab.b_error) if e != 0.0)
-        return y1, err, K
+        def one(c):
+            ys, j, at = c
+            return ys.at[j].set(m.dense(t, h, y, y1, K, ts[j])), j + 1, at.at[j].set(k)
 
-    def save(t, h, y, y1, K, ys, j):
-        """Dense output at the save times in `(t, t + h]`."""
-        interp = tab.interpolation_cls(t0=t, t1=t + h, y0=y, y1=y1, k=K)
+        return jax.lax.while_loop(more, one, (ys, j, at))
 
-        def more(cj):
-            return (cj[1] < T) & (ts[jnp.minimum(cj[1], T - 1)] <= t + h)
+    def keep(rec, t, h, y, k, ok):
+        """Record the step `k` from `(t, y)` of size `h` (a rejected one is overwritten by its
+        retry): always written, to the next free slot, so no copy of the buffers is made."""
+        Y, TK, HK, stride, used = rec
+        C = Y.shape[0] - 1  # the last slot is scratch, for writes that are not kept
+        i = jnp.minimum(k, max_steps - 1)
+        TK, HK = TK.at[i].set(t), HK.at[i].set(h)
+        due = k % stride == 0
 
-        def one(cj):
-            ys, j = cj
-            return ys.at[j].set(interp.evaluate(ts[j]).astype(dtype)), j + 1
+        def compact(Y, stride, used):  # keep every other checkpoint, at twice the stride
+            Y = jax.lax.fori_loop(1, C // 2, lambda i, Y: Y.at[i].set(Y[2 * i]), Y)
+            return Y, 2 * stride, used // 2
 
-        return jax.lax.while_loop(more, one, (ys, j))
+        Y, stride, used = jax.lax.cond(due & (used == C), compact, lambda *a: a, Y, stride, used)
+        Y = Y.at[jnp.minimum(used, C)].set(y)
+        return Y, TK, HK, stride, used + (ok & due)
 
     def running(carry):
-        t, _, _, _, _, _, _, _, steps, bad = carry
+        t, _, _, _, _, _, _, _, _, steps, bad, _ = carry
         return (t < t1) & (steps < max_steps) & ~bad
 
     def step(carry):
-        t, h, y, k0, K, ys, j, accepted, steps, bad = carry
+        t, h, y, k0, K, ys, j, at, accepted, steps, bad, rec = carry
         h = jnp.minimum(h, t1 - t)
-        y1, err, K = stages(t, h, y, k0, K)
+        y1, K = m.stages(t, h, y, K.at[0].set(h * k0), args, batched)
+        err = sum(float(e) * K[i] for i, e in enumerate(tab.b_error) if e != 0.0)
         e = rms(err / (atol + rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1))))
         ok = e < 1.0
         inv = jnp.where(jnp.isfinite(e), 1.0 / jnp.maximum(e, jnp.finfo(dtype).tiny), 0.0)
@@ -165,17 +217,202 @@ def solve(f, t0, t1, y0, ts, *, tab: Tableau, rtol, atol, max_steps: int):
         t_next = jnp.where(ok, jnp.where(h >= t1 - t, t1, t + h), t)
         if T:
             due = ok & (j < T) & (ts[jnp.minimum(j, T - 1)] <= t_next)
-            ys, j = jax.lax.cond(due, lambda: save(t, h, y, y1, K, ys, j), lambda: (ys, j))
+            ys, j, at = jax.lax.cond(due, lambda: save(t, h, y, y1, K, ys, j, at, accepted), lambda: (ys, j, at))
+        if record:
+            rec = keep(rec, t, h, y, accepted, ok)
         h_next = (h * factor).astype(dtype)
         bad = (t_next < t1) & ~(h_next > 10 * jnp.finfo(dtype).eps * jnp.maximum(jnp.abs(t_next), 1.0))
         y = jnp.where(ok, y1, y)
         k0 = jnp.where(ok, K[-1] / h, k0)
-        return t_next, h_next, y, k0, K, ys, j, accepted + ok, steps + 1, bad
+        return t_next, h_next, y, k0, K, ys, j, at, accepted + ok, steps + 1, bad, rec
 
     ys = jnp.where((ts <= t0)[:, None, None], y0[None], jnp.full((T, n, B), jnp.nan, dtype))
     j = jnp.sum(ts <= t0).astype(jnp.int32)
-    K = jnp.zeros((s, n, B), dtype)
-    init = (t0, h_init, y0, f0, K, ys, j, jnp.int32(0), jnp.int32(0), jnp.bool_(False))
-    t, _, y, _, _, ys, _, accepted, _, bad = jax.lax.while_loop(running, step, init)
+    at = jnp.full((T,), -1, jnp.int32)
+    rec = ()
+    if record:
+        C, _ = checkpoints(max_steps)
+        rec = (jnp.zeros((C + 1, n, B), dtype), jnp.zeros((max_steps,), dtype), jnp.zeros((max_steps,), dtype), jnp.int32(1), jnp.int32(0))
+    K = jnp.zeros((m.s, n, B), dtype)
+    init = (t0, h_init, y0, f0, K, ys, j, at, jnp.int32(0), jnp.int32(0), jnp.bool_(False), rec)
+    t, _, y, _, _, ys, _, at, accepted, _, bad, rec = jax.lax.while_loop(running, step, init)
     failed = bad | (t < t1)
-    return jnp.concatenate([ys, y[None]]), failed, accepted
+    return (jnp.concatenate([ys, y[None]]), failed, accepted), (at, rec)
+
+
+def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct, *, max_steps, times):
+    """The discrete adjoint of `_forward`: the cotangents of `(y0, args[i] for i in diff)` for
+    the cotangent `ct` of the saved states, with the accepted steps' sizes held fixed; if
+    `times`, also those of `(t0, t1, ts)` (the exact solution's: `-<lambda(t0), f(t0, y0)>`,
+    `<ct(t1), f(t1, y(t1))>`, `<ct_j, f(ts_j, y(ts_j))>`).
+
+    Parameters shared by the batch (`batched[i]` false) are broadcast to one copy per trial,
+    so each stage's VJP gives per-trial cotangents with no reduction over the batch; they are
+    summed once at the end."""
+    ys, _, accepted = out
+    Y, TK, HK, stride, used = rec
+    _, S = checkpoints(max_steps)
+    n, B = y0.shape
+    T = ts.shape[0]
+    dtype = y0.dtype
+
+    per_trial = [x if b or i not in diff else jnp.broadcast_to(x, (B,) + jnp.shape(x)) for i, (x, b) in enumerate(zip(args, batched))]
+    pt_batched = tuple(b or i in diff for i, b in enumerate(batched))
+
+    def with_diff(dargs):
+        full = list(per_trial)
+        for i, x in zip(diff, dargs):
+            full[i] = x
+        return full
+
+    a_np, c_np, s_ = m.tab.a, m.tab.c, m.s
+    a, c = jnp.asarray(a_np, dtype), jnp.asarray(c_np, dtype)
+    dargs0 = [per_trial[i] for i in diff]
+
+    def stage_vjp(ti, yi, g, needed):
+        """`(d yi, d args)` of `<g, f(ti, yi)>`, forward and backward in a branch of their own
+        (zeros unless `needed`)."""
+
+        def one(ti, yg):
+            yi, g = yg
+            _, pull = jax.vjp(lambda y, da: m.f(ti, y, with_diff(da), pt_batched).astype(dtype), yi, dargs0)
+            return pull(g)
+
+        return jax.lax.cond(needed & jnp.isfinite(ti), one, lambda ti, yg: (jnp.zeros_like(yi), [jnp.zeros_like(x) for x in dargs0]), ti, (yi, g))
+
+    def adjoint_step(k, y, carry):
+        """Step `k` from `y` in reverse: its stages are recomputed, then run backwards stage by
+        stage (each stage's VJP on its own, so nothing is stacked across stages)."""
+        lam, acc, ts_bar, jp = carry
+        t, h = TK[k], HK[k]
+        has = ((jp >= 0) & (at[jnp.maximum(jp, 0)] == k)) if T else jnp.bool_(False)
+        # the stages, the last one only if the dense output of this step is saved
+        K = jnp.zeros((s_,) + y.shape, dtype).at[0].set(h * m.rates(t, y, per_trial, pt_batched))
+
+        def arg(i, K):
+            ai = a[i]
+            return y + sum(jnp.where(j < i, ai[j] * K[j], 0.0) for j in range(s_ - 1))
+
+        def fwd_stage(i, K):
+            return K.at[i].set(h * m.rates(t + c[i] * h, arg(i, K), per_trial, pt_batched))
+
+        K = jax.lax.fori_loop(1, jnp.where(has, s_, s_ - 1), fwd_stage, K)
+        y1 = arg(s_ - 1, K)
+
+        def more(cc):
+            return (cc[0] >= 0) & (at[jnp.maximum(cc[0], 0)] == k)
+
+        def one(cc):
+            j, gy, gy1, gK, ts_bar = cc
+            yj, ipull = jax.vjp(lambda y, y1, K: m.dense(t, h, y, y1, K, ts[j]), y, y1, K)
+            dy, dy1, dK = ipull(ct[j])
+            if times:
+                ts_bar = ts_bar.at[j].set(jnp.sum(ct[j] * m.rates(ts[j], yj, per_trial, pt_batched)))
+            return j - 1, gy + dy, gy1 + dy1, gK + dK, ts_bar
+
+        zero = jnp.zeros_like(y)
+        if T:
+            jp, gy, gy1, G, ts_bar = jax.lax.while_loop(more, one, (jp, zero, zero, jnp.zeros_like(K), ts_bar))
+        else:
+            gy, gy1, G = zero, zero, jnp.zeros_like(K)
+        last_bar = lam + gy1  # the cotangent of y1, the last stage's argument
+
+        def rev(r, cc):
+            G, ybar, acc = cc
+            i = s_ - 1 - r
+            yi = arg(i, K)
+            dyi, da = stage_vjp(t + c[i] * h, yi, h * G[i], (i < s_ - 1) | has)
+            dyi = dyi + jnp.where(i == s_ - 1, last_bar, 0.0)
+            G = G + a[i][:, None, None] * dyi[None]  # y_i = y + sum_j a_ij K_j
+            return G, ybar + dyi, [x + d for x, d in zip(acc, da)]
+
+        _, ybar, acc = jax.lax.fori_loop(0, s_, rev, (G, gy, acc))
+        return ybar, acc, ts_bar, jp
+
+    def stretch(r, c):
+        """The checkpoint stretch `g = used - 1 - r`: replay its steps from the stored state,
+        then run them in reverse."""
+        carry, Z = c
+        g = used - 1 - r
+        k0 = g * stride
+        L = jnp.minimum(stride, accepted - k0)
+        Z = Z.at[0].set(Y[g])
+
+        def replay(i, Z):
+            k = k0 + i - 1
+            return Z.at[i].set(m.step(TK[k], HK[k], Z[i - 1], per_trial, pt_batched, last=False)[0])
+
+        Z = jax.lax.fori_loop(1, L, replay, Z)
+        carry = jax.lax.fori_loop(0, L, lambda i, cc: adjoint_step(k0 + L - 1 - i, Z[L - 1 - i], cc), carry)
+        return carry, Z
+
+    acc = [jnp.zeros_like(per_trial[i]) for i in diff]
+    direct = (ts <= t0)[:, None, None]  # rows that are y0 itself
+    carry = (ct[T], acc, jnp.zeros((T,), dtype), jnp.int32(T - 1))
+    (lam, acc, ts_bar, _), _ = jax.lax.fori_loop(0, used, stretch, (carry, jnp.zeros((S, n, B), dtype)))
+    y0_bar = lam + jnp.sum(jnp.where(direct, ct[:T], 0.0), axis=0) if T else lam
+    args_bar = [a.sum(0) if not batched[i] else a for i, a in zip(diff, acc)]
+    time_bars = None
+    if times:
+        f0 = m.rates(t0, y0, per_trial, pt_batched)
+        f1 = m.rates(t1, ys[-1], per_trial, pt_batched)
+        time_bars = (-jnp.sum(lam * f0), jnp.sum(ct[T] * f1), ts_bar)
+    return y0_bar, args_bar, time_bars
+
+
+def solve(f, t0, t1, y0, ts, args=(), batched=(), *, tab: Tableau, rtol, atol, max_steps: int):
+    """Integrate `y' = f(t, y, args, batched)` for the `(n, batch)` state `y0` from `t0` to
+    `t1 >= t0`, with one step sequence for all columns (trials), saving at the sorted times `ts`
+    (within `[t0, t1]`) and at `t1`. `args` is a list of arrays; `batched[i]` says whether
+    `args[i]` has a leading trial axis (`f` must accept either).
+
+    Trials (columns) whose state or rates are non-finite at `t0` (e.g. NaN inputs) are
+    integrated but left out of the step-size control.
+
+    Returns `(ys, failed, num_accepted_steps)`: `ys` is `(len(ts) + 1, n, batch)`, its last row
+    the state at `t1`; `failed` is true if `max_steps` steps (accepted or rejected) were taken
+    or the step size collapsed (e.g. a controlled trial turned non-finite) before `t1`; save
+    rows never reached are NaN.
+
+    Reverse-mode differentiable with respect to `y0`, `args` and the times: a discrete adjoint
+    of the accepted steps (sizes held fixed), with states checkpointed in the forward pass
+    (`checkpoints`) and replayed stretch by stretch; the cotangents of the times are those of
+    the exact solution (`_backward`). Not forward-mode differentiable.
+    """
+    dtype = y0.dtype
+    t0, t1, ts = (jnp.asarray(x, dtype) for x in (t0, t1, ts))
+    args, batched = list(args), tuple(bool(b) for b in batched)
+    if len(batched) != len(args):
+        raise ValueError(f"batched: one flag per entry of args ({len(args)}), got {len(batched)}")
+    m = _Method(f, tab, dtype)
+    opts = dict(rtol=rtol, atol=atol, max_steps=max_steps)
+    cell = {}
+
+    @jax.custom_vjp
+    def core(t0, t1, ts, y0, args):
+        return _forward(m, args, batched, t0, t1, y0, ts, record=False, **opts)[0]
+
+    def fwd(t0, t1, ts, y0, args):
+        times = [x.perturbed for x in (t0, t1, ts)]
+        cell["times"] = any(times)
+        cell["diff"] = [i for i, x in enumerate(args) if x.perturbed and jnp.issubdtype(x.value.dtype, jnp.inexact)]
+        t0, t1, ts, y0 = (x.value for x in (t0, t1, ts, y0))
+        args = [x.value for x in args]
+        out, (at, rec) = _forward(m, args, batched, t0, t1, y0, ts, record=True, **opts)
+        return out, (t0, t1, ts, y0, args, out, at, rec)
+
+    def bwd(res, ct_out):
+        t0, t1, ts, y0, args, out, at, rec = res
+        ct = ct_out[0]
+        if isinstance(ct, jax.custom_derivatives.SymbolicZero):
+            ct = jnp.zeros(out[0].shape, dtype)
+        diff, times = cell["diff"], cell["times"]
+        y0_bar, d_bar, time_bars = _backward(m, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct, max_steps=max_steps, times=times)
+        args_bar = [None] * len(args)
+        for i, g in zip(diff, d_bar):
+            args_bar[i] = g
+        t_bars = time_bars if times else (None, None, None)
+        return (*t_bars, y0_bar, args_bar)
+
+    core.defvjp(fwd, bwd, symbolic_zeros=True)
+    return core(t0, t1, ts, y0, args)

@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from . import _aot, _ensemble
+from . import _aot, _ensemble, _shared_rk
 from ._controls import Torques, WheelSpeeds
 from ._dynamics import servo_accelerations, servo_jump, solve_accelerations
 from ._linalg import cross, matvec, quat_normalize, quat_rate_body, quat_rate_fixed, rotmat
@@ -522,13 +522,19 @@ def _large(axis_size, in_batched) -> bool:
     return axis_size >= COMPONENT_MIN_BATCH and any(jax.tree_util.tree_leaves(in_batched))
 
 
+def _shared_grad(run, axis_size, in_batched) -> bool:
+    """Whether a batch's gradient is the discrete adjoint of its shared steps (`_shared_rk`)."""
+    return run.shared_grad and _batched_layout(run, axis_size) == "shared" and any(jax.tree_util.tree_leaves(in_batched))
+
+
 def _reverse_fwd(run, leaves):
     """The primal with the layout chosen by batching, and residuals for `_reverse_bwd`.
 
     Unbatched or in small batches: the flat layout's VJP (diffrax's checkpointed adjoint), its
-    residuals kept as arrays (the leaves of the pullback). In large batches: the component
-    layout, and no residuals (placeholders of the same structure; the backward pass
-    recomputes). `custom_vmap` needs one output structure for both, hence the placeholders.
+    residuals kept as arrays (the leaves of the pullback). In batches that share their steps
+    (`_shared_grad`) or are large: the batched layout, and no residuals (placeholders of the
+    same structure; the backward pass recomputes). `custom_vmap` needs one output structure
+    for both, hence the placeholders.
     """
     cell = run.cell  # the pullback's structure, for the backward pass
 
@@ -544,7 +550,7 @@ def _reverse_fwd(run, leaves):
     @f.def_vmap
     def _rule(axis_size, in_batched, lv):
         (batched,) = in_batched
-        if _large(axis_size, batched):
+        if _shared_grad(run, axis_size, batched) or _large(axis_size, batched):
             out = _chunked_vmap(lambda l: run(l, _batched_layout(run, axis_size)), axis_size, in_batched, lv)
             # unbatched placeholders (one trial's worth) for the residuals the backward pass won't read
             one = [jax.ShapeDtypeStruct(jnp.shape(x)[int(b):], jnp.result_type(x)) for x, b in zip(lv, batched)]
@@ -558,8 +564,11 @@ def _reverse_fwd(run, leaves):
 
 
 def _reverse_bwd(run, residuals, ct):
-    """Apply the pullback saved by `_reverse_fwd`; in large batches recompute the flat layout's
-    VJP in chunks of `GRAD_CHUNK` trials (~1.5x faster at 1024 than one vmap of it)."""
+    """Apply the pullback saved by `_reverse_fwd`. In batches that share their steps
+    (`_shared_grad`): the VJP of the batched solve, whose shared steps have a discrete adjoint
+    (`jsphere._shared_rk`), in chunks of `BATCH_CHUNK` trials (`_shared_vjp`). In other large
+    batches: the flat layout's VJP recomputed per trial, in chunks of `GRAD_CHUNK` trials
+    (~1.5x faster at 1024 than one vmap of it)."""
     leaves, res = residuals
     res_def = run.cell["res_def"]
     flat_ct, ct_def = jax.tree_util.tree_flatten(ct)
@@ -583,7 +592,9 @@ def _reverse_bwd(run, residuals, ct):
 
     @f.def_vmap
     def _rule(axis_size, in_batched, lv, rs, cts):
-        if _large(axis_size, in_batched[0]):
+        if _shared_grad(run, axis_size, in_batched[0]):
+            out = _shared_vjp(run, axis_size, in_batched[0], in_batched[2], lv, cts, full_ct)
+        elif _large(axis_size, in_batched[0]):
             out = _chunked_vmap(recompute, axis_size, in_batched[::2], lv, cts, chunk=GRAD_CHUNK)
         else:
             in_axes = tuple(jax.tree_util.tree_map(lambda b: 0 if b else None, b) for b in in_batched)
@@ -595,6 +606,57 @@ def _reverse_bwd(run, residuals, ct):
 
 #: Chunk size of the backward pass of large batches (the flat layout's VJP, recomputed).
 GRAD_CHUNK = 64
+
+
+#: Gradients of batches with shared steps through `_shared_rk`'s discrete adjoint
+#: (`_shared_vjp`). Off: correct (3e-7 from the per-trial gradient on problem 3), but its
+#: compiled backward pass was ~700x slower than the per-trial VJP (benchmarks/NOTES.md,
+#: session 9: XLA fuses the field's whole VJP into the pads that transpose its row slices).
+SHARED_ADJOINT = False
+
+
+def _shared_vjp(run, axis_size, lv_batched, ct_batched, lv, cts, full_ct):
+    """Per-trial cotangents of the leaves `lv` of a batch solved with shared steps, for the
+    cotangents `cts` of its outputs: `jax.vjp` of the batched solve (`vmap` inside, so the
+    batching rule of `_ensemble.solve` runs before differentiation and `_shared_rk`'s adjoint
+    applies), chunk by chunk (`BATCH_CHUNK` trials: padding trials get zero cotangents). The
+    cotangents of leaves shared by the batch are sums over the batch; they are returned in the
+    first trial's row (zeros elsewhere), which sums to the same."""
+    chunk = min(axis_size, BATCH_CHUNK)
+    n = -(-axis_size // chunk)
+    pad = n * chunk - axis_size
+    in_axes = [0 if b else None for b in lv_batched]
+
+    def split(x, zero):  # (axis_size, ...) -> (n, chunk, ...); pad with the last trial (or zeros)
+        if pad:
+            x = jnp.concatenate([x, jnp.zeros_like(x[-pad:]) if zero else jnp.repeat(x[-1:], pad, axis=0)])
+        return x.reshape((n, chunk) + x.shape[1:])
+
+    ct_b = [split(c, True) if b else c for c, b in zip(cts, ct_batched)]
+    lv_b = [split(x, False) if b else x for x, b in zip(lv, lv_batched)]
+
+    inexact = [jnp.issubdtype(jnp.result_type(x), jnp.inexact) for x in lv]
+
+    def one(ch):
+        l_ch, c_ch = ch
+        full = [c if b else x for c, x, b in zip(l_ch, lv, lv_batched)]
+        cc = [c if b else x for c, x, b in zip(c_ch, cts, ct_batched)]
+        out, pull = jax.vjp(lambda l: jax.vmap(lambda x: run(x, "shared"), in_axes=(in_axes,), axis_size=chunk)(l), full)
+        g = pull(full_ct(cc, jax.tree_util.tree_leaves(out)))[0]
+        return [x if k else None for x, k in zip(g, inexact)]  # no float0 through the map
+
+    xs = ([x if b else None for x, b in zip(lv_b, lv_batched)], [c if b else None for c, b in zip(ct_b, ct_batched)])
+    grads = jax.lax.map(one, xs) if n > 1 else jax.tree_util.tree_map(lambda g: g[None], one(jax.tree_util.tree_map(lambda x: x[0], xs)))
+    result = []
+    for g, b, x in zip(grads, lv_batched, lv):
+        if g is None:  # integer leaves
+            result.append(np.zeros((axis_size,) + jnp.shape(x)[int(b):], jax.dtypes.float0))
+        elif b:
+            result.append(g.reshape((n * chunk,) + g.shape[2:])[:axis_size])
+        else:  # the batch's sum, in the first trial's row
+            total = jnp.sum(g, axis=0)
+            result.append(jnp.zeros((axis_size,) + total.shape, total.dtype).at[0].set(total))
+    return result
 
 
 _reverse.defvjp(_reverse_fwd, _reverse_bwd)
@@ -643,6 +705,8 @@ def by_layout(fn, args, flat, batch_steps):
 
     run.cell = {}
     run.shared = batch_steps == "shared" and not isinstance(adjoint, dfx.ForwardMode)
+    # gradients of shared steps by their discrete adjoint, where `_shared_rk` is the integrator
+    run.shared_grad = SHARED_ADJOINT and run.shared and _shared_rk.tableau(flat[0]) is not None
 
     if isinstance(adjoint, dfx.ForwardMode):
         return _dispatched(run)(leaves)
