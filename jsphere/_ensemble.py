@@ -139,7 +139,8 @@ def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_sa
 
         def batch_field(t, y, args, batched):
             """The field on the batch; `args = lv + [a, b]`, `batched` says which have a
-            trial axis (the backward pass of `_shared_rk` gives shared parameters one)."""
+            trial axis (the backward pass of `_shared_rk` gives shared parameters one); `y`
+            is the `(n, batch)` state or the tuple of its rows."""
             # The inputs are computed in a branch of their own: XLA cannot fuse them into the
             # field's kernels, which would read a batched `(batch, N)` control output strided
             # (2.4x slower at 1024 trials, benchmarks/NOTES.md session 5). The predicate is true

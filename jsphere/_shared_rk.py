@@ -273,10 +273,12 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
         """`(d yi, d args)` of `<g, f(ti, yi)>`, forward and backward in a branch of their own
         (zeros unless `needed`)."""
 
-        def one(ti, yg):
+        def one(ti, yg):  # with respect to the state's rows: no transposed slices (pads)
             yi, g = yg
-            _, pull = jax.vjp(lambda y, da: m.f(ti, y, with_diff(da), pt_batched).astype(dtype), yi, dargs0)
-            return pull(g)
+            rows = tuple(yi[r] for r in range(yi.shape[0]))
+            _, pull = jax.vjp(lambda y, da: m.f(ti, y, with_diff(da), pt_batched).astype(dtype), rows, dargs0)
+            dy, da = pull(g)
+            return jnp.stack(dy), da
 
         return jax.lax.cond(needed & jnp.isfinite(ti), one, lambda ti, yg: (jnp.zeros_like(yi), [jnp.zeros_like(x) for x in dargs0]), ti, (yi, g))
 
