@@ -610,8 +610,9 @@ GRAD_CHUNK = 64
 
 #: Gradients of batches with shared steps through `_shared_rk`'s discrete adjoint
 #: (`_shared_vjp`). Off: correct (3e-7 from the per-trial gradient on problem 3), but its
-#: compiled backward pass was ~700x slower than the per-trial VJP (benchmarks/NOTES.md,
-#: session 9: XLA fuses the field's whole VJP into the pads that transpose its row slices).
+#: compiled backward pass was ~140x slower than the per-trial VJP at 64 trials
+#: (benchmarks/NOTES.md, session 9: XLA fuses the field's whole VJP into the pads that
+#: transpose the slices of the parameter leaves).
 SHARED_ADJOINT = False
 
 
