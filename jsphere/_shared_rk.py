@@ -118,15 +118,11 @@ class _Method:
         """The stage increments `K[i] = h f(t + c_i h, y + sum_j a_ij K[j])` for `i >= 1`, `K[0]`
         given, and `y1` (the last stage's argument: first same as last). With `last=False`
         the last stage's rates are not evaluated (`K[-1]` is left as given)."""
-        a, c, s = jnp.asarray(self.tab.a, self.dtype), jnp.asarray(self.tab.c, self.dtype), self.s
-
-        def arg(i, K):
-            ai = a[i]
-            return y + sum(jnp.where(j < i, ai[j] * K[j], 0.0) for j in range(s - 1))
+        c, s = jnp.asarray(self.tab.c, self.dtype), self.s
 
         def body(i, carry):
             K, _ = carry
-            yi = arg(i, K)
+            yi = self.stage_arg(i, y, K)
             return K.at[i].set(h * self.rates(t + c[i] * h, yi, args, batched)), yi
 
         if last:
@@ -135,6 +131,11 @@ class _Method:
             K, _ = jax.lax.fori_loop(1, s - 1, body, (K, y))
             y1 = y + sum(float(a_j) * K[j] for j, a_j in enumerate(self.tab.a[-1]) if a_j != 0.0)
         return y1, K
+
+    def stage_arg(self, i, y, K):
+        """Stage `i`'s argument `y + sum_{j<i} a_ij K[j]`, written out as elementwise terms."""
+        ai = jnp.asarray(self.tab.a, self.dtype)[i]
+        return y + sum(jnp.where(j < i, ai[j] * K[j], 0.0) for j in range(self.s - 1))
 
     def step(self, t, h, y, args, batched, last=True):
         """One step from `(t, y)`, its first stage evaluated here: `(y1, K)`."""
@@ -265,8 +266,8 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
             full[i] = x
         return full
 
-    a_np, c_np, s_ = m.tab.a, m.tab.c, m.s
-    a, c = jnp.asarray(a_np, dtype), jnp.asarray(c_np, dtype)
+    s_ = m.s
+    a, c = jnp.asarray(m.tab.a, dtype), jnp.asarray(m.tab.c, dtype)
     dargs0 = [per_trial[i] for i in diff]
 
     def stage_vjp(ti, yi, g, needed):
@@ -291,15 +292,11 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
         # the stages, the last one only if the dense output of this step is saved
         K = jnp.zeros((s_,) + y.shape, dtype).at[0].set(h * m.rates(t, y, per_trial, pt_batched))
 
-        def arg(i, K):
-            ai = a[i]
-            return y + sum(jnp.where(j < i, ai[j] * K[j], 0.0) for j in range(s_ - 1))
-
         def fwd_stage(i, K):
-            return K.at[i].set(h * m.rates(t + c[i] * h, arg(i, K), per_trial, pt_batched))
+            return K.at[i].set(h * m.rates(t + c[i] * h, m.stage_arg(i, y, K), per_trial, pt_batched))
 
         K = jax.lax.fori_loop(1, jnp.where(has, s_, s_ - 1), fwd_stage, K)
-        y1 = arg(s_ - 1, K)
+        y1 = m.stage_arg(s_ - 1, y, K)
 
         def more(cc):
             return (cc[0] >= 0) & (at[jnp.maximum(cc[0], 0)] == k)
@@ -322,7 +319,7 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
         def rev(r, cc):
             G, ybar, acc = cc
             i = s_ - 1 - r
-            yi = arg(i, K)
+            yi = m.stage_arg(i, y, K)
             dyi, da = stage_vjp(t + c[i] * h, yi, h * G[i], (i < s_ - 1) | has)
             dyi = dyi + jnp.where(i == s_ - 1, last_bar, 0.0)
             G = G + a[i][:, None, None] * dyi[None]  # y_i = y + sum_j a_ij K_j
