@@ -103,8 +103,12 @@ def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_sa
     p_leaves, p_def = jax.tree_util.tree_flatten(dyn)
     times = [args[3], args[4], t_save]
 
-    def rebuild(lv, a, b):
-        return (*eqx.combine(jax.tree_util.tree_unflatten(p_def, lv), static), a, b)
+    # leaves of `p` and `d` that the fields (`jsphere._soa`) also take as nested tuples of scalars
+    n_pd = len(jax.tree_util.tree_leaves(dyn[:2]))
+    elementwise = [i for i in range(n_pd) if jnp.ndim(p_leaves[i]) >= 1]
+
+    def rebuild(lv, a, b):  # `static` first: a leaf of `lv` may be such a tuple
+        return (*eqx.combine(static, jax.tree_util.tree_unflatten(p_def, lv)), a, b)
 
     def one(times, y0, lv):
         a, b, ts = times
@@ -156,7 +160,8 @@ def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_sa
         tab = _shared_rk.tableau(solver)
         if tab is not None:  # the lean loop (Dopri8, Dopri5, Tsit5)
             out, failed, accepted = _shared_rk.solve(
-                batch_field, a, b, yb, ts, [*lv, a, b], [*l_b, False, False], tab=tab, rtol=rtol, atol=atol, max_steps=max_steps
+                batch_field, a, b, yb, ts, [*lv, a, b], [*l_b, False, False], tab=tab, rtol=rtol, atol=atol,
+                max_steps=max_steps, elementwise=elementwise,
             )  # fmt: skip
         else:  # any other diffrax solver, in diffeqsolve
             flags = [*l_b, False, False]

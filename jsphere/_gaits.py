@@ -31,7 +31,7 @@ from ._simulate import (
     raise_on_failure,
     solve_segments,
 )
-from ._soa import gait_field_components
+from ._soa import gait_field_components, unit
 from ._state import State
 
 
@@ -190,7 +190,7 @@ def _gait_inputs(t, args):
 def _gait_field_soa(t, y, args, kin=None):
     """`_gait_field` on a tuple of scalar components (`jsphere._soa`), for batched solves;
     `kin`: the gait's `(gamma, omega, omega_dot)` as a 9-tuple, if the caller has evaluated it."""
-    return gait_field_components(args[0], args[1], _gait_inputs(t, args) if kin is None else kin, y)
+    return gait_field_components(args[0], args[1], _gait_inputs(t, args) if kin is None else kin, y, unit(t))
 
 
 def _gait_outputs(p, d, control, t, z, a, b):

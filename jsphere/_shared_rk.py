@@ -28,9 +28,10 @@ Reverse mode: `solve` has a discrete adjoint (a `jax.custom_vjp`): the forward p
 the accepted steps and checkpoints their states (`checkpoints`); the backward pass replays
 each stretch between checkpoints and runs its steps, and each step's stages, in reverse, with
 one VJP of the field per stage; parameters shared by the batch get per-trial cotangents,
-summed once. It matches diffrax's autodiff of per-trial solves (tests/test_shared_rk.py), but
-`jsphere._simulate` does not use it yet (`SHARED_ADJOINT`): on the robot's field its compiled
-backward pass was far slower than the per-trial VJP (benchmarks/NOTES.md, session 9).
+summed once; arguments the field also takes element by element (`elementwise`: the robot's
+parameter arrays) are differentiated as tuples of scalars. It matches diffrax's autodiff of
+per-trial solves (tests/test_shared_rk.py) and is the gradient of batched `simulate` and
+`simulate_gaits` calls that share their steps (`jsphere._simulate.SHARED_ADJOINT`).
 """
 
 from __future__ import annotations
@@ -241,7 +242,7 @@ def _forward(m: _Method, args, batched, t0, t1, y0, ts, *, rtol, atol, max_steps
     return (jnp.concatenate([ys, y[None]]), failed, accepted), (at, rec)
 
 
-def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct, *, max_steps, times):
+def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct, *, max_steps, times, elementwise=()):
     """The discrete adjoint of `_forward`: the cotangents of `(y0, args[i] for i in diff)` for
     the cotangent `ct` of the saved states, with the accepted steps' sizes held fixed; if
     `times`, also those of `(t0, t1, ts)` (the exact solution's: `-<lambda(t0), f(t0, y0)>`,
@@ -249,7 +250,10 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
 
     Parameters shared by the batch (`batched[i]` false) are broadcast to one copy per trial,
     so each stage's VJP gives per-trial cotangents with no reduction over the batch; they are
-    summed once at the end."""
+    summed once at the end. The arguments in `elementwise` are differentiated element by
+    element: the field is given them as nested tuples of per-trial scalars (`_elements`), so
+    that no slice of them is transposed into a pad inside the stage VJPs (XLA fused the
+    field's whole VJP into such pads, once per element: benchmarks/NOTES.md, sessions 9-10)."""
     ys, _, accepted = out
     Y, TK, HK, stride, used = rec
     _, S = checkpoints(max_steps)
@@ -268,7 +272,8 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
 
     s_ = m.s
     a, c = jnp.asarray(m.tab.a, dtype), jnp.asarray(m.tab.c, dtype)
-    dargs0 = [per_trial[i] for i in diff]
+    dargs0 = [_elements(per_trial[i]) if i in elementwise else per_trial[i] for i in diff]
+    zeros = jax.tree_util.tree_map(jnp.zeros_like, dargs0)
 
     def stage_vjp(ti, yi, g, needed):
         """`(d yi, d args)` of `<g, f(ti, yi)>`, forward and backward in a branch of their own
@@ -278,10 +283,13 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
             yi, g = yg
             rows = tuple(yi[r] for r in range(yi.shape[0]))
             _, pull = jax.vjp(lambda y, da: m.f(ti, y, with_diff(da), pt_batched).astype(dtype), rows, dargs0)
-            dy, da = pull(g)
-            return jnp.stack(dy), da
+            return pull(g)  # rows stay separate buffers: stacked outside the branch
 
-        return jax.lax.cond(needed & jnp.isfinite(ti), one, lambda ti, yg: (jnp.zeros_like(yi), [jnp.zeros_like(x) for x in dargs0]), ti, (yi, g))
+        def none(ti, yg):
+            return tuple(jnp.zeros_like(yi[0]) for _ in range(yi.shape[0])), zeros
+
+        dy, da = jax.lax.cond(needed & jnp.isfinite(ti), one, none, ti, (yi, g))
+        return jnp.stack(dy), da
 
     def adjoint_step(k, y, carry):
         """Step `k` from `y` in reverse: its stages are recomputed, then run backwards stage by
@@ -323,7 +331,7 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
             dyi, da = stage_vjp(t + c[i] * h, yi, h * G[i], (i < s_ - 1) | has)
             dyi = dyi + jnp.where(i == s_ - 1, last_bar, 0.0)
             G = G + a[i][:, None, None] * dyi[None]  # y_i = y + sum_j a_ij K_j
-            return G, ybar + dyi, [x + d for x, d in zip(acc, da)]
+            return G, ybar + dyi, jax.tree_util.tree_map(jnp.add, acc, da)
 
         _, ybar, acc = jax.lax.fori_loop(0, s_, rev, (G, gy, acc))
         return ybar, acc, ts_bar, jp
@@ -345,11 +353,12 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
         carry = jax.lax.fori_loop(0, L, lambda i, cc: adjoint_step(k0 + L - 1 - i, Z[L - 1 - i], cc), carry)
         return carry, Z
 
-    acc = [jnp.zeros_like(per_trial[i]) for i in diff]
+    acc = zeros
     direct = (ts <= t0)[:, None, None]  # rows that are y0 itself
     carry = (ct[T], acc, jnp.zeros((T,), dtype), jnp.int32(T - 1))
     (lam, acc, ts_bar, _), _ = jax.lax.fori_loop(0, used, stretch, (carry, jnp.zeros((S, n, B), dtype)))
     y0_bar = lam + jnp.sum(jnp.where(direct, ct[:T], 0.0), axis=0) if T else lam
+    acc = [_assemble(a) if i in elementwise else a for i, a in zip(diff, acc)]
     args_bar = [a.sum(0) if not batched[i] else a for i, a in zip(diff, acc)]
     time_bars = None
     if times:
@@ -359,7 +368,22 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
     return y0_bar, args_bar, time_bars
 
 
-def solve(f, t0, t1, y0, ts, args=(), batched=(), *, tab: Tableau, rtol, atol, max_steps: int):
+def _elements(x):
+    """A `(batch, *shape)` array as nested tuples (one level per axis of `shape`) of its
+    `(batch,)` columns; `(batch,)` itself as it is."""
+    if x.ndim == 1:
+        return x
+    return tuple(_elements(x[:, i]) for i in range(x.shape[1]))
+
+
+def _assemble(e):
+    """The inverse of `_elements`."""
+    if isinstance(e, tuple):
+        return jnp.stack([_assemble(c) for c in e], axis=1)
+    return e
+
+
+def solve(f, t0, t1, y0, ts, args=(), batched=(), *, tab: Tableau, rtol, atol, max_steps: int, elementwise=()):
     """Integrate `y' = f(t, y, args, batched)` for the `(n, batch)` state `y0` from `t0` to
     `t1 >= t0`, with one step sequence for all columns (trials), saving at the sorted times `ts`
     (within `[t0, t1]`) and at `t1`. `args` is a list of arrays; `batched[i]` says whether
@@ -376,7 +400,9 @@ def solve(f, t0, t1, y0, ts, args=(), batched=(), *, tab: Tableau, rtol, atol, m
     Reverse-mode differentiable with respect to `y0`, `args` and the times: a discrete adjoint
     of the accepted steps (sizes held fixed), with states checkpointed in the forward pass
     (`checkpoints`) and replayed stretch by stretch; the cotangents of the times are those of
-    the exact solution (`_backward`). Not forward-mode differentiable.
+    the exact solution (`_backward`). Not forward-mode differentiable. `elementwise` lists
+    the `args` that `f` also accepts as nested tuples of per-trial scalars (as `_elements`
+    makes them; the backward pass differentiates these element by element).
     """
     dtype = y0.dtype
     t0, t1, ts = (jnp.asarray(x, dtype) for x in (t0, t1, ts))
@@ -406,7 +432,9 @@ def solve(f, t0, t1, y0, ts, args=(), batched=(), *, tab: Tableau, rtol, atol, m
         if isinstance(ct, jax.custom_derivatives.SymbolicZero):
             ct = jnp.zeros(out[0].shape, dtype)
         diff, times = cell["diff"], cell["times"]
-        y0_bar, d_bar, time_bars = _backward(m, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct, max_steps=max_steps, times=times)
+        y0_bar, d_bar, time_bars = _backward(
+            m, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct, max_steps=max_steps, times=times, elementwise=set(elementwise)
+        )
         args_bar = [None] * len(args)
         for i, g in zip(diff, d_bar):
             args_bar[i] = g

@@ -17,7 +17,7 @@ from ._controls import Torques, WheelSpeeds
 from ._dynamics import servo_accelerations, servo_jump, solve_accelerations
 from ._linalg import cross, matvec, quat_normalize, quat_rate_body, quat_rate_fixed, rotmat
 from ._params import Derived, RobotParams, derive
-from ._soa import from_components, to_components, torque_field_components
+from ._soa import from_components, to_components, torque_field_components, unit
 from ._state import State, _unflatten
 
 
@@ -117,7 +117,7 @@ def _torque_field_soa(t, y, args, K=None):
     if K is None:
         K = _torque_control(t, args)
         K = tuple(K[..., i] for i in range(K.shape[-1]))
-    return torque_field_components(p, d, K, y)
+    return torque_field_components(p, d, K, y, unit(t))
 
 
 def _servo_inputs(d: Derived, control: WheelSpeeds, t):
@@ -354,9 +354,10 @@ def simulate(
       default adjoint, `"shared"` (default) integrates the batch with one step sequence,
       accepted only when every trial meets its tolerance (~3.6x faster at 1024 trials;
       results depend on the batch within the tolerance; `max_steps` and `num_steps` count
-      the shared steps; `jsphere._ensemble`). `"per_trial"` gives each trial its own
-      step-size control, as for a single call. It changes nothing for unbatched calls, nor
-      when `t0`, `t1`, `ts` or `jump_ts` are batched.
+      the shared steps; `jsphere._ensemble`); its gradient is the discrete adjoint of the
+      shared steps (within the tolerance of the per-trial gradient). `"per_trial"` gives each
+      trial its own step-size control, as for a single call. It changes nothing for
+      unbatched calls, nor when `t0`, `t1`, `ts` or `jump_ts` are batched.
 
     Pure JAX: jit, vmap (over parameters, states, controls) and grad work.
     """
@@ -407,8 +408,10 @@ def simulate(
 # `custom_vmap` directly (its `jvp` is supported). Other adjoints, wheel-speed mode and
 # concrete (untraced) calls keep the flat layout. From `SHARED_MIN_BATCH` trials (and unless
 # `batch_steps="per_trial"`) the undifferentiated batched pass also shares one step sequence
-# over the batch (`jsphere._ensemble`, a `custom_vmap` around each segment's solve); the
-# backward pass of a gradient still recomputes each trial's own per-trial solve.
+# over the batch (`jsphere._ensemble`, a `custom_vmap` around each segment's solve), and the
+# backward pass of a gradient is then the discrete adjoint of those shared steps
+# (`_shared_rk`, `SHARED_ADJOINT`); with `batch_steps="per_trial"` it recomputes each trial's
+# own solve.
 
 
 class _ClosedControl(eqx.Module):
@@ -609,11 +612,12 @@ GRAD_CHUNK = 64
 
 
 #: Gradients of batches with shared steps through `_shared_rk`'s discrete adjoint
-#: (`_shared_vjp`). Off: correct (3e-7 from the per-trial gradient on problem 3), but its
-#: compiled backward pass was ~140x slower than the per-trial VJP at 64 trials
-#: (benchmarks/NOTES.md, session 9: XLA fuses the field's whole VJP into the pads that
-#: transpose the slices of the parameter leaves).
-SHARED_ADJOINT = False
+#: (`_shared_vjp`): on problem 3, 1.5x faster than the per-trial flat VJP at 64 trials and
+#: 2.3x at 1024, within 3e-7 of its gradient (benchmarks/NOTES.md, session 10; in session 9
+#: it was ~140x slower, until the parameter leaves reached the field's VJPs element by
+#: element and the field's `kept` points stopped XLA recomputing shared parts per kernel).
+#: `False` gives every batch the per-trial VJP.
+SHARED_ADJOINT = True
 
 
 def _shared_vjp(run, axis_size, lv_batched, ct_batched, lv, cts, full_ct):

@@ -17,6 +17,7 @@ field against `jsphere._gaits._gait_field`).
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 from ._params import Derived, RobotParams
@@ -43,7 +44,10 @@ def _mtv(M, v):
 
 
 def _rows(A):
-    """A constant or traced `(m, n)` array as a tuple of rows of scalars."""
+    """A constant or traced `(m, n)` array as a tuple of rows of scalars (nested tuples of
+    scalars, as the backward pass of `jsphere._shared_rk` gives them, are returned as they are)."""
+    if isinstance(A, tuple):
+        return A
     return tuple(tuple(A[i, j] for j in range(A.shape[1])) for i in range(A.shape[0]))
 
 
@@ -75,18 +79,36 @@ def from_components(c):
 # --------------------------------------------------------------------------- the field
 
 
-def torque_field_components(p: RobotParams, d: Derived, K, z):
+def unit(t):
+    """A run-time one (NaN at a non-finite `t`), for `kept`."""
+    return jnp.where(jnp.isfinite(t), 1.0, jnp.nan).astype(jnp.result_type(t, float))
+
+
+def kept(tree, one):
+    """`tree / one` with `one = unit(t)`: the same values (a division by one is exact), but a
+    division is an expensive operation to XLA, so it computes each such value once, in its own
+    kernel, instead of again inside every kernel that uses it; a reverse-mode derivative
+    divides the value's cotangent by `one` too, with the same effect. Without these points
+    XLA recomputed the Schur complement of (3.5) in each acceleration's kernel, and its VJP
+    in each cotangent's (benchmarks/NOTES.md, session 10). `one=None`: `tree` as it is."""
+    if one is None:
+        return tree
+    return jax.tree_util.tree_map(lambda x: x / one, tree)
+
+
+def torque_field_components(p: RobotParams, d: Derived, K, z, one=None):
     """Rates of the flat state `[q, q_shell, omega, Omega, x, y, chi]` in torque mode, as a tuple.
 
     (3.4) with (3.5) for `(omega_dot, Omega_dot)` (the Schur complement of the constant
     `omega` block, Cramer's rule for the 3x3 solve, as in `solve_accelerations`), the
     quaternion kinematics of platform and shell, (2.3) for `(x_dot, y_dot)` and (2.4) for
     `chi_dot`. `K` is a tuple of the `N` axle torques; `z` a tuple of the `16+N` state
-    components. Identical in value to `jsphere._simulate._torque_field` (to rounding).
+    components; `one`, if given, `unit(t)` (see `kept`). Identical in value to
+    `jsphere._simulate._torque_field` (to rounding).
     """
     n = len(K)
     w, W = tuple(z[8:11]), tuple(z[11:14])
-    R = _platform_rows(z[0:4])
+    R = kept(_platform_rows(z[0:4]), one)
     g = R[2]
     B, D, r1, r2 = _blocks_and_forces(p, d, g, w, W)
     Ainv, Sk = _rows(d.A_inv), _rows(d.Sk)
@@ -100,8 +122,9 @@ def torque_field_components(p: RobotParams, d: Derived, K, z):
     S = tuple(tuple(D[i][j] - sum(B[k][i] * X[k][j] for k in range(3)) for j in range(3)) for i in range(3))
     a1 = _mv(Ainv, r1)
     rhs = _sub(r2, _mtv(B, a1))
+    X, S, a1, rhs = kept((X, S, a1, rhs), one)
     Wd = _solve3(S, rhs)
-    wd = _sub(a1, _mv(X, Wd))
+    wd, Wd = kept((_sub(a1, _mv(X, Wd)), Wd), one)
     return _kinematic_rates(p, d, z, R, g, w, W, wd, Wd)
 
 
@@ -178,16 +201,18 @@ def _kinematic_rates(p: RobotParams, d: Derived, z, R, g, w, W, wd, Wd):
     return dq + dqs + tuple(wd) + tuple(Wd) + (vf[0], vf[1]) + chi_dot
 
 
-def gait_field_components(p: RobotParams, d: Derived, kin, z):
+def gait_field_components(p: RobotParams, d: Derived, kin, z, one=None):
     """Rates of the flat state in gait mode (`jsphere._gaits._gait_field`), as a tuple.
 
     `kin` is the 9-tuple `(gamma, omega, omega_dot)` the gait prescribes at this time;
     `Omega_dot` from the control-free sum of (3.4), `(B + D) Omega_dot = r1 + r2 - (A + B^T)
-    omega_dot` (`free_Omega_dot`), then the kinematics with the prescribed `gamma`.
+    omega_dot` (`free_Omega_dot`), then the kinematics with the prescribed `gamma`; `one` as
+    in `torque_field_components`.
     """
     g, w, wd = tuple(kin[0:3]), tuple(kin[3:6]), tuple(kin[6:9])
     W = tuple(z[11:14])
     B, D, r1, r2 = _blocks_and_forces(p, d, g, w, W)
     M = tuple(_add(Bi, Di) for Bi, Di in zip(B, D))
-    Wd = _solve3(M, _sub(_add(r1, r2), _add(_mv(_rows(d.A), wd), _mtv(B, wd))))
-    return _kinematic_rates(p, d, z, _platform_rows(z[0:4]), g, w, W, wd, Wd)
+    M, rhs = kept((M, _sub(_add(r1, r2), _add(_mv(_rows(d.A), wd), _mtv(B, wd)))), one)
+    Wd = kept(_solve3(M, rhs), one)
+    return _kinematic_rates(p, d, z, kept(_platform_rows(z[0:4]), one), g, w, W, wd, Wd)

@@ -162,3 +162,35 @@ def test_the_adjoint_of_a_batch_with_a_saved_start_and_no_save_times():
     np.testing.assert_allclose(g[1], v1 + np.sin(np.asarray(W)) / np.asarray(W), rtol=1e-7, atol=1e-8)
     g_none = jax.grad(lambda y0: jnp.sum(R.solve(_oscillators, 0.0, 1.0, y0, jnp.zeros((0,)), tab=tab, rtol=1e-10, atol=1e-12, max_steps=4096)[0][-1, 0]))(y0)
     np.testing.assert_allclose(g_none[0], np.cos(np.asarray(W)), rtol=1e-7)
+
+
+def _linear(t, y, args, batched):  # y' = M y, M (2, 2) per trial or shared, or nested tuples of its elements
+    (M,) = args
+    rows = M if isinstance(M, tuple) else tuple(tuple(M[..., i, j] for j in range(2)) for i in range(2))
+    return jnp.stack([rows[i][0] * y[0] + rows[i][1] * y[1] for i in range(2)])
+
+
+@pytest.mark.parametrize("batched", [True, False], ids=["per-trial", "shared"])
+def test_the_adjoint_of_an_argument_taken_element_by_element(batched):
+    """An argument in `elementwise` reaches the field's VJPs as nested tuples of per-trial
+    scalars (`_elements`): the same gradient as the array itself, and as central differences."""
+    y0 = jnp.stack([jnp.ones(3), jnp.linspace(-1.0, 1.0, 3)])
+    M0 = jnp.array([[-0.3, 1.0], [-2.0, -0.1]])
+    M = jnp.stack([M0, 1.1 * M0, 0.9 * M0]) if batched else M0
+    ts = jnp.linspace(0.5, 2.0, 4)
+
+    def loss(M, elementwise):
+        ys, _, _ = R.solve(_linear, 0.0, 2.0, y0, ts, [M], [batched], tab=R.tableau(dfx.Dopri5()), rtol=1e-11, atol=1e-13,
+                           max_steps=4096, elementwise=elementwise)  # fmt: skip
+        return _weighted(ys)
+
+    g_el = jax.jit(jax.grad(lambda M: loss(M, [0])))(M)
+    g_arr = jax.jit(jax.grad(lambda M: loss(M, [])))(M)
+    assert g_el.shape == M.shape
+    np.testing.assert_allclose(g_el, g_arr, rtol=1e-12, atol=1e-13)
+    f = jax.jit(lambda M: loss(M, []))
+    idx = (1, 0, 1) if batched else (0, 1)
+    h = 1e-6
+    e = jnp.zeros_like(M).at[idx].set(h)
+    fd = (float(f(M + e)) - float(f(M - e))) / (2 * h)
+    assert abs(float(g_el[idx]) - fd) < 1e-6 * max(1.0, abs(fd))
