@@ -34,6 +34,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._linalg import under_jit
+
 _DIR: Path | None = None
 _LOADED: dict[str, Callable] = {}
 _FAILED: set[str] = set()  # keys whose export failed in this process (e.g. host callbacks)
@@ -119,7 +121,7 @@ def call(name: str, fn: Callable, rebuild: Callable, *args):
         return fn(*args)
     dyn, static = eqx.partition(args, eqx.is_array)
     leaves, treedef = jax.tree_util.tree_flatten(dyn)
-    if any(isinstance(x, jax.core.Tracer) for x in leaves) or isinstance(jnp.zeros(()) + 0.0, jax.core.Tracer):
+    if any(isinstance(x, jax.core.Tracer) for x in leaves) or under_jit():
         return fn(*args)  # traced inputs, or inside a user's jit: nothing to export
     key = _key(name, leaves, treedef, static)
     if key is None or key in _FAILED:

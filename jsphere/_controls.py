@@ -16,6 +16,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._kinematics import kinematic_wheel_speeds
+from ._linalg import to_jax
 from ._params import RobotParams
 
 
@@ -199,7 +200,7 @@ def kinematic_control(
 class Constant(eqx.Module):
     """A constant function of time."""
 
-    value: Float[Array, ""] = eqx.field(converter=jnp.asarray)
+    value: Float[Array, ""] = eqx.field(converter=to_jax)
 
     def __call__(self, t):
         return self.value + jnp.zeros_like(t)
@@ -212,8 +213,8 @@ class StraightLine(eqx.Module):
     is the paper's `y`; see `docs/model.md`).
     """
 
-    speed: Float[Array, ""] = eqx.field(converter=jnp.asarray)
-    heading: Float[Array, ""] = eqx.field(converter=jnp.asarray, default=0.0)
+    speed: Float[Array, ""] = eqx.field(converter=to_jax)
+    heading: Float[Array, ""] = eqx.field(converter=to_jax, default=0.0)
 
     def __call__(self, t):
         return self.speed * t * jnp.stack([jnp.cos(self.heading), jnp.sin(self.heading)])

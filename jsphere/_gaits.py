@@ -18,7 +18,7 @@ from . import _aot, _simulate
 from ._controls import Constant
 from ._dynamics import free_Omega_dot, required_torques
 from ._kinematics import rest_attitude
-from ._linalg import cross, matvec, rotation_between, rotmat
+from ._linalg import as_array, cross, matvec, rotation_between, rotmat
 from ._params import RobotParams, derive
 from ._simulate import (
     Trajectory,
@@ -39,7 +39,7 @@ def _real(x):
     """A float array of the default float dtype (strongly typed), so that Python floats and
     NumPy/JAX scalars give the same compiled function."""
     dtype = x.dtype if hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.floating) else jnp.result_type(float)
-    return jnp.asarray(x, dtype=dtype)
+    return as_array(x, dtype)
 
 
 class SinSquared(eqx.Module):
@@ -132,6 +132,11 @@ class Gait(eqx.Module):
         return g + omega + omega_dot
 
 
+def _negative(x):
+    """`-x`, by NumPy for a Python or NumPy value (no compiled program)."""
+    return -x if isinstance(x, (jax.Array, jax.core.Tracer)) else -np.asarray(x, dtype=float)
+
+
 def _check_period(T, period, name):
     if isinstance(T, jax.core.Tracer) or isinstance(period, jax.core.Tracer):
         return
@@ -149,21 +154,21 @@ def acceleration(theta_max: float = 0.1, phi: float = 0.0, T: float = 2.0, *, pe
     For the paper's robot and `phi = 0`, accelerates from rest to `Omega = (0, 0.864, 0)` 1/s,
     i.e. rolling along the fixed `+X` axis at 0.1296 m/s.
     """
-    _check_period(jnp.asarray(T), jnp.asarray(period), "acceleration")
-    return Gait(theta=SinSquared(jnp.asarray(theta_max), jnp.asarray(period)), phi=phi, T=T)
+    _check_period(T, period, "acceleration")
+    return Gait(theta=SinSquared(theta_max, period), phi=phi, T=T)
 
 
 def braking(theta_max: float = 0.1, phi: float = 0.0, T: float = 2.0, *, period: float = 1.0) -> Gait:
     """Braking (5.3): `theta = -theta_max sin^2(pi t)`, `phi = phi_0`, `omega_gamma = 0`."""
-    _check_period(jnp.asarray(T), jnp.asarray(period), "braking")
-    return Gait(theta=SinSquared(-jnp.asarray(theta_max), jnp.asarray(period)), phi=phi, T=T)
+    _check_period(T, period, "braking")
+    return Gait(theta=SinSquared(_negative(theta_max), period), phi=phi, T=T)
 
 
 def turn(theta_max: float = 0.1, phi: float = math.pi / 2, T: float = 2.0, *, period: float = 1.0) -> Gait:
     """Turn (5.6): `theta = theta_max sin^2(pi t)`, `phi = pi/2`, `omega_gamma = 0`: adds a
     velocity at right angles to the motion after (5.1)."""
-    _check_period(jnp.asarray(T), jnp.asarray(period), "turn")
-    return Gait(theta=SinSquared(jnp.asarray(theta_max), jnp.asarray(period)), phi=phi, T=T)
+    _check_period(T, period, "turn")
+    return Gait(theta=SinSquared(theta_max, period), phi=phi, T=T)
 
 
 # ----------------------------------------------------------------------- integration
@@ -268,7 +273,7 @@ def simulate_gaits(
         if len(resets) != nb:
             raise ValueError(f"simulate_gaits: reset needs one entry per gait boundary ({nb}); got {len(resets)}.")
     dt = params.R0.dtype
-    initial = tuple(jnp.asarray(v, dt) for v in (alpha0, beta0, Omega0, x0, y0))
+    initial = tuple(as_array(v, dt) for v in (alpha0, beta0, Omega0, x0, y0))
     _check_start(params, gaits[0], initial[0], initial[1])
 
     if ts is None:
@@ -276,15 +281,15 @@ def simulate_gaits(
             raise ValueError("simulate_gaits: pass `ts` when gait durations are traced (under jit/grad).")
         starts = np.cumsum([0.0] + [float(g.T) for g in gaits])[:-1]
         grids = [a + np.linspace(0.0, float(g.T), max(2, int(round(float(g.T) * rate)) + 1)) for g, a in zip(gaits, starts)]
-        ts_out = jnp.asarray(np.concatenate(grids), dt)
+        ts_out = as_array(np.concatenate(grids), dt)
     else:
-        ts_out = jnp.asarray(ts, dt)
+        ts_out = as_array(ts, dt)
     for i, r in enumerate(resets):
         if not (r is None or isinstance(r, bool)) and np.shape(r) != (3,):
             raise ValueError(f"simulate_gaits: reset[{i}] must be None, True/False or an Omega 3-vector; got shape {np.shape(r)}.")
     # one compiled function per number of gaits: reset modes and values are data
-    modes = jnp.asarray([0 if (r is None or r is False) else 1 if r is True else 2 for r in resets], jnp.int32)
-    values = jnp.stack([jnp.zeros(3, dt) if (r is None or isinstance(r, bool)) else jnp.asarray(r, dt) for r in resets]) if nb else jnp.zeros((0, 3), dt)
+    modes = as_array([0 if (r is None or r is False) else 1 if r is True else 2 for r in resets], np.int32)
+    values = as_array([np.zeros(3) if (r is None or isinstance(r, bool)) else r for r in resets] if nb else np.zeros((0, 3)), dt)
     if values.shape != (nb, 3):
         raise ValueError(f"simulate_gaits: an explicit reset must be an Omega 3-vector; got shapes {values.shape}.")
     resets = (modes, values)
@@ -313,13 +318,15 @@ def _solve_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, max
 
 
 @eqx.filter_jit  # one compiled program per kind of gait, not one per operation
-def _start_angles(gait: Gait):
-    return gait.theta(0.0), gait.phi(0.0)
+def _start_gamma(r_m, gait: Gait):
+    """The gait's `gamma(0)` for a robot whose rest attitude is `gamma_m = -r_m/|r_m|` (2.5)."""
+    Qm = rotation_between(jnp.array([0.0, 0.0, 1.0], r_m.dtype), -r_m / jnp.linalg.norm(r_m))
+    return gait.gamma(Qm, jnp.zeros((), r_m.dtype))
 
 
 def _check_start(params, gait, alpha0, beta0) -> None:
     """With concrete inputs: `alpha0, beta0` orthonormal and `alpha0 x beta0` equal to the first
-    gait's `gamma(0)` (NumPy, and one compiled call for the gait's angles at 0: no eager JAX
+    gait's `gamma(0)` (NumPy, and one compiled call for the gait's `gamma(0)`: no eager JAX
     operations, each of which would be a small program to compile or load from the cache)."""
     if any(isinstance(v, jax.core.Tracer) for v in (alpha0, beta0, params.r_m)):
         return
@@ -327,12 +334,9 @@ def _check_start(params, gait, alpha0, beta0) -> None:
     if abs(np.linalg.norm(a) - 1) > 1e-6 or abs(np.linalg.norm(b) - 1) > 1e-6 or abs(a @ b) > 1e-6:
         raise ValueError(f"simulate_gaits: alpha0 and beta0 must be orthonormal; got {a}, {b}.")
     try:
-        th, ph = (float(v) for v in _start_angles(gait))
-    except (TypeError, jax.errors.ConcretizationTypeError):  # gait coefficients are traced
+        g0 = np.asarray(_start_gamma(params.r_m, gait), np.float64)
+    except (TypeError, jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError):  # traced gait coefficients
         return
-    gm = -np.asarray(params.r_m, np.float64) / np.linalg.norm(np.asarray(params.r_m, np.float64))
-    Qm = np.asarray(rotation_between(np.array([0.0, 0.0, 1.0]), gm))
-    g0 = Qm @ np.array([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)])
     gamma0 = np.cross(a, b)
     if np.max(np.abs(gamma0 - g0)) > 1e-6:
         raise ValueError(

@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ._linalg import cross, dot, inv3, outer
+from ._linalg import as_array, cross, dot, inv3, outer
 
 #: Values of the two parameters the paper omits, inferred from its own numbers
 #: (Omega_1 = 0.864 1/s after (5.1) and 0.852 1/s after the turn (5.6)); see docs/model.md.
@@ -81,7 +81,7 @@ class RobotParams(eqx.Module):
     def __init__(self, R0, m0, I0, Rw, wheel_r, wheel_n, wheel_alpha, m, I, r_m, j=0.0, g=9.81, c_roll=0.0, c_axle=0.0, *, dtype=None):
         if dtype is None:
             dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
-        as_ = lambda x: jnp.asarray(x, dtype=dtype)  # noqa: E731
+        as_ = lambda x: as_array(x, dtype)  # noqa: E731
         self.R0, self.m0, self.I0, self.Rw = as_(R0), as_(m0), as_(I0), as_(Rw)
         self.wheel_r, self.wheel_n, self.wheel_alpha = as_(wheel_r), as_(wheel_n), as_(wheel_alpha)
         self.m, self.I, self.r_m, self.j, self.g = as_(m), as_(I), as_(r_m), as_(j), as_(g)

@@ -15,7 +15,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from . import _aot, _ensemble, _shared_rk
 from ._controls import Torques, WheelSpeeds
 from ._dynamics import servo_accelerations, servo_jump, solve_accelerations
-from ._linalg import cross, matvec, quat_normalize, quat_rate_body, quat_rate_fixed, rotmat
+from ._linalg import as_array, cross, matvec, quat_normalize, quat_rate_body, quat_rate_fixed, rotmat, under_jit
 from ._params import Derived, RobotParams, derive
 from ._soa import from_components, to_components, torque_field_components, unit
 from ._state import State, _unflatten
@@ -368,7 +368,7 @@ def simulate(
             "simulate: controls must be jsphere.Torques(fn) or jsphere.WheelSpeeds(fn); "
             f"got {type(controls).__name__}."
         )
-    out_shape = jax.eval_shape(controls, jnp.asarray(t0, params.R0.dtype)).shape
+    out_shape = jax.eval_shape(controls, as_array(t0, params.R0.dtype)).shape
     if out_shape != (params.n_wheels,):
         raise ValueError(
             f"simulate: the controls return shape {out_shape} at t0 but the robot has {params.n_wheels} wheels; "
@@ -379,13 +379,13 @@ def simulate(
     if batch_steps not in ("shared", "per_trial"):
         raise ValueError(f"simulate: batch_steps must be 'shared' or 'per_trial'; got {batch_steps!r}.")
     dt = params.R0.dtype
-    ts_out = None if ts is None else jnp.asarray(ts, dt)
+    ts_out = None if ts is None else as_array(ts, dt)
     if ts_out is not None and not isinstance(ts_out, jax.core.Tracer):
         tsn = np.asarray(ts_out)
         if tsn.ndim != 1 or np.any(np.diff(tsn) < 0) or not np.all(np.isfinite(tsn)):
             raise ValueError("simulate: ts must be a finite, non-decreasing 1-D array of times.")
     traj = _solve(
-        params, state0, controls, jnp.asarray(t0, dt), jnp.asarray(t1, dt), ts_out,
+        params, state0, controls, as_array(t0, dt), as_array(t1, dt), ts_out,
         solver or default_solver(), rtol, atol, max_steps, adjoint or dfx.RecursiveCheckpointAdjoint(), batch_steps,
     )  # fmt: skip
     return raise_on_failure(traj, throw)
@@ -443,7 +443,7 @@ def _has_tracer(tree) -> bool:
 def _traced(tree) -> bool:
     if _has_tracer(tree):
         return True
-    return isinstance(jnp.zeros(()) + 0.0, jax.core.Tracer)  # inside a jit trace
+    return under_jit()
 
 
 def _dispatched(run):

@@ -48,6 +48,49 @@ def enable_compilation_cache() -> None:
         print(f"jsphere: compilation cache disabled ({e})", file=sys.stderr)
 
 
+_ONE_RUN_XLA_FLAG = "--xla_backend_optimization_level=0"
+
+
+def compile_for_one_run() -> bool:
+    """Have XLA compile this process's programs quickly rather than make them fast
+    (`--xla_backend_optimization_level=0`, LLVM without its optimisation passes), unless
+    `XLA_FLAGS` already sets the level. Returns whether the flag is in force.
+
+    For `jsphere reproduce`, whose first run is almost all compilation: each of its ~30 solves
+    is a single trajectory of a few milliseconds, so programs ~2x slower cost ~0.3 s in all,
+    against ~3 s less compilation (benchmarks/NOTES.md, session 11). The flag is part of the
+    persistent cache's key (JAX hashes `XLA_FLAGS`), so these executables never serve other
+    commands. It must be set before JAX creates its CPU client; later it changes nothing.
+    """
+    flags = os.environ.get("XLA_FLAGS", "")
+    if "xla_backend_optimization_level" in flags:
+        return _ONE_RUN_XLA_FLAG in flags.split()
+    if "jax" in sys.modules:
+        from jax._src import xla_bridge
+
+        if xla_bridge.backends_are_initialized():
+            return False
+    os.environ["XLA_FLAGS"] = f"{flags} {_ONE_RUN_XLA_FLAG}".strip()
+    return True
+
+
+def _preload_matplotlib():
+    """Import matplotlib (~0.5 s) in a thread while the solves compile (XLA releases the GIL)."""
+    import threading
+
+    def load():
+        try:
+            from .plots import _plt
+
+            _plt()
+        except Exception:  # noqa: BLE001 - the figures will report it themselves
+            pass
+
+    t = threading.Thread(target=load, name="jsphere-matplotlib", daemon=True)
+    t.start()
+    return t
+
+
 def _cmd_reproduce(args) -> int:
     import jsphere
 
@@ -56,12 +99,14 @@ def _cmd_reproduce(args) -> int:
     params = jsphere.RobotParams.load(args.params) if args.params else jsphere.RobotParams.paper()
     t0 = time.perf_counter()
     print("jsphere: reproducing Section 5 of Karavaev & Kilin (2016) ...", flush=True)
+    loader = None if args.no_plots else _preload_matplotlib()
     rep = jsphere.reproduce(params, full_stop=not args.no_full_stop)
     print(rep.table())
     out = Path(args.out)
     atomic_write_text(out / "reproduce.json", json.dumps({"rows": [r.__dict__ for r in rep.rows], "values": rep.values}, indent=2) + "\n")
     written = [out / "reproduce.json"]
     if not args.no_plots:
+        loader.join()
         from .plots import write_reproduction_figures
 
         written += write_reproduction_figures(rep, out)
@@ -370,6 +415,10 @@ def main(argv=None) -> int:
     rp.add_argument("--no-plots", action="store_true", help="skip the figures")
     rp.add_argument("--no-full-stop", action="store_true", help="skip the search for the braking gait that stops")
     rp.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
+    rp.add_argument(
+        "--optimize", action="store_true",
+        help="let XLA optimise the compiled solves (by default this one-off job compiles them quickly instead)",
+    )  # fmt: skip
     mc = sub.add_parser("montecarlo", help="a Monte-Carlo study of the gaits (TOML description; see load_study)")
     mc.add_argument("config", help="study description (.toml)")
     mc.add_argument("--trials", type=int, help="number of trials (overrides the file)")
@@ -380,6 +429,8 @@ def main(argv=None) -> int:
     _add_fit_parser(sub)  # system identification (issue 3)
     _add_plan_parser(sub)  # plan (issue 4)
     args = parser.parse_args(argv)
+    if args.command == "reproduce" and not args.optimize:
+        compile_for_one_run()
     if not args.no_cache:
         enable_compilation_cache()
     try:
