@@ -38,6 +38,8 @@ from __future__ import annotations
 
 from typing import Callable, NamedTuple
 
+import contextvars
+
 import diffrax as dfx
 import jax
 import jax.numpy as jnp
@@ -46,6 +48,16 @@ import numpy as np
 #: The diffrax solvers this loop implements (explicit, first-same-as-last tableaus whose dense
 #: output is built from the stage increments).
 SUPPORTED = (dfx.Dopri8, dfx.Dopri5, dfx.Tsit5)
+
+
+_IN_ADJOINT = contextvars.ContextVar("jsphere_shared_rk_in_adjoint", default=False)
+
+
+def in_adjoint() -> bool:
+    """True while a stage VJP of the backward pass traces the field: a field may then mark
+    intermediate values to be materialised that its forward evaluation should not
+    (`jsphere._soa.adjoint_kept`)."""
+    return _IN_ADJOINT.get()
 
 
 class Tableau(NamedTuple):
@@ -253,7 +265,11 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
     summed once at the end. The arguments in `elementwise` are differentiated element by
     element: the field is given them as nested tuples of per-trial scalars (`_elements`), so
     that no slice of them is transposed into a pad inside the stage VJPs (XLA fused the
-    field's whole VJP into such pads, once per element: benchmarks/NOTES.md, sessions 9-10)."""
+    field's whole VJP into such pads, once per element: benchmarks/NOTES.md, sessions 9-10).
+    Their per-trial cotangents leave each stage VJP packed in one `(elements, batch)` buffer
+    and accumulate there (one kernel where there was one per element). The replayed steps and
+    the recomputed stages take the arguments as given (shared ones unbroadcast): only the
+    stage VJPs need per-trial copies (session 11)."""
     ys, _, accepted = out
     Y, TK, HK, stride, used = rec
     _, S = checkpoints(max_steps)
@@ -273,7 +289,24 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
     s_ = m.s
     a, c = jnp.asarray(m.tab.a, dtype), jnp.asarray(m.tab.c, dtype)
     dargs0 = [_elements(per_trial[i]) if i in elementwise else per_trial[i] for i in diff]
-    zeros = jax.tree_util.tree_map(jnp.zeros_like, dargs0)
+    d_leaves, d_def = jax.tree_util.tree_flatten(dargs0)
+    cols = [i for i, x in enumerate(d_leaves) if x.shape == (B,)]  # per-trial scalars: one (E, B) buffer
+    col_set = set(cols)
+    rest = [i for i in range(len(d_leaves)) if i not in col_set]
+
+    def pack(leaves):
+        return (jnp.stack([leaves[i] for i in cols]) if cols else None, [leaves[i] for i in rest])
+
+    def unpack(packed):
+        stacked, others = packed
+        leaves = [None] * len(d_leaves)
+        for k, i in enumerate(cols):
+            leaves[i] = stacked[k]
+        for x, i in zip(others, rest):
+            leaves[i] = x
+        return jax.tree_util.tree_unflatten(d_def, leaves)
+
+    zeros = pack([jnp.zeros_like(x) for x in d_leaves])
 
     def stage_vjp(ti, yi, g, needed):
         """`(d yi, d args)` of `<g, f(ti, yi)>`, forward and backward in a branch of their own
@@ -282,8 +315,13 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
         def one(ti, yg):  # with respect to the state's rows: no transposed slices (pads)
             yi, g = yg
             rows = tuple(yi[r] for r in range(yi.shape[0]))
-            _, pull = jax.vjp(lambda y, da: m.f(ti, y, with_diff(da), pt_batched).astype(dtype), rows, dargs0)
-            return pull(g)  # rows stay separate buffers: stacked outside the branch
+            token = _IN_ADJOINT.set(True)
+            try:
+                _, pull = jax.vjp(lambda y, da: m.f(ti, y, with_diff(da), pt_batched).astype(dtype), rows, dargs0)
+            finally:
+                _IN_ADJOINT.reset(token)
+            dy, da = pull(g)  # rows stay separate buffers: stacked outside the branch
+            return dy, pack(jax.tree_util.tree_leaves(da))
 
         def none(ti, yg):
             return tuple(jnp.zeros_like(yi[0]) for _ in range(yi.shape[0])), zeros
@@ -298,10 +336,10 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
         t, h = TK[k], HK[k]
         has = ((jp >= 0) & (at[jnp.maximum(jp, 0)] == k)) if T else jnp.bool_(False)
         # the stages, the last one only if the dense output of this step is saved
-        K = jnp.zeros((s_,) + y.shape, dtype).at[0].set(h * m.rates(t, y, per_trial, pt_batched))
+        K = jnp.zeros((s_,) + y.shape, dtype).at[0].set(h * m.rates(t, y, args, batched))
 
         def fwd_stage(i, K):
-            return K.at[i].set(h * m.rates(t + c[i] * h, m.stage_arg(i, y, K), per_trial, pt_batched))
+            return K.at[i].set(h * m.rates(t + c[i] * h, m.stage_arg(i, y, K), args, batched))
 
         K = jax.lax.fori_loop(1, jnp.where(has, s_, s_ - 1), fwd_stage, K)
         y1 = m.stage_arg(s_ - 1, y, K)
@@ -347,7 +385,7 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
 
         def replay(i, Z):
             k = k0 + i - 1
-            return Z.at[i].set(m.step(TK[k], HK[k], Z[i - 1], per_trial, pt_batched, last=False)[0])
+            return Z.at[i].set(m.step(TK[k], HK[k], Z[i - 1], args, batched, last=False)[0])
 
         Z = jax.lax.fori_loop(1, L, replay, Z)
         carry = jax.lax.fori_loop(0, L, lambda i, cc: adjoint_step(k0 + L - 1 - i, Z[L - 1 - i], cc), carry)
@@ -358,6 +396,7 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
     carry = (ct[T], acc, jnp.zeros((T,), dtype), jnp.int32(T - 1))
     (lam, acc, ts_bar, _), _ = jax.lax.fori_loop(0, used, stretch, (carry, jnp.zeros((S, n, B), dtype)))
     y0_bar = lam + jnp.sum(jnp.where(direct, ct[:T], 0.0), axis=0) if T else lam
+    acc = unpack(acc)
     acc = [_assemble(a) if i in elementwise else a for i, a in zip(diff, acc)]
     args_bar = [a.sum(0) if not batched[i] else a for i, a in zip(diff, acc)]
     time_bars = None

@@ -20,6 +20,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from . import _shared_rk
 from ._params import Derived, RobotParams
 
 # ------------------------------------------------------------- 3-vectors as tuples of scalars
@@ -96,6 +97,15 @@ def kept(tree, one):
     return jax.tree_util.tree_map(lambda x: x / one, tree)
 
 
+def adjoint_kept(tree, one):
+    """`kept(tree, one)` while the shared-step adjoint traces a stage VJP
+    (`jsphere._shared_rk.in_adjoint`), `tree` as it is otherwise. For values whose cotangents
+    feed the robot's parameter cotangents: materialised there, XLA no longer recomputes them
+    in each parameter element's kernel (the gradient of issue 6's problem 3 at 1024 trials
+    ~12 % faster); in the forward evaluation the same points cost ~20 % (session 11)."""
+    return kept(tree, one) if _shared_rk.in_adjoint() else tree
+
+
 def torque_field_components(p: RobotParams, d: Derived, K, z, one=None):
     """Rates of the flat state `[q, q_shell, omega, Omega, x, y, chi]` in torque mode, as a tuple.
 
@@ -110,7 +120,7 @@ def torque_field_components(p: RobotParams, d: Derived, K, z, one=None):
     w, W = tuple(z[8:11]), tuple(z[11:14])
     R = kept(_platform_rows(z[0:4]), one)
     g = R[2]
-    B, D, r1, r2 = _blocks_and_forces(p, d, g, w, W)
+    B, D, r1, r2 = _blocks_and_forces(p, d, g, w, W, one)
     Ainv, Sk = _rows(d.A_inv), _rows(d.Sk)
     # axle torques (with the optional axle friction) and their moment Sk^T K
     dw = _sub(w, W)
@@ -128,9 +138,10 @@ def torque_field_components(p: RobotParams, d: Derived, K, z, one=None):
     return _kinematic_rates(p, d, z, R, g, w, W, wd, Wd)
 
 
-def _blocks_and_forces(p: RobotParams, d: Derived, g, w, W):
+def _blocks_and_forces(p: RobotParams, d: Derived, g, w, W, one=None):
     """`B`, `D` (`mass_blocks`) and `r1`, `r2` (`forces`) of (3.4) as tuples, for the attitude
-    `g = gamma` and the rates `w = omega`, `W = Omega` (3-tuples of scalars)."""
+    `g = gamma` and the rates `w = omega`, `W = Omega` (3-tuples of scalars); `one`: see
+    `adjoint_kept`, applied to these and to `I omega`, `J_ns (Omega - omega)`."""
     rm = tuple(p.r_m[i] for i in range(3))
     Jns, Jss, I = _rows(d.Jns), _rows(d.Jss), _rows(p.I)
     mR0 = p.m * p.R0
@@ -143,9 +154,11 @@ def _blocks_and_forces(p: RobotParams, d: Derived, g, w, W):
         tuple((p.I0 if i == j else 0.0) + Jss[i][j] + MR2 * ((gg if i == j else 0.0) - g[i] * g[j]) for j in range(3))
         for i in range(3)
     )
+    B, D = adjoint_kept((B, D), one)
     gWxw = _cross(g, _cross(W, w))
+    Iw, Jv = adjoint_kept((_mv(I, w), _mv(Jns, _sub(W, w))), one)
     r1 = _sub(
-        _sub(_add(_scale(-1.0, _cross(w, _mv(I, w))), _cross(_mv(Jns, _sub(W, w)), w)), _scale(mR0, _cross(rm, gWxw))),
+        _sub(_add(_scale(-1.0, _cross(w, Iw)), _cross(Jv, w)), _scale(mR0, _cross(rm, gWxw))),
         _scale(p.m * p.g, _cross(rm, g)),
     )
     Wg = _dot(W, g)
@@ -153,7 +166,7 @@ def _blocks_and_forces(p: RobotParams, d: Derived, g, w, W):
         _sub(_sub(_scale(-MR2, _cross(g, gWxw)), _scale(mR0, _cross(g, _cross(w, _cross(w, rm))))), _scale(p.I0, _cross(w, W))),
         _scale(p.c_roll, _sub(W, _scale(Wg, g))),
     )
-    return B, D, r1, r2
+    return (B, D, *adjoint_kept((r1, r2), one))
 
 
 def _solve3(M, r):
