@@ -134,7 +134,7 @@ class Gait(eqx.Module):
 
 def _negative(x):
     """`-x`, by NumPy for a Python or NumPy value (no compiled program)."""
-    return -x if isinstance(x, (jax.Array, jax.core.Tracer)) else -np.asarray(x, dtype=float)
+    return -x if isinstance(x, (jax.Array, jax.core.Tracer)) else -np.asarray(x)
 
 
 def _check_period(T, period, name):
