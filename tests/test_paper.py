@@ -1,6 +1,8 @@
 """Section 5 of the paper: the numbers `jsphere reproduce` reports, and the CLI."""
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -41,6 +43,13 @@ def test_figure2_sigmas(rep):
     assert s["gait"]["std"] < 1e-6  # the gaits end on exact rest
     kin = rep.trajectories["kinematic"]
     assert np.ptp(np.asarray(jsphere.energy_along(jsphere.RobotParams.paper(), kin))[np.asarray(kin.ts) > 4.0]) < 1e-7
+    # after 4 s the omniwheels are stopped in both runs ("after which the omniwheels stopped")
+    gait = rep.trajectories["gait_8s"]
+    late = np.asarray(gait.ts) > 4.0
+    assert late.sum() == 400 and np.all(np.diff(np.asarray(gait.ts)[late]) > 0)
+    np.testing.assert_allclose(np.asarray(gait.ts)[late], np.asarray(kin.ts)[np.asarray(kin.ts) > 4.0], atol=1e-12)
+    for tr in (kin, gait):
+        assert np.max(np.abs(np.asarray(tr.chi_dot)[np.asarray(tr.ts) > 4.0])) < 1e-12
 
 
 def test_table_lists_every_paper_number(rep):
@@ -73,6 +82,40 @@ def test_paper_parameters_follow_from_paper_numbers(rep):
         u = u - np.linalg.solve(J, r)
     assert u[0] * 1e-3 == pytest.approx(PAPER_R_M, rel=1e-6)
     assert u[1] * 1e-4 == pytest.approx(PAPER_J, rel=1e-5)
+
+
+def test_cli_compile_for_one_run_leaves_a_running_backend_and_a_users_level_alone(monkeypatch):
+    from jsphere.cli import compile_for_one_run
+
+    jsphere.RobotParams.paper().R0.block_until_ready()  # the CPU client exists
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_enable_fast_math=false")
+    assert compile_for_one_run() is False
+    assert jsphere.cli.os.environ["XLA_FLAGS"] == "--xla_cpu_enable_fast_math=false"
+    monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=2")
+    assert compile_for_one_run() is False  # the user's own level wins
+    monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=0")
+    assert compile_for_one_run() is True
+
+
+def test_setting_up_the_paper_robot_and_gaits_compiles_nothing():
+    """Python and NumPy values become device arrays without XLA programs: each one would be
+    compiled in a first `jsphere reproduce` and loaded from the cache in every later one."""
+    code = (
+        "from jax._src.interpreters import pxla\n"
+        "n = [0]\n"
+        "orig = pxla.lower_sharding_computation\n"
+        "def count(*a, **k):\n"
+        "    n[0] += 1\n"
+        "    return orig(*a, **k)\n"
+        "pxla.lower_sharding_computation = count\n"
+        "import jsphere\n"
+        "p = jsphere.RobotParams.paper()\n"
+        "g = [jsphere.acceleration(), jsphere.turn(), jsphere.braking(theta_max=0.12, phi=0.7)]\n"
+        "c = jsphere.kinematic_control(p, jsphere.straight_line(0.13), t_stop=4.0)\n"
+        "print('programs', n[0])\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip().splitlines()[-1] == "programs 0", out
 
 
 def test_cli_reproduce_writes_table_json_and_figures(tmp_path, capsys, rep):
