@@ -36,9 +36,8 @@ per-trial solves (tests/test_shared_rk.py) and is the gradient of batched `simul
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
-
 import contextvars
+from typing import Callable, NamedTuple
 
 import diffrax as dfx
 import jax
@@ -268,8 +267,8 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
     field's whole VJP into such pads, once per element: benchmarks/NOTES.md, sessions 9-10).
     Their per-trial cotangents leave each stage VJP packed in one `(elements, batch)` buffer
     and accumulate there (one kernel where there was one per element). The replayed steps and
-    the recomputed stages take the arguments as given (shared ones unbroadcast): only the
-    stage VJPs need per-trial copies (session 11)."""
+    the recomputed stages (and the rates behind the times' cotangents) take the arguments as
+    given (shared ones unbroadcast): only the stage VJPs need per-trial copies (session 11)."""
     ys, _, accepted = out
     Y, TK, HK, stride, used = rec
     _, S = checkpoints(max_steps)
@@ -352,7 +351,7 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
             yj, ipull = jax.vjp(lambda y, y1, K: m.dense(t, h, y, y1, K, ts[j]), y, y1, K)
             dy, dy1, dK = ipull(ct[j])
             if times:
-                ts_bar = ts_bar.at[j].set(jnp.sum(ct[j] * m.rates(ts[j], yj, per_trial, pt_batched)))
+                ts_bar = ts_bar.at[j].set(jnp.sum(ct[j] * m.rates(ts[j], yj, args, batched)))
             return j - 1, gy + dy, gy1 + dy1, gK + dK, ts_bar
 
         zero = jnp.zeros_like(y)
@@ -401,8 +400,8 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
     args_bar = [a.sum(0) if not batched[i] else a for i, a in zip(diff, acc)]
     time_bars = None
     if times:
-        f0 = m.rates(t0, y0, per_trial, pt_batched)
-        f1 = m.rates(t1, ys[-1], per_trial, pt_batched)
+        f0 = m.rates(t0, y0, args, batched)
+        f1 = m.rates(t1, ys[-1], args, batched)
         time_bars = (-jnp.sum(lam * f0), jnp.sum(ct[T] * f1), ts_bar)
     return y0_bar, args_bar, time_bars
 
