@@ -118,7 +118,7 @@ def torque_field_components(p: RobotParams, d: Derived, K, z, one=None):
     """
     n = len(K)
     w, W = tuple(z[8:11]), tuple(z[11:14])
-    R = kept(_platform_rows(z[0:4]), one)
+    R = _platform_rows(z[0:4])
     g = R[2]
     B, D, r1, r2 = _blocks_and_forces(p, d, g, w, W, one)
     Ainv, Sk = _rows(d.A_inv), _rows(d.Sk)
@@ -126,15 +126,16 @@ def torque_field_components(p: RobotParams, d: Derived, K, z, one=None):
     dw = _sub(w, W)
     Ke = tuple(K[i] + p.c_axle * _dot(Sk[i], dw) for i in range(n))
     tau = tuple(sum(Ke[i] * Sk[i][j] for i in range(n)) for j in range(3))
-    r1, r2 = _sub(r1, tau), _add(r2, tau)
-    # Schur complement S = D - B^T A^-1 B, then Omega_dot = S^-1 (r2 - B^T A^-1 r1)
+    r1, r2 = kept(_sub(r1, tau), one), _add(r2, tau)
+    # Schur complement S = D - B^T A^-1 B (symmetric: its upper triangle), then
+    # Omega_dot = S^-1 (r2 - B^T A^-1 r1), omega_dot = A^-1 (r1 - B Omega_dot)
     X = tuple(tuple(sum(Ainv[i][k] * B[k][j] for k in range(3)) for j in range(3)) for i in range(3))
-    S = tuple(tuple(D[i][j] - sum(B[k][i] * X[k][j] for k in range(3)) for j in range(3)) for i in range(3))
-    a1 = _mv(Ainv, r1)
-    rhs = _sub(r2, _mtv(B, a1))
-    X, S, a1, rhs = kept((X, S, a1, rhs), one)
-    Wd = _solve3(S, rhs)
-    wd, Wd = kept((_sub(a1, _mv(X, Wd)), Wd), one)
+    a1 = kept(_mv(Ainv, r1), one)
+    Su = kept({(i, j): D[i][j] - sum(B[k][i] * X[k][j] for k in range(3)) for i in range(3) for j in range(i, 3)}, one)
+    S = tuple(tuple(Su[min(i, j), max(i, j)] for j in range(3)) for i in range(3))
+    rhs = kept(_sub(r2, _mtv(B, a1)), one)
+    Wd = kept(_solve3(S, rhs), one)
+    wd = _sub(a1, _mv(X, Wd))
     return _kinematic_rates(p, d, z, R, g, w, W, wd, Wd)
 
 
