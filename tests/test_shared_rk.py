@@ -78,6 +78,22 @@ def test_an_empty_interval_and_float32():
     np.testing.assert_allclose(ys32[-1], _exact(3.0), rtol=0, atol=2e-4)
 
 
+@pytest.mark.parametrize("solver", [dfx.Dopri8(), dfx.Dopri5(), dfx.Tsit5()], ids=lambda s: type(s).__name__)
+def test_stage_arguments_are_the_tableau_rows(solver):
+    """`stage_arg` (one switch branch per row, nonzero terms only) is `y + sum_j a_ij K[j]` for
+    every stage, `y` itself at stage 0, with the stage index traced or a Python int."""
+    tab = R.tableau(solver)
+    m = R._Method(None, tab, jnp.float64)
+    rng = np.random.default_rng(0)
+    y, K = rng.standard_normal((3, 5)), rng.standard_normal((m.s, 3, 5))
+    traced = jax.jit(lambda i: m.stage_arg(i, y, K))
+    for i in range(m.s):
+        want = y + np.tensordot(tab.a[i, :i], K[:i], axes=1)
+        np.testing.assert_allclose(traced(i), want, rtol=1e-14, atol=1e-14)
+        np.testing.assert_allclose(m.stage_arg(i, y, K), want, rtol=1e-14, atol=1e-14)
+    np.testing.assert_array_equal(traced(0), y)
+
+
 def test_only_diffrax_methods_it_implements():
     assert R.tableau(dfx.Dopri8()) is not None and R.tableau(dfx.Bosh3()) is None
 
