@@ -128,7 +128,11 @@ def torque_field_components(p: RobotParams, d: Derived, K, z, one=None):
     tau = tuple(sum(Ke[i] * Sk[i][j] for i in range(n)) for j in range(3))
     r1, r2 = kept(_sub(r1, tau), one), _add(r2, tau)
     # Schur complement S = D - B^T A^-1 B (symmetric: its upper triangle), then
-    # Omega_dot = S^-1 (r2 - B^T A^-1 r1), omega_dot = A^-1 (r1 - B Omega_dot)
+    # Omega_dot = S^-1 (r2 - B^T A^-1 r1), omega_dot = A^-1 (r1 - B Omega_dot). Each level is
+    # kept before the next reads it; X = A^-1 B and the attitude rows are cheaper recomputed
+    # where used than kept (a kernel and a divide per trial each): 2,407 -> 1,941 operations
+    # per trial and evaluation, problem 1 of issue 6 ~1.3x faster (benchmarks/NOTES.md,
+    # session 12).
     X = tuple(tuple(sum(Ainv[i][k] * B[k][j] for k in range(3)) for j in range(3)) for i in range(3))
     a1 = kept(_mv(Ainv, r1), one)
     Su = kept({(i, j): D[i][j] - sum(B[k][i] * X[k][j] for k in range(3)) for i in range(3) for j in range(i, 3)}, one)
