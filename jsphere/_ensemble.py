@@ -90,14 +90,16 @@ class SharedPIDController(dfx.AbstractAdaptiveStepSizeController):
         return keep, t_next, t_after, jump, (state, live), result
 
 
-def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_save):
+def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_save, per_trial=False):
     """One segment of `solve_segments`: `diffeqsolve(field)` of the component tuple `y0` from
     `args[3]` to `args[4]` (`args = (p, d, control, a, b)`), saving at `t_save` and `t1`.
     `field(t, y, args, K=None)` may be given the inputs `K = control(t, args)` (a `(N,)`
     array or an `N`-tuple of scalars per trial) as a tuple of scalars.
 
     Returns `(ys, failed, num_accepted_steps)` with `ys` the tuple of saved components. Batched
-    (under `vmap`), trials share one step sequence (module docstring).
+    (under `vmap`), trials share one step sequence (module docstring); with `per_trial` (a
+    solver of `jsphere._shared_rk.SUPPORTED`) each trial takes its own steps, in lockstep
+    (`_shared_rk._forward_per_trial`: forward only).
     """
     dyn, static = eqx.partition(args[:3], eqx.is_array)
     p_leaves, p_def = jax.tree_util.tree_flatten(dyn)
@@ -126,7 +128,7 @@ def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_sa
     @f.def_vmap
     def _rule(axis_size, in_batched, times, y0, lv):
         t_b, y_b, l_b = in_batched
-        if any(t_b):  # no shared time axis: one solve per trial
+        if any(t_b) or (per_trial and _shared_rk.tableau(solver) is None):  # one solve per trial
             out = jax.vmap(one, in_axes=([0 if b else None for b in t_b], [0 if b else None for b in y_b], [0 if b else None for b in l_b]), axis_size=axis_size)(times, y0, lv)  # fmt: skip
             return out, jax.tree_util.tree_map(lambda _: True, out)
         a, b, ts = times
@@ -138,7 +140,8 @@ def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_sa
             return [0 if bt else None for bt in batched]
 
         def inputs(t, args, batched):  # (N, batch), or N vectors of (batch,): each input contiguous
-            k = jax.vmap(lambda l, a, b: control(t, rebuild(l, a, b)), in_axes=(axes(batched[:-2]), *axes(batched[-2:])), axis_size=axis_size)(args[:-2], *args[-2:])  # fmt: skip
+            t_ax = 0 if jnp.ndim(t) else None  # one time per trial (per-trial steps) or one for all
+            k = jax.vmap(lambda t, l, a, b: control(t, rebuild(l, a, b)), in_axes=(t_ax, axes(batched[:-2]), *axes(batched[-2:])), axis_size=axis_size)(t, args[:-2], *args[-2:])  # fmt: skip
             return k if isinstance(k, tuple) else k.T
 
         def batch_field(t, y, args, batched):
@@ -152,17 +155,20 @@ def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_sa
             K = _shared_rk.in_branch(lambda t, args: inputs(t, args, batched), t, args)
             K = K if isinstance(K, tuple) else tuple(K[i] for i in range(K.shape[0]))
             rates = jax.vmap(
-                lambda z, k, l, a, b: field(t, z, rebuild(l, a, b), k),
-                in_axes=(0, 0, axes(batched[:-2]), *axes(batched[-2:])), axis_size=axis_size,
-            )(tuple(y), K, args[:-2], *args[-2:])  # fmt: skip
+                lambda t, z, k, l, a, b: field(t, z, rebuild(l, a, b), k),
+                in_axes=(0 if jnp.ndim(t) else None, 0, 0, axes(batched[:-2]), *axes(batched[-2:])), axis_size=axis_size,
+            )(t, tuple(y), K, args[:-2], *args[-2:])  # fmt: skip
             return jnp.stack(rates)
 
         tab = _shared_rk.tableau(solver)
         if tab is not None:  # the lean loop (Dopri8, Dopri5, Tsit5)
             out, failed, accepted = _shared_rk.solve(
                 batch_field, a, b, yb, ts, [*lv, a, b], [*l_b, False, False], tab=tab, rtol=rtol, atol=atol,
-                max_steps=max_steps, elementwise=elementwise,
+                max_steps=max_steps, elementwise=elementwise, per_trial=per_trial,
             )  # fmt: skip
+            if per_trial:  # failures and step counts per trial
+                ys = [out[:, i, :].T for i in range(len(y0))]
+                return (ys, failed, accepted), ([True] * len(ys), True, True)
         else:  # any other diffrax solver, in diffeqsolve
             flags = [*l_b, False, False]
             sol = dfx.diffeqsolve(

@@ -257,7 +257,8 @@ def simulate_gaits(
     - `rtol`, `atol`: tolerances (defaults tight enough for 1e-8 agreement of `Omega, K`).
     - `batch_steps`: under `jax.vmap`, `"shared"` (default) integrates a batch of at least 32
       trials with one step sequence on contiguous components (`jsphere._ensemble`; each
-      trial still meets its tolerance), `"per_trial"` gives every trial its own steps, as
+      trial still meets its tolerance), `"per_trial"` gives every trial its own steps (in
+      lockstep, in the same loop: a trial's result does not depend on its batch), as
       `simulate` does.
 
     Returns a `Trajectory`; `segment` tells which gait each sample belongs to.
@@ -383,7 +384,7 @@ def _simulate_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, 
         _gait_field, _gait_outputs, params, d, segments, state0.flatten(), ts_out, jump_fn=jump_fn,
         solver=solver, rtol=rtol, atol=atol, max_steps=max_steps, adjoint=adjoint,
         component_field=_gait_field_soa if components else None, component_control=_gait_inputs,
-        shared=components == "shared",
+        shared=components if isinstance(components, str) else False,
     )  # fmt: skip
     traj = assemble(params, d, ts_out, zs, om, cd, Ks, seg, ok, steps)
     # report the prescribed gamma(t) (the integrated one agrees to the solver tolerance)

@@ -32,6 +32,11 @@ summed once; arguments the field also takes element by element (`elementwise`: t
 parameter arrays) are differentiated as tuples of scalars. It matches diffrax's autodiff of
 per-trial solves (tests/test_shared_rk.py) and is the gradient of batched `simulate` and
 `simulate_gaits` calls that share their steps (`jsphere._simulate.SHARED_ADJOINT`).
+
+The same loop also runs batches with per-trial steps (`batch_steps="per_trial"`): each trial
+has its own time and step size, in lockstep (`_forward_per_trial`), so the batch is still one
+vectorised loop but no trial depends on another (2x the Monte-Carlo throughput of diffrax's
+vmapped loop, benchmarks/NOTES.md session 13).
 """
 
 from __future__ import annotations
@@ -92,12 +97,13 @@ def _mean_sq_rows(x):
 
 
 def in_branch(f, t, y):
-    """`f(t, y)` evaluated in a `lax.cond` branch of its own: its output is materialised."""
+    """`f(t, y)` evaluated in a `lax.cond` branch of its own: its output is materialised. `t`
+    is the time, or one time per trial (NaN output if any is non-finite)."""
 
     def nan(t, y):
         return jax.tree_util.tree_map(lambda s: jnp.full(s.shape, jnp.nan, s.dtype), jax.eval_shape(f, t, y))
 
-    return jax.lax.cond(jnp.isfinite(t), f, nan, t, y)
+    return jax.lax.cond(jnp.all(jnp.isfinite(t)), f, nan, t, y)
 
 
 #: Checkpoints the forward pass of a gradient keeps (`checkpoints`): states at most this
@@ -262,6 +268,95 @@ def _forward(m: _Method, args, batched, t0, t1, y0, ts, *, rtol, atol, max_steps
     t, _, y, _, _, ys, _, at, accepted, _, bad, rec = jax.lax.while_loop(running, step, init)
     failed = bad | (t < t1)
     return (jnp.concatenate([ys, y[None]]), failed, accepted), (at, rec)
+
+
+def _forward_per_trial(m: _Method, args, batched, t0, t1, y0, ts, *, rtol, atol, max_steps):
+    """`_forward` with a step sequence of each trial's own, taken in lockstep: every trial has
+    its own time, step size, error norm and acceptance, so its result does not depend on the
+    other trials of the batch (the arithmetic is elementwise over trials), while the whole batch
+    still runs as one vectorised loop. The loop ends when every trial has reached `t1` or
+    failed; a trial that is done takes steps of size zero (no change). A failure (`max_steps`
+    attempts, or a step size that collapsed, e.g. a state turned non-finite) is per trial too:
+    that trial is frozen, the others go on. Not differentiable in reverse mode (a
+    `lax.while_loop`); batched `simulate(..., batch_steps="per_trial")` recomputes each trial's
+    own solve for gradients (`jsphere._simulate`).
+
+    Returns `(ys, failed, accepted)` with `failed` and `accepted` per trial."""
+    dtype = y0.dtype
+    n, B = y0.shape
+    T = ts.shape[0]
+    tab = m.tab
+    tiny = jnp.finfo(dtype).tiny
+    tv0 = jnp.full((B,), t0, dtype)
+
+    def rms(x):  # each trial's RMS norm
+        return jnp.sqrt(_mean_sq_rows(x))
+
+    f0 = m.rates(tv0, y0, args, batched)
+    # the starting step of each trial (diffrax's `_select_initial_step`)
+    scale = atol + rtol * jnp.abs(y0)
+    d0, d1 = rms(y0 / scale), rms(f0 / scale)
+    small = (d0 < 1e-5) | (d1 < 1e-5)
+    h0 = jnp.where(small, 1e-6, 0.01 * d0 / jnp.where(small, 1.0, d1))
+    h0 = jnp.where(jnp.isfinite(h0), h0, 1e-6)
+    f1 = m.rates(tv0 + h0, y0 + h0 * f0, args, batched)
+    d2 = rms((f1 - f0) / scale) / h0
+    dmax = jnp.maximum(d1, d2)
+    h1 = jnp.where(dmax <= 1e-15, jnp.maximum(1e-6, h0 * 1e-3), (0.01 / jnp.where(dmax <= 1e-15, 1.0, dmax)) ** (1.0 / tab.order))
+    h_init = jnp.minimum(100 * h0, h1)
+    h_init = jnp.where(jnp.isfinite(h_init), h_init, 1e-6).astype(dtype)
+
+    def dense(t, h, y, y1, K, tj):  # each trial's own dense output (trials on the last axis)
+        one = lambda t, h, y, y1, K, tj: m.dense(t, h, y, y1, K, tj)  # noqa: E731
+        return jax.vmap(one, in_axes=(0, 0, 1, 1, 2, 0), out_axes=1)(t, h, y, y1, K, tj)
+
+    cols = jnp.arange(B)
+
+    def save(t, h, y, y1, K, ys, j, ok):
+        """Dense output at each trial's save times in `(t, t + h]` (accepted steps only)."""
+
+        def due(j):
+            return ok & (j < T) & (ts[jnp.minimum(j, T - 1)] <= t + h)
+
+        def one(c):
+            ys, j = c
+            d = due(j)
+            jj = jnp.minimum(j, T - 1)
+            val = dense(t, h, y, y1, K, ts[jj])
+            ys = ys.at[jj, :, cols].set(jnp.where(d[:, None], val.T, ys[jj, :, cols]))
+            return ys, j + d
+
+        return jax.lax.while_loop(lambda c: jnp.any(due(c[1])), one, (ys, j))
+
+    def running(c):
+        t, _, _, _, _, _, _, steps, dead, _ = c
+        return jnp.any((t < t1) & ~dead) & (steps < max_steps)
+
+    def step(c):
+        t, h, y, k0, K, ys, j, steps, dead, acc = c
+        h = jnp.where(dead, 0.0, jnp.minimum(h, t1 - t)).astype(dtype)
+        y1, K = m.stages(t, h, y, K.at[0].set(h * k0), args, batched)
+        err = sum(float(e) * K[i] for i, e in enumerate(tab.b_error) if e != 0.0)
+        e = rms(err / (atol + rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1))))
+        e = jnp.where(dead, 0.0, e)
+        ok = e < 1.0
+        inv = jnp.where(jnp.isfinite(e), 1.0 / jnp.maximum(e, tiny), 0.0)
+        factor = jnp.clip(0.9 * inv ** (1.0 / tab.order), 0.2, jnp.where(ok, 10.0, 0.9))
+        t_next = jnp.where(ok, jnp.where(h >= t1 - t, t1, t + h), t)
+        if T:
+            ys, j = save(t, h, y, y1, K, ys, j, ok & (h > 0))
+        h_next = (h * factor).astype(dtype)
+        collapsed = (t_next < t1) & ~(h_next > 10 * jnp.finfo(dtype).eps * jnp.maximum(jnp.abs(t_next), 1.0))
+        y = jnp.where(ok, y1, y)
+        k0 = jnp.where(ok & (h > 0), K[-1] / jnp.where(h > 0, h, 1.0), k0)
+        return t_next, h_next, y, k0, K, ys, j, steps + 1, dead | collapsed, acc + (ok & (h > 0))
+
+    ys = jnp.where((ts <= t0)[:, None, None], y0[None], jnp.full((T, n, B), jnp.nan, dtype))
+    j = jnp.full((B,), jnp.sum(ts <= t0), jnp.int32)
+    K = jnp.zeros((m.s, n, B), dtype)
+    init = (tv0, h_init, y0, f0, K, ys, j, jnp.int32(0), jnp.zeros((B,), bool), jnp.zeros((B,), jnp.int32))
+    t, _, y, _, _, ys, _, _, dead, acc = jax.lax.while_loop(running, step, init)
+    return jnp.concatenate([ys, y[None]]), dead | (t < t1), acc
 
 
 def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct, *, max_steps, times, elementwise=()):
@@ -432,7 +527,7 @@ def _assemble(e):
     return e
 
 
-def solve(f, t0, t1, y0, ts, args=(), batched=(), *, tab: Tableau, rtol, atol, max_steps: int, elementwise=()):
+def solve(f, t0, t1, y0, ts, args=(), batched=(), *, tab: Tableau, rtol, atol, max_steps: int, elementwise=(), per_trial=False):
     """Integrate `y' = f(t, y, args, batched)` for the `(n, batch)` state `y0` from `t0` to
     `t1 >= t0`, with one step sequence for all columns (trials), saving at the sorted times `ts`
     (within `[t0, t1]`) and at `t1`. `args` is a list of arrays; `batched[i]` says whether
@@ -445,6 +540,10 @@ def solve(f, t0, t1, y0, ts, args=(), batched=(), *, tab: Tableau, rtol, atol, m
     the state at `t1`; `failed` is true if `max_steps` steps (accepted or rejected) were taken
     or the step size collapsed (e.g. a controlled trial turned non-finite) before `t1`; save
     rows never reached are NaN.
+
+    With `per_trial`, each trial (column) takes its own steps instead, in lockstep
+    (`_forward_per_trial`): `failed` and the step counts are then per trial, and the solve is
+    forward only (no discrete adjoint).
 
     Reverse-mode differentiable with respect to `y0`, `args` and the times: a discrete adjoint
     of the accepted steps (sizes held fixed), with states checkpointed in the forward pass
@@ -460,6 +559,8 @@ def solve(f, t0, t1, y0, ts, args=(), batched=(), *, tab: Tableau, rtol, atol, m
         raise ValueError(f"batched: one flag per entry of args ({len(args)}), got {len(batched)}")
     m = _Method(f, tab, dtype)
     opts = dict(rtol=rtol, atol=atol, max_steps=max_steps)
+    if per_trial:
+        return _forward_per_trial(m, args, batched, t0, t1, y0, ts, **opts)
     cell = {}
 
     @jax.custom_vjp

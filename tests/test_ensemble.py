@@ -182,3 +182,50 @@ def test_shared_steps_for_gaits():
         assert int(one.num_steps) <= int(tr.num_steps[i])
     with pytest.raises(ValueError, match="batch_steps"):
         jsphere.simulate_gaits(P, [jsphere.acceleration()], batch_steps="together")
+
+
+A7 = jnp.concatenate([A, 0.05 * (1 + 0.1 * jax.random.normal(jax.random.PRNGKey(1), (3, 3)))])
+
+
+def test_per_trial_steps_do_not_depend_on_the_batch():
+    """`batch_steps="per_trial"` runs a batch in the same vectorised loop with each trial's own
+    step sequence, in lockstep (`_shared_rk._forward_per_trial`): a trial's result is bitwise
+    the same whatever the other trials of its batch, its step count is its own, and it is as
+    close to a tight solve of itself as the shared steps get (interior save times included:
+    each trial's own dense output)."""
+    run = jax.jit(jax.vmap(lambda a: _sim(a, batch_steps="per_trial")))
+    big = run(A7)
+    other = run(jnp.concatenate([A7[4:], A7[:1]]))  # three of the trials in a smaller batch
+    for name in ("x", "y", "q", "Omega", "chi", "num_steps"):
+        np.testing.assert_array_equal(getattr(other, name)[:3], getattr(big, name)[4:], err_msg=name)
+    assert np.all(np.asarray(big.ok)) and len(set(np.asarray(big.num_steps).tolist())) > 1
+    tight = jax.jit(jax.vmap(lambda a: _sim(a, rtol=1e-12, atol=1e-14)))(A7)
+    for name in ("x", "y"):
+        err = np.max(np.abs(np.asarray(getattr(big, name) - getattr(tight, name))))
+        assert err < 1e-8, (name, err)
+    # a single call (diffrax's loop and controller) agrees to the tolerance as well
+    one = _sim(A7[5])
+    assert np.max(np.abs(np.asarray(one.x - big.x[5]))) < 1e-8
+
+
+def test_a_failing_trial_leaves_per_trial_steps_alone():
+    """A trial with NaN inputs fails alone; every other trial is bitwise what it is without it."""
+    run = jax.jit(jax.vmap(lambda a: _sim(a, throw=False, batch_steps="per_trial")))
+    tr, valid = run(A7.at[2, 1].set(jnp.nan)), run(A7)
+    assert tr.ok.tolist() == [True, True, False, True, True, True, True]
+    keep = np.array([0, 1, 3, 4, 5, 6])
+    for name in ("x", "y", "Omega", "num_steps"):
+        np.testing.assert_array_equal(np.asarray(getattr(tr, name))[keep], np.asarray(getattr(valid, name))[keep], err_msg=name)
+
+
+def test_gradient_of_a_large_per_trial_batch(monkeypatch):
+    """In batches large enough for the component layout, the forward pass of a per-trial
+    gradient runs the lockstep loop and the backward pass recomputes each trial's own solve:
+    the value is the lockstep one, the gradient the per-trial VJP's (the flat layout, same
+    batch) to the tolerance."""
+    loss = lambda th: _theta_loss(th, "per_trial")  # noqa: E731
+    g_flat = jax.jit(jax.grad(loss))(THETA)
+    monkeypatch.setattr(S, "COMPONENT_MIN_BATCH", 2)
+    v, g = jax.jit(jax.value_and_grad(loss))(THETA)
+    assert float(v) == float(jax.jit(loss)(THETA))
+    np.testing.assert_allclose(g, g_flat, rtol=1e-6)
