@@ -36,7 +36,8 @@ per-trial solves (tests/test_shared_rk.py) and is the gradient of batched `simul
 The same loop also runs batches with per-trial steps (`batch_steps="per_trial"`): each trial
 has its own time and step size, in lockstep (`_forward_per_trial`), so the batch is still one
 vectorised loop but no trial depends on another (2x the Monte-Carlo throughput of diffrax's
-vmapped loop, benchmarks/NOTES.md session 13).
+vmapped loop, benchmarks/NOTES.md session 13); its discrete adjoint runs the recorded
+iterations backwards with each trial's own step sizes.
 """
 
 from __future__ import annotations
@@ -172,8 +173,38 @@ class _Method:
         return self.stages(t, h, y, K, args, batched, last)
 
     def dense(self, t, h, y, y1, K, tj):
-        """The dense output of the step `(t, t + h]` at `tj`."""
+        """The dense output of the step `(t, t + h]` at `tj`; with `t`, `h`, `tj` one per trial
+        (`(batch,)`), each trial's own."""
+        if jnp.ndim(t):
+            one = lambda t, h, y, y1, K, tj: self.dense(t, h, y, y1, K, tj)  # noqa: E731
+            return jax.vmap(one, in_axes=(0, 0, 1, 1, 2, 0), out_axes=1)(t, h, y, y1, K, tj)
         return self.tab.interpolation_cls(t0=t, t1=t + h, y0=y, y1=y1, k=K).evaluate(tj).astype(self.dtype)
+
+
+def _record_buffers(max_steps, n, B, dtype, per):
+    """The empty record of a gradient's forward pass: `C + 1` checkpoint slots of the state,
+    each step's time and size (`per`: `()` for shared steps, `(B,)` per trial), the stride
+    and the number of slots used (`checkpoints`)."""
+    C, _ = checkpoints(max_steps)
+    return (jnp.zeros((C + 1, n, B), dtype), jnp.zeros((max_steps,) + per, dtype), jnp.zeros((max_steps,) + per, dtype), jnp.int32(1), jnp.int32(0))
+
+
+def _keep(rec, t, h, y, k, ok, max_steps):
+    """Record the step `k` from `(t, y)` of size `h` (a rejected one is overwritten by its
+    retry): always written, to the next free slot, so no copy of the buffers is made."""
+    Y, TK, HK, stride, used = rec
+    C = Y.shape[0] - 1  # the last slot is scratch, for writes that are not kept
+    i = jnp.minimum(k, max_steps - 1)
+    TK, HK = TK.at[i].set(t), HK.at[i].set(h)
+    due = k % stride == 0
+
+    def compact(Y, stride, used):  # keep every other checkpoint, at twice the stride
+        Y = jax.lax.fori_loop(1, C // 2, lambda i, Y: Y.at[i].set(Y[2 * i]), Y)
+        return Y, 2 * stride, used // 2
+
+    Y, stride, used = jax.lax.cond(due & (used == C), compact, lambda *a: a, Y, stride, used)
+    Y = Y.at[jnp.minimum(used, C)].set(y)
+    return Y, TK, HK, stride, used + (ok & due)
 
 
 def _forward(m: _Method, args, batched, t0, t1, y0, ts, *, rtol, atol, max_steps, record):
@@ -214,23 +245,6 @@ def _forward(m: _Method, args, batched, t0, t1, y0, ts, *, rtol, atol, max_steps
 
         return jax.lax.while_loop(more, one, (ys, j, at))
 
-    def keep(rec, t, h, y, k, ok):
-        """Record the step `k` from `(t, y)` of size `h` (a rejected one is overwritten by its
-        retry): always written, to the next free slot, so no copy of the buffers is made."""
-        Y, TK, HK, stride, used = rec
-        C = Y.shape[0] - 1  # the last slot is scratch, for writes that are not kept
-        i = jnp.minimum(k, max_steps - 1)
-        TK, HK = TK.at[i].set(t), HK.at[i].set(h)
-        due = k % stride == 0
-
-        def compact(Y, stride, used):  # keep every other checkpoint, at twice the stride
-            Y = jax.lax.fori_loop(1, C // 2, lambda i, Y: Y.at[i].set(Y[2 * i]), Y)
-            return Y, 2 * stride, used // 2
-
-        Y, stride, used = jax.lax.cond(due & (used == C), compact, lambda *a: a, Y, stride, used)
-        Y = Y.at[jnp.minimum(used, C)].set(y)
-        return Y, TK, HK, stride, used + (ok & due)
-
     def running(carry):
         t, _, _, _, _, _, _, _, _, steps, bad, _ = carry
         return (t < t1) & (steps < max_steps) & ~bad
@@ -249,7 +263,7 @@ def _forward(m: _Method, args, batched, t0, t1, y0, ts, *, rtol, atol, max_steps
             due = ok & (j < T) & (ts[jnp.minimum(j, T - 1)] <= t_next)
             ys, j, at = jax.lax.cond(due, lambda: save(t, h, y, y1, K, ys, j, at, accepted), lambda: (ys, j, at))
         if record:
-            rec = keep(rec, t, h, y, accepted, ok)
+            rec = _keep(rec, t, h, y, accepted, ok, max_steps)
         h_next = (h * factor).astype(dtype)
         bad = (t_next < t1) & ~(h_next > 10 * jnp.finfo(dtype).eps * jnp.maximum(jnp.abs(t_next), 1.0))
         y = jnp.where(ok, y1, y)
@@ -260,9 +274,7 @@ def _forward(m: _Method, args, batched, t0, t1, y0, ts, *, rtol, atol, max_steps
     j = jnp.sum(ts <= t0).astype(jnp.int32)
     at = jnp.full((T,), -1, jnp.int32)
     rec = ()
-    if record:
-        C, _ = checkpoints(max_steps)
-        rec = (jnp.zeros((C + 1, n, B), dtype), jnp.zeros((max_steps,), dtype), jnp.zeros((max_steps,), dtype), jnp.int32(1), jnp.int32(0))
+    rec = _record_buffers(max_steps, n, B, dtype, ()) if record else ()
     K = jnp.zeros((m.s, n, B), dtype)
     init = (t0, h_init, y0, f0, K, ys, j, at, jnp.int32(0), jnp.int32(0), jnp.bool_(False), rec)
     t, _, y, _, _, ys, _, at, accepted, _, bad, rec = jax.lax.while_loop(running, step, init)
@@ -270,18 +282,21 @@ def _forward(m: _Method, args, batched, t0, t1, y0, ts, *, rtol, atol, max_steps
     return (jnp.concatenate([ys, y[None]]), failed, accepted), (at, rec)
 
 
-def _forward_per_trial(m: _Method, args, batched, t0, t1, y0, ts, *, rtol, atol, max_steps):
+def _forward_per_trial(m: _Method, args, batched, t0, t1, y0, ts, *, rtol, atol, max_steps, record=False):
     """`_forward` with a step sequence of each trial's own, taken in lockstep: every trial has
     its own time, step size, error norm and acceptance, so its result does not depend on the
     other trials of the batch (the arithmetic is elementwise over trials), while the whole batch
     still runs as one vectorised loop. The loop ends when every trial has reached `t1` or
     failed; a trial that is done takes steps of size zero (no change). A failure (`max_steps`
     attempts, or a step size that collapsed, e.g. a state turned non-finite) is per trial too:
-    that trial is frozen, the others go on. Not differentiable in reverse mode (a
-    `lax.while_loop`); batched `simulate(..., batch_steps="per_trial")` recomputes each trial's
-    own solve for gradients (`jsphere._simulate`).
+    that trial is frozen, the others go on.
 
-    Returns `(ys, failed, accepted)` with `failed` and `accepted` per trial."""
+    Returns `(ys, failed, accepted)` with `failed` and `accepted` per trial, and with `record`
+    what the backward pass needs: every iteration `k` is recorded with each trial's time and
+    *effective* step size (zero where the trial rejected its step, was done or had failed:
+    then the iteration leaves it unchanged, and its adjoint is the identity), the states at
+    every `stride`-th iteration, for each save time and trial the iteration that saved it, and
+    the number of iterations."""
     dtype = y0.dtype
     n, B = y0.shape
     T = ts.shape[0]
@@ -305,35 +320,30 @@ def _forward_per_trial(m: _Method, args, batched, t0, t1, y0, ts, *, rtol, atol,
     h1 = jnp.where(dmax <= 1e-15, jnp.maximum(1e-6, h0 * 1e-3), (0.01 / jnp.where(dmax <= 1e-15, 1.0, dmax)) ** (1.0 / tab.order))
     h_init = jnp.minimum(100 * h0, h1)
     h_init = jnp.where(jnp.isfinite(h_init), h_init, 1e-6).astype(dtype)
-
-    def dense(t, h, y, y1, K, tj):  # each trial's own dense output (trials on the last axis)
-        one = lambda t, h, y, y1, K, tj: m.dense(t, h, y, y1, K, tj)  # noqa: E731
-        return jax.vmap(one, in_axes=(0, 0, 1, 1, 2, 0), out_axes=1)(t, h, y, y1, K, tj)
-
     cols = jnp.arange(B)
 
-    def save(t, h, y, y1, K, ys, j, ok):
+    def save(t, h, y, y1, K, ys, j, at, ok, k):
         """Dense output at each trial's save times in `(t, t + h]` (accepted steps only)."""
 
         def due(j):
             return ok & (j < T) & (ts[jnp.minimum(j, T - 1)] <= t + h)
 
         def one(c):
-            ys, j = c
+            ys, j, at = c
             d = due(j)
             jj = jnp.minimum(j, T - 1)
-            val = dense(t, h, y, y1, K, ts[jj])
+            val = m.dense(t, h, y, y1, K, ts[jj])
             ys = ys.at[jj, :, cols].set(jnp.where(d[:, None], val.T, ys[jj, :, cols]))
-            return ys, j + d
+            return ys, j + d, at.at[jj, cols].set(jnp.where(d, k, at[jj, cols]))
 
-        return jax.lax.while_loop(lambda c: jnp.any(due(c[1])), one, (ys, j))
+        return jax.lax.while_loop(lambda c: jnp.any(due(c[1])), one, (ys, j, at))
 
     def running(c):
-        t, _, _, _, _, _, _, steps, dead, _ = c
+        t, steps, dead = c[0], c[8], c[9]
         return jnp.any((t < t1) & ~dead) & (steps < max_steps)
 
     def step(c):
-        t, h, y, k0, K, ys, j, steps, dead, acc = c
+        t, h, y, k0, K, ys, j, at, steps, dead, acc, rec = c
         h = jnp.where(dead, 0.0, jnp.minimum(h, t1 - t)).astype(dtype)
         y1, K = m.stages(t, h, y, K.at[0].set(h * k0), args, batched)
         err = sum(float(e) * K[i] for i, e in enumerate(tab.b_error) if e != 0.0)
@@ -343,20 +353,25 @@ def _forward_per_trial(m: _Method, args, batched, t0, t1, y0, ts, *, rtol, atol,
         inv = jnp.where(jnp.isfinite(e), 1.0 / jnp.maximum(e, tiny), 0.0)
         factor = jnp.clip(0.9 * inv ** (1.0 / tab.order), 0.2, jnp.where(ok, 10.0, 0.9))
         t_next = jnp.where(ok, jnp.where(h >= t1 - t, t1, t + h), t)
+        moved = ok & (h > 0)
         if T:
-            ys, j = save(t, h, y, y1, K, ys, j, ok & (h > 0))
+            ys, j, at = save(t, h, y, y1, K, ys, j, at, moved, steps)
+        if record:  # every iteration, with the step size that moved each trial
+            rec = _keep(rec, t, jnp.where(moved, h, 0.0), y, steps, True, max_steps)
         h_next = (h * factor).astype(dtype)
         collapsed = (t_next < t1) & ~(h_next > 10 * jnp.finfo(dtype).eps * jnp.maximum(jnp.abs(t_next), 1.0))
         y = jnp.where(ok, y1, y)
-        k0 = jnp.where(ok & (h > 0), K[-1] / jnp.where(h > 0, h, 1.0), k0)
-        return t_next, h_next, y, k0, K, ys, j, steps + 1, dead | collapsed, acc + (ok & (h > 0))
+        k0 = jnp.where(moved, K[-1] / jnp.where(h > 0, h, 1.0), k0)
+        return t_next, h_next, y, k0, K, ys, j, at, steps + 1, dead | collapsed, acc + moved, rec
 
     ys = jnp.where((ts <= t0)[:, None, None], y0[None], jnp.full((T, n, B), jnp.nan, dtype))
     j = jnp.full((B,), jnp.sum(ts <= t0), jnp.int32)
+    at = jnp.full((T, B), -1, jnp.int32)
+    rec = _record_buffers(max_steps, n, B, dtype, (B,)) if record else ()
     K = jnp.zeros((m.s, n, B), dtype)
-    init = (tv0, h_init, y0, f0, K, ys, j, jnp.int32(0), jnp.zeros((B,), bool), jnp.zeros((B,), jnp.int32))
-    t, _, y, _, _, ys, _, _, dead, acc = jax.lax.while_loop(running, step, init)
-    return jnp.concatenate([ys, y[None]]), dead | (t < t1), acc
+    init = (tv0, h_init, y0, f0, K, ys, j, at, jnp.int32(0), jnp.zeros((B,), bool), jnp.zeros((B,), jnp.int32), rec)
+    t, _, y, _, _, ys, _, at, steps, dead, acc, rec = jax.lax.while_loop(running, step, init)
+    return (jnp.concatenate([ys, y[None]]), dead | (t < t1), acc), (at, rec, steps)
 
 
 def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct, *, max_steps, times, elementwise=()):
@@ -375,12 +390,14 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
     and accumulate there (one kernel where there was one per element). The replayed steps and
     the recomputed stages (and the rates behind the times' cotangents) take the arguments as
     given (shared ones unbroadcast): only the stage VJPs need per-trial copies (session 11)."""
-    ys, _, accepted = out
+    ys, _, accepted = out  # with per-trial steps: the number of iterations
     Y, TK, HK, stride, used = rec
     _, S = checkpoints(max_steps)
     n, B = y0.shape
     T = ts.shape[0]
     dtype = y0.dtype
+    lockstep = TK.ndim == 2  # each trial's own steps, in lockstep (`_forward_per_trial`)
+    trials = jnp.arange(B)
 
     per_trial = [x if b or i not in diff else jnp.broadcast_to(x, (B,) + jnp.shape(x)) for i, (x, b) in enumerate(zip(args, batched))]
     pt_batched = tuple(b or i in diff for i, b in enumerate(batched))
@@ -431,7 +448,7 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
         def none(ti, yg):
             return tuple(jnp.zeros_like(yi[0]) for _ in range(yi.shape[0])), zeros
 
-        dy, da = jax.lax.cond(needed & jnp.isfinite(ti), one, none, ti, (yi, g))
+        dy, da = jax.lax.cond(needed & jnp.all(jnp.isfinite(ti)), one, none, ti, (yi, g))
         return jnp.stack(dy), da
 
     def adjoint_step(k, y, carry):
@@ -439,7 +456,11 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
         stage (each stage's VJP on its own, so nothing is stacked across stages)."""
         lam, acc, ts_bar, jp = carry
         t, h = TK[k], HK[k]
-        has = ((jp >= 0) & (at[jnp.maximum(jp, 0)] == k)) if T else jnp.bool_(False)
+
+        def saved_here(j):  # whether save j (one per trial with per-trial steps) is step k's
+            return (j >= 0) & (at[jnp.maximum(j, 0), trials] == k) if lockstep else (j >= 0) & (at[jnp.maximum(j, 0)] == k)
+
+        has = jnp.any(saved_here(jp)) if T else jnp.bool_(False)
         # the stages, the last one only if the dense output of this step is saved
         K = jnp.zeros((s_,) + y.shape, dtype).at[0].set(h * m.rates(t, y, args, batched))
 
@@ -450,15 +471,26 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
         y1 = m.stage_arg(s_ - 1, y, K)
 
         def more(cc):
-            return (cc[0] >= 0) & (at[jnp.maximum(cc[0], 0)] == k)
+            return jnp.any(saved_here(cc[0]))
 
         def one(cc):
             j, gy, gy1, gK, ts_bar = cc
-            yj, ipull = jax.vjp(lambda y, y1, K: m.dense(t, h, y, y1, K, ts[j]), y, y1, K)
-            dy, dy1, dK = ipull(ct[j])
+            if lockstep:  # each trial's next save, if it is this step's
+                here = saved_here(j)
+                jq = jnp.maximum(j, 0)
+                ctj = jnp.where(here, ct[jq, :, trials].T, 0.0)
+                tj = ts[jq]
+            else:
+                jq, ctj, tj = j, ct[j], ts[j]
+            yj, ipull = jax.vjp(lambda y, y1, K: m.dense(t, h, y, y1, K, tj), y, y1, K)
+            dy, dy1, dK = ipull(ctj)
             if times:
-                ts_bar = ts_bar.at[j].set(jnp.sum(ct[j] * m.rates(ts[j], yj, args, batched)))
-            return j - 1, gy + dy, gy1 + dy1, gK + dK, ts_bar
+                rate = ctj * m.rates(tj, yj, args, batched)
+                if lockstep:
+                    ts_bar = ts_bar.at[jq].add(jnp.sum(rate, axis=0))
+                else:
+                    ts_bar = ts_bar.at[j].set(jnp.sum(rate))
+            return (jnp.where(here, j - 1, j) if lockstep else j - 1), gy + dy, gy1 + dy1, gK + dK, ts_bar
 
         zero = jnp.zeros_like(y)
         if T:
@@ -498,7 +530,7 @@ def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct,
 
     acc = zeros
     direct = (ts <= t0)[:, None, None]  # rows that are y0 itself
-    carry = (ct[T], acc, jnp.zeros((T,), dtype), jnp.int32(T - 1))
+    carry = (ct[T], acc, jnp.zeros((T,), dtype), jnp.full((B,) if lockstep else (), T - 1, jnp.int32))
     (lam, acc, ts_bar, _), _ = jax.lax.fori_loop(0, used, stretch, (carry, jnp.zeros((S, n, B), dtype)))
     y0_bar = lam + jnp.sum(jnp.where(direct, ct[:T], 0.0), axis=0) if T else lam
     acc = unpack(acc)
@@ -542,8 +574,9 @@ def solve(f, t0, t1, y0, ts, args=(), batched=(), *, tab: Tableau, rtol, atol, m
     rows never reached are NaN.
 
     With `per_trial`, each trial (column) takes its own steps instead, in lockstep
-    (`_forward_per_trial`): `failed` and the step counts are then per trial, and the solve is
-    forward only (no discrete adjoint).
+    (`_forward_per_trial`): `failed` and the step counts are then per trial, and the discrete
+    adjoint runs the recorded iterations backwards with each trial's own step sizes (a
+    rejected, finished or failed trial's iteration is the identity).
 
     Reverse-mode differentiable with respect to `y0`, `args` and the times: a discrete adjoint
     of the accepted steps (sizes held fixed), with states checkpointed in the forward pass
@@ -559,13 +592,19 @@ def solve(f, t0, t1, y0, ts, args=(), batched=(), *, tab: Tableau, rtol, atol, m
         raise ValueError(f"batched: one flag per entry of args ({len(args)}), got {len(batched)}")
     m = _Method(f, tab, dtype)
     opts = dict(rtol=rtol, atol=atol, max_steps=max_steps)
-    if per_trial:
-        return _forward_per_trial(m, args, batched, t0, t1, y0, ts, **opts)
     cell = {}
+
+    def forward(t0, t1, ts, y0, args, record):
+        """`(out, (at, rec, n))`: the solve and its record; `n` the number of steps (shared) or
+        of iterations (per trial) the backward pass runs through."""
+        if per_trial:
+            return _forward_per_trial(m, args, batched, t0, t1, y0, ts, record=record, **opts)
+        out, (at, rec) = _forward(m, args, batched, t0, t1, y0, ts, record=record, **opts)
+        return out, (at, rec, out[2])
 
     @jax.custom_vjp
     def core(t0, t1, ts, y0, args):
-        return _forward(m, args, batched, t0, t1, y0, ts, record=False, **opts)[0]
+        return forward(t0, t1, ts, y0, args, False)[0]
 
     def fwd(t0, t1, ts, y0, args):
         times = [x.perturbed for x in (t0, t1, ts)]
@@ -573,8 +612,8 @@ def solve(f, t0, t1, y0, ts, args=(), batched=(), *, tab: Tableau, rtol, atol, m
         cell["diff"] = [i for i, x in enumerate(args) if x.perturbed and jnp.issubdtype(x.value.dtype, jnp.inexact)]
         t0, t1, ts, y0 = (x.value for x in (t0, t1, ts, y0))
         args = [x.value for x in args]
-        out, (at, rec) = _forward(m, args, batched, t0, t1, y0, ts, record=True, **opts)
-        return out, (t0, t1, ts, y0, args, out, at, rec)
+        out, (at, rec, steps) = forward(t0, t1, ts, y0, args, True)
+        return out, (t0, t1, ts, y0, args, (out[0], out[1], steps), at, rec)
 
     def bwd(res, ct_out):
         t0, t1, ts, y0, args, out, at, rec = res

@@ -361,10 +361,11 @@ def simulate(
       shared steps (within the tolerance of the per-trial gradient). `"per_trial"` gives each
       trial its own step-size control: with `Dopri8`, `Dopri5` or `Tsit5` the batch runs in
       the same vectorised loop, every trial with its own times, steps, failures and
-      `num_steps` (in lockstep: ~0.7x the shared rate, ~3-5x diffrax's vmapped loop), so a
-      trial's result is bitwise the same in any batch; its gradient recomputes each trial's
-      own solve in diffrax's loop (the same solution within the tolerance). It changes
-      nothing for unbatched calls, nor when `t0`, `t1`, `ts` or `jump_ts` are batched.
+      `num_steps` (in lockstep: ~0.7x the shared rate, ~4x diffrax's vmapped loop), so a
+      trial's result is bitwise the same in any batch; its gradient is the discrete adjoint
+      of those per-trial steps (~2-3x faster than per-trial VJPs of diffrax's loop). It
+      changes nothing for unbatched calls, nor when `t0`, `t1`, `ts` or `jump_ts` are
+      batched.
 
     Pure JAX: jit, vmap (over parameters, states, controls) and grad work.
     """
@@ -417,8 +418,9 @@ def simulate(
 # `batch_steps="per_trial"`) the undifferentiated batched pass also shares one step sequence
 # over the batch (`jsphere._ensemble`, a `custom_vmap` around each segment's solve), and the
 # backward pass of a gradient is then the discrete adjoint of those shared steps
-# (`_shared_rk`, `SHARED_ADJOINT`); with `batch_steps="per_trial"` it recomputes each trial's
-# own solve.
+# (`_shared_rk`, `SHARED_ADJOINT`); with `batch_steps="per_trial"` the same loop takes each
+# trial's own steps in lockstep, and the backward pass is the discrete adjoint of those
+# (other solvers than Dopri8, Dopri5, Tsit5: each trial's own solve recomputed).
 
 
 class _ClosedControl(eqx.Module):
@@ -538,7 +540,7 @@ def _large(axis_size, in_batched) -> bool:
 
 def _shared_grad(run, axis_size, in_batched) -> bool:
     """Whether a batch's gradient is the discrete adjoint of its shared steps (`_shared_rk`)."""
-    return run.shared_grad and _batched_layout(run, axis_size) == "shared" and any(jax.tree_util.tree_leaves(in_batched))
+    return run.shared_grad and _batched_layout(run, axis_size) in ("shared", "per_trial") and any(jax.tree_util.tree_leaves(in_batched))
 
 
 def _reverse_fwd(run, leaves):
@@ -622,7 +624,7 @@ def _reverse_bwd(run, residuals, ct):
 GRAD_CHUNK = 64
 
 
-#: Gradients of batches with shared steps through `_shared_rk`'s discrete adjoint
+#: Gradients of batches with shared (or, since session 13, per-trial) steps through `_shared_rk`'s discrete adjoint
 #: (`_shared_vjp`): on problem 3, 1.5x faster than the per-trial flat VJP at 64 trials and
 #: 2.3x at 1024, within 3e-7 of its gradient (benchmarks/NOTES.md, session 10; in session 9
 #: it was ~140x slower, until the parameter leaves reached the field's VJPs element by
@@ -632,13 +634,15 @@ SHARED_ADJOINT = True
 
 
 def _shared_vjp(run, axis_size, lv_batched, ct_batched, lv, cts, full_ct):
-    """Per-trial cotangents of the leaves `lv` of a batch solved with shared steps, for the
-    cotangents `cts` of its outputs: `jax.vjp` of the batched solve (`vmap` inside, so the
+    """Per-trial cotangents of the leaves `lv` of a batch solved in `_shared_rk`'s loop (shared
+    or per-trial steps), for the cotangents `cts` of its outputs: `jax.vjp` of the batched
+    solve (`vmap` inside, so the
     batching rule of `_ensemble.solve` runs before differentiation and `_shared_rk`'s adjoint
     applies), chunk by chunk (`BATCH_CHUNK` trials: padding trials get zero cotangents). The
     cotangents of leaves shared by the batch are sums over the batch; they are returned in the
     first trial's row (zeros elsewhere), which sums to the same."""
     chunk = min(axis_size, BATCH_CHUNK)
+    layout = _batched_layout(run, axis_size)  # "shared" or "per_trial"
     n = -(-axis_size // chunk)
     pad = n * chunk - axis_size
     in_axes = [0 if b else None for b in lv_batched]
@@ -657,7 +661,7 @@ def _shared_vjp(run, axis_size, lv_batched, ct_batched, lv, cts, full_ct):
         l_ch, c_ch = ch
         full = [c if b else x for c, x, b in zip(l_ch, lv, lv_batched)]
         cc = [c if b else x for c, x, b in zip(c_ch, cts, ct_batched)]
-        out, pull = jax.vjp(lambda l: jax.vmap(lambda x: run(x, "shared"), in_axes=(in_axes,), axis_size=chunk)(l), full)
+        out, pull = jax.vjp(lambda l: jax.vmap(lambda x: run(x, layout), in_axes=(in_axes,), axis_size=chunk)(l), full)
         g = pull(full_ct(cc, jax.tree_util.tree_leaves(out)))[0]
         return [x if k else None for x, k in zip(g, inexact)]  # no float0 through the map
 
@@ -722,9 +726,10 @@ def by_layout(fn, args, flat, batch_steps):
     run.cell = {}
     run.shared = batch_steps == "shared" and not isinstance(adjoint, dfx.ForwardMode)
     # gradients of shared steps by their discrete adjoint, where `_shared_rk` is the integrator
-    run.shared_grad = SHARED_ADJOINT and run.shared and _shared_rk.tableau(flat[0]) is not None
-    # batches integrated by `_shared_rk`'s loop: shared steps, or per-trial steps in lockstep
+    # batches integrated by `_shared_rk`'s loop: shared steps, or per-trial steps in lockstep;
+    # their gradients by its discrete adjoint
     run.lean = _shared_rk.tableau(flat[0]) is not None and not isinstance(adjoint, dfx.ForwardMode)
+    run.shared_grad = SHARED_ADJOINT and run.lean
 
     if isinstance(adjoint, dfx.ForwardMode):
         return _dispatched(run)(leaves)
