@@ -99,7 +99,8 @@ def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_sa
     Returns `(ys, failed, num_accepted_steps)` with `ys` the tuple of saved components. Batched
     (under `vmap`), trials share one step sequence (module docstring); with `per_trial` (a
     solver of `jsphere._shared_rk.SUPPORTED`) each trial takes its own steps, in lockstep
-    (`_shared_rk._forward_per_trial`: forward only).
+    (`_shared_rk._forward_per_trial`, with its own discrete adjoint), and `failed` and the
+    step counts are per trial.
     """
     dyn, static = eqx.partition(args[:3], eqx.is_array)
     p_leaves, p_def = jax.tree_util.tree_flatten(dyn)
