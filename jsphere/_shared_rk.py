@@ -181,6 +181,39 @@ class _Method:
         return self.tab.interpolation_cls(t0=t, t1=t + h, y0=y, y1=y1, k=K).evaluate(tj).astype(self.dtype)
 
 
+def _initial_step(m: _Method, args, batched, t0, y0, f0, rms, *, rtol, atol, finite=False):
+    """The starting step (diffrax's `_select_initial_step`) with the norm `rms`: one for the
+    batch (the largest over trials), or one per trial. `finite`: a non-finite trial's step is
+    1e-6 (it then fails alone)."""
+    scale = atol + rtol * jnp.abs(y0)
+    d0, d1 = rms(y0 / scale), rms(f0 / scale)
+    small = (d0 < 1e-5) | (d1 < 1e-5)
+    h0 = jnp.where(small, 1e-6, 0.01 * d0 / jnp.where(small, 1.0, d1))
+    if finite:
+        h0 = jnp.where(jnp.isfinite(h0), h0, 1e-6)
+    f1 = m.rates(t0 + h0, y0 + h0 * f0, args, batched)
+    d2 = rms((f1 - f0) / scale) / h0
+    dmax = jnp.maximum(d1, d2)
+    h1 = jnp.where(dmax <= 1e-15, jnp.maximum(1e-6, h0 * 1e-3), (0.01 / jnp.where(dmax <= 1e-15, 1.0, dmax)) ** (1.0 / m.tab.order))
+    h_init = jnp.minimum(100 * h0, h1)
+    if finite:
+        h_init = jnp.where(jnp.isfinite(h_init), h_init, 1e-6)
+    return h_init.astype(y0.dtype)
+
+
+def _control(tab: Tableau, K, y, y1, rms, *, rtol, atol, skip=None):
+    """Acceptance and step-size factor of the step `y -> y1` with stage increments `K`: the
+    scaled error in the norm `rms` (one for the batch, or one per trial; `skip`: trials
+    accepted without control), Hairer's integral rule (module docstring)."""
+    err = sum(float(e) * K[i] for i, e in enumerate(tab.b_error) if e != 0.0)
+    e = rms(err / (atol + rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1))))
+    if skip is not None:
+        e = jnp.where(skip, 0.0, e)
+    ok = e < 1.0
+    inv = jnp.where(jnp.isfinite(e), 1.0 / jnp.maximum(e, jnp.finfo(y.dtype).tiny), 0.0)
+    return ok, jnp.clip(0.9 * inv ** (1.0 / tab.order), 0.2, jnp.where(ok, 10.0, 0.9))
+
+
 def _record_buffers(max_steps, n, B, dtype, per):
     """The empty record of a gradient's forward pass: `C + 1` checkpoint slots of the state,
     each step's time and size (`per`: `()` for shared steps, `(B,)` per trial), the stride
@@ -214,7 +247,6 @@ def _forward(m: _Method, args, batched, t0, t1, y0, ts, *, rtol, atol, max_steps
     dtype = y0.dtype
     n, B = y0.shape
     T = ts.shape[0]
-    tab = m.tab
 
     f0 = m.rates(t0, y0, args, batched)
     live = jnp.all(jnp.isfinite(y0), axis=0) & jnp.all(jnp.isfinite(f0), axis=0)  # controlled trials
@@ -222,16 +254,7 @@ def _forward(m: _Method, args, batched, t0, t1, y0, ts, *, rtol, atol, max_steps
     def rms(x):  # the largest per-trial RMS norm over the controlled trials
         return jnp.sqrt(jnp.max(jnp.where(live, _mean_sq_rows(x), 0.0)))
 
-    # the starting step (diffrax's `_select_initial_step`, with this norm)
-    scale = atol + rtol * jnp.abs(y0)
-    d0, d1 = rms(y0 / scale), rms(f0 / scale)
-    small = (d0 < 1e-5) | (d1 < 1e-5)
-    h0 = jnp.where(small, 1e-6, 0.01 * d0 / jnp.where(small, 1.0, d1))
-    f1 = m.rates(t0 + h0, y0 + h0 * f0, args, batched)
-    d2 = rms((f1 - f0) / scale) / h0
-    dmax = jnp.maximum(d1, d2)
-    h1 = jnp.where(dmax <= 1e-15, jnp.maximum(1e-6, h0 * 1e-3), (0.01 / jnp.where(dmax <= 1e-15, 1.0, dmax)) ** (1.0 / tab.order))
-    h_init = jnp.minimum(100 * h0, h1).astype(dtype)
+    h_init = _initial_step(m, args, batched, t0, y0, f0, rms, rtol=rtol, atol=atol)
 
     def save(t, h, y, y1, K, ys, j, at, k):
         """Dense output at the save times in `(t, t + h]` (step `k`)."""
@@ -253,11 +276,7 @@ def _forward(m: _Method, args, batched, t0, t1, y0, ts, *, rtol, atol, max_steps
         t, h, y, k0, K, ys, j, at, accepted, steps, bad, rec = carry
         h = jnp.minimum(h, t1 - t)
         y1, K = m.stages(t, h, y, K.at[0].set(h * k0), args, batched)
-        err = sum(float(e) * K[i] for i, e in enumerate(tab.b_error) if e != 0.0)
-        e = rms(err / (atol + rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1))))
-        ok = e < 1.0
-        inv = jnp.where(jnp.isfinite(e), 1.0 / jnp.maximum(e, jnp.finfo(dtype).tiny), 0.0)
-        factor = jnp.clip(0.9 * inv ** (1.0 / tab.order), 0.2, jnp.where(ok, 10.0, 0.9))
+        ok, factor = _control(m.tab, K, y, y1, rms, rtol=rtol, atol=atol)
         t_next = jnp.where(ok, jnp.where(h >= t1 - t, t1, t + h), t)
         if T:
             due = ok & (j < T) & (ts[jnp.minimum(j, T - 1)] <= t_next)
@@ -273,7 +292,6 @@ def _forward(m: _Method, args, batched, t0, t1, y0, ts, *, rtol, atol, max_steps
     ys = jnp.where((ts <= t0)[:, None, None], y0[None], jnp.full((T, n, B), jnp.nan, dtype))
     j = jnp.sum(ts <= t0).astype(jnp.int32)
     at = jnp.full((T,), -1, jnp.int32)
-    rec = ()
     rec = _record_buffers(max_steps, n, B, dtype, ()) if record else ()
     K = jnp.zeros((m.s, n, B), dtype)
     init = (t0, h_init, y0, f0, K, ys, j, at, jnp.int32(0), jnp.int32(0), jnp.bool_(False), rec)
@@ -300,27 +318,14 @@ def _forward_per_trial(m: _Method, args, batched, t0, t1, y0, ts, *, rtol, atol,
     dtype = y0.dtype
     n, B = y0.shape
     T = ts.shape[0]
-    tab = m.tab
-    tiny = jnp.finfo(dtype).tiny
     tv0 = jnp.full((B,), t0, dtype)
 
     def rms(x):  # each trial's RMS norm
         return jnp.sqrt(_mean_sq_rows(x))
 
     f0 = m.rates(tv0, y0, args, batched)
-    # the starting step of each trial (diffrax's `_select_initial_step`)
-    scale = atol + rtol * jnp.abs(y0)
-    d0, d1 = rms(y0 / scale), rms(f0 / scale)
-    small = (d0 < 1e-5) | (d1 < 1e-5)
-    h0 = jnp.where(small, 1e-6, 0.01 * d0 / jnp.where(small, 1.0, d1))
-    h0 = jnp.where(jnp.isfinite(h0), h0, 1e-6)
-    f1 = m.rates(tv0 + h0, y0 + h0 * f0, args, batched)
-    d2 = rms((f1 - f0) / scale) / h0
-    dmax = jnp.maximum(d1, d2)
-    h1 = jnp.where(dmax <= 1e-15, jnp.maximum(1e-6, h0 * 1e-3), (0.01 / jnp.where(dmax <= 1e-15, 1.0, dmax)) ** (1.0 / tab.order))
-    h_init = jnp.minimum(100 * h0, h1)
-    h_init = jnp.where(jnp.isfinite(h_init), h_init, 1e-6).astype(dtype)
-    cols = jnp.arange(B)
+    h_init = _initial_step(m, args, batched, tv0, y0, f0, rms, rtol=rtol, atol=atol, finite=True)
+    trials = jnp.arange(B)
 
     def save(t, h, y, y1, K, ys, j, at, ok, k):
         """Dense output at each trial's save times in `(t, t + h]` (accepted steps only)."""
@@ -333,8 +338,8 @@ def _forward_per_trial(m: _Method, args, batched, t0, t1, y0, ts, *, rtol, atol,
             d = due(j)
             jj = jnp.minimum(j, T - 1)
             val = m.dense(t, h, y, y1, K, ts[jj])
-            ys = ys.at[jj, :, cols].set(jnp.where(d[:, None], val.T, ys[jj, :, cols]))
-            return ys, j + d, at.at[jj, cols].set(jnp.where(d, k, at[jj, cols]))
+            ys = ys.at[jj, :, trials].set(jnp.where(d[:, None], val.T, ys[jj, :, trials]))
+            return ys, j + d, at.at[jj, trials].set(jnp.where(d, k, at[jj, trials]))
 
         return jax.lax.while_loop(lambda c: jnp.any(due(c[1])), one, (ys, j, at))
 
@@ -346,12 +351,7 @@ def _forward_per_trial(m: _Method, args, batched, t0, t1, y0, ts, *, rtol, atol,
         t, h, y, k0, K, ys, j, at, steps, dead, acc, rec = c
         h = jnp.where(dead, 0.0, jnp.minimum(h, t1 - t)).astype(dtype)
         y1, K = m.stages(t, h, y, K.at[0].set(h * k0), args, batched)
-        err = sum(float(e) * K[i] for i, e in enumerate(tab.b_error) if e != 0.0)
-        e = rms(err / (atol + rtol * jnp.maximum(jnp.abs(y), jnp.abs(y1))))
-        e = jnp.where(dead, 0.0, e)
-        ok = e < 1.0
-        inv = jnp.where(jnp.isfinite(e), 1.0 / jnp.maximum(e, tiny), 0.0)
-        factor = jnp.clip(0.9 * inv ** (1.0 / tab.order), 0.2, jnp.where(ok, 10.0, 0.9))
+        ok, factor = _control(m.tab, K, y, y1, rms, rtol=rtol, atol=atol, skip=dead)
         t_next = jnp.where(ok, jnp.where(h >= t1 - t, t1, t + h), t)
         moved = ok & (h > 0)
         if T:
@@ -375,7 +375,8 @@ def _forward_per_trial(m: _Method, args, batched, t0, t1, y0, ts, *, rtol, atol,
 
 
 def _backward(m: _Method, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct, *, max_steps, times, elementwise=()):
-    """The discrete adjoint of `_forward`: the cotangents of `(y0, args[i] for i in diff)` for
+    """The discrete adjoint of `_forward` (or of `_forward_per_trial`: its iterations, with each
+    trial's own step sizes): the cotangents of `(y0, args[i] for i in diff)` for
     the cotangent `ct` of the saved states, with the accepted steps' sizes held fixed; if
     `times`, also those of `(t0, t1, ts)` (the exact solution's: `-<lambda(t0), f(t0, y0)>`,
     `<ct(t1), f(t1, y(t1))>`, `<ct_j, f(ts_j, y(ts_j))>`).

@@ -479,10 +479,8 @@ def _batched_layout(run, axis_size):
     """The `components` argument of `_simulate` for a batch of `axis_size` trials: `"shared"`
     (one step sequence), `"per_trial"` (each trial's own steps, in lockstep in the same loop),
     or whether to use the component layout with diffrax's loop per trial."""
-    if axis_size >= SHARED_MIN_BATCH and run.lean:
+    if axis_size >= SHARED_MIN_BATCH and (run.shared or run.lean):
         return "shared" if run.shared else "per_trial"
-    if run.shared and axis_size >= SHARED_MIN_BATCH:
-        return "shared"
     return axis_size >= COMPONENT_MIN_BATCH
 
 
