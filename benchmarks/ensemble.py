@@ -32,7 +32,6 @@ import json
 import os
 import platform
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +45,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 import jsphere  # noqa: E402
+from jsphere._io import atomic_write_text  # noqa: E402
 from jsphere._params import derive  # noqa: E402
 from jsphere._soa import torque_field_components  # noqa: E402
 from run import public as timings, time_call  # noqa: E402
@@ -168,11 +168,7 @@ def main(argv=None) -> int:
         "problem2": "problem 2 of run.py (acceleration + braking gaits, theta_max ~ U(0.05, 0.15), simulate_gaits defaults rtol 1e-10)",
         "problem2_rows": rows2,
     }  # fmt: skip
-    fd, tmp = tempfile.mkstemp(dir=args.out.parent, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(res, f, indent=2)
-        f.write("\n")
-    os.replace(tmp, args.out)
+    atomic_write_text(args.out, json.dumps(res, indent=2) + "\n")
     return 0
 
 

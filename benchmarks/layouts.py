@@ -19,7 +19,6 @@ import json
 import os
 import platform
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -33,6 +32,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 import jsphere  # noqa: E402
+from jsphere._io import atomic_write_text  # noqa: E402
 import jsphere._simulate as S  # noqa: E402
 
 PH = jnp.array([0.0, 2.1, 4.2])
@@ -139,11 +139,7 @@ def main(argv=None) -> int:
         "rows": rows,
         "table": lines,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=args.out.parent, suffix=".tmp")
-    with os.fdopen(fd, "w") as fh:
-        json.dump(out, fh, indent=2)
-    os.replace(tmp, args.out)
+    atomic_write_text(args.out, json.dumps(out, indent=2) + "\n")
     return 0
 
 

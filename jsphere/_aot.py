@@ -25,7 +25,6 @@ from __future__ import annotations
 import hashlib
 import os
 import sys
-import tempfile
 from pathlib import Path
 from typing import Any, Callable
 
@@ -34,6 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._io import atomic_write
 from ._linalg import under_jit
 
 _DIR: Path | None = None
@@ -99,18 +99,6 @@ def _key(name: str, leaves, treedef, static) -> str | None:
     return h.hexdigest()[:40]
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def call(name: str, fn: Callable, rebuild: Callable, *args):
     """`fn(*args)`, through an exported program when enabled and the call has a stable key.
 
@@ -151,7 +139,7 @@ def _load_or_export(key, fn, treedef, static, leaves) -> Callable:
 
         avals = [jax.ShapeDtypeStruct(np.shape(x), jnp.result_type(x), weak_type=bool(getattr(x, "weak_type", False))) for x in leaves]
         exported = jax.export.export(jax.jit(flat))(*avals)
-        _write_atomic(path, bytes(exported.serialize()))
+        atomic_write(path, lambda tmp: Path(tmp).write_bytes(bytes(exported.serialize())), suffix=".tmp")
     run = jax.jit(exported.call)
     _LOADED[key] = run
     return run

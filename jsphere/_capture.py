@@ -456,12 +456,13 @@ def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> T
 
 
 def read_trials(paths: Iterable, **kwargs) -> list[Trial]:
-    """`read_trial` on each path (a directory stands for its `*.csv` files, sorted)."""
+    """`read_trial` on each path (a directory stands for its `*.csv` files, sorted; hidden
+    files, such as a temporary file a killed writer left, are skipped)."""
     out = []
     for p in paths:
         p = Path(p)
         if p.is_dir():
-            out += [read_trial(f, **kwargs) for f in sorted(p.glob("*.csv"))]
+            out += [read_trial(f, **kwargs) for f in sorted(p.glob("*.csv")) if not f.name.startswith(".")]
         else:
             out.append(read_trial(p, **kwargs))
     return out

@@ -14,36 +14,61 @@ except ModuleNotFoundError:  # pragma: no cover
     import tomli as tomllib  # type: ignore[no-redef]
 
 
-def atomic_write_text(path, text: str) -> None:
-    """Write `text` to `path` so that a killed process leaves either the old file or the new one."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+def _umask() -> int:
+    """The process's file-creation mask (read once, at import, before any thread starts)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+_NEW_FILE_MODE = 0o666 & ~_umask()
+
+
+def _publish(tmp: str, path: Path) -> None:
+    """Give the finished temporary file the mode a plain `open(path, "w")` would (the
+    existing file's, else `0o666` less the umask: `mkstemp` creates `0o600`), flush it to
+    disk and rename it over `path`."""
     try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+        mode = path.stat().st_mode & 0o7777
+    except FileNotFoundError:
+        mode = _NEW_FILE_MODE
+    os.chmod(tmp, mode)
+    fd = os.open(tmp, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    os.replace(tmp, path)
 
 
-def atomic_write(path, write) -> None:
-    """Call `write(tmp_path)` on a temporary file beside `path`, then rename it to `path`."""
+def atomic_write(path, write, *, suffix: str | None = None) -> None:
+    """Call `write(tmp_path)` on a temporary file beside `path`, then rename it to `path`, so that
+    a killed process leaves either the old file or the new one (never a partial file). The new
+    file gets the usual permissions (those of the file it replaces, else `0o666` less the
+    umask). The temporary file is hidden (`.name.XXXX`) and ends in `suffix` (default: the
+    suffix of `path`, for writers that infer the format from it)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix if suffix is None else suffix)
     os.close(fd)
     try:
         write(tmp)
-        os.replace(tmp, path)
+        _publish(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def atomic_write_text(path, text: str) -> None:
+    """Write `text` to `path` atomically (`atomic_write`; the temporary file ends in `.tmp`, so
+    a reader globbing `*.csv` never sees one a killed process left)."""
+
+    def write(tmp):
+        with open(tmp, "w") as f:
+            f.write(text)
+
+    atomic_write(path, write, suffix=".tmp")
 
 
 def atomic_savefig(fig, path, **kwargs) -> None:

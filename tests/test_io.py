@@ -246,6 +246,33 @@ def test_atomic_write_text(tmp_path):
     assert _files(path.parent) == ["x.txt"]
 
 
+def test_atomic_writes_get_the_usual_permissions(tmp_path):
+    # mkstemp creates 0o600; a written file must get what open(path, "w") would give it
+    text, binary = tmp_path / "a.json", tmp_path / "b.npz"
+    jio.atomic_write_text(text, "{}\n")
+    jio.atomic_write(binary, lambda tmp: np.savez(tmp, x=np.arange(3)))
+    plain = tmp_path / "plain.txt"
+    plain.write_text("x")
+    for path in (text, binary):
+        assert path.stat().st_mode & 0o777 == plain.stat().st_mode & 0o777, path
+    os.chmod(text, 0o640)  # a file that exists keeps its mode
+    jio.atomic_write_text(text, "[]\n")
+    assert text.stat().st_mode & 0o777 == 0o640 and text.read_text() == "[]\n"
+    assert _files(tmp_path) == ["a.json", "b.npz", "plain.txt"]
+
+
+def test_read_trials_skips_hidden_temporary_files(tmp_path):
+    from jsphere import read_trials, write_trial
+    from jsphere._capture import Trial
+
+    t = np.linspace(0.0, 1.0, 11)
+    trial = Trial(t, 0.01 * t, 0.0 * t, np.tile([1.0, 0.0, 0.0, 0.0], (11, 1)), np.zeros((11, 3)), "torques", name="a")
+    write_trial(tmp_path / "a.csv", trial)
+    (tmp_path / ".a.k2j3.csv").write_text("half a file")  # what a killed writer might leave
+    [got] = read_trials([tmp_path])
+    np.testing.assert_allclose(got.x, trial.x)
+
+
 # ------------------------------------------------------------------ aliases
 
 
