@@ -30,6 +30,7 @@ from ._simulate import (
     default_solver,
     raise_on_failure,
     solve_segments,
+    tolerances,
 )
 from ._soa import gait_field_components, unit
 from ._state import State
@@ -214,6 +215,11 @@ def _rolling_direction(gait: Gait, Qm):
     return matvec(Qm, jnp.stack([-jnp.sin(ph), jnp.cos(ph), jnp.zeros_like(ph)]))
 
 
+#: Tolerances `(rtol, atol)` of `simulate_gaits` by the parameters' precision when none are
+#: given (`jsphere._simulate.tolerances`).
+GAIT_TOLERANCES = {"float64": (1e-10, 1e-12), "float32": (1e-5, 1e-7)}
+
+
 def simulate_gaits(
     params: RobotParams,
     gaits: Sequence[Gait],
@@ -226,8 +232,8 @@ def simulate_gaits(
     ts: Float[ArrayLike, " T"] | None = None,
     reset: bool | Sequence = False,
     rate: float = 100.0,
-    rtol: float = 1e-10,
-    atol: float = 1e-12,
+    rtol: float | None = None,
+    atol: float | None = None,
     solver: dfx.AbstractSolver | None = None,
     max_steps: int = 16384,
     throw: bool = True,
@@ -254,7 +260,9 @@ def simulate_gaits(
       the vertical and the sideways drift caused by the wheels' inertia). A sequence (one
       entry per boundary) mixes `None`/`False` (continue), `True` (as above), or an explicit
       `Omega` 3-vector (with `alpha, beta` reset too), e.g. `(-0.868, 0.852, 0)` of (5.7).
-    - `rtol`, `atol`: tolerances (defaults tight enough for 1e-8 agreement of `Omega, K`).
+    - `rtol`, `atol`: tolerances. Default 1e-10, 1e-12 (tight enough for 1e-8 agreement of
+      `Omega, K`); with float32 parameters 1e-5, 1e-7 (`GAIT_TOLERANCES`; a float32 `rtol`
+      below 1e-5 warns, as in `simulate`).
     - `batch_steps`: under `jax.vmap`, `"shared"` (default) integrates a batch of at least 32
       trials with one step sequence on contiguous components (`jsphere._ensemble`; each
       trial still meets its tolerance), `"per_trial"` gives every trial its own steps (in
@@ -274,6 +282,7 @@ def simulate_gaits(
         if len(resets) != nb:
             raise ValueError(f"simulate_gaits: reset needs one entry per gait boundary ({nb}); got {len(resets)}.")
     dt = params.R0.dtype
+    rtol, atol = tolerances(dt, rtol, atol, GAIT_TOLERANCES, where="simulate_gaits")
     initial = tuple(as_array(v, dt) for v in (alpha0, beta0, Omega0, x0, y0))
     _check_start(params, gaits[0], initial[0], initial[1])
 

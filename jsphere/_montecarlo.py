@@ -24,7 +24,7 @@ import numpy as np
 
 from ._controls import Sampled, Torques, WheelSpeeds
 from ._gaits import Gait, simulate_gaits
-from ._simulate import simulate
+from ._simulate import simulate, tolerances
 from ._state import State
 from ._io import atomic_write, atomic_write_text
 from ._linalg import cross
@@ -224,8 +224,8 @@ def monte_carlo(
     seed: int = 0,
     batch_size: int = 1024,
     reset=False,
-    rtol: float = 1e-8,
-    atol: float = 1e-10,
+    rtol: float | None = None,
+    atol: float | None = None,
     mode: str = "gait",
     actuators: Actuators | None = None,
     Omega0_sd: float = 0.0,
@@ -263,6 +263,8 @@ def monte_carlo(
       a time stamp to encode a jump (wheel-speed jumps are impulses, see `simulate`); the motors
       stop at its last time. `gaits` is then not replayed (pass the gaits the commands belong
       to, for the record).
+    - `rtol`, `atol`: the solver's tolerances; default 1e-8, 1e-10 (float32 parameters: 1e-5,
+      1e-7, as `simulate`).
     - `max_steps`: solver step limit per trial in the replay modes (noisy commands need many
       steps: the noise is interpolated smoothly and the solver follows it).
     - `Omega0_sd`: sd of a perturbation of the initial shell angular velocity [1/s].
@@ -292,6 +294,7 @@ def monte_carlo(
     if pc > 1 and out is None:
         raise ValueError("monte_carlo: with several processes, pass `out`, a folder that every process can read and write.")
     spec = _check_vary(params, vary)
+    rtol, atol = tolerances(params.R0.dtype, rtol, atol, where="monte_carlo")
     gaits = list(gaits)
     if not gaits or not all(isinstance(g, Gait) for g in gaits):
         raise TypeError("monte_carlo: gaits must be a non-empty list of jsphere.Gait.")

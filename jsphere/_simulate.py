@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import warnings
 from typing import Any, Callable, Literal
 
 import diffrax as dfx
@@ -157,6 +158,37 @@ def default_solver():
     than `Tsit5` and runs 2.5-4x faster for one trial, 1.5-1.8x under `vmap`
     (benchmarks/NOTES.md)."""
     return dfx.Dopri8()
+
+
+#: Tolerances `(rtol, atol)` of `simulate` by the parameters' precision when none are given.
+#: float64: positions within 1e-3 mm over the paper's 4 s manoeuvres. float32: about 100
+#: machine epsilons; issue 6's problem 1 then ends within ~1e-2 mm of the float64 reference
+#: (benchmarks/NOTES.md, session 14).
+DEFAULT_TOLERANCES = {"float64": (1e-8, 1e-10), "float32": (1e-5, 1e-7)}
+
+#: Below this `rtol` a float32 solve's error estimates are mostly rounding noise: steps shrink
+#: and are rejected at random, worst in batches with shared steps (issue 6's problem 1, 64
+#: trials: 64 shared steps at rtol 1e-5, 218 at 1e-6, 733 at 5e-7; one trial at rtol 1e-8:
+#: 7,105 steps against 102 in float64).
+FLOAT32_MIN_RTOL = 1e-5
+
+
+def tolerances(dtype, rtol, atol, defaults=DEFAULT_TOLERANCES, *, where: str = "simulate") -> tuple[Any, Any]:
+    """`(rtol, atol)` with `None` replaced by the default for `dtype` (`defaults[dtype name]`),
+    and a warning when a float32 solve is asked for an `rtol` its rounding cannot resolve."""
+    name = "float32" if jnp.dtype(dtype).itemsize <= 4 else "float64"
+    rtol = defaults[name][0] if rtol is None else rtol
+    atol = defaults[name][1] if atol is None else atol
+    if name == "float32" and isinstance(rtol, (int, float)) and rtol < FLOAT32_MIN_RTOL:
+        warnings.warn(
+            f"{where}: rtol={rtol:g} with float32 parameters is below what float32 resolves "
+            f"(~{FLOAT32_MIN_RTOL:g}, about 100 machine epsilons): the error estimates are rounding "
+            "noise, so the solver takes many more steps (most of all for batches with shared steps) "
+            f"or fails. Pass rtol >= {FLOAT32_MIN_RTOL:g} (the float32 default when rtol is not "
+            "given) or use float64 parameters.",
+            stacklevel=3,
+        )
+    return rtol, atol
 
 
 _FAILURE_MESSAGES = (
@@ -328,8 +360,8 @@ def simulate(
     *,
     t0: float = 0.0,
     ts: Float[ArrayLike, " T"] | None = None,
-    rtol: float = 1e-8,
-    atol: float = 1e-10,
+    rtol: float | None = None,
+    atol: float | None = None,
     solver: dfx.AbstractSolver | None = None,
     max_steps: int = 16384,
     throw: bool = True,
@@ -347,8 +379,10 @@ def simulate(
       control-free equation (`servo_jump`), and again at each of the control's `jump_ts`.
     - `t1`: final time [s].
     - `ts`: times at which to report the motion (default `[t0, t1]`).
-    - `rtol`, `atol`: tolerances of the adaptive step-size controller. The defaults keep
-      positions within 1e-3 mm over the paper's 4 s manoeuvres.
+    - `rtol`, `atol`: tolerances of the adaptive step-size controller. Default 1e-8, 1e-10
+      (positions within 1e-3 mm over the paper's 4 s manoeuvres); with float32 parameters
+      1e-5, 1e-7 (`DEFAULT_TOLERANCES`; a float32 `rtol` below 1e-5 warns: its error
+      estimates would be rounding noise).
     - `solver`: a diffrax solver (default `Dopri8`); `adjoint`: a diffrax adjoint (default
       `RecursiveCheckpointAdjoint`; use `diffrax.ForwardMode()` for `jax.jacfwd`).
     - `throw`: raise on solver failure (max steps, NaN). With `throw=False` the failure is
@@ -387,6 +421,7 @@ def simulate(
     if batch_steps not in ("shared", "per_trial"):
         raise ValueError(f"simulate: batch_steps must be 'shared' or 'per_trial'; got {batch_steps!r}.")
     dt = params.R0.dtype
+    rtol, atol = tolerances(dt, rtol, atol)
     ts_out = None if ts is None else as_array(ts, dt)
     if ts_out is not None and not isinstance(ts_out, jax.core.Tracer):
         tsn = np.asarray(ts_out)

@@ -138,11 +138,29 @@ def test_grad_wrt_gait_amplitude_and_params(paper):
     assert 1e-3 * float(g_rm) == pytest.approx(2 * 0.15 * 0.036, rel=0.05)
 
 
-def test_float32_on_request():
+def test_float32_on_request(paper):
     p32 = jsphere.RobotParams.paper(dtype=jnp.float32)
-    tr = jsphere.simulate_gaits(p32, [jsphere.acceleration(), jsphere.braking()], rtol=1e-6, atol=1e-8)
-    assert tr.x.dtype == jnp.float32
-    assert abs(float(tr.x[-1]) - 0.259199) < 1e-4
+    # without tolerances, float32 parameters get float32 ones (1e-5, 1e-7): float64's 1e-10
+    # made these gaits fail at max_steps, and a trial of problem 1 at 1e-8 took ~7,000 steps
+    tr = jsphere.simulate_gaits(p32, [jsphere.acceleration(), jsphere.braking()])
+    assert tr.x.dtype == jnp.float32 and bool(tr.ok)
+    assert abs(float(tr.x[-1]) - 0.259199) < 1e-5 and abs(float(tr.y[-1]) - 0.003594) < 1e-5
+
+    ph = jnp.array([0.0, 2.1, 4.2], jnp.float32)
+    A = 0.05 * (1 + 0.1 * np.random.default_rng(0).standard_normal((64, 3)))
+
+    def finals(p, A, **kw):
+        run = lambda a: jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + ph.astype(a.dtype))), 4.0, **kw)  # noqa: E731
+        return jax.jit(jax.vmap(run))(A)
+
+    t32, t64 = finals(p32, jnp.asarray(A, jnp.float32)), finals(paper, jnp.asarray(A))
+    assert t32.x.dtype == jnp.float32 and bool(jnp.all(t32.ok))
+    assert int(t32.num_steps[0]) < 100  # shared steps; 64 measured (float64 at 1e-8: 128)
+    err = np.hypot(np.asarray(t32.x[:, -1], float) - np.asarray(t64.x[:, -1]), np.asarray(t32.y[:, -1], float) - np.asarray(t64.y[:, -1]))
+    assert err.max() < 3e-5  # [m]; 9e-6 measured over 1024 trials
+
+    with pytest.warns(UserWarning, match=r"rtol=1e-08 with float32 parameters"):
+        jsphere.simulate(p32, jsphere.State.at_rest(p32), jsphere.Torques(lambda t: ph), 0.1, rtol=1e-8, atol=1e-10)
 
 
 def test_jacfwd_with_forward_mode_adjoint(paper):
