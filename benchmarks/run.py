@@ -9,6 +9,8 @@ Problem 1: paper robot from rest, torques K_i(t) = a_i sin(pi t + 2.1 (i-1)), a_
 Problem 2: acceleration + braking gaits, theta_max ~ U(0.05, 0.15) per trial (default_rng(1)), final x.
 Problem 3: cost of jax.grad of sum(x_f^2 + y_f^2) over a batch of problem 1 with respect to
            (r_m[2] = -R_m, j, diag I, m0, I0), relative to the forward pass of the same batch.
+Start-up:  `jsphere reproduce` in new processes, with an empty compilation cache, then with the
+           cache the first one filled (benchmarks/startup.py; 3 cached runs, 1 in --quick).
 
 See benchmarks/README.md for the meaning of every column and JSON field.
 """
@@ -22,6 +24,7 @@ import os
 import platform
 import statistics
 import sys
+import tempfile
 import time
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
@@ -41,6 +44,7 @@ import equinox as eqx  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 from numpy_model import NumpyRobot, initial_state  # noqa: E402
+from startup import measure as startup_measure  # noqa: E402
 
 _SOURCE_AT_IMPORT = None  # set in main(), right after jsphere was imported
 T1 = 4.0
@@ -438,6 +442,13 @@ def fmt_table(res) -> str:
             f"gradient P3 vs central differences (batch {fd['batch']}): max rel diff {fd['max_rel_diff']:.1e} "
             f"(< {fd['tolerance']:.0e}: {'PASS' if fd['pass'] else 'FAIL'})"
         )
+    su = res.get("startup")
+    if su:
+        L.append(
+            f"start-up, `jsphere reproduce` in new processes (figures included): first {su['first_process_s']:.1f} s "
+            f"(empty cache; target < 20 s), second {su['second_process_s']:.1f} s (median of "
+            f"{len(su['second_process_runs_s'])}; target < 5 s)"
+        )
     return "\n".join(L)
 
 
@@ -447,9 +458,10 @@ def write_json_atomic(path: Path, obj) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="smaller run (under 3 minutes on 2 CPU cores)")
+    ap.add_argument("--quick", action="store_true", help="smaller run (about 2 minutes on 2 CPU cores)")
     ap.add_argument("--out", type=Path, default=HERE / "results.json", help="JSON output (written atomically)")
     ap.add_argument("--no-casadi", action="store_true", help="skip the CasADi baselines (run when casadi is installed)")
+    ap.add_argument("--no-startup", action="store_true", help="skip the start-up measurement (benchmarks/startup.py's default configuration)")
     args = ap.parse_args(argv)
     t_start = time.perf_counter()
     global _SOURCE_AT_IMPORT
@@ -476,6 +488,12 @@ def main(argv=None) -> int:
     cas_rows = problem1_casadi(model, q0, Z, 1024, repeats, sc_row) if not args.no_casadi else []
     p2 = problem2(p, b2, repeats)
     p3_rows, fd = problem3(p, Z, b3, repeats)
+    startup = None
+    if not args.no_startup:  # last: new processes, each with the CPUs to itself
+        log("[start-up] jsphere reproduce in new processes, empty cache then cached ...")
+        with tempfile.TemporaryDirectory() as tmp:
+            startup = startup_measure(tmp, "default", [], seconds=1 if args.quick else 3)
+        log(f"      first {startup['first_process_s']:.1f} s, second {startup['second_process_s']:.1f} s")
     for r in p3_rows:
         match = [j for j in js_rows if j["batch"] == r["batch"]]
         if match:
@@ -503,6 +521,7 @@ def main(argv=None) -> int:
         "problem1": {"jsphere": js_rows, "scipy": sc_row, "casadi": cas_rows, "checks": checks},
         "problem2": p2,
         "problem3": {"rows": p3_rows, "fd_check": fd},
+        "startup": startup,
         "wall_time_s": time.perf_counter() - t_start,
     }
     table = fmt_table(res)
