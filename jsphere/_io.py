@@ -33,7 +33,7 @@ def _publish(tmp: str, path: Path) -> None:
     except FileNotFoundError:
         mode = _NEW_FILE_MODE
     os.chmod(tmp, mode)
-    fd = os.open(tmp, os.O_RDONLY)
+    fd = os.open(tmp, os.O_RDWR)  # (fsync needs write access on some platforms)
     try:
         os.fsync(fd)
     finally:
