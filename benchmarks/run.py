@@ -492,7 +492,7 @@ def main(argv=None) -> int:
     if not args.no_startup:  # last: new processes, each with the CPUs to itself
         log("[start-up] jsphere reproduce in new processes, empty cache then cached ...")
         with tempfile.TemporaryDirectory() as tmp:
-            startup = startup_measure(tmp, "default", [], seconds=1 if args.quick else 3)
+            startup = startup_measure(tmp, "default", [], cached_runs=1 if args.quick else 3)
         log(f"      first {startup['first_process_s']:.1f} s, second {startup['second_process_s']:.1f} s")
     for r in p3_rows:
         match = [j for j in js_rows if j["batch"] == r["batch"]]

@@ -41,12 +41,12 @@ def run_once(cache_dir: str, out_dir: str, *extra: str) -> float:
     return time.perf_counter() - t
 
 
-def measure(tmp: str, name: str, extra: list[str], seconds: int = 3) -> dict:
-    """A first process with an empty cache in `tmp`, then `seconds` processes reusing it
+def measure(tmp: str, name: str, extra: list[str], cached_runs: int = 3) -> dict:
+    """A first process with an empty cache in `tmp`, then `cached_runs` processes reusing it
     (their median is `second_process_s`)."""
     cache, out = os.path.join(tmp, f"cache-{name}"), os.path.join(tmp, f"out-{name}")
     first = run_once(cache, out, *extra)
-    seconds = [run_once(cache, out, *extra) for _ in range(seconds)]
+    seconds = [run_once(cache, out, *extra) for _ in range(cached_runs)]
     size = sum(f.stat().st_size for f in Path(cache).rglob("*") if f.is_file())
     return {
         "args": extra, "first_process_s": first, "second_process_s": sorted(seconds)[len(seconds) // 2],

@@ -21,6 +21,7 @@ from ._kinematics import rest_attitude
 from ._linalg import as_array, cross, matvec, rotation_between, rotmat
 from ._params import RobotParams, derive
 from ._simulate import (
+    DEFAULT_TOLERANCES,
     Trajectory,
     _kin_rates,
     _rebuild,
@@ -217,7 +218,7 @@ def _rolling_direction(gait: Gait, Qm):
 
 #: Tolerances `(rtol, atol)` of `simulate_gaits` by the parameters' precision when none are
 #: given (`jsphere._simulate.tolerances`).
-GAIT_TOLERANCES = {"float64": (1e-10, 1e-12), "float32": (1e-5, 1e-7)}
+GAIT_TOLERANCES = {**DEFAULT_TOLERANCES, "float64": (1e-10, 1e-12)}
 
 
 def simulate_gaits(
