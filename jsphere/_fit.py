@@ -48,7 +48,7 @@ import numpy as np
 import optax
 
 from ._controls import Sampled, Torques, WheelSpeeds
-from ._io import atomic_write, atomic_write_text
+from ._io import atomic_write, atomic_write_json, atomic_write_text
 from ._kinematics import relative_rate_from_wheel_speeds
 from ._linalg import dot, quat_mul, rotmat
 from ._names import parse_name
@@ -416,7 +416,7 @@ class FitResult:
         """Write the JSON atomically and, unless `plots=False`, `<stem>_overlay.png` and
         `<stem>_residuals.png` beside it. Returns the paths written."""
         path = Path(path)
-        atomic_write_text(path, json.dumps(self.to_json(), indent=2) + "\n")
+        atomic_write_json(path, self.to_json())
         written = [path]
         if plots:
             from .plots import fit_figures

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -76,6 +77,32 @@ def atomic_savefig(fig, path, **kwargs) -> None:
     atomic_write(path, lambda tmp: fig.savefig(tmp, **kwargs))
 
 
+def _strict(v: Any) -> Any:
+    """`v` with every non-finite float replaced by `None` (JSON's `null`), recursively."""
+    if isinstance(v, float):
+        return v if math.isfinite(v) else None
+    if isinstance(v, dict):
+        return {k: _strict(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_strict(x) for x in v]
+    if hasattr(v, "tolist") and hasattr(v, "dtype"):  # NumPy and JAX arrays and scalars
+        return _strict(v.tolist())
+    return v
+
+
+def dumps_json(obj: Any, **kwargs) -> str:
+    """Strict JSON (RFC 8259) of `obj`, indented by 2 and ending in a newline: a NaN or an
+    infinity is written as `null` (Python's `json` would write the bare `NaN` that strict
+    parsers reject); arrays are written as lists."""
+    kwargs.setdefault("indent", 2)
+    return json.dumps(_strict(obj), allow_nan=False, **kwargs) + "\n"
+
+
+def atomic_write_json(path, obj: Any) -> None:
+    """`atomic_write_text(path, dumps_json(obj))`."""
+    atomic_write_text(path, dumps_json(obj))
+
+
 def _toml_value(v: Any) -> str:
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
@@ -101,7 +128,7 @@ def save_params(params, path) -> None:
     if path.suffix.lower() == ".toml":
         text = dumps_toml(d, header="jsphere RobotParams (SI units; vectors in the platform frame)")
     elif path.suffix.lower() == ".json":
-        text = json.dumps(d, indent=2) + "\n"
+        text = dumps_json(d)
     else:
         raise ValueError(f"{path}: parameter files must end in .toml or .json.")
     atomic_write_text(path, text)

@@ -26,7 +26,7 @@ from ._controls import Sampled, Torques, WheelSpeeds
 from ._gaits import Gait, simulate_gaits
 from ._simulate import simulate, tolerances
 from ._state import State
-from ._io import atomic_write, atomic_write_text
+from ._io import atomic_write, atomic_write_json, atomic_write_text
 from ._linalg import cross
 from ._names import get_value, parse_name, set_value
 from ._params import RobotParams
@@ -344,8 +344,8 @@ def monte_carlo(
                     "batch size); choose another `out` folder or delete it."
                 )
         else:
-            atomic_write_text(manifest, json.dumps({"fingerprint": fp, "n": n, "seed": seed, "batch_size": B,
-                                                    "vary": {k: list(v) for k, v in vary.items()}}, indent=2))  # fmt: skip
+            atomic_write_json(manifest, {"fingerprint": fp, "n": n, "seed": seed, "batch_size": B,
+                                         "vary": {k: list(v) for k, v in vary.items()}})  # fmt: skip
 
     parts: list = [None] * n_batches
     t_start = time.perf_counter()
@@ -391,5 +391,5 @@ def monte_carlo(
                            speed_final=cat["speed"], status=cat["status"], gamma3_sd_after=cat["gamma3_sd"],
                            elapsed_s=time.perf_counter() - t_start)  # fmt: skip
     if folder is not None:
-        atomic_write_text(folder / "stats.json", json.dumps(res.stats(), indent=2) + "\n")
+        atomic_write_json(folder / "stats.json", res.stats())
     return res

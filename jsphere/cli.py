@@ -94,7 +94,7 @@ def _preload_matplotlib():
 def _cmd_reproduce(args) -> int:
     import jsphere
 
-    from ._io import atomic_write_text
+    from ._io import atomic_write_json, dumps_json
 
     params = jsphere.RobotParams.load(args.params) if args.params else jsphere.RobotParams.paper()
     t0 = time.perf_counter()
@@ -103,7 +103,7 @@ def _cmd_reproduce(args) -> int:
     rep = jsphere.reproduce(params, full_stop=not args.no_full_stop)
     print(rep.table())
     out = Path(args.out)
-    atomic_write_text(out / "reproduce.json", json.dumps({"rows": [r.__dict__ for r in rep.rows], "values": rep.values}, indent=2) + "\n")
+    atomic_write_json(out / "reproduce.json", {"rows": [r.__dict__ for r in rep.rows], "values": rep.values})
     written = [out / "reproduce.json"]
     if not args.no_plots:
         loader.join()
@@ -182,7 +182,7 @@ def load_study(path) -> dict:
 def _cmd_montecarlo(args) -> int:
     import jsphere
 
-    from ._io import atomic_write_text
+    from ._io import atomic_write_json, dumps_json
 
     study = load_study(args.config)
     n = args.trials if args.trials is not None else study["n"]
@@ -191,8 +191,8 @@ def _cmd_montecarlo(args) -> int:
     st = res.stats()
     planned = jsphere.simulate_gaits(study["params"], study["gaits"], reset=study["kwargs"]["reset"])
     st["planned_stop_m"] = [float(planned.x[-1]), float(planned.y[-1])]
-    atomic_write_text(out / "stats.json", json.dumps(st, indent=2) + "\n")
-    print(json.dumps(st, indent=2))
+    atomic_write_json(out / "stats.json", st)
+    print(dumps_json(st), end="")
     if not args.no_plots:
         from .plots import montecarlo_figure
 
@@ -349,7 +349,7 @@ def _cmd_plan(args) -> int:
 
     import jsphere
 
-    from ._io import atomic_write_text
+    from ._io import atomic_write_json, dumps_json
 
     params = jsphere.RobotParams.load(args.params) if args.params else jsphere.RobotParams.paper()
     none = {"none", "off", "inf"}
@@ -370,7 +370,7 @@ def _cmd_plan(args) -> int:
     info = {"feasible": pl.feasible, "shortfall": pl.shortfall, "target": [None if math.isnan(v) else v for v in pl.target.tolist()],
             "duration_s": pl.duration, "errors": pl.errors, "limits": pl.limits_report, "iterations": pl.iterations,
             "elapsed_s": pl.elapsed_s, "restarts": pl.restarts, "rate_hz": pl.rate}  # fmt: skip
-    atomic_write_text(out.with_suffix(".json"), json.dumps(info, indent=2) + "\n")
+    atomic_write_json(out.with_suffix(".json"), info)
     written = [out, out.with_suffix(".json")]
     if not args.no_plots:
         from .plots import plan_figure
@@ -407,7 +407,12 @@ def _add_plan_parser(sub) -> None:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="jsphere", description="Spherical robot with an internal omniwheel platform (JAX).")
+    from ._errors import EXIT_CODES_HELP
+
+    parser = argparse.ArgumentParser(
+        prog="jsphere", description="Spherical robot with an internal omniwheel platform (JAX).", epilog=EXIT_CODES_HELP,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )  # fmt: skip
     sub = parser.add_subparsers(dest="command", required=True)
     rp = sub.add_parser("reproduce", help="recompute every number of Section 5 of the paper, with figures")
     rp.add_argument("--out", default="jsphere-reproduce", help="output folder (default: ./jsphere-reproduce)")
@@ -433,22 +438,79 @@ def main(argv=None) -> int:
         compile_for_one_run()
     if not args.no_cache:
         enable_compilation_cache()
+    return _run(args)
+
+
+#: Errors that mean bad input: a file, option or value (the message names it), exit code 2.
+_INPUT_ERRORS = (ValueError, FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError, FileExistsError)
+
+
+def _run(args) -> int:
+    """Run the command; every error becomes one line on stderr and its exit code (`ExitCode`),
+    except an internal error (a bug), which keeps its traceback."""
+    import traceback
+
+    from ._errors import ExitCode, SolverFailure
+
+    commands = {"reproduce": _cmd_reproduce, "montecarlo": _cmd_montecarlo, "fit": _cmd_fit, "plan": _cmd_plan, **_CAPTURE_COMMANDS}
+    name = f"jsphere {args.command}"
+    _sigterm_interrupts()
     try:
-        if args.command == "reproduce":
-            return _cmd_reproduce(args)
-        if args.command == "montecarlo":
-            return _cmd_montecarlo(args)
-        if args.command in _CAPTURE_COMMANDS:  # capture data (issue 3)
-            return _CAPTURE_COMMANDS[args.command](args)
-        if args.command == "fit":  # system identification (issue 3)
-            return _cmd_fit(args)
-        if args.command == "plan":  # plan (issue 4)
-            return _cmd_plan(args)
-    except (ValueError, FileNotFoundError) as e:
-        print(f"jsphere {args.command}: error: {e}", file=sys.stderr)
-        return 2
-    parser.error(f"unknown command {args.command}")
-    return 2
+        return int(commands[args.command](args))
+    except KeyboardInterrupt:
+        print(f"\n{name}: interrupted; what was finished is saved (rerun the same command to resume).", file=sys.stderr)
+        return ExitCode.INTERRUPTED
+    except SolverFailure as e:
+        print(f"{name}: error: {e}", file=sys.stderr)
+        return ExitCode.SOLVER_FAILURE
+    except UnicodeDecodeError as e:  # a reader that did not name its file
+        print(f"{name}: error: a file is not UTF-8 text ({e.reason} at byte {e.start}); save it as UTF-8 (CSV or TOML).", file=sys.stderr)
+        return ExitCode.BAD_INPUT
+    except _INPUT_ERRORS as e:
+        print(f"{name}: error: {_one_line(e)}", file=sys.stderr)
+        return ExitCode.BAD_INPUT
+    except ImportError as e:  # an optional dependency (ezc3d for C3D files)
+        print(f"{name}: error: {e}", file=sys.stderr)
+        return ExitCode.BAD_INPUT
+    except Exception as e:  # noqa: BLE001
+        solver = _solver_message(e)
+        if solver is not None:
+            print(f"{name}: error: {solver}", file=sys.stderr)
+            return ExitCode.SOLVER_FAILURE
+        traceback.print_exc()
+        print(f"{name}: internal error (a bug in jsphere; please report it with the traceback above).", file=sys.stderr)
+        return ExitCode.INTERNAL
+
+
+def _sigterm_interrupts() -> None:
+    """Make SIGTERM (a scheduler's or `kill`'s stop) end a command as Ctrl-C does: the finished
+    work is kept and the exit code is 130."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return
+
+    def interrupt(signum, frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, interrupt)
+
+
+def _one_line(e: BaseException) -> str:
+    """The message of `e`; an `OSError` as `PATH: reason`."""
+    if isinstance(e, OSError) and e.filename is not None and e.strerror:
+        return f"{e.filename}: {e.strerror.lower()}."
+    return str(e)
+
+
+def _solver_message(e: BaseException) -> str | None:
+    """The "jsphere: ..." line of a run-time error raised from inside a compiled solve (equinox
+    puts it first, followed by the trace), or None for any other error."""
+    for line in str(e).splitlines():
+        if line.startswith("jsphere: "):
+            return line[len("jsphere: "):]
+    return None
 
 
 if __name__ == "__main__":

@@ -321,3 +321,22 @@ def test_reference_param_sets_match_paper(reference_param_sets):
     for p, ref in ((p1, ref1), (p0, ref0)):
         for f in FIELDS:
             np.testing.assert_allclose(np.asarray(getattr(p, f)), np.asarray(getattr(ref, f)), rtol=1e-14, atol=1e-16, err_msg=f)
+
+
+def test_json_is_strict():
+    """Every JSON jsphere writes parses with a parser that refuses NaN and infinities: a
+    non-finite value is written as null."""
+    import json
+    import math
+
+    import numpy as np
+
+    from jsphere._io import dumps_json
+
+    def strict(text):
+        return json.loads(text, parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))
+
+    obj = {"a": float("nan"), "b": [1.0, float("inf"), -math.inf], "c": np.array([np.nan, 2.0]), "d": np.float64("nan"), "e": 3}
+    assert strict(dumps_json(obj)) == {"a": None, "b": [1.0, None, None], "c": [None, 2.0], "d": None, "e": 3}
+    with pytest.raises(ValueError):
+        strict(json.dumps(obj["a"]))  # the check itself: Python's default output is refused
