@@ -22,8 +22,10 @@ What it changes, and why it is still each trial's solution to its tolerance:
   whole batch (under `vmap` it already did: the loop runs until the slowest trial ends);
 - a trial whose rates are non-finite at the start (e.g. NaN inputs) is left out of the
   step-size control, so it does not stall the others; it is reported by `Trajectory.status`
-  as before. A trial that turns non-finite later fails the whole batch (its step size
-  collapses; with `diffeqsolve`, max steps), as it fails a per-trial solve.
+  as before. A batch whose shared steps fail (a trial that needs more than `max_steps` steps
+  or turns non-finite: the shared step size collapses) is solved again with per-trial steps
+  (`fallback`), so that only the failing trial is reported failed and the others get their
+  own solutions, as in a batch without it.
 
 The rule falls back to a per-trial `vmap` when the segment's times (`t0`, `t1`, the save
 times) are batched: then there is no shared time axis.
@@ -90,7 +92,7 @@ class SharedPIDController(dfx.AbstractAdaptiveStepSizeController):
         return keep, t_next, t_after, jump, (state, live), result
 
 
-def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_save, per_trial=False):
+def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_save, per_trial=False, fallback=False):
     """One segment of `solve_segments`: `diffeqsolve(field)` of the component tuple `y0` from
     `args[3]` to `args[4]` (`args = (p, d, control, a, b)`), saving at `t_save` and `t1`.
     `field(t, y, args, K=None)` may be given the inputs `K = control(t, args)` (a `(N,)`
@@ -101,6 +103,11 @@ def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_sa
     solver of `jsphere._shared_rk.SUPPORTED`) each trial takes its own steps, in lockstep
     (`_shared_rk._forward_per_trial`, with its own discrete adjoint), and `failed` and the
     step counts are per trial.
+
+    With `fallback` (shared steps), a batch whose shared step sequence fails (one trial needs
+    more than `max_steps` steps, or diverges) is solved again with per-trial steps, so that
+    the failing trial fails alone and the others keep their solutions; `failed` and the step
+    counts are then per trial as well.
     """
     dyn, static = eqx.partition(args[:3], eqx.is_array)
     p_leaves, p_def = jax.tree_util.tree_flatten(dyn)
@@ -165,9 +172,9 @@ def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_sa
         if tab is not None:  # the lean loop (Dopri8, Dopri5, Tsit5)
             out, failed, accepted = _shared_rk.solve(
                 batch_field, a, b, yb, ts, [*lv, a, b], [*l_b, False, False], tab=tab, rtol=rtol, atol=atol,
-                max_steps=max_steps, elementwise=elementwise, per_trial=per_trial,
+                max_steps=max_steps, elementwise=elementwise, per_trial=per_trial, fallback=fallback,
             )  # fmt: skip
-            if per_trial:  # failures and step counts per trial
+            if per_trial or fallback:  # failures and step counts per trial
                 ys = [out[:, i, :].T for i in range(len(y0))]
                 return (ys, failed, accepted), ([True] * len(ys), True, True)
         else:  # any other diffrax solver, in diffeqsolve
@@ -178,6 +185,18 @@ def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_sa
                 max_steps=max_steps, throw=False, adjoint=adjoint,
             )  # fmt: skip
             out, failed, accepted = sol.ys, sol.result != dfx.RESULTS.successful, sol.stats["num_accepted_steps"]
+            if fallback:  # a failed batch again with per-trial steps: `failed` per trial
+
+                def per_trial_solve():
+                    ys, failed, steps = jax.vmap(one, in_axes=(None, axes(y_b), axes(l_b)), axis_size=axis_size)(times, y0, lv)
+                    return jnp.stack(ys, axis=1).transpose(2, 1, 0), failed, steps
+
+                def shared_solve():
+                    return out, jnp.broadcast_to(failed, (axis_size,)), jnp.broadcast_to(accepted, (axis_size,))
+
+                out, failed, accepted = jax.lax.cond(failed, per_trial_solve, shared_solve)
+                ys = [out[:, i, :].T for i in range(len(y0))]
+                return (ys, failed, accepted), ([True] * len(ys), True, True)
         ys = [out[:, i, :].T for i in range(len(y0))]  # (T+1, n, batch) -> n x (batch, T+1)
         return (ys, failed, accepted), ([True] * len(ys), False, False)
 

@@ -27,6 +27,7 @@ from ._simulate import (
     _rebuild,
     _traced,
     assemble,
+    batch_layout,
     by_layout,
     default_solver,
     raise_on_failure,
@@ -312,7 +313,7 @@ def simulate_gaits(
         raise ValueError(f"simulate_gaits: batch_steps must be 'shared' or 'per_trial'; got {batch_steps!r}.")
     traj = _solve_gaits(
         params, gaits, initial, ts_out, resets, solver or default_solver(), rtol, atol, max_steps,
-        adjoint or dfx.RecursiveCheckpointAdjoint(), batch_steps,
+        adjoint or dfx.RecursiveCheckpointAdjoint(), batch_layout(batch_steps, throw),
     )  # fmt: skip
     return raise_on_failure(traj, throw)
 

@@ -560,7 +560,7 @@ def _assemble(e):
     return e
 
 
-def solve(f, t0, t1, y0, ts, args=(), batched=(), *, tab: Tableau, rtol, atol, max_steps: int, elementwise=(), per_trial=False):
+def solve(f, t0, t1, y0, ts, args=(), batched=(), *, tab: Tableau, rtol, atol, max_steps: int, elementwise=(), per_trial=False, fallback=False):
     """Integrate `y' = f(t, y, args, batched)` for the `(n, batch)` state `y0` from `t0` to
     `t1 >= t0`, with one step sequence for all columns (trials), saving at the sorted times `ts`
     (within `[t0, t1]`) and at `t1`. `args` is a list of arrays; `batched[i]` says whether
@@ -579,6 +579,13 @@ def solve(f, t0, t1, y0, ts, args=(), batched=(), *, tab: Tableau, rtol, atol, m
     adjoint runs the recorded iterations backwards with each trial's own step sizes (a
     rejected, finished or failed trial's iteration is the identity).
 
+    With `fallback` (shared steps only), a batch whose shared step sequence fails is solved
+    again with per-trial steps, so that one trial that cannot be integrated (it needs more
+    than `max_steps` steps, or diverges) fails alone: the other trials get their solutions to
+    their own tolerances, as in a batch without it. `failed` and the step counts are then per
+    trial (the shared sequence's, repeated, when it succeeded). The gradient follows the solve
+    that was kept: the per-trial solve is recomputed in the backward pass, where it is needed.
+
     Reverse-mode differentiable with respect to `y0`, `args` and the times: a discrete adjoint
     of the accepted steps (sizes held fixed), with states checkpointed in the forward pass
     (`checkpoints`) and replayed stretch by stretch; the cotangents of the times are those of
@@ -596,12 +603,26 @@ def solve(f, t0, t1, y0, ts, args=(), batched=(), *, tab: Tableau, rtol, atol, m
     cell = {}
 
     def forward(t0, t1, ts, y0, args, record):
-        """`(out, (at, rec, n))`: the solve and its record; `n` the number of steps (shared) or
-        of iterations (per trial) the backward pass runs through."""
+        """`(out, (at, rec, n, fell_back))`: the solve and its record; `n` the number of steps
+        (shared) or of iterations (per trial) the backward pass runs through; `fell_back`
+        whether the shared solve failed and `out` is the per-trial solve's (its record is
+        then recomputed by the backward pass)."""
         if per_trial:
-            return _forward_per_trial(m, args, batched, t0, t1, y0, ts, record=record, **opts)
+            out, (at, rec, n) = _forward_per_trial(m, args, batched, t0, t1, y0, ts, record=record, **opts)
+            return out, (at, rec, n, jnp.bool_(False))
         out, (at, rec) = _forward(m, args, batched, t0, t1, y0, ts, record=record, **opts)
-        return out, (at, rec, out[2])
+        if not fallback:
+            return out, (at, rec, out[2], jnp.bool_(False))
+        B = y0.shape[1]
+        fell_back = out[1]
+
+        def per_trial_solve():
+            return _forward_per_trial(m, args, batched, t0, t1, y0, ts, **opts)[0]
+
+        def shared_solve():
+            return out[0], jnp.broadcast_to(out[1], (B,)), jnp.broadcast_to(out[2], (B,)).astype(jnp.int32)
+
+        return jax.lax.cond(fell_back, per_trial_solve, shared_solve), (at, rec, out[2], fell_back)
 
     @jax.custom_vjp
     def core(t0, t1, ts, y0, args):
@@ -613,18 +634,28 @@ def solve(f, t0, t1, y0, ts, args=(), batched=(), *, tab: Tableau, rtol, atol, m
         cell["diff"] = [i for i, x in enumerate(args) if x.perturbed and jnp.issubdtype(x.value.dtype, jnp.inexact)]
         t0, t1, ts, y0 = (x.value for x in (t0, t1, ts, y0))
         args = [x.value for x in args]
-        out, (at, rec, steps) = forward(t0, t1, ts, y0, args, True)
-        return out, (t0, t1, ts, y0, args, (out[0], out[1], steps), at, rec)
+        out, (at, rec, steps, fell_back) = forward(t0, t1, ts, y0, args, True)
+        return out, (t0, t1, ts, y0, args, (out[0], out[1], steps), at, rec, fell_back)
 
     def bwd(res, ct_out):
-        t0, t1, ts, y0, args, out, at, rec = res
+        t0, t1, ts, y0, args, out, at, rec, fell_back = res
         ct = ct_out[0]
         if isinstance(ct, jax.custom_derivatives.SymbolicZero):
             ct = jnp.zeros(out[0].shape, dtype)
         diff, times = cell["diff"], cell["times"]
-        y0_bar, d_bar, time_bars = _backward(
-            m, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct, max_steps=max_steps, times=times, elementwise=set(elementwise)
-        )
+        kw = dict(max_steps=max_steps, times=times, elementwise=set(elementwise))
+
+        def shared_adjoint():
+            return _backward(m, args, batched, diff, t0, t1, ts, y0, out, at, rec, ct, **kw)
+
+        def per_trial_adjoint():  # the per-trial solve that `forward` kept, with its record
+            out_p, (at_p, rec_p, n_p) = _forward_per_trial(m, args, batched, t0, t1, y0, ts, record=True, **opts)
+            return _backward(m, args, batched, diff, t0, t1, ts, y0, (out_p[0], out_p[1], n_p), at_p, rec_p, ct, **kw)
+
+        if fallback and not per_trial:
+            y0_bar, d_bar, time_bars = jax.lax.cond(fell_back, per_trial_adjoint, shared_adjoint)
+        else:
+            y0_bar, d_bar, time_bars = shared_adjoint()
         args_bar = [None] * len(args)
         for i, g in zip(diff, d_bar):
             args_bar[i] = g

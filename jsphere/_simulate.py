@@ -284,7 +284,10 @@ def solve_segments(
     (the same field on a tuple of scalar components, `jsphere._soa`) the solver carries the
     state as that tuple: faster under `vmap` (contiguous components), slower unbatched; with
     `shared="shared"` as well, a batch under `vmap` shares one step sequence
-    (`jsphere._ensemble`); with `shared="per_trial"` it runs in the same loop with each
+    (`jsphere._ensemble`), and with `shared="shared_fallback"` a batch whose shared steps fail
+    is solved again with per-trial steps, so that a failing trial fails alone (and a trial
+    that failed in an earlier segment is left out of the later ones' step control); with
+    `shared="per_trial"` it runs in the same loop with each
     trial's own steps; the field's inputs are given by `component_control(t, args)` (default:
     the torques).
     """
@@ -299,10 +302,12 @@ def solve_segments(
         if jump_fn is not None:
             z = jump_fn(k, a, z, control)
         t_save = jnp.clip(ts_out, a, b)
+        if shared == "shared_fallback":  # a trial that failed in an earlier segment stays out of the step control
+            z = jnp.where(code != 0, jnp.nan, z)
         if shared:
             ys, failed, n_acc = _ensemble.solve(
                 component_field, component_control or _torque_control, solver, rtol, atol, max_steps, adjoint, to_components(z), (p, d, control, a, b), t_save,
-                per_trial=shared == "per_trial",
+                per_trial=shared == "per_trial", fallback=shared == "shared_fallback",
             )
             ys = from_components(ys)
         else:
@@ -386,7 +391,9 @@ def simulate(
     - `solver`: a diffrax solver (default `Dopri8`); `adjoint`: a diffrax adjoint (default
       `RecursiveCheckpointAdjoint`; use `diffrax.ForwardMode()` for `jax.jacfwd`).
     - `throw`: raise on solver failure (max steps, NaN). With `throw=False` the failure is
-      reported in `Trajectory.ok` instead (per trial under `vmap`).
+      reported in `Trajectory.ok` instead (per trial under `vmap`): a trial that fails fails
+      alone, and the others get the results they get in a batch without it (a batch with
+      shared steps that fail is solved again with per-trial steps).
     - `batch_steps`: under `vmap` (from 32 trials, `SHARED_MIN_BATCH`), in torque mode with the
       default adjoint, `"shared"` (default) integrates the batch with one step sequence,
       accepted only when every trial meets its tolerance (~3.6x faster at 1024 trials;
@@ -429,7 +436,7 @@ def simulate(
             raise ValueError("simulate: ts must be a finite, non-decreasing 1-D array of times.")
     traj = _solve(
         params, state0, controls, as_array(t0, dt), as_array(t1, dt), ts_out,
-        solver or default_solver(), rtol, atol, max_steps, adjoint or dfx.RecursiveCheckpointAdjoint(), batch_steps,
+        solver or default_solver(), rtol, atol, max_steps, adjoint or dfx.RecursiveCheckpointAdjoint(), batch_layout(batch_steps, throw),
     )  # fmt: skip
     return raise_on_failure(traj, throw)
 
@@ -510,12 +517,22 @@ def _dispatched(run):
     return f
 
 
+def batch_layout(batch_steps: str, throw: bool) -> str:
+    """The internal form of `batch_steps`: with `throw=False`, a batch with shared steps
+    (`"shared_fallback"`) is solved again with per-trial steps when its shared steps fail, so
+    that each failing trial is reported alone and the others keep their results. (With
+    `throw=True` a failure raises anyway, and the batch's programs do without the per-trial
+    solve.)"""
+    return "shared_fallback" if batch_steps == "shared" and not throw else batch_steps
+
+
 def _batched_layout(run, axis_size):
     """The `components` argument of `_simulate` for a batch of `axis_size` trials: `"shared"`
-    (one step sequence), `"per_trial"` (each trial's own steps, in lockstep in the same loop),
-    or whether to use the component layout with diffrax's loop per trial."""
+    or `"shared_fallback"` (one step sequence; `batch_layout`), `"per_trial"` (each trial's own
+    steps, in lockstep in the same loop), or whether to use the component layout with diffrax's
+    loop per trial."""
     if axis_size >= SHARED_MIN_BATCH and (run.shared or run.lean):
-        return "shared" if run.shared else "per_trial"
+        return run.shared if run.shared else "per_trial"
     return axis_size >= COMPONENT_MIN_BATCH
 
 
@@ -573,7 +590,7 @@ def _large(axis_size, in_batched) -> bool:
 
 def _shared_grad(run, axis_size, in_batched) -> bool:
     """Whether a batch's gradient is the discrete adjoint of its shared steps (`_shared_rk`)."""
-    return run.shared_grad and _batched_layout(run, axis_size) in ("shared", "per_trial") and any(jax.tree_util.tree_leaves(in_batched))
+    return run.shared_grad and isinstance(_batched_layout(run, axis_size), str) and any(jax.tree_util.tree_leaves(in_batched))
 
 
 def _reverse_fwd(run, leaves):
@@ -675,7 +692,7 @@ def _shared_vjp(run, axis_size, lv_batched, ct_batched, lv, cts, full_ct):
     cotangents of leaves shared by the batch are sums over the batch; they are returned in the
     first trial's row (zeros elsewhere), which sums to the same."""
     chunk = min(axis_size, BATCH_CHUNK)
-    layout = _batched_layout(run, axis_size)  # "shared" or "per_trial"
+    layout = _batched_layout(run, axis_size)  # "shared", "shared_fallback" or "per_trial"
     n = -(-axis_size // chunk)
     pad = n * chunk - axis_size
     in_axes = [0 if b else None for b in lv_batched]
@@ -757,7 +774,8 @@ def by_layout(fn, args, flat, batch_steps):
         return fn(*a, *flat, components=components, derived=derived)
 
     run.cell = {}
-    run.shared = batch_steps == "shared" and not isinstance(adjoint, dfx.ForwardMode)
+    # the shared layout's name (`batch_layout`), or False for per-trial steps
+    run.shared = batch_steps if batch_steps.startswith("shared") and not isinstance(adjoint, dfx.ForwardMode) else False
     # gradients of shared steps by their discrete adjoint, where `_shared_rk` is the integrator
     # batches integrated by `_shared_rk`'s loop: shared steps, or per-trial steps in lockstep;
     # their gradients by its discrete adjoint

@@ -441,6 +441,13 @@ def main(argv=None) -> int:
     return _run(args)
 
 
+#: What a command interrupted by Ctrl-C or SIGTERM has kept (the others write their files only
+#: at the end, each atomically: an interrupted run leaves the previous files as they were).
+_RESUMES = {
+    "montecarlo": "the finished batches are kept in the --out folder: rerun the same command to resume",
+    "fit": "the finished stages are kept in the checkpoint beside --out: rerun the same command to resume",
+}
+
 #: Errors that mean bad input: a file, option or value (the message names it), exit code 2.
 _INPUT_ERRORS = (ValueError, FileNotFoundError, IsADirectoryError, NotADirectoryError, PermissionError, FileExistsError)
 
@@ -458,7 +465,8 @@ def _run(args) -> int:
     try:
         return int(commands[args.command](args))
     except KeyboardInterrupt:
-        print(f"\n{name}: interrupted; what was finished is saved (rerun the same command to resume).", file=sys.stderr)
+        resume = _RESUMES.get(args.command)
+        print(f"\n{name}: interrupted" + (f"; {resume}" if resume else "; nothing was written") + ".", file=sys.stderr)
         return ExitCode.INTERRUPTED
     except SolverFailure as e:
         print(f"{name}: error: {e}", file=sys.stderr)

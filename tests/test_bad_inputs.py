@@ -42,3 +42,27 @@ def test_bad_input(code, fragment, command, tmp_path, monkeypatch, capsys):
     assert "Traceback" not in err, err
     assert got == code, f"exit {got}, expected {code}; stderr:\n{err}"
     assert fragment.lower() in err.lower(), f"{fragment!r} not in stderr:\n{err}"
+
+
+def test_interrupt_exits_130(tmp_path):
+    """Ctrl-C (SIGINT) during a command: one line, exit 130, no traceback, no file."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    env = {**os.environ, "PYTHONPATH": str(HERE.parents[1])}
+    proc = subprocess.Popen(
+        [sys.executable, "-c", "import sys; from jsphere.cli import main; print('started', flush=True); sys.exit(main())",
+         "reproduce", "--no-cache", "--no-plots", "--out", str(tmp_path / "out")],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True,
+    )  # fmt: skip
+    assert proc.stdout.readline().strip() == "started"
+    assert "reproducing" in proc.stdout.readline()  # jsphere imported, the solves about to compile
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "interrupted" in err and "Traceback" not in err, err
+    assert not (tmp_path / "out").exists()
