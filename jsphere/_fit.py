@@ -689,8 +689,8 @@ def check_output(out: Path, outputs: Sequence[Path], inputs: Mapping[str, Sequen
 
 
 def _first_failure(data: FitData, pose, ok) -> str:
-    """Where the first start (the start values) fails: its first non-finite residual (trial,
-    time, channel), or the first trial whose solve did not finish."""
+    """Where the first start fails: its first non-finite residual (trial, time, channel), or
+    the first trial whose solve did not finish."""
     x, y, q = (np.asarray(a[0]) for a in pose)
     for i in range(data.ts.shape[0]):
         m = data.lengths[i]
@@ -889,7 +889,7 @@ def fit(
             ckpt_path.unlink(missing_ok=True)
         raise SolverFailure(
             f"fit: every start failed in {where} (no start gives a finite cost); {_first_failure(data, last['pose'], last['ok'])}, "
-            "for the first start (the start values). Try: check that trial's inputs and capture near that time, start values "
+            "for the first start. Try: check that trial's inputs and capture near that time, start values "
             "nearer the robot (--params, --fix), bounds on the free parameters (--bound), or, in Python, a larger max_steps or a "
             "looser rtol."
         )
