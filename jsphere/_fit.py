@@ -35,8 +35,12 @@ import functools
 import hashlib
 import json
 import math
+import os
+import re
 import sys
+import tempfile
 import time
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -48,7 +52,8 @@ import numpy as np
 import optax
 
 from ._controls import Sampled, Torques, WheelSpeeds
-from ._io import atomic_write, atomic_write_json, atomic_write_text
+from ._errors import InputError, SolverFailure
+from ._io import atomic_write, atomic_write_json
 from ._kinematics import relative_rate_from_wheel_speeds
 from ._linalg import dot, quat_mul, rotmat
 from ._names import parse_name
@@ -143,10 +148,10 @@ def pack_trials(trials: Sequence, params: RobotParams) -> FitData:
     """
     trials = list(trials)
     if not trials:
-        raise ValueError("fit: no trials given.")
+        raise InputError("fit: no trials given.")
     kinds = {getattr(t, "kind", None) for t in trials}
     if len(kinds) != 1 or next(iter(kinds)) not in KINDS:
-        raise ValueError(f"fit: all trials must have the same input kind, one of {KINDS}; got {sorted(map(str, kinds))}.")
+        raise InputError(f"fit: all trials must have the same input kind, one of {KINDS}; got {sorted(map(str, kinds))}.")
     kind = next(iter(kinds))
     N = params.n_wheels
     M = max(len(np.asarray(t.t)) for t in trials)
@@ -159,22 +164,22 @@ def pack_trials(trials: Sequence, params: RobotParams) -> FitData:
         x, y = np.asarray(tr.x, np.float64), np.asarray(tr.y, np.float64)
         q = np.asarray(tr.q, np.float64)
         if u.ndim != 2 or u.shape[1] != N:
-            raise ValueError(
+            raise InputError(
                 f"fit: trial {name!r} has inputs for {u.shape[-1] if u.ndim == 2 else '?'} wheels (shape {u.shape}) but the robot has {N}; use parameters with the same wheel count."
             )
         m = len(t)
         if m < 4 or u.shape[0] != m or x.shape != (m,) or y.shape != (m,) or q.shape != (m, 4):
-            raise ValueError(
+            raise InputError(
                 f"fit: trial {name!r}: t, x, y, q, inputs must have the same number of samples (>= 4); got {m}, {x.shape}, {y.shape}, {q.shape}, {u.shape}."
             )
         if not np.all(np.diff(t) > 0):
-            raise ValueError(f"fit: trial {name!r}: times must be strictly increasing.")
+            raise InputError(f"fit: trial {name!r}: times must be strictly increasing.")
         if not np.all(np.isfinite(u)):
-            raise ValueError(f"fit: trial {name!r}: the inputs contain NaN or inf.")
+            raise InputError(f"fit: trial {name!r}: the inputs contain NaN or inf.")
         vp = np.isfinite(x) & np.isfinite(y)
         vr = np.all(np.isfinite(q), axis=1)
         if vp.sum() < 2 or vr.sum() < 2:
-            raise ValueError(f"fit: trial {name!r} has fewer than 2 measured frames.")
+            raise InputError(f"fit: trial {name!r} has fewer than 2 measured frames.")
         qn = np.where(vr[:, None], q, [1.0, 0.0, 0.0, 0.0])
         qn = qn / np.linalg.norm(qn, axis=1, keepdims=True)
         t0 = t[0]
@@ -556,7 +561,16 @@ def _assemble_named(free: FreeParams, per_name: dict[str, float], params: RobotP
     return out
 
 
-# ----------------------------------------------------------------------------- the fit
+# ----------------------------------------------------------------------------- the checkpoint
+
+#: version of the checkpoint's contents (part of its fingerprint: a checkpoint written by
+#: another version is not resumed)
+_CHECKPOINT_FORMAT = 2
+
+#: A test's hook into every checkpoint write: called as `hook(event, path)` with `"written"`
+#: when the temporary file is complete but not yet renamed into place, and `"saved"` after the
+#: rename. A test raises or kills the process in it to stop a fit at a chosen point.
+_checkpoint_hook: Callable[[str, Path], None] | None = None
 
 
 def _config_fingerprint(data: FitData, free: FreeParams, cfg: dict) -> str:
@@ -571,20 +585,137 @@ def _config_fingerprint(data: FitData, free: FreeParams, cfg: dict) -> str:
     return h.hexdigest()
 
 
-def _load_checkpoint(path: Path, fp: str):
+def _checkpoint_layout(stage: int, S: int, P: int, T: int, n: int, M: int, adam_shapes: Sequence[tuple]) -> dict[str, tuple]:
+    """The arrays a checkpoint at `stage` holds, with their shapes: everything the optimiser
+    reads from one step to the next (`S` starts, `P` free parameters, `T` trials, `n` nuisance
+    parameters per trial, `M` samples per trial). Stage 0 is Adam (its position, moments and
+    best points), stages 1 and 2 the two Levenberg-Marquardt stages (the per-start damping,
+    flags and counters, and the residuals, Jacobian and simulated poses at the current point),
+    stage 3 the finished optimisation."""
+    out = {"stage": (), "total_it": (), "sig": (2,), "theta": (S, P), "nu": (S, T, n)}
+    if stage == 0:
+        out |= {"adam_k": (), "adam_best_cost": (S,), "adam_best_theta": (S, P), "adam_best_nu": (S, T, n)}
+        out |= {f"adam_{i}": tuple(shape) for i, shape in enumerate(adam_shapes)}
+    else:
+        K = 5 * M
+        out |= {
+            "it": (), "stage_converged": (), "lam": (S,), "converged": (S,), "stalled": (S,), "rejected": (S,), "best_cost": (S,),
+            "cost": (S,), "res": (S, T, K), "J": (S, T, K, P + n), "pose_x": (S, T, M), "pose_y": (S, T, M), "pose_q": (S, T, M, 4),
+        }  # fmt: skip
+    return out
+
+
+def _load_checkpoint(path: Path, fp: str, layout: Callable[[int], dict[str, tuple]]) -> tuple[dict | None, str | None]:
+    """`(state, None)` for a checkpoint of this fit; `(None, why)` for one that cannot be used
+    (damaged, or from another fit); `(None, None)` where there is none."""
     if not path.exists():
-        return None
+        return None, None
     try:
-        with np.load(path, allow_pickle=False) as z:
-            if str(z["fingerprint"]) != fp:
-                return None
-            return {k: np.asarray(z[k]) for k in z.files}
-    except (OSError, ValueError, KeyError):
-        return None
+        with open(path, "rb") as f, np.load(f, allow_pickle=False) as z:  # (np.load leaks the file it opens on a bad zip)
+            got = {k: np.asarray(z[k]) for k in z.files}
+    except Exception as e:  # noqa: BLE001 - whatever the reader trips on, the file is damaged
+        first = (str(e).splitlines() or [""])[0][:100]
+        return None, f"cannot be read ({type(e).__name__}{': ' + first if first else ''})"
+    if "fingerprint" not in got:
+        return None, "is not a checkpoint of jsphere fit (it has no fingerprint)"
+    if got["fingerprint"].shape != () or str(got["fingerprint"]) != fp:
+        return None, "is from another fit (other trials, options or jsphere version)"
+    stage = got.get("stage")
+    if stage is None or stage.shape != () or stage.dtype.kind not in "iu" or int(stage) not in (0, 1, 2, 3):
+        return None, "is damaged (no valid stage)"
+    for k, shape in layout(int(stage)).items():
+        if k not in got:
+            return None, f"is damaged (it has no {k!r})"
+        if got[k].shape != shape or got[k].dtype.kind not in "biuf":
+            return None, f"is damaged ({k!r} is {got[k].dtype} of shape {got[k].shape}, expected shape {shape})"
+    return got, None
 
 
-def _save_checkpoint(path: Path, fp: str, **state) -> None:
-    atomic_write(path, lambda tmp: np.savez(tmp, fingerprint=np.array(fp), **state))
+def _save_checkpoint(path: Path, fp: str, state: dict[str, Any]) -> None:
+    def write(tmp):
+        np.savez(tmp, fingerprint=np.array(fp), **state)
+        if _checkpoint_hook is not None:
+            _checkpoint_hook("written", path)
+
+    atomic_write(path, write)
+    if _checkpoint_hook is not None:
+        _checkpoint_hook("saved", path)
+
+
+def remove_stale_temporaries(path: Path, suffix: str | None = None) -> list[Path]:
+    """Remove the temporary files that a process killed while writing `path` atomically left
+    beside it (`jsphere._io.atomic_write` names them `.<stem>.<8 random characters><suffix>`,
+    `suffix` by default that of `path`). Returns the files removed."""
+    path = Path(path)
+    suffix = path.suffix if suffix is None else suffix
+    pattern = re.compile(rf"\.{re.escape(path.stem)}\.[a-z0-9_]{{8}}{re.escape(suffix)}")
+    removed = []
+    if path.parent.is_dir():
+        for f in path.parent.iterdir():
+            if pattern.fullmatch(f.name) and f.is_file():
+                f.unlink(missing_ok=True)
+                removed.append(f)
+    return removed
+
+
+def check_output(out: Path, outputs: Sequence[Path], inputs: Mapping[str, Sequence[Path]], option: str = "--out") -> None:
+    """Refuse, before any work, an output that cannot be written: `out` a folder, a folder on
+    its way that is a file, a folder that cannot be written, or an output file (`out` and the
+    files written beside it, `outputs`) that is one of the `inputs` (`{what: paths}`; resolved
+    paths are compared, so symbolic links and `./` count). Raises `InputError`."""
+    out = Path(out)
+    if out.is_dir():
+        raise InputError(f"{option} {out} is a folder; give a file path ending in .json (e.g. {out / 'fit.json'}).")
+    folder = out.parent
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    if not folder.is_dir():
+        raise InputError(f"{option} {out}: {folder} is a file, not a folder; choose another {option}.")
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as e:
+        raise InputError(f"{option} {out}: cannot write in the folder {folder} ({(e.strerror or str(e)).lower()}); choose another {option}.") from None
+    for o in [out, *outputs]:
+        for what, paths in inputs.items():
+            for p in paths:
+                p = Path(p)
+                same = os.path.samefile(o, p) if (o.exists() and p.exists()) else o.resolve() == p.resolve()
+                if same:
+                    raise InputError(f"{option} {out} would write over {p}, the {what}; write the result to another file.")
+
+
+# ----------------------------------------------------------------------------- the fit
+
+
+def _first_failure(data: FitData, pose, ok) -> str:
+    """Where the first start fails: its first non-finite residual (trial, time, channel), or
+    the first trial whose solve did not finish."""
+    x, y, q = (np.asarray(a[0]) for a in pose)
+    for i in range(data.ts.shape[0]):
+        m = data.lengths[i]
+        bad = np.stack([~np.isfinite(x[i, :m]), ~np.isfinite(y[i, :m]), ~np.all(np.isfinite(q[i, :m]), -1)])
+        hit = np.flatnonzero(bad.any(0))
+        if hit.size:
+            k = int(hit[0])
+            channel = ("x", "y", "orientation")[int(np.argmax(bad[:, k]))]
+            t = data.ts[i, k] + data.t_start[i]
+            return f"the first non-finite residual is in trial {data.names[i]!r} at t = {t:.6g} s (sample {k}), channel {channel}"
+    failed = np.flatnonzero(~np.asarray(ok)[0])
+    if failed.size:
+        return f"the ODE solve of trial {data.names[int(failed[0])]!r} did not reach its end (max_steps)"
+    return "the first start failed, but no trial shows where"
+
+
+def _check_options(n_starts, max_iter, adam_steps, seed, sigma_pos, sigma_rot) -> None:
+    for name, val, least in (("n_starts", n_starts, 1), ("max_iter", max_iter, 1), ("adam_steps", adam_steps, 0)):
+        if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or val < least:
+            raise InputError(f"fit: {name} must be >= {least} (an integer); got {val!r}.")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise InputError(f"fit: seed must be an integer >= 0; got {seed!r}.")
+    for name, val in (("sigma_pos", sigma_pos), ("sigma_rot", sigma_rot)):
+        if val is not None and not (isinstance(val, (int, float, np.number)) and not isinstance(val, bool) and 0 < val < math.inf):
+            raise InputError(f"fit: {name} must be a finite number > 0 (or left out to estimate it); got {val!r}.")
 
 
 def fit(
@@ -638,12 +769,16 @@ def fit(
       simulated positions within ~2 um of a 1e-11 solution over a few seconds of exciting
       input (100 Hz tables: the cubic command has a kink in its rate at every sample, which
       makes tighter tolerances several times slower), far below capture noise.
-    - `checkpoint`: a file (`.npz`) written atomically after every iteration; a fit with the
-      same data and configuration resumes from it (`restart=True` ignores it).
+    - `checkpoint`: a file (`.npz`) written atomically after every Adam and Levenberg-Marquardt
+      step with the optimiser's whole state; a fit with the same data and configuration resumes
+      from it to the same result, bit for bit, wherever it was stopped (`restart=True` ignores
+      it). A checkpoint that cannot be read or belongs to another fit is ignored with a warning.
     - `progress`: `True` prints one line per iteration to stderr (or a callable gets it).
 
-    Returns a `FitResult`. Raises `ValueError` for unknown or overlapping names, a name both
-    free and fixed, bounds that exclude the start, trials that do not fit `params`.
+    Returns a `FitResult`. Raises `InputError` (a `ValueError`) for unknown or overlapping
+    names, a name both free and fixed, bounds that exclude the start, trials that do not fit
+    `params`, bad options; `SolverFailure` when no start gives a finite cost (the checkpoint
+    is then removed), naming where the first start fails.
     """
     t_begin = time.perf_counter()
     say = (lambda s: print(s, file=sys.stderr, flush=True)) if progress is True else (progress or (lambda s: None))
@@ -653,108 +788,153 @@ def fit(
             parse_name(fname)
             for fr in free_list:
                 if _overlaps(fname, fr.strip()):
-                    raise ValueError(f"{fname!r} is both free ({fr!r}) and fixed; choose one.")
+                    raise InputError(f"{fname!r} is both free ({fr!r}) and fixed; choose one.")
     params = apply_fixes(params, fix)
     fp_ = FreeParams(params, free, bounds)
     data = pack_trials(trials, params)
-    for name, val in (("n_starts", n_starts), ("max_iter", max_iter)):
-        if int(val) < 1:
-            raise ValueError(f"fit: {name} must be >= 1; got {val}.")
-    for name, val in (("sigma_pos", sigma_pos), ("sigma_rot", sigma_rot)):
-        if val is not None and not val > 0:
-            raise ValueError(f"fit: {name} must be > 0; got {val}.")
+    _check_options(n_starts, max_iter, adam_steps, seed, sigma_pos, sigma_rot)
     kind = data.kind
-    P, T = fp_.size, data.ts.shape[0]
+    P, T, M = fp_.size, data.ts.shape[0], data.ts.shape[1]
     n_nu = len(NUISANCE[kind])
     S = int(n_starts)
+    n_res = int(2 * data.wpos.sum() + 3 * data.wrot.sum())
+    if n_res <= P + T * n_nu:
+        raise InputError(
+            f"fit: the trials hold {n_res} measured values but the fit has {P + T * n_nu} unknowns ({P} free parameters and "
+            f"{n_nu} nuisance parameters per trial); give longer trials or fewer free parameters."
+        )
     fns = _functions(fp_, kind, float(rtol), float(atol), int(max_steps))
     d = data.arrays()
     base = params
     estimate_sigma = sigma_pos is None or sigma_rot is None
     sig = np.array([sigma_pos or 1e-3, sigma_rot or math.radians(0.5)])
     cfg = {
-        "n_starts": S,
-        "spread": spread,
-        "seed": seed,
-        "adam_steps": adam_steps,
-        "adam_lr": adam_lr,
-        "sig": sig.tolist(),
-        "rtol": rtol,
-        "atol": atol,
-    }
+        "n_starts": S, "spread": spread, "seed": seed, "adam_steps": adam_steps, "adam_lr": adam_lr, "max_iter": max_iter,
+        "ftol": ftol, "gtol": gtol, "noise": noise, "sig": sig.tolist(), "estimate_sigma": estimate_sigma, "rtol": rtol,
+        "atol": atol, "max_steps": max_steps, "format": _CHECKPOINT_FORMAT,
+    }  # fmt: skip
     fingerprint = _config_fingerprint(data, fp_, cfg)
     ckpt_path = Path(checkpoint) if checkpoint is not None else None
 
-    # starts
+    # starts: the only random numbers of a fit, drawn from `seed` (part of the fingerprint)
     rng = np.random.default_rng(seed)
     ts_th = fp_.theta_scales()
     theta = np.repeat(fp_.theta0[None], S, 0)
     theta[1:] += spread * ts_th * rng.standard_normal((S - 1, P))
     nu = np.repeat(nuisance_guess(data, params)[None], S, 0)
-    lam = np.full(S, 1e-3)
+    # Adam works in units of `scale`: z = scale * w
+    nu_scale = np.array([_NU_SCALE[n.split("_")[0]] for n in NUISANCE[kind]])
+    scale = {"theta": jnp.asarray(np.broadcast_to(ts_th, (S, P))), "nu": jnp.asarray(np.broadcast_to(nu_scale, (S, T, n_nu)))}
+    opt = optax.chain(optax.scale_by_adam(), optax.scale(-adam_lr))
+    w = jax.tree_util.tree_map(lambda a, s: a / s, {"theta": jnp.asarray(theta), "nu": jnp.asarray(nu)}, scale)
+    adam = (w, opt.init(w))  # Adam's position and optimiser state
+    adam_leaves, adam_def = jax.tree_util.tree_flatten(adam)
+    adam_k, adam_best = 0, None  # steps done; (cost, theta, nu) of the best point of each start
     stage, it, total_it, stage_converged = 0, 0, 0, False
-    state = _load_checkpoint(ckpt_path, fingerprint) if (ckpt_path and not restart) else None
-    if state is not None:
-        theta, nu, lam, sig = state["theta"], state["nu"], state["lam"], state["sig"]
-        stage, it, total_it = int(state["stage"]), int(state["it"]), int(state["total_it"])
-        stage_converged = bool(state["converged"])
-        say(f"fit: resuming from {ckpt_path} (stage {stage}, iteration {it})")
+    # Levenberg-Marquardt's state (from stage 1): per start the damping, whether it has
+    # converged, its accepted steps without progress, its rejections in a row, its best cost,
+    # and the cost, residuals, Jacobian and simulated poses at its current point
+    lam = converged = stalled = rejected = best_cost = cost = res = J = pose = None
+
+    def layout(st):
+        return _checkpoint_layout(st, S, P, T, n_nu, M, [np.shape(a) for a in adam_leaves])
+
+    if ckpt_path is not None:
+        remove_stale_temporaries(ckpt_path)
+        state, why = (None, None) if restart else _load_checkpoint(ckpt_path, fingerprint, layout)
+        if why is not None:
+            warnings.warn(f"fit: the checkpoint {ckpt_path} {why}; it is ignored and the fit starts afresh.", stacklevel=2)
+        if state is not None:
+            stage, total_it = int(state["stage"]), int(state["total_it"])
+            sig, theta, nu = state["sig"], state["theta"], state["nu"]
+            if stage == 0:
+                adam_k = int(state["adam_k"])
+                adam = jax.tree_util.tree_unflatten(adam_def, [jnp.asarray(state[f"adam_{i}"], a.dtype) for i, a in enumerate(adam_leaves)])
+                adam_best = (state["adam_best_cost"], state["adam_best_theta"], state["adam_best_nu"])
+                say(f"fit: resuming from {ckpt_path} (Adam step {adam_k})")
+            else:
+                it, stage_converged = int(state["it"]), bool(state["stage_converged"])
+                lam, converged, stalled, rejected = state["lam"], state["converged"].astype(bool), state["stalled"], state["rejected"]
+                best_cost, cost, res, J = state["best_cost"], state["cost"], state["res"], jnp.asarray(state["J"])
+                pose = tuple(jnp.asarray(state[k]) for k in ("pose_x", "pose_y", "pose_q"))
+                say(f"fit: resuming from {ckpt_path} (stage {stage}, iteration {it})")
 
     def save():
-        if ckpt_path is not None:
-            _save_checkpoint(
-                ckpt_path, fingerprint, theta=theta, nu=nu, lam=lam, sig=sig, stage=stage, it=it, total_it=total_it, converged=stage_converged
-            )
+        if ckpt_path is None:
+            return
+        st = {"stage": stage, "total_it": total_it, "sig": sig, "theta": theta, "nu": nu}
+        if stage == 0:
+            st |= {"adam_k": adam_k, "adam_best_cost": adam_best[0], "adam_best_theta": adam_best[1], "adam_best_nu": adam_best[2]}
+            st |= {f"adam_{i}": a for i, a in enumerate(jax.tree_util.tree_leaves(adam))}
+        else:
+            st |= {
+                "it": it, "stage_converged": stage_converged, "lam": lam, "converged": converged, "stalled": stalled,
+                "rejected": rejected, "best_cost": best_cost, "cost": cost, "res": res, "J": J,
+                "pose_x": pose[0], "pose_y": pose[1], "pose_q": pose[2],
+            }  # fmt: skip
+        _save_checkpoint(ckpt_path, fingerprint, {k: np.asarray(v) for k, v in st.items()})
 
-    poses = [None]
+    last: dict[str, Any] = {}  # the simulated poses and solver status of the last evaluation
 
     def evaluate_jac(th, n):
         res, ok, J, pose = fns.jacobian(base, jnp.asarray(th), jnp.asarray(n), d, jnp.asarray(sig))
         res, ok = np.asarray(res), np.asarray(ok)
         cost = np.where(ok.all(1), 0.5 * (res * res).sum((1, 2)), np.inf)
-        poses[0] = pose
+        last.update(pose=pose, ok=ok)
         return res, J, cost
+
+    def fail(where: str):
+        """Every start has failed: nothing later can recover, so stop here and say where."""
+        if ckpt_path is not None:
+            ckpt_path.unlink(missing_ok=True)
+        raise SolverFailure(
+            f"fit: every start failed in {where} (no start gives a finite cost); {_first_failure(data, last['pose'], last['ok'])}, "
+            "for the first start. Try: check that trial's inputs and capture near that time, start values "
+            "nearer the robot (--params, --fix), bounds on the free parameters (--bound), or, in Python, a larger max_steps or a "
+            "looser rtol."
+        )
 
     say(f"fit: {T} trials ({kind}), {sum(data.lengths)} samples, {P} free parameters + {n_nu} nuisance per trial, {S} start(s); compiling ...")
     # ---------------------------------------------------------------- stage 0: Adam warm start
     if stage == 0:
-        nu_scale = np.array([_NU_SCALE[n.split("_")[0]] for n in NUISANCE[kind]])
-        scale = {"theta": jnp.asarray(np.broadcast_to(ts_th, (S, P))), "nu": jnp.asarray(np.broadcast_to(nu_scale, (S, T, n_nu)))}
-        opt = optax.chain(optax.scale_by_adam(), optax.scale(-adam_lr))
-        z = {"theta": jnp.asarray(theta), "nu": jnp.asarray(nu)}
-        # optimise in units of `scale`: z = scale * w
-        w = jax.tree_util.tree_map(lambda a, s: a / s, z, scale)
-        ost = opt.init(w)
-        best = None
-        for k in range(adam_steps):
+        w, ost = adam
+        for k in range(adam_k, adam_steps):
             zz = jax.tree_util.tree_map(lambda a, s: a * s, w, scale)
-            res, J, cost = evaluate_jac(zz["theta"], zz["nu"])
-            if best is None:
-                best = (cost.copy(), np.asarray(zz["theta"]).copy(), np.asarray(zz["nu"]).copy())
+            res_k, J_k, cost_k = evaluate_jac(zz["theta"], zz["nu"])
+            if adam_best is None:
+                adam_best = (cost_k.copy(), np.asarray(zz["theta"]).copy(), np.asarray(zz["nu"]).copy())
             else:
-                better = cost < best[0]
-                best = (
-                    np.where(better, cost, best[0]),
-                    np.where(better[:, None], zz["theta"], best[1]),
-                    np.where(better[:, None, None], zz["nu"], best[2]),
+                better = cost_k < adam_best[0]
+                adam_best = (
+                    np.where(better, cost_k, adam_best[0]),
+                    np.where(better[:, None], zz["theta"], adam_best[1]),
+                    np.where(better[:, None, None], zz["nu"], adam_best[2]),
                 )
-            gg = jnp.einsum("stkp,stk->sp", J[..., :P], res)
-            gn = jnp.einsum("stkn,stk->stn", J[..., P:], res)
+            if not np.isfinite(adam_best[0]).any():
+                fail("the Adam warm start")
+            gg = jnp.einsum("stkp,stk->sp", J_k[..., :P], res_k)
+            gn = jnp.einsum("stkn,stk->stn", J_k[..., P:], res_k)
             g = {"theta": gg * scale["theta"], "nu": gn * scale["nu"]}
             g = jax.tree_util.tree_map(lambda a: jnp.nan_to_num(a), g)
             upd, ost = opt.update(g, ost)
             w = optax.apply_updates(w, upd)
-            say(f"fit: adam {k + 1:3d}/{adam_steps}  cost {np.min(cost):.6e}  ({time.perf_counter() - t_begin:.1f} s)")
-        if best is not None:
-            theta, nu = best[1], best[2]
-        stage = 1
+            adam, adam_k = (w, ost), k + 1
+            save()
+            say(f"fit: adam {k + 1:3d}/{adam_steps}  cost {np.min(cost_k):.6e}  ({time.perf_counter() - t_begin:.1f} s)")
+        if adam_best is not None:
+            theta, nu = adam_best[1], adam_best[2]
+        # ------------------------------------------------------------ Levenberg-Marquardt starts
+        res, J, cost = evaluate_jac(theta, nu)
+        pose = last["pose"]
+        if not np.isfinite(cost).any():
+            fail("Levenberg-Marquardt stage 1")
+        lam = np.full(S, 1e-3)
+        converged = np.zeros(S, bool)
+        stalled, rejected, best_cost = np.zeros(S, int), np.zeros(S, int), cost.copy()
+        stage, it = 1, 0
         save()
 
     # ---------------------------------------------------------------- stages 1, 2: LM
-    res, J, cost = evaluate_jac(theta, nu)
-    pose = poses[0]
-    converged = np.zeros(S, bool)
-    stalled, rejected, best_cost = np.zeros(S, int), np.zeros(S, int), cost.copy()
     while stage in (1, 2):
         while it < max_iter and not converged[int(np.argmin(cost))]:
             dg, dn, pred = fns.step(jnp.asarray(res), J, jnp.asarray(lam))
@@ -762,14 +942,15 @@ def fit(
             bad = ~np.all(np.isfinite(th_new), 1)
             th_new, nu_new = np.where(bad[:, None], theta, th_new), np.where(bad[:, None, None], nu, nu_new)
             res_n, J_n, cost_n = evaluate_jac(th_new, nu_new)
-            pose_n = poses[0]
+            pose_n = last["pose"]
             # accept a decrease; near the optimum (predicted decrease below `noise`), accept the
             # Gauss-Newton step unless the cost rises by more than the solver's noise floor: its
             # Jacobian is accurate where cost differences are not
             pred_n = np.asarray(pred)
-            near = (pred_n < noise) & (cost_n < cost + noise)
-            acc = np.isfinite(cost_n) & ((cost_n < cost) | near) & ~converged
-            rel = (cost - cost_n) / np.maximum(cost, 1e-300)
+            with np.errstate(invalid="ignore"):  # (inf - inf for a start that has failed)
+                near = (pred_n < noise) & (cost_n < cost + noise)
+                acc = np.isfinite(cost_n) & ((cost_n < cost) | near) & ~converged
+                rel = (cost - cost_n) / np.maximum(cost, 1e-300)
             # accepted steps that do not lower the best cost by gtol (the solver's noise floor)
             stalled = np.where(acc, np.where(cost_n < best_cost - gtol, 0, stalled + 1), stalled)
             rejected = np.where(acc, 0, rejected + 1)
@@ -796,29 +977,29 @@ def fit(
         if stage == 1 and estimate_sigma:
             b = int(np.argmin(cost))
             sig_old = sig
-            sig = _estimate_sigma(res[b], data, sig, P + T * n_nu)
-            say(f"fit: noise estimated: sigma_pos {sig[0] * 1e3:.4f} mm, sigma_rot {math.degrees(sig[1]):.4f} deg; refitting")
+            est = _estimate_sigma(res[b], data, sig, P + T * n_nu)
+            # residuals of exactly 0 (noise-free data) give no estimate: keep the level used
+            usable = np.isfinite(est) & (est > 0)
+            sig = np.where(usable, est, sig_old)
             stage, it = 2, 0
             lam = np.full(S, 1e-3)
             converged = np.zeros(S, bool)
             stalled, rejected = np.zeros(S, int), np.zeros(S, int)
             # reweight: the residuals and their Jacobian scale with 1/sigma (no new solve)
-            M = data.ts.shape[1]
             w = np.concatenate([np.full(2 * M, sig_old[0] / sig[0]), np.full(3 * M, sig_old[1] / sig[1])])
             res = res * w
             J = J * jnp.asarray(w)[:, None]
             cost = np.where(np.isfinite(cost), 0.5 * (res * res).sum((1, 2)), np.inf)
             best_cost = cost.copy()
             save()
+            kept = "" if usable.all() else " (residuals of 0 give no estimate: the level used is kept)"
+            say(f"fit: noise estimated: sigma_pos {sig[0] * 1e3:.4f} mm, sigma_rot {math.degrees(sig[1]):.4f} deg{kept}; refitting")
         else:
             stage_converged = bool(converged[int(np.argmin(cost))])
             stage = 3
+            save()
     # ---------------------------------------------------------------- result
     b = int(np.argmin(cost))
-    if not np.isfinite(cost[b]):
-        raise RuntimeError("fit: every start failed (the ODE solver failed or gave NaN); check the trials, the start values and the bounds.")
-    if ckpt_path is not None:
-        save()
     return _result(fp_, data, base, pose, theta, nu, res, J, cost, sig, b, stage_converged, total_it, t_begin)
 
 
@@ -835,7 +1016,7 @@ def _estimate_sigma(res_b, data: FitData, sig, n_par: int) -> np.ndarray:
     rot = res_b[:, 2 * M :] * sig[1]
     n_pos, n_rot = 2 * data.wpos.sum(), 3 * data.wrot.sum()
     frac = 1.0 - n_par / (n_pos + n_rot)
-    return np.array([math.sqrt((pos * pos).sum() / (n_pos * frac)), math.sqrt((rot * rot).sum() / (n_rot * frac))])
+    return np.sqrt(np.array([(pos * pos).sum() / (n_pos * frac), (rot * rot).sum() / (n_rot * frac)]))
 
 
 def _result(fp_: FreeParams, data, base, pose, theta, nu, res, J, cost, sig, b, converged, iterations, t_begin) -> FitResult:

@@ -21,6 +21,8 @@ DERIVED = ("R_m",)
 def parse_name(name: str) -> tuple[str, tuple[int, ...]]:
     """`"I[0,1]"` -> `("I", (0, 1))`; `"j"` -> `("j", ())`. Raises `ValueError` naming the
     fields when the name is unknown or the index does not fit the field's shape."""
+    if not isinstance(name, str):
+        raise ValueError(f"a parameter name must be a string such as 'j' or 'I[0,0]'; got {name!r}.")
     m = _NAME.match(name)
     if not m:
         raise ValueError(f"cannot parse parameter name {name!r}; use a field ({', '.join(_FIELDS)}), a component such as 'I[0,0]' or 'r_m[2]', or 'R_m'.")

@@ -162,7 +162,7 @@ class RobotParams(eqx.Module):
         unknown = sorted(set(d) - set(_FIELDS))
         if unknown:
             raise ValueError(f"parameter set has unknown field(s) {unknown}; expected {list(_FIELDS)}.")
-        return cls(**d, dtype=dtype)
+        return cls(**_checked_fields(d), dtype=dtype)
 
     def save(self, path) -> None:
         """Write the parameters as TOML or JSON (chosen by the file suffix), atomically."""
@@ -179,6 +179,72 @@ class RobotParams(eqx.Module):
 
 
 # ------------------------------------------------------------------------- validation
+
+#: the shape each field of a parameter set must have (`from_dict`), in words
+_SHAPE_TEXT = {
+    "I": "a 3x3 nested list (shape (3, 3))",
+    "r_m": "a list of 3 numbers (shape (3,))",
+    "wheel_r": "a list of N >= 3 rows of 3 numbers (shape (N, 3))",
+    "wheel_n": "a list of N rows of 3 numbers, one per wheel of wheel_r (shape (N, 3))",
+    "wheel_alpha": "a list of N rows of 3 numbers, one per wheel of wheel_r (shape (N, 3))",
+}
+
+
+def _not_a_number(v: Any) -> str | None:
+    """Why `v` (a number or nested lists of numbers) is not numeric, or None if it is."""
+    if isinstance(v, (list, tuple)):
+        return next((r for r in map(_not_a_number, v) if r is not None), None)
+    if isinstance(v, (bool, np.bool_)):
+        return f"not a boolean ({str(bool(v)).lower()})"
+    if isinstance(v, (int, float, np.integer, np.floating)):
+        return None
+    if isinstance(v, str):
+        return f"not a string ({v!r}; write numbers without quotes)"
+    if hasattr(v, "dtype") and hasattr(v, "shape"):  # NumPy and JAX arrays
+        return None if np.dtype(v.dtype).kind in "iuf" else f"not an array of {np.dtype(v.dtype)}"
+    return "not null" if v is None else f"not a {type(v).__name__}"
+
+
+def number_array(value: Any, what: str, expected: str) -> Any:
+    """`value` (a number or nested lists of numbers) as a float64 NumPy array; a JAX array is
+    returned as it is. Raises `InputError` starting with `what` for a boolean, a string or
+    another non-number anywhere in `value`, and for ragged lists (naming `expected`, the shape
+    wanted in words)."""
+    from ._errors import InputError
+
+    why = _not_a_number(value)
+    if why is not None:
+        raise InputError(f"{what}: the value must be a number, {why}.")
+    if isinstance(value, (jax.Array, jax.core.Tracer)):
+        return value
+    try:
+        return np.asarray(value, dtype=np.float64)
+    except ValueError:
+        raise InputError(f"{what}: a ragged list (rows of different lengths); expected {expected}.") from None
+
+
+def _checked_fields(d: dict[str, Any]) -> dict[str, Any]:
+    """The fields of a parameter set as arrays, each checked to be numbers of its field's shape
+    (`InputError` naming the field and the expected shape)."""
+    from ._errors import InputError
+
+    out = {}
+    for f in sorted(d, key=_FIELDS.index):  # wheel_r before the fields whose shape follows it
+        v = d[f]
+        expected = _SHAPE_TEXT.get(f, "a number")
+        a = number_array(v, f"RobotParams.{f}", expected)
+        shape = tuple(np.shape(a))
+        if f in ("wheel_n", "wheel_alpha") and "wheel_r" in out:
+            ok = shape == tuple(np.shape(out["wheel_r"]))
+        elif f == "wheel_r":
+            ok = len(shape) == 2 and shape[1] == 3 and shape[0] >= 3
+        else:
+            ok = shape == {"I": (3, 3), "r_m": (3,)}.get(f, ())
+        if not ok:
+            raise InputError(f"RobotParams.{f}: expected {expected}; got shape {shape}.")
+        out[f] = a
+    return out
+
 
 
 def _fail(field: str, msg: str):

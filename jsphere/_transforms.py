@@ -28,8 +28,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._errors import InputError
 from ._names import get_value, parse_name, set_value
-from ._params import _FIELDS, RobotParams
+from ._params import _FIELDS, RobotParams, number_array
 
 #: fields that must stay > 0 (log transform by default)
 POSITIVE = ("R0", "m0", "I0", "Rw", "m", "R_m")
@@ -118,21 +119,19 @@ def _overlaps(a: str, b: str) -> bool:
     return _canonical(fa, ia) == _canonical(fb, ib)
 
 
-def parse_fix_value(name: str, value: Any) -> Any:
+def parse_fix_value(name: str, value: Any, expected: str = "a number (or a list of numbers for a whole field)") -> Any:
     """A value for `--fix NAME=VALUE`: a number, or (nested) lists of numbers for a whole field.
-    Strings are parsed as JSON (`"2.5"`, `"[[0.016,0,0],...]"`)."""
+    Strings are parsed as JSON (`"2.5"`, `"[[0.016,0,0],...]"`). Booleans, strings inside the
+    JSON and ragged lists are refused, naming `expected` (the shape wanted, in words)."""
     v = value
     if isinstance(v, str):
         try:
             v = json.loads(v)
         except json.JSONDecodeError:
-            raise ValueError(f"--fix {name}={value}: the value must be a number (or a JSON list of numbers for a whole field).") from None
-    try:
-        arr = np.asarray(v, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise ValueError(f"--fix {name}={value!r}: the value must be a number (or a list of numbers for a whole field).") from None
+            raise InputError(f"--fix {name}={value}: the value must be a number (or a JSON list of numbers for a whole field).") from None
+    arr = np.asarray(number_array(v, f"--fix {name}={value}", expected))
     if not np.all(np.isfinite(arr)):
-        raise ValueError(f"--fix {name}={value!r}: the value must be finite.")
+        raise InputError(f"--fix {name}={value!r}: the value must be finite.")
     return arr
 
 
@@ -144,18 +143,19 @@ def apply_fixes(params: RobotParams, fix: Mapping[str, Any] | None) -> RobotPara
     p = params
     for name, value in fix.items():
         field, _ = parse_name(name)
-        arr = parse_fix_value(name, value)
+        shape = () if field == "R_m" else tuple(get_value(params, name).shape)
+        arr = parse_fix_value(name, value, "a number" if not shape else f"a value of shape {shape}")
         if field != "R_m":
-            target = get_value(params, name)
-            if arr.shape not in ((), tuple(target.shape)):
-                raise ValueError(f"--fix {name}: expected a value of shape {tuple(target.shape)}; got shape {arr.shape}.")
+            if arr.shape not in ((), shape):
+                want = "a number" if not shape else f"a value of shape {shape}"
+                raise InputError(f"--fix {name}: expected {want}; got shape {arr.shape}.")
         elif arr.shape != ():
-            raise ValueError(f"--fix {name}: R_m is a scalar; got shape {arr.shape}.")
+            raise InputError(f"--fix {name}: R_m is a scalar; got shape {arr.shape}.")
         p = set_value(p, name, arr)
     try:
         return RobotParams(**{f: getattr(p, f) for f in _FIELDS}, dtype=params.R0.dtype)
     except ValueError as e:
-        raise ValueError(f"after --fix: {e}") from None
+        raise InputError(f"after --fix: {e}") from None
 
 
 @dataclasses.dataclass(frozen=True)

@@ -271,49 +271,73 @@ _CAPTURE_COMMANDS = {"convert": _cmd_convert, "synth": _cmd_synth}
 
 
 def _parse_assignments(items, option: str) -> dict:
+    from ._errors import InputError
+
     out = {}
     for item in items or []:
         name, eq, value = item.partition("=")
         if not eq or not name.strip() or not value.strip():
-            raise ValueError(f"{option} expects NAME=VALUE (e.g. {option} m=2.5); got {item!r}.")
+            raise InputError(f"{option} expects NAME=VALUE (e.g. {option} m=2.5); got {item!r}.")
         if name.strip() in out:
-            raise ValueError(f"{option}: {name.strip()!r} is given twice.")
+            raise InputError(f"{option}: {name.strip()!r} is given twice.")
         out[name.strip()] = value.strip()
     return out
 
 
 def _parse_bounds(items) -> dict:
+    import math
+
+    from ._errors import InputError
+
     out = {}
     for name, value in _parse_assignments(items, "--bound").items():
         lo, colon, hi = value.partition(":")
         if not colon:
-            raise ValueError(f"--bound {name}={value}: expected LO:HI with either side empty for an open end (e.g. j=0:1e-3).")
+            raise InputError(f"--bound {name}={value}: expected LO:HI with either side empty for an open end (e.g. j=0:1e-3).")
         try:
             out[name] = (float(lo) if lo.strip() else None, float(hi) if hi.strip() else None)
         except ValueError:
-            raise ValueError(f"--bound {name}={value}: LO and HI must be numbers.") from None
+            raise InputError(f"--bound {name}={value}: LO and HI must be numbers.") from None
+        if any(v is not None and math.isnan(v) for v in out[name]):
+            raise InputError(f"--bound {name}={value}: LO and HI must be numbers, not NaN (leave a side empty for an open end).")
     return out
 
 
 def _cmd_fit(args) -> int:
+    """`jsphere fit`. What a user can get wrong is checked before anything is compiled: the
+    output path first, then the options, the parameter file and the trials."""
+    import warnings
+
     import jsphere
 
+    from ._errors import InputError
+    from ._fit import check_output, remove_stale_temporaries
+
     out = Path(args.out)
-    if out.suffix.lower() != ".json":
-        raise ValueError(f"--out {out}: the result is JSON; give a path ending in .json.")
+    ckpt = out.with_name(out.name + ".ckpt.npz")
+    figures = [out.with_name(f"{out.stem}_{k}.png") for k in ("overlay", "residuals")]
+    if not out.is_dir() and out.suffix.lower() != ".json":
+        raise InputError(f"--out {out}: the result is JSON; give a path ending in .json.")
+    inputs = {"trial file": [Path(t) for t in args.trials if not Path(t).is_dir()], "parameter file (--params)": [Path(args.params)] if args.params else []}
+    check_output(out, [ckpt, *([] if args.no_plots else figures)], inputs)
+    for t in map(Path, args.trials):
+        if t.is_dir() and not any(f for f in t.glob("*.csv") if not f.name.startswith(".")):
+            raise InputError(f"{t}: the folder holds no trial files (*.csv); give the trial CSV files or the folder that holds them.")
     fix = _parse_assignments(args.fix, "--fix")
     bounds = _parse_bounds(args.bound)
     params = jsphere.RobotParams.load(args.params) if args.params else jsphere.RobotParams.paper()
     trials = jsphere.read_trials(args.trials)
-    ckpt = out.with_name(out.name + ".ckpt.npz")
+    for f in [(out, ".tmp"), *((g, None) for g in figures)]:  # what a killed writer left
+        remove_stale_temporaries(*f)
     sigma_rot = None if args.sigma_rot_deg is None else args.sigma_rot_deg * 3.141592653589793 / 180.0
-    res = jsphere.fit(
-        trials, params, args.free, fix=fix, bounds=bounds, n_starts=args.n_starts, seed=args.seed, max_iter=args.max_iter,
-        sigma_pos=args.sigma_pos, sigma_rot=sigma_rot, checkpoint=ckpt, restart=args.restart, progress=not args.quiet,
-    )  # fmt: skip
+    with warnings.catch_warnings():  # one line per warning (a checkpoint that cannot be used)
+        warnings.showwarning = lambda message, *a, **k: print(f"jsphere fit: warning: {message}", file=sys.stderr)
+        res = jsphere.fit(
+            trials, params, args.free, fix=fix, bounds=bounds, n_starts=args.n_starts, seed=args.seed, max_iter=args.max_iter,
+            sigma_pos=args.sigma_pos, sigma_rot=sigma_rot, checkpoint=ckpt, restart=args.restart, progress=not args.quiet,
+        )  # fmt: skip
     written = res.save(out, plots=not args.no_plots)
-    if ckpt.exists():
-        ckpt.unlink()
+    ckpt.unlink(missing_ok=True)
     print(res.table())
     for w in res.identifiability["warnings"]:
         print(f"jsphere fit: warning: {w}", file=sys.stderr)
@@ -334,7 +358,7 @@ def _add_fit_parser(sub) -> None:
     ft.add_argument("--max-iter", type=int, default=40, help="Levenberg-Marquardt iterations per stage (default 40)")
     ft.add_argument("--sigma-pos", type=float, help="position noise [m] (default: estimated)")
     ft.add_argument("--sigma-rot-deg", type=float, help="orientation noise [deg] (default: estimated)")
-    ft.add_argument("--restart", action="store_true", help="ignore a checkpoint left by a killed fit")
+    ft.add_argument("--restart", action="store_true", help="ignore the checkpoint a killed fit left (by default the fit resumes from it)")
     ft.add_argument("--no-plots", action="store_true", help="skip the figures")
     ft.add_argument("--quiet", action="store_true", help="no progress lines")
     ft.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")

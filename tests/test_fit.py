@@ -173,9 +173,9 @@ def test_killed_fit_resumes_from_checkpoint(small_trials, small_fit, tmp_path):
     assert res.converged
     for n in res.free:
         assert res.values[n] == pytest.approx(res_full.values[n], abs=0.2 * res_full.stderr[n])
-    # another configuration does not pick up this checkpoint
+    # another configuration does not pick up this checkpoint, and says so
     lines = []
-    with pytest.raises(KeyboardInterrupt):
+    with pytest.raises(KeyboardInterrupt), pytest.warns(UserWarning, match="is from another fit"):
         jsphere.fit(
             small_trials, jsphere.RobotParams.paper(), FREE, fix={"m": 2.5}, checkpoint=ckpt, seed=1,
             progress=lambda s: lines.append(s) or kill_at_second_step(s), **{k: v for k, v in OPTS.items()},

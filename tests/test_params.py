@@ -12,6 +12,7 @@ import pytest
 
 import jsphere
 from jsphere import RobotParams
+from jsphere._errors import InputError
 from jsphere._params import derive
 
 SQ2 = np.sqrt(2.0)
@@ -322,3 +323,46 @@ def test_construct_from_traced_values_under_jit(base, paper):
 def test_tree_at_does_not_revalidate(paper):
     q = eqx.tree_at(lambda p: p.m, paper, jnp.asarray(-1.0))
     assert float(q.m) == -1.0
+
+
+# ----------------------------------------------------------------------- parameter sets (from_dict)
+
+
+@pytest.mark.parametrize(
+    "field, value, says",
+    [
+        ("m", True, "RobotParams.m: the value must be a number, not a boolean (true)"),
+        ("m", "2.5", "RobotParams.m: the value must be a number, not a string ('2.5'; write numbers without quotes)"),
+        ("m", None, "RobotParams.m: the value must be a number, not null"),
+        ("j", {"value": 1e-4}, "RobotParams.j: the value must be a number, not a dict"),
+        ("I", [[0.016, 0, 0], [0, 0.016, 0], [0, 0, False]], "RobotParams.I: the value must be a number, not a boolean (false)"),
+        ("I", [[0.016, 0, 0], [0, 0.016], [0, 0, 0.023]], "RobotParams.I: a ragged list (rows of different lengths); expected a 3x3 nested list (shape (3, 3))"),
+        ("I", [0.016, 0.016, 0.023], "RobotParams.I: expected a 3x3 nested list (shape (3, 3)); got shape (3,)"),
+        ("r_m", [0.0, -0.027], "RobotParams.r_m: expected a list of 3 numbers (shape (3,)); got shape (2,)"),
+        ("m", [2.5], "RobotParams.m: expected a number; got shape (1,)"),
+        ("wheel_r", [[0.05, 0, -0.05]] * 2, "RobotParams.wheel_r: expected a list of N >= 3 rows of 3 numbers (shape (N, 3)); got shape (2, 3)"),
+        ("wheel_n", [[1.0, 0, 0]] * 4, "RobotParams.wheel_n: expected a list of N rows of 3 numbers, one per wheel of wheel_r (shape (N, 3)); got shape (4, 3)"),
+    ],
+)
+def test_from_dict_refuses_what_is_not_numbers_of_the_field_s_shape(paper, field, value, says):
+    d = paper.to_dict()
+    d[field] = value
+    with pytest.raises(InputError) as e:
+        RobotParams.from_dict(d)
+    assert str(e.value) == says + "."
+
+
+def test_parameter_file_with_a_boolean_or_a_string_names_the_file_and_the_field(paper, tmp_path):
+    text = jsphere._io.dumps_toml(paper.to_dict())
+    for line, says in (("m = true", "RobotParams.m: the value must be a number, not a boolean"), ('m = "2.5"', "RobotParams.m: the value must be a number, not a string ('2.5'")):
+        path = tmp_path / "robot.toml"
+        path.write_text(re.sub(r"(?m)^m = .*$", line, text))
+        with pytest.raises(ValueError, match=re.escape(f"{path}: {says}")):
+            RobotParams.load(path)
+
+
+def test_from_dict_takes_numpy_values_and_integers(paper):
+    d = {k: np.asarray(v) for k, v in paper.to_dict().items()}
+    d["m"] = 2  # an integer is a number
+    p = RobotParams.from_dict(d)
+    assert float(p.m) == 2.0 and p.m.dtype == jnp.float64
