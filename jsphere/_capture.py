@@ -108,6 +108,15 @@ def separator_hint(header: Sequence[str]) -> str:
     return ""
 
 
+def check_unique_columns(header: Sequence[str], source: str, wanted: Iterable[str]) -> None:
+    """Raise `InputError` if one of the `wanted` columns appears twice in `header` (which one
+    would be read is a guess)."""
+    for name in wanted:
+        where = [j + 1 for j, h in enumerate(header) if h == name]
+        if len(where) > 1:
+            raise InputError(f"{source}: column {name!r} appears {len(where)} times (columns {where}); keep one.")
+
+
 def csv_rows(text: str, source: str) -> list[list[str]]:
     """`text` split into CSV rows (`csv.reader`); a malformed file is an `InputError` naming it."""
     try:
@@ -621,6 +630,7 @@ def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> T
             f"{', '.join(POSE_COLUMNS)} and chi_dot_1..N or K_1..N (see docs/capture.md){separator_hint(rows[0])}."
         )
     kind, in_cols = _input_columns(header, f"{source}, line {header_line}")
+    check_unique_columns(header, f"{source}, line {header_line}", [*POSE_COLUMNS, "z", *(header[j] for j in in_cols)])
     col = {h: j for j, h in enumerate(header)}
     has_z = "z" in col
     use = [col[c] for c in POSE_COLUMNS] + ([col["z"]] if has_z else []) + in_cols

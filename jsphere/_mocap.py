@@ -35,6 +35,7 @@ from ._capture import (
     _checked,
     _input_columns,
     _parse_cell,
+    check_unique_columns,
     csv_rows,
     quat_mul_np,
     read_text,
@@ -198,6 +199,8 @@ def read_body_markers(path, *, units: str = "auto") -> dict[str, np.ndarray]:
         xyz = np.array([_parse_cell(c, source, line, k) for c, k in zip(r[1:], "xyz")])
         if not np.all(np.isfinite(xyz)):
             raise ValueError(f"{source}, line {line}: marker {r[0].strip()!r} has a blank coordinate.")
+        if r[0].strip() in out:
+            raise InputError(f"{source}, line {line}: marker {r[0].strip()!r} is listed twice; keep one row per marker.")
         out[r[0].strip()] = xyz
     if len(out) < 3:
         raise ValueError(f"{source}: {len(out)} marker(s); a pose needs at least 3.")
@@ -398,7 +401,10 @@ def read_motive_csv(
     if use not in ("auto", "markers", "rigid_body"):
         raise ValueError(f"{source}: use must be 'auto', 'markers' or 'rigid_body'; got {use!r}.")
     if not rows or not rows[0] or rows[0][0].strip() != "Format Version":
-        raise ValueError(f"{source}, line 1: not a Motive CSV export (expected 'Format Version,...'); export with the header on.")
+        raise ValueError(
+            f"{source}, line 1: not a Motive CSV export (expected 'Format Version,...'); export with the header on"
+            f"{separator_hint(rows[0][:1]) if rows and rows[0] else ''}."
+        )
     meta = {rows[0][i].strip(): rows[0][i + 1].strip() for i in range(0, len(rows[0]) - 1, 2)}
     if meta.get("Rotation Type", "Quaternion") != "Quaternion":
         raise ValueError(f"{source}, line 1: Rotation Type is {meta['Rotation Type']!r}; export with Rotation Type = Quaternion.")
@@ -514,7 +520,8 @@ def read_vicon_csv(
         raise ValueError(f"{source}: up_axis must be 'y' or 'z'; got {up_axis!r}.")
     i0 = next((i for i, r in enumerate(rows) if r and r[0].strip() == "Trajectories"), None)
     if i0 is None:
-        raise ValueError(f"{source}: no 'Trajectories' section; export the marker trajectories from Nexus as CSV.")
+        hint = next((separator_hint(r[:1]) for r in rows if r and r[0].strip().startswith("Trajectories")), "")
+        raise ValueError(f"{source}: no 'Trajectories' section; export the marker trajectories from Nexus as CSV{hint}.")
     try:
         rate = float(rows[i0 + 1][0])
     except (IndexError, ValueError):
@@ -523,7 +530,7 @@ def read_vicon_csv(
         raise ValueError(f"{source}, line {i0 + 2}: the frame rate must be positive; got {rate}.")
     names, hdr = rows[i0 + 2], rows[i0 + 3]
     if len(hdr) < 2 or hdr[0].strip() != "Frame" or hdr[1].strip() != "Sub Frame":
-        raise ValueError(f"{source}, line {i0 + 4}: expected 'Frame,Sub Frame,X,Y,Z,...'.")
+        raise ValueError(f"{source}, line {i0 + 4}: expected 'Frame,Sub Frame,X,Y,Z,...'{separator_hint(hdr[:1])}.")
     unit_row = rows[i0 + 4] if len(rows) > i0 + 4 else []
     found_units = {c.strip() for c in unit_row[2:] if c.strip()}
     if not found_units <= {"mm", "m"} or len(found_units) > 1:
@@ -737,6 +744,7 @@ def read_inputs_csv(path, *, allow_truncated: bool = False) -> tuple[np.ndarray,
         raise ValueError(f"{source}, line {k + 1}: missing required column t (time [s]){separator_hint(rows[k])}.")
     kind, in_cols = _input_columns(header, f"{source}, line {k + 1}")
     names = [header[j] for j in in_cols]
+    check_unique_columns(header, f"{source}, line {k + 1}", ["t", *names])
     end = _cut_short(rows, k + 1, _data_end(rows, k + 1), len(header), source, allow_truncated, noun="rows")
     data, lines = _numbers(rows[:end], k + 1, [header.index("t")] + in_cols, source, ["t"] + names)
     if data.shape[0] < 2:
@@ -846,6 +854,14 @@ def markers_to_trial(
             f"{source}: the capture times [{t[0]:g}, {t[-1]:g}] s do not overlap the inputs' [{t_in[0]:g}, {t_in[-1]:g}] s; "
             "the two must share a clock (use time_offset)."
         )
+    span_in, span = float(t_in[-1] - t_in[0]), float(t[keep][-1] - t[keep][0])
+    if span_in >= 100.0 * max(span, 1e-9) and float(np.median(np.diff(t_in))) >= 100.0 * float(np.median(np.diff(t))):
+        warnings.warn(
+            f"{source}: the inputs table spans {span_in:g} s with steps of {float(np.median(np.diff(t_in))):g} s, the capture "
+            f"{span:g} s with steps of {float(np.median(np.diff(t))):g} s: are the inputs' times in milliseconds? Give them in "
+            "seconds.",
+            CaptureWarning, stacklevel=2,
+        )  # fmt: skip
     u = interpolate_inputs(t_in, u_in, t[keep])
     lines = None if data.lines is None else data.lines[keep]
     tt, x, y, qq, uu, z = _checked(

@@ -597,16 +597,17 @@ def test_vicon_round_trip(tmp_path, markers_truth):
     _check_recovery(tr, truth, pos=5e-4, ang=0.5)
 
 
-def c3d_shell(n_points: int, n_frames: int, declared: int | None = None) -> bytes:
-    """The bytes of a minimal C3D file (Intel, float data): a header declaring `declared` (default
-    `n_frames`) frames of `n_points` points, an empty parameter section, `n_frames` zero frames."""
+def c3d_shell(n_points: int, n_frames: int, declared: int | None = None, *, integers: bool = False) -> bytes:
+    """The bytes of a minimal C3D file (Intel; float data, or 16-bit integers): a header declaring
+    `declared` (default `n_frames`) frames of `n_points` points, an empty parameter section,
+    `n_frames` zero frames."""
     head = bytearray(512)
     head[0], head[1] = 2, 0x50
     struct.pack_into("<4H", head, 2, n_points, 0, 1, n_frames if declared is None else declared)
-    struct.pack_into("<fH", head, 12, -1.0, 3)
+    struct.pack_into("<fH", head, 12, 0.1 if integers else -1.0, 3)
     params = bytearray(512)
     params[1:4] = bytes([0x50, 1, 84])
-    return bytes(head + params) + bytes(16 * n_points * n_frames)
+    return bytes(head + params) + bytes((8 if integers else 16) * n_points * n_frames)
 
 
 class _FakeEzc3d:

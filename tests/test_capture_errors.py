@@ -264,6 +264,18 @@ def test_broken_c3d_files_are_one_line_before_ezc3d_reads_them(tmp_path, c3d_fil
         assert code == 2 and err.count("\n") == 1 and name in err, err
 
 
+def test_c3d_layout_counts_frames_of_either_storage(tmp_path):
+    from jsphere._mocap import c3d_layout
+    from test_capture import c3d_shell
+
+    p = tmp_path / "x.c3d"
+    for integers in (False, True):
+        p.write_bytes(c3d_shell(4, 30, 30, integers=integers))
+        assert c3d_layout(p)["frames"] == 30 and c3d_layout(p)["frames_in_file"] == 30
+        p.write_bytes(c3d_shell(4, 30, 50, integers=integers))
+        assert (c3d_layout(p)["frames"], c3d_layout(p)["frames_in_file"]) == (50, 30)
+
+
 def test_ezc3d_errors_become_one_line(tmp_path, monkeypatch):
     class Raises:
         def c3d(self, path):
@@ -318,6 +330,37 @@ def test_semicolon_separated_files_say_so(tmp_path):
     p.write_text("t\tK_1\n0\t1\n")
     with pytest.raises(ValueError, match=r"missing required column t .*separated by tabs"):
         jsphere.read_inputs_csv(p)
+
+
+def test_duplicated_columns_and_markers(tmp_path):
+    p = tmp_path / "trial.csv"
+    p.write_text((DATA / "ws_01.csv").read_text().replace("t,x,y,qw,qx,qy,qz,chi_dot_1", "t,x,y,qw,qx,qy,qz,x,chi_dot_1", 1)
+                 .replace("\n0.000000,", "\n0.000000,0,", 1))  # fmt: skip
+    with pytest.raises(InputError, match=r"trial\.csv, line 5: column 'x' appears 2 times \(columns \[2, 8\]\); keep one"):
+        jsphere.read_trial(p)
+    p.write_text("t,K_1,K_1\n0,1,2\n1,1,2\n")
+    with pytest.raises(InputError, match=r"column 'K_1' appears 2 times"):
+        jsphere.read_inputs_csv(p)
+    p.write_text("name,x,y,z\na,0.05,0,0\nb,0,0.05,0\na,0,0,0.05\nc,0,0,0\n")
+    with pytest.raises(InputError, match=r"trial\.csv, line 4: marker 'a' is listed twice"):
+        jsphere.read_body_markers(p)
+
+
+def test_raw_exports_separated_by_semicolons(tmp_path):
+    for fmt, reader in (("motive", jsphere.read_motive_csv), ("vicon", jsphere.read_vicon_csv)):
+        p = tmp_path / f"{fmt}.csv"
+        p.write_text((RAW / f"{fmt}.csv").read_text().replace(",", ";"))
+        with pytest.raises(ValueError, match=r"separated by semicolons, not commas"):
+            reader(p)
+
+
+def test_inputs_in_milliseconds_warn(tmp_path):
+    t, u, kind, _ = jsphere.read_inputs_csv(RAW / "inputs.csv")
+    with pytest.warns(CaptureWarning, match=r"the inputs table spans 1500 s .* are the inputs' times in milliseconds"):
+        jsphere.convert_raw(RAW / "motive.csv", (t * 1000.0, u, kind), format="motive")
+    long = np.arange(0.0, 600.0, 0.01)  # a long session logged at the capture's rate: no warning
+    with _no_capture_warnings():
+        jsphere.convert_raw(RAW / "motive.csv", (long, np.zeros((long.size, 3)), kind), format="motive")
 
 
 # --------------------------------------------------------------------------- units of body markers, empty folders
