@@ -320,9 +320,11 @@ def _lean_fit(t, x, y, q, valid) -> float:
     return 1.0 - float(np.sum((lean - k * a) ** 2)) / spread
 
 
-def implausible(t, x, y, q) -> list[tuple[str, str]]:
+def implausible(t, x, y, q, z=None, *, from_markers: bool = False) -> list[tuple[str, str]]:
     """What looks physically wrong in a trial's arrays (gap frames NaN), as `(kind, detail)`
-    pairs; `kind` is `"step"`, `"speed"`, `"rate"` or `"xyzw"`. Used by `warn_implausible`.
+    pairs; `kind` is `"step"`, `"speed"`, `"rate"`, `"height"`, `"lying"` or `"xyzw"`. Used by
+    `warn_implausible`. `from_markers`: the poses were computed from markers (`convert_raw`),
+    so their quaternions cannot be in the wrong order, but the up axis can be wrong.
 
     - `"step"`: the median time step is `MAX_PLAUSIBLE_STEP` (1 s) or longer: times in
       milliseconds or frame numbers.
@@ -331,7 +333,13 @@ def implausible(t, x, y, q) -> list[tuple[str, str]]:
       makes 1.4 m/s from frame to frame; a single swapped marker does not count).
     - `"rate"`: the platform's rotation over windows of 0.02 s exceeds `MAX_PLAUSIBLE_RATE`
       (50 rad/s) in more than 5% of them.
-    - `"xyzw"`: the quaternion columns look like `x, y, z, w` order. Read in the wrong order,
+    - `"height"`: the shell centre's height `z` (if given) spans more than 3 cm (5th to 95th
+      percentile) and more than a quarter of its horizontal excursion: a ball rolling on a
+      floor keeps it within millimetres, so the up axis is probably wrong.
+    - `"lying"` (`from_markers`): the platform tilts beyond 80 deg (95th percentile; random
+      inputs tilt the paper's robot up to 66 deg): the up axis is wrong, or the body markers are
+      not in the platform frame.
+    - `"xyzw"` (not `from_markers`): the quaternion columns look like `x, y, z, w` order. Read in the wrong order,
       the platform's tilt is its heading instead (the angle between its axis 1 and the fixed X),
       and its lean no longer follows the ball's acceleration. Reported when, read as
       `x, y, z, w`, the platform leans with the acceleration (`_lean_fit`: R^2 >= 0.5) and read
@@ -365,7 +373,20 @@ def implausible(t, x, y, q) -> list[tuple[str, str]]:
         r95 = float(np.percentile(rate, 95))
         if r95 > MAX_PLAUSIBLE_RATE:
             out.append(("rate", f"the platform turns at {r95:.3g} rad/s (95th percentile over 0.02 s)"))
+    if z is not None:
+        zv = np.asarray(z, float)[v]
+        zv = zv[np.isfinite(zv)]
+        if zv.size >= 3:
+            dz = float(np.ptp(np.percentile(zv, [5, 95])))
+            dh = max(float(np.ptp(xv)), float(np.ptp(yv)))
+            if dz > 0.03 and dz > 0.25 * dh:
+                out.append(("height", f"the shell centre's height z varies by {100 * dz:.3g} cm while it moves "
+                                      f"{100 * dh:.3g} cm horizontally"))  # fmt: skip
     tilt = float(np.percentile(_tilt_deg(qv[:, 1], qv[:, 2]), 95))
+    if from_markers:
+        if tilt > 80.0:
+            out.append(("lying", f"the platform tilts {tilt:.0f} deg from upright (95th percentile)"))
+        return out
     tilt_swapped = float(np.percentile(_tilt_deg(qv[:, 0], qv[:, 1]), 95))  # columns (qw, qx, qy, qz) = (x, y, z, w)
     fit = fit_swapped = math.nan
     if step < 0.05 and t[-1] - t[0] >= 1.0:  # enough frames over enough time to see accelerations
@@ -392,15 +413,22 @@ _CAUSES = {
     "rate": "beyond any rolling robot (< {rate:g} rad/s): times in the wrong unit or a wrong frame rate, or frames out "
     "of order",
     "xyzw": "the quaternion columns look like x, y, z, w order; reorder them to qw, qx, qy, qz (scalar first)",
+    "height": "a ball rolling on a floor keeps it within millimetres: {up}",
+    "lying": "a platform hanging in a ball stays near upright: {up}, or the body markers are not in the platform frame "
+    "(give alignment)",
 }
 
 
-def warn_implausible(t, x, y, q, source: str, *, units_hint: str = "convert them to metres") -> list[str]:
+def warn_implausible(
+    t, x, y, q, source: str, z=None, *, from_markers: bool = False, units_hint: str = "convert them to metres",
+    up_hint: str = "is z the height, with the Z axis up?",
+) -> list[str]:  # fmt: skip
     """Issue a `CaptureWarning` for each finding of `implausible`, naming `source` and the likely
-    cause (`units_hint`: how to say that positions are in millimetres). Returns the messages."""
+    cause (`units_hint`: how to say that positions are in millimetres; `up_hint`: what to check
+    when the up axis looks wrong). Returns the messages."""
     msgs = []
-    for kind, detail in implausible(t, x, y, q):
-        cause = _CAUSES[kind].format(speed=MAX_PLAUSIBLE_SPEED, rate=MAX_PLAUSIBLE_RATE, units=units_hint)
+    for kind, detail in implausible(t, x, y, q, z, from_markers=from_markers):
+        cause = _CAUSES[kind].format(speed=MAX_PLAUSIBLE_SPEED, rate=MAX_PLAUSIBLE_RATE, units=units_hint, up=up_hint)
         msgs.append(f"{source}: {detail}: {cause}.")
         warnings.warn(msgs[-1], CaptureWarning, stacklevel=3)
     return msgs
@@ -671,7 +699,7 @@ def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> T
         input_names=[header[j] for j in in_cols], max_gap_fraction=max_gap_fraction,
     )  # fmt: skip
     name = meta.get("name", path.stem)
-    warn_implausible(t, x, y, q, source, units_hint="declare '# units: mm' in the file (or pass units='mm')")
+    warn_implausible(t, x, y, q, source, z, units_hint="declare '# units: mm' in the file (or pass units='mm')")
     return Trial(t, x, y, q, inputs, kind, z, name=name)
 
 

@@ -868,7 +868,10 @@ def markers_to_trial(
         t[keep], centre[keep, 0], centre[keep, 1], q[keep], u, kind, centre[keep, 2], source=source, lines=lines,
         max_gap_fraction=max_gap_fraction,
     )  # fmt: skip
-    warn_implausible(tt, x, y, qq, source, units_hint="pass units='mm' (--units mm)")
+    warn_implausible(
+        tt, x, y, qq, source, z, from_markers=True, units_hint="pass units='mm' (--units mm)",
+        up_hint="is the export's up axis right? (up_axis / --up-axis: 'y' is Motive's default, 'z' Vicon's and C3D's)",
+    )  # fmt: skip
     return Trial(tt, x, y, qq, uu, kind, z, name=name or Path(source).stem)
 
 

@@ -471,6 +471,18 @@ def test_xyzw_detection_at_any_heading(ws01):
     assert [k for k, _ in implausible(t, z, z, rest[:, [1, 2, 3, 0]])] == ["xyzw"]
 
 
+def test_wrong_up_axis_warns(capsys, tmp_path):
+    """Motive's Y-up export read as Z-up: with body markers the platform lies on its side;
+    without, the shell centre's height follows the motion."""
+    body = jsphere.read_body_markers(RAW / "body_markers.csv")
+    with pytest.warns(CaptureWarning, match=r"motive\.csv: the platform tilts 9\d deg from upright .*is the export's up axis right"):
+        jsphere.convert_raw(RAW / "motive.csv", RAW / "inputs.csv", format="motive", up_axis="z", body_markers=body)
+    with pytest.warns(CaptureWarning, match=r"the shell centre's height z varies by 3\.\d+ cm while it moves 7\.\d+ cm horizontally"):
+        jsphere.convert_raw(RAW / "motive.csv", RAW / "inputs.csv", format="motive", up_axis="z")
+    code, err = _cli(_convert_args(RAW / "motive.csv", tmp_path / "t.csv", "motive", RAW / "inputs.csv", "--up-axis", "z"), capsys)
+    assert code == 0 and err.startswith("jsphere convert: warning: ") and "--up-axis" in err, err
+
+
 def test_convert_prints_warnings_as_one_line_each(tmp_path, capsys):
     body = tmp_path / "body.csv"
     metres = jsphere.read_body_markers(RAW / "body_markers.csv")
