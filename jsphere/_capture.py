@@ -13,9 +13,12 @@ are NaN and `Trial.valid` is False there. Times and inputs are never missing.
 
 from __future__ import annotations
 
+import codecs
 import csv
+import io
 import math
 import re
+import warnings
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
@@ -26,6 +29,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._controls import Torques, WheelSpeeds
+from ._errors import InputError
 from ._io import atomic_write_text
 from ._params import RobotParams
 from ._state import State
@@ -40,6 +44,85 @@ MIN_VALID_FRAMES = 10
 MIN_DURATION = 0.2
 #: quaternions whose norm is off by more than this are an error; smaller deviations are normalised
 QUAT_NORM_TOL = 1e-3
+#: a shell centre faster than this [m/s] is beyond any rolling robot of this kind (a 0.15 m ball at
+#: 5 m/s turns at 33 rad/s): the positions are in the wrong unit, or the times are
+MAX_PLAUSIBLE_SPEED = 5.0
+#: a platform turning faster than this [rad/s] (8 turns a second) is implausible likewise
+MAX_PLAUSIBLE_RATE = 50.0
+#: a time step at least this long [s] (below 1 Hz) means times in milliseconds or frame numbers
+MAX_PLAUSIBLE_STEP = 1.0
+
+
+class CaptureWarning(UserWarning):
+    """A capture file that reads without error but looks wrong: positions or times in the wrong
+    unit, quaternions in `x, y, z, w` order, a file cut short (read with `allow_truncated`), or
+    body markers given in millimetres. The message names the file and the likely cause."""
+
+
+def read_text(path) -> str:
+    """The text of a CSV file, for the readers of trials, inputs tables, body markers and raw
+    exports.
+
+    UTF-8 is read with or without a byte-order mark (spreadsheets save "CSV UTF-8" with one),
+    and UTF-16 with its byte-order mark (a spreadsheet's "Unicode text"). Any other encoding is
+    an `InputError` naming the file, the line and the byte (Latin-1 / Windows-1252 text cannot
+    be told from other code pages, so it is not guessed), and so is a binary file (a NUL byte:
+    a C3D or a spreadsheet's own format given as CSV).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path} does not exist.")
+    raw = path.read_bytes()
+    if raw.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
+        try:
+            return raw.decode("utf-16")
+        except UnicodeDecodeError as e:
+            raise InputError(f"{path}: starts like UTF-16 text but does not decode as UTF-16 ({e.reason}); save it as UTF-8 CSV.") from None
+    if b"\x00" in raw:
+        line = raw.count(b"\n", 0, raw.index(b"\x00")) + 1
+        c3d = len(raw) >= 512 and raw[1] == 0x50
+        raise InputError(
+            f"{path}, line {line}: a binary file, not CSV text (it holds a NUL byte)"
+            + ("; it looks like a C3D file: read it with jsphere convert --format c3d (read_c3d)." if c3d else "; give the CSV export of the data.")
+        )
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        line = raw.count(b"\n", 0, e.start) + 1
+        raise InputError(
+            f"{path}, line {line}: not UTF-8 text (byte 0x{raw[e.start]:02x} at byte {e.start}: {e.reason}); the file "
+            "is in another encoding, e.g. Latin-1 or Windows-1252: save it as UTF-8 (in a spreadsheet: 'CSV UTF-8')."
+        ) from None
+
+
+def separator_hint(header: Sequence[str]) -> str:
+    """`"; ..."` advice when a header row read as CSV is one cell holding `;` or a tab (a
+    spreadsheet that saved with another separator), else `""`."""
+    cells = [c for c in header if c.strip()]
+    for sep, name in ((";", "semicolons"), ("\t", "tabs")):
+        if len(cells) == 1 and sep in cells[0]:
+            return (
+                f"; the columns are separated by {name}, not commas (a spreadsheet's regional setting): save it as CSV "
+                "with commas between the columns and points as decimal marks"
+            )
+    return ""
+
+
+def check_unique_columns(header: Sequence[str], source: str, wanted: Iterable[str]) -> None:
+    """Raise `InputError` if one of the `wanted` columns appears twice in `header` (which one
+    would be read is a guess)."""
+    for name in wanted:
+        where = [j + 1 for j, h in enumerate(header) if h == name]
+        if len(where) > 1:
+            raise InputError(f"{source}: column {name!r} appears {len(where)} times (columns {where}); keep one.")
+
+
+def csv_rows(text: str, source: str) -> list[list[str]]:
+    """`text` split into CSV rows (`csv.reader`); a malformed file is an `InputError` naming it."""
+    try:
+        return list(csv.reader(io.StringIO(text, newline="")))
+    except csv.Error as e:
+        raise InputError(f"{source}: not a readable CSV file ({e}).") from None
 
 
 # --------------------------------------------------------------------------- numpy quaternions
@@ -166,7 +249,7 @@ def _checked(
         raise ValueError(
             f"{_where(source, lines, k)}: the quaternion (qw, qx, qy, qz) = {tuple(float(v) for v in q[k])} has norm "
             f"{norms[k]:.6g}, not 1 (tolerance {QUAT_NORM_TOL:g}); the columns must hold a unit quaternion, scalar first "
-            "(check the column order: some exporters write x, y, z, w)."
+            "(check that the four columns are the quaternion's, e.g. not Euler angles or a position, and are not rounded)."
         )
     q[~gap] /= norms[~gap, None]
     q = sign_continuous(q)
@@ -186,6 +269,169 @@ def _checked(
                 "check the marker set / rigid-body definition, or raise max_gap_fraction."
             )
     return t, x, y, q, inputs, z
+
+
+# --------------------------------------------------------------------------- plausibility
+
+
+def _tilt_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Tilt [deg] of the platform's axis 3 from the vertical for quaternions whose vector part has
+    horizontal components `a, b`: `arccos(1 - 2 (a^2 + b^2))`."""
+    return np.degrees(np.arccos(np.clip(1.0 - 2.0 * (a * a + b * b), -1.0, 1.0)))
+
+
+def _windowed(t: np.ndarray, window: float) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs `(i, j)`: each frame `i` and the first frame `j` at least `window` [s] later."""
+    j = np.searchsorted(t, t + window - 1e-12)
+    i = np.nonzero(j < t.size)[0]
+    return i, j[i]
+
+
+def _second_derivative(t: np.ndarray, v: np.ndarray, window: float = 0.3) -> np.ndarray:
+    """`d2v/dt2` of a uniformly sampled series by a local quadratic least-squares fit over
+    `window` [s] (Savitzky-Golay); the ends, where the window does not fit, are NaN."""
+    dt = float(np.median(np.diff(t)))
+    h = max(2, int(round(0.5 * window / dt)))
+    if v.size < 2 * h + 1:
+        return np.full(v.shape, np.nan)
+    s2 = (np.arange(-h, h + 1) * dt) ** 2
+    c = (s2 - s2.mean()) / np.sum((s2 - s2.mean()) ** 2)  # the quadratic coefficient; s and s^2 are orthogonal
+    out = np.full(v.shape, np.nan)
+    out[h:-h] = 2.0 * np.convolve(v, c[::-1], mode="valid")
+    return out
+
+
+def _lean_fit(t, x, y, q, valid) -> float:
+    """How well the platform's lean follows the ball's acceleration: the R^2 of the horizontal
+    part of the platform's axis 3 (in the fixed frame) fitted by `k * (x'', y'')` with one
+    scalar `k`. A platform hanging in a rolling ball leans with its acceleration (R^2 0.5-0.96
+    on `examples/data`); quaternions read in the wrong order do not (R^2 below 0.35)."""
+    xi, yi = np.interp(t, t[valid], x[valid]), np.interp(t, t[valid], y[valid])
+    a = np.stack([_second_derivative(t, xi), _second_derivative(t, yi)], axis=1)
+    w, qx, qy, qz = (q[:, i] for i in range(4))
+    lean = np.stack([2 * (qx * qz + w * qy), 2 * (qy * qz - w * qx)], axis=1)  # rows 1, 2 of R e3
+    m = valid & np.all(np.isfinite(a), axis=1) & np.all(np.isfinite(lean), axis=1)
+    a, lean = a[m], lean[m]
+    aa = float(np.sum(a * a))
+    spread = float(np.sum((lean - lean.mean(0)) ** 2))
+    if m.sum() < 30 or aa == 0.0 or spread == 0.0:
+        return math.nan
+    k = float(np.sum(lean * a)) / aa
+    return 1.0 - float(np.sum((lean - k * a) ** 2)) / spread
+
+
+def implausible(t, x, y, q, z=None, *, from_markers: bool = False) -> list[tuple[str, str]]:
+    """What looks physically wrong in a trial's arrays (gap frames NaN), as `(kind, detail)`
+    pairs; `kind` is `"step"`, `"speed"`, `"rate"`, `"height"`, `"lying"` or `"xyzw"`. Used by
+    `warn_implausible`. `from_markers`: the poses were computed from markers (`convert_raw`),
+    so their quaternions cannot be in the wrong order, but the up axis can be wrong.
+
+    - `"step"`: the median time step is `MAX_PLAUSIBLE_STEP` (1 s) or longer: times in
+      milliseconds or frame numbers.
+    - `"speed"`: the shell centre's speed over windows of 0.1 s exceeds `MAX_PLAUSIBLE_SPEED`
+      (5 m/s) in more than 5% of them (a window, not a frame: noise of 1 mm at 1 kHz alone
+      makes 1.4 m/s from frame to frame; a single swapped marker does not count).
+    - `"rate"`: the platform's rotation over windows of 0.02 s exceeds `MAX_PLAUSIBLE_RATE`
+      (50 rad/s) in more than 5% of them.
+    - `"height"`: the shell centre's height `z` (if given) spans more than 3 cm (5th to 95th
+      percentile) and more than a quarter of its horizontal excursion: a ball rolling on a
+      floor keeps it within millimetres, so the up axis is probably wrong.
+    - `"lying"` (`from_markers`): the platform tilts beyond 80 deg (95th percentile; random
+      inputs tilt the paper's robot up to 66 deg): the up axis is wrong, or the body markers are
+      not in the platform frame.
+    - `"xyzw"` (not `from_markers`): the quaternion columns look like `x, y, z, w` order. Read in the wrong order,
+      the platform's tilt is its heading instead (the angle between its axis 1 and the fixed X),
+      and its lean no longer follows the ball's acceleration. Reported when, read as
+      `x, y, z, w`, the platform leans with the acceleration (`_lean_fit`: R^2 >= 0.5) and read
+      as `w, x, y, z` much less (R^2 lower by 0.3); or when it is upside down (tilted beyond
+      90 deg, 95th percentile) read as `w, x, y, z` and 30 deg less read as `x, y, z, w`; or when
+      the first pose read as `w, x, y, z` is a half turn about the vertical that read as
+      `x, y, z, w` is the identity (the rest pose of a rigid body defined where the trial
+      starts) and the lean does not follow the acceleration better as `w, x, y, z`.
+    """
+    t, x, y, q = (np.asarray(a, float) for a in (t, x, y, q))
+    out = []
+    step = float(np.median(np.diff(t))) if t.size >= 2 else math.inf
+    if t.size >= 2:
+        if step >= MAX_PLAUSIBLE_STEP:
+            out.append(("step", f"the median time step is {step:.6g} s ({1.0 / step:.3g} Hz)"))
+            return out  # the rates below would only repeat it
+    v = np.isfinite(x) & np.isfinite(y) & np.all(np.isfinite(q), axis=1)
+    tv, xv, yv, qv = t[v], x[v], y[v], q[v]
+    if tv.size < 3 or not np.all(np.isfinite(t)):
+        return out
+    i, j = _windowed(tv, 0.1)
+    if i.size >= 3:
+        speed = np.hypot(xv[j] - xv[i], yv[j] - yv[i]) / (tv[j] - tv[i])
+        s95 = float(np.percentile(speed, 95))
+        if s95 > MAX_PLAUSIBLE_SPEED:
+            out.append(("speed", f"the shell centre moves at {s95:.3g} m/s (95th percentile over 0.1 s; {float(speed.max()):.3g} m/s at most)"))
+    i, j = _windowed(tv, 0.02)
+    if i.size >= 3:
+        dot = np.clip(np.abs(np.sum(qv[i] * qv[j], axis=1)), 0.0, 1.0)
+        rate = 2.0 * np.arccos(dot) / (tv[j] - tv[i])
+        r95 = float(np.percentile(rate, 95))
+        if r95 > MAX_PLAUSIBLE_RATE:
+            out.append(("rate", f"the platform turns at {r95:.3g} rad/s (95th percentile over 0.02 s)"))
+    if z is not None:
+        zv = np.asarray(z, float)[v]
+        zv = zv[np.isfinite(zv)]
+        if zv.size >= 3:
+            dz = float(np.ptp(np.percentile(zv, [5, 95])))
+            dh = max(float(np.ptp(xv)), float(np.ptp(yv)))
+            if dz > 0.03 and dz > 0.25 * dh:
+                out.append(("height", f"the shell centre's height z varies by {100 * dz:.3g} cm while it moves "
+                                      f"{100 * dh:.3g} cm horizontally"))  # fmt: skip
+    tilt = float(np.percentile(_tilt_deg(qv[:, 1], qv[:, 2]), 95))
+    if from_markers:
+        if tilt > 80.0:
+            out.append(("lying", f"the platform tilts {tilt:.0f} deg from upright (95th percentile)"))
+        return out
+    tilt_swapped = float(np.percentile(_tilt_deg(qv[:, 0], qv[:, 1]), 95))  # columns (qw, qx, qy, qz) = (x, y, z, w)
+    fit = fit_swapped = math.nan
+    if step < 0.05 and t[-1] - t[0] >= 1.0:  # enough frames over enough time to see accelerations
+        fit = _lean_fit(t, x, y, q, v)
+        fit_swapped = _lean_fit(t, x, y, q[:, [3, 0, 1, 2]], v)
+    half_turn = abs(qv[0, 3]) > math.cos(math.radians(5.0))  # the first pose: a half turn about Z, or x, y, z, w of q = 1
+    if fit_swapped >= 0.5 and fit <= fit_swapped - 0.3:
+        out.append(("xyzw", f"read as x, y, z, w the platform leans with the ball's acceleration (R^2 {fit_swapped:.2f}); "
+                            f"read as w, x, y, z it does not (R^2 {fit:.2f})"))  # fmt: skip
+    elif tilt > 90.0 and tilt_swapped < tilt - 30.0:  # upside down, inside a ball
+        out.append(("xyzw", f"read as w, x, y, z the platform tilts up to {tilt:.0f} deg from upright; read as x, y, z, w it "
+                            f"stays within {tilt_swapped:.0f} deg"))  # fmt: skip
+    elif half_turn and not fit > fit_swapped:  # (NaN fits: too little acceleration to tell)
+        out.append(("xyzw", "the first pose read as w, x, y, z is a half turn about the vertical (qz = "
+                            f"{qv[0, 3]:+.3f}); read as x, y, z, w it is the identity, the rest pose of a rigid body defined "
+                            "where the trial starts"))  # fmt: skip
+    return out
+
+
+_CAUSES = {
+    "step": "the times look like milliseconds or frame numbers; give t in seconds",
+    "speed": "beyond any rolling robot of this size (< {speed:g} m/s): positions in millimetres or centimetres read as "
+    "metres ({units}), or times in the wrong unit",
+    "rate": "beyond any rolling robot (< {rate:g} rad/s): times in the wrong unit or a wrong frame rate, or frames out "
+    "of order",
+    "xyzw": "the quaternion columns look like x, y, z, w order; reorder them to qw, qx, qy, qz (scalar first)",
+    "height": "a ball rolling on a floor keeps it within millimetres: {up}",
+    "lying": "a platform hanging in a ball stays near upright: {up}, or the body markers are not in the platform frame "
+    "(give alignment)",
+}
+
+
+def warn_implausible(
+    t, x, y, q, source: str, z=None, *, from_markers: bool = False, units_hint: str = "convert them to metres",
+    up_hint: str = "is z the height, with the Z axis up?",
+) -> list[str]:  # fmt: skip
+    """Issue a `CaptureWarning` for each finding of `implausible`, naming `source` and the likely
+    cause (`units_hint`: how to say that positions are in millimetres; `up_hint`: what to check
+    when the up axis looks wrong). Returns the messages."""
+    msgs = []
+    for kind, detail in implausible(t, x, y, q, z, from_markers=from_markers):
+        cause = _CAUSES[kind].format(speed=MAX_PLAUSIBLE_SPEED, rate=MAX_PLAUSIBLE_RATE, units=units_hint, up=up_hint)
+        msgs.append(f"{source}: {detail}: {cause}.")
+        warnings.warn(msgs[-1], CaptureWarning, stacklevel=3)
+    return msgs
 
 
 # --------------------------------------------------------------------------- Trial
@@ -391,8 +637,7 @@ def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> T
     if not path.exists():
         raise FileNotFoundError(f"trial file {path} does not exist.")
     meta: dict[str, str] = {}
-    with open(path, newline="") as f:
-        lines_iter = f.read().splitlines()
+    lines_iter = read_text(path).splitlines()
     k = 0
     while k < len(lines_iter) and (lines_iter[k].lstrip().startswith("#") or not lines_iter[k].strip()):
         m = _META.match(lines_iter[k].strip())
@@ -404,15 +649,16 @@ def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> T
             f"{source}: no header line; the first non-comment line must name the columns t, x, y, qw, qx, qy, qz, ..."
         )
     header_line = k + 1
-    rows = list(csv.reader(lines_iter[k:]))
+    rows = csv_rows("\n".join(lines_iter[k:]), source)
     header = [h.strip() for h in rows[0]]
     missing = [c for c in POSE_COLUMNS if c not in header]
     if missing:
         raise ValueError(
             f"{source}, line {header_line}: missing required column(s) {', '.join(missing)}; a trial CSV needs "
-            f"{', '.join(POSE_COLUMNS)} and chi_dot_1..N or K_1..N (see docs/capture.md)."
+            f"{', '.join(POSE_COLUMNS)} and chi_dot_1..N or K_1..N (see docs/capture.md){separator_hint(rows[0])}."
         )
     kind, in_cols = _input_columns(header, f"{source}, line {header_line}")
+    check_unique_columns(header, f"{source}, line {header_line}", [*POSE_COLUMNS, "z", *(header[j] for j in in_cols)])
     col = {h: j for j, h in enumerate(header)}
     has_z = "z" in col
     use = [col[c] for c in POSE_COLUMNS] + ([col["z"]] if has_z else []) + in_cols
@@ -425,7 +671,8 @@ def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> T
     line_no = np.arange(len(body)) + header_line + 1
     for i, row in enumerate(body):
         if len(row) != len(header):
-            raise ValueError(f"{source}, line {line_no[i]}: {len(row)} cells but the header has {len(header)} columns.")
+            cut = " (the file looks cut off: copy or export it again)" if i == len(body) - 1 and len(row) < len(header) else ""
+            raise ValueError(f"{source}, line {line_no[i]}: {len(row)} cells but the header has {len(header)} columns{cut}.")
         for jj, j in enumerate(use):
             data[i, jj] = _parse_cell(row[j], source, int(line_no[i]), names[jj])
     if data.shape[0] == 0:
@@ -452,17 +699,22 @@ def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> T
         input_names=[header[j] for j in in_cols], max_gap_fraction=max_gap_fraction,
     )  # fmt: skip
     name = meta.get("name", path.stem)
+    warn_implausible(t, x, y, q, source, z, units_hint="declare '# units: mm' in the file (or pass units='mm')")
     return Trial(t, x, y, q, inputs, kind, z, name=name)
 
 
 def read_trials(paths: Iterable, **kwargs) -> list[Trial]:
     """`read_trial` on each path (a directory stands for its `*.csv` files, sorted; hidden
-    files, such as a temporary file a killed writer left, are skipped)."""
+    files, such as a temporary file a killed writer left, are skipped). A directory without
+    such files is an `InputError` naming it."""
     out = []
     for p in paths:
         p = Path(p)
         if p.is_dir():
-            out += [read_trial(f, **kwargs) for f in sorted(p.glob("*.csv")) if not f.name.startswith(".")]
+            files = [f for f in sorted(p.glob("*.csv")) if not f.name.startswith(".")]
+            if not files:
+                raise InputError(f"{p} holds no trial CSV files (*.csv); give the folder of the trials or the files themselves.")
+            out += [read_trial(f, **kwargs) for f in files]
         else:
             out.append(read_trial(p, **kwargs))
     return out

@@ -158,3 +158,60 @@ def load_params(path, *, dtype=None):
         return RobotParams.from_dict(d, dtype=dtype)
     except ValueError as e:
         raise ValueError(f"{path}: {e}") from None
+
+
+# --------------------------------------------------------------------------- inputs vs outputs
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether `a` and `b` name one file: equal after resolving `~`, `.`/`..`, relative paths
+    and symbolic links, or (both existing) one file through a hard link or a case-insensitive
+    file system (`os.path.samefile`)."""
+    if a.expanduser().resolve() == b.expanduser().resolve():
+        return True
+    try:
+        return os.path.samefile(a.expanduser(), b.expanduser())
+    except OSError:  # one of them does not exist (yet)
+        return False
+
+
+def refuse_overwrite(outputs, inputs, *, option: str = "--out") -> None:
+    """Raise `InputError` if a file that a command would write is one of the files it reads.
+
+    Call it with every file the command is about to write and every file it reads, before any
+    work: writing the result over an input destroys the user's data (a raw export, a table of
+    commands, a parameter file) without a word.
+
+    **Arguments:**
+    - `outputs`: a path, or an iterable of paths, the command would write (those that do not
+      exist yet are compared by their resolved path). `None` entries are skipped.
+    - `inputs`: the files read: a mapping `{description: path}` (the description names the
+      input in the message, e.g. `"the raw export"` or `"--inputs"`) or an iterable of paths.
+      `None` entries are skipped.
+    - `option`: the option or argument that names the outputs, for the message.
+
+    Paths are compared after resolving `~`, `.`/`..`, relative paths and symbolic links; two
+    existing paths are also compared with `os.path.samefile`, so a hard link to an input counts.
+    The message names both paths and says what to do, e.g. `--out take.csv would write over
+    the raw export take.csv (the same file): give --out another path.`
+    """
+    from ._errors import InputError
+
+    outs = [outputs] if isinstance(outputs, (str, os.PathLike)) else list(outputs or ())
+    if isinstance(inputs, dict):
+        ins = list(inputs.items())
+    else:
+        ins = [(None, p) for p in ([inputs] if isinstance(inputs, (str, os.PathLike)) else list(inputs or ()))]
+    for out in outs:
+        if out is None:
+            continue
+        for what, inp in ins:
+            if inp is None:
+                continue
+            if _same_file(Path(out), Path(inp)):
+                desc = f"{what} {inp}" if what else f"the input file {inp}"
+                how = "" if Path(out) == Path(inp) else " (the same file by another path or a link)"
+                raise InputError(
+                    f"{option} {out} would write over {desc}{how}: a command never replaces its own input; "
+                    f"give {option} another path."
+                )

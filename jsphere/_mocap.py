@@ -18,7 +18,9 @@ table, `read_inputs_csv`) to make a `Trial`. `docs/capture.md` explains every co
 
 from __future__ import annotations
 
-import csv
+import math
+import struct
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,14 +29,21 @@ import numpy as np
 from ._capture import (
     INPUT_PREFIX,
     KINDS,
+    CaptureWarning,
     Trial,
     _check_increasing,
     _checked,
     _input_columns,
     _parse_cell,
+    check_unique_columns,
+    csv_rows,
     quat_mul_np,
+    read_text,
+    separator_hint,
     sign_continuous,
+    warn_implausible,
 )
+from ._errors import InputError
 from ._io import atomic_write_text
 
 #: Motive's default frame is Y-up; jsphere's fixed frame is Z-up. `UP_TO_Z["y"]` maps Motive
@@ -153,15 +162,35 @@ def rigid_body_pose(
     return sign_continuous(q), p, rms
 
 
-def read_body_markers(path) -> dict[str, np.ndarray]:
-    """Read marker coordinates in the platform frame [m]: a CSV with columns `name, x, y, z`
-    (`#` lines are comments). Returns `{name: (3,) array}` for `markers_to_trial`."""
+def read_body_markers(path, *, units: str = "auto") -> dict[str, np.ndarray]:
+    """Read marker coordinates in the platform frame: a CSV with columns `name, x, y, z` (`#`
+    lines are comments; a comment `# units: mm` declares millimetres). Returns `{name: (3,)
+    array}` in metres for `markers_to_trial`.
+
+    `units`: `"auto"` (the `# units:` line, else detected), `"m"` or `"mm"`. Detected from the
+    largest distance of a marker from their centroid: 5 mm-1 m on a robot of this kind, so
+    5-1000 means millimetres (converted, with a `CaptureWarning` saying so); anything else, or
+    a declaration that contradicts the numbers, is an `InputError`.
+    """
+    if units not in ("auto", "m", "mm"):
+        raise InputError(f"read_body_markers: units must be 'auto', 'm' or 'mm'; got {units!r}.")
     path, rows = _read_lines(path)
     source = str(path)
+    file_units = None
+    for r in rows:
+        if r and r[0].lstrip().startswith("#"):
+            key, _, value = ",".join(r).lstrip("# ").partition(":")
+            if key.strip().lower() == "units":
+                file_units = value.strip().strip(",").strip()
+                if file_units not in ("m", "mm"):
+                    raise InputError(f"{source}: the '# units:' line says {file_units!r}; it must be 'm' or 'mm'.")
+    if file_units is not None and units != "auto" and units != file_units:
+        raise InputError(f"{source}: units={units!r} was declared but the file's '# units:' line says {file_units!r}.")
     rows = [(i + 1, r) for i, r in enumerate(rows) if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")]
     if not rows or [c.strip() for c in rows[0][1]] != ["name", "x", "y", "z"]:
         raise ValueError(
-            f"{source}: the first line must be the header 'name,x,y,z' (marker coordinates in the platform frame, m)."
+            f"{source}: the first line must be the header 'name,x,y,z' (marker coordinates in the platform frame, m)"
+            f"{separator_hint(rows[0][1]) if rows else ''}."
         )
     out = {}
     for line, r in rows[1:]:
@@ -170,10 +199,37 @@ def read_body_markers(path) -> dict[str, np.ndarray]:
         xyz = np.array([_parse_cell(c, source, line, k) for c, k in zip(r[1:], "xyz")])
         if not np.all(np.isfinite(xyz)):
             raise ValueError(f"{source}, line {line}: marker {r[0].strip()!r} has a blank coordinate.")
+        if r[0].strip() in out:
+            raise InputError(f"{source}, line {line}: marker {r[0].strip()!r} is listed twice; keep one row per marker.")
         out[r[0].strip()] = xyz
     if len(out) < 3:
         raise ValueError(f"{source}: {len(out)} marker(s); a pose needs at least 3.")
-    return out
+    b = np.stack(list(out.values()))
+    spread = float(np.max(np.linalg.norm(b - b.mean(0), axis=1)))
+    detected = detect_marker_units(b[None])
+    declared = file_units or (units if units != "auto" else None)
+    if declared is not None:
+        if detected is not None and detected != declared:
+            raise InputError(
+                f"{source}: the coordinates are declared in {declared!r} but the markers lie up to {spread:.4g} from their "
+                f"centroid, which looks like {'millimetres' if detected == 'mm' else 'metres'}; fix the numbers or the units."
+            )
+        scale = 1.0 if declared == "m" else 1e-3
+    elif detected is None:
+        raise InputError(
+            f"{source}: the markers lie up to {spread:.4g} from their centroid: neither metres (5 mm-1 m on a robot of this "
+            "kind) nor millimetres (5-1000); check the coordinates (platform frame, metres)."
+        )
+    else:
+        scale = 1.0 if detected == "m" else 1e-3
+        if detected == "mm":
+            warnings.warn(
+                f"{source}: the marker coordinates look like millimetres (the markers lie up to {spread:.4g} from their "
+                "centroid; metres would make the robot metres wide): read as mm. Add a line '# units: mm' to the file "
+                "to say so, or give metres.",
+                CaptureWarning, stacklevel=2,
+            )  # fmt: skip
+    return {k: v * scale for k, v in out.items()}
 
 
 def _match_body_markers(body: dict, names: tuple[str, ...], source: str) -> np.ndarray:
@@ -250,19 +306,53 @@ def _scale(declared: str, file_units: str | None, detected: str | None, source: 
 
 
 def _read_lines(path) -> tuple[Path, list[list[str]]]:
+    """The CSV rows of a text file (`read_text`: UTF-8 with or without a BOM, or UTF-16)."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"capture file {path} does not exist.")
-    with open(path, newline="") as f:
-        return path, list(csv.reader(f))
+    return path, csv_rows(read_text(path), str(path))
+
+
+def _data_end(rows, start: int, end: int | None = None) -> int:
+    """The end of the data rows `rows[start:end]` without the trailing empty rows."""
+    end = len(rows) if end is None else end
+    while end > start and not any(c.strip() for c in rows[end - 1]):
+        end -= 1
+    return end
+
+
+def _cut_short(
+    rows, start: int, end: int, ncols: int, source: str, allow: bool, *, declared: int | None = None, field: str = "",
+    noun: str = "frames",
+) -> int:  # fmt: skip
+    """Check the data rows `rows[start:end]` of an export for a file that was cut short: a last
+    row with fewer cells than the header row (`ncols`: the copy or the export broke off
+    mid-row), or fewer rows than the header declares (`declared`, from its `field`). Raises an
+    `InputError` naming the file and both counts; with `allow`, issues a `CaptureWarning`
+    instead. Returns the end of the complete rows (the cut row is dropped)."""
+    cut_row = end > start and len(rows[end - 1]) < ncols
+    n = end - start - int(cut_row)
+    parts = []
+    if declared is not None and n < declared:
+        parts.append(f"the header declares {declared} {noun} ({field}) but the file holds {n}")
+    if cut_row:
+        parts.append(f"its last row (line {end}) has {len(rows[end - 1])} of {ncols} cells, cut off mid-row")
+    if not parts:
+        return end
+    what = "; ".join(parts)
+    if not allow:
+        raise InputError(
+            f"{source}: the file is cut short: {what} (the copy or the export broke off). Export or copy it again, or "
+            f"pass --allow-truncated (allow_truncated=True) to use the {n} complete {noun}."
+        )
+    warnings.warn(f"{source}: the file is cut short: {what}; using the {n} complete {noun}.", CaptureWarning, stacklevel=3)
+    return end - int(cut_row)
 
 
 def _numbers(rows, start: int, cols: list[int], source: str, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
     """Parse `rows[start:]` at `cols` into floats (blank -> NaN); trailing empty rows dropped.
     Returns `(data, lines)` with 1-based file lines."""
-    body = rows[start:]
-    while body and not any(c.strip() for c in body[-1]):
-        body.pop()
+    body = rows[start : _data_end(rows, start)]
     data = np.full((len(body), len(cols)), np.nan)
     lines = np.arange(len(body)) + start + 1
     for i, row in enumerate(body):
@@ -280,8 +370,9 @@ def _check_times(t: np.ndarray, lines: np.ndarray, source: str) -> None:
 
 
 def read_motive_csv(
-    path, *, rigid_body: str | None = None, use: str = "auto", units: str = "auto", up_axis: str = "y"
-) -> MarkerData:
+    path, *, rigid_body: str | None = None, use: str = "auto", units: str = "auto", up_axis: str = "y",
+    allow_truncated: bool = False,
+) -> MarkerData:  # fmt: skip
     """Read an OptiTrack Motive CSV export (format version 1.2x and later).
 
     Layout (https://docs.optitrack.com/motive/data-export/data-export-csv): line 1 `Format
@@ -299,6 +390,9 @@ def read_motive_csv(
     - `units`: `"auto"` (the file's `Length Units`, else detected), `"m"` or `"mm"`.
     - `up_axis`: `"y"` (Motive's default) or `"z"`; Y-up data are turned into jsphere's Z-up frame
       by `UP_TO_Z["y"]`: `(X, Y, Z) = (X_m, -Z_m, Y_m)`.
+    - `allow_truncated`: a file cut short (fewer data rows than line 1's `Total Exported
+      Frames`, or a last row with fewer cells than the header) is an `InputError` naming both
+      counts; with `True` it is a `CaptureWarning` and the complete rows are used.
     """
     path, rows = _read_lines(path)
     source = str(path)
@@ -307,7 +401,10 @@ def read_motive_csv(
     if use not in ("auto", "markers", "rigid_body"):
         raise ValueError(f"{source}: use must be 'auto', 'markers' or 'rigid_body'; got {use!r}.")
     if not rows or not rows[0] or rows[0][0].strip() != "Format Version":
-        raise ValueError(f"{source}, line 1: not a Motive CSV export (expected 'Format Version,...'); export with the header on.")
+        raise ValueError(
+            f"{source}, line 1: not a Motive CSV export (expected 'Format Version,...'); export with the header on"
+            f"{separator_hint(rows[0][:1]) if rows and rows[0] else ''}."
+        )
     meta = {rows[0][i].strip(): rows[0][i + 1].strip() for i in range(0, len(rows[0]) - 1, 2)}
     if meta.get("Rotation Type", "Quaternion") != "Quaternion":
         raise ValueError(f"{source}, line 1: Rotation Type is {meta['Rotation Type']!r}; export with Rotation Type = Quaternion.")
@@ -368,7 +465,14 @@ def read_motive_csv(
             )
         cols += [rb_cols[k] for k in need]
         colnames += [f"{body} {k[0]} {k[1]}" for k in need]
-    data, lines = _numbers(rows, i_hdr + 1, cols, source, colnames)
+    declared = None
+    if meta.get("Total Exported Frames", "").isdigit():
+        declared = int(meta["Total Exported Frames"])
+    end = _cut_short(rows, i_hdr + 1, _data_end(rows, i_hdr + 1), ncol, source, allow_truncated, declared=declared,
+                     field="Total Exported Frames")  # fmt: skip
+    data, lines = _numbers(rows[:end], i_hdr + 1, cols, source, colnames)
+    if data.shape[0] == 0:
+        raise InputError(f"{source}: no data rows after the header 'Frame,Time (Seconds),...' (line {i_hdr + 1}).")
     t = data[:, 1]
     _check_times(t, lines, source)
     K = len(mnames)
@@ -392,7 +496,9 @@ def _scale_rb(units: str, file_units: str | None, source: str) -> float:
     return _scale(units, file_units, None, source)
 
 
-def read_vicon_csv(path, *, subject: str | None = None, units: str = "auto", up_axis: str = "z") -> MarkerData:
+def read_vicon_csv(
+    path, *, subject: str | None = None, units: str = "auto", up_axis: str = "z", allow_truncated: bool = False
+) -> MarkerData:
     """Read a Vicon Nexus "Trajectories" CSV export.
 
     Layout (e.g. https://ccu.uni-konstanz.de/wiki/ , Vicon Nexus reference guide): a line
@@ -403,7 +509,10 @@ def read_vicon_csv(path, *, subject: str | None = None, units: str = "auto", up_
     in trajectory exports; other values are an error).
 
     `subject` keeps the markers named `"<subject>:..."` (default: all). `units`: `"auto"` (the
-    units row), `"m"` or `"mm"`. `up_axis`: Vicon is Z-up by default.
+    units row), `"m"` or `"mm"`. `up_axis`: Vicon is Z-up by default. A file cut short (the
+    section runs to the end of the file and its last row has fewer cells than the header) is an
+    `InputError` naming both counts; `allow_truncated=True` makes it a `CaptureWarning` and
+    drops that row.
     """
     path, rows = _read_lines(path)
     source = str(path)
@@ -411,7 +520,8 @@ def read_vicon_csv(path, *, subject: str | None = None, units: str = "auto", up_
         raise ValueError(f"{source}: up_axis must be 'y' or 'z'; got {up_axis!r}.")
     i0 = next((i for i, r in enumerate(rows) if r and r[0].strip() == "Trajectories"), None)
     if i0 is None:
-        raise ValueError(f"{source}: no 'Trajectories' section; export the marker trajectories from Nexus as CSV.")
+        hint = next((separator_hint(r[:1]) for r in rows if r and r[0].strip().startswith("Trajectories")), "")
+        raise ValueError(f"{source}: no 'Trajectories' section; export the marker trajectories from Nexus as CSV{hint}.")
     try:
         rate = float(rows[i0 + 1][0])
     except (IndexError, ValueError):
@@ -420,7 +530,7 @@ def read_vicon_csv(path, *, subject: str | None = None, units: str = "auto", up_
         raise ValueError(f"{source}, line {i0 + 2}: the frame rate must be positive; got {rate}.")
     names, hdr = rows[i0 + 2], rows[i0 + 3]
     if len(hdr) < 2 or hdr[0].strip() != "Frame" or hdr[1].strip() != "Sub Frame":
-        raise ValueError(f"{source}, line {i0 + 4}: expected 'Frame,Sub Frame,X,Y,Z,...'.")
+        raise ValueError(f"{source}, line {i0 + 4}: expected 'Frame,Sub Frame,X,Y,Z,...'{separator_hint(hdr[:1])}.")
     unit_row = rows[i0 + 4] if len(rows) > i0 + 4 else []
     found_units = {c.strip() for c in unit_row[2:] if c.strip()}
     if not found_units <= {"mm", "m"} or len(found_units) > 1:
@@ -436,7 +546,11 @@ def read_vicon_csv(path, *, subject: str | None = None, units: str = "auto", up_
     cols = [0, 1] + [j + a for _, j in mk for a in range(3)]
     colnames = ["Frame", "Sub Frame"] + [f"{n} {a}" for n, _ in mk for a in "XYZ"]
     end = next((i for i in range(i0 + 5, len(rows)) if not any(c.strip() for c in rows[i])), len(rows))
+    if _data_end(rows, end) == end:  # the section runs to the end of the file: it may have been cut off
+        end = _cut_short(rows, i0 + 5, end, len(hdr), source, allow_truncated)
     data, lines = _numbers(rows[:end], i0 + 5, cols, source, colnames)  # the section ends at a blank line
+    if data.shape[0] == 0:
+        raise InputError(f"{source}: no data rows after the units row (line {i0 + 5}).")
     sub = np.nonzero(np.nan_to_num(data[:, 1]) != 0)[0]
     if sub.size:
         raise ValueError(f"{source}, line {lines[sub[0]]}: Sub Frame is not 0; export the trajectories at the camera rate.")
@@ -448,11 +562,120 @@ def read_vicon_csv(path, *, subject: str | None = None, units: str = "auto", up_
     return MarkerData(t, markers, tuple(n for n, _ in mk), source, lines)
 
 
-def read_c3d(path, *, units: str = "auto", up_axis: str = "z") -> MarkerData:
+#: C3D processor types (byte 4 of the parameter section): 84 Intel, 85 DEC (both little-endian
+#: integers), 86 MIPS/SGI (big-endian)
+_C3D_PROCESSORS = {84: "<", 85: "<", 86: ">"}
+
+
+def c3d_layout(path) -> dict:
+    """Check the structure of a C3D file before `ezc3d` reads it, and return what its header
+    declares: `{"frames": declared frame count or None (a header that saturates at 65535),
+    "frames_in_file": whole frames the file holds, "points": ..., "data_start": byte offset}`.
+
+    ezc3d reads a truncated or corrupt file without a word (it shortens the frame count to what
+    it finds, even in `POINT:FRAMES`), raises assorted errors, and on some corrupt parameter
+    sections crashes the process or never returns. So the header (512 bytes: key byte 0x50,
+    the parameter block, points, analog samples, first and last frame, scale, data start) and
+    every record of the parameter section (names, types, dimensions, offsets inside the
+    section) are checked here; any problem is an `InputError` naming the file.
+    """
+    path = Path(path)
+    source = str(path)
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        raw = f.read(512)
+    if size == 0:
+        raise InputError(f"{source}: the file is empty (0 bytes), not a C3D file; export or copy it again.")
+    if size < 512 or raw[1] != 0x50:
+        what = f"{size} bytes, shorter than the 512-byte header" if size < 512 else f"its second byte is 0x{raw[1]:02x}, not 0x50"
+        raise InputError(f"{source}: not a C3D file ({what}); check the file (and --format: motive, vicon or c3d).")
+    p0 = (raw[0] - 1) * 512
+    if raw[0] < 2 or size < p0 + 4:
+        raise InputError(
+            f"{source}: the C3D file is cut short or corrupt: its parameter section (block {raw[0]}) is not in the "
+            f"file ({size} bytes); export or copy it again."
+        )
+    with open(path, "rb") as f:
+        f.seek(p0)
+        head = f.read(4)
+    endian = _C3D_PROCESSORS.get(head[3])
+    if endian is None:
+        raise InputError(f"{source}: not a C3D file, or a corrupt one (processor type {head[3]}, not 84, 85 or 86).")
+    n_points, n_analog, first, last = struct.unpack(endian + "4H", raw[2:10])
+    data_start = struct.unpack(endian + "H", raw[16:18])[0]
+    sign_byte = {">": 12, "<": 15}[endian] if head[3] != 85 else 13  # the sign bit of the scale factor
+    float_data = bool(raw[sign_byte] & 0x80)
+    p_end = p0 + 512 * head[2]
+    if head[2] == 0 or data_start - 1 < raw[0] or size < p_end:
+        raise InputError(
+            f"{source}: the C3D file is cut short or corrupt: {size} bytes, but its parameters end at byte {p_end} and its "
+            f"data start at byte {512 * (data_start - 1)}; export or copy it again."
+        )
+    with open(path, "rb") as f:
+        f.seek(p0)
+        params = f.read(p_end - p0)
+    _check_c3d_parameters(params, endian, source)
+    frame_bytes = (4 * n_points + n_analog) * (4 if float_data else 2)
+    start = 512 * (data_start - 1)
+    if size < start:
+        raise InputError(f"{source}: the C3D file is cut short before its data (byte {start}; the file has {size}).")
+    frames = last - first + 1 if (last >= first and last < 65535) else None
+    in_file = (size - start) // frame_bytes if frame_bytes else (frames or 0)
+    return {"frames": frames, "frames_in_file": int(in_file), "points": n_points, "data_start": start}
+
+
+def _check_c3d_parameters(params: bytes, endian: str, source: str) -> None:
+    """Walk the records of a C3D parameter section (`params`: the whole section, from its 4-byte
+    head); raise `InputError` at the first that runs out of the section or makes no sense."""
+    pos, n_records = 4, 0
+    end = len(params)
+
+    def bad(why: str):
+        return InputError(f"{source}: the C3D file is corrupt: parameter record {n_records + 1} ({why}); export or copy it again.")
+
+    while pos + 2 <= end:
+        n_name = abs(struct.unpack("b", params[pos : pos + 1])[0])
+        if n_name == 0:
+            return  # the end of the records
+        name = params[pos + 2 : pos + 2 + n_name]
+        if len(name) < n_name or not all(32 < c < 127 for c in name):
+            raise bad("its name is not printable")
+        group = struct.unpack("b", params[pos + 1 : pos + 2])[0] < 0
+        at = pos + 2 + n_name  # the offset to the next record counts from here
+        if at + 2 > end:
+            raise bad("it runs past the section")
+        nxt = struct.unpack(endian + "h", params[at : at + 2])[0]
+        q = at + 2
+        if not group:
+            if q + 2 > end:
+                raise bad("it runs past the section")
+            typ, ndim = struct.unpack("b", params[q : q + 1])[0], params[q + 1]
+            if typ not in (-1, 1, 2, 4) or ndim > 7:
+                raise bad(f"type {typ}, {ndim} dimensions")
+            dims = params[q + 2 : q + 2 + ndim]
+            q += 2 + ndim + abs(typ) * int(np.prod(list(dims), dtype=np.int64))
+        if q + 1 > end or q + 1 + params[q] > end:
+            raise bad("it runs past the section")
+        if nxt == 0:
+            return  # the last record
+        if nxt < 0 or at + nxt <= pos or at + nxt > end:
+            raise bad(f"its link to the next record ({nxt}) leaves the section")
+        pos = at + nxt
+        n_records += 1
+        if n_records > 100_000:
+            raise bad("too many records")
+
+
+def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: bool = False) -> MarkerData:
     """Read marker trajectories from a C3D file through `ezc3d` (`pip install jsphere[c3d]`).
 
     Uses `POINT:LABELS`, `POINT:RATE`, `POINT:UNITS` and `data.points` `(4, K, M)`; a point whose
     residual (`data.meta_points.residuals`) is negative is a gap. Times are frame / rate from 0.
+
+    The file's structure is checked first (`c3d_layout`): an empty, random or corrupt file is
+    an `InputError` naming it. A file with fewer frames than its header declares (a copy or an
+    export that broke off) is an `InputError` naming both counts; with `allow_truncated=True`
+    it is a `CaptureWarning` and the frames present are used.
     """
     try:
         import ezc3d
@@ -464,19 +687,36 @@ def read_c3d(path, *, units: str = "auto", up_axis: str = "z") -> MarkerData:
     if not path.exists():
         raise FileNotFoundError(f"capture file {path} does not exist.")
     source = str(path)
-    c = ezc3d.c3d(str(path))
-    point = c["parameters"]["POINT"]
-    labels = tuple(str(s).strip() for s in point["LABELS"]["value"])
-    rate = float(point["RATE"]["value"][0])
-    file_units = str(point["UNITS"]["value"][0]).strip() if "UNITS" in point else None
+    layout = c3d_layout(path)
+    declared, present = layout["frames"], layout["frames_in_file"]
+    if declared is not None and present < declared:
+        what = f"the header declares {declared} frames but the file holds {present}"
+        if not allow_truncated or present == 0:
+            raise InputError(
+                f"{source}: the file is cut short: {what} (the copy or the export broke off). Export or copy it again"
+                + (", or pass --allow-truncated (allow_truncated=True) to use the frames present." if present else ".")
+            )
+        warnings.warn(f"{source}: the file is cut short: {what}; using the {present} frames present.", CaptureWarning, stacklevel=2)
+    try:
+        c = ezc3d.c3d(str(path))
+        point = c["parameters"]["POINT"]
+        labels = tuple(str(s).strip() for s in point["LABELS"]["value"])
+        rate = float(point["RATE"]["value"][0])
+        file_units = str(point["UNITS"]["value"][0]).strip() if "UNITS" in point else None
+        pts = np.asarray(c["data"]["points"], float)
+        res = np.asarray(c["data"]["meta_points"]["residuals"], float)
+    except (RuntimeError, OSError, ValueError, KeyError, IndexError, TypeError) as e:
+        raise InputError(f"{source}: not a readable C3D file (ezc3d: {str(e).strip() or type(e).__name__}); export it again.") from None
+    if not (math.isfinite(rate) and rate > 0):
+        raise InputError(f"{source}: POINT:RATE is {rate:g}; the frame rate must be a positive number of Hz.")
     if file_units not in (None, "m", "mm"):
         raise ValueError(f"{source}: POINT:UNITS is {file_units!r}; only 'm' and 'mm' are supported.")
-    pts = np.asarray(c["data"]["points"], float)
-    if pts.ndim != 3 or pts.shape[0] < 3 or pts.shape[1] != len(labels):
+    if pts.ndim != 3 or pts.shape[0] < 3 or pts.shape[1] != len(labels) or res.ndim != 3 or res.shape[1:] != pts.shape[1:]:
         raise ValueError(f"{source}: data.points has shape {pts.shape}; expected (4, {len(labels)}, frames).")
+    if pts.shape[2] == 0:
+        raise InputError(f"{source}: the C3D file holds no frames.")
     raw = np.transpose(pts[:3], (2, 1, 0)).copy()  # (M, K, 3)
-    res = np.asarray(c["data"]["meta_points"]["residuals"], float)[0].T  # (M, K)
-    raw[res < 0] = np.nan
+    raw[res[0].T < 0] = np.nan
     t = np.arange(raw.shape[0]) / rate
     scale = _scale(units, file_units, detect_marker_units(raw), source)
     markers = np.einsum("ij,mkj->mki", UP_TO_Z[up_axis], raw) * scale
@@ -486,10 +726,12 @@ def read_c3d(path, *, units: str = "auto", up_axis: str = "z") -> MarkerData:
 # --------------------------------------------------------------------------- inputs table
 
 
-def read_inputs_csv(path) -> tuple[np.ndarray, np.ndarray, str, list[str]]:
+def read_inputs_csv(path, *, allow_truncated: bool = False) -> tuple[np.ndarray, np.ndarray, str, list[str]]:
     """Read an inputs table: columns `t` [s] and `chi_dot_1..N` [rad/s] or `K_1..N` [N m] (lines
     starting with `#` before the header are comments). Returns `(t, values, kind, names)`.
-    Blank cells, NaN and non-increasing times are errors naming the line."""
+    Blank cells, NaN and non-increasing times are errors naming the line. A last row with fewer
+    cells than the header (a file cut off mid-row) is an `InputError` naming both counts; with
+    `allow_truncated=True` it is a `CaptureWarning` and the row is dropped."""
     path, rows = _read_lines(path)
     source = str(path)
     k = 0
@@ -499,10 +741,12 @@ def read_inputs_csv(path) -> tuple[np.ndarray, np.ndarray, str, list[str]]:
         raise ValueError(f"{source}: no header line; the inputs table needs columns t and chi_dot_1..N or K_1..N.")
     header = [h.strip() for h in rows[k]]
     if "t" not in header:
-        raise ValueError(f"{source}, line {k + 1}: missing required column t (time [s]).")
+        raise ValueError(f"{source}, line {k + 1}: missing required column t (time [s]){separator_hint(rows[k])}.")
     kind, in_cols = _input_columns(header, f"{source}, line {k + 1}")
     names = [header[j] for j in in_cols]
-    data, lines = _numbers(rows, k + 1, [header.index("t")] + in_cols, source, ["t"] + names)
+    check_unique_columns(header, f"{source}, line {k + 1}", ["t", *names])
+    end = _cut_short(rows, k + 1, _data_end(rows, k + 1), len(header), source, allow_truncated, noun="rows")
+    data, lines = _numbers(rows[:end], k + 1, [header.index("t")] + in_cols, source, ["t"] + names)
     if data.shape[0] < 2:
         raise ValueError(f"{source}: the inputs table needs at least 2 rows.")
     _check_times(data[:, 0], lines, source)
@@ -542,6 +786,7 @@ def markers_to_trial(
     time_offset: float = 0.0,
     name: str | None = None,
     max_gap_fraction: float = 0.5,
+    allow_truncated: bool = False,
 ) -> Trial:
     """A `Trial` from raw marker data and an inputs table.
 
@@ -558,10 +803,23 @@ def markers_to_trial(
       the exporter's rigid-body pose (`rb_q`), it is used instead of the markers, as the body
       frame.
     - `max_rms`: frames whose marker fit has an RMS residual above this [m] are gaps.
+    - `allow_truncated`: passed to `read_inputs_csv`.
+
+    Given body markers whose distances from each other disagree with the export's (by more than
+    10%: markers in millimetres, or of another robot) are an `InputError`. The trial is checked
+    for plausibility (`jsphere._capture.implausible`: speeds, turn rates, time units), each
+    finding a `CaptureWarning`.
     """
     source = data.source
+    off = np.asarray(body_offset, float)
+    if off.size != 3 or not np.all(np.isfinite(off)):
+        raise InputError(f"{source}: body_offset must be 3 finite numbers (x, y, z in the platform frame, m); got {body_offset!r}.")
+    if not math.isfinite(time_offset):
+        raise InputError(f"{source}: time_offset must be a finite number of seconds; got {time_offset!r}.")
+    if not max_rms > 0:  # NaN too
+        raise InputError(f"{source}: max_rms must be positive (metres); got {max_rms!r}.")
     if isinstance(inputs, (str, Path)):
-        t_in, u_in, kind, _ = read_inputs_csv(inputs)
+        t_in, u_in, kind, _ = read_inputs_csv(inputs, allow_truncated=allow_truncated)
     else:
         t_in, u_in, kind = inputs
         t_in, u_in = np.asarray(t_in, float), np.asarray(u_in, float).reshape(len(t_in), -1)
@@ -582,6 +840,7 @@ def markers_to_trial(
         if body_markers.shape != (len(data.names), 3):
             raise ValueError(f"{source}: body_markers must be ({len(data.names)}, 3), one row per marker {list(data.names)}.")
         known = np.all(np.isfinite(body_markers), axis=1)  # markers left out of a body_markers dict
+        _check_body_scale(data.markers[:, known], body_markers[known], source)
         q_body, p_body, _ = rigid_body_pose(data.markers[:, known], body_markers[known], max_rms=max_rms)
     R_body = rotmat_np(np.where(np.isfinite(q_body), q_body, 1.0))
     R = R_body @ A  # platform -> fixed
@@ -595,13 +854,56 @@ def markers_to_trial(
             f"{source}: the capture times [{t[0]:g}, {t[-1]:g}] s do not overlap the inputs' [{t_in[0]:g}, {t_in[-1]:g}] s; "
             "the two must share a clock (use time_offset)."
         )
+    span_in, span = float(t_in[-1] - t_in[0]), float(t[keep][-1] - t[keep][0])
+    if span_in >= 100.0 * max(span, 1e-9) and float(np.median(np.diff(t_in))) >= 100.0 * float(np.median(np.diff(t))):
+        warnings.warn(
+            f"{source}: the inputs table spans {span_in:g} s with steps of {float(np.median(np.diff(t_in))):g} s, the capture "
+            f"{span:g} s with steps of {float(np.median(np.diff(t))):g} s: are the inputs' times in milliseconds? Give them in "
+            "seconds.",
+            CaptureWarning, stacklevel=2,
+        )  # fmt: skip
     u = interpolate_inputs(t_in, u_in, t[keep])
     lines = None if data.lines is None else data.lines[keep]
     tt, x, y, qq, uu, z = _checked(
         t[keep], centre[keep, 0], centre[keep, 1], q[keep], u, kind, centre[keep, 2], source=source, lines=lines,
         max_gap_fraction=max_gap_fraction,
     )  # fmt: skip
+    warn_implausible(
+        tt, x, y, qq, source, z, from_markers=True, units_hint="pass units='mm' (--units mm)",
+        up_hint="is the export's up axis right? (up_axis / --up-axis: 'y' is Motive's default, 'z' Vicon's and C3D's)",
+    )  # fmt: skip
     return Trial(tt, x, y, qq, uu, kind, z, name=name or Path(source).stem)
+
+
+def _check_body_scale(markers: np.ndarray, body: np.ndarray, source: str) -> None:
+    """Raise `InputError` if the distances between the body markers differ from those between
+    the export's markers by more than 10% (median over marker pairs of the ratio of the body's
+    distance to the export's median over frames): body markers in millimetres, or another
+    marker set, would give no pose at all ("too few valid frames")."""
+    K = body.shape[0]
+    i, j = np.triu_indices(K, 1)
+    d_data = np.linalg.norm(markers[:, i] - markers[:, j], axis=2)  # (M, pairs), NaN where missing
+    seen = np.sum(np.isfinite(d_data), axis=0) > 0
+    if not np.any(seen):
+        return
+    d_data = np.nanmedian(d_data[:, seen], axis=0)
+    d_body = np.linalg.norm(body[i] - body[j], axis=1)[seen]
+    ok = d_data > 0
+    if not np.any(ok):
+        return
+    ratio = float(np.median(d_body[ok] / d_data[ok]))
+    if abs(ratio - 1.0) <= 0.1:
+        return
+    hint = (
+        "the body markers look like millimetres: give them in metres (or add '# units: mm' to their file)"
+        if 500.0 <= ratio <= 2000.0
+        else "the body markers look like metres while the export is read in millimetres" if 5e-4 <= ratio <= 2e-3
+        else "check that they belong to this marker set, and their units (metres)"
+    )  # fmt: skip
+    raise InputError(
+        f"{source}: the body markers are {ratio:.4g} times as far apart as the markers in the export (median over "
+        f"marker pairs); {hint}."
+    )
 
 
 # --------------------------------------------------------------------------- synthetic markers and writers
@@ -750,19 +1052,26 @@ def convert_raw(
     max_rms: float = 0.005,
     time_offset: float = 0.0,
     name: str | None = None,
+    allow_truncated: bool = False,
 ) -> Trial:
     """Read a raw export (`format`: `"motive"`, `"vicon"` or `"c3d"`) and make a `Trial` with the
     inputs table `inputs` (`markers_to_trial`). `up_axis` defaults to the exporter's default
-    (`"y"` for Motive, `"z"` otherwise); `rigid_body` selects a Motive asset or a Vicon subject."""
+    (`"y"` for Motive, `"z"` otherwise); `rigid_body` selects a Motive asset or a Vicon subject.
+
+    A file cut short (an export with fewer frames than its header declares, a last row cut off
+    mid-row) is an `InputError` naming both counts; `allow_truncated=True` makes it a
+    `CaptureWarning` and uses the complete frames. Implausible speeds, turn rates or time units
+    in the result are `CaptureWarning`s naming the likely cause."""
     if format not in RAW_FORMATS:
         raise ValueError(f"convert_raw: format must be one of {RAW_FORMATS}; got {format!r}.")
+    kw = {"units": units, "allow_truncated": allow_truncated}
     if format == "motive":
-        data = read_motive_csv(path, rigid_body=rigid_body, units=units, up_axis=up_axis or "y")
+        data = read_motive_csv(path, rigid_body=rigid_body, up_axis=up_axis or "y", **kw)
     elif format == "vicon":
-        data = read_vicon_csv(path, subject=rigid_body, units=units, up_axis=up_axis or "z")
+        data = read_vicon_csv(path, subject=rigid_body, up_axis=up_axis or "z", **kw)
     else:
-        data = read_c3d(path, units=units, up_axis=up_axis or "z")
+        data = read_c3d(path, up_axis=up_axis or "z", **kw)
     return markers_to_trial(
         data, inputs, body_markers=body_markers, alignment=alignment, body_offset=body_offset, max_rms=max_rms,
-        time_offset=time_offset, name=name,
+        time_offset=time_offset, name=name, allow_truncated=allow_truncated,
     )  # fmt: skip

@@ -204,33 +204,80 @@ def _cmd_montecarlo(args) -> int:
 
 
 def _cmd_convert(args) -> int:
+    import math
+    import warnings
+
     import jsphere
 
-    try:
-        body = jsphere.read_body_markers(args.body_markers) if args.body_markers else None
-        trial = jsphere.convert_raw(
-            args.raw, args.inputs, format=args.format, units=args.units, up_axis=args.up_axis, rigid_body=args.rigid_body,
-            body_markers=body, body_offset=tuple(args.body_offset), time_offset=args.time_offset,
-        )  # fmt: skip
-    except ImportError as e:  # read_c3d without ezc3d
-        print(f"jsphere convert: error: {e}", file=sys.stderr)
-        return 2
-    jsphere.write_trial(args.out, trial)
-    print(f"{trial!r} -> {args.out}")
+    from ._capture import CaptureWarning
+    from ._errors import InputError
+    from ._io import refuse_overwrite
+
+    if not all(math.isfinite(v) for v in args.body_offset):
+        raise InputError(f"--body-offset X Y Z must be finite numbers [m]; got {' '.join(f'{v:g}' for v in args.body_offset)}.")
+    if not math.isfinite(args.time_offset):
+        raise InputError(f"--time-offset must be a finite number of seconds; got {args.time_offset:g}.")
+    out = Path(args.out)
+    refuse_overwrite(out, {"the raw export": args.raw, "the inputs table": args.inputs, "the body markers": args.body_markers})
+    if out.is_dir():
+        raise InputError(f"--out {out} is a folder; give the trial CSV file to write (e.g. {out / 'trial.csv'}).")
+    folder = next(p for p in (out.absolute().parent, *out.absolute().parent.parents) if p.exists())
+    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
+        raise InputError(f"--out {out}: cannot write in {folder} (not a writable folder); give another path.")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", CaptureWarning)
+        try:
+            body = jsphere.read_body_markers(args.body_markers) if args.body_markers else None
+            trial = jsphere.convert_raw(
+                args.raw, args.inputs, format=args.format, units=args.units, up_axis=args.up_axis, rigid_body=args.rigid_body,
+                body_markers=body, body_offset=tuple(args.body_offset), time_offset=args.time_offset,
+                allow_truncated=args.allow_truncated,
+            )  # fmt: skip
+        finally:  # the warnings of a conversion that then fails say what went before
+            for w in caught:
+                if issubclass(w.category, CaptureWarning):
+                    print(f"jsphere convert: warning: {w.message}", file=sys.stderr)
+                else:
+                    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    jsphere.write_trial(out, trial)
+    print(f"{trial!r} -> {out}")
     return 0
 
 
 def _cmd_synth(args) -> int:
+    import math
+
     import jsphere
 
-    params = jsphere.RobotParams.load(args.params) if args.params else jsphere.RobotParams.paper()
+    from ._errors import InputError
+    from ._io import refuse_overwrite
+
+    checks = (
+        ("--trials", args.trials, args.trials >= 1, "at least 1"),
+        ("--duration", args.duration, math.isfinite(args.duration) and args.duration > 0, "a positive number of seconds"),
+        ("--pos-sd", args.pos_sd, math.isfinite(args.pos_sd) and args.pos_sd >= 0, "a finite number >= 0 (metres)"),
+        ("--rot-sd-deg", args.rot_sd_deg, math.isfinite(args.rot_sd_deg) and args.rot_sd_deg >= 0, "a finite number >= 0 (degrees)"),
+        ("--dropout", args.dropout, 0.0 <= args.dropout < 1.0, "a fraction in [0, 1)"),
+        ("--seed", args.seed, args.seed >= 0, "an integer >= 0"),
+    )  # fmt: skip
+    for option, value, ok, what in checks:
+        if not ok:
+            raise InputError(f"{option} must be {what}; got {value:g}.")
     out = Path(args.out)
-    for i in range(args.trials):
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out} is a file; synth writes a folder of trial CSVs: give a folder.")
+    folder = next(p for p in (out.absolute(), *out.absolute().parents) if p.exists())
+    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
+        raise InputError(f"--out {out}: cannot write in {folder} (not a writable folder); give another folder.")
+    names = [f"{args.kind}_{i:02d}" for i in range(args.trials)]
+    refuse_overwrite([out / f"{n}.csv" for n in names], {"the parameter file": args.params})
+    params = jsphere.RobotParams.load(args.params) if args.params else jsphere.RobotParams.paper()
+    for i, name in enumerate(names):
         seed = args.seed + i
         controls = jsphere.random_inputs(params, args.duration, kind=args.kind, seed=seed)
         trial = jsphere.synthetic_trial(
             params, controls, args.duration, pos_sd=args.pos_sd, rot_sd_deg=args.rot_sd_deg, dropout=args.dropout,
-            seed=seed, name=f"{args.kind}_{i:02d}",
+            seed=seed, name=name,
         )  # fmt: skip
         jsphere.write_trial(out / f"{trial.name}.csv", trial)
         print(f"{trial!r} -> {out / (trial.name + '.csv')}")
@@ -242,7 +289,7 @@ def _add_capture_parsers(sub) -> None:
     cv.add_argument("raw", help="the raw export (Motive CSV, Vicon Nexus CSV, or C3D)")
     cv.add_argument("--format", required=True, choices=("motive", "vicon", "c3d"))
     cv.add_argument("--inputs", required=True, help="inputs table: t, chi_dot_1..N or t, K_1..N")
-    cv.add_argument("--out", required=True, help="the trial CSV to write")
+    cv.add_argument("--out", required=True, help="the trial CSV to write (never one of the input files)")
     cv.add_argument("--units", default="auto", choices=("auto", "m", "mm"), help="length units of the export (default: auto)")
     cv.add_argument("--up-axis", choices=("y", "z"), help="the export's up axis (default: y for Motive, z otherwise)")
     cv.add_argument("--rigid-body", help="Motive rigid body / Vicon subject whose markers to use")
@@ -250,6 +297,9 @@ def _add_capture_parsers(sub) -> None:
     cv.add_argument("--body-offset", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"),
                     help="shell centre relative to the marker centroid, platform frame [m]")  # fmt: skip
     cv.add_argument("--time-offset", type=float, default=0.0, help="added to the capture times to match the inputs' clock [s]")
+    cv.add_argument("--allow-truncated", action="store_true",
+                    help="convert an export cut short (fewer frames than its header declares, a last row cut off) "
+                    "with a warning instead of an error")  # fmt: skip
     cv.add_argument("--no-cache", action="store_true", help=argparse.SUPPRESS)
     sy = sub.add_parser("synth", help="synthetic capture-like trial CSVs from random input programs")
     sy.add_argument("--out", required=True, help="output folder")

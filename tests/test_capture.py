@@ -1,6 +1,7 @@
 """Capture data: the trial CSV format, synthetic trials, raw marker exports (issue 3)."""
 
 import re
+import struct
 from pathlib import Path
 
 import equinox as eqx
@@ -282,11 +283,11 @@ def test_error_ragged_row(tmp_path):
 def test_error_non_unit_quaternion(tmp_path):
     def edit(lines):
         c = lines[_line_of(lines, 5)].split(",")
-        c[3:7] = ["0", "0", "0", "1.01"]  # x, y, z, w order pasted by mistake would look like this
+        c[3:7] = ["0", "0", "0", "1.01"]  # a quaternion rounded or scaled by mistake
         lines[_line_of(lines, 5)] = ",".join(c)
 
     p = _csv(tmp_path, _small_trial(), edit)
-    with pytest.raises(ValueError, match=r"line 11: the quaternion .* has norm 1\.01, not 1 .*check the column order"):
+    with pytest.raises(ValueError, match=r"line 11: the quaternion .* has norm 1\.01, not 1 .*check that the four columns"):
         jsphere.read_trial(p)
 
 
@@ -596,6 +597,19 @@ def test_vicon_round_trip(tmp_path, markers_truth):
     _check_recovery(tr, truth, pos=5e-4, ang=0.5)
 
 
+def c3d_shell(n_points: int, n_frames: int, declared: int | None = None, *, integers: bool = False) -> bytes:
+    """The bytes of a minimal C3D file (Intel; float data, or 16-bit integers): a header declaring
+    `declared` (default `n_frames`) frames of `n_points` points, an empty parameter section,
+    `n_frames` zero frames."""
+    head = bytearray(512)
+    head[0], head[1] = 2, 0x50
+    struct.pack_into("<4H", head, 2, n_points, 0, 1, n_frames if declared is None else declared)
+    struct.pack_into("<fH", head, 12, 0.1 if integers else -1.0, 3)
+    params = bytearray(512)
+    params[1:4] = bytes([0x50, 1, 84])
+    return bytes(head + params) + bytes((8 if integers else 16) * n_points * n_frames)
+
+
 class _FakeEzc3d:
     """Stands in for the `ezc3d` module: `ezc3d.c3d(path)` returns the dict layout of ezc3d."""
 
@@ -619,7 +633,7 @@ def test_c3d_through_ezc3d(tmp_path, monkeypatch, markers_truth):
     res = np.where(np.isnan(m[..., 0]).T, -1.0, 0.5)[None]  # ... flagged by residual -1
     monkeypatch.setitem(sys.modules, "ezc3d", _FakeEzc3d(pts, res, NAMES))
     raw = tmp_path / "trial.c3d"
-    raw.write_bytes(b"not read by the fake")
+    raw.write_bytes(c3d_shell(K, M))  # a header the structure check accepts; the fake reads nothing
     data = jsphere.read_c3d(raw)
     np.testing.assert_array_equal(np.isnan(data.markers), np.isnan(m))
     tr = jsphere.markers_to_trial(data, _inputs_file(tmp_path, truth), body_markers=BODY)
