@@ -18,6 +18,7 @@ if _os.environ.get("JSPHERE_X64", "1") != "0":
 
 # --- capture data (issue 3) ---
 from ._capture import (
+    CaptureWarning as CaptureWarning,
     Trial as Trial,
     random_inputs as random_inputs,
     read_trial as read_trial,
@@ -43,6 +44,7 @@ from ._mocap import (
 
 # --- end capture data ---
 # --- system identification (issue 3: the fit) ---
+from ._errors import ExitCode as ExitCode, InputError as InputError, SolverFailure as SolverFailure
 from ._fit import (
     FitResult as FitResult,
     LeastSquaresResult as LeastSquaresResult,

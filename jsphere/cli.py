@@ -372,7 +372,7 @@ def _cmd_fit(args) -> int:
     check_output(out, [ckpt, *([] if args.no_plots else figures)], inputs)
     for t in map(Path, args.trials):
         if t.is_dir() and not any(f for f in t.glob("*.csv") if not f.name.startswith(".")):
-            raise InputError(f"{t}: the folder holds no trial files (*.csv); give the trial CSV files or the folder that holds them.")
+            raise InputError(f"{t} holds no trial CSV files (*.csv); give the folder of the trials or the files themselves.")
     fix = _parse_assignments(args.fix, "--fix")
     bounds = _parse_bounds(args.bound)
     params = jsphere.RobotParams.load(args.params) if args.params else jsphere.RobotParams.paper()
