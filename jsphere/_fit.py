@@ -35,10 +35,8 @@ import functools
 import hashlib
 import json
 import math
-import os
 import re
 import sys
-import tempfile
 import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
@@ -656,33 +654,6 @@ def remove_stale_temporaries(path: Path, suffix: str | None = None) -> list[Path
                 f.unlink(missing_ok=True)
                 removed.append(f)
     return removed
-
-
-def check_output(out: Path, outputs: Sequence[Path], inputs: Mapping[str, Sequence[Path]], option: str = "--out") -> None:
-    """Refuse, before any work, an output that cannot be written: `out` a folder, a folder on
-    its way that is a file, a folder that cannot be written, or an output file (`out` and the
-    files written beside it, `outputs`) that is one of the `inputs` (`{what: paths}`; resolved
-    paths are compared, so symbolic links and `./` count). Raises `InputError`."""
-    out = Path(out)
-    if out.is_dir():
-        raise InputError(f"{option} {out} is a folder; give a file path ending in .json (e.g. {out / 'fit.json'}).")
-    folder = out.parent
-    while not folder.exists() and folder != folder.parent:
-        folder = folder.parent
-    if not folder.is_dir():
-        raise InputError(f"{option} {out}: {folder} is a file, not a folder; choose another {option}.")
-    try:
-        with tempfile.TemporaryFile(dir=folder):
-            pass
-    except OSError as e:
-        raise InputError(f"{option} {out}: cannot write in the folder {folder} ({(e.strerror or str(e)).lower()}); choose another {option}.") from None
-    for o in [out, *outputs]:
-        for what, paths in inputs.items():
-            for p in paths:
-                p = Path(p)
-                same = os.path.samefile(o, p) if (o.exists() and p.exists()) else o.resolve() == p.resolve()
-                if same:
-                    raise InputError(f"{option} {out} would write over {p}, the {what}; write the result to another file.")
 
 
 # ----------------------------------------------------------------------------- the fit

@@ -185,8 +185,9 @@ def refuse_overwrite(outputs, inputs, *, option: str = "--out") -> None:
     **Arguments:**
     - `outputs`: a path, or an iterable of paths, the command would write (those that do not
       exist yet are compared by their resolved path). `None` entries are skipped.
-    - `inputs`: the files read: a mapping `{description: path}` (the description names the
-      input in the message, e.g. `"the raw export"` or `"--inputs"`) or an iterable of paths.
+    - `inputs`: the files read: a mapping `{description: path or list of paths}` (the
+      description names the input in the message, e.g. `"the raw export"` or `"--inputs"`) or
+      an iterable of paths.
       `None` entries are skipped.
     - `option`: the option or argument that names the outputs, for the message.
 
@@ -198,8 +199,8 @@ def refuse_overwrite(outputs, inputs, *, option: str = "--out") -> None:
     from ._errors import InputError
 
     outs = [outputs] if isinstance(outputs, (str, os.PathLike)) else list(outputs or ())
-    if isinstance(inputs, dict):
-        ins = list(inputs.items())
+    if isinstance(inputs, dict):  # a description may name several paths
+        ins = [(k, p) for k, v in inputs.items() for p in (v if isinstance(v, (list, tuple)) else [v])]
     else:
         ins = [(None, p) for p in ([inputs] if isinstance(inputs, (str, os.PathLike)) else list(inputs or ()))]
     for out in outs:
@@ -215,3 +216,34 @@ def refuse_overwrite(outputs, inputs, *, option: str = "--out") -> None:
                     f"{option} {out} would write over {desc}{how}: a command never replaces its own input; "
                     f"give {option} another path."
                 )
+
+
+def check_output(out, *, folder: bool = False, writes=(), inputs=None, option: str = "--out", example: str | None = None) -> None:
+    """Refuse, before any work, an output that cannot be written: raise `InputError` naming it.
+
+    - `out`: the file (or, with `folder`, the folder) a command writes.
+    - A file `out` must not be a folder; a folder `out` must not be a file. The nearest folder
+      on its way that exists must be a folder in which a file can be created (tried, so that
+      read-only file systems count, whoever runs the command).
+    - `writes`: the other files the command writes (beside `out` or in it); these and a file
+      `out` must not be one of the `inputs` (`refuse_overwrite`).
+    - `example`: a path to suggest when `out` is of the wrong kind.
+    """
+    from ._errors import InputError
+
+    out = Path(out)
+    if not folder and out.is_dir():
+        raise InputError(f"{option} {out} is a folder; give the file to write" + (f" (e.g. {example})." if example else "."))
+    if folder and out.exists() and not out.is_dir():
+        raise InputError(f"{option} {out} is a file; give the folder to write the results in.")
+    nearest = out if folder else out.parent
+    while not nearest.exists() and nearest != nearest.parent:
+        nearest = nearest.parent
+    if not nearest.is_dir():
+        raise InputError(f"{option} {out}: {nearest} is a file, not a folder; choose another {option}.")
+    try:
+        with tempfile.TemporaryFile(dir=nearest):
+            pass
+    except OSError as e:
+        raise InputError(f"{option} {out}: cannot write in the folder {nearest} ({(e.strerror or str(e)).lower()}); choose another {option}.") from None
+    refuse_overwrite(list(writes) if folder else [out, *writes], inputs, option=option)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -94,7 +93,7 @@ def _preload_matplotlib():
 def _cmd_reproduce(args) -> int:
     import jsphere
 
-    from ._io import atomic_write_json, dumps_json
+    from ._io import atomic_write_json
 
     params = jsphere.RobotParams.load(args.params) if args.params else jsphere.RobotParams.paper()
     t0 = time.perf_counter()
@@ -182,7 +181,7 @@ def load_study(path) -> dict:
 def _cmd_montecarlo(args) -> int:
     import jsphere
 
-    from ._io import atomic_write_json, dumps_json
+    from ._io import atomic_write_json
 
     study = load_study(args.config)
     n = args.trials if args.trials is not None else study["n"]
@@ -211,19 +210,15 @@ def _cmd_convert(args) -> int:
 
     from ._capture import CaptureWarning
     from ._errors import InputError
-    from ._io import refuse_overwrite
+    from ._io import check_output
 
     if not all(math.isfinite(v) for v in args.body_offset):
         raise InputError(f"--body-offset X Y Z must be finite numbers [m]; got {' '.join(f'{v:g}' for v in args.body_offset)}.")
     if not math.isfinite(args.time_offset):
         raise InputError(f"--time-offset must be a finite number of seconds; got {args.time_offset:g}.")
     out = Path(args.out)
-    refuse_overwrite(out, {"the raw export": args.raw, "the inputs table": args.inputs, "the body markers": args.body_markers})
-    if out.is_dir():
-        raise InputError(f"--out {out} is a folder; give the trial CSV file to write (e.g. {out / 'trial.csv'}).")
-    folder = next(p for p in (out.absolute().parent, *out.absolute().parent.parents) if p.exists())
-    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
-        raise InputError(f"--out {out}: cannot write in {folder} (not a writable folder); give another path.")
+    inputs = {"the raw export": args.raw, "the inputs table": args.inputs, "the body markers": args.body_markers}
+    check_output(out, inputs=inputs, example=str(out / "trial.csv"))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", CaptureWarning)
         try:
@@ -250,7 +245,7 @@ def _cmd_synth(args) -> int:
     import jsphere
 
     from ._errors import InputError
-    from ._io import refuse_overwrite
+    from ._io import check_output
 
     checks = (
         ("--trials", args.trials, args.trials >= 1, "at least 1"),
@@ -264,13 +259,8 @@ def _cmd_synth(args) -> int:
         if not ok:
             raise InputError(f"{option} must be {what}; got {value:g}.")
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out} is a file; synth writes a folder of trial CSVs: give a folder.")
-    folder = next(p for p in (out.absolute(), *out.absolute().parents) if p.exists())
-    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
-        raise InputError(f"--out {out}: cannot write in {folder} (not a writable folder); give another folder.")
     names = [f"{args.kind}_{i:02d}" for i in range(args.trials)]
-    refuse_overwrite([out / f"{n}.csv" for n in names], {"the parameter file": args.params})
+    check_output(out, folder=True, writes=[out / f"{n}.csv" for n in names], inputs={"the parameter file": args.params})
     params = jsphere.RobotParams.load(args.params) if args.params else jsphere.RobotParams.paper()
     for i, name in enumerate(names):
         seed = args.seed + i
@@ -361,15 +351,16 @@ def _cmd_fit(args) -> int:
     import jsphere
 
     from ._errors import InputError
-    from ._fit import check_output, remove_stale_temporaries
+    from ._fit import remove_stale_temporaries
+    from ._io import check_output
 
     out = Path(args.out)
     ckpt = out.with_name(out.name + ".ckpt.npz")
     figures = [out.with_name(f"{out.stem}_{k}.png") for k in ("overlay", "residuals")]
     if not out.is_dir() and out.suffix.lower() != ".json":
         raise InputError(f"--out {out}: the result is JSON; give a path ending in .json.")
-    inputs = {"trial file": [Path(t) for t in args.trials if not Path(t).is_dir()], "parameter file (--params)": [Path(args.params)] if args.params else []}
-    check_output(out, [ckpt, *([] if args.no_plots else figures)], inputs)
+    inputs = {"the trial file": [t for t in args.trials if not Path(t).is_dir()], "the parameter file (--params)": args.params}
+    check_output(out, writes=[ckpt, *([] if args.no_plots else figures)], inputs=inputs, example=str(out / "fit.json"))
     for t in map(Path, args.trials):
         if t.is_dir() and not any(f for f in t.glob("*.csv") if not f.name.startswith(".")):
             raise InputError(f"{t} holds no trial CSV files (*.csv); give the folder of the trials or the files themselves.")
@@ -423,7 +414,7 @@ def _cmd_plan(args) -> int:
 
     import jsphere
 
-    from ._io import atomic_write_json, dumps_json
+    from ._io import atomic_write_json
 
     params = jsphere.RobotParams.load(args.params) if args.params else jsphere.RobotParams.paper()
     none = {"none", "off", "inf"}

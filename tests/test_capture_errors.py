@@ -103,17 +103,17 @@ def test_synth_and_convert_check_their_options_first(tmp_path, capsys):
         assert code == 2 and msg in err, (opts, err)
     (tmp_path / "file").write_text("x")
     code, err = _cli(["synth", "--out", tmp_path / "file"], capsys)
-    assert code == 2 and "is a file; synth writes a folder" in err
+    assert code == 2 and "is a file; give the folder" in err
     code, err = _cli(_convert_args(RAW / "motive.csv", tmp_path, "motive", RAW / "inputs.csv", "--body-offset", "0", "nan", "0"), capsys)
     assert code == 2 and "--body-offset X Y Z must be finite numbers [m]; got 0 nan 0" in err, err
     code, err = _cli(_convert_args(RAW / "motive.csv", tmp_path / "t.csv", "motive", RAW / "inputs.csv", "--time-offset", "inf"), capsys)
     assert code == 2 and "--time-offset must be a finite number of seconds" in err, err
     code, err = _cli(_convert_args(RAW / "motive.csv", tmp_path, "motive"), capsys)
-    assert code == 2 and "is a folder; give the trial CSV file to write" in err, err
+    assert code == 2 and "is a folder; give the file to write" in err, err
     code, err = _cli(_convert_args(RAW / "motive.csv", tmp_path / "file" / "t.csv", "motive"), capsys)
-    assert code == 2 and f"cannot write in {tmp_path / 'file'} (not a writable folder)" in err, err
+    assert code == 2 and f"{tmp_path / 'file'} is a file, not a folder" in err, err
     code, err = _cli(["synth", "--out", tmp_path / "file" / "trials"], capsys)
-    assert code == 2 and f"cannot write in {tmp_path / 'file'} (not a writable folder)" in err, err
+    assert code == 2 and f"{tmp_path / 'file'} is a file, not a folder" in err, err
     with pytest.raises(InputError, match=r"body_offset must be 3 finite numbers .* got \(0\.0, nan, 0\.0\)"):
         jsphere.convert_raw(RAW / "motive.csv", RAW / "inputs.csv", format="motive", body_offset=(0.0, np.nan, 0.0))
 
