@@ -93,15 +93,18 @@ def _preload_matplotlib():
 def _cmd_reproduce(args) -> int:
     import jsphere
 
-    from ._io import atomic_write_json
+    from ._io import atomic_write_json, check_output
+    from .plots import REPRODUCTION_FIGURES as figures
 
+    out = Path(args.out)
+    writes = [out / "reproduce.json", *([] if args.no_plots else [out / f for f in figures])]
+    check_output(out, folder=True, writes=writes, inputs={"the parameter file (--params)": args.params})
     params = jsphere.RobotParams.load(args.params) if args.params else jsphere.RobotParams.paper()
     t0 = time.perf_counter()
     print("jsphere: reproducing Section 5 of Karavaev & Kilin (2016) ...", flush=True)
     loader = None if args.no_plots else _preload_matplotlib()
     rep = jsphere.reproduce(params, full_stop=not args.no_full_stop)
     print(rep.table())
-    out = Path(args.out)
     atomic_write_json(out / "reproduce.json", {"rows": [r.__dict__ for r in rep.rows], "values": rep.values})
     written = [out / "reproduce.json"]
     if not args.no_plots:

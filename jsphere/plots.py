@@ -106,9 +106,13 @@ def controls_figure(tr, path, *, title: str = "") -> None:
     _finish(plt, fig, path, dict(left=0.12, right=0.97, bottom=0.08, top=0.95, hspace=0.08))
 
 
+#: The files `write_reproduction_figures` writes in its folder.
+REPRODUCTION_FIGURES = ("fig2_kinematic_vs_gaits.png", "fig3_trajectories.png", "straight_line_controls.png")
+
+
 def write_reproduction_figures(rep, out_dir) -> list[Path]:
     out = Path(out_dir)
-    paths = [out / "fig2_kinematic_vs_gaits.png", out / "fig3_trajectories.png", out / "straight_line_controls.png"]
+    paths = [out / name for name in REPRODUCTION_FIGURES]
     figure2(rep, paths[0])
     figure3(rep, paths[1])
     controls_figure(rep.trajectories["straight"], paths[2], title="acceleration (5.1) + braking (5.3): controls")
