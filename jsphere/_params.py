@@ -57,11 +57,12 @@ class RobotParams(eqx.Module):
     - `c_axle`: optional viscous friction in each wheel axle [N m s]: a torque `-c_axle chi_dot_i`
       between wheel i and the platform (0 in the paper).
 
-    Construction validates every field (positive masses and radii, symmetric positive
-    definite `I`, unit axes, `(s_i, n_i)` away from zero, `s_i` spanning 3-space, lengths that
-    look like metres) and raises `ValueError` naming the field and the expected range.
-    Validation is skipped for traced values (inside `jit`), and pytree operations such as
-    `eqx.tree_at` do not re-validate.
+    Construction validates every field (positive masses and radii, a symmetric positive
+    definite `I` whose principal moments meet the triangle inequality, `r_m` off the centre and
+    inside the shell, unit axes, `(s_i, n_i)` away from zero, `s_i` spanning 3-space, lengths
+    that look like metres: the shapes and the rules of `RULES`) and raises `ValueError` naming
+    the field and the expected range. Validation is skipped for traced values (inside `jit`;
+    `rule_code` checks those), and pytree operations such as `eqx.tree_at` do not re-validate.
     """
 
     R0: Float[Array, ""]

@@ -225,9 +225,9 @@ def _cmd_montecarlo(args) -> int:
 
     import jsphere
 
+    from ._checks import whole
     from ._errors import InputError, SolverFailure
     from ._io import atomic_write_json, dumps_json
-    from ._checks import whole
 
     def one_line(message, category, filename, lineno, file=None, line=None):
         print(f"jsphere montecarlo: warning: {message}", file=sys.stderr, flush=True)
@@ -243,15 +243,16 @@ def _cmd_montecarlo(args) -> int:
     st["planned_stop_m"] = [float(planned.x[-1]), float(planned.y[-1])]
     atomic_write_json(out / "stats.json", st)
     print(dumps_json(st), end="")
+    why = "; ".join(f"{reason}: {k}" for reason, k in st["rejected"].items())
     if st["n_rejected"]:
-        why = "; ".join(f"{reason}: {k}" for reason, k in st["rejected"].items())
         print(f"jsphere montecarlo: warning: {st['n_rejected']} of {n} draws rejected, not simulated (their parameters "
               f"break a rule of RobotParams): {why}. Narrow the distributions or truncate them (a last entry "
               f"\"truncate\", docs/montecarlo.md).", file=sys.stderr)  # fmt: skip
     if st["n_failed"]:
-        print(f"jsphere montecarlo: warning: {st['n_failed']} of {n} trials failed in the solver (status "
-              f"{', '.join(f'{c}: {k}' for c, k in st['failed_status'].items())}; 1: max_steps, 2: NaN or inf).",
-              file=sys.stderr)  # fmt: skip
+        kinds = {"1": "reached max_steps", "2": "gave NaN or inf"}
+        how = ", ".join(f"{k} {kinds.get(c, f'ended with status {c}')}" for c, k in st["failed_status"].items())
+        print(f"jsphere montecarlo: warning: {st['n_failed']} of {n} trials failed in the solver ({how}); they are left "
+              "out of the statistics.", file=sys.stderr)  # fmt: skip
     if st["n_ok"] and not args.no_plots:
         from .plots import montecarlo_figure
 
