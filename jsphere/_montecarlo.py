@@ -1,8 +1,10 @@
 """Monte-Carlo studies of gait motions: vmapped batches, deterministic seeds, resumable files.
 
 Each trial `i` draws its parameters from `jax.random.fold_in(PRNGKey(seed), i)`, so a study is
-the same whatever the batch size or the number of devices; batches are sharded over all local
-devices; finished batches are written atomically to `out/` and a killed study resumes there.
+the same whatever the batch size or the number of devices; a draw that breaks a rule of
+`RobotParams` is rejected (not simulated) or, for "truncate" distributions, drawn again;
+batches are sharded over all local devices; finished batches are written atomically to `out/`
+and a killed study resumes there (a corrupt batch file is recomputed).
 """
 
 from __future__ import annotations
@@ -610,6 +612,8 @@ def monte_carlo(
 def _open_study_folder(folder: Path, fp: str, n: int, seed: int, B: int, vary, mine: set[int], single: bool) -> None:
     """Create the study folder with its manifest, or check that it holds this study; remove the
     temporary files a killed run left there."""
+    if folder.exists() and not folder.is_dir():
+        raise InputError(f"monte_carlo: out = {folder} is a file; give a folder for the study (it is created if missing).")
     folder.mkdir(parents=True, exist_ok=True)
     manifest = folder / "manifest.json"
     if manifest.exists():

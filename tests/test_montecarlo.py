@@ -8,6 +8,7 @@ import textwrap
 import time
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -248,6 +249,14 @@ def test_study_values_are_checked_before_any_work(paper, kwargs, match):
     gaits = kw.pop("gaits", GAITS)
     with pytest.raises(InputError, match=match):
         jsphere.monte_carlo(paper, gaits, **kw)
+
+
+def test_a_negative_R_m_draw_is_rejected(paper):
+    """`R_m` is a distance: a negative draw (which would flip r_m) is rejected with its own reason."""
+    from jsphere._montecarlo import REASONS, _draw_code
+
+    codes = [int(_draw_code(paper, ("R_m",), jnp.array([v]))) for v in (0.02, -0.02, 0.2)]
+    assert [REASONS[c] for c in codes] == ["valid", "R_m <= 0", "|r_m| >= R0"]
 
 
 def test_actuators_values_are_checked():
