@@ -20,6 +20,7 @@ exactly `c = (2 theta_max, 0, 2 theta_max)` with `p = 2`.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import equinox as eqx
@@ -27,6 +28,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ._checks import finite
+from ._errors import InputError
 from ._gaits import Gait, _real, _zero
 from ._linalg import matvec
 
@@ -104,8 +107,8 @@ class TiltGait(Gait):
         self.phi = _TiltDirection(tilt)
         self.omega_gamma = omega_gamma if omega_gamma is not None else _zero
         self.T = _real(T)
-        if not isinstance(self.T, jax.core.Tracer) and not float(self.T) > 0:
-            raise ValueError(f"TiltGait.T must be a positive duration in seconds; got {float(self.T)}.")
+        if not isinstance(self.T, jax.core.Tracer) and not 0 < float(self.T) < math.inf:
+            raise InputError(f"TiltGait.T must be a positive duration in seconds; got {float(self.T)}.")
 
     def gamma(self, Qm, t):
         """`gamma(t) = Q_m tilt_to_gamma(u(t))`."""
@@ -127,6 +130,10 @@ def smooth_gait(
     """
     if power not in (2, 3):
         raise ValueError(f"smooth_gait: power must be 2 (C1 ends) or 3 (C2 ends, torques start at 0); got {power}.")
+    finite("smooth_gait", "tilt_coeffs", tilt_coeffs, unit="rad")
+    if spin_coeffs is not None:
+        finite("smooth_gait", "spin_coeffs", spin_coeffs, unit="rad/s")
+    finite("smooth_gait", "T", T, positive=True, unit="s")
     tilt_coeffs = jnp.asarray(tilt_coeffs)
     if tilt_coeffs.ndim != 2 or tilt_coeffs.shape[0] != 2:
         raise ValueError(f"smooth_gait: tilt_coeffs must have shape (2, n); got {tilt_coeffs.shape}.")
@@ -140,6 +147,9 @@ def paper_gait(theta_max: float, phi: float = 0.0, T: float = 2.0) -> TiltGait:
     in direction `phi`, as a member of the `Smooth` family (`p = 2`): `sin^2(pi t) =
     sin^2(pi s) * (sum of cosines)` with `s = t/T`. Equal to `acceleration(theta_max, phi, T)`
     (test `test_paper_gaits_are_special_cases`)."""
+    finite("paper_gait", "theta_max", theta_max, unit="rad")
+    finite("paper_gait", "phi", phi, unit="rad")
+    finite("paper_gait", "T", T, positive=True, unit="s")
     n = round(float(T))
     # sin^2(n pi s) / sin^2(pi s) = (sin(n x)/sin x)^2, x = pi s, a cosine polynomial of degree 2(n-1)
     # with coefficients c_0 = n, c_{2j} = 2 (n - j)   (Fejer kernel)

@@ -17,6 +17,8 @@ from jaxtyping import Array, ArrayLike, Float
 from . import _aot, _simulate
 from ._controls import Constant
 from ._dynamics import free_Omega_dot, required_torques
+from ._checks import finite
+from ._errors import InputError
 from ._kinematics import rest_attitude
 from ._linalg import as_array, cross, matvec, rotation_between, rotmat
 from ._params import RobotParams, derive
@@ -84,12 +86,13 @@ class Gait(eqx.Module):
     T: Float[Array, ""]
 
     def __init__(self, theta: Callable, phi: Callable | float = 0.0, omega_gamma: Callable | None = None, T: float = 2.0):
+        finite("Gait", "phi", phi, unit="rad")
         self.theta = theta
         self.phi = phi if callable(phi) else Constant(_real(phi))
         self.omega_gamma = omega_gamma if omega_gamma is not None else _zero
         self.T = _real(T)
-        if not isinstance(self.T, jax.core.Tracer) and not float(self.T) > 0:
-            raise ValueError(f"Gait.T must be a positive duration in seconds; got {float(self.T)}.")
+        if not isinstance(self.T, jax.core.Tracer) and not 0 < float(self.T) < math.inf:
+            raise InputError(f"Gait.T must be a positive duration in seconds; got {float(self.T)}.")
 
     def gamma(self, Qm, t):
         """`gamma(t)` of (4.2), rotated to the robot's rest attitude by `Q_m`."""
@@ -140,6 +143,15 @@ def _negative(x):
     return -x if isinstance(x, (jax.Array, jax.core.Tracer)) else -np.asarray(x)
 
 
+def _check_sin2_gait(name, theta_max, phi, T, period):
+    """The arguments of a sin^2 gait: finite numbers, `T` a whole multiple of `period`."""
+    finite(name, "theta_max", theta_max, unit="rad")
+    finite(name, "phi", phi, unit="rad")
+    finite(name, "T", T, unit="s")
+    finite(name, "period", period, positive=True, unit="s")
+    _check_period(T, period, name)
+
+
 def _check_period(T, period, name):
     if isinstance(T, jax.core.Tracer) or isinstance(period, jax.core.Tracer):
         return
@@ -157,20 +169,20 @@ def acceleration(theta_max: float = 0.1, phi: float = 0.0, T: float = 2.0, *, pe
     For the paper's robot and `phi = 0`, accelerates from rest to `Omega = (0, 0.864, 0)` 1/s,
     i.e. rolling along the fixed `+X` axis at 0.1296 m/s.
     """
-    _check_period(T, period, "acceleration")
+    _check_sin2_gait("acceleration", theta_max, phi, T, period)
     return Gait(theta=SinSquared(theta_max, period), phi=phi, T=T)
 
 
 def braking(theta_max: float = 0.1, phi: float = 0.0, T: float = 2.0, *, period: float = 1.0) -> Gait:
     """Braking (5.3): `theta = -theta_max sin^2(pi t)`, `phi = phi_0`, `omega_gamma = 0`."""
-    _check_period(T, period, "braking")
+    _check_sin2_gait("braking", theta_max, phi, T, period)
     return Gait(theta=SinSquared(_negative(theta_max), period), phi=phi, T=T)
 
 
 def turn(theta_max: float = 0.1, phi: float = math.pi / 2, T: float = 2.0, *, period: float = 1.0) -> Gait:
     """Turn (5.6): `theta = theta_max sin^2(pi t)`, `phi = pi/2`, `omega_gamma = 0`: adds a
     velocity at right angles to the motion after (5.1)."""
-    _check_period(T, period, "turn")
+    _check_sin2_gait("turn", theta_max, phi, T, period)
     return Gait(theta=SinSquared(theta_max, period), phi=phi, T=T)
 
 

@@ -6,14 +6,15 @@ All quantities are SI (m, kg, kg m^2, s). All vectors are components in the plat
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Callable, NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
+from ._errors import InputError
 from ._linalg import as_array, cross, dot, inv3, outer
 
 #: Values of the two parameters the paper omits, inferred from its own numbers
@@ -56,11 +57,12 @@ class RobotParams(eqx.Module):
     - `c_axle`: optional viscous friction in each wheel axle [N m s]: a torque `-c_axle chi_dot_i`
       between wheel i and the platform (0 in the paper).
 
-    Construction validates every field (positive masses and radii, symmetric positive
-    definite `I`, unit axes, `(s_i, n_i)` away from zero, `s_i` spanning 3-space, lengths that
-    look like metres) and raises `ValueError` naming the field and the expected range.
-    Validation is skipped for traced values (inside `jit`), and pytree operations such as
-    `eqx.tree_at` do not re-validate.
+    Construction validates every field (positive masses and radii, a symmetric positive
+    definite `I` whose principal moments meet the triangle inequality, `r_m` off the centre and
+    inside the shell, unit axes, `(s_i, n_i)` away from zero, `s_i` spanning 3-space, lengths
+    that look like metres: the shapes and the rules of `RULES`) and raises `ValueError` naming
+    the field and the expected range. Validation is skipped for traced values (inside `jit`;
+    `rule_code` checks those), and pytree operations such as `eqx.tree_at` do not re-validate.
     """
 
     R0: Float[Array, ""]
@@ -247,19 +249,135 @@ def _checked_fields(d: dict[str, Any]) -> dict[str, Any]:
 
 
 
+class Rule(NamedTuple):
+    """One rule every parameter set meets (`RULES`).
+
+    `field`: the field a broken rule names; `reason`: a short name of the breach (e.g.
+    `"m0 <= 0"`, as counted by `MonteCarloResult.stats`); `broken(xp, a)`: `True` for each set
+    that breaks it (`a`: the fields by name, arrays of `xp` = `numpy` or `jax.numpy`; leading
+    batch dimensions give one answer per set); `message(a)`: the sentence `validate` raises
+    (NumPy values).
+    """
+
+    field: str
+    reason: str
+    broken: Callable[[Any, dict], Any]
+    message: Callable[[dict], str]
+
+
+#: trailing dimensions of each field (the rest are batch dimensions of stacked sets)
+_CORE_NDIM = {"wheel_r": 2, "wheel_n": 2, "wheel_alpha": 2, "I": 2, "r_m": 1}
+
+
+def _any_core(xp, x, k: int):
+    """`x` reduced with `any` over its last `k` dimensions (all of them if it has fewer)."""
+    k = min(k, x.ndim)
+    return xp.any(x, axis=tuple(range(-k, 0))) if k else x
+
+
+def _finite_rule(f: str) -> Rule:
+    return Rule(f, f"{f} not finite", lambda xp, a: _any_core(xp, ~xp.isfinite(a[f]), _CORE_NDIM.get(f, 0)),
+                lambda a: "must be finite (got NaN or inf).")  # fmt: skip
+
+
+def _positive_rule(f: str, unit: str) -> Rule:
+    return Rule(f, f"{f} <= 0", lambda xp, a: a[f] <= 0, lambda a: f"must be > 0 {unit}; got {a[f]}.")
+
+
+def _eig(xp, a):
+    return xp.linalg.eigvalsh(a["I"])
+
+
+def _s(xp, a):
+    """`s_i = r_i x alpha_i` and `|s_i|`."""
+    s = xp.cross(a["wheel_r"], a["wheel_alpha"])
+    return s, xp.linalg.norm(s, axis=-1)
+
+
+def _s_dot_n(xp, a):
+    s, s_norm = _s(xp, a)
+    return xp.sum(s * a["wheel_n"], axis=-1) / s_norm
+
+
+def _s_conditioning(xp, a):
+    """Smallest over largest singular value of the unit vectors `s_i / |s_i|`."""
+    s, s_norm = _s(xp, a)
+    sv = xp.linalg.svd(s / s_norm[..., None], compute_uv=False)
+    return sv[..., -1] / sv[..., 0]
+
+
+def _unit_error(xp, a, f):
+    return xp.abs(xp.linalg.norm(a[f], axis=-1) - 1.0)
+
+
+#: Every rule on the values of a parameter set, in the order `validate` checks them: the
+#: first broken rule is the one reported. `validate` evaluates them with NumPy (and checks the
+#: shapes in between, after finiteness); `rule_code` with `jax.numpy`, traceable and
+#: vmappable, for parameter sets made inside compiled code (the draws of `monte_carlo`).
+RULES: tuple[Rule, ...] = (
+    *(_finite_rule(f) for f in _FIELDS),
+    *(_positive_rule(f, unit) for f, unit in (("R0", "m"), ("Rw", "m"), ("m0", "kg"), ("m", "kg"), ("I0", "kg m^2"))),
+    Rule("j", "j < 0", lambda xp, a: a["j"] < 0, lambda a: f"wheel axial inertia must be >= 0 kg m^2; got {a['j']}."),
+    Rule("c_roll", "c_roll < 0", lambda xp, a: a["c_roll"] < 0, lambda a: f"damping must be >= 0 N m s; got {a['c_roll']}."),
+    Rule("c_axle", "c_axle < 0", lambda xp, a: a["c_axle"] < 0, lambda a: f"damping must be >= 0 N m s; got {a['c_axle']}."),
+    Rule("g", "g < 0", lambda xp, a: a["g"] < 0, lambda a: f"must be >= 0 m/s^2 (use 9.81); got {a['g']}."),
+    Rule("R0", "R0 > 10 m", lambda xp, a: a["R0"] > 10.0, lambda a: "is larger than 10 m: lengths are in metres, not millimetres."),
+    Rule("Rw", "Rw > 10 m", lambda xp, a: a["Rw"] > 10.0, lambda a: "is larger than 10 m: lengths are in metres, not millimetres."),
+    Rule("Rw", "Rw >= R0", lambda xp, a: a["Rw"] >= a["R0"],
+         lambda a: f"wheel radius must be smaller than the shell radius R0; got Rw={a['Rw']}, R0={a['R0']}."),
+    Rule("I", "I not symmetric",
+         lambda xp, a: _any_core(xp, xp.abs(a["I"] - xp.swapaxes(a["I"], -1, -2)) > 1e-12 + 1e-9 * xp.abs(xp.swapaxes(a["I"], -1, -2)), 2),
+         lambda a: "inertia tensor must be symmetric."),
+    Rule("I", "I not positive definite", lambda xp, a: _any_core(xp, _eig(xp, a) <= 0, 1),
+         lambda a: f"inertia tensor must be positive definite; eigenvalues {np.linalg.eigvalsh(a['I'])}."),
+    Rule("I", "I breaks the triangle inequality",
+         lambda xp, a: (lambda e: e[..., 2] - e[..., 0] - e[..., 1] > 1e-9 * xp.sum(e, axis=-1))(_eig(xp, a)),
+         lambda a: "the principal moments of inertia must satisfy the triangle inequality (the largest at most the sum "
+                   f"of the other two, as for any body); eigenvalues {np.linalg.eigvalsh(a['I'])}."),
+    Rule("r_m", "|r_m| >= R0", lambda xp, a: xp.linalg.norm(a["r_m"], axis=-1) >= a["R0"],
+         lambda a: f"centre of mass must lie inside the shell, |r_m| < R0; got |r_m| = {np.linalg.norm(a['r_m'], axis=-1)} m."),
+    Rule("r_m", "r_m = 0", lambda xp, a: xp.linalg.norm(a["r_m"], axis=-1) <= 0,
+         lambda a: "centre of mass must be off the shell centre (the rest attitude is gamma = -r_m/|r_m|); got r_m = 0."),
+    Rule("wheel_r", "wheel_r = 0", lambda xp, a: _any_core(xp, xp.linalg.norm(a["wheel_r"], axis=-1) <= 0, 1),
+         lambda a: "wheel positions must be non-zero (their direction defines s_i = r_i x alpha_i)."),
+    Rule("wheel_r", "|wheel_r| >= R0",
+         lambda xp, a: _any_core(xp, xp.linalg.norm(a["wheel_r"], axis=-1) >= a["R0"][..., None], 1),
+         lambda a: f"wheel centres must lie inside the shell, |r_i| < R0; got |r_i| = {np.linalg.norm(a['wheel_r'], axis=-1)} m."),
+    *(Rule(f, f"{f} not unit", lambda xp, a, f=f: _any_core(xp, _unit_error(xp, a, f) > 1e-6, 1),
+           lambda a, f=f: f"axes must be unit vectors (|v| = 1 within 1e-6); got norms {np.linalg.norm(a[f], axis=-1)}.")
+      for f in ("wheel_n", "wheel_alpha")),
+    Rule("wheel_alpha", "alpha_i parallel to r_i", lambda xp, a: _any_core(xp, _s(xp, a)[1] < 1e-9, 1),
+         lambda a: "roller axis alpha_i is parallel to r_i, so s_i = r_i x alpha_i = 0."),
+    Rule("wheel_n", "(s_i, n_i) = 0", lambda xp, a: _any_core(xp, xp.abs(_s_dot_n(xp, a)) < 1e-3, 1),
+         lambda a: "(s_i, n_i)/|s_i| must be away from zero (|.| >= 1e-3) or the wheel cannot drive the shell "
+                   f"(k_i = R0/(Rw (s_i, n_i)) is infinite); got {_s_dot_n(np, a)}."),
+    Rule("wheel_r", "s_i do not span 3-space", lambda xp, a: _s_conditioning(xp, a) < 1e-6,
+         lambda a: "the vectors s_i = r_i x alpha_i do not span 3-space: the wheels cannot set omega - Omega."),
+)  # fmt: skip
+#: the rules that need no particular shapes (checked before the shapes)
+_N_FINITE = len(_FIELDS)
+
+
 def _fail(field: str, msg: str):
-    raise ValueError(f"RobotParams.{field}: {msg}")
+    raise InputError(f"RobotParams.{field}: {msg}")
+
+
+def _check_rules(rules, a: dict) -> None:
+    for rule in rules:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            broken = np.any(rule.broken(np, a))
+        if broken:
+            _fail(rule.field, rule.message(a))
 
 
 def validate(p: RobotParams) -> None:
-    """Check every field of a concrete `RobotParams`; raise `ValueError` naming the field.
+    """Check every field of a concrete `RobotParams`; raise `InputError` (a `ValueError`) naming
+    the field: the shapes, then every rule of `RULES`.
 
     Leading batch dimensions (stacked parameter sets) are allowed on every field.
     """
     a = {f: np.asarray(getattr(p, f), dtype=np.float64) for f in _FIELDS}
-    for f, v in a.items():
-        if not np.all(np.isfinite(v)):
-            _fail(f, "must be finite (got NaN or inf).")
+    _check_rules(RULES[:_N_FINITE], a)
     wr = a["wheel_r"]
     if wr.ndim < 2 or wr.shape[-1] != 3 or wr.shape[-2] < 3:
         _fail("wheel_r", f"must have shape (N, 3) with N >= 3 wheels; got {wr.shape}.")
@@ -271,56 +389,27 @@ def validate(p: RobotParams) -> None:
         _fail("I", f"must be a 3x3 inertia tensor; got shape {a['I'].shape}.")
     if a["r_m"].shape[-1:] != (3,):
         _fail("r_m", f"must be a 3-vector; got shape {a['r_m'].shape}.")
+    _check_rules(RULES[_N_FINITE:], a)
 
-    for f, unit in (("R0", "m"), ("Rw", "m"), ("m0", "kg"), ("m", "kg"), ("I0", "kg m^2")):
-        if np.any(a[f] <= 0):
-            _fail(f, f"must be > 0 {unit}; got {a[f]}.")
-    if np.any(a["j"] < 0):
-        _fail("j", f"wheel axial inertia must be >= 0 kg m^2; got {a['j']}.")
-    for f in ("c_roll", "c_axle"):
-        if np.any(a[f] < 0):
-            _fail(f, f"damping must be >= 0 N m s; got {a[f]}.")
-    if np.any(a["g"] < 0):
-        _fail("g", f"must be >= 0 m/s^2 (use 9.81); got {a['g']}.")
-    if np.any(a["R0"] > 10.0) or np.any(a["Rw"] > 10.0):
-        _fail("R0" if np.any(a["R0"] > 10.0) else "Rw", "is larger than 10 m: lengths are in metres, not millimetres.")
-    if np.any(a["Rw"] >= a["R0"]):
-        _fail("Rw", f"wheel radius must be smaller than the shell radius R0; got Rw={a['Rw']}, R0={a['R0']}.")
 
-    I = a["I"]
-    if not np.allclose(I, np.swapaxes(I, -1, -2), rtol=1e-9, atol=1e-12):
-        _fail("I", "inertia tensor must be symmetric.")
-    eig = np.linalg.eigvalsh(I)
-    if np.any(eig <= 0):
-        _fail("I", f"inertia tensor must be positive definite; eigenvalues {eig}.")
+def rule_code(p: RobotParams) -> Int[Array, "..."]:
+    """0 where the parameter set `p` meets every rule of `RULES`, else `1 +` the index of the
+    first rule it breaks (the one `validate` would report): `RULES[code - 1].reason` names it.
 
-    R0 = a["R0"][..., None]
-    rm = np.linalg.norm(a["r_m"], axis=-1)
-    if np.any(rm >= a["R0"]):
-        _fail("r_m", f"centre of mass must lie inside the shell, |r_m| < R0; got |r_m| = {rm} m.")
-    rn = np.linalg.norm(wr, axis=-1)
-    if np.any(rn <= 0):
-        _fail("wheel_r", "wheel positions must be non-zero (their direction defines s_i = r_i x alpha_i).")
-    if np.any(rn >= R0):
-        _fail("wheel_r", f"wheel centres must lie inside the shell, |r_i| < R0; got |r_i| = {rn} m.")
-    for f in ("wheel_n", "wheel_alpha"):
-        nrm = np.linalg.norm(a[f], axis=-1)
-        if np.any(np.abs(nrm - 1.0) > 1e-6):
-            _fail(f, f"axes must be unit vectors (|v| = 1 within 1e-6); got norms {nrm}.")
-    s = np.cross(wr, a["wheel_alpha"])
-    s_norm = np.linalg.norm(s, axis=-1)
-    if np.any(s_norm < 1e-9):
-        _fail("wheel_alpha", "roller axis alpha_i is parallel to r_i, so s_i = r_i x alpha_i = 0.")
-    sn = np.sum(s * a["wheel_n"], axis=-1) / s_norm
-    if np.any(np.abs(sn) < 1e-3):
-        _fail(
-            "wheel_n",
-            f"(s_i, n_i)/|s_i| must be away from zero (|.| >= 1e-3) or the wheel cannot drive the "
-            f"shell (k_i = R0/(Rw (s_i, n_i)) is infinite); got {sn}.",
-        )
-    sv = np.linalg.svd(s / s_norm[..., None], compute_uv=False)
-    if np.any(sv[..., -1] / sv[..., 0] < 1e-6):
-        _fail("wheel_r", "the vectors s_i = r_i x alpha_i do not span 3-space: the wheels cannot set omega - Omega.")
+    Pure `jax.numpy` (traceable and vmappable; one code per set of stacked sets), for
+    parameter sets made inside compiled code, which `validate` cannot see. Shapes are not
+    checked (they come from a validated set).
+    """
+    a = {f: getattr(p, f) for f in _FIELDS}
+    code = jnp.zeros(jnp.shape(a["R0"]), jnp.int32)
+    for k in reversed(range(len(RULES))):
+        code = jnp.where(RULES[k].broken(jnp, a), k + 1, code)
+    return code
+
+
+def rule_reason(code: int) -> str:
+    """The short name of the rule broken by a set of `rule_code` `code` (`"valid"` for 0)."""
+    return "valid" if code == 0 else RULES[int(code) - 1].reason
 
 
 # ------------------------------------------------------------------ derived quantities

@@ -33,6 +33,8 @@ import numpy as np
 import optax
 from jaxtyping import Array, Float
 
+from ._checks import is_number, real, whole
+from ._errors import InputError
 from ._gait_families import TiltGait, smooth_gait
 from ._gaits import _gait_field, _gait_outputs, simulate_gaits
 from ._kinematics import rest_attitude
@@ -63,10 +65,14 @@ class Limits(eqx.Module):
     def __check_init__(self):
         for name in ("max_torque", "max_wheel_speed", "max_tilt", "max_torque_rate"):
             v = getattr(self, name)
-            if v is not None and not float(v) > 0:
-                raise ValueError(f"Limits.{name} must be positive (or None for no limit); got {v}.")
-        if not 0 < float(self.min_time) < float(self.max_time):
-            raise ValueError(f"Limits: need 0 < min_time < max_time; got {self.min_time}, {self.max_time}.")
+            if v is not None and not _traced(v) and not (is_number(v) and float(v) > 0):
+                raise InputError(f"Limits.{name} must be a positive number (or None for no limit); got {v!r}.")
+        for name in ("min_time", "max_time"):
+            v = getattr(self, name)
+            if not _traced(v) and not (is_number(v) and math.isfinite(v)):
+                raise InputError(f"Limits.{name} must be a finite number of seconds; got {v!r}.")
+        if not _traced(self.min_time, self.max_time) and not 0 < float(self.min_time) < float(self.max_time):
+            raise InputError(f"Limits: need 0 < min_time < max_time; got {self.min_time}, {self.max_time}.")
 
 
 class Objective(eqx.Module):
@@ -89,6 +95,16 @@ class Objective(eqx.Module):
     time: float = 1e-3
     effort: float = 0.0
 
+    def __check_init__(self):
+        for name in ("position_scale", "speed_scale", "heading_scale"):
+            if not _traced(getattr(self, name)):
+                real("Objective", name, getattr(self, name), strict=True)
+        for name in ("limit_weight", "energy", "time", "effort"):
+            if not _traced(getattr(self, name)):
+                real("Objective", name, getattr(self, name))
+        if not _traced(self.margin) and not (is_number(self.margin) and 0 <= self.margin < 1):
+            raise InputError(f"Objective.margin must be a number in [0, 1); got {self.margin!r}.")
+
 
 class PlanSettings(eqx.Module):
     """Sizes of the search (static: they fix the compiled function).
@@ -104,6 +120,54 @@ class PlanSettings(eqx.Module):
     lbfgs_steps: int = eqx.field(static=True, default=0)
     lm_steps: int = eqx.field(static=True, default=40)
     learning_rate: float = eqx.field(static=True, default=0.02)
+
+    def __check_init__(self):
+        for name in ("n_tilt", "n_spin", "n_steps"):
+            whole("PlanSettings", name, getattr(self, name), 1)
+        for name in ("adam_steps", "lbfgs_steps", "lm_steps"):
+            whole("PlanSettings", name, getattr(self, name), 0)
+        real("PlanSettings", "learning_rate", self.learning_rate, strict=True)
+
+
+def _traced(*vs) -> bool:
+    return any(isinstance(v, (jax.core.Tracer, jax.Array)) for v in vs)
+
+
+#: the most rows a plan's table may have (`max_time * rate`): about 1 GB of trajectory
+MAX_ROWS = 10_000_000
+
+
+def _check_request(where: str, targets, limits, objective, settings, restarts, rate, seed, tols=(), nan_free=True) -> list:
+    """Check a planning request before any work; return the targets as lists.
+    Raises `InputError` naming the value: targets `(x, y)` or `(x, y, psi)` with finite
+    numbers (`psi` None, or NaN with `nan_free`, for a free heading), `restarts >= 1`,
+    `rate > 0`, `seed >= 0`, positive tolerances, and `Limits`, `Objective`, `PlanSettings`
+    instances."""
+    for name, v, cls in (("limits", limits, Limits), ("objective", objective, Objective), ("settings", settings, PlanSettings)):
+        if v is not None and not isinstance(v, cls):
+            raise InputError(f"{where}: {name} must be a jsphere.{cls.__name__}; got {type(v).__name__}.")
+    whole(where, "restarts", restarts, 1)
+    whole(where, "seed", seed, 0)
+    rate = real(where, "rate", rate, strict=True, unit="Hz")
+    for name, v in tols:
+        real(where, name, v, strict=True)
+    lim = limits or Limits()
+    if lim.max_time * rate > MAX_ROWS:
+        raise InputError(f"{where}: rate = {rate:g} Hz makes {lim.max_time * rate:.3g} rows over max_time = {lim.max_time:g} s "
+                         f"(at most {MAX_ROWS:.0e}); lower the rate.")  # fmt: skip
+    if isinstance(targets, (str, bytes)) or not isinstance(targets, Sequence) or not len(targets):
+        raise InputError(f"{where}: targets must be a non-empty list of (x, y) or (x, y, heading); got {targets!r}.")
+    out = []
+    for k, t in enumerate(targets):
+        if isinstance(t, (str, bytes)) or not isinstance(t, (Sequence, np.ndarray)) or len(t) not in (2, 3):
+            raise InputError(f"{where}: target {k} must be (x, y) or (x, y, heading); got {t!r}.")
+        t = list(t)
+        for i, name in enumerate(("x", "y")):
+            real(where, f"target {name}" if len(targets) == 1 else f"target {k} {name}", t[i], low=None, unit="m")
+        if len(t) == 3 and t[2] is not None and not (nan_free and is_number(t[2]) and math.isnan(t[2])):
+            real(where, "heading" if len(targets) == 1 else f"target {k} heading", t[2], low=None, unit="rad")
+        out.append(t)
+    return out
 
 
 # ------------------------------------------------------------------ parameterisation
@@ -604,8 +668,12 @@ def plan_many(
     - `verify`: re-simulate with the accurate solver (needed for the table; `False` returns
       the search model's result only, for benchmarks).
 
+    Every argument is checked before any work; a bad one raises `InputError` naming it.
+
     Returns one `Plan` per target (infeasible ones have `feasible = False`; `plan` raises).
     """
+    targets = _check_request("plan_many", targets, limits, objective, settings, restarts, rate, seed,
+                             (("tol_position", tol_position), ("tol_speed", tol_speed), ("tol_heading", tol_heading)))  # fmt: skip
     lim = limits or Limits()
     obj = objective or Objective()
     s = settings or PlanSettings()
@@ -717,7 +785,15 @@ def plan(
         p = jsphere.RobotParams.paper()
         pl = jsphere.plan(p, (0.8, -0.5), heading=1.0)
         pl.to_csv("plan.csv")
+
+    Every argument is checked before any work; a bad one (a target or heading that is not a
+    finite number, `restarts < 1`, `rate <= 0`, ...) raises `InputError` naming it.
     """
+    if isinstance(to, (str, bytes)) or not isinstance(to, (Sequence, np.ndarray)) or len(to) != 2:
+        raise InputError(f"plan: to must be the target (x, y) in m; got {to!r}.")
+    if heading is not None:
+        real("plan", "heading", heading, low=None, unit="rad; None for a free final heading")
+    _check_request("plan", [(to[0], to[1], heading)], limits, objective, settings, restarts, rate, seed)
     pl = plan_many(params, [(to[0], to[1], heading)], limits=limits, objective=objective, settings=settings,
                    restarts=restarts, rate=rate, seed=seed, progress=progress)[0]  # fmt: skip
     if not pl.feasible and not allow_infeasible:
@@ -765,6 +841,10 @@ def plan_route(
     Returns one `Plan` whose gaits are the legs and whose trajectory joins them (the duplicate
     rest sample at each stop dropped).
     """
+    if isinstance(waypoints, (str, bytes)) or not isinstance(waypoints, Sequence) or not len(waypoints):
+        raise InputError(f"plan_route: waypoints must be a non-empty list of (x, y) or (x, y, heading); got {waypoints!r}.")
+    _check_request("plan_route", [tuple(w) if isinstance(w, (Sequence, np.ndarray)) else w for w in waypoints], limits,
+                   objective, settings, restarts, rate, seed, nan_free=False)  # fmt: skip
     poses, local = [], []
     pose = (0.0, 0.0, 0.0)
     for w in waypoints:

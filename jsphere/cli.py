@@ -122,84 +122,151 @@ GAIT_KINDS = ("acceleration", "braking", "turn")
 def load_study(path) -> dict:
     """Read a Monte-Carlo study description (TOML). Schema (every key optional but `vary`):
 
-        trials = 10000            # overridden by --trials
-        seed = 0
+        trials = 10000            # overridden by --trials (a whole number >= 1)
+        seed = 0                  # a whole number in [0, 2**32)
         batch_size = 4096
         mode = "gait"             # "gait" | "torques" | "wheel_speeds"
         params = "robot.toml"     # default: the paper's robot (path relative to this file)
-        Omega0_sd = 0.0           # [1/s]
-        settle = 1.0              # [s] (replay modes)
+        Omega0_sd = 0.0           # [1/s], >= 0
+        settle = 1.0              # [s] (replay modes), >= 0
         reset = false
         gaits = [{kind = "acceleration", theta_max = 0.1, phi = 0.0, T = 2.0}, {kind = "braking"}]
         [vary]                    # names as in `jsphere fit --free`
         "r_m[2]" = ["normal", -0.0270146, 1e-4]
         j = ["uniform", 2.0e-4, 3.5e-4]
+        m0 = ["normal", 0.8, 0.3, "truncate"]   # truncated to valid robots (m0 > 0)
         [actuators]               # replay modes only; see jsphere.Actuators
         gain_sd = 0.02
         delay_s = 0.01
+
+    A distribution is `["normal", mean, sd]` or `["uniform", low, high]` with finite numbers
+    (`sd >= 0`, `low <= high`). Draws that break a rule of `RobotParams` (a negative mass, an
+    inertia tensor no body has, the centre of mass outside the shell, ...) are not simulated
+    and are counted apart; with a last entry `"truncate"` such draws are redrawn instead (the
+    distribution truncated to valid robots; docs/montecarlo.md).
+
+    Every value is checked here, before any work: a bad one raises `InputError` naming the file
+    and the key.
     """
+    import dataclasses
+
     import jsphere
 
+    from ._errors import InputError
     from ._io import tomllib
+    from ._checks import real
+    from ._montecarlo import _check_vary, check_settings
 
     path = Path(path)
     try:
         cfg = tomllib.loads(path.read_text())
     except FileNotFoundError:
-        raise ValueError(f"{path}: no such study file.") from None
+        raise InputError(f"{path}: no such study file.") from None
     except tomllib.TOMLDecodeError as e:
-        raise ValueError(f"{path}: not valid TOML: {e}") from None
+        raise InputError(f"{path}: not valid TOML: {e}") from None
     known = {"trials", "seed", "batch_size", "mode", "params", "Omega0_sd", "settle", "reset", "gaits", "vary", "actuators"}
     unknown = sorted(set(cfg) - known)
     if unknown:
-        raise ValueError(f"{path}: unknown key(s) {unknown}; expected {sorted(known)}.")
+        raise InputError(f"{path}: unknown key(s) {unknown}; expected {sorted(known)}.")
     if "vary" not in cfg:
-        raise ValueError(f"{path}: a study needs a [vary] table, e.g. \"r_m[2]\" = [\"normal\", -0.027, 1e-4].")
+        raise InputError(f"{path}: a study needs a [vary] table, e.g. \"r_m[2]\" = [\"normal\", -0.027, 1e-4].")
+    if not isinstance(cfg["vary"], dict):
+        raise InputError(f"{path}: vary must be a table of distributions, e.g. [vary] \"r_m[2]\" = [\"normal\", -0.027, 1e-4]; "
+                         f"got {cfg['vary']!r}.")  # fmt: skip
+    keys = {"trials": "n", "seed": "seed", "batch_size": "batch_size", "settle": "settle", "Omega0_sd": "Omega0_sd"}
+    given = {keys[k]: cfg[k] for k in keys if k in cfg}
+    settings = check_settings(str(path), given, names={v: k for k, v in keys.items()})
+    mode = cfg.get("mode", "gait")
+    if mode not in ("gait", "torques", "wheel_speeds"):
+        raise InputError(f"{path}: mode must be \"gait\", \"torques\" or \"wheel_speeds\"; got {mode!r}.")
+    reset = cfg.get("reset", False)
+    if not isinstance(reset, (bool, list)):
+        raise InputError(f"{path}: reset must be true, false or a list (one entry per gait boundary); got {reset!r}.")
     params = jsphere.RobotParams.paper()
     if "params" in cfg:
+        if not isinstance(cfg["params"], str):
+            raise InputError(f"{path}: params must be the path of a parameter file (.toml or .json); got {cfg['params']!r}.")
         params = jsphere.RobotParams.load((path.parent / cfg["params"]).resolve())
+    gait_list = cfg.get("gaits", [{"kind": "acceleration"}, {"kind": "braking"}])
+    if not isinstance(gait_list, list) or not gait_list:
+        raise InputError(f"{path}: gaits must be a non-empty list of tables, e.g. gaits = [{{kind = \"acceleration\"}}, "
+                         f"{{kind = \"braking\"}}]; got {gait_list!r}.")  # fmt: skip
     gaits = []
-    for k, g in enumerate(cfg.get("gaits", [{"kind": "acceleration"}, {"kind": "braking"}])):
+    for k, g in enumerate(gait_list):
+        if not isinstance(g, dict):
+            raise InputError(f"{path}: gaits[{k}] must be a table such as {{kind = \"acceleration\", theta_max = 0.1}}; got {g!r}.")
         g = dict(g)
         kind = g.pop("kind", None)
         if kind not in GAIT_KINDS:
-            raise ValueError(f"{path}: gaits[{k}].kind must be one of {GAIT_KINDS}; got {kind!r}.")
+            raise InputError(f"{path}: gaits[{k}].kind must be one of {GAIT_KINDS}; got {kind!r}.")
         try:
             gaits.append(getattr(jsphere, kind)(**g))
-        except TypeError as e:
-            raise ValueError(f"{path}: gaits[{k}]: {e}") from None
-    kwargs = dict(
-        vary={name: tuple(v) for name, v in cfg["vary"].items()}, seed=int(cfg.get("seed", 0)),
-        batch_size=int(cfg.get("batch_size", 4096)), mode=cfg.get("mode", "gait"), reset=cfg.get("reset", False),
-        Omega0_sd=float(cfg.get("Omega0_sd", 0.0)), settle=float(cfg.get("settle", 1.0)),
-    )  # fmt: skip
+        except (TypeError, ValueError) as e:
+            raise InputError(f"{path}: gaits[{k}]: {e}") from None
+    kwargs = dict(vary=dict(cfg["vary"]), mode=mode,
+                  reset=reset, **{k: v for k, v in settings.items() if k != "n"})  # fmt: skip
+    kwargs.setdefault("batch_size", 4096)
     if "actuators" in cfg:
-        try:
-            kwargs["actuators"] = jsphere.Actuators(**{k: float(v) for k, v in cfg["actuators"].items()})
-        except TypeError as e:
-            raise ValueError(f"{path}: [actuators]: {e}") from None
-    return {"params": params, "gaits": gaits, "n": int(cfg.get("trials", 1000)), "kwargs": kwargs}
+        act = cfg["actuators"]
+        if not isinstance(act, dict):
+            raise InputError(f"{path}: actuators must be a table (e.g. [actuators] gain_sd = 0.02); got {act!r}.")
+        fields = [f.name for f in dataclasses.fields(jsphere.Actuators)]
+        unknown = sorted(set(act) - set(fields))
+        if unknown:
+            raise InputError(f"{path}: [actuators]: unknown key(s) {unknown}; expected {fields}.")
+        kwargs["actuators"] = jsphere.Actuators(**{k: real(f"{path}: [actuators]", k, v) for k, v in act.items()})
+    try:  # the checks monte_carlo makes before any work, with this file's name
+        _check_vary(params, kwargs["vary"])
+    except ValueError as e:
+        raise InputError(f"{path}: {e}") from None
+    return {"params": params, "gaits": gaits, "n": settings.get("n", 1000), "kwargs": kwargs}
 
 
 def _cmd_montecarlo(args) -> int:
+    import warnings
+
     import jsphere
 
-    from ._io import atomic_write_json
+    from ._checks import whole
+    from ._errors import InputError, SolverFailure
+    from ._io import atomic_write_json, check_output, dumps_json
 
-    study = load_study(args.config)
-    n = args.trials if args.trials is not None else study["n"]
+    def one_line(message, category, filename, lineno, file=None, line=None):
+        print(f"jsphere montecarlo: warning: {message}", file=sys.stderr, flush=True)
+
     out = Path(args.out)
-    res = jsphere.monte_carlo(study["params"], study["gaits"], n=n, out=out, progress=True, **study["kwargs"])
+    writes = [out / name for name in ("stats.json", "manifest.json", *(() if args.no_plots else ("stop_points.png",)))]
+    check_output(out, folder=True, writes=writes, inputs={"the study file": args.config})
+    study = load_study(args.config)
+    n = whole("jsphere montecarlo", "--trials", args.trials, 1) if args.trials is not None else study["n"]
+    with warnings.catch_warnings():
+        warnings.showwarning = one_line
+        res = jsphere.monte_carlo(study["params"], study["gaits"], n=n, out=out, progress=True, **study["kwargs"])
     st = res.stats()
     planned = jsphere.simulate_gaits(study["params"], study["gaits"], reset=study["kwargs"]["reset"])
     st["planned_stop_m"] = [float(planned.x[-1]), float(planned.y[-1])]
     atomic_write_json(out / "stats.json", st)
     print(dumps_json(st), end="")
-    if not args.no_plots:
+    why = "; ".join(f"{reason}: {k}" for reason, k in st["rejected"].items())
+    if st["n_rejected"]:
+        print(f"jsphere montecarlo: warning: {st['n_rejected']} of {n} draws rejected, not simulated (their parameters "
+              f"break a rule of RobotParams): {why}. Narrow the distributions or truncate them (a last entry "
+              f"\"truncate\", docs/montecarlo.md).", file=sys.stderr)  # fmt: skip
+    if st["n_failed"]:
+        kinds = {"1": "reached max_steps", "2": "gave NaN or inf"}
+        how = ", ".join(f"{k} {kinds.get(c, f'ended with status {c}')}" for c, k in st["failed_status"].items())
+        print(f"jsphere montecarlo: warning: {st['n_failed']} of {n} trials failed in the solver ({how}); they are left "
+              "out of the statistics.", file=sys.stderr)  # fmt: skip
+    if st["n_ok"] and not args.no_plots:
         from .plots import montecarlo_figure
 
         montecarlo_figure(res, out / "stop_points.png", planned=st["planned_stop_m"])
-    print(f"{n} trials in {res.elapsed_s:.1f} s; results in {out}/")
+    print(f"{n} trials ({st['n_ok']} ok, {st['n_failed']} failed, {st['n_rejected']} rejected) in {res.elapsed_s:.1f} s; "
+          f"results in {out}/")  # fmt: skip
+    if not st["n_ok"]:
+        if st["n_rejected"] == n:
+            raise InputError(f"every draw was rejected ({why}); no statistics. Check the [vary] distributions.")
+        raise SolverFailure(f"no trial succeeded ({st['n_failed']} solver failures, {st['n_rejected']} rejected draws); no statistics.")
     return 0
 
 # --- capture data (issue 3): `jsphere convert`, `jsphere synth` ---
@@ -417,23 +484,29 @@ def _cmd_plan(args) -> int:
 
     import jsphere
 
-    from ._io import atomic_write_json
+    from ._errors import InputError
+    from ._io import atomic_write_json, check_output
 
-    params = jsphere.RobotParams.load(args.params) if args.params else jsphere.RobotParams.paper()
+    out = Path(args.out)
+    writes = [out.with_suffix(".json"), *([] if args.no_plots else [out.with_suffix(".png")])]
+    check_output(out, writes=writes, inputs={"the parameter file (--params)": args.params}, example=str(Path(args.out) / "plan.csv"))
     none = {"none", "off", "inf"}
     lim_kw = {}
     for name in ("max_torque", "max_wheel_speed", "max_tilt", "max_torque_rate"):
         v = getattr(args, name)
         if v is not None:
-            lim_kw[name] = None if str(v).lower() in none else float(v)
+            try:
+                lim_kw[name] = None if str(v).lower() in none else float(v)
+            except ValueError:
+                raise InputError(f"--{name.replace('_', '-')} {v}: expected a number or 'none' (no limit).") from None
     if args.max_time is not None:
         lim_kw["max_time"] = float(args.max_time)
     limits = jsphere.Limits(**lim_kw)
+    params = jsphere.RobotParams.load(args.params) if args.params else jsphere.RobotParams.paper()
     obj = jsphere.Objective(energy=args.energy_weight, time=args.time_weight)
     pl = jsphere.plan(params, tuple(args.to), heading=args.heading, limits=limits, objective=obj,
                       restarts=args.restarts, rate=args.rate, seed=args.seed, allow_infeasible=True, progress=True)  # fmt: skip
     print(pl.summary())
-    out = Path(args.out)
     pl.to_csv(out)
     info = {"feasible": pl.feasible, "shortfall": pl.shortfall, "target": [None if math.isnan(v) else v for v in pl.target.tolist()],
             "duration_s": pl.duration, "errors": pl.errors, "limits": pl.limits_report, "iterations": pl.iterations,

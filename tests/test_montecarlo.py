@@ -5,12 +5,16 @@ import os
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import jsphere
+from jsphere._errors import InputError
+from jsphere._montecarlo import MonteCarloWarning
 
 VARY = {"r_m[2]": ("normal", -0.0270146, 1e-4)}
 GAITS = [jsphere.acceleration(), jsphere.braking()]
@@ -163,3 +167,218 @@ def test_kinematic_command_replay_matches_fig2(paper):
     assert np.all(res.status == 0)
     assert res.gamma3_sd_after[0] == pytest.approx(0.0201, abs=5e-4)
     assert res.x_final[0] == pytest.approx(0.49858, abs=1e-4)  # as the kinematic run of `reproduce` at t = 8 s
+
+
+# ---------------------------------------------------------------- invalid draws, bad values, corrupt files
+# (these reuse the compiled batch of `study`: one varied name, a normal distribution, 128 trials)
+
+WIDE = {"r_m[2]": ("normal", -0.0270146, 0.1)}  # |r_m| >= R0 = 0.15 for about 1 draw in 8
+
+
+@pytest.fixture(scope="module")
+def wide(paper, study):
+    return jsphere.monte_carlo(paper, GAITS, vary=WIDE, n=256, seed=7, batch_size=128, progress=False)
+
+
+def test_invalid_draws_are_rejected_not_simulated(wide):
+    """A draw that breaks a rule of RobotParams (here the centre of mass outside the shell) gets
+    the status REJECTED and NaN outcomes, and `stats()` counts it apart from solver failures."""
+    r = wide
+    outside = np.abs(r.samples["r_m[2]"]) >= 0.15
+    assert 10 < outside.sum() < 80
+    np.testing.assert_array_equal(r.status == jsphere.MonteCarloResult.REJECTED, outside)
+    assert np.all(np.isnan(r.x_final[outside])) and np.all(np.isfinite(r.x_final[r.status == 0]))
+    assert jsphere.MonteCarloResult.REASONS[r.reject_code[outside][0]] == "|r_m| >= R0"
+    st = r.stats()
+    assert st["n_rejected"] == outside.sum() and st["rejected"] == {"|r_m| >= R0": int(outside.sum())}
+    assert st["n_ok"] + st["n_failed"] + st["n_rejected"] == 256
+    assert st["n_failed"] == int(np.sum((r.status != 0) & ~outside))
+
+
+def test_truncate_draws_again_until_valid(paper, wide):
+    """With "truncate" an invalid draw is drawn again: no rejections, every value inside the valid
+    range, distributed as the truncated normal; draws valid at the first try are unchanged."""
+    from scipy import stats
+
+    r = jsphere.monte_carlo(paper, GAITS, vary={"r_m[2]": (*WIDE["r_m[2]"], "truncate")}, n=256, seed=7, batch_size=128,
+                            progress=False)  # fmt: skip
+    assert r.stats()["n_rejected"] == 0 and np.all(r.reject_code == 0)
+    v = r.samples["r_m[2]"]
+    assert np.all(np.abs(v) < 0.15)
+    first = wide.status != jsphere.MonteCarloResult.REJECTED
+    np.testing.assert_array_equal(v[first], wide.samples["r_m[2]"][first])
+    np.testing.assert_array_equal(r.x_final[first], wide.x_final[first])
+    mean, sd = WIDE["r_m[2]"][1:]
+    tn = stats.truncnorm((-0.15 - mean) / sd, (0.15 - mean) / sd, loc=mean, scale=sd)
+    assert stats.kstest(v, tn.cdf).pvalue > 1e-3
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"n": 10.9}, r"n must be a whole number >= 1; got 10.9"),
+        ({"n": 0}, r"n must be a whole number >= 1; got 0"),
+        ({"n": True}, r"n must be a whole number"),
+        ({"seed": 1.7}, r"seed must be a whole number in \[0, 4294967295\]; got 1.7"),
+        ({"seed": -1}, r"seed must be a whole number in \[0, 4294967295\]"),
+        ({"seed": 2**32}, r"seed must be a whole number in \[0, 4294967295\]"),
+        ({"batch_size": 0}, r"batch_size must be a whole number >= 1"),
+        ({"batch_size": 64.5}, r"batch_size must be a whole number >= 1"),
+        ({"settle": -1.0, "mode": "torques"}, r"settle must be a finite number >= 0"),
+        ({"settle": float("nan")}, r"settle must be a finite number >= 0"),
+        ({"Omega0_sd": float("inf")}, r"Omega0_sd must be a finite number >= 0"),
+        ({"plan_rate": 0.0, "mode": "torques"}, r"plan_rate must be a finite number > 0"),
+        ({"max_steps": 0}, r"max_steps must be a whole number >= 1"),
+        ({"rtol": -1e-8}, r"rtol must be a finite number > 0"),
+        ({"vary": 3}, r"vary must be a table"),
+        ({"vary": {"j": ("normal", 2.7e-4, float("inf"))}}, r"vary\['j'\]: the sd must be a finite number; got inf"),
+        ({"vary": {"j": ("normal", float("nan"), 1e-5)}}, r"vary\['j'\]: the mean must be a finite number; got nan"),
+        ({"vary": {"j": ("uniform", 3e-4, 2e-4)}}, r"uniform needs low <= high"),
+        ({"vary": {"j": ("uniform", float("-inf"), 2e-4)}}, r"the low must be a finite number"),
+        ({"vary": {"j": ("normal", True, 1e-5)}}, r"the mean must be a finite number; got True"),
+        ({"vary": {"j": ("normal", 2.7e-4, 1e-5, "clip")}}, r"got 'clip' as its last entry"),
+        ({"vary": {"j": ("normal", 2.7e-4)}}, r"vary\['j'\] must be \['normal', mean, sd\]"),
+        ({"vary": {"I[0,1]": ("normal", 0, 1e-4), "I[1,0]": ("normal", 0, 1e-4)}}, r"'I\[0,1\]' and 'I\[1,0\]' set the same value"),
+        ({"vary": {"R_m": ("normal", 0.027, 1e-4), "r_m[2]": ("normal", -0.027, 1e-4)}}, r"set the same value"),
+        ({"gaits": []}, r"gaits must be a non-empty list"),
+        ({"actuators": jsphere.Actuators(gain_sd=0.01)}, r"actuators apply to replayed commands"),
+    ],
+)  # fmt: skip
+def test_study_values_are_checked_before_any_work(paper, kwargs, match):
+    kw = {"vary": VARY, "n": 64, "progress": False, **kwargs}
+    gaits = kw.pop("gaits", GAITS)
+    with pytest.raises(InputError, match=match):
+        jsphere.monte_carlo(paper, gaits, **kw)
+
+
+def test_a_negative_R_m_draw_is_rejected(paper):
+    """`R_m` is a distance: a negative draw (which would flip r_m) is rejected with its own reason."""
+    from jsphere._montecarlo import REASONS, _draw_code
+
+    codes = [int(_draw_code(paper, ("R_m",), jnp.array([v]))) for v in (0.02, -0.02, 0.2)]
+    assert [REASONS[c] for c in codes] == ["valid", "R_m <= 0", "|r_m| >= R0"]
+
+
+def test_actuators_values_are_checked():
+    for kw, match in (({"gain_sd": -0.1}, "gain_sd must be a finite number >= 0"), ({"delay_s": float("nan")}, "delay_s"),
+                      ({"band_hz": 0.0}, "band_hz must be a finite number > 0"), ({"white_sd": "0.1"}, "white_sd")):  # fmt: skip
+        with pytest.raises(InputError, match=match):
+            jsphere.Actuators(**kw)
+
+
+def _corrupt(path: Path, how: str) -> None:
+    data = path.read_bytes()
+    if how == "truncated":
+        path.write_bytes(data[: len(data) // 2])
+    elif how == "random":
+        path.write_bytes(np.random.default_rng(0).bytes(len(data)))
+    else:
+        path.write_bytes(b"")
+
+
+def test_corrupt_batches_are_recomputed_and_temporary_files_removed(paper, tmp_path):
+    """A batch file cut short, overwritten with random bytes or empty is recomputed with a warning
+    naming it; the temporary files of a killed run are removed; every file ends up byte-identical
+    to an uninterrupted run's."""
+    out = tmp_path / "study"
+    kw = dict(vary=VARY, n=384, seed=7, batch_size=128, out=out, progress=False)
+    first = jsphere.monte_carlo(paper, GAITS, **kw)
+    files = {f.name: f.read_bytes() for f in out.iterdir()}
+    assert sorted(files) == ["batch_000000.npz", "batch_000001.npz", "batch_000002.npz", "manifest.json", "stats.json"]
+    for k, how in enumerate(("truncated", "random", "empty")):
+        _corrupt(out / f"batch_{k:06d}.npz", how)
+    (out / "stats.json").unlink()
+    for name in (".batch_000001.k2v_9x0q.npz", ".stats.abcd1234.tmp", ".manifest.zz_00001.tmp"):
+        (out / name).write_bytes(b"partial")
+    with pytest.warns(MonteCarloWarning) as record:
+        again = jsphere.monte_carlo(paper, GAITS, **kw)
+    messages = sorted(str(w.message) for w in record)
+    assert len(messages) == 3 and all("corrupt or incomplete" in m and "recomputing" in m for m in messages)
+    assert [f"batch_{k:06d}.npz" in m for k, m in enumerate(messages)] == [True] * 3
+    assert {f.name: f.read_bytes() for f in out.iterdir()} == files
+    np.testing.assert_array_equal(again.x_final, first.x_final)
+
+
+def test_corrupt_manifest_and_orphan_batches_are_refused(paper, tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "a" / "manifest.json").write_text("{not json")
+    with pytest.raises(InputError, match="not a valid study manifest"):
+        jsphere.monte_carlo(paper, GAITS, vary=VARY, n=64, out=tmp_path / "a", progress=False)
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "batch_000000.npz").write_bytes(b"")
+    with pytest.raises(InputError, match="no manifest.json"):
+        jsphere.monte_carlo(paper, GAITS, vary=VARY, n=64, out=tmp_path / "b", progress=False)
+    assert sorted(f.name for f in (tmp_path / "b").iterdir()) == ["batch_000000.npz"]
+
+
+def test_cli_reports_rejected_draws(tmp_path, wide, capsys):
+    """The command line says how many draws were rejected and why; a study whose every draw is
+    rejected is bad input (exit 2)."""
+    from jsphere.cli import main
+
+    cfg = tmp_path / "wide.toml"
+    cfg.write_text('trials = 256\nseed = 7\nbatch_size = 128\n[vary]\n"r_m[2]" = ["normal", -0.0270146, 0.1]\n')
+    out = tmp_path / "out"
+    assert main(["montecarlo", str(cfg), "--out", str(out), "--no-cache", "--no-plots"]) == 0
+    err = capsys.readouterr().err
+    k = wide.stats()["n_rejected"]
+    assert f"{k} of 256 draws rejected" in err and f"|r_m| >= R0: {k}" in err
+    assert json.loads((out / "stats.json").read_text())["rejected"] == {"|r_m| >= R0": k}
+    cfg.write_text('trials = 128\nbatch_size = 128\n[vary]\n"r_m[2]" = ["normal", 0.5, 0.01]\n')
+    assert main(["montecarlo", str(cfg), "--out", str(tmp_path / "out2"), "--no-cache", "--no-plots"]) == 2
+    assert "every draw was rejected (|r_m| >= R0: 128)" in capsys.readouterr().err
+
+
+def _cli(folder: Path, study: Path, env: dict) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "jsphere.cli", "montecarlo", str(study), "--out", str(folder), "--no-plots"],
+                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)  # fmt: skip
+
+
+def _kill_when(proc: subprocess.Popen, ready, timeout: float = 300.0) -> None:
+    """SIGKILL `proc` as soon as `ready()` holds (or when it ends by itself)."""
+    deadline = time.monotonic() + timeout
+    while not ready() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.002)
+    proc.kill()
+    proc.wait()
+
+
+@pytest.mark.slow
+def test_cli_killed_anywhere_resumes_to_the_same_files(tmp_path):
+    """`jsphere montecarlo` killed with SIGKILL during start-up, as its first batch file appears
+    and between later batches, then run again, leaves the same bytes as an uninterrupted run
+    (batches, manifest, stats.json) and no temporary file. ~1-2 min on 2 cores."""
+    import signal  # noqa: F401 - Popen.kill sends SIGKILL
+
+    study = tmp_path / "study.toml"
+    study.write_text(
+        'trials = 320\nseed = 3\nbatch_size = 64\ngaits = [{kind = "acceleration", T = 1.0}, {kind = "braking", T = 1.0}]\n'
+        '[vary]\n"r_m[2]" = ["normal", -0.0270146, 0.05, "truncate"]\nm0 = ["normal", 0.8, 0.4]\n'
+    )
+    env = dict(os.environ, JSPHERE_CACHE_DIR=str(tmp_path / "cache"), JAX_PLATFORMS="cpu",
+               PYTHONPATH=str(Path(__file__).resolve().parents[1]))  # fmt: skip
+    ref, res = tmp_path / "ref", tmp_path / "res"
+    p = _cli(ref, study, env)
+    assert p.wait(timeout=900) == 0, p.stderr.read().decode()
+    expected = {f.name: f.read_bytes() for f in ref.iterdir()}
+    assert len([n for n in expected if n.startswith("batch_")]) == 5
+    assert json.loads(expected["stats.json"])["n_rejected"] > 0  # m0 < 0 for ~1 draw in 40
+
+    def batches():
+        return len(list(res.glob("batch_*.npz")))
+
+    t0 = time.monotonic()
+    kills = [lambda: time.monotonic() - t0 > 1.5, lambda: batches() >= 1, lambda: batches() >= 3]
+    left = []
+    for ready in kills:
+        t0 = time.monotonic()
+        _kill_when(_cli(res, study, env), ready)
+        left.append(sorted(f.name for f in res.iterdir()) if res.exists() else [])
+    print("files after each kill:", left)
+    assert batches() < 5  # the last kill came before the end
+    p = _cli(res, study, env)
+    assert p.wait(timeout=900) == 0, p.stderr.read().decode()
+    got = {f.name: f.read_bytes() for f in res.iterdir()}
+    assert sorted(got) == sorted(expected)  # no hidden temporary file left
+    for name in expected:
+        assert got[name] == expected[name], name

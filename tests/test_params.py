@@ -13,7 +13,7 @@ import pytest
 import jsphere
 from jsphere import RobotParams
 from jsphere._errors import InputError
-from jsphere._params import derive
+from jsphere._params import RULES, derive, rule_code, rule_reason
 
 SQ2 = np.sqrt(2.0)
 PHIS = 2.0 * np.pi * np.arange(3) / 3.0  # phi_i = 2 pi (i - 1)/3
@@ -177,6 +177,8 @@ INVALID = [
     ("I-vector", lambda b: {"I": np.array([0.016, 0.016, 0.023])}, "I", "3x3"),
     ("I-2x2", lambda b: {"I": np.eye(2) * 0.016}, "I", "3x3"),
     ("r_m-2", lambda b: {"r_m": [0.0, -0.02]}, "r_m", "3-vector"),
+    ("I-triangle", lambda b: {"I": np.diag([0.005, 0.005, 0.023])}, "I", "triangle inequality"),
+    ("r_m-zero", lambda b: {"r_m": [0.0, 0.0, 0.0]}, "r_m", "off the shell centre"),
 ]
 
 
@@ -196,6 +198,57 @@ def test_valid_variants_construct(base):
     RobotParams(**base)
     RobotParams(**{**base, "j": 0.0, "g": 0.0})
     RobotParams(**{**base, "I": [[0.016, 0.001, 0.0], [0.001, 0.016, 0.0], [0.0, 0.0, 0.023]]})
+
+
+@pytest.fixture(scope="module")
+def rule_codes():
+    """`rule_code` compiled once, vmapped over stacked parameter sets."""
+    return jax.jit(jax.vmap(rule_code))
+
+
+def _unchecked(paper, changes):
+    """`paper` with fields replaced without validation (as a parameter set made inside
+    compiled code is)."""
+    fields = list(changes)
+    return eqx.tree_at(lambda p: [getattr(p, f) for f in fields], paper, [jnp.asarray(changes[f], jnp.float64) for f in fields])
+
+
+def test_rule_code_and_validate_share_the_rules(base, paper, rule_codes):
+    """Every value rule `RobotParams` checks has a code from the traceable `rule_code` (under
+    jit and vmap) naming the same field, with the same message."""
+    cases = [(name, make(base), field) for name, make, field, _ in INVALID]
+    cases = [c for c in cases if all(np.shape(v) == np.shape(base[f]) for f, v in c[1].items())]
+    assert len(cases) >= 28
+    sets = [_unchecked(paper, changes) for _, changes, _ in cases] + [paper]
+    codes = np.asarray(rule_codes(jax.tree_util.tree_map(lambda *x: jnp.stack(x), *sets)))
+    assert codes[-1] == 0 and rule_reason(0) == "valid"
+    for (name, changes, field), code in zip(cases, codes[:-1]):
+        assert code > 0, name
+        rule = RULES[code - 1]
+        with pytest.raises(ValueError) as ei:
+            RobotParams(**{**base, **changes})
+        assert str(ei.value).startswith(f"RobotParams.{rule.field}: "), (name, rule.reason, str(ei.value))
+        assert rule.field == field, name
+        a = {f: np.asarray(v, np.float64) for f, v in {**base, **changes}.items()}
+        assert str(ei.value) == f"RobotParams.{rule.field}: {rule.message(a)}", name
+        assert rule_reason(int(code)) == rule.reason
+
+
+def test_rule_code_float32_paper_is_valid(paper):
+    """The nominal robot in float32 meets the rules evaluated in float32."""
+    p32 = RobotParams.paper(dtype=jnp.float32)
+    assert int(jax.jit(rule_code)(p32)) == 0
+
+
+def test_inertia_triangle_inequality_and_centre_of_mass_off_centre(base):
+    """An inertia tensor no body has (principal moments breaking the triangle inequality) and a
+    centre of mass at the shell centre (no rest attitude) are refused; a flat body (equality)
+    is allowed."""
+    with pytest.raises(ValueError, match=r"RobotParams\.I: .*triangle inequality"):
+        RobotParams(**{**base, "I": np.diag([0.01, 0.01, 0.0201])})
+    RobotParams(**{**base, "I": np.diag([0.01, 0.013, 0.023])})  # a plate: I3 = I1 + I2
+    with pytest.raises(ValueError, match=r"RobotParams\.r_m: .*off the shell centre"):
+        RobotParams(**{**base, "r_m": np.zeros(3)})
 
 
 def test_four_wheel_robot(base):

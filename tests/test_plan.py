@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import jsphere
+from jsphere._errors import InputError
 from jsphere._plan import rollout
 
 # small search: 4 Fourier terms per tilt axis, 2 spin terms, 32 RK4 steps
@@ -188,3 +189,84 @@ def test_cli_plan(tmp_path):
     assert rc == 0
     data = np.loadtxt(out, delimiter=",", skiprows=1)
     assert math.hypot(data[-1, 7] + 0.3, data[-1, 8] - 0.6) < 1e-3
+
+
+# ------------------------------------------------------------------ bad requests (checked before any work)
+
+NAN, INF = float("nan"), float("inf")
+
+
+@pytest.mark.parametrize(
+    "to, kwargs, match",
+    [
+        ((NAN, 0.0), {}, r"plan: target x must be a finite number \[m\]; got nan"),
+        ((INF, 0.0), {}, r"plan: target x must be a finite number \[m\]; got inf"),
+        ((0.5, -INF), {}, r"plan: target y must be a finite number"),
+        ((0.5,), {}, r"plan: to must be the target \(x, y\)"),
+        ((0.5, 0.0), {"heading": NAN}, r"plan: heading must be a finite number"),
+        ((0.5, 0.0), {"heading": INF}, r"plan: heading must be a finite number"),
+        ((0.5, 0.0), {"rate": 0.0}, r"plan: rate must be a finite number > 0 \[Hz\]; got 0.0"),
+        ((0.5, 0.0), {"rate": -5.0}, r"plan: rate must be a finite number > 0"),
+        ((0.5, 0.0), {"rate": 1e9}, r"rows over max_time"),
+        ((0.5, 0.0), {"restarts": 0}, r"plan: restarts must be a whole number >= 1; got 0"),
+        ((0.5, 0.0), {"restarts": 2.5}, r"plan: restarts must be a whole number >= 1; got 2.5"),
+        ((0.5, 0.0), {"restarts": True}, r"plan: restarts must be a whole number"),
+        ((0.5, 0.0), {"seed": -1}, r"plan: seed must be a whole number >= 0"),
+        ((0.5, 0.0), {"limits": "fast"}, r"plan: limits must be a jsphere.Limits"),
+    ],
+)  # fmt: skip
+def test_plan_request_is_checked_before_any_work(paper, to, kwargs, match):
+    with pytest.raises(InputError, match=match):
+        jsphere.plan(paper, to, **kwargs)
+
+
+def test_plan_many_and_route_requests_are_checked(paper):
+    with pytest.raises(InputError, match=r"plan_many: target 1 x must be a finite number"):
+        jsphere.plan_many(paper, [(0.5, 0.0), (NAN, 0.0)])
+    with pytest.raises(InputError, match=r"plan_many: tol_position must be a finite number > 0"):
+        jsphere.plan_many(paper, [(0.5, 0.0)], tol_position=0.0)
+    with pytest.raises(InputError, match=r"plan_many: targets must be a non-empty list"):
+        jsphere.plan_many(paper, [])
+    with pytest.raises(InputError, match=r"plan_route: target 0 heading must be a finite number"):
+        jsphere.plan_route(paper, [(0.5, 0.0, NAN), (1.0, 0.0)])
+
+
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: jsphere.Limits(max_torque=-1.0), r"Limits.max_torque must be a positive number"),
+        (lambda: jsphere.Limits(max_wheel_speed=NAN), r"Limits.max_wheel_speed must be a positive number"),
+        (lambda: jsphere.Limits(max_tilt=True), r"Limits.max_tilt must be a positive number"),
+        (lambda: jsphere.Limits(max_time=INF), r"Limits.max_time must be a finite number of seconds"),
+        (lambda: jsphere.Limits(min_time=NAN), r"Limits.min_time must be a finite number of seconds"),
+        (lambda: jsphere.Limits(max_time=0.5), r"need 0 < min_time < max_time"),
+        (lambda: jsphere.Objective(energy=NAN), r"Objective: energy must be a finite number >= 0"),
+        (lambda: jsphere.Objective(time=-1.0), r"Objective: time must be a finite number >= 0"),
+        (lambda: jsphere.Objective(position_scale=0.0), r"Objective: position_scale must be a finite number > 0"),
+        (lambda: jsphere.Objective(margin=1.0), r"Objective.margin must be a number in \[0, 1\)"),
+        (lambda: jsphere.PlanSettings(n_steps=0), r"PlanSettings: n_steps must be a whole number >= 1"),
+        (lambda: jsphere.PlanSettings(learning_rate=NAN), r"PlanSettings: learning_rate must be a finite number > 0"),
+    ],
+)  # fmt: skip
+def test_limits_objective_settings_are_checked(make, match):
+    with pytest.raises(InputError, match=match):
+        make()
+
+
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: jsphere.acceleration(theta_max=NAN), r"acceleration: theta_max must be a finite number \[rad\]; got nan"),
+        (lambda: jsphere.braking(phi=INF), r"braking: phi must be a finite number \[rad\]; got inf"),
+        (lambda: jsphere.turn(T=NAN), r"turn: T must be a finite number \[s\]; got nan"),
+        (lambda: jsphere.acceleration(theta_max="0.1"), r"acceleration: theta_max must be a finite number"),
+        (lambda: jsphere.acceleration(period=0.0), r"acceleration: period must be a positive number"),
+        (lambda: jsphere.Gait(theta=jsphere.SinSquared(0.1), T=INF), r"Gait.T must be a positive duration"),
+        (lambda: jsphere.paper_gait(NAN), r"paper_gait: theta_max must be a finite number"),
+        (lambda: jsphere.smooth_gait([[0.1, NAN], [0.0, 0.0]]), r"smooth_gait: tilt_coeffs must be a finite number"),
+        (lambda: jsphere.smooth_gait([[0.1, 0.0], [0.0, 0.0]], T=INF), r"smooth_gait: T must be a positive number"),
+    ],
+)  # fmt: skip
+def test_gait_constructors_reject_non_finite_parameters(make, match):
+    with pytest.raises(InputError, match=match):
+        make()
