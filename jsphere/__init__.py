@@ -87,7 +87,12 @@ from ._kinematics import (
     rolling_velocity as rolling_velocity,
     wheel_speeds as wheel_speeds,
 )
-from ._montecarlo import Actuators as Actuators, MonteCarloResult as MonteCarloResult, monte_carlo as monte_carlo
+from ._montecarlo import (
+    Actuators as Actuators,
+    MonteCarloResult as MonteCarloResult,
+    MonteCarloWarning as MonteCarloWarning,
+    monte_carlo as monte_carlo,
+)
 from ._names import get_value as get_value, parse_name as parse_name, set_value as set_value
 from ._params import RobotParams as RobotParams
 from ._reproduce import reproduce as reproduce, to_figure_frame as to_figure_frame
