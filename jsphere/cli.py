@@ -269,7 +269,7 @@ def _cmd_montecarlo(args) -> int:
         raise SolverFailure(f"no trial succeeded ({st['n_failed']} solver failures, {st['n_rejected']} rejected draws); no statistics.")
     return 0
 
-# --- capture data (issue 3): `jsphere convert`, `jsphere synth` ---
+# --- capture data: `jsphere convert`, `jsphere synth` ---
 
 
 def _cmd_convert(args) -> int:
@@ -377,7 +377,7 @@ def _add_capture_parsers(sub) -> None:
 _CAPTURE_COMMANDS = {"convert": _cmd_convert, "synth": _cmd_synth}
 # --- end capture data ---
 
-# --- system identification (issue 3): `jsphere fit` ---
+# --- system identification: `jsphere fit` ---
 
 
 def _parse_assignments(items, option: str) -> dict:
@@ -478,7 +478,7 @@ def _add_fit_parser(sub) -> None:
 # --- end system identification ---
 
 
-# ---- plan (issue 4: gait optimisation / motion planning) -------------------------------------
+# ---- plan: gait optimisation and motion planning -------------------------------------
 def _cmd_plan(args) -> int:
     import math
 
@@ -571,9 +571,12 @@ def main(argv=None) -> int:
     mc.add_argument("--out", default="study", help="output folder; a killed study resumes there (default: ./study)")
     mc.add_argument("--no-plots", action="store_true", help="skip the figure")
     mc.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
-    _add_capture_parsers(sub)  # capture data (issue 3)
-    _add_fit_parser(sub)  # system identification (issue 3)
-    _add_plan_parser(sub)  # plan (issue 4)
+    _add_capture_parsers(sub)
+    _add_fit_parser(sub)
+    _add_plan_parser(sub)
+    for command in sub.choices.values():  # every command's --help lists the exit codes
+        command.epilog = EXIT_CODES_HELP
+        command.formatter_class = argparse.RawDescriptionHelpFormatter
     args = parser.parse_args(argv)
     if args.command == "reproduce" and not args.optimize:
         compile_for_one_run()
@@ -602,7 +605,6 @@ def _run(args) -> int:
 
     commands = {"reproduce": _cmd_reproduce, "montecarlo": _cmd_montecarlo, "fit": _cmd_fit, "plan": _cmd_plan, **_CAPTURE_COMMANDS}
     name = f"jsphere {args.command}"
-    _sigterm_interrupts()
     try:
         return int(commands[args.command](args))
     except KeyboardInterrupt:
@@ -631,9 +633,11 @@ def _run(args) -> int:
         return ExitCode.INTERNAL
 
 
-def _sigterm_interrupts() -> None:
-    """Make SIGTERM (a scheduler's or `kill`'s stop) end a command as Ctrl-C does: the finished
-    work is kept and the exit code is 130."""
+def _interrupts_end_the_command() -> None:
+    """Make SIGTERM (a scheduler's or `kill`'s stop) end a command as Ctrl-C does (the finished
+    work is kept, exit code 130), and deliver again an interruption that Python dropped because
+    it arrived inside a callback (JAX's garbage-collection callback: Python then prints
+    "Exception ignored" and carries on)."""
     import signal
     import threading
 
@@ -644,6 +648,15 @@ def _sigterm_interrupts() -> None:
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, interrupt)
+    default = sys.unraisablehook
+
+    def dropped(unraisable):
+        if isinstance(unraisable.exc_value, KeyboardInterrupt):
+            threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGINT)).start()
+            return
+        default(unraisable)
+
+    sys.unraisablehook = dropped
 
 
 def _one_line(e: BaseException) -> str:
@@ -662,5 +675,19 @@ def _solver_message(e: BaseException) -> str | None:
     return None
 
 
+def console() -> int:
+    """The `jsphere` program: `main`, and after an interruption an immediate exit (130), which
+    skips the interpreter's shutdown: with XLA work still in flight that shutdown can crash,
+    and there is nothing left to save (files are written atomically, and the command has
+    already kept what it finished)."""
+    _interrupts_end_the_command()
+    code = main()
+    if code == 130:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(console())

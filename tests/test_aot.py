@@ -53,6 +53,7 @@ def test_exported_solve_matches_the_direct_call_and_is_reused(aot_dir):
     assert files[0].stat().st_size > 1000
 
 
+@pytest.mark.slow
 def test_calls_without_a_stable_key_are_not_exported(aot_dir):
     p = jsphere.RobotParams.paper()
     K = jnp.array([0.01, 0.0, -0.01])

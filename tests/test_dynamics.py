@@ -21,7 +21,8 @@ def random_robot(key, n_wheels=3):
     a = jax.random.normal(ks[3], (n_wheels, 3))
     a = a / jnp.linalg.norm(a, axis=1, keepdims=True)
     L = 0.05 * jax.random.normal(ks[4], (3, 3))
-    I = L @ L.T + 0.01 * jnp.eye(3)
+    S = L @ L.T  # a second moment of mass: its inertia tensor satisfies the triangle inequality
+    I = jnp.trace(S) * jnp.eye(3) - S + 0.01 * jnp.eye(3)
     rm = 0.2 * R0 * jax.random.normal(ks[5], (3,)) / jnp.sqrt(3.0)
     return jsphere.RobotParams(
         R0=R0, m0=0.5 + jax.random.uniform(ks[6]), I0=0.01, Rw=0.3 * R0, wheel_r=r, wheel_n=n,

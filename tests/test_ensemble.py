@@ -49,6 +49,7 @@ def _sim(a, *, t1=2.0, ctrl=Sines, jump_ts=(), **kw):
     return jsphere.simulate(P, jsphere.State.at_rest(P), jsphere.Torques(ctrl(a), jump_ts=jump_ts), t1, ts=TS, **kw)
 
 
+@pytest.mark.slow
 def test_shared_steps_meet_each_trials_tolerance():
     """The batch shares its steps (one `num_steps`), and each trial stays as close to a tight
     solve of itself as the per-trial controller gets it (both ~1e-9 m, `benchmarks/NOTES.md`;
@@ -65,6 +66,7 @@ def test_shared_steps_meet_each_trials_tolerance():
         np.testing.assert_allclose(getattr(shared, name), getattr(tight, name), rtol=1e-6, atol=1e-8, err_msg=name)
 
 
+@pytest.mark.slow
 def test_shared_steps_across_jumps_and_batched_times_fall_back():
     """A control with a jump (two segments, each with a shared step sequence), and batched final
     times (no shared time axis: one step sequence per trial)."""
@@ -79,6 +81,7 @@ def test_shared_steps_across_jumps_and_batched_times_fall_back():
         assert abs(float(tb[i] - _sim(A[i], t1=t1[i], ctrl=Flip, jump_ts=(1.0,)).x[-1])) < 1e-9
 
 
+@pytest.mark.slow
 def test_shared_steps_over_initial_states_with_one_control():
     """Only the states batched (the control is the same for every trial)."""
     s0 = [jsphere.State.at_rest(P, x=0.1), jsphere.State.from_axes(P, Omega=(0.0, 0.5, 0.0))]
@@ -187,6 +190,7 @@ def test_shared_steps_for_gaits():
 A7 = jnp.concatenate([A, 0.05 * (1 + 0.1 * jax.random.normal(jax.random.PRNGKey(1), (3, 3)))])
 
 
+@pytest.mark.slow
 def test_per_trial_steps_do_not_depend_on_the_batch():
     """`batch_steps="per_trial"` runs a batch in the same vectorised loop with each trial's own
     step sequence, in lockstep (`_shared_rk._forward_per_trial`): a trial's result is bitwise
@@ -225,7 +229,7 @@ def _saved_loss(theta, steps):
     return jnp.sum(tr.x**2 + tr.y**2)
 
 
-@pytest.mark.parametrize("loss", [_theta_loss, _saved_loss], ids=["final", "saved"])
+@pytest.mark.parametrize("loss", [_theta_loss, pytest.param(_saved_loss, marks=pytest.mark.slow)], ids=["final", "saved"])
 def test_gradient_of_per_trial_steps(monkeypatch, loss):
     """The gradient of a batch with per-trial steps is the discrete adjoint of its lockstep
     iterations (each trial's own step sizes; a rejected or finished trial's iteration is the

@@ -121,6 +121,7 @@ def test_result_json_loads_as_params_and_plots_are_written(small_fit, tmp_path):
     assert not list(tmp_path.glob(".*tmp*"))
 
 
+@pytest.mark.slow
 def test_gradient_of_the_loss_agrees_with_finite_differences(small_trials):
     """`J^T r` (forward mode through diffrax) against central differences of the cost, with
     respect to the free parameters and one nuisance parameter. At the fit's `rtol = 1e-6` the

@@ -63,6 +63,7 @@ def test_resume_after_interruption(paper, study, tmp_path):
         jsphere.monte_carlo(paper, GAITS, vary=VARY, n=256, seed=99, batch_size=128, out=out, progress=False)
 
 
+@pytest.mark.slow
 def test_four_host_devices_give_identical_results(study):
     script = textwrap.dedent(
         """
@@ -130,6 +131,7 @@ def test_cli_montecarlo(tmp_path, study, capsys):
     assert "normal" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_two_processes_share_one_study(study, tmp_path):
     """Two processes (as on two hosts) split the batches through a shared folder; both return the
     whole study, identical to a single process."""

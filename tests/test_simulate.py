@@ -138,6 +138,7 @@ def test_grad_wrt_gait_amplitude_and_params(paper):
     assert 1e-3 * float(g_rm) == pytest.approx(2 * 0.15 * 0.036, rel=0.05)
 
 
+@pytest.mark.slow
 def test_float32_on_request(paper):
     p32 = jsphere.RobotParams.paper(dtype=jnp.float32)
     # without tolerances, float32 parameters get float32 ones (1e-5, 1e-7): float64's 1e-10

@@ -125,6 +125,7 @@ def test_batched_equals_single_and_chooses_the_layout():
         assert int(trb.status[i]) == 0 and int(trb.segment[i, -1]) == 1
 
 
+@pytest.mark.slow
 def test_vmap_over_module_controls_params_and_nested():
     p = jsphere.RobotParams.paper()
     A = jnp.array([[0.05, 0.05, 0.05], [0.04, 0.06, 0.05]])
@@ -148,6 +149,7 @@ def _sines_final(p, a, t1=1.0, **kw):
 A3 = jnp.array([[0.05, 0.045, 0.055], [0.04, 0.06, 0.05], [0.055, 0.05, 0.045]])
 
 
+@pytest.mark.slow
 def test_grad_under_vmap_against_finite_differences(monkeypatch):
     """Problem 3 of benchmarks/: reverse mode of a batch-summed loss w.r.t. parameters goes
     through the custom VJP around the batched layout (here the large-batch path: component
