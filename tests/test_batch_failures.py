@@ -117,3 +117,22 @@ def test_gradient_of_the_good_trials(amps):
     g_good, g_bad = float(g(1.0, a)), float(g(1.0, a_bad))
     assert np.isfinite(g_bad)
     np.testing.assert_allclose(g_bad, g_good, rtol=1e-6)
+
+
+@pytest.mark.slow
+def test_other_solvers_fail_alone_too():
+    """A solver outside jsphere's own loop (diffrax's `diffeqsolve` with shared steps) falls
+    back to per-trial solves in the same way."""
+    import diffrax as dfx
+
+    p = RobotParams.paper()
+    s0 = State.at_rest(p)
+    run = jax.jit(jax.vmap(lambda a: simulate(p, s0, Torques(Amp(a, jnp.zeros(()))), 2.0, throw=False, max_steps=3000, solver=dfx.Bosh3())))
+    a = np.linspace(0.01, 0.05, B)
+    good = run(a)
+    assert bool(np.all(np.asarray(good.ok)))
+    a[BAD] = 1e4
+    tr = run(a)
+    np.testing.assert_array_equal(np.asarray(tr.ok), np.arange(B) != BAD)
+    keep = np.arange(B) != BAD
+    np.testing.assert_allclose(np.asarray(tr.x)[keep], np.asarray(good.x)[keep], rtol=1e-5, atol=1e-6)

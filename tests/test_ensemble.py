@@ -91,6 +91,7 @@ def test_shared_steps_over_initial_states_with_one_control():
         np.testing.assert_allclose(out.x[i, -1], jsphere.simulate(P, s, jsphere.Torques(jsphere.Zero(P.n_wheels)), 1.0).x[-1], rtol=0, atol=1e-8)
 
 
+@pytest.mark.slow
 def test_a_failing_trial_does_not_stall_the_batch():
     """A trial with NaN inputs is left out of the step-size control: the others finish as they
     would alone, and it alone is reported as failed (throw=False)."""
@@ -126,6 +127,7 @@ def _theta_loss(theta, steps):
 THETA = jnp.stack([P.j, P.r_m[2], P.I[0, 0]])
 
 
+@pytest.mark.slow
 def test_gradient_of_a_batch_sharing_its_steps():
     """The gradient of a batch that shares its steps is the discrete adjoint of the shared solve
     (`jsphere._shared_rk`, the parameter arrays element by element): central differences of
@@ -229,7 +231,8 @@ def _saved_loss(theta, steps):
     return jnp.sum(tr.x**2 + tr.y**2)
 
 
-@pytest.mark.parametrize("loss", [_theta_loss, pytest.param(_saved_loss, marks=pytest.mark.slow)], ids=["final", "saved"])
+@pytest.mark.slow
+@pytest.mark.parametrize("loss", [_theta_loss, _saved_loss], ids=["final", "saved"])
 def test_gradient_of_per_trial_steps(monkeypatch, loss):
     """The gradient of a batch with per-trial steps is the discrete adjoint of its lockstep
     iterations (each trial's own step sizes; a rejected or finished trial's iteration is the

@@ -120,6 +120,7 @@ def test_grad_of_final_position_wrt_params(paper):
         assert abs(float(gv) - fd) <= 1e-4 * abs(fd) + 1e-9, (name, float(gv), fd)
 
 
+@pytest.mark.slow
 def test_grad_wrt_gait_amplitude_and_params(paper):
     ts = jnp.array([0.0, 4.0])
 

@@ -172,6 +172,7 @@ def test_grad_under_vmap_against_finite_differences(monkeypatch):
     assert abs(float(grm) - fd_r) < 1e-5 * abs(fd_r)
 
 
+@pytest.mark.slow
 def test_forward_mode_under_vmap_against_finite_differences():
     p = jsphere.RobotParams.paper()
     e = jnp.array([1.0, -0.5, 0.25])
@@ -212,6 +213,7 @@ def test_derivatives_under_vmap_match_unbatched(monkeypatch, min_batch):
         np.testing.assert_allclose(J[i], J1(A3[i]), rtol=1e-7, atol=1e-12)
 
 
+@pytest.mark.slow
 def test_failures_are_reported_per_trial_under_vmap():
     p = jsphere.RobotParams.paper()
     A = jnp.array([[0.05, 0.05, 0.05], [jnp.nan, 0.05, 0.05]])
