@@ -618,7 +618,7 @@ def _run(args) -> int:
         print(f"{name}: error: a file is not UTF-8 text ({e.reason} at byte {e.start}); save it as UTF-8 (CSV or TOML).", file=sys.stderr)
         return ExitCode.BAD_INPUT
     except _INPUT_ERRORS as e:
-        print(f"{name}: error: {_one_line(e)}", file=sys.stderr)
+        print(f"{name}: error: {_one_line(e, args.command)}", file=sys.stderr)
         return ExitCode.BAD_INPUT
     except ImportError as e:  # an optional dependency (ezc3d for C3D files)
         print(f"{name}: error: {e}", file=sys.stderr)
@@ -659,11 +659,16 @@ def _interrupts_end_the_command() -> None:
     sys.unraisablehook = dropped
 
 
-def _one_line(e: BaseException) -> str:
-    """The message of `e`; an `OSError` as `PATH: reason`."""
+def _one_line(e: BaseException, command: str = "") -> str:
+    """The message of `e` without the name of the function that raised it when that is the
+    command's own (`plan: ...` from `jsphere plan`); an `OSError` as `PATH: reason`."""
     if isinstance(e, OSError) and e.filename is not None and e.strerror:
         return f"{e.filename}: {e.strerror.lower()}."
-    return str(e)
+    text = str(e)
+    head, sep, rest = text.partition(": ")
+    if sep and command and head.replace("_", "") == command:
+        return rest
+    return text
 
 
 def _solver_message(e: BaseException) -> str | None:
