@@ -331,7 +331,7 @@ RULES: tuple[Rule, ...] = (
     Rule("I", "I not positive definite", lambda xp, a: _any_core(xp, _eig(xp, a) <= 0, 1),
          lambda a: f"inertia tensor must be positive definite; eigenvalues {np.linalg.eigvalsh(a['I'])}."),
     Rule("I", "I breaks the triangle inequality",
-         lambda xp, a: (lambda e: e[..., 2] - e[..., 0] - e[..., 1] > 1e-9 * xp.sum(e, axis=-1))(_eig(xp, a)),
+         lambda xp, a: (lambda e: e[..., 2] - e[..., 0] - e[..., 1] > 1e-6 * xp.sum(e, axis=-1))(_eig(xp, a)),
          lambda a: "the principal moments of inertia must satisfy the triangle inequality (the largest at most the sum "
                    f"of the other two, as for any body); eigenvalues {np.linalg.eigvalsh(a['I'])}."),
     Rule("r_m", "|r_m| >= R0", lambda xp, a: xp.linalg.norm(a["r_m"], axis=-1) >= a["R0"],
