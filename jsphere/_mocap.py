@@ -677,12 +677,6 @@ def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: 
     export that broke off) is an `InputError` naming both counts; with `allow_truncated=True`
     it is a `CaptureWarning` and the frames present are used.
     """
-    try:
-        import ezc3d
-    except ImportError:
-        raise ImportError(
-            "read_c3d needs the optional dependency ezc3d: pip install jsphere[c3d] (or pip install ezc3d)."
-        ) from None
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"capture file {path} does not exist.")
@@ -697,6 +691,12 @@ def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: 
                 + (", or pass --allow-truncated (allow_truncated=True) to use the frames present." if present else ".")
             )
         warnings.warn(f"{source}: the file is cut short: {what}; using the {present} frames present.", CaptureWarning, stacklevel=2)
+    try:  # after the checks of the file's structure, which need no ezc3d
+        import ezc3d
+    except ImportError:
+        raise ImportError(
+            "read_c3d needs the optional dependency ezc3d: pip install jsphere[c3d] (or pip install ezc3d)."
+        ) from None
     try:
         c = ezc3d.c3d(str(path))
         point = c["parameters"]["POINT"]
