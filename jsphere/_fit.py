@@ -35,7 +35,6 @@ import functools
 import hashlib
 import json
 import math
-import re
 import sys
 import time
 import warnings
@@ -51,7 +50,7 @@ import optax
 
 from ._controls import Sampled, Torques, WheelSpeeds
 from ._errors import InputError, SolverFailure
-from ._io import atomic_write, atomic_write_json
+from ._io import atomic_write, atomic_write_json, remove_stale_temporaries
 from ._kinematics import relative_rate_from_wheel_speeds
 from ._linalg import dot, quat_mul, rotmat
 from ._names import parse_name
@@ -638,22 +637,6 @@ def _save_checkpoint(path: Path, fp: str, state: dict[str, Any]) -> None:
     atomic_write(path, write)
     if _checkpoint_hook is not None:
         _checkpoint_hook("saved", path)
-
-
-def remove_stale_temporaries(path: Path, suffix: str | None = None) -> list[Path]:
-    """Remove the temporary files that a process killed while writing `path` atomically left
-    beside it (`jsphere._io.atomic_write` names them `.<stem>.<8 random characters><suffix>`,
-    `suffix` by default that of `path`). Returns the files removed."""
-    path = Path(path)
-    suffix = path.suffix if suffix is None else suffix
-    pattern = re.compile(rf"\.{re.escape(path.stem)}\.[a-z0-9_]{{8}}{re.escape(suffix)}")
-    removed = []
-    if path.parent.is_dir():
-        for f in path.parent.iterdir():
-            if pattern.fullmatch(f.name) and f.is_file():
-                f.unlink(missing_ok=True)
-                removed.append(f)
-    return removed
 
 
 # ----------------------------------------------------------------------------- the fit

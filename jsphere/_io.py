@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -59,6 +60,27 @@ def atomic_write(path, write, *, suffix: str | None = None) -> None:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+
+
+def temporary_pattern(stem: str, suffix: str) -> re.Pattern:
+    """The names `atomic_write` gives its hidden temporary files, `.<stem>.<random><suffix>`,
+    for `stem` and `suffix` given as regular expressions (their groups are kept)."""
+    return re.compile(rf"\.{stem}\.[A-Za-z0-9_]+{suffix}")
+
+
+def remove_stale_temporaries(path, suffix: str | None = None) -> list[Path]:
+    """Remove the temporary files that a process killed while writing `path` atomically left
+    beside it (`suffix` by default that of `path`, as `atomic_write` names them). Returns the
+    files removed."""
+    path = Path(path)
+    pattern = temporary_pattern(re.escape(path.stem), re.escape(path.suffix if suffix is None else suffix))
+    removed = []
+    if path.parent.is_dir():
+        for f in path.parent.iterdir():
+            if pattern.fullmatch(f.name) and f.is_file():
+                f.unlink(missing_ok=True)
+                removed.append(f)
+    return removed
 
 
 def atomic_write_text(path, text: str) -> None:

@@ -14,7 +14,6 @@ import hashlib
 import json
 import math
 import os
-import re
 import sys
 import time
 import warnings
@@ -33,7 +32,7 @@ from ._errors import InputError
 from ._gaits import Gait, simulate_gaits
 from ._simulate import simulate, tolerances
 from ._state import State
-from ._io import atomic_write, atomic_write_json
+from ._io import atomic_write, atomic_write_json, temporary_pattern
 from ._linalg import cross
 from ._names import get_value, parse_name, set_value
 from ._params import RULES, RobotParams, rule_code
@@ -356,7 +355,7 @@ def _fingerprint(params, gaits, spec, seed, batch_size, reset, rtol, atol) -> st
 #: the arrays of a batch file
 _BATCH_KEYS = ("vals", "x", "y", "speed", "status", "gamma3_sd", "reject")
 #: the hidden temporary files of `jsphere._io.atomic_write` in a study folder, by the file they become
-_TEMPORARY = re.compile(r"^\.(batch_(\d{6})|manifest|stats|stop_points)\.[A-Za-z0-9_]+\.(npz|tmp|png)$")
+_TEMPORARY = temporary_pattern(r"(batch_(\d{6})|manifest|stats|stop_points)", r"\.(npz|tmp|png)")
 
 
 def _load_batch(path: Path, B: int, n_vary: int) -> dict | None:
@@ -405,7 +404,7 @@ def _remove_temporary_files(folder: Path, mine: set[int], single: bool) -> None:
     process's batches, and (with a single process, where no other process may be writing them)
     those of the manifest, the statistics and the figure."""
     for f in folder.iterdir():
-        m = _TEMPORARY.match(f.name)
+        m = _TEMPORARY.fullmatch(f.name)
         if m and (int(m.group(2)) in mine if m.group(2) else single):
             f.unlink(missing_ok=True)
 

@@ -421,8 +421,7 @@ def _cmd_fit(args) -> int:
     import jsphere
 
     from ._errors import InputError
-    from ._fit import remove_stale_temporaries
-    from ._io import check_output
+    from ._io import check_output, remove_stale_temporaries
 
     out = Path(args.out)
     ckpt = out.with_name(out.name + ".ckpt.npz")
