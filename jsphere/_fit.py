@@ -55,6 +55,8 @@ from ._kinematics import relative_rate_from_wheel_speeds
 from ._linalg import dot, quat_mul, rotmat
 from ._names import parse_name
 from ._params import _FIELDS, RobotParams
+from . import _shooting
+from ._shooting import end_vector
 from ._simulate import simulate
 from ._state import State
 from ._transforms import MASS_LIKE, FreeParams, _overlaps, _split_names, apply_fixes
@@ -249,7 +251,8 @@ def nuisance_guess(data: FitData, params: RobotParams, *, window: float = 0.1) -
 
 
 def _trial_outputs(free: FreeParams, kind, rtol, atol, max_steps, adjoint, base, theta, nu, d, sig):
-    """Whitened residuals `(5 M,)` of one trial, its solver status and the simulated pose."""
+    """Whitened residuals `(5 M,)` of one trial, its solver status, the simulated pose and the
+    state at its last sample (`jsphere._shooting.end_vector`)."""
     p = free.to_params(theta, base)
     dt = p.R0.dtype
     q0 = quat_mul(d["q0"], quat_exp(nu[3:6]))
@@ -270,9 +273,11 @@ def _trial_outputs(free: FreeParams, kind, rtol, atol, max_steps, adjoint, base,
     ey = (tr.y - d["y"]) * d["wpos"] / sig[0]
     er = quat_log(quat_mul(quat_conj(tr.q), d["q"])) * d["wrot"][:, None] / sig[1]
     res = jnp.concatenate([ex, ey, er.reshape(-1)])
-    ok = tr.ok & jnp.all(jnp.isfinite(res))
+    end = end_vector(tr)
+    ok = tr.ok & jnp.all(jnp.isfinite(res)) & jnp.all(jnp.isfinite(end))
     res = jnp.where(ok, res, 0.0)
-    return res, ok, (tr.x, tr.y, tr.q)
+    end = jnp.where(ok, end, 0.0)
+    return res, ok, (tr.x, tr.y, tr.q), end
 
 
 class _Functions:
@@ -281,7 +286,10 @@ class _Functions:
 
     `jacobian(base, theta (S,P), nu (S,T,n), data, sigmas)`: whitened residuals `(S,T,K)`,
     solver status `(S,T)`, their Jacobian `(S,T,K,P+n)` with respect to `(theta, nu_i)` and
-    the simulated poses, vmapped over starts and trials; `step(res, J, lam)`: the LM step.
+    the simulated poses, vmapped over starts and trials; `step(res, J, lam)`: the LM step of
+    single shooting. `segments(...)`: the same for the segments of multiple shooting, with each
+    segment's end state and its Jacobian; `assemble(...)`: their normal-equation blocks, cost and
+    defects (`jsphere._shooting.assemble`); `solve(blocks, lam)`: the LM step from blocks.
     """
 
     def __init__(self, free: FreeParams, kind: str, rtol: float, atol: float, max_steps: int):
@@ -289,16 +297,24 @@ class _Functions:
 
         def jac_one(base, th, nu, d, sig):
             def f(z):
-                res, ok, pose = _trial_outputs(free, kind, rtol, atol, max_steps, dfx.ForwardMode(), base, z[:P], z[P:], d, sig)
-                return res, (res, ok, pose)
+                res, ok, pose, end = _trial_outputs(free, kind, rtol, atol, max_steps, dfx.ForwardMode(), base, z[:P], z[P:], d, sig)
+                return (res, end), (res, ok, pose, end)
 
-            J, (res, ok, pose) = jax.jacfwd(f, has_aux=True)(jnp.concatenate([th, nu]))
-            return res, ok, J, pose
+            (J, Je), (res, ok, pose, end) = jax.jacfwd(f, has_aux=True)(jnp.concatenate([th, nu]))
+            return res, ok, J, pose, end, Je
 
         over_trials = lambda f: jax.vmap(f, in_axes=(None, None, 0, 0, None))
         over_starts = lambda f: jax.vmap(f, in_axes=(None, 0, 0, None, None))
-        self.jacobian = jax.jit(over_starts(over_trials(jac_one)))
+        both = jax.jit(over_starts(over_trials(jac_one)))
+        self.segments = both
+        self.jacobian = jax.jit(lambda *a: both(*a)[:4])
         self.step = jax.jit(jax.vmap(functools.partial(_lm_step, P=P)))
+
+        def assemble(res, J, e, Je, nu, mu, seg, scale):
+            return _shooting.assemble(kind, P, res, J, e, Je, nu, mu, seg, scale)
+
+        self.assemble = jax.jit(jax.vmap(assemble, in_axes=(0, 0, 0, 0, 0, None, None, None)))
+        self.solve = jax.jit(jax.vmap(_solve_arrow, in_axes=(0, 0)))
 
 
 _CACHE: dict[Any, _Functions] = {}
@@ -330,10 +346,11 @@ def _damp(H, lam):
     return H + (lam * d + floor)[..., None] * jnp.eye(H.shape[-1], dtype=H.dtype)
 
 
-def _lm_step(res, J, lam, P: int):
-    """Levenberg-Marquardt step `(H + lam diag H) delta = -g`, nuisance blocks eliminated.
-    Returns `(d_theta (P,), d_nu (T,n), predicted cost decrease)`."""
-    Hgg, Hgn, Hnn, gg, gn = _blocks(res, J, P)
+def _solve_arrow(blocks, lam):
+    """Levenberg-Marquardt step `(H + lam diag H) delta = -g` of block-arrow normal equations
+    (`_blocks`), the nuisance blocks eliminated (Schur complement). Returns
+    `(d_theta (P,), d_nu (T,n), predicted cost decrease -(g.delta + delta^T H delta / 2))`."""
+    Hgg, Hgn, Hnn, gg, gn = blocks
     Hnn_d = _damp(Hnn, lam)
     Hnn_inv = jnp.linalg.inv(Hnn_d)
     X = jnp.einsum("tpn,tnm->tpm", Hgn, Hnn_inv)
@@ -342,9 +359,13 @@ def _lm_step(res, J, lam, P: int):
     dg = -jnp.linalg.solve(S, rhs)
     dn = -jnp.einsum("tnm,tm->tn", Hnn_inv, gn + jnp.einsum("tpn,p->tn", Hgn, dg))
     g_dot = gg @ dg + jnp.sum(gn * dn)
-    Jd = jnp.einsum("tkp,p->tk", J[..., :P], dg) + jnp.einsum("tkn,tn->tk", J[..., P:], dn)
-    predicted = -(g_dot + 0.5 * jnp.sum(Jd * Jd))
-    return dg, dn, predicted
+    quad = dg @ Hgg @ dg + 2.0 * jnp.einsum("p,tpn,tn->", dg, Hgn, dn) + jnp.einsum("tn,tnm,tm->", dn, Hnn, dn)
+    return dg, dn, -(g_dot + 0.5 * quad)
+
+
+def _lm_step(res, J, lam, P: int):
+    """The Levenberg-Marquardt step of single shooting (`_solve_arrow` of `_blocks`)."""
+    return _solve_arrow(_blocks(res, J, P), lam)
 
 
 def marginal_information(res, J, P: int) -> np.ndarray:
@@ -389,6 +410,7 @@ class FitResult:
     starts: list[float]
     kind: str
     elapsed_s: float
+    shooting: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """The JSON document (`RobotParams.load` reads its `params`)."""
@@ -412,6 +434,7 @@ class FitResult:
             "rms_rot_deg": [t["rms_rot_deg"] for t in self.trials],
             "starts_cost": fin(self.starts),
             "elapsed_s": self.elapsed_s,
+            "shooting": fin(self.shooting),
         }
 
     def save(self, path, *, plots: bool = True) -> list[Path]:
@@ -562,7 +585,7 @@ def _assemble_named(free: FreeParams, per_name: dict[str, float], params: RobotP
 
 #: version of the checkpoint's contents (part of its fingerprint: a checkpoint written by
 #: another version is not resumed)
-_CHECKPOINT_FORMAT = 2
+_CHECKPOINT_FORMAT = 3
 
 #: A test's hook into every checkpoint write: called as `hook(event, path)` with `"written"`
 #: when the temporary file is complete but not yet renamed into place, and `"saved"` after the
@@ -582,24 +605,29 @@ def _config_fingerprint(data: FitData, free: FreeParams, cfg: dict) -> str:
     return h.hexdigest()
 
 
-def _checkpoint_layout(stage: int, S: int, P: int, T: int, n: int, M: int, adam_shapes: Sequence[tuple]) -> dict[str, tuple]:
+def _checkpoint_layout(stage: int, S: int, P: int, nu_shape: tuple, adam_shapes: Sequence[tuple]) -> dict[str, tuple]:
     """The arrays a checkpoint at `stage` holds, with their shapes: everything the optimiser
-    reads from one step to the next (`S` starts, `P` free parameters, `T` trials, `n` nuisance
-    parameters per trial, `M` samples per trial). Stage 0 is Adam (its position, moments and
-    best points), stages 1 and 2 the two Levenberg-Marquardt stages (the per-start damping,
-    flags and counters, and the residuals, Jacobian and simulated poses at the current point),
-    stage 3 the finished optimisation."""
-    out = {"stage": (), "total_it": (), "sig": (2,), "theta": (S, P), "nu": (S, T, n)}
+    reads from one step to the next (`S` starts, `P` free parameters, `nu_shape` the nuisance
+    parameters of one start: `(T, n)` per trial, or `(G, n)` per segment in multiple shooting).
+    Stage 0 is Adam (its position, moments and best points), stages 1 and 2 the two
+    Levenberg-Marquardt stages of single shooting, 4 + k level k of multiple shooting (the
+    per-start damping, flags, counters and costs; the residuals and Jacobians are recomputed
+    from `theta` and `nu` on resume, which gives the same numbers), stage 3 the finished
+    optimisation."""
+    out = {"stage": (), "total_it": (), "sig": (2,), "theta": (S, P), "nu": (S, *nu_shape)}
     if stage == 0:
-        out |= {"adam_k": (), "adam_best_cost": (S,), "adam_best_theta": (S, P), "adam_best_nu": (S, T, n)}
+        out |= {"adam_k": (), "adam_best_cost": (S,), "adam_best_theta": (S, P), "adam_best_nu": (S, *nu_shape)}
         out |= {f"adam_{i}": tuple(shape) for i, shape in enumerate(adam_shapes)}
+    elif stage != 3:
+        out |= {"it": (), **{k: (S,) for k in _LM_KEYS}}
     else:
-        K = 5 * M
-        out |= {
-            "it": (), "stage_converged": (), "lam": (S,), "converged": (S,), "stalled": (S,), "rejected": (S,), "best_cost": (S,),
-            "cost": (S,), "res": (S, T, K), "J": (S, T, K, P + n), "pose_x": (S, T, M), "pose_y": (S, T, M), "pose_q": (S, T, M, 4),
-        }  # fmt: skip
+        out |= {"stage_converged": (), "max_defect": ()}
     return out
+
+
+#: per-start state of Levenberg-Marquardt: damping, converged, accepted steps without progress,
+#: rejections in a row, best cost, cost
+_LM_KEYS = ("lam", "converged", "stalled", "rejected", "best_cost", "cost")
 
 
 def _load_checkpoint(path: Path, fp: str, layout: Callable[[int], dict[str, tuple]]) -> tuple[dict | None, str | None]:
@@ -618,7 +646,7 @@ def _load_checkpoint(path: Path, fp: str, layout: Callable[[int], dict[str, tupl
     if got["fingerprint"].shape != () or str(got["fingerprint"]) != fp:
         return None, "is from another fit (other trials, options or jsphere version)"
     stage = got.get("stage")
-    if stage is None or stage.shape != () or stage.dtype.kind not in "iu" or int(stage) not in (0, 1, 2, 3):
+    if stage is None or stage.shape != () or stage.dtype.kind not in "iu" or not 0 <= int(stage) < 4 + len(MU_LEVELS):
         return None, "is damaged (no valid stage)"
     for k, shape in layout(int(stage)).items():
         if k not in got:
@@ -672,6 +700,41 @@ def _check_options(n_starts, max_iter, adam_steps, seed, sigma_pos, sigma_rot) -
             raise InputError(f"fit: {name} must be a finite number > 0 (or left out to estimate it); got {val!r}.")
 
 
+#: the weights of the continuity defects, one level after the other (multiple shooting)
+MU_LEVELS = (1.0, 10.0, 100.0, 1e3, 1e4)
+#: the largest defect [noise levels, `jsphere._shooting.defect_scale`] that counts as closed
+DEFECT_CLOSED = 0.5
+
+
+def start_design(free: FreeParams, n_starts: int, spread: float, rng: np.random.Generator) -> np.ndarray:
+    """`theta (S, P)` of `n_starts` starts: the first at the start values, the others a
+    Latin hypercube (space-filling, `scipy.stats.qmc`) over a box: for a name with bounds on
+    both sides uniform in the physical value within them; for the others `+- 2 spread` times
+    the coordinate's scale about the start (log-transformed values: factors of `e^(+-2 spread)`)."""
+    from scipy.stats import qmc
+
+    P = free.size
+    theta = np.repeat(free.theta0[None], n_starts, 0)
+    if n_starts < 2 or P == 0:
+        return theta
+    u = qmc.LatinHypercube(d=P, rng=rng).random(n_starts - 1)
+    ts = free.theta_scales()
+    box = theta[1:] + 2.0 * spread * ts * (2.0 * u - 1.0)
+    k = 0
+    for sl in free.slots:
+        if sl.kind == "interval":
+            v = np.clip(u[:, k], 0.02, 0.98)
+            box[:, k] = np.log(v / (1.0 - v))
+        k += sl.size
+    theta[1:] = box
+    return theta
+
+
+def _use_multiple(shooting: str, data: FitData, segment: float) -> bool:
+    """`"auto"`: multiple shooting when a trial lasts more than two segments."""
+    return shooting == "multiple" or (shooting == "auto" and float(np.max(data.t1)) > 2.0 * segment)
+
+
 def fit(
     trials: Sequence,
     params: RobotParams,
@@ -682,6 +745,8 @@ def fit(
     n_starts: int = 2,
     spread: float = 0.2,
     seed: int = 0,
+    shooting: str = "auto",
+    segment: float = 2.0,
     adam_steps: int = 3,
     adam_lr: float = 0.1,
     max_iter: int = 40,
@@ -706,8 +771,15 @@ def fit(
       their independent entries (`I`: 6, kept positive definite).
     - `bounds`: `{name: (lo, hi)}` (None for an open end) by reparameterisation.
     - `n_starts`, `spread`, `seed`: starts vmapped together: the first at `params`, the others
-      perturbed by `spread` (relative, log-normal for positive values).
-    - `adam_steps`, `adam_lr`: optax Adam warm-start steps (per-coordinate scaled units).
+      a Latin hypercube over the bounds, or over `+- 2 spread` (relative, for positive values)
+      about `params` (`start_design`). The best start is kept.
+    - `shooting`, `segment`: `"multiple"` cuts each trial into segments of about `segment`
+      seconds with their own initial states, started from the capture, and closes the
+      continuity defects between them by raising their weight (`MU_LEVELS`); single shooting
+      then polishes the result. `"single"` simulates each trial whole from its start.
+      `"auto"` (default): multiple shooting when a trial is longer than two segments.
+    - `adam_steps`, `adam_lr`: optax Adam warm-start steps of single shooting (per-coordinate
+      scaled units); multiple shooting needs none (its segments start from the capture).
     - `max_iter`, `ftol`, `gtol`, `noise`: Levenberg-Marquardt iterations per stage; a stage
       ends when the predicted decrease of the cost is below `gtol` (in units of chi^2/2: 0.01
       is a step of ~0.14 standard errors along the worst direction), when an accepted step
@@ -747,8 +819,12 @@ def fit(
     fp_ = FreeParams(params, free, bounds)
     data = pack_trials(trials, params)
     _check_options(n_starts, max_iter, adam_steps, seed, sigma_pos, sigma_rot)
+    if shooting not in ("auto", "single", "multiple"):
+        raise InputError(f"fit: shooting must be 'auto', 'single' or 'multiple'; got {shooting!r}.")
+    if isinstance(segment, bool) or not isinstance(segment, (int, float, np.number)) or not 0.05 <= segment < math.inf:
+        raise InputError(f"fit: segment must be a length in seconds >= 0.05; got {segment!r}.")
     kind = data.kind
-    P, T, M = fp_.size, data.ts.shape[0], data.ts.shape[1]
+    P, T = fp_.size, data.ts.shape[0]
     n_nu = len(NUISANCE[kind])
     S = int(n_starts)
     n_res = int(2 * data.wpos.sum() + 3 * data.wrot.sum())
@@ -757,6 +833,8 @@ def fit(
             f"fit: the trials hold {n_res} measured values but the fit has {P + T * n_nu} unknowns ({P} free parameters and "
             f"{n_nu} nuisance parameters per trial); give longer trials or fewer free parameters."
         )
+    multiple = _use_multiple(shooting, data, float(segment))
+    seg = _shooting.segment_trials(data, float(segment)) if multiple else None
     fns = _functions(fp_, kind, float(rtol), float(atol), int(max_steps))
     d = data.arrays()
     base = params
@@ -765,7 +843,8 @@ def fit(
     cfg = {
         "n_starts": S, "spread": spread, "seed": seed, "adam_steps": adam_steps, "adam_lr": adam_lr, "max_iter": max_iter,
         "ftol": ftol, "gtol": gtol, "noise": noise, "sig": sig.tolist(), "estimate_sigma": estimate_sigma, "rtol": rtol,
-        "atol": atol, "max_steps": max_steps, "format": _CHECKPOINT_FORMAT,
+        "atol": atol, "max_steps": max_steps, "format": _CHECKPOINT_FORMAT, "multiple": multiple, "segment": float(segment),
+        "mu": list(MU_LEVELS),
     }  # fmt: skip
     fingerprint = _config_fingerprint(data, fp_, cfg)
     ckpt_path = Path(checkpoint) if checkpoint is not None else None
@@ -773,9 +852,15 @@ def fit(
     # starts: the only random numbers of a fit, drawn from `seed` (part of the fingerprint)
     rng = np.random.default_rng(seed)
     ts_th = fp_.theta_scales()
-    theta = np.repeat(fp_.theta0[None], S, 0)
-    theta[1:] += spread * ts_th * rng.standard_normal((S - 1, P))
+    theta = start_design(fp_, S, spread, rng)
     nu = np.repeat(nuisance_guess(data, params)[None], S, 0)
+    if multiple:
+        G = seg.n_segments
+        Gmax = seg.slot.shape[1]
+        seg_pos = np.concatenate([np.arange(len(c) - 1) for c in seg.boundaries])
+        sd, sa = seg.data.arrays(), seg.arrays()
+        dscale = jnp.asarray(_shooting.defect_scale(kind, sig, float(params.R0), float(segment)))
+        nu_ms = np.repeat(nuisance_guess(seg.data, params)[None], S, 0)
     # Adam works in units of `scale`: z = scale * w
     nu_scale = np.array([_NU_SCALE[n.split("_")[0]] for n in NUISANCE[kind]])
     scale = {"theta": jnp.asarray(np.broadcast_to(ts_th, (S, P))), "nu": jnp.asarray(np.broadcast_to(nu_scale, (S, T, n_nu)))}
@@ -784,14 +869,15 @@ def fit(
     adam = (w, opt.init(w))  # Adam's position and optimiser state
     adam_leaves, adam_def = jax.tree_util.tree_flatten(adam)
     adam_k, adam_best = 0, None  # steps done; (cost, theta, nu) of the best point of each start
-    stage, it, total_it, stage_converged = 0, 0, 0, False
-    # Levenberg-Marquardt's state (from stage 1): per start the damping, whether it has
-    # converged, its accepted steps without progress, its rejections in a row, its best cost,
-    # and the cost, residuals, Jacobian and simulated poses at its current point
-    lam = converged = stalled = rejected = best_cost = cost = res = J = pose = None
+    stage = 4 if multiple else (0 if adam_steps > 0 else 1)
+    it, total_it, stage_converged, max_defect = 0, 0, False, math.nan
+    lm: dict[str, np.ndarray] | None = None  # Levenberg-Marquardt's per-start state (`_LM_KEYS`)
+
+    def nu_shape(st):
+        return (G, n_nu) if multiple and st >= 4 else (T, n_nu)
 
     def layout(st):
-        return _checkpoint_layout(st, S, P, T, n_nu, M, [np.shape(a) for a in adam_leaves])
+        return _checkpoint_layout(st, S, P, nu_shape(st), [np.shape(a) for a in adam_leaves])
 
     if ckpt_path is not None:
         remove_stale_temporaries(ckpt_path)
@@ -800,61 +886,165 @@ def fit(
             warnings.warn(f"fit: the checkpoint {ckpt_path} {why}; it is ignored and the fit starts afresh.", stacklevel=2)
         if state is not None:
             stage, total_it = int(state["stage"]), int(state["total_it"])
-            sig, theta, nu = state["sig"], state["theta"], state["nu"]
+            sig, theta = state["sig"], state["theta"]
+            if stage >= 4:
+                nu_ms = state["nu"]
+            else:
+                nu = state["nu"]
             if stage == 0:
                 adam_k = int(state["adam_k"])
                 adam = jax.tree_util.tree_unflatten(adam_def, [jnp.asarray(state[f"adam_{i}"], a.dtype) for i, a in enumerate(adam_leaves)])
                 adam_best = (state["adam_best_cost"], state["adam_best_theta"], state["adam_best_nu"])
                 say(f"fit: resuming from {ckpt_path} (Adam step {adam_k})")
+            elif stage == 3:
+                stage_converged, max_defect = bool(state["stage_converged"]), float(state["max_defect"])
+                say(f"fit: resuming from {ckpt_path} (finished)")
             else:
-                it, stage_converged = int(state["it"]), bool(state["stage_converged"])
-                lam, converged, stalled, rejected = state["lam"], state["converged"].astype(bool), state["stalled"], state["rejected"]
-                best_cost, cost, res, J = state["best_cost"], state["cost"], state["res"], jnp.asarray(state["J"])
-                pose = tuple(jnp.asarray(state[k]) for k in ("pose_x", "pose_y", "pose_q"))
+                it = int(state["it"])
+                lm = {k: state[k] for k in _LM_KEYS}
+                lm["converged"] = lm["converged"].astype(bool)
                 say(f"fit: resuming from {ckpt_path} (stage {stage}, iteration {it})")
 
     def save():
         if ckpt_path is None:
             return
-        st = {"stage": stage, "total_it": total_it, "sig": sig, "theta": theta, "nu": nu}
+        st = {"stage": stage, "total_it": total_it, "sig": sig, "theta": theta, "nu": nu_ms if stage >= 4 else nu}
         if stage == 0:
             st |= {"adam_k": adam_k, "adam_best_cost": adam_best[0], "adam_best_theta": adam_best[1], "adam_best_nu": adam_best[2]}
             st |= {f"adam_{i}": a for i, a in enumerate(jax.tree_util.tree_leaves(adam))}
+        elif stage == 3:
+            st |= {"stage_converged": stage_converged, "max_defect": max_defect}
         else:
-            st |= {
-                "it": it, "stage_converged": stage_converged, "lam": lam, "converged": converged, "stalled": stalled,
-                "rejected": rejected, "best_cost": best_cost, "cost": cost, "res": res, "J": J,
-                "pose_x": pose[0], "pose_y": pose[1], "pose_q": pose[2],
-            }  # fmt: skip
+            st |= {"it": it, **lm}
         _save_checkpoint(ckpt_path, fingerprint, {k: np.asarray(v) for k, v in st.items()})
 
-    last: dict[str, Any] = {}  # the simulated poses and solver status of the last evaluation
+    last: dict[str, Any] = {}  # the simulated poses, solver status and data of the last evaluation
 
-    def evaluate_jac(th, n):
+    def evaluate_single(th, n):
         res, ok, J, pose = fns.jacobian(base, jnp.asarray(th), jnp.asarray(n), d, jnp.asarray(sig))
         res, ok = np.asarray(res), np.asarray(ok)
         cost = np.where(ok.all(1), 0.5 * (res * res).sum((1, 2)), np.inf)
-        last.update(pose=pose, ok=ok)
-        return res, J, cost
+        last.update(pose=pose, ok=ok, data=data)
+        return cost, {"res": res, "J": J, "pose": pose}
+
+    def solve_single(out, lam):
+        dg, dn, pred = fns.step(jnp.asarray(out["res"]), out["J"], jnp.asarray(lam))
+        return np.asarray(dg), np.asarray(dn), np.asarray(pred)
+
+    def evaluate_multiple(mu):
+        def ev(th, n):
+            res, ok, J, pose, e, Je = fns.segments(base, jnp.asarray(th), jnp.asarray(n), sd, jnp.asarray(sig))
+            blocks, cost, dfc = fns.assemble(res, J, e, Je, jnp.asarray(n), mu, sa, dscale)
+            ok = np.asarray(ok)
+            cost = np.where(ok.all(1), np.asarray(cost), np.inf)
+            last.update(pose=pose, ok=ok, data=seg.data)
+            return cost, {"blocks": blocks, "defect": np.asarray(dfc)}
+
+        return ev
+
+    def solve_multiple(out, lam):
+        dg, dn, pred = fns.solve(out["blocks"], jnp.asarray(lam))
+        dn = np.asarray(dn).reshape(S, T, Gmax, n_nu)[:, seg.trial, seg_pos]
+        return np.asarray(dg), dn, np.asarray(pred)
 
     def fail(where: str):
         """Every start has failed: nothing later can recover, so stop here and say where."""
         if ckpt_path is not None:
             ckpt_path.unlink(missing_ok=True)
         raise SolverFailure(
-            f"fit: every start failed in {where} (no start gives a finite cost); {_first_failure(data, last['pose'], last['ok'])}, "
+            f"fit: every start failed in {where} (no start gives a finite cost); {_first_failure(last['data'], last['pose'], last['ok'])}, "
             "for the first start. Try: check that trial's inputs and capture near that time, start values "
             "nearer the robot (--params, --fix), bounds on the free parameters (--bound), or, in Python, a larger max_steps or a "
             "looser rtol."
         )
 
+    def levenberg_marquardt(evaluate, solve, th, n, label):
+        """Levenberg-Marquardt on every start from `(th, n)` (or the loaded state) until the best
+        start has converged or `max_iter`; saves after every step. Returns the final point,
+        its cost and evaluation."""
+        nonlocal lm, it, total_it
+        cost, out = evaluate(th, n)
+        if lm is None:
+            if not np.isfinite(cost).any():
+                fail(f"Levenberg-Marquardt {label}")
+            lm = {"lam": np.full(S, 1e-3), "converged": np.zeros(S, bool), "stalled": np.zeros(S, int), "rejected": np.zeros(S, int)}
+            lm |= {"best_cost": cost.copy(), "cost": cost}
+            it = 0
+            save()
+        lam, converged, stalled, rejected, best_cost = (lm[k] for k in _LM_KEYS[:-1])
+        cost = lm["cost"]
+        while it < max_iter and not converged[int(np.argmin(cost))]:
+            dg, dn, pred_n = solve(out, lam)
+            th_new, n_new = th + dg, n + dn
+            bad = ~np.all(np.isfinite(th_new), 1) | ~np.all(np.isfinite(n_new.reshape(S, -1)), 1)
+            th_new = np.where(bad[:, None], th, th_new)
+            n_new = np.where(bad[:, None, None], n, n_new)
+            cost_n, out_n = evaluate(th_new, n_new)
+            # accept a decrease; near the optimum (predicted decrease below `noise`), accept the
+            # Gauss-Newton step unless the cost rises by more than the solver's noise floor: its
+            # Jacobian is accurate where cost differences are not
+            with np.errstate(invalid="ignore"):  # (inf - inf for a start that has failed)
+                near = (pred_n < noise) & (cost_n < cost + noise)
+                acc = np.isfinite(cost_n) & ((cost_n < cost) | near) & ~converged & ~bad
+                rel = (cost - cost_n) / np.maximum(cost, 1e-300)
+            # accepted steps that do not lower the best cost by gtol (the solver's noise floor)
+            stalled = np.where(acc, np.where(cost_n < best_cost - gtol, 0, stalled + 1), stalled)
+            rejected = np.where(acc, 0, rejected + 1)
+            best_cost = np.where(acc, np.minimum(best_cost, cost_n), best_cost)
+            # done: a negligible predicted or relative decrease, 3 accepted steps without
+            # progress, or 8 rejections in a row (lambda grown by 1e8)
+            newly = (acc & (np.abs(rel) < ftol)) | ((pred_n < gtol) & (lam <= 1.0)) | (stalled >= 3) | (rejected >= 8)
+            th = np.where(acc[:, None], th_new, th)
+            n = np.where(acc[:, None, None], n_new, n)
+            out = _select(acc, out_n, out)
+            cost = np.where(acc, cost_n, cost)
+            lam = np.where(acc, np.maximum(lam / 5.0, 1e-12), lam * 10.0)
+            converged = converged | newly
+            it += 1
+            total_it += 1
+            lm = dict(zip(_LM_KEYS, (lam, converged, stalled, rejected, best_cost, cost)))
+            commit(th, n)
+            save()
+            step = float(np.max(np.abs(dg) / ts_th)) if P else 0.0
+            say(
+                f"fit: LM {label} it {it:3d}  cost {np.min(cost):.6e}  lambda {lam[np.argmin(cost)]:.1e}  "
+                f"step {step:.2e}  accepted {int(acc.sum())}/{S}  ({time.perf_counter() - t_begin:.1f} s)"
+            )
+        return th, n, cost, out
+
+    def commit(th, n):
+        nonlocal theta, nu, nu_ms
+        theta = th
+        if stage >= 4:
+            nu_ms = n
+        else:
+            nu = n
+
     say(f"fit: {T} trials ({kind}), {sum(data.lengths)} samples, {P} free parameters + {n_nu} nuisance per trial, {S} start(s); compiling ...")
+    # ---------------------------------------------------------------- stage 4 + k: multiple shooting
+    while stage >= 4:
+        level = stage - 4
+        mu = MU_LEVELS[level]
+        if lm is None:
+            say(f"fit: multiple shooting: {G} segments of about {segment:g} s, defect weight {mu:g}")
+        theta, nu_ms, cost, out = levenberg_marquardt(evaluate_multiple(mu), solve_multiple, theta, nu_ms, f"shooting {mu:g}")
+        b = int(np.argmin(cost))
+        max_defect = float(np.max(np.abs(out["defect"][b]))) if G > T else 0.0
+        lm = None
+        if max_defect <= DEFECT_CLOSED or level + 1 == len(MU_LEVELS):
+            say(f"fit: multiple shooting: largest defect {max_defect:.3g} noise levels; single shooting from here")
+            nu = nu_ms[:, seg.first]
+            stage = 1
+        else:
+            say(f"fit: multiple shooting: largest defect {max_defect:.3g} noise levels; raising the weight")
+            stage += 1
     # ---------------------------------------------------------------- stage 0: Adam warm start
     if stage == 0:
         w, ost = adam
         for k in range(adam_k, adam_steps):
             zz = jax.tree_util.tree_map(lambda a, s: a * s, w, scale)
-            res_k, J_k, cost_k = evaluate_jac(zz["theta"], zz["nu"])
+            cost_k, out_k = evaluate_single(zz["theta"], zz["nu"])
+            res_k, J_k = out_k["res"], out_k["J"]
             if adam_best is None:
                 adam_best = (cost_k.copy(), np.asarray(zz["theta"]).copy(), np.asarray(zz["nu"]).copy())
             else:
@@ -877,84 +1067,32 @@ def fit(
             say(f"fit: adam {k + 1:3d}/{adam_steps}  cost {np.min(cost_k):.6e}  ({time.perf_counter() - t_begin:.1f} s)")
         if adam_best is not None:
             theta, nu = adam_best[1], adam_best[2]
-        # ------------------------------------------------------------ Levenberg-Marquardt starts
-        res, J, cost = evaluate_jac(theta, nu)
-        pose = last["pose"]
-        if not np.isfinite(cost).any():
-            fail("Levenberg-Marquardt stage 1")
-        lam = np.full(S, 1e-3)
-        converged = np.zeros(S, bool)
-        stalled, rejected, best_cost = np.zeros(S, int), np.zeros(S, int), cost.copy()
-        stage, it = 1, 0
-        save()
-
-    # ---------------------------------------------------------------- stages 1, 2: LM
+        stage = 1
+    # ---------------------------------------------------------------- stages 1, 2: LM (single shooting)
     while stage in (1, 2):
-        while it < max_iter and not converged[int(np.argmin(cost))]:
-            dg, dn, pred = fns.step(jnp.asarray(res), J, jnp.asarray(lam))
-            th_new, nu_new = theta + np.asarray(dg), nu + np.asarray(dn)
-            bad = ~np.all(np.isfinite(th_new), 1)
-            th_new, nu_new = np.where(bad[:, None], theta, th_new), np.where(bad[:, None, None], nu, nu_new)
-            res_n, J_n, cost_n = evaluate_jac(th_new, nu_new)
-            pose_n = last["pose"]
-            # accept a decrease; near the optimum (predicted decrease below `noise`), accept the
-            # Gauss-Newton step unless the cost rises by more than the solver's noise floor: its
-            # Jacobian is accurate where cost differences are not
-            pred_n = np.asarray(pred)
-            with np.errstate(invalid="ignore"):  # (inf - inf for a start that has failed)
-                near = (pred_n < noise) & (cost_n < cost + noise)
-                acc = np.isfinite(cost_n) & ((cost_n < cost) | near) & ~converged
-                rel = (cost - cost_n) / np.maximum(cost, 1e-300)
-            # accepted steps that do not lower the best cost by gtol (the solver's noise floor)
-            stalled = np.where(acc, np.where(cost_n < best_cost - gtol, 0, stalled + 1), stalled)
-            rejected = np.where(acc, 0, rejected + 1)
-            best_cost = np.where(acc, np.minimum(best_cost, cost_n), best_cost)
-            # done: a negligible predicted or relative decrease, 3 accepted steps without
-            # progress, or 8 rejections in a row (lambda grown by 1e8)
-            newly = (acc & (np.abs(rel) < ftol)) | ((pred_n < gtol) & (lam <= 1.0)) | (stalled >= 3) | (rejected >= 8)
-            theta = np.where(acc[:, None], th_new, theta)
-            nu = np.where(acc[:, None, None], nu_new, nu)
-            res = np.where(acc[:, None, None], res_n, res)
-            J = jnp.where(jnp.asarray(acc)[:, None, None, None], J_n, J)
-            pose = _select(acc, pose_n, pose)
-            cost = np.where(acc, cost_n, cost)
-            lam = np.where(acc, np.maximum(lam / 5.0, 1e-12), lam * 10.0)
-            converged |= newly
-            it += 1
-            total_it += 1
-            save()
-            step = float(np.max(np.abs(np.asarray(dg)) / ts_th)) if P else 0.0
-            say(
-                f"fit: LM stage {stage} it {it:3d}  cost {np.min(cost):.6e}  lambda {lam[np.argmin(cost)]:.1e}  "
-                f"step {step:.2e}  accepted {int(acc.sum())}/{S}  ({time.perf_counter() - t_begin:.1f} s)"
-            )
+        theta, nu, cost, out = levenberg_marquardt(evaluate_single, solve_single, theta, nu, f"stage {stage}")
+        stage_converged = bool(lm["converged"][int(np.argmin(cost))])
+        lm = None
         if stage == 1 and estimate_sigma:
             b = int(np.argmin(cost))
-            sig_old = sig
-            est = _estimate_sigma(res[b], data, sig, P + T * n_nu)
+            est = _estimate_sigma(out["res"][b], data, sig, P + T * n_nu)
             # residuals of exactly 0 (noise-free data) give no estimate: keep the level used
             usable = np.isfinite(est) & (est > 0)
-            sig = np.where(usable, est, sig_old)
-            stage, it = 2, 0
-            lam = np.full(S, 1e-3)
-            converged = np.zeros(S, bool)
-            stalled, rejected = np.zeros(S, int), np.zeros(S, int)
-            # reweight: the residuals and their Jacobian scale with 1/sigma (no new solve)
-            w = np.concatenate([np.full(2 * M, sig_old[0] / sig[0]), np.full(3 * M, sig_old[1] / sig[1])])
-            res = res * w
-            J = J * jnp.asarray(w)[:, None]
-            cost = np.where(np.isfinite(cost), 0.5 * (res * res).sum((1, 2)), np.inf)
-            best_cost = cost.copy()
-            save()
+            sig = np.where(usable, est, sig)
+            stage = 2
             kept = "" if usable.all() else " (residuals of 0 give no estimate: the level used is kept)"
             say(f"fit: noise estimated: sigma_pos {sig[0] * 1e3:.4f} mm, sigma_rot {math.degrees(sig[1]):.4f} deg{kept}; refitting")
         else:
-            stage_converged = bool(converged[int(np.argmin(cost))])
             stage = 3
             save()
     # ---------------------------------------------------------------- result
+    cost, out = evaluate_single(theta, nu)
     b = int(np.argmin(cost))
-    return _result(fp_, data, base, pose, theta, nu, res, J, cost, sig, b, stage_converged, total_it, t_begin)
+    shooting_info = {"method": "multiple" if multiple else "single"}
+    if multiple:
+        shooting_info |= {"segment_s": float(segment), "segments": G, "largest_defect": max_defect, "closed": max_defect <= DEFECT_CLOSED}
+    result = _result(fp_, data, base, out["pose"], theta, nu, out["res"], out["J"], cost, sig, b, stage_converged, total_it, t_begin)
+    return dataclasses.replace(result, shooting=shooting_info)
 
 
 def _select(acc, new, old):

@@ -444,6 +444,7 @@ def _cmd_fit(args) -> int:
         warnings.showwarning = lambda message, *a, **k: print(f"jsphere fit: warning: {message}", file=sys.stderr)
         res = jsphere.fit(
             trials, params, args.free, fix=fix, bounds=bounds, n_starts=args.n_starts, seed=args.seed, max_iter=args.max_iter,
+            shooting=args.shooting, segment=args.segment,
             sigma_pos=args.sigma_pos, sigma_rot=sigma_rot, checkpoint=ckpt, restart=args.restart, progress=not args.quiet,
         )  # fmt: skip
     written = res.save(out, plots=not args.no_plots)
@@ -464,7 +465,13 @@ def _add_fit_parser(sub) -> None:
     ft.add_argument("--params", help="start values (.toml or .json; default: the paper's robot)")
     ft.add_argument("--out", default="fit.json", help="result JSON (default fit.json); plots and the checkpoint go beside it")
     ft.add_argument("--n-starts", type=int, default=2, help="starts vmapped together (default 2)")
-    ft.add_argument("--seed", type=int, default=0, help="seed of the start perturbations")
+    ft.add_argument("--seed", type=int, default=0, help="seed of the start design (a Latin hypercube over the bounds)")
+    ft.add_argument(
+        "--shooting", choices=("auto", "single", "multiple"), default="auto",
+        help="multiple: segments with their own initial states, joined by raising the weight of their defects, then single "
+        "shooting; auto (default): multiple when a trial is longer than two segments",
+    )  # fmt: skip
+    ft.add_argument("--segment", type=float, default=2.0, metavar="SECONDS", help="segment length of multiple shooting [s] (default 2)")
     ft.add_argument("--max-iter", type=int, default=40, help="Levenberg-Marquardt iterations per stage (default 40)")
     ft.add_argument("--sigma-pos", type=float, help="position noise [m] (default: estimated)")
     ft.add_argument("--sigma-rot-deg", type=float, help="orientation noise [deg] (default: estimated)")
