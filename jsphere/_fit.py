@@ -614,14 +614,14 @@ def _checkpoint_layout(stage: int, S: int, P: int, nu_shape: tuple, adam_shapes:
     per-start damping, flags, counters and costs; the residuals and Jacobians are recomputed
     from `theta` and `nu` on resume, which gives the same numbers), stage 3 the finished
     optimisation."""
-    out = {"stage": (), "total_it": (), "sig": (2,), "theta": (S, P), "nu": (S, *nu_shape)}
+    out = {"stage": (), "total_it": (), "sig": (2,), "theta": (S, P), "nu": (S, *nu_shape), "max_defect": ()}
     if stage == 0:
         out |= {"adam_k": (), "adam_best_cost": (S,), "adam_best_theta": (S, P), "adam_best_nu": (S, *nu_shape)}
         out |= {f"adam_{i}": tuple(shape) for i, shape in enumerate(adam_shapes)}
     elif stage != 3:
         out |= {"it": (), **{k: (S,) for k in _LM_KEYS}}
     else:
-        out |= {"stage_converged": (), "max_defect": ()}
+        out |= {"it": (), "stage_converged": ()}
     return out
 
 
@@ -886,7 +886,7 @@ def fit(
             warnings.warn(f"fit: the checkpoint {ckpt_path} {why}; it is ignored and the fit starts afresh.", stacklevel=2)
         if state is not None:
             stage, total_it = int(state["stage"]), int(state["total_it"])
-            sig, theta = state["sig"], state["theta"]
+            sig, theta, max_defect = state["sig"], state["theta"], float(state["max_defect"])
             if stage >= 4:
                 nu_ms = state["nu"]
             else:
@@ -897,8 +897,8 @@ def fit(
                 adam_best = (state["adam_best_cost"], state["adam_best_theta"], state["adam_best_nu"])
                 say(f"fit: resuming from {ckpt_path} (Adam step {adam_k})")
             elif stage == 3:
-                stage_converged, max_defect = bool(state["stage_converged"]), float(state["max_defect"])
-                say(f"fit: resuming from {ckpt_path} (finished)")
+                it, stage_converged = int(state["it"]), bool(state["stage_converged"])
+                say(f"fit: resuming from {ckpt_path} (stage 3: finished)")
             else:
                 it = int(state["it"])
                 lm = {k: state[k] for k in _LM_KEYS}
@@ -908,12 +908,12 @@ def fit(
     def save():
         if ckpt_path is None:
             return
-        st = {"stage": stage, "total_it": total_it, "sig": sig, "theta": theta, "nu": nu_ms if stage >= 4 else nu}
+        st = {"stage": stage, "total_it": total_it, "sig": sig, "theta": theta, "nu": nu_ms if stage >= 4 else nu, "max_defect": max_defect}
         if stage == 0:
             st |= {"adam_k": adam_k, "adam_best_cost": adam_best[0], "adam_best_theta": adam_best[1], "adam_best_nu": adam_best[2]}
             st |= {f"adam_{i}": a for i, a in enumerate(jax.tree_util.tree_leaves(adam))}
         elif stage == 3:
-            st |= {"stage_converged": stage_converged, "max_defect": max_defect}
+            st |= {"it": it, "stage_converged": stage_converged}
         else:
             st |= {"it": it, **lm}
         _save_checkpoint(ckpt_path, fingerprint, {k: np.asarray(v) for k, v in st.items()})

@@ -383,3 +383,23 @@ def test_fit_json_is_strict_json_with_null_for_what_is_missing(reference):
     res = dataclasses.replace(res, starts=[res.cost, float("inf")], stderr={**res.stderr, "j": float("inf")})
     doc = json.loads(dumps_json(res.to_json()), parse_constant=lambda c: pytest.fail(f"fit.json holds {c}"))
     assert doc["starts_cost"][1] is None and doc["stderr"]["j"] is None
+
+
+@pytest.mark.slow
+def test_multiple_shooting_killed_at_every_checkpoint_resumes_bit_for_bit(tiny_trials, tmp_path):
+    """The same with multiple shooting (two segments of 0.5 s): killed after each checkpoint of
+    its continuation levels and of the single-shooting stages, it ends with the same `fit.json`."""
+    kw = {"shooting": "multiple", "segment": 0.5}
+    events = []
+    with checkpoint_hook(lambda ev, path: events.append(ev)):
+        ref = run_fit(tiny_trials, tmp_path / "ref.npz", **kw)
+    assert ref.shooting["method"] == "multiple" and ref.shooting["segments"] == 2
+    ckpt = tmp_path / "fit.json.ckpt.npz"
+    visited = []
+    for _ in range(events.count("saved")):
+        with checkpoint_hook(kill_at("saved", 1)), pytest.raises(KeyboardInterrupt):
+            run_fit(tiny_trials, ckpt, **kw)
+        with np.load(ckpt) as z:
+            visited.append(int(z["stage"]))
+    assert visited[0] == 4 and visited[-1] == 3 and {1, 2} <= set(visited)
+    assert document(run_fit(tiny_trials, ckpt, **kw)) == document(ref)
