@@ -38,13 +38,16 @@ def synthetic(seeds, t1, rate, **kw):
 
 @pytest.mark.parametrize(
     "seeds, rate, t1, pos_sd, rot_sd_deg",
-    [((0, 1), 100.0, 3.0, 2e-3, 1.0), ((10, 11), 50.0, 6.0, 0.5e-3, 0.3)],  # (the same number of frames: one compilation)
+    # 8 trials of 76 frames, as the fits below (one compilation of the simulation): ~1000
+    # differences per channel, a relative accuracy of ~3.5 %
+    [(range(10, 18), 50.0, 1.5, 2e-3, 1.0), (range(20, 28), 100.0, 0.75, 0.5e-3, 0.3)],
 )
 def test_noise_floor_is_the_synthetic_noise(seeds, rate, t1, pos_sd, rot_sd_deg):
     trials = synthetic(seeds, t1, rate, pos_sd=pos_sd, rot_sd_deg=rot_sd_deg, dropout=0.05)
     data = pack_trials(trials, TRUTH)
-    assert data.wpos.sum() < 0.97 * data.wpos.size  # gaps: runs across them are skipped
+    assert data.wpos.sum() < data.wpos.size and data.wrot.sum() < data.wrot.size  # gaps: runs across them are skipped
     sigma_pos, sigma_rot = noise_floor(data)
+    print(f"noise floor / truth: {sigma_pos / pos_sd:.4f} (position), {math.degrees(sigma_rot) / rot_sd_deg:.4f} (orientation)")
     assert sigma_pos == pytest.approx(pos_sd, rel=0.1)
     assert math.degrees(sigma_rot) == pytest.approx(rot_sd_deg, rel=0.1)
 
