@@ -24,6 +24,10 @@ class ExitCode(enum.IntEnum):
     INFEASIBLE = 3
     #: the ODE solver or an optimiser failed; the message says where and what to try
     SOLVER_FAILURE = 4
+    #: `jsphere fit`: the optimiser did not converge (fit.json is written, with its status)
+    NOT_CONVERGED = 5
+    #: `jsphere fit`: a misfit, residuals far above the capture's noise floor (fit.json is written)
+    MISFIT = 6
     #: interrupted (Ctrl-C, SIGTERM) after saving what was finished; rerun to resume
     INTERRUPTED = 130
 
@@ -34,6 +38,8 @@ EXIT_CODES_HELP = """exit codes:
   2    bad input: a file, option or value that cannot be used (the message names it)
   3    plan: the request cannot be met within the limits (the best plan is still written)
   4    solver failure: an ODE solve or a fit failed (the message says where and what to try)
+  5    fit: the optimiser did not converge (fit.json is written; its status says why)
+  6    fit: a misfit, residuals far above the capture's noise floor (fit.json is written)
   130  interrupted (Ctrl-C or SIGTERM) after saving what was finished; rerun to resume"""
 
 

@@ -390,7 +390,11 @@ class FitResult:
     data do not determine); `identifiability`: condition number, poorly determined directions,
     warnings; `sigma_pos` [m], `sigma_rot` [rad]: noise levels (estimated unless given);
     `trials`: per trial its RMS residuals, nuisance values and, under `"series"`, the measured
-    and simulated paths (for the plots; not written to JSON)."""
+    and simulated paths (for the plots; not written to JSON); `status`, `status_reason`: the
+    verdict on the fit (`"converged"`, `"not_converged"` or `"misfit"`, and one sentence: see
+    `jsphere._verdict`), `verdict`: the numbers behind it (the capture's noise floor, the
+    residual sigmas and their ratios to it, their lag-1 autocorrelations, per trial, the worst
+    trial's name)."""
 
     params: RobotParams
     free: list[str]
@@ -410,6 +414,9 @@ class FitResult:
     starts: list[float]
     kind: str
     elapsed_s: float
+    status: str = ""
+    status_reason: str = ""
+    verdict: dict[str, Any] = dataclasses.field(default_factory=dict)
     shooting: dict[str, Any] = dataclasses.field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
@@ -424,11 +431,14 @@ class FitResult:
             "cost": self.cost,
             "iterations": self.iterations,
             "converged": self.converged,
+            "status": self.status,
+            "status_reason": self.status_reason,
             "sigma_pos_m": self.sigma_pos,
             "sigma_rot_deg": math.degrees(self.sigma_rot),
             "n_residuals": self.n_residuals,
             "kind": self.kind,
             "identifiability": fin(self.identifiability),
+            "verdict": fin(self.verdict),
             "trials": [{k: fin(v) for k, v in t.items() if k != "series"} for t in self.trials],
             "rms_pos_m": [t["rms_pos_m"] for t in self.trials],
             "rms_rot_deg": [t["rms_rot_deg"] for t in self.trials],
@@ -450,7 +460,8 @@ class FitResult:
         return written
 
     def table(self) -> str:
-        """A plain-text summary: value +- stderr per free name, noise levels, warnings."""
+        """A plain-text summary: value +- stderr per free name, noise levels, warnings, and last
+        the status with its reason."""
         lines = [f"{'name':<10} {'value':>14} {'stderr':>12} {'rel':>9}"]
         for n in self.free:
             v, s = self.values[n], self.stderr[n]
@@ -462,6 +473,8 @@ class FitResult:
         )
         for w in self.identifiability.get("warnings", []):
             lines.append(f"warning: {w}")
+        if self.status:
+            lines.append(f"status: {self.status}: {self.status_reason}")
         return "\n".join(lines)
 
 
@@ -1122,7 +1135,9 @@ def _result(fp_: FreeParams, data, base, pose, theta, nu, res, J, cost, sig, b, 
     s2 = float(2.0 * cost[b] / dof)
     F = marginal_information(jnp.asarray(res_b), J_b, P)  # information of theta (whitened)
     A = np.asarray(jax.jacfwd(fp_.physical)(jnp.asarray(th_b)))
-    Ainv = np.linalg.inv(A)
+    # (pinv: a transform at the edge of its range, e.g. exp(u) -> 0, has a zero derivative; the
+    # name then gets no information, and an infinite standard error)
+    Ainv = np.linalg.pinv(A)
     F_phys = Ainv.T @ F @ Ainv
     values = np.asarray(fp_.physical(jnp.asarray(th_b)))
     sc = np.maximum(np.abs(values), 0.1 * fp_.scales())
@@ -1172,12 +1187,21 @@ def _result(fp_: FreeParams, data, base, pose, theta, nu, res, J, cost, sig, b, 
         )
     per_val = {n: float(v) for n, v in zip(fp_.names, values)}
     per_se = {n: float(s) for n, s in zip(fp_.names, se)}
+    from ._verdict import judge, noise_floor
+
+    verdict = judge(
+        [t["series"]["pos_err"] for t in trials], [np.radians(t["series"]["rot_err_deg"]) for t in trials], noise_floor(data),
+        names=data.names, converged=bool(converged), n_params=P + T * n_nu,
+        why_not=f"Levenberg-Marquardt reached max_iter in its last stage, {int(iterations)} iterations in all",
+    )  # fmt: skip
+    status, status_reason = verdict.pop("status"), verdict.pop("reason")
     return FitResult(
         params=params, free=list(fp_.names), given=fp_.given,
         values=_assemble_named(fp_, per_val, params, np.nan), stderr=_assemble_named(fp_, per_se, params, 0.0),
         covariance=cov, correlation=corr, cost=float(cost[b]), iterations=int(iterations), converged=bool(converged),
         sigma_pos=float(sig[0]), sigma_rot=float(sig[1]), n_residuals=n_res, identifiability=ident, trials=trials,
         starts=[float(c) for c in cost], kind=data.kind, elapsed_s=time.perf_counter() - t_begin,
+        status=status, status_reason=status_reason, verdict=verdict,
     )  # fmt: skip
 
 

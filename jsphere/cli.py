@@ -415,13 +415,18 @@ def _parse_bounds(items) -> dict:
 
 def _cmd_fit(args) -> int:
     """`jsphere fit`. What a user can get wrong is checked before anything is compiled: the
-    output path first, then the options, the parameter file and the trials."""
+    output path first, then the options, the parameter file and the trials.
+
+    A finished fit writes its files whatever its verdict; the last line on stdout is the
+    verdict, and the exit code says it: 0 converged, 5 not converged (`ExitCode.NOT_CONVERGED`),
+    6 a misfit (`ExitCode.MISFIT`: residuals far above the capture's noise floor)."""
     import warnings
 
     import jsphere
 
-    from ._errors import InputError
+    from ._errors import ExitCode, InputError
     from ._io import check_output, remove_stale_temporaries
+    from ._verdict import headline
 
     out = Path(args.out)
     ckpt = out.with_name(out.name + ".ckpt.npz")
@@ -453,7 +458,8 @@ def _cmd_fit(args) -> int:
     for w in res.identifiability["warnings"]:
         print(f"jsphere fit: warning: {w}", file=sys.stderr)
     print(f"wrote {', '.join(str(p) for p in written)}  ({res.elapsed_s:.1f} s)")
-    return 0
+    print(f"jsphere fit: {headline(res.status, res.status_reason, res.verdict)}")  # the last line: the verdict
+    return {"converged": ExitCode.OK, "not_converged": ExitCode.NOT_CONVERGED, "misfit": ExitCode.MISFIT}[res.status]
 
 
 def _add_fit_parser(sub) -> None:
