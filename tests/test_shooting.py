@@ -232,3 +232,29 @@ def test_long_trials_from_another_robot_fit_within_three_standard_errors(tmp_pat
     assert res.converged
     assert all(abs(v) < 3 for v in z.values()), z
     assert res.sigma_pos == pytest.approx(1e-3, rel=0.1) and math.degrees(res.sigma_rot) == pytest.approx(0.5, rel=0.1)
+
+
+@pytest.mark.slow
+def test_a_robot_the_model_cannot_describe_is_a_misfit_with_exit_6(tmp_path, capsys):
+    """Trials from a robot with a fourth wheel's mass (0.25 kg) on one side of the platform:
+    its centre of mass leaves the axis, which the seven free parameters cannot follow."""
+    from jsphere.cli import main
+
+    base = truth_robot()
+    dm, at = 0.25, np.array([0.1, 0.0, -0.03])
+    m = float(base.m)
+    lopsided = base.replace(
+        m=m + dm,
+        r_m=(m * np.asarray(base.r_m) + dm * at) / (m + dm),
+        I=np.asarray(base.I) + dm * (at @ at * np.eye(3) - np.outer(at, at)),
+    )
+    paths = []
+    for tr in torque_trials(lopsided, (10.0, 10.0)):
+        paths.append(tmp_path / f"{tr.name}.csv")
+        jsphere.write_trial(paths[-1], tr)
+    out = tmp_path / "fit.json"
+    rc = main(["fit", *map(str, paths), "--free", FREE7, "--out", str(out), "--no-plots", "--n-starts", "1"])
+    text = capsys.readouterr().out.strip().splitlines()
+    doc = __import__("json").loads(out.read_text())
+    print(text[-1], doc["verdict"]["ratio_pos"], doc["verdict"]["ratio_rot"])
+    assert rc == 6 and doc["status"] == "misfit" and "misfit" in text[-1]
