@@ -618,24 +618,37 @@ def _config_fingerprint(data: FitData, free: FreeParams, cfg: dict) -> str:
     return h.hexdigest()
 
 
-def _checkpoint_layout(stage: int, S: int, P: int, nu_shape: tuple, adam_shapes: Sequence[tuple]) -> dict[str, tuple]:
+def _checkpoint_layout(stage: int, S: int, P: int, nu_shape: tuple, adam_shapes: Sequence[tuple], evaluation: dict[str, tuple]) -> dict[str, tuple]:
     """The arrays a checkpoint at `stage` holds, with their shapes: everything the optimiser
     reads from one step to the next (`S` starts, `P` free parameters, `nu_shape` the nuisance
     parameters of one start: `(T, n)` per trial, or `(G, n)` per segment in multiple shooting).
     Stage 0 is Adam (its position, moments and best points), stages 1 and 2 the two
     Levenberg-Marquardt stages of single shooting, 4 + k level k of multiple shooting (the
-    per-start damping, flags, counters and costs; the residuals and Jacobians are recomputed
-    from `theta` and `nu` on resume, which gives the same numbers), stage 3 the finished
-    optimisation."""
+    per-start damping, flags, counters and costs, and the evaluation at the current points,
+    shapes `evaluation`: kept, not recomputed, because a vmapped solve's steps and so its
+    last digits depend on the other starts it ran with), stage 3 the finished optimisation."""
     out = {"stage": (), "total_it": (), "sig": (2,), "theta": (S, P), "nu": (S, *nu_shape), "max_defect": ()}
     if stage == 0:
         out |= {"adam_k": (), "adam_best_cost": (S,), "adam_best_theta": (S, P), "adam_best_nu": (S, *nu_shape)}
         out |= {f"adam_{i}": tuple(shape) for i, shape in enumerate(adam_shapes)}
     elif stage != 3:
-        out |= {"it": (), **{k: (S,) for k in _LM_KEYS}}
+        out |= {"it": (), **{k: (S,) for k in _LM_KEYS}, **{f"out_{k}": v for k, v in evaluation.items()}}
     else:
         out |= {"it": (), "stage_converged": ()}
     return out
+
+
+def _flat_evaluation(out: dict[str, Any]) -> dict[str, np.ndarray]:
+    """An evaluation (`{"res", "J", "pose"}` or `{"blocks", "defect"}`) as named arrays."""
+    if "blocks" in out:
+        return {**dict(zip(("Hgg", "Hgn", "Hnn", "gg", "gn"), map(np.asarray, out["blocks"]))), "defect": np.asarray(out["defect"])}
+    return {"res": np.asarray(out["res"]), "J": np.asarray(out["J"]), **{f"pose_{c}": np.asarray(a) for c, a in zip("xyq", out["pose"])}}
+
+
+def _unflat_evaluation(a: dict[str, np.ndarray]) -> dict[str, Any]:
+    if "Hgg" in a:
+        return {"blocks": tuple(jnp.asarray(a[k]) for k in ("Hgg", "Hgn", "Hnn", "gg", "gn")), "defect": a["defect"]}
+    return {"res": a["res"], "J": jnp.asarray(a["J"]), "pose": tuple(jnp.asarray(a[f"pose_{c}"]) for c in "xyq")}
 
 
 #: per-start state of Levenberg-Marquardt: damping, converged, accepted steps without progress,
@@ -885,12 +898,19 @@ def fit(
     stage = 4 if multiple else (0 if adam_steps > 0 else 1)
     it, total_it, stage_converged, max_defect = 0, 0, False, math.nan
     lm: dict[str, np.ndarray] | None = None  # Levenberg-Marquardt's per-start state (`_LM_KEYS`)
+    current: dict[str, Any] | None = None  # the evaluation (residuals, Jacobian or blocks) at its points
 
     def nu_shape(st):
         return (G, n_nu) if multiple and st >= 4 else (T, n_nu)
 
     def layout(st):
-        return _checkpoint_layout(st, S, P, nu_shape(st), [np.shape(a) for a in adam_leaves])
+        if multiple and st >= 4:
+            N = Gmax * n_nu
+            ev = {"Hgg": (S, P, P), "Hgn": (S, T, P, N), "Hnn": (S, T, N, N), "gg": (S, P), "gn": (S, T, N), "defect": (S, G, n_nu)}
+        else:
+            K = 5 * data.ts.shape[1]
+            ev = {"res": (S, T, K), "J": (S, T, K, P + n_nu), "pose_x": (S, T, K // 5), "pose_y": (S, T, K // 5), "pose_q": (S, T, K // 5, 4)}
+        return _checkpoint_layout(st, S, P, nu_shape(st), [np.shape(a) for a in adam_leaves], ev)
 
     if ckpt_path is not None:
         remove_stale_temporaries(ckpt_path)
@@ -914,6 +934,7 @@ def fit(
                 say(f"fit: resuming from {ckpt_path} (stage 3: finished)")
             else:
                 it = int(state["it"])
+                current = _unflat_evaluation({k[4:]: v for k, v in state.items() if k.startswith("out_")})
                 lm = {k: state[k] for k in _LM_KEYS}
                 lm["converged"] = lm["converged"].astype(bool)
                 say(f"fit: resuming from {ckpt_path} (stage {stage}, iteration {it})")
@@ -928,7 +949,7 @@ def fit(
         elif stage == 3:
             st |= {"it": it, "stage_converged": stage_converged}
         else:
-            st |= {"it": it, **lm}
+            st |= {"it": it, **lm, **{f"out_{k}": v for k, v in _flat_evaluation(current).items()}}
         _save_checkpoint(ckpt_path, fingerprint, {k: np.asarray(v) for k, v in st.items()})
 
     last: dict[str, Any] = {}  # the simulated poses, solver status and data of the last evaluation
@@ -975,15 +996,17 @@ def fit(
         """Levenberg-Marquardt on every start from `(th, n)` (or the loaded state) until the best
         start has converged or `max_iter`; saves after every step. Returns the final point,
         its cost and evaluation."""
-        nonlocal lm, it, total_it
-        cost, out = evaluate(th, n)
+        nonlocal lm, it, total_it, current
         if lm is None:
+            cost, out = evaluate(th, n)
+            current = out
             if not np.isfinite(cost).any():
                 fail(f"Levenberg-Marquardt {label}")
             lm = {"lam": np.full(S, 1e-3), "converged": np.zeros(S, bool), "stalled": np.zeros(S, int), "rejected": np.zeros(S, int)}
             lm |= {"best_cost": cost.copy(), "cost": cost}
             it = 0
             save()
+        out = current
         lam, converged, stalled, rejected, best_cost = (lm[k] for k in _LM_KEYS[:-1])
         cost = lm["cost"]
         while it < max_iter and not converged[int(np.argmin(cost))]:
@@ -1009,7 +1032,7 @@ def fit(
             newly = (acc & (np.abs(rel) < ftol)) | ((pred_n < gtol) & (lam <= 1.0)) | (stalled >= 3) | (rejected >= 8)
             th = np.where(acc[:, None], th_new, th)
             n = np.where(acc[:, None, None], n_new, n)
-            out = _select(acc, out_n, out)
+            out = current = _select(acc, out_n, out)
             cost = np.where(acc, cost_n, cost)
             lam = np.where(acc, np.maximum(lam / 5.0, 1e-12), lam * 10.0)
             converged = converged | newly
@@ -1115,7 +1138,9 @@ def _select(acc, new, old):
 
 
 def _estimate_sigma(res_b, data: FitData, sig, n_par: int) -> np.ndarray:
-    """Noise levels from the whitened residuals of the best start (dof-corrected)."""
+    """Noise levels from the whitened residuals of the best start (dof-corrected; in numpy, whose
+    sums do not depend on where the residuals were computed)."""
+    res_b = np.asarray(res_b)
     M = data.ts.shape[1]
     pos = res_b[:, : 2 * M] * sig[0]
     rot = res_b[:, 2 * M :] * sig[1]
