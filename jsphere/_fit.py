@@ -730,6 +730,10 @@ def _check_options(n_starts, max_iter, adam_steps, seed, sigma_pos, sigma_rot) -
 MU_LEVELS = (1.0, 10.0, 100.0, 1e3, 1e4)
 #: the largest defect [noise levels, `jsphere._shooting.defect_scale`] that counts as closed
 DEFECT_CLOSED = 0.5
+#: a level of the continuation ends when an accepted step changes its cost by less than this
+#: (relative), or after 3 rejected steps in a row: its minimiser is only the start of the next
+#: level, and single shooting polishes
+CONTINUATION_RTOL = 1e-4
 
 
 def start_design(free: FreeParams, n_starts: int, spread: float, rng: np.random.Generator) -> np.ndarray:
@@ -992,10 +996,11 @@ def fit(
             "looser rtol."
         )
 
-    def levenberg_marquardt(evaluate, solve, th, n, label):
+    def levenberg_marquardt(evaluate, solve, th, n, label, rel_done=ftol, max_rejected=8):
         """Levenberg-Marquardt on every start from `(th, n)` (or the loaded state) until the best
-        start has converged or `max_iter`; saves after every step. Returns the final point,
-        its cost and evaluation."""
+        start has converged (`rel_done`: the relative change of the cost that ends it;
+        `max_rejected` rejections in a row) or `max_iter`; saves after every step. Returns the
+        final point, its cost and evaluation."""
         nonlocal lm, it, total_it, current
         if lm is None:
             cost, out = evaluate(th, n)
@@ -1029,7 +1034,7 @@ def fit(
             best_cost = np.where(acc, np.minimum(best_cost, cost_n), best_cost)
             # done: a negligible predicted or relative decrease, 3 accepted steps without
             # progress, or 8 rejections in a row (lambda grown by 1e8)
-            newly = (acc & (np.abs(rel) < ftol)) | ((pred_n < gtol) & (lam <= 1.0)) | (stalled >= 3) | (rejected >= 8)
+            newly = (acc & (np.abs(rel) < rel_done)) | ((pred_n < gtol) & (lam <= 1.0)) | (stalled >= 3) | (rejected >= max_rejected)
             th = np.where(acc[:, None], th_new, th)
             n = np.where(acc[:, None, None], n_new, n)
             out = current = _select(acc, out_n, out)
@@ -1063,7 +1068,9 @@ def fit(
         mu = MU_LEVELS[level]
         if lm is None:
             say(f"fit: multiple shooting: {G} segments of about {segment:g} s, defect weight {mu:g}")
-        theta, nu_ms, cost, out = levenberg_marquardt(evaluate_multiple(mu), solve_multiple, theta, nu_ms, f"shooting {mu:g}")
+        theta, nu_ms, cost, out = levenberg_marquardt(
+            evaluate_multiple(mu), solve_multiple, theta, nu_ms, f"shooting {mu:g}", rel_done=max(ftol, CONTINUATION_RTOL), max_rejected=3
+        )
         b = int(np.argmin(cost))
         max_defect = float(np.max(np.abs(out["defect"][b]))) if G > T else 0.0
         lm = None
