@@ -43,7 +43,7 @@ from ._mocap import (
 )
 
 # --- end capture data ---
-# --- system identification (issue 3: the fit) ---
+# --- system identification: the fit ---
 from ._errors import ExitCode as ExitCode, InputError as InputError, SolverFailure as SolverFailure
 from ._fit import (
     FitResult as FitResult,

@@ -1,4 +1,4 @@
-"""System identification: fit `RobotParams` to captured trials (issue 3).
+"""System identification: fit `RobotParams` to captured trials.
 
 The model of a trial is `simulate(params, state0(nu), controls)` sampled at the capture times;
 the residuals are the captured minus the simulated position and orientation, whitened by
@@ -22,9 +22,12 @@ tangent columns instead of a reverse pass per residual. The normal equations hav
 structure; the nuisance blocks are eliminated (Schur complement), so the cost of a step grows
 linearly with the number of trials.
 
-Optimisation: a few Adam steps (optax) on every start, then Levenberg-Marquardt to
-convergence; the noise levels are then estimated from the residuals, the trials reweighted and
-LM run again; the best start is kept. Covariance: `s^2 F^-1` with `F` the Gauss-Newton
+Optimisation: starts from a Latin hypercube; for long trials multiple shooting first (trials cut
+into segments with their own initial states, their continuity defects closed by a rising
+weight: `jsphere._shooting`), otherwise a few Adam steps (optax); then Levenberg-Marquardt to
+convergence; the noise levels are then estimated from the residuals and LM run again; the best
+start is kept; the verdict compares the residuals with the capture's noise floor
+(`jsphere._verdict`). Covariance: `s^2 F^-1` with `F` the Gauss-Newton
 information of `theta` after eliminating the nuisance parameters, mapped to physical units.
 """
 

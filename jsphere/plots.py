@@ -172,7 +172,7 @@ def figure2_study(kin, gait, path) -> None:
     _finish(plt, fig, path)
 
 
-# --- system identification (issue 3: the fit) ---
+# --- system identification: the fit ---
 
 
 def worst_trial(result) -> tuple[int | None, str]:

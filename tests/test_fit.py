@@ -1,4 +1,4 @@
-"""System identification (issue 3): transforms, the fit, its checks, errors and the CLI.
+"""System identification: transforms, the fit, its checks, errors and the CLI.
 
 The default tests share one small problem (2 wheel-speed trials of 1.5 s at 50 Hz, free
 `R_m, j`), so the compiled functions are built once. The full recovery studies (5 trials,
@@ -322,7 +322,7 @@ def test_cli_fit_errors(small_trials, tmp_path, capsys, extra, match):
     assert match in capsys.readouterr().err
 
 
-# ------------------------------------------------------------------ slow: the issue's studies
+# ------------------------------------------------------------------ slow: recovery studies
 
 
 def _study(kind, free, fix_names, n=5, seed=0, durations=(4.0, 8.0), **kw):
