@@ -729,6 +729,9 @@ def _check_options(n_starts, max_iter, adam_steps, seed, sigma_pos, sigma_rot) -
             raise InputError(f"fit: {name} must be a finite number > 0 (or left out to estimate it); got {val!r}.")
 
 
+#: the longest Levenberg-Marquardt step, in the free parameters' scaled units (`theta_scales`:
+#: a factor e^2 for a log-transformed value)
+STEP_MAX = 2.0
 #: the weights of the continuity defects, one level after the other (multiple shooting)
 MU_LEVELS = (1.0, 10.0, 100.0, 1e3, 1e4)
 #: the largest defect [noise levels, `jsphere._shooting.defect_scale`] that counts as closed
@@ -1019,6 +1022,13 @@ def fit(
         cost = lm["cost"]
         while it < max_iter and not converged[int(np.argmin(cost))]:
             dg, dn, pred_n = solve(out, lam)
+            # a step longer than `STEP_MAX` (in the free parameters' scaled units) is shortened:
+            # a start far off can otherwise jump to parameters whose motion takes the ODE solver
+            # `max_steps` steps, and the whole vmapped batch waits for it
+            length = np.max(np.abs(dg) / ts_th, axis=1) if P else np.zeros(S)
+            shrink = np.minimum(1.0, STEP_MAX / np.maximum(length, 1e-300))
+            dg, dn = dg * shrink[:, None], dn * shrink.reshape((S,) + (1,) * (dn.ndim - 1))
+            pred_n = np.where(shrink < 1.0, np.inf, pred_n)  # (the quadratic model's prediction is of the full step)
             th_new, n_new = th + dg, n + dn
             bad = ~np.all(np.isfinite(th_new), 1) | ~np.all(np.isfinite(n_new.reshape(S, -1)), 1)
             th_new = np.where(bad[:, None], th, th_new)
