@@ -25,6 +25,7 @@ def study(paper):
     return jsphere.monte_carlo(paper, GAITS, vary=VARY, n=256, seed=7, batch_size=128, progress=False)
 
 
+@pytest.mark.slow
 def test_stop_spread_equals_linear_sensitivity(paper):
     """R_m ~ N(27.0146 mm, 0.1 mm): the stop-distance sd is the linear sensitivity (~1.09 mm)."""
     res = jsphere.monte_carlo(paper, GAITS, vary=VARY, n=2048, seed=0, batch_size=1024, progress=False)

@@ -74,6 +74,7 @@ def _problem1(p, a):
     return jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(Sines(a)), 1.0, rtol=1e-8, atol=1e-10)
 
 
+@pytest.mark.slow
 def test_jit_vmap_over_inputs_params_and_states(paper):
     A = jnp.array([[0.05, 0.05, 0.05], [0.04, 0.06, 0.05]])
     f = jax.jit(jax.vmap(lambda a: _problem1(paper, a)))

@@ -98,6 +98,7 @@ class Flip(eqx.Module):
         return jnp.where(t < 1.0, self.a, -self.a)
 
 
+@pytest.mark.slow
 def test_batched_equals_single_and_chooses_the_layout():
     """jit(vmap) of the public API with a closure (problem 1 of benchmarks/) against one trial at
     a time: the two layouts agree far below the solver tolerance, and every field comes back."""
