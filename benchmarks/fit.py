@@ -45,6 +45,17 @@ def make_trials(truth, n, durations, kind, seed, rate=100.0):
     return out
 
 
+def metadata() -> dict:
+    """Date, machine, device and versions: the head of the fit benchmarks' JSON."""
+    return {
+        "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
+                    "cpu_count": os.cpu_count(), "loadavg": os.getloadavg()},
+        "device": {"backend": jax.default_backend(), "kind": jax.devices()[0].device_kind, "count": jax.device_count()},
+        "versions": {"jax": jax.__version__, "jsphere": jsphere.__version__, "numpy": np.__version__},
+    }  # fmt: skip
+
+
 def run(kind, n, durations, free, fix_names, seed=0, n_starts=2, progress=True, **kw):
     truth = truth_params()
     trials = make_trials(truth, n, durations, kind, seed)
@@ -84,11 +95,7 @@ def main():
     for w in res.identifiability["warnings"]:
         print("warning:", w)
     doc = {
-        "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-                    "cpu_count": os.cpu_count(), "loadavg": os.getloadavg()},
-        "device": {"backend": jax.default_backend(), "kind": jax.devices()[0].device_kind, "count": jax.device_count()},
-        "versions": {"jax": jax.__version__, "jsphere": jsphere.__version__, "numpy": np.__version__},
+        **metadata(),
         "config": {"kind": args.kind, "trials": args.trials, "duration_s": durations, "samples": sum(len(t.t) for t in trials),
                    "free": args.free, "fix": fix_names, "n_starts": args.n_starts, "seed": args.seed},
         "fit_s_including_compile": elapsed, "iterations": res.iterations, "converged": res.converged,

@@ -22,7 +22,6 @@ import argparse
 import json
 import math
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -37,6 +36,9 @@ import jsphere
 from jsphere import _fit, _shooting
 from jsphere._io import atomic_write_text
 from jsphere._transforms import FreeParams
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from fit import metadata  # noqa: E402
 
 FREE = "r_m[2],j,I[0,0],I[1,1],I[2,2],m0,I0"
 
@@ -133,11 +135,7 @@ def main() -> None:
             f"{u['jacobian_multiple_s'] / u['jacobian_single_s']:>8.2f} {u['linear_algebra_multiple_s'] / u['jacobian_multiple_s']:>10.3f}"
         )
     doc = {
-        "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-                    "cpu_count": os.cpu_count(), "loadavg": os.getloadavg()},
-        "device": {"backend": jax.default_backend(), "kind": jax.devices()[0].device_kind, "count": jax.device_count()},
-        "versions": {"jax": jax.__version__, "jsphere": jsphere.__version__, "numpy": np.__version__},
+        **metadata(),
         "config": {"free": FREE, "segment_s": args.segment, "seed": args.seed, "rate_hz": 100.0, "n_starts": 1},
         "rows": rows,
     }  # fmt: skip
