@@ -5,7 +5,7 @@
 Problem 2 (the paper's acceleration + braking gaits, `theta_max` per trial, `simulate_gaits`
 under `vmap`, since session 7 on the shared path too) is timed in three variants: the default
 (shared steps, components), `batch_steps="per_trial"` (components from 256 trials), and the
-flat layout with per-trial steps (`jsphere._simulate.COMPONENT_LAYOUT = False`: the library
+flat layout with per-trial steps (`jsphere.solve.simulate.COMPONENT_LAYOUT = False`: the library
 before session 7).
 
 Three variants, compiled and timed in the same process: the public API as a user writes it
@@ -14,7 +14,7 @@ API with `batch_steps="per_trial"`, and the session-4 prototype below (benchmark
 `jax.vmap`, diffrax runs one adaptive step-size controller per trial: every step of the batched
 while loop carries per-trial times, step sizes, accept/reject selects and save logic, and runs
 as many iterations as the slowest trial. Here the whole batch is *one* ODE system whose state
-is a tuple of `(batch,)` component vectors (the right-hand side of `jsphere._soa`, as in the
+is a tuple of `(batch,)` component vectors (the right-hand side of `jsphere.solve.batched.components`, as in the
 component layout), integrated by one unbatched `diffeqsolve` with one step size for all trials.
 The error norm is the largest per-trial RMS norm, so every trial meets its own tolerance (the
 shared step is the smallest any trial needs). Ensemble methods of other ODE suites share a step
@@ -45,9 +45,9 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 import jsphere  # noqa: E402
-from jsphere._io import atomic_write_text  # noqa: E402
-from jsphere._params import derive  # noqa: E402
-from jsphere._soa import torque_field_components  # noqa: E402
+from jsphere._runtime.files import atomic_write_text  # noqa: E402
+from jsphere.model.params import derive  # noqa: E402
+from jsphere.solve.batched.components import torque_field_components  # noqa: E402
 from run import public as timings, time_call  # noqa: E402
 
 PH = jnp.array([0.0, 2.1, 4.2])
@@ -87,7 +87,7 @@ def public_solver(p, batch_steps="shared"):
 
 def problem2_rows(p, batches):
     """Problem 2 (`run.problem2`) per batch: shared, per-trial (components), per-trial flat."""
-    import jsphere._simulate as S
+    import jsphere.solve.simulate as S
 
     TH = np.random.default_rng(1).uniform(0.05, 0.15, max(batches))
     rows = []

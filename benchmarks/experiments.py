@@ -48,7 +48,7 @@ def bench(f, a, n=3):
 
 
 ref = None
-print("package default solver:", type(jsphere._simulate.default_solver()).__name__)
+print("package default solver:", type(jsphere.solve.simulate.default_solver()).__name__)
 for name, solver in (("Tsit5", dfx.Tsit5()), ("Dopri8", dfx.Dopri8())):
     f = jax.jit(jax.vmap(lambda a: one(a, solver)))
     for B in (1, 64):

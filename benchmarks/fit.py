@@ -24,7 +24,7 @@ import jax
 import numpy as np
 
 import jsphere
-from jsphere._io import atomic_write_text
+from jsphere._runtime.files import atomic_write_text
 
 #: the parameter set the fit does not know
 TRUTH = {"R_m": 0.029, "j": 3.2e-4, "m0": 0.9, "I0": 0.011, "I": np.diag([0.018, 0.015, 0.025])}

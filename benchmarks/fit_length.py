@@ -33,9 +33,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import jsphere
-from jsphere import _fit, _shooting
-from jsphere._io import atomic_write_text
-from jsphere._transforms import FreeParams
+from jsphere.identify import fit as _fit, shooting as _shooting
+from jsphere._runtime.files import atomic_write_text
+from jsphere.identify.free import FreeParams
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fit import metadata  # noqa: E402

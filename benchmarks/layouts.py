@@ -4,9 +4,9 @@
 
 Problem 1 of `run.py` (paper robot, `K_i = a_i sin(pi t + 2.1 (i - 1))`, 4 s, rtol 1e-8, atol
 1e-10) through the public API, `jax.jit(jax.vmap(lambda a: simulate(...)))`, once with
-`jsphere._simulate.COMPONENT_LAYOUT = False` (every solve carries the flat `(16+N,)` state, as
+`jsphere.solve.simulate.COMPONENT_LAYOUT = False` (every solve carries the flat `(16+N,)` state, as
 before the component layout existed) and once with the default (`True`: under `vmap` the state
-is a tuple of scalar components, `jsphere._soa`). Both variants are compiled and timed in the
+is a tuple of scalar components, `jsphere.solve.batched.components`). Both variants are compiled and timed in the
 same process, alternating, so the ratio is meaningful on a noisy machine. Also: the reverse-mode
 gradient of problem 3 (batch-summed squared final positions w.r.t. 7 parameters) over the
 forward time, both layouts. Prints a table; writes JSON atomically.
@@ -32,8 +32,8 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 import jsphere  # noqa: E402
-from jsphere._io import atomic_write_text  # noqa: E402
-import jsphere._simulate as S  # noqa: E402
+from jsphere._runtime.files import atomic_write_text  # noqa: E402
+import jsphere.solve.simulate as S  # noqa: E402
 
 PH = jnp.array([0.0, 2.1, 4.2])
 

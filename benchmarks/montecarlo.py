@@ -18,7 +18,7 @@ import jax
 import numpy as np
 
 import jsphere
-from jsphere._io import atomic_write_text
+from jsphere._runtime.files import atomic_write_text
 
 ap = argparse.ArgumentParser()
 ap.add_argument("--trials", type=int, default=100_000)

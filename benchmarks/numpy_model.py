@@ -1,7 +1,7 @@
 """An independent plain-numpy right-hand side of the equations of motion (3.4) for the
 scipy baseline of `run.py`.
 
-Written from the paper's formulas (as documented at the top of `jsphere/_dynamics.py`),
+Written from the paper's formulas (as documented at the top of `jsphere/model/dynamics.py`),
 without importing anything from jsphere: only the *numbers* of the parameter set are taken
 from a `RobotParams` (as plain arrays), every derived quantity is recomputed here.
 

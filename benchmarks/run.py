@@ -39,7 +39,7 @@ import scipy  # noqa: E402
 from scipy.integrate import solve_ivp  # noqa: E402
 
 import jsphere  # noqa: E402  (enables float64 in JAX)
-from jsphere._io import atomic_write_text  # noqa: E402
+from jsphere._runtime.files import atomic_write_text  # noqa: E402
 import equinox as eqx  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402

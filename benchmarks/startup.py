@@ -4,7 +4,7 @@ median is reported: single runs vary by ~1 s on a 2-core machine).
 
     python benchmarks/startup.py [--out benchmarks/results-startup.json]
 
-Each run is a new Python process (`python -m jsphere.cli reproduce ...`), timed from the
+Each run is a new Python process (`python -m jsphere.cli.app reproduce ...`), timed from the
 outside (interpreter start, imports, tracing, compilation or cache loads, the solves, the
 figures). Measured in the same run, each with its own empty cache:
 - `default`: the README's command (figures included);
@@ -35,7 +35,7 @@ CONFIGS = {"default": [], "optimize": ["--optimize"], "no-plots": ["--no-plots"]
 def run_once(cache_dir: str, out_dir: str, *extra: str) -> float:
     env = dict(os.environ, JSPHERE_CACHE_DIR=cache_dir, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     env.pop("XLA_FLAGS", None)
-    cmd = [sys.executable, "-m", "jsphere.cli", "reproduce", "--out", out_dir, *extra]
+    cmd = [sys.executable, "-m", "jsphere.cli.app", "reproduce", "--out", out_dir, *extra]
     t = time.perf_counter()
     subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return time.perf_counter() - t
@@ -67,7 +67,7 @@ def main(argv=None) -> int:
         no_cache = run_once(os.path.join(tmp, "unused"), os.path.join(tmp, "out"), "--no-cache")
     d, b = runs["default"], runs["optimize"]
     res = {
-        "command": "python -m jsphere.cli reproduce",
+        "command": "python -m jsphere.cli.app reproduce",
         "runs": runs,
         "no_cache_process_s": no_cache,
         "first_default_over_optimize": d["first_process_s"] / b["first_process_s"],

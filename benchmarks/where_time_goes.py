@@ -38,8 +38,8 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 import jsphere  # noqa: E402
-from jsphere._params import derive  # noqa: E402
-from jsphere._simulate import _torque_field  # noqa: E402
+from jsphere.model.params import derive  # noqa: E402
+from jsphere.solve.simulate import _torque_field  # noqa: E402
 
 PH = jnp.array([0.0, 2.1, 4.2])
 EVALS = 1300

@@ -44,4 +44,4 @@ print(f"Levenberg-Marquardt: {sol.iterations} iterations, residual |r| = {math.s
 print(f"R_m = {values[0] * 1e3:.4f} +- {se[0] * 1e3:.4f} mm   (docs/model.md: 27.0146 mm)")
 print(f"j   = {values[1] * 1e4:.4f} +- {se[1] * 1e4:.4f} e-4 kg m^2   (docs/model.md: 2.7395e-4)")
 print(f"correlation(R_m, j) = {corr:+.3f}")
-assert abs(values[0] - jsphere._params.PAPER_R_M) < 1e-7 and abs(values[1] - jsphere._params.PAPER_J) < 1e-8
+assert abs(values[0] - jsphere.model.params.PAPER_R_M) < 1e-7 and abs(values[1] - jsphere.model.params.PAPER_J) < 1e-8

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 import jsphere
-from jsphere.cli import main
+from jsphere.cli.app import main
 
 ap = argparse.ArgumentParser()
 ap.add_argument("--kind", default="wheel_speeds", choices=["wheel_speeds", "torques"])

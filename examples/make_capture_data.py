@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 
 import jsphere
-from jsphere._io import atomic_write_text
-from jsphere._mocap import default_marker_set
+from jsphere._runtime.files import atomic_write_text
+from jsphere.capture.mocap import default_marker_set
 
 HERE = Path(__file__).resolve().parent
 

@@ -17,7 +17,7 @@ if _os.environ.get("JSPHERE_X64", "1") != "0":
     _jax.config.update("jax_enable_x64", True)
 
 # --- capture data (issue 3) ---
-from ._capture import (
+from .capture.trial import (
     CaptureWarning as CaptureWarning,
     Trial as Trial,
     random_inputs as random_inputs,
@@ -26,7 +26,7 @@ from ._capture import (
     synthetic_trial as synthetic_trial,
     write_trial as write_trial,
 )
-from ._mocap import (
+from .capture.mocap import (
     MarkerData as MarkerData,
     convert_raw as convert_raw,
     markers_to_trial as markers_to_trial,
@@ -44,17 +44,17 @@ from ._mocap import (
 
 # --- end capture data ---
 # --- system identification: the fit ---
-from ._errors import ExitCode as ExitCode, InputError as InputError, SolverFailure as SolverFailure
-from ._fit import (
+from ._runtime.errors import ExitCode as ExitCode, InputError as InputError, SolverFailure as SolverFailure
+from .identify.fit import (
     FitResult as FitResult,
     LeastSquaresResult as LeastSquaresResult,
     fit as fit,
     least_squares as least_squares,
 )
-from ._transforms import FreeParams as FreeParams
+from .identify.free import FreeParams as FreeParams
 
 # --- end system identification ---
-from ._controls import (
+from .controls import (
     Constant as Constant,
     Sampled as Sampled,
     StraightLine as StraightLine,
@@ -64,7 +64,7 @@ from ._controls import (
     kinematic_control as kinematic_control,
     straight_line as straight_line,
 )
-from ._dynamics import (
+from .model.dynamics import (
     accelerations as accelerations,
     dissipation as dissipation,
     energy as energy,
@@ -72,7 +72,7 @@ from ._dynamics import (
     potential_energy as potential_energy,
     power as power,
 )
-from ._gaits import (
+from .gaits.gaits import (
     Gait as Gait,
     SinSquared as SinSquared,
     acceleration as acceleration,
@@ -80,38 +80,38 @@ from ._gaits import (
     simulate_gaits as simulate_gaits,
     turn as turn,
 )
-from ._kinematics import (
+from .model.kinematics import (
     constraint_residuals as constraint_residuals,
     kinematic_wheel_speeds as kinematic_wheel_speeds,
     relative_rate_from_wheel_speeds as relative_rate_from_wheel_speeds,
     rolling_velocity as rolling_velocity,
     wheel_speeds as wheel_speeds,
 )
-from ._montecarlo import (
+from .montecarlo.run import (
     Actuators as Actuators,
     MonteCarloResult as MonteCarloResult,
     MonteCarloWarning as MonteCarloWarning,
     monte_carlo as monte_carlo,
 )
-from ._names import get_value as get_value, parse_name as parse_name, set_value as set_value
-from ._params import RobotParams as RobotParams
-from ._reproduce import reproduce as reproduce, to_figure_frame as to_figure_frame
-from ._simulate import Trajectory as Trajectory, simulate as simulate
-from ._state import State as State
-from ._trajectory import (
+from .model.names import get_value as get_value, parse_name as parse_name, set_value as set_value
+from .model.params import RobotParams as RobotParams
+from .paper.reproduce import reproduce as reproduce, to_figure_frame as to_figure_frame
+from .solve.simulate import Trajectory as Trajectory, simulate as simulate
+from .model.state import State as State
+from .solve.trajectory import (
     energy_along as energy_along,
     power_along as power_along,
     trajectory_residuals as trajectory_residuals,
 )
 # ---- gait optimisation / motion planning (issue 4) ----
-from ._gait_families import (
+from .gaits.families import (
     Smooth as Smooth,
     TiltGait as TiltGait,
     paper_gait as paper_gait,
     smooth_gait as smooth_gait,
     tilt_to_gamma as tilt_to_gamma,
 )
-from ._plan import (
+from .planning.plan import (
     Limits as Limits,
     Objective as Objective,
     Plan as Plan,

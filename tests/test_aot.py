@@ -1,4 +1,4 @@
-"""Exported solves kept on disk (`jsphere._aot`, used by the CLI): same results as the ordinary
+"""Exported solves kept on disk (`jsphere._runtime.export_cache`, used by the CLI): same results as the ordinary
 call, from memory and from the file; no export for calls without a stable key; a damaged file
 is replaced."""
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import jsphere
-from jsphere import _aot
+from jsphere._runtime import export_cache as _aot
 
 
 @pytest.fixture

@@ -54,7 +54,7 @@ def test_interrupt_exits_130(tmp_path):
 
     env = {**os.environ, "PYTHONPATH": str(HERE.parents[1])}
     proc = subprocess.Popen(
-        [sys.executable, "-c", "import sys; from jsphere.cli import console; print('started', flush=True); sys.exit(console())",
+        [sys.executable, "-c", "import sys; from jsphere.cli.app import console; print('started', flush=True); sys.exit(console())",
          "reproduce", "--no-cache", "--no-plots", "--out", str(tmp_path / "out")],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True,
     )  # fmt: skip

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import jsphere
-from jsphere._capture import (
+from jsphere.capture.trial import (
     MIN_VALID_FRAMES,
     RandomSines,
     detect_position_units,
@@ -20,7 +20,7 @@ from jsphere._capture import (
     quat_mul_np,
     trial_to_csv,
 )
-from jsphere._linalg import rotmat
+from jsphere.model.rotations import rotmat
 
 T1 = 1.5
 
@@ -457,7 +457,7 @@ def test_synthetic_trial_round_trips_through_csv(tmp_path, torque_trial):
 
 # --------------------------------------------------------------------------- raw marker exports
 
-from jsphere._mocap import (
+from jsphere.capture.mocap import (
     UP_TO_Z,
     default_marker_set,
     quat_from_rotmat_np,
@@ -752,7 +752,7 @@ def test_inputs_table_errors(tmp_path, markers_truth):
 
 
 def test_cli_synth_and_convert(tmp_path, markers_truth, capsys):
-    from jsphere.cli import main
+    from jsphere.cli.app import main
 
     assert main(["synth", "--out", str(tmp_path / "syn"), "--trials", "1", "--duration", str(T1), "--no-cache"]) == 0
     [f] = sorted((tmp_path / "syn").glob("*.csv"))

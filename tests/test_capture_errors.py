@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 import jsphere
-from jsphere._capture import CaptureWarning, implausible, trial_to_csv
-from jsphere._errors import InputError
-from jsphere._io import refuse_overwrite
-from jsphere.cli import main
+from jsphere.capture.trial import CaptureWarning, implausible, trial_to_csv
+from jsphere._runtime.errors import InputError
+from jsphere._runtime.files import refuse_overwrite
+from jsphere.cli.app import main
 
 DATA = Path(__file__).resolve().parents[1] / "examples" / "data"
 RAW = DATA / "raw"
@@ -265,7 +265,7 @@ def test_broken_c3d_files_are_one_line_before_ezc3d_reads_them(tmp_path, c3d_fil
 
 
 def test_c3d_layout_counts_frames_of_either_storage(tmp_path):
-    from jsphere._mocap import c3d_layout
+    from jsphere.capture.mocap import c3d_layout
     from test_capture import c3d_shell
 
     p = tmp_path / "x.c3d"
@@ -454,7 +454,7 @@ def test_xyzw_quaternion_order_warns(tmp_path, ws01):
 def test_xyzw_detection_at_any_heading(ws01):
     """The platform turned to other headings (the trial rotated about Z): the true order never
     warns; `x, y, z, w` is caught by the lean, the upside-down tilt or the rest pose."""
-    from jsphere._capture import quat_mul_np
+    from jsphere.capture.trial import quat_mul_np
 
     for deg in (0, 90, 180, 250):
         a = np.radians(deg)

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 import jsphere
-from jsphere._dynamics import free_Omega_dot, free_momentum, mass_blocks, required_torques, servo_jump
-from jsphere._params import derive
+from jsphere.model.dynamics import free_Omega_dot, free_momentum, mass_blocks, required_torques, servo_jump
+from jsphere.model.params import derive
 
 
 def random_robot(key, n_wheels=3):

@@ -1,5 +1,5 @@
 """Batched torque- and gait-mode solves with one step sequence for the batch (`batch_steps="shared"`,
-the default under `vmap`; jsphere._ensemble).
+the default under `vmap`; jsphere.solve.batched.dispatch).
 
 Every trial must still be integrated to its own tolerance: the tests compare each trial with a
 tight solve of the same trial, against the error the per-trial controller makes, and check
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import jsphere
-import jsphere._simulate as S
+import jsphere.solve.simulate as S
 
 PH = jnp.array([0.0, 2.1, 4.2])
 
@@ -130,7 +130,7 @@ THETA = jnp.stack([P.j, P.r_m[2], P.I[0, 0]])
 @pytest.mark.slow
 def test_gradient_of_a_batch_sharing_its_steps():
     """The gradient of a batch that shares its steps is the discrete adjoint of the shared solve
-    (`jsphere._shared_rk`, the parameter arrays element by element): central differences of
+    (`jsphere.solve.batched.loop`, the parameter arrays element by element): central differences of
     the same batched solve (their error: the tolerance over the step, ~1e-7 here)."""
     g = jax.jit(jax.grad(lambda th: _theta_loss(th, "shared")))(THETA)
     f = jax.jit(lambda th: _theta_loss(th, "shared"))

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 import jsphere
-from jsphere._fit import _functions, identifiability, nuisance_guess, pack_trials, quat_exp, quat_log, symmetry_directions
-from jsphere._transforms import FreeParams, apply_fixes, expand
-from jsphere.cli import main
+from jsphere.identify.fit import _functions, identifiability, nuisance_guess, pack_trials, quat_exp, quat_log, symmetry_directions
+from jsphere.identify.free import FreeParams, apply_fixes, expand
+from jsphere.cli.app import main
 
 TRUTH = {"R_m": 0.029, "j": 3.2e-4, "m0": 0.9, "I0": 0.011, "I": np.diag([0.018, 0.015, 0.025])}
 FREE = "R_m,j"
@@ -263,7 +263,7 @@ def test_trials_that_do_not_fit_the_robot_are_reported(small_trials):
 
 
 def test_whole_field_and_alias_entries_of_stderr():
-    from jsphere._fit import _assemble_named
+    from jsphere.identify.fit import _assemble_named
 
     p = jsphere.RobotParams.paper()
     fp = FreeParams(p, ["I", "r_m[2]", "j"])

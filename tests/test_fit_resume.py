@@ -4,7 +4,7 @@ checks its output path before any work.
 
 The fits share one tiny problem (one trial of 1 s at 25 Hz, free `R_m, j`, 2 starts), so the
 fit's functions are compiled once for the module (~30 s on 2 cores); each fit then takes ~2 s.
-The kills come from `jsphere._fit._checkpoint_hook`, called inside every checkpoint write
+The kills come from `jsphere.identify.fit._checkpoint_hook`, called inside every checkpoint write
 (after the temporary file is written, and after its rename); the slow test kills a `jsphere
 fit` process with SIGKILL.
 """
@@ -25,10 +25,10 @@ import numpy as np
 import pytest
 
 import jsphere
-from jsphere import _fit
-from jsphere._errors import SolverFailure
-from jsphere._io import dumps_json
-from jsphere.cli import main
+from jsphere.identify import fit as _fit
+from jsphere._runtime.errors import SolverFailure
+from jsphere._runtime.files import dumps_json
+from jsphere.cli.app import main
 
 FREE = "R_m,j"
 OPTS = {"n_starts": 2, "adam_steps": 2, "max_iter": 15}
@@ -282,12 +282,13 @@ def test_cli_exits_4_when_every_start_fails(tiny_trials, failing, tmp_path, caps
 
 
 def _cli(args, env, **kw):
-    return subprocess.run([sys.executable, "-m", "jsphere.cli", *args], env=env, capture_output=True, text=True, **kw)
+    return subprocess.run([sys.executable, "-m", "jsphere.cli.app", *args], env=env, capture_output=True, text=True, **kw)
 
 
 _KILLER = """
 import os, signal, sys
-from jsphere import _fit, cli
+from jsphere import cli
+from jsphere.identify import fit as _fit
 n = {"saved": 0}
 def hook(event, path):
     n[event] = n.get(event, 0) + 1

@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 import jsphere
-from jsphere._errors import EXIT_CODES_HELP, ExitCode
-from jsphere._fit import pack_trials
-from jsphere._verdict import CORRELATED, FAR, MODERATE, headline, judge, lag1, noise_floor
-from jsphere.cli import main
+from jsphere._runtime.errors import EXIT_CODES_HELP, ExitCode
+from jsphere.identify.fit import pack_trials
+from jsphere.identify.verdict import CORRELATED, FAR, MODERATE, headline, judge, lag1, noise_floor
+from jsphere.cli.app import main
 from jsphere.plots import worst_trial
 
 TRUTH = jsphere.RobotParams.paper().replace(R_m=0.029, j=3.2e-4)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import jsphere
-from jsphere._params import derive
+from jsphere.model.params import derive
 
 
 def test_user_gait_with_yaw_ends_stationary(paper):

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import jsphere._io as jio
+import jsphere._runtime.files as jio
 from jsphere import RobotParams
 
 FIELDS = ("R0", "m0", "I0", "Rw", "wheel_r", "wheel_n", "wheel_alpha", "m", "I", "r_m", "j", "g", "c_roll", "c_axle")
@@ -263,7 +263,7 @@ def test_atomic_writes_get_the_usual_permissions(tmp_path):
 
 def test_read_trials_skips_hidden_temporary_files(tmp_path):
     from jsphere import read_trials, write_trial
-    from jsphere._capture import Trial
+    from jsphere.capture.trial import Trial
 
     t = np.linspace(0.0, 1.0, 11)
     trial = Trial(t, 0.01 * t, 0.0 * t, np.tile([1.0, 0.0, 0.0, 0.0], (11, 1)), np.zeros((11, 3)), "torques", name="a")
@@ -331,7 +331,7 @@ def test_json_is_strict():
 
     import numpy as np
 
-    from jsphere._io import dumps_json
+    from jsphere._runtime.files import dumps_json
 
     def strict(text):
         return json.loads(text, parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))

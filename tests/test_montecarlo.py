@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 import jsphere
-from jsphere._errors import InputError
-from jsphere._montecarlo import MonteCarloWarning
+from jsphere._runtime.errors import InputError
+from jsphere.montecarlo.run import MonteCarloWarning
 
 VARY = {"r_m[2]": ("normal", -0.0270146, 1e-4)}
 GAITS = [jsphere.acceleration(), jsphere.braking()]
@@ -114,7 +114,7 @@ def test_torque_replay_without_errors_reproduces_the_plan(paper):
 
 
 def test_cli_montecarlo(tmp_path, study, capsys):
-    from jsphere.cli import main
+    from jsphere.cli.app import main
 
     cfg = tmp_path / "study.toml"
     cfg.write_text(
@@ -256,7 +256,7 @@ def test_study_values_are_checked_before_any_work(paper, kwargs, match):
 
 def test_a_negative_R_m_draw_is_rejected(paper):
     """`R_m` is a distance: a negative draw (which would flip r_m) is rejected with its own reason."""
-    from jsphere._montecarlo import REASONS, _draw_code
+    from jsphere.montecarlo.run import REASONS, _draw_code
 
     codes = [int(_draw_code(paper, ("R_m",), jnp.array([v]))) for v in (0.02, -0.02, 0.2)]
     assert [REASONS[c] for c in codes] == ["valid", "R_m <= 0", "|r_m| >= R0"]
@@ -317,7 +317,7 @@ def test_corrupt_manifest_and_orphan_batches_are_refused(paper, tmp_path):
 def test_cli_reports_rejected_draws(tmp_path, wide, capsys):
     """The command line says how many draws were rejected and why; a study whose every draw is
     rejected is bad input (exit 2)."""
-    from jsphere.cli import main
+    from jsphere.cli.app import main
 
     cfg = tmp_path / "wide.toml"
     cfg.write_text('trials = 256\nseed = 7\nbatch_size = 128\n[vary]\n"r_m[2]" = ["normal", -0.0270146, 0.1]\n')
@@ -333,7 +333,7 @@ def test_cli_reports_rejected_draws(tmp_path, wide, capsys):
 
 
 def _cli(folder: Path, study: Path, env: dict) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "jsphere.cli", "montecarlo", str(study), "--out", str(folder), "--no-plots"],
+    return subprocess.Popen([sys.executable, "-m", "jsphere.cli.app", "montecarlo", str(study), "--out", str(folder), "--no-plots"],
                             env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)  # fmt: skip
 
 

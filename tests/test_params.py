@@ -12,8 +12,8 @@ import pytest
 
 import jsphere
 from jsphere import RobotParams
-from jsphere._errors import InputError
-from jsphere._params import RULES, derive, rule_code, rule_reason
+from jsphere._runtime.errors import InputError
+from jsphere.model.params import RULES, derive, rule_code, rule_reason
 
 SQ2 = np.sqrt(2.0)
 PHIS = 2.0 * np.pi * np.arange(3) / 3.0  # phi_i = 2 pi (i - 1)/3
@@ -406,7 +406,7 @@ def test_from_dict_refuses_what_is_not_numbers_of_the_field_s_shape(paper, field
 
 
 def test_parameter_file_with_a_boolean_or_a_string_names_the_file_and_the_field(paper, tmp_path):
-    text = jsphere._io.dumps_toml(paper.to_dict())
+    text = jsphere._runtime.files.dumps_toml(paper.to_dict())
     for line, says in (("m = true", "RobotParams.m: the value must be a number, not a boolean"), ('m = "2.5"', "RobotParams.m: the value must be a number, not a string ('2.5'")):
         path = tmp_path / "robot.toml"
         path.write_text(re.sub(r"(?m)^m = .*$", line, text))

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 import jsphere
-from jsphere._errors import InputError
-from jsphere._plan import rollout
+from jsphere._runtime.errors import InputError
+from jsphere.planning.plan import rollout
 
 # small search: 4 Fourier terms per tilt axis, 2 spin terms, 32 RK4 steps
 SMALL = jsphere.PlanSettings(n_tilt=4, n_spin=2, n_steps=32, adam_steps=60, lm_steps=30)
@@ -167,7 +167,7 @@ def test_target_sweep_2m_square_and_replays(paper, half):
 
 @pytest.mark.slow
 def test_cli_plan(tmp_path):
-    from jsphere.cli import main
+    from jsphere.cli.app import main
 
     out = tmp_path / "plan.csv"
     rc = main(

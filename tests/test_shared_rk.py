@@ -1,4 +1,4 @@
-"""The shared-step Runge-Kutta loop behind batched solves (`jsphere._shared_rk`): its methods are
+"""The shared-step Runge-Kutta loop behind batched solves (`jsphere.solve.batched.loop`): its methods are
 diffrax's own tableaus and dense output, its step-size rule diffrax's PID defaults. Checked on
 problems with known solutions, against `diffrax.diffeqsolve`, and on its failure modes."""
 
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import jsphere
-import jsphere._shared_rk as R
-import jsphere._simulate as S
+import jsphere.solve.batched.loop as R
+import jsphere.solve.simulate as S
 
 W = jnp.array([1.0, 2.0, 3.5, 5.0])  # one oscillator frequency per trial
 TS = jnp.linspace(0.0, 3.0, 7)

@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 
 import jsphere
-from jsphere import _fit, _shooting
-from jsphere._controls import Sampled
-from jsphere._transforms import FreeParams
+from jsphere.identify import fit as _fit, shooting as _shooting
+from jsphere.controls import Sampled
+from jsphere.identify.free import FreeParams
 
 FREE7 = "r_m[2],j,I[0,0],I[1,1],I[2,2],m0,I0"
 
@@ -238,7 +238,7 @@ def test_long_trials_from_another_robot_fit_within_three_standard_errors(tmp_pat
 def test_a_robot_the_model_cannot_describe_is_a_misfit_with_exit_6(tmp_path, capsys):
     """Trials from a robot with a fourth wheel's mass (0.25 kg) on one side of the platform:
     its centre of mass leaves the axis, which the seven free parameters cannot follow."""
-    from jsphere.cli import main
+    from jsphere.cli.app import main
 
     base = truth_robot()
     dm, at = 0.25, np.array([0.1, 0.0, -0.03])

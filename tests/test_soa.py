@@ -1,7 +1,7 @@
 """The component ("struct of arrays") layout used by batched torque-mode solves.
 
 `simulate` runs a flat `(16+N,)` state for a single trial and a tuple of scalar components
-under `vmap` (jsphere._soa, chosen by `custom_vmap`). These tests check that the two layouts
+under `vmap` (jsphere.solve.batched.components, chosen by `custom_vmap`). These tests check that the two layouts
 compute the same field and the same motions, and that every transformation a user may wrap
 around `simulate` still works and gives the same derivatives.
 """
@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 import jsphere
-import jsphere._simulate as S
-from jsphere._params import derive
-from jsphere._simulate import _torque_field, _torque_field_soa
-from jsphere._soa import from_components, to_components
+import jsphere.solve.simulate as S
+from jsphere.model.params import derive
+from jsphere.solve.simulate import _torque_field, _torque_field_soa
+from jsphere.solve.batched.components import from_components, to_components
 
 PH = jnp.array([0.0, 2.1, 4.2])
 
@@ -66,9 +66,9 @@ def test_component_field_equals_flat_field(n_wheels, damping):
 @pytest.mark.parametrize("n_wheels,damping", [(3, True), (4, False)])
 def test_gait_component_field_equals_flat_field(n_wheels, damping):
     """The gait-mode field on components (batched `simulate_gaits`) against `_gait_field`."""
-    from jsphere._gaits import _gait_field, _gait_field_soa
-    from jsphere._kinematics import rest_attitude
-    from jsphere._linalg import rotation_between
+    from jsphere.gaits.gaits import _gait_field, _gait_field_soa
+    from jsphere.model.kinematics import rest_attitude
+    from jsphere.model.rotations import rotation_between
 
     rng = np.random.default_rng(7 + n_wheels)
     p = _random_robot(20 + n_wheels, n_wheels, damping)

@@ -1,0 +1,146 @@
+"""Ahead-of-time exported solves, kept on disk, so that a second process skips tracing.
+
+JAX's persistent compilation cache skips XLA's compilation in a second process, but not the
+tracing and lowering that produce its key: for `jsphere reproduce` these took ~5-6 s of a
+~10 s second run (four `diffeqsolve` traces, benchmarks/NOTES.md). Here a compiled entry point
+(`_simulate`, `_simulate_gaits`) called with concrete inputs is exported once with
+`jax.export` (which cannot serialise host callbacks: the CLI switches equinox's run-time
+checks to their `nan` mode) and serialised to `<cache>/aot/<key>.jaxexport`; later calls, in
+this process or the next, run the deserialised program, whose executable then comes from the
+compilation cache. (Keeping the executable itself, `jax.experimental.serialize_executable`,
+saved ~0.5 s more but broke later, unrelated programs of the same process on the CI machine,
+"NOT_FOUND: Function ... not found": not done, benchmarks/NOTES.md, session 7.)
+
+The key hashes everything the program depends on: the entry point's name, the source of every
+`jsphere` module, the versions of jax, jaxlib, diffrax and equinox, the backend and float
+precision, the tree structure of the arguments, the shapes and dtypes of their arrays, and the
+values of their non-array parts. A call whose non-array parts have no stable value (a
+`lambda`, a function defined outside jsphere, any object printed with its address) is not
+exported: it runs as usual. Off unless `enable(path)` was called (the CLI does, next to the
+compilation cache); any failure of the exported path falls back to the ordinary call.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .files import atomic_write
+from .arrays import under_jit
+
+_DIR: Path | None = None
+_LOADED: dict[str, Callable] = {}
+_FAILED: set[str] = set()  # keys whose export failed in this process (e.g. host callbacks)
+_ENVIRONMENT: str | None = None
+_PLAIN = (bool, int, float, complex, str, type(None))
+_FUNCTION_MODULES = ("jsphere.", "jax.", "jax", "numpy")
+
+
+def enable(path: str | os.PathLike | None) -> None:
+    """Keep exported programs under `path/aot` (`None` switches it off)."""
+    global _DIR
+    _DIR = None if path is None else Path(path) / "aot"
+    _LOADED.clear()
+    _FAILED.clear()
+
+
+def _environment() -> str:
+    """What every exported program depends on besides its arguments (computed once): the
+    source of every jsphere module, library versions, backend and float precision."""
+    global _ENVIRONMENT
+    if _ENVIRONMENT is None:
+        import diffrax
+        import jaxlib
+
+        h = hashlib.sha256()
+        package = Path(__file__).resolve().parent.parent
+        for f in sorted(package.rglob("*.py")):
+            h.update(f.relative_to(package).as_posix().encode() + b"\0" + f.read_bytes())
+        for item in (jax.__version__, jaxlib.__version__, diffrax.__version__, eqx.__version__, jax.default_backend()):
+            h.update(str(item).encode() + b"\0")
+        _ENVIRONMENT = h.hexdigest()
+    return _ENVIRONMENT
+
+
+def _stable(x: Any) -> str | None:
+    """A process-independent text for a non-array leaf, or `None` if it has none."""
+    if isinstance(x, _PLAIN):
+        return f"{type(x).__name__}:{x!r}"
+    if isinstance(x, np.dtype):
+        return f"dtype:{x}"
+    mod, qual = getattr(x, "__module__", None), getattr(x, "__qualname__", None)
+    if callable(x) and isinstance(mod, str) and isinstance(qual, str) and "<" not in qual:
+        if mod == "jsphere" or mod.startswith(_FUNCTION_MODULES):
+            return f"fn:{mod}.{qual}"
+    return None
+
+
+def _key(name: str, leaves, treedef, static) -> str | None:
+    s_leaves, s_def = jax.tree_util.tree_flatten(static)
+    parts = [_stable(x) for x in s_leaves]
+    if any(p is None for p in parts):
+        return None
+    tree = f"{treedef}|{s_def}"
+    if " at 0x" in tree:  # an object identified by its address
+        return None
+    h = hashlib.sha256()
+    for item in (
+        "jsphere-aot-1", name, _environment(), str(jax.config.jax_enable_x64), tree, *parts,
+        *(f"{np.shape(x)}:{jnp.result_type(x)}:{bool(getattr(x, 'weak_type', False))}" for x in leaves),
+    ):  # fmt: skip
+        h.update(str(item).encode() + b"\0")
+    return h.hexdigest()[:40]
+
+
+def call(name: str, fn: Callable, rebuild: Callable, *args):
+    """`fn(*args)`, through an exported program when enabled and the call has a stable key.
+
+    `fn` returns an `equinox.Module` of arrays; `rebuild(leaves)` makes it again from its leaves
+    (its tree structure is not serialised).
+    """
+    if _DIR is None:
+        return fn(*args)
+    dyn, static = eqx.partition(args, eqx.is_array)
+    leaves, treedef = jax.tree_util.tree_flatten(dyn)
+    if any(isinstance(x, jax.core.Tracer) for x in leaves) or under_jit():
+        return fn(*args)  # traced inputs, or inside a user's jit: nothing to export
+    key = _key(name, leaves, treedef, static)
+    if key is None or key in _FAILED:
+        return fn(*args)
+    try:
+        run = _LOADED.get(key) or _load_or_export(key, fn, treedef, static, leaves)
+        return rebuild(run(*leaves))
+    except Exception as e:  # noqa: BLE001 - the exported path is an optimisation only
+        _FAILED.add(key)
+        print(f"jsphere: not exporting {name} ({type(e).__name__}: {e}); running it directly", file=sys.stderr)
+        return fn(*args)
+
+
+def _load_or_export(key, fn, treedef, static, leaves) -> Callable:
+    path = _DIR / f"{key}.jaxexport"
+    exported = None
+    if path.exists():
+        try:
+            exported = jax.export.deserialize(bytearray(path.read_bytes()))
+        except Exception:  # noqa: BLE001 - a truncated or foreign file: export it again
+            exported = None
+    if exported is None:
+
+        def flat(*lv):
+            out = fn(*eqx.combine(jax.tree_util.tree_unflatten(treedef, lv), static))
+            return jax.tree_util.tree_leaves(out)
+
+        avals = [jax.ShapeDtypeStruct(np.shape(x), jnp.result_type(x), weak_type=bool(getattr(x, "weak_type", False))) for x in leaves]
+        exported = jax.export.export(jax.jit(flat))(*avals)
+        atomic_write(path, lambda tmp: Path(tmp).write_bytes(bytes(exported.serialize())), suffix=".tmp")
+    run = jax.jit(exported.call)
+    _LOADED[key] = run
+    return run

@@ -1,0 +1,3 @@
+"""The `jsphere` command line."""
+
+from .app import console as console, main as main

@@ -1,0 +1,5 @@
+import sys
+
+from .app import console
+
+sys.exit(console())

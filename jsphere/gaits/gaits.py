@@ -1,0 +1,423 @@
+"""Control by gaits (Section 4): prescribed `gamma(t)`, `omega_gamma(t)`; `Omega(t)` from the
+control-free equation; torques `K(t)` and wheel rates `chi_dot(t)` as outputs.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Callable, Sequence
+
+import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from .._runtime import export_cache as _aot
+from ..solve import simulate as _simulate
+from ..controls import Constant
+from ..model.dynamics import free_Omega_dot, required_torques
+from .._runtime.checks import finite
+from .._runtime.errors import InputError
+from ..model.kinematics import rest_attitude
+from ..model.rotations import rotation_between, rotmat
+from ..model.linalg import cross, matvec
+from .._runtime.arrays import as_array
+from ..model.params import RobotParams, derive
+from ..solve.simulate import (
+    DEFAULT_TOLERANCES,
+    Trajectory,
+    _kin_rates,
+    _rebuild,
+    _traced,
+    assemble,
+    batch_layout,
+    by_layout,
+    default_solver,
+    raise_on_failure,
+    solve_segments,
+    tolerances,
+)
+from ..solve.batched.components import gait_field_components, unit
+from ..model.state import State
+
+
+def _real(x):
+    """A float array of the default float dtype (strongly typed), so that Python floats and
+    NumPy/JAX scalars give the same compiled function."""
+    dtype = x.dtype if hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.floating) else jnp.result_type(float)
+    return as_array(x, dtype)
+
+
+class SinSquared(eqx.Module):
+    """`amplitude * sin^2(pi t / period)`: the paper's tilt profile of (5.1), (5.3), (5.6).
+
+    Starts and ends (at whole multiples of `period`) with zero value and zero rate, as the
+    Proposition of Section 4 requires.
+    """
+
+    amplitude: Float[Array, ""] = eqx.field(converter=_real)
+    period: Float[Array, ""] = eqx.field(converter=_real, default=1.0)
+
+    def __call__(self, t):
+        return self.amplitude * jnp.sin(jnp.pi * t / self.period) ** 2
+
+
+def _zero(t):
+    return jnp.zeros_like(t)
+
+
+class Gait(eqx.Module):
+    """A manoeuvre of Section 4 on `[0, T]`, given by the Euler angles of (4.2) and the spin
+    of the platform about the vertical:
+
+        gamma(t) = Q_m (sin theta cos phi, sin theta sin phi, cos theta),   omega_gamma(t),
+
+    with `Q_m` the rest attitude (the identity for the paper's robot). The platform's angular
+    velocity follows as `omega = gamma omega_gamma + gamma_dot x gamma` (Proposition).
+
+    `theta`, `phi`, `omega_gamma` are JAX-traceable functions of the gait's local time
+    `t in [0, T]`; they may be equinox Modules holding arrays (as `SinSquared` does), so that
+    gradients and vmap over gait parameters work. For the robot to start and end on
+    stationary motions, `theta`, `theta_dot` and `omega_gamma` should vanish at 0 and T.
+    """
+
+    theta: Callable
+    phi: Callable
+    omega_gamma: Callable
+    T: Float[Array, ""]
+
+    def __init__(self, theta: Callable, phi: Callable | float = 0.0, omega_gamma: Callable | None = None, T: float = 2.0):
+        finite("Gait", "phi", phi, unit="rad")
+        self.theta = theta
+        self.phi = phi if callable(phi) else Constant(_real(phi))
+        self.omega_gamma = omega_gamma if omega_gamma is not None else _zero
+        self.T = _real(T)
+        if not isinstance(self.T, jax.core.Tracer) and not 0 < float(self.T) < math.inf:
+            raise InputError(f"Gait.T must be a positive duration in seconds; got {float(self.T)}.")
+
+    def gamma(self, Qm, t):
+        """`gamma(t)` of (4.2), rotated to the robot's rest attitude by `Q_m`."""
+        th, ph = self.theta(t), self.phi(t)
+        st = jnp.sin(th)
+        return matvec(Qm, jnp.stack([st * jnp.cos(ph), st * jnp.sin(ph), jnp.cos(th)]))
+
+    def kinematics(self, Qm, t):
+        """`(gamma, omega, omega_dot)` at local time `t` (derivatives by forward-mode autodiff)."""
+
+        def omega_fn(s):
+            g, g_dot = jax.jvp(lambda u: self.gamma(Qm, u), (s,), (jnp.ones_like(s),))
+            return g * self.omega_gamma(s) + cross(g_dot, g), g
+
+        (omega, gamma), (omega_dot, _) = jax.jvp(omega_fn, (t,), (jnp.ones_like(t),))
+        return gamma, omega, omega_dot
+
+    def kinematics_components(self, Qm, t) -> tuple:
+        """`kinematics` as a 9-tuple of scalars `(gamma, omega, omega_dot)`, for batched solves:
+        under `vmap` every component is one contiguous vector (~1.6x faster at 1024 trials
+        than the stacked 3-vectors, benchmarks/NOTES.md session 7). A subclass that overrides
+        `gamma` is differentiated through its own `gamma`."""
+        if type(self).gamma is Gait.gamma:
+
+            def gamma(u):
+                th, ph = self.theta(u), self.phi(u)
+                st = jnp.sin(th)
+                v = (st * jnp.cos(ph), st * jnp.sin(ph), jnp.cos(th))
+                return tuple(Qm[i, 0] * v[0] + Qm[i, 1] * v[1] + Qm[i, 2] * v[2] for i in range(3))
+        else:
+
+            def gamma(u):
+                g = self.gamma(Qm, u)
+                return (g[0], g[1], g[2])
+
+        def omega_fn(s):
+            g, g_dot = jax.jvp(gamma, (s,), (jnp.ones_like(s),))
+            og = self.omega_gamma(s)
+            c = (g_dot[1] * g[2] - g_dot[2] * g[1], g_dot[2] * g[0] - g_dot[0] * g[2], g_dot[0] * g[1] - g_dot[1] * g[0])
+            return tuple(g[i] * og + c[i] for i in range(3)), g
+
+        (omega, g), (omega_dot, _) = jax.jvp(omega_fn, (t,), (jnp.ones_like(t),))
+        return g + omega + omega_dot
+
+
+def _negative(x):
+    """`-x`, by NumPy for a Python or NumPy value (no compiled program)."""
+    return -x if isinstance(x, (jax.Array, jax.core.Tracer)) else -np.asarray(x)
+
+
+def _check_sin2_gait(name, theta_max, phi, T, period):
+    """The arguments of a sin^2 gait: finite numbers, `T` a whole multiple of `period`."""
+    finite(name, "theta_max", theta_max, unit="rad")
+    finite(name, "phi", phi, unit="rad")
+    finite(name, "T", T, unit="s")
+    finite(name, "period", period, positive=True, unit="s")
+    _check_period(T, period, name)
+
+
+def _check_period(T, period, name):
+    if isinstance(T, jax.core.Tracer) or isinstance(period, jax.core.Tracer):
+        return
+    n = float(T) / float(period)
+    if abs(n - round(n)) > 1e-9 or round(n) < 1:
+        raise ValueError(
+            f"{name}: T = {float(T)} s must be a whole multiple of the sin^2 period {float(period)} s, "
+            "or gamma(T) != gamma(0) and the robot does not end on a stationary motion."
+        )
+
+
+def acceleration(theta_max: float = 0.1, phi: float = 0.0, T: float = 2.0, *, period: float = 1.0) -> Gait:
+    """Acceleration (5.1): `theta = theta_max sin^2(pi t)`, `phi = phi_0`, `omega_gamma = 0`.
+
+    For the paper's robot and `phi = 0`, accelerates from rest to `Omega = (0, 0.864, 0)` 1/s,
+    i.e. rolling along the fixed `+X` axis at 0.1296 m/s.
+    """
+    _check_sin2_gait("acceleration", theta_max, phi, T, period)
+    return Gait(theta=SinSquared(theta_max, period), phi=phi, T=T)
+
+
+def braking(theta_max: float = 0.1, phi: float = 0.0, T: float = 2.0, *, period: float = 1.0) -> Gait:
+    """Braking (5.3): `theta = -theta_max sin^2(pi t)`, `phi = phi_0`, `omega_gamma = 0`."""
+    _check_sin2_gait("braking", theta_max, phi, T, period)
+    return Gait(theta=SinSquared(_negative(theta_max), period), phi=phi, T=T)
+
+
+def turn(theta_max: float = 0.1, phi: float = math.pi / 2, T: float = 2.0, *, period: float = 1.0) -> Gait:
+    """Turn (5.6): `theta = theta_max sin^2(pi t)`, `phi = pi/2`, `omega_gamma = 0`: adds a
+    velocity at right angles to the motion after (5.1)."""
+    _check_sin2_gait("turn", theta_max, phi, T, period)
+    return Gait(theta=SinSquared(theta_max, period), phi=phi, T=T)
+
+
+# ----------------------------------------------------------------------- integration
+
+
+def _gait_field(t, z, args):
+    p, d, (gait, Qm), a, _ = args
+    gamma, omega, omega_dot = gait.kinematics(Qm, t - a)
+    Omega = z[11:14]
+    Omega_dot = free_Omega_dot(p, d, gamma, omega, Omega, omega_dot)
+    # positions use the prescribed gamma(t); q is integrated with the same omega(t)
+    dq, dqs, dxy = _kin_rates(p, z, rotmat(z[0:4]), gamma, omega, Omega)
+    chi_dot = -matvec(d.Sk, omega - Omega)
+    return jnp.concatenate([dq, dqs, omega_dot, Omega_dot, dxy, chi_dot])
+
+
+def _gait_inputs(t, args):
+    """`(gamma, omega, omega_dot)` the gait prescribes at time `t`, as a 9-tuple of scalars
+    (the inputs of `_gait_field_soa`)."""
+    _, _, (gait, Qm), a, _ = args
+    return gait.kinematics_components(Qm, t - a)
+
+
+def _gait_field_soa(t, y, args, kin=None):
+    """`_gait_field` on a tuple of scalar components (`jsphere.solve.batched.components`), for batched solves;
+    `kin`: the gait's `(gamma, omega, omega_dot)` as a 9-tuple, if the caller has evaluated it."""
+    return gait_field_components(args[0], args[1], _gait_inputs(t, args) if kin is None else kin, y, unit(t))
+
+
+def _gait_outputs(p, d, control, t, z, a, b):
+    gait, Qm = control
+    gamma, omega, omega_dot = gait.kinematics(Qm, t - a)
+    Omega = z[11:14]
+    Omega_dot = free_Omega_dot(p, d, gamma, omega, Omega, omega_dot)
+    K = required_torques(p, d, gamma, omega, Omega, omega_dot, Omega_dot)
+    return omega, -matvec(d.Sk, omega - Omega), K
+
+
+def _rolling_direction(gait: Gait, Qm):
+    """Horizontal direction of the shell's angular velocity a gait produces: `Q_m (-sin phi,
+    cos phi, 0)` at the gait's midpoint."""
+    ph = gait.phi(0.5 * gait.T)
+    return matvec(Qm, jnp.stack([-jnp.sin(ph), jnp.cos(ph), jnp.zeros_like(ph)]))
+
+
+#: Tolerances `(rtol, atol)` of `simulate_gaits` by the parameters' precision when none are
+#: given (`jsphere.solve.simulate.tolerances`).
+GAIT_TOLERANCES = {**DEFAULT_TOLERANCES, "float64": (1e-10, 1e-12)}
+
+
+def simulate_gaits(
+    params: RobotParams,
+    gaits: Sequence[Gait],
+    *,
+    Omega0: Float[ArrayLike, "3"] = (0.0, 0.0, 0.0),
+    alpha0: Float[ArrayLike, "3"] = (1.0, 0.0, 0.0),
+    beta0: Float[ArrayLike, "3"] = (0.0, 1.0, 0.0),
+    x0: float = 0.0,
+    y0: float = 0.0,
+    ts: Float[ArrayLike, " T"] | None = None,
+    reset: bool | Sequence = False,
+    rate: float = 100.0,
+    rtol: float | None = None,
+    atol: float | None = None,
+    solver: dfx.AbstractSolver | None = None,
+    max_steps: int = 16384,
+    throw: bool = True,
+    adjoint: dfx.AbstractAdjoint | None = None,
+    batch_steps: str = "shared",
+) -> Trajectory:
+    """Execute a sequence of gaits (Section 4) and return the motion, torques and wheel rates.
+
+    Within each gait, `gamma(t)` and `omega(t)` are prescribed; `Omega(t)` is integrated from
+    the control-free sum of the two equations of (3.4); `K(t)` follows from the second
+    equation (least-norm for `N > 3` wheels); `chi_dot(t)` from (2.4); `x, y` from (2.2),
+    (2.3); `alpha, beta` from the Poisson equations.
+
+    **Arguments:**
+    - `gaits`: a list of `Gait`s, executed one after the other.
+    - `Omega0, alpha0, beta0, x0, y0`: the initial stationary motion ((5.2) by default: at rest,
+      platform axes = fixed axes). `alpha0 x beta0` must equal the first gait's `gamma(0)`.
+    - `ts`: global output times. Default: each gait sampled at `rate` Hz on its own
+      `[start, end]`, so a boundary time appears twice (left and right limits of `K`).
+    - `reset`: `False` (default): each gait starts from the previous gait's end state.
+      `True`: the paper's (5.4)/(5.7) convention before every gait after the first: `alpha,
+      beta` are reset to `alpha0, beta0`, and `Omega` is replaced by its projection onto the
+      span of the rolling directions of the gaits executed so far (dropping the spin about
+      the vertical and the sideways drift caused by the wheels' inertia). A sequence (one
+      entry per boundary) mixes `None`/`False` (continue), `True` (as above), or an explicit
+      `Omega` 3-vector (with `alpha, beta` reset too), e.g. `(-0.868, 0.852, 0)` of (5.7).
+    - `rtol`, `atol`: tolerances. Default 1e-10, 1e-12 (tight enough for 1e-8 agreement of
+      `Omega, K`); with float32 parameters 1e-5, 1e-7 (`GAIT_TOLERANCES`; a float32 `rtol`
+      below 1e-5 warns, as in `simulate`).
+    - `batch_steps`: under `jax.vmap`, `"shared"` (default) integrates a batch of at least 32
+      trials with one step sequence on contiguous components (`jsphere.solve.batched.dispatch`; each
+      trial still meets its tolerance), `"per_trial"` gives every trial its own steps (in
+      lockstep, in the same loop: a trial's result does not depend on its batch), as
+      `simulate` does.
+
+    Returns a `Trajectory`; `segment` tells which gait each sample belongs to.
+    """
+    gaits = list(gaits)
+    if not gaits or not all(isinstance(g, Gait) for g in gaits):
+        raise TypeError("simulate_gaits: gaits must be a non-empty list of jsphere.Gait (e.g. [acceleration(), braking()]).")
+    nb = len(gaits) - 1
+    if isinstance(reset, (bool, np.bool_)):
+        resets = [bool(reset)] * nb
+    else:
+        resets = list(reset)
+        if len(resets) != nb:
+            raise ValueError(f"simulate_gaits: reset needs one entry per gait boundary ({nb}); got {len(resets)}.")
+    dt = params.R0.dtype
+    rtol, atol = tolerances(dt, rtol, atol, GAIT_TOLERANCES, where="simulate_gaits")
+    initial = tuple(as_array(v, dt) for v in (alpha0, beta0, Omega0, x0, y0))
+    _check_start(params, gaits[0], initial[0], initial[1])
+
+    if ts is None:
+        if any(isinstance(g.T, jax.core.Tracer) for g in gaits):
+            raise ValueError("simulate_gaits: pass `ts` when gait durations are traced (under jit/grad).")
+        starts = np.cumsum([0.0] + [float(g.T) for g in gaits])[:-1]
+        grids = [a + np.linspace(0.0, float(g.T), max(2, int(round(float(g.T) * rate)) + 1)) for g, a in zip(gaits, starts)]
+        ts_out = as_array(np.concatenate(grids), dt)
+    else:
+        ts_out = as_array(ts, dt)
+    for i, r in enumerate(resets):
+        if not (r is None or isinstance(r, bool)) and np.shape(r) != (3,):
+            raise ValueError(f"simulate_gaits: reset[{i}] must be None, True/False or an Omega 3-vector; got shape {np.shape(r)}.")
+    # one compiled function per number of gaits: reset modes and values are data
+    modes = as_array([0 if (r is None or r is False) else 1 if r is True else 2 for r in resets], np.int32)
+    values = as_array([np.zeros(3) if (r is None or isinstance(r, bool)) else r for r in resets] if nb else np.zeros((0, 3)), dt)
+    if values.shape != (nb, 3):
+        raise ValueError(f"simulate_gaits: an explicit reset must be an Omega 3-vector; got shapes {values.shape}.")
+    resets = (modes, values)
+    # gait coefficients in the parameters' precision (float32 robots stay float32)
+    gaits = jax.tree_util.tree_map(
+        lambda x: x.astype(dt) if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) and x.dtype != dt else x, gaits
+    )
+    if batch_steps not in ("shared", "per_trial"):
+        raise ValueError(f"simulate_gaits: batch_steps must be 'shared' or 'per_trial'; got {batch_steps!r}.")
+    traj = _solve_gaits(
+        params, gaits, initial, ts_out, resets, solver or default_solver(), rtol, atol, max_steps,
+        adjoint or dfx.RecursiveCheckpointAdjoint(), batch_layout(batch_steps, throw),
+    )  # fmt: skip
+    return raise_on_failure(traj, throw)
+
+
+def _solve_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, max_steps, adjoint, batch_steps):
+    """`_simulate_gaits` with the state layout chosen by batching, as `jsphere.solve.simulate._solve`
+    does for torques: the flat state for a single call, contiguous components (and one step
+    sequence, with `batch_steps="shared"`) under `vmap`; reverse mode through `_reverse`."""
+    flat = (solver, rtol, atol, max_steps, adjoint)
+    args = (params, gaits, initial, ts_out, resets)
+    if not _simulate.COMPONENT_LAYOUT or not _traced(args) or type(adjoint) not in (dfx.RecursiveCheckpointAdjoint, dfx.ForwardMode):
+        return _aot.call("simulate_gaits", _simulate_gaits, _rebuild, *args, *flat)
+    return by_layout(_simulate_gaits, args, flat, batch_steps)
+
+
+@eqx.filter_jit  # one compiled program per kind of gait, not one per operation
+def _start_gamma(r_m, gait: Gait):
+    """The gait's `gamma(0)` for a robot whose rest attitude is `gamma_m = -r_m/|r_m|` (2.5)."""
+    Qm = rotation_between(jnp.array([0.0, 0.0, 1.0], r_m.dtype), -r_m / jnp.linalg.norm(r_m))
+    return gait.gamma(Qm, jnp.zeros((), r_m.dtype))
+
+
+def _check_start(params, gait, alpha0, beta0) -> None:
+    """With concrete inputs: `alpha0, beta0` orthonormal and `alpha0 x beta0` equal to the first
+    gait's `gamma(0)` (NumPy, and one compiled call for the gait's `gamma(0)`: no eager JAX
+    operations, each of which would be a small program to compile or load from the cache)."""
+    if any(isinstance(v, jax.core.Tracer) for v in (alpha0, beta0, params.r_m)):
+        return
+    a, b = np.asarray(alpha0, np.float64), np.asarray(beta0, np.float64)
+    if abs(np.linalg.norm(a) - 1) > 1e-6 or abs(np.linalg.norm(b) - 1) > 1e-6 or abs(a @ b) > 1e-6:
+        raise ValueError(f"simulate_gaits: alpha0 and beta0 must be orthonormal; got {a}, {b}.")
+    try:
+        g0 = np.asarray(_start_gamma(params.r_m, gait), np.float64)
+    except (TypeError, jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError):  # traced gait coefficients
+        return
+    gamma0 = np.cross(a, b)
+    if np.max(np.abs(gamma0 - g0)) > 1e-6:
+        raise ValueError(
+            f"simulate_gaits: alpha0 x beta0 = {gamma0} but the first gait starts at gamma(0) = {g0}; a gait "
+            "must start from the rest attitude gamma = -r_m/|r_m| (Proposition of Section 4)."
+        )
+
+
+@eqx.filter_jit
+def _simulate_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, max_steps, adjoint, components=False, derived=None):
+    dt = params.R0.dtype
+    d = derive(params) if derived is None else derived
+    alpha0, beta0, Omega0, x0, y0 = initial
+    state0 = State.from_axes(params, alpha0, beta0, Omega=Omega0, x=x0, y=y0)
+    Qm = rotation_between(jnp.array([0.0, 0.0, 1.0], dt), rest_attitude(params))
+    starts, t = [], jnp.asarray(0.0, dt)
+    for g in gaits:
+        starts.append(t)
+        t = t + jnp.asarray(g.T, dt)
+    segments = [((g, Qm), a, a + jnp.asarray(g.T, dt)) for g, a in zip(gaits, starts)]
+    q0 = state0.q
+    # per boundary: reset mode, explicit value, projector onto the rolling directions so far
+    P, projectors = jnp.zeros((3, 3), dt), []
+    for g in gaits[:-1]:
+        dvec = _rolling_direction(g, Qm)
+        u = dvec - matvec(P, dvec)
+        nu = jnp.sum(u * u)
+        P = P + jnp.where(nu > 1e-12, 1.0, 0.0) * jnp.outer(u, u) / jnp.where(nu > 1e-12, nu, 1.0)
+        projectors.append(P)
+    modes = jnp.concatenate([jnp.zeros((1,), jnp.int32), resets[0]])
+    values = jnp.concatenate([jnp.zeros((1, 3), dt), resets[1]])
+    projectors = jnp.stack([jnp.zeros((3, 3), dt)] + projectors)
+
+    def jump_fn(k, a, z, control):
+        gait, _ = control
+        _, omega_start, _ = gait.kinematics(Qm, jnp.zeros_like(a))
+        z = jnp.concatenate([z[:8], omega_start, z[11:]])
+        mode = modes[k]
+        Omega = jnp.where(mode == 1, matvec(projectors[k], z[11:14]), values[k])
+        reset_z = jnp.concatenate([q0, z[4:11], Omega, z[14:]])
+        return jnp.where(mode == 0, z, reset_z)
+
+    zs, om, cd, Ks, seg, ok, steps = solve_segments(
+        _gait_field, _gait_outputs, params, d, segments, state0.flatten(), ts_out, jump_fn=jump_fn,
+        solver=solver, rtol=rtol, atol=atol, max_steps=max_steps, adjoint=adjoint,
+        component_field=_gait_field_soa if components else None, component_control=_gait_inputs,
+        shared=components if isinstance(components, str) else False,
+    )  # fmt: skip
+    traj = assemble(params, d, ts_out, zs, om, cd, Ks, seg, ok, steps)
+    # report the prescribed gamma(t) (the integrated one agrees to the solver tolerance)
+    gam = jax.vmap(lambda t, k: _prescribed_gamma(gaits, Qm, starts, t, k))(ts_out, seg)
+    return eqx.tree_at(lambda tr: tr.gamma, traj, gam)
+
+
+def _prescribed_gamma(gaits, Qm, starts, t, k):
+    branches = [lambda t, g=g, a=a: g.gamma(Qm, t - a) for g, a in zip(gaits, starts)]
+    return jax.lax.switch(k, branches, t)

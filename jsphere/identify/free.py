@@ -1,0 +1,356 @@
+"""Free parameters of a fit: names expanded to scalar components, bounds by reparameterisation.
+
+A fit works on an unconstrained vector `theta (P,)`. `FreeParams` maps it to a `RobotParams`
+(`to_params`) and to the physical values of the free names (`physical`), one transform per
+free scalar (or one for the whole inertia tensor):
+
+- `log`:       `v = exp(u)`                      (default for masses, inertias, radii, `R_m`)
+- `lower`:     `v = lo + exp(u)`;  `upper`: `v = hi - exp(u)`
+- `interval`:  `v = lo + (hi - lo) sigmoid(u)`
+- `none`:      `v = u`                           (default for `r_m[k]`, off-diagonals of `I`, ...)
+- `cholesky`:  the whole field `I` (6 entries) as `I = L L^T`, `L` lower triangular with a
+  log-diagonal: every value of `theta` gives a symmetric positive definite tensor.
+
+Bounds are never enforced by clipping, so gradients and the Gauss-Newton covariance stay
+smooth; the covariance in `theta` is mapped to physical units by `d physical / d theta`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._runtime.errors import InputError
+from ..model.names import get_value, parse_name, set_value
+from ..model.params import _FIELDS, RobotParams, number_array
+
+#: fields that must stay > 0 (log transform by default)
+POSITIVE = ("R0", "m0", "I0", "Rw", "m", "R_m")
+#: fields that must stay >= 0 (log transform by default if the start is > 0, else unbounded)
+NONNEGATIVE = ("j", "g", "c_roll", "c_axle")
+#: fields whose values scale with mass: with wheel-speed inputs, scaling all of them together
+#: leaves every motion unchanged (the servo constraints fix the kinematics, (3.4) is homogeneous)
+MASS_LIKE = ("m0", "I0", "m", "I", "j", "c_roll", "c_axle")
+#: unit vectors: not supported as free parameters
+UNIT_VECTORS = ("wheel_n", "wheel_alpha")
+
+
+def expand(params: RobotParams, names: str | Sequence[str]) -> list[tuple[str, list[str]]]:
+    """`"r_m[2],j,I"` -> `[("r_m[2]", ["r_m[2]"]), ("j", ["j"]), ("I", ["I[0,0]", "I[0,1]", ...])]`.
+
+    A whole field frees all its independent entries (the 6 of the symmetric `I`, row-major
+    upper triangle). Raises `ValueError` for unknown names, bad indices, unit-vector fields,
+    and names given twice or overlapping (`I` and `I[0,0]`, `R_m` and `r_m[2]`).
+    """
+    if isinstance(names, str):
+        names = [n for n in _split_names(names)]
+    out: list[tuple[str, list[str]]] = []
+    seen: dict[str, str] = {}
+    for given in names:
+        given = given.strip()
+        if not given:
+            continue
+        field, index = parse_name(given)
+        if field in UNIT_VECTORS:
+            raise ValueError(f"free parameter {given!r}: {field} holds unit vectors and cannot be fitted component by component; fix it.")
+        if field != "R_m":
+            get_value(params, given)  # checks the index
+        shape = () if field == "R_m" else tuple(getattr(params, field).shape)
+        if index or not shape:
+            comps = [_canonical(field, index)]
+        elif field == "I":
+            comps = [f"I[{i},{j}]" for i in range(3) for j in range(i, 3)]
+        else:
+            comps = [f"{field}[{','.join(map(str, ix))}]" for ix in np.ndindex(*shape)]
+        for c in comps:
+            if c in seen:
+                raise ValueError(f"free parameter {c!r} is named twice (in {seen[c]!r} and {given!r}).")
+            seen[c] = given
+        out.append((given, comps))
+    flat = [c for _, cs in out for c in cs]
+    if "R_m" in flat and any(c.startswith("r_m") for c in flat):
+        raise ValueError("free parameters 'R_m' and 'r_m[...]' overlap (R_m = |r_m|); free one or the other.")
+    if not flat:
+        raise ValueError("no free parameters given; name at least one, e.g. 'R_m,j'.")
+    return out
+
+
+def _split_names(s: str) -> list[str]:
+    """Split `"I[0,1],j"` at commas outside brackets."""
+    parts, depth, cur = [], 0, ""
+    for ch in s:
+        depth += ch == "["
+        depth -= ch == "]"
+        if ch == "," and depth == 0:
+            parts.append(cur)
+            cur = ""
+        else:
+            cur += ch
+    parts.append(cur)
+    return [p.strip() for p in parts if p.strip()]
+
+
+def _canonical(field: str, index: tuple[int, ...]) -> str:
+    if not index:
+        return field
+    if field == "I" and index[0] > index[1]:
+        index = index[::-1]  # I[1,0] is I[0,1]
+    return f"{field}[{','.join(map(str, index))}]"
+
+
+def _overlaps(a: str, b: str) -> bool:
+    """Whether two names (fields or components) refer to a common number."""
+    fa, ia = parse_name(a)
+    fb, ib = parse_name(b)
+    if {fa, fb} == {"R_m", "r_m"}:
+        return True
+    if fa != fb:
+        return False
+    if not ia or not ib:
+        return True
+    return _canonical(fa, ia) == _canonical(fb, ib)
+
+
+def parse_fix_value(name: str, value: Any, expected: str = "a number (or a list of numbers for a whole field)") -> Any:
+    """A value for `--fix NAME=VALUE`: a number, or (nested) lists of numbers for a whole field.
+    Strings are parsed as JSON (`"2.5"`, `"[[0.016,0,0],...]"`). Booleans, strings inside the
+    JSON and ragged lists are refused, naming `expected` (the shape wanted, in words)."""
+    v = value
+    if isinstance(v, str):
+        try:
+            v = json.loads(v)
+        except json.JSONDecodeError:
+            raise InputError(f"--fix {name}={value}: the value must be a number (or a JSON list of numbers for a whole field).") from None
+    arr = np.asarray(number_array(v, f"--fix {name}={value}", expected))
+    if not np.all(np.isfinite(arr)):
+        raise InputError(f"--fix {name}={value!r}: the value must be finite.")
+    return arr
+
+
+def apply_fixes(params: RobotParams, fix: Mapping[str, Any] | None) -> RobotParams:
+    """`params` with every `fix` name set (validated again: a bad value raises `ValueError`
+    naming the field)."""
+    if not fix:
+        return params
+    p = params
+    for name, value in fix.items():
+        field, _ = parse_name(name)
+        shape = () if field == "R_m" else tuple(get_value(params, name).shape)
+        arr = parse_fix_value(name, value, "a number" if not shape else f"a value of shape {shape}")
+        if field != "R_m":
+            if arr.shape not in ((), shape):
+                want = "a number" if not shape else f"a value of shape {shape}"
+                raise InputError(f"--fix {name}: expected {want}; got shape {arr.shape}.")
+        elif arr.shape != ():
+            raise InputError(f"--fix {name}: R_m is a scalar; got shape {arr.shape}.")
+        p = set_value(p, name, arr)
+    try:
+        return RobotParams(**{f: getattr(p, f) for f in _FIELDS}, dtype=params.R0.dtype)
+    except ValueError as e:
+        raise InputError(f"after --fix: {e}") from None
+
+
+@dataclasses.dataclass(frozen=True)
+class Slot:
+    """One block of `theta`: a scalar name with its transform, or the whole `I` (cholesky)."""
+
+    names: tuple[str, ...]
+    kind: str  # log | lower | upper | interval | none | cholesky
+    lo: float = -math.inf
+    hi: float = math.inf
+    scale: float = 1.0  # typical size of the physical value (for steps, spreads, reports)
+
+    @property
+    def size(self) -> int:
+        return len(self.names)
+
+
+def _forward(kind: str, lo: float, hi: float, u):
+    if kind == "log":
+        return jnp.exp(u)
+    if kind == "lower":
+        return lo + jnp.exp(u)
+    if kind == "upper":
+        return hi - jnp.exp(u)
+    if kind == "interval":
+        return lo + (hi - lo) * jax.nn.sigmoid(u)
+    return u
+
+
+def _inverse(kind: str, lo: float, hi: float, v: float) -> float:
+    if kind == "log":
+        return math.log(v)
+    if kind == "lower":
+        return math.log(v - lo)
+    if kind == "upper":
+        return math.log(hi - v)
+    if kind == "interval":
+        s = (v - lo) / (hi - lo)
+        return math.log(s / (1.0 - s))
+    return v
+
+
+_TRIU = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
+def _chol_to_I(u):
+    L = jnp.zeros((3, 3), u.dtype)
+    L = L.at[0, 0].set(jnp.exp(u[0])).at[1, 0].set(u[1]).at[1, 1].set(jnp.exp(u[2]))
+    L = L.at[2, 0].set(u[3]).at[2, 1].set(u[4]).at[2, 2].set(jnp.exp(u[5]))
+    return L @ L.T
+
+
+def _I_to_chol(I) -> list[float]:
+    L = np.linalg.cholesky(np.asarray(I, np.float64))
+    return [math.log(L[0, 0]), L[1, 0], math.log(L[1, 1]), L[2, 0], L[2, 1], math.log(L[2, 2])]
+
+
+class FreeParams:
+    """The free parameters of a fit and their transforms (static configuration, not a pytree).
+
+    **Arguments:**
+    - `params`: the start values (with fixed values already set, see `apply_fixes`).
+    - `free`: names, comma-separated or a list: fields (`"j"`, `"I"`: all 6 entries,
+      `"r_m"`: all 3), components (`"I[0,0]"`, `"r_m[2]"`), or the derived `"R_m"`.
+    - `bounds`: `{name: (lo, hi)}` with `None` for an open end, for scalar free names (as
+      expanded: `"I[0,0]"`); the start must lie strictly inside. Defaults: `> 0` for masses,
+      inertias, radii, `R_m` and the diagonal of `I`; `>= 0` (open at 0) for `j`, `g`,
+      `c_roll`, `c_axle` when they start above 0; none otherwise.
+
+    `names` lists the expanded physical names in `theta` order; `given` the names as given
+    with their components (for reports of whole fields).
+    """
+
+    def __init__(self, params: RobotParams, free: str | Sequence[str], bounds: Mapping[str, Sequence] | None = None):
+        self.base = params
+        self.given = expand(params, free)
+        bounds = dict(bounds or {})
+        flat = [c for _, cs in self.given for c in cs]
+        for b in bounds:
+            parse_name(b)
+            canon = _canonical(*parse_name(b))
+            if canon not in flat:
+                raise ValueError(f"bounds given for {b!r}, which is not a free parameter (free: {', '.join(flat)}).")
+        bounds = {_canonical(*parse_name(k)): v for k, v in bounds.items()}
+        slots: list[Slot] = []
+        for given, comps in self.given:
+            field, index = parse_name(given)
+            if field == "I" and not index:
+                if any(c in bounds for c in comps):
+                    raise ValueError(
+                        "bounds on entries of a whole free 'I' are not supported (it is kept positive definite by a Cholesky factor); free the entries one by one to bound them."
+                    )
+                I = np.asarray(params.I, np.float64)
+                slots.append(Slot(tuple(comps), "cholesky", scale=float(np.max(np.abs(I)))))
+                continue
+            for c in comps:
+                slots.append(self._scalar_slot(params, c, bounds.get(c)))
+        self.slots = tuple(slots)
+        self.names = [n for s in self.slots for n in s.names]
+        self.theta0 = np.asarray(self.to_theta(params))
+
+    @staticmethod
+    def _scalar_slot(params: RobotParams, name: str, bound) -> Slot:
+        field, index = parse_name(name)
+        v = float(get_value(params, name))
+        fv = np.abs(np.asarray(getattr(params, field) if field != "R_m" else params.R_m, np.float64))
+        scale = max(abs(v), 0.1 * float(np.max(fv)) if fv.size else 0.0, 1e-12)
+        diag = field == "I" and index[0] == index[1]
+        if bound is None:
+            if field in POSITIVE or diag:
+                return Slot((name,), "log", 0.0, math.inf, scale)
+            if field in NONNEGATIVE and v > 0:
+                return Slot((name,), "log", 0.0, math.inf, scale)
+            return Slot((name,), "none", scale=scale)
+        if not isinstance(bound, (tuple, list)) or len(bound) != 2:
+            raise ValueError(f"bounds[{name!r}] must be (lo, hi) with None for an open end; got {bound!r}.")
+        lo = -math.inf if bound[0] is None else float(bound[0])
+        hi = math.inf if bound[1] is None else float(bound[1])
+        if not lo < hi:
+            raise ValueError(f"bounds[{name!r}] = ({lo}, {hi}): the lower bound must be below the upper bound.")
+        if not lo < v < hi:
+            raise ValueError(
+                f"bounds[{name!r}] = ({lo}, {hi}) exclude the start value {v}; move the start (e.g. --fix/--params) or widen the bounds."
+            )
+        if math.isfinite(lo) and math.isfinite(hi):
+            kind = "interval"
+        elif math.isfinite(lo):
+            kind = "log" if lo == 0.0 else "lower"
+        elif math.isfinite(hi):
+            kind = "upper"
+        else:
+            kind = "none"
+        return Slot((name,), kind, lo, hi, scale)
+
+    # ------------------------------------------------------------------ maps
+    @property
+    def size(self) -> int:
+        return len(self.names)
+
+    def to_theta(self, params: RobotParams) -> np.ndarray:
+        """The unconstrained vector of `params` (inverse of `to_params` on the free names)."""
+        out: list[float] = []
+        for s in self.slots:
+            if s.kind == "cholesky":
+                try:
+                    out += _I_to_chol(params.I)
+                except np.linalg.LinAlgError:
+                    raise ValueError("the start value of I is not positive definite.") from None
+            else:
+                out.append(_inverse(s.kind, s.lo, s.hi, float(get_value(params, s.names[0]))))
+        return np.asarray(out, np.float64)
+
+    def physical(self, theta) -> jax.Array:
+        """Physical values of `names` (SI units) at `theta` (pure JAX)."""
+        vals, k = [], 0
+        for s in self.slots:
+            u = theta[k : k + s.size]
+            if s.kind == "cholesky":
+                I = _chol_to_I(u)
+                vals += [I[i, j] for i, j in _TRIU]
+            else:
+                vals.append(_forward(s.kind, s.lo, s.hi, u[0]))
+            k += s.size
+        return jnp.stack(vals)
+
+    def to_params(self, theta, base: RobotParams | None = None) -> RobotParams:
+        """The `RobotParams` at `theta`: `base` (default: the start values) with the free ones
+        replaced (pure JAX, differentiable; not re-validated)."""
+        p, k = (self.base if base is None else base), 0
+        for s in self.slots:
+            u = theta[k : k + s.size]
+            if s.kind == "cholesky":
+                p = eqx.tree_at(lambda q: q.I, p, _chol_to_I(u))
+            else:
+                p = set_value(p, s.names[0], _forward(s.kind, s.lo, s.hi, u[0]))
+            k += s.size
+        return p
+
+    def physical_covariance(self, theta, cov_theta) -> np.ndarray:
+        """Map a covariance of `theta` to the physical values: `A C A^T`, `A = d physical/d theta`."""
+        A = np.asarray(jax.jacfwd(self.physical)(jnp.asarray(theta, jnp.float64)))
+        return A @ np.asarray(cov_theta) @ A.T
+
+    def scales(self) -> np.ndarray:
+        """Typical size of each physical value (for relative reports and start spreads)."""
+        return np.asarray([s.scale for s in self.slots for _ in s.names])
+
+    def theta_scales(self) -> np.ndarray:
+        """Typical step in each `theta` coordinate: 1 where the transform is logarithmic or
+        logistic, the physical scale where it is the identity."""
+        out = []
+        for s in self.slots:
+            if s.kind == "cholesky":
+                o = 0.1 * math.sqrt(s.scale)
+                out += [1.0, o, 1.0, o, o, 1.0]
+            else:
+                out.append(s.scale if s.kind == "none" else 1.0)
+        return np.asarray(out)

@@ -1,0 +1,331 @@
+"""The verdict on a fit: is what came back a result?
+
+A fit can end in a wrong valley: the optimiser stops, the covariance is computed, and the
+residuals are tens of times the capture noise. The verdict compares the fitted residuals with
+the capture's own noise floor, estimated from the data alone, and looks at their whiteness:
+
+- `noise_floor(data)`: the capture's noise levels from its high-frequency content (third
+  differences), independent of any model.
+- `lag1(errors, valid)`: the lag-1 autocorrelation of residuals (white noise: ~0; a model that
+  misses a smooth motion: ~1).
+- `judge(...)`: `"converged"`, `"not_converged"` or `"misfit"`, a one-sentence reason a user
+  can act on, and the numbers behind it.
+
+The rules (thresholds are the module constants below):
+
+1. `not_converged` when the optimiser says it did not converge; the reason also gives the
+   residual ratio when the residuals are far above the floor.
+2. otherwise `misfit` when the residual sigma of a channel (position or orientation), over
+   all trials or of the worst trial, is more than `FAR` times the noise floor, or more than
+   `MODERATE` times with a lag-1 autocorrelation above `CORRELATED` (far from white);
+3. otherwise `converged`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from ..capture.trial import quat_mul_np
+
+#: residual sigma / noise floor above which a fit is a misfit
+FAR = 3.0
+#: residual sigma / noise floor above which correlated residuals make a fit a misfit
+MODERATE = 1.5
+#: lag-1 autocorrelation above which residuals are far from white
+CORRELATED = 0.8
+#: fewest third differences (per channel, all trials) for a noise floor; fewer give NaN
+MIN_DIFFERENCES = 20
+#: a run of 4 frames spanning more than this many median frame intervals (a missing row, a
+#: jump of the clock) is not used for the noise floor
+MAX_SPAN = 3.5
+#: the smallest floors the residuals are compared with [m], [rad]: the fit's ODE solver and the
+#: capture's number format resolve about a micrometre and a few microradians, so a noise-free
+#: capture is compared with these instead of ~0
+FLOOR_RESOLUTION = (1e-5, 1e-4)
+#: third differences beyond this many robust sd (`1.4826 median |e|`) are outliers
+OUTLIER = 5.0
+#: scale of the median absolute value to the standard deviation of a normal variable
+_MAD = 1.4826
+
+CHANNELS = ("position", "orientation")
+
+
+# ----------------------------------------------------------------------------- the noise floor
+
+
+def _rotvec(q: np.ndarray) -> np.ndarray:
+    """Rotation vector [rad] of unit quaternions `(..., 4)` (scalar first; the shorter rotation)."""
+    q = np.where(q[..., :1] < 0, -q, q)
+    w, v = q[..., 0], q[..., 1:]
+    n = np.linalg.norm(v, axis=-1)
+    big = n > 1e-12
+    f = np.where(big, 2.0 * np.arctan2(n, w) / np.where(big, n, 1.0), 2.0 / w)
+    return f[..., None] * v
+
+
+def _runs(t: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """First indices `k` of the runs `k..k+3` of 4 consecutive measured frames whose span is at
+    most `MAX_SPAN` median frame intervals."""
+    m = len(t)
+    if m < 4:
+        return np.zeros(0, int)
+    k = np.arange(m - 3)
+    ok = valid[k] & valid[k + 1] & valid[k + 2] & valid[k + 3]
+    dt = float(np.median(np.diff(t)))
+    ok &= t[k + 3] - t[k] <= MAX_SPAN * dt
+    return k[ok]
+
+
+def _coefficients(t: np.ndarray) -> np.ndarray:
+    """Third divided-difference weights of the runs `t (n, 4)`, scaled to unit norm: `(n, 4)`.
+
+    `c_j = 1 / prod_{i != j} (t_j - t_i)` annihilates every quadratic in `t`; scaled to
+    `sum c_j^2 = 1`, white noise of sd `s` gives differences of sd `s`. For evenly spaced
+    frames they are `(-1, 3, -3, 1) / sqrt(20)`."""
+    c = np.ones_like(t)
+    for j in range(4):
+        for i in range(4):
+            if i != j:
+                c[:, j] /= t[:, j] - t[:, i]
+    return c / np.linalg.norm(c, axis=1, keepdims=True)
+
+
+def third_differences(data) -> tuple[np.ndarray, np.ndarray]:
+    """The normalised third differences of a capture: positions `(n_pos,)` [m] (x and y) and
+    orientations `(n_rot,)` [rad] (3 axes), pooled over trials; each has the sd of the noise.
+
+    Positions: `sum_j c_j x_{k+j}` over runs of 4 consecutive measured frames (`_coefficients`).
+    Orientations: `v_j = Log(q_k^-1 q_{k+j})` (rotation vectors, platform frame; `v_0 = 0`),
+    then `sum_j c_j v_j` per axis: with `q = q_true Exp(n)` and small `n`,
+    `v_j = w_j + n_{k+j} - n_k` (to first order), `w_j` the smooth relative rotation, so the
+    noise enters as in the positions. A smooth motion contributes `x''' dt^3 / sqrt(20)`:
+    about 1e-6 m at 100 Hz for the robot's motions, far below capture noise."""
+    pos, rot = [], []
+    for i in range(data.ts.shape[0]):
+        m = data.lengths[i]
+        t = data.ts[i, :m]
+        k = _runs(t, data.wpos[i, :m] > 0)
+        if k.size:
+            idx = k[:, None] + np.arange(4)
+            c = _coefficients(t[idx])
+            for a in (data.x[i, :m], data.y[i, :m]):
+                pos.append((c * a[idx]).sum(1))
+        k = _runs(t, data.wrot[i, :m] > 0)
+        if k.size:
+            idx = k[:, None] + np.arange(4)
+            c = _coefficients(t[idx])
+            q = data.q[i, :m]
+            q0_inv = q[k] * np.array([1.0, -1.0, -1.0, -1.0])
+            v = np.stack([_rotvec(quat_mul_np(q0_inv, q[k + j])) for j in range(1, 4)], 1)  # (n, 3 steps, 3 axes)
+            rot.append(np.einsum("nj,nja->na", c[:, 1:], v).reshape(-1))
+    cat = lambda parts: np.concatenate(parts) if parts else np.zeros(0)
+    return cat(pos), cat(rot)
+
+
+def _robust_sd(e: np.ndarray) -> float:
+    """The sd of normal noise from values `e` that may hold a few outliers (a marker swap, a
+    glitch): `s0 = 1.4826 median |e|`, then the RMS of the values within `OUTLIER s0` of 0 (the
+    RMS is ~2.7x as efficient as the median, which matters for a few hundred differences;
+    cutting at 5 sd changes the sd of normal noise by 2e-5). NaN for fewer than
+    `MIN_DIFFERENCES` values."""
+    if e.size < MIN_DIFFERENCES:
+        return math.nan
+    s0 = float(_MAD * np.median(np.abs(e)))
+    kept = e[np.abs(e) <= OUTLIER * s0]
+    return float(np.sqrt(np.mean(kept * kept))) if kept.size else s0
+
+
+def noise_floor(data) -> tuple[float, float]:
+    """The capture's noise levels `(sigma_pos [m] per coordinate, sigma_rot [rad] per axis)`,
+    estimated from its high-frequency content, independent of any model.
+
+    `data` is a `jsphere.identify.fit.FitData`. Third differences over runs of 4 consecutive measured
+    frames (`third_differences`) remove every motion up to a quadratic; white noise of sd `s`
+    gives differences of sd `s` after normalisation (`sqrt(20) s` for evenly spaced frames
+    before it), estimated by their RMS after removing outliers (`_robust_sd`). Overlapping
+    differences are correlated (-0.75 at lag 1), so `n` differences estimate `s` to a relative
+    sd of about `sqrt(2.3 / (2 n))`: 3 % for the ~1200 position differences of two trials of
+    3 s at 100 Hz, 6.5 % for two trials of 1.5 s at 50 Hz (over 200 noise draws: 3.3 % and
+    6.1 %, means within 1.2 % of the truth). Gaps are skipped; a channel with fewer than
+    `MIN_DIFFERENCES` differences gives NaN. Capture noise that is not white (a capture system
+    that smooths its output) has less high-frequency content, so its floor comes out low."""
+    pos, rot = third_differences(data)
+    return _robust_sd(pos), _robust_sd(rot)
+
+
+# ----------------------------------------------------------------------------- whiteness
+
+
+def lag1(errors: np.ndarray, valid: np.ndarray | None = None) -> tuple[float, float]:
+    """The sums behind the lag-1 autocorrelation of residuals `errors (m, c)` (NaN or
+    `valid = False` at gaps): `(sum e_k . e_{k+1}, sqrt(sum |e_k|^2 sum |e_{k+1}|^2))` over the
+    pairs of consecutive measured frames (a gap breaks the series). The autocorrelation is
+    their ratio; pooled over trials, the sums are added. It is taken about zero, not about the
+    mean: residuals with an offset are not white either."""
+    e = np.asarray(errors, float).reshape(len(errors), -1)
+    ok = np.all(np.isfinite(e), 1)
+    if valid is not None:
+        ok &= np.asarray(valid, bool)
+    pair = ok[:-1] & ok[1:]
+    a, b = e[:-1][pair], e[1:][pair]
+    return float((a * b).sum()), float(np.sqrt((a * a).sum() * (b * b).sum()))
+
+
+def _ratio(num: float, den: float) -> float:
+    return num / den if den > 0 else math.nan
+
+
+def _x(r: float) -> str:
+    return f"{r:.2f}x" if math.isfinite(r) else "n/a"
+
+
+# ----------------------------------------------------------------------------- the verdict
+
+
+def _sigma(errors: Sequence[np.ndarray], frac: float) -> float:
+    """Residual sigma per coordinate / axis of the finite rows of `errors`, dof-corrected by
+    `frac = 1 - n_params / n_residuals` as the fit's noise estimate."""
+    e = np.concatenate([np.asarray(x, float).reshape(len(x), -1) for x in errors])
+    e = e[np.all(np.isfinite(e), 1)]
+    return math.sqrt((e * e).sum() / (e.size * frac)) if e.size else math.nan
+
+
+def judge(
+    pos_err: Sequence[np.ndarray],
+    rot_err: Sequence[np.ndarray],
+    floor: tuple[float, float],
+    *,
+    names: Sequence[str] | None = None,
+    converged: bool = True,
+    why_not: str = "",
+    n_params: int = 0,
+) -> dict[str, Any]:
+    """The verdict on a fit from its residuals.
+
+    **Arguments:**
+    - `pos_err`: per trial the position residuals `(m, 2)` [m], NaN at gaps.
+    - `rot_err`: per trial the orientation residuals `(m, 3)` [rad] (rotation vectors), NaN at gaps.
+    - `floor`: the capture's noise levels `(sigma_pos [m], sigma_rot [rad])` (`noise_floor`);
+      NaN for a channel that cannot be judged. Floors below `FLOOR_RESOLUTION` are raised to it.
+    - `names`: the trials' names; `converged`, `why_not`: the optimiser's flag and, when it did
+      not converge, why (e.g. "Levenberg-Marquardt stopped at max_iter").
+    - `n_params`: the number of fitted values (free and nuisance), for the residual sigmas'
+      dof correction `sqrt(sum e^2 / (n (1 - n_params / n_total)))`.
+
+    Returns a dict: `status` (`"converged"`, `"not_converged"` or `"misfit"`, see the module's
+    rules), `reason` (one sentence), and the numbers in JSON units: `noise_floor_pos_m`,
+    `noise_floor_rot_deg`, `sigma_pos_m`, `sigma_rot_deg` (residual sigmas over all trials),
+    `ratio_pos`, `ratio_rot` (sigma / floor), `autocorr_pos`, `autocorr_rot` (lag-1),
+    `worst_trial` (the name of the trial with the highest ratio), `trials` (per trial
+    `name`, `sigma_pos_m`, `sigma_rot_deg`, `ratio_pos`, `ratio_rot`, `autocorr_pos`,
+    `autocorr_rot`), `optimiser_converged` and `thresholds`.
+    """
+    T = len(pos_err)
+    names = list(names) if names is not None else [f"trial{i}" for i in range(T)]
+    n_total = sum(np.isfinite(np.asarray(e, float)).all(-1).sum() * 2 for e in pos_err)
+    n_total += sum(np.isfinite(np.asarray(e, float)).all(-1).sum() * 3 for e in rot_err)
+    frac = max(1.0 - n_params / n_total, 1e-3) if n_total else 1.0
+    fl = [max(f, r) if math.isfinite(f) else math.nan for f, r in zip(floor, FLOOR_RESOLUTION)]
+    channels = (pos_err, rot_err)
+
+    def scope(errs):
+        """Per channel (ratio, autocorrelation, sigma) of the residual lists `errs`."""
+        out = []
+        for c, e in enumerate(errs):
+            s = _sigma(e, frac)
+            sums = [lag1(x) for x in e]
+            out.append((_ratio(s, fl[c]), _ratio(sum(a for a, _ in sums), sum(b for _, b in sums)), s))
+        return out
+
+    overall = scope(channels)
+    per_trial = [scope(([pos_err[i]], [rot_err[i]])) for i in range(T)]
+    key = lambda i: max((r for r, _, _ in per_trial[i] if math.isfinite(r)), default=-math.inf)
+    worst = max(range(T), key=key) if T else None
+
+    # which rule fires: (scope text, channel, ratio, autocorrelation, why)
+    hits = []
+    for label, sc in [("", overall)] + ([(names[worst], per_trial[worst])] if worst is not None else []):
+        for c, (r, a, _) in enumerate(sc):
+            if r > FAR:
+                hits.append((label, c, r, a, "far"))
+            elif r > MODERATE and a > CORRELATED:
+                hits.append((label, c, r, a, "correlated"))
+
+    ratios = f"{_x(overall[0][0])} (position) and {_x(overall[1][0])} (orientation) the capture's noise floor"
+    worst_text = ""
+    if worst is not None and T > 1:
+        wr = per_trial[worst]
+        worst_text = f" (worst trial {names[worst]!r}: {_x(wr[0][0])} and {_x(wr[1][0])})"
+    unjudged = [CHANNELS[c] for c in range(2) if not math.isfinite(fl[c])]
+    no_floor = (
+        f"; the {' and '.join(unjudged)} noise floor cannot be estimated (fewer than {MIN_DIFFERENCES} runs of 4 "
+        "consecutive measured frames), so those residuals are not judged"
+        if unjudged
+        else ""
+    )
+    if not converged:
+        status = "not_converged"
+        far = f"; the residual sigmas are {ratios}{worst_text}" if hits else ""
+        reason = (
+            f"the optimiser did not converge ({why_not or 'it stopped before its convergence test was met'}){far}{no_floor}: "
+            "the values and standard errors are not final; rerun with more iterations (--max-iter) or more starts (--n-starts)."
+        )
+    elif hits:
+        status = "misfit"
+        if any(h[4] == "far" for h in hits):
+            what = f"the residual sigmas are {ratios}{worst_text}"
+        else:
+            label, c, r, a, _ = hits[0]
+            where = f" of trial {label!r}" if label else ""
+            what = f"the {CHANNELS[c]} residuals{where} are {_x(r)} the capture's noise floor and far from white (lag-1 autocorrelation {a:.2f})"
+        check = f"trial {names[worst]!r}" if worst is not None and T > 1 else "the trial"
+        reason = (
+            f"{what}{no_floor}: the fit is in a wrong valley or the model does not describe the trials; try more starts "
+            f"(--n-starts), other start values (--params, --fix) or more free parameters, and check the inputs and capture of {check}."
+        )
+    else:
+        status = "converged"
+        acs = f"lag-1 autocorrelations {overall[0][1]:.2f} and {overall[1][1]:.2f}"
+        reason = f"the optimiser converged and the residual sigmas are {ratios}, {acs}{no_floor}."
+
+    deg = math.degrees
+    trials = [
+        {
+            "name": names[i],
+            "sigma_pos_m": per_trial[i][0][2], "sigma_rot_deg": deg(per_trial[i][1][2]),
+            "ratio_pos": per_trial[i][0][0], "ratio_rot": per_trial[i][1][0],
+            "autocorr_pos": per_trial[i][0][1], "autocorr_rot": per_trial[i][1][1],
+        }  # fmt: skip
+        for i in range(T)
+    ]
+    return {
+        "status": status,
+        "reason": reason,
+        "optimiser_converged": bool(converged),
+        "noise_floor_pos_m": float(floor[0]),
+        "noise_floor_rot_deg": deg(floor[1]),
+        "sigma_pos_m": overall[0][2],
+        "sigma_rot_deg": deg(overall[1][2]),
+        "ratio_pos": overall[0][0],
+        "ratio_rot": overall[1][0],
+        "autocorr_pos": overall[0][1],
+        "autocorr_rot": overall[1][1],
+        "worst_trial": names[worst] if worst is not None else None,
+        "trials": trials,
+        "thresholds": {"far": FAR, "moderate": MODERATE, "correlated": CORRELATED},
+    }
+
+
+def headline(status: str, reason: str, verdict: dict[str, Any]) -> str:
+    """The verdict in one line (the last line of `jsphere fit`): for a converged fit its
+    residual sigmas relative to the noise floor, otherwise the status and the reason."""
+    if status == "converged":
+        rp, rr = verdict.get("ratio_pos", math.nan), verdict.get("ratio_rot", math.nan)
+        if rp is None or rr is None or not (math.isfinite(rp) and math.isfinite(rr)):
+            return f"converged ({reason})"
+        return f"converged (residual sigma {rp:.2f}x / {rr:.2f}x the capture's noise floor, position / orientation)"
+    return f"{status}: {reason}"

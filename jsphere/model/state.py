@@ -1,0 +1,138 @@
+"""The state of the robot: orientation, angular velocities, position, wheel angles."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from .kinematics import attitude_matrix
+from .rotations import quat_from_rotmat, quat_normalize, rotmat
+from .linalg import cross
+from .params import RobotParams
+
+
+def _concrete(*xs) -> bool:
+    return not any(isinstance(x, jax.core.Tracer) for x in xs)
+
+
+class State(eqx.Module):
+    """State of the robot (a pytree; stack states to vmap over initial conditions).
+
+    - `q`: `(4,)` unit quaternion `(w, x, y, z)` of the platform, rotating platform components
+      into fixed ones (its rotation matrix is `Q^T` of (2.1), with rows `alpha, beta, gamma`).
+    - `q_shell`: `(4,)` unit quaternion of the shell, shell -> fixed components.
+    - `omega`, `Omega`: `(3,)` angular velocities of platform and shell, platform components [1/s].
+    - `x`, `y`: position of the shell centre in the fixed frame [m].
+    - `chi`: `(N,)` wheel rotation angles [rad].
+
+    `alpha, beta, gamma` (the fixed axes `OX, OY, OZ` seen from the platform) are properties.
+    """
+
+    q: Float[Array, "4"]
+    q_shell: Float[Array, "4"]
+    omega: Float[Array, "3"]
+    Omega: Float[Array, "3"]
+    x: Float[Array, ""]
+    y: Float[Array, ""]
+    chi: Float[Array, "N"]
+
+    def __check_init__(self):
+        leaves = (self.q, self.q_shell, self.omega, self.Omega, self.x, self.y, self.chi)
+        if _concrete(*leaves):
+            for name, v in zip(("q", "q_shell", "omega", "Omega", "x", "y", "chi"), leaves):
+                if not np.all(np.isfinite(np.asarray(v))):
+                    raise ValueError(f"State.{name} must be finite; got {np.asarray(v)}.")
+            for name in ("q", "q_shell"):
+                n = np.linalg.norm(np.asarray(getattr(self, name)), axis=-1)
+                if np.any(np.abs(n - 1.0) > 1e-6):
+                    raise ValueError(f"State.{name} must be a unit quaternion (w, x, y, z); got norm {n}.")
+
+    # -------------------------------------------------------------- derived views
+    @property
+    def R(self) -> Float[Array, "3 3"]:
+        """Platform -> fixed rotation `Q^T`; rows are `alpha, beta, gamma`."""
+        return rotmat(self.q)
+
+    @property
+    def alpha(self) -> Float[Array, "3"]:
+        return self.R[..., 0, :]
+
+    @property
+    def beta(self) -> Float[Array, "3"]:
+        return self.R[..., 1, :]
+
+    @property
+    def gamma(self) -> Float[Array, "3"]:
+        return self.R[..., 2, :]
+
+    # -------------------------------------------------------------- constructors
+    @classmethod
+    def at_rest(cls, params: RobotParams, *, x=0.0, y=0.0, psi=0.0) -> "State":
+        """At rest, the platform's centre of mass straight below C (`gamma = -r_m/|r_m|`), turned
+        by the precession angle `psi` about the vertical; for the paper's robot and `psi = 0`,
+        `alpha, beta, gamma` are the fixed axes. Shell frame aligned with the fixed frame."""
+        return cls(**_rest_fields(params, x, y, psi))
+
+    @classmethod
+    def from_axes(
+        cls,
+        params: RobotParams,
+        alpha: Float[ArrayLike, "3"] = (1.0, 0.0, 0.0),
+        beta: Float[ArrayLike, "3"] = (0.0, 1.0, 0.0),
+        *,
+        omega: Float[ArrayLike, "3"] = (0.0, 0.0, 0.0),
+        Omega: Float[ArrayLike, "3"] = (0.0, 0.0, 0.0),
+        x=0.0,
+        y=0.0,
+        chi=None,
+        q_shell=(1.0, 0.0, 0.0, 0.0),
+    ) -> "State":
+        """A state from the fixed axes `alpha, beta` seen from the platform (`gamma = alpha x beta`)."""
+        dt = params.R0.dtype
+        alpha, beta = jnp.asarray(alpha, dt), jnp.asarray(beta, dt)
+        if _concrete(alpha, beta):
+            a, b = np.asarray(alpha), np.asarray(beta)
+            if abs(np.linalg.norm(a) - 1) > 1e-6 or abs(np.linalg.norm(b) - 1) > 1e-6 or abs(a @ b) > 1e-6:
+                raise ValueError(f"State.from_axes: alpha and beta must be orthonormal; got {a}, {b}.")
+        R = jnp.stack([alpha, beta, cross(alpha, beta)])
+        chi = jnp.zeros(params.n_wheels, dt) if chi is None else jnp.asarray(chi, dt)
+        return cls(
+            q=quat_from_rotmat(R), q_shell=quat_normalize(jnp.asarray(q_shell, dt)),
+            omega=jnp.asarray(omega, dt), Omega=jnp.asarray(Omega, dt),
+            x=jnp.asarray(x, dt), y=jnp.asarray(y, dt), chi=chi,
+        )  # fmt: skip
+
+    # -------------------------------------------------------------- flat layout
+    def flatten(self) -> Float[Array, "16+N"]:
+        """The integrator's flat vector `[q, q_shell, omega, Omega, x, y, chi]`."""
+        return jnp.concatenate(
+            [self.q, self.q_shell, self.omega, self.Omega, jnp.stack([self.x, self.y]), self.chi], axis=-1
+        )
+
+    @classmethod
+    def unflatten(cls, z: Float[Array, "... 16+N"]) -> "State":
+        return _unflatten(z)
+
+
+@jax.jit  # one compiled program when called eagerly, not one per operation
+def _rest_fields(params: RobotParams, x, y, psi) -> dict:
+    dt = params.R0.dtype
+    Q = attitude_matrix(params, psi)
+    z3 = jnp.zeros(3, dt)
+    return dict(
+        q=quat_from_rotmat(Q.T).astype(dt), q_shell=jnp.array([1.0, 0.0, 0.0, 0.0], dt), omega=z3, Omega=z3,
+        x=jnp.asarray(x, dt), y=jnp.asarray(y, dt), chi=jnp.zeros(params.n_wheels, dt),
+    )  # fmt: skip
+
+
+def _unflatten(z) -> State:
+    s = object.__new__(State)  # no validation: used on traced integrator output
+    for name, val in (
+        ("q", z[..., 0:4]), ("q_shell", z[..., 4:8]), ("omega", z[..., 8:11]), ("Omega", z[..., 11:14]),
+        ("x", z[..., 14]), ("y", z[..., 15]), ("chi", z[..., 16:]),
+    ):  # fmt: skip
+        object.__setattr__(s, name, val)
+    return s

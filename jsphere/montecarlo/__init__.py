@@ -1,0 +1,1 @@
+"""Monte-Carlo studies: sampled robots and actuators, batched runs, resumable stores."""

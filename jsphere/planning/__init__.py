@@ -1,0 +1,1 @@
+"""Motion planning: gait optimisation to a target, routes, plans over many robots."""

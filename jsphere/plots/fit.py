@@ -1,0 +1,90 @@
+"""Figures of a fit: captured and fitted paths, residuals, the worst-fitting trial named."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .base import finish, pyplot
+
+
+def worst_trial(result) -> tuple[int | None, str]:
+    """The index of the worst-fitting trial of a `FitResult` (the highest residual sigma
+    relative to the capture's noise floor, `result.verdict["worst_trial"]`) and a line naming it
+    with its ratios; `(None, "")` for a result without a verdict."""
+    verdict = getattr(result, "verdict", None) or {}
+    name = verdict.get("worst_trial")
+    names = [t["name"] for t in result.trials]
+    if name not in names:
+        return None, ""
+    k = names.index(name)
+    row = next((t for t in verdict.get("trials", []) if t.get("name") == name), {})
+    fmt = lambda r: f"{r:.2f}x" if isinstance(r, (int, float)) and np.isfinite(r) else "n/a"
+    text = f"{name}: residual sigma {fmt(row.get('ratio_pos'))} / {fmt(row.get('ratio_rot'))} the noise floor (position / orientation)"
+    return k, text
+
+
+def fit_figures(result, out_dir, *, stem: str = "fit") -> list[Path]:
+    """`<stem>_overlay.png` (captured and fitted paths, one colour per trial) and
+    `<stem>_residuals.png` (position [mm] and orientation [deg] residuals vs time per trial)
+    for a `jsphere.FitResult`; written atomically into `out_dir`.
+
+    The worst-fitting trial (`worst_trial`) is drawn bold and named in the overlay's title, and
+    comes first in the residual figure, titled with its name and its residual sigmas relative
+    to the capture's noise floor, and the fit's status."""
+    plt = pyplot()
+    out_dir = Path(out_dir)
+    trials = result.trials
+    worst, worst_text = worst_trial(result)
+    status = f"status: {result.status}; " if getattr(result, "status", "") else ""
+    fig, ax = plt.subplots(figsize=(6.5, 6))
+    for k, tr in enumerate(trials):
+        s = tr["series"]
+        c = f"C{k % 10}"
+        bold = k == worst and len(trials) > 1
+        ax.plot(1e3 * s["x"], 1e3 * s["y"], ".", ms=1.5, color=c, alpha=0.5)
+        label = f"{tr['name']} ({1e3 * tr['rms_pos_m']:.2f} mm){' - worst' if bold else ''}"
+        ax.plot(1e3 * s["x_sim"], 1e3 * s["y_sim"], "-", lw=2.2 if bold else 1, color=c, label=label)
+    ax.set_xlabel("x [mm]")
+    ax.set_ylabel("y [mm]")
+    title = "captured (dots) and fitted (lines) paths; RMS position residual"
+    if worst_text:
+        title += f"\n{status}worst {worst_text}"
+    ax.set_title(title, fontsize=8 if worst_text else 9)
+    ax.axis("equal")
+    if len(trials) <= 12:
+        ax.legend(fontsize=7)
+    overlay = out_dir / f"{stem}_overlay.png"
+    finish(plt, fig, overlay)
+
+    verdict = getattr(result, "verdict", None) or {}
+    fp, fr = verdict.get("noise_floor_pos_m"), verdict.get("noise_floor_rot_deg")
+    floor_pos = f", noise floor {1e3 * fp:.3f} mm" if isinstance(fp, float) and np.isfinite(fp) else ""
+    floor_rot = f", noise floor {fr:.3f} deg" if isinstance(fr, float) and np.isfinite(fr) else ""
+    n = len(trials)
+    order = list(range(n)) if worst is None else [worst] + [k for k in range(n) if k != worst]
+    fig, axes = plt.subplots(n, 2, figsize=(10, 1.6 * n + 0.8 + (0.3 if worst_text else 0.0)), sharex="row", squeeze=False)
+    for row, k in enumerate(order):
+        tr = trials[k]
+        s = tr["series"]
+        a, b = axes[row]
+        a.plot(s["t"], 1e3 * s["pos_err"][:, 0], lw=0.6, label="x")
+        a.plot(s["t"], 1e3 * s["pos_err"][:, 1], lw=0.6, label="y")
+        for i, lab in enumerate("xyz"):
+            b.plot(s["t"], s["rot_err_deg"][:, i], lw=0.6, label=lab)
+        emph = {"color": "C3", "fontweight": "bold"} if k == worst and n > 1 else {}
+        a.set_ylabel(f"{tr['name']}\n[mm]", fontsize=7, **emph)
+        b.set_ylabel("[deg]", fontsize=7)
+        if row == 0:
+            a.set_title(f"position residual (sigma {1e3 * result.sigma_pos:.3f} mm{floor_pos})", fontsize=9)
+            b.set_title(f"orientation residual (sigma {np.degrees(result.sigma_rot):.3f} deg{floor_rot})", fontsize=9)
+            a.legend(fontsize=6, loc="upper right")
+            b.legend(fontsize=6, loc="upper right")
+    if worst_text:
+        fig.suptitle(f"{status}worst-fitting trial first: {worst_text}", fontsize=9)
+    axes[-1, 0].set_xlabel("t [s]")
+    axes[-1, 1].set_xlabel("t [s]")
+    residuals = out_dir / f"{stem}_residuals.png"
+    finish(plt, fig, residuals)
+    return [overlay, residuals]

@@ -1,0 +1,120 @@
+"""The package's layering: imports flow from higher layers to lower ones, never back, and no two
+modules import each other, directly or through others (lazy imports inside functions included)."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+PACKAGE = Path(__file__).resolve().parent.parent / "jsphere"
+
+#: Each subpackage (or top-level module) and its layer: a module may import from its own
+#: subpackage and from lower layers only.
+LAYERS = {
+    "_runtime": 0,
+    "plots": 1,  # draws the result objects it is given; imports only `_runtime`
+    "model": 2,
+    "controls": 3,
+    "solve.batched": 4,
+    "solve": 5,
+    "gaits": 6,
+    "capture": 7,
+    "identify": 8,
+    "planning": 8,
+    "montecarlo": 8,
+    "paper": 9,
+    "cli": 10,
+    "__init__": 11,
+}
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for f in sorted(PACKAGE.rglob("*.py")):
+        parts = f.relative_to(PACKAGE).with_suffix("").parts
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(("jsphere", *parts))] = f
+    return out
+
+
+def _imports(name: str, path: Path, known: set[str]) -> set[str]:
+    """The jsphere modules that `name` imports anywhere in its source."""
+    is_package = path.name == "__init__.py"
+    package = name if is_package else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names if a.name == "jsphere" or a.name.startswith("jsphere.")}
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[: len(base) - (node.level - 1)]
+                target = ".".join(base + ([node.module] if node.module else []))
+            else:
+                target = node.module or ""
+            if not target.startswith("jsphere"):
+                continue
+            for alias in node.names:  # `from pkg import module` imports the module
+                sub = f"{target}.{alias.name}"
+                found.add(sub if sub in known else target)
+    found.discard(name)
+    return found
+
+
+def _layer(module: str) -> tuple[str, int]:
+    if module == "jsphere":
+        return "__init__", LAYERS["__init__"]
+    rest = module.split(".")[1:]
+    for n in (2, 1):
+        key = ".".join(rest[:n])
+        if len(rest) >= n and key in LAYERS:
+            return key, LAYERS[key]
+    raise KeyError(module)
+
+
+GRAPH = {name: _imports(name, path, set(_modules())) for name, path in _modules().items()}
+
+
+def test_every_module_has_a_layer():
+    unplaced = []
+    for name in GRAPH:
+        try:
+            _layer(name)
+        except KeyError:
+            unplaced.append(name)
+    assert not unplaced, f"modules outside every layer (add them to LAYERS): {unplaced}"
+
+
+@pytest.mark.parametrize("name", sorted(GRAPH))
+def test_imports_flow_down(name):
+    group, rank = _layer(name)
+    upward = []
+    for target in GRAPH[name]:
+        tgroup, trank = _layer(target)
+        if tgroup != group and not trank < rank:
+            upward.append(f"{target} ({tgroup}, layer {trank})")
+    assert not upward, f"{name} ({group}, layer {rank}) imports from a layer at or above its own: {upward}"
+
+
+def test_no_import_cycles():
+    state: dict[str, int] = {}
+    stack: list[str] = []
+
+    def visit(m):
+        state[m] = 1
+        stack.append(m)
+        for t in sorted(GRAPH.get(m, ())):
+            if state.get(t) == 1:
+                cycle = stack[stack.index(t) :] + [t]
+                pytest.fail("import cycle: " + " -> ".join(cycle))
+            if t in GRAPH and not state.get(t):
+                visit(t)
+        stack.pop()
+        state[m] = 2
+
+    for m in sorted(GRAPH):
+        if not state.get(m):
+            visit(m)
