@@ -1,0 +1,376 @@
+"""Time to the first result: what a script that starts a new Python process pays before its
+first simulation or gradient, against plain diffrax on a problem of similar cost.
+
+    python benchmarks/first_result.py                 # cold and cached, 1 process each
+    python benchmarks/first_result.py --repeat 3      # median over 3 processes per entry
+    python benchmarks/first_result.py --quick         # gaits, grad and their baselines only
+
+Every entry is a new Python process (`python first_result.py --child TASK`) that times its
+steps with `time.perf_counter()` and prints them as JSON; the parent also times the whole
+process from outside. Tasks (the calls of examples/quickstart.py, paper parameters, default
+tolerances):
+
+- `gaits`: `jsphere.simulate_gaits(p, [acceleration(), braking()])`;
+- `simulate`: `jsphere.simulate` with `Torques.from_samples` (402 samples over 4 s with a
+  jump at 2 s, the shape of the gaits' torque table; made with NumPy, so nothing else of
+  jsphere is compiled before);
+- `grad`: `jax.grad` of the quickstart's `stop(theta_max)` (the final `x` of
+  acceleration + braking, `ts=[4.0]`);
+- `jacfwd`: `jax.jacfwd` of the same, with `diffrax.ForwardMode()` (the default adjoint has
+  no forward mode);
+- `dfx_solve`, `dfx_grad`, `dfx_jacfwd`: the baseline in plain JAX + diffrax: a 13-state
+  field with a 6x6 `jnp.linalg.solve`, quaternion kinematics and trigonometric forcing,
+  `Dopri8`, `PIDController(rtol=1e-10, atol=1e-12)`, t in [0, 4]; its first solve, first
+  `jax.grad` (diffrax's default `RecursiveCheckpointAdjoint`) and first `jax.jacfwd`
+  (`ForwardMode`);
+- `quickstart`: `python examples/quickstart.py` as a whole (outside wall time only).
+
+Each child reports `import_s` (its imports), `first_s` (the first call, results ready; and
+`first_cpu_s`, the CPU time of the process's threads meanwhile, less sensitive to other load) and
+`second_s` (the same call again: the run time, so that `first_s - second_s` is the tracing
+and compilation). Each task runs cold (no persistent cache), then with a persistent
+compilation cache in a fresh temporary directory, twice: the second process is reported.
+The cache is switched on with `jsphere.enable_compilation_cache(dir)` where jsphere has it,
+else with JAX's options (`jax_compilation_cache_dir`, and thresholds of 0 so every program
+is kept). JAX does not write executables that contain host callbacks (equinox's run-time
+checks in diffrax are such callbacks); the JSON keeps the number of cache files written.
+
+First calls are mostly tracing and compilation, which scale with the machine's load: each
+record keeps the 1-minute load average before its process started (run on a quiet machine,
+and prefer `--repeat 3`).
+
+Ratios are jsphere over the diffrax baseline of the same run (`gaits/dfx_solve`,
+`simulate/dfx_solve`, `grad/dfx_grad`, `jacfwd/dfx_jacfwd`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+
+JSPHERE_TASKS = ("gaits", "simulate", "grad", "jacfwd")
+DFX_TASKS = ("dfx_solve", "dfx_grad", "dfx_jacfwd")
+RATIOS = {"gaits": "dfx_solve", "simulate": "dfx_solve", "grad": "dfx_grad", "jacfwd": "dfx_jacfwd"}
+QUICK_TASKS = ("gaits", "grad", "dfx_solve", "dfx_grad")
+#: targets: first simulate_gaits and first gradient at most this many times the baseline's
+TARGET_RATIO = 2.5
+#: target: a second process's first gradient with the cache on, and the quickstart cold [s]
+TARGET_CACHED_GRAD_S, TARGET_QUICKSTART_S = 3.0, 15.0
+
+
+# ------------------------------------------------------------------------------ children
+
+
+def _enable_cache(cache_dir: str, jsphere=None) -> str:
+    """Switch on a persistent compilation cache in `cache_dir`; returns how."""
+    if jsphere is not None and hasattr(jsphere, "enable_compilation_cache"):
+        jsphere.enable_compilation_cache(cache_dir)
+        return "jsphere.enable_compilation_cache"
+    import jax
+
+    jax.config.update("jax_compilation_cache_dir", cache_dir)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)  # -1: no size threshold
+    return "jax.config"
+
+
+def _timed(f, *args):
+    import jax
+
+    t, c = time.perf_counter(), time.process_time()
+    out = jax.block_until_ready(f(*args))
+    return out, time.perf_counter() - t, time.process_time() - c
+
+
+def _jsphere_child(task: str, cache_dir: str | None) -> dict:
+    t = time.perf_counter()
+    import diffrax as dfx
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import jsphere
+
+    rec = {"import_s": time.perf_counter() - t}
+    if cache_dir:
+        rec["cache"] = _enable_cache(cache_dir, jsphere)
+    p = jsphere.RobotParams.paper()
+
+    if task == "gaits":
+
+        def f():
+            return jsphere.simulate_gaits(p, [jsphere.acceleration(), jsphere.braking()]).x
+
+    elif task == "simulate":
+        ts = np.concatenate([np.linspace(0.0, 2.0, 201), np.linspace(2.0, 4.0, 201)])
+        sign = np.where(np.arange(ts.size) < 201, 1.0, -1.0)
+        K = 0.02 * (sign * np.sin(np.pi * ts) ** 2)[:, None] * np.array([1.0, -0.5, -0.5])
+        state0 = jsphere.State.at_rest(p)
+
+        def f():
+            return jsphere.simulate(p, state0, jsphere.Torques.from_samples(ts, K), 4.0, ts=ts).x
+
+    else:
+        adjoint = dfx.ForwardMode() if task == "jacfwd" else None
+
+        def stop(theta_max):
+            gaits = [jsphere.acceleration(theta_max=theta_max), jsphere.braking(theta_max=theta_max)]
+            return jsphere.simulate_gaits(p, gaits, ts=jnp.array([4.0]), adjoint=adjoint).x[-1]
+
+        d = jax.grad(stop) if task == "grad" else jax.jacfwd(stop)
+
+        def f():
+            return d(0.1)
+
+    out, rec["first_s"], rec["first_cpu_s"] = _timed(f)
+    _, rec["second_s"], _ = _timed(f)
+    rec["value"] = float(np.ravel(np.asarray(out))[-1])
+    return rec
+
+
+def _baseline_problem():
+    """A 13-state ODE of about the cost of jsphere's gait field: a quaternion, two angular
+    velocities whose rates come from a 6x6 linear system with a state-dependent matrix,
+    a planar position and one more angle; forcing `theta sin^2(pi t)` through trigonometric
+    terms. Returns `(solve(theta, ts), y0)`, `solve` giving the states at `ts`."""
+    import diffrax as dfx
+    import jax.numpy as jnp
+
+    A0 = jnp.array([[2.0, 0.3, 0.1], [0.3, 1.5, 0.2], [0.1, 0.2, 1.8]])
+    C = jnp.array([[0.2, 0.05, 0.0], [0.0, 0.15, 0.05], [0.05, 0.0, 0.25]])
+
+    def field(t, y, theta):
+        q, w, W, xy, phi = y[0:4], y[4:7], y[7:10], y[10:12], y[12]
+        g = jnp.stack([2 * (q[1] * q[3] - q[0] * q[2]), 2 * (q[2] * q[3] + q[0] * q[1]), 1 - 2 * (q[1] ** 2 + q[2] ** 2)])
+        cp, sp = jnp.cos(phi), jnp.sin(phi)
+        B = C * (1.0 + 0.1 * cp) + 0.05 * jnp.outer(g, g)
+        M = jnp.block([[A0 + 0.1 * jnp.outer(g, g), B], [B.T, A0.T + 0.2 * jnp.eye(3) * (1.0 + 0.05 * sp)]])
+        s = theta * jnp.sin(jnp.pi * t) ** 2
+        force = s * jnp.stack([jnp.cos(2.0 * t), jnp.sin(3.0 * t), jnp.cos(t) * sp])
+        rhs = jnp.concatenate([force - jnp.cross(w, A0 @ w) - 0.1 * w, -jnp.cross(W, A0 @ W) + 0.3 * jnp.cross(g, W) - 0.05 * W])
+        acc = jnp.linalg.solve(M, rhs)
+        qdot = 0.5 * jnp.stack([
+            -q[1] * w[0] - q[2] * w[1] - q[3] * w[2], q[0] * w[0] + q[2] * w[2] - q[3] * w[1],
+            q[0] * w[1] - q[1] * w[2] + q[3] * w[0], q[0] * w[2] + q[1] * w[1] - q[2] * w[0],
+        ])  # fmt: skip
+        xydot = 0.15 * jnp.stack([W[1] * cp + W[0] * sp, -W[0] * cp + W[1] * sp])
+        return jnp.concatenate([qdot, acc, xydot, (w[2] - W[2])[None]])
+
+    y0 = jnp.zeros(13).at[0].set(1.0)
+
+    def solve(theta, ts, adjoint=None):
+        sol = dfx.diffeqsolve(
+            dfx.ODETerm(field), dfx.Dopri8(), 0.0, 4.0, None, y0, theta, saveat=dfx.SaveAt(ts=ts),
+            stepsize_controller=dfx.PIDController(rtol=1e-10, atol=1e-12), max_steps=16384,
+            adjoint=adjoint or dfx.RecursiveCheckpointAdjoint(),
+        )  # fmt: skip
+        return sol.ys
+
+    solve.field, solve.y0 = field, y0
+    return solve
+
+
+def _dfx_child(task: str, cache_dir: str | None) -> dict:
+    t = time.perf_counter()
+    import diffrax as dfx
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    jax.config.update("jax_enable_x64", True)  # as jsphere does at import
+    rec = {"import_s": time.perf_counter() - t}
+    if cache_dir:
+        rec["cache"] = _enable_cache(cache_dir)
+    solve = _baseline_problem()
+    if task == "dfx_solve":
+        ts = jnp.linspace(0.0, 4.0, 5)
+
+        def f():
+            return solve(jnp.asarray(0.1), ts)[:, 10]
+
+    else:
+        adjoint = dfx.ForwardMode() if task == "dfx_jacfwd" else None
+
+        def stop(theta):
+            return solve(theta, jnp.array([4.0]), adjoint)[-1, 10]
+
+        d = jax.grad(stop) if task == "dfx_grad" else jax.jacfwd(stop)
+
+        def f():
+            return d(0.1)
+
+    out, rec["first_s"], rec["first_cpu_s"] = _timed(f)
+    _, rec["second_s"], _ = _timed(f)
+    rec["value"] = float(np.ravel(np.asarray(out))[-1])
+    return rec
+
+
+def child(task: str, cache_dir: str | None) -> None:
+    rec = _dfx_child(task, cache_dir) if task.startswith("dfx_") else _jsphere_child(task, cache_dir)
+    print("FIRST_RESULT " + json.dumps(rec), flush=True)
+
+
+# ------------------------------------------------------------------------------- parent
+
+
+def _env() -> dict:
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    for k in ("XLA_FLAGS", "JAX_COMPILATION_CACHE_DIR", "JSPHERE_CACHE_DIR", "EQX_ON_ERROR"):
+        env.pop(k, None)
+    return env
+
+
+def run_child(task: str, cache_dir: str | None = None) -> dict:
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", task] + (["--cache-dir", cache_dir] if cache_dir else [])
+    load = os.getloadavg()[0]
+    t = time.perf_counter()
+    r = subprocess.run(cmd, env=_env(), capture_output=True, text=True, cwd=ROOT)
+    wall = time.perf_counter() - t
+    if r.returncode != 0:
+        raise RuntimeError(f"{task} failed ({r.returncode}):\n{r.stderr[-3000:]}")
+    line = next(ln for ln in r.stdout.splitlines() if ln.startswith("FIRST_RESULT "))
+    return {**json.loads(line[len("FIRST_RESULT "):]), "wall_s": wall, "loadavg_1min_before": load}
+
+
+def run_quickstart() -> dict:
+    load = os.getloadavg()[0]
+    t = time.perf_counter()
+    subprocess.run([sys.executable, str(ROOT / "examples" / "quickstart.py")], env=_env(), check=True, cwd=ROOT,
+                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    return {"wall_s": time.perf_counter() - t, "loadavg_1min_before": load}
+
+
+def _cache_files(path: str) -> dict:
+    files = [f for f in Path(path).rglob("*") if f.is_file()]
+    return {"cache_files": len(files), "cache_bytes": sum(f.stat().st_size for f in files)}
+
+
+def run_cached(task: str) -> dict:
+    """The task in a process with an empty cache, then in a second process with that cache."""
+    with tempfile.TemporaryDirectory(prefix="first-result-cache-") as cache:
+        first = run_child(task, cache)
+        files = _cache_files(cache)
+        second = run_child(task, cache)
+    return {**second, **files, "filling_process": first}
+
+
+def _median(runs: list[dict]) -> dict:
+    """Per numeric key, the median over the processes; the runs themselves are kept."""
+    keys = [k for k, v in runs[0].items() if isinstance(v, (int, float)) and not isinstance(v, bool)]
+    out = {k: statistics.median(r[k] for r in runs) for k in keys}
+    out.update({k: v for k, v in runs[0].items() if isinstance(v, str)})
+    out["runs"] = runs
+    return out
+
+
+def _git_commit() -> str | None:
+    try:
+        r = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "jsphere"], cwd=ROOT, capture_output=True, text=True).stdout
+        return r.stdout.strip() + ("+dirty" if dirty.strip() else "")
+    except (OSError, subprocess.CalledProcessError):
+        return None
+
+
+def metadata() -> dict:
+    """Date, machine and versions (in a child process: this one imports no JAX)."""
+    code = (
+        "import json, jax, jaxlib, diffrax, equinox, numpy, jsphere; print(json.dumps({"
+        "'backend': jax.default_backend(), 'kind': jax.devices()[0].device_kind, 'count': jax.device_count(),"
+        "'versions': {'jax': jax.__version__, 'jaxlib': jaxlib.__version__, 'diffrax': diffrax.__version__,"
+        "'equinox': equinox.__version__, 'numpy': numpy.__version__, 'jsphere': jsphere.__version__}}))"
+    )
+    info = json.loads(subprocess.run([sys.executable, "-c", code], env=_env(), capture_output=True, text=True, check=True).stdout)
+    return {
+        "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
+                    "cpu_count": os.cpu_count(), "loadavg": os.getloadavg(), "python": platform.python_version()},
+        "device": {k: info[k] for k in ("backend", "kind", "count")},
+        "versions": info["versions"],
+        "git_commit": _git_commit(),
+    }  # fmt: skip
+
+
+def _ratios(res: dict, key: str = "first_s") -> dict:
+    return {f"{a}/{b}": res[a][key] / res[b][key] for a, b in RATIOS.items() if a in res and b in res}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--repeat", type=int, default=1, help="processes per entry (the median is reported)")
+    ap.add_argument("--quick", action="store_true", help=f"only {', '.join(QUICK_TASKS)}; no quickstart")
+    ap.add_argument("--no-cache", action="store_true", help="skip the cached part")
+    ap.add_argument("--out", type=Path, default=HERE / "results-first-result.json")
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    ap.add_argument("--cache-dir", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.child:
+        child(args.child, args.cache_dir)
+        return 0
+
+    meta = metadata()
+    tasks = QUICK_TASKS if args.quick else JSPHERE_TASKS + DFX_TASKS
+    cold, cached = {}, {}
+    for task in tasks:
+        cold[task] = _median([run_child(task) for _ in range(args.repeat)])
+        r = cold[task]
+        print(f"  cold   {task:<11} import {r['import_s']:4.1f} s, first {r['first_s']:5.1f} s, "
+              f"second {r['second_s']:6.3f} s, process {r['wall_s']:5.1f} s", file=sys.stderr, flush=True)  # fmt: skip
+    quickstart = None
+    if not args.quick:
+        quickstart = _median([run_quickstart() for _ in range(args.repeat)])
+        print(f"  cold   quickstart  process {quickstart['wall_s']:5.1f} s", file=sys.stderr, flush=True)
+    if not args.no_cache:
+        for task in tasks:
+            cached[task] = _median([run_cached(task) for _ in range(args.repeat)])
+            r = cached[task]
+            print(f"  cached {task:<11} import {r['import_s']:4.1f} s, first {r['first_s']:5.1f} s, "
+                  f"process {r['wall_s']:5.1f} s, {r['cache_files']} cache files", file=sys.stderr, flush=True)  # fmt: skip
+
+    ratios = {"cold": _ratios(cold), "cold_cpu": _ratios(cold, "first_cpu_s"), "cached": _ratios(cached) if cached else {}}
+    doc = {
+        **meta,
+        "config": {"repeat": args.repeat, "quick": args.quick, "tasks": list(tasks),
+                   "baseline": "13-state field, 6x6 jnp.linalg.solve, Dopri8, PIDController(1e-10, 1e-12), t in [0, 4]"},
+        "cold": cold, "cached_second_process": cached, "quickstart_cold": quickstart, "ratios": ratios,
+        "targets": {"first_over_baseline_max": TARGET_RATIO, "cached_grad_first_s_max": TARGET_CACHED_GRAD_S,
+                    "quickstart_cold_s_max": TARGET_QUICKSTART_S},
+    }  # fmt: skip
+
+    print(f"\n{'task':<11} {'import':>7} {'first':>7} {'cpu':>7} {'second':>8} {'process':>8} {'ratio':>6} | "
+          f"{'cached first':>12} {'process':>8} {'ratio':>6}")  # fmt: skip
+    for task in tasks:
+        c, k = cold[task], cached.get(task)
+        rc = ratios["cold"].get(f"{task}/{RATIOS.get(task)}")
+        rk = ratios["cached"].get(f"{task}/{RATIOS.get(task)}")
+        line = f"{task:<11} {c['import_s']:7.2f} {c['first_s']:7.2f} {c['first_cpu_s']:7.2f} {c['second_s']:8.3f} {c['wall_s']:8.2f} "
+        line += f"{rc:6.2f}" if rc is not None else f"{'':>6}"
+        if k:
+            line += f" | {k['first_s']:12.2f} {k['wall_s']:8.2f} " + (f"{rk:6.2f}" if rk is not None else "")
+        print(line)
+    if quickstart:
+        print(f"{'quickstart':<11} {'':>7} {'':>7} {'':>7} {'':>8} {quickstart['wall_s']:8.2f}")
+    print("ratio: first_s over the baseline's (cpu: " + ", ".join(f"{k} {v:.2f}" for k, v in ratios["cold_cpu"].items()) + ")")
+    print(f"targets: first gaits / grad at most {TARGET_RATIO}x the baseline; cached first grad <= {TARGET_CACHED_GRAD_S} s; "
+          f"quickstart cold < {TARGET_QUICKSTART_S} s")  # fmt: skip
+
+    tmp = args.out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(doc, indent=2) + "\n")
+    tmp.replace(args.out)
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
