@@ -3,14 +3,14 @@
     python benchmarks/ensemble.py [--batches 64 1024 4096] [--out benchmarks/results-ensemble.json]
 
 Problem 2 (the paper's acceleration + braking gaits, `theta_max` per trial, `simulate_gaits`
-under `vmap`, since session 7 on the shared path too) is timed in three variants: the default
-(shared steps, components), `batch_steps="per_trial"` (components from 256 trials), and the
-flat layout with per-trial steps (`jsphere.solve.simulate.COMPONENT_LAYOUT = False`: the library
-before session 7).
+under `vmap`) is timed in three variants: the default (shared steps, components),
+`batch_steps="per_trial"` (per-trial steps in lockstep), and the flat layout with per-trial
+steps in diffrax's loop (`jsphere.solve.simulate.COMPONENT_LAYOUT = False`).
 
-Three variants, compiled and timed in the same process: the public API as a user writes it
-(`jax.jit(jax.vmap(simulate))`; since session 5 its default, `batch_steps="shared"`), the public
-API with `batch_steps="per_trial"`, and the session-4 prototype below (benchmarks/NOTES.md). Under
+Problem 1 in three variants, compiled and timed in the same process: the public API as a user
+writes it (`jax.jit(jax.vmap(simulate))`, its default `batch_steps="shared"`), the public API
+with `batch_steps="per_trial"`, and the reference below: one `diffeqsolve` of the whole batch
+with a shared step (docs/performance.md, "Shared steps for a batch"). Under
 `jax.vmap`, diffrax runs one adaptive step-size controller per trial: every step of the batched
 while loop carries per-trial times, step sizes, accept/reject selects and save logic, and runs
 as many iterations as the slowest trial. Here the whole batch is *one* ODE system whose state
@@ -148,7 +148,7 @@ def main(argv=None) -> int:
             "per_trial_steps": {"mean": float(jnp.mean(tt.num_steps)), "max": int(jnp.max(tt.num_steps))},
             "max_abs_diff_final_xy_m": {"public": dxy(tr.x[:, -1], tr.y[:, -1]), "ensemble": dxy(xe, ye)},
         })  # fmt: skip
-    hdr = (f"{'batch':>6}{'per-trial /s':>14}{'public (shared) /s':>20}{'ratio':>7}{'prototype /s':>14}"
+    hdr = (f"{'batch':>6}{'per-trial /s':>14}{'public (shared) /s':>20}{'ratio':>7}{'one solve /s':>14}"
            f"{'steps shared':>14}{'per-trial mean/max':>20}{'max |dxy| m':>13}")  # fmt: skip
     print(hdr)
     print("-" * len(hdr))
@@ -161,7 +161,7 @@ def main(argv=None) -> int:
     res = {
         "problem": "problem 1 of run.py (paper robot, K_i = a_i sin(pi t + 2.1 (i-1)), [0, 4] s, rtol 1e-8, atol 1e-10)",
         "variants": {"public": "jax.jit(jax.vmap(simulate)), default batch_steps='shared'", "per_trial": "the same with batch_steps='per_trial'",
-                     "ensemble": "session-4 prototype: one diffeqsolve, shared step, max-over-trials RMS norm"},
+                     "ensemble": "reference: one diffeqsolve of the batch, shared step, max-over-trials RMS norm"},
         "device": str(jax.devices()[0].device_kind), "cpu_count": os.cpu_count(), "python": platform.python_version(),
         "jax": jax.__version__, "diffrax": dfx.__version__, "jsphere_commit": _commit(),
         "loadavg": list(os.getloadavg()) if hasattr(os, "getloadavg") else None, "rows": rows,

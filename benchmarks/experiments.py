@@ -1,4 +1,4 @@
-"""Side experiments behind the ideas in NOTES.md (not part of run.py; user-level knobs only,
+"""Side experiments recorded in docs/performance.md (not part of run.py; user-level knobs only,
 the package is not modified).
 
     python benchmarks/experiments.py [--big]

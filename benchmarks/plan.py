@@ -1,4 +1,4 @@
-"""Planning benchmark (issue 4): restarts x targets optimised in one vmapped, compiled call.
+"""Planning benchmark: restarts x targets optimised in one vmapped, compiled call.
 
     python benchmarks/plan.py                       # measure 16 x 16, extrapolate to 256 x 16
     python benchmarks/plan.py --restarts 256        # the full 256 x 16 run (about 80 min on 2 cores)

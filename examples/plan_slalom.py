@@ -1,5 +1,5 @@
 """A slalom through three waypoints, stopping at each, planned by gradients through the gait
-dynamics (issue 4), and compared with the paper's hand-made gaits.
+dynamics, and compared with the paper's hand-made gaits.
 
     python examples/plan_slalom.py [OUT_DIR]
 

@@ -1,4 +1,4 @@
-"""Capture data: the trial CSV format, synthetic trials, raw marker exports (issue 3)."""
+"""Capture data: the trial CSV format, synthetic trials, raw marker exports."""
 
 import re
 import struct

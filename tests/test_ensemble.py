@@ -52,9 +52,9 @@ def _sim(a, *, t1=2.0, ctrl=Sines, jump_ts=(), **kw):
 @pytest.mark.slow
 def test_shared_steps_meet_each_trials_tolerance():
     """The batch shares its steps (one `num_steps`), and each trial stays as close to a tight
-    solve of itself as the per-trial controller gets it (both ~1e-9 m, `benchmarks/NOTES.md`;
+    solve of itself as the per-trial controller gets it (both ~1e-9 m, `docs/model.md` section 9;
     bound 1e-8 m, 1e5 times below the paper's 1 mm scale)."""
-    # the closure form of the issue's benchmark: a traced amplitude inside a lambda
+    # the closure form of the benchmark's problem 1: a traced amplitude inside a lambda
     shared = jax.jit(jax.vmap(lambda a: _sim(a, ctrl=lambda a: lambda t: a * jnp.sin(jnp.pi * t + PH))))(A)
     tight = jax.jit(jax.vmap(lambda a: _sim(a, rtol=1e-12, atol=1e-14, batch_steps="per_trial")))(A)
     assert np.all(np.asarray(shared.ok))

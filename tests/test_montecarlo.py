@@ -38,7 +38,7 @@ def test_stop_spread_equals_linear_sensitivity(paper):
     h = 1e-6
     slope = (dist(0.0270146 + h) - dist(0.0270146 - h)) / (2 * h)
     assert sd == pytest.approx(abs(slope) * 1e-4, rel=0.05)
-    assert abs(slope) * 1e-4 == pytest.approx(1.09e-3, rel=0.03)  # MODEL-NOTES: 0.036 (1/s)/mm * 2 s * R0
+    assert abs(slope) * 1e-4 == pytest.approx(1.09e-3, rel=0.03)  # docs/model.md: 0.036 (1/s)/mm * 2 s * R0
     assert res.stats()["n_failed"] == 0
 
 
