@@ -105,12 +105,13 @@ def rate_row(r: dict, B: int, steps, **extra) -> dict:
 
 
 def _source_digest() -> str:
-    """sha256 over jsphere/*.py of this checkout (to tell whether the package changed mid-run)."""
+    """sha256 over jsphere/**/*.py of this checkout (to tell whether the package changed mid-run)."""
     import hashlib
 
     h = hashlib.sha256()
-    for f in sorted((ROOT / "jsphere").glob("*.py")):
-        h.update(f.name.encode() + b"\0" + f.read_bytes())
+    package = ROOT / "jsphere"
+    for f in sorted(package.rglob("*.py")):
+        h.update(f.relative_to(package).as_posix().encode() + b"\0" + f.read_bytes())
     return h.hexdigest()[:16]
 
 
@@ -459,10 +460,12 @@ def write_json_atomic(path: Path, obj) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="smaller run (about 2 minutes on 2 CPU cores)")
-    ap.add_argument("--out", type=Path, default=HERE / "results.json", help="JSON output (written atomically)")
+    ap.add_argument("--out", type=Path, default=None, help="JSON output, written atomically (default results.json, or results-quick.json with --quick)")
     ap.add_argument("--no-casadi", action="store_true", help="skip the CasADi baselines (run when casadi is installed)")
     ap.add_argument("--no-startup", action="store_true", help="skip the start-up measurement (benchmarks/startup.py's default configuration)")
     args = ap.parse_args(argv)
+    if args.out is None:
+        args.out = HERE / ("results-quick.json" if args.quick else "results.json")
     t_start = time.perf_counter()
     global _SOURCE_AT_IMPORT
     _SOURCE_AT_IMPORT = _source_digest()

@@ -18,7 +18,7 @@ import argparse
 import numpy as np
 
 import jsphere
-from jsphere.plots.figures import figure2_study
+from jsphere.plots import figure2_study
 
 ap = argparse.ArgumentParser()
 ap.add_argument("--trials", type=int, default=100_000)

@@ -14,7 +14,7 @@ import argparse
 import json
 
 import jsphere
-from jsphere.plots.figures import montecarlo_figure
+from jsphere.plots import montecarlo_figure
 
 ap = argparse.ArgumentParser()
 ap.add_argument("--trials", type=int, default=100_000)

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 import jsphere
-from jsphere.plots.figures import plan_figure
+from jsphere.plots import plan_figure
 
 WAYPOINTS = [(0.45, 0.3), (0.9, -0.3), (1.35, 0.3)]
 
