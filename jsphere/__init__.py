@@ -16,7 +16,6 @@ import jax as _jax
 if _os.environ.get("JSPHERE_X64", "1") != "0":
     _jax.config.update("jax_enable_x64", True)
 
-# --- capture data (issue 3) ---
 from .capture.trial import (
     CaptureWarning as CaptureWarning,
     Trial as Trial,
@@ -42,8 +41,6 @@ from .capture.mocap import (
     write_vicon_csv as write_vicon_csv,
 )
 
-# --- end capture data ---
-# --- system identification: the fit ---
 from ._runtime.errors import ExitCode as ExitCode, InputError as InputError, SolverFailure as SolverFailure
 from .identify.fit import (
     FitResult as FitResult,
@@ -53,7 +50,6 @@ from .identify.fit import (
 )
 from .identify.free import FreeParams as FreeParams
 
-# --- end system identification ---
 from .controls import (
     Constant as Constant,
     Sampled as Sampled,
@@ -103,7 +99,6 @@ from .solve.trajectory import (
     power_along as power_along,
     trajectory_residuals as trajectory_residuals,
 )
-# ---- gait optimisation / motion planning (issue 4) ----
 from .gaits.families import (
     Smooth as Smooth,
     TiltGait as TiltGait,
@@ -123,6 +118,5 @@ from .planning.plan import (
     plan_route as plan_route,
     replay_errors as replay_errors,
 )
-# ---- end planning ----
 
 __version__ = "0.1.0"

@@ -13,7 +13,7 @@ def as_array(x, dtype) -> Array:
 
     Converting a Python float with `jnp.asarray` is an XLA program (a weak-to-strong
     `convert_element_type`): compiled once, then loaded from the persistent cache by every new
-    process, ~50 ms each in a second `jsphere reproduce` (benchmarks/NOTES.md, session 11).
+    process (`docs/performance.md`, "Few programs in a run of `jsphere reproduce`").
     JAX arrays and tracers go through `jnp.asarray` unchanged.
     """
     if isinstance(x, (jax.Array, jax.core.Tracer)):
