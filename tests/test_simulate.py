@@ -136,7 +136,7 @@ def test_grad_wrt_gait_amplitude_and_params(paper):
     fd_rm = _fd(lambda v: float(f(0.1, v)), 0.027, 1e-6)
     assert abs(float(g_th) - fd_th) < 1e-6 * abs(fd_th)
     assert abs(float(g_rm) - fd_rm) < 1e-5 * abs(fd_rm)
-    # the stop distance grows with R_m: MODEL-NOTES gives dOmega_1/dR_m = +0.036 (1/s)/mm
+    # the stop distance grows with R_m: docs/model.md gives dOmega_1/dR_m = +0.036 (1/s)/mm
     assert 1e-3 * float(g_rm) == pytest.approx(2 * 0.15 * 0.036, rel=0.05)
 
 
