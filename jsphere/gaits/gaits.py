@@ -303,23 +303,8 @@ def simulate_gaits(
     initial = tuple(as_array(v, dt) for v in (alpha0, beta0, Omega0, x0, y0))
     _check_start(params, gaits[0], initial[0], initial[1])
 
-    if ts is None:
-        if any(isinstance(g.T, jax.core.Tracer) for g in gaits):
-            raise ValueError("simulate_gaits: pass `ts` when gait durations are traced (under jit/grad).")
-        starts = np.cumsum([0.0] + [float(g.T) for g in gaits])[:-1]
-        grids = [a + np.linspace(0.0, float(g.T), max(2, int(round(float(g.T) * rate)) + 1)) for g, a in zip(gaits, starts)]
-        ts_out = as_array(np.concatenate(grids), dt)
-    else:
-        ts_out = as_array(ts, dt)
-    for i, r in enumerate(resets):
-        if not (r is None or isinstance(r, bool)) and np.shape(r) != (3,):
-            raise ValueError(f"simulate_gaits: reset[{i}] must be None, True/False or an Omega 3-vector; got shape {np.shape(r)}.")
-    # one compiled function per number of gaits: reset modes and values are data
-    modes = as_array([0 if (r is None or r is False) else 1 if r is True else 2 for r in resets], np.int32)
-    values = as_array([np.zeros(3) if (r is None or isinstance(r, bool)) else r for r in resets] if nb else np.zeros((0, 3)), dt)
-    if values.shape != (nb, 3):
-        raise ValueError(f"simulate_gaits: an explicit reset must be an Omega 3-vector; got shapes {values.shape}.")
-    resets = (modes, values)
+    ts_out = _output_times(gaits, ts, rate, dt)
+    resets = _reset_data(resets, dt)
     # gait coefficients in the parameters' precision (float32 robots stay float32)
     gaits = jax.tree_util.tree_map(
         lambda x: x.astype(dt) if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) and x.dtype != dt else x, gaits
@@ -329,6 +314,33 @@ def simulate_gaits(
         opts.adjoint_or_default(), steps_layout(opts.batch_steps, opts.throw),
     )  # fmt: skip
     return raise_on_failure(traj, opts.throw)
+
+
+def _output_times(gaits, ts, rate, dt):
+    """`ts` as an array of `dt`, or by default each gait sampled at `rate` Hz on its own
+    `[start, end]`."""
+    if ts is not None:
+        return as_array(ts, dt)
+    if any(isinstance(g.T, jax.core.Tracer) for g in gaits):
+        raise ValueError("simulate_gaits: pass `ts` when gait durations are traced (under jit/grad).")
+    starts = np.cumsum([0.0] + [float(g.T) for g in gaits])[:-1]
+    grids = [a + np.linspace(0.0, float(g.T), max(2, int(round(float(g.T) * rate)) + 1)) for g, a in zip(gaits, starts)]
+    return as_array(np.concatenate(grids), dt)
+
+
+def _reset_data(resets, dt):
+    """The resets at the gait boundaries as data `(modes, values)`, so that there is one
+    compiled function per number of gaits: mode 0 continue, 1 project `Omega` (`reset=True`),
+    2 the explicit `Omega` of `values`."""
+    nb = len(resets)
+    for i, r in enumerate(resets):
+        if not (r is None or isinstance(r, bool)) and np.shape(r) != (3,):
+            raise ValueError(f"simulate_gaits: reset[{i}] must be None, True/False or an Omega 3-vector; got shape {np.shape(r)}.")
+    modes = as_array([0 if (r is None or r is False) else 1 if r is True else 2 for r in resets], np.int32)
+    values = as_array([np.zeros(3) if (r is None or isinstance(r, bool)) else r for r in resets] if nb else np.zeros((0, 3)), dt)
+    if values.shape != (nb, 3):
+        raise ValueError(f"simulate_gaits: an explicit reset must be an Omega 3-vector; got shapes {values.shape}.")
+    return modes, values
 
 
 def _solve_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, max_steps, adjoint, steps: Layout):

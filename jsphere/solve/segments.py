@@ -128,20 +128,26 @@ def solve_segments(
         z0, jnp.zeros((T, z0.shape[0]), dt), jnp.zeros((T, 3), dt), jnp.zeros((T, N), dt),
         jnp.zeros((T, N), dt), jnp.zeros((T,), jnp.int32), jnp.array(0, jnp.int32), jnp.array(0, jnp.int32),
     )  # fmt: skip
-    controls = [c for c, _, _ in segments]
-    stacked = _homogeneous(controls) if n_seg > 1 else None
+    _, zs, om, cd, Ks, seg, code, steps = _over_segments(one_segment, carry, segments)
+    return zs, om, cd, Ks, seg, code, steps
+
+
+def _over_segments(one_segment, carry, segments):
+    """`carry = one_segment(carry, k, control, a, b)` for every segment `k`: in one `lax.scan`
+    when their controls can be stacked (`_homogeneous`), else one after the other."""
+    n_seg = len(segments)
+    stacked = _homogeneous([c for c, _, _ in segments]) if n_seg > 1 else None
     if stacked is None:
         for k, (control, a, b) in enumerate(segments):
             carry = one_segment(carry, jnp.array(k, jnp.int32), control, a, b)
-    else:
-        dyn, static = stacked
-        xs = (jnp.arange(n_seg, dtype=jnp.int32), dyn, jnp.stack([a for _, a, _ in segments]),
-              jnp.stack([b for _, _, b in segments]))  # fmt: skip
+        return carry
+    dyn, static = stacked
+    xs = (jnp.arange(n_seg, dtype=jnp.int32), dyn, jnp.stack([a for _, a, _ in segments]),
+          jnp.stack([b for _, _, b in segments]))  # fmt: skip
 
-        def body(c, x):
-            k, dc, a, b = x
-            return one_segment(c, k, eqx.combine(dc, static), a, b), None
+    def body(c, x):
+        k, dc, a, b = x
+        return one_segment(c, k, eqx.combine(dc, static), a, b), None
 
-        carry, _ = jax.lax.scan(body, carry, xs)
-    _, zs, om, cd, Ks, seg, code, steps = carry
-    return zs, om, cd, Ks, seg, code, steps
+    carry, _ = jax.lax.scan(body, carry, xs)
+    return carry

@@ -253,6 +253,73 @@ class _Residuals(eqx.Module):
     times: bool = eqx.field(static=True)  # whether `(t0, t1, ts)` are differentiated
 
 
+class _Passes:
+    """`solve`'s forward pass (`run`) and the two halves of its custom VJP (`fwd`, `bwd`), for
+    one method and its settings (trace-time context only)."""
+
+    def __init__(self, m: Method, batched, opts, per_trial, fallback, elementwise, f_adjoint):
+        self.m, self.batched, self.opts = m, batched, opts
+        self.per_trial, self.fallback, self.elementwise, self.f_adjoint = per_trial, fallback, elementwise, f_adjoint
+
+    def run(self, t0, t1, ts, y0, args, record):
+        """`(out, (at, rec, n, fell_back))`: the solve and its record; `n` the number of steps
+        (shared) or of iterations (per trial) the backward pass runs through; `fell_back`
+        whether the shared solve failed and `out` is the per-trial solve's (its record is
+        then recomputed by the backward pass)."""
+        m, batched, opts = self.m, self.batched, self.opts
+        if self.per_trial:
+            out, (at, rec, n) = forward_per_trial(m, args, batched, t0, t1, y0, ts, record=record, **opts)
+            return out, (at, rec, n, jnp.bool_(False))
+        out, (at, rec) = forward(m, args, batched, t0, t1, y0, ts, record=record, **opts)
+        if not self.fallback:
+            return out, (at, rec, out[2], jnp.bool_(False))
+        B = y0.shape[1]
+        fell_back = out[1]
+
+        def per_trial_solve():
+            return forward_per_trial(m, args, batched, t0, t1, y0, ts, **opts)[0]
+
+        def shared_solve():
+            return out[0], jnp.broadcast_to(out[1], (B,)), jnp.broadcast_to(out[2], (B,)).astype(jnp.int32)
+
+        return jax.lax.cond(fell_back, per_trial_solve, shared_solve), (at, rec, out[2], fell_back)
+
+    def fwd(self, t0, t1, ts, y0, args):
+        times = any(x.perturbed for x in (t0, t1, ts))
+        diff = tuple(i for i, x in enumerate(args) if x.perturbed and jnp.issubdtype(x.value.dtype, jnp.inexact))
+        t0, t1, ts, y0 = (x.value for x in (t0, t1, ts, y0))
+        args = [x.value for x in args]
+        out, (at, rec, steps, fell_back) = self.run(t0, t1, ts, y0, args, True)
+        return out, _Residuals(t0, t1, ts, y0, args, (out[0], out[1], steps), at, rec, fell_back, diff, times)
+
+    def bwd(self, res: _Residuals, ct_out):
+        m, batched = self.m, self.batched
+        ct = ct_out[0]
+        if isinstance(ct, jax.custom_derivatives.SymbolicZero):
+            ct = jnp.zeros(res.out[0].shape, res.y0.dtype)
+        kw = dict(max_steps=self.opts["max_steps"], times=res.times, elementwise=self.elementwise, f_adjoint=self.f_adjoint)
+        common = (m, res.args, batched, list(res.diff), res.t0, res.t1, res.ts, res.y0)
+
+        def shared_adjoint():
+            return backward(*common, res.out, res.at, res.rec, ct, **kw)
+
+        def per_trial_adjoint():  # the per-trial solve that `run` kept, with its record
+            out_p, (at_p, rec_p, n_p) = forward_per_trial(
+                m, res.args, batched, res.t0, res.t1, res.y0, res.ts, record=True, **self.opts
+            )
+            return backward(*common, (out_p[0], out_p[1], n_p), at_p, rec_p, ct, **kw)
+
+        if self.fallback and not self.per_trial:
+            y0_bar, d_bar, time_bars = jax.lax.cond(res.fell_back, per_trial_adjoint, shared_adjoint)
+        else:
+            y0_bar, d_bar, time_bars = shared_adjoint()
+        args_bar = [None] * len(res.args)
+        for i, g in zip(res.diff, d_bar):
+            args_bar[i] = g
+        t_bars = time_bars if res.times else (None, None, None)
+        return (*t_bars, y0_bar, args_bar)
+
+
 def solve(f, t0, t1, y0, ts, args=(), batched=(), *, tab: Tableau, rtol, atol, max_steps: int, elementwise=(),
           per_trial=False, fallback=False, f_adjoint: Callable | None = None):  # fmt: skip
     """Integrate `y' = f(t, y, args, batched)` for the `(n, batch)` state `y0` from `t0` to
@@ -294,68 +361,8 @@ def solve(f, t0, t1, y0, ts, args=(), batched=(), *, tab: Tableau, rtol, atol, m
     args, batched = list(args), tuple(bool(b) for b in batched)
     if len(batched) != len(args):
         raise ValueError(f"batched: one flag per entry of args ({len(args)}), got {len(batched)}")
-    m = Method(f, tab, dtype)
-    opts = dict(rtol=rtol, atol=atol, max_steps=max_steps)
-
-    def run(t0, t1, ts, y0, args, record):
-        """`(out, (at, rec, n, fell_back))`: the solve and its record; `n` the number of steps
-        (shared) or of iterations (per trial) the backward pass runs through; `fell_back`
-        whether the shared solve failed and `out` is the per-trial solve's (its record is
-        then recomputed by the backward pass)."""
-        if per_trial:
-            out, (at, rec, n) = forward_per_trial(m, args, batched, t0, t1, y0, ts, record=record, **opts)
-            return out, (at, rec, n, jnp.bool_(False))
-        out, (at, rec) = forward(m, args, batched, t0, t1, y0, ts, record=record, **opts)
-        if not fallback:
-            return out, (at, rec, out[2], jnp.bool_(False))
-        B = y0.shape[1]
-        fell_back = out[1]
-
-        def per_trial_solve():
-            return forward_per_trial(m, args, batched, t0, t1, y0, ts, **opts)[0]
-
-        def shared_solve():
-            return out[0], jnp.broadcast_to(out[1], (B,)), jnp.broadcast_to(out[2], (B,)).astype(jnp.int32)
-
-        return jax.lax.cond(fell_back, per_trial_solve, shared_solve), (at, rec, out[2], fell_back)
-
-    @jax.custom_vjp
-    def core(t0, t1, ts, y0, args):
-        return run(t0, t1, ts, y0, args, False)[0]
-
-    def fwd(t0, t1, ts, y0, args):
-        times = any(x.perturbed for x in (t0, t1, ts))
-        diff = tuple(i for i, x in enumerate(args) if x.perturbed and jnp.issubdtype(x.value.dtype, jnp.inexact))
-        t0, t1, ts, y0 = (x.value for x in (t0, t1, ts, y0))
-        args = [x.value for x in args]
-        out, (at, rec, steps, fell_back) = run(t0, t1, ts, y0, args, True)
-        return out, _Residuals(t0, t1, ts, y0, args, (out[0], out[1], steps), at, rec, fell_back, diff, times)
-
-    def bwd(res: _Residuals, ct_out):
-        ct = ct_out[0]
-        if isinstance(ct, jax.custom_derivatives.SymbolicZero):
-            ct = jnp.zeros(res.out[0].shape, dtype)
-        kw = dict(max_steps=max_steps, times=res.times, elementwise=set(elementwise), f_adjoint=f_adjoint)
-        common = (m, res.args, batched, list(res.diff), res.t0, res.t1, res.ts, res.y0)
-
-        def shared_adjoint():
-            return backward(*common, res.out, res.at, res.rec, ct, **kw)
-
-        def per_trial_adjoint():  # the per-trial solve that `run` kept, with its record
-            out_p, (at_p, rec_p, n_p) = forward_per_trial(
-                m, res.args, batched, res.t0, res.t1, res.y0, res.ts, record=True, **opts
-            )
-            return backward(*common, (out_p[0], out_p[1], n_p), at_p, rec_p, ct, **kw)
-
-        if fallback and not per_trial:
-            y0_bar, d_bar, time_bars = jax.lax.cond(res.fell_back, per_trial_adjoint, shared_adjoint)
-        else:
-            y0_bar, d_bar, time_bars = shared_adjoint()
-        args_bar = [None] * len(res.args)
-        for i, g in zip(res.diff, d_bar):
-            args_bar[i] = g
-        t_bars = time_bars if res.times else (None, None, None)
-        return (*t_bars, y0_bar, args_bar)
-
-    core.defvjp(fwd, bwd, symbolic_zeros=True)
+    passes = _Passes(Method(f, tab, dtype), batched, dict(rtol=rtol, atol=atol, max_steps=max_steps), per_trial, fallback,
+                     set(elementwise), f_adjoint)  # fmt: skip
+    core = jax.custom_vjp(lambda t0, t1, ts, y0, args: passes.run(t0, t1, ts, y0, args, False)[0])
+    core.defvjp(passes.fwd, passes.bwd, symbolic_zeros=True)
     return core(t0, t1, ts, y0, args)
