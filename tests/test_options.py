@@ -13,7 +13,8 @@ from jsphere.solve.options import resolve
 
 def test_defaults_and_validation():
     o = SolverOptions()
-    assert (o.rtol, o.atol, o.solver, o.max_steps, o.throw, o.adjoint, o.batch_steps) == (None, None, None, 16384, True, None, "shared")
+    got = (o.rtol, o.atol, o.solver, o.max_steps, o.throw, o.adjoint, o.batch_steps)
+    assert got == (None, None, None, 16384, True, None, "shared")
     assert isinstance(o.solver_or_default(), dfx.Dopri8)
     assert isinstance(o.adjoint_or_default(), dfx.RecursiveCheckpointAdjoint)
     assert o.tolerances(jnp.float64) == (1e-8, 1e-10)
@@ -25,7 +26,8 @@ def test_defaults_and_validation():
 
 def test_merge_keywords_into_options():
     o = SolverOptions(rtol=1e-9, solver=dfx.Tsit5())
-    m = resolve(o, where="simulate", rtol=None, atol=1e-12, solver=dfx.Tsit5(), max_steps=16384, batch_steps="per_trial")
+    m = resolve(o, where="simulate", rtol=None, atol=1e-12, solver=dfx.Tsit5(), max_steps=16384,
+                batch_steps="per_trial")  # fmt: skip
     assert (m.rtol, m.atol, type(m.solver), m.max_steps, m.batch_steps) == (1e-9, 1e-12, dfx.Tsit5, 16384, "per_trial")
     assert resolve(None, where="simulate", max_steps=100).max_steps == 100
     with pytest.raises(ValueError, match=r"simulate: rtol=1e-07 conflicts with options.rtol=1e-09"):

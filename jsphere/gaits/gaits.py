@@ -384,7 +384,9 @@ def _check_start(params, gait, alpha0, beta0) -> None:
 
 
 @eqx.filter_jit
-def _simulate_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, max_steps, adjoint, layout=Layout.FLAT, derived=None):
+def _simulate_gaits(
+    params, gaits, initial, ts_out, resets, solver, rtol, atol, max_steps, adjoint, layout=Layout.FLAT, derived=None
+):
     dt = params.R0.dtype
     d = derive(params) if derived is None else derived
     alpha0, beta0, Omega0, x0, y0 = initial

@@ -31,7 +31,9 @@ FLOAT32_MIN_RTOL = 1e-5
 BATCH_STEPS = ("shared", "per_trial")
 
 
-def tolerances(dtype, rtol, atol, defaults=DEFAULT_TOLERANCES, *, where: str = "simulate", stacklevel: int = 3) -> tuple[Any, Any]:
+def tolerances(
+    dtype, rtol, atol, defaults=DEFAULT_TOLERANCES, *, where: str = "simulate", stacklevel: int = 3
+) -> tuple[Any, Any]:
     """`(rtol, atol)` with `None` replaced by the default for `dtype` (`defaults[dtype name]`),
     and a warning when a float32 solve is asked for an `rtol` its rounding cannot resolve."""
     name = "float32" if jnp.dtype(dtype).itemsize <= 4 else "float64"

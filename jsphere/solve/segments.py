@@ -43,7 +43,8 @@ def _status(failed, bad_start, finite):
     """The segment's `RESULTS` code. diffrax fills the save points it never reached with inf, so
     its result decides first."""
     nonfinite, max_steps = int(RESULTS.nonfinite), int(RESULTS.max_steps_reached)
-    return jnp.where(failed, jnp.where(bad_start, nonfinite, max_steps), jnp.where(finite, int(RESULTS.successful), nonfinite))
+    ok = int(RESULTS.successful)
+    return jnp.where(failed, jnp.where(bad_start, nonfinite, max_steps), jnp.where(finite, ok, nonfinite))
 
 
 def solve_segments(
@@ -88,7 +89,7 @@ def solve_segments(
 
     def solve_one(k, z, code, control, a, b, t_save):
         """The segment's saved states `(T+1, 16+N)`, whether it failed, its accepted steps."""
-        if layout is Layout.SHARED_STEPS_RETRY:  # a trial that failed in an earlier segment stays out of the step control
+        if layout is Layout.SHARED_STEPS_RETRY:  # a trial failed in an earlier segment: out of the step control
             z = jnp.where(code != 0, jnp.nan, z)
         if layout.batch_solve:
             ys, failed, n_acc = _segment.solve(

@@ -169,7 +169,9 @@ def batch_engine_applies(controls_ok: bool, adjoint) -> bool:
     return COMPONENT_LAYOUT and controls_ok and type(adjoint) in (dfx.RecursiveCheckpointAdjoint, dfx.ForwardMode)
 
 
-def _solve(params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_steps, adjoint, steps=Layout.SHARED_STEPS) -> Trajectory:
+def _solve(
+    params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_steps, adjoint, steps=Layout.SHARED_STEPS
+) -> Trajectory:
     """`_simulate` with the state layout chosen by batching: concrete calls (which no `vmap`
     can be around) and calls the batch engine does not take run `_simulate` directly (through
     the exported-program cache); traced torque-mode calls go through the engine's batching
@@ -185,7 +187,9 @@ def _solve(params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_ste
 
 
 @eqx.filter_jit
-def _simulate(params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_steps, adjoint, layout=Layout.FLAT, derived=None):
+def _simulate(
+    params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_steps, adjoint, layout=Layout.FLAT, derived=None
+):
     dt = params.R0.dtype
     d = derive(params) if derived is None else derived
     if ts_out is None:

@@ -92,8 +92,9 @@ class _Adjoint:
         self.T = ts.shape[0]
         self.lockstep = rec.TK.ndim == 2  # each trial's own steps, in lockstep (`forward_per_trial`)
         self.trials = jnp.arange(B)
-        self.per_trial = [
-            x if b or i not in diff else jnp.broadcast_to(x, (B,) + jnp.shape(x)) for i, (x, b) in enumerate(zip(args, batched))
+        self.per_trial = [  # the differentiated shared arguments, one copy per trial
+            x if b or i not in diff else jnp.broadcast_to(x, (B,) + jnp.shape(x))
+            for i, (x, b) in enumerate(zip(args, batched))
         ]
         self.pt_batched = tuple(b or i in diff for i, b in enumerate(batched))
         self.dargs0 = [_elements(self.per_trial[i]) if i in elementwise else self.per_trial[i] for i in diff]
@@ -114,7 +115,10 @@ class _Adjoint:
         def one(ti, yg):  # with respect to the state's rows: no transposed slices (pads)
             yi, g = yg
             rows = tuple(yi[r] for r in range(yi.shape[0]))
-            _, pull = jax.vjp(lambda y, da: f(ti, y, self.with_diff(da), self.pt_batched).astype(dtype), rows, self.dargs0)
+            def rates(y, da):
+                return f(ti, y, self.with_diff(da), self.pt_batched).astype(dtype)
+
+            _, pull = jax.vjp(rates, rows, self.dargs0)
             dy, da = pull(g)  # rows stay separate buffers: stacked outside the branch
             return dy, self.packed.pack(jax.tree_util.tree_leaves(da))
 

@@ -297,7 +297,9 @@ class _Passes:
         ct = ct_out[0]
         if isinstance(ct, jax.custom_derivatives.SymbolicZero):
             ct = jnp.zeros(res.out[0].shape, res.y0.dtype)
-        kw = dict(max_steps=self.opts["max_steps"], times=res.times, elementwise=self.elementwise, f_adjoint=self.f_adjoint)
+        kw = dict(
+            max_steps=self.opts["max_steps"], times=res.times, elementwise=self.elementwise, f_adjoint=self.f_adjoint
+        )
         common = (m, res.args, batched, list(res.diff), res.t0, res.t1, res.ts, res.y0)
 
         def shared_adjoint():
@@ -361,8 +363,8 @@ def solve(f, t0, t1, y0, ts, args=(), batched=(), *, tab: Tableau, rtol, atol, m
     args, batched = list(args), tuple(bool(b) for b in batched)
     if len(batched) != len(args):
         raise ValueError(f"batched: one flag per entry of args ({len(args)}), got {len(batched)}")
-    passes = _Passes(Method(f, tab, dtype), batched, dict(rtol=rtol, atol=atol, max_steps=max_steps), per_trial, fallback,
-                     set(elementwise), f_adjoint)  # fmt: skip
+    opts = dict(rtol=rtol, atol=atol, max_steps=max_steps)
+    passes = _Passes(Method(f, tab, dtype), batched, opts, per_trial, fallback, set(elementwise), f_adjoint)
     core = jax.custom_vjp(lambda t0, t1, ts, y0, args: passes.run(t0, t1, ts, y0, args, False)[0])
     core.defvjp(passes.fwd, passes.bwd, symbolic_zeros=True)
     return core(t0, t1, ts, y0, args)

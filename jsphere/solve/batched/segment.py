@@ -157,7 +157,8 @@ class _Segment(eqx.Module):
             field = self.field if not adjoint else lambda t, z, args, k: self.field(t, z, args, k, adjoint=True)
             rates = jax.vmap(
                 lambda t, z, k, l, a, b: field(t, z, self.rebuild(l, a, b), k),
-                in_axes=(0 if jnp.ndim(t) else None, 0, 0, _axes(batched[:-2]), *_axes(batched[-2:])), axis_size=axis_size,
+                in_axes=(0 if jnp.ndim(t) else None, 0, 0, _axes(batched[:-2]), *_axes(batched[-2:])),
+                axis_size=axis_size,
             )(t, tuple(y), K, args[:-2], *args[-2:])  # fmt: skip
             return jnp.stack(rates)
 
@@ -204,7 +205,8 @@ class _Segment(eqx.Module):
             return out, failed, accepted, False
 
         def per_trial_solve():
-            ys, failed, steps = jax.vmap(self.one, in_axes=(None, _axes(y_b), _axes(l_b)), axis_size=axis_size)(times, y0, lv)
+            in_axes = (None, _axes(y_b), _axes(l_b))
+            ys, failed, steps = jax.vmap(self.one, in_axes=in_axes, axis_size=axis_size)(times, y0, lv)
             return jnp.stack(ys, axis=1).transpose(2, 1, 0), failed, steps
 
         def shared_solve():
