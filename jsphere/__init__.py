@@ -92,9 +92,12 @@ from .montecarlo.run import (
 from .model.names import get_value as get_value, parse_name as parse_name, set_value as set_value
 from .model.params import RobotParams as RobotParams
 from .paper.reproduce import reproduce as reproduce, to_figure_frame as to_figure_frame
-from .solve.simulate import Trajectory as Trajectory, simulate as simulate
+from .solve.simulate import simulate as simulate
+from .solve.options import SolverOptions as SolverOptions
+from .solve.status import RESULTS as RESULTS
 from .model.state import State as State
 from .solve.trajectory import (
+    Trajectory as Trajectory,
     energy_along as energy_along,
     power_along as power_along,
     trajectory_residuals as trajectory_residuals,

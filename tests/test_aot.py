@@ -10,16 +10,15 @@ import pytest
 
 import jsphere
 from jsphere._runtime import export_cache as _aot
+from jsphere._runtime.private import equinox_errors_as
 
 
 @pytest.fixture
-def aot_dir(tmp_path, monkeypatch):
-    import equinox._errors as eqx_errors
-
-    monkeypatch.setattr(eqx_errors, "EQX_ON_ERROR", "nan")  # as the CLI: no host callbacks to export
-    _aot.enable(tmp_path)
-    yield tmp_path / "aot"
-    _aot.enable(None)
+def aot_dir(tmp_path):
+    with equinox_errors_as("nan"):  # as the CLI: no host callbacks to export
+        _aot.enable(tmp_path)
+        yield tmp_path / "aot"
+        _aot.enable(None)
 
 
 def _free_roll(p):

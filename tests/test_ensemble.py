@@ -1,5 +1,5 @@
 """Batched torque- and gait-mode solves with one step sequence for the batch (`batch_steps="shared"`,
-the default under `vmap`; jsphere.solve.batched.dispatch).
+the default under `vmap`; jsphere.solve.batched.segment).
 
 Every trial must still be integrated to its own tolerance: the tests compare each trial with a
 tight solve of the same trial, against the error the per-trial controller makes, and check
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import jsphere
-import jsphere.solve.simulate as S
+import jsphere.solve.batched.layout as L
 
 PH = jnp.array([0.0, 2.1, 4.2])
 
@@ -37,7 +37,7 @@ class Flip(eqx.Module):
 @pytest.fixture(autouse=True)
 def _share_small_batches(monkeypatch):
     """The batches here are a few trials; by default only batches of `SHARED_MIN_BATCH` share."""
-    monkeypatch.setattr(S, "SHARED_MIN_BATCH", 2)
+    monkeypatch.setattr(L, "SHARED_MIN_BATCH", 2)
 
 
 P = jsphere.RobotParams.paper()
@@ -195,7 +195,7 @@ A7 = jnp.concatenate([A, 0.05 * (1 + 0.1 * jax.random.normal(jax.random.PRNGKey(
 @pytest.mark.slow
 def test_per_trial_steps_do_not_depend_on_the_batch():
     """`batch_steps="per_trial"` runs a batch in the same vectorised loop with each trial's own
-    step sequence, in lockstep (`_shared_rk._forward_per_trial`): a trial's result is bitwise
+    step sequence, in lockstep (`jsphere.solve.batched.loop.forward_per_trial`): a trial's result is bitwise
     the same whatever the other trials of its batch, its step count is its own, and it is as
     close to a tight solve of itself as the shared steps get (interior save times included:
     each trial's own dense output)."""
@@ -247,6 +247,6 @@ def test_gradient_of_per_trial_steps(monkeypatch, loss):
         e = jnp.zeros(3).at[k].set(h)
         fd = (float(f(THETA + e)) - float(f(THETA - e))) / (2 * h)
         assert abs(float(g[k]) - fd) < 1e-5 * abs(fd), (k, float(g[k]), fd)
-    monkeypatch.setattr(S, "SHARED_MIN_BATCH", 10**9)  # diffrax's loop per trial
+    monkeypatch.setattr(L, "SHARED_MIN_BATCH", 10**9)  # diffrax's loop per trial
     g_flat = jax.jit(jax.grad(lambda th: loss(th, "per_trial")))(THETA)
     np.testing.assert_allclose(g, g_flat, rtol=1e-6)

@@ -10,7 +10,8 @@ import pytest
 
 import jsphere
 import jsphere.solve.batched.loop as R
-import jsphere.solve.simulate as S
+import jsphere.solve.batched.method as RK
+import jsphere.solve.batched.layout as L
 
 W = jnp.array([1.0, 2.0, 3.5, 5.0])  # one oscillator frequency per trial
 TS = jnp.linspace(0.0, 3.0, 7)
@@ -26,7 +27,7 @@ def _exact(t):
 
 def _solve(solver, f=_oscillators, y0=None, t1=3.0, ts=TS, max_steps=4096, rtol=1e-8, atol=1e-10):
     y0 = jnp.stack([jnp.ones(4), jnp.zeros(4)]) if y0 is None else y0
-    return jax.jit(lambda y0: R.solve(f, 0.0, t1, y0, ts, tab=R.tableau(solver), rtol=rtol, atol=atol, max_steps=max_steps))(y0)
+    return jax.jit(lambda y0: R.solve(f, 0.0, t1, y0, ts, tab=RK.tableau(solver), rtol=rtol, atol=atol, max_steps=max_steps))(y0)
 
 
 @pytest.mark.parametrize("solver", [dfx.Dopri8(), dfx.Dopri5(), dfx.Tsit5()], ids=lambda s: type(s).__name__)
@@ -70,7 +71,7 @@ def test_failures_are_reported():
 
 def test_an_empty_interval_and_float32():
     y0 = jnp.stack([jnp.ones(4), jnp.zeros(4)])
-    ys, failed, accepted = jax.jit(lambda y0: R.solve(_oscillators, 1.0, 1.0, y0, jnp.array([1.0]), tab=R.tableau(dfx.Dopri8()), rtol=1e-8, atol=1e-10, max_steps=16))(y0)  # fmt: skip
+    ys, failed, accepted = jax.jit(lambda y0: R.solve(_oscillators, 1.0, 1.0, y0, jnp.array([1.0]), tab=RK.tableau(dfx.Dopri8()), rtol=1e-8, atol=1e-10, max_steps=16))(y0)  # fmt: skip
     assert not bool(failed) and int(accepted) == 0
     np.testing.assert_array_equal(ys, jnp.stack([y0, y0]))
     ys32, failed32, _ = _solve(dfx.Tsit5(), y0=y0.astype(jnp.float32), rtol=1e-5, atol=1e-7)
@@ -82,8 +83,8 @@ def test_an_empty_interval_and_float32():
 def test_stage_arguments_are_the_tableau_rows(solver):
     """`stage_arg` (one switch branch per row, nonzero terms only) is `y + sum_j a_ij K[j]` for
     every stage, `y` itself at stage 0, with the stage index traced or a Python int."""
-    tab = R.tableau(solver)
-    m = R._Method(None, tab, jnp.float64)
+    tab = RK.tableau(solver)
+    m = RK.Method(None, tab, jnp.float64)
     rng = np.random.default_rng(0)
     y, K = rng.standard_normal((3, 5)), rng.standard_normal((m.s, 3, 5))
     traced = jax.jit(lambda i: m.stage_arg(i, y, K))
@@ -95,7 +96,7 @@ def test_stage_arguments_are_the_tableau_rows(solver):
 
 
 def test_only_diffrax_methods_it_implements():
-    assert R.tableau(dfx.Dopri8()) is not None and R.tableau(dfx.Bosh3()) is None
+    assert RK.tableau(dfx.Dopri8()) is not None and RK.tableau(dfx.Bosh3()) is None
 
 
 @pytest.mark.parametrize("solver", [pytest.param(dfx.Tsit5(), marks=pytest.mark.slow), dfx.Bosh3()], ids=lambda s: type(s).__name__)
@@ -103,7 +104,7 @@ def test_other_solvers_through_simulate(monkeypatch, solver):
     """A batched `simulate` with another solver: Tsit5 in this loop, Bosh3 (not implemented
     here) in `diffeqsolve` with the shared controller; both as close to the per-trial solve as
     the tolerance allows."""
-    monkeypatch.setattr(S, "SHARED_MIN_BATCH", 2)
+    monkeypatch.setattr(L, "SHARED_MIN_BATCH", 2)
     p = jsphere.RobotParams.paper()
     amp = 0.05 * (1 + 0.1 * jax.random.normal(jax.random.PRNGKey(1), (3, 3)))
 
@@ -128,7 +129,7 @@ def _weighted(ys):
 
 
 def _loss_shared(w, c, y0, t1, ts, rtol=1e-12, atol=1e-14):
-    ys, _, _ = R.solve(_damped, 0.0, t1, y0, ts, [w, c], [True, False], tab=R.tableau(dfx.Dopri8()), rtol=rtol, atol=atol, max_steps=4096)
+    ys, _, _ = R.solve(_damped, 0.0, t1, y0, ts, [w, c], [True, False], tab=RK.tableau(dfx.Dopri8()), rtol=rtol, atol=atol, max_steps=4096)
     return _weighted(ys)
 
 
@@ -150,7 +151,7 @@ def test_the_discrete_adjoint_matches_diffrax(monkeypatch, capacity):
     (autodiff of per-trial solves) at a tight tolerance: per-trial and shared arguments, the
     initial state, and the times (the exact solution's cotangents). With 2 checkpoint slots the
     stride doubles ~6 times and the backward pass replays stretches from them: same values."""
-    monkeypatch.setattr(R, "CHECKPOINTS", capacity)
+    monkeypatch.setattr(RK, "CHECKPOINTS", capacity)
     w, c = jnp.array([1.0, 2.0, 3.5, 5.0]), jnp.array(0.3)
     y0 = jnp.stack([jnp.ones(4), jnp.linspace(-0.5, 0.5, 4)])
     ts = jnp.linspace(0.05, 2.75, 7)
@@ -165,7 +166,7 @@ def test_the_discrete_adjoint_matches_diffrax(monkeypatch, capacity):
 def test_the_adjoint_of_a_batch_with_a_saved_start_and_no_save_times():
     """Rows saved at `t0` are `y0` itself (cotangent straight to `y0`); no save times at all."""
     y0 = jnp.stack([jnp.ones(4), jnp.zeros(4)])
-    tab = R.tableau(dfx.Dopri5())
+    tab = RK.tableau(dfx.Dopri5())
 
     def loss(y0, ts):
         ys, _, _ = R.solve(_oscillators, 0.0, 1.0, y0, ts, tab=tab, rtol=1e-10, atol=1e-12, max_steps=4096)
@@ -196,7 +197,7 @@ def test_the_adjoint_of_an_argument_taken_element_by_element(batched):
     ts = jnp.linspace(0.5, 2.0, 4)
 
     def loss(M, elementwise):
-        ys, _, _ = R.solve(_linear, 0.0, 2.0, y0, ts, [M], [batched], tab=R.tableau(dfx.Dopri5()), rtol=1e-11, atol=1e-13,
+        ys, _, _ = R.solve(_linear, 0.0, 2.0, y0, ts, [M], [batched], tab=RK.tableau(dfx.Dopri5()), rtol=1e-11, atol=1e-13,
                            max_steps=4096, elementwise=elementwise)  # fmt: skip
         return _weighted(ys)
 

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 import jsphere
-import jsphere.solve.simulate as S
+import jsphere.solve.batched.layout as L
 from jsphere.model.params import derive
-from jsphere.solve.simulate import _torque_field, _torque_field_soa
+from jsphere.solve.fields import _torque_field, _torque_field_soa
 from jsphere.solve.batched.components import from_components, to_components
 
 PH = jnp.array([0.0, 2.1, 4.2])
@@ -26,10 +26,10 @@ PH = jnp.array([0.0, 2.1, 4.2])
 def _component_layout_for_small_batches(monkeypatch):
     """The batches here are a few trials; let them take the component layout (by default only
     batches of `COMPONENT_MIN_BATCH` and more do) ..."""
-    monkeypatch.setattr(S, "COMPONENT_MIN_BATCH", 1)
+    monkeypatch.setattr(L, "COMPONENT_MIN_BATCH", 1)
     # ... with per-trial step sizes: the layouts must agree to rounding (the shared step
     # sequence of `batch_steps="shared"` is tested in test_ensemble.py)
-    monkeypatch.setattr(S, "SHARED_MIN_BATCH", 10**9)
+    monkeypatch.setattr(L, "SHARED_MIN_BATCH", 10**9)
 
 
 class Sines(eqx.Module):
@@ -156,7 +156,7 @@ def test_grad_under_vmap_against_finite_differences(monkeypatch):
     through the custom VJP around the batched layout (here the large-batch path: component
     layout forward, the flat VJP recomputed in chunks of 2, the last one padded); checked
     against central differences."""
-    monkeypatch.setattr(S, "GRAD_CHUNK", 2)
+    monkeypatch.setattr(L, "GRAD_CHUNK", 2)
     p = jsphere.RobotParams.paper()
 
     def loss(j, rm):
@@ -191,7 +191,7 @@ def test_derivatives_under_vmap_match_unbatched(monkeypatch, min_batch):
     Jacobians, batched against one trial at a time (flat layout). `min_batch` 1: the large-batch
     paths (component layout, recomputed backward pass); 10**6: the small-batch paths (flat
     layout, the pullback's residuals kept)."""
-    monkeypatch.setattr(S, "COMPONENT_MIN_BATCH", min_batch)
+    monkeypatch.setattr(L, "COMPONENT_MIN_BATCH", min_batch)
     p = jsphere.RobotParams.paper()
 
     def loss(p, a):
@@ -242,7 +242,7 @@ def test_chunked_batches_and_the_small_batch_threshold(monkeypatch):
     A = 0.05 * (1 + 0.1 * jax.random.normal(jax.random.PRNGKey(3), (5, 3)))
     single = jax.jit(lambda a: _sines_final(p, a, 0.5))
     want = np.stack([single(a) for a in A])
-    monkeypatch.setattr(S, "BATCH_CHUNK", 2)  # 5 trials -> 3 chunks of 2, the last padded
+    monkeypatch.setattr(L, "BATCH_CHUNK", 2)  # 5 trials -> 3 chunks of 2, the last padded
     np.testing.assert_allclose(jax.jit(jax.vmap(lambda a: _sines_final(p, a, 0.5)))(A), want, rtol=0, atol=1e-9)
-    monkeypatch.setattr(S, "COMPONENT_MIN_BATCH", 256)  # flat layout under vmap: same arithmetic
+    monkeypatch.setattr(L, "COMPONENT_MIN_BATCH", 256)  # flat layout under vmap: same arithmetic
     np.testing.assert_allclose(jax.jit(jax.vmap(lambda a: _sines_final(p, a, 0.5)))(A), want, rtol=0, atol=1e-12)

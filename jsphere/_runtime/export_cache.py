@@ -1,15 +1,15 @@
 """Ahead-of-time exported solves, kept on disk, so that a second process skips tracing.
 
 JAX's persistent compilation cache skips XLA's compilation in a second process, but not the
-tracing and lowering that produce its key: for `jsphere reproduce` these took ~5-6 s of a
-~10 s second run (four `diffeqsolve` traces, benchmarks/NOTES.md). Here a compiled entry point
-(`_simulate`, `_simulate_gaits`) called with concrete inputs is exported once with
-`jax.export` (which cannot serialise host callbacks: the CLI switches equinox's run-time
-checks to their `nan` mode) and serialised to `<cache>/aot/<key>.jaxexport`; later calls, in
-this process or the next, run the deserialised program, whose executable then comes from the
-compilation cache. (Keeping the executable itself, `jax.experimental.serialize_executable`,
-saved ~0.5 s more but broke later, unrelated programs of the same process on the CI machine,
-"NOT_FOUND: Function ... not found": not done, benchmarks/NOTES.md, session 7.)
+tracing and lowering that produce its key, which dominate a second `jsphere reproduce` run
+(`docs/performance.md`). Here a compiled entry point (`_simulate`, `_simulate_gaits`) called
+with concrete inputs is exported once with `jax.export` (which cannot serialise host
+callbacks: the CLI switches equinox's run-time checks to their `nan` mode,
+`jsphere._runtime.private.set_equinox_on_error`) and serialised to
+`<cache>/aot/<key>.jaxexport`; later calls, in this process or the next, run the deserialised
+program, whose executable then comes from the compilation cache. (The executable itself is
+not kept: `jax.experimental.serialize_executable` broke later, unrelated programs of the same
+process, "NOT_FOUND: Function ... not found".)
 
 The key hashes everything the program depends on: the entry point's name, the source of every
 `jsphere` module, the versions of jax, jaxlib, diffrax and equinox, the backend and float

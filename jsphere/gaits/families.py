@@ -1,4 +1,4 @@
-"""Parameterised gait families for planning (issue 4): smooth tilt and spin profiles whose
+"""Parameterised gait families for planning: smooth tilt and spin profiles whose
 start and end are stationary motions by construction (Proposition of Section 4).
 
 A `TiltGait` prescribes the platform's vertical through a horizontal *tilt vector*

@@ -15,7 +15,6 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._runtime import export_cache as _aot
-from ..solve import simulate as _simulate
 from ..controls import Constant
 from ..model.dynamics import free_Omega_dot, required_torques
 from .._runtime.checks import finite
@@ -25,22 +24,15 @@ from ..model.rotations import rotation_between, rotmat
 from ..model.linalg import cross, matvec
 from .._runtime.arrays import as_array
 from ..model.params import RobotParams, derive
-from ..solve.simulate import (
-    DEFAULT_TOLERANCES,
-    Trajectory,
-    _kin_rates,
-    _rebuild,
-    _traced,
-    assemble,
-    batch_layout,
-    by_layout,
-    default_solver,
-    raise_on_failure,
-    solve_segments,
-    tolerances,
-)
+from ..solve.batched import dispatch as _dispatch
 from ..solve.batched.components import gait_field_components, unit
-from ..model.state import State
+from ..solve.batched.layout import Layout, steps_layout
+from ..solve.fields import _kin_rates
+from ..solve.options import DEFAULT_TOLERANCES, SolverOptions, resolve
+from ..solve.segments import solve_segments
+from ..solve.simulate import _traced, batch_engine_applies
+from ..solve.trajectory import Trajectory, _rebuild, assemble, raise_on_failure
+from ..model.state import Flat, State
 
 
 def _real(x):
@@ -115,8 +107,8 @@ class Gait(eqx.Module):
 
     def kinematics_components(self, Qm, t) -> tuple:
         """`kinematics` as a 9-tuple of scalars `(gamma, omega, omega_dot)`, for batched solves:
-        under `vmap` every component is one contiguous vector (~1.6x faster at 1024 trials
-        than the stacked 3-vectors, benchmarks/NOTES.md session 7). A subclass that overrides
+        under `vmap` every component is one contiguous vector (faster than the stacked
+        3-vectors, `docs/performance.md`). A subclass that overrides
         `gamma` is differentiated through its own `gamma`."""
         if type(self).gamma is Gait.gamma:
 
@@ -195,10 +187,10 @@ def turn(theta_max: float = 0.1, phi: float = math.pi / 2, T: float = 2.0, *, pe
 def _gait_field(t, z, args):
     p, d, (gait, Qm), a, _ = args
     gamma, omega, omega_dot = gait.kinematics(Qm, t - a)
-    Omega = z[11:14]
+    Omega = z[Flat.Omega]
     Omega_dot = free_Omega_dot(p, d, gamma, omega, Omega, omega_dot)
     # positions use the prescribed gamma(t); q is integrated with the same omega(t)
-    dq, dqs, dxy = _kin_rates(p, z, rotmat(z[0:4]), gamma, omega, Omega)
+    dq, dqs, dxy = _kin_rates(p, z, rotmat(z[Flat.q]), gamma, omega, Omega)
     chi_dot = -matvec(d.Sk, omega - Omega)
     return jnp.concatenate([dq, dqs, omega_dot, Omega_dot, dxy, chi_dot])
 
@@ -210,16 +202,17 @@ def _gait_inputs(t, args):
     return gait.kinematics_components(Qm, t - a)
 
 
-def _gait_field_soa(t, y, args, kin=None):
-    """`_gait_field` on a tuple of scalar components (`jsphere.solve.batched.components`), for batched solves;
-    `kin`: the gait's `(gamma, omega, omega_dot)` as a 9-tuple, if the caller has evaluated it."""
+def _gait_field_soa(t, y, args, kin=None, adjoint=False):
+    """`_gait_field` on a tuple of scalar components (`jsphere.solve.batched.components`), for
+    batched solves; `kin`: the gait's `(gamma, omega, omega_dot)` as a 9-tuple, if the caller
+    has evaluated it. (`adjoint`: the same field for the discrete adjoint.)"""
     return gait_field_components(args[0], args[1], _gait_inputs(t, args) if kin is None else kin, y, unit(t))
 
 
 def _gait_outputs(p, d, control, t, z, a, b):
     gait, Qm = control
     gamma, omega, omega_dot = gait.kinematics(Qm, t - a)
-    Omega = z[11:14]
+    Omega = z[Flat.Omega]
     Omega_dot = free_Omega_dot(p, d, gamma, omega, Omega, omega_dot)
     K = required_torques(p, d, gamma, omega, Omega, omega_dot, Omega_dot)
     return omega, -matvec(d.Sk, omega - Omega), K
@@ -256,6 +249,7 @@ def simulate_gaits(
     throw: bool = True,
     adjoint: dfx.AbstractAdjoint | None = None,
     batch_steps: str = "shared",
+    options: SolverOptions | None = None,
 ) -> Trajectory:
     """Execute a sequence of gaits (Section 4) and return the motion, torques and wheel rates.
 
@@ -285,6 +279,8 @@ def simulate_gaits(
       trial still meets its tolerance), `"per_trial"` gives every trial its own steps (in
       lockstep, in the same loop: a trial's result does not depend on its batch), as
       `simulate` does.
+    - `options`: a `SolverOptions` (any of `rtol`, `atol`, `solver`, `max_steps`, `throw`,
+      `adjoint`, `batch_steps`), merged with the keyword arguments as in `simulate`.
 
     Returns a `Trajectory`; `segment` tells which gait each sample belongs to.
     """
@@ -298,50 +294,65 @@ def simulate_gaits(
         resets = list(reset)
         if len(resets) != nb:
             raise ValueError(f"simulate_gaits: reset needs one entry per gait boundary ({nb}); got {len(resets)}.")
+    opts = resolve(
+        options, where="simulate_gaits", rtol=rtol, atol=atol, solver=solver, max_steps=max_steps, throw=throw,
+        adjoint=adjoint, batch_steps=batch_steps,
+    )  # fmt: skip
     dt = params.R0.dtype
-    rtol, atol = tolerances(dt, rtol, atol, GAIT_TOLERANCES, where="simulate_gaits")
+    rtol, atol = opts.tolerances(dt, GAIT_TOLERANCES, where="simulate_gaits")
     initial = tuple(as_array(v, dt) for v in (alpha0, beta0, Omega0, x0, y0))
     _check_start(params, gaits[0], initial[0], initial[1])
 
-    if ts is None:
-        if any(isinstance(g.T, jax.core.Tracer) for g in gaits):
-            raise ValueError("simulate_gaits: pass `ts` when gait durations are traced (under jit/grad).")
-        starts = np.cumsum([0.0] + [float(g.T) for g in gaits])[:-1]
-        grids = [a + np.linspace(0.0, float(g.T), max(2, int(round(float(g.T) * rate)) + 1)) for g, a in zip(gaits, starts)]
-        ts_out = as_array(np.concatenate(grids), dt)
-    else:
-        ts_out = as_array(ts, dt)
-    for i, r in enumerate(resets):
-        if not (r is None or isinstance(r, bool)) and np.shape(r) != (3,):
-            raise ValueError(f"simulate_gaits: reset[{i}] must be None, True/False or an Omega 3-vector; got shape {np.shape(r)}.")
-    # one compiled function per number of gaits: reset modes and values are data
-    modes = as_array([0 if (r is None or r is False) else 1 if r is True else 2 for r in resets], np.int32)
-    values = as_array([np.zeros(3) if (r is None or isinstance(r, bool)) else r for r in resets] if nb else np.zeros((0, 3)), dt)
-    if values.shape != (nb, 3):
-        raise ValueError(f"simulate_gaits: an explicit reset must be an Omega 3-vector; got shapes {values.shape}.")
-    resets = (modes, values)
+    ts_out = _output_times(gaits, ts, rate, dt)
+    resets = _reset_data(resets, dt)
     # gait coefficients in the parameters' precision (float32 robots stay float32)
     gaits = jax.tree_util.tree_map(
         lambda x: x.astype(dt) if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) and x.dtype != dt else x, gaits
     )
-    if batch_steps not in ("shared", "per_trial"):
-        raise ValueError(f"simulate_gaits: batch_steps must be 'shared' or 'per_trial'; got {batch_steps!r}.")
     traj = _solve_gaits(
-        params, gaits, initial, ts_out, resets, solver or default_solver(), rtol, atol, max_steps,
-        adjoint or dfx.RecursiveCheckpointAdjoint(), batch_layout(batch_steps, throw),
+        params, gaits, initial, ts_out, resets, opts.solver_or_default(), rtol, atol, opts.max_steps,
+        opts.adjoint_or_default(), steps_layout(opts.batch_steps, opts.throw),
     )  # fmt: skip
-    return raise_on_failure(traj, throw)
+    return raise_on_failure(traj, opts.throw)
 
 
-def _solve_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, max_steps, adjoint, batch_steps):
+def _output_times(gaits, ts, rate, dt):
+    """`ts` as an array of `dt`, or by default each gait sampled at `rate` Hz on its own
+    `[start, end]`."""
+    if ts is not None:
+        return as_array(ts, dt)
+    if any(isinstance(g.T, jax.core.Tracer) for g in gaits):
+        raise ValueError("simulate_gaits: pass `ts` when gait durations are traced (under jit/grad).")
+    starts = np.cumsum([0.0] + [float(g.T) for g in gaits])[:-1]
+    grids = [a + np.linspace(0.0, float(g.T), max(2, int(round(float(g.T) * rate)) + 1)) for g, a in zip(gaits, starts)]
+    return as_array(np.concatenate(grids), dt)
+
+
+def _reset_data(resets, dt):
+    """The resets at the gait boundaries as data `(modes, values)`, so that there is one
+    compiled function per number of gaits: mode 0 continue, 1 project `Omega` (`reset=True`),
+    2 the explicit `Omega` of `values`."""
+    nb = len(resets)
+    for i, r in enumerate(resets):
+        if not (r is None or isinstance(r, bool)) and np.shape(r) != (3,):
+            raise ValueError(f"simulate_gaits: reset[{i}] must be None, True/False or an Omega 3-vector; got shape {np.shape(r)}.")
+    modes = as_array([0 if (r is None or r is False) else 1 if r is True else 2 for r in resets], np.int32)
+    values = as_array([np.zeros(3) if (r is None or isinstance(r, bool)) else r for r in resets] if nb else np.zeros((0, 3)), dt)
+    if values.shape != (nb, 3):
+        raise ValueError(f"simulate_gaits: an explicit reset must be an Omega 3-vector; got shapes {values.shape}.")
+    return modes, values
+
+
+def _solve_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, max_steps, adjoint, steps: Layout):
     """`_simulate_gaits` with the state layout chosen by batching, as `jsphere.solve.simulate._solve`
-    does for torques: the flat state for a single call, contiguous components (and one step
-    sequence, with `batch_steps="shared"`) under `vmap`; reverse mode through `_reverse`."""
+    does for torques: the flat state for a single call (diffrax's path directly), components
+    (and shared steps, with `batch_steps="shared"`) under `vmap`
+    (`jsphere.solve.batched.dispatch`)."""
     flat = (solver, rtol, atol, max_steps, adjoint)
     args = (params, gaits, initial, ts_out, resets)
-    if not _simulate.COMPONENT_LAYOUT or not _traced(args) or type(adjoint) not in (dfx.RecursiveCheckpointAdjoint, dfx.ForwardMode):
+    if not batch_engine_applies(True, adjoint) or not _traced(args):
         return _aot.call("simulate_gaits", _simulate_gaits, _rebuild, *args, *flat)
-    return by_layout(_simulate_gaits, args, flat, batch_steps)
+    return _dispatch.solve(_simulate_gaits, args, flat, steps)
 
 
 @eqx.filter_jit  # one compiled program per kind of gait, not one per operation
@@ -373,7 +384,9 @@ def _check_start(params, gait, alpha0, beta0) -> None:
 
 
 @eqx.filter_jit
-def _simulate_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, max_steps, adjoint, components=False, derived=None):
+def _simulate_gaits(
+    params, gaits, initial, ts_out, resets, solver, rtol, atol, max_steps, adjoint, layout=Layout.FLAT, derived=None
+):
     dt = params.R0.dtype
     d = derive(params) if derived is None else derived
     alpha0, beta0, Omega0, x0, y0 = initial
@@ -400,17 +413,16 @@ def _simulate_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, 
     def jump_fn(k, a, z, control):
         gait, _ = control
         _, omega_start, _ = gait.kinematics(Qm, jnp.zeros_like(a))
-        z = jnp.concatenate([z[:8], omega_start, z[11:]])
+        z = Flat.replace(z, omega=omega_start)
         mode = modes[k]
-        Omega = jnp.where(mode == 1, matvec(projectors[k], z[11:14]), values[k])
-        reset_z = jnp.concatenate([q0, z[4:11], Omega, z[14:]])
+        Omega = jnp.where(mode == 1, matvec(projectors[k], z[Flat.Omega]), values[k])
+        reset_z = Flat.replace(z, q=q0, Omega=Omega)
         return jnp.where(mode == 0, z, reset_z)
 
     zs, om, cd, Ks, seg, ok, steps = solve_segments(
         _gait_field, _gait_outputs, params, d, segments, state0.flatten(), ts_out, jump_fn=jump_fn,
         solver=solver, rtol=rtol, atol=atol, max_steps=max_steps, adjoint=adjoint,
-        component_field=_gait_field_soa if components else None, component_control=_gait_inputs,
-        shared=components if isinstance(components, str) else False,
+        layout=layout, component_field=_gait_field_soa if layout.components else None, component_control=_gait_inputs,
     )  # fmt: skip
     traj = assemble(params, d, ts_out, zs, om, cd, Ks, seg, ok, steps)
     # report the prescribed gamma(t) (the integrated one agrees to the solver tolerance)

@@ -14,6 +14,31 @@ from .linalg import cross
 from .params import RobotParams
 
 
+class Flat:
+    """Where each part of the integrator's flat state `[q, q_shell, omega, Omega, x, y, chi]`
+    (`State.flatten`, `(16+N,)`) lies: index with these on the last axis, e.g. `z[Flat.Omega]`
+    or `zs[:, Flat.x]`. Plain slices and integers, so that they index a tuple of scalar
+    components (`jsphere.solve.batched.components`) as well as an array."""
+
+    q = slice(0, 4)
+    q_shell = slice(4, 8)
+    quats = slice(0, 8)  # q and q_shell
+    omega = slice(8, 11)
+    Omega = slice(11, 14)
+    x = 14
+    y = 15
+    xy = slice(14, 16)
+    chi = slice(16, None)
+    #: the number of components before the wheel angles
+    size = 16
+
+    @staticmethod
+    def replace(z, *, q=None, q_shell=None, omega=None, Omega=None):
+        """The 1-D flat state `z` with the parts given replaced."""
+        parts = (("q", q), ("q_shell", q_shell), ("omega", omega), ("Omega", Omega))
+        return jnp.concatenate([z[getattr(Flat, name)] if v is None else v for name, v in parts] + [z[Flat.x :]])
+
+
 def _concrete(*xs) -> bool:
     return not any(isinstance(x, jax.core.Tracer) for x in xs)
 
@@ -130,9 +155,6 @@ def _rest_fields(params: RobotParams, x, y, psi) -> dict:
 
 def _unflatten(z) -> State:
     s = object.__new__(State)  # no validation: used on traced integrator output
-    for name, val in (
-        ("q", z[..., 0:4]), ("q_shell", z[..., 4:8]), ("omega", z[..., 8:11]), ("Omega", z[..., 11:14]),
-        ("x", z[..., 14]), ("y", z[..., 15]), ("chi", z[..., 16:]),
-    ):  # fmt: skip
-        object.__setattr__(s, name, val)
+    for name in ("q", "q_shell", "omega", "Omega", "x", "y", "chi"):
+        object.__setattr__(s, name, z[..., getattr(Flat, name)])
     return s

@@ -1,16 +1,110 @@
-"""Diagnostics along a simulated `Trajectory`: energy, motor power, constraint residuals."""
+"""A simulated motion, `Trajectory`, and diagnostics along it: energy, motor power,
+constraint residuals."""
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
 
 from ..model.dynamics import energy, power
 from ..model.kinematics import wheel_speeds
 from ..model.linalg import cross
 from ..model.params import RobotParams
-from .simulate import Trajectory
+from ..model.rotations import quat_normalize, rotmat
+from ..model.state import Flat, State, _unflatten
+from .status import RESULTS
+
+
+class Trajectory(eqx.Module):
+    """A simulated motion sampled at times `ts` (a pytree; batched under `vmap`).
+
+    Fields (platform-frame components unless said otherwise): `ts` [s]; `x, y` [m] (fixed
+    frame); `gamma, alpha, beta` (fixed axes seen from the platform); `omega, Omega` [1/s];
+    `chi` [rad], `chi_dot` [rad/s] wheel angles and rates; `K` [N m] axle torques (the input in
+    torque mode, the torques the motors must supply in wheel-speed and gait modes);
+    `q, q_shell` orientation quaternions; `segment`: index of the gait or control segment of
+    each sample; `status`: a `RESULTS` code, `0` (`successful`) if the solve succeeded, `1`
+    (`max_steps_reached`) if the solver failed, `2` (`nonfinite`) if values became NaN or inf
+    (only seen with `throw=False`; `ok` is `status == 0`; `RESULTS.message(status)` explains
+    a code); `num_steps`: accepted solver steps.
+    """
+
+    ts: Float[Array, " T"]
+    x: Float[Array, " T"]
+    y: Float[Array, " T"]
+    gamma: Float[Array, "T 3"]
+    alpha: Float[Array, "T 3"]
+    beta: Float[Array, "T 3"]
+    omega: Float[Array, "T 3"]
+    Omega: Float[Array, "T 3"]
+    chi: Float[Array, "T N"]
+    chi_dot: Float[Array, "T N"]
+    K: Float[Array, "T N"]
+    q: Float[Array, "T 4"]
+    q_shell: Float[Array, "T 4"]
+    segment: Int[Array, " T"]
+    status: Int[Array, ""]
+    num_steps: Int[Array, ""]
+
+    @property
+    def ok(self) -> Bool[Array, ""]:
+        """`True` where the solve succeeded (per trial under `vmap`)."""
+        return self.status == RESULTS.successful
+
+    def state(self, i: int = -1) -> State:
+        """The `State` at sample `i` (default: the last), e.g. to continue a simulation."""
+        return _state_at(self, i)
+
+
+@jax.jit  # one compiled program when called eagerly, not one per operation
+def _state_at(traj: Trajectory, i) -> State:
+    z = jnp.concatenate(
+        [traj.q[..., i, :], traj.q_shell[..., i, :], traj.omega[..., i, :], traj.Omega[..., i, :],
+         jnp.stack([traj.x[..., i], traj.y[..., i]], -1), traj.chi[..., i, :]], axis=-1,
+    )  # fmt: skip
+    return _unflatten(z)
+
+
+def _rebuild(leaves) -> Trajectory:
+    """A `Trajectory` from its leaves (in field order; for `jsphere._runtime.export_cache`)."""
+    return Trajectory(*leaves)
+
+
+def assemble(p, d, ts, zs, omega, chi_dot, K, segment, status, num_steps) -> Trajectory:
+    """Build a `Trajectory` from flat states `zs (T, 16+N)` and the mode's outputs."""
+    q = quat_normalize(zs[:, Flat.q])
+    R = rotmat(q)
+    return Trajectory(
+        ts=ts, x=zs[:, Flat.x], y=zs[:, Flat.y], gamma=R[:, 2], alpha=R[:, 0], beta=R[:, 1],
+        omega=omega, Omega=zs[:, Flat.Omega], chi=zs[:, Flat.chi], chi_dot=chi_dot, K=K,
+        q=q, q_shell=quat_normalize(zs[:, Flat.q_shell]), segment=segment, status=status, num_steps=num_steps,
+    )  # fmt: skip
+
+
+def raise_on_failure(traj: Trajectory, throw: bool) -> Trajectory:
+    """Turn a failed solve into an error (`RESULTS.message` of its code).
+
+    Called outside the compiled solve, so that the compiled function holds no host callback
+    and can be kept in JAX's persistent compilation cache. With concrete results the error
+    is a Python `RuntimeError`; under a user's `jit`/`vmap` it is raised by equinox at run
+    time.
+    """
+    if not throw:
+        return traj
+    if isinstance(traj.status, jax.core.Tracer):
+        status = jnp.max(traj.status)
+        failed = eqx.branched_error_if(traj.x, status != 0, jnp.maximum(status - 1, 0), RESULTS.failure_messages())
+        return eqx.tree_at(lambda t: t.x, traj, failed)
+    status = int(np.max(np.asarray(traj.status)))
+    if status != RESULTS.successful:
+        raise RuntimeError(RESULTS.message(status))
+    return traj
+
+
+# ------------------------------------------------------------------------- diagnostics
 
 
 def energy_along(params: RobotParams, traj: Trajectory) -> Float[Array, " T"]:

@@ -3,14 +3,13 @@ batched solves.
 
 Under `jax.vmap` a state stored as one `(16+N,)` array becomes a `(batch, 16+N)` array whose
 components are strided, and every 3-vector of (3.4) a `(batch, 3)` array: XLA on CPU then
-splits the right-hand side into dozens of small, badly vectorised kernels (about 450 ns per
-trial and evaluation at batch 1024, `benchmarks/NOTES.md`). Here the state is a *tuple of
-scalars*, so that under `vmap` each component is one contiguous `(batch,)` vector, and (3.4) is
-written out component by component: about 100 ns per trial and evaluation at batch 1024.
+splits the right-hand side into dozens of small, badly vectorised kernels. Here the state is a
+*tuple of scalars*, so that under `vmap` each component is one contiguous `(batch,)` vector,
+and (3.4) is written out component by component (measurements: `docs/performance.md`).
 
 For a single trial the same code is slower (every scalar becomes its own small operation in
 the integrator's loop), which is why `simulate` uses this layout only when it is batched
-(`jsphere.solve.simulate`). The equations are those of `jsphere.model.dynamics` (docstrings there);
+(`jsphere.solve.batched.dispatch`). The equations are those of `jsphere.model.dynamics` (docstrings there);
 `tests/test_soa.py` checks the two implementations against each other to rounding (the gait
 field against `jsphere.gaits.gaits._gait_field`).
 """
@@ -20,8 +19,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from . import loop as _shared_rk
 from ...model.params import Derived, RobotParams
+from ...model.state import Flat
 
 # ------------------------------------------------------------- 3-vectors as tuples of scalars
 
@@ -46,7 +45,7 @@ def _mtv(M, v):
 
 def _rows(A):
     """A constant or traced `(m, n)` array as a tuple of rows of scalars (nested tuples of
-    scalars, as the backward pass of `jsphere.solve.batched.loop` gives them, are returned as they are)."""
+    scalars, as the discrete adjoint `jsphere.solve.batched.adjoint` gives them, are returned as they are)."""
     if isinstance(A, tuple):
         return A
     return tuple(tuple(A[i, j] for j in range(A.shape[1])) for i in range(A.shape[0]))
@@ -90,37 +89,38 @@ def kept(tree, one):
     division is an expensive operation to XLA, so it computes each such value once, in its own
     kernel, instead of again inside every kernel that uses it; a reverse-mode derivative
     divides the value's cotangent by `one` too, with the same effect. Without these points
-    XLA recomputed the Schur complement of (3.5) in each acceleration's kernel, and its VJP
-    in each cotangent's (benchmarks/NOTES.md, session 10). `one=None`: `tree` as it is."""
+    XLA recomputes the Schur complement of (3.5) in each acceleration's kernel, and its VJP
+    in each cotangent's. `one=None`: `tree` as it is."""
     if one is None:
         return tree
     return jax.tree_util.tree_map(lambda x: x / one, tree)
 
 
-def adjoint_kept(tree, one):
-    """`kept(tree, one)` while the shared-step adjoint traces a stage VJP
-    (`jsphere.solve.batched.loop.in_adjoint`), `tree` as it is otherwise. For values whose cotangents
-    feed the robot's parameter cotangents: materialised there, XLA no longer recomputes them
-    in each parameter element's kernel (the gradient of issue 6's problem 3 at 1024 trials
-    ~12 % faster); in the forward evaluation the same points cost ~20 % (session 11)."""
-    return kept(tree, one) if _shared_rk.in_adjoint() else tree
+def adjoint_kept(tree, one, adjoint: bool):
+    """`kept(tree, one)` in the form of the field the discrete adjoint differentiates
+    (`adjoint`, `jsphere.solve.batched.adjoint`), `tree` as it is otherwise. For values whose
+    cotangents feed the robot's parameter cotangents: materialised there, XLA no longer
+    recomputes them in each parameter element's kernel; in the forward evaluation the same
+    points would cost more than they save (`docs/performance.md`)."""
+    return kept(tree, one) if adjoint else tree
 
 
-def torque_field_components(p: RobotParams, d: Derived, K, z, one=None):
+def torque_field_components(p: RobotParams, d: Derived, K, z, one=None, *, adjoint: bool = False):
     """Rates of the flat state `[q, q_shell, omega, Omega, x, y, chi]` in torque mode, as a tuple.
 
     (3.4) with (3.5) for `(omega_dot, Omega_dot)` (the Schur complement of the constant
     `omega` block, Cramer's rule for the 3x3 solve, as in `solve_accelerations`), the
     quaternion kinematics of platform and shell, (2.3) for `(x_dot, y_dot)` and (2.4) for
     `chi_dot`. `K` is a tuple of the `N` axle torques; `z` a tuple of the `16+N` state
-    components; `one`, if given, `unit(t)` (see `kept`). Identical in value to
-    `jsphere.solve.simulate._torque_field` (to rounding).
+    components; `one`, if given, `unit(t)` (see `kept`); `adjoint`: the form the discrete
+    adjoint differentiates (`adjoint_kept`: the same values). Identical in value to
+    `jsphere.solve.fields._torque_field` (to rounding).
     """
     n = len(K)
-    w, W = tuple(z[8:11]), tuple(z[11:14])
-    R = _platform_rows(z[0:4])
+    w, W = tuple(z[Flat.omega]), tuple(z[Flat.Omega])
+    R = _platform_rows(z[Flat.q])
     g = R[2]
-    B, D, r1, r2 = _blocks_and_forces(p, d, g, w, W, one)
+    B, D, r1, r2 = _blocks_and_forces(p, d, g, w, W, one, adjoint)
     Ainv, Sk = _rows(d.A_inv), _rows(d.Sk)
     # axle torques (with the optional axle friction) and their moment Sk^T K
     dw = _sub(w, W)
@@ -130,9 +130,7 @@ def torque_field_components(p: RobotParams, d: Derived, K, z, one=None):
     # Schur complement S = D - B^T A^-1 B (symmetric: its upper triangle), then
     # Omega_dot = S^-1 (r2 - B^T A^-1 r1), omega_dot = A^-1 (r1 - B Omega_dot). Each level is
     # kept before the next reads it; X = A^-1 B and the attitude rows are cheaper recomputed
-    # where used than kept (a kernel and a divide per trial each): 2,407 -> 1,941 operations
-    # per trial and evaluation, problem 1 of issue 6 ~1.3x faster (benchmarks/NOTES.md,
-    # session 12).
+    # where used than kept (a kernel and a divide per trial each).
     X = tuple(tuple(sum(Ainv[i][k] * B[k][j] for k in range(3)) for j in range(3)) for i in range(3))
     a1 = kept(_mv(Ainv, r1), one)
     Su = kept({(i, j): D[i][j] - sum(B[k][i] * X[k][j] for k in range(3)) for i in range(3) for j in range(i, 3)}, one)
@@ -143,10 +141,10 @@ def torque_field_components(p: RobotParams, d: Derived, K, z, one=None):
     return _kinematic_rates(p, d, z, R, g, w, W, wd, Wd)
 
 
-def _blocks_and_forces(p: RobotParams, d: Derived, g, w, W, one=None):
+def _blocks_and_forces(p: RobotParams, d: Derived, g, w, W, one=None, adjoint=False):
     """`B`, `D` (`mass_blocks`) and `r1`, `r2` (`forces`) of (3.4) as tuples, for the attitude
-    `g = gamma` and the rates `w = omega`, `W = Omega` (3-tuples of scalars); `one`: see
-    `adjoint_kept`, applied to these and to `I omega`, `J_ns (Omega - omega)`."""
+    `g = gamma` and the rates `w = omega`, `W = Omega` (3-tuples of scalars); `one`, `adjoint`:
+    see `adjoint_kept`, applied to these and to `I omega`, `J_ns (Omega - omega)`."""
     rm = tuple(p.r_m[i] for i in range(3))
     Jns, Jss, I = _rows(d.Jns), _rows(d.Jss), _rows(p.I)
     mR0 = p.m * p.R0
@@ -159,9 +157,9 @@ def _blocks_and_forces(p: RobotParams, d: Derived, g, w, W, one=None):
         tuple((p.I0 if i == j else 0.0) + Jss[i][j] + MR2 * ((gg if i == j else 0.0) - g[i] * g[j]) for j in range(3))
         for i in range(3)
     )
-    B, D = adjoint_kept((B, D), one)
+    B, D = adjoint_kept((B, D), one, adjoint)
     gWxw = _cross(g, _cross(W, w))
-    Iw, Jv = adjoint_kept((_mv(I, w), _mv(Jns, _sub(W, w))), one)
+    Iw, Jv = adjoint_kept((_mv(I, w), _mv(Jns, _sub(W, w))), one, adjoint)
     r1 = _sub(
         _sub(_add(_scale(-1.0, _cross(w, Iw)), _cross(Jv, w)), _scale(mR0, _cross(rm, gWxw))),
         _scale(p.m * p.g, _cross(rm, g)),
@@ -171,7 +169,7 @@ def _blocks_and_forces(p: RobotParams, d: Derived, g, w, W, one=None):
         _sub(_sub(_scale(-MR2, _cross(g, gWxw)), _scale(mR0, _cross(g, _cross(w, _cross(w, rm))))), _scale(p.I0, _cross(w, W))),
         _scale(p.c_roll, _sub(W, _scale(Wg, g))),
     )
-    return (B, D, *adjoint_kept((r1, r2), one))
+    return (B, D, *adjoint_kept((r1, r2), one, adjoint))
 
 
 def _solve3(M, r):
@@ -196,7 +194,7 @@ def _platform_rows(q):
 def _kinematic_rates(p: RobotParams, d: Derived, z, R, g, w, W, wd, Wd):
     """The flat state's rates from the accelerations `wd`, `Wd`: the quaternion kinematics of
     platform and shell, (2.3) for `(x_dot, y_dot)` (with the attitude `g`) and (2.4)."""
-    qw, qx, qy, qz, sw, sx, sy, sz = z[0:8]
+    qw, qx, qy, qz, sw, sx, sy, sz = z[Flat.quats]
     # q_dot = q (x) (0, omega) / 2, q_shell_dot = (0, Q^T Omega) (x) q_shell / 2
     w0, w1, w2 = w
     dq = (
@@ -228,9 +226,9 @@ def gait_field_components(p: RobotParams, d: Derived, kin, z, one=None):
     in `torque_field_components`.
     """
     g, w, wd = tuple(kin[0:3]), tuple(kin[3:6]), tuple(kin[6:9])
-    W = tuple(z[11:14])
+    W = tuple(z[Flat.Omega])
     B, D, r1, r2 = _blocks_and_forces(p, d, g, w, W)
     M = tuple(_add(Bi, Di) for Bi, Di in zip(B, D))
     M, rhs = kept((M, _sub(_add(r1, r2), _add(_mv(_rows(d.A), wd), _mtv(B, wd)))), one)
     Wd = kept(_solve3(M, rhs), one)
-    return _kinematic_rates(p, d, z, kept(_platform_rows(z[0:4]), one), g, w, W, wd, Wd)
+    return _kinematic_rates(p, d, z, kept(_platform_rows(z[Flat.q]), one), g, w, W, wd, Wd)

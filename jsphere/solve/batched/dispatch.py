@@ -1,204 +1,296 @@
-"""Batched solves with one step-size sequence for the whole batch ("ensemble" integration).
+"""What a solve becomes under `vmap`: the batching rule that picks its layout.
 
-Under `jax.vmap`, diffrax runs one adaptive controller per trial: every iteration of the
-batched while loop carries per-trial times, step sizes, accept/reject selects and save logic,
-and the batch runs as many iterations as its slowest trial. `solve` is a
-`jax.custom_batching.custom_vmap` around one segment's `diffeqsolve`: unbatched it is the
-ordinary solve; in its batching rule the whole batch is *one* ODE system whose state is an
-`(n, batch)` array (row i: component i of every trial, the right-hand side of `jsphere.solve.batched.components`
-on its rows), integrated with one step sequence whose steps are accepted only if every trial
-meets its own tolerance (the error norm is the largest per-trial RMS norm). For diffrax's
-Dopri8 (the default), Dopri5 and Tsit5 the integrator is `jsphere.solve.batched.loop` (the same
-tableaus and dense output in a loop written for this layout); for any other solver it is
-`diffeqsolve` with `SharedPIDController`. At 1024 trials of the issue-6 problem the shared
-steps were 2.5x faster than per-trial steps with `diffeqsolve` (benchmarks/NOTES.md,
-session 5: a few more steps, the smallest any trial needs at each time, at a third of the
-cost per trial-step), and `_shared_rk` is another ~1.7x (session 8).
+Under `vmap`, torque- and gait-mode solves carry the state as a tuple of scalar components
+(`jsphere.solve.batched.components`): each component is then one contiguous `(batch,)` vector
+and XLA on CPU vectorises the right-hand side (3.4) over the batch, while the flat
+`(16+N,)` layout is faster for a single trial. A solve cannot see a `vmap` from inside, so the
+choice is made by `jax.custom_batching.custom_vmap` (`_dispatched`): the unbatched call runs
+`Layout.FLAT`, the batching rule the layout of `BatchedSolve.layout_for` (the batch loop's
+layouts from `SHARED_MIN_BATCH` trials, components from `COMPONENT_MIN_BATCH`), in chunks of
+`BATCH_CHUNK` trials.
 
-What it changes, and why it is still each trial's solution to its tolerance:
-- every trial satisfies `rtol`/`atol` at every step (its error is at most the largest);
-- results depend on the other trials of the batch, within the tolerance (~1e-9 m here);
-- `max_steps` and `num_steps` count the shared steps; a trial that needs tiny steps slows the
-  whole batch (under `vmap` it already did: the loop runs until the slowest trial ends);
-- a trial whose rates are non-finite at the start (e.g. NaN inputs) is left out of the
-  step-size control, so it does not stall the others; it is reported by `Trajectory.status`
-  as before. A batch whose shared steps fail (a trial that needs more than `max_steps` steps
-  or turns non-finite: the shared step size collapses) is solved again with per-trial steps
-  (`fallback`), so that only the failing trial is reported failed and the others get their
-  own solutions, as in a batch without it.
+As `custom_vmap` has no reverse mode, the default adjoint wraps it in a custom VJP
+(`_reverse`) whose differentiated pass is the flat layout with diffrax's own VJP. Its forward
+pass is again a `custom_vmap`: small batches keep the pullback's residuals; batches in the
+batch loop run it and their backward pass is its discrete adjoint (`_loop_vjp`,
+`jsphere.solve.batched.adjoint`); other large batches run the component layout and recompute
+the flat VJP in the backward pass, in chunks of `GRAD_CHUNK` trials. `diffrax.ForwardMode`
+uses the `custom_vmap` directly (its `jvp` is supported).
 
-The rule falls back to a per-trial `vmap` when the segment's times (`t0`, `t1`, the save
-times) are batched: then there is no shared time axis.
+Only traced calls come here (`jsphere.solve.simulate`): a call with concrete inputs cannot be
+under `vmap`, and takes diffrax's path directly.
 """
 
 from __future__ import annotations
 
-from typing import Callable
+import functools
+from typing import Any, Callable
 
 import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from . import loop as _shared_rk
-
-
-def _trial_ok(y) -> jax.Array:
-    """Per trial (the columns of a `(n, batch)` state): all components finite."""
-    return jnp.all(jnp.isfinite(y), axis=0)
-
-
-def _mask(y, ok):
-    return jnp.where(ok, y, jnp.zeros_like(y))
+from ...model.params import Derived, derive
+from . import layout as _layout
+from .layout import Layout
+from .method import tableau
 
 
-def worst_trial_rms(err) -> jax.Array:
-    """The largest over trials of each trial's RMS norm; `err` is `(n, batch)`."""
-    return jnp.sqrt(jnp.max(jnp.mean(err * err, axis=0)))
+def has_tracer(tree) -> bool:
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
 
 
-class SharedPIDController(dfx.AbstractAdaptiveStepSizeController):
-    """`diffrax.PIDController` for a batch sharing one step: the error norm is the worst trial's
-    RMS norm. Trials that cannot be integrated at any step size (non-finite rates at the
-    start, e.g. NaN inputs, or a non-finite state) are left out of the control."""
+class BatchedSolve(eqx.Module):
+    """One solve as the batch engine runs it: `fn(*args, *flat, layout=, derived=)` of the
+    traced leaves `leaves` of `args` (its other parts, `static`, are constants), for a layout.
 
-    pid: dfx.PIDController
-    rtol: float
-    atol: float
-    norm: Callable = worst_trial_rms
-
-    def __init__(self, rtol, atol):
-        self.rtol, self.atol = rtol, atol
-        self.pid = dfx.PIDController(rtol=rtol, atol=atol, norm=worst_trial_rms)
-
-    def wrap(self, direction):
-        return eqx.tree_at(lambda c: c.pid, self, self.pid.wrap(direction))
-
-    def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
-        live = _trial_ok(y0) & _trial_ok(func(terms, t0, y0, args))
-
-        def masked_func(terms_, t, y, args_):
-            return _mask(func(terms_, t, y, args_), live)
-
-        dt, state = self.pid.init(terms, t0, t1, _mask(y0, live), dt0, args, masked_func, error_order)
-        return dt, (state, live)
-
-    def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order, controller_state):
-        state, live = controller_state
-        ok = live & _trial_ok(y0)
-        keep, t_next, t_after, jump, state, result = self.pid.adapt_step_size(
-            t0, t1, _mask(y0, ok), _mask(y1_candidate, ok), args, _mask(y_error, ok), error_order, state
-        )
-        return keep, t_next, t_after, jump, (state, live), result
-
-
-def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_save, per_trial=False, fallback=False):
-    """One segment of `solve_segments`: `diffeqsolve(field)` of the component tuple `y0` from
-    `args[3]` to `args[4]` (`args = (p, d, control, a, b)`), saving at `t_save` and `t1`.
-    `field(t, y, args, K=None)` may be given the inputs `K = control(t, args)` (a `(N,)`
-    array or an `N`-tuple of scalars per trial) as a tuple of scalars.
-
-    Returns `(ys, failed, num_accepted_steps)` with `ys` the tuple of saved components. Batched
-    (under `vmap`), trials share one step sequence (module docstring); with `per_trial` (a
-    solver of `jsphere.solve.batched.loop.SUPPORTED`) each trial takes its own steps, in lockstep
-    (`_shared_rk._forward_per_trial`, with its own discrete adjoint), and `failed` and the
-    step counts are per trial.
-
-    With `fallback` (shared steps), a batch whose shared step sequence fails (one trial needs
-    more than `max_steps` steps, or diverges) is solved again with per-trial steps, so that
-    the failing trial fails alone and the others keep their solutions; `failed` and the step
-    counts are then per trial as well.
+    - `flat`: `(solver, rtol, atol, max_steps, adjoint)`;
+    - `derived`: the `Derived` constants when the parameters are concrete (folded by XLA);
+    - `steps`: the layout a batch of at least `SHARED_MIN_BATCH` trials asks for
+      (`jsphere.solve.batched.layout.steps_layout`);
+    - `loop`: whether the batch loop (`jsphere.solve.batched.loop`) integrates this solver in
+      reverse mode, so that batches take it and their gradient is its discrete adjoint.
     """
-    dyn, static = eqx.partition(args[:3], eqx.is_array)
-    p_leaves, p_def = jax.tree_util.tree_flatten(dyn)
-    times = [args[3], args[4], t_save]
 
-    # leaves of `p` and `d` that the fields (`jsphere.solve.batched.components`) also take as nested tuples of scalars
-    n_pd = len(jax.tree_util.tree_leaves(dyn[:2]))
-    elementwise = [i for i in range(n_pd) if jnp.ndim(p_leaves[i]) >= 1]
+    fn: Callable
+    treedef: Any = eqx.field(static=True)
+    static: Any
+    flat: tuple
+    derived: Derived | None
+    steps: Layout = eqx.field(static=True)
+    loop: bool = eqx.field(static=True)
 
-    def rebuild(lv, a, b):  # `static` first: a leaf of `lv` may be such a tuple
-        return (*eqx.combine(static, jax.tree_util.tree_unflatten(p_def, lv)), a, b)
+    def __call__(self, leaves, layout: Layout):
+        args = eqx.combine(jax.tree_util.tree_unflatten(self.treedef, leaves), self.static)
+        return self.fn(*args, *self.flat, layout=layout, derived=self.derived)
 
-    def one(times, y0, lv):
-        a, b, ts = times
-        sol = dfx.diffeqsolve(
-            dfx.ODETerm(field), solver, a, b, None, tuple(y0), rebuild(lv, a, b),
-            saveat=dfx.SaveAt(ts=ts, t1=True), stepsize_controller=dfx.PIDController(rtol=rtol, atol=atol),
-            max_steps=max_steps, throw=False, adjoint=adjoint,
+    @property
+    def shared(self) -> bool:
+        """Whether batches share their steps (not in forward mode)."""
+        return self.steps.shared and not isinstance(self.flat[-1], dfx.ForwardMode)
+
+    def layout_for(self, axis_size: int) -> Layout:
+        """The layout of a batch of `axis_size` trials."""
+        if axis_size >= _layout.SHARED_MIN_BATCH and (self.shared or self.loop):
+            return self.steps if self.shared else Layout.PER_TRIAL_STEPS
+        return Layout.COMPONENTS if axis_size >= _layout.COMPONENT_MIN_BATCH else Layout.FLAT
+
+    def loop_grad(self, axis_size, in_batched) -> bool:
+        """Whether a batch's gradient is the discrete adjoint of the batch loop."""
+        return (
+            _layout.SHARED_ADJOINT and self.loop and self.layout_for(axis_size).batch_solve
+            and any(jax.tree_util.tree_leaves(in_batched))
         )  # fmt: skip
-        return list(sol.ys), sol.result != dfx.RESULTS.successful, sol.stats["num_accepted_steps"]
+
+
+def solve(fn, args, flat, steps: Layout):
+    """`fn(*args, *flat, layout=..., derived=...)` with the layout chosen by batching: the flat
+    state for a single call, components under `vmap` (with shared steps or per-trial steps in
+    the batch loop from `SHARED_MIN_BATCH` trials, as `steps` asks); reverse mode through
+    `_reverse`, forward mode (`flat[-1]` a `diffrax.ForwardMode`) through `_dispatched`.
+    `args[0]` are the `RobotParams`; `flat` ends with the adjoint."""
+    adjoint = flat[-1]
+    # only traced leaves are inputs of the dispatched solve; concrete ones stay constants (folded by XLA)
+    dyn, static = eqx.partition(args, lambda x: isinstance(x, jax.core.Tracer))
+    leaves, treedef = jax.tree_util.tree_flatten(dyn)
+    derived = None
+    if not has_tracer(args[0]):  # concrete parameters: (2.4), (3.4)'s constants as constants (folded by XLA)
+        with jax.ensure_compile_time_eval():
+            derived = derive(args[0])
+    forward_mode = isinstance(adjoint, dfx.ForwardMode)
+    engine = BatchedSolve(fn, treedef, static, flat, derived, steps, tableau(flat[0]) is not None and not forward_mode)
+    if forward_mode:
+        return _dispatched(engine)(leaves)
+    return _reverse(engine, leaves)
+
+
+def _dispatched(engine: BatchedSolve):
+    """`engine(leaves, layout)` as a `custom_vmap` over a flat list of arrays: the flat layout
+    unbatched, the batch's layout batched. (A flat list: `custom_vmap`'s JVP rule does not
+    accept `None` nodes in its inputs.)"""
 
     @jax.custom_batching.custom_vmap
-    def f(times, y0, lv):
-        return one(times, y0, lv)
+    def f(leaves):
+        return engine(leaves, Layout.FLAT)
 
     @f.def_vmap
-    def _rule(axis_size, in_batched, times, y0, lv):
-        t_b, y_b, l_b = in_batched
-        if any(t_b) or (per_trial and _shared_rk.tableau(solver) is None):  # one solve per trial
-            out = jax.vmap(one, in_axes=([0 if b else None for b in t_b], [0 if b else None for b in y_b], [0 if b else None for b in l_b]), axis_size=axis_size)(times, y0, lv)  # fmt: skip
-            return out, jax.tree_util.tree_map(lambda _: True, out)
-        a, b, ts = times
-        # the batch as one `(n, batch)` array: row i is component i of every trial, contiguous
-        # (one leaf: diffrax's per-leaf code once, compiles ~1.5x faster than a tuple of rows)
-        yb = jnp.stack([y if bt else jnp.broadcast_to(y, (axis_size,)) for y, bt in zip(y0, y_b)])
+    def _rule(axis_size, in_batched, leaves):
+        if not any(jax.tree_util.tree_leaves(in_batched)):  # e.g. the primal part of a batched jvp
+            out = engine(leaves, Layout.FLAT)
+            return out, jax.tree_util.tree_map(lambda _: False, out)
+        layout = engine.layout_for(axis_size)
+        out = _chunked_vmap(lambda lv: engine(lv, layout), axis_size, in_batched, leaves)
+        return out, jax.tree_util.tree_map(lambda _: True, out)
 
-        def axes(batched):
-            return [0 if bt else None for bt in batched]
+    return f
 
-        def inputs(t, args, batched):  # (N, batch), or N vectors of (batch,): each input contiguous
-            t_ax = 0 if jnp.ndim(t) else None  # one time per trial (per-trial steps) or one for all
-            k = jax.vmap(lambda t, l, a, b: control(t, rebuild(l, a, b)), in_axes=(t_ax, axes(batched[:-2]), *axes(batched[-2:])), axis_size=axis_size)(t, args[:-2], *args[-2:])  # fmt: skip
-            return k if isinstance(k, tuple) else k.T
 
-        def batch_field(t, y, args, batched):
-            """The field on the batch; `args = lv + [a, b]`, `batched` says which have a
-            trial axis (the backward pass of `_shared_rk` gives shared parameters one); `y`
-            is the `(n, batch)` state or the tuple of its rows."""
-            # The inputs are computed in a branch of their own: XLA cannot fuse them into the
-            # field's kernels, which would read a batched `(batch, N)` control output strided
-            # (2.4x slower at 1024 trials, benchmarks/NOTES.md session 5). The predicate is true
-            # at every finite time; being a run-time value, it keeps XLA from inlining the branch.
-            K = _shared_rk.in_branch(lambda t, args: inputs(t, args, batched), t, args)
-            K = K if isinstance(K, tuple) else tuple(K[i] for i in range(K.shape[0]))
-            rates = jax.vmap(
-                lambda t, z, k, l, a, b: field(t, z, rebuild(l, a, b), k),
-                in_axes=(0 if jnp.ndim(t) else None, 0, 0, axes(batched[:-2]), *axes(batched[-2:])), axis_size=axis_size,
-            )(t, tuple(y), K, args[:-2], *args[-2:])  # fmt: skip
-            return jnp.stack(rates)
+def _chunked_vmap(fn, axis_size, in_batched, *args, chunk=None):
+    """`vmap(fn)` over the batched leaves of `args`, in chunks of at most `chunk` trials
+    (default `BATCH_CHUNK`)."""
+    chunk = chunk or _layout.BATCH_CHUNK
+    in_axes = tuple(jax.tree_util.tree_map(lambda b: 0 if b else None, b) for b in in_batched)
+    if axis_size <= chunk:
+        return jax.vmap(fn, in_axes=in_axes, axis_size=axis_size)(*args)
+    n = -(-axis_size // chunk)
+    pad = n * chunk - axis_size
 
-        tab = _shared_rk.tableau(solver)
-        if tab is not None:  # the lean loop (Dopri8, Dopri5, Tsit5)
-            out, failed, accepted = _shared_rk.solve(
-                batch_field, a, b, yb, ts, [*lv, a, b], [*l_b, False, False], tab=tab, rtol=rtol, atol=atol,
-                max_steps=max_steps, elementwise=elementwise, per_trial=per_trial, fallback=fallback,
-            )  # fmt: skip
-            if per_trial or fallback:  # failures and step counts per trial
-                ys = [out[:, i, :].T for i in range(len(y0))]
-                return (ys, failed, accepted), ([True] * len(ys), True, True)
-        else:  # any other diffrax solver, in diffeqsolve
-            flags = [*l_b, False, False]
-            sol = dfx.diffeqsolve(
-                dfx.ODETerm(lambda t, y, args: batch_field(t, y, args, flags)), solver, a, b, None, yb, [*lv, a, b],
-                saveat=dfx.SaveAt(ts=ts, t1=True), stepsize_controller=SharedPIDController(rtol, atol),
-                max_steps=max_steps, throw=False, adjoint=adjoint,
-            )  # fmt: skip
-            out, failed, accepted = sol.ys, sol.result != dfx.RESULTS.successful, sol.stats["num_accepted_steps"]
-            if fallback:  # a failed batch again with per-trial steps: `failed` per trial
+    def split(x):  # pad with copies of the last trial (valid inputs), then (n, chunk, ...)
+        x = jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]) if pad else x
+        return x.reshape((n, chunk) + x.shape[1:])
 
-                def per_trial_solve():
-                    ys, failed, steps = jax.vmap(one, in_axes=(None, axes(y_b), axes(l_b)), axis_size=axis_size)(times, y0, lv)
-                    return jnp.stack(ys, axis=1).transpose(2, 1, 0), failed, steps
+    batched = [eqx.partition(a, b) for a, b in zip(args, in_batched)]
+    chunks = tuple(jax.tree_util.tree_map(split, bt) for bt, _ in batched)
 
-                def shared_solve():
-                    return out, jnp.broadcast_to(failed, (axis_size,)), jnp.broadcast_to(accepted, (axis_size,))
+    def one(ch):
+        full = tuple(eqx.combine(c, un) for c, (_, un) in zip(ch, batched))
+        return jax.vmap(fn, in_axes=in_axes, axis_size=chunk)(*full)
 
-                out, failed, accepted = jax.lax.cond(failed, per_trial_solve, shared_solve)
-                ys = [out[:, i, :].T for i in range(len(y0))]
-                return (ys, failed, accepted), ([True] * len(ys), True, True)
-        ys = [out[:, i, :].T for i in range(len(y0))]  # (T+1, n, batch) -> n x (batch, T+1)
-        return (ys, failed, accepted), ([True] * len(ys), False, False)
+    out = jax.lax.map(one, chunks)
+    return jax.tree_util.tree_map(lambda x: x.reshape((n * chunk,) + x.shape[2:])[:axis_size], out)
 
-    ys, failed, steps = f(times, list(y0), p_leaves)
-    return tuple(ys), failed, steps
+
+def _large(axis_size, in_batched) -> bool:
+    return axis_size >= _layout.COMPONENT_MIN_BATCH and any(jax.tree_util.tree_leaves(in_batched))
+
+
+class _Residuals(eqx.Module):
+    """The residuals of `_reverse`: its inputs, the leaves of the flat layout's pullback
+    (placeholders where the backward pass recomputes), and the pullback's tree structure."""
+
+    leaves: list
+    saved: list
+    saved_def: Any = eqx.field(static=True)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _reverse(engine: BatchedSolve, leaves):
+    return _dispatched(engine)(leaves)
+
+
+def _reverse_fwd(engine: BatchedSolve, leaves):
+    """The primal with the layout chosen by batching, and residuals for `_reverse_bwd`.
+
+    Unbatched or in small batches: the flat layout's VJP (diffrax's checkpointed adjoint), its
+    residuals kept as arrays (the leaves of the pullback). In batches in the batch loop
+    (`BatchedSolve.loop_grad`) or large ones: the batch's layout, and no residuals
+    (placeholders of the same structure; the backward pass recomputes). `custom_vmap` needs
+    one output structure for both, hence the placeholders.
+    """
+    pullback_def = []  # the pullback's tree structure, known once `flat_vjp` is traced
+
+    def flat_vjp(lv):
+        out, pull = jax.vjp(lambda l: engine(l, Layout.FLAT), lv)
+        res, treedef = jax.tree_util.tree_flatten(pull)
+        pullback_def[:] = [treedef]
+        return out, res
+
+    @jax.custom_batching.custom_vmap
+    def f(lv):
+        return flat_vjp(lv)
+
+    @f.def_vmap
+    def _rule(axis_size, in_batched, lv):
+        (batched,) = in_batched
+        if engine.loop_grad(axis_size, batched) or _large(axis_size, batched):
+            layout = engine.layout_for(axis_size)
+            out = _chunked_vmap(lambda l: engine(l, layout), axis_size, in_batched, lv)
+            # unbatched placeholders (one trial's worth) for the residuals the backward pass won't read
+            one = [jax.ShapeDtypeStruct(jnp.shape(x)[int(b):], jnp.result_type(x)) for x, b in zip(lv, batched)]
+            res = [jnp.zeros(r.shape, r.dtype) for r in jax.eval_shape(lambda l: flat_vjp(l)[1], one)]
+            return (out, res), (jax.tree_util.tree_map(lambda _: True, out), [False] * len(res))
+        out, res = jax.vmap(flat_vjp, in_axes=([0 if b else None for b in batched],), axis_size=axis_size)(lv)
+        return (out, res), jax.tree_util.tree_map(lambda _: True, (out, res))
+
+    out, res = f(list(leaves))
+    return out, _Residuals(list(leaves), res, pullback_def[0])
+
+
+def _reverse_bwd(engine: BatchedSolve, residuals: _Residuals, ct):
+    """Apply the pullback saved by `_reverse_fwd`. In batches in the batch loop
+    (`BatchedSolve.loop_grad`): the VJP of the batched solve, whose steps have a discrete
+    adjoint, in chunks of `BATCH_CHUNK` trials (`_loop_vjp`). In other large batches: the flat
+    layout's VJP recomputed per trial, in chunks of `GRAD_CHUNK` trials."""
+    leaves, res = residuals.leaves, residuals.saved
+    flat_ct, ct_def = jax.tree_util.tree_flatten(ct)
+    keep = [jnp.result_type(c) != jax.dtypes.float0 for c in flat_ct]
+
+    def full_ct(cts, like):
+        it = iter(cts)
+        return jax.tree_util.tree_unflatten(ct_def, [next(it) if k else np.zeros(jnp.shape(o), jax.dtypes.float0) for k, o in zip(keep, like)])
+
+    def saved(lv, rs, cts):
+        pull = jax.tree_util.tree_unflatten(residuals.saved_def, rs)
+        return pull(full_ct(cts, flat_ct))[0]
+
+    def recompute(lv, cts):
+        out, pull = jax.vjp(lambda l: engine(l, Layout.FLAT), lv)
+        return pull(full_ct(cts, jax.tree_util.tree_leaves(out)))[0]
+
+    @jax.custom_batching.custom_vmap
+    def f(lv, rs, cts):
+        return saved(lv, rs, cts)
+
+    @f.def_vmap
+    def _rule(axis_size, in_batched, lv, rs, cts):
+        if engine.loop_grad(axis_size, in_batched[0]):
+            out = _loop_vjp(engine, axis_size, in_batched[0], in_batched[2], lv, cts, full_ct)
+        elif _large(axis_size, in_batched[0]):
+            out = _chunked_vmap(recompute, axis_size, in_batched[::2], lv, cts, chunk=_layout.GRAD_CHUNK)
+        else:
+            in_axes = tuple(jax.tree_util.tree_map(lambda b: 0 if b else None, b) for b in in_batched)
+            out = jax.vmap(saved, in_axes=in_axes, axis_size=axis_size)(lv, rs, cts)
+        return out, jax.tree_util.tree_map(lambda _: True, out)
+
+    return (f(leaves, res, [c for k, c in zip(keep, flat_ct) if k]),)
+
+
+_reverse.defvjp(_reverse_fwd, _reverse_bwd)
+
+
+def _loop_vjp(engine: BatchedSolve, axis_size, lv_batched, ct_batched, lv, cts, full_ct):
+    """Per-trial cotangents of the leaves `lv` of a batch solved in the batch loop (shared or
+    per-trial steps), for the cotangents `cts` of its outputs: `jax.vjp` of the batched solve
+    (`vmap` inside, so the batching rule of `jsphere.solve.batched.segment.solve` runs before
+    differentiation and the loop's discrete adjoint applies), chunk by chunk (`BATCH_CHUNK`
+    trials: padding trials get zero cotangents). The cotangents of leaves shared by the batch
+    are sums over the batch; they are returned in the first trial's row (zeros elsewhere),
+    which sums to the same."""
+    chunk = min(axis_size, _layout.BATCH_CHUNK)
+    layout = engine.layout_for(axis_size)
+    n = -(-axis_size // chunk)
+    pad = n * chunk - axis_size
+    in_axes = [0 if b else None for b in lv_batched]
+
+    def split(x, zero):  # (axis_size, ...) -> (n, chunk, ...); pad with the last trial (or zeros)
+        if pad:
+            x = jnp.concatenate([x, jnp.zeros_like(x[-pad:]) if zero else jnp.repeat(x[-1:], pad, axis=0)])
+        return x.reshape((n, chunk) + x.shape[1:])
+
+    ct_b = [split(c, True) if b else c for c, b in zip(cts, ct_batched)]
+    lv_b = [split(x, False) if b else x for x, b in zip(lv, lv_batched)]
+    inexact = [jnp.issubdtype(jnp.result_type(x), jnp.inexact) for x in lv]
+
+    def one(ch):
+        l_ch, c_ch = ch
+        full = [c if b else x for c, x, b in zip(l_ch, lv, lv_batched)]
+        # the vmapped solve's outputs are all batched: a cotangent shared by the batch is each trial's
+        cc = [c if b else jnp.broadcast_to(x, (chunk,) + jnp.shape(x)) for c, x, b in zip(c_ch, cts, ct_batched)]
+        out, pull = jax.vjp(lambda l: jax.vmap(lambda x: engine(x, layout), in_axes=(in_axes,), axis_size=chunk)(l), full)
+        g = pull(full_ct(cc, jax.tree_util.tree_leaves(out)))[0]
+        return [x if k else None for x, k in zip(g, inexact)]  # no float0 through the map
+
+    xs = ([x if b else None for x, b in zip(lv_b, lv_batched)], [c if b else None for c, b in zip(ct_b, ct_batched)])
+    grads = jax.lax.map(one, xs) if n > 1 else jax.tree_util.tree_map(lambda g: g[None], one(jax.tree_util.tree_map(lambda x: x[0], xs)))
+    result = []
+    for g, b, x in zip(grads, lv_batched, lv):
+        if g is None:  # integer leaves
+            result.append(np.zeros((axis_size,) + jnp.shape(x)[int(b):], jax.dtypes.float0))
+        elif b:
+            result.append(g.reshape((n * chunk,) + g.shape[2:])[:axis_size])
+        else:  # the batch's sum, in the first trial's row
+            total = jnp.sum(g, axis=0)
+            result.append(jnp.zeros((axis_size,) + total.shape, total.dtype).at[0].set(total))
+    return result

@@ -1,0 +1,94 @@
+"""The vector fields of torque and wheel-speed mode on the flat state, their outputs, and the
+torque field on scalar components (for batched solves)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from ..controls import WheelSpeeds
+from ..model.dynamics import servo_accelerations, solve_accelerations
+from ..model.linalg import cross, matvec
+from ..model.params import Derived, RobotParams
+from ..model.rotations import quat_rate_body, quat_rate_fixed, rotmat
+from ..model.state import Flat
+from .batched.components import torque_field_components, unit
+
+
+def _left_limit(b):
+    """The largest float below `b`: evaluates a control on the left side of a jump at `b`."""
+    return jnp.nextafter(b, jnp.asarray(-jnp.inf, dtype=jnp.result_type(b)))
+
+
+def _control_time(t, t_end):
+    return jnp.where(t >= t_end, _left_limit(jax.lax.stop_gradient(t_end)), t)
+
+
+def _kin_rates(p: RobotParams, z, R, gamma, omega, Omega):
+    """Rates of `[q, q_shell]` and `(x, y)` shared by every mode, with `R = Q^T` computed once
+    by the caller (`gamma` is its last row, or the prescribed `gamma(t)` of a gait)."""
+    v = p.R0 * cross(Omega, gamma)
+    vf = matvec(R, v)  # fixed-frame velocity; (x_dot, y_dot) = ((alpha, v), (beta, v))
+    return quat_rate_body(z[Flat.q], omega), quat_rate_fixed(z[Flat.q_shell], matvec(R, Omega)), vf[:2]
+
+
+def _torque_field(t, z, args):
+    """(3.4), (3.5) with (2.2)-(2.4) in torque mode: the flat state's rates."""
+    p, d, control, _, t_end = args
+    omega, Omega = z[Flat.omega], z[Flat.Omega]
+    R = rotmat(z[Flat.q])
+    gamma = R[2]
+    K = control(_control_time(t, t_end))
+    omega_dot, Omega_dot = solve_accelerations(p, d, gamma, omega, Omega, K)
+    dq, dqs, dxy = _kin_rates(p, z, R, gamma, omega, Omega)
+    chi_dot = -matvec(d.Sk, omega - Omega)
+    return jnp.concatenate([dq, dqs, omega_dot, Omega_dot, dxy, chi_dot])
+
+
+def _torque_control(t, args):
+    """The axle torques `K(t)` of a torque-mode segment (left limit at its end)."""
+    _, _, control, _, t_end = args
+    return control(_control_time(t, t_end))
+
+
+def _torque_field_soa(t, y, args, K=None, adjoint=False):
+    """`_torque_field` on a tuple of scalar components (`jsphere.solve.batched.components`), for
+    batched solves; `K`: the torques as a tuple of scalars, if the caller has evaluated them
+    already; `adjoint`: the form the batch loop's discrete adjoint differentiates."""
+    p, d = args[0], args[1]
+    if K is None:
+        K = _torque_control(t, args)
+        K = tuple(K[..., i] for i in range(K.shape[-1]))
+    return torque_field_components(p, d, K, y, unit(t), adjoint=adjoint)
+
+
+def _servo_inputs(d: Derived, control: WheelSpeeds, t):
+    u, u_dot = control.value_and_rate(t)
+    return -matvec(d.Sk_pinv, u), -matvec(d.Sk_pinv, u_dot)
+
+
+def _wheel_field(t, z, args):
+    """Wheel-speed mode (servo constraints): the flat state's rates."""
+    p, d, control, _, t_end = args
+    Omega = z[Flat.Omega]
+    R = rotmat(z[Flat.q])
+    gamma = R[2]
+    w, w_dot = _servo_inputs(d, control, _control_time(t, t_end))
+    omega, omega_dot, Omega_dot, _ = servo_accelerations(p, d, gamma, Omega, w, w_dot)
+    dq, dqs, dxy = _kin_rates(p, z, R, gamma, omega, Omega)
+    chi_dot = -matvec(d.Sk, w)
+    return jnp.concatenate([dq, dqs, omega_dot, Omega_dot, dxy, chi_dot])
+
+
+def _outputs_torque(p, d, control, t, z, t_start, t_end):
+    omega, Omega = z[Flat.omega], z[Flat.Omega]
+    K = control(_control_time(t, t_end))
+    return omega, -matvec(d.Sk, omega - Omega), K
+
+
+def _outputs_wheel(p, d, control, t, z, t_start, t_end):
+    Omega = z[Flat.Omega]
+    gamma = rotmat(z[Flat.q])[2]
+    w, w_dot = _servo_inputs(d, control, _control_time(t, t_end))
+    omega, _, _, K = servo_accelerations(p, d, gamma, Omega, w, w_dot)
+    return omega, -matvec(d.Sk, w), K

@@ -1,0 +1,154 @@
+"""Integration over consecutive segments (control pieces between jumps, or gaits), sampled at
+the output times: `solve_segments`."""
+
+from __future__ import annotations
+
+import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from ..model.params import Derived, RobotParams
+from .batched import segment as _segment
+from .batched.components import from_components, to_components
+from .batched.layout import Layout
+from .fields import _torque_control
+from .status import RESULTS
+
+
+def _sample_masks(ts_out, a, b, last: bool):
+    """Which output times segment `[a, b]` reports. A time on a boundary goes to the later
+    segment, except that a time stamp given twice gives the left limit first, then the right."""
+    first_dup = jnp.concatenate([ts_out[1:] == ts_out[:-1], jnp.zeros((1,), bool)])
+    starts = (ts_out > a) | ((ts_out == a) & ~first_dup)
+    ends = (ts_out < b) | ((ts_out == b) & (first_dup | last))
+    return starts & ends
+
+
+def _homogeneous(controls):
+    """Stack per-segment controls if they share their structure and static parts."""
+    parts = [eqx.partition(c, eqx.is_array) for c in controls]
+    dyn0, st0 = parts[0]
+    tdef = jax.tree_util.tree_structure(dyn0)
+    for dyn, st in parts[1:]:
+        if jax.tree_util.tree_structure(dyn) != tdef or not eqx.tree_equal(st, st0):
+            return None
+        if any(jnp.shape(u) != jnp.shape(v) for u, v in zip(jax.tree_util.tree_leaves(dyn), jax.tree_util.tree_leaves(dyn0))):
+            return None
+    stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *[d for d, _ in parts])
+    return stacked, st0
+
+
+def _status(failed, bad_start, finite):
+    """The segment's `RESULTS` code. diffrax fills the save points it never reached with inf, so
+    its result decides first."""
+    nonfinite, max_steps = int(RESULTS.nonfinite), int(RESULTS.max_steps_reached)
+    ok = int(RESULTS.successful)
+    return jnp.where(failed, jnp.where(bad_start, nonfinite, max_steps), jnp.where(finite, ok, nonfinite))
+
+
+def solve_segments(
+    field,
+    outputs,
+    p: RobotParams,
+    d: Derived,
+    segments: list,
+    z0,
+    ts_out,
+    *,
+    jump_fn=None,
+    solver,
+    rtol,
+    atol,
+    max_steps,
+    adjoint,
+    layout: Layout = Layout.FLAT,
+    component_field=None,
+    component_control=None,
+):
+    """Integrate `field(t, z, (p, d, control, a, b))` over consecutive segments
+    `(control, a, b)`, restarting at each (after `z = jump_fn(k, a, z, control)` if given),
+    and sample the flat state and `outputs(p, d, control, t, z, a, b)` at `ts_out`.
+
+    Segments whose controls share a structure (e.g. the paper's gaits) run in one
+    `lax.scan`, so compile time does not grow with their number. `layout`
+    (`jsphere.solve.batched.layout.Layout`): with a component layout the solver carries the
+    state as a tuple of scalars and integrates `component_field` (the same field on that
+    tuple, `jsphere.solve.batched.components`), whose inputs are `component_control(t, args)`
+    (default: the torques); the batch loop's layouts solve each segment with
+    `jsphere.solve.batched.segment.solve`. With `Layout.SHARED_STEPS_RETRY` a trial that failed
+    in an earlier segment is left out of the later ones' step control.
+
+    Returns `(zs, omega, chi_dot, K, segment, status, num_steps)`.
+    """
+    n_seg = len(segments)
+    T = ts_out.shape[0]
+    N = d.k.shape[0]
+    dt = z0.dtype
+    controller = dfx.PIDController(rtol=rtol, atol=atol)
+
+    def solve_one(k, z, code, control, a, b, t_save):
+        """The segment's saved states `(T+1, 16+N)`, whether it failed, its accepted steps."""
+        if layout is Layout.SHARED_STEPS_RETRY:  # a trial failed in an earlier segment: out of the step control
+            z = jnp.where(code != 0, jnp.nan, z)
+        if layout.batch_solve:
+            ys, failed, n_acc = _segment.solve(
+                component_field, component_control or _torque_control, solver, rtol, atol, max_steps, adjoint,
+                to_components(z), (p, d, control, a, b), t_save, layout,
+            )  # fmt: skip
+            return z, from_components(ys), failed, n_acc
+        term, y0 = (dfx.ODETerm(component_field), to_components(z)) if layout.components else (dfx.ODETerm(field), z)
+        sol = dfx.diffeqsolve(
+            term, solver, a, b, None, y0, (p, d, control, a, b),
+            saveat=dfx.SaveAt(ts=t_save, t1=True), stepsize_controller=controller,
+            max_steps=max_steps, throw=False, adjoint=adjoint,
+        )  # fmt: skip
+        ys = from_components(sol.ys) if layout.components else sol.ys
+        return z, ys, sol.result != dfx.RESULTS.successful, sol.stats["num_accepted_steps"]
+
+    def one_segment(carry, k, control, a, b):
+        z, zs, om, cd, Ks, seg, code, steps = carry
+        if jump_fn is not None:
+            z = jump_fn(k, a, z, control)
+        t_save = jnp.clip(ts_out, a, b)
+        z, ys, failed, n_acc = solve_one(k, z, code, control, a, b, t_save)
+        mask = _sample_masks(ts_out, a, b, k == n_seg - 1)
+        out = jax.vmap(lambda t, zz: outputs(p, d, control, t, zz, a, b))(t_save, ys[:-1])
+        zs = jnp.where(mask[:, None], ys[:-1], zs)
+        om = jnp.where(mask[:, None], out[0], om)
+        cd = jnp.where(mask[:, None], out[1], cd)
+        Ks = jnp.where(mask[:, None], out[2], Ks)
+        seg = jnp.where(mask, k, seg)
+        bad_start = ~jnp.all(jnp.isfinite(field(a, z, (p, d, control, a, b))))
+        finite = jnp.all(jnp.isfinite(ys)) & jnp.all(jnp.isfinite(out[2]))
+        code = jnp.where(code != 0, code, _status(failed, bad_start, finite))
+        steps = steps + n_acc
+        return (ys[-1], zs, om, cd, Ks, seg, code, steps)
+
+    carry = (
+        z0, jnp.zeros((T, z0.shape[0]), dt), jnp.zeros((T, 3), dt), jnp.zeros((T, N), dt),
+        jnp.zeros((T, N), dt), jnp.zeros((T,), jnp.int32), jnp.array(0, jnp.int32), jnp.array(0, jnp.int32),
+    )  # fmt: skip
+    _, zs, om, cd, Ks, seg, code, steps = _over_segments(one_segment, carry, segments)
+    return zs, om, cd, Ks, seg, code, steps
+
+
+def _over_segments(one_segment, carry, segments):
+    """`carry = one_segment(carry, k, control, a, b)` for every segment `k`: in one `lax.scan`
+    when their controls can be stacked (`_homogeneous`), else one after the other."""
+    n_seg = len(segments)
+    stacked = _homogeneous([c for c, _, _ in segments]) if n_seg > 1 else None
+    if stacked is None:
+        for k, (control, a, b) in enumerate(segments):
+            carry = one_segment(carry, jnp.array(k, jnp.int32), control, a, b)
+        return carry
+    dyn, static = stacked
+    xs = (jnp.arange(n_seg, dtype=jnp.int32), dyn, jnp.stack([a for _, a, _ in segments]),
+          jnp.stack([b for _, _, b in segments]))  # fmt: skip
+
+    def body(c, x):
+        k, dc, a, b = x
+        return one_segment(c, k, eqx.combine(dc, static), a, b), None
+
+    carry, _ = jax.lax.scan(body, carry, xs)
+    return carry
