@@ -53,8 +53,11 @@ def test_interrupt_exits_130(tmp_path):
     import time
 
     env = {**os.environ, "PYTHONPATH": str(HERE.parents[1])}
+    # Python's own SIGINT handler, also where the tests run as a background job (which ignores SIGINT)
+    script = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+              "from jsphere.cli.app import console; print('started', flush=True); sys.exit(console())")  # fmt: skip
     proc = subprocess.Popen(
-        [sys.executable, "-c", "import sys; from jsphere.cli.app import console; print('started', flush=True); sys.exit(console())",
+        [sys.executable, "-c", script,
          "reproduce", "--no-cache", "--no-plots", "--out", str(tmp_path / "out")],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True,
     )  # fmt: skip

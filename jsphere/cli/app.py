@@ -20,6 +20,7 @@ COMMANDS = (reproduce, montecarlo, convert, synth, fit, plan)
 
 
 def main(argv=None) -> int:
+    """Run `jsphere` with the arguments `argv` (default: the process's); return its exit code."""
     from .._runtime.errors import EXIT_CODES_HELP
 
     parser = argparse.ArgumentParser(
