@@ -83,12 +83,10 @@ from .model.kinematics import (
     rolling_velocity as rolling_velocity,
     wheel_speeds as wheel_speeds,
 )
-from .montecarlo.run import (
-    Actuators as Actuators,
-    MonteCarloResult as MonteCarloResult,
-    MonteCarloWarning as MonteCarloWarning,
-    monte_carlo as monte_carlo,
-)
+from .montecarlo.result import MonteCarloResult as MonteCarloResult
+from .montecarlo.run import monte_carlo as monte_carlo
+from .montecarlo.sampling import Actuators as Actuators
+from .montecarlo.store import MonteCarloWarning as MonteCarloWarning
 from .model.names import get_value as get_value, parse_name as parse_name, set_value as set_value
 from .model.params import RobotParams as RobotParams
 from .paper.reproduce import reproduce as reproduce, to_figure_frame as to_figure_frame

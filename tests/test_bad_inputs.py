@@ -53,8 +53,11 @@ def test_interrupt_exits_130(tmp_path):
     import time
 
     env = {**os.environ, "PYTHONPATH": str(HERE.parents[1])}
+    # Python's own SIGINT handler, also where the tests run as a background job (which ignores SIGINT)
+    script = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+              "from jsphere.cli.app import console; print('started', flush=True); sys.exit(console())")  # fmt: skip
     proc = subprocess.Popen(
-        [sys.executable, "-c", "import sys; from jsphere.cli.app import console; print('started', flush=True); sys.exit(console())",
+        [sys.executable, "-c", script,
          "reproduce", "--no-cache", "--no-plots", "--out", str(tmp_path / "out")],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True,
     )  # fmt: skip
@@ -72,3 +75,29 @@ def test_interrupt_exits_130(tmp_path):
     assert proc.returncode == 130, err
     assert "interrupted" in err and "Traceback" not in err, err
     assert not (tmp_path / "out").exists()
+
+
+def test_help_and_argument_errors_import_no_jax():
+    """The command modules import what they run only when they run: `--help` and an argument
+    error build the parser alone (checked without the package's `__init__`, which imports jax)."""
+    import os
+    import subprocess
+    import sys
+
+    script = (
+        "import sys, types\n"
+        "pkg = types.ModuleType('jsphere'); pkg.__path__ = [sys.argv[1]]; sys.modules['jsphere'] = pkg\n"
+        "from jsphere.cli.app import main\n"
+        "for argv in (['--help'], *([c, '--help'] for c in ('reproduce', 'montecarlo', 'convert', 'synth', 'fit', 'plan')),\n"
+        "             ['plan'], ['synth', '--trials']):\n"
+        "    try:\n"
+        "        main(argv)\n"
+        "    except SystemExit:\n"
+        "        pass\n"
+        "print(sorted(m for m in ('jax', 'numpy', 'equinox') if m in sys.modules))\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(HERE.parents[1])}
+    done = subprocess.run([sys.executable, "-c", script, str(HERE.parents[1] / "jsphere")], capture_output=True, text=True,
+                          env=env, timeout=60)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip().splitlines()[-1] == "[]", done.stdout[-500:]

@@ -14,7 +14,7 @@ import pytest
 
 import jsphere
 from jsphere._runtime.errors import InputError
-from jsphere.montecarlo.run import MonteCarloWarning
+from jsphere.montecarlo.store import MonteCarloWarning
 
 VARY = {"r_m[2]": ("normal", -0.0270146, 1e-4)}
 GAITS = [jsphere.acceleration(), jsphere.braking()]
@@ -256,9 +256,9 @@ def test_study_values_are_checked_before_any_work(paper, kwargs, match):
 
 def test_a_negative_R_m_draw_is_rejected(paper):
     """`R_m` is a distance: a negative draw (which would flip r_m) is rejected with its own reason."""
-    from jsphere.montecarlo.run import REASONS, _draw_code
+    from jsphere.montecarlo.sampling import REASONS, draw_code
 
-    codes = [int(_draw_code(paper, ("R_m",), jnp.array([v]))) for v in (0.02, -0.02, 0.2)]
+    codes = [int(draw_code(paper, ("R_m",), jnp.array([v]))) for v in (0.02, -0.02, 0.2)]
     assert [REASONS[c] for c in codes] == ["valid", "R_m <= 0", "|r_m| >= R0"]
 
 

@@ -1,6 +1,7 @@
 """Section 5 of the paper: the numbers `jsphere reproduce` reports, and the CLI."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -85,12 +86,12 @@ def test_paper_parameters_follow_from_paper_numbers(rep):
 
 
 def test_cli_compile_for_one_run_leaves_a_running_backend_and_a_users_level_alone(monkeypatch):
-    from jsphere.cli.app import compile_for_one_run
+    from jsphere.cli.compilation import compile_for_one_run
 
     jsphere.RobotParams.paper().R0.block_until_ready()  # the CPU client exists
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_enable_fast_math=false")
     assert compile_for_one_run() is False
-    assert jsphere.cli.app.os.environ["XLA_FLAGS"] == "--xla_cpu_enable_fast_math=false"
+    assert os.environ["XLA_FLAGS"] == "--xla_cpu_enable_fast_math=false"
     monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=2")
     assert compile_for_one_run() is False  # the user's own level wins
     monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=0")

@@ -1,0 +1,65 @@
+"""`jsphere convert`: a raw motion-capture export and its inputs table -> a trial CSV
+(docs/capture.md)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+NAME = "convert"
+
+
+def add_parser(sub) -> None:
+    cv = sub.add_parser(NAME, help="raw motion-capture export + inputs table -> trial CSV (docs/capture.md)")
+    cv.add_argument("raw", help="the raw export (Motive CSV, Vicon Nexus CSV, or C3D)")
+    cv.add_argument("--format", required=True, choices=("motive", "vicon", "c3d"))
+    cv.add_argument("--inputs", required=True, help="inputs table: t, chi_dot_1..N or t, K_1..N")
+    cv.add_argument("--out", required=True, help="the trial CSV to write (never one of the input files)")
+    cv.add_argument("--units", default="auto", choices=("auto", "m", "mm"), help="length units of the export (default: auto)")
+    cv.add_argument("--up-axis", choices=("y", "z"), help="the export's up axis (default: y for Motive, z otherwise)")
+    cv.add_argument("--rigid-body", help="Motive rigid body / Vicon subject whose markers to use")
+    cv.add_argument("--body-markers", help="CSV name,x,y,z: the markers in the platform frame [m] (default: from the first full frame)")
+    cv.add_argument("--body-offset", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"),
+                    help="shell centre relative to the marker centroid, platform frame [m]")  # fmt: skip
+    cv.add_argument("--time-offset", type=float, default=0.0, help="added to the capture times to match the inputs' clock [s]")
+    cv.add_argument("--allow-truncated", action="store_true",
+                    help="convert an export cut short (fewer frames than its header declares, a last row cut off) "
+                    "with a warning instead of an error")  # fmt: skip
+    cv.add_argument("--no-cache", action="store_true", help=argparse.SUPPRESS)
+
+
+def run(args) -> int:
+    import math
+    import warnings
+
+    from .._runtime.errors import InputError
+    from .._runtime.files import check_output
+    from ..capture.mocap import convert_raw, read_body_markers
+    from ..capture.trial import CaptureWarning, write_trial
+
+    if not all(math.isfinite(v) for v in args.body_offset):
+        raise InputError(f"--body-offset X Y Z must be finite numbers [m]; got {' '.join(f'{v:g}' for v in args.body_offset)}.")
+    if not math.isfinite(args.time_offset):
+        raise InputError(f"--time-offset must be a finite number of seconds; got {args.time_offset:g}.")
+    out = Path(args.out)
+    inputs = {"the raw export": args.raw, "the inputs table": args.inputs, "the body markers": args.body_markers}
+    check_output(out, inputs=inputs, example=str(out / "trial.csv"))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", CaptureWarning)
+        try:
+            body = read_body_markers(args.body_markers) if args.body_markers else None
+            trial = convert_raw(
+                args.raw, args.inputs, format=args.format, units=args.units, up_axis=args.up_axis, rigid_body=args.rigid_body,
+                body_markers=body, body_offset=tuple(args.body_offset), time_offset=args.time_offset,
+                allow_truncated=args.allow_truncated,
+            )  # fmt: skip
+        finally:  # the warnings of a conversion that then fails say what went before
+            for w in caught:
+                if issubclass(w.category, CaptureWarning):
+                    print(f"jsphere convert: warning: {w.message}", file=sys.stderr)
+                else:
+                    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    write_trial(out, trial)
+    print(f"{trial!r} -> {out}")
+    return 0

@@ -1,0 +1,84 @@
+"""`jsphere plan`: a rest-to-rest manoeuvre within motor limits, as a CSV of wheel commands
+(docs/planning.md)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+NAME = "plan"
+
+
+def add_parser(sub) -> None:
+    pp = sub.add_parser(NAME, help="plan a rest-to-rest manoeuvre to (X, Y) within motor limits; CSV of wheel commands")
+    pp.add_argument("--to", nargs=2, type=float, required=True, metavar=("X", "Y"), help="target position [m] (robot starts at rest at the origin)")
+    pp.add_argument("--heading", type=float, help="final platform heading [rad] (default: free)")
+    pp.add_argument("--max-torque", help="wheel torque limit [N m] (default 0.1; 'none' for no limit)")
+    pp.add_argument("--max-wheel-speed", help="wheel speed limit [rad/s] (default 20)")
+    pp.add_argument("--max-tilt", help="platform tilt limit [rad] (default 0.35)")
+    pp.add_argument("--max-torque-rate", help="torque rate limit [N m/s] (default 1)")
+    pp.add_argument("--max-time", type=float, help="longest manoeuvre [s] (default 12)")
+    pp.add_argument("--energy-weight", type=float, default=0.0, help="cost per joule of motor energy (default 0)")
+    pp.add_argument("--time-weight", type=float, default=1e-3, help="cost per second of duration (default 1e-3)")
+    pp.add_argument("--rate", type=float, default=1000.0, help="rows per second of the CSV (default 1000)")
+    pp.add_argument("--restarts", type=int, default=8, help="random restarts (default 8)")
+    pp.add_argument("--seed", type=int, default=0)
+    pp.add_argument("--params", help="a parameter file (.toml or .json) instead of the paper's robot")
+    pp.add_argument("--out", default="plan.csv", help="CSV of t, K_i, chi_dot_i, x, y, gamma_1..3, heading, tilt (default plan.csv); .json and .png beside it")
+    pp.add_argument("--no-plots", action="store_true", help="skip the figure")
+    pp.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
+
+
+def run(args) -> int:
+    import math
+
+    from .._runtime.errors import ExitCode
+    from .._runtime.files import atomic_write_json, check_output
+    from ..model.params import RobotParams
+    from ..planning.plan import Objective, plan
+
+    out = Path(args.out)
+    writes = [out.with_suffix(".json"), *([] if args.no_plots else [out.with_suffix(".png")])]
+    check_output(out, writes=writes, inputs={"the parameter file (--params)": args.params}, example=str(Path(args.out) / "plan.csv"))
+    limits = _limits(args)
+    params = RobotParams.load(args.params) if args.params else RobotParams.paper()
+    obj = Objective(energy=args.energy_weight, time=args.time_weight)
+    pl = plan(params, tuple(args.to), heading=args.heading, limits=limits, objective=obj,
+              restarts=args.restarts, rate=args.rate, seed=args.seed, allow_infeasible=True, progress=True)  # fmt: skip
+    print(pl.summary())
+    pl.to_csv(out)
+    info = {"feasible": pl.feasible, "shortfall": pl.shortfall, "target": [None if math.isnan(v) else v for v in pl.target.tolist()],
+            "duration_s": pl.duration, "errors": pl.errors, "limits": pl.limits_report, "iterations": pl.iterations,
+            "elapsed_s": pl.elapsed_s, "restarts": pl.restarts, "rate_hz": pl.rate}  # fmt: skip
+    atomic_write_json(out.with_suffix(".json"), info)
+    written = [out, out.with_suffix(".json")]
+    if not args.no_plots:
+        from ..plots import plan_figure
+
+        plan_figure(pl, out.with_suffix(".png"))
+        written.append(out.with_suffix(".png"))
+    print(f"wrote {', '.join(str(p) for p in written)}")
+    if not pl.feasible:
+        print("jsphere plan: WARNING: the request cannot be met within the limits; the files hold the best plan "
+              "found: " + "; ".join(pl.shortfall), file=sys.stderr)  # fmt: skip
+        return ExitCode.INFEASIBLE
+    return ExitCode.OK
+
+
+def _limits(args):
+    """The `Limits` of the options (a limit given as 'none', 'off' or 'inf' is switched off)."""
+    from .._runtime.errors import InputError
+    from ..planning.plan import Limits
+
+    none = {"none", "off", "inf"}
+    lim_kw = {}
+    for name in ("max_torque", "max_wheel_speed", "max_tilt", "max_torque_rate"):
+        v = getattr(args, name)
+        if v is not None:
+            try:
+                lim_kw[name] = None if str(v).lower() in none else float(v)
+            except ValueError:
+                raise InputError(f"--{name.replace('_', '-')} {v}: expected a number or 'none' (no limit).") from None
+    if args.max_time is not None:
+        lim_kw["max_time"] = float(args.max_time)
+    return Limits(**lim_kw)

@@ -1,0 +1,61 @@
+"""`jsphere synth`: synthetic capture-like trial CSVs from random input programs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+NAME = "synth"
+
+
+def add_parser(sub) -> None:
+    sy = sub.add_parser(NAME, help="synthetic capture-like trial CSVs from random input programs")
+    sy.add_argument("--out", required=True, help="output folder")
+    sy.add_argument("--trials", type=int, default=3, help="number of trials (default 3)")
+    sy.add_argument("--kind", default="wheel_speeds", choices=("wheel_speeds", "torques"))
+    sy.add_argument("--params", help="a parameter file (.toml or .json); default: the paper's robot")
+    sy.add_argument("--duration", type=float, default=6.0, help="trial length [s] (default 6)")
+    sy.add_argument("--seed", type=int, default=0, help="trial i uses seed + i")
+    sy.add_argument("--pos-sd", type=float, default=1e-3, help="position noise [m] (default 1e-3)")
+    sy.add_argument("--rot-sd-deg", type=float, default=0.5, help="orientation noise per axis [deg] (default 0.5)")
+    sy.add_argument("--dropout", type=float, default=0.02, help="fraction of frames lost (default 0.02)")
+    sy.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
+
+
+def _check(args) -> None:
+    import math
+
+    from .._runtime.errors import InputError
+
+    checks = (
+        ("--trials", args.trials, args.trials >= 1, "at least 1"),
+        ("--duration", args.duration, math.isfinite(args.duration) and args.duration > 0, "a positive number of seconds"),
+        ("--pos-sd", args.pos_sd, math.isfinite(args.pos_sd) and args.pos_sd >= 0, "a finite number >= 0 (metres)"),
+        ("--rot-sd-deg", args.rot_sd_deg, math.isfinite(args.rot_sd_deg) and args.rot_sd_deg >= 0, "a finite number >= 0 (degrees)"),
+        ("--dropout", args.dropout, 0.0 <= args.dropout < 1.0, "a fraction in [0, 1)"),
+        ("--seed", args.seed, args.seed >= 0, "an integer >= 0"),
+    )  # fmt: skip
+    for option, value, ok, what in checks:
+        if not ok:
+            raise InputError(f"{option} must be {what}; got {value:g}.")
+
+
+def run(args) -> int:
+    from .._runtime.files import check_output
+    from ..capture.trial import random_inputs, synthetic_trial, write_trial
+    from ..model.params import RobotParams
+
+    _check(args)
+    out = Path(args.out)
+    names = [f"{args.kind}_{i:02d}" for i in range(args.trials)]
+    check_output(out, folder=True, writes=[out / f"{n}.csv" for n in names], inputs={"the parameter file": args.params})
+    params = RobotParams.load(args.params) if args.params else RobotParams.paper()
+    for i, name in enumerate(names):
+        seed = args.seed + i
+        controls = random_inputs(params, args.duration, kind=args.kind, seed=seed)
+        trial = synthetic_trial(
+            params, controls, args.duration, pos_sd=args.pos_sd, rot_sd_deg=args.rot_sd_deg, dropout=args.dropout,
+            seed=seed, name=name,
+        )  # fmt: skip
+        write_trial(out / f"{trial.name}.csv", trial)
+        print(f"{trial!r} -> {out / (trial.name + '.csv')}")
+    return 0

@@ -1,0 +1,128 @@
+"""One batch of a Monte-Carlo study: its trials simulated in vmapped chunks, sharded over the
+local devices, in one compiled function (`run_batch`) reused for every batch of a study."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Int, UInt32
+
+from ..controls import Torques, WheelSpeeds
+from ..gaits.gaits import Gait, simulate_gaits
+from ..model.linalg import cross
+from ..model.params import RobotParams
+from ..model.state import State
+from ..solve.simulate import Trajectory, simulate
+from .result import REJECTED
+from .sampling import PERTURBATION_FOLD, Actuators, Draws, trial_key
+
+#: trials per vmapped chunk. Every trial is computed inside a vmap of exactly this width,
+#: whatever the batch size or device count, which keeps results bitwise reproducible (XLA
+#: may pick other kernels, summing in another order, for other widths).
+CHUNK = 64
+#: the output times of the settling phase after replayed commands end
+SETTLE_SAMPLES = 51
+
+
+class Replay(eqx.Module):
+    """Commands replayed open loop on every trial's robot (`mode` "torques" or
+    "wheel_speeds"): the plan `(ts, values)` (ending on a jump to zero at its last time), as
+    `actuators` execute it, then `settle` seconds without commands; at most `max_steps`
+    solver steps; `jump_ts`: the plan's jumps (when the actuators keep them in place)."""
+
+    mode: str
+    plan: tuple[Float[Array, " t"], Float[Array, "t N"]]
+    actuators: Actuators
+    settle: float
+    max_steps: int
+    jump_ts: tuple[float, ...]
+
+
+class Trials(eqx.Module):
+    """What every trial of a study shares: the nominal robot, the gaits (executed exactly, or
+    the commands of `replay`), the distributions and seed of the draws, and the solver's
+    settings. `mesh`: the local devices that share every batch (None for one device)."""
+
+    params: RobotParams
+    gaits: list[Gait]
+    draws: Draws
+    seed: UInt32[Array, ""]
+    reset: bool | list
+    rtol: float
+    atol: float
+    Omega0_sd: float
+    replay: Replay | None
+    mesh: jax.sharding.Mesh | None
+
+    @property
+    def duration(self):
+        """When the gaits (or the replayed commands) end [s]."""
+        dt = self.params.R0.dtype
+        return sum(jnp.asarray(g.T, dt) for g in self.gaits) if self.replay is None else self.replay.plan[0][-1]
+
+
+def _simulate_gaits(trials: Trials, p: RobotParams, ts, dOmega) -> Trajectory:
+    """Trial robot `p` executing the gaits exactly, saved at `ts` (their end)."""
+    # per-trial steps: every trial's result is independent of the other trials of its chunk
+    return simulate_gaits(p, trials.gaits, ts=ts, reset=trials.reset, rtol=trials.rtol, atol=trials.atol, throw=False,
+                          Omega0=dOmega, batch_steps="per_trial")  # fmt: skip
+
+
+def _simulate_replay(trials: Trials, p: RobotParams, T, dOmega, key) -> Trajectory:
+    """Trial robot `p` under the replayed commands as its actuators execute them, then settling."""
+    rp, dt = trials.replay, p.R0.dtype
+    table = rp.actuators.table(key, rp.plan[0], rp.plan[1])
+    s0 = State.at_rest(p)
+    s0 = eqx.tree_at(lambda s: s.Omega, s0, s0.Omega + dOmega)
+    ctrl = (Torques if rp.mode == "torques" else WheelSpeeds)(table, rp.jump_ts)
+    ts_after = T + rp.settle * jnp.linspace(0.0, 1.0, SETTLE_SAMPLES, dtype=dt)  # the settling phase
+    # per-trial steps: every trial's result is independent of the other trials of its chunk
+    return simulate(
+        p, s0, ctrl, T + rp.settle, ts=ts_after, rtol=trials.rtol, atol=trials.atol, throw=False,
+        max_steps=rp.max_steps, batch_steps="per_trial",
+    )  # fmt: skip
+
+
+def _trial(trials: Trials, T, i: Int[Array, ""]) -> tuple:
+    """Trial `i`, whose gaits or commands end at `T`: `(vals, x, y, speed, status, gamma3_sd,
+    reject_code)`.
+
+    A draw that breaks a rule of `RobotParams` is not simulated as drawn: the nominal
+    parameters stand in for it (so that its solve is an ordinary one and does not hold up its
+    chunk), and its outcomes are replaced by NaN and the status `REJECTED`."""
+    params = trials.params
+    dt = params.R0.dtype
+    vals, code = trials.draws.draw(params, trials.seed, i)
+    valid = code == 0
+    p = trials.draws.robot(params, vals, valid)
+    k_omega, k_act = jax.random.split(jax.random.fold_in(trial_key(trials.seed, i), PERTURBATION_FOLD))
+    dOmega = trials.Omega0_sd * jax.random.normal(k_omega, (3,), dt)
+    if trials.replay is None:
+        tr = _simulate_gaits(trials, p, jnp.reshape(T, (1,)), dOmega)
+    else:
+        tr = _simulate_replay(trials, p, T, dOmega, k_act)
+    speed = p.R0 * jnp.linalg.norm(cross(tr.Omega[-1], tr.gamma[-1]))
+    g3 = tr.gamma[:, 2]
+    nan = jnp.asarray(jnp.nan, dt)
+    outcomes = tuple(jnp.where(valid, v, nan) for v in (tr.x[-1], tr.y[-1], speed, jnp.std(g3)))
+    status = jnp.where(valid, tr.status, REJECTED)
+    return vals, outcomes[0], outcomes[1], outcomes[2], status, outcomes[3], code
+
+
+@eqx.filter_jit
+def run_batch(trials: Trials, idx: Int[Array, " B"]) -> tuple:
+    """Trials `idx` of a study, as stacked `_trial` outcomes: one compiled function per
+    structure, reused across calls."""
+    T = trials.duration
+
+    def local(ii):  # this device's trials, in chunks of CHUNK
+        out = jax.lax.map(jax.vmap(lambda i: _trial(trials, T, i)), ii.reshape(-1, CHUNK))
+        return jax.tree_util.tree_map(lambda a: a.reshape((a.shape[0] * a.shape[1],) + a.shape[2:]), out)
+
+    if trials.mesh is None:
+        return local(idx)
+    from jax.sharding import PartitionSpec
+
+    spec = PartitionSpec("trials")
+    return jax.shard_map(local, mesh=trials.mesh, in_specs=spec, out_specs=spec, check_vma=False)(idx)

@@ -1,0 +1,96 @@
+"""The outcome of a Monte-Carlo study (`MonteCarloResult`) and its statistics."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import ClassVar
+
+import numpy as np
+
+from .sampling import REASONS
+
+#: `MonteCarloResult.status` of a successful solve (`Trajectory.status`)
+SUCCESS = 0
+#: `MonteCarloResult.status` of a trial whose drawn parameters break a rule of `RobotParams`
+#: (not simulated; `reject_code` says which rule). Solver outcomes are >= 0 (`Trajectory.status`).
+REJECTED = -1
+
+
+def outcome_masks(status) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`(ok, failed, rejected)`: the trials whose solve succeeded, whose solve failed, and whose
+    draw was rejected (not simulated), from their `status`."""
+    status = np.asarray(status)
+    ok = status == SUCCESS
+    rejected = status == REJECTED
+    return ok, ~ok & ~rejected, rejected
+
+
+@dataclasses.dataclass
+class MonteCarloResult:
+    """Per-trial outcomes of `monte_carlo` (NumPy arrays of length `n`).
+
+    `samples[name]`: the drawn values; `x_final, y_final` [m]: stop point; `speed_final` [m/s]:
+    speed of the shell centre at the end; `status`: 0 for a successful solve, 1 or 2 for a
+    failed one (see `Trajectory.status`), `REJECTED` (-1) for a draw whose parameters break a
+    rule of `RobotParams` (not simulated; its outcomes are NaN); `gamma3_sd_after`: standard
+    deviation of `gamma_3` over the settling time after the commands end (replay modes; the
+    paper's sigma of Fig. 2; 0 in gait mode, where the gaits end on exact stationary motions);
+    `reject_code`: 0 for a valid draw, else the index in `REASONS` of the rule it breaks.
+    """
+
+    REJECTED: ClassVar[int] = REJECTED
+    REASONS: ClassVar[tuple[str, ...]] = REASONS
+
+    n: int
+    seed: int
+    samples: dict[str, np.ndarray]
+    x_final: np.ndarray
+    y_final: np.ndarray
+    speed_final: np.ndarray
+    status: np.ndarray
+    gamma3_sd_after: np.ndarray
+    elapsed_s: float = 0.0
+    reject_code: np.ndarray | None = None
+
+    def rejections(self) -> dict[str, int]:
+        """`{reason: number of draws}` of the rejected draws, most frequent first."""
+        codes = np.zeros(self.n, np.int64) if self.reject_code is None else np.asarray(self.reject_code)
+        counts = np.bincount(codes[codes > 0], minlength=len(REASONS))
+        order = sorted(np.flatnonzero(counts), key=lambda c: (-counts[c], c))
+        return {REASONS[c]: int(counts[c]) for c in order}
+
+    def stats(self, level: float = 0.95) -> dict:
+        """Stop-point mean, covariance, the `level` confidence ellipse and quantiles (successful
+        trials only), with the counts of successful trials (`n_ok`), solver failures
+        (`n_failed`, and `failed_status`: per status) and rejected draws (`n_rejected`, and
+        `rejected`: per broken rule)."""
+        status = np.asarray(self.status)
+        ok, failed, rejected = outcome_masks(status)
+        codes, counts = np.unique(status[failed], return_counts=True)
+        head = {"n": int(self.n), "n_ok": int(ok.sum()), "n_failed": int(failed.sum()),
+                "failed_status": {str(int(c)): int(k) for c, k in zip(codes, counts)},
+                "n_rejected": int(rejected.sum()), "rejected": self.rejections()}  # fmt: skip
+        if not ok.any():
+            return head
+        return {**head, **self._stop_statistics(ok, level)}
+
+    def _stop_statistics(self, ok: np.ndarray, level: float) -> dict:
+        """The statistics of the successful trials `ok`: stop points, speeds and tilt."""
+        xy = np.stack([self.x_final[ok], self.y_final[ok]], axis=1)
+        mean = xy.mean(axis=0)
+        cov = np.cov(xy, rowvar=False) if len(xy) > 1 else np.zeros((2, 2))
+        evals, evecs = np.linalg.eigh(cov)
+        s = -2.0 * math.log(1.0 - level)  # chi-squared quantile with 2 degrees of freedom
+        q = [0.025, 0.5, 0.975]
+        return {
+            "mean_xy_m": mean.tolist(), "cov_xy_m2": cov.tolist(),
+            "sd_xy_m": np.sqrt(np.diag(cov)).tolist(),
+            "ellipse": {"level": level, "semi_axes_m": np.sqrt(np.maximum(evals, 0) * s).tolist(),
+                        "angle_rad": float(math.atan2(evecs[1, -1], evecs[0, -1]))},
+            "quantiles": {"q": q, "x_m": np.quantile(xy[:, 0], q).tolist(), "y_m": np.quantile(xy[:, 1], q).tolist()},
+            "distance_m": {"mean": float(np.hypot(*xy.T).mean()), "sd": float(np.hypot(*xy.T).std(ddof=1)) if len(xy) > 1 else 0.0},
+            "speed_final_m_s": {"mean": float(self.speed_final[ok].mean()), "max": float(self.speed_final[ok].max())},
+            "gamma3_sd_after": {"mean": float(self.gamma3_sd_after[ok].mean()),
+                                "q": q, "quantiles": np.quantile(self.gamma3_sd_after[ok], q).tolist()},
+        }  # fmt: skip

@@ -1,0 +1,143 @@
+"""A study's folder: its manifest, its batch files (written atomically, byte for byte the same
+whatever the run that wrote them), its statistics, and what a killed run leaves there.
+
+    out/manifest.json          the study's fingerprint, n, seed, batch size and vary
+    out/batch_000000.npz ...   the outcomes of each finished batch (`BATCH_KEYS`)
+    out/stats.json             `MonteCarloResult.stats()` of the whole study
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import warnings
+import zipfile
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from .._runtime.errors import InputError
+from .._runtime.files import atomic_write, atomic_write_json, temporary_pattern
+from .batch import CHUNK
+from .sampling import MAX_REDRAWS, REASONS
+
+#: the arrays of a batch file
+BATCH_KEYS = ("vals", "x", "y", "speed", "status", "gamma3_sd", "reject")
+#: the hidden temporary files of `jsphere._runtime.files.atomic_write` in a study folder, by the file they become
+_TEMPORARY = temporary_pattern(r"(batch_(\d{6})|manifest|stats|stop_points)", r"\.(npz|tmp|png)")
+
+
+class MonteCarloWarning(UserWarning):
+    """Something `monte_carlo` repaired on its own (a corrupt batch file it recomputes)."""
+
+
+def fingerprint(params, gaits, spec, seed, batch_size, options, rtol, atol) -> str:
+    """A hash of everything that changes a study's results (also the rules a draw must meet, the
+    redraw limit of "truncate" and the chunk width); `options`: the other settings."""
+    leaves = [np.asarray(x).tolist() for x in jax.tree_util.tree_leaves((params, gaits)) if hasattr(x, "shape")]
+    text = json.dumps([leaves, str(params.R0.dtype), str(jax.tree_util.tree_structure(gaits)), spec, seed, batch_size,
+                       repr(options), rtol, atol, REASONS, MAX_REDRAWS, CHUNK])  # fmt: skip
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+@dataclasses.dataclass(frozen=True)
+class StudyFolder:
+    """The folder `path` of a study with batches of `batch_size` trials and `n_vary` varied names."""
+
+    path: Path
+    batch_size: int
+    n_vary: int
+
+    def batch_path(self, k: int) -> Path:
+        return self.path / f"batch_{k:06d}.npz"
+
+    def open(self, fp: str, n: int, seed: int, vary, mine: set[int], single: bool) -> None:
+        """Create the folder with its manifest, or check that it holds the study `fp` of `n`
+        trials; remove the temporary files a killed run left there (`remove_temporary_files`)."""
+        folder = self.path
+        if folder.exists() and not folder.is_dir():
+            raise InputError(f"monte_carlo: out = {folder} is a file; give a folder for the study (it is created if missing).")
+        folder.mkdir(parents=True, exist_ok=True)
+        manifest = folder / "manifest.json"
+        if manifest.exists():
+            self._check_manifest(manifest, fp, n)
+        else:
+            if any(folder.glob("batch_*.npz")):
+                raise InputError(
+                    f"monte_carlo: {folder} holds batch files but no manifest.json, so it cannot tell which study they "
+                    "belong to; delete them (or choose another `out` folder)."
+                )
+            atomic_write_json(manifest, {"fingerprint": fp, "n": n, "seed": seed, "batch_size": self.batch_size,
+                                         "vary": {k: list(v) for k, v in vary.items()}})  # fmt: skip
+        self.remove_temporary_files(mine, single)
+
+    def _check_manifest(self, manifest: Path, fp: str, n: int) -> None:
+        try:
+            old = json.loads(manifest.read_text())
+            if not isinstance(old, dict):
+                raise ValueError("not a JSON object")
+        except (ValueError, UnicodeDecodeError) as e:
+            raise InputError(
+                f"monte_carlo: {manifest} is not a valid study manifest ({e}), so the batches in {self.path} cannot be "
+                "trusted; delete the folder (or choose another `out`) to run the study again."
+            ) from None
+        if old.get("fingerprint") != fp or old.get("n") != n:
+            raise InputError(
+                f"monte_carlo: {self.path} holds a different study (other parameters, gaits, vary, seed, n or "
+                "batch size); choose another `out` folder or delete it."
+            )
+
+    def remove_temporary_files(self, mine: set[int], single: bool) -> None:
+        """Remove the hidden temporary files a killed run left in the folder: those of the batches
+        `mine` (this process's), and (with a single process, `single`, where no other process may
+        be writing them) those of the manifest, the statistics and the figure."""
+        for f in self.path.iterdir():
+            m = _TEMPORARY.fullmatch(f.name)
+            if m and (int(m.group(2)) in mine if m.group(2) else single):
+                f.unlink(missing_ok=True)
+
+    def has_batch(self, k: int) -> bool:
+        return self.batch_path(k).exists()
+
+    def load_batch(self, k: int, *, stacklevel: int = 2) -> dict | None:
+        """The arrays of batch `k`, or `None` (with a `MonteCarloWarning` naming the file) if it
+        cannot be read or does not hold a batch of this study (a truncated copy, a full disk,
+        random bytes). The warning points `stacklevel` frames above this method."""
+        path, B = self.batch_path(k), self.batch_size
+        try:
+            with open(path, "rb") as fh:
+                if not zipfile.is_zipfile(fh):
+                    raise ValueError("not an .npz archive: empty, cut short or overwritten")
+                fh.seek(0)
+                with np.load(fh, allow_pickle=False) as z:
+                    part = {key: z[key] for key in z.files}
+            if set(part) != set(BATCH_KEYS):
+                raise ValueError(f"arrays {sorted(part)}, expected {sorted(BATCH_KEYS)}")
+            shapes = {key: part[key].shape for key in BATCH_KEYS}
+            if shapes["vals"] != (B, self.n_vary) or any(shapes[k] != (B,) for k in BATCH_KEYS if k != "vals"):
+                raise ValueError(f"shapes {shapes} do not match a batch of {B} trials")
+        except Exception as e:  # noqa: BLE001 - any unreadable file is recomputed
+            reason = str(e) if isinstance(e, ValueError) else f"{type(e).__name__}: {e}"
+            warnings.warn(f"monte_carlo: {path} is corrupt or incomplete ({reason}); recomputing that batch.",
+                          MonteCarloWarning, stacklevel=stacklevel + 1)  # fmt: skip
+            return None
+        return part
+
+    def save_batch(self, k: int, part: dict) -> None:
+        """Write batch `k` atomically as an `.npz` file whose bytes depend on its arrays only
+        (fixed member order and time stamps), so a resumed study's files equal an uninterrupted
+        one's."""
+
+        def write(tmp):
+            with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED) as zf:
+                for key in BATCH_KEYS:
+                    info = zipfile.ZipInfo(f"{key}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+                    with zf.open(info, "w", force_zip64=True) as f:
+                        np.lib.format.write_array(f, np.ascontiguousarray(part[key]), allow_pickle=False)
+
+        atomic_write(self.batch_path(k), write)
+
+    def write_stats(self, stats: dict) -> None:
+        atomic_write_json(self.path / "stats.json", stats)

@@ -1,0 +1,223 @@
+"""A study's description: its numeric settings (`check_settings`), its distributions
+(`check_vary`) and the study file of `jsphere montecarlo` (`load_study`), each checked before any
+work, with an `InputError` that names the value."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+from typing import Mapping, Sequence
+
+from .._runtime.checks import is_number, real, whole
+from .._runtime.errors import InputError
+from .._runtime.files import tomllib
+from ..gaits.gaits import acceleration, braking, turn
+from ..model.names import get_value, parse_name
+from ..model.params import RobotParams
+from .sampling import Actuators
+
+#: the distributions of `vary` and the names of their two numbers
+DISTRIBUTIONS = {"normal": ("mean", "sd"), "uniform": ("low", "high")}
+#: the optional last entry of a distribution: redraw until the parameter set is valid
+TRUNCATE = "truncate"
+#: the ways a trial runs (see `monte_carlo`)
+MODES = ("gait", "torques", "wheel_speeds")
+
+#: the numeric settings of a study: name -> checker (`load_study` checks a study file's keys
+#: with the same table, under the file's names)
+SETTINGS = {
+    "n": lambda w, k, v: whole(w, k, v, 1),
+    "seed": lambda w, k, v: whole(w, k, v, 0, 2**32 - 1),
+    "batch_size": lambda w, k, v: whole(w, k, v, 1),
+    "settle": lambda w, k, v: real(w, k, v, unit="s"),
+    "Omega0_sd": lambda w, k, v: real(w, k, v, unit="1/s"),
+    "plan_rate": lambda w, k, v: real(w, k, v, strict=True, unit="Hz"),
+    "max_steps": lambda w, k, v: whole(w, k, v, 1),
+    "wait_timeout": lambda w, k, v: real(w, k, v, unit="s"),
+}
+
+
+def check_settings(where: str, values: Mapping, names: Mapping[str, str] | None = None) -> dict:
+    """Check the numeric settings `values` (keys of `SETTINGS`) and return them converted;
+    an error names the value as `names` maps it (e.g. `{"n": "trials"}`)."""
+    names = names or {}
+    return {k: SETTINGS[k](where, names.get(k, k), v) for k, v in values.items()}
+
+
+def _target(params: RobotParams, name: str) -> tuple:
+    """What a name sets, for finding two names that set the same value."""
+    field, index = parse_name(name)
+    if field == "R_m":
+        return ("r_m",)
+    if field == "I" and len(index) == 2:
+        index = tuple(sorted(index))
+    return (field, index)
+
+
+def _check_distribution(name: str, spec) -> tuple[str, float, float, bool]:
+    """`(kind, a, b, truncate)` of one valid entry of `vary`, else `InputError` naming it."""
+    form = (f"vary[{name!r}] must be ['normal', mean, sd] or ['uniform', low, high], optionally followed by "
+            f"'{TRUNCATE}'")  # fmt: skip
+    if not isinstance(spec, (tuple, list)) or len(spec) not in (3, 4) or spec[0] not in DISTRIBUTIONS:
+        raise InputError(f"{form}; got {spec!r}.")
+    if len(spec) == 4 and spec[3] != TRUNCATE:
+        raise InputError(f"{form}; got {spec[3]!r} as its last entry.")
+    kind = spec[0]
+    for label, v in zip(DISTRIBUTIONS[kind], spec[1:3]):
+        if not is_number(v) or not math.isfinite(v):
+            raise InputError(f"vary[{name!r}]: the {label} must be a finite number; got {v!r}.")
+    a, b = float(spec[1]), float(spec[2])
+    if kind == "normal" and not b >= 0:
+        raise InputError(f"vary[{name!r}]: the standard deviation must be >= 0; got {b}.")
+    if kind == "uniform" and not b >= a:
+        raise InputError(f"vary[{name!r}]: uniform needs low <= high; got ({a}, {b}).")
+    return kind, a, b, len(spec) == 4
+
+
+def check_vary(params: RobotParams, vary: Mapping[str, Sequence]) -> list[tuple[str, str, float, float, bool]]:
+    """`[(name, kind, a, b, truncate)]` of a valid `vary`, else `InputError` naming the entry."""
+    if not isinstance(vary, Mapping):
+        raise InputError(f"vary must be a table {{name: [kind, a, b]}}, e.g. {{\"r_m[2]\": [\"normal\", -0.027, 1e-4]}}; got {vary!r}.")
+    out, seen = [], {}
+    for name, spec in vary.items():
+        if not isinstance(name, str):
+            raise InputError(f"vary: parameter names are strings such as 'j' or 'I[0,0]'; got {name!r}.")
+        parse_name(name)
+        if name != "R_m":
+            get_value(params, name)  # checks the index fits
+        kind, a, b, truncate = _check_distribution(name, spec)
+        if get_value(params, name).ndim != 0:
+            raise InputError(f"vary[{name!r}]: vary scalar components (e.g. 'I[0,0]'), not a whole field.")
+        t = _target(params, name)
+        other = next((o for o, ot in seen.items() if ot == t or (t[0] == ot[0] == "r_m" and (len(t) == 1 or len(ot) == 1))), None)
+        if other is not None:
+            raise InputError(f"vary: {other!r} and {name!r} set the same value; vary one of them.")
+        seen[name] = t
+        out.append((name, kind, a, b, truncate))
+    return out
+
+
+# --- the study file of `jsphere montecarlo` ---
+
+#: the gaits a study file names, by their `kind`
+GAITS = {"acceleration": acceleration, "braking": braking, "turn": turn}
+GAIT_KINDS = tuple(GAITS)
+#: the keys of a study file
+STUDY_KEYS = {"trials", "seed", "batch_size", "mode", "params", "Omega0_sd", "settle", "reset", "gaits", "vary",
+              "actuators"}  # fmt: skip
+#: a study file's numeric keys and the `SETTINGS` they set
+_FILE_SETTINGS = {"trials": "n", "seed": "seed", "batch_size": "batch_size", "settle": "settle",
+                  "Omega0_sd": "Omega0_sd"}  # fmt: skip
+
+
+def load_study(path) -> dict:
+    """Read a Monte-Carlo study description (TOML). Schema (every key optional but `vary`):
+
+        trials = 10000            # overridden by --trials (a whole number >= 1)
+        seed = 0                  # a whole number in [0, 2**32)
+        batch_size = 4096
+        mode = "gait"             # "gait" | "torques" | "wheel_speeds"
+        params = "robot.toml"     # default: the paper's robot (path relative to this file)
+        Omega0_sd = 0.0           # [1/s], >= 0
+        settle = 1.0              # [s] (replay modes), >= 0
+        reset = false
+        gaits = [{kind = "acceleration", theta_max = 0.1, phi = 0.0, T = 2.0}, {kind = "braking"}]
+        [vary]                    # names as in `jsphere fit --free`
+        "r_m[2]" = ["normal", -0.0270146, 1e-4]
+        j = ["uniform", 2.0e-4, 3.5e-4]
+        m0 = ["normal", 0.8, 0.3, "truncate"]   # truncated to valid robots (m0 > 0)
+        [actuators]               # replay modes only; see jsphere.Actuators
+        gain_sd = 0.02
+        delay_s = 0.01
+
+    A distribution is `["normal", mean, sd]` or `["uniform", low, high]` with finite numbers
+    (`sd >= 0`, `low <= high`). Draws that break a rule of `RobotParams` (a negative mass, an
+    inertia tensor no body has, the centre of mass outside the shell, ...) are not simulated
+    and are counted apart; with a last entry `"truncate"` such draws are redrawn instead (the
+    distribution truncated to valid robots; docs/montecarlo.md).
+
+    Every value is checked here, before any work: a bad one raises `InputError` naming the file
+    and the key. Returns `{"params", "gaits", "n", "kwargs"}`: the arguments of `monte_carlo`.
+    """
+    path = Path(path)
+    cfg = _read_toml(path)
+    settings = check_settings(str(path), {_FILE_SETTINGS[k]: cfg[k] for k in _FILE_SETTINGS if k in cfg},
+                              names={v: k for k, v in _FILE_SETTINGS.items()})  # fmt: skip
+    mode = cfg.get("mode", "gait")
+    if mode not in MODES:
+        raise InputError(f"{path}: mode must be \"gait\", \"torques\" or \"wheel_speeds\"; got {mode!r}.")
+    reset = cfg.get("reset", False)
+    if not isinstance(reset, (bool, list)):
+        raise InputError(f"{path}: reset must be true, false or a list (one entry per gait boundary); got {reset!r}.")
+    params = _study_params(path, cfg)
+    gaits = _study_gaits(path, cfg.get("gaits", [{"kind": "acceleration"}, {"kind": "braking"}]))
+    kwargs = dict(vary=dict(cfg["vary"]), mode=mode,
+                  reset=reset, **{k: v for k, v in settings.items() if k != "n"})  # fmt: skip
+    kwargs.setdefault("batch_size", 4096)
+    if "actuators" in cfg:
+        kwargs["actuators"] = _study_actuators(path, cfg["actuators"])
+    try:  # the checks monte_carlo makes before any work, with this file's name
+        check_vary(params, kwargs["vary"])
+    except ValueError as e:
+        raise InputError(f"{path}: {e}") from None
+    return {"params": params, "gaits": gaits, "n": settings.get("n", 1000), "kwargs": kwargs}
+
+
+def _read_toml(path: Path) -> dict:
+    """The study file's table, with only known keys and a `[vary]` table."""
+    try:
+        cfg = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(f"{path}: no such study file.") from None
+    except tomllib.TOMLDecodeError as e:
+        raise InputError(f"{path}: not valid TOML: {e}") from None
+    unknown = sorted(set(cfg) - STUDY_KEYS)
+    if unknown:
+        raise InputError(f"{path}: unknown key(s) {unknown}; expected {sorted(STUDY_KEYS)}.")
+    if "vary" not in cfg:
+        raise InputError(f"{path}: a study needs a [vary] table, e.g. \"r_m[2]\" = [\"normal\", -0.027, 1e-4].")
+    if not isinstance(cfg["vary"], dict):
+        raise InputError(f"{path}: vary must be a table of distributions, e.g. [vary] \"r_m[2]\" = [\"normal\", -0.027, 1e-4]; "
+                         f"got {cfg['vary']!r}.")  # fmt: skip
+    return cfg
+
+
+def _study_params(path: Path, cfg: dict) -> RobotParams:
+    """The robot of a study file: its `params` file (relative to the study file), else the paper's."""
+    if "params" not in cfg:
+        return RobotParams.paper()
+    if not isinstance(cfg["params"], str):
+        raise InputError(f"{path}: params must be the path of a parameter file (.toml or .json); got {cfg['params']!r}.")
+    return RobotParams.load((path.parent / cfg["params"]).resolve())
+
+
+def _study_gaits(path: Path, gait_list) -> list:
+    """The gaits of a study file's `gaits` list."""
+    if not isinstance(gait_list, list) or not gait_list:
+        raise InputError(f"{path}: gaits must be a non-empty list of tables, e.g. gaits = [{{kind = \"acceleration\"}}, "
+                         f"{{kind = \"braking\"}}]; got {gait_list!r}.")  # fmt: skip
+    gaits = []
+    for k, g in enumerate(gait_list):
+        if not isinstance(g, dict):
+            raise InputError(f"{path}: gaits[{k}] must be a table such as {{kind = \"acceleration\", theta_max = 0.1}}; got {g!r}.")
+        g = dict(g)
+        kind = g.pop("kind", None)
+        if kind not in GAIT_KINDS:
+            raise InputError(f"{path}: gaits[{k}].kind must be one of {GAIT_KINDS}; got {kind!r}.")
+        try:
+            gaits.append(GAITS[kind](**g))
+        except (TypeError, ValueError) as e:
+            raise InputError(f"{path}: gaits[{k}]: {e}") from None
+    return gaits
+
+
+def _study_actuators(path: Path, act) -> Actuators:
+    """The `Actuators` of a study file's `[actuators]` table."""
+    if not isinstance(act, dict):
+        raise InputError(f"{path}: actuators must be a table (e.g. [actuators] gain_sd = 0.02); got {act!r}.")
+    fields = [f.name for f in dataclasses.fields(Actuators)]
+    unknown = sorted(set(act) - set(fields))
+    if unknown:
+        raise InputError(f"{path}: [actuators]: unknown key(s) {unknown}; expected {fields}.")
+    return Actuators(**{k: real(f"{path}: [actuators]", k, v) for k, v in act.items()})
