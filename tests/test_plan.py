@@ -1,4 +1,4 @@
-"""Gait families and planning (issue 4): boundary conditions, the paper's gaits as special
+"""Gait families and planning: boundary conditions, the paper's gaits as special
 cases, a rest-to-rest plan to a pose behind and beside the robot, the exported table replayed
 through the plain simulator, infeasible requests, the full-stop braking of Section 5.2."""
 
@@ -12,7 +12,7 @@ import pytest
 
 import jsphere
 from jsphere._runtime.errors import InputError
-from jsphere.planning.plan import rollout
+from jsphere.planning.rollout import rollout
 
 # small search: 4 Fourier terms per tilt axis, 2 spin terms, 32 RK4 steps
 SMALL = jsphere.PlanSettings(n_tilt=4, n_spin=2, n_steps=32, adam_steps=60, lm_steps=30)
@@ -126,7 +126,7 @@ def test_infeasible_request_says_how_far_and_which_limit(paper):
 @pytest.mark.slow
 def test_full_stop_braking_of_the_paper(paper):
     """The braking gait (theta_max, phi) that stops the robot after acceleration and turn (5.2):
-    theta_max = 0.14162, phi = 0.78539 (MODEL-NOTES: about 0.1416), found through the simulator."""
+    theta_max = 0.14162, phi = 0.78539 (`docs/model.md`: about 0.1416), found through the simulator."""
 
     def build(x):
         return [jsphere.acceleration(), jsphere.turn(), jsphere.braking(theta_max=x[0], phi=x[1])]

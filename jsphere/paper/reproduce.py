@@ -80,7 +80,12 @@ def full_stop_brake(
 ):
     """`(theta_max, phi)` of the braking gait that stops the robot after acceleration (5.1) and
     turn (5.6), every gait starting from the previous end state (Newton on the horizontal
-    `Omega` at the end, finite-difference Jacobian; one compiled function throughout)."""
+    `Omega` at the end, finite-difference Jacobian; one compiled function throughout).
+
+    The finite differences reuse the forward simulation compiled for the table; an autodiff
+    Jacobian (`optimistix`, as in `jsphere.optimise_gaits`) would compile a reverse-mode program
+    through the adaptive solver first, which costs far more than the whole solve here
+    (`benchmarks/solvers.py`)."""
 
     def residual(x):
         tr = _host(simulate_gaits(params, [acceleration(), turn(), braking(theta_max=x[0], phi=x[1])], rate=rate))
@@ -201,7 +206,7 @@ def reproduce(params: RobotParams | None = None, *, rate: float = 100.0, full_st
 
 def _host(tr: Trajectory) -> Trajectory:
     """`tr` with NumPy leaves: the numbers below are read from it without one small compiled
-    JAX program per indexing operation (~100 of them took ~2.5 s of a second run)."""
+    JAX program per indexing operation (see `docs/performance.md`)."""
     return jax.device_get(tr)
 
 
@@ -219,8 +224,7 @@ def _gaits_then_stopped(p: RobotParams, gaits: Trajectory, wheels, ts8) -> Traje
     `wheels` is the kinematic run's command, stopped from its `t_stop` on: starting at
     `t_end >= t_stop` it holds the wheels still throughout. Sampled on `len(ts8)` points of
     `[t_end, ts8[-1]]` and then thinned to `ts8`'s spacing, the solve has the kinematic run's
-    argument shapes and so reuses its compiled program (one compilation fewer, ~3-4 s of a
-    first run; benchmarks/NOTES.md session 11).
+    argument shapes and so reuses its compiled program (one compilation fewer in a first run).
     """
     ts8 = np.asarray(ts8)
     t_end, t1 = float(gaits.ts[-1]), float(ts8[-1])
