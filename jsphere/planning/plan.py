@@ -115,6 +115,26 @@ def plan_route(
         raise InputError(f"plan_route: waypoints must be a non-empty list of (x, y) or (x, y, heading); got {waypoints!r}.")
     _check_request("plan_route", [tuple(w) if isinstance(w, (Sequence, np.ndarray)) else w for w in waypoints], limits,
                    objective, settings, restarts, rate, seed, nan_free=False)  # fmt: skip
+    poses, local, pose = _legs(waypoints)
+    legs = plan_many(params, local, limits=limits, objective=objective, settings=settings, restarts=restarts,
+                     rate=rate, seed=seed, progress=progress)  # fmt: skip
+    tr, t_off, shortfall = _joined(legs, poses)
+    err, rep = _route_errors(legs, poses, tr, t_off, limits or Limits())
+    tx, ty, tpsi = pose
+    pl = Plan(
+        params=params, gaits=[lg.gaits[0] for lg in legs], legs=np.asarray(poses), trajectory=tr, rate=rate,
+        target=np.array([tx, ty, tpsi]), errors=err, limits_report=rep, feasible=all(lg.feasible for lg in legs),
+        shortfall=shortfall, iterations=legs[0].iterations, elapsed_s=max(lg.elapsed_s for lg in legs),
+        loss=sum(lg.loss for lg in legs), restarts=int(restarts),
+    )  # fmt: skip
+    if not pl.feasible and not allow_infeasible:
+        raise PlanInfeasibleError("jsphere.plan_route: " + "; ".join(shortfall), plan=pl)
+    return pl
+
+
+def _legs(waypoints):
+    """Each leg's start pose `(x0, y0, psi0)` and its target in its start frame; the end pose.
+    A waypoint without a heading keeps the previous heading."""
     poses, local = [], []
     pose = (0.0, 0.0, 0.0)
     for w in waypoints:
@@ -125,8 +145,12 @@ def plan_route(
         local.append((c * dx + s_ * dy, -s_ * dx + c * dy, math.remainder(psi - pose[2], 2 * math.pi)))
         poses.append(pose)
         pose = (float(w[0]), float(w[1]), psi)
-    legs = plan_many(params, local, limits=limits, objective=objective, settings=settings, restarts=restarts,
-                     rate=rate, seed=seed, progress=progress)  # fmt: skip
+    return poses, local, pose
+
+
+def _joined(legs, poses):
+    """The legs' trajectories moved to their start poses and joined (the duplicate rest sample at
+    each stop dropped, `segment` = leg index); the total duration; the legs' shortfalls."""
     trs, t_off, shortfall = [], 0.0, []
     for i, (lg, ps) in enumerate(zip(legs, poses)):
         tr = _move(lg.trajectory, ps, t_off)
@@ -142,8 +166,13 @@ def plan_route(
     tr = jax.tree_util.tree_map(join, *trs)
     seg = jnp.concatenate([jnp.full(t.ts.shape, i, jnp.int32) for i, t in enumerate(trs)])
     tr = eqx.tree_at(lambda t: t.segment, tr, seg)
+    return tr, t_off, shortfall
+
+
+def _route_errors(legs, poses, tr, t_off, lim: Limits):
+    """The route's terminal errors (worst leg; the final pose of the last) and its limit report
+    (worst leg; the total time against `max_time` per leg)."""
     last = legs[-1]
-    tx, ty, tpsi = pose
     err = {
         "position_m": max(lg.errors["position_m"] for lg in legs),
         "speed_m_s": max(lg.errors["speed_m_s"] for lg in legs),
@@ -151,18 +180,9 @@ def plan_route(
         "spin_rad_s": max(lg.errors["spin_rad_s"] for lg in legs),
         "final": [float(tr.x[-1]), float(tr.y[-1]), last.errors["final"][2] + poses[-1][2]],
     }
-    lim = limits or Limits()
     rep = {}
     for name in legs[0].limits_report:
         mx = max(lg.limits_report[name]["max"] for lg in legs) if name != "time_s" else t_off
         L = legs[0].limits_report[name]["limit"] if name != "time_s" else lim.max_time * len(legs)
         rep[name] = {"max": mx, "limit": L, "ok": all(lg.limits_report[name]["ok"] for lg in legs)}
-    pl = Plan(
-        params=params, gaits=[lg.gaits[0] for lg in legs], legs=np.asarray(poses), trajectory=tr, rate=rate,
-        target=np.array([tx, ty, tpsi]), errors=err, limits_report=rep, feasible=all(lg.feasible for lg in legs),
-        shortfall=shortfall, iterations=legs[0].iterations, elapsed_s=max(lg.elapsed_s for lg in legs),
-        loss=sum(lg.loss for lg in legs), restarts=int(restarts),
-    )  # fmt: skip
-    if not pl.feasible and not allow_infeasible:
-        raise PlanInfeasibleError("jsphere.plan_route: " + "; ".join(shortfall), plan=pl)
-    return pl
+    return err, rep

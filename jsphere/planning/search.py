@@ -1,7 +1,7 @@
 """The search: every (target, restart) pair optimised in one compiled, vmapped call.
 
 Per problem: optional L-BFGS warm-up, Adam (optax) on `sum r^2`, then Levenberg-Marquardt
-(optimistix) on the residual vector of `jsphere.planning.residuals`, all through the RK4
+on the residual vector of `jsphere.planning.residuals`, all through the RK4
 search model; the best restart per target is kept. The restarts start from the
 accelerate-brake profile towards the target with random extra terms (`_initial_guesses`).
 """
@@ -15,7 +15,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-import optimistix as optx
 
 from ..model.dynamics import mass_blocks
 from ..model.kinematics import rest_attitude
@@ -23,12 +22,6 @@ from ..model.params import RobotParams, derive
 from ..model.rotations import rotation_between
 from .problem import _duration_inv, _n_vars
 from .residuals import _loss, _residuals, _residuals_and_jacobian
-
-#: Levenberg-Marquardt stops early once both the step and the change of `sum r^2` are below
-#: `LM_ATOL + LM_RTOL |.|` (max norm); otherwise it runs `PlanSettings.lm_steps` steps
-LM_RTOL = 1e-10
-LM_ATOL = 1e-10
-
 
 def _lbfgs(z0, target, params, lim, obj, s):
     def f(z):
@@ -49,52 +42,46 @@ def _lbfgs(z0, target, params, lim, obj, s):
     return z, hist
 
 
-def _adam(z0, target, params, lim, obj, s):
-    """`adam_steps` Adam steps on `sum r^2` (gradient `2 J^T r` from the forward-mode Jacobian;
-    a non-finite point sends Adam back to the best one). Returns the best point, its residual
-    Jacobian and loss, and the loss history."""
-    opt = optax.adam(s.learning_rate)
+def _search_one(z0, target, params, lim, obj, s):
+    """Adam (`adam_steps`) then Levenberg-Marquardt (`lm_steps`) in one `lax.scan` whose body
+    evaluates the residuals and their Jacobian once, so the model is compiled once (an
+    `optimistix.LevenbergMarquardt` after an Adam scan compiles it three times: see
+    `benchmarks/solvers.py`).
 
-    def body(c, _):
-        z, zb, Jb, fb, st = c
+    LM with delayed acceptance: each iteration evaluates the candidate of the previous one; it
+    is accepted (damping / 3) if it lowers `sum r^2`, else the damping grows x 4 and a new
+    step is taken from the best point. Returns the best point, its loss, its Jacobian and the
+    loss history."""
+    opt = optax.adam(s.learning_rate)
+    V = z0.shape[0]
+    eye = jnp.eye(V, dtype=z0.dtype)
+
+    def body(c, k):
+        z, zb, rb, Jb, fb, lam, st = c
         r, J = _residuals_and_jacobian(z, target, params, lim, obj, s)
         f = jnp.sum(r**2)
         ok = jnp.isfinite(f) & jnp.all(jnp.isfinite(J))
         better = ok & (f < fb)
-        zb, Jb, fb = (jnp.where(better, a, b) for a, b in ((z, zb), (J, Jb), (f, fb)))
-        up, st = opt.update(jnp.where(ok, 2.0 * J.T @ r, 0.0), st, z)
-        z = jnp.where(ok, optax.apply_updates(z, up), zb)
-        return (z, zb, Jb, fb, st), f
+        zb, rb, Jb, fb = (jnp.where(better, a, b) for a, b in ((z, zb), (r, rb), (J, Jb), (f, fb)))
+        # Adam step from the current point
+        g = jnp.where(ok, 2.0 * J.T @ r, 0.0)
+        up, st_new = opt.update(g, st, z)
+        z_adam = jnp.where(ok, optax.apply_updates(z, up), zb)
+        # LM step from the best point
+        lm_phase = k >= s.adam_steps
+        grow = jnp.where(better, jnp.maximum(lam / 3.0, 1e-12), jnp.minimum(lam * 4.0, 1e12))
+        lam = jnp.where(k > s.adam_steps, grow, lam)
+        JtJ = Jb.T @ Jb
+        step = -jnp.linalg.solve(JtJ + lam * (jnp.diag(jnp.diag(JtJ)) + 1e-9 * eye), Jb.T @ rb)
+        z_lm = zb + jnp.where(jnp.all(jnp.isfinite(step)), step, 0.0)
+        z_next = jnp.where(lm_phase, z_lm, z_adam)
+        return (z_next, zb, rb, Jb, fb, lam, st_new), f
 
-    M = jax.eval_shape(lambda: _residuals(z0, target, params, lim, obj, s)).shape[0]
-    c0 = (z0, z0, jnp.zeros((M, z0.shape[0]), z0.dtype), jnp.asarray(jnp.inf, z0.dtype), opt.init(z0))
-    (_, zb, Jb, fb, _), hist = jax.lax.scan(body, c0, None, length=s.adam_steps)
-    return zb, Jb, fb, hist
-
-
-def _levenberg_marquardt(z0, target, params, lim, obj, s):
-    """At most `lm_steps` Levenberg-Marquardt steps (`optimistix.LevenbergMarquardt`, forward-mode
-    Jacobian) from `z0` on the residual vector; returns the point reached."""
-    sol = optx.least_squares(
-        lambda z, _: _residuals(z, target, params, lim, obj, s),
-        optx.LevenbergMarquardt(rtol=LM_RTOL, atol=LM_ATOL),
-        z0,
-        max_steps=s.lm_steps,
-        throw=False,
-    )
-    return sol.value
-
-
-def _search_one(z0, target, params, lim, obj, s):
-    """Adam (`_adam`) then Levenberg-Marquardt (`_levenberg_marquardt`) from the best Adam point.
-    Returns the best point, its loss, its residual Jacobian and the Adam loss history."""
-    zb, Jb, fb, hist = _adam(z0, target, params, lim, obj, s)
-    if s.lm_steps:
-        z = _levenberg_marquardt(zb, target, params, lim, obj, s)
-        r, J = _residuals_and_jacobian(z, target, params, lim, obj, s)
-        f = jnp.sum(r**2)
-        better = jnp.isfinite(f) & jnp.all(jnp.isfinite(J)) & (f < fb)
-        zb, Jb, fb = (jnp.where(better, a, b) for a, b in ((z, zb), (J, Jb), (f, fb)))
+    r0 = _residuals(z0, target, params, lim, obj, s)
+    c0 = (z0, z0, jnp.zeros_like(r0), jnp.zeros((r0.shape[0], V), z0.dtype), jnp.asarray(jnp.inf, z0.dtype),
+          jnp.asarray(1e-3, z0.dtype), opt.init(z0))  # fmt: skip
+    c, hist = jax.lax.scan(body, c0, jnp.arange(s.adam_steps + s.lm_steps + 1))
+    _, zb, _, Jb, fb, _, _ = c
     return zb, fb, Jb, hist
 
 
@@ -102,7 +89,7 @@ def _search_one(z0, target, params, lim, obj, s):
 def _search(params, targets, z0s, lim, obj, s):
     """Every (target, restart) pair in one vmap (`targets (B, 4)`, `z0s (B, R, V)`): optional
     L-BFGS warm-up (`lbfgs_steps`), Adam then LM (`_search_one`); the best restart of each
-    target is kept. Returns `(z (B, V), loss (B, R), best (B,), J (B, M, V), Adam history (B, R, I))`."""
+    target is kept. Returns `(z (B, V), loss (B, R), best (B,), J (B, M, V), history (B, R, I))`."""
     B, R, V = z0s.shape
     tgt = jnp.repeat(targets, R, axis=0)
     flat = z0s.reshape(B * R, V)
