@@ -23,7 +23,9 @@ from ..model.rotations import rotation_between
 from .problem import _duration_inv, _n_vars
 from .residuals import _loss, _residuals, _residuals_and_jacobian
 
+
 def _lbfgs(z0, target, params, lim, obj, s):
+    """`lbfgs_steps` L-BFGS steps (optax) on `sum r^2`; a step to a non-finite point is dropped."""
     def f(z):
         return _loss(z, target, params, lim, obj, s)
 
