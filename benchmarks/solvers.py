@@ -204,7 +204,7 @@ def main(argv=None) -> int:
         print(f"== {name}")
         for k, v in out[name].items():
             if isinstance(v, dict):
-                v = {a: (f"{b:.4g}" if isinstance(b, float) else b) for a, b in v.items() if a != "run_s"}
+                v = {a: (f"{b:.4g}" if isinstance(b, float) else b) for a, b in v.items() if not isinstance(b, list)}
             print(f"  {k:40s} {v}")
     Path(args.out).write_text(json.dumps(out, indent=2) + "\n")
     print(f"wrote {args.out}")
