@@ -26,7 +26,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import jsphere
-from jsphere.planning.plan import _initial_guesses, _search, _vec_targets
+from jsphere.planning.problem import _vec_targets, gait_from_vector
+from jsphere.planning.rollout import rollout
+from jsphere.planning.search import _initial_guesses, _search
 
 PLAN_DEFAULT_ITERATIONS = jsphere.PlanSettings().adam_steps + jsphere.PlanSettings().lm_steps + 1
 
@@ -67,7 +69,7 @@ def main(argv=None) -> int:
     # search-model terminal errors of the best restart per target
     errs = []
     for b in range(B):
-        ro = jsphere.planning.plan.rollout(p, jsphere.planning.plan.gait_from_vector(jnp.asarray(zf[b]), lim, s), s.n_steps)
+        ro = rollout(p, gait_from_vector(jnp.asarray(zf[b]), lim, s), s.n_steps)
         errs.append(float(np.hypot(ro.x[-1] - tg[b, 0], ro.y[-1] - tg[b, 1])))
     rows = [
         ("problems (targets x restarts)", f"{B} x {R} = {B * R}"),

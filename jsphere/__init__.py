@@ -107,17 +107,17 @@ from .gaits.families import (
     smooth_gait as smooth_gait,
     tilt_to_gamma as tilt_to_gamma,
 )
+from .planning.optimise import optimise_gaits as optimise_gaits
 from .planning.plan import (
     Limits as Limits,
     Objective as Objective,
     Plan as Plan,
     PlanInfeasibleError as PlanInfeasibleError,
     PlanSettings as PlanSettings,
-    optimise_gaits as optimise_gaits,
     plan as plan,
     plan_many as plan_many,
     plan_route as plan_route,
-    replay_errors as replay_errors,
 )
+from .planning.verify import replay_errors as replay_errors
 
 __version__ = "0.1.0"

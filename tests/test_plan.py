@@ -12,7 +12,7 @@ import pytest
 
 import jsphere
 from jsphere._runtime.errors import InputError
-from jsphere.planning.plan import rollout
+from jsphere.planning.rollout import rollout
 
 # small search: 4 Fourier terms per tilt axis, 2 spin terms, 32 RK4 steps
 SMALL = jsphere.PlanSettings(n_tilt=4, n_spin=2, n_steps=32, adam_steps=60, lm_steps=30)

@@ -80,7 +80,12 @@ def full_stop_brake(
 ):
     """`(theta_max, phi)` of the braking gait that stops the robot after acceleration (5.1) and
     turn (5.6), every gait starting from the previous end state (Newton on the horizontal
-    `Omega` at the end, finite-difference Jacobian; one compiled function throughout)."""
+    `Omega` at the end, finite-difference Jacobian; one compiled function throughout).
+
+    The finite differences reuse the forward simulation compiled for the table; an autodiff
+    Jacobian (`optimistix`, as in `jsphere.optimise_gaits`) would compile a reverse-mode program
+    through the adaptive solver first, which costs far more than the whole solve here
+    (`benchmarks/solvers.py`)."""
 
     def residual(x):
         tr = _host(simulate_gaits(params, [acceleration(), turn(), braking(theta_max=x[0], phi=x[1])], rate=rate))
@@ -97,15 +102,33 @@ def full_stop_brake(
     return float(x[0]), float(x[1]), residual(x)
 
 
+@dataclasses.dataclass
+class _Tables:
+    """What the sections below add to: table rows, values, trajectories."""
+
+    rows: list[Row] = dataclasses.field(default_factory=list)
+    vals: dict[str, Any] = dataclasses.field(default_factory=dict)
+    trajs: dict[str, Trajectory] = dataclasses.field(default_factory=dict)
+
+
 def reproduce(params: RobotParams | None = None, *, rate: float = 100.0, full_stop: bool = True) -> Reproduction:
     """Recompute every number of Section 5 (see `docs/model.md` for the conventions)."""
     p = RobotParams.paper() if params is None else params
-    R0 = float(p.R0)
-    rows: list[Row] = []
-    vals: dict[str, Any] = {}
-    trajs: dict[str, Trajectory] = {}
+    out = _Tables()
+    straight, straight_reset, v_kin = _acceleration(p, rate, out)
+    _figure2(p, rate, straight, v_kin, out)
+    _straight_stop(p, straight, straight_reset, out)
+    _turn_stops(p, rate, out)
+    if full_stop:
+        _full_stop(p, rate, out)
+    out.vals["params"] = p.to_dict()
+    return Reproduction(out.rows, out.vals, out.trajs)
 
-    # ---- 5.1: acceleration (5.1), (5.2), then braking (5.3)
+
+def _acceleration(p: RobotParams, rate: float, out: _Tables):
+    """Section 5.1: acceleration (5.1), (5.2), then braking (5.3); `Omega_1` and the speed of the
+    kinematic run (5.5). Returns the straight runs (continuing, with the reset (5.4)) and that speed."""
+    R0, rows, vals, trajs = float(p.R0), out.rows, out.vals, out.trajs
     straight = _host(simulate_gaits(p, [acceleration(), braking()], rate=rate))
     straight_reset = _host(simulate_gaits(p, [acceleration(), braking()], reset=True, rate=rate))
     trajs["straight"], trajs["straight_reset"] = straight, straight_reset
@@ -120,7 +143,12 @@ def reproduce(params: RobotParams | None = None, *, rate: float = 100.0, full_st
                     "R0 * Omega_1; the paper rounds 0.1296 to 0.13."))  # fmt: skip
     vals["kinematic_speed"] = v_kin
 
-    # ---- Fig. 2: kinematic control (2.9) through the dynamic model vs gait control
+    return straight, straight_reset, v_kin
+
+
+def _figure2(p: RobotParams, rate: float, straight: Trajectory, v_kin: float, out: _Tables):
+    """Fig. 2: kinematic control (2.9) through the dynamic model next to gait control."""
+    rows, vals, trajs = out.rows, out.vals, out.trajs
     ts8 = np.linspace(0.0, 8.0, int(8 * rate) + 1)
     wheels = kinematic_control(p, straight_line(v_kin), t_stop=4.0)
     kin = _host(simulate(p, _at_rest(p), wheels, 8.0, ts=ts8))
@@ -143,7 +171,11 @@ def reproduce(params: RobotParams | None = None, *, rate: float = 100.0, full_st
                     "the planned path is 4 s * 0.13 m/s; the impulsive start of the wheels and the platform's "
                     "swing make the dynamic model run ahead of the kinematic plan."))  # fmt: skip
 
-    # ---- 5.2 (1): straight line, stop point
+
+
+def _straight_stop(p: RobotParams, straight: Trajectory, straight_reset: Trajectory, out: _Tables):
+    """Section 5.2 (1): the stop point of the straight line."""
+    R0, rows, vals = float(p.R0), out.rows, out.vals
     xs, ys = float(straight.x[-1]), float(straight.y[-1])
     xr, yr = float(straight_reset.x[-1]), float(straight_reset.y[-1])
     vals["straight_stop_m"] = {"continuation": [xs, ys], "reset_5.4": [xr, yr]}
@@ -155,7 +187,11 @@ def reproduce(params: RobotParams | None = None, *, rate: float = 100.0, full_st
                     "(the dropped sideways part of Omega)."))  # fmt: skip
     rows.append(Row("straight line stop, experiment", "(-1.392 +- 28.9, 369.2 +- 37.7) mm", "", ""))
 
-    # ---- 5.2 (2): acceleration, turn (5.6), braking at phi = pi/4
+
+
+def _turn_stops(p: RobotParams, rate: float, out: _Tables):
+    """Section 5.2 (2): acceleration, turn (5.6), braking at `phi = pi/4`, under the readings of (5.7)."""
+    rows, vals, trajs = out.rows, out.vals, out.trajs
     gaits3 = [acceleration(), turn(), braking(phi=math.pi / 4)]
     t_reset = _host(simulate_gaits(p, gaits3, reset=[True, None], rate=rate))
     t_cont = _host(simulate_gaits(p, gaits3, rate=rate))
@@ -187,21 +223,23 @@ def reproduce(params: RobotParams | None = None, *, rate: float = 100.0, full_st
         rows.append(Row(label, "(-173.2, 519.4) mm" if name == "turn_reset" else "", _mm(x, y),
                         _mm(*to_figure_frame(x, y)), note))  # fmt: skip
     rows.append(Row("turn + brake stop, experiment", "(-151.3 +- 32.4, 482.4 +- 112.1) mm", "", ""))
-    if full_stop:
-        th, ph, res = full_stop_brake(p, rate=rate)
-        fs = _host(simulate_gaits(p, [acceleration(), turn(), braking(theta_max=th, phi=ph)], rate=rate))
-        trajs["turn_full_stop"] = fs
-        vals["full_stop_brake"] = {"theta_max": th, "phi": ph, "stop_m": [float(fs.x[-1]), float(fs.y[-1])]}
-        rows.append(Row("braking that stops after the turn", "-", f"theta_max = {th:.5f}, phi = {ph:.5f}", "",
-                        "found by Newton on the final horizontal Omega (no resets)."))  # fmt: skip
-        rows.append(Row("  ... its stop point", "-", _mm(fs.x[-1], fs.y[-1]), _mm(*to_figure_frame(fs.x[-1], fs.y[-1]))))
-    vals["params"] = p.to_dict()
-    return Reproduction(rows, vals, trajs)
+
+
+def _full_stop(p: RobotParams, rate: float, out: _Tables):
+    """The braking gait that stops the robot after the turn (`full_stop_brake`) and its stop point."""
+    rows, vals, trajs = out.rows, out.vals, out.trajs
+    th, ph, res = full_stop_brake(p, rate=rate)
+    fs = _host(simulate_gaits(p, [acceleration(), turn(), braking(theta_max=th, phi=ph)], rate=rate))
+    trajs["turn_full_stop"] = fs
+    vals["full_stop_brake"] = {"theta_max": th, "phi": ph, "stop_m": [float(fs.x[-1]), float(fs.y[-1])]}
+    rows.append(Row("braking that stops after the turn", "-", f"theta_max = {th:.5f}, phi = {ph:.5f}", "",
+                    "found by Newton on the final horizontal Omega (no resets)."))  # fmt: skip
+    rows.append(Row("  ... its stop point", "-", _mm(fs.x[-1], fs.y[-1]), _mm(*to_figure_frame(fs.x[-1], fs.y[-1]))))
 
 
 def _host(tr: Trajectory) -> Trajectory:
     """`tr` with NumPy leaves: the numbers below are read from it without one small compiled
-    JAX program per indexing operation (~100 of them took ~2.5 s of a second run)."""
+    JAX program per indexing operation (see `docs/performance.md`)."""
     return jax.device_get(tr)
 
 
@@ -219,8 +257,7 @@ def _gaits_then_stopped(p: RobotParams, gaits: Trajectory, wheels, ts8) -> Traje
     `wheels` is the kinematic run's command, stopped from its `t_stop` on: starting at
     `t_end >= t_stop` it holds the wheels still throughout. Sampled on `len(ts8)` points of
     `[t_end, ts8[-1]]` and then thinned to `ts8`'s spacing, the solve has the kinematic run's
-    argument shapes and so reuses its compiled program (one compilation fewer, ~3-4 s of a
-    first run; benchmarks/NOTES.md session 11).
+    argument shapes and so reuses its compiled program (one compilation fewer in a first run).
     """
     ts8 = np.asarray(ts8)
     t_end, t1 = float(gaits.ts[-1]), float(ts8[-1])

@@ -1,0 +1,187 @@
+"""The planning problem: motor and motion limits, the least-squares objective, the sizes of
+the search, the checks of a request, and the decision vector of one manoeuvre.
+
+A manoeuvre is one `TiltGait` (`jsphere.gaits.families`) with `Smooth` profiles: tilt vector
+`u(t)` (two rows of Fourier-cosine coefficients times `sin^3(pi t/T)`), spin `omega_gamma(t)`
+and a free duration `T`. It starts and ends on the Proposition's stationary motion by
+construction (`gamma = gamma_m`, `gamma_dot = 0`, `omega_gamma = 0`; with `sin^3` the torques
+also start and end at 0). See `docs/planning.md`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from .._runtime.checks import is_number, real, whole
+from .._runtime.errors import InputError
+from ..gaits.families import TiltGait, smooth_gait
+
+
+class Limits(eqx.Module):
+    """Motor and motion limits (SI). `None` switches a limit off.
+
+    Defaults for the paper's robot (whose motors the paper does not specify): the paper's own
+    gaits need at most 0.011 N m and 4.8 rad/s; a 1.4 m rest-to-rest run in 8 s needs about
+    0.02 N m and 15 rad/s. The defaults leave room for that and are typical of small geared
+    DC motors: `max_torque = 0.1` N m per wheel, `max_wheel_speed = 20` rad/s (191 rpm),
+    `max_tilt = 0.35` rad (20 deg, platform tilt `theta = |u|`), `max_torque_rate = 1` N m/s,
+    `max_time = 12` s (upper bound of the duration `T`), `min_time = 1` s.
+    """
+
+    max_torque: float | None = 0.1
+    max_wheel_speed: float | None = 20.0
+    max_tilt: float | None = 0.35
+    max_torque_rate: float | None = 1.0
+    max_time: float = 12.0
+    min_time: float = 1.0
+
+    def __check_init__(self):
+        for name in ("max_torque", "max_wheel_speed", "max_tilt", "max_torque_rate"):
+            v = getattr(self, name)
+            if v is not None and not _traced(v) and not (is_number(v) and float(v) > 0):
+                raise InputError(f"Limits.{name} must be a positive number (or None for no limit); got {v!r}.")
+        for name in ("min_time", "max_time"):
+            v = getattr(self, name)
+            if not _traced(v) and not (is_number(v) and math.isfinite(v)):
+                raise InputError(f"Limits.{name} must be a finite number of seconds; got {v!r}.")
+        if not _traced(self.min_time, self.max_time) and not 0 < float(self.min_time) < float(self.max_time):
+            raise InputError(f"Limits: need 0 < min_time < max_time; got {self.min_time}, {self.max_time}.")
+
+
+class Objective(eqx.Module):
+    """A composed least-squares objective `sum r^2` (all residuals dimensionless).
+
+    Terminal conditions: `(x(T), y(T)) - target` / `position_scale` [m]; `R0 Omega(T)` /
+    `speed_scale` [m/s] (rest); heading error / `heading_scale` [rad] when a heading is asked.
+    Limits (`Limits`): squared hinge `limit_weight * mean(max(0, v/limit - (1 - margin))^2)` for
+    `|K_i|`, `|chi_dot_i|`, tilt, `|dK_i/dt|`. Costs (weights >= 0, default off): `energy` per
+    joule of `int sum |K_i chi_dot_i| dt` (motor energy), `time` per second of `T`, `effort`
+    per `N^2 m^2 s` of `int sum K_i^2 dt`.
+    """
+
+    position_scale: float = 1e-3
+    speed_scale: float = 1e-3
+    heading_scale: float = 1e-3
+    limit_weight: float = 1e4
+    margin: float = 0.03
+    energy: float = 0.0
+    time: float = 1e-3
+    effort: float = 0.0
+
+    def __check_init__(self):
+        for name in ("position_scale", "speed_scale", "heading_scale"):
+            if not _traced(getattr(self, name)):
+                real("Objective", name, getattr(self, name), strict=True)
+        for name in ("limit_weight", "energy", "time", "effort"):
+            if not _traced(getattr(self, name)):
+                real("Objective", name, getattr(self, name))
+        if not _traced(self.margin) and not (is_number(self.margin) and 0 <= self.margin < 1):
+            raise InputError(f"Objective.margin must be a number in [0, 1); got {self.margin!r}.")
+
+
+class PlanSettings(eqx.Module):
+    """Sizes of the search (static: they fix the compiled function).
+
+    `n_tilt`: Fourier terms per tilt axis; `n_spin`: spin terms; `n_steps`: RK4 steps of the
+    search model; `adam_steps`, `lbfgs_steps`, `lm_steps`: iterations; `learning_rate`: Adam's.
+    """
+
+    n_tilt: int = eqx.field(static=True, default=5)
+    n_spin: int = eqx.field(static=True, default=3)
+    n_steps: int = eqx.field(static=True, default=48)
+    adam_steps: int = eqx.field(static=True, default=150)
+    lbfgs_steps: int = eqx.field(static=True, default=0)
+    lm_steps: int = eqx.field(static=True, default=40)
+    learning_rate: float = eqx.field(static=True, default=0.02)
+
+    def __check_init__(self):
+        for name in ("n_tilt", "n_spin", "n_steps"):
+            whole("PlanSettings", name, getattr(self, name), 1)
+        for name in ("adam_steps", "lbfgs_steps", "lm_steps"):
+            whole("PlanSettings", name, getattr(self, name), 0)
+        real("PlanSettings", "learning_rate", self.learning_rate, strict=True)
+
+
+def _traced(*vs) -> bool:
+    return any(isinstance(v, (jax.core.Tracer, jax.Array)) for v in vs)
+
+
+#: the most rows a plan's table may have (`max_time * rate`): about 1 GB of trajectory
+MAX_ROWS = 10_000_000
+
+
+def _check_request(where: str, targets, limits, objective, settings, restarts, rate, seed, tols=(), nan_free=True) -> list:
+    """Check a planning request before any work; return the targets as lists.
+    Raises `InputError` naming the value: targets `(x, y)` or `(x, y, psi)` with finite
+    numbers (`psi` None, or NaN with `nan_free`, for a free heading), `restarts >= 1`,
+    `rate > 0`, `seed >= 0`, positive tolerances, and `Limits`, `Objective`, `PlanSettings`
+    instances."""
+    for name, v, cls in (("limits", limits, Limits), ("objective", objective, Objective), ("settings", settings, PlanSettings)):
+        if v is not None and not isinstance(v, cls):
+            raise InputError(f"{where}: {name} must be a jsphere.{cls.__name__}; got {type(v).__name__}.")
+    whole(where, "restarts", restarts, 1)
+    whole(where, "seed", seed, 0)
+    rate = real(where, "rate", rate, strict=True, unit="Hz")
+    for name, v in tols:
+        real(where, name, v, strict=True)
+    lim = limits or Limits()
+    if lim.max_time * rate > MAX_ROWS:
+        raise InputError(f"{where}: rate = {rate:g} Hz makes {lim.max_time * rate:.3g} rows over max_time = {lim.max_time:g} s "
+                         f"(at most {MAX_ROWS:.0e}); lower the rate.")  # fmt: skip
+    if isinstance(targets, (str, bytes)) or not isinstance(targets, Sequence) or not len(targets):
+        raise InputError(f"{where}: targets must be a non-empty list of (x, y) or (x, y, heading); got {targets!r}.")
+    out = []
+    for k, t in enumerate(targets):
+        if isinstance(t, (str, bytes)) or not isinstance(t, (Sequence, np.ndarray)) or len(t) not in (2, 3):
+            raise InputError(f"{where}: target {k} must be (x, y) or (x, y, heading); got {t!r}.")
+        t = list(t)
+        for i, name in enumerate(("x", "y")):
+            real(where, f"target {name}" if len(targets) == 1 else f"target {k} {name}", t[i], low=None, unit="m")
+        if len(t) == 3 and t[2] is not None and not (nan_free and is_number(t[2]) and math.isnan(t[2])):
+            real(where, "heading" if len(targets) == 1 else f"target {k} heading", t[2], low=None, unit="rad")
+        out.append(t)
+    return out
+
+
+# ------------------------------------------------------------------ parameterisation
+
+
+def _n_vars(s: PlanSettings) -> int:
+    return 2 * s.n_tilt + s.n_spin + 1
+
+
+def _duration(tau, lim: Limits):
+    return lim.min_time + (lim.max_time - lim.min_time) * jax.nn.sigmoid(tau)
+
+
+def _duration_inv(T, lim: Limits):
+    f = (T - lim.min_time) / (lim.max_time - lim.min_time)
+    return jnp.log(f) - jnp.log1p(-f)
+
+
+def gait_from_vector(z: Float[Array, " V"], lim: Limits, s: PlanSettings) -> TiltGait:
+    """The manoeuvre of the decision vector `z = (a_1 (n), a_2 (n), b (m), tau)`: tilt
+    coefficients [rad], spin coefficients [rad/s], `T = min_time + (max_time - min_time)
+    sigmoid(tau)` [s]."""
+    n, m = s.n_tilt, s.n_spin
+    T = _duration(z[-1], lim)
+    return smooth_gait(z[: 2 * n].reshape(2, n), z[2 * n : 2 * n + m], T, power=3)
+
+
+def _vec_targets(targets) -> np.ndarray:
+    """`(B, 4)`: x, y, heading (0 if free), has_heading."""
+    rows = []
+    for t in targets:
+        t = list(t)
+        if len(t) == 2 or t[2] is None or (isinstance(t[2], float) and math.isnan(t[2])):
+            rows.append([float(t[0]), float(t[1]), 0.0, 0.0])
+        else:
+            rows.append([float(t[0]), float(t[1]), float(t[2]), 1.0])
+    return np.asarray(rows, np.float64)
