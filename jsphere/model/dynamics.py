@@ -38,8 +38,8 @@ def _eye(x):
 def mass_blocks(p: RobotParams, d: Derived, gamma: Float[Array, "3"]) -> tuple[Float[Array, "3 3"], Float[Array, "3 3"]]:
     """The `gamma`-dependent blocks `B` (omega-Omega coupling) and `D` (Omega-Omega) of (3.4)."""
     E = _eye(gamma)
-    B = d.Jns - d.Jss + p.m * p.R0 * (dot(gamma, p.r_m) * E - outer(gamma, p.r_m))
-    D = (p.I0 * E + d.Jss) + (p.m + p.m0) * p.R0**2 * (dot(gamma, gamma) * E - outer(gamma, gamma))
+    B = d.B0 + d.mR0 * (dot(gamma, p.r_m) * E - outer(gamma, p.r_m))
+    D = d.D0 + d.MR2 * (dot(gamma, gamma) * E - outer(gamma, gamma))
     return B, D
 
 
@@ -47,19 +47,35 @@ def forces(p: RobotParams, d: Derived, gamma, omega, Omega) -> tuple[Float[Array
     """Right-hand sides `r1`, `r2` of (3.4) without the control torques."""
     w, W = omega, Omega
     Wxw = cross(W, w)
+    gWxw = cross(gamma, Wxw)
     r1 = (
         -cross(w, matvec(p.I, w))
         + cross(matvec(d.Jns, W - w), w)
-        - p.m * p.R0 * cross(p.r_m, cross(gamma, Wxw))
-        - p.m * p.g * cross(p.r_m, gamma)
+        - d.mR0 * cross(p.r_m, gWxw)
+        - d.mg * cross(p.r_m, gamma)
     )
     r2 = (
-        -(p.m + p.m0) * p.R0**2 * cross(gamma, cross(gamma, Wxw))
-        - p.m * p.R0 * cross(gamma, cross(w, cross(w, p.r_m)))
-        - p.I0 * cross(w, W)
+        -d.MR2 * cross(gamma, gWxw)
+        - d.mR0 * cross(gamma, cross(w, cross(w, p.r_m)))
+        + p.I0 * Wxw  # - I0 w x W
         - p.c_roll * (W - dot(W, gamma) * gamma)
     )
     return r1, r2
+
+
+def free_forces(p: RobotParams, d: Derived, gamma, omega, Omega) -> Float[Array, "3"]:
+    """`r1 + r2` of (3.4), the right-hand side of the control-free sum (`forces` added up,
+    with the common factors of its cross products taken out)."""
+    w, W = omega, Omega
+    gWxw = cross(gamma, cross(W, w))
+    spin = matvec(p.I, w) + matvec(d.Jns, W - w) + p.I0 * W  # -w x (I w) + (Jns (W-w)) x w - I0 w x W
+    return (
+        -cross(w, spin)
+        - cross(d.mR0 * p.r_m + d.MR2 * gamma, gWxw)
+        - d.mg * cross(p.r_m, gamma)
+        - d.mR0 * cross(gamma, cross(w, cross(w, p.r_m)))
+        - p.c_roll * (W - dot(W, gamma) * gamma)
+    )
 
 
 def solve_accelerations(p: RobotParams, d: Derived, gamma, omega, Omega, K) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
@@ -104,8 +120,7 @@ def free_Omega_dot(p: RobotParams, d: Derived, gamma, omega, Omega, omega_dot) -
     `(B + D) Omega_dot = r1 + r2 - (A + B^T) omega_dot` (Proposition of Section 4).
     """
     B, D = mass_blocks(p, d, gamma)
-    r1, r2 = forces(p, d, gamma, omega, Omega)
-    return solve3(B + D, r1 + r2 - matvec(d.A + B.T, omega_dot))
+    return solve3(B + D, free_forces(p, d, gamma, omega, Omega) - matvec(d.A + B.T, omega_dot))
 
 
 def required_torques(p: RobotParams, d: Derived, gamma, omega, Omega, omega_dot, Omega_dot, *, equation: int = 2) -> Float[Array, "N"]:
@@ -136,7 +151,7 @@ def servo_accelerations(p: RobotParams, d: Derived, gamma, Omega, w, w_dot):
     B, D = mass_blocks(p, d, gamma)
     r1, r2 = forces(p, d, gamma, omega, Omega)
     AB = d.A + B.T
-    Omega_dot = solve3(AB + B + D, r1 + r2 - matvec(AB, w_dot))
+    Omega_dot = solve3(AB + B + D, (r1 + r2) - matvec(AB, w_dot))
     omega_dot = Omega_dot + w_dot
     tau = matvec(B.T, omega_dot) + matvec(D, Omega_dot) - r2
     return omega, omega_dot, Omega_dot, matvec(d.Sk_T_pinv, tau) - p.c_axle * matvec(d.Sk, w)

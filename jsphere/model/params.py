@@ -429,7 +429,9 @@ class Derived(eqx.Module):
     `A`, `A_inv`: the constant `omega`-block `I + Jss - Jns - Jsn` of the mass matrix and its
     inverse; `Sk_pinv (3,N)`: `(Sk^T Sk)^-1 Sk^T` (least-squares inverse of the wheel map);
     `Sk_T_pinv (N,3)`: `Sk (Sk^T Sk)^-1`, giving the least-norm torques `K` of a required
-    `Sk^T K`.
+    `Sk^T K`. The constant parts of the blocks of (3.4), so that the vector fields do not
+    recompute them: `B0 = Jns - Jss` and `D0 = I0 E + Jss` (`B`, `D` without their
+    `gamma`-terms), `mR0 = m R0`, `MR2 = (m + m0) R0^2`, `mg = m g`.
     """
 
     s: Float[Array, "N 3"]
@@ -442,6 +444,11 @@ class Derived(eqx.Module):
     A_inv: Float[Array, "3 3"]
     Sk_pinv: Float[Array, "3 N"]
     Sk_T_pinv: Float[Array, "N 3"]
+    B0: Float[Array, "3 3"]
+    D0: Float[Array, "3 3"]
+    mR0: Float[Array, ""]
+    MR2: Float[Array, ""]
+    mg: Float[Array, ""]
 
 
 def derive(p: RobotParams) -> Derived:
@@ -458,5 +465,7 @@ def derive(p: RobotParams) -> Derived:
     return Derived(
         s=s, k=k, Sk=Sk, Jss=Jss, Jsn=Jsn, Jns=Jns, A=A, A_inv=inv3(A),
         Sk_pinv=G @ Sk.T, Sk_T_pinv=Sk @ G,
+        B0=Jns - Jss, D0=p.I0 * jnp.eye(3, dtype=A.dtype) + Jss,
+        mR0=p.m * p.R0, MR2=(p.m + p.m0) * p.R0**2, mg=p.m * p.g,
     )  # fmt: skip
 
