@@ -1,8 +1,11 @@
-"""Generic nonlinear least squares for small dense problems (`least_squares`), by optimistix's
-Levenberg-Marquardt.
+"""Generic nonlinear least squares for small dense problems (`least_squares`).
 
-The fit's own iteration (`jsphere.identify.lm`) is separate: it eliminates each trial's
-nuisance block from block-arrow normal equations, which a dense solver would factor whole.
+A Levenberg-Marquardt loop in NumPy around the jitted residuals and their Jacobian. It is kept
+instead of `optimistix.least_squares` with `optimistix.LevenbergMarquardt`, which compiles the
+whole iteration, residual function included, into one program: measured side by side by
+`benchmarks/least_squares.py`, that compile dominates for residuals that run simulations
+(`docs/performance.md`). The fit's own iteration (`jsphere.identify.lm`) is separate: it
+eliminates each trial's nuisance block from block-arrow normal equations.
 """
 
 from __future__ import annotations
@@ -11,9 +14,7 @@ import dataclasses
 from collections.abc import Callable
 
 import jax
-import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 
 @dataclasses.dataclass
@@ -42,25 +43,38 @@ def least_squares(
     """Levenberg-Marquardt on a small dense problem: minimise `1/2 |fun(x)|^2`.
 
     `fun` is a pure JAX function of `x (P,)` returning whitened residuals `(K,)`; its
-    Jacobian is taken by reverse mode (`jac="rev"`, for few residuals or simulations with the
-    default adjoint) or forward mode (`jac="fwd"`, with `adjoint=diffrax.ForwardMode()`).
-    The solver is `optimistix.LevenbergMarquardt`, compiled with `fun` into one program; it
-    stops when both the step and the change of the cost are below `xtol` relative to their size
-    plus `ftol`, or after `max_iter` steps (then `converged` is False).
+    Jacobian is taken by `jax.jacrev` (`jac="rev"`, for few residuals or simulations with the
+    default adjoint) or `jax.jacfwd` (`jac="fwd"`, with `adjoint=diffrax.ForwardMode()`).
     Used by `examples/fit_paper_Rm_j.py` together with `FreeParams`.
     """
-    if jac not in ("rev", "fwd"):
-        raise ValueError(f"least_squares: jac must be 'rev' or 'fwd'; got {jac!r}.")
-    x0 = jnp.asarray(x0, jnp.float64)
-    solver = optx.LevenbergMarquardt(rtol=xtol, atol=ftol)
-    sol = optx.least_squares(
-        lambda x, _: fun(x), solver, x0, options={"jac": "bwd" if jac == "rev" else "fwd"}, max_steps=max_iter, throw=False
-    )
-    x = np.asarray(sol.value)
-    r = np.asarray(jax.jit(fun)(x))
-    Jm = np.asarray(jax.jit(jax.jacrev(fun) if jac == "rev" else jax.jacfwd(fun))(x))
+    jf = jax.jit(jax.jacrev(fun) if jac == "rev" else jax.jacfwd(fun))
+    f = jax.jit(fun)
+    x = np.asarray(x0, np.float64)
+    r = np.asarray(f(x))
+    Jm = np.asarray(jf(x))
     cost = 0.5 * float(r @ r)
+    lam, converged, k = 1e-3, False, 0
+    for k in range(1, max_iter + 1):
+        H = Jm.T @ Jm
+        g = Jm.T @ r
+        D = np.diag(np.diag(H)) + 1e-300 * np.eye(len(x))
+        dx = -np.linalg.solve(H + lam * D, g)
+        xn = x + dx
+        rn = np.asarray(f(xn))
+        cn = 0.5 * float(rn @ rn)
+        if np.isfinite(cn) and cn < cost:
+            small = (cost - cn) <= ftol * max(cost, 1e-300) or np.max(np.abs(dx) / np.maximum(np.abs(x), 1.0)) < xtol
+            x, r, cost = xn, rn, cn
+            Jm = np.asarray(jf(x))
+            lam = max(lam / 5.0, 1e-15)
+            if small or cost == 0.0:
+                converged = True
+                break
+        else:
+            lam *= 10.0
+            if lam > 1e15:
+                converged = True
+                break
     s2 = 2 * cost / max(len(r) - len(x), 1) if scale_by_residual else 1.0
     cov = s2 * np.linalg.pinv(Jm.T @ Jm, rcond=1e-14, hermitian=True)
-    converged = bool(sol.result == optx.RESULTS.successful)
-    return LeastSquaresResult(x=x, cost=cost, jac=Jm, covariance=cov, iterations=int(sol.stats["num_steps"]), converged=converged)
+    return LeastSquaresResult(x=x, cost=cost, jac=Jm, covariance=cov, iterations=k, converged=converged)
