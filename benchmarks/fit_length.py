@@ -33,7 +33,10 @@ import jax.numpy as jnp
 import numpy as np
 
 import jsphere
-from jsphere.identify import fit as _fit, shooting as _shooting
+from jsphere.identify import shooting as _shooting
+from jsphere.identify.data import pack_trials
+from jsphere.identify.residuals import _functions
+from jsphere.identify.starts import nuisance_guess
 from jsphere._runtime.files import atomic_write_text
 from jsphere.identify.free import FreeParams
 
@@ -71,14 +74,14 @@ def unit_costs(data, segment: float) -> dict:
     multiple-shooting assembly + elimination, at the paper's values."""
     base = jsphere.RobotParams.paper()
     free = FreeParams(base, FREE, None)
-    fns = _fit._functions(free, data.kind, 1e-6, 1e-8, 16384)
+    fns = _functions(free, data.kind, 1e-6, 1e-8, 16384)
     th = jnp.asarray(free.theta0)[None]
     sig = jnp.array([1e-3, math.radians(0.5)])
-    nu = jnp.asarray(_fit.nuisance_guess(data, base))[None]
+    nu = jnp.asarray(nuisance_guess(data, base))[None]
     d = data.arrays()
     out = {"jacobian_single_s": best_of(lambda: fns.jacobian(base, th, nu, d, sig))}
     seg = _shooting.segment_trials(data, segment)
-    nus = jnp.asarray(_fit.nuisance_guess(seg.data, base))[None]
+    nus = jnp.asarray(nuisance_guess(seg.data, base))[None]
     sd, sa = seg.data.arrays(), seg.arrays()
     scale = jnp.asarray(_shooting.defect_scale(data.kind, sig, float(base.R0), segment))
     res, ok, J, pose, e, Je = fns.segments(base, th, nus, sd, sig)
@@ -121,7 +124,7 @@ def main() -> None:
             for method in ("single", "multiple"):
                 print(f"{n} x {length:g} s, {method} shooting ...", file=sys.stderr, flush=True)
                 row[method] = one(robot, n, length, method, args.seed)
-            data = _fit.pack_trials(trials(robot, n, length, args.seed), jsphere.RobotParams.paper())
+            data = pack_trials(trials(robot, n, length, args.seed), jsphere.RobotParams.paper())
             row["unit"] = unit_costs(data, args.segment)
             rows.append(row)
     head = f"{'trials':>6} {'len s':>6} | {'single s':>9} {'max|z|':>8} {'sigma mm':>8} | {'multi s':>8} {'max|z|':>8} {'sigma mm':>8} | {'time m/s':>8} {'jac m/s':>8} {'linalg/jac':>10}"

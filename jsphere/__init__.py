@@ -16,38 +16,26 @@ import jax as _jax
 if _os.environ.get("JSPHERE_X64", "1") != "0":
     _jax.config.update("jax_enable_x64", True)
 
-from .capture.trial import (
-    CaptureWarning as CaptureWarning,
-    Trial as Trial,
+from .capture.c3d import read_c3d as read_c3d
+from .capture.convert import convert_raw as convert_raw
+from .capture.body import read_body_markers as read_body_markers
+from .capture.inputs import read_inputs_csv as read_inputs_csv, write_inputs_csv as write_inputs_csv
+from .capture.markers import MarkerData as MarkerData
+from .capture.motive import read_motive_csv as read_motive_csv, write_motive_csv as write_motive_csv
+from .capture.pose import markers_to_trial as markers_to_trial, rigid_body_pose as rigid_body_pose
+from .capture.synthetic import (
     random_inputs as random_inputs,
-    read_trial as read_trial,
-    read_trials as read_trials,
-    synthetic_trial as synthetic_trial,
-    write_trial as write_trial,
-)
-from .capture.mocap import (
-    MarkerData as MarkerData,
-    convert_raw as convert_raw,
-    markers_to_trial as markers_to_trial,
-    read_body_markers as read_body_markers,
-    read_c3d as read_c3d,
-    read_inputs_csv as read_inputs_csv,
-    read_motive_csv as read_motive_csv,
-    read_vicon_csv as read_vicon_csv,
-    rigid_body_pose as rigid_body_pose,
     synthetic_markers as synthetic_markers,
-    write_inputs_csv as write_inputs_csv,
-    write_motive_csv as write_motive_csv,
-    write_vicon_csv as write_vicon_csv,
+    synthetic_trial as synthetic_trial,
 )
+from .capture.trial import Trial as Trial, read_trial as read_trial, read_trials as read_trials, write_trial as write_trial
+from .capture.validation import CaptureWarning as CaptureWarning
+from .capture.vicon import read_vicon_csv as read_vicon_csv, write_vicon_csv as write_vicon_csv
 
 from ._runtime.errors import ExitCode as ExitCode, InputError as InputError, SolverFailure as SolverFailure
-from .identify.fit import (
-    FitResult as FitResult,
-    LeastSquaresResult as LeastSquaresResult,
-    fit as fit,
-    least_squares as least_squares,
-)
+from .identify.fit import fit as fit
+from .identify.least_squares import LeastSquaresResult as LeastSquaresResult, least_squares as least_squares
+from .identify.report import FitResult as FitResult
 from .identify.free import FreeParams as FreeParams
 
 from .controls import (

@@ -11,16 +11,10 @@ import numpy as np
 import pytest
 
 import jsphere
-from jsphere.capture.trial import (
-    MIN_VALID_FRAMES,
-    RandomSines,
-    detect_position_units,
-    eval_controls,
-    quat_from_rotvec_np,
-    quat_mul_np,
-    trial_to_csv,
-)
-from jsphere.model.rotations import rotmat
+from jsphere.capture.synthetic import RandomSines, eval_controls
+from jsphere.capture.trial import detect_position_units, trial_to_csv
+from jsphere.capture.validation import MIN_VALID_FRAMES
+from jsphere.model.rotations import quat_from_rotvec_np, quat_mul_np, rotmat
 
 T1 = 1.5
 
@@ -457,12 +451,9 @@ def test_synthetic_trial_round_trips_through_csv(tmp_path, torque_trial):
 
 # --------------------------------------------------------------------------- raw marker exports
 
-from jsphere.capture.mocap import (
-    UP_TO_Z,
-    default_marker_set,
-    quat_from_rotmat_np,
-    rotmat_np,
-)
+from jsphere.capture.markers import UP_TO_Z
+from jsphere.capture.synthetic import default_marker_set
+from jsphere.model.rotations import quat_from_rotmat_np, rotmat_np
 
 BODY = default_marker_set(0.15)
 NAMES = ["a", "b", "c", "d"]

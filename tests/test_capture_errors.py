@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 import jsphere
-from jsphere.capture.trial import CaptureWarning, implausible, trial_to_csv
+from jsphere.capture.trial import trial_to_csv
+from jsphere.capture.validation import CaptureWarning, implausible
 from jsphere._runtime.errors import InputError
 from jsphere._runtime.files import refuse_overwrite
 from jsphere.cli.app import main
@@ -265,7 +266,7 @@ def test_broken_c3d_files_are_one_line_before_ezc3d_reads_them(tmp_path, c3d_fil
 
 
 def test_c3d_layout_counts_frames_of_either_storage(tmp_path):
-    from jsphere.capture.mocap import c3d_layout
+    from jsphere.capture.c3d import c3d_layout
     from test_capture import c3d_shell
 
     p = tmp_path / "x.c3d"
@@ -454,7 +455,7 @@ def test_xyzw_quaternion_order_warns(tmp_path, ws01):
 def test_xyzw_detection_at_any_heading(ws01):
     """The platform turned to other headings (the trial rotated about Z): the true order never
     warns; `x, y, z, w` is caught by the lean, the upside-down tilt or the rest pose."""
-    from jsphere.capture.trial import quat_mul_np
+    from jsphere.model.rotations import quat_mul_np
 
     for deg in (0, 90, 180, 250):
         a = np.radians(deg)

@@ -14,7 +14,11 @@ import numpy as np
 import pytest
 
 import jsphere
-from jsphere.identify.fit import _functions, identifiability, nuisance_guess, pack_trials, quat_exp, quat_log, symmetry_directions
+from jsphere.identify.data import pack_trials
+from jsphere.identify.identifiability import identifiability, symmetry_directions
+from jsphere.identify.residuals import _functions
+from jsphere.identify.starts import nuisance_guess
+from jsphere.model.rotations import quat_exp, quat_log
 from jsphere.identify.free import FreeParams, apply_fixes, expand
 from jsphere.cli.app import main
 
@@ -263,7 +267,7 @@ def test_trials_that_do_not_fit_the_robot_are_reported(small_trials):
 
 
 def test_whole_field_and_alias_entries_of_stderr():
-    from jsphere.identify.fit import _assemble_named
+    from jsphere.identify.report import _assemble_named
 
     p = jsphere.RobotParams.paper()
     fp = FreeParams(p, ["I", "r_m[2]", "j"])

@@ -4,7 +4,7 @@ checks its output path before any work.
 
 The fits share one tiny problem (one trial of 1 s at 25 Hz, free `R_m, j`, 2 starts), so the
 fit's functions are compiled once for the module (~30 s on 2 cores); each fit then takes ~2 s.
-The kills come from `jsphere.identify.fit._checkpoint_hook`, called inside every checkpoint write
+The kills come from `jsphere.identify.checkpoint._checkpoint_hook`, called inside every checkpoint write
 (after the temporary file is written, and after its rename); the slow test kills a `jsphere
 fit` process with SIGKILL.
 """
@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 import jsphere
-from jsphere.identify import fit as _fit
+from jsphere.identify import checkpoint as _checkpoint, fit as _fit
 from jsphere._runtime.errors import SolverFailure
 from jsphere._runtime.files import dumps_json
 from jsphere.cli.app import main
@@ -55,11 +55,11 @@ def document(res) -> str:
 
 @contextlib.contextmanager
 def checkpoint_hook(hook):
-    old, _fit._checkpoint_hook = _fit._checkpoint_hook, hook
+    old, _checkpoint._checkpoint_hook = _checkpoint._checkpoint_hook, hook
     try:
         yield
     finally:
-        _fit._checkpoint_hook = old
+        _checkpoint._checkpoint_hook = old
 
 
 def kill_at(event: str, n: int):
@@ -288,13 +288,13 @@ def _cli(args, env, **kw):
 _KILLER = """
 import os, signal, sys
 from jsphere import cli
-from jsphere.identify import fit as _fit
+from jsphere.identify import checkpoint as _checkpoint
 n = {"saved": 0}
 def hook(event, path):
     n[event] = n.get(event, 0) + 1
     if event == "written" and n.get("saved", 0) == int(os.environ["KILL_AFTER"]):
         os.kill(os.getpid(), signal.SIGKILL)  # inside a write: its temporary file is left behind
-_fit._checkpoint_hook = hook
+_checkpoint._checkpoint_hook = hook
 sys.exit(cli.main(sys.argv[1:]))
 """
 

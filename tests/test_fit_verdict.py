@@ -17,7 +17,7 @@ import pytest
 
 import jsphere
 from jsphere._runtime.errors import EXIT_CODES_HELP, ExitCode
-from jsphere.identify.fit import pack_trials
+from jsphere.identify.data import pack_trials
 from jsphere.identify.verdict import CORRELATED, FAR, MODERATE, headline, judge, lag1, noise_floor
 from jsphere.cli.app import main
 from jsphere.plots import worst_trial

@@ -17,7 +17,11 @@ import numpy as np
 import pytest
 
 import jsphere
-from jsphere.identify import fit as _fit, shooting as _shooting
+from jsphere.identify import shooting as _shooting
+from jsphere.identify.data import pack_trials
+from jsphere.identify.lm import _solve_arrow
+from jsphere.identify.residuals import _functions, _trial_outputs
+from jsphere.identify.starts import nuisance_guess, start_design
 from jsphere.controls import Sampled
 from jsphere.identify.free import FreeParams
 
@@ -43,7 +47,7 @@ def torque_trials(robot, durations, rate=100.0, seed=0, **kw):
 @pytest.fixture(scope="module")
 def small():
     trials = torque_trials(truth_robot(), (3.0, 2.5), rate=20.0, dropout=0.1)
-    data = _fit.pack_trials(trials, jsphere.RobotParams.paper())
+    data = pack_trials(trials, jsphere.RobotParams.paper())
     return data, _shooting.segment_trials(data, 1.0)
 
 
@@ -134,7 +138,7 @@ def test_block_assembly_and_step_match_a_dense_solve_of_a_linear_model():
     assemble = jax.jit(_shooting.assemble, static_argnums=(0, 1))
     blocks, cost, _ = assemble("wheel_speeds", P, r, jnp.asarray(Jr), e, jnp.asarray(Je), jnp.asarray(nu), mu, seg, scale)
     lam = 0.03
-    dg, dn, pred = jax.jit(_fit._solve_arrow)(blocks, lam)
+    dg, dn, pred = jax.jit(_solve_arrow)(blocks, lam)
     dn = np.asarray(dn).reshape(2, 3, n)[trial, [0, 1, 2, 0, 1]]
     rd = np.asarray(jax.jit(residuals)(z))
     Jd = np.asarray(jax.jit(jax.jacfwd(residuals))(z))
@@ -153,14 +157,14 @@ def test_assembled_normal_equations_and_step_match_a_dense_solve():
     three segments; tight tolerances, so that both see the same solutions)."""
     trials = torque_trials(truth_robot(), (2.0, 1.5), rate=10.0)
     base = jsphere.RobotParams.paper()
-    seg = _shooting.segment_trials(_fit.pack_trials(trials, base), 0.75)
+    seg = _shooting.segment_trials(pack_trials(trials, base), 0.75)
     assert [len(c) - 1 for c in seg.boundaries] == [3, 2]
     free = FreeParams(base, "j,m0", None)
     P, n = free.size, 11
-    fns = _fit._functions(free, "torques", 1e-10, 1e-12, 4096)
+    fns = _functions(free, "torques", 1e-10, 1e-12, 4096)
     rng = np.random.default_rng(1)
     theta = free.theta0 + 0.05 * rng.standard_normal(P)
-    nu = _fit.nuisance_guess(seg.data, base) + 0.01 * rng.standard_normal((seg.n_segments, n))
+    nu = nuisance_guess(seg.data, base) + 0.01 * rng.standard_normal((seg.n_segments, n))
     sig = jnp.array([1e-3, math.radians(0.5)])
     sd, sa = seg.data.arrays(), seg.arrays()
     scale = jnp.asarray(_shooting.defect_scale("torques", sig, 0.15, 0.75))
@@ -178,7 +182,7 @@ def test_assembled_normal_equations_and_step_match_a_dense_solve():
     def residuals(z):
         th, nus = z[:P], z[P:].reshape(seg.n_segments, n)
         r, _, _, ends = jax.vmap(
-            lambda nn, dd: _fit._trial_outputs(free, "torques", 1e-10, 1e-12, 4096, dfx.ForwardMode(), base, th, nn, dd, sig)
+            lambda nn, dd: _trial_outputs(free, "torques", 1e-10, 1e-12, 4096, dfx.ForwardMode(), base, th, nn, dd, sig)
         )(nus, sd)
         d = [
             math.sqrt(mu) * _shooting.defect("torques", ends[g], nus[g + 1], sd_next_xy0, sd_next_q0, scale)
@@ -204,7 +208,7 @@ def test_assembled_normal_equations_and_step_match_a_dense_solve():
 def test_start_design_fills_the_box_and_the_bounds():
     base = jsphere.RobotParams.paper()
     free = FreeParams(base, "j,m0,I0", {"m0": (0.5, 1.5)})
-    th = _fit.start_design(free, 9, 0.2, np.random.default_rng(0))
+    th = start_design(free, 9, 0.2, np.random.default_rng(0))
     np.testing.assert_array_equal(th[0], free.theta0)
     vals = np.stack([np.asarray(free.physical(jnp.asarray(t))) for t in th[1:]])
     j0 = float(base.j)
@@ -212,7 +216,7 @@ def test_start_design_fills_the_box_and_the_bounds():
     # Latin hypercube: one start in each of 8 strata of the bounded name
     strata = np.floor((vals[:, 1] - 0.5) / (1.0 / 8)).astype(int)
     assert sorted(strata) == list(range(8))
-    np.testing.assert_array_equal(th, _fit.start_design(free, 9, 0.2, np.random.default_rng(0)))
+    np.testing.assert_array_equal(th, start_design(free, 9, 0.2, np.random.default_rng(0)))
 
 
 # ------------------------------------------------------------------ slow: long trials

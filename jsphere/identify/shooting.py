@@ -4,7 +4,7 @@ Over a long trial, small errors of the start values grow (a heading error turns 
 position error that grows with the distance rolled), and the cost of single shooting has many
 wrong valleys. Multiple shooting (Bock's method) cuts each trial into segments of a few
 seconds that start at captured frames. Each segment gets its own nuisance parameters: the
-initial state of the segment, in the same form as a trial's (`jsphere.identify.fit.NUISANCE`), started
+initial state of the segment, in the same form as a trial's (`jsphere.identify.data.NUISANCE`), started
 from the capture. The continuity defects between consecutive segments of a trial,
 
     d_s = state(end of segment s) (-) state0(segment s+1)
@@ -18,20 +18,30 @@ Given the parameters `theta`, segments are independent, so they are simulated in
 batch. The normal equations are an arrow over trials whose nuisance block per trial is block
 tridiagonal (a defect couples consecutive segments). It is assembled as a dense
 `(G n, G n)` block per trial (`G` segments of at most `n` nuisance parameters) and eliminated as
-in single shooting (`jsphere.identify.fit._solve_arrow`).
+in single shooting (`jsphere.identify.lm._solve_arrow`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..model.rotations import quat_mul
+from ..model.rotations import quat_conj, quat_exp, quat_log, quat_mul
+from .data import FitData
 
 #: the end state of a segment as one vector: q (4), x, y, Omega (3), omega (3)
 END_SIZE = 13
+#: the weights of the continuity defects, one level after the other
+MU_LEVELS = (1.0, 10.0, 100.0, 1e3, 1e4)
+#: the largest defect [noise levels, `defect_scale`] that counts as closed
+DEFECT_CLOSED = 0.5
+#: a level of the continuation ends when an accepted step changes its cost by less than this
+#: (relative), or after 3 rejected steps in a row: its minimiser is only the start of the next
+#: level, and single shooting polishes
+CONTINUATION_RTOL = 1e-4
 
 
 @dataclasses.dataclass(frozen=True)
@@ -45,7 +55,7 @@ class Segments:
     the first segment of each trial; `boundaries`: per trial the sample indices where its
     segments start, and its last sample."""
 
-    data: object
+    data: FitData
     trial: np.ndarray
     slot: np.ndarray
     has_next: np.ndarray
@@ -86,10 +96,8 @@ def boundaries(t: np.ndarray, both: np.ndarray, segment: float) -> list[int]:
     return cuts + [m - 1]
 
 
-def segment_trials(data, segment: float):
+def segment_trials(data: FitData, segment: float) -> Segments:
     """Cut the trials of a `FitData` into segments of about `segment` seconds (`Segments`)."""
-    from .fit import FitData
-
     T = data.ts.shape[0]
     pieces, trial_of, cut_list = [], [], []
     for i in range(T):
@@ -104,45 +112,10 @@ def segment_trials(data, segment: float):
             pieces.append((i, a, b, last))
             trial_of.append(i)
     L = max(b - a + 1 for _, a, b, _ in pieces)
-    Lc = L + 4  # control knots: two more on each side, so that the cubic table is the trial's
-    out = {k: [] for k in ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0")}
-    names, lengths, starts = [], [], []
-    nxt_xy0, nxt_q0, has_next = [], [], []
-    for g, (i, a, b, last) in enumerate(pieces):
-        m = b - a + 1
-        t0 = data.ts[i, a]
-        ts = data.ts[i, a : b + 1] - t0
-        out["ts"].append(np.concatenate([ts, np.full(L - m, ts[-1])]))
-        # knots a-2 .. b+2 of the trial's table (its padding continues past its end)
-        lo = max(a - 2, 0)
-        kn = np.arange(lo, lo + Lc)
-        kn_c = np.minimum(kn, data.tc.shape[1] - 1)
-        tc = data.tc[i, kn_c] - t0
-        over = kn - kn_c  # beyond the trial's padded table: continue its spacing
-        dt = (data.tc[i, -1] - data.tc[i, -2]) if data.tc.shape[1] > 1 else 1.0
-        tc = tc + over * dt
-        out["tc"].append(tc)
-        out["u"].append(data.u[i, kn_c])
-        out["t1"].append(ts[-1])
-        wp = data.wpos[i, a : b + 1].copy()
-        wr = data.wrot[i, a : b + 1].copy()
-        if not last:  # the next segment's first sample: simulated for the defect, counted there
-            wp[-1] = wr[-1] = 0.0
-        pad = lambda v, fill, m=m: np.concatenate([v, np.broadcast_to(fill, (L - m,) + v.shape[1:])])
-        out["x"].append(pad(data.x[i, a : b + 1], 0.0))
-        out["y"].append(pad(data.y[i, a : b + 1], 0.0))
-        out["q"].append(pad(data.q[i, a : b + 1], np.array([1.0, 0.0, 0.0, 0.0])))
-        out["wpos"].append(pad(wp, 0.0))
-        out["wrot"].append(pad(wr, 0.0))
-        vp, vr = data.wpos[i, a : b + 1] > 0, data.wrot[i, a : b + 1] > 0
-        out["xy0"].append(np.array([data.x[i, a : b + 1][vp][0], data.y[i, a : b + 1][vp][0]]) if vp.any() else data.xy0[i])
-        out["q0"].append(data.q[i, a : b + 1][vr][0] if vr.any() else data.q0[i])
-        names.append(f"{data.names[i]}[{t0:.2f}s]")
-        lengths.append(m)
-        starts.append(data.t_start[i] + float(t0))
-        has_next.append(not last)
-        nxt_xy0.append(np.array([data.x[i, b], data.y[i, b]]) if not last else np.zeros(2))
-        nxt_q0.append(data.q[i, b] if not last else np.array([1.0, 0.0, 0.0, 0.0]))
+    out = {k: [] for k in ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0", "name", "length", "start", "next")}
+    for i, a, b, last in pieces:
+        for k, v in _segment(data, i, a, b, last, L).items():
+            out[k].append(v)
     G = len(pieces)
     trial_of = np.asarray(trial_of)
     Gmax = max(len(c) - 1 for c in cut_list)
@@ -152,13 +125,54 @@ def segment_trials(data, segment: float):
         idx = np.flatnonzero(trial_of == i)
         slot[i, : idx.size] = idx
         first[i] = idx[0]
-    seg_data = FitData(
-        **{k: np.stack(v) for k, v in out.items()}, kind=data.kind, names=tuple(names), lengths=tuple(lengths), t_start=tuple(starts)
-    )
+    arrays = {k: np.stack(out[k]) for k in ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0")}
+    seg_data = FitData(**arrays, kind=data.kind, names=tuple(out["name"]), lengths=tuple(out["length"]), t_start=tuple(out["start"]))
+    has_next, nxt_xy0, nxt_q0 = zip(*out["next"])
     return Segments(
         data=seg_data, trial=trial_of, slot=slot, has_next=np.asarray(has_next), next_xy0=np.stack(nxt_xy0),
         next_q0=np.stack(nxt_q0), first=first, boundaries=tuple(cut_list),
     )  # fmt: skip
+
+
+def _segment(data: FitData, i: int, a: int, b: int, last: bool, L: int) -> dict:
+    """Samples `a..b` of trial `i` as a trial of its own, padded to `L` samples: its arrays (as
+    `FitData`'s), name, length, start time, and `next`: whether a segment follows and the
+    captured pose where it starts."""
+    Lc = L + 4  # control knots: two more on each side, so that the cubic table is the trial's
+    m = b - a + 1
+    t0 = data.ts[i, a]
+    ts = data.ts[i, a : b + 1] - t0
+    # knots a-2 .. b+2 of the trial's table (its padding continues past its end)
+    lo = max(a - 2, 0)
+    kn = np.arange(lo, lo + Lc)
+    kn_c = np.minimum(kn, data.tc.shape[1] - 1)
+    tc = data.tc[i, kn_c] - t0
+    over = kn - kn_c  # beyond the trial's padded table: continue its spacing
+    dt = (data.tc[i, -1] - data.tc[i, -2]) if data.tc.shape[1] > 1 else 1.0
+    wp = data.wpos[i, a : b + 1].copy()
+    wr = data.wrot[i, a : b + 1].copy()
+    if not last:  # the next segment's first sample: simulated for the defect, counted there
+        wp[-1] = wr[-1] = 0.0
+    pad = lambda v, fill: np.concatenate([v, np.broadcast_to(fill, (L - m,) + v.shape[1:])])
+    vp, vr = data.wpos[i, a : b + 1] > 0, data.wrot[i, a : b + 1] > 0
+    nxt = (True, np.array([data.x[i, b], data.y[i, b]]), data.q[i, b]) if not last else (False, np.zeros(2), np.array([1.0, 0.0, 0.0, 0.0]))
+    return {
+        "ts": np.concatenate([ts, np.full(L - m, ts[-1])]),
+        "tc": tc + over * dt,
+        "u": data.u[i, kn_c],
+        "t1": ts[-1],
+        "x": pad(data.x[i, a : b + 1], 0.0),
+        "y": pad(data.y[i, a : b + 1], 0.0),
+        "q": pad(data.q[i, a : b + 1], np.array([1.0, 0.0, 0.0, 0.0])),
+        "wpos": pad(wp, 0.0),
+        "wrot": pad(wr, 0.0),
+        "xy0": np.array([data.x[i, a : b + 1][vp][0], data.y[i, a : b + 1][vp][0]]) if vp.any() else data.xy0[i],
+        "q0": data.q[i, a : b + 1][vr][0] if vr.any() else data.q0[i],
+        "name": f"{data.names[i]}[{t0:.2f}s]",
+        "length": m,
+        "start": data.t_start[i] + float(t0),
+        "next": nxt,
+    }
 
 
 def defect_scale(kind: str, sig, R0: float, segment: float) -> np.ndarray:
@@ -182,8 +196,6 @@ def end_vector(traj) -> jax.Array:
 def defect(kind: str, end, nu_next, next_xy0, next_q0, scale):
     """Continuity defect between a segment's end state `end` (`end_vector`) and the initial
     state of the next segment (its nuisance `nu_next` and captured pose), divided by `scale`."""
-    from .fit import quat_conj, quat_exp, quat_log
-
     q_end, x_end, y_end, Om_end = end[0:4], end[4], end[5], end[6:9]
     q0n = quat_mul(next_q0, quat_exp(nu_next[3:6]))
     parts = [

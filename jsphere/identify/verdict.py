@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from ..capture.trial import quat_mul_np
+from ..model.rotations import quat_log_np, quat_mul_np
 
 #: residual sigma / noise floor above which a fit is a misfit
 FAR = 3.0
@@ -55,16 +55,6 @@ CHANNELS = ("position", "orientation")
 
 
 # ----------------------------------------------------------------------------- the noise floor
-
-
-def _rotvec(q: np.ndarray) -> np.ndarray:
-    """Rotation vector [rad] of unit quaternions `(..., 4)` (scalar first; the shorter rotation)."""
-    q = np.where(q[..., :1] < 0, -q, q)
-    w, v = q[..., 0], q[..., 1:]
-    n = np.linalg.norm(v, axis=-1)
-    big = n > 1e-12
-    f = np.where(big, 2.0 * np.arctan2(n, w) / np.where(big, n, 1.0), 2.0 / w)
-    return f[..., None] * v
 
 
 def _runs(t: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -120,7 +110,7 @@ def third_differences(data) -> tuple[np.ndarray, np.ndarray]:
             c = _coefficients(t[idx])
             q = data.q[i, :m]
             q0_inv = q[k] * np.array([1.0, -1.0, -1.0, -1.0])
-            v = np.stack([_rotvec(quat_mul_np(q0_inv, q[k + j])) for j in range(1, 4)], 1)  # (n, 3 steps, 3 axes)
+            v = np.stack([quat_log_np(quat_mul_np(q0_inv, q[k + j])) for j in range(1, 4)], 1)  # (n, 3 steps, 3 axes)
             rot.append(np.einsum("nj,nja->na", c[:, 1:], v).reshape(-1))
     cat = lambda parts: np.concatenate(parts) if parts else np.zeros(0)
     return cat(pos), cat(rot)
@@ -230,31 +220,41 @@ def judge(
     n_total += sum(np.isfinite(np.asarray(e, float)).all(-1).sum() * 3 for e in rot_err)
     frac = max(1.0 - n_params / n_total, 1e-3) if n_total else 1.0
     fl = [max(f, r) if math.isfinite(f) else math.nan for f, r in zip(floor, FLOOR_RESOLUTION)]
-    channels = (pos_err, rot_err)
-
-    def scope(errs):
-        """Per channel (ratio, autocorrelation, sigma) of the residual lists `errs`."""
-        out = []
-        for c, e in enumerate(errs):
-            s = _sigma(e, frac)
-            sums = [lag1(x) for x in e]
-            out.append((_ratio(s, fl[c]), _ratio(sum(a for a, _ in sums), sum(b for _, b in sums)), s))
-        return out
-
-    overall = scope(channels)
-    per_trial = [scope(([pos_err[i]], [rot_err[i]])) for i in range(T)]
+    overall = _scope((pos_err, rot_err), frac, fl)
+    per_trial = [_scope(([pos_err[i]], [rot_err[i]]), frac, fl) for i in range(T)]
     key = lambda i: max((r for r, _, _ in per_trial[i] if math.isfinite(r)), default=-math.inf)
     worst = max(range(T), key=key) if T else None
+    scopes = [("", overall)] + ([(names[worst], per_trial[worst])] if worst is not None else [])
+    status, reason = _status(_hits(scopes), overall, per_trial, names, worst, fl, converged, why_not)
+    return _numbers(status, reason, converged, floor, overall, per_trial, names, worst)
 
-    # which rule fires: (scope text, channel, ratio, autocorrelation, why)
+
+def _scope(errs, frac: float, fl) -> list[tuple[float, float, float]]:
+    """Per channel `(ratio to the floor, lag-1 autocorrelation, sigma)` of the residual lists `errs`."""
+    out = []
+    for c, e in enumerate(errs):
+        s = _sigma(e, frac)
+        sums = [lag1(x) for x in e]
+        out.append((_ratio(s, fl[c]), _ratio(sum(a for a, _ in sums), sum(b for _, b in sums)), s))
+    return out
+
+
+def _hits(scopes) -> list[tuple[str, int, float, float, str]]:
+    """The rules that fire, per scope (all trials, the worst trial) and channel: `(scope text,
+    channel, ratio, autocorrelation, "far" | "correlated")`."""
     hits = []
-    for label, sc in [("", overall)] + ([(names[worst], per_trial[worst])] if worst is not None else []):
+    for label, sc in scopes:
         for c, (r, a, _) in enumerate(sc):
             if r > FAR:
                 hits.append((label, c, r, a, "far"))
             elif r > MODERATE and a > CORRELATED:
                 hits.append((label, c, r, a, "correlated"))
+    return hits
 
+
+def _status(hits, overall, per_trial, names, worst, fl, converged: bool, why_not: str) -> tuple[str, str]:
+    """The status and its one-sentence reason (the module's rules)."""
+    T = len(per_trial)
     ratios = f"{_x(overall[0][0])} (position) and {_x(overall[1][0])} (orientation) the capture's noise floor"
     worst_text = ""
     if worst is not None and T > 1:
@@ -268,14 +268,12 @@ def judge(
         else ""
     )
     if not converged:
-        status = "not_converged"
         far = f"; the residual sigmas are {ratios}{worst_text}" if hits else ""
-        reason = (
+        return "not_converged", (
             f"the optimiser did not converge ({why_not or 'it stopped before its convergence test was met'}){far}{no_floor}: "
             "the values and standard errors are not final; rerun with more iterations (--max-iter) or more starts (--n-starts)."
         )
-    elif hits:
-        status = "misfit"
+    if hits:
         if any(h[4] == "far" for h in hits):
             what = f"the residual sigmas are {ratios}{worst_text}"
         else:
@@ -283,15 +281,16 @@ def judge(
             where = f" of trial {label!r}" if label else ""
             what = f"the {CHANNELS[c]} residuals{where} are {_x(r)} the capture's noise floor and far from white (lag-1 autocorrelation {a:.2f})"
         check = f"trial {names[worst]!r}" if worst is not None and T > 1 else "the trial"
-        reason = (
+        return "misfit", (
             f"{what}{no_floor}: the fit is in a wrong valley or the model does not describe the trials; try more starts "
             f"(--n-starts), other start values (--params, --fix) or more free parameters, and check the inputs and capture of {check}."
         )
-    else:
-        status = "converged"
-        acs = f"lag-1 autocorrelations {overall[0][1]:.2f} and {overall[1][1]:.2f}"
-        reason = f"the optimiser converged and the residual sigmas are {ratios}, {acs}{no_floor}."
+    acs = f"lag-1 autocorrelations {overall[0][1]:.2f} and {overall[1][1]:.2f}"
+    return "converged", f"the optimiser converged and the residual sigmas are {ratios}, {acs}{no_floor}."
 
+
+def _numbers(status, reason, converged, floor, overall, per_trial, names, worst) -> dict[str, Any]:
+    """The verdict's dict (see `judge`)."""
     deg = math.degrees
     trials = [
         {
@@ -300,7 +299,7 @@ def judge(
             "ratio_pos": per_trial[i][0][0], "ratio_rot": per_trial[i][1][0],
             "autocorr_pos": per_trial[i][0][1], "autocorr_rot": per_trial[i][1][1],
         }  # fmt: skip
-        for i in range(T)
+        for i in range(len(per_trial))
     ]
     return {
         "status": status,

@@ -1,13 +1,15 @@
-"""Rotations: quaternions `(w, x, y, z)`, scalar first, and rotation matrices.
+"""Rotations: quaternions `(w, x, y, z)`, scalar first, rotation vectors and rotation matrices.
 
 `rotmat(q)` rotates *body* components into *fixed* components (the convention of the trial CSV
-format).
+format). The JAX functions serve the model and the fit; the `_np` twins at the end do the same in
+float64 NumPy for the capture readers and the verdict.
 """
 
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from .linalg import cross, dot
@@ -82,3 +84,107 @@ def rotation_between(a: Float[Array, "3"], b: Float[Array, "3"]) -> Float[Array,
         [[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]], dtype=jnp.result_type(a, b)
     )
     return jnp.eye(3, dtype=vx.dtype) + vx + (vx @ vx) / (1.0 + c)
+
+
+def quat_conj(q: Float[Array, "... 4"]) -> Float[Array, "... 4"]:
+    """Conjugate (the inverse of a unit quaternion)."""
+    return q * jnp.array([1.0, -1.0, -1.0, -1.0], q.dtype)
+
+
+def quat_exp(v: Float[Array, "... 3"]) -> Float[Array, "... 4"]:
+    """Unit quaternion of the rotation vector `v` [rad] (smooth at 0)."""
+    a2 = dot(v, v)
+    small = a2 < 1e-16
+    a = jnp.sqrt(jnp.where(small, 1.0, a2))
+    s = jnp.where(small, 0.5 - a2 / 48.0, jnp.sin(0.5 * a) / a)
+    c = jnp.where(small, 1.0 - a2 / 8.0, jnp.cos(0.5 * a))
+    return jnp.concatenate([c[..., None], s[..., None] * v], axis=-1)
+
+
+def quat_log(q: Float[Array, "... 4"]) -> Float[Array, "... 3"]:
+    """Rotation vector [rad] of a unit quaternion (the shorter of the two rotations; smooth at 0)."""
+    q = jnp.where(q[..., :1] < 0, -q, q)
+    w, v = q[..., 0], q[..., 1:]
+    n2 = dot(v, v)
+    small = n2 < 1e-16
+    n = jnp.sqrt(jnp.where(small, 1.0, n2))
+    f = jnp.where(small, 2.0 / w, 2.0 * jnp.arctan2(n, w) / n)
+    return f[..., None] * v
+
+
+# ----------------------------------------------------------------------------- NumPy twins
+# float64 NumPy versions for the capture readers and the verdict, which work on whole files
+# outside JAX (the same conventions as the JAX functions above).
+
+
+def quat_mul_np(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product `p (x) q` of `(..., 4)` scalar-first quaternions (NumPy twin of `quat_mul`)."""
+    pw, px, py, pz = np.moveaxis(p, -1, 0)
+    qw, qx, qy, qz = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            pw * qw - px * qx - py * qy - pz * qz,
+            pw * qx + px * qw + py * qz - pz * qy,
+            pw * qy - px * qz + py * qw + pz * qx,
+            pw * qz + px * qy - py * qx + pz * qw,
+        ],
+        axis=-1,
+    )
+
+
+def quat_from_rotvec_np(r: np.ndarray) -> np.ndarray:
+    """Unit quaternion of the rotation by `|r|` [rad] about `r/|r|` (`(..., 3)` -> `(..., 4)`;
+    NumPy twin of `quat_exp`)."""
+    r = np.asarray(r, float)
+    a = np.linalg.norm(r, axis=-1, keepdims=True)
+    half = 0.5 * a
+    # sin(a/2)/a -> 1/2 as a -> 0
+    k = np.where(a > 1e-12, np.sin(half) / np.where(a > 1e-12, a, 1.0), 0.5 - a * a / 48.0)
+    return np.concatenate([np.cos(half), k * r], axis=-1)
+
+
+def quat_log_np(q: np.ndarray) -> np.ndarray:
+    """Rotation vector [rad] of unit quaternions `(..., 4)` (the shorter rotation; NumPy twin of
+    `quat_log`)."""
+    q = np.where(q[..., :1] < 0, -q, q)
+    w, v = q[..., 0], q[..., 1:]
+    n = np.linalg.norm(v, axis=-1)
+    big = n > 1e-12
+    f = np.where(big, 2.0 * np.arctan2(n, w) / np.where(big, n, 1.0), 2.0 / w)
+    return f[..., None] * v
+
+
+def quat_from_rotmat_np(R: np.ndarray) -> np.ndarray:
+    """Unit quaternions `(..., 4)` (w >= 0) of rotation matrices `(..., 3, 3)` (NumPy twin of
+    `quat_from_rotmat`, for stacks of matrices)."""
+    R = np.asarray(R, float)
+    tr = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
+    c = np.stack(
+        [
+            np.stack([1 + tr, R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1),
+            np.stack([R[..., 2, 1] - R[..., 1, 2], 1 + 2 * R[..., 0, 0] - tr, R[..., 0, 1] + R[..., 1, 0], R[..., 0, 2] + R[..., 2, 0]], -1),
+            np.stack([R[..., 0, 2] - R[..., 2, 0], R[..., 0, 1] + R[..., 1, 0], 1 + 2 * R[..., 1, 1] - tr, R[..., 1, 2] + R[..., 2, 1]], -1),
+            np.stack([R[..., 1, 0] - R[..., 0, 1], R[..., 0, 2] + R[..., 2, 0], R[..., 1, 2] + R[..., 2, 1], 1 + 2 * R[..., 2, 2] - tr], -1),
+        ],
+        -2,
+    )  # fmt: skip
+    k = np.argmax(np.stack([tr, R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]], -1), axis=-1)
+    q = np.take_along_axis(c, k[..., None, None], axis=-2)[..., 0, :]
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., :1] < 0, -q, q)
+
+
+def rotmat_np(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices `(..., 3, 3)` of quaternions `(..., 4)` (w, x, y, z), body -> fixed
+    (NumPy twin of `rotmat`)."""
+    q = np.asarray(q, float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )

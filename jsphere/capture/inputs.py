@@ -1,0 +1,55 @@
+"""Inputs tables: the wheel speeds or torques that drove a capture, in a CSV of their own."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .._runtime.files import atomic_write_text
+from .text import _check_times, _cut_short, _data_end, _input_columns, _numbers, _read_lines, check_unique_columns, separator_hint
+from .validation import INPUT_PREFIX, KINDS
+
+
+def read_inputs_csv(path, *, allow_truncated: bool = False) -> tuple[np.ndarray, np.ndarray, str, list[str]]:
+    """Read an inputs table: columns `t` [s] and `chi_dot_1..N` [rad/s] or `K_1..N` [N m] (lines
+    starting with `#` before the header are comments). Returns `(t, values, kind, names)`.
+    Blank cells, NaN and non-increasing times are errors naming the line. A last row with fewer
+    cells than the header (a file cut off mid-row) is an `InputError` naming both counts; with
+    `allow_truncated=True` it is a `CaptureWarning` and the row is dropped."""
+    path, rows = _read_lines(path)
+    source = str(path)
+    k = 0
+    while k < len(rows) and (not rows[k] or rows[k][0].lstrip().startswith("#") or not any(c.strip() for c in rows[k])):
+        k += 1
+    if k == len(rows):
+        raise ValueError(f"{source}: no header line; the inputs table needs columns t and chi_dot_1..N or K_1..N.")
+    header = [h.strip() for h in rows[k]]
+    if "t" not in header:
+        raise ValueError(f"{source}, line {k + 1}: missing required column t (time [s]){separator_hint(rows[k])}.")
+    kind, in_cols = _input_columns(header, f"{source}, line {k + 1}")
+    names = [header[j] for j in in_cols]
+    check_unique_columns(header, f"{source}, line {k + 1}", ["t", *names])
+    end = _cut_short(rows, k + 1, _data_end(rows, k + 1), len(header), source, allow_truncated, noun="rows")
+    data, lines = _numbers(rows[:end], k + 1, [header.index("t")] + in_cols, source, ["t"] + names)
+    if data.shape[0] < 2:
+        raise ValueError(f"{source}: the inputs table needs at least 2 rows.")
+    _check_times(data[:, 0], lines, source)
+    bad = np.argwhere(~np.isfinite(data[:, 1:]))
+    if bad.size:
+        i, c = int(bad[0, 0]), int(bad[0, 1])
+        raise ValueError(f"{source}, line {lines[i]}: input column {names[c]} is blank or not finite; inputs may not have gaps.")
+    return data[:, 0], data[:, 1:], kind, names
+
+
+def write_inputs_csv(path, t: np.ndarray, values: np.ndarray, kind: str) -> None:
+    """Write an inputs table (see `read_inputs_csv`) atomically."""
+    if kind not in KINDS:
+        raise ValueError(f"write_inputs_csv: kind must be one of {KINDS}; got {kind!r}.")
+    values = np.asarray(values, float).reshape(len(t), -1)
+    cols = ["t"] + [f"{INPUT_PREFIX[kind]}{i + 1}" for i in range(values.shape[1])]
+    lines = [",".join(cols)] + [",".join([f"{tt:.6f}"] + [f"{v + 0.0:.10g}" for v in row]) for tt, row in zip(t, values)]
+    atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def interpolate_inputs(t_in: np.ndarray, values: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Inputs at times `t`, linearly interpolated from the table `(t_in, values)` (`(T, N)`)."""
+    return np.stack([np.interp(t, t_in, values[:, i]) for i in range(values.shape[1])], axis=1)

@@ -1,0 +1,242 @@
+"""Markers -> pose -> trial: rigid-body poses from markers and the `Trial` of a raw export.
+
+Pipeline: a reader (`read_motive_csv`, `read_vicon_csv`, `read_c3d`) parses a raw export into
+`MarkerData` (times, marker trajectories in metres in jsphere's Z-up fixed frame, gaps as NaN),
+`rigid_body_pose` turns the markers of each frame into the platform pose (Kabsch/Umeyama
+without scale, with the reflection fix), and `markers_to_trial` adds the inputs (a separate
+table, `read_inputs_csv`) to make a `Trial`. `docs/capture.md` explains every convention:
+
+- `body_markers` `(K, 3)`: the markers' coordinates in the *body frame* [m]. Default: taken
+  from the first frame in which every marker is seen, centred on their centroid, with the body
+  frame's axes equal to the fixed axes at that frame.
+- `alignment` `(3, 3)`: platform -> body-frame rotation (default identity), so the platform's
+  rotation is `R_platform = R_body @ alignment`. With body markers given in the platform frame,
+  leave it at the identity.
+- `body_offset` `(3,)`: the shell centre in the platform frame relative to the body-frame
+  origin [m] (default 0): `r_centre = p_body + R_platform @ body_offset`.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from .._runtime.errors import InputError
+from ..model.rotations import quat_from_rotmat_np, rotmat_np
+from .body import _match_body_markers, estimate_body_markers
+from .inputs import interpolate_inputs, read_inputs_csv
+from .markers import MarkerData
+from .trial import Trial
+from .validation import CaptureWarning, _checked, sign_continuous, warn_implausible
+
+#: smallest second singular value of the centred present markers [m] for a pose (not collinear)
+MIN_SPREAD = 1e-3
+
+
+# --------------------------------------------------------------------------- poses from markers
+
+
+def rigid_body_pose(
+    markers: np.ndarray, body_markers: np.ndarray, *, max_rms: float = np.inf
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rigid motion that best maps `body_markers` onto each frame's markers.
+
+    For each frame, over the markers present (finite), finds the rotation `R` and translation
+    `p` minimising `sum_k |R b_k + p - m_k|^2` (Kabsch/Umeyama without scale: SVD of the
+    cross-covariance, with the determinant fixed to +1 so that a reflection is never returned).
+
+    **Arguments:**
+    - `markers`: `(M, K, 3)` marker positions [m], NaN where missing.
+    - `body_markers`: `(K, 3)` marker coordinates in the body frame [m].
+    - `max_rms`: frames whose RMS fit residual exceeds this [m] (e.g. a swapped marker) are gaps.
+
+    **Returns:** `(q, p, rms)`: `(M, 4)` quaternions (w, x, y, z) body -> fixed, sign-continuous;
+    `(M, 3)` positions of the body-frame origin; `(M,)` RMS residuals [m]. Frames with fewer
+    than 3 markers, or markers (nearly) collinear (second singular value of the centred body
+    markers below `MIN_SPREAD`), or a residual above `max_rms`, are NaN (gaps).
+    """
+    m = np.asarray(markers, float)
+    b = np.asarray(body_markers, float)
+    if m.ndim != 3 or m.shape[2] != 3 or b.shape != (m.shape[1], 3):
+        raise ValueError(f"rigid_body_pose: markers must be (M, K, 3) and body_markers (K, 3); got {m.shape} and {b.shape}.")
+    if not np.all(np.isfinite(b)):
+        raise ValueError("rigid_body_pose: body_markers must be finite.")
+    w = np.all(np.isfinite(m), axis=2).astype(float)  # (M, K)
+    n = w.sum(1)
+    mz = np.where(w[..., None] > 0, m, 0.0)
+    nn = np.maximum(n, 1.0)[:, None]
+    mc = (w[..., None] * mz).sum(1) / nn  # (M, 3) centroid of present markers
+    bc = (w[..., None] * b[None]).sum(1) / nn  # (M, 3) centroid of their body coordinates
+    db = w[..., None] * (b[None] - bc[:, None])  # (M, K, 3), zero where missing
+    dm = w[..., None] * (mz - mc[:, None])
+    H = np.einsum("mki,mkj->mij", db, dm)  # sum_k b_k m_k^T
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)))
+    d = np.where(d == 0, 1.0, d)
+    D = np.zeros((m.shape[0], 3, 3))
+    D[:, 0, 0] = D[:, 1, 1] = 1.0
+    D[:, 2, 2] = d
+    R = np.swapaxes(Vt, 1, 2) @ D @ np.swapaxes(U, 1, 2)
+    p = mc - np.einsum("mij,mj->mi", R, bc)
+    fit = np.einsum("mij,kj->mki", R, b) + p[:, None]
+    res2 = np.where(w > 0, np.sum((fit - mz) ** 2, axis=2), 0.0)
+    rms = np.sqrt(res2.sum(1) / nn[:, 0])
+    spread = np.linalg.svd(db, compute_uv=False)[:, 1]
+    ok = (n >= 3) & (spread >= MIN_SPREAD) & (rms <= max_rms)
+    q = quat_from_rotmat_np(R)
+    q[~ok], p[~ok], rms[~ok] = np.nan, np.nan, np.nan
+    return sign_continuous(q), p, rms
+
+# --------------------------------------------------------------------------- markers -> trial
+
+
+def markers_to_trial(
+    data: MarkerData,
+    inputs,
+    *,
+    body_markers: np.ndarray | dict[str, np.ndarray] | None = None,
+    alignment: np.ndarray | None = None,
+    body_offset=(0.0, 0.0, 0.0),
+    max_rms: float = 0.005,
+    time_offset: float = 0.0,
+    name: str | None = None,
+    max_gap_fraction: float = 0.5,
+    allow_truncated: bool = False,
+) -> Trial:
+    """A `Trial` from raw marker data and an inputs table.
+
+    **Arguments:**
+    - `data`: from `read_motive_csv`, `read_vicon_csv` or `read_c3d`.
+    - `inputs`: the path of an inputs table (`read_inputs_csv`) or a tuple `(t, values, kind)`.
+      The inputs are interpolated linearly to the capture times; capture frames outside the
+      table's time range are dropped (the two must share a clock: `t_trial = t_capture +
+      time_offset`).
+    - `body_markers`, `alignment`, `body_offset`: see the module docstring. `body_markers` may
+      be a `(K, 3)` array in the order of `data.names`, or a dict `{name: (x, y, z)}` (e.g. from
+      `read_body_markers`), matched by full name or by the part after `Subject:`; markers of
+      the export not in the dict are ignored. If the data carry
+      the exporter's rigid-body pose (`rb_q`), it is used instead of the markers, as the body
+      frame.
+    - `max_rms`: frames whose marker fit has an RMS residual above this [m] are gaps.
+    - `allow_truncated`: passed to `read_inputs_csv`.
+
+    Given body markers whose distances from each other disagree with the export's (by more than
+    10%: markers in millimetres, or of another robot) are an `InputError`. The trial is checked
+    for plausibility (`jsphere.capture.trial.implausible`: speeds, turn rates, time units), each
+    finding a `CaptureWarning`.
+    """
+    source = data.source
+    off = np.asarray(body_offset, float)
+    if off.size != 3 or not np.all(np.isfinite(off)):
+        raise InputError(f"{source}: body_offset must be 3 finite numbers (x, y, z in the platform frame, m); got {body_offset!r}.")
+    if not math.isfinite(time_offset):
+        raise InputError(f"{source}: time_offset must be a finite number of seconds; got {time_offset!r}.")
+    if not max_rms > 0:  # NaN too
+        raise InputError(f"{source}: max_rms must be positive (metres); got {max_rms!r}.")
+    if isinstance(inputs, (str, Path)):
+        t_in, u_in, kind, _ = read_inputs_csv(inputs, allow_truncated=allow_truncated)
+    else:
+        t_in, u_in, kind = inputs
+        t_in, u_in = np.asarray(t_in, float), np.asarray(u_in, float).reshape(len(t_in), -1)
+    A = np.eye(3) if alignment is None else np.asarray(alignment, float)
+    if A.shape != (3, 3) or not np.allclose(A @ A.T, np.eye(3), atol=1e-6) or np.linalg.det(A) < 0:
+        raise ValueError(f"{source}: alignment must be a 3x3 rotation matrix (platform -> body frame).")
+    q_body, p_body = (data.rb_q, data.rb_p) if data.rb_q is not None else _body_pose(data, body_markers, max_rms)
+    q, centre = _platform_pose(q_body, p_body, A, off.reshape(3))
+    t = data.t + time_offset
+    keep = _overlap(t, t_in, source)
+    u = interpolate_inputs(t_in, u_in, t[keep])
+    lines = None if data.lines is None else data.lines[keep]
+    tt, x, y, qq, uu, z = _checked(
+        t[keep], centre[keep, 0], centre[keep, 1], q[keep], u, kind, centre[keep, 2], source=source, lines=lines,
+        max_gap_fraction=max_gap_fraction,
+    )  # fmt: skip
+    warn_implausible(
+        tt, x, y, qq, source, z, from_markers=True, units_hint="pass units='mm' (--units mm)",
+        up_hint="is the export's up axis right? (up_axis / --up-axis: 'y' is Motive's default, 'z' Vicon's and C3D's)",
+    )  # fmt: skip
+    return Trial(tt, x, y, qq, uu, kind, z, name=name or Path(source).stem)
+
+
+def _body_pose(data: MarkerData, body_markers, max_rms: float) -> tuple[np.ndarray, np.ndarray]:
+    """The body frame's pose `(q (M, 4), p (M, 3))` from the markers (`rigid_body_pose`), with
+    the body markers given, matched by name or estimated."""
+    source = data.source
+    if len(data.names) < 3:
+        raise ValueError(f"{source}: {len(data.names)} marker(s) {list(data.names)}; a pose needs at least 3 markers.")
+    if body_markers is None:
+        body_markers, _ = estimate_body_markers(data.markers, source)
+    elif isinstance(body_markers, dict):
+        body_markers = _match_body_markers(body_markers, data.names, source)
+    body_markers = np.asarray(body_markers, float)
+    if body_markers.shape != (len(data.names), 3):
+        raise ValueError(f"{source}: body_markers must be ({len(data.names)}, 3), one row per marker {list(data.names)}.")
+    known = np.all(np.isfinite(body_markers), axis=1)  # markers left out of a body_markers dict
+    _check_body_scale(data.markers[:, known], body_markers[known], source)
+    q_body, p_body, _ = rigid_body_pose(data.markers[:, known], body_markers[known], max_rms=max_rms)
+    return q_body, p_body
+
+
+def _platform_pose(q_body: np.ndarray, p_body: np.ndarray, A: np.ndarray, off: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The platform's orientation `q (M, 4)` (NaN where the body's is) and the shell centre
+    `(M, 3)`: `R_platform = R_body A`, `r_centre = p_body + R_platform off`."""
+    R_body = rotmat_np(np.where(np.isfinite(q_body), q_body, 1.0))
+    R = R_body @ A  # platform -> fixed
+    centre = p_body + np.einsum("mij,j->mi", R, off)
+    q = quat_from_rotmat_np(R)
+    q[~np.all(np.isfinite(q_body), axis=1)] = np.nan
+    return q, centre
+
+
+def _overlap(t: np.ndarray, t_in: np.ndarray, source: str) -> np.ndarray:
+    """The capture frames within the inputs table's time range (`(M,)` bool); a `CaptureWarning`
+    where the table's times look like milliseconds."""
+    keep = (t >= t_in[0] - 1e-9) & (t <= t_in[-1] + 1e-9)
+    if not np.any(keep):
+        raise ValueError(
+            f"{source}: the capture times [{t[0]:g}, {t[-1]:g}] s do not overlap the inputs' [{t_in[0]:g}, {t_in[-1]:g}] s; "
+            "the two must share a clock (use time_offset)."
+        )
+    span_in, span = float(t_in[-1] - t_in[0]), float(t[keep][-1] - t[keep][0])
+    if span_in >= 100.0 * max(span, 1e-9) and float(np.median(np.diff(t_in))) >= 100.0 * float(np.median(np.diff(t))):
+        warnings.warn(
+            f"{source}: the inputs table spans {span_in:g} s with steps of {float(np.median(np.diff(t_in))):g} s, the capture "
+            f"{span:g} s with steps of {float(np.median(np.diff(t))):g} s: are the inputs' times in milliseconds? Give them in "
+            "seconds.",
+            CaptureWarning, stacklevel=3,
+        )  # fmt: skip
+    return keep
+
+
+def _check_body_scale(markers: np.ndarray, body: np.ndarray, source: str) -> None:
+    """Raise `InputError` if the distances between the body markers differ from those between
+    the export's markers by more than 10% (median over marker pairs of the ratio of the body's
+    distance to the export's median over frames): body markers in millimetres, or another
+    marker set, would give no pose at all ("too few valid frames")."""
+    K = body.shape[0]
+    i, j = np.triu_indices(K, 1)
+    d_data = np.linalg.norm(markers[:, i] - markers[:, j], axis=2)  # (M, pairs), NaN where missing
+    seen = np.sum(np.isfinite(d_data), axis=0) > 0
+    if not np.any(seen):
+        return
+    d_data = np.nanmedian(d_data[:, seen], axis=0)
+    d_body = np.linalg.norm(body[i] - body[j], axis=1)[seen]
+    ok = d_data > 0
+    if not np.any(ok):
+        return
+    ratio = float(np.median(d_body[ok] / d_data[ok]))
+    if abs(ratio - 1.0) <= 0.1:
+        return
+    hint = (
+        "the body markers look like millimetres: give them in metres (or add '# units: mm' to their file)"
+        if 500.0 <= ratio <= 2000.0
+        else "the body markers look like metres while the export is read in millimetres" if 5e-4 <= ratio <= 2e-3
+        else "check that they belong to this marker set, and their units (metres)"
+    )  # fmt: skip
+    raise InputError(
+        f"{source}: the body markers are {ratio:.4g} times as far apart as the markers in the export (median over "
+        f"marker pairs); {hint}."
+    )

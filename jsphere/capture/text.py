@@ -1,0 +1,188 @@
+"""Reading capture text files: encodings, CSV rows, numeric cells, input columns and exports cut
+short, shared by the trial, inputs, body-marker and raw-export readers."""
+
+from __future__ import annotations
+
+import codecs
+import csv
+import io
+import math
+import re
+import warnings
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from .._runtime.errors import InputError
+from .validation import INPUT_PREFIX, CaptureWarning, _check_increasing
+
+
+def read_text(path) -> str:
+    """The text of a CSV file, for the readers of trials, inputs tables, body markers and raw
+    exports.
+
+    UTF-8 is read with or without a byte-order mark (spreadsheets save "CSV UTF-8" with one),
+    and UTF-16 with its byte-order mark (a spreadsheet's "Unicode text"). Any other encoding is
+    an `InputError` naming the file, the line and the byte (Latin-1 / Windows-1252 text cannot
+    be told from other code pages, so it is not guessed), and so is a binary file (a NUL byte:
+    a C3D or a spreadsheet's own format given as CSV).
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path} does not exist.")
+    raw = path.read_bytes()
+    if raw.startswith((codecs.BOM_UTF16_LE, codecs.BOM_UTF16_BE)):
+        try:
+            return raw.decode("utf-16")
+        except UnicodeDecodeError as e:
+            raise InputError(f"{path}: starts like UTF-16 text but does not decode as UTF-16 ({e.reason}); save it as UTF-8 CSV.") from None
+    if b"\x00" in raw:
+        line = raw.count(b"\n", 0, raw.index(b"\x00")) + 1
+        c3d = len(raw) >= 512 and raw[1] == 0x50
+        raise InputError(
+            f"{path}, line {line}: a binary file, not CSV text (it holds a NUL byte)"
+            + ("; it looks like a C3D file: read it with jsphere convert --format c3d (read_c3d)." if c3d else "; give the CSV export of the data.")
+        )
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        line = raw.count(b"\n", 0, e.start) + 1
+        raise InputError(
+            f"{path}, line {line}: not UTF-8 text (byte 0x{raw[e.start]:02x} at byte {e.start}: {e.reason}); the file "
+            "is in another encoding, e.g. Latin-1 or Windows-1252: save it as UTF-8 (in a spreadsheet: 'CSV UTF-8')."
+        ) from None
+
+
+def separator_hint(header: Sequence[str]) -> str:
+    """`"; ..."` advice when a header row read as CSV is one cell holding `;` or a tab (a
+    spreadsheet that saved with another separator), else `""`."""
+    cells = [c for c in header if c.strip()]
+    for sep, name in ((";", "semicolons"), ("\t", "tabs")):
+        if len(cells) == 1 and sep in cells[0]:
+            return (
+                f"; the columns are separated by {name}, not commas (a spreadsheet's regional setting): save it as CSV "
+                "with commas between the columns and points as decimal marks"
+            )
+    return ""
+
+
+def check_unique_columns(header: Sequence[str], source: str, wanted: Iterable[str]) -> None:
+    """Raise `InputError` if one of the `wanted` columns appears twice in `header` (which one
+    would be read is a guess)."""
+    for name in wanted:
+        where = [j + 1 for j, h in enumerate(header) if h == name]
+        if len(where) > 1:
+            raise InputError(f"{source}: column {name!r} appears {len(where)} times (columns {where}); keep one.")
+
+
+def csv_rows(text: str, source: str) -> list[list[str]]:
+    """`text` split into CSV rows (`csv.reader`); a malformed file is an `InputError` naming it."""
+    try:
+        return list(csv.reader(io.StringIO(text, newline="")))
+    except csv.Error as e:
+        raise InputError(f"{source}: not a readable CSV file ({e}).") from None
+
+
+def _input_columns(header: list[str], source: str) -> tuple[str, list[int]]:
+    """The kind and the column indices of `chi_dot_1..N` or `K_1..N`, in wheel order."""
+    found = {}
+    for kind, prefix in INPUT_PREFIX.items():
+        pat = re.compile(rf"^{re.escape(prefix)}(\d+)$")
+        cols = {int(m.group(1)): j for j, h in enumerate(header) if (m := pat.match(h))}
+        if cols:
+            found[kind] = cols
+    if len(found) == 2:
+        raise ValueError(
+            f"{source}: both chi_dot_* and K_* columns are present; a trial holds one kind of input "
+            "(wheel speeds or torques): keep one set of columns."
+        )
+    if not found:
+        raise ValueError(
+            f"{source}: no input columns; add chi_dot_1..chi_dot_N (wheel speeds, rad/s) or K_1..K_N (torques, N m). "
+            f"Header: {header}"
+        )
+    kind, cols = next(iter(found.items()))
+    n = max(cols)
+    missing = [i for i in range(1, n + 1) if i not in cols]
+    if missing:
+        prefix = INPUT_PREFIX[kind]
+        raise ValueError(
+            f"{source}: wheel columns must be numbered 1..N without gaps; missing {', '.join(f'{prefix}{i}' for i in missing)} "
+            f"(found {', '.join(f'{prefix}{i}' for i in sorted(cols))})."
+        )
+    return kind, [cols[i] for i in range(1, n + 1)]
+
+
+def _parse_cell(cell: str, source: str, line: int, column: str) -> float:
+    s = cell.strip()
+    if s == "":
+        return math.nan
+    try:
+        return float(s)
+    except ValueError:
+        raise ValueError(f"{source}, line {line}, column {column}: {s!r} is not a number.") from None
+
+
+def _read_lines(path) -> tuple[Path, list[list[str]]]:
+    """The CSV rows of a text file (`read_text`: UTF-8 with or without a BOM, or UTF-16)."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"capture file {path} does not exist.")
+    return path, csv_rows(read_text(path), str(path))
+
+
+def _data_end(rows, start: int, end: int | None = None) -> int:
+    """The end of the data rows `rows[start:end]` without the trailing empty rows."""
+    end = len(rows) if end is None else end
+    while end > start and not any(c.strip() for c in rows[end - 1]):
+        end -= 1
+    return end
+
+
+def _cut_short(
+    rows, start: int, end: int, ncols: int, source: str, allow: bool, *, declared: int | None = None, field: str = "",
+    noun: str = "frames",
+) -> int:  # fmt: skip
+    """Check the data rows `rows[start:end]` of an export for a file that was cut short: a last
+    row with fewer cells than the header row (`ncols`: the copy or the export broke off
+    mid-row), or fewer rows than the header declares (`declared`, from its `field`). Raises an
+    `InputError` naming the file and both counts; with `allow`, issues a `CaptureWarning`
+    instead. Returns the end of the complete rows (the cut row is dropped)."""
+    cut_row = end > start and len(rows[end - 1]) < ncols
+    n = end - start - int(cut_row)
+    parts = []
+    if declared is not None and n < declared:
+        parts.append(f"the header declares {declared} {noun} ({field}) but the file holds {n}")
+    if cut_row:
+        parts.append(f"its last row (line {end}) has {len(rows[end - 1])} of {ncols} cells, cut off mid-row")
+    if not parts:
+        return end
+    what = "; ".join(parts)
+    if not allow:
+        raise InputError(
+            f"{source}: the file is cut short: {what} (the copy or the export broke off). Export or copy it again, or "
+            f"pass --allow-truncated (allow_truncated=True) to use the {n} complete {noun}."
+        )
+    warnings.warn(f"{source}: the file is cut short: {what}; using the {n} complete {noun}.", CaptureWarning, stacklevel=3)
+    return end - int(cut_row)
+
+
+def _numbers(rows, start: int, cols: list[int], source: str, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Parse `rows[start:]` at `cols` into floats (blank -> NaN); trailing empty rows dropped.
+    Returns `(data, lines)` with 1-based file lines."""
+    body = rows[start : _data_end(rows, start)]
+    data = np.full((len(body), len(cols)), np.nan)
+    lines = np.arange(len(body)) + start + 1
+    for i, row in enumerate(body):
+        for jj, j in enumerate(cols):
+            if j < len(row):
+                data[i, jj] = _parse_cell(row[j], source, int(lines[i]), names[jj])
+    return data, lines
+
+
+def _check_times(t: np.ndarray, lines: np.ndarray, source: str) -> None:
+    bad = np.nonzero(~np.isfinite(t))[0]
+    if bad.size:
+        raise ValueError(f"{source}, line {lines[bad[0]]}: the time (or frame number) is blank; every row needs one.")
+    _check_increasing(t, source, lines)

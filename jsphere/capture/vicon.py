@@ -1,0 +1,102 @@
+"""Vicon Nexus "Trajectories" CSV exports: the reader (`read_vicon_csv`) and a writer for tests and
+examples."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .._runtime.errors import InputError
+from .._runtime.files import atomic_write_text
+from .markers import UP_TO_Z, MarkerData, _scale, detect_marker_units
+from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, separator_hint
+
+
+def read_vicon_csv(
+    path, *, subject: str | None = None, units: str = "auto", up_axis: str = "z", allow_truncated: bool = False
+) -> MarkerData:
+    """Read a Vicon Nexus "Trajectories" CSV export.
+
+    Layout (e.g. https://ccu.uni-konstanz.de/wiki/ , Vicon Nexus reference guide): a line
+    `Trajectories`, the frame rate [Hz], a row with each marker's name `Subject:Marker` in the
+    column of its X, then `Frame,Sub Frame,X,Y,Z,...`, a units row (`mm`), then one row per
+    frame, up to a blank line (other sections, e.g. `Devices`, may come before or after). Blank
+    cells are gaps. Time is `(Frame - first Frame) / rate` [s] (`Sub Frame` is 0
+    in trajectory exports; other values are an error).
+
+    `subject` keeps the markers named `"<subject>:..."` (default: all). `units`: `"auto"` (the
+    units row), `"m"` or `"mm"`. `up_axis`: Vicon is Z-up by default. A file cut short (the
+    section runs to the end of the file and its last row has fewer cells than the header) is an
+    `InputError` naming both counts; `allow_truncated=True` makes it a `CaptureWarning` and
+    drops that row.
+    """
+    path, rows = _read_lines(path)
+    source = str(path)
+    if up_axis not in UP_TO_Z:
+        raise ValueError(f"{source}: up_axis must be 'y' or 'z'; got {up_axis!r}.")
+    i0 = next((i for i, r in enumerate(rows) if r and r[0].strip() == "Trajectories"), None)
+    if i0 is None:
+        hint = next((separator_hint(r[:1]) for r in rows if r and r[0].strip().startswith("Trajectories")), "")
+        raise ValueError(f"{source}: no 'Trajectories' section; export the marker trajectories from Nexus as CSV{hint}.")
+    try:
+        rate = float(rows[i0 + 1][0])
+    except (IndexError, ValueError):
+        raise ValueError(f"{source}, line {i0 + 2}: expected the frame rate [Hz] after 'Trajectories'.") from None
+    if not rate > 0:
+        raise ValueError(f"{source}, line {i0 + 2}: the frame rate must be positive; got {rate}.")
+    names, hdr = rows[i0 + 2], rows[i0 + 3]
+    if len(hdr) < 2 or hdr[0].strip() != "Frame" or hdr[1].strip() != "Sub Frame":
+        raise ValueError(f"{source}, line {i0 + 4}: expected 'Frame,Sub Frame,X,Y,Z,...'{separator_hint(hdr[:1])}.")
+    unit_row = rows[i0 + 4] if len(rows) > i0 + 4 else []
+    found_units = {c.strip() for c in unit_row[2:] if c.strip()}
+    if not found_units <= {"mm", "m"} or len(found_units) > 1:
+        raise ValueError(f"{source}, line {i0 + 5}: units row {sorted(found_units)} not understood; expected mm or m.")
+    file_units = found_units.pop() if found_units else None
+    mk = []
+    for j in range(2, len(hdr) - 2):
+        nm = names[j].strip() if j < len(names) else ""
+        if nm and hdr[j].strip() == "X" and (subject is None or nm.split(":")[0] == subject):
+            mk.append((nm, j))
+    if not mk:
+        raise ValueError(f"{source}, line {i0 + 3}: no marker trajectories" + (f" of subject {subject!r}." if subject else "."))
+    cols = [0, 1] + [j + a for _, j in mk for a in range(3)]
+    colnames = ["Frame", "Sub Frame"] + [f"{n} {a}" for n, _ in mk for a in "XYZ"]
+    end = next((i for i in range(i0 + 5, len(rows)) if not any(c.strip() for c in rows[i])), len(rows))
+    if _data_end(rows, end) == end:  # the section runs to the end of the file: it may have been cut off
+        end = _cut_short(rows, i0 + 5, end, len(hdr), source, allow_truncated)
+    data, lines = _numbers(rows[:end], i0 + 5, cols, source, colnames)  # the section ends at a blank line
+    if data.shape[0] == 0:
+        raise InputError(f"{source}: no data rows after the units row (line {i0 + 5}).")
+    sub = np.nonzero(np.nan_to_num(data[:, 1]) != 0)[0]
+    if sub.size:
+        raise ValueError(f"{source}, line {lines[sub[0]]}: Sub Frame is not 0; export the trajectories at the camera rate.")
+    t = (data[:, 0] - data[0, 0]) / rate
+    _check_times(t, lines, source)
+    raw = data[:, 2:].reshape(len(t), len(mk), 3)
+    scale = _scale(units, file_units, detect_marker_units(raw), source)
+    markers = np.einsum("ij,mkj->mki", UP_TO_Z[up_axis], raw) * scale
+    return MarkerData(t, markers, tuple(n for n, _ in mk), source, lines)
+
+
+def _cells(v: np.ndarray, fmt: str) -> list[str]:
+    return ["" if not np.isfinite(x) else format(x + 0.0, fmt) for x in v]
+
+
+def write_vicon_csv(path, t, markers, names, *, subject: str = "robot", units: str = "mm") -> None:
+    """Write markers `(M, K, 3)` [m] as a Vicon Nexus-style Trajectories CSV (frame numbers from
+    1 at the rate `1 / median(diff(t))`; blank cells for gaps), for tests and examples."""
+    rate = 1.0 / float(np.median(np.diff(t)))
+    s = 1.0 if units == "m" else 1000.0
+    raw = np.asarray(markers, float) * s
+    K = raw.shape[1]
+    lines = [
+        "Trajectories",
+        f"{rate:g}",
+        ",," + ",".join(f"{subject}:{n},," for n in names).rstrip(","),
+        "Frame,Sub Frame," + ",".join(["X", "Y", "Z"] * K),
+        ",," + ",".join([units] * 3 * K),
+    ]
+    fmt = ".6f" if units == "m" else ".3f"
+    for i in range(raw.shape[0]):
+        frame = round(float(t[i] - t[0]) * rate) + 1
+        lines.append(",".join([str(frame), "0"] + _cells(raw[i].reshape(-1), fmt)))
+    atomic_write_text(path, "\n".join(lines) + "\n")

@@ -1,0 +1,135 @@
+"""The trials as the fit sees them: packed into arrays of a common length, and the per-trial
+nuisance parameters (the initial state the capture does not give)."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._runtime.errors import InputError
+from ..capture.validation import KINDS
+from ..model.params import RobotParams
+
+#: nuisance parameters per trial, in order
+NUISANCE = {
+    "wheel_speeds": ("Omega0_x", "Omega0_y", "Omega0_z", "rot0_x", "rot0_y", "rot0_z", "x0", "y0"),
+    "torques": ("Omega0_x", "Omega0_y", "Omega0_z", "rot0_x", "rot0_y", "rot0_z", "x0", "y0", "omega0_x", "omega0_y", "omega0_z"),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class FitData:
+    """Trials packed into arrays of a common length `M` (padded samples are masked).
+
+    `ts (T, M)`: capture times from 0 (padded with the last time); `tc (T, M)`: control knot
+    times (padded beyond the end, values held); `u (T, M, N)`: inputs; `t1 (T,)`: durations;
+    `x, y (T, M)`, `q (T, M, 4)`: measurements (0 / identity at gaps); `wpos, wrot (T, M)`:
+    1.0 where the position / orientation was measured; `xy0 (T, 2)`, `q0 (T, 4)`: the first
+    measured pose of each trial.
+    """
+
+    ts: np.ndarray
+    tc: np.ndarray
+    u: np.ndarray
+    t1: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    q: np.ndarray
+    wpos: np.ndarray
+    wrot: np.ndarray
+    xy0: np.ndarray
+    q0: np.ndarray
+    kind: str
+    names: tuple[str, ...]
+    lengths: tuple[int, ...]
+    t_start: tuple[float, ...]
+
+    def arrays(self) -> dict[str, jax.Array]:
+        return {k: jnp.asarray(getattr(self, k)) for k in ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0")}
+
+    def fingerprint(self) -> str:
+        h = hashlib.sha256(self.kind.encode())
+        for k in ("ts", "u", "x", "y", "q", "wpos", "wrot"):
+            h.update(np.ascontiguousarray(getattr(self, k)).tobytes())
+        return h.hexdigest()
+
+
+def pack_trials(trials: Sequence, params: RobotParams) -> FitData:
+    """Check the trials against `params` and pack them (see `FitData`).
+
+    A trial needs `t (M,)`, `x, y (M,)` [m] (NaN at gaps), `q (M, 4)` (platform -> fixed,
+    NaN rows at gaps), `inputs (M, N)`, `kind` and `name` (the `Trial` of `jsphere.capture.trial`).
+    """
+    trials = list(trials)
+    if not trials:
+        raise InputError("fit: no trials given.")
+    kinds = {getattr(t, "kind", None) for t in trials}
+    if len(kinds) != 1 or next(iter(kinds)) not in KINDS:
+        raise InputError(f"fit: all trials must have the same input kind, one of {KINDS}; got {sorted(map(str, kinds))}.")
+    kind = next(iter(kinds))
+    N = params.n_wheels
+    M = max(len(np.asarray(t.t)) for t in trials)
+    out = {k: [] for k in ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0")}
+    names, lengths, starts = [], [], []
+    for k, tr in enumerate(trials):
+        name, t, u, x, y, q, vp, vr = _checked_arrays(tr, k, N)
+        m = len(t)
+        qn = np.where(vr[:, None], q, [1.0, 0.0, 0.0, 0.0])
+        qn = qn / np.linalg.norm(qn, axis=1, keepdims=True)
+        t0 = t[0]
+        ts = np.concatenate([t - t0, np.full(M - m, t[-1] - t0)])
+        dt = (t[-1] - t[0]) / (m - 1)
+        tc = np.concatenate([t - t0, t[-1] - t0 + dt * np.arange(1, M - m + 1)])
+
+        def pad(a, v, m=m):
+            return np.concatenate([a, np.broadcast_to(v, (M - m,) + a.shape[1:])])
+
+        out["ts"].append(ts)
+        out["tc"].append(tc)
+        out["u"].append(pad(u, u[-1]))
+        out["t1"].append(t[-1] - t0)
+        out["x"].append(pad(np.where(vp, x, 0.0), 0.0))
+        out["y"].append(pad(np.where(vp, y, 0.0), 0.0))
+        out["q"].append(pad(qn, np.array([1.0, 0.0, 0.0, 0.0])))
+        out["wpos"].append(pad(vp.astype(np.float64), 0.0))
+        out["wrot"].append(pad(vr.astype(np.float64), 0.0))
+        out["xy0"].append(np.array([x[vp][0], y[vp][0]]))
+        out["q0"].append(qn[vr][0])
+        names.append(name)
+        lengths.append(m)
+        starts.append(float(t0))
+    arrs = {k: np.stack(v) for k, v in out.items()}
+    return FitData(**arrs, kind=kind, names=tuple(names), lengths=tuple(lengths), t_start=tuple(starts))
+
+
+def _checked_arrays(tr, k: int, N: int):
+    """The name and float64 arrays `t, inputs, x, y, q` of trial number `k`, and where its
+    position and orientation were measured; `InputError` for a trial the fit cannot use."""
+    name = str(getattr(tr, "name", f"trial{k}"))
+    t = np.asarray(tr.t, np.float64)
+    u = np.asarray(tr.inputs, np.float64)
+    x, y = np.asarray(tr.x, np.float64), np.asarray(tr.y, np.float64)
+    q = np.asarray(tr.q, np.float64)
+    if u.ndim != 2 or u.shape[1] != N:
+        raise InputError(
+            f"fit: trial {name!r} has inputs for {u.shape[-1] if u.ndim == 2 else '?'} wheels (shape {u.shape}) but the robot has {N}; use parameters with the same wheel count."
+        )
+    m = len(t)
+    if m < 4 or u.shape[0] != m or x.shape != (m,) or y.shape != (m,) or q.shape != (m, 4):
+        raise InputError(
+            f"fit: trial {name!r}: t, x, y, q, inputs must have the same number of samples (>= 4); got {m}, {x.shape}, {y.shape}, {q.shape}, {u.shape}."
+        )
+    if not np.all(np.diff(t) > 0):
+        raise InputError(f"fit: trial {name!r}: times must be strictly increasing.")
+    if not np.all(np.isfinite(u)):
+        raise InputError(f"fit: trial {name!r}: the inputs contain NaN or inf.")
+    vp = np.isfinite(x) & np.isfinite(y)
+    vr = np.all(np.isfinite(q), axis=1)
+    if vp.sum() < 2 or vr.sum() < 2:
+        raise InputError(f"fit: trial {name!r} has fewer than 2 measured frames.")
+    return name, t, u, x, y, q, vp, vr

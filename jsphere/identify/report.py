@@ -1,0 +1,257 @@
+"""What a fit returns: `FitResult` (values, standard errors, covariance, identifiability, per-trial
+residuals, the verdict) and its JSON document.
+
+Covariance: `s^2 F^-1` with `F` the Gauss-Newton information of `theta` after eliminating the
+nuisance parameters (`jsphere.identify.lm.marginal_information`), mapped to physical units.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._runtime.files import atomic_write_json
+from ..model.names import parse_name
+from ..model.params import _FIELDS, RobotParams
+from ..model.rotations import quat_conj, quat_log, quat_mul
+from .data import NUISANCE, FitData
+from .free import FreeParams
+from .identifiability import identifiability
+from .lm import marginal_information
+from .verdict import judge, noise_floor
+
+
+@dataclasses.dataclass
+class FitResult:
+    """What `fit` returns. `params`: the fitted `RobotParams` (fixed values included);
+    `free`: the expanded free names; `values`, `stderr`: per free name (physical units), and
+    for a whole field given as free (`"I"`, `"r_m"`) nested lists of the field's shape;
+    `covariance`, `correlation`: of the expanded names (stderr is `inf` along directions the
+    data do not determine); `identifiability`: condition number, poorly determined directions,
+    warnings; `sigma_pos` [m], `sigma_rot` [rad]: noise levels (estimated unless given);
+    `trials`: per trial its RMS residuals, nuisance values and, under `"series"`, the measured
+    and simulated paths (for the plots; not written to JSON); `status`, `status_reason`: the
+    verdict on the fit (`"converged"`, `"not_converged"` or `"misfit"`, and one sentence: see
+    `jsphere.identify.verdict`), `verdict`: the numbers behind it (the capture's noise floor, the
+    residual sigmas and their ratios to it, their lag-1 autocorrelations, per trial, the worst
+    trial's name)."""
+
+    params: RobotParams
+    free: list[str]
+    given: list[tuple[str, list[str]]]
+    values: dict[str, Any]
+    stderr: dict[str, Any]
+    covariance: np.ndarray
+    correlation: np.ndarray
+    cost: float
+    iterations: int
+    converged: bool
+    sigma_pos: float
+    sigma_rot: float
+    n_residuals: int
+    identifiability: dict[str, Any]
+    trials: list[dict[str, Any]]
+    starts: list[float]
+    kind: str
+    elapsed_s: float
+    status: str = ""
+    status_reason: str = ""
+    verdict: dict[str, Any] = dataclasses.field(default_factory=dict)
+    shooting: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON document (`RobotParams.load` reads its `params`)."""
+        fin = lambda v: _finite(v)
+        return {
+            "params": self.params.to_dict(),
+            "free": list(self.free),
+            "values": fin(self.values),
+            "stderr": fin(self.stderr),
+            "correlation": fin(np.asarray(self.correlation).tolist()),
+            "cost": self.cost,
+            "iterations": self.iterations,
+            "converged": self.converged,
+            "status": self.status,
+            "status_reason": self.status_reason,
+            "sigma_pos_m": self.sigma_pos,
+            "sigma_rot_deg": math.degrees(self.sigma_rot),
+            "n_residuals": self.n_residuals,
+            "kind": self.kind,
+            "identifiability": fin(self.identifiability),
+            "verdict": fin(self.verdict),
+            "trials": [{k: fin(v) for k, v in t.items() if k != "series"} for t in self.trials],
+            "rms_pos_m": [t["rms_pos_m"] for t in self.trials],
+            "rms_rot_deg": [t["rms_rot_deg"] for t in self.trials],
+            "starts_cost": fin(self.starts),
+            "elapsed_s": self.elapsed_s,
+            "shooting": fin(self.shooting),
+        }
+
+    def save(self, path, *, plots: bool = True) -> list[Path]:
+        """Write the JSON atomically and, unless `plots=False`, `<stem>_overlay.png` and
+        `<stem>_residuals.png` beside it. Returns the paths written."""
+        path = Path(path)
+        atomic_write_json(path, self.to_json())
+        written = [path]
+        if plots:
+            from ..plots import fit_figures
+
+            written += fit_figures(self, path.parent, stem=path.stem)
+        return written
+
+    def table(self) -> str:
+        """A plain-text summary: value +- stderr per free name, noise levels, warnings, and last
+        the status with its reason."""
+        lines = [f"{'name':<10} {'value':>14} {'stderr':>12} {'rel':>9}"]
+        for n in self.free:
+            v, s = self.values[n], self.stderr[n]
+            rel = abs(s / v) if v else float("inf")
+            lines.append(f"{n:<10} {v:>14.6g} {s:>12.3g} {rel:>9.2%}")
+        lines.append(
+            f"cost {self.cost:.6g} over {self.n_residuals} residuals, {self.iterations} iterations, "
+            f"converged: {self.converged}; sigma_pos {self.sigma_pos * 1e3:.3f} mm, sigma_rot {math.degrees(self.sigma_rot):.3f} deg"
+        )
+        for w in self.identifiability.get("warnings", []):
+            lines.append(f"warning: {w}")
+        if self.status:
+            lines.append(f"status: {self.status}: {self.status_reason}")
+        return "\n".join(lines)
+
+
+def _finite(v):
+    """Replace non-finite floats by None (JSON has no inf/NaN)."""
+    if isinstance(v, dict):
+        return {k: _finite(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_finite(x) for x in v]
+    if isinstance(v, (float, np.floating)):
+        return float(v) if math.isfinite(v) else None
+    if isinstance(v, np.ndarray):
+        return _finite(v.tolist())
+    return v
+
+
+def _assemble_named(free: FreeParams, per_name: dict[str, float], params: RobotParams, fill: float) -> dict[str, Any]:
+    """Add an entry for each whole field given as free (`"I"`: 3x3 nested list), and one per
+    name as given where it differs from its canonical spelling (`"I[1,0]"` is `"I[0,1]"`)."""
+    out = dict(per_name)
+    for given, comps in free.given:
+        field, index = parse_name(given)
+        if index or len(comps) == 1:
+            if given not in out:  # spelled differently from the canonical name (`I[1,0]`, `I[0, 0]`)
+                out[given] = per_name[comps[0]]
+            continue
+        arr = np.full(np.shape(getattr(params, field)), fill)
+        for c in comps:
+            ix = parse_name(c)[1]
+            arr[ix] = per_name[c]
+            if field == "I":
+                arr[ix[::-1]] = per_name[c]
+        out[given] = arr.tolist()
+    return out
+
+
+def fit_result(
+    free: FreeParams, data: FitData, base: RobotParams, pose, theta, nu, res, J, cost, sig, b: int, converged: bool,
+    iterations: int, t_begin: float,
+) -> FitResult:  # fmt: skip
+    """The `FitResult` of start `b` (the best) from the final evaluation of every start: `pose`
+    (simulated `x, y, q`), `res`, `J` and `cost` as `jsphere.identify.residuals` gives them."""
+    P = free.size
+    T = data.ts.shape[0]
+    n_nu = nu.shape[-1]
+    th_b = theta[b]
+    n_res = int(2 * data.wpos.sum() + 3 * data.wrot.sum())
+    dof = max(n_res - P - T * n_nu, 1)
+    s2 = float(2.0 * cost[b] / dof)
+    values, F_phys, cov, se, corr = _covariance(free, th_b, np.asarray(res[b]), J[b], s2)
+    params = free.to_params(jnp.asarray(th_b), base)
+    params = RobotParams(**{f: getattr(params, f) for f in _FIELDS}, dtype=base.R0.dtype)
+    ident = identifiability(free, values, F_phys, s2, params)
+    ident["sigma_note"] = "relative sd of each direction; warnings list directions with relative sd > 10%"
+    trials = _trial_reports(data, pose, nu[b], b)
+    verdict = judge(
+        [t["series"]["pos_err"] for t in trials], [np.radians(t["series"]["rot_err_deg"]) for t in trials], noise_floor(data),
+        names=data.names, converged=bool(converged), n_params=P + T * n_nu,
+        why_not=f"Levenberg-Marquardt reached max_iter in its last stage, {int(iterations)} iterations in all",
+    )  # fmt: skip
+    status, status_reason = verdict.pop("status"), verdict.pop("reason")
+    per_val = {n: float(v) for n, v in zip(free.names, values)}
+    per_se = {n: float(s) for n, s in zip(free.names, se)}
+    return FitResult(
+        params=params, free=list(free.names), given=free.given,
+        values=_assemble_named(free, per_val, params, np.nan), stderr=_assemble_named(free, per_se, params, 0.0),
+        covariance=cov, correlation=corr, cost=float(cost[b]), iterations=int(iterations), converged=bool(converged),
+        sigma_pos=float(sig[0]), sigma_rot=float(sig[1]), n_residuals=n_res, identifiability=ident, trials=trials,
+        starts=[float(c) for c in cost], kind=data.kind, elapsed_s=time.perf_counter() - t_begin,
+        status=status, status_reason=status_reason, verdict=verdict,
+    )  # fmt: skip
+
+
+def _covariance(free: FreeParams, th_b, res_b: np.ndarray, J_b, s2: float):
+    """`(values, F_phys, cov, stderr, corr)` in physical units: the values of the free names, the
+    information of theta with the nuisance parameters eliminated, the covariance `s2 F^-1`
+    (pseudo-inverse on the scaled names; stderr `inf` along directions the data do not
+    determine) and the correlations."""
+    P = free.size
+    F = marginal_information(jnp.asarray(res_b), J_b, P)  # information of theta (whitened)
+    A = np.asarray(jax.jacfwd(free.physical)(jnp.asarray(th_b)))
+    # (pinv: a transform at the edge of its range, e.g. exp(u) -> 0, has a zero derivative; the
+    # name then gets no information, and an infinite standard error)
+    Ainv = np.linalg.pinv(A)
+    F_phys = Ainv.T @ F @ Ainv
+    values = np.asarray(free.physical(jnp.asarray(th_b)))
+    sc = np.maximum(np.abs(values), 0.1 * free.scales())
+    Fs = sc[:, None] * F_phys * sc[None, :]
+    lam, V = np.linalg.eigh(Fs)
+    keep = lam > 1e-14 * max(lam[-1], 1e-300)
+    cov_s = (V[:, keep] / lam[keep]) @ V[:, keep].T * s2
+    cov = sc[:, None] * cov_s * sc[None, :]
+    se = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    null_w = np.abs(V[:, ~keep]).max(1) if (~keep).any() else np.zeros(P)
+    se = np.where(null_w > 1e-6, np.inf, se)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(se, se)
+    corr = np.where(np.isfinite(corr), corr, np.nan)
+    np.fill_diagonal(corr, 1.0)
+    return values, F_phys, cov, se, corr
+
+
+def _trial_reports(data: FitData, pose, nu_b: np.ndarray, b: int) -> list[dict[str, Any]]:
+    """Per trial: RMS residuals, nuisance values and the measured and fitted series (for the
+    plots) of start `b`."""
+    xs, ys, qs = (np.asarray(a[b]) for a in pose)
+    rot_err = np.asarray(quat_log(quat_mul(quat_conj(jnp.asarray(qs)), jnp.asarray(data.q))))
+    names_nu = NUISANCE[data.kind]
+    trials = []
+    for i in range(data.ts.shape[0]):
+        m = data.lengths[i]
+        wp, wr = data.wpos[i, :m] > 0, data.wrot[i, :m] > 0
+        ep = np.stack([xs[i, :m] - data.x[i, :m], ys[i, :m] - data.y[i, :m]], 1)
+        er = rot_err[i, :m]
+        trials.append(
+            {
+                "name": data.names[i],
+                "samples": m,
+                "rms_pos_m": float(np.sqrt((ep[wp] ** 2).sum(1).mean())),
+                "rms_rot_deg": float(np.degrees(np.sqrt((er[wr] ** 2).sum(1).mean()))),
+                "nuisance": {k: float(v) for k, v in zip(names_nu, nu_b[i])},
+                "series": {
+                    "t": data.ts[i, :m] + data.t_start[i],
+                    "x": np.where(wp, data.x[i, :m], np.nan),
+                    "y": np.where(wp, data.y[i, :m], np.nan),
+                    "x_sim": xs[i, :m],
+                    "y_sim": ys[i, :m],
+                    "pos_err": np.where(wp[:, None], ep, np.nan),
+                    "rot_err_deg": np.where(wr[:, None], np.degrees(er), np.nan),
+                },
+            }
+        )
+    return trials

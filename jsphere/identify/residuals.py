@@ -1,0 +1,112 @@
+"""The model of a trial as the fit sees it, and its compiled Jacobians.
+
+The model of a trial is `simulate(params, state0(nu), controls)` sampled at the capture times;
+the residuals are the simulated minus the captured position and orientation, whitened by
+`sigma_pos` [m] and `sigma_rot` [rad]:
+
+    r_pos = (x_sim - x_meas, y_sim - y_meas) / sigma_pos
+    r_rot = Log(q_sim^-1 q_meas) / sigma_rot          (rotation vector, platform frame)
+
+with gap frames masked. In wheel-speed mode `omega(0) = Omega(0) + w(0)` follows from the
+command (2.4), so the impulsive start of `simulate` changes nothing. All trials run in one
+compiled function (vmapped over trials, padded to a common length with masked samples) and all
+starts in the same call (vmapped over starts). The Jacobian of each trial's residuals with
+respect to `(theta, nu_i)` comes from forward-mode autodiff through diffrax (`ForwardMode`): a
+few dozen tangent columns instead of a reverse pass per residual.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import diffrax as dfx
+import jax
+import jax.numpy as jnp
+
+from ..controls import Sampled, Torques, WheelSpeeds
+from ..model.kinematics import relative_rate_from_wheel_speeds
+from ..model.rotations import quat_conj, quat_exp, quat_log, quat_mul
+from ..model.state import State
+from ..solve.simulate import simulate
+from . import shooting as _shooting
+from .free import FreeParams
+from .lm import _lm_step, _solve_arrow
+from .shooting import end_vector
+
+
+def _trial_outputs(free: FreeParams, kind, rtol, atol, max_steps, adjoint, base, theta, nu, d, sig):
+    """Whitened residuals `(5 M,)` of one trial, its solver status, the simulated pose and the
+    state at its last sample (`jsphere.identify.shooting.end_vector`)."""
+    p = free.to_params(theta, base)
+    dt = p.R0.dtype
+    q0 = quat_mul(d["q0"], quat_exp(nu[3:6]))
+    Omega = nu[0:3]
+    table = Sampled(d["tc"], d["u"], "cubic")
+    if kind == "wheel_speeds":
+        controls = WheelSpeeds(table, ())
+        omega = Omega + relative_rate_from_wheel_speeds(p, d["u"][0])
+    else:
+        controls = Torques(table, ())
+        omega = nu[8:11]
+    state0 = State(
+        q=q0, q_shell=jnp.array([1.0, 0.0, 0.0, 0.0], dt), omega=omega, Omega=Omega,
+        x=d["xy0"][0] + nu[6], y=d["xy0"][1] + nu[7], chi=jnp.zeros(p.n_wheels, dt),
+    )  # fmt: skip
+    tr = simulate(p, state0, controls, d["t1"], ts=d["ts"], rtol=rtol, atol=atol, max_steps=max_steps, throw=False, adjoint=adjoint)
+    ex = (tr.x - d["x"]) * d["wpos"] / sig[0]
+    ey = (tr.y - d["y"]) * d["wpos"] / sig[0]
+    er = quat_log(quat_mul(quat_conj(tr.q), d["q"])) * d["wrot"][:, None] / sig[1]
+    res = jnp.concatenate([ex, ey, er.reshape(-1)])
+    end = end_vector(tr)
+    ok = tr.ok & jnp.all(jnp.isfinite(res)) & jnp.all(jnp.isfinite(end))
+    res = jnp.where(ok, res, 0.0)
+    end = jnp.where(ok, end, 0.0)
+    return res, ok, (tr.x, tr.y, tr.q), end
+
+
+class _Functions:
+    """The compiled functions of one fit configuration (cached: a second fit with the same
+    free names, transforms, input kind and shapes does not compile again).
+
+    `jacobian(base, theta (S,P), nu (S,T,n), data, sigmas)`: whitened residuals `(S,T,K)`,
+    solver status `(S,T)`, their Jacobian `(S,T,K,P+n)` with respect to `(theta, nu_i)` and
+    the simulated poses, vmapped over starts and trials; `step(res, J, lam)`: the LM step of
+    single shooting. `segments(...)`: the same for the segments of multiple shooting, with each
+    segment's end state and its Jacobian; `assemble(...)`: their normal-equation blocks, cost and
+    defects (`jsphere.identify.shooting.assemble`); `solve(blocks, lam)`: the LM step from blocks.
+    """
+
+    def __init__(self, free: FreeParams, kind: str, rtol: float, atol: float, max_steps: int):
+        P = free.size
+
+        def jac_one(base, th, nu, d, sig):
+            def f(z):
+                res, ok, pose, end = _trial_outputs(free, kind, rtol, atol, max_steps, dfx.ForwardMode(), base, z[:P], z[P:], d, sig)
+                return (res, end), (res, ok, pose, end)
+
+            (J, Je), (res, ok, pose, end) = jax.jacfwd(f, has_aux=True)(jnp.concatenate([th, nu]))
+            return res, ok, J, pose, end, Je
+
+        over_trials = lambda f: jax.vmap(f, in_axes=(None, None, 0, 0, None))
+        over_starts = lambda f: jax.vmap(f, in_axes=(None, 0, 0, None, None))
+        both = jax.jit(over_starts(over_trials(jac_one)))
+        self.segments = both
+        self.jacobian = jax.jit(lambda *a: both(*a)[:4])
+        self.step = jax.jit(jax.vmap(functools.partial(_lm_step, P=P)))
+
+        def assemble(res, J, e, Je, nu, mu, seg, scale):
+            return _shooting.assemble(kind, P, res, J, e, Je, nu, mu, seg, scale)
+
+        self.assemble = jax.jit(jax.vmap(assemble, in_axes=(0, 0, 0, 0, 0, None, None, None)))
+        self.solve = jax.jit(jax.vmap(_solve_arrow, in_axes=(0, 0)))
+
+
+_CACHE: dict[Any, _Functions] = {}
+
+
+def _functions(free: FreeParams, kind: str, rtol: float, atol: float, max_steps: int) -> _Functions:
+    key = (free.slots, kind, rtol, atol, max_steps)
+    if key not in _CACHE:
+        _CACHE[key] = _Functions(free, kind, rtol, atol, max_steps)
+    return _CACHE[key]

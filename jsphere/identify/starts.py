@@ -1,0 +1,81 @@
+"""Where the optimisation starts: the free parameters of each start (`start_design`, a Latin
+hypercube) and the nuisance parameters guessed from the first frames of each trial
+(`nuisance_guess`)."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..model.kinematics import relative_rate_from_wheel_speeds
+from ..model.params import RobotParams
+from ..model.rotations import quat_conj, quat_log, quat_mul, rotmat
+from .data import NUISANCE, FitData
+from .free import FreeParams
+
+#: typical step of each nuisance parameter (1/s, rad, m): for Adam and the start spread
+_NU_SCALE = {"Omega0": 0.05, "rot0": 0.01, "x0": 0.002, "y0": 0.002, "omega0": 0.05}
+
+
+def _line_rate(t, y):
+    """Slope of a least-squares line through `(t, y)` (y may be (n, d))."""
+    tt = t - t.mean()
+    return (tt[:, None] * (y - y.mean(0))).sum(0) / max((tt * tt).sum(), 1e-300)
+
+
+def nuisance_guess(data: FitData, params: RobotParams, *, window: float = 0.1) -> np.ndarray:
+    """Initial nuisance parameters `(T, n)` from the first `window` seconds of each trial:
+    the platform's angular velocity from the orientations, the horizontal shell rate from
+    the rolling velocity `v = R0 Omega x gamma` (2.3); offsets 0."""
+    T = data.ts.shape[0]
+    n = len(NUISANCE[data.kind])
+    nu = np.zeros((T, n))
+    R0 = float(params.R0)
+    for i in range(T):
+        m = data.lengths[i]
+        t = data.ts[i, :m]
+        sel = t <= t[0] + window
+        if sel.sum() < 3:
+            sel = np.arange(m) < 3
+        pr, rr = sel & (data.wpos[i, :m] > 0), sel & (data.wrot[i, :m] > 0)
+        q0 = data.q0[i]
+        R = np.asarray(rotmat(jnp.asarray(q0)))  # platform -> fixed
+        omega = np.zeros(3)
+        if rr.sum() >= 3:
+            rv = np.asarray(quat_log(quat_mul(quat_conj(jnp.asarray(q0)), jnp.asarray(data.q[i, :m][rr]))))
+            omega = _line_rate(t[rr], rv)
+        v = np.zeros(2)
+        if pr.sum() >= 3:
+            v = _line_rate(t[pr], np.stack([data.x[i, :m][pr], data.y[i, :m][pr]], 1))
+        if data.kind == "wheel_speeds":
+            w0 = np.asarray(relative_rate_from_wheel_speeds(params, jnp.asarray(data.u[i, 0])))
+            nu[i, 0:3] = omega - w0
+        else:
+            Om_f = np.array([-v[1] / R0, v[0] / R0, (R @ omega)[2]])
+            nu[i, 0:3] = R.T @ Om_f
+            nu[i, 8:11] = omega
+    return nu
+
+
+def start_design(free: FreeParams, n_starts: int, spread: float, rng: np.random.Generator) -> np.ndarray:
+    """`theta (S, P)` of `n_starts` starts: the first at the start values, the others a
+    Latin hypercube (space-filling, `scipy.stats.qmc`) over a box: for a name with bounds on
+    both sides uniform in the physical value within them; for the others `+- 2 spread` times
+    the coordinate's scale about the start (log-transformed values: factors of `e^(+-2 spread)`)."""
+    from scipy.stats import qmc
+
+    P = free.size
+    theta = np.repeat(free.theta0[None], n_starts, 0)
+    if n_starts < 2 or P == 0:
+        return theta
+    u = qmc.LatinHypercube(d=P, rng=rng).random(n_starts - 1)
+    ts = free.theta_scales()
+    box = theta[1:] + 2.0 * spread * ts * (2.0 * u - 1.0)
+    k = 0
+    for sl in free.slots:
+        if sl.kind == "interval":
+            v = np.clip(u[:, k], 0.02, 0.98)
+            box[:, k] = np.log(v / (1.0 - v))
+        k += sl.size
+    theta[1:] = box
+    return theta
