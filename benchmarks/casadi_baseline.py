@@ -85,7 +85,12 @@ def symbolic_rhs(robot):
 
 
 def _jit_opts():
-    return {"jit": True, "compiler": "shell", "jit_options": {"flags": ["-O3"], "verbose": False, "cleanup": False}, "jit_cleanup": False}  # the temporary folder goes as a whole
+    return {
+        "jit": True,
+        "compiler": "shell",
+        "jit_options": {"flags": ["-O3"], "verbose": False, "cleanup": False},
+        "jit_cleanup": False,
+    }  # the temporary folder goes as a whole
 
 
 def rk4_batch(robot, batch: int, threads: int, steps: int = RK4_STEPS):
@@ -153,9 +158,16 @@ def casadi_rows(robot, q0, A: np.ndarray, *, threads: int = 2, repeats: int = 3,
             out, first, med, times = _timed(F, y0, A.T, repeats=repeats)
             finals["rk4"] = out[10:12].T
             rows.append(
-                {"name": f"CasADi RK4 {RK4_STEPS} steps, C -O3, {threads} threads", "batch": B, "build_s": build,
-                 "first_call_s": first, "median_s": med, "times_s": times, "trials_per_s": B / med}
-            )  # fmt: skip
+                {
+                    "name": f"CasADi RK4 {RK4_STEPS} steps, C -O3, {threads} threads",
+                    "batch": B,
+                    "build_s": build,
+                    "first_call_s": first,
+                    "median_s": med,
+                    "times_s": times,
+                    "trials_per_s": B / med,
+                }
+            )
             n = min(cvodes_trials, B)
             t = time.perf_counter()
             G = cvodes_batch(robot, n, threads)
@@ -163,9 +175,16 @@ def casadi_rows(robot, q0, A: np.ndarray, *, threads: int = 2, repeats: int = 3,
             out, first, med, times = _timed(G, y0[:, :n], A[:n].T, repeats=repeats)
             finals["cvodes"] = out[10:12].T
             rows.append(
-                {"name": f"CasADi CVODES rtol 1e-8, {threads} threads", "batch": n, "build_s": build,
-                 "first_call_s": first, "median_s": med, "times_s": times, "trials_per_s": n / med}
-            )  # fmt: skip
+                {
+                    "name": f"CasADi CVODES rtol 1e-8, {threads} threads",
+                    "batch": n,
+                    "build_s": build,
+                    "first_call_s": first,
+                    "median_s": med,
+                    "times_s": times,
+                    "trials_per_s": n / med,
+                }
+            )
         finally:
             os.chdir(here)
     return rows, finals
@@ -192,7 +211,9 @@ def main(argv=None) -> int:
     A = 0.05 * (1.0 + 0.1 * Z)
     rows, finals = casadi_rows(robot, q0, A, threads=args.threads)
     for r in rows:
-        print(f"{r['name']:<45} batch {r['batch']:>6}  {r['trials_per_s']:>10.1f} trials/s  (build {r['build_s']:.1f} s)")
+        print(
+            f"{r['name']:<45} batch {r['batch']:>6}  {r['trials_per_s']:>10.1f} trials/s  (build {r['build_s']:.1f} s)"
+        )
     print("trial 0 final (x, y):", {k: v[0].tolist() for k, v in finals.items()})
     return 0
 

@@ -43,12 +43,13 @@ sys.path.insert(0, str(HERE))
 import diffrax as dfx  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
+from run import public as timings  # noqa: E402
+from run import time_call  # noqa: E402
 
 import jsphere  # noqa: E402
 from jsphere._runtime.files import atomic_write_text  # noqa: E402
 from jsphere.model.params import derive  # noqa: E402
 from jsphere.solve.batched.components import torque_field_components  # noqa: E402
-from run import public as timings, time_call  # noqa: E402
 
 PH = jnp.array([0.0, 2.1, 4.2])
 RTOL, ATOL, T1 = 1e-8, 1e-10, 4.0
@@ -70,19 +71,36 @@ def ensemble_solver(p):
     def solve(A):
         y0 = tuple(jnp.full((A.shape[0],), z0[i]) for i in range(z0.shape[0]))
         sol = dfx.diffeqsolve(
-            dfx.ODETerm(field), dfx.Dopri8(), 0.0, T1, None, y0, tuple(A[:, i] for i in range(3)),
-            saveat=dfx.SaveAt(t1=True), stepsize_controller=dfx.PIDController(rtol=RTOL, atol=ATOL, norm=worst_trial_rms),
+            dfx.ODETerm(field),
+            dfx.Dopri8(),
+            0.0,
+            T1,
+            None,
+            y0,
+            tuple(A[:, i] for i in range(3)),
+            saveat=dfx.SaveAt(t1=True),
+            stepsize_controller=dfx.PIDController(rtol=RTOL, atol=ATOL, norm=worst_trial_rms),
             max_steps=16384,
-        )  # fmt: skip
+        )
         return sol.ys[14][-1], sol.ys[15][-1], sol.stats["num_accepted_steps"], sol.stats["num_rejected_steps"]
 
     return solve
 
 
 def public_solver(p, batch_steps="shared"):
-    return jax.jit(jax.vmap(lambda a: jsphere.simulate(
-        p, jsphere.State.at_rest(p), jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)), T1, rtol=RTOL, atol=ATOL,
-        batch_steps=batch_steps)))  # fmt: skip
+    return jax.jit(
+        jax.vmap(
+            lambda a: jsphere.simulate(
+                p,
+                jsphere.State.at_rest(p),
+                jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)),
+                T1,
+                rtol=RTOL,
+                atol=ATOL,
+                batch_steps=batch_steps,
+            )
+        )
+    )
 
 
 def problem2_rows(p, batches):
@@ -94,11 +112,23 @@ def problem2_rows(p, batches):
     for B in batches:
         th = jnp.asarray(TH[:B])
         out = {}
-        for name, steps, flat in (("shared", "shared", False), ("per_trial", "per_trial", False), ("per_trial_flat", "per_trial", True)):
+        for name, steps, flat in (
+            ("shared", "shared", False),
+            ("per_trial", "per_trial", False),
+            ("per_trial_flat", "per_trial", True),
+        ):
             old, S.COMPONENT_LAYOUT = S.COMPONENT_LAYOUT, not flat  # traced (and read) at the first call
             try:
-                f = jax.jit(jax.vmap(lambda t, steps=steps: jsphere.simulate_gaits(
-                    p, [jsphere.acceleration(theta_max=t), jsphere.braking(theta_max=t)], ts=jnp.array([0.0, 4.0]), batch_steps=steps)))  # fmt: skip
+                f = jax.jit(
+                    jax.vmap(
+                        lambda t, steps=steps: jsphere.simulate_gaits(
+                            p,
+                            [jsphere.acceleration(theta_max=t), jsphere.braking(theta_max=t)],
+                            ts=jnp.array([0.0, 4.0]),
+                            batch_steps=steps,
+                        )
+                    )
+                )
                 r = time_call(f, th, repeats=3)
             finally:
                 S.COMPONENT_LAYOUT = old
@@ -107,17 +137,25 @@ def problem2_rows(p, batches):
         row = {"batch": B}
         for name, r in out.items():
             tr = r["_out"]
-            row[name] = {**timings(r), "trials_per_s": B / r["median_s"], "steps_max": int(jnp.max(tr.num_steps)),
-                         "max_abs_diff_final_xy_m": float(max(jnp.max(jnp.abs(tr.x[:, -1] - ref.x[:, -1])), jnp.max(jnp.abs(tr.y[:, -1] - ref.y[:, -1]))))}  # fmt: skip
+            row[name] = {
+                **timings(r),
+                "trials_per_s": B / r["median_s"],
+                "steps_max": int(jnp.max(tr.num_steps)),
+                "max_abs_diff_final_xy_m": float(
+                    max(jnp.max(jnp.abs(tr.x[:, -1] - ref.x[:, -1])), jnp.max(jnp.abs(tr.y[:, -1] - ref.y[:, -1])))
+                ),
+            }
         row["ratio_shared_vs_flat"] = out["per_trial_flat"]["median_s"] / out["shared"]["median_s"]
         rows.append(row)
     hdr = f"{'P2 batch':>9}{'flat per-trial /s':>19}{'per-trial /s':>14}{'shared /s':>11}{'ratio':>7}{'steps':>7}{'max |dxy| m':>13}"
     print(hdr)
     print("-" * len(hdr))
     for r in rows:
-        print(f"{r['batch']:>9}{r['per_trial_flat']['trials_per_s']:>19.0f}{r['per_trial']['trials_per_s']:>14.0f}"
-              f"{r['shared']['trials_per_s']:>11.0f}{r['ratio_shared_vs_flat']:>7.2f}{r['shared']['steps_max']:>7}"
-              f"{r['shared']['max_abs_diff_final_xy_m']:>13.1e}")  # fmt: skip
+        print(
+            f"{r['batch']:>9}{r['per_trial_flat']['trials_per_s']:>19.0f}{r['per_trial']['trials_per_s']:>14.0f}"
+            f"{r['shared']['trials_per_s']:>11.0f}{r['ratio_shared_vs_flat']:>7.2f}{r['shared']['steps_max']:>7}"
+            f"{r['shared']['max_abs_diff_final_xy_m']:>13.1e}"
+        )
     return rows
 
 
@@ -139,35 +177,54 @@ def main(argv=None) -> int:
         def dxy(x, y):
             return float(max(jnp.max(jnp.abs(x - tt.x[:, -1])), jnp.max(jnp.abs(y - tt.y[:, -1]))))
 
-        rows.append({
-            "batch": B, "ensemble": te, "public": tp, "per_trial": tq, "ensemble_trials_per_s": B / te["median_s"],
-            "public_trials_per_s": B / tp["median_s"], "per_trial_trials_per_s": B / tq["median_s"],
-            "ratio_public_vs_per_trial": tq["median_s"] / tp["median_s"],
-            "ensemble_steps": {"accepted": int(acc), "rejected": int(rej)},
-            "public_steps": int(jnp.max(tr.num_steps)),
-            "per_trial_steps": {"mean": float(jnp.mean(tt.num_steps)), "max": int(jnp.max(tt.num_steps))},
-            "max_abs_diff_final_xy_m": {"public": dxy(tr.x[:, -1], tr.y[:, -1]), "ensemble": dxy(xe, ye)},
-        })  # fmt: skip
-    hdr = (f"{'batch':>6}{'per-trial /s':>14}{'public (shared) /s':>20}{'ratio':>7}{'one solve /s':>14}"
-           f"{'steps shared':>14}{'per-trial mean/max':>20}{'max |dxy| m':>13}")  # fmt: skip
+        rows.append(
+            {
+                "batch": B,
+                "ensemble": te,
+                "public": tp,
+                "per_trial": tq,
+                "ensemble_trials_per_s": B / te["median_s"],
+                "public_trials_per_s": B / tp["median_s"],
+                "per_trial_trials_per_s": B / tq["median_s"],
+                "ratio_public_vs_per_trial": tq["median_s"] / tp["median_s"],
+                "ensemble_steps": {"accepted": int(acc), "rejected": int(rej)},
+                "public_steps": int(jnp.max(tr.num_steps)),
+                "per_trial_steps": {"mean": float(jnp.mean(tt.num_steps)), "max": int(jnp.max(tt.num_steps))},
+                "max_abs_diff_final_xy_m": {"public": dxy(tr.x[:, -1], tr.y[:, -1]), "ensemble": dxy(xe, ye)},
+            }
+        )
+    hdr = (
+        f"{'batch':>6}{'per-trial /s':>14}{'public (shared) /s':>20}{'ratio':>7}{'one solve /s':>14}"
+        f"{'steps shared':>14}{'per-trial mean/max':>20}{'max |dxy| m':>13}"
+    )
     print(hdr)
     print("-" * len(hdr))
     for r in rows:
         pt = f"{r['per_trial_steps']['mean']:.0f}/{r['per_trial_steps']['max']}"
-        print(f"{r['batch']:>6}{r['per_trial_trials_per_s']:>14.0f}{r['public_trials_per_s']:>20.0f}"
-              f"{r['ratio_public_vs_per_trial']:>7.2f}{r['ensemble_trials_per_s']:>14.0f}{r['public_steps']:>14}"
-              f"{pt:>20}{r['max_abs_diff_final_xy_m']['public']:>13.1e}")  # fmt: skip
+        print(
+            f"{r['batch']:>6}{r['per_trial_trials_per_s']:>14.0f}{r['public_trials_per_s']:>20.0f}"
+            f"{r['ratio_public_vs_per_trial']:>7.2f}{r['ensemble_trials_per_s']:>14.0f}{r['public_steps']:>14}"
+            f"{pt:>20}{r['max_abs_diff_final_xy_m']['public']:>13.1e}"
+        )
     rows2 = problem2_rows(p, args.batches)
     res = {
         "problem": "problem 1 of run.py (paper robot, K_i = a_i sin(pi t + 2.1 (i-1)), [0, 4] s, rtol 1e-8, atol 1e-10)",
-        "variants": {"public": "jax.jit(jax.vmap(simulate)), default batch_steps='shared'", "per_trial": "the same with batch_steps='per_trial'",
-                     "ensemble": "reference: one diffeqsolve of the batch, shared step, max-over-trials RMS norm"},
-        "device": str(jax.devices()[0].device_kind), "cpu_count": os.cpu_count(), "python": platform.python_version(),
-        "jax": jax.__version__, "diffrax": dfx.__version__, "jsphere_commit": _commit(),
-        "loadavg": list(os.getloadavg()) if hasattr(os, "getloadavg") else None, "rows": rows,
+        "variants": {
+            "public": "jax.jit(jax.vmap(simulate)), default batch_steps='shared'",
+            "per_trial": "the same with batch_steps='per_trial'",
+            "ensemble": "reference: one diffeqsolve of the batch, shared step, max-over-trials RMS norm",
+        },
+        "device": str(jax.devices()[0].device_kind),
+        "cpu_count": os.cpu_count(),
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "diffrax": dfx.__version__,
+        "jsphere_commit": _commit(),
+        "loadavg": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        "rows": rows,
         "problem2": "problem 2 of run.py (acceleration + braking gaits, theta_max ~ U(0.05, 0.15), simulate_gaits defaults rtol 1e-10)",
         "problem2_rows": rows2,
-    }  # fmt: skip
+    }
     atomic_write_text(args.out, json.dumps(res, indent=2) + "\n")
     return 0
 
@@ -176,7 +233,9 @@ def _commit():
     import subprocess
 
     try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], cwd=HERE, capture_output=True, text=True, check=True).stdout.strip()
+        return subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=HERE, capture_output=True, text=True, check=True
+        ).stdout.strip()
     except Exception:  # noqa: BLE001 - not a checkout
         return None
 

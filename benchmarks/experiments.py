@@ -18,12 +18,12 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import numpy as np  # noqa: E402
-
-import jsphere  # noqa: E402
 import diffrax as dfx  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import jsphere  # noqa: E402
 
 p = jsphere.RobotParams.paper()
 PH = jnp.array([0.0, 2.1, 4.2])
@@ -32,9 +32,14 @@ A = jnp.asarray(0.05 * (1 + 0.1 * np.random.default_rng(0).standard_normal((1024
 
 def one(a, solver=None):  # solver=None: the package's default
     return jsphere.simulate(
-        p, jsphere.State.at_rest(p), jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)), 4.0,
-        rtol=1e-8, atol=1e-10, solver=solver,
-    )  # fmt: skip
+        p,
+        jsphere.State.at_rest(p),
+        jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)),
+        4.0,
+        rtol=1e-8,
+        atol=1e-10,
+        solver=solver,
+    )
 
 
 def bench(f, a, n=3):
@@ -55,8 +60,11 @@ for name, solver in (("Tsit5", dfx.Tsit5()), ("Dopri8", dfx.Dopri8())):
         t, r = bench(f, A[:B], 5 if B == 1 else 3)
         x0 = float(r.x[0, -1])
         ref = x0 if ref is None else ref
-        print(f"{name:<16} batch {B:>5}: {B / t:8.1f} trials/s, steps mean {float(r.num_steps.mean()):.0f} "
-              f"max {int(r.num_steps.max())}, x_final[0] - Tsit5's = {x0 - ref:+.1e} m")
+        print(
+            f"{name:<16} batch {B:>5}: {B / t:8.1f} trials/s, steps mean {float(r.num_steps.mean()):.0f} "
+            f"max {int(r.num_steps.max())}, x_final[0] - Tsit5's = {x0 - ref:+.1e} m"
+        )
+
 
 def one_tsit5(a):
     return one(a, dfx.Tsit5())
@@ -76,15 +84,22 @@ import equinox as eqx  # noqa: E402
 
 def with_theta(theta):
     I = p.I.at[jnp.diag_indices(3)].set(theta[2:5])
-    return eqx.tree_at(lambda q: (q.r_m, q.j, q.I, q.m0, q.I0), p, (p.r_m.at[2].set(theta[0]), theta[1], I, theta[5], theta[6]))
+    return eqx.tree_at(
+        lambda q: (q.r_m, q.j, q.I, q.m0, q.I0), p, (p.r_m.at[2].set(theta[0]), theta[1], I, theta[5], theta[6])
+    )
 
 
 def loss(theta, A, adjoint=None):
     q = with_theta(theta)
     tr = jax.vmap(
         lambda a: jsphere.simulate(
-            q, jsphere.State.at_rest(q), jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)), 4.0,
-            rtol=1e-8, atol=1e-10, adjoint=adjoint,
+            q,
+            jsphere.State.at_rest(q),
+            jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)),
+            4.0,
+            rtol=1e-8,
+            atol=1e-10,
+            adjoint=adjoint,
         )
     )(A)
     return jnp.sum(tr.x[:, -1] ** 2 + tr.y[:, -1] ** 2)
@@ -95,8 +110,10 @@ A64 = A[:64]
 t_f, _ = bench(jax.jit(lambda A: loss(theta0, A)), A64)
 t_r, g_r = bench(jax.jit(lambda A: jax.grad(loss)(theta0, A)), A64)
 t_j, g_j = bench(jax.jit(lambda A: jax.jacfwd(lambda th: loss(th, A, dfx.ForwardMode()))(theta0)), A64)
-print(f"batch 64: forward {t_f:.3f} s, jax.grad {t_r:.3f} s ({t_r / t_f:.1f}x), "
-      f"jacfwd+ForwardMode {t_j:.3f} s ({t_j / t_f:.1f}x), max rel diff {float(jnp.max(jnp.abs(g_j / g_r - 1))):.1e}")
+print(
+    f"batch 64: forward {t_f:.3f} s, jax.grad {t_r:.3f} s ({t_r / t_f:.1f}x), "
+    f"jacfwd+ForwardMode {t_j:.3f} s ({t_j / t_f:.1f}x), max rel diff {float(jnp.max(jnp.abs(g_j / g_r - 1))):.1e}"
+)
 
 # Optional (--big, a few minutes): batch 16384 with the package-default solver as one vmap vs
 # lax.map in chunks of 1024 and of 64.

@@ -177,18 +177,26 @@ def _baseline_problem():
 
     def field(t, y, theta):
         q, w, W, _xy, phi = y[0:4], y[4:7], y[7:10], y[10:12], y[12]
-        g = jnp.stack([2 * (q[1] * q[3] - q[0] * q[2]), 2 * (q[2] * q[3] + q[0] * q[1]), 1 - 2 * (q[1] ** 2 + q[2] ** 2)])
+        g = jnp.stack(
+            [2 * (q[1] * q[3] - q[0] * q[2]), 2 * (q[2] * q[3] + q[0] * q[1]), 1 - 2 * (q[1] ** 2 + q[2] ** 2)]
+        )
         cp, sp = jnp.cos(phi), jnp.sin(phi)
         B = C * (1.0 + 0.1 * cp) + 0.05 * jnp.outer(g, g)
         M = jnp.block([[A0 + 0.1 * jnp.outer(g, g), B], [B.T, A0.T + 0.2 * jnp.eye(3) * (1.0 + 0.05 * sp)]])
         s = theta * jnp.sin(jnp.pi * t) ** 2
         force = s * jnp.stack([jnp.cos(2.0 * t), jnp.sin(3.0 * t), jnp.cos(t) * sp])
-        rhs = jnp.concatenate([force - jnp.cross(w, A0 @ w) - 0.1 * w, -jnp.cross(W, A0 @ W) + 0.3 * jnp.cross(g, W) - 0.05 * W])
+        rhs = jnp.concatenate(
+            [force - jnp.cross(w, A0 @ w) - 0.1 * w, -jnp.cross(W, A0 @ W) + 0.3 * jnp.cross(g, W) - 0.05 * W]
+        )
         acc = jnp.linalg.solve(M, rhs)
-        qdot = 0.5 * jnp.stack([
-            -q[1] * w[0] - q[2] * w[1] - q[3] * w[2], q[0] * w[0] + q[2] * w[2] - q[3] * w[1],
-            q[0] * w[1] - q[1] * w[2] + q[3] * w[0], q[0] * w[2] + q[1] * w[1] - q[2] * w[0],
-        ])  # fmt: skip
+        qdot = 0.5 * jnp.stack(
+            [
+                -q[1] * w[0] - q[2] * w[1] - q[3] * w[2],
+                q[0] * w[0] + q[2] * w[2] - q[3] * w[1],
+                q[0] * w[1] - q[1] * w[2] + q[3] * w[0],
+                q[0] * w[2] + q[1] * w[1] - q[2] * w[0],
+            ]
+        )
         xydot = 0.15 * jnp.stack([W[1] * cp + W[0] * sp, -W[0] * cp + W[1] * sp])
         return jnp.concatenate([qdot, acc, xydot, (w[2] - W[2])[None]])
 
@@ -196,10 +204,18 @@ def _baseline_problem():
 
     def solve(theta, ts, adjoint=None):
         sol = dfx.diffeqsolve(
-            dfx.ODETerm(field), dfx.Dopri8(), 0.0, 4.0, None, y0, theta, saveat=dfx.SaveAt(ts=ts),
-            stepsize_controller=dfx.PIDController(rtol=1e-10, atol=1e-12), max_steps=16384,
+            dfx.ODETerm(field),
+            dfx.Dopri8(),
+            0.0,
+            4.0,
+            None,
+            y0,
+            theta,
+            saveat=dfx.SaveAt(ts=ts),
+            stepsize_controller=dfx.PIDController(rtol=1e-10, atol=1e-12),
+            max_steps=16384,
             adjoint=adjoint or dfx.RecursiveCheckpointAdjoint(),
-        )  # fmt: skip
+        )
         return sol.ys
 
     solve.field, solve.y0 = field, y0
@@ -257,7 +273,9 @@ def _env() -> dict:
 
 
 def run_child(task: str, cache_dir: str | None = None) -> dict:
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", task] + (["--cache-dir", cache_dir] if cache_dir else [])
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--child", task] + (
+        ["--cache-dir", cache_dir] if cache_dir else []
+    )
     load = os.getloadavg()[0]
     t = time.perf_counter()
     r = subprocess.run(cmd, env=_env(), capture_output=True, text=True, cwd=ROOT)
@@ -265,14 +283,20 @@ def run_child(task: str, cache_dir: str | None = None) -> dict:
     if r.returncode != 0:
         raise RuntimeError(f"{task} failed ({r.returncode}):\n{r.stderr[-3000:]}")
     line = next(ln for ln in r.stdout.splitlines() if ln.startswith("FIRST_RESULT "))
-    return {**json.loads(line[len("FIRST_RESULT "):]), "wall_s": wall, "loadavg_1min_before": load}
+    return {**json.loads(line[len("FIRST_RESULT ") :]), "wall_s": wall, "loadavg_1min_before": load}
 
 
 def run_quickstart() -> dict:
     load = os.getloadavg()[0]
     t = time.perf_counter()
-    subprocess.run([sys.executable, str(ROOT / "examples" / "quickstart.py")], env=_env(), check=True, cwd=ROOT,
-                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    subprocess.run(
+        [sys.executable, str(ROOT / "examples" / "quickstart.py")],
+        env=_env(),
+        check=True,
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     return {"wall_s": time.perf_counter() - t, "loadavg_1min_before": load}
 
 
@@ -302,7 +326,9 @@ def _median(runs: list[dict]) -> dict:
 def _git_commit() -> str | None:
     try:
         r = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "jsphere"], cwd=ROOT, capture_output=True, text=True).stdout
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--", "jsphere"], cwd=ROOT, capture_output=True, text=True
+        ).stdout
         return r.stdout.strip() + ("+dirty" if dirty.strip() else "")
     except (OSError, subprocess.CalledProcessError):
         return None
@@ -316,15 +342,22 @@ def metadata() -> dict:
         "'versions': {'jax': jax.__version__, 'jaxlib': jaxlib.__version__, 'diffrax': diffrax.__version__,"
         "'equinox': equinox.__version__, 'numpy': numpy.__version__, 'jsphere': jsphere.__version__}}))"
     )
-    info = json.loads(subprocess.run([sys.executable, "-c", code], env=_env(), capture_output=True, text=True, check=True).stdout)
+    info = json.loads(
+        subprocess.run([sys.executable, "-c", code], env=_env(), capture_output=True, text=True, check=True).stdout
+    )
     return {
         "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-                    "cpu_count": os.cpu_count(), "loadavg": os.getloadavg(), "python": platform.python_version()},
+        "machine": {
+            "platform": platform.platform(),
+            "processor": platform.processor() or platform.machine(),
+            "cpu_count": os.cpu_count(),
+            "loadavg": os.getloadavg(),
+            "python": platform.python_version(),
+        },
         "device": {k: info[k] for k in ("backend", "kind", "count")},
         "versions": info["versions"],
         "git_commit": _git_commit(),
-    }  # fmt: skip
+    }
 
 
 def _ratios(res: dict, key: str = "first_s") -> dict:
@@ -350,8 +383,12 @@ def main(argv=None) -> int:
     for task in tasks:
         cold[task] = _median([run_child(task) for _ in range(args.repeat)])
         r = cold[task]
-        print(f"  cold   {task:<11} import {r['import_s']:4.1f} s, first {r['first_s']:5.1f} s, "
-              f"second {r['second_s']:6.3f} s, process {r['wall_s']:5.1f} s", file=sys.stderr, flush=True)  # fmt: skip
+        print(
+            f"  cold   {task:<11} import {r['import_s']:4.1f} s, first {r['first_s']:5.1f} s, "
+            f"second {r['second_s']:6.3f} s, process {r['wall_s']:5.1f} s",
+            file=sys.stderr,
+            flush=True,
+        )
     quickstart = None
     if not args.quick:
         quickstart = _median([run_quickstart() for _ in range(args.repeat)])
@@ -360,21 +397,41 @@ def main(argv=None) -> int:
         for task in tasks:
             cached[task] = _median([run_cached(task) for _ in range(args.repeat)])
             r = cached[task]
-            print(f"  cached {task:<11} import {r['import_s']:4.1f} s, first {r['first_s']:5.1f} s, "
-                  f"process {r['wall_s']:5.1f} s, {r['cache_files']} cache files", file=sys.stderr, flush=True)  # fmt: skip
+            print(
+                f"  cached {task:<11} import {r['import_s']:4.1f} s, first {r['first_s']:5.1f} s, "
+                f"process {r['wall_s']:5.1f} s, {r['cache_files']} cache files",
+                file=sys.stderr,
+                flush=True,
+            )
 
-    ratios = {"cold": _ratios(cold), "cold_cpu": _ratios(cold, "first_cpu_s"), "cached": _ratios(cached) if cached else {}}
+    ratios = {
+        "cold": _ratios(cold),
+        "cold_cpu": _ratios(cold, "first_cpu_s"),
+        "cached": _ratios(cached) if cached else {},
+    }
     doc = {
         **meta,
-        "config": {"repeat": args.repeat, "quick": args.quick, "tasks": list(tasks),
-                   "baseline": "13-state field, 6x6 jnp.linalg.solve, Dopri8, PIDController(1e-10, 1e-12), t in [0, 4]"},
-        "cold": cold, "cached_second_process": cached, "quickstart_cold": quickstart, "ratios": ratios,
-        "targets": {"first_over_baseline_max": TARGET_RATIO, "cached_grad_first_s_max": TARGET_CACHED_GRAD_S,
-                    "quickstart_cold_s_max": TARGET_QUICKSTART_S},
-    }  # fmt: skip
+        "config": {
+            "repeat": args.repeat,
+            "quick": args.quick,
+            "tasks": list(tasks),
+            "baseline": "13-state field, 6x6 jnp.linalg.solve, Dopri8, PIDController(1e-10, 1e-12), t in [0, 4]",
+        },
+        "cold": cold,
+        "cached_second_process": cached,
+        "quickstart_cold": quickstart,
+        "ratios": ratios,
+        "targets": {
+            "first_over_baseline_max": TARGET_RATIO,
+            "cached_grad_first_s_max": TARGET_CACHED_GRAD_S,
+            "quickstart_cold_s_max": TARGET_QUICKSTART_S,
+        },
+    }
 
-    print(f"\n{'task':<11} {'import':>7} {'first':>7} {'cpu':>7} {'second':>8} {'process':>8} {'ratio':>6} | "
-          f"{'cached first':>12} {'process':>8} {'ratio':>6}")  # fmt: skip
+    print(
+        f"\n{'task':<11} {'import':>7} {'first':>7} {'cpu':>7} {'second':>8} {'process':>8} {'ratio':>6} | "
+        f"{'cached first':>12} {'process':>8} {'ratio':>6}"
+    )
     for task in tasks:
         c, k = cold[task], cached.get(task)
         rc = ratios["cold"].get(f"{task}/{RATIOS.get(task)}")
@@ -386,9 +443,15 @@ def main(argv=None) -> int:
         print(line)
     if quickstart:
         print(f"{'quickstart':<11} {'':>7} {'':>7} {'':>7} {'':>8} {quickstart['wall_s']:8.2f}")
-    print("ratio: first_s over the baseline's (cpu: " + ", ".join(f"{k} {v:.2f}" for k, v in ratios["cold_cpu"].items()) + ")")
-    print(f"targets: first gaits / grad at most {TARGET_RATIO}x the baseline; cached first grad <= {TARGET_CACHED_GRAD_S} s; "
-          f"quickstart cold < {TARGET_QUICKSTART_S} s")  # fmt: skip
+    print(
+        "ratio: first_s over the baseline's (cpu: "
+        + ", ".join(f"{k} {v:.2f}" for k, v in ratios["cold_cpu"].items())
+        + ")"
+    )
+    print(
+        f"targets: first gaits / grad at most {TARGET_RATIO}x the baseline; cached first grad <= {TARGET_CACHED_GRAD_S} s; "
+        f"quickstart cold < {TARGET_QUICKSTART_S} s"
+    )
 
     tmp = args.out.with_suffix(".tmp")
     tmp.write_text(json.dumps(doc, indent=2) + "\n")

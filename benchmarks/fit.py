@@ -49,11 +49,15 @@ def metadata() -> dict:
     """Date, machine, device and versions: the head of the fit benchmarks' JSON."""
     return {
         "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "machine": {"platform": platform.platform(), "processor": platform.processor() or platform.machine(),
-                    "cpu_count": os.cpu_count(), "loadavg": os.getloadavg()},
+        "machine": {
+            "platform": platform.platform(),
+            "processor": platform.processor() or platform.machine(),
+            "cpu_count": os.cpu_count(),
+            "loadavg": os.getloadavg(),
+        },
         "device": {"backend": jax.default_backend(), "kind": jax.devices()[0].device_kind, "count": jax.device_count()},
         "versions": {"jax": jax.__version__, "jsphere": jsphere.__version__, "numpy": np.__version__},
-    }  # fmt: skip
+    }
 
 
 def run(kind, n, durations, free, fix_names, seed=0, n_starts=2, progress=True, **kw):
@@ -61,13 +65,17 @@ def run(kind, n, durations, free, fix_names, seed=0, n_starts=2, progress=True, 
     trials = make_trials(truth, n, durations, kind, seed)
     fix = {name: np.asarray(jsphere.get_value(truth, name)).tolist() for name in fix_names}
     t = time.perf_counter()
-    res = jsphere.fit(trials, jsphere.RobotParams.paper(), free, fix=fix, n_starts=n_starts, seed=seed, progress=progress, **kw)
+    res = jsphere.fit(
+        trials, jsphere.RobotParams.paper(), free, fix=fix, n_starts=n_starts, seed=seed, progress=progress, **kw
+    )
     elapsed = time.perf_counter() - t
     rows = []
     for name in res.free:
         tv = float(jsphere.get_value(truth, name))
         v, se = res.values[name], res.stderr[name]
-        rows.append({"name": name, "truth": tv, "fit": v, "stderr": se, "error_se": (v - tv) / se if se > 0 else float("nan")})
+        rows.append(
+            {"name": name, "truth": tv, "fit": v, "stderr": se, "error_se": (v - tv) / se if se > 0 else float("nan")}
+        )
     return res, rows, elapsed, trials
 
 
@@ -86,8 +94,10 @@ def main():
     durations = (float(lo), float(hi or lo))
     fix_names = [n for n in args.fix.split(",") if n]
     res, rows, elapsed, trials = run(args.kind, args.trials, durations, args.free, fix_names, args.seed, args.n_starts)
-    print(f"\n{args.trials} trials ({args.kind}), {sum(len(t.t) for t in trials)} samples; fit {elapsed:.1f} s "
-          f"({res.iterations} LM iterations, {args.n_starts} starts, converged {res.converged})")  # fmt: skip
+    print(
+        f"\n{args.trials} trials ({args.kind}), {sum(len(t.t) for t in trials)} samples; fit {elapsed:.1f} s "
+        f"({res.iterations} LM iterations, {args.n_starts} starts, converged {res.converged})"
+    )
     print(f"{'name':<8} {'truth':>12} {'fit':>12} {'stderr':>10} {'err/SE':>7}")
     for r in rows:
         print(f"{r['name']:<8} {r['truth']:>12.6g} {r['fit']:>12.6g} {r['stderr']:>10.3g} {r['error_se']:>7.2f}")
@@ -96,11 +106,23 @@ def main():
         print("warning:", w)
     doc = {
         **metadata(),
-        "config": {"kind": args.kind, "trials": args.trials, "duration_s": durations, "samples": sum(len(t.t) for t in trials),
-                   "free": args.free, "fix": fix_names, "n_starts": args.n_starts, "seed": args.seed},
-        "fit_s_including_compile": elapsed, "iterations": res.iterations, "converged": res.converged,
-        "sigma_pos_mm": res.sigma_pos * 1e3, "sigma_rot_deg": float(np.degrees(res.sigma_rot)), "rows": rows,
-    }  # fmt: skip
+        "config": {
+            "kind": args.kind,
+            "trials": args.trials,
+            "duration_s": durations,
+            "samples": sum(len(t.t) for t in trials),
+            "free": args.free,
+            "fix": fix_names,
+            "n_starts": args.n_starts,
+            "seed": args.seed,
+        },
+        "fit_s_including_compile": elapsed,
+        "iterations": res.iterations,
+        "converged": res.converged,
+        "sigma_pos_mm": res.sigma_pos * 1e3,
+        "sigma_rot_deg": float(np.degrees(res.sigma_rot)),
+        "rows": rows,
+    }
     atomic_write_text(args.out, json.dumps(doc, indent=2) + "\n")
     print(f"wrote {args.out}")
 

@@ -33,12 +33,12 @@ import jax.numpy as jnp
 import numpy as np
 
 import jsphere
+from jsphere._runtime.files import atomic_write_text
 from jsphere.identify import shooting as _shooting
 from jsphere.identify.data import pack_trials
+from jsphere.identify.free import FreeParams
 from jsphere.identify.residuals import _functions
 from jsphere.identify.starts import nuisance_guess
-from jsphere._runtime.files import atomic_write_text
-from jsphere.identify.free import FreeParams
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fit import metadata  # noqa: E402
@@ -103,9 +103,14 @@ def one(robot, n, length, method, seed):
     wall = time.perf_counter() - t
     z = [abs((res.values[k] - float(jsphere.get_value(robot, k))) / res.stderr[k]) for k in res.free]
     return {
-        "wall_s": wall, "iterations": res.iterations, "max_error_se": float(max(z)), "converged": res.converged,
-        "status": getattr(res, "status", None), "sigma_pos_mm": res.sigma_pos * 1e3, "sigma_rot_deg": math.degrees(res.sigma_rot),
-    }  # fmt: skip
+        "wall_s": wall,
+        "iterations": res.iterations,
+        "max_error_se": float(max(z)),
+        "converged": res.converged,
+        "status": getattr(res, "status", None),
+        "sigma_pos_mm": res.sigma_pos * 1e3,
+        "sigma_rot_deg": math.degrees(res.sigma_rot),
+    }
 
 
 def main() -> None:
@@ -141,7 +146,7 @@ def main() -> None:
         **metadata(),
         "config": {"free": FREE, "segment_s": args.segment, "seed": args.seed, "rate_hz": 100.0, "n_starts": 1},
         "rows": rows,
-    }  # fmt: skip
+    }
     atomic_write_text(args.out, json.dumps(doc, indent=2) + "\n")
     print(f"wrote {args.out}")
 

@@ -32,15 +32,22 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 import jsphere  # noqa: E402
-from jsphere._runtime.files import atomic_write_text  # noqa: E402
 import jsphere.solve.simulate as S  # noqa: E402
+from jsphere._runtime.files import atomic_write_text  # noqa: E402
 
 PH = jnp.array([0.0, 2.1, 4.2])
 
 
 def _p1(p):
     def one(a):
-        tr = jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)), 4.0, rtol=1e-8, atol=1e-10)
+        tr = jsphere.simulate(
+            p,
+            jsphere.State.at_rest(p),
+            jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)),
+            4.0,
+            rtol=1e-8,
+            atol=1e-10,
+        )
         return tr.x[-1], tr.y[-1], tr.num_steps
 
     return jax.jit(jax.vmap(one))
@@ -49,7 +56,9 @@ def _p1(p):
 def _p3(p0):
     def loss(theta, A):
         I = p0.I.at[jnp.diag_indices(3)].set(theta[2:5])
-        p = eqx.tree_at(lambda q: (q.r_m, q.j, q.I, q.m0, q.I0), p0, (p0.r_m.at[2].set(theta[0]), theta[1], I, theta[5], theta[6]))
+        p = eqx.tree_at(
+            lambda q: (q.r_m, q.j, q.I, q.m0, q.I0), p0, (p0.r_m.at[2].set(theta[0]), theta[1], I, theta[5], theta[6])
+        )
         xy = _p1_traced(p, A)
         return jnp.sum(xy[0] ** 2 + xy[1] ** 2)
 
@@ -59,7 +68,14 @@ def _p3(p0):
 
 def _p1_traced(p, A):
     tr = jax.vmap(
-        lambda a: jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)), 4.0, rtol=1e-8, atol=1e-10)
+        lambda a: jsphere.simulate(
+            p,
+            jsphere.State.at_rest(p),
+            jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)),
+            4.0,
+            rtol=1e-8,
+            atol=1e-10,
+        )
     )(A)
     return tr.x[:, -1], tr.y[:, -1]
 
@@ -101,18 +117,34 @@ def main(argv=None) -> int:
         res = {}
         for flag in (False, True):  # fresh jit per layout: the flag is read at trace time
             res[flag] = _with_layout(flag, lambda: _time(_p1(p), A))
-            print(f"[P1 batch {B}] {'components' if flag else 'flat'}: {B / res[flag][2]:.0f}/s", file=sys.stderr, flush=True)
+            print(
+                f"[P1 batch {B}] {'components' if flag else 'flat'}: {B / res[flag][2]:.0f}/s",
+                file=sys.stderr,
+                flush=True,
+            )
         (xf, yf, nf), cf, mf, tf = res[False]
         (xc, yc, nc), cc, mc, tc = res[True]
         dx = float(max(jnp.max(jnp.abs(xf - xc)), jnp.max(jnp.abs(yf - yc))))
-        rows.append({"problem": "P1", "batch": B, "flat": {"median_s": mf, "times_s": tf, "first_s": cf, "steps_max": int(nf.max())},
-                     "components": {"median_s": mc, "times_s": tc, "first_s": cc, "steps_max": int(nc.max())},
-                     "trials_per_s_flat": B / mf, "trials_per_s_components": B / mc, "ratio": mf / mc, "max_abs_diff_m": dx})  # fmt: skip
-        lines.append(f"{'P1 torques, public API':<28}{B:>7}{B / mf:>11.0f}{B / mc:>15.0f}{mf / mc:>8.2f}{f'{cf - mf:.1f} / {cc - mc:.1f}':>22}{dx:>12.1e}")
+        rows.append(
+            {
+                "problem": "P1",
+                "batch": B,
+                "flat": {"median_s": mf, "times_s": tf, "first_s": cf, "steps_max": int(nf.max())},
+                "components": {"median_s": mc, "times_s": tc, "first_s": cc, "steps_max": int(nc.max())},
+                "trials_per_s_flat": B / mf,
+                "trials_per_s_components": B / mc,
+                "ratio": mf / mc,
+                "max_abs_diff_m": dx,
+            }
+        )
+        lines.append(
+            f"{'P1 torques, public API':<28}{B:>7}{B / mf:>11.0f}{B / mc:>15.0f}{mf / mc:>8.2f}{f'{cf - mf:.1f} / {cc - mc:.1f}':>22}{dx:>12.1e}"
+        )
     B = args.grad_batch
     A = jnp.asarray(0.05 * (1 + 0.1 * Z[:B]))
     g = {}
     for flag in (False, True):
+
         def run():
             fwd, grad, theta = _p3(p)
             return _time(fwd, theta, A), _time(grad, theta, A)
@@ -123,18 +155,40 @@ def main(argv=None) -> int:
     for flag in (False, True):
         (_, _, fm, _), (_, gc, gm, _) = g[flag]
         name = "components" if flag else "flat"
-        rows.append({"problem": "P3", "layout": name, "batch": B, "forward_median_s": fm, "grad_median_s": gm,
-                     "grad_over_forward": gm / fm, "grad_first_s": gc, "grad_rel_diff_between_layouts": gdiff})  # fmt: skip
-        lines.append(f"{'P3 grad/forward, ' + name:<28}{B:>7}{'':>11}{gm / fm:>15.2f}{'':>8}{f'grad {gc - gm:.1f}':>22}{'':>12}")
-    lines.append(f"P3 gradients of the two layouts agree to {gdiff:.1e} (relative); P3 forward flat / components: "
-                 f"{g[False][0][2] / g[True][0][2]:.2f}x, grad flat / components: {g[False][1][2] / g[True][1][2]:.2f}x")  # fmt: skip
+        rows.append(
+            {
+                "problem": "P3",
+                "layout": name,
+                "batch": B,
+                "forward_median_s": fm,
+                "grad_median_s": gm,
+                "grad_over_forward": gm / fm,
+                "grad_first_s": gc,
+                "grad_rel_diff_between_layouts": gdiff,
+            }
+        )
+        lines.append(
+            f"{'P3 grad/forward, ' + name:<28}{B:>7}{'':>11}{gm / fm:>15.2f}{'':>8}{f'grad {gc - gm:.1f}':>22}{'':>12}"
+        )
+    lines.append(
+        f"P3 gradients of the two layouts agree to {gdiff:.1e} (relative); P3 forward flat / components: "
+        f"{g[False][0][2] / g[True][0][2]:.2f}x, grad flat / components: {g[False][1][2] / g[True][1][2]:.2f}x"
+    )
     table = "\n".join(lines)
     print(table)
     out = {
         "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "machine": {"platform": platform.platform(), "processor": platform.processor(), "cpu_count": os.cpu_count(),
-                    "loadavg": os.getloadavg()},  # fmt: skip
-        "jax": {"backend": jax.default_backend(), "device_kind": jax.devices()[0].device_kind, "x64": bool(jax.config.jax_enable_x64)},
+        "machine": {
+            "platform": platform.platform(),
+            "processor": platform.processor(),
+            "cpu_count": os.cpu_count(),
+            "loadavg": os.getloadavg(),
+        },
+        "jax": {
+            "backend": jax.default_backend(),
+            "device_kind": jax.devices()[0].device_kind,
+            "x64": bool(jax.config.jax_enable_x64),
+        },
         "versions": {"jax": jax.__version__, "jsphere": getattr(jsphere, "__version__", None)},
         "rows": rows,
         "table": lines,

@@ -33,8 +33,14 @@ def with_optimistix(fun, x0, *, max_iter=50, ftol=1e-14, xtol=1e-12):
     """`optimistix.least_squares` with `optimistix.LevenbergMarquardt` (reverse-mode Jacobian),
     the step and cost tolerances of `jsphere.least_squares`."""
     solver = optx.LevenbergMarquardt(rtol=xtol, atol=ftol)
-    sol = optx.least_squares(lambda x, _: fun(x), solver, jnp.asarray(x0, jnp.float64), options={"jac": "bwd"},
-                             max_steps=max_iter, throw=False)  # fmt: skip
+    sol = optx.least_squares(
+        lambda x, _: fun(x),
+        solver,
+        jnp.asarray(x0, jnp.float64),
+        options={"jac": "bwd"},
+        max_steps=max_iter,
+        throw=False,
+    )
     x = np.asarray(sol.value)
     r = np.asarray(jax.jit(fun)(x))
     return x, 0.5 * float(r @ r), int(sol.stats["num_steps"]), bool(sol.result == optx.RESULTS.successful)
@@ -81,8 +87,18 @@ def run(name, make, solver):
             x, cost, it, conv = res.x, res.cost, res.iterations, res.converged
         else:
             x, cost, it, conv = with_optimistix(fun, x0)
-        rows.append({"problem": name, "solver": solver, "call": call, "seconds": time.perf_counter() - t0,
-                     "iterations": int(it), "converged": bool(conv), "cost": float(cost), "x": np.asarray(x).tolist()})
+        rows.append(
+            {
+                "problem": name,
+                "solver": solver,
+                "call": call,
+                "seconds": time.perf_counter() - t0,
+                "iterations": int(it),
+                "converged": bool(conv),
+                "cost": float(cost),
+                "x": np.asarray(x).tolist(),
+            }
+        )
     return rows
 
 
@@ -98,10 +114,20 @@ def main():
             rows += run(name, make, solver)
     print(f"{'problem':<14} {'solver':<11} {'call':<7} {'seconds':>8} {'iter':>5} {'conv':>5} {'cost':>12}")
     for r in rows:
-        print(f"{r['problem']:<14} {r['solver']:<11} {r['call']:<7} {r['seconds']:>8.2f} {r['iterations']:>5d} "
-              f"{str(r['converged']):>5} {r['cost']:>12.5e}")
-    meta = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": platform.platform(), "device": str(jax.devices()[0]),
-            "versions": {"jax": jax.__version__, "optimistix": __import__("optimistix").__version__, "numpy": np.__version__}}
+        print(
+            f"{r['problem']:<14} {r['solver']:<11} {r['call']:<7} {r['seconds']:>8.2f} {r['iterations']:>5d} "
+            f"{str(r['converged']):>5} {r['cost']:>12.5e}"
+        )
+    meta = {
+        "date": time.strftime("%Y-%m-%d %H:%M"),
+        "machine": platform.platform(),
+        "device": str(jax.devices()[0]),
+        "versions": {
+            "jax": jax.__version__,
+            "optimistix": __import__("optimistix").__version__,
+            "numpy": np.__version__,
+        },
+    }
     Path(args.out).write_text(json.dumps({"meta": meta, "rows": rows}, indent=1) + "\n")
     print(f"wrote {args.out}")
 

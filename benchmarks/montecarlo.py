@@ -52,14 +52,19 @@ row = {
     "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(), "loadavg": os.getloadavg()},
     "device": {"backend": jax.default_backend(), "kind": jax.devices()[0].device_kind, "count": jax.device_count()},
     "versions": {"jax": jax.__version__, "jsphere": jsphere.__version__, "numpy": np.__version__},
-    "trials": args.trials, "batch_size": args.batch_size,
-    "monte_carlo_s": mc_s, "monte_carlo_trials_per_s": rate,
+    "trials": args.trials,
+    "batch_size": args.batch_size,
+    "monte_carlo_s": mc_s,
+    "monte_carlo_trials_per_s": rate,
     "first_call_incl_compile_s": compile_and_one_batch,
-    "baseline_loop_trials_per_s": loop_rate, "ratio_vs_loop": rate / loop_rate,
+    "baseline_loop_trials_per_s": loop_rate,
+    "ratio_vs_loop": rate / loop_rate,
     "stop_distance_sd_mm": 1e3 * res.stats()["distance_m"]["sd"],
-}  # fmt: skip
+}
 print(f"{'':28s}{'trials':>10s}{'seconds':>10s}{'trials/s':>12s}")
 print(f"{'monte_carlo (gait mode)':28s}{args.trials:>10d}{mc_s:>10.1f}{rate:>12,.0f}")
-print(f"{'loop of simulate_gaits':28s}{args.baseline_trials:>10d}{args.baseline_trials / loop_rate:>10.1f}{loop_rate:>12,.0f}")
+print(
+    f"{'loop of simulate_gaits':28s}{args.baseline_trials:>10d}{args.baseline_trials / loop_rate:>10.1f}{loop_rate:>12,.0f}"
+)
 print(f"ratio {rate / loop_rate:.1f}x; first call incl. compile {compile_and_one_batch:.1f} s; device {row['device']}")
 atomic_write_text(args.out, json.dumps(row, indent=2) + "\n")

@@ -67,7 +67,11 @@ class NumpyRobot:
 
     def mass_matrix(self, gamma):
         B = self.Jns - self.Jss + self.m * self.R0 * ((gamma @ self.r_m) * self.E - np.outer(gamma, self.r_m))
-        D = self.I0 * self.E + self.Jss + (self.m + self.m0) * self.R0**2 * ((gamma @ gamma) * self.E - np.outer(gamma, gamma))
+        D = (
+            self.I0 * self.E
+            + self.Jss
+            + (self.m + self.m0) * self.R0**2 * ((gamma @ gamma) * self.E - np.outer(gamma, gamma))
+        )
         return np.block([[self.A, B], [B.T, D]])
 
     def forces(self, gamma, w, W):

@@ -86,12 +86,25 @@ def main(argv=None) -> int:
     for a, b_ in rows:
         print(f"{a.ljust(w)}  {b_}")
     info = {
-        "machine": {"platform": platform.platform(), "processor": platform.processor(), "cpu_count": os.cpu_count(),
-                    "jax": jax.__version__, "devices": [str(d) for d in jax.devices()], "python": platform.python_version()},
-        "targets": B, "restarts": R, "iterations": iters, "n_steps": s.n_steps, "compile_s": t_compile, "search_s": t_run,
-        "per_problem_iteration_s": per, "extrapolated_256x16_s": full, "max_position_error_m": max(errs),
+        "machine": {
+            "platform": platform.platform(),
+            "processor": platform.processor(),
+            "cpu_count": os.cpu_count(),
+            "jax": jax.__version__,
+            "devices": [str(d) for d in jax.devices()],
+            "python": platform.python_version(),
+        },
+        "targets": B,
+        "restarts": R,
+        "iterations": iters,
+        "n_steps": s.n_steps,
+        "compile_s": t_compile,
+        "search_s": t_run,
+        "per_problem_iteration_s": per,
+        "extrapolated_256x16_s": full,
+        "max_position_error_m": max(errs),
         "best_loss": best_loss.tolist(),
-    }  # fmt: skip
+    }
     Path(args.out).write_text(json.dumps(info, indent=2) + "\n")
     print(f"wrote {args.out}")
     return 0

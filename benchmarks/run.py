@@ -34,17 +34,17 @@ ROOT = HERE.parent
 sys.path.insert(0, str(ROOT))  # the jsphere of this checkout
 sys.path.insert(0, str(HERE))
 
-import numpy as np  # noqa: E402
-import scipy  # noqa: E402
-from scipy.integrate import solve_ivp  # noqa: E402
-
-import jsphere  # noqa: E402  (enables float64 in JAX)
-from jsphere._runtime.files import atomic_write_text  # noqa: E402
 import equinox as eqx  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import scipy  # noqa: E402
 from numpy_model import NumpyRobot, initial_state  # noqa: E402
+from scipy.integrate import solve_ivp  # noqa: E402
 from startup import measure as startup_measure  # noqa: E402
+
+import jsphere  # noqa: E402  (enables float64 in JAX)
+from jsphere._runtime.files import atomic_write_text  # noqa: E402
 
 _SOURCE_AT_IMPORT = None  # set in main(), right after jsphere was imported
 T1 = 4.0
@@ -97,8 +97,16 @@ def rate_row(r: dict, B: int, steps, **extra) -> dict:
     """A table row: timing of `B` trials, their solver steps, and `extra` fields."""
     steps = np.asarray(steps)
     log(f"      {B / r['median_s']:.1f} trials/s, compile {r['compile_s']:.1f} s")
-    return public(r) | {"batch": B, "trials_per_s": B / r["median_s"], "steps_mean": float(steps.mean()),
-                        "steps_max": int(steps.max())} | extra  # fmt: skip
+    return (
+        public(r)
+        | {
+            "batch": B,
+            "trials_per_s": B / r["median_s"],
+            "steps_mean": float(steps.mean()),
+            "steps_max": int(steps.max()),
+        }
+        | extra
+    )
 
 
 # ------------------------------------------------------------------------ environment
@@ -336,7 +344,12 @@ def problem3(p0, Z, batches, repeats):
         p = with_theta(theta)
         tr = jax.vmap(
             lambda a: jsphere.simulate(
-                p, jsphere.State.at_rest(p), jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)), T1, rtol=RTOL, atol=ATOL
+                p,
+                jsphere.State.at_rest(p),
+                jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)),
+                T1,
+                rtol=RTOL,
+                atol=ATOL,
             )
         )(A)
         return jnp.sum(tr.x[:, -1] ** 2 + tr.y[:, -1] ** 2)
@@ -436,7 +449,10 @@ def fmt_table(res) -> str:
     )
     cas = [r for r in res["problem1"].get("casadi", []) if "trial0_err_m" in r]
     if cas:
-        L.append("  CasADi trial 0 vs the same reference: " + ", ".join(f"{r['name'].split(',')[0]} {r['trial0_err_m']:.1e} m" for r in cas))
+        L.append(
+            "  CasADi trial 0 vs the same reference: "
+            + ", ".join(f"{r['name'].split(',')[0]} {r['trial0_err_m']:.1e} m" for r in cas)
+        )
     fd = res["problem3"]["fd_check"]
     if fd:
         L.append(
@@ -460,9 +476,18 @@ def write_json_atomic(path: Path, obj) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="smaller run (about 2 minutes on 2 CPU cores)")
-    ap.add_argument("--out", type=Path, default=None, help="JSON output, written atomically (default results.json, or results-quick.json with --quick)")
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="JSON output, written atomically (default results.json, or results-quick.json with --quick)",
+    )
     ap.add_argument("--no-casadi", action="store_true", help="skip the CasADi baselines (run when casadi is installed)")
-    ap.add_argument("--no-startup", action="store_true", help="skip the start-up measurement (benchmarks/startup.py's default configuration)")
+    ap.add_argument(
+        "--no-startup",
+        action="store_true",
+        help="skip the start-up measurement (benchmarks/startup.py's default configuration)",
+    )
     args = ap.parse_args(argv)
     if args.out is None:
         args.out = HERE / ("results-quick.json" if args.quick else "results.json")
@@ -477,8 +502,10 @@ def main(argv=None) -> int:
     b2 = [1, 64, 1024]
     b3 = [64] if args.quick else [64, 1024]
     n_scipy = 3 if args.quick else 10
-    log(f"jsphere benchmark ({'quick' if args.quick else 'full'}): backend {env['jax']['backend']} "
-        f"({env['jax']['device_kind']}), {env['machine']['cpu_count']} CPUs")
+    log(
+        f"jsphere benchmark ({'quick' if args.quick else 'full'}): backend {env['jax']['backend']} "
+        f"({env['jax']['device_kind']}), {env['machine']['cpu_count']} CPUs"
+    )
 
     p = jsphere.RobotParams.paper()
     Z = np.random.default_rng(0).standard_normal((max(b1), 3))
@@ -515,10 +542,21 @@ def main(argv=None) -> int:
             "repeats": repeats,
             "repeat_rule": "at least `repeats` steady-state calls, more (up to 25) while their total is under 1 s",
             "compile_s": "first call (trace + compile + one run) minus the steady-state median",
-            "problem1": {"t1": T1, "rtol": RTOL, "atol": ATOL, "amplitudes": "0.05 (1 + 0.1 z), z ~ default_rng(0).standard_normal((B, 3)), rows 0..B-1",
-                         "phases": PHASES.tolist(), "batches": b1, "scipy_trials": n_scipy},
-            "problem2": {"gaits": "acceleration(theta_max=th), braking(theta_max=th)", "theta_max": "default_rng(1).uniform(0.05, 0.15)",
-                         "tolerances": "simulate_gaits defaults (rtol 1e-10, atol 1e-12)", "batches": b2},
+            "problem1": {
+                "t1": T1,
+                "rtol": RTOL,
+                "atol": ATOL,
+                "amplitudes": "0.05 (1 + 0.1 z), z ~ default_rng(0).standard_normal((B, 3)), rows 0..B-1",
+                "phases": PHASES.tolist(),
+                "batches": b1,
+                "scipy_trials": n_scipy,
+            },
+            "problem2": {
+                "gaits": "acceleration(theta_max=th), braking(theta_max=th)",
+                "theta_max": "default_rng(1).uniform(0.05, 0.15)",
+                "tolerances": "simulate_gaits defaults (rtol 1e-10, atol 1e-12)",
+                "batches": b2,
+            },
             "problem3": {"params": GRAD_NAMES, "loss": "sum over batch of x_final^2 + y_final^2", "batches": b3},
         },
         "problem1": {"jsphere": js_rows, "scipy": sc_row, "casadi": cas_rows, "checks": checks},

@@ -72,10 +72,16 @@ def _search_one_optimistix(z0, target, params, lim, obj, s):
         up, st = opt.update(jnp.where(ok, 2.0 * J.T @ r, 0.0), st, z)
         return (jnp.where(ok, optax.apply_updates(z, up), zb), zb, fb, st), f
 
-    (_, zb, fb, _), hist = jax.lax.scan(body, (z0, z0, jnp.asarray(jnp.inf, z0.dtype), opt.init(z0)), None,
-                                        length=s.adam_steps)  # fmt: skip
-    sol = optx.least_squares(lambda z, _: _residuals(z, target, params, lim, obj, s),
-                             optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10), zb, max_steps=s.lm_steps, throw=False)  # fmt: skip
+    (_, zb, fb, _), hist = jax.lax.scan(
+        body, (z0, z0, jnp.asarray(jnp.inf, z0.dtype), opt.init(z0)), None, length=s.adam_steps
+    )
+    sol = optx.least_squares(
+        lambda z, _: _residuals(z, target, params, lim, obj, s),
+        optx.LevenbergMarquardt(rtol=1e-10, atol=1e-10),
+        zb,
+        max_steps=s.lm_steps,
+        throw=False,
+    )
     f = jnp.sum(_residuals(sol.value, target, params, lim, obj, s) ** 2)
     better = jnp.isfinite(f) & (f < fb)
     return jnp.where(better, sol.value, zb), jnp.where(better, f, fb), None, hist
@@ -89,7 +95,10 @@ def bench_search(p, restarts):
     tgt = jnp.repeat(jnp.asarray(tg), restarts, axis=0)
     scales = np.array([obj.position_scale] * 2 + [obj.speed_scale] * 3)
     rows = {}
-    for name, one in (("hand-written Adam + LM scan", search._search_one), ("Adam + optimistix LM", _search_one_optimistix)):
+    for name, one in (
+        ("hand-written Adam + LM scan", search._search_one),
+        ("Adam + optimistix LM", _search_one_optimistix),
+    ):
         f = jax.jit(jax.vmap(lambda z, t, one=one: one(z, t, p, lim_a, obj_a, s)[:2]))
         t0 = time.perf_counter()
         c = f.lower(z0, tgt).compile()
@@ -100,8 +109,13 @@ def bench_search(p, restarts):
         speed = np.linalg.norm(r[:, 2:5], axis=1) * scales[2]
         ok = (pos < 5e-4) & (speed < 5e-4)
         best = np.asarray(loss).reshape(len(tg), restarts).min(axis=1)
-        rows[name] = {"compile_s": t_compile, "run_s": t_run, "restarts_within_0.5mm_0.5mm_s": int(ok.sum()),
-                      "problems": int(ok.size), "best_loss_per_target": best.tolist()}  # fmt: skip
+        rows[name] = {
+            "compile_s": t_compile,
+            "run_s": t_run,
+            "restarts_within_0.5mm_0.5mm_s": int(ok.sum()),
+            "problems": int(ok.size),
+            "best_loss_per_target": best.tolist(),
+        }
     return rows
 
 
@@ -113,8 +127,10 @@ class _RK4(diffrax.AbstractERK):
 
     tableau = diffrax.ButcherTableau(
         a_lower=(np.array([0.5]), np.array([0.0, 0.5]), np.array([0.0, 0.0, 1.0])),
-        b_sol=np.array([1 / 6, 1 / 3, 1 / 3, 1 / 6]), b_error=np.zeros(4), c=np.array([0.5, 0.5, 1.0]),
-    )  # fmt: skip
+        b_sol=np.array([1 / 6, 1 / 3, 1 / 3, 1 / 6]),
+        b_error=np.zeros(4),
+        c=np.array([0.5, 0.5, 1.0]),
+    )
     interpolation_cls = diffrax.ThirdOrderHermitePolynomialInterpolation.from_k
 
     def order(self, terms):
@@ -126,10 +142,18 @@ def _states_diffrax(p, gait, n):
     Qm = rotation_between(jnp.array([0.0, 0.0, 1.0], dt), rest_attitude(p))
     T = jnp.asarray(gait.T, dt)
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(_gait_field), _RK4(), 0.0, T, T / n, State.at_rest(p).flatten().astype(dt),
-        args=(p, derive(p), (gait, Qm), jnp.zeros((), dt), T), stepsize_controller=diffrax.ConstantStepSize(),
-        saveat=diffrax.SaveAt(t0=True, steps=True), max_steps=n, adjoint=diffrax.ForwardMode(),
-    )  # fmt: skip
+        diffrax.ODETerm(_gait_field),
+        _RK4(),
+        0.0,
+        T,
+        T / n,
+        State.at_rest(p).flatten().astype(dt),
+        args=(p, derive(p), (gait, Qm), jnp.zeros((), dt), T),
+        stepsize_controller=diffrax.ConstantStepSize(),
+        saveat=diffrax.SaveAt(t0=True, steps=True),
+        max_steps=n,
+        adjoint=diffrax.ForwardMode(),
+    )
     return sol.ys
 
 
@@ -173,8 +197,9 @@ def bench_full_stop(p):
 
     @eqx.filter_jit
     def optimistix_newton(x0):
-        sol = optx.least_squares(fn, optx.GaussNewton(rtol=0.0, atol=1e-12), x0, options={"jac": "bwd"},
-                                 max_steps=8, throw=False)  # fmt: skip
+        sol = optx.least_squares(
+            fn, optx.GaussNewton(rtol=0.0, atol=1e-12), x0, options={"jac": "bwd"}, max_steps=8, throw=False
+        )
         return sol.value
 
     rows = {}
@@ -183,8 +208,12 @@ def bench_full_stop(p):
     rows["finite-difference Newton"] = {"s": t, "theta_max": th, "phi": ph, "residual": float(np.max(np.abs(res)))}
     x, t = _timed(optimistix_newton, jnp.array([0.1, math.pi / 4]))
     res = fn(x, None)
-    rows["optimistix GaussNewton (reverse mode)"] = {"s": t, "theta_max": float(x[0]), "phi": float(x[1]),
-                                                     "residual": float(jnp.max(jnp.abs(res)))}  # fmt: skip
+    rows["optimistix GaussNewton (reverse mode)"] = {
+        "s": t,
+        "theta_max": float(x[0]),
+        "phi": float(x[1]),
+        "residual": float(jnp.max(jnp.abs(res))),
+    }
     return rows
 
 
@@ -195,10 +224,20 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(Path(__file__).with_name("results-solvers.json")))
     args = ap.parse_args(argv)
     p = jsphere.RobotParams.paper()
-    out = {"machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(), "jax": jax.__version__,
-                       "optimistix": optx.__version__, "diffrax": diffrax.__version__}}  # fmt: skip
-    benches = {"search": lambda: bench_search(p, args.restarts), "integrator": lambda: bench_integrator(p, args.restarts),
-               "full_stop": lambda: bench_full_stop(p)}  # fmt: skip
+    out = {
+        "machine": {
+            "platform": platform.platform(),
+            "cpu_count": os.cpu_count(),
+            "jax": jax.__version__,
+            "optimistix": optx.__version__,
+            "diffrax": diffrax.__version__,
+        }
+    }
+    benches = {
+        "search": lambda: bench_search(p, args.restarts),
+        "integrator": lambda: bench_integrator(p, args.restarts),
+        "full_stop": lambda: bench_full_stop(p),
+    }
     for name in args.only.split(","):
         out[name] = benches[name]()
         print(f"== {name}")

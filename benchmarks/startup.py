@@ -33,7 +33,9 @@ CONFIGS = {"default": [], "optimize": ["--optimize"], "no-plots": ["--no-plots"]
 
 
 def run_once(cache_dir: str, out_dir: str, *extra: str) -> float:
-    env = dict(os.environ, JSPHERE_CACHE_DIR=cache_dir, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env = dict(
+        os.environ, JSPHERE_CACHE_DIR=cache_dir, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")
+    )
     env.pop("XLA_FLAGS", None)
     cmd = [sys.executable, "-m", "jsphere.cli.app", "reproduce", "--out", out_dir, *extra]
     t = time.perf_counter()
@@ -49,9 +51,12 @@ def measure(tmp: str, name: str, extra: list[str], cached_runs: int = 3) -> dict
     seconds = [run_once(cache, out, *extra) for _ in range(cached_runs)]
     size = sum(f.stat().st_size for f in Path(cache).rglob("*") if f.is_file())
     return {
-        "args": extra, "first_process_s": first, "second_process_s": sorted(seconds)[len(seconds) // 2],
-        "second_process_runs_s": seconds, "cache_bytes": size,
-    }  # fmt: skip
+        "args": extra,
+        "first_process_s": first,
+        "second_process_s": sorted(seconds)[len(seconds) // 2],
+        "second_process_runs_s": seconds,
+        "cache_bytes": size,
+    }
 
 
 def main(argv=None) -> int:

@@ -67,10 +67,28 @@ class Sine(jsphere.Zero.__base__):
 
 
 def public(p, A):
-    f = jax.jit(jax.vmap(lambda a: (lambda tr: (tr.x[-1], tr.num_steps))(
-        jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)), 4.0, rtol=1e-8, atol=1e-10))))  # fmt: skip
+    f = jax.jit(
+        jax.vmap(
+            lambda a: (lambda tr: (tr.x[-1], tr.num_steps))(
+                jsphere.simulate(
+                    p,
+                    jsphere.State.at_rest(p),
+                    jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)),
+                    4.0,
+                    rtol=1e-8,
+                    atol=1e-10,
+                )
+            )
+        )
+    )
     (x, steps), first, best = best_of(f, A)
-    return {"s": best, "first_s": first, "steps_mean": float(steps.mean()), "steps_max": int(steps.max()), "x0": float(x[0])}
+    return {
+        "s": best,
+        "first_s": first,
+        "steps_mean": float(steps.mean()),
+        "steps_max": int(steps.max()),
+        "x0": float(x[0]),
+    }
 
 
 def rhs_only(p, A):
@@ -79,7 +97,9 @@ def rhs_only(p, A):
 
     def loop(a):
         ctrl = jsphere.Torques(Sine(a))
-        return jax.lax.fori_loop(0, EVALS, lambda i, z: z + 1e-6 * _torque_field(i * 1e-3, z, (p, d, ctrl, 0.0, 4.0)), z0)
+        return jax.lax.fori_loop(
+            0, EVALS, lambda i, z: z + 1e-6 * _torque_field(i * 1e-3, z, (p, d, ctrl, 0.0, 4.0)), z0
+        )
 
     _, first, best = best_of(jax.jit(jax.vmap(loop)), A)
     return {"s": best, "ns_per_trial_eval": best / EVALS / A.shape[0] * 1e9}
@@ -88,8 +108,19 @@ def rhs_only(p, A):
 def diffrax_loop(A):
     def solve(a):
         term = dfx.ODETerm(lambda t, y, args: jnp.cos(40.0 * t) * jnp.ones_like(y) + 0.0 * args[0])
-        sol = dfx.diffeqsolve(term, dfx.Dopri8(), 0.0, 4.0, None, jnp.zeros(19), a, saveat=dfx.SaveAt(t1=True),
-                              stepsize_controller=dfx.PIDController(rtol=1e-8, atol=1e-10), max_steps=16384, throw=False)  # fmt: skip
+        sol = dfx.diffeqsolve(
+            term,
+            dfx.Dopri8(),
+            0.0,
+            4.0,
+            None,
+            jnp.zeros(19),
+            a,
+            saveat=dfx.SaveAt(t1=True),
+            stepsize_controller=dfx.PIDController(rtol=1e-8, atol=1e-10),
+            max_steps=16384,
+            throw=False,
+        )
         return sol.stats["num_accepted_steps"]
 
     steps, first, best = best_of(jax.jit(jax.vmap(solve)), A)
@@ -152,7 +183,13 @@ def main(argv=None) -> int:
     rows = []
     for B in args.batches:
         A = jnp.asarray(0.05 * (1 + 0.1 * np.random.default_rng(0).standard_normal((B, 3))))
-        r = {"batch": B, "public": public(p, A), "rhs": rhs_only(p, A), "diffrax_loop": diffrax_loop(A), "lean_loop": lean_loop(p, A)}
+        r = {
+            "batch": B,
+            "public": public(p, A),
+            "rhs": rhs_only(p, A),
+            "diffrax_loop": diffrax_loop(A),
+            "lean_loop": lean_loop(p, A),
+        }
         steps = r["public"]["steps_max"]
         rhs_s = 13 * steps * r["rhs"]["ns_per_trial_eval"] * 1e-9 * B
         r["predicted_public_s"] = rhs_s + steps * r["diffrax_loop"]["us_per_trial_step"] * 1e-6 * B
@@ -164,8 +201,12 @@ def main(argv=None) -> int:
             f" | predicted {B / r['predicted_public_s']:8.0f} trials/s, rhs share {r['rhs_share_of_public']:.0%}",
             flush=True,
         )
-    info = {"jax": jax.__version__, "diffrax": dfx.__version__ if hasattr(dfx, "__version__") else None,
-            "device": str(jax.devices()[0]), "rows": rows}  # fmt: skip
+    info = {
+        "jax": jax.__version__,
+        "diffrax": dfx.__version__ if hasattr(dfx, "__version__") else None,
+        "device": str(jax.devices()[0]),
+        "rows": rows,
+    }
     tmp = args.out.with_suffix(".tmp")
     tmp.write_text(json.dumps(info, indent=2) + "\n")
     tmp.replace(args.out)

@@ -30,14 +30,17 @@ vary = {
     "m0": ("normal", 0.8, 0.02),
 }
 actuators = jsphere.Actuators(gain_sd=0.02, white_sd=1e-4) if args.mode != "gait" else None
-res = jsphere.monte_carlo(p, gaits, vary=vary, n=args.trials, seed=0, batch_size=8192, mode=args.mode,
-                          actuators=actuators, out=args.out)  # fmt: skip
+res = jsphere.monte_carlo(
+    p, gaits, vary=vary, n=args.trials, seed=0, batch_size=8192, mode=args.mode, actuators=actuators, out=args.out
+)
 st = res.stats()
 plan = jsphere.simulate_gaits(p, gaits)
 print(json.dumps(st, indent=2))
 fx, fy = jsphere.to_figure_frame(st["mean_xy_m"][0], st["mean_xy_m"][1])
 print(f"\n{args.trials} trials in {res.elapsed_s:.1f} s")
-print(f"stop (paper's frame): mean ({1e3 * fx:.1f}, {1e3 * fy:.1f}) mm, sd ({1e3 * st['sd_xy_m'][1]:.1f}, "
-      f"{1e3 * st['sd_xy_m'][0]:.1f}) mm; planned (-3.6, 259.2) mm")  # fmt: skip
+print(
+    f"stop (paper's frame): mean ({1e3 * fx:.1f}, {1e3 * fy:.1f}) mm, sd ({1e3 * st['sd_xy_m'][1]:.1f}, "
+    f"{1e3 * st['sd_xy_m'][0]:.1f}) mm; planned (-3.6, 259.2) mm"
+)
 print("paper: simulation (-0.07, 344.6) mm; experiment (-1.4 +- 28.9, 369.2 +- 37.7) mm (95 %, 5 runs)")
 montecarlo_figure(res, f"{args.out}/stop_points.png", planned=(float(plan.x[-1]), float(plan.y[-1])))

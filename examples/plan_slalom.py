@@ -52,8 +52,10 @@ def main(out="plan-slalom"):
         sp = (cols["x"][k], cols["y"][k])
         ep, eh = (1e3 * math.hypot(s[0] - w[0], s[1] - w[1]) for s in (sp, sh))
         print(f"{w!s:<16}({sp[0]:.5f}, {sp[1]:.5f}){'':<6}{ep:<12.4f}({sh[0]:.5f}, {sh[1]:.5f}){'':<6}{eh:<12.2f}")
-    print(f"duration: planned {pl.duration:.2f} s, hand-made {float(tr_h.ts[-1]):.2f} s; "
-          f"max |K|: planned {1e3 * np.max(np.abs(pl.trajectory.K)):.2f} mN m, hand-made {1e3 * np.max(np.abs(tr_h.K)):.2f} mN m")  # fmt: skip
+    print(
+        f"duration: planned {pl.duration:.2f} s, hand-made {float(tr_h.ts[-1]):.2f} s; "
+        f"max |K|: planned {1e3 * np.max(np.abs(pl.trajectory.K)):.2f} mN m, hand-made {1e3 * np.max(np.abs(tr_h.K)):.2f} mN m"
+    )
     rep = jsphere.replay_errors(pl, mode="torques")
     print(
         f"replaying the CSV torques through jsphere.simulate: end {1e3 * rep['target_error_m']:.4f} mm from the last waypoint"

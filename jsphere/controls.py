@@ -15,8 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .model.kinematics import kinematic_wheel_speeds
 from ._runtime.arrays import to_jax
+from .model.kinematics import kinematic_wheel_speeds
 from .model.params import RobotParams
 
 
@@ -44,7 +44,9 @@ class Sampled(eqx.Module):
         if ts.ndim != 1 or ts.shape[0] < 2:
             raise ValueError(f"Sampled.ts must be 1-D with at least 2 times; got shape {ts.shape}.")
         if vals.shape[0] != ts.shape[0]:
-            raise ValueError(f"Sampled.values must have one row per time: {vals.shape[0]} rows for {ts.shape[0]} times.")
+            raise ValueError(
+                f"Sampled.values must have one row per time: {vals.shape[0]} rows for {ts.shape[0]} times."
+            )
         if not np.all(np.isfinite(ts)):
             raise ValueError("Sampled.ts contains NaN or inf.")
         bad = np.nonzero(~np.all(np.isfinite(vals.reshape(len(ts), -1)), axis=1))[0]
@@ -103,7 +105,9 @@ class _Control(eqx.Module):
     def __init__(self, fn: Callable, jump_ts: Sequence[float] = ()):
         if not callable(fn):
             name = type(self).__name__
-            raise TypeError(f"{name} needs a function of time fn(t) -> (N,), or use {name}.from_samples(ts, values); got {type(fn).__name__}.")
+            raise TypeError(
+                f"{name} needs a function of time fn(t) -> (N,), or use {name}.from_samples(ts, values); got {type(fn).__name__}."
+            )
         self.fn = fn
         self.jump_ts = tuple(sorted(float(t) for t in jump_ts))
 
@@ -137,11 +141,15 @@ class WheelSpeeds(_Control):
     """
 
     @classmethod
-    def from_samples(cls, ts: Float[ArrayLike, " T"], chi_dot: Float[ArrayLike, "T N"], *, kind: str = "cubic") -> "WheelSpeeds":
+    def from_samples(
+        cls, ts: Float[ArrayLike, " T"], chi_dot: Float[ArrayLike, "T N"], *, kind: str = "cubic"
+    ) -> "WheelSpeeds":
         """Wheel rates from a table (repeat a time stamp to encode a jump)."""
         f = Sampled(jnp.asarray(ts), jnp.asarray(chi_dot), kind)
         if kind == "zoh":
-            raise ValueError("WheelSpeeds.from_samples: kind='zoh' would make every sample a jump; use 'linear' or 'cubic'.")
+            raise ValueError(
+                "WheelSpeeds.from_samples: kind='zoh' would make every sample a jump; use 'linear' or 'cubic'."
+            )
         return cls(f, f.jump_ts)
 
     def value_and_rate(self, t):

@@ -58,7 +58,9 @@ def test_calls_without_a_stable_key_are_not_exported(aot_dir):
     K = jnp.array([0.01, 0.0, -0.01])
     tr = jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(lambda t: K * t), 0.2)  # a lambda
     assert bool(tr.ok)
-    jax.jit(lambda a: jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(jsphere.Zero(3)), a).x)(0.2)  # traced
+    jax.jit(lambda a: jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(jsphere.Zero(3)), a).x)(
+        0.2
+    )  # traced
     assert not aot_dir.exists() or not list(aot_dir.glob("*.jaxexport"))
     assert _aot._stable(lambda t: t) is None and _aot._stable(object()) is None
     assert _aot._stable(1.5) == "float:1.5" and _aot._stable(jnp.sin) is not None

@@ -54,13 +54,17 @@ def test_interrupt_exits_130(tmp_path):
 
     env = {**os.environ, "PYTHONPATH": str(HERE.parents[1])}
     # Python's own SIGINT handler, also where the tests run as a background job (which ignores SIGINT)
-    script = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
-              "from jsphere.cli.app import console; print('started', flush=True); sys.exit(console())")  # fmt: skip
+    script = (
+        "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+        "from jsphere.cli.app import console; print('started', flush=True); sys.exit(console())"
+    )
     proc = subprocess.Popen(
-        [sys.executable, "-c", script,
-         "reproduce", "--no-cache", "--no-plots", "--out", str(tmp_path / "out")],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, text=True,
-    )  # fmt: skip
+        [sys.executable, "-c", script, "reproduce", "--no-cache", "--no-plots", "--out", str(tmp_path / "out")],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=env,
+        text=True,
+    )
     assert proc.stdout.readline().strip() == "started"
     assert "reproducing" in proc.stdout.readline()  # jsphere imported, the solves about to compile
     for _ in range(10):  # as a user would, again if Python dropped the first one (in a gc callback)
@@ -97,7 +101,12 @@ def test_help_and_argument_errors_import_no_jax():
         "print(sorted(m for m in ('jax', 'numpy', 'equinox') if m in sys.modules))\n"
     )
     env = {**os.environ, "PYTHONPATH": str(HERE.parents[1])}
-    done = subprocess.run([sys.executable, "-c", script, str(HERE.parents[1] / "jsphere")], capture_output=True, text=True,
-                          env=env, timeout=60)  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-c", script, str(HERE.parents[1] / "jsphere")],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=60,
+    )
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip().splitlines()[-1] == "[]", done.stdout[-500:]

@@ -31,7 +31,13 @@ class Amp(eqx.Module):
 def run():
     p = RobotParams.paper()
     s0 = State.at_rest(p)
-    return jax.jit(jax.vmap(lambda a, b: simulate(p, s0, Torques(Amp(a, b)), 2.0, ts=jnp.linspace(0.0, 2.0, 5), throw=False, max_steps=300)))
+    return jax.jit(
+        jax.vmap(
+            lambda a, b: simulate(
+                p, s0, Torques(Amp(a, b)), 2.0, ts=jnp.linspace(0.0, 2.0, 5), throw=False, max_steps=300
+            )
+        )
+    )
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +51,9 @@ def _check_alone(good, tr, bad):
     np.testing.assert_array_equal(ok, np.arange(B) != bad)
     keep = np.arange(B) != bad
     for field in ("x", "y", "omega", "Omega"):
-        np.testing.assert_allclose(np.asarray(getattr(tr, field))[keep], np.asarray(getattr(good, field))[keep], rtol=1e-5, atol=1e-6)  # shared against per-trial steps
+        np.testing.assert_allclose(
+            np.asarray(getattr(tr, field))[keep], np.asarray(getattr(good, field))[keep], rtol=1e-5, atol=1e-6
+        )  # shared against per-trial steps
     assert np.all(np.asarray(tr.status)[keep] == 0) and int(np.asarray(tr.status)[bad]) != 0
 
 
@@ -86,7 +94,13 @@ def test_gaits_hopeless_trial_fails_alone():
     @jax.jit
     @jax.vmap
     def run(th):
-        return simulate_gaits(p, [jsphere.acceleration(theta_max=th), jsphere.braking(theta_max=th)], ts=jnp.array([1.0, 4.0]), throw=False, max_steps=50)
+        return simulate_gaits(
+            p,
+            [jsphere.acceleration(theta_max=th), jsphere.braking(theta_max=th)],
+            ts=jnp.array([1.0, 4.0]),
+            throw=False,
+            max_steps=50,
+        )
 
     good = run(ths)
     assert bool(np.all(np.asarray(good.ok)))
@@ -108,7 +122,9 @@ def test_gradient_of_the_good_trials(amps):
     keep = jnp.asarray(np.arange(B) != BAD)
 
     def loss(scale, a):
-        tr = jax.vmap(lambda a: simulate(p, s0, Torques(Amp(scale * a, jnp.zeros(()))), 2.0, throw=False, max_steps=300))(a)
+        tr = jax.vmap(
+            lambda a: simulate(p, s0, Torques(Amp(scale * a, jnp.zeros(()))), 2.0, throw=False, max_steps=300)
+        )(a)
         return jnp.sum(jnp.where(keep & tr.ok, tr.x[:, -1], 0.0))
 
     g = jax.jit(jax.grad(loss))
@@ -127,7 +143,13 @@ def test_other_solvers_fail_alone_too():
 
     p = RobotParams.paper()
     s0 = State.at_rest(p)
-    run = jax.jit(jax.vmap(lambda a: simulate(p, s0, Torques(Amp(a, jnp.zeros(()))), 2.0, throw=False, max_steps=3000, solver=dfx.Bosh3())))
+    run = jax.jit(
+        jax.vmap(
+            lambda a: simulate(
+                p, s0, Torques(Amp(a, jnp.zeros(()))), 2.0, throw=False, max_steps=3000, solver=dfx.Bosh3()
+            )
+        )
+    )
     a = np.linspace(0.01, 0.05, B)
     good = run(a)
     assert bool(np.all(np.asarray(good.ok)))

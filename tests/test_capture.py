@@ -207,7 +207,8 @@ def test_error_non_monotonic_time(tmp_path):
 
     p = _csv(tmp_path, _small_trial(), edit)
     with pytest.raises(
-        ValueError, match=r"trial\.csv, line 13: time stamps are not increasing: t = 0\.05 s follows t = 0\.06 s \(line 12\)"
+        ValueError,
+        match=r"trial\.csv, line 13: time stamps are not increasing: t = 0\.05 s follows t = 0\.06 s \(line 12\)",
     ):
         jsphere.read_trial(p)
 
@@ -249,7 +250,8 @@ def test_error_blank_input(tmp_path):
 
     p = _csv(tmp_path, _small_trial(), edit)
     with pytest.raises(
-        ValueError, match=r"line 26: input column chi_dot_2 is blank or not finite \(t = 0\.2 s\); inputs may not have gaps"
+        ValueError,
+        match=r"line 26: input column chi_dot_2 is blank or not finite \(t = 0\.2 s\); inputs may not have gaps",
     ):
         jsphere.read_trial(p)
 
@@ -281,7 +283,9 @@ def test_error_non_unit_quaternion(tmp_path):
         lines[_line_of(lines, 5)] = ",".join(c)
 
     p = _csv(tmp_path, _small_trial(), edit)
-    with pytest.raises(ValueError, match=r"line 11: the quaternion .* has norm 1\.01, not 1 .*check that the four columns"):
+    with pytest.raises(
+        ValueError, match=r"line 11: the quaternion .* has norm 1\.01, not 1 .*check that the four columns"
+    ):
         jsphere.read_trial(p)
 
 
@@ -338,7 +342,9 @@ def test_error_units(tmp_path):
     with pytest.raises(ValueError, match=r"units='mm' was declared but the file's '# units:' line says 'm'"):
         jsphere.read_trial(p, units="mm")
     p2 = _write(
-        tmp_path, "\n".join(ln for ln in p.read_text().splitlines() if not ln.startswith("# units")) + "\n", "nounits.csv"
+        tmp_path,
+        "\n".join(ln for ln in p.read_text().splitlines() if not ln.startswith("# units")) + "\n",
+        "nounits.csv",
     )
     with pytest.raises(ValueError, match=r"units='mm' was declared but the data look like metres"):
         jsphere.read_trial(p2, units="mm")
@@ -435,7 +441,9 @@ def test_replaying_a_trial_reproduces_it(paper, truth_ws):
     traj = jsphere.simulate(paper, truth.state0_guess(paper), truth.controls(), float(truth.t[-1]), ts=truth.t)
     err = np.hypot(np.asarray(traj.x) - truth.x, np.asarray(traj.y) - truth.y).max()
     assert err < 1e-4
-    ang = 2 * np.arcsin(np.clip(np.linalg.norm(quat_mul_np(truth.q * [1, -1, -1, -1], np.asarray(traj.q))[:, 1:], axis=1), 0, 1))
+    ang = 2 * np.arcsin(
+        np.clip(np.linalg.norm(quat_mul_np(truth.q * [1, -1, -1, -1], np.asarray(traj.q))[:, 1:], axis=1), 0, 1)
+    )
     assert np.rad2deg(ang.max()) < 0.02
 
 
@@ -451,9 +459,9 @@ def test_synthetic_trial_round_trips_through_csv(tmp_path, torque_trial):
 
 # --------------------------------------------------------------------------- raw marker exports
 
-from jsphere.capture.markers import UP_TO_Z
-from jsphere.capture.synthetic import default_marker_set
-from jsphere.model.rotations import quat_from_rotmat_np, rotmat_np
+from jsphere.capture.markers import UP_TO_Z  # noqa: E402
+from jsphere.capture.synthetic import default_marker_set  # noqa: E402
+from jsphere.model.rotations import quat_from_rotmat_np, rotmat_np  # noqa: E402
 
 BODY = default_marker_set(0.15)
 NAMES = ["a", "b", "c", "d"]
@@ -580,7 +588,9 @@ def test_vicon_round_trip(tmp_path, markers_truth):
     text = raw.read_text().splitlines()
     assert text[0] == "Trajectories" and text[3].startswith("Frame,Sub Frame,X,Y,Z") and ",mm,mm" in text[4]
     # other sections before and after the trajectories are skipped
-    raw.write_text("Devices\n1000\n,,Force\nFrame,Sub Frame,Fx\n,,N\n1,0,0.5\n\n" + raw.read_text() + "\nModel Outputs\n100\n")
+    raw.write_text(
+        "Devices\n1000\n,,Force\nFrame,Sub Frame,Fx\n,,N\n1,0,0.5\n\n" + raw.read_text() + "\nModel Outputs\n100\n"
+    )
     data = jsphere.read_vicon_csv(raw)
     np.testing.assert_allclose(data.t, truth.t, atol=1e-12)
     np.testing.assert_array_equal(np.isnan(data.markers), np.isnan(m))
@@ -606,7 +616,9 @@ class _FakeEzc3d:
 
     def __init__(self, points, residuals, labels, rate=100.0, units="mm"):
         self.content = {
-            "parameters": {"POINT": {"LABELS": {"value": labels}, "RATE": {"value": [rate]}, "UNITS": {"value": [units]}}},
+            "parameters": {
+                "POINT": {"LABELS": {"value": labels}, "RATE": {"value": [rate]}, "UNITS": {"value": [units]}}
+            },
             "data": {"points": points, "meta_points": {"residuals": residuals}},
         }
 
@@ -647,7 +659,9 @@ def test_raw_error_units_mismatch(tmp_path, markers_truth):
     m, truth = markers_truth
     raw = tmp_path / "take.csv"
     jsphere.write_motive_csv(raw, truth.t, m, NAMES, units="mm")
-    with pytest.raises(ValueError, match=r"take\.csv: units='m' was declared but the file says its lengths are in 'mm'"):
+    with pytest.raises(
+        ValueError, match=r"take\.csv: units='m' was declared but the file says its lengths are in 'mm'"
+    ):
         jsphere.read_motive_csv(raw, units="m")
     # a file whose header lies: says Meters, holds millimetres
     bad = tmp_path / "bad.csv"
@@ -700,7 +714,9 @@ def test_raw_error_too_few_markers_and_too_many_gaps(tmp_path, markers_truth):
     m, truth = markers_truth
     raw = tmp_path / "two.csv"
     jsphere.write_motive_csv(raw, truth.t, m[:, :2], NAMES[:2])
-    with pytest.raises(ValueError, match=r"two\.csv: no complete rigid-body columns .* and fewer than 3 marker columns"):
+    with pytest.raises(
+        ValueError, match=r"two\.csv: no complete rigid-body columns .* and fewer than 3 marker columns"
+    ):
         jsphere.read_motive_csv(raw)
     vic = tmp_path / "two_v.csv"
     jsphere.write_vicon_csv(vic, truth.t, m[:, :2], NAMES[:2])
@@ -711,8 +727,9 @@ def test_raw_error_too_few_markers_and_too_many_gaps(tmp_path, markers_truth):
     raw2 = tmp_path / "gappy.csv"
     jsphere.write_motive_csv(raw2, truth.t, mm, NAMES)
     with pytest.raises(ValueError, match=r"gappy\.csv: too many gaps: 50% .*|gappy\.csv: too many gaps"):
-        jsphere.markers_to_trial(jsphere.read_motive_csv(raw2), _inputs_file(tmp_path, truth), body_markers=BODY,
-                                 max_gap_fraction=0.4)  # fmt: skip
+        jsphere.markers_to_trial(
+            jsphere.read_motive_csv(raw2), _inputs_file(tmp_path, truth), body_markers=BODY, max_gap_fraction=0.4
+        )
 
 
 def test_inputs_table_errors(tmp_path, markers_truth):
@@ -795,7 +812,8 @@ def test_body_markers_by_name(tmp_path, markers_truth):
     jsphere.write_vicon_csv(raw, truth.t, m, NAMES)
     f = tmp_path / "body.csv"
     f.write_text(
-        "# platform frame, m\nname,x,y,z\n" + "".join(f"{n},{b[0]},{b[1]},{b[2]}\n" for n, b in zip(NAMES[::-1], BODY[::-1]))
+        "# platform frame, m\nname,x,y,z\n"
+        + "".join(f"{n},{b[0]},{b[1]},{b[2]}\n" for n, b in zip(NAMES[::-1], BODY[::-1]))
     )
     body = jsphere.read_body_markers(f)
     tr = jsphere.convert_raw(raw, _inputs_file(tmp_path, truth), format="vicon", body_markers=body)
@@ -803,7 +821,9 @@ def test_body_markers_by_name(tmp_path, markers_truth):
     three = {k: body[k] for k in ("a", "b", "d")}
     tr3 = jsphere.convert_raw(raw, _inputs_file(tmp_path, truth), format="vicon", body_markers=three)
     _check_recovery(tr3, truth, pos=1e-3, ang=1.5)
-    with pytest.raises(ValueError, match=r"fewer than 3 of the export's markers .* are in body_markers \['a', 'x', 'y'\]"):
+    with pytest.raises(
+        ValueError, match=r"fewer than 3 of the export's markers .* are in body_markers \['a', 'x', 'y'\]"
+    ):
         jsphere.convert_raw(
             raw, _inputs_file(tmp_path, truth), format="vicon", body_markers={"a": BODY[0], "x": BODY[1], "y": BODY[2]}
         )

@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 
 import jsphere
-from jsphere.capture.trial import trial_to_csv
-from jsphere.capture.validation import CaptureWarning, implausible
 from jsphere._runtime.errors import InputError
 from jsphere._runtime.files import refuse_overwrite
+from jsphere.capture.trial import trial_to_csv
+from jsphere.capture.validation import CaptureWarning, implausible
 from jsphere.cli.app import main
 
 DATA = Path(__file__).resolve().parents[1] / "examples" / "data"
@@ -59,9 +59,14 @@ def test_refuse_overwrite_compares_resolved_paths(tmp_path, monkeypatch):
     os.symlink(a, tmp_path / "link.csv")
     os.link(a, tmp_path / "hard.csv")
     for out in ("take.csv", "./take.csv", str(a), "sub/../take.csv", "link.csv", "hard.csv"):
-        with pytest.raises(InputError, match=r"--out .* would write over the raw export .*take\.csv.*give --out another path"):
+        with pytest.raises(
+            InputError, match=r"--out .* would write over the raw export .*take\.csv.*give --out another path"
+        ):
             refuse_overwrite(out, {"the raw export": "take.csv"})
-    with pytest.raises(InputError, match=r"--to x would write over the input file x: a command never replaces its own input; give --to another path"):
+    with pytest.raises(
+        InputError,
+        match=r"--to x would write over the input file x: a command never replaces its own input; give --to another path",
+    ):
         refuse_overwrite([None, "other.csv", "x"], ["take.csv", None, "x"], option="--to")
     refuse_overwrite(["other.csv", "sub/take.csv"], {"the raw export": "take.csv", "unused": None})  # no error
     assert a.read_text() == "raw data\n"
@@ -73,9 +78,16 @@ def test_convert_never_writes_over_its_inputs(tmp_path, capsys, monkeypatch, whi
     for f in ("motive.csv", "inputs.csv", "body_markers.csv"):
         (tmp_path / f).write_bytes((RAW / f).read_bytes())
     os.symlink("motive.csv", tmp_path / "take_link.csv")
-    out = {"raw": "./motive.csv", "inputs": "inputs.csv", "body": str(tmp_path / "body_markers.csv"), "symlink": "take_link.csv"}
+    out = {
+        "raw": "./motive.csv",
+        "inputs": "inputs.csv",
+        "body": str(tmp_path / "body_markers.csv"),
+        "symlink": "take_link.csv",
+    }
     before = {f: (tmp_path / f).read_bytes() for f in ("motive.csv", "inputs.csv", "body_markers.csv")}
-    code, err = _cli(_convert_args("motive.csv", out[which], "motive", "inputs.csv", "--body-markers", "body_markers.csv"), capsys)
+    code, err = _cli(
+        _convert_args("motive.csv", out[which], "motive", "inputs.csv", "--body-markers", "body_markers.csv"), capsys
+    )
     assert code == 2 and "would write over the" in err and "give --out another path" in err, err
     assert {f: (tmp_path / f).read_bytes() for f in before} == before
 
@@ -86,7 +98,9 @@ def test_synth_never_writes_over_its_parameter_file(tmp_path, capsys):
     (tmp_path / "trials").mkdir()
     os.symlink(params, tmp_path / "trials" / "torques_00.csv")
     before = params.read_bytes()
-    code, err = _cli(["synth", "--out", tmp_path / "trials", "--kind", "torques", "--trials", "1", "--params", params], capsys)
+    code, err = _cli(
+        ["synth", "--out", tmp_path / "trials", "--kind", "torques", "--trials", "1", "--params", params], capsys
+    )
     assert code == 2 and "would write over the parameter file" in err, err
     assert params.read_bytes() == before
 
@@ -105,9 +119,15 @@ def test_synth_and_convert_check_their_options_first(tmp_path, capsys):
     (tmp_path / "file").write_text("x")
     code, err = _cli(["synth", "--out", tmp_path / "file"], capsys)
     assert code == 2 and "is a file; give the folder" in err
-    code, err = _cli(_convert_args(RAW / "motive.csv", tmp_path, "motive", RAW / "inputs.csv", "--body-offset", "0", "nan", "0"), capsys)
+    code, err = _cli(
+        _convert_args(RAW / "motive.csv", tmp_path, "motive", RAW / "inputs.csv", "--body-offset", "0", "nan", "0"),
+        capsys,
+    )
     assert code == 2 and "--body-offset X Y Z must be finite numbers [m]; got 0 nan 0" in err, err
-    code, err = _cli(_convert_args(RAW / "motive.csv", tmp_path / "t.csv", "motive", RAW / "inputs.csv", "--time-offset", "inf"), capsys)
+    code, err = _cli(
+        _convert_args(RAW / "motive.csv", tmp_path / "t.csv", "motive", RAW / "inputs.csv", "--time-offset", "inf"),
+        capsys,
+    )
     assert code == 2 and "--time-offset must be a finite number of seconds" in err, err
     code, err = _cli(_convert_args(RAW / "motive.csv", tmp_path, "motive"), capsys)
     assert code == 2 and "is a folder; give the file to write" in err, err
@@ -133,8 +153,11 @@ def test_motive_cut_mid_row_and_short_of_its_declared_frames(tmp_path):
     raw = tmp_path / "take.csv"
     raw.write_text((RAW / "motive.csv").read_text())
     _cut_mid_row(raw)
-    with pytest.raises(InputError, match=r"take\.csv: the file is cut short: its last row \(line 158\) has 2 of 14 cells, cut off "
-                       r"mid-row .* pass --allow-truncated \(allow_truncated=True\) to use the 150 complete frames"):  # fmt: skip
+    with pytest.raises(
+        InputError,
+        match=r"take\.csv: the file is cut short: its last row \(line 158\) has 2 of 14 cells, cut off "
+        r"mid-row .* pass --allow-truncated \(allow_truncated=True\) to use the 150 complete frames",
+    ):
         jsphere.read_motive_csv(raw)
     with pytest.warns(CaptureWarning, match=r"take\.csv: the file is cut short: .*; using the 150 complete frames"):
         data = jsphere.read_motive_csv(raw, allow_truncated=True)
@@ -164,7 +187,9 @@ def test_vicon_and_inputs_cut_mid_row(tmp_path):
     inputs = tmp_path / "in.csv"
     inputs.write_text((RAW / "inputs.csv").read_text())
     _cut_mid_row(inputs, 14)
-    with pytest.raises(InputError, match=r"in\.csv: the file is cut short: its last row \(line 152\) has 2 of 4 cells.* complete rows"):
+    with pytest.raises(
+        InputError, match=r"in\.csv: the file is cut short: its last row \(line 152\) has 2 of 4 cells.* complete rows"
+    ):
         jsphere.read_inputs_csv(inputs)
     with pytest.raises(InputError, match=r"in\.csv: the file is cut short"):
         jsphere.convert_raw(RAW / "motive.csv", inputs, format="motive")
@@ -177,7 +202,9 @@ def test_trial_cut_mid_row_says_so(tmp_path):
     p = tmp_path / "trial.csv"
     p.write_text((DATA / "ws_01.csv").read_text())
     _cut_mid_row(p, 20)
-    with pytest.raises(ValueError, match=r"trial\.csv, line 506: 3 cells but the header has 10 columns \(the file looks cut off"):
+    with pytest.raises(
+        ValueError, match=r"trial\.csv, line 506: 3 cells but the header has 10 columns \(the file looks cut off"
+    ):
         jsphere.read_trial(p)
 
 
@@ -207,8 +234,11 @@ def test_c3d_cut_short_names_both_counts(tmp_path, c3d_file, capsys):
     assert jsphere.read_c3d(full).t.shape == (151,)
     cut = tmp_path / "cut.c3d"
     cut.write_bytes(full.read_bytes()[: 1536 + 64 * 64 + 30])  # 64 whole frames of 4 float points
-    with pytest.raises(InputError, match=r"cut\.c3d: the file is cut short: the header declares 151 frames but the file holds 64 "
-                       r".* --allow-truncated"):  # fmt: skip
+    with pytest.raises(
+        InputError,
+        match=r"cut\.c3d: the file is cut short: the header declares 151 frames but the file holds 64 "
+        r".* --allow-truncated",
+    ):
         jsphere.read_c3d(cut)
     with pytest.warns(CaptureWarning, match=r"declares 151 frames but the file holds 64; using the 64 frames present"):
         got = jsphere.read_c3d(cut, allow_truncated=True)
@@ -252,7 +282,10 @@ def test_broken_c3d_files_are_one_line_before_ezc3d_reads_them(tmp_path, c3d_fil
         "random.c3d": (np.random.default_rng(0).bytes(4096), r"not a C3D file \(its second byte is 0x"),
         "short.c3d": (good[:100], r"not a C3D file \(100 bytes, shorter than the 512-byte header\)"),
         "params_cut.c3d": (good[:789], r"cut short or corrupt: 789 bytes, but its parameters end at byte 1536"),
-        "params_bad.c3d": (_corrupt_parameter(good), r"the C3D file is corrupt: parameter record \d+ \(type -?\d, 200 dimensions\)"),
+        "params_bad.c3d": (
+            _corrupt_parameter(good),
+            r"the C3D file is corrupt: parameter record \d+ \(type -?\d, 200 dimensions\)",
+        ),
         "no_processor.c3d": (good[:515] + b"\x00" + good[516:], r"processor type 0, not 84, 85 or 86"),
     }
     monkeypatch.setitem(sys.modules, "ezc3d", _MustNotRead())
@@ -266,8 +299,9 @@ def test_broken_c3d_files_are_one_line_before_ezc3d_reads_them(tmp_path, c3d_fil
 
 
 def test_c3d_layout_counts_frames_of_either_storage(tmp_path):
-    from jsphere.capture.c3d import c3d_layout
     from test_capture import c3d_shell
+
+    from jsphere.capture.c3d import c3d_layout
 
     p = tmp_path / "x.c3d"
     for integers in (False, True):
@@ -287,7 +321,9 @@ def test_ezc3d_errors_become_one_line(tmp_path, monkeypatch):
 
     p.write_bytes(c3d_shell(4, 10))
     monkeypatch.setitem(sys.modules, "ezc3d", Raises())
-    with pytest.raises(InputError, match=r"x\.c3d: not a readable C3D file \(ezc3d: Could not read the processor type\)"):
+    with pytest.raises(
+        InputError, match=r"x\.c3d: not a readable C3D file \(ezc3d: Could not read the processor type\)"
+    ):
         jsphere.read_c3d(p)
 
 
@@ -313,9 +349,19 @@ def test_non_utf8_and_binary_files_name_the_file_and_line(tmp_path):
     latin = (DATA / "ws_01.csv").read_text().replace("# name: ws_01", "# name: ws_01, 21 \u00b0C")
     cases = [
         (jsphere.read_trial, "trial.csv", latin.encode("latin-1"), r"trial\.csv, line 2: not UTF-8 text \(byte 0xb0"),
-        (jsphere.read_inputs_csv, "in.csv", b"# \xe9t\xe9\nt,K_1\n0,1\n1,1\n", r"in\.csv, line 1: not UTF-8 text .* save it as UTF-8"),
+        (
+            jsphere.read_inputs_csv,
+            "in.csv",
+            b"# \xe9t\xe9\nt,K_1\n0,1\n1,1\n",
+            r"in\.csv, line 1: not UTF-8 text .* save it as UTF-8",
+        ),
         (jsphere.read_body_markers, "b.csv", b"name,x,y,z\nm\xfc,0,0,0\n", r"b\.csv, line 2: not UTF-8 text"),
-        (jsphere.read_motive_csv, "m.csv", b"Format Version,1.23\n\x00\x01", r"m\.csv, line 2: a binary file, not CSV text"),
+        (
+            jsphere.read_motive_csv,
+            "m.csv",
+            b"Format Version,1.23\n\x00\x01",
+            r"m\.csv, line 2: a binary file, not CSV text",
+        ),
     ]
     for fn, name, content, msg in cases:
         (tmp_path / name).write_bytes(content)
@@ -335,9 +381,15 @@ def test_semicolon_separated_files_say_so(tmp_path):
 
 def test_duplicated_columns_and_markers(tmp_path):
     p = tmp_path / "trial.csv"
-    p.write_text((DATA / "ws_01.csv").read_text().replace("t,x,y,qw,qx,qy,qz,chi_dot_1", "t,x,y,qw,qx,qy,qz,x,chi_dot_1", 1)
-                 .replace("\n0.000000,", "\n0.000000,0,", 1))  # fmt: skip
-    with pytest.raises(InputError, match=r"trial\.csv, line 5: column 'x' appears 2 times \(columns \[2, 8\]\); keep one"):
+    p.write_text(
+        (DATA / "ws_01.csv")
+        .read_text()
+        .replace("t,x,y,qw,qx,qy,qz,chi_dot_1", "t,x,y,qw,qx,qy,qz,x,chi_dot_1", 1)
+        .replace("\n0.000000,", "\n0.000000,0,", 1)
+    )
+    with pytest.raises(
+        InputError, match=r"trial\.csv, line 5: column 'x' appears 2 times \(columns \[2, 8\]\); keep one"
+    ):
         jsphere.read_trial(p)
     p.write_text("t,K_1,K_1\n0,1,2\n1,1,2\n")
     with pytest.raises(InputError, match=r"column 'K_1' appears 2 times"):
@@ -381,14 +433,19 @@ def test_body_markers_in_millimetres(tmp_path):
         got = jsphere.read_body_markers(p)
     np.testing.assert_allclose(got["m1"], metres["m1"], atol=1e-9)
     p.write_text("# units: m\nname,x,y,z\n" + mm)
-    with pytest.raises(InputError, match=r"declared in 'm' but the markers lie up to 75\.47 from their centroid, which looks like millimetres"):
+    with pytest.raises(
+        InputError,
+        match=r"declared in 'm' but the markers lie up to 75\.47 from their centroid, which looks like millimetres",
+    ):
         jsphere.read_body_markers(p)
     p.write_text("name,x,y,z\na,0,0,0\nb,3,0,0\nc,0,3,0\n")
     with pytest.raises(InputError, match=r"neither metres .* nor millimetres"):
         jsphere.read_body_markers(p)
     # an array in millimetres through the API: the distances disagree with the export's
     body_mm = np.stack([metres[k] for k in ("m1", "m2", "m3", "m4")]) * 1000.0
-    with pytest.raises(InputError, match=r"1000 times as far apart as the markers in the export .* look like millimetres"):
+    with pytest.raises(
+        InputError, match=r"1000 times as far apart as the markers in the export .* look like millimetres"
+    ):
         jsphere.convert_raw(RAW / "motive.csv", RAW / "inputs.csv", format="motive", body_markers=body_mm)
 
 
@@ -423,18 +480,25 @@ def _rewrite(tmp_path, trial, name="trial.csv", *, units=True):
 def test_centimetres_read_as_metres_warn(tmp_path, ws01):
     cm = ws01.replace(x=ws01.x * 100.0, y=ws01.y * 100.0)  # 12 "m" at most: not detected as millimetres
     p = _rewrite(tmp_path, cm, units=False)
-    with pytest.warns(CaptureWarning, match=r"trial\.csv: the shell centre moves at 2\d\.\d m/s .*beyond any rolling robot .*"
-                      r"millimetres or centimetres read as metres"):  # fmt: skip
+    with pytest.warns(
+        CaptureWarning,
+        match=r"trial\.csv: the shell centre moves at 2\d\.\d m/s .*beyond any rolling robot .*"
+        r"millimetres or centimetres read as metres",
+    ):
         jsphere.read_trial(p)
 
 
 def test_milliseconds_and_fast_turns_warn(tmp_path, ws01):
-    with pytest.warns(CaptureWarning, match=r"the median time step is 10 s \(0\.1 Hz\): the times look like milliseconds"):
+    with pytest.warns(
+        CaptureWarning, match=r"the median time step is 10 s \(0\.1 Hz\): the times look like milliseconds"
+    ):
         jsphere.read_trial(_rewrite(tmp_path, ws01.replace(t=ws01.t * 1000.0)))
     t = np.arange(501) * 1e-3  # a platform spinning at 60 rad/s, half a second at 1 kHz
     q = np.stack([np.cos(30.0 * t), 0 * t, 0 * t, np.sin(30.0 * t)], axis=1)
     spin = jsphere.Trial(t, 0 * t, 0 * t, q, np.ones((t.size, 3)), "wheel_speeds", name="spin")
-    with pytest.warns(CaptureWarning, match=r"the platform turns at 60 rad/s .*beyond any rolling robot .*wrong frame rate"):
+    with pytest.warns(
+        CaptureWarning, match=r"the platform turns at 60 rad/s .*beyond any rolling robot .*wrong frame rate"
+    ):
         jsphere.read_trial(_rewrite(tmp_path, spin))
 
 
@@ -447,8 +511,11 @@ def test_xyzw_quaternion_order_warns(tmp_path, ws01):
         lines[i] = ",".join(c)
     p = tmp_path / "xyzw.csv"
     p.write_text("\n".join(lines) + "\n")
-    with pytest.warns(CaptureWarning, match=r"xyzw\.csv: read as x, y, z, w the platform leans with the ball's acceleration .*"
-                      r"the quaternion columns look like x, y, z, w order; reorder them to qw, qx, qy, qz"):  # fmt: skip
+    with pytest.warns(
+        CaptureWarning,
+        match=r"xyzw\.csv: read as x, y, z, w the platform leans with the ball's acceleration .*"
+        r"the quaternion columns look like x, y, z, w order; reorder them to qw, qx, qy, qz",
+    ):
         jsphere.read_trial(p)
 
 
@@ -476,19 +543,31 @@ def test_wrong_up_axis_warns(capsys, tmp_path):
     """Motive's Y-up export read as Z-up: with body markers the platform lies on its side;
     without, the shell centre's height follows the motion."""
     body = jsphere.read_body_markers(RAW / "body_markers.csv")
-    with pytest.warns(CaptureWarning, match=r"motive\.csv: the platform tilts 9\d deg from upright .*is the export's up axis right"):
+    with pytest.warns(
+        CaptureWarning, match=r"motive\.csv: the platform tilts 9\d deg from upright .*is the export's up axis right"
+    ):
         jsphere.convert_raw(RAW / "motive.csv", RAW / "inputs.csv", format="motive", up_axis="z", body_markers=body)
-    with pytest.warns(CaptureWarning, match=r"the shell centre's height z varies by 3\.\d+ cm while it moves 7\.\d+ cm horizontally"):
+    with pytest.warns(
+        CaptureWarning, match=r"the shell centre's height z varies by 3\.\d+ cm while it moves 7\.\d+ cm horizontally"
+    ):
         jsphere.convert_raw(RAW / "motive.csv", RAW / "inputs.csv", format="motive", up_axis="z")
-    code, err = _cli(_convert_args(RAW / "motive.csv", tmp_path / "t.csv", "motive", RAW / "inputs.csv", "--up-axis", "z"), capsys)
+    code, err = _cli(
+        _convert_args(RAW / "motive.csv", tmp_path / "t.csv", "motive", RAW / "inputs.csv", "--up-axis", "z"), capsys
+    )
     assert code == 0 and err.startswith("jsphere convert: warning: ") and "--up-axis" in err, err
 
 
 def test_convert_prints_warnings_as_one_line_each(tmp_path, capsys):
     body = tmp_path / "body.csv"
     metres = jsphere.read_body_markers(RAW / "body_markers.csv")
-    body.write_text("name,x,y,z\n" + "".join(f"{k},{v[0] * 1e3:.3f},{v[1] * 1e3:.3f},{v[2] * 1e3:.3f}\n" for k, v in metres.items()))
+    body.write_text(
+        "name,x,y,z\n" + "".join(f"{k},{v[0] * 1e3:.3f},{v[1] * 1e3:.3f},{v[2] * 1e3:.3f}\n" for k, v in metres.items())
+    )
     out = tmp_path / "t.csv"
-    code, err = _cli(_convert_args(RAW / "motive.csv", out, "motive", RAW / "inputs.csv", "--body-markers", body), capsys)
-    assert code == 0 and err.count("\n") == 1 and err.startswith("jsphere convert: warning: ") and "millimetres" in err, err
+    code, err = _cli(
+        _convert_args(RAW / "motive.csv", out, "motive", RAW / "inputs.csv", "--body-markers", body), capsys
+    )
+    assert (
+        code == 0 and err.count("\n") == 1 and err.startswith("jsphere convert: warning: ") and "millimetres" in err
+    ), err
     assert jsphere.read_trial(out).valid.mean() > 0.95

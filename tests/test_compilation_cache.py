@@ -39,7 +39,9 @@ print(json.dumps({**events, "x": x, "status": int(tr.status), "path": str(path),
 def _run(cache: Path) -> dict:
     env = {k: v for k, v in os.environ.items() if k not in ("EQX_ON_ERROR", "JSPHERE_CACHE_DIR")}
     env["PYTHONPATH"] = str(ROOT)
-    proc = subprocess.run([sys.executable, "-c", CHILD, str(cache)], capture_output=True, text=True, env=env, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-c", CHILD, str(cache)], capture_output=True, text=True, env=env, timeout=600
+    )
     assert proc.returncode == 0, proc.stderr
     return json.loads(proc.stdout.strip().splitlines()[-1])
 

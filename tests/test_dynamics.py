@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import jsphere
-from jsphere.model.dynamics import free_Omega_dot, free_momentum, mass_blocks, required_torques, servo_jump
+from jsphere.model.dynamics import free_momentum, free_Omega_dot, mass_blocks, required_torques, servo_jump
 from jsphere.model.params import derive
 
 
@@ -25,16 +25,30 @@ def random_robot(key, n_wheels=3):
     I = jnp.trace(S) * jnp.eye(3) - S + 0.01 * jnp.eye(3)
     rm = 0.2 * R0 * jax.random.normal(ks[5], (3,)) / jnp.sqrt(3.0)
     return jsphere.RobotParams(
-        R0=R0, m0=0.5 + jax.random.uniform(ks[6]), I0=0.01, Rw=0.3 * R0, wheel_r=r, wheel_n=n,
-        wheel_alpha=a, m=1.0 + 2.0 * jax.random.uniform(ks[7]), I=I, r_m=rm, j=3e-4, g=9.81,
-    )  # fmt: skip
+        R0=R0,
+        m0=0.5 + jax.random.uniform(ks[6]),
+        I0=0.01,
+        Rw=0.3 * R0,
+        wheel_r=r,
+        wheel_n=n,
+        wheel_alpha=a,
+        m=1.0 + 2.0 * jax.random.uniform(ks[7]),
+        I=I,
+        r_m=rm,
+        j=3e-4,
+        g=9.81,
+    )
 
 
 def random_state(key, n_wheels=3):
     ks = jax.random.split(key, 4)
     g = jax.random.normal(ks[0], (3,))
-    return (g / jnp.linalg.norm(g), jax.random.normal(ks[1], (3,)), jax.random.normal(ks[2], (3,)),
-            0.05 * jax.random.normal(ks[3], (n_wheels,)))  # fmt: skip
+    return (
+        g / jnp.linalg.norm(g),
+        jax.random.normal(ks[1], (3,)),
+        jax.random.normal(ks[2], (3,)),
+        0.05 * jax.random.normal(ks[3], (n_wheels,)),
+    )
 
 
 ROBOTS = [("paper", None, 3), ("random3", 1, 3), ("random4", 2, 4), ("random5", 3, 5)]
@@ -81,7 +95,9 @@ def test_control_free_sum_and_torque_recovery(spec):
     wd, Wd = jsphere.accelerations(p, gamma, omega, Omega, K)
     np.testing.assert_allclose(free_Omega_dot(p, d, gamma, omega, Omega, wd), Wd, rtol=1e-8, atol=1e-12)
     for eq in (1, 2):
-        np.testing.assert_allclose(required_torques(p, d, gamma, omega, Omega, wd, Wd, equation=eq), K_ln, rtol=1e-8, atol=1e-12)
+        np.testing.assert_allclose(
+            required_torques(p, d, gamma, omega, Omega, wd, Wd, equation=eq), K_ln, rtol=1e-8, atol=1e-12
+        )
     if p.n_wheels > 3:  # least norm: no component in the null space of Sk^T
         assert np.linalg.norm(K_ln) <= np.linalg.norm(K) + 1e-15
 
@@ -93,7 +109,9 @@ def test_servo_jump_conserves_free_momentum():
     w_new = jnp.array([0.3, -0.2, 0.5])
     op, Op = servo_jump(p, d, gamma, omega, Omega, w_new)
     np.testing.assert_allclose(op - Op, w_new, atol=1e-14)
-    np.testing.assert_allclose(free_momentum(p, d, gamma, op, Op), free_momentum(p, d, gamma, omega, Omega), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(
+        free_momentum(p, d, gamma, op, Op), free_momentum(p, d, gamma, omega, Omega), rtol=1e-12, atol=1e-15
+    )
 
 
 def test_rest_is_an_equilibrium(paper):
@@ -108,8 +126,12 @@ def test_paper_wheel_factors(paper):
 
 
 def test_energy_conserved_without_torques(paper):
-    s0 = jsphere.State.from_axes(paper, (1, 0, 0), (0, np.cos(0.3), np.sin(0.3)), omega=(0.1, 0.0, 0.3), Omega=(0.5, 0.2, 0.1))
-    tr = jsphere.simulate(paper, s0, jsphere.Torques(lambda t: jnp.zeros(3)), 5.0, ts=jnp.linspace(0, 5, 51), rtol=1e-11, atol=1e-13)
+    s0 = jsphere.State.from_axes(
+        paper, (1, 0, 0), (0, np.cos(0.3), np.sin(0.3)), omega=(0.1, 0.0, 0.3), Omega=(0.5, 0.2, 0.1)
+    )
+    tr = jsphere.simulate(
+        paper, s0, jsphere.Torques(lambda t: jnp.zeros(3)), 5.0, ts=jnp.linspace(0, 5, 51), rtol=1e-11, atol=1e-13
+    )
     E = jsphere.energy_along(paper, tr)
     T0 = float(jsphere.kinetic_energy(paper, tr.gamma[0], tr.omega[0], tr.Omega[0]))
     assert np.max(np.abs(E - E[0])) < 1e-9 * max(abs(float(E[0])), T0)
@@ -120,8 +142,15 @@ def test_energy_conserved_without_torques(paper):
 def test_energy_balance_with_torques(paper):
     """E(t) - E(0) = integral of sum K_i chi_dot_i dt along a torque-driven motion."""
     ts = jnp.linspace(0.0, 2.0, 2001)
-    tr = jsphere.simulate(paper, jsphere.State.at_rest(paper), jsphere.Torques(lambda t: 0.01 * jnp.sin(jnp.pi * t + jnp.array([0.0, 2.1, 4.2]))),
-                          2.0, ts=ts, rtol=1e-11, atol=1e-13)  # fmt: skip
+    tr = jsphere.simulate(
+        paper,
+        jsphere.State.at_rest(paper),
+        jsphere.Torques(lambda t: 0.01 * jnp.sin(jnp.pi * t + jnp.array([0.0, 2.1, 4.2]))),
+        2.0,
+        ts=ts,
+        rtol=1e-11,
+        atol=1e-13,
+    )
     E = np.asarray(jsphere.energy_along(paper, tr))
     P = np.asarray(jsphere.power_along(paper, tr))
     work = np.concatenate([[0.0], np.cumsum(0.5 * (P[1:] + P[:-1]) * np.diff(np.asarray(ts)))])
@@ -136,7 +165,9 @@ def test_energy_rate_with_damping(spec):
     for seed in range(3):
         gamma, omega, Omega, K = random_state(jax.random.PRNGKey(20 + seed), p.n_wheels)
         wd, Wd = jsphere.accelerations(p, gamma, omega, Omega, K)
-        _, dE = jax.jvp(lambda g, w, W: jsphere.energy(p, g, w, W), (gamma, omega, Omega), (jnp.cross(gamma, omega), wd, Wd))
+        _, dE = jax.jvp(
+            lambda g, w, W: jsphere.energy(p, g, w, W), (gamma, omega, Omega), (jnp.cross(gamma, omega), wd, Wd)
+        )
         P, Dis = jsphere.power(p, omega, Omega, K), jsphere.dissipation(p, gamma, omega, Omega)
         assert float(Dis) > 0
         assert abs(float(dE - (P - Dis))) < 1e-10 * (abs(float(P)) + float(Dis))

@@ -88,7 +88,12 @@ def test_shared_steps_over_initial_states_with_one_control():
     S0 = jax.tree_util.tree_map(lambda *x: jnp.stack(x), *s0)
     out = jax.vmap(lambda s: jsphere.simulate(P, s, jsphere.Torques(jsphere.Zero(P.n_wheels)), 1.0))(S0)
     for i, s in enumerate(s0):
-        np.testing.assert_allclose(out.x[i, -1], jsphere.simulate(P, s, jsphere.Torques(jsphere.Zero(P.n_wheels)), 1.0).x[-1], rtol=0, atol=1e-8)
+        np.testing.assert_allclose(
+            out.x[i, -1],
+            jsphere.simulate(P, s, jsphere.Torques(jsphere.Zero(P.n_wheels)), 1.0).x[-1],
+            rtol=0,
+            atol=1e-8,
+        )
 
 
 @pytest.mark.slow
@@ -119,7 +124,9 @@ def _theta_loss(theta, steps):
     function of `(j, r_m[2], I[0, 0])`."""
     q = eqx.tree_at(lambda q: (q.j, q.r_m, q.I), P, (theta[0], P.r_m.at[2].set(theta[1]), P.I.at[0, 0].set(theta[2])))
     tr = jax.vmap(
-        lambda a: jsphere.simulate(q, jsphere.State.at_rest(q), jsphere.Torques(Sines(a)), 1.0, rtol=1e-10, atol=1e-12, batch_steps=steps)
+        lambda a: jsphere.simulate(
+            q, jsphere.State.at_rest(q), jsphere.Torques(Sines(a)), 1.0, rtol=1e-10, atol=1e-12, batch_steps=steps
+        )
     )(A[:3])
     return jnp.sum(tr.x[:, -1] ** 2 + tr.y[:, -1] ** 2)
 
@@ -176,7 +183,9 @@ def test_shared_steps_for_gaits():
     ts = jnp.linspace(0.0, 4.0, 9)
 
     def run(t):
-        return jsphere.simulate_gaits(P, [jsphere.acceleration(theta_max=t), jsphere.braking(theta_max=t)], ts=ts, reset=True)
+        return jsphere.simulate_gaits(
+            P, [jsphere.acceleration(theta_max=t), jsphere.braking(theta_max=t)], ts=ts, reset=True
+        )
 
     tr = jax.jit(jax.vmap(run))(th)
     assert np.all(np.asarray(tr.ok)) and len(set(np.asarray(tr.num_steps).tolist())) == 1
@@ -221,13 +230,26 @@ def test_a_failing_trial_leaves_per_trial_steps_alone():
     assert tr.ok.tolist() == [True, True, False, True, True, True, True]
     keep = np.array([0, 1, 3, 4, 5, 6])
     for name in ("x", "y", "Omega", "num_steps"):
-        np.testing.assert_array_equal(np.asarray(getattr(tr, name))[keep], np.asarray(getattr(valid, name))[keep], err_msg=name)
+        np.testing.assert_array_equal(
+            np.asarray(getattr(tr, name))[keep], np.asarray(getattr(valid, name))[keep], err_msg=name
+        )
 
 
 def _saved_loss(theta, steps):
     """`_theta_loss` over every save time of `TS` (interior saves: the dense output's adjoint)."""
     q = eqx.tree_at(lambda q: (q.j, q.r_m, q.I), P, (theta[0], P.r_m.at[2].set(theta[1]), P.I.at[0, 0].set(theta[2])))
-    tr = jax.vmap(lambda a: jsphere.simulate(q, jsphere.State.at_rest(q), jsphere.Torques(Sines(a)), 2.0, ts=TS, rtol=1e-10, atol=1e-12, batch_steps=steps))(A7)
+    tr = jax.vmap(
+        lambda a: jsphere.simulate(
+            q,
+            jsphere.State.at_rest(q),
+            jsphere.Torques(Sines(a)),
+            2.0,
+            ts=TS,
+            rtol=1e-10,
+            atol=1e-12,
+            batch_steps=steps,
+        )
+    )(A7)
     return jnp.sum(tr.x**2 + tr.y**2)
 
 

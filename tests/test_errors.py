@@ -302,7 +302,8 @@ def test_simulate_gaits_not_gaits(p):
 
 
 @pytest.mark.parametrize(
-    "alpha0, beta0", [((1.0, 0.0, 0.0), (1.0, 0.0, 0.0)), ((1.0, 0.0, 0.0), (0.0, 2.0, 0.0)), ((1.0, 0.1, 0.0), (0.0, 1.0, 0.0))]
+    "alpha0, beta0",
+    [((1.0, 0.0, 0.0), (1.0, 0.0, 0.0)), ((1.0, 0.0, 0.0), (0.0, 2.0, 0.0)), ((1.0, 0.1, 0.0), (0.0, 1.0, 0.0))],
 )
 def test_simulate_gaits_axes_not_orthonormal(p, alpha0, beta0):
     with pytest.raises(ValueError, match="orthonormal"):

@@ -14,13 +14,13 @@ import numpy as np
 import pytest
 
 import jsphere
+from jsphere.cli.app import main
 from jsphere.identify.data import pack_trials
+from jsphere.identify.free import FreeParams, apply_fixes, expand
 from jsphere.identify.identifiability import identifiability, symmetry_directions
 from jsphere.identify.residuals import _functions
 from jsphere.identify.starts import nuisance_guess
 from jsphere.model.rotations import quat_exp, quat_log
-from jsphere.identify.free import FreeParams, apply_fixes, expand
-from jsphere.cli.app import main
 
 TRUTH = {"R_m": 0.029, "j": 3.2e-4, "m0": 0.9, "I0": 0.011, "I": np.diag([0.018, 0.015, 0.025])}
 FREE = "R_m,j"
@@ -65,7 +65,9 @@ def test_expand_whole_fields_and_components():
 
 
 def test_transforms_round_trip_and_keep_inertia_positive_definite():
-    p = jsphere.RobotParams.paper().replace(I=np.array([[0.016, 0.001, 0.0], [0.001, 0.017, 0.0005], [0.0, 0.0005, 0.023]]))
+    p = jsphere.RobotParams.paper().replace(
+        I=np.array([[0.016, 0.001, 0.0], [0.001, 0.017, 0.0005], [0.0, 0.0005, 0.023]])
+    )
     fp = FreeParams(p, "I,R_m,j,m0", bounds={"j": (1e-5, 1e-3)})
     assert [s.kind for s in fp.slots] == ["cholesky", "log", "interval", "log"]
     back = fp.to_params(jnp.asarray(fp.theta0))
@@ -115,7 +117,18 @@ def test_result_json_loads_as_params_and_plots_are_written(small_fit, tmp_path):
     res, _ = small_fit
     written = res.save(tmp_path / "fit.json")
     doc = json.loads((tmp_path / "fit.json").read_text())
-    for key in ("params", "stderr", "correlation", "free", "cost", "iterations", "identifiability", "converged", "rms_pos_m", "rms_rot_deg"):
+    for key in (
+        "params",
+        "stderr",
+        "correlation",
+        "free",
+        "cost",
+        "iterations",
+        "identifiability",
+        "converged",
+        "rms_pos_m",
+        "rms_rot_deg",
+    ):
         assert key in doc
     assert set(doc["stderr"]) == {"R_m", "j"}
     p = jsphere.RobotParams.load(tmp_path / "fit.json")
@@ -145,7 +158,11 @@ def test_gradient_of_the_loss_agrees_with_finite_differences(small_trials):
         res, ok, J, _ = fns.jacobian(p, jnp.asarray(th), jnp.asarray(nu), d, sig)
         assert bool(np.all(ok))
         res, J = np.asarray(res), np.asarray(J)
-        return 0.5 * float((res * res).sum()), np.einsum("stkp,stk->sp", J[..., : fp.size], res), np.einsum("stkn,stk->stn", J[..., fp.size :], res)
+        return (
+            0.5 * float((res * res).sum()),
+            np.einsum("stkp,stk->sp", J[..., : fp.size], res),
+            np.einsum("stkn,stk->stn", J[..., fp.size :], res),
+        )
 
     _, g, g_nu = cost_and_grad(th, nu)
     for k in range(fp.size):
@@ -169,10 +186,20 @@ def test_killed_fit_resumes_from_checkpoint(small_trials, small_fit, tmp_path):
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        jsphere.fit(small_trials, jsphere.RobotParams.paper(), FREE, fix={"m": 2.5}, checkpoint=ckpt, progress=kill_at_second_step, **OPTS)
+        jsphere.fit(
+            small_trials,
+            jsphere.RobotParams.paper(),
+            FREE,
+            fix={"m": 2.5},
+            checkpoint=ckpt,
+            progress=kill_at_second_step,
+            **OPTS,
+        )
     assert ckpt.exists()
     lines = []
-    res = jsphere.fit(small_trials, jsphere.RobotParams.paper(), FREE, fix={"m": 2.5}, checkpoint=ckpt, progress=lines.append, **OPTS)
+    res = jsphere.fit(
+        small_trials, jsphere.RobotParams.paper(), FREE, fix={"m": 2.5}, checkpoint=ckpt, progress=lines.append, **OPTS
+    )
     assert any("resuming" in s and "stage 1, iteration 2" in s for s in lines)
     assert not any("adam" in s or "LM stage 1 it   1 " in s for s in lines)  # nothing is repeated
     assert res.converged
@@ -182,9 +209,15 @@ def test_killed_fit_resumes_from_checkpoint(small_trials, small_fit, tmp_path):
     lines = []
     with pytest.raises(KeyboardInterrupt), pytest.warns(UserWarning, match="is from another fit"):
         jsphere.fit(
-            small_trials, jsphere.RobotParams.paper(), FREE, fix={"m": 2.5}, checkpoint=ckpt, seed=1,
-            progress=lambda s: lines.append(s) or kill_at_second_step(s), **{k: v for k, v in OPTS.items()},
-        )  # fmt: skip
+            small_trials,
+            jsphere.RobotParams.paper(),
+            FREE,
+            fix={"m": 2.5},
+            checkpoint=ckpt,
+            seed=1,
+            progress=lambda s: lines.append(s) or kill_at_second_step(s),
+            **{k: v for k, v in OPTS.items()},
+        )
     assert not any("resuming" in s for s in lines)
 
 
@@ -254,7 +287,9 @@ def test_bad_fit_configuration_is_reported(small_trials, free, fix, bounds, matc
 def test_trials_that_do_not_fit_the_robot_are_reported(small_trials):
     p = jsphere.RobotParams.paper()
     t = small_trials[0]
-    four = jsphere.Trial(t.t, t.x, t.y, t.q, np.concatenate([np.asarray(t.inputs), np.zeros((len(t.t), 1))], 1), t.kind, name="four")
+    four = jsphere.Trial(
+        t.t, t.x, t.y, t.q, np.concatenate([np.asarray(t.inputs), np.zeros((len(t.t), 1))], 1), t.kind, name="four"
+    )
     with pytest.raises(ValueError, match="inputs for 4 wheels .* the robot has 3"):
         jsphere.fit([four], p, "R_m")
     torq = jsphere.Trial(t.t, t.x, t.y, t.q, t.inputs, "torques", name="tq")
@@ -294,7 +329,9 @@ def test_cli_fit_writes_json_plots_and_loadable_params(small_trials, small_fit, 
         jsphere.write_trial(tmp_path / f"{t.name}.csv", t)
         paths.append(str(tmp_path / f"{t.name}.csv"))
     out = tmp_path / "res" / "fit.json"
-    rc = main(["fit", *paths, "--free", FREE, "--fix", "m=2.5", "--out", str(out), "--n-starts", "1", "--quiet", "--no-cache"])
+    rc = main(
+        ["fit", *paths, "--free", FREE, "--fix", "m=2.5", "--out", str(out), "--n-starts", "1", "--quiet", "--no-cache"]
+    )
     assert rc == 0
     doc = json.loads(out.read_text())
     res, _ = small_fit
@@ -321,7 +358,10 @@ def test_cli_fit_writes_json_plots_and_loadable_params(small_trials, small_fit, 
 )
 def test_cli_fit_errors(small_trials, tmp_path, capsys, extra, match):
     jsphere.write_trial(tmp_path / "a.csv", small_trials[0])
-    rc = main(["fit", str(tmp_path / "a.csv"), "--no-cache", *extra] + ([] if "--out" in extra else ["--out", str(tmp_path / "f.json")]))
+    rc = main(
+        ["fit", str(tmp_path / "a.csv"), "--no-cache", *extra]
+        + ([] if "--out" in extra else ["--out", str(tmp_path / "f.json")])
+    )
     assert rc == 2
     assert match in capsys.readouterr().err
 
@@ -341,7 +381,8 @@ def _study(kind, free, fix_names, n=5, seed=0, durations=(4.0, 8.0), **kw):
     res = jsphere.fit(trials, jsphere.RobotParams.paper(), free, fix=fix, seed=seed, **kw)
     z = {n: (res.values[n] - float(jsphere.get_value(truth, n))) / res.stderr[n] for n in res.free}
     print(
-        f"\n{kind} seed {seed}: {n} trials, {res.elapsed_s:.0f} s, {res.iterations} iterations, errors in SE:", {k: round(v, 2) for k, v in z.items()}
+        f"\n{kind} seed {seed}: {n} trials, {res.elapsed_s:.0f} s, {res.iterations} iterations, errors in SE:",
+        {k: round(v, 2) for k, v in z.items()},
     )
     return res, z
 
@@ -373,7 +414,14 @@ def test_standard_errors_are_honest_over_20_seeds():
     inside, total = 0, 0
     for seed in range(20):
         _, z = _study(
-            "wheel_speeds", "R_m,j,I[2,2],I0", ["m", "m0", "I[0,0]", "I[1,1]"], n=3, durations=(4.0, 4.0), n_starts=1, adam_steps=0, seed=seed
+            "wheel_speeds",
+            "R_m,j,I[2,2],I0",
+            ["m", "m0", "I[0,0]", "I[1,1]"],
+            n=3,
+            durations=(4.0, 4.0),
+            n_starts=1,
+            adam_steps=0,
+            seed=seed,
         )
         inside += sum(abs(v) < 2 for v in z.values())
         total += len(z)
@@ -386,6 +434,8 @@ def test_benchmark_size_fit_finishes_in_minutes():
     import time
 
     t = time.perf_counter()
-    res, z = _study("wheel_speeds", "R_m,j,I[0,0],I[1,1],I[2,2],I0", ["m", "m0"], n=20, durations=(6.0, 6.0), n_starts=1)
+    res, z = _study(
+        "wheel_speeds", "R_m,j,I[0,0],I[1,1],I[2,2],I0", ["m", "m0"], n=20, durations=(6.0, 6.0), n_starts=1
+    )
     assert time.perf_counter() - t < 15 * 60
     assert res.converged and all(abs(v) < 4 for v in z.values()), z

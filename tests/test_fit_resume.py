@@ -25,10 +25,11 @@ import numpy as np
 import pytest
 
 import jsphere
-from jsphere.identify import checkpoint as _checkpoint, fit as _fit
 from jsphere._runtime.errors import SolverFailure
 from jsphere._runtime.files import dumps_json
 from jsphere.cli.app import main
+from jsphere.identify import checkpoint as _checkpoint
+from jsphere.identify import fit as _fit
 
 FREE = "R_m,j"
 OPTS = {"n_starts": 2, "adam_steps": 2, "max_iter": 15}
@@ -126,7 +127,19 @@ def test_a_fit_killed_at_every_checkpoint_resumes_bit_for_bit(tiny_trials, refer
 
 def test_cli_ctrl_c_returns_130_keeps_the_checkpoint_and_resumes_bit_for_bit(tiny_trials, tmp_path, capsys):
     jsphere.write_trial(tmp_path / "t0.csv", tiny_trials[0])
-    argv = ["fit", str(tmp_path / "t0.csv"), "--free", FREE, "--fix", "m=2.5", "--n-starts", "2", "--no-plots", "--quiet", "--no-cache"]
+    argv = [
+        "fit",
+        str(tmp_path / "t0.csv"),
+        "--free",
+        FREE,
+        "--fix",
+        "m=2.5",
+        "--n-starts",
+        "2",
+        "--no-plots",
+        "--quiet",
+        "--no-cache",
+    ]
     assert main([*argv, "--out", str(tmp_path / "a" / "fit.json")]) == 0
     whole = json.loads((tmp_path / "a" / "fit.json").read_text())
     out = tmp_path / "b" / "fit.json"
@@ -138,7 +151,9 @@ def test_cli_ctrl_c_returns_130_keeps_the_checkpoint_and_resumes_bit_for_bit(tin
     assert stage_of(ckpt) == (1, 2) and not out.exists()
     assert main([*argv, "--out", str(out)]) == 0
     resumed = json.loads(out.read_text(), parse_constant=lambda c: pytest.fail(f"fit.json holds {c}"))
-    assert {k: v for k, v in resumed.items() if k != "elapsed_s"} == {k: v for k, v in whole.items() if k != "elapsed_s"}
+    assert {k: v for k, v in resumed.items() if k != "elapsed_s"} == {
+        k: v for k, v in whole.items() if k != "elapsed_s"
+    }
     assert sorted(p.name for p in out.parent.iterdir()) == ["fit.json"]
 
 
@@ -190,7 +205,11 @@ def test_a_damaged_checkpoint_is_ignored_with_a_warning(tiny_trials, first_check
     ckpt.write_bytes(first_checkpoint)
     _damage(kind, ckpt, first_checkpoint)
     lines = []
-    with checkpoint_hook(kill_at("saved", 1)), pytest.raises(KeyboardInterrupt), warnings.catch_warnings(record=True) as caught:
+    with (
+        checkpoint_hook(kill_at("saved", 1)),
+        pytest.raises(KeyboardInterrupt),
+        warnings.catch_warnings(record=True) as caught,
+    ):
         warnings.simplefilter("always")
         run_fit(tiny_trials, ckpt, progress=lines.append)
     [w] = caught
@@ -204,7 +223,22 @@ def test_cli_says_in_one_line_that_a_damaged_checkpoint_is_ignored(tiny_trials, 
     out = tmp_path / "fit.json"
     out.with_name("fit.json.ckpt.npz").write_bytes(b"PK\x03\x04 broken off")
     with checkpoint_hook(kill_at("saved", 1)):
-        rc = main(["fit", str(tmp_path / "t0.csv"), "--free", FREE, "--fix", "m=2.5", "--n-starts", "2", "--out", str(out), "--quiet", "--no-cache"])
+        rc = main(
+            [
+                "fit",
+                str(tmp_path / "t0.csv"),
+                "--free",
+                FREE,
+                "--fix",
+                "m=2.5",
+                "--n-starts",
+                "2",
+                "--out",
+                str(out),
+                "--quiet",
+                "--no-cache",
+            ]
+        )
     assert rc == 130
     err = capsys.readouterr().err
     assert f"jsphere fit: warning: fit: the checkpoint {out}.ckpt.npz cannot be read (BadZipFile: " in err
@@ -214,7 +248,11 @@ def test_cli_says_in_one_line_that_a_damaged_checkpoint_is_ignored(tiny_trials, 
 def test_a_checkpoint_of_another_fit_is_not_resumed(tiny_trials, first_checkpoint, tmp_path):
     ckpt = tmp_path / "c.npz"
     ckpt.write_bytes(first_checkpoint)
-    with checkpoint_hook(kill_at("saved", 1)), pytest.raises(KeyboardInterrupt), pytest.warns(UserWarning, match="from another fit"):
+    with (
+        checkpoint_hook(kill_at("saved", 1)),
+        pytest.raises(KeyboardInterrupt),
+        pytest.warns(UserWarning, match="from another fit"),
+    ):
         run_fit(tiny_trials, ckpt, max_iter=16)  # another option: another fit
 
 
@@ -250,7 +288,9 @@ def failing(monkeypatch):
 
 
 @pytest.mark.parametrize("finite_calls, where", [(0, "the Adam warm start"), (2, "Levenberg-Marquardt stage 1")])
-def test_a_fit_whose_every_start_fails_stops_says_where_and_removes_its_checkpoint(tiny_trials, failing, tmp_path, finite_calls, where):
+def test_a_fit_whose_every_start_fails_stops_says_where_and_removes_its_checkpoint(
+    tiny_trials, failing, tmp_path, finite_calls, where
+):
     failing(k0=7, finite_calls=finite_calls)
     ckpt = tmp_path / "c.npz"
     lines = []
@@ -270,7 +310,22 @@ def test_cli_exits_4_when_every_start_fails(tiny_trials, failing, tmp_path, caps
     failing(k0=0, finite_calls=0)
     jsphere.write_trial(tmp_path / "t0.csv", tiny_trials[0])
     out = tmp_path / "out" / "fit.json"
-    rc = main(["fit", str(tmp_path / "t0.csv"), "--free", FREE, "--fix", "m=2.5", "--n-starts", "2", "--out", str(out), "--quiet", "--no-cache"])
+    rc = main(
+        [
+            "fit",
+            str(tmp_path / "t0.csv"),
+            "--free",
+            FREE,
+            "--fix",
+            "m=2.5",
+            "--n-starts",
+            "2",
+            "--out",
+            str(out),
+            "--quiet",
+            "--no-cache",
+        ]
+    )
     err = capsys.readouterr().err
     assert rc == 4, err
     assert "jsphere fit: error: fit: every start failed in the Adam warm start" in err and "channel x" in err
@@ -282,7 +337,9 @@ def test_cli_exits_4_when_every_start_fails(tiny_trials, failing, tmp_path, caps
 
 
 def _cli(args, env, **kw):
-    return subprocess.run([sys.executable, "-m", "jsphere.cli.app", *args], env=env, capture_output=True, text=True, **kw)
+    return subprocess.run(
+        [sys.executable, "-m", "jsphere.cli.app", *args], env=env, capture_output=True, text=True, **kw
+    )
 
 
 _KILLER = """
@@ -311,11 +368,16 @@ def test_a_fit_killed_with_sigkill_resumes_to_the_same_file(tiny_trials, tmp_pat
     out = tmp_path / "b" / "fit.json"
     for kill_after in (5, 1):  # inside the 6th write (an LM step), then, resumed, inside the 2nd after it
         killed = subprocess.run(
-            [sys.executable, "-c", _KILLER, "fit", *args, "--out", str(out)], env={**env, "KILL_AFTER": str(kill_after)},
-            capture_output=True, text=True, cwd=ROOT,
-        )  # fmt: skip
+            [sys.executable, "-c", _KILLER, "fit", *args, "--out", str(out)],
+            env={**env, "KILL_AFTER": str(kill_after)},
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+        )
         assert killed.returncode == -signal.SIGKILL, killed.stderr
-        assert any(p.name.startswith(".fit.json.ckpt.") for p in out.parent.iterdir())  # the killed write's temporary file
+        assert any(
+            p.name.startswith(".fit.json.ckpt.") for p in out.parent.iterdir()
+        )  # the killed write's temporary file
     resumed = _cli(["fit", *args, "--out", str(out)], env, cwd=ROOT)
     assert resumed.returncode == 0, resumed.stderr
     a, b = (json.loads(p.read_text()) for p in (tmp_path / "a" / "fit.json", out))
@@ -366,7 +428,10 @@ def test_out_that_is_an_input_through_a_link_is_refused(tmp_path, capsys):
     jsphere.RobotParams.paper().save(tmp_path / "robot.json")
     (tmp_path / "link.json").symlink_to(tmp_path / "robot.json")
     before = (tmp_path / "robot.json").read_bytes()
-    assert main(_fit_cli(str(tmp_path / "missing.csv"), tmp_path / "link.json", "--params", str(tmp_path / "robot.json"))) == 2
+    assert (
+        main(_fit_cli(str(tmp_path / "missing.csv"), tmp_path / "link.json", "--params", str(tmp_path / "robot.json")))
+        == 2
+    )
     assert "would write over" in capsys.readouterr().err and (tmp_path / "robot.json").read_bytes() == before
 
 

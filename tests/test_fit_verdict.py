@@ -17,9 +17,9 @@ import pytest
 
 import jsphere
 from jsphere._runtime.errors import EXIT_CODES_HELP, ExitCode
+from jsphere.cli.app import main
 from jsphere.identify.data import pack_trials
 from jsphere.identify.verdict import CORRELATED, FAR, MODERATE, headline, judge, lag1, noise_floor
-from jsphere.cli.app import main
 from jsphere.plots import worst_trial
 
 TRUTH = jsphere.RobotParams.paper().replace(R_m=0.029, j=3.2e-4)
@@ -28,7 +28,9 @@ FLOOR = (1e-3, math.radians(0.5))
 
 def synthetic(seeds, t1, rate, **kw):
     return [
-        jsphere.synthetic_trial(TRUTH, jsphere.random_inputs(TRUTH, t1, seed=s), t1, rate=rate, seed=s, name=f"t{k}", **kw)
+        jsphere.synthetic_trial(
+            TRUTH, jsphere.random_inputs(TRUTH, t1, seed=s), t1, rate=rate, seed=s, name=f"t{k}", **kw
+        )
         for k, s in enumerate(seeds)
     ]
 
@@ -47,7 +49,9 @@ def test_noise_floor_is_the_synthetic_noise(seeds, rate, t1, pos_sd, rot_sd_deg)
     data = pack_trials(trials, TRUTH)
     assert data.wpos.sum() < data.wpos.size and data.wrot.sum() < data.wrot.size  # gaps: runs across them are skipped
     sigma_pos, sigma_rot = noise_floor(data)
-    print(f"noise floor / truth: {sigma_pos / pos_sd:.4f} (position), {math.degrees(sigma_rot) / rot_sd_deg:.4f} (orientation)")
+    print(
+        f"noise floor / truth: {sigma_pos / pos_sd:.4f} (position), {math.degrees(sigma_rot) / rot_sd_deg:.4f} (orientation)"
+    )
     assert sigma_pos == pytest.approx(pos_sd, rel=0.1)
     assert math.degrees(sigma_rot) == pytest.approx(rot_sd_deg, rel=0.1)
 
@@ -88,7 +92,10 @@ def test_white_residuals_at_the_floor_are_converged():
     assert abs(v["autocorr_pos"]) < 0.1 and abs(v["autocorr_rot"]) < 0.1
     assert [t["name"] for t in v["trials"]] == ["a", "b"] and v["worst_trial"] in ("a", "b")
     rp, rr = v["ratio_pos"], v["ratio_rot"]
-    assert headline(v["status"], v["reason"], v) == f"converged (residual sigma {rp:.2f}x / {rr:.2f}x the capture's noise floor, position / orientation)"
+    assert (
+        headline(v["status"], v["reason"], v)
+        == f"converged (residual sigma {rp:.2f}x / {rr:.2f}x the capture's noise floor, position / orientation)"
+    )
 
 
 def test_smooth_residuals_far_above_the_floor_are_a_misfit():
@@ -141,7 +148,10 @@ def test_lag1_autocorrelation_skips_gaps():
 
 def test_exit_codes_of_the_verdict():
     assert (ExitCode.NOT_CONVERGED, ExitCode.MISFIT) == (5, 6)
-    assert "\n  5    fit: the optimiser did not converge" in EXIT_CODES_HELP and "\n  6    fit: a misfit" in EXIT_CODES_HELP
+    assert (
+        "\n  5    fit: the optimiser did not converge" in EXIT_CODES_HELP
+        and "\n  6    fit: a misfit" in EXIT_CODES_HELP
+    )
 
 
 # ------------------------------------------------------------------ jsphere fit
@@ -156,7 +166,9 @@ def trials():
 def files(trials, tmp_path_factory):
     """The trial files: `good` (as captured) and `swapped` (each trial with the other's inputs)."""
     d = tmp_path_factory.mktemp("trials")
-    swapped = [jsphere.Trial(a.t, a.x, a.y, a.q, b.inputs, a.kind, None, name=a.name) for a, b in zip(trials, trials[::-1])]
+    swapped = [
+        jsphere.Trial(a.t, a.x, a.y, a.q, b.inputs, a.kind, None, name=a.name) for a, b in zip(trials, trials[::-1])
+    ]
     out = {}
     for kind, group in (("good", trials), ("swapped", swapped)):
         out[kind] = []
@@ -168,7 +180,23 @@ def files(trials, tmp_path_factory):
 
 
 def run_fit(paths, out, capsys, *extra):
-    rc = main(["fit", *paths, "--free", "R_m,j", "--fix", "m=2.5", "--n-starts", "1", "--out", str(out), "--quiet", "--no-cache", *extra])
+    rc = main(
+        [
+            "fit",
+            *paths,
+            "--free",
+            "R_m,j",
+            "--fix",
+            "m=2.5",
+            "--n-starts",
+            "1",
+            "--out",
+            str(out),
+            "--quiet",
+            "--no-cache",
+            *extra,
+        ]
+    )
     lines = capsys.readouterr().out.strip().splitlines()
     doc = json.loads(out.read_text(), parse_constant=lambda c: pytest.fail(f"fit.json holds {c}"))
     assert not out.with_name(out.name + ".ckpt.npz").exists()
@@ -182,7 +210,9 @@ def test_a_good_fit_is_converged_at_the_noise_floor(files, tmp_path, capsys):
     v = doc["verdict"]
     assert 0.85 < v["ratio_pos"] < 1.15 and 0.85 < v["ratio_rot"] < 1.15, v
     assert abs(v["autocorr_pos"]) < 0.2 and abs(v["autocorr_rot"]) < 0.2
-    assert v["noise_floor_pos_m"] == pytest.approx(1e-3, rel=0.15) and v["noise_floor_rot_deg"] == pytest.approx(0.5, rel=0.15)
+    assert v["noise_floor_pos_m"] == pytest.approx(1e-3, rel=0.15) and v["noise_floor_rot_deg"] == pytest.approx(
+        0.5, rel=0.15
+    )
     assert lines[-1].startswith("jsphere fit: converged (residual sigma ")
     assert lines[-2].startswith("wrote ") and lines[-3] == f"status: converged: {doc['status_reason']}"
     assert (tmp_path / "fit_overlay.png").exists() and (tmp_path / "fit_residuals.png").exists()
@@ -207,5 +237,7 @@ def test_a_fit_stopped_at_max_iter_is_not_converged(files, tmp_path, capsys):
     rc, lines, doc = run_fit(files["good"], tmp_path / "fit.json", capsys, "--max-iter", "1", "--no-plots")
     assert rc == ExitCode.NOT_CONVERGED == 5
     assert doc["converged"] is False and doc["status"] == "not_converged"
-    assert lines[-1].startswith("jsphere fit: not_converged: the optimiser did not converge (Levenberg-Marquardt reached max_iter")
+    assert lines[-1].startswith(
+        "jsphere fit: not_converged: the optimiser did not converge (Levenberg-Marquardt reached max_iter"
+    )
     assert "--max-iter" in doc["status_reason"]

@@ -12,7 +12,9 @@ from jsphere.model.params import derive
 def test_user_gait_with_yaw_ends_stationary(paper):
     """A gait with omega_gamma != 0 turns the platform; the robot ends on a stationary motion."""
     yaw = lambda t: 0.5 * jnp.sin(jnp.pi * t) ** 2  # noqa: E731
-    g = jsphere.Gait(theta=lambda t: 0.05 * jnp.sin(jnp.pi * t) ** 2, phi=lambda t: 0.3 + 0.0 * t, omega_gamma=yaw, T=1.0)
+    g = jsphere.Gait(
+        theta=lambda t: 0.05 * jnp.sin(jnp.pi * t) ** 2, phi=lambda t: 0.3 + 0.0 * t, omega_gamma=yaw, T=1.0
+    )
     tr = jsphere.simulate_gaits(paper, [g, jsphere.acceleration()])
     i = np.nonzero(np.asarray(tr.segment) == 0)[0][-1]
     psi = float(jnp.arctan2(-tr.alpha[i, 1], tr.alpha[i, 0]))  # platform yaw from alpha = (cos psi, -sin psi, 0)
@@ -28,12 +30,18 @@ def test_four_wheels_least_norm_torques(paper):
     torque-mode simulation along the same motion."""
     phis = 2 * np.pi * np.arange(4) / 4
     p4 = jsphere.RobotParams(
-        R0=0.15, m0=0.8, I0=0.012, Rw=0.07,
+        R0=0.15,
+        m0=0.8,
+        I0=0.012,
+        Rw=0.07,
         wheel_r=0.057 * np.stack([np.cos(phis), np.sin(phis), -np.ones(4)], -1),
         wheel_n=np.stack([np.cos(phis), np.sin(phis), np.ones(4)], -1) / np.sqrt(2),
         wheel_alpha=np.stack([np.cos(phis - np.pi / 4), np.sin(phis - np.pi / 4), np.ones(4)], -1) / np.sqrt(2),
-        m=2.5, I=np.diag([0.016, 0.016, 0.023]), r_m=[0, 0, -0.027], j=2.7e-4,
-    )  # fmt: skip
+        m=2.5,
+        I=np.diag([0.016, 0.016, 0.023]),
+        r_m=[0, 0, -0.027],
+        j=2.7e-4,
+    )
     tr = jsphere.simulate_gaits(p4, [jsphere.acceleration(), jsphere.braking()], rate=500)
     assert tr.K.shape[1] == 4
     d = derive(p4)

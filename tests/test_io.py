@@ -14,9 +14,11 @@ import jsphere._runtime.files as jio
 from jsphere import RobotParams
 
 FIELDS = ("R0", "m0", "I0", "Rw", "wheel_r", "wheel_n", "wheel_alpha", "m", "I", "r_m", "j", "g", "c_roll", "c_axle")
-REFERENCE = Path(os.environ.get(
-    "JSPHERE_REFERENCE", Path(__file__).resolve().parents[2] / "shared" / "reference" / "reference_cases.json"
-))
+REFERENCE = Path(
+    os.environ.get(
+        "JSPHERE_REFERENCE", Path(__file__).resolve().parents[2] / "shared" / "reference" / "reference_cases.json"
+    )
+)
 
 
 @pytest.fixture(scope="module")
@@ -320,7 +322,9 @@ def test_reference_param_sets_match_paper(reference_param_sets):
     assert float(p0.R_m) == pytest.approx(26.8727e-3, abs=1e-7)
     for p, ref in ((p1, ref1), (p0, ref0)):
         for f in FIELDS:
-            np.testing.assert_allclose(np.asarray(getattr(p, f)), np.asarray(getattr(ref, f)), rtol=1e-14, atol=1e-16, err_msg=f)
+            np.testing.assert_allclose(
+                np.asarray(getattr(p, f)), np.asarray(getattr(ref, f)), rtol=1e-14, atol=1e-16, err_msg=f
+            )
 
 
 def test_json_is_strict():
@@ -336,7 +340,13 @@ def test_json_is_strict():
     def strict(text):
         return json.loads(text, parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))
 
-    obj = {"a": float("nan"), "b": [1.0, float("inf"), -math.inf], "c": np.array([np.nan, 2.0]), "d": np.float64("nan"), "e": 3}
+    obj = {
+        "a": float("nan"),
+        "b": [1.0, float("inf"), -math.inf],
+        "c": np.array([np.nan, 2.0]),
+        "d": np.float64("nan"),
+        "e": 3,
+    }
     assert strict(dumps_json(obj)) == {"a": None, "b": [1.0, None, None], "c": [None, 2.0], "d": None, "e": 3}
     with pytest.raises(ValueError):
         strict(json.dumps(obj["a"]))  # the check itself: Python's default output is refused

@@ -165,8 +165,9 @@ def test_kinematic_command_replay_matches_fig2(paper):
     gives the rocking of `jsphere reproduce` (sd of gamma_3 over [4, 8] s about 0.020)."""
     u = np.asarray(jsphere.kinematic_wheel_speeds(paper, np.array([0.15 * 0.864, 0.0])))
     cmd = (np.array([0.0, 4.0]), np.stack([u, u]))
-    res = jsphere.monte_carlo(paper, GAITS, vary={}, n=64, batch_size=64, mode="wheel_speeds", commands=cmd,
-                              settle=4.0, progress=False)  # fmt: skip
+    res = jsphere.monte_carlo(
+        paper, GAITS, vary={}, n=64, batch_size=64, mode="wheel_speeds", commands=cmd, settle=4.0, progress=False
+    )
     assert np.all(res.status == 0)
     assert res.gamma3_sd_after[0] == pytest.approx(0.0201, abs=5e-4)
     assert res.x_final[0] == pytest.approx(0.49858, abs=1e-4)  # as the kinematic run of `reproduce` at t = 8 s
@@ -203,8 +204,9 @@ def test_truncate_draws_again_until_valid(paper, wide):
     range, distributed as the truncated normal; draws valid at the first try are unchanged."""
     from scipy import stats
 
-    r = jsphere.monte_carlo(paper, GAITS, vary={"r_m[2]": (*WIDE["r_m[2]"], "truncate")}, n=256, seed=7, batch_size=128,
-                            progress=False)  # fmt: skip
+    r = jsphere.monte_carlo(
+        paper, GAITS, vary={"r_m[2]": (*WIDE["r_m[2]"], "truncate")}, n=256, seed=7, batch_size=128, progress=False
+    )
     assert r.stats()["n_rejected"] == 0 and np.all(r.reject_code == 0)
     v = r.samples["r_m[2]"]
     assert np.all(np.abs(v) < 0.15)
@@ -241,12 +243,15 @@ def test_truncate_draws_again_until_valid(paper, wide):
         ({"vary": {"j": ("normal", True, 1e-5)}}, r"the mean must be a finite number; got True"),
         ({"vary": {"j": ("normal", 2.7e-4, 1e-5, "clip")}}, r"got 'clip' as its last entry"),
         ({"vary": {"j": ("normal", 2.7e-4)}}, r"vary\['j'\] must be \['normal', mean, sd\]"),
-        ({"vary": {"I[0,1]": ("normal", 0, 1e-4), "I[1,0]": ("normal", 0, 1e-4)}}, r"'I\[0,1\]' and 'I\[1,0\]' set the same value"),
+        (
+            {"vary": {"I[0,1]": ("normal", 0, 1e-4), "I[1,0]": ("normal", 0, 1e-4)}},
+            r"'I\[0,1\]' and 'I\[1,0\]' set the same value",
+        ),
         ({"vary": {"R_m": ("normal", 0.027, 1e-4), "r_m[2]": ("normal", -0.027, 1e-4)}}, r"set the same value"),
         ({"gaits": []}, r"gaits must be a non-empty list"),
         ({"actuators": jsphere.Actuators(gain_sd=0.01)}, r"actuators apply to replayed commands"),
     ],
-)  # fmt: skip
+)
 def test_study_values_are_checked_before_any_work(paper, kwargs, match):
     kw = {"vary": VARY, "n": 64, "progress": False, **kwargs}
     gaits = kw.pop("gaits", GAITS)
@@ -263,8 +268,12 @@ def test_a_negative_R_m_draw_is_rejected(paper):
 
 
 def test_actuators_values_are_checked():
-    for kw, match in (({"gain_sd": -0.1}, "gain_sd must be a finite number >= 0"), ({"delay_s": float("nan")}, "delay_s"),
-                      ({"band_hz": 0.0}, "band_hz must be a finite number > 0"), ({"white_sd": "0.1"}, "white_sd")):  # fmt: skip
+    for kw, match in (
+        ({"gain_sd": -0.1}, "gain_sd must be a finite number >= 0"),
+        ({"delay_s": float("nan")}, "delay_s"),
+        ({"band_hz": 0.0}, "band_hz must be a finite number > 0"),
+        ({"white_sd": "0.1"}, "white_sd"),
+    ):
         with pytest.raises(InputError, match=match):
             jsphere.Actuators(**kw)
 
@@ -333,8 +342,12 @@ def test_cli_reports_rejected_draws(tmp_path, wide, capsys):
 
 
 def _cli(folder: Path, study: Path, env: dict) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "jsphere.cli.app", "montecarlo", str(study), "--out", str(folder), "--no-plots"],
-                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)  # fmt: skip
+    return subprocess.Popen(
+        [sys.executable, "-m", "jsphere.cli.app", "montecarlo", str(study), "--out", str(folder), "--no-plots"],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
 
 
 def _kill_when(proc: subprocess.Popen, ready, timeout: float = 300.0) -> None:
@@ -358,8 +371,12 @@ def test_cli_killed_anywhere_resumes_to_the_same_files(tmp_path):
         'trials = 320\nseed = 3\nbatch_size = 64\ngaits = [{kind = "acceleration", T = 1.0}, {kind = "braking", T = 1.0}]\n'
         '[vary]\n"r_m[2]" = ["normal", -0.0270146, 0.05, "truncate"]\nm0 = ["normal", 0.8, 0.4]\n'
     )
-    env = dict(os.environ, JSPHERE_CACHE_DIR=str(tmp_path / "cache"), JAX_PLATFORMS="cpu",
-               PYTHONPATH=str(Path(__file__).resolve().parents[1]))  # fmt: skip
+    env = dict(
+        os.environ,
+        JSPHERE_CACHE_DIR=str(tmp_path / "cache"),
+        JAX_PLATFORMS="cpu",
+        PYTHONPATH=str(Path(__file__).resolve().parents[1]),
+    )
     ref, res = tmp_path / "ref", tmp_path / "res"
     p = _cli(ref, study, env)
     assert p.wait(timeout=900) == 0, p.stderr.read().decode()

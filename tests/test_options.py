@@ -26,8 +26,9 @@ def test_defaults_and_validation():
 
 def test_merge_keywords_into_options():
     o = SolverOptions(rtol=1e-9, solver=dfx.Tsit5())
-    m = resolve(o, where="simulate", rtol=None, atol=1e-12, solver=dfx.Tsit5(), max_steps=16384,
-                batch_steps="per_trial")  # fmt: skip
+    m = resolve(
+        o, where="simulate", rtol=None, atol=1e-12, solver=dfx.Tsit5(), max_steps=16384, batch_steps="per_trial"
+    )
     assert (m.rtol, m.atol, type(m.solver), m.max_steps, m.batch_steps) == (1e-9, 1e-12, dfx.Tsit5, 16384, "per_trial")
     assert resolve(None, where="simulate", max_steps=100).max_steps == 100
     with pytest.raises(ValueError, match=r"simulate: rtol=1e-07 conflicts with options.rtol=1e-09"):

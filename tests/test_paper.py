@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import jsphere
-from jsphere.model.params import PAPER_J, PAPER_R_M
 from jsphere.cli.app import main
+from jsphere.model.params import PAPER_J, PAPER_R_M
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +71,9 @@ def test_paper_parameters_follow_from_paper_numbers(rep):
     def residual(u):
         p = base.replace(R_m=u[0] * 1e-3, j=u[1] * 1e-4)
         a = jsphere.simulate_gaits(p, [jsphere.acceleration(), jsphere.braking()])
-        t = jsphere.simulate_gaits(p, [jsphere.acceleration(), jsphere.turn(), jsphere.braking(phi=np.pi / 4)], reset=[True, None])
+        t = jsphere.simulate_gaits(
+            p, [jsphere.acceleration(), jsphere.turn(), jsphere.braking(phi=np.pi / 4)], reset=[True, None]
+        )
         i_a = np.nonzero(np.asarray(a.segment) == 0)[0][-1]
         i_t = np.nonzero(np.asarray(t.segment) == 1)[0][-1]
         return np.array([float(a.Omega[i_a, 1]) - 0.864, float(t.Omega[i_t, 1]) - 0.852])

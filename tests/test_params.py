@@ -156,7 +156,12 @@ INVALID = [
     ("wheel_alpha-not-unit", lambda b: {"wheel_alpha": 0.9 * b["wheel_alpha"]}, "wheel_alpha", "unit"),
     ("s.n=0", lambda b: {"wheel_n": _perpendicular_n(b)}, "wheel_n", r"\(s_i, n_i\)"),
     ("s-not-spanning", _same_direction, "wheel_r", "span"),
-    ("alpha-parallel-r", lambda b: {"wheel_alpha": b["wheel_r"] / np.linalg.norm(b["wheel_r"], axis=-1, keepdims=True)}, "wheel_alpha", "parallel"),
+    (
+        "alpha-parallel-r",
+        lambda b: {"wheel_alpha": b["wheel_r"] / np.linalg.norm(b["wheel_r"], axis=-1, keepdims=True)},
+        "wheel_alpha",
+        "parallel",
+    ),
     ("m-nan", lambda b: {"m": np.nan}, "m", "finite"),
     ("R0-inf", lambda b: {"R0": np.inf}, "R0", "finite"),
     ("wheel_r-nan", lambda b: {"wheel_r": _nan_entry(b["wheel_r"])}, "wheel_r", "finite"),
@@ -173,7 +178,12 @@ INVALID = [
     ("wheel_r-1d", lambda b: {"wheel_r": b["wheel_r"][0]}, "wheel_r", "shape"),
     ("wheel_r-Nx2", lambda b: {"wheel_r": b["wheel_r"][:, :2]}, "wheel_r", "shape"),
     ("wheel_n-fewer-rows", lambda b: {"wheel_n": b["wheel_n"][:2]}, "wheel_n", "shape"),
-    ("wheel_alpha-more-rows", lambda b: {"wheel_alpha": np.vstack([b["wheel_alpha"], b["wheel_alpha"][:1]])}, "wheel_alpha", "shape"),
+    (
+        "wheel_alpha-more-rows",
+        lambda b: {"wheel_alpha": np.vstack([b["wheel_alpha"], b["wheel_alpha"][:1]])},
+        "wheel_alpha",
+        "shape",
+    ),
     ("I-vector", lambda b: {"I": np.array([0.016, 0.016, 0.023])}, "I", "3x3"),
     ("I-2x2", lambda b: {"I": np.eye(2) * 0.016}, "I", "3x3"),
     ("r_m-2", lambda b: {"r_m": [0.0, -0.02]}, "r_m", "3-vector"),
@@ -210,7 +220,9 @@ def _unchecked(paper, changes):
     """`paper` with fields replaced without validation (as a parameter set made inside
     compiled code is)."""
     fields = list(changes)
-    return eqx.tree_at(lambda p: [getattr(p, f) for f in fields], paper, [jnp.asarray(changes[f], jnp.float64) for f in fields])
+    return eqx.tree_at(
+        lambda p: [getattr(p, f) for f in fields], paper, [jnp.asarray(changes[f], jnp.float64) for f in fields]
+    )
 
 
 def test_rule_code_and_validate_share_the_rules(base, paper, rule_codes):
@@ -388,13 +400,29 @@ def test_tree_at_does_not_revalidate(paper):
         ("m", "2.5", "RobotParams.m: the value must be a number, not a string ('2.5'; write numbers without quotes)"),
         ("m", None, "RobotParams.m: the value must be a number, not null"),
         ("j", {"value": 1e-4}, "RobotParams.j: the value must be a number, not a dict"),
-        ("I", [[0.016, 0, 0], [0, 0.016, 0], [0, 0, False]], "RobotParams.I: the value must be a number, not a boolean (false)"),
-        ("I", [[0.016, 0, 0], [0, 0.016], [0, 0, 0.023]], "RobotParams.I: a ragged list (rows of different lengths); expected a 3x3 nested list (shape (3, 3))"),
+        (
+            "I",
+            [[0.016, 0, 0], [0, 0.016, 0], [0, 0, False]],
+            "RobotParams.I: the value must be a number, not a boolean (false)",
+        ),
+        (
+            "I",
+            [[0.016, 0, 0], [0, 0.016], [0, 0, 0.023]],
+            "RobotParams.I: a ragged list (rows of different lengths); expected a 3x3 nested list (shape (3, 3))",
+        ),
         ("I", [0.016, 0.016, 0.023], "RobotParams.I: expected a 3x3 nested list (shape (3, 3)); got shape (3,)"),
         ("r_m", [0.0, -0.027], "RobotParams.r_m: expected a list of 3 numbers (shape (3,)); got shape (2,)"),
         ("m", [2.5], "RobotParams.m: expected a number; got shape (1,)"),
-        ("wheel_r", [[0.05, 0, -0.05]] * 2, "RobotParams.wheel_r: expected a list of N >= 3 rows of 3 numbers (shape (N, 3)); got shape (2, 3)"),
-        ("wheel_n", [[1.0, 0, 0]] * 4, "RobotParams.wheel_n: expected a list of N rows of 3 numbers, one per wheel of wheel_r (shape (N, 3)); got shape (4, 3)"),
+        (
+            "wheel_r",
+            [[0.05, 0, -0.05]] * 2,
+            "RobotParams.wheel_r: expected a list of N >= 3 rows of 3 numbers (shape (N, 3)); got shape (2, 3)",
+        ),
+        (
+            "wheel_n",
+            [[1.0, 0, 0]] * 4,
+            "RobotParams.wheel_n: expected a list of N rows of 3 numbers, one per wheel of wheel_r (shape (N, 3)); got shape (4, 3)",
+        ),
     ],
 )
 def test_from_dict_refuses_what_is_not_numbers_of_the_field_s_shape(paper, field, value, says):
@@ -407,7 +435,10 @@ def test_from_dict_refuses_what_is_not_numbers_of_the_field_s_shape(paper, field
 
 def test_parameter_file_with_a_boolean_or_a_string_names_the_file_and_the_field(paper, tmp_path):
     text = jsphere._runtime.files.dumps_toml(paper.to_dict())
-    for line, says in (("m = true", "RobotParams.m: the value must be a number, not a boolean"), ('m = "2.5"', "RobotParams.m: the value must be a number, not a string ('2.5'")):
+    for line, says in (
+        ("m = true", "RobotParams.m: the value must be a number, not a boolean"),
+        ('m = "2.5"', "RobotParams.m: the value must be a number, not a string ('2.5'"),
+    ):
         path = tmp_path / "robot.toml"
         path.write_text(re.sub(r"(?m)^m = .*$", line, text))
         with pytest.raises(ValueError, match=re.escape(f"{path}: {says}")):

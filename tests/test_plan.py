@@ -214,7 +214,7 @@ NAN, INF = float("nan"), float("inf")
         ((0.5, 0.0), {"seed": -1}, r"plan: seed must be a whole number >= 0"),
         ((0.5, 0.0), {"limits": "fast"}, r"plan: limits must be a jsphere.Limits"),
     ],
-)  # fmt: skip
+)
 def test_plan_request_is_checked_before_any_work(paper, to, kwargs, match):
     with pytest.raises(InputError, match=match):
         jsphere.plan(paper, to, **kwargs)
@@ -247,7 +247,7 @@ def test_plan_many_and_route_requests_are_checked(paper):
         (lambda: jsphere.PlanSettings(n_steps=0), r"PlanSettings: n_steps must be a whole number >= 1"),
         (lambda: jsphere.PlanSettings(learning_rate=NAN), r"PlanSettings: learning_rate must be a finite number > 0"),
     ],
-)  # fmt: skip
+)
 def test_limits_objective_settings_are_checked(make, match):
     with pytest.raises(InputError, match=match):
         make()
@@ -256,7 +256,10 @@ def test_limits_objective_settings_are_checked(make, match):
 @pytest.mark.parametrize(
     "make, match",
     [
-        (lambda: jsphere.acceleration(theta_max=NAN), r"acceleration: theta_max must be a finite number \[rad\]; got nan"),
+        (
+            lambda: jsphere.acceleration(theta_max=NAN),
+            r"acceleration: theta_max must be a finite number \[rad\]; got nan",
+        ),
         (lambda: jsphere.braking(phi=INF), r"braking: phi must be a finite number \[rad\]; got inf"),
         (lambda: jsphere.turn(T=NAN), r"turn: T must be a finite number \[s\]; got nan"),
         (lambda: jsphere.acceleration(theta_max="0.1"), r"acceleration: theta_max must be a finite number"),
@@ -266,7 +269,7 @@ def test_limits_objective_settings_are_checked(make, match):
         (lambda: jsphere.smooth_gait([[0.1, NAN], [0.0, 0.0]]), r"smooth_gait: tilt_coeffs must be a finite number"),
         (lambda: jsphere.smooth_gait([[0.1, 0.0], [0.0, 0.0]], T=INF), r"smooth_gait: T must be a positive number"),
     ],
-)  # fmt: skip
+)
 def test_gait_constructors_reject_non_finite_parameters(make, match):
     with pytest.raises(InputError, match=match):
         make()

@@ -8,7 +8,11 @@ import jsphere
 
 def test_accelerations_match_reference(reference, ref_params):
     for case in reference["accel_cases"]:
-        p = ref_params[case["params"]] if isinstance(case["params"], str) else jsphere.RobotParams.from_dict(case["params"])
+        p = (
+            ref_params[case["params"]]
+            if isinstance(case["params"], str)
+            else jsphere.RobotParams.from_dict(case["params"])
+        )
         wd, Wd = jsphere.accelerations(p, case["gamma"], case["omega"], case["Omega"], case["K"])
         got = np.concatenate([wd, Wd])
         ref = np.concatenate([case["omega_dot"], case["Omega_dot"]])
@@ -46,8 +50,15 @@ def test_gait_time_series(reference, ref_params, pset, chain):
         # within a gait: its own samples (the left limit at its end, the right limit at its start)
         i = _index(tr, t, "right" if s["t"] == 0.0 else "left")
         assert int(tr.segment[i]) == k
-        for f, tol in (("Omega", 1e-8), ("K", 1e-8), ("chi_dot", 1e-8), ("gamma", 1e-8), ("omega", 1e-8),
-                       ("alpha", 1e-8), ("beta", 1e-8)):  # fmt: skip
+        for f, tol in (
+            ("Omega", 1e-8),
+            ("K", 1e-8),
+            ("chi_dot", 1e-8),
+            ("gamma", 1e-8),
+            ("omega", 1e-8),
+            ("alpha", 1e-8),
+            ("beta", 1e-8),
+        ):
             np.testing.assert_allclose(getattr(tr, f)[i], s[f], atol=tol, err_msg=f"{chain} {f} t={s['t']}")
         np.testing.assert_allclose([tr.x[i], tr.y[i]], [s["x"], s["y"]], atol=1e-6, err_msg=f"{chain} x,y t={s['t']}")
 
@@ -65,7 +76,9 @@ def test_gait_summaries(reference, ref_params, pset):
 
     tr = jsphere.simulate_gaits(p, [acc, brk])
     np.testing.assert_allclose(tr.Omega[_end(tr, 0)], S["acceleration"]["Omega_end"], atol=1e-8)
-    np.testing.assert_allclose(1e3 * np.array([tr.x[-1], tr.y[-1]]), S["straight_continuation"]["stop_xy_mm"], atol=1e-3)
+    np.testing.assert_allclose(
+        1e3 * np.array([tr.x[-1], tr.y[-1]]), S["straight_continuation"]["stop_xy_mm"], atol=1e-3
+    )
     np.testing.assert_allclose(tr.Omega[-1], S["straight_continuation"]["Omega_end"], atol=1e-8)
 
     tr = jsphere.simulate_gaits(p, [acc, brk], reset=True)

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 import jsphere
+import jsphere.solve.batched.layout as L
 import jsphere.solve.batched.loop as R
 import jsphere.solve.batched.method as RK
-import jsphere.solve.batched.layout as L
 
 W = jnp.array([1.0, 2.0, 3.5, 5.0])  # one oscillator frequency per trial
 TS = jnp.linspace(0.0, 3.0, 7)
@@ -27,7 +27,9 @@ def _exact(t):
 
 def _solve(solver, f=_oscillators, y0=None, t1=3.0, ts=TS, max_steps=4096, rtol=1e-8, atol=1e-10):
     y0 = jnp.stack([jnp.ones(4), jnp.zeros(4)]) if y0 is None else y0
-    return jax.jit(lambda y0: R.solve(f, 0.0, t1, y0, ts, tab=RK.tableau(solver), rtol=rtol, atol=atol, max_steps=max_steps))(y0)
+    return jax.jit(
+        lambda y0: R.solve(f, 0.0, t1, y0, ts, tab=RK.tableau(solver), rtol=rtol, atol=atol, max_steps=max_steps)
+    )(y0)
 
 
 @pytest.mark.parametrize("solver", [dfx.Dopri8(), dfx.Dopri5(), dfx.Tsit5()], ids=lambda s: type(s).__name__)
@@ -41,9 +43,14 @@ def test_meets_the_tolerance_at_the_save_times(solver):
         np.testing.assert_allclose(ys[k], _exact(t), rtol=0, atol=2e-6, err_msg=f"t={t}")
     np.testing.assert_allclose(ys[-1], _exact(3.0), rtol=0, atol=2e-7)
     hardest = dfx.diffeqsolve(
-        dfx.ODETerm(lambda t, y, a: jnp.array([y[1], -(W[-1] ** 2) * y[0]])), solver, 0.0, 3.0, None, jnp.array([1.0, 0.0]),
+        dfx.ODETerm(lambda t, y, a: jnp.array([y[1], -(W[-1] ** 2) * y[0]])),
+        solver,
+        0.0,
+        3.0,
+        None,
+        jnp.array([1.0, 0.0]),
         stepsize_controller=dfx.PIDController(rtol=1e-8, atol=1e-10),
-    )  # fmt: skip
+    )
     n1 = int(hardest.stats["num_accepted_steps"])
     assert n1 <= int(accepted) <= 1.3 * n1 + 2, (int(accepted), n1)
 
@@ -65,13 +72,27 @@ def test_failures_are_reported():
     assert bool(failed) and int(accepted) <= 5
     assert np.all(np.isnan(np.asarray(ys[-2]))) and np.all(np.isfinite(np.asarray(ys[0])))
     y0 = jnp.ones((1, 3))
-    _, failed, accepted = _solve(dfx.Dopri8(), f=lambda t, y, *_: y * y, y0=y0, t1=2.0, ts=jnp.array([0.5]), max_steps=100_000)
+    _, failed, accepted = _solve(
+        dfx.Dopri8(), f=lambda t, y, *_: y * y, y0=y0, t1=2.0, ts=jnp.array([0.5]), max_steps=100_000
+    )
     assert bool(failed) and int(accepted) < 10_000
 
 
 def test_an_empty_interval_and_float32():
     y0 = jnp.stack([jnp.ones(4), jnp.zeros(4)])
-    ys, failed, accepted = jax.jit(lambda y0: R.solve(_oscillators, 1.0, 1.0, y0, jnp.array([1.0]), tab=RK.tableau(dfx.Dopri8()), rtol=1e-8, atol=1e-10, max_steps=16))(y0)  # fmt: skip
+    ys, failed, accepted = jax.jit(
+        lambda y0: R.solve(
+            _oscillators,
+            1.0,
+            1.0,
+            y0,
+            jnp.array([1.0]),
+            tab=RK.tableau(dfx.Dopri8()),
+            rtol=1e-8,
+            atol=1e-10,
+            max_steps=16,
+        )
+    )(y0)
     assert not bool(failed) and int(accepted) == 0
     np.testing.assert_array_equal(ys, jnp.stack([y0, y0]))
     ys32, failed32, _ = _solve(dfx.Tsit5(), y0=y0.astype(jnp.float32), rtol=1e-5, atol=1e-7)
@@ -99,7 +120,9 @@ def test_only_diffrax_methods_it_implements():
     assert RK.tableau(dfx.Dopri8()) is not None and RK.tableau(dfx.Bosh3()) is None
 
 
-@pytest.mark.parametrize("solver", [pytest.param(dfx.Tsit5(), marks=pytest.mark.slow), dfx.Bosh3()], ids=lambda s: type(s).__name__)
+@pytest.mark.parametrize(
+    "solver", [pytest.param(dfx.Tsit5(), marks=pytest.mark.slow), dfx.Bosh3()], ids=lambda s: type(s).__name__
+)
 def test_other_solvers_through_simulate(monkeypatch, solver):
     """A batched `simulate` with another solver: Tsit5 in this loop, Bosh3 (not implemented
     here) in `diffeqsolve` with the shared controller; both as close to the per-trial solve as
@@ -110,7 +133,9 @@ def test_other_solvers_through_simulate(monkeypatch, solver):
 
     def sim(a, steps):
         tq = jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + jnp.array([0.0, 2.1, 4.2])))
-        return jsphere.simulate(p, jsphere.State.at_rest(p), tq, 0.5, rtol=1e-7, atol=1e-9, solver=solver, batch_steps=steps)
+        return jsphere.simulate(
+            p, jsphere.State.at_rest(p), tq, 0.5, rtol=1e-7, atol=1e-9, solver=solver, batch_steps=steps
+        )
 
     shared = jax.jit(jax.vmap(lambda a: sim(a, "shared")))(amp)
     alone = jax.jit(jax.vmap(lambda a: sim(a, "per_trial")))(amp)
@@ -129,7 +154,19 @@ def _weighted(ys):
 
 
 def _loss_shared(w, c, y0, t1, ts, rtol=1e-12, atol=1e-14):
-    ys, _, _ = R.solve(_damped, 0.0, t1, y0, ts, [w, c], [True, False], tab=RK.tableau(dfx.Dopri8()), rtol=rtol, atol=atol, max_steps=4096)
+    ys, _, _ = R.solve(
+        _damped,
+        0.0,
+        t1,
+        y0,
+        ts,
+        [w, c],
+        [True, False],
+        tab=RK.tableau(dfx.Dopri8()),
+        rtol=rtol,
+        atol=atol,
+        max_steps=4096,
+    )
     return _weighted(ys)
 
 
@@ -137,9 +174,16 @@ def _loss_diffrax(w, c, y0, t1, ts):
     def one(wi, y0i):
         term = dfx.ODETerm(lambda t, y, a: jnp.stack([y[1], -(wi**2) * y[0] - c * y[1] + jnp.sin(t)]))
         sol = dfx.diffeqsolve(
-            term, dfx.Dopri8(), 0.0, t1, None, y0i, saveat=dfx.SaveAt(ts=ts, t1=True),
-            stepsize_controller=dfx.PIDController(rtol=1e-12, atol=1e-14), max_steps=100_000,
-        )  # fmt: skip
+            term,
+            dfx.Dopri8(),
+            0.0,
+            t1,
+            None,
+            y0i,
+            saveat=dfx.SaveAt(ts=ts, t1=True),
+            stepsize_controller=dfx.PIDController(rtol=1e-12, atol=1e-14),
+            max_steps=100_000,
+        )
         return sol.ys
 
     return _weighted(jax.vmap(one, in_axes=(0, 1), out_axes=2)(w, y0))
@@ -177,7 +221,13 @@ def test_the_adjoint_of_a_batch_with_a_saved_start_and_no_save_times():
     # d/dx0 of x0 * x(1) + v0 * v(1) at (1, 0): x(1) + x0 dx(1)/dx0 = 2 cos w; d/dv0: v(1) + x0 dx(1)/dv0
     np.testing.assert_allclose(g[0], 2 * x1[0] * 0 + x1 + np.cos(np.asarray(W)), rtol=1e-7, atol=1e-8)
     np.testing.assert_allclose(g[1], v1 + np.sin(np.asarray(W)) / np.asarray(W), rtol=1e-7, atol=1e-8)
-    g_none = jax.grad(lambda y0: jnp.sum(R.solve(_oscillators, 0.0, 1.0, y0, jnp.zeros((0,)), tab=tab, rtol=1e-10, atol=1e-12, max_steps=4096)[0][-1, 0]))(y0)
+    g_none = jax.grad(
+        lambda y0: jnp.sum(
+            R.solve(_oscillators, 0.0, 1.0, y0, jnp.zeros((0,)), tab=tab, rtol=1e-10, atol=1e-12, max_steps=4096)[0][
+                -1, 0
+            ]
+        )
+    )(y0)
     np.testing.assert_allclose(g_none[0], np.cos(np.asarray(W)), rtol=1e-7)
 
 
@@ -197,8 +247,20 @@ def test_the_adjoint_of_an_argument_taken_element_by_element(batched):
     ts = jnp.linspace(0.5, 2.0, 4)
 
     def loss(M, elementwise):
-        ys, _, _ = R.solve(_linear, 0.0, 2.0, y0, ts, [M], [batched], tab=RK.tableau(dfx.Dopri5()), rtol=1e-11, atol=1e-13,
-                           max_steps=4096, elementwise=elementwise)  # fmt: skip
+        ys, _, _ = R.solve(
+            _linear,
+            0.0,
+            2.0,
+            y0,
+            ts,
+            [M],
+            [batched],
+            tab=RK.tableau(dfx.Dopri5()),
+            rtol=1e-11,
+            atol=1e-13,
+            max_steps=4096,
+            elementwise=elementwise,
+        )
         return _weighted(ys)
 
     g_el = jax.jit(jax.grad(lambda M: loss(M, [0])))(M)

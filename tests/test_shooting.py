@@ -17,13 +17,13 @@ import numpy as np
 import pytest
 
 import jsphere
+from jsphere.controls import Sampled
 from jsphere.identify import shooting as _shooting
 from jsphere.identify.data import pack_trials
+from jsphere.identify.free import FreeParams
 from jsphere.identify.lm import _solve_arrow
 from jsphere.identify.residuals import _functions, _trial_outputs
 from jsphere.identify.starts import nuisance_guess, start_design
-from jsphere.controls import Sampled
-from jsphere.identify.free import FreeParams
 
 FREE7 = "r_m[2],j,I[0,0],I[1,1],I[2,2],m0,I0"
 
@@ -58,7 +58,11 @@ def test_segments_count_every_measured_sample_once_and_start_at_captured_frames(
     data, seg = small
     sd = seg.data
     assert [len(c) - 1 for c in seg.boundaries] == [3, 2]
-    assert seg.n_segments == 5 and list(seg.trial) == [0, 0, 0, 1, 1] and list(seg.has_next) == [True, True, False, True, False]
+    assert (
+        seg.n_segments == 5
+        and list(seg.trial) == [0, 0, 0, 1, 1]
+        and list(seg.has_next) == [True, True, False, True, False]
+    )
     for i, cuts in enumerate(seg.boundaries):
         assert cuts[0] == 0 and cuts[-1] == data.lengths[i] - 1
         for c in cuts[1:-1]:  # a segment starts where position and orientation were captured
@@ -128,7 +132,8 @@ def test_block_assembly_and_step_match_a_dense_solve_of_a_linear_model():
     def residuals(z):
         r, e, nus = outputs(z)
         d = [
-            math.sqrt(mu) * _shooting.defect("wheel_speeds", e[g], nus[g + 1], seg["next_xy0"][g], seg["next_q0"][g], scale)
+            math.sqrt(mu)
+            * _shooting.defect("wheel_speeds", e[g], nus[g + 1], seg["next_xy0"][g], seg["next_q0"][g], scale)
             for g in (0, 1, 3)  # the segments with a successor
         ]
         return jnp.concatenate([r.reshape(-1), *d])
@@ -136,7 +141,9 @@ def test_block_assembly_and_step_match_a_dense_solve_of_a_linear_model():
     z = jnp.concatenate([jnp.asarray(theta), jnp.asarray(nu).reshape(-1)])
     r, e, _ = outputs(z)
     assemble = jax.jit(_shooting.assemble, static_argnums=(0, 1))
-    blocks, cost, _ = assemble("wheel_speeds", P, r, jnp.asarray(Jr), e, jnp.asarray(Je), jnp.asarray(nu), mu, seg, scale)
+    blocks, cost, _ = assemble(
+        "wheel_speeds", P, r, jnp.asarray(Jr), e, jnp.asarray(Je), jnp.asarray(nu), mu, seg, scale
+    )
     lam = 0.03
     dg, dn, pred = jax.jit(_solve_arrow)(blocks, lam)
     dn = np.asarray(dn).reshape(2, 3, n)[trial, [0, 1, 2, 0, 1]]

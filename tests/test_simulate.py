@@ -12,7 +12,9 @@ import jsphere
 def test_gait_torques_drive_the_torque_mode(paper):
     """The gait's K(t), fed to the torque-driven simulation, reproduces the gait's motion."""
     tr = jsphere.simulate_gaits(paper, [jsphere.acceleration(), jsphere.braking()], rate=1000)
-    sim = jsphere.simulate(paper, jsphere.State.at_rest(paper), jsphere.Torques.from_samples(tr.ts, tr.K), 4.0, ts=tr.ts)
+    sim = jsphere.simulate(
+        paper, jsphere.State.at_rest(paper), jsphere.Torques.from_samples(tr.ts, tr.K), 4.0, ts=tr.ts
+    )
     assert np.max(np.abs(sim.x - tr.x)) < 1e-6 and np.max(np.abs(sim.y - tr.y)) < 1e-6
     np.testing.assert_allclose(sim.Omega, tr.Omega, atol=1e-7)
     np.testing.assert_allclose(sim.gamma, tr.gamma, atol=1e-7)
@@ -21,7 +23,9 @@ def test_gait_torques_drive_the_torque_mode(paper):
 def test_gait_wheel_speeds_drive_the_wheel_mode(paper):
     """The gait's chi_dot(t), fed to the wheel-speed (servo) mode, reproduces the motion."""
     tr = jsphere.simulate_gaits(paper, [jsphere.acceleration(), jsphere.braking()], rate=1000)
-    sim = jsphere.simulate(paper, jsphere.State.at_rest(paper), jsphere.WheelSpeeds.from_samples(tr.ts, tr.chi_dot), 4.0, ts=tr.ts)
+    sim = jsphere.simulate(
+        paper, jsphere.State.at_rest(paper), jsphere.WheelSpeeds.from_samples(tr.ts, tr.chi_dot), 4.0, ts=tr.ts
+    )
     assert np.max(np.abs(sim.x - tr.x)) < 1e-6 and np.max(np.abs(sim.y - tr.y)) < 1e-6
     np.testing.assert_allclose(sim.chi_dot, tr.chi_dot, atol=1e-6)
     interior = np.abs(np.asarray(tr.ts) % 2.0) > 0.01  # cubic slopes are one-sided at the jumps
@@ -153,13 +157,22 @@ def test_float32_on_request(paper):
     A = 0.05 * (1 + 0.1 * np.random.default_rng(0).standard_normal((64, 3)))
 
     def finals(p, A, **kw):
-        run = lambda a: jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + ph.astype(a.dtype))), 4.0, **kw)  # noqa: E731
+        run = lambda a: jsphere.simulate(
+            p,
+            jsphere.State.at_rest(p),
+            jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + ph.astype(a.dtype))),
+            4.0,
+            **kw,
+        )  # noqa: E731
         return jax.jit(jax.vmap(run))(A)
 
     t32, t64 = finals(p32, jnp.asarray(A, jnp.float32)), finals(paper, jnp.asarray(A))
     assert t32.x.dtype == jnp.float32 and bool(jnp.all(t32.ok))
     assert int(t32.num_steps[0]) < 100  # shared steps; 64 measured (float64 at 1e-8: 128)
-    err = np.hypot(np.asarray(t32.x[:, -1], float) - np.asarray(t64.x[:, -1]), np.asarray(t32.y[:, -1], float) - np.asarray(t64.y[:, -1]))
+    err = np.hypot(
+        np.asarray(t32.x[:, -1], float) - np.asarray(t64.x[:, -1]),
+        np.asarray(t32.y[:, -1], float) - np.asarray(t64.y[:, -1]),
+    )
     assert err.max() < 3e-5  # [m]; 9e-6 measured over 1024 trials
 
     with pytest.warns(UserWarning, match=r"rtol=1e-08 with float32 parameters"):
@@ -170,7 +183,9 @@ def test_jacfwd_with_forward_mode_adjoint(paper):
     import diffrax
 
     def final_xy(a):
-        tr = jsphere.simulate(paper, jsphere.State.at_rest(paper), jsphere.Torques(Sines(a)), 1.0, adjoint=diffrax.ForwardMode())
+        tr = jsphere.simulate(
+            paper, jsphere.State.at_rest(paper), jsphere.Torques(Sines(a)), 1.0, adjoint=diffrax.ForwardMode()
+        )
         return jnp.stack([tr.x[-1], tr.y[-1]])
 
     a0 = jnp.array([0.05, 0.045, 0.055])

@@ -16,8 +16,8 @@ import pytest
 import jsphere
 import jsphere.solve.batched.layout as L
 from jsphere.model.params import derive
-from jsphere.solve.fields import _torque_field, _torque_field_soa
 from jsphere.solve.batched.components import from_components, to_components
+from jsphere.solve.fields import _torque_field, _torque_field_soa
 
 PH = jnp.array([0.0, 2.1, 4.2])
 
@@ -54,7 +54,11 @@ def test_component_field_equals_flat_field(n_wheels, damping):
     for _ in range(5):
         q = rng.normal(size=4)
         qs = rng.normal(size=4)
-        z = jnp.asarray(np.concatenate([q / np.linalg.norm(q), qs / np.linalg.norm(qs), rng.normal(size=6) * 3, rng.normal(size=2 + n_wheels)]))
+        z = jnp.asarray(
+            np.concatenate(
+                [q / np.linalg.norm(q), qs / np.linalg.norm(qs), rng.normal(size=6) * 3, rng.normal(size=2 + n_wheels)]
+            )
+        )
         K = jnp.asarray(rng.normal(size=n_wheels) * 0.05)
         ctrl = jsphere.Torques(lambda t, K=K: K)
         args = (p, d, ctrl, 0.0, 10.0)
@@ -77,7 +81,11 @@ def test_gait_component_field_equals_flat_field(n_wheels, damping):
     gait = jsphere.Gait(theta=jsphere.SinSquared(0.12), phi=0.4, omega_gamma=lambda t: 0.3 * jnp.sin(t), T=2.0)
     for t in (0.1, 0.7, 1.9):
         q, qs = rng.normal(size=4), rng.normal(size=4)
-        z = jnp.asarray(np.concatenate([q / np.linalg.norm(q), qs / np.linalg.norm(qs), rng.normal(size=6) * 3, rng.normal(size=2 + n_wheels)]))
+        z = jnp.asarray(
+            np.concatenate(
+                [q / np.linalg.norm(q), qs / np.linalg.norm(qs), rng.normal(size=6) * 3, rng.normal(size=2 + n_wheels)]
+            )
+        )
         args = (p, d, (gait, Qm), 0.5, 2.5)
         flat = _gait_field(t, z, args)
         comp = from_components(_gait_field_soa(t, to_components(z), args))
@@ -177,7 +185,9 @@ def test_grad_under_vmap_against_finite_differences(monkeypatch):
 def test_forward_mode_under_vmap_against_finite_differences():
     p = jsphere.RobotParams.paper()
     e = jnp.array([1.0, -0.5, 0.25])
-    jv = jax.jit(jax.vmap(lambda a: jax.jvp(lambda b: _sines_final(p, b, adjoint=diffrax.ForwardMode()), (a,), (e,))[1]))(A3)
+    jv = jax.jit(
+        jax.vmap(lambda a: jax.jvp(lambda b: _sines_final(p, b, adjoint=diffrax.ForwardMode()), (a,), (e,))[1])
+    )(A3)
     f = jax.jit(jax.vmap(lambda a: _sines_final(p, a)))
     h = 1e-6
     fd = (f(A3 + h * e) - f(A3 - h * e)) / (2 * h)
@@ -206,7 +216,9 @@ def test_derivatives_under_vmap_match_unbatched(monkeypatch, min_batch):
     gps = [gp1(p, a) for a in A3]
     for name in ("j", "I", "r_m", "m0", "I0"):
         want = sum(getattr(g, name) for g in gps)
-        np.testing.assert_allclose(getattr(gp, name), want, rtol=1e-7, atol=1e-12 * float(jnp.max(jnp.abs(want))), err_msg=name)
+        np.testing.assert_allclose(
+            getattr(gp, name), want, rtol=1e-7, atol=1e-12 * float(jnp.max(jnp.abs(want))), err_msg=name
+        )
     fm = lambda a: _sines_final(p, a, adjoint=diffrax.ForwardMode())  # noqa: E731
     J = jax.jit(jax.vmap(jax.jacfwd(fm)))(A3[:2])
     J1 = jax.jit(jax.jacfwd(fm))
@@ -218,18 +230,22 @@ def test_derivatives_under_vmap_match_unbatched(monkeypatch, min_batch):
 def test_failures_are_reported_per_trial_under_vmap():
     p = jsphere.RobotParams.paper()
     A = jnp.array([[0.05, 0.05, 0.05], [jnp.nan, 0.05, 0.05]])
-    tr = jax.vmap(
-        lambda a: jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(Sines(a)), 1.0, throw=False)
-    )(A)
+    tr = jax.vmap(lambda a: jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(Sines(a)), 1.0, throw=False))(
+        A
+    )
     assert tr.ok.tolist() == [True, False]
     few = jax.vmap(
-        lambda a: jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(Sines(a)), 1.0, throw=False, max_steps=5)
+        lambda a: jsphere.simulate(
+            p, jsphere.State.at_rest(p), jsphere.Torques(Sines(a)), 1.0, throw=False, max_steps=5
+        )
     )(A[:1])
     assert int(few.status[0]) == 1
     # throw=True under vmap: equinox raises at run time, or poisons the output with NaN where
     # equinox's on-error mode is "nan" (as the CLI sets it; an earlier test may have)
     try:
-        x = jax.vmap(lambda a: jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(Sines(a)), 1.0, max_steps=5))(A[:1]).x
+        x = jax.vmap(
+            lambda a: jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(Sines(a)), 1.0, max_steps=5)
+        )(A[:1]).x
         assert not np.all(np.isfinite(np.asarray(x)))
     except Exception as e:  # noqa: BLE001
         assert "max_steps" in str(e)

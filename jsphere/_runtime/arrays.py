@@ -18,7 +18,9 @@ def as_array(x, dtype) -> Array:
     """
     if isinstance(x, (jax.Array, jax.core.Tracer)):
         return jnp.asarray(x, dtype=dtype)
-    if isinstance(x, (list, tuple)) and any(isinstance(v, (jax.Array, jax.core.Tracer)) for v in jax.tree_util.tree_leaves(x)):
+    if isinstance(x, (list, tuple)) and any(
+        isinstance(v, (jax.Array, jax.core.Tracer)) for v in jax.tree_util.tree_leaves(x)
+    ):
         return jnp.asarray(x, dtype=dtype)
     return jax.device_put(np.asarray(x, dtype=dtype))  # (`jnp.asarray` would lower a copy program)
 

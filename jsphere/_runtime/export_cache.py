@@ -33,8 +33,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .files import atomic_write
 from .arrays import under_jit
+from .files import atomic_write
 
 _DIR: Path | None = None
 _LOADED: dict[str, Callable] = {}
@@ -93,9 +93,14 @@ def _key(name: str, leaves, treedef, static) -> str | None:
         return None
     h = hashlib.sha256()
     for item in (
-        "jsphere-aot-1", name, _environment(), str(jax.config.jax_enable_x64), tree, *parts,
+        "jsphere-aot-1",
+        name,
+        _environment(),
+        str(jax.config.jax_enable_x64),
+        tree,
+        *parts,
         *(f"{np.shape(x)}:{jnp.result_type(x)}:{bool(getattr(x, 'weak_type', False))}" for x in leaves),
-    ):  # fmt: skip
+    ):
         h.update(str(item).encode() + b"\0")
     return h.hexdigest()[:40]
 
@@ -138,7 +143,10 @@ def _load_or_export(key, fn, treedef, static, leaves) -> Callable:
             out = fn(*eqx.combine(jax.tree_util.tree_unflatten(treedef, lv), static))
             return jax.tree_util.tree_leaves(out)
 
-        avals = [jax.ShapeDtypeStruct(np.shape(x), jnp.result_type(x), weak_type=bool(getattr(x, "weak_type", False))) for x in leaves]
+        avals = [
+            jax.ShapeDtypeStruct(np.shape(x), jnp.result_type(x), weak_type=bool(getattr(x, "weak_type", False)))
+            for x in leaves
+        ]
         exported = jax.export.export(jax.jit(flat))(*avals)
         atomic_write(path, lambda tmp: Path(tmp).write_bytes(bytes(exported.serialize())), suffix=".tmp")
     run = jax.jit(exported.call)

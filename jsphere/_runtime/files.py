@@ -51,7 +51,9 @@ def atomic_write(path, write, *, suffix: str | None = None) -> None:
     suffix of `path`, for writers that infer the format from it)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix if suffix is None else suffix)
+    fd, tmp = tempfile.mkstemp(
+        dir=path.parent, prefix=f".{path.stem}.", suffix=path.suffix if suffix is None else suffix
+    )
     os.close(fd)
     try:
         write(tmp)
@@ -232,7 +234,9 @@ def refuse_overwrite(outputs, inputs, *, option: str = "--out") -> None:
                 )
 
 
-def check_output(out, *, folder: bool = False, writes=(), inputs=None, option: str = "--out", example: str | None = None) -> None:
+def check_output(
+    out, *, folder: bool = False, writes=(), inputs=None, option: str = "--out", example: str | None = None
+) -> None:
     """Refuse, before any work, an output that cannot be written: raise `InputError` naming it.
 
     - `out`: the file (or, with `folder`, the folder) a command writes.
@@ -247,7 +251,9 @@ def check_output(out, *, folder: bool = False, writes=(), inputs=None, option: s
 
     out = Path(out)
     if not folder and out.is_dir():
-        raise InputError(f"{option} {out} is a folder; give the file to write" + (f" (e.g. {example})." if example else "."))
+        raise InputError(
+            f"{option} {out} is a folder; give the file to write" + (f" (e.g. {example})." if example else ".")
+        )
     if folder and out.exists() and not out.is_dir():
         raise InputError(f"{option} {out} is a file; give the folder to write the results in.")
     nearest = out if folder else out.parent
@@ -259,5 +265,7 @@ def check_output(out, *, folder: bool = False, writes=(), inputs=None, option: s
         with tempfile.TemporaryFile(dir=nearest):
             pass
     except OSError as e:
-        raise InputError(f"{option} {out}: cannot write in the folder {nearest} ({(e.strerror or str(e)).lower()}); choose another {option}.") from None
+        raise InputError(
+            f"{option} {out}: cannot write in the folder {nearest} ({(e.strerror or str(e)).lower()}); choose another {option}."
+        ) from None
     refuse_overwrite(list(writes) if folder else [out, *writes], inputs, option=option)

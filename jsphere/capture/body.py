@@ -37,7 +37,9 @@ def read_body_markers(path, *, units: str = "auto") -> dict[str, np.ndarray]:
                     raise InputError(f"{source}: the '# units:' line says {file_units!r}; it must be 'm' or 'mm'.")
     if file_units is not None and units != "auto" and units != file_units:
         raise InputError(f"{source}: units={units!r} was declared but the file's '# units:' line says {file_units!r}.")
-    rows = [(i + 1, r) for i, r in enumerate(rows) if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")]
+    rows = [
+        (i + 1, r) for i, r in enumerate(rows) if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")
+    ]
     if not rows or [c.strip() for c in rows[0][1]] != ["name", "x", "y", "z"]:
         raise ValueError(
             f"{source}: the first line must be the header 'name,x,y,z' (marker coordinates in the platform frame, m)"
@@ -51,7 +53,9 @@ def read_body_markers(path, *, units: str = "auto") -> dict[str, np.ndarray]:
         if not np.all(np.isfinite(xyz)):
             raise ValueError(f"{source}, line {line}: marker {r[0].strip()!r} has a blank coordinate.")
         if r[0].strip() in out:
-            raise InputError(f"{source}, line {line}: marker {r[0].strip()!r} is listed twice; keep one row per marker.")
+            raise InputError(
+                f"{source}, line {line}: marker {r[0].strip()!r} is listed twice; keep one row per marker."
+            )
         out[r[0].strip()] = xyz
     if len(out) < 3:
         raise ValueError(f"{source}: {len(out)} marker(s); a pose needs at least 3.")
@@ -78,8 +82,9 @@ def read_body_markers(path, *, units: str = "auto") -> dict[str, np.ndarray]:
                 f"{source}: the marker coordinates look like millimetres (the markers lie up to {spread:.4g} from their "
                 "centroid; metres would make the robot metres wide): read as mm. Add a line '# units: mm' to the file "
                 "to say so, or give metres.",
-                CaptureWarning, stacklevel=2,
-            )  # fmt: skip
+                CaptureWarning,
+                stacklevel=2,
+            )
     return {k: v * scale for k, v in out.items()}
 
 

@@ -39,7 +39,11 @@ def c3d_layout(path) -> dict:
     if size == 0:
         raise InputError(f"{source}: the file is empty (0 bytes), not a C3D file; export or copy it again.")
     if size < 512 or raw[1] != 0x50:
-        what = f"{size} bytes, shorter than the 512-byte header" if size < 512 else f"its second byte is 0x{raw[1]:02x}, not 0x50"
+        what = (
+            f"{size} bytes, shorter than the 512-byte header"
+            if size < 512
+            else f"its second byte is 0x{raw[1]:02x}, not 0x50"
+        )
         raise InputError(f"{source}: not a C3D file ({what}); check the file (and --format: motive, vicon or c3d).")
     p0 = (raw[0] - 1) * 512
     if raw[0] < 2 or size < p0 + 4:
@@ -83,7 +87,9 @@ def _check_c3d_parameters(params: bytes, endian: str, source: str) -> None:
     end = len(params)
 
     def bad(why: str):
-        return InputError(f"{source}: the C3D file is corrupt: parameter record {n_records + 1} ({why}); export or copy it again.")
+        return InputError(
+            f"{source}: the C3D file is corrupt: parameter record {n_records + 1} ({why}); export or copy it again."
+        )
 
     while pos + 2 <= end:
         n_name = abs(struct.unpack("b", params[pos : pos + 1])[0])
@@ -142,7 +148,11 @@ def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: 
                 f"{source}: the file is cut short: {what} (the copy or the export broke off). Export or copy it again"
                 + (", or pass --allow-truncated (allow_truncated=True) to use the frames present." if present else ".")
             )
-        warnings.warn(f"{source}: the file is cut short: {what}; using the {present} frames present.", CaptureWarning, stacklevel=2)
+        warnings.warn(
+            f"{source}: the file is cut short: {what}; using the {present} frames present.",
+            CaptureWarning,
+            stacklevel=2,
+        )
     try:  # after the checks of the file's structure, which need no ezc3d
         import ezc3d
     except ImportError:
@@ -158,12 +168,20 @@ def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: 
         pts = np.asarray(c["data"]["points"], float)
         res = np.asarray(c["data"]["meta_points"]["residuals"], float)
     except (RuntimeError, OSError, ValueError, KeyError, IndexError, TypeError) as e:
-        raise InputError(f"{source}: not a readable C3D file (ezc3d: {str(e).strip() or type(e).__name__}); export it again.") from None
+        raise InputError(
+            f"{source}: not a readable C3D file (ezc3d: {str(e).strip() or type(e).__name__}); export it again."
+        ) from None
     if not (math.isfinite(rate) and rate > 0):
         raise InputError(f"{source}: POINT:RATE is {rate:g}; the frame rate must be a positive number of Hz.")
     if file_units not in (None, "m", "mm"):
         raise ValueError(f"{source}: POINT:UNITS is {file_units!r}; only 'm' and 'mm' are supported.")
-    if pts.ndim != 3 or pts.shape[0] < 3 or pts.shape[1] != len(labels) or res.ndim != 3 or res.shape[1:] != pts.shape[1:]:
+    if (
+        pts.ndim != 3
+        or pts.shape[0] < 3
+        or pts.shape[1] != len(labels)
+        or res.ndim != 3
+        or res.shape[1:] != pts.shape[1:]
+    ):
         raise ValueError(f"{source}: data.points has shape {pts.shape}; expected (4, {len(labels)}, frames).")
     if pts.shape[2] == 0:
         raise InputError(f"{source}: the C3D file holds no frames.")

@@ -47,6 +47,13 @@ def convert_raw(
     else:
         data = read_c3d(path, up_axis=up_axis or "z", **kw)
     return markers_to_trial(
-        data, inputs, body_markers=body_markers, alignment=alignment, body_offset=body_offset, max_rms=max_rms,
-        time_offset=time_offset, name=name, allow_truncated=allow_truncated,
-    )  # fmt: skip
+        data,
+        inputs,
+        body_markers=body_markers,
+        alignment=alignment,
+        body_offset=body_offset,
+        max_rms=max_rms,
+        time_offset=time_offset,
+        name=name,
+        allow_truncated=allow_truncated,
+    )

@@ -5,7 +5,16 @@ from __future__ import annotations
 import numpy as np
 
 from .._runtime.files import atomic_write_text
-from .text import _check_times, _cut_short, _data_end, _input_columns, _numbers, _read_lines, check_unique_columns, separator_hint
+from .text import (
+    _check_times,
+    _cut_short,
+    _data_end,
+    _input_columns,
+    _numbers,
+    _read_lines,
+    check_unique_columns,
+    separator_hint,
+)
 from .validation import INPUT_PREFIX, KINDS
 
 
@@ -36,7 +45,9 @@ def read_inputs_csv(path, *, allow_truncated: bool = False) -> tuple[np.ndarray,
     bad = np.argwhere(~np.isfinite(data[:, 1:]))
     if bad.size:
         i, c = int(bad[0, 0]), int(bad[0, 1])
-        raise ValueError(f"{source}, line {lines[i]}: input column {names[c]} is blank or not finite; inputs may not have gaps.")
+        raise ValueError(
+            f"{source}, line {lines[i]}: input column {names[c]} is blank or not finite; inputs may not have gaps."
+        )
     return data[:, 0], data[:, 1:], kind, names
 
 
@@ -46,7 +57,9 @@ def write_inputs_csv(path, t: np.ndarray, values: np.ndarray, kind: str) -> None
         raise ValueError(f"write_inputs_csv: kind must be one of {KINDS}; got {kind!r}.")
     values = np.asarray(values, float).reshape(len(t), -1)
     cols = ["t"] + [f"{INPUT_PREFIX[kind]}{i + 1}" for i in range(values.shape[1])]
-    lines = [",".join(cols)] + [",".join([f"{tt:.6f}"] + [f"{v + 0.0:.10g}" for v in row]) for tt, row in zip(t, values)]
+    lines = [",".join(cols)] + [
+        ",".join([f"{tt:.6f}"] + [f"{v + 0.0:.10g}" for v in row]) for tt, row in zip(t, values)
+    ]
     atomic_write_text(path, "\n".join(lines) + "\n")
 
 

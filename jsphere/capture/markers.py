@@ -31,6 +31,7 @@ class MarkerData:
     rb_q: np.ndarray | None = None
     rb_p: np.ndarray | None = None
 
+
 # --------------------------------------------------------------------------- units
 
 

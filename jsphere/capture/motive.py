@@ -15,9 +15,14 @@ from .validation import sign_continuous
 
 
 def read_motive_csv(
-    path, *, rigid_body: str | None = None, use: str = "auto", units: str = "auto", up_axis: str = "y",
+    path,
+    *,
+    rigid_body: str | None = None,
+    use: str = "auto",
+    units: str = "auto",
+    up_axis: str = "y",
     allow_truncated: bool = False,
-) -> MarkerData:  # fmt: skip
+) -> MarkerData:
     """Read an OptiTrack Motive CSV export (format version 1.2x and later).
 
     Layout (https://docs.optitrack.com/motive/data-export/data-export-csv): line 1 `Format
@@ -54,8 +59,16 @@ def read_motive_csv(
         need, rb_cols = _rigid_body_columns(head, body, source)
         cols, colnames = cols + rb_cols, colnames + [f"{body} {k[0]} {k[1]}" for k in need]
     declared = int(meta["Total Exported Frames"]) if meta.get("Total Exported Frames", "").isdigit() else None
-    end = _cut_short(rows, head.row + 1, _data_end(rows, head.row + 1), head.ncol, source, allow_truncated, declared=declared,
-                     field="Total Exported Frames")  # fmt: skip
+    end = _cut_short(
+        rows,
+        head.row + 1,
+        _data_end(rows, head.row + 1),
+        head.ncol,
+        source,
+        allow_truncated,
+        declared=declared,
+        field="Total Exported Frames",
+    )
     data, lines = _numbers(rows[:end], head.row + 1, cols, source, colnames)
     if data.shape[0] == 0:
         raise InputError(f"{source}: no data rows after the header 'Frame,Time (Seconds),...' (line {head.row + 1}).")
@@ -64,7 +77,9 @@ def read_motive_csv(
     K = len(mnames)
     C = UP_TO_Z[up_axis]
     raw = data[:, 2 : 2 + 3 * K].reshape(-1, K, 3)
-    scale = _scale(units, file_units, detect_marker_units(raw), source) if K >= 2 else _scale_rb(units, file_units, source)
+    scale = (
+        _scale(units, file_units, detect_marker_units(raw), source) if K >= 2 else _scale_rb(units, file_units, source)
+    )
     markers = np.einsum("ij,mkj->mki", C, raw) * scale
     rb_q, rb_p = _rigid_body_pose(data[:, 2 + 3 * K :], C, scale) if want_rb else (None, None)
     return MarkerData(t, markers, tuple(mnames), source, lines, rb_q, rb_p)
@@ -79,7 +94,9 @@ def _line_one(rows: list[list[str]], source: str) -> tuple[dict[str, str], str |
         )
     meta = {rows[0][i].strip(): rows[0][i + 1].strip() for i in range(0, len(rows[0]) - 1, 2)}
     if meta.get("Rotation Type", "Quaternion") != "Quaternion":
-        raise ValueError(f"{source}, line 1: Rotation Type is {meta['Rotation Type']!r}; export with Rotation Type = Quaternion.")
+        raise ValueError(
+            f"{source}, line 1: Rotation Type is {meta['Rotation Type']!r}; export with Rotation Type = Quaternion."
+        )
     file_units = {"Meters": "m", "Millimeters": "mm"}.get(meta.get("Length Units", ""), None)
     if meta.get("Length Units") and file_units is None:
         raise ValueError(

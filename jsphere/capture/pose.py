@@ -61,7 +61,9 @@ def rigid_body_pose(
     m = np.asarray(markers, float)
     b = np.asarray(body_markers, float)
     if m.ndim != 3 or m.shape[2] != 3 or b.shape != (m.shape[1], 3):
-        raise ValueError(f"rigid_body_pose: markers must be (M, K, 3) and body_markers (K, 3); got {m.shape} and {b.shape}.")
+        raise ValueError(
+            f"rigid_body_pose: markers must be (M, K, 3) and body_markers (K, 3); got {m.shape} and {b.shape}."
+        )
     if not np.all(np.isfinite(b)):
         raise ValueError("rigid_body_pose: body_markers must be finite.")
     w = np.all(np.isfinite(m), axis=2).astype(float)  # (M, K)
@@ -89,6 +91,7 @@ def rigid_body_pose(
     q = quat_from_rotmat_np(R)
     q[~ok], p[~ok], rms[~ok] = np.nan, np.nan, np.nan
     return sign_continuous(q), p, rms
+
 
 # --------------------------------------------------------------------------- markers -> trial
 
@@ -131,7 +134,9 @@ def markers_to_trial(
     source = data.source
     off = np.asarray(body_offset, float)
     if off.size != 3 or not np.all(np.isfinite(off)):
-        raise InputError(f"{source}: body_offset must be 3 finite numbers (x, y, z in the platform frame, m); got {body_offset!r}.")
+        raise InputError(
+            f"{source}: body_offset must be 3 finite numbers (x, y, z in the platform frame, m); got {body_offset!r}."
+        )
     if not math.isfinite(time_offset):
         raise InputError(f"{source}: time_offset must be a finite number of seconds; got {time_offset!r}.")
     if not max_rms > 0:  # NaN too
@@ -151,13 +156,28 @@ def markers_to_trial(
     u = interpolate_inputs(t_in, u_in, t[keep])
     lines = None if data.lines is None else data.lines[keep]
     tt, x, y, qq, uu, z = _checked(
-        t[keep], centre[keep, 0], centre[keep, 1], q[keep], u, kind, centre[keep, 2], source=source, lines=lines,
+        t[keep],
+        centre[keep, 0],
+        centre[keep, 1],
+        q[keep],
+        u,
+        kind,
+        centre[keep, 2],
+        source=source,
+        lines=lines,
         max_gap_fraction=max_gap_fraction,
-    )  # fmt: skip
+    )
     warn_implausible(
-        tt, x, y, qq, source, z, from_markers=True, units_hint="pass units='mm' (--units mm)",
+        tt,
+        x,
+        y,
+        qq,
+        source,
+        z,
+        from_markers=True,
+        units_hint="pass units='mm' (--units mm)",
         up_hint="is the export's up axis right? (up_axis / --up-axis: 'y' is Motive's default, 'z' Vicon's and C3D's)",
-    )  # fmt: skip
+    )
     return Trial(tt, x, y, qq, uu, kind, z, name=name or Path(source).stem)
 
 
@@ -173,14 +193,18 @@ def _body_pose(data: MarkerData, body_markers, max_rms: float) -> tuple[np.ndarr
         body_markers = _match_body_markers(body_markers, data.names, source)
     body_markers = np.asarray(body_markers, float)
     if body_markers.shape != (len(data.names), 3):
-        raise ValueError(f"{source}: body_markers must be ({len(data.names)}, 3), one row per marker {list(data.names)}.")
+        raise ValueError(
+            f"{source}: body_markers must be ({len(data.names)}, 3), one row per marker {list(data.names)}."
+        )
     known = np.all(np.isfinite(body_markers), axis=1)  # markers left out of a body_markers dict
     _check_body_scale(data.markers[:, known], body_markers[known], source)
     q_body, p_body, _ = rigid_body_pose(data.markers[:, known], body_markers[known], max_rms=max_rms)
     return q_body, p_body
 
 
-def _platform_pose(q_body: np.ndarray, p_body: np.ndarray, A: np.ndarray, off: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _platform_pose(
+    q_body: np.ndarray, p_body: np.ndarray, A: np.ndarray, off: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """The platform's orientation `q (M, 4)` (NaN where the body's is) and the shell centre
     `(M, 3)`: `R_platform = R_body A`, `r_centre = p_body + R_platform off`."""
     R_body = rotmat_np(np.where(np.isfinite(q_body), q_body, 1.0))
@@ -206,8 +230,9 @@ def _overlap(t: np.ndarray, t_in: np.ndarray, source: str) -> np.ndarray:
             f"{source}: the inputs table spans {span_in:g} s with steps of {float(np.median(np.diff(t_in))):g} s, the capture "
             f"{span:g} s with steps of {float(np.median(np.diff(t))):g} s: are the inputs' times in milliseconds? Give them in "
             "seconds.",
-            CaptureWarning, stacklevel=3,
-        )  # fmt: skip
+            CaptureWarning,
+            stacklevel=3,
+        )
     return keep
 
 
@@ -233,9 +258,10 @@ def _check_body_scale(markers: np.ndarray, body: np.ndarray, source: str) -> Non
     hint = (
         "the body markers look like millimetres: give them in metres (or add '# units: mm' to their file)"
         if 500.0 <= ratio <= 2000.0
-        else "the body markers look like metres while the export is read in millimetres" if 5e-4 <= ratio <= 2e-3
+        else "the body markers look like metres while the export is read in millimetres"
+        if 5e-4 <= ratio <= 2e-3
         else "check that they belong to this marker set, and their units (metres)"
-    )  # fmt: skip
+    )
     raise InputError(
         f"{source}: the body markers are {ratio:.4g} times as far apart as the markers in the export (median over "
         f"marker pairs); {hint}."

@@ -166,6 +166,7 @@ def synthetic_trial(
     kind = "wheel_speeds" if isinstance(controls, WheelSpeeds) else "torques"
     return Trial(ts, x, y, q, u, kind, None, name=name)
 
+
 # --------------------------------------------------------------------------- synthetic markers
 
 

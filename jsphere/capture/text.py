@@ -36,13 +36,19 @@ def read_text(path) -> str:
         try:
             return raw.decode("utf-16")
         except UnicodeDecodeError as e:
-            raise InputError(f"{path}: starts like UTF-16 text but does not decode as UTF-16 ({e.reason}); save it as UTF-8 CSV.") from None
+            raise InputError(
+                f"{path}: starts like UTF-16 text but does not decode as UTF-16 ({e.reason}); save it as UTF-8 CSV."
+            ) from None
     if b"\x00" in raw:
         line = raw.count(b"\n", 0, raw.index(b"\x00")) + 1
         c3d = len(raw) >= 512 and raw[1] == 0x50
         raise InputError(
             f"{path}, line {line}: a binary file, not CSV text (it holds a NUL byte)"
-            + ("; it looks like a C3D file: read it with jsphere convert --format c3d (read_c3d)." if c3d else "; give the CSV export of the data.")
+            + (
+                "; it looks like a C3D file: read it with jsphere convert --format c3d (read_c3d)."
+                if c3d
+                else "; give the CSV export of the data."
+            )
         )
     try:
         return raw.decode("utf-8-sig")
@@ -141,9 +147,17 @@ def _data_end(rows, start: int, end: int | None = None) -> int:
 
 
 def _cut_short(
-    rows, start: int, end: int, ncols: int, source: str, allow: bool, *, declared: int | None = None, field: str = "",
+    rows,
+    start: int,
+    end: int,
+    ncols: int,
+    source: str,
+    allow: bool,
+    *,
+    declared: int | None = None,
+    field: str = "",
     noun: str = "frames",
-) -> int:  # fmt: skip
+) -> int:
     """Check the data rows `rows[start:end]` of an export for a file that was cut short: a last
     row with fewer cells than the header row (`ncols`: the copy or the export broke off
     mid-row), or fewer rows than the header declares (`declared`, from its `field`). Raises an
@@ -164,7 +178,9 @@ def _cut_short(
             f"{source}: the file is cut short: {what} (the copy or the export broke off). Export or copy it again, or "
             f"pass --allow-truncated (allow_truncated=True) to use the {n} complete {noun}."
         )
-    warnings.warn(f"{source}: the file is cut short: {what}; using the {n} complete {noun}.", CaptureWarning, stacklevel=3)
+    warnings.warn(
+        f"{source}: the file is cut short: {what}; using the {n} complete {noun}.", CaptureWarning, stacklevel=3
+    )
     return end - int(cut_row)
 
 

@@ -21,14 +21,14 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ..controls import Torques, WheelSpeeds
 from .._runtime.errors import InputError
 from .._runtime.files import atomic_write_text
+from ..controls import Torques, WheelSpeeds
 from ..model.params import RobotParams
 from ..model.state import State
 from .text import _input_columns, _parse_cell, check_unique_columns, csv_rows, read_text, separator_hint
-from .validation import CaptureWarning as CaptureWarning  # (the warning of every trial reader)
 from .validation import INPUT_PREFIX, POSE_COLUMNS, _checked, warn_implausible
+from .validation import CaptureWarning as CaptureWarning  # (the warning of every trial reader)
 
 # --------------------------------------------------------------------------- Trial
 
@@ -109,9 +109,14 @@ class Trial(eqx.Module):
         dt = params.R0.dtype
         z3 = jnp.zeros(3, dt)
         return State(
-            q=jnp.asarray(self.q[k], dt), q_shell=jnp.array([1.0, 0.0, 0.0, 0.0], dt), omega=z3, Omega=z3,
-            x=jnp.asarray(self.x[k], dt), y=jnp.asarray(self.y[k], dt), chi=jnp.zeros(params.n_wheels, dt),
-        )  # fmt: skip
+            q=jnp.asarray(self.q[k], dt),
+            q_shell=jnp.array([1.0, 0.0, 0.0, 0.0], dt),
+            omega=z3,
+            Omega=z3,
+            x=jnp.asarray(self.x[k], dt),
+            y=jnp.asarray(self.y[k], dt),
+            chi=jnp.zeros(params.n_wheels, dt),
+        )
 
     def replace(self, **changes) -> Trial:
         """A copy with some fields changed (validated again)."""
@@ -209,9 +214,18 @@ def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> T
     x, y = data[:, 1] * scale, data[:, 2] * scale
     z = zcol * scale if has_z else None
     t, x, y, q, inputs, z = _checked(
-        data[:, 0], x, y, data[:, 3:7], data[:, 8 if has_z else 7 :], kind, z, source=source, lines=line_no,
-        input_names=[header[j] for j in in_cols], max_gap_fraction=max_gap_fraction,
-    )  # fmt: skip
+        data[:, 0],
+        x,
+        y,
+        data[:, 3:7],
+        data[:, 8 if has_z else 7 :],
+        kind,
+        z,
+        source=source,
+        lines=line_no,
+        input_names=[header[j] for j in in_cols],
+        max_gap_fraction=max_gap_fraction,
+    )
     name = meta.get("name", path.stem)
     warn_implausible(t, x, y, q, source, z, units_hint="declare '# units: mm' in the file (or pass units='mm')")
     return Trial(t, x, y, q, inputs, kind, z, name=name)
@@ -235,7 +249,9 @@ def _comments_and_rows(text: str, source: str) -> tuple[dict[str, str], int, lis
     return meta, k + 1, csv_rows("\n".join(lines_iter[k:]), source)
 
 
-def _numbers(rows, header: list[str], in_cols: list[int], header_line: int, source: str) -> tuple[np.ndarray, np.ndarray]:
+def _numbers(
+    rows, header: list[str], in_cols: list[int], header_line: int, source: str
+) -> tuple[np.ndarray, np.ndarray]:
     """The pose columns, `z` where present, and the inputs of every data row as floats (blank:
     NaN), and the rows' 1-based lines."""
     col = {h: j for j, h in enumerate(header)}
@@ -250,8 +266,14 @@ def _numbers(rows, header: list[str], in_cols: list[int], header_line: int, sour
     line_no = np.arange(len(body)) + header_line + 1
     for i, row in enumerate(body):
         if len(row) != len(header):
-            cut = " (the file looks cut off: copy or export it again)" if i == len(body) - 1 and len(row) < len(header) else ""
-            raise ValueError(f"{source}, line {line_no[i]}: {len(row)} cells but the header has {len(header)} columns{cut}.")
+            cut = (
+                " (the file looks cut off: copy or export it again)"
+                if i == len(body) - 1 and len(row) < len(header)
+                else ""
+            )
+            raise ValueError(
+                f"{source}, line {line_no[i]}: {len(row)} cells but the header has {len(header)} columns{cut}."
+            )
         for jj, j in enumerate(use):
             data[i, jj] = _parse_cell(row[j], source, int(line_no[i]), names[jj])
     if data.shape[0] == 0:
@@ -284,7 +306,9 @@ def read_trials(paths: Iterable, **kwargs) -> list[Trial]:
         if p.is_dir():
             files = [f for f in sorted(p.glob("*.csv")) if not f.name.startswith(".")]
             if not files:
-                raise InputError(f"{p} holds no trial CSV files (*.csv); give the folder of the trials or the files themselves.")
+                raise InputError(
+                    f"{p} holds no trial CSV files (*.csv); give the folder of the trials or the files themselves."
+                )
             out += [read_trial(f, **kwargs) for f in files]
         else:
             out.append(read_trial(p, **kwargs))

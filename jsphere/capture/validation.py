@@ -50,6 +50,7 @@ def sign_continuous(q: np.ndarray) -> np.ndarray:
         prev = q[k]
     return q
 
+
 # --------------------------------------------------------------------------- validation
 
 
@@ -73,9 +74,20 @@ def _check_increasing(t: np.ndarray, source: str, lines: np.ndarray | None, hint
 
 
 def _checked(
-    t, x, y, q, inputs, kind: str, z, *, source: str, lines: np.ndarray | None = None,
-    input_names: Sequence[str] | None = None, check_length: bool = True, max_gap_fraction: float = 1.0,
-):  # fmt: skip
+    t,
+    x,
+    y,
+    q,
+    inputs,
+    kind: str,
+    z,
+    *,
+    source: str,
+    lines: np.ndarray | None = None,
+    input_names: Sequence[str] | None = None,
+    check_length: bool = True,
+    max_gap_fraction: float = 1.0,
+):
     """Validate and normalise the arrays of a trial; raise `ValueError` naming `source` and the
     row (`lines[k]`: the 1-based line in the file) of the first problem.
 
@@ -94,12 +106,18 @@ def _checked(
     if inputs.ndim == 1:
         inputs = inputs[:, None]
     z = None if z is None else np.array(z, float)
-    for nm, arr, shape in (("x", x, (M,)), ("y", y, (M,)), ("q", q, (M, 4))) + ((("z", z, (M,)),) if z is not None else ()):
+    for nm, arr, shape in (("x", x, (M,)), ("y", y, (M,)), ("q", q, (M, 4))) + (
+        (("z", z, (M,)),) if z is not None else ()
+    ):
         if arr.shape != shape:
             raise ValueError(f"{source}: {nm} must have shape {shape} (one row per time); got {arr.shape}.")
     if inputs.ndim != 2 or inputs.shape[0] != M or inputs.shape[1] < 1:
         raise ValueError(f"{source}: inputs must have shape ({M}, N) with N >= 1 wheels; got {inputs.shape}.")
-    names = list(input_names) if input_names is not None else [f"{INPUT_PREFIX[kind]}{i + 1}" for i in range(inputs.shape[1])]
+    names = (
+        list(input_names)
+        if input_names is not None
+        else [f"{INPUT_PREFIX[kind]}{i + 1}" for i in range(inputs.shape[1])]
+    )
 
     bad_t = np.nonzero(~np.isfinite(t))[0]
     if bad_t.size:
@@ -259,7 +277,12 @@ def _speed_and_rate(tv, xv, yv, qv) -> list[tuple[str, str]]:
         speed = np.hypot(xv[j] - xv[i], yv[j] - yv[i]) / (tv[j] - tv[i])
         s95 = float(np.percentile(speed, 95))
         if s95 > MAX_PLAUSIBLE_SPEED:
-            out.append(("speed", f"the shell centre moves at {s95:.3g} m/s (95th percentile over 0.1 s; {float(speed.max()):.3g} m/s at most)"))
+            out.append(
+                (
+                    "speed",
+                    f"the shell centre moves at {s95:.3g} m/s (95th percentile over 0.1 s; {float(speed.max()):.3g} m/s at most)",
+                )
+            )
     i, j = _windowed(tv, 0.02)
     if i.size >= 3:
         dot = np.clip(np.abs(np.sum(qv[i] * qv[j], axis=1)), 0.0, 1.0)
@@ -277,8 +300,13 @@ def _height(zv, xv, yv) -> list[tuple[str, str]]:
         dz = float(np.ptp(np.percentile(zv, [5, 95])))
         dh = max(float(np.ptp(xv)), float(np.ptp(yv)))
         if dz > 0.03 and dz > 0.25 * dh:
-            return [("height", f"the shell centre's height z varies by {100 * dz:.3g} cm while it moves "
-                               f"{100 * dh:.3g} cm horizontally")]  # fmt: skip
+            return [
+                (
+                    "height",
+                    f"the shell centre's height z varies by {100 * dz:.3g} cm while it moves "
+                    f"{100 * dh:.3g} cm horizontally",
+                )
+            ]
     return []
 
 
@@ -290,17 +318,34 @@ def _quaternion_order(t, x, y, q, v, step: float, tilt: float) -> list[tuple[str
     if step < 0.05 and t[-1] - t[0] >= 1.0:  # enough frames over enough time to see accelerations
         fit = _lean_fit(t, x, y, q, v)
         fit_swapped = _lean_fit(t, x, y, q[:, [3, 0, 1, 2]], v)
-    half_turn = abs(qv[0, 3]) > math.cos(math.radians(5.0))  # the first pose: a half turn about Z, or x, y, z, w of q = 1
+    half_turn = abs(qv[0, 3]) > math.cos(
+        math.radians(5.0)
+    )  # the first pose: a half turn about Z, or x, y, z, w of q = 1
     if fit_swapped >= 0.5 and fit <= fit_swapped - 0.3:
-        return [("xyzw", f"read as x, y, z, w the platform leans with the ball's acceleration (R^2 {fit_swapped:.2f}); "
-                         f"read as w, x, y, z it does not (R^2 {fit:.2f})")]  # fmt: skip
+        return [
+            (
+                "xyzw",
+                f"read as x, y, z, w the platform leans with the ball's acceleration (R^2 {fit_swapped:.2f}); "
+                f"read as w, x, y, z it does not (R^2 {fit:.2f})",
+            )
+        ]
     if tilt > 90.0 and tilt_swapped < tilt - 30.0:  # upside down, inside a ball
-        return [("xyzw", f"read as w, x, y, z the platform tilts up to {tilt:.0f} deg from upright; read as x, y, z, w it "
-                         f"stays within {tilt_swapped:.0f} deg")]  # fmt: skip
+        return [
+            (
+                "xyzw",
+                f"read as w, x, y, z the platform tilts up to {tilt:.0f} deg from upright; read as x, y, z, w it "
+                f"stays within {tilt_swapped:.0f} deg",
+            )
+        ]
     if half_turn and not fit > fit_swapped:  # (NaN fits: too little acceleration to tell)
-        return [("xyzw", "the first pose read as w, x, y, z is a half turn about the vertical (qz = "
-                         f"{qv[0, 3]:+.3f}); read as x, y, z, w it is the identity, the rest pose of a rigid body defined "
-                         "where the trial starts")]  # fmt: skip
+        return [
+            (
+                "xyzw",
+                "the first pose read as w, x, y, z is a half turn about the vertical (qz = "
+                f"{qv[0, 3]:+.3f}); read as x, y, z, w it is the identity, the rest pose of a rigid body defined "
+                "where the trial starts",
+            )
+        ]
     return []
 
 
@@ -318,9 +363,17 @@ _CAUSES = {
 
 
 def warn_implausible(
-    t, x, y, q, source: str, z=None, *, from_markers: bool = False, units_hint: str = "convert them to metres",
+    t,
+    x,
+    y,
+    q,
+    source: str,
+    z=None,
+    *,
+    from_markers: bool = False,
+    units_hint: str = "convert them to metres",
     up_hint: str = "is z the height, with the Z axis up?",
-) -> list[str]:  # fmt: skip
+) -> list[str]:
     """Issue a `CaptureWarning` for each finding of `implausible`, naming `source` and the likely
     cause (`units_hint`: how to say that positions are in millimetres; `up_hint`: what to check
     when the up axis looks wrong). Returns the messages."""

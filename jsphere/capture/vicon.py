@@ -36,7 +36,9 @@ def read_vicon_csv(
     i0 = next((i for i, r in enumerate(rows) if r and r[0].strip() == "Trajectories"), None)
     if i0 is None:
         hint = next((separator_hint(r[:1]) for r in rows if r and r[0].strip().startswith("Trajectories")), "")
-        raise ValueError(f"{source}: no 'Trajectories' section; export the marker trajectories from Nexus as CSV{hint}.")
+        raise ValueError(
+            f"{source}: no 'Trajectories' section; export the marker trajectories from Nexus as CSV{hint}."
+        )
     try:
         rate = float(rows[i0 + 1][0])
     except (IndexError, ValueError):
@@ -57,7 +59,9 @@ def read_vicon_csv(
         if nm and hdr[j].strip() == "X" and (subject is None or nm.split(":")[0] == subject):
             mk.append((nm, j))
     if not mk:
-        raise ValueError(f"{source}, line {i0 + 3}: no marker trajectories" + (f" of subject {subject!r}." if subject else "."))
+        raise ValueError(
+            f"{source}, line {i0 + 3}: no marker trajectories" + (f" of subject {subject!r}." if subject else ".")
+        )
     cols = [0, 1] + [j + a for _, j in mk for a in range(3)]
     colnames = ["Frame", "Sub Frame"] + [f"{n} {a}" for n, _ in mk for a in "XYZ"]
     end = next((i for i in range(i0 + 5, len(rows)) if not any(c.strip() for c in rows[i])), len(rows))
@@ -68,7 +72,9 @@ def read_vicon_csv(
         raise InputError(f"{source}: no data rows after the units row (line {i0 + 5}).")
     sub = np.nonzero(np.nan_to_num(data[:, 1]) != 0)[0]
     if sub.size:
-        raise ValueError(f"{source}, line {lines[sub[0]]}: Sub Frame is not 0; export the trajectories at the camera rate.")
+        raise ValueError(
+            f"{source}, line {lines[sub[0]]}: Sub Frame is not 0; export the trajectories at the camera rate."
+        )
     t = (data[:, 0] - data[0, 0]) / rate
     _check_times(t, lines, source)
     raw = data[:, 2:].reshape(len(t), len(mk), 3)

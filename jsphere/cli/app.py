@@ -24,9 +24,11 @@ def main(argv=None) -> int:
     from .._runtime.errors import EXIT_CODES_HELP
 
     parser = argparse.ArgumentParser(
-        prog="jsphere", description="Spherical robot with an internal omniwheel platform (JAX).", epilog=EXIT_CODES_HELP,
+        prog="jsphere",
+        description="Spherical robot with an internal omniwheel platform (JAX).",
+        epilog=EXIT_CODES_HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
-    )  # fmt: skip
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     for command in COMMANDS:
         command.add_parser(sub)
@@ -68,7 +70,10 @@ def _run(args) -> int:
         print(f"{name}: error: {e}", file=sys.stderr)
         return ExitCode.SOLVER_FAILURE
     except UnicodeDecodeError as e:  # a reader that did not name its file
-        print(f"{name}: error: a file is not UTF-8 text ({e.reason} at byte {e.start}); save it as UTF-8 (CSV or TOML).", file=sys.stderr)
+        print(
+            f"{name}: error: a file is not UTF-8 text ({e.reason} at byte {e.start}); save it as UTF-8 (CSV or TOML).",
+            file=sys.stderr,
+        )
         return ExitCode.BAD_INPUT
     except _INPUT_ERRORS as e:
         print(f"{name}: error: {_one_line(e, args.command)}", file=sys.stderr)
@@ -129,7 +134,7 @@ def _solver_message(e: BaseException) -> str | None:
     puts it first, followed by the trace), or None for any other error."""
     for line in str(e).splitlines():
         if line.startswith("jsphere: "):
-            return line[len("jsphere: "):]
+            return line[len("jsphere: ") :]
     return None
 
 

@@ -16,16 +16,32 @@ def add_parser(sub) -> None:
     cv.add_argument("--format", required=True, choices=("motive", "vicon", "c3d"))
     cv.add_argument("--inputs", required=True, help="inputs table: t, chi_dot_1..N or t, K_1..N")
     cv.add_argument("--out", required=True, help="the trial CSV to write (never one of the input files)")
-    cv.add_argument("--units", default="auto", choices=("auto", "m", "mm"), help="length units of the export (default: auto)")
+    cv.add_argument(
+        "--units", default="auto", choices=("auto", "m", "mm"), help="length units of the export (default: auto)"
+    )
     cv.add_argument("--up-axis", choices=("y", "z"), help="the export's up axis (default: y for Motive, z otherwise)")
     cv.add_argument("--rigid-body", help="Motive rigid body / Vicon subject whose markers to use")
-    cv.add_argument("--body-markers", help="CSV name,x,y,z: the markers in the platform frame [m] (default: from the first full frame)")
-    cv.add_argument("--body-offset", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"),
-                    help="shell centre relative to the marker centroid, platform frame [m]")  # fmt: skip
-    cv.add_argument("--time-offset", type=float, default=0.0, help="added to the capture times to match the inputs' clock [s]")
-    cv.add_argument("--allow-truncated", action="store_true",
-                    help="convert an export cut short (fewer frames than its header declares, a last row cut off) "
-                    "with a warning instead of an error")  # fmt: skip
+    cv.add_argument(
+        "--body-markers",
+        help="CSV name,x,y,z: the markers in the platform frame [m] (default: from the first full frame)",
+    )
+    cv.add_argument(
+        "--body-offset",
+        type=float,
+        nargs=3,
+        default=(0.0, 0.0, 0.0),
+        metavar=("X", "Y", "Z"),
+        help="shell centre relative to the marker centroid, platform frame [m]",
+    )
+    cv.add_argument(
+        "--time-offset", type=float, default=0.0, help="added to the capture times to match the inputs' clock [s]"
+    )
+    cv.add_argument(
+        "--allow-truncated",
+        action="store_true",
+        help="convert an export cut short (fewer frames than its header declares, a last row cut off) "
+        "with a warning instead of an error",
+    )
     cv.add_argument("--no-cache", action="store_true", help=argparse.SUPPRESS)
 
 
@@ -39,7 +55,9 @@ def run(args) -> int:
     from ..capture.trial import CaptureWarning, write_trial
 
     if not all(math.isfinite(v) for v in args.body_offset):
-        raise InputError(f"--body-offset X Y Z must be finite numbers [m]; got {' '.join(f'{v:g}' for v in args.body_offset)}.")
+        raise InputError(
+            f"--body-offset X Y Z must be finite numbers [m]; got {' '.join(f'{v:g}' for v in args.body_offset)}."
+        )
     if not math.isfinite(args.time_offset):
         raise InputError(f"--time-offset must be a finite number of seconds; got {args.time_offset:g}.")
     out = Path(args.out)
@@ -50,10 +68,17 @@ def run(args) -> int:
         try:
             body = read_body_markers(args.body_markers) if args.body_markers else None
             trial = convert_raw(
-                args.raw, args.inputs, format=args.format, units=args.units, up_axis=args.up_axis, rigid_body=args.rigid_body,
-                body_markers=body, body_offset=tuple(args.body_offset), time_offset=args.time_offset,
+                args.raw,
+                args.inputs,
+                format=args.format,
+                units=args.units,
+                up_axis=args.up_axis,
+                rigid_body=args.rigid_body,
+                body_markers=body,
+                body_offset=tuple(args.body_offset),
+                time_offset=args.time_offset,
                 allow_truncated=args.allow_truncated,
-            )  # fmt: skip
+            )
         finally:  # the warnings of a conversion that then fails say what went before
             for w in caught:
                 if issubclass(w.category, CaptureWarning):

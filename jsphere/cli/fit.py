@@ -13,23 +13,53 @@ RESUMES = "the finished stages are kept in the checkpoint beside --out: rerun th
 def add_parser(sub) -> None:
     ft = sub.add_parser(NAME, help="fit robot parameters to captured trials (docs/identification.md)")
     ft.add_argument("trials", nargs="+", help="trial CSV files (docs/capture.md)")
-    ft.add_argument("--free", required=True, help="comma-separated names to fit: fields (j, m0, I0, I, r_m) or components (I[0,0], r_m[2]), or R_m")
-    ft.add_argument("--fix", nargs="+", action="extend", metavar="NAME=VALUE", help="set and hold a parameter (e.g. m=2.5; a JSON list for a whole field)")
-    ft.add_argument("--bound", nargs="+", action="extend", metavar="NAME=LO:HI", help="bounds of a free name (e.g. j=0:1e-3; an empty side is open)")
+    ft.add_argument(
+        "--free",
+        required=True,
+        help="comma-separated names to fit: fields (j, m0, I0, I, r_m) or components (I[0,0], r_m[2]), or R_m",
+    )
+    ft.add_argument(
+        "--fix",
+        nargs="+",
+        action="extend",
+        metavar="NAME=VALUE",
+        help="set and hold a parameter (e.g. m=2.5; a JSON list for a whole field)",
+    )
+    ft.add_argument(
+        "--bound",
+        nargs="+",
+        action="extend",
+        metavar="NAME=LO:HI",
+        help="bounds of a free name (e.g. j=0:1e-3; an empty side is open)",
+    )
     ft.add_argument("--params", help="start values (.toml or .json; default: the paper's robot)")
-    ft.add_argument("--out", default="fit.json", help="result JSON (default fit.json); plots and the checkpoint go beside it")
+    ft.add_argument(
+        "--out", default="fit.json", help="result JSON (default fit.json); plots and the checkpoint go beside it"
+    )
     ft.add_argument("--n-starts", type=int, default=2, help="starts vmapped together (default 2)")
     ft.add_argument("--seed", type=int, default=0, help="seed of the start design (a Latin hypercube over the bounds)")
     ft.add_argument(
-        "--shooting", choices=("auto", "single", "multiple"), default="auto",
+        "--shooting",
+        choices=("auto", "single", "multiple"),
+        default="auto",
         help="multiple: segments with their own initial states, joined by raising the weight of their defects, then single "
         "shooting; auto (default): multiple when a trial is longer than two segments",
-    )  # fmt: skip
-    ft.add_argument("--segment", type=float, default=2.0, metavar="SECONDS", help="segment length of multiple shooting [s] (default 2)")
+    )
+    ft.add_argument(
+        "--segment",
+        type=float,
+        default=2.0,
+        metavar="SECONDS",
+        help="segment length of multiple shooting [s] (default 2)",
+    )
     ft.add_argument("--max-iter", type=int, default=40, help="Levenberg-Marquardt iterations per stage (default 40)")
     ft.add_argument("--sigma-pos", type=float, help="position noise [m] (default: estimated)")
     ft.add_argument("--sigma-rot-deg", type=float, help="orientation noise [deg] (default: estimated)")
-    ft.add_argument("--restart", action="store_true", help="ignore the checkpoint a killed fit left (by default the fit resumes from it)")
+    ft.add_argument(
+        "--restart",
+        action="store_true",
+        help="ignore the checkpoint a killed fit left (by default the fit resumes from it)",
+    )
     ft.add_argument("--no-plots", action="store_true", help="skip the figures")
     ft.add_argument("--quiet", action="store_true", help="no progress lines")
     ft.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
@@ -65,10 +95,22 @@ def run(args) -> int:
     with warnings.catch_warnings():  # one line per warning (a checkpoint that cannot be used)
         warnings.showwarning = lambda message, *a, **k: print(f"jsphere fit: warning: {message}", file=sys.stderr)
         res = fit(
-            trials, params, args.free, fix=fix, bounds=bounds, n_starts=args.n_starts, seed=args.seed, max_iter=args.max_iter,
-            shooting=args.shooting, segment=args.segment,
-            sigma_pos=args.sigma_pos, sigma_rot=sigma_rot, checkpoint=ckpt, restart=args.restart, progress=not args.quiet,
-        )  # fmt: skip
+            trials,
+            params,
+            args.free,
+            fix=fix,
+            bounds=bounds,
+            n_starts=args.n_starts,
+            seed=args.seed,
+            max_iter=args.max_iter,
+            shooting=args.shooting,
+            segment=args.segment,
+            sigma_pos=args.sigma_pos,
+            sigma_rot=sigma_rot,
+            checkpoint=ckpt,
+            restart=args.restart,
+            progress=not args.quiet,
+        )
     written = res.save(out, plots=not args.no_plots)
     ckpt.unlink(missing_ok=True)
     print(res.table())
@@ -78,6 +120,7 @@ def run(args) -> int:
     print(f"jsphere fit: {headline(res.status, res.status_reason, res.verdict)}")  # the last line: the verdict
     return {"converged": ExitCode.OK, "not_converged": ExitCode.NOT_CONVERGED, "misfit": ExitCode.MISFIT}[res.status]
 
+
 def _check_paths(args, out: Path, writes: list[Path]) -> None:
     """Check the output path `out` (with the files `writes` beside it) and the trial paths."""
     from .._runtime.errors import InputError
@@ -85,11 +128,16 @@ def _check_paths(args, out: Path, writes: list[Path]) -> None:
 
     if not out.is_dir() and out.suffix.lower() != ".json":
         raise InputError(f"--out {out}: the result is JSON; give a path ending in .json.")
-    inputs = {"the trial file": [t for t in args.trials if not Path(t).is_dir()], "the parameter file (--params)": args.params}
+    inputs = {
+        "the trial file": [t for t in args.trials if not Path(t).is_dir()],
+        "the parameter file (--params)": args.params,
+    }
     check_output(out, writes=writes, inputs=inputs, example=str(out / "fit.json"))
     for t in map(Path, args.trials):
         if t.is_dir() and not any(f for f in t.glob("*.csv") if not f.name.startswith(".")):
-            raise InputError(f"{t} holds no trial CSV files (*.csv); give the folder of the trials or the files themselves.")
+            raise InputError(
+                f"{t} holds no trial CSV files (*.csv); give the folder of the trials or the files themselves."
+            )
 
 
 def _parse_assignments(items, option: str) -> dict:
@@ -115,11 +163,15 @@ def _parse_bounds(items) -> dict:
     for name, value in _parse_assignments(items, "--bound").items():
         lo, colon, hi = value.partition(":")
         if not colon:
-            raise InputError(f"--bound {name}={value}: expected LO:HI with either side empty for an open end (e.g. j=0:1e-3).")
+            raise InputError(
+                f"--bound {name}={value}: expected LO:HI with either side empty for an open end (e.g. j=0:1e-3)."
+            )
         try:
             out[name] = (float(lo) if lo.strip() else None, float(hi) if hi.strip() else None)
         except ValueError:
             raise InputError(f"--bound {name}={value}: LO and HI must be numbers.") from None
         if any(v is not None and math.isnan(v) for v in out[name]):
-            raise InputError(f"--bound {name}={value}: LO and HI must be numbers, not NaN (leave a side empty for an open end).")
+            raise InputError(
+                f"--bound {name}={value}: LO and HI must be numbers, not NaN (leave a side empty for an open end)."
+            )
     return out

@@ -51,13 +51,16 @@ def run(args) -> int:
         from ..plots import montecarlo_figure
 
         montecarlo_figure(res, out / "stop_points.png", planned=st["planned_stop_m"])
-    print(f"{n} trials ({st['n_ok']} ok, {st['n_failed']} failed, {st['n_rejected']} rejected) in {res.elapsed_s:.1f} s; "
-          f"results in {out}/")  # fmt: skip
+    print(
+        f"{n} trials ({st['n_ok']} ok, {st['n_failed']} failed, {st['n_rejected']} rejected) in {res.elapsed_s:.1f} s; "
+        f"results in {out}/"
+    )
     if not st["n_ok"]:
         if st["n_rejected"] == n:
             raise InputError(f"every draw was rejected ({why}); no statistics. Check the [vary] distributions.")
-        raise SolverFailure(f"no trial succeeded ({st['n_failed']} solver failures, {st['n_rejected']} rejected "
-                            "draws); no statistics.")  # fmt: skip
+        raise SolverFailure(
+            f"no trial succeeded ({st['n_failed']} solver failures, {st['n_rejected']} rejected draws); no statistics."
+        )
     return 0
 
 
@@ -66,12 +69,18 @@ def _report(st: dict, n: int) -> str:
     return why draws were rejected (`"reason: count; ..."`)."""
     why = "; ".join(f"{reason}: {k}" for reason, k in st["rejected"].items())
     if st["n_rejected"]:
-        print(f"jsphere montecarlo: warning: {st['n_rejected']} of {n} draws rejected, not simulated (their parameters "
-              f"break a rule of RobotParams): {why}. Narrow the distributions or truncate them (a last entry "
-              f"\"truncate\", docs/montecarlo.md).", file=sys.stderr)  # fmt: skip
+        print(
+            f"jsphere montecarlo: warning: {st['n_rejected']} of {n} draws rejected, not simulated (their parameters "
+            f"break a rule of RobotParams): {why}. Narrow the distributions or truncate them (a last entry "
+            f'"truncate", docs/montecarlo.md).',
+            file=sys.stderr,
+        )
     if st["n_failed"]:
         kinds = {"1": "reached max_steps", "2": "gave NaN or inf"}
         how = ", ".join(f"{k} {kinds.get(c, f'ended with status {c}')}" for c, k in st["failed_status"].items())
-        print(f"jsphere montecarlo: warning: {st['n_failed']} of {n} trials failed in the solver ({how}); they are left "
-              "out of the statistics.", file=sys.stderr)  # fmt: skip
+        print(
+            f"jsphere montecarlo: warning: {st['n_failed']} of {n} trials failed in the solver ({how}); they are left "
+            "out of the statistics.",
+            file=sys.stderr,
+        )
     return why

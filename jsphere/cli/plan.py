@@ -11,7 +11,14 @@ NAME = "plan"
 
 def add_parser(sub) -> None:
     pp = sub.add_parser(NAME, help="plan a rest-to-rest manoeuvre to (X, Y) within motor limits; CSV of wheel commands")
-    pp.add_argument("--to", nargs=2, type=float, required=True, metavar=("X", "Y"), help="target position [m] (robot starts at rest at the origin)")
+    pp.add_argument(
+        "--to",
+        nargs=2,
+        type=float,
+        required=True,
+        metavar=("X", "Y"),
+        help="target position [m] (robot starts at rest at the origin)",
+    )
     pp.add_argument("--heading", type=float, help="final platform heading [rad] (default: free)")
     pp.add_argument("--max-torque", help="wheel torque limit [N m] (default 0.1; 'none' for no limit)")
     pp.add_argument("--max-wheel-speed", help="wheel speed limit [rad/s] (default 20)")
@@ -24,7 +31,11 @@ def add_parser(sub) -> None:
     pp.add_argument("--restarts", type=int, default=8, help="random restarts (default 8)")
     pp.add_argument("--seed", type=int, default=0)
     pp.add_argument("--params", help="a parameter file (.toml or .json) instead of the paper's robot")
-    pp.add_argument("--out", default="plan.csv", help="CSV of t, K_i, chi_dot_i, x, y, gamma_1..3, heading, tilt (default plan.csv); .json and .png beside it")
+    pp.add_argument(
+        "--out",
+        default="plan.csv",
+        help="CSV of t, K_i, chi_dot_i, x, y, gamma_1..3, heading, tilt (default plan.csv); .json and .png beside it",
+    )
     pp.add_argument("--no-plots", action="store_true", help="skip the figure")
     pp.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
 
@@ -39,17 +50,41 @@ def run(args) -> int:
 
     out = Path(args.out)
     writes = [out.with_suffix(".json"), *([] if args.no_plots else [out.with_suffix(".png")])]
-    check_output(out, writes=writes, inputs={"the parameter file (--params)": args.params}, example=str(Path(args.out) / "plan.csv"))
+    check_output(
+        out,
+        writes=writes,
+        inputs={"the parameter file (--params)": args.params},
+        example=str(Path(args.out) / "plan.csv"),
+    )
     limits = _limits(args)
     params = RobotParams.load(args.params) if args.params else RobotParams.paper()
     obj = Objective(energy=args.energy_weight, time=args.time_weight)
-    pl = plan(params, tuple(args.to), heading=args.heading, limits=limits, objective=obj,
-              restarts=args.restarts, rate=args.rate, seed=args.seed, allow_infeasible=True, progress=True)  # fmt: skip
+    pl = plan(
+        params,
+        tuple(args.to),
+        heading=args.heading,
+        limits=limits,
+        objective=obj,
+        restarts=args.restarts,
+        rate=args.rate,
+        seed=args.seed,
+        allow_infeasible=True,
+        progress=True,
+    )
     print(pl.summary())
     pl.to_csv(out)
-    info = {"feasible": pl.feasible, "shortfall": pl.shortfall, "target": [None if math.isnan(v) else v for v in pl.target.tolist()],
-            "duration_s": pl.duration, "errors": pl.errors, "limits": pl.limits_report, "iterations": pl.iterations,
-            "elapsed_s": pl.elapsed_s, "restarts": pl.restarts, "rate_hz": pl.rate}  # fmt: skip
+    info = {
+        "feasible": pl.feasible,
+        "shortfall": pl.shortfall,
+        "target": [None if math.isnan(v) else v for v in pl.target.tolist()],
+        "duration_s": pl.duration,
+        "errors": pl.errors,
+        "limits": pl.limits_report,
+        "iterations": pl.iterations,
+        "elapsed_s": pl.elapsed_s,
+        "restarts": pl.restarts,
+        "rate_hz": pl.rate,
+    }
     atomic_write_json(out.with_suffix(".json"), info)
     written = [out, out.with_suffix(".json")]
     if not args.no_plots:
@@ -59,8 +94,11 @@ def run(args) -> int:
         written.append(out.with_suffix(".png"))
     print(f"wrote {', '.join(str(p) for p in written)}")
     if not pl.feasible:
-        print("jsphere plan: WARNING: the request cannot be met within the limits; the files hold the best plan "
-              "found: " + "; ".join(pl.shortfall), file=sys.stderr)  # fmt: skip
+        print(
+            "jsphere plan: WARNING: the request cannot be met within the limits; the files hold the best plan "
+            "found: " + "; ".join(pl.shortfall),
+            file=sys.stderr,
+        )
         return ExitCode.INFEASIBLE
     return ExitCode.OK
 

@@ -16,9 +16,10 @@ def add_parser(sub) -> None:
     rp.add_argument("--no-full-stop", action="store_true", help="skip the search for the braking gait that stops")
     rp.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
     rp.add_argument(
-        "--optimize", action="store_true",
+        "--optimize",
+        action="store_true",
         help="let XLA optimise the compiled solves (by default this one-off job compiles them quickly instead)",
-    )  # fmt: skip
+    )
 
 
 def _preload_matplotlib():

@@ -28,12 +28,22 @@ def _check(args) -> None:
 
     checks = (
         ("--trials", args.trials, args.trials >= 1, "at least 1"),
-        ("--duration", args.duration, math.isfinite(args.duration) and args.duration > 0, "a positive number of seconds"),
+        (
+            "--duration",
+            args.duration,
+            math.isfinite(args.duration) and args.duration > 0,
+            "a positive number of seconds",
+        ),
         ("--pos-sd", args.pos_sd, math.isfinite(args.pos_sd) and args.pos_sd >= 0, "a finite number >= 0 (metres)"),
-        ("--rot-sd-deg", args.rot_sd_deg, math.isfinite(args.rot_sd_deg) and args.rot_sd_deg >= 0, "a finite number >= 0 (degrees)"),
+        (
+            "--rot-sd-deg",
+            args.rot_sd_deg,
+            math.isfinite(args.rot_sd_deg) and args.rot_sd_deg >= 0,
+            "a finite number >= 0 (degrees)",
+        ),
         ("--dropout", args.dropout, 0.0 <= args.dropout < 1.0, "a fraction in [0, 1)"),
         ("--seed", args.seed, args.seed >= 0, "an integer >= 0"),
-    )  # fmt: skip
+    )
     for option, value, ok, what in checks:
         if not ok:
             raise InputError(f"{option} must be {what}; got {value:g}.")
@@ -53,9 +63,15 @@ def run(args) -> int:
         seed = args.seed + i
         controls = random_inputs(params, args.duration, kind=args.kind, seed=seed)
         trial = synthetic_trial(
-            params, controls, args.duration, pos_sd=args.pos_sd, rot_sd_deg=args.rot_sd_deg, dropout=args.dropout,
-            seed=seed, name=name,
-        )  # fmt: skip
+            params,
+            controls,
+            args.duration,
+            pos_sd=args.pos_sd,
+            rot_sd_deg=args.rot_sd_deg,
+            dropout=args.dropout,
+            seed=seed,
+            name=name,
+        )
         write_trial(out / f"{trial.name}.csv", trial)
         print(f"{trial!r} -> {out / (trial.name + '.csv')}")
     return 0

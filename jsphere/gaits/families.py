@@ -30,8 +30,8 @@ from jaxtyping import Array, Float
 
 from .._runtime.checks import finite
 from .._runtime.errors import InputError
-from .gaits import Gait, _real, _zero
 from ..model.linalg import matvec
+from .gaits import Gait, _real, _zero
 
 
 class Smooth(eqx.Module):

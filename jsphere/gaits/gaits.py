@@ -15,15 +15,16 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._runtime import export_cache as _aot
-from ..controls import Constant
-from ..model.dynamics import free_Omega_dot, required_torques
+from .._runtime.arrays import as_array
 from .._runtime.checks import finite
 from .._runtime.errors import InputError
+from ..controls import Constant
+from ..model.dynamics import free_Omega_dot, required_torques
 from ..model.kinematics import rest_attitude
-from ..model.rotations import rotation_between, rotmat
 from ..model.linalg import cross, matvec
-from .._runtime.arrays import as_array
 from ..model.params import RobotParams, derive
+from ..model.rotations import rotation_between, rotmat
+from ..model.state import Flat, State
 from ..solve.batched import dispatch as _dispatch
 from ..solve.batched.components import gait_field_components, unit
 from ..solve.batched.layout import Layout, steps_layout
@@ -32,7 +33,6 @@ from ..solve.options import DEFAULT_TOLERANCES, SolverOptions, resolve
 from ..solve.segments import solve_segments
 from ..solve.simulate import _traced, batch_engine_applies
 from ..solve.trajectory import Trajectory, _rebuild, assemble, raise_on_failure
-from ..model.state import Flat, State
 
 
 def _real(x):
@@ -80,7 +80,9 @@ class Gait(eqx.Module):
     omega_gamma: Callable
     T: Float[Array, ""]
 
-    def __init__(self, theta: Callable, phi: Callable | float = 0.0, omega_gamma: Callable | None = None, T: float = 2.0):
+    def __init__(
+        self, theta: Callable, phi: Callable | float = 0.0, omega_gamma: Callable | None = None, T: float = 2.0
+    ):
         finite("Gait", "phi", phi, unit="rad")
         self.theta = theta
         self.phi = phi if callable(phi) else Constant(_real(phi))
@@ -126,7 +128,11 @@ class Gait(eqx.Module):
         def omega_fn(s):
             g, g_dot = jax.jvp(gamma, (s,), (jnp.ones_like(s),))
             og = self.omega_gamma(s)
-            c = (g_dot[1] * g[2] - g_dot[2] * g[1], g_dot[2] * g[0] - g_dot[0] * g[2], g_dot[0] * g[1] - g_dot[1] * g[0])
+            c = (
+                g_dot[1] * g[2] - g_dot[2] * g[1],
+                g_dot[2] * g[0] - g_dot[0] * g[2],
+                g_dot[0] * g[1] - g_dot[1] * g[0],
+            )
             return tuple(g[i] * og + c[i] for i in range(3)), g
 
         (omega, g), (omega_dot, _) = jax.jvp(omega_fn, (t,), (jnp.ones_like(t),))
@@ -286,7 +292,9 @@ def simulate_gaits(
     """
     gaits = list(gaits)
     if not gaits or not all(isinstance(g, Gait) for g in gaits):
-        raise TypeError("simulate_gaits: gaits must be a non-empty list of jsphere.Gait (e.g. [acceleration(), braking()]).")
+        raise TypeError(
+            "simulate_gaits: gaits must be a non-empty list of jsphere.Gait (e.g. [acceleration(), braking()])."
+        )
     nb = len(gaits) - 1
     if isinstance(reset, (bool, np.bool_)):
         resets = [bool(reset)] * nb
@@ -295,9 +303,16 @@ def simulate_gaits(
         if len(resets) != nb:
             raise ValueError(f"simulate_gaits: reset needs one entry per gait boundary ({nb}); got {len(resets)}.")
     opts = resolve(
-        options, where="simulate_gaits", rtol=rtol, atol=atol, solver=solver, max_steps=max_steps, throw=throw,
-        adjoint=adjoint, batch_steps=batch_steps,
-    )  # fmt: skip
+        options,
+        where="simulate_gaits",
+        rtol=rtol,
+        atol=atol,
+        solver=solver,
+        max_steps=max_steps,
+        throw=throw,
+        adjoint=adjoint,
+        batch_steps=batch_steps,
+    )
     dt = params.R0.dtype
     rtol, atol = opts.tolerances(dt, GAIT_TOLERANCES, where="simulate_gaits")
     initial = tuple(as_array(v, dt) for v in (alpha0, beta0, Omega0, x0, y0))
@@ -307,12 +322,22 @@ def simulate_gaits(
     resets = _reset_data(resets, dt)
     # gait coefficients in the parameters' precision (float32 robots stay float32)
     gaits = jax.tree_util.tree_map(
-        lambda x: x.astype(dt) if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) and x.dtype != dt else x, gaits
+        lambda x: x.astype(dt) if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) and x.dtype != dt else x,
+        gaits,
     )
     traj = _solve_gaits(
-        params, gaits, initial, ts_out, resets, opts.solver_or_default(), rtol, atol, opts.max_steps,
-        opts.adjoint_or_default(), steps_layout(opts.batch_steps, opts.throw),
-    )  # fmt: skip
+        params,
+        gaits,
+        initial,
+        ts_out,
+        resets,
+        opts.solver_or_default(),
+        rtol,
+        atol,
+        opts.max_steps,
+        opts.adjoint_or_default(),
+        steps_layout(opts.batch_steps, opts.throw),
+    )
     return raise_on_failure(traj, opts.throw)
 
 
@@ -335,9 +360,13 @@ def _reset_data(resets, dt):
     nb = len(resets)
     for i, r in enumerate(resets):
         if not (r is None or isinstance(r, bool)) and np.shape(r) != (3,):
-            raise ValueError(f"simulate_gaits: reset[{i}] must be None, True/False or an Omega 3-vector; got shape {np.shape(r)}.")
+            raise ValueError(
+                f"simulate_gaits: reset[{i}] must be None, True/False or an Omega 3-vector; got shape {np.shape(r)}."
+            )
     modes = as_array([0 if (r is None or r is False) else 1 if r is True else 2 for r in resets], np.int32)
-    values = as_array([np.zeros(3) if (r is None or isinstance(r, bool)) else r for r in resets] if nb else np.zeros((0, 3)), dt)
+    values = as_array(
+        [np.zeros(3) if (r is None or isinstance(r, bool)) else r for r in resets] if nb else np.zeros((0, 3)), dt
+    )
     if values.shape != (nb, 3):
         raise ValueError(f"simulate_gaits: an explicit reset must be an Omega 3-vector; got shapes {values.shape}.")
     return modes, values
@@ -373,7 +402,11 @@ def _check_start(params, gait, alpha0, beta0) -> None:
         raise ValueError(f"simulate_gaits: alpha0 and beta0 must be orthonormal; got {a}, {b}.")
     try:
         g0 = np.asarray(_start_gamma(params.r_m, gait), np.float64)
-    except (TypeError, jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError):  # traced gait coefficients
+    except (
+        TypeError,
+        jax.errors.ConcretizationTypeError,
+        jax.errors.TracerArrayConversionError,
+    ):  # traced gait coefficients
         return
     gamma0 = np.cross(a, b)
     if np.max(np.abs(gamma0 - g0)) > 1e-6:
@@ -420,10 +453,23 @@ def _simulate_gaits(
         return jnp.where(mode == 0, z, reset_z)
 
     zs, om, cd, Ks, seg, ok, steps = solve_segments(
-        _gait_field, _gait_outputs, params, d, segments, state0.flatten(), ts_out, jump_fn=jump_fn,
-        solver=solver, rtol=rtol, atol=atol, max_steps=max_steps, adjoint=adjoint,
-        layout=layout, component_field=_gait_field_soa if layout.components else None, component_control=_gait_inputs,
-    )  # fmt: skip
+        _gait_field,
+        _gait_outputs,
+        params,
+        d,
+        segments,
+        state0.flatten(),
+        ts_out,
+        jump_fn=jump_fn,
+        solver=solver,
+        rtol=rtol,
+        atol=atol,
+        max_steps=max_steps,
+        adjoint=adjoint,
+        layout=layout,
+        component_field=_gait_field_soa if layout.components else None,
+        component_control=_gait_inputs,
+    )
     traj = assemble(params, d, ts_out, zs, om, cd, Ks, seg, ok, steps)
     # report the prescribed gamma(t) (the integrated one agrees to the solver tolerance)
     gam = jax.vmap(lambda t, k: _prescribed_gamma(gaits, Qm, starts, t, k))(ts_out, seg)

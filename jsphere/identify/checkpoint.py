@@ -33,7 +33,12 @@ def _config_fingerprint(data: FitData, free: FreeParams, cfg: dict) -> str:
     h = hashlib.sha256(data.fingerprint().encode())
     h.update(
         json.dumps(
-            {"free": free.names, "slots": [dataclasses.astuple(s) for s in free.slots], "base": free.base.to_dict(), **cfg},
+            {
+                "free": free.names,
+                "slots": [dataclasses.astuple(s) for s in free.slots],
+                "base": free.base.to_dict(),
+                **cfg,
+            },
             sort_keys=True,
             default=str,
         ).encode()
@@ -41,7 +46,9 @@ def _config_fingerprint(data: FitData, free: FreeParams, cfg: dict) -> str:
     return h.hexdigest()
 
 
-def _checkpoint_layout(stage: int, S: int, P: int, nu_shape: tuple, adam_shapes: Sequence[tuple], evaluation: dict[str, tuple]) -> dict[str, tuple]:
+def _checkpoint_layout(
+    stage: int, S: int, P: int, nu_shape: tuple, adam_shapes: Sequence[tuple], evaluation: dict[str, tuple]
+) -> dict[str, tuple]:
     """The arrays a checkpoint at `stage` holds, with their shapes: everything the optimiser
     reads from one step to the next (`S` starts, `P` free parameters, `nu_shape` the nuisance
     parameters of one start: `(T, n)` per trial, or `(G, n)` per segment in multiple shooting).
@@ -64,8 +71,15 @@ def _checkpoint_layout(stage: int, S: int, P: int, nu_shape: tuple, adam_shapes:
 def _flat_evaluation(out: dict[str, Any]) -> dict[str, np.ndarray]:
     """An evaluation (`{"res", "J", "pose"}` or `{"blocks", "defect"}`) as named arrays."""
     if "blocks" in out:
-        return {**dict(zip(("Hgg", "Hgn", "Hnn", "gg", "gn"), map(np.asarray, out["blocks"]))), "defect": np.asarray(out["defect"])}
-    return {"res": np.asarray(out["res"]), "J": np.asarray(out["J"]), **{f"pose_{c}": np.asarray(a) for c, a in zip("xyq", out["pose"])}}
+        return {
+            **dict(zip(("Hgg", "Hgn", "Hnn", "gg", "gn"), map(np.asarray, out["blocks"]))),
+            "defect": np.asarray(out["defect"]),
+        }
+    return {
+        "res": np.asarray(out["res"]),
+        "J": np.asarray(out["J"]),
+        **{f"pose_{c}": np.asarray(a) for c, a in zip("xyq", out["pose"])},
+    }
 
 
 def _unflat_evaluation(a: dict[str, np.ndarray]) -> dict[str, Any]:
@@ -73,13 +87,17 @@ def _unflat_evaluation(a: dict[str, np.ndarray]) -> dict[str, Any]:
         return {"blocks": tuple(jnp.asarray(a[k]) for k in ("Hgg", "Hgn", "Hnn", "gg", "gn")), "defect": a["defect"]}
     return {"res": a["res"], "J": jnp.asarray(a["J"]), "pose": tuple(jnp.asarray(a[f"pose_{c}"]) for c in "xyq")}
 
+
 def _load_checkpoint(path: Path, fp: str, layout: Callable[[int], dict[str, tuple]]) -> tuple[dict | None, str | None]:
     """`(state, None)` for a checkpoint of this fit; `(None, why)` for one that cannot be used
     (damaged, or from another fit); `(None, None)` where there is none."""
     if not path.exists():
         return None, None
     try:
-        with open(path, "rb") as f, np.load(f, allow_pickle=False) as z:  # (np.load leaks the file it opens on a bad zip)
+        with (
+            open(path, "rb") as f,
+            np.load(f, allow_pickle=False) as z,
+        ):  # (np.load leaks the file it opens on a bad zip)
             got = {k: np.asarray(z[k]) for k in z.files}
     except Exception as e:  # noqa: BLE001 - whatever the reader trips on, the file is damaged
         first = (str(e).splitlines() or [""])[0][:100]

@@ -18,7 +18,19 @@ from ..model.params import RobotParams
 #: nuisance parameters per trial, in order
 NUISANCE = {
     "wheel_speeds": ("Omega0_x", "Omega0_y", "Omega0_z", "rot0_x", "rot0_y", "rot0_z", "x0", "y0"),
-    "torques": ("Omega0_x", "Omega0_y", "Omega0_z", "rot0_x", "rot0_y", "rot0_z", "x0", "y0", "omega0_x", "omega0_y", "omega0_z"),
+    "torques": (
+        "Omega0_x",
+        "Omega0_y",
+        "Omega0_z",
+        "rot0_x",
+        "rot0_y",
+        "rot0_z",
+        "x0",
+        "y0",
+        "omega0_x",
+        "omega0_y",
+        "omega0_z",
+    ),
 }
 
 
@@ -50,7 +62,10 @@ class FitData:
     t_start: tuple[float, ...]
 
     def arrays(self) -> dict[str, jax.Array]:
-        return {k: jnp.asarray(getattr(self, k)) for k in ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0")}
+        return {
+            k: jnp.asarray(getattr(self, k))
+            for k in ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0")
+        }
 
     def fingerprint(self) -> str:
         h = hashlib.sha256(self.kind.encode())
@@ -70,7 +85,9 @@ def pack_trials(trials: Sequence, params: RobotParams) -> FitData:
         raise InputError("fit: no trials given.")
     kinds = {getattr(t, "kind", None) for t in trials}
     if len(kinds) != 1 or next(iter(kinds)) not in KINDS:
-        raise InputError(f"fit: all trials must have the same input kind, one of {KINDS}; got {sorted(map(str, kinds))}.")
+        raise InputError(
+            f"fit: all trials must have the same input kind, one of {KINDS}; got {sorted(map(str, kinds))}."
+        )
     kind = next(iter(kinds))
     N = params.n_wheels
     M = max(len(np.asarray(t.t)) for t in trials)

@@ -143,10 +143,23 @@ def fit(
     _check_shooting(shooting, segment)
     _check_unknowns(data, fp_)
     options = _Options(
-        n_starts=int(n_starts), spread=spread, seed=seed, shooting=shooting, segment=float(segment), adam_steps=adam_steps,
-        adam_lr=adam_lr, max_iter=max_iter, ftol=ftol, gtol=gtol, noise=noise, sigma_pos=sigma_pos, sigma_rot=sigma_rot,
-        rtol=rtol, atol=atol, max_steps=max_steps,
-    )  # fmt: skip
+        n_starts=int(n_starts),
+        spread=spread,
+        seed=seed,
+        shooting=shooting,
+        segment=float(segment),
+        adam_steps=adam_steps,
+        adam_lr=adam_lr,
+        max_iter=max_iter,
+        ftol=ftol,
+        gtol=gtol,
+        noise=noise,
+        sigma_pos=sigma_pos,
+        sigma_rot=sigma_rot,
+        rtol=rtol,
+        atol=atol,
+        max_steps=max_steps,
+    )
     run, st = _setup(data, fp_, params, options, checkpoint, say, t_begin)
     _resume(run, st, restart)
     run.say(
@@ -179,7 +192,9 @@ def _check_options(n_starts, max_iter, adam_steps, seed, sigma_pos, sigma_rot) -
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
         raise InputError(f"fit: seed must be an integer >= 0; got {seed!r}.")
     for name, val in (("sigma_pos", sigma_pos), ("sigma_rot", sigma_rot)):
-        if val is not None and not (isinstance(val, (int, float, np.number)) and not isinstance(val, bool) and 0 < val < math.inf):
+        if val is not None and not (
+            isinstance(val, (int, float, np.number)) and not isinstance(val, bool) and 0 < val < math.inf
+        ):
             raise InputError(f"fit: {name} must be a finite number > 0 (or left out to estimate it); got {val!r}.")
 
 
@@ -236,12 +251,25 @@ class _Options:
     def config(self, sig: np.ndarray, multiple: bool) -> dict[str, Any]:
         """What the checkpoint's fingerprint holds besides the data and the free parameters."""
         return {
-            "n_starts": self.n_starts, "spread": self.spread, "seed": self.seed, "adam_steps": self.adam_steps,
-            "adam_lr": self.adam_lr, "max_iter": self.max_iter, "ftol": self.ftol, "gtol": self.gtol, "noise": self.noise,
-            "sig": sig.tolist(), "estimate_sigma": self.estimate_sigma, "rtol": self.rtol, "atol": self.atol,
-            "max_steps": self.max_steps, "format": _CHECKPOINT_FORMAT, "multiple": multiple, "segment": self.segment,
+            "n_starts": self.n_starts,
+            "spread": self.spread,
+            "seed": self.seed,
+            "adam_steps": self.adam_steps,
+            "adam_lr": self.adam_lr,
+            "max_iter": self.max_iter,
+            "ftol": self.ftol,
+            "gtol": self.gtol,
+            "noise": self.noise,
+            "sig": sig.tolist(),
+            "estimate_sigma": self.estimate_sigma,
+            "rtol": self.rtol,
+            "atol": self.atol,
+            "max_steps": self.max_steps,
+            "format": _CHECKPOINT_FORMAT,
+            "multiple": multiple,
+            "segment": self.segment,
             "mu": list(MU_LEVELS),
-        }  # fmt: skip
+        }
 
 
 @dataclasses.dataclass(frozen=True)
@@ -328,7 +356,9 @@ class _State:
     last: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
-def _setup(data: FitData, free: FreeParams, params: RobotParams, o: _Options, checkpoint, say, t_begin) -> tuple[_Run, _State]:
+def _setup(
+    data: FitData, free: FreeParams, params: RobotParams, o: _Options, checkpoint, say, t_begin
+) -> tuple[_Run, _State]:
     """The run and its first state: the starts (the only random numbers of a fit, drawn from
     `seed`, part of the fingerprint), the segments of multiple shooting, Adam."""
     kind, S, P, T = data.kind, o.n_starts, free.size, data.ts.shape[0]
@@ -347,16 +377,29 @@ def _setup(data: FitData, free: FreeParams, params: RobotParams, o: _Options, ch
         nu_ms = np.repeat(nuisance_guess(seg.data, params)[None], S, 0)
     nu_scale = np.array([_NU_SCALE[n.split("_")[0]] for n in NUISANCE[kind]])
     n_nu = nu_scale.shape[0]
-    scale = {"theta": jnp.asarray(np.broadcast_to(free.theta_scales(), (S, P))), "nu": jnp.asarray(np.broadcast_to(nu_scale, (S, T, n_nu)))}
+    scale = {
+        "theta": jnp.asarray(np.broadcast_to(free.theta_scales(), (S, P))),
+        "nu": jnp.asarray(np.broadcast_to(nu_scale, (S, T, n_nu))),
+    }
     opt = optax.chain(optax.scale_by_adam(), optax.scale(-o.adam_lr))
     w = jax.tree_util.tree_map(lambda a, s: a / s, {"theta": jnp.asarray(theta), "nu": jnp.asarray(nu)}, scale)
     adam = (w, opt.init(w))
     run = _Run(
-        data=data, free=free, base=params, options=o, fns=fns, arrays=data.arrays(), shooting=ms, adam_scale=scale, adam=opt,
+        data=data,
+        free=free,
+        base=params,
+        options=o,
+        fns=fns,
+        arrays=data.arrays(),
+        shooting=ms,
+        adam_scale=scale,
+        adam=opt,
         adam_shapes=tuple(np.shape(a) for a in jax.tree_util.tree_leaves(adam)),
         checkpoint=Path(checkpoint) if checkpoint is not None else None,
-        fingerprint=_config_fingerprint(data, free, o.config(sig, multiple)), say=say, t_begin=t_begin,
-    )  # fmt: skip
+        fingerprint=_config_fingerprint(data, free, o.config(sig, multiple)),
+        say=say,
+        t_begin=t_begin,
+    )
     stage = 4 if multiple else (0 if o.adam_steps > 0 else 1)
     return run, _State(stage=stage, sig=sig, theta=theta, nu=nu, nu_ms=nu_ms, adam=adam)
 
@@ -369,11 +412,24 @@ def _layout(run: _Run, stage: int) -> dict[str, tuple]:
     S, P, T, n_nu = run.S, run.P, run.T, run.n_nu
     if run.shooting is not None and stage >= 4:
         G, N = run.shooting.G, run.shooting.Gmax * n_nu
-        ev = {"Hgg": (S, P, P), "Hgn": (S, T, P, N), "Hnn": (S, T, N, N), "gg": (S, P), "gn": (S, T, N), "defect": (S, G, n_nu)}
+        ev = {
+            "Hgg": (S, P, P),
+            "Hgn": (S, T, P, N),
+            "Hnn": (S, T, N, N),
+            "gg": (S, P),
+            "gn": (S, T, N),
+            "defect": (S, G, n_nu),
+        }
         nu_shape = (G, n_nu)
     else:
         K = 5 * run.data.ts.shape[1]
-        ev = {"res": (S, T, K), "J": (S, T, K, P + n_nu), "pose_x": (S, T, K // 5), "pose_y": (S, T, K // 5), "pose_q": (S, T, K // 5, 4)}
+        ev = {
+            "res": (S, T, K),
+            "J": (S, T, K, P + n_nu),
+            "pose_x": (S, T, K // 5),
+            "pose_y": (S, T, K // 5),
+            "pose_q": (S, T, K // 5, 4),
+        }
         nu_shape = (T, n_nu)
     return _checkpoint_layout(stage, S, P, nu_shape, run.adam_shapes, ev)
 
@@ -398,7 +454,9 @@ def _resume(run: _Run, st: _State, restart: bool) -> None:
     if st.stage == 0:
         st.adam_k = int(saved["adam_k"])
         leaves, treedef = jax.tree_util.tree_flatten(st.adam)
-        st.adam = jax.tree_util.tree_unflatten(treedef, [jnp.asarray(saved[f"adam_{i}"], a.dtype) for i, a in enumerate(leaves)])
+        st.adam = jax.tree_util.tree_unflatten(
+            treedef, [jnp.asarray(saved[f"adam_{i}"], a.dtype) for i, a in enumerate(leaves)]
+        )
         st.adam_best = (saved["adam_best_cost"], saved["adam_best_theta"], saved["adam_best_nu"])
         run.say(f"fit: resuming from {path} (Adam step {st.adam_k})")
     elif st.stage == 3:
@@ -414,10 +472,21 @@ def _resume(run: _Run, st: _State, restart: bool) -> None:
 def _save(run: _Run, st: _State) -> None:
     if run.checkpoint is None:
         return
-    out = {"stage": st.stage, "total_it": st.total_it, "sig": st.sig, "theta": st.theta, "nu": st.nu_ms if st.stage >= 4 else st.nu}
+    out = {
+        "stage": st.stage,
+        "total_it": st.total_it,
+        "sig": st.sig,
+        "theta": st.theta,
+        "nu": st.nu_ms if st.stage >= 4 else st.nu,
+    }
     out["max_defect"] = st.max_defect
     if st.stage == 0:
-        out |= {"adam_k": st.adam_k, "adam_best_cost": st.adam_best[0], "adam_best_theta": st.adam_best[1], "adam_best_nu": st.adam_best[2]}
+        out |= {
+            "adam_k": st.adam_k,
+            "adam_best_cost": st.adam_best[0],
+            "adam_best_theta": st.adam_best[1],
+            "adam_best_nu": st.adam_best[2],
+        }
         out |= {f"adam_{i}": a for i, a in enumerate(jax.tree_util.tree_leaves(st.adam))}
     elif st.stage == 3:
         out |= {"it": st.it, "stage_converged": st.stage_converged}
@@ -447,7 +516,9 @@ def _evaluate_multiple(run: _Run, st: _State, mu: float, th, n):
     """Cost `(S,)` (inf for a failed start), normal-equation blocks and defects of multiple
     shooting at defect weight `mu`."""
     ms = run.shooting
-    res, ok, J, pose, e, Je = run.fns.segments(run.base, jnp.asarray(th), jnp.asarray(n), ms.arrays, jnp.asarray(st.sig))
+    res, ok, J, pose, e, Je = run.fns.segments(
+        run.base, jnp.asarray(th), jnp.asarray(n), ms.arrays, jnp.asarray(st.sig)
+    )
     blocks, cost, dfc = run.fns.assemble(res, J, e, Je, jnp.asarray(n), mu, ms.seg_arrays, ms.scale)
     ok = np.asarray(ok)
     cost = np.where(ok.all(1), np.asarray(cost), np.inf)
@@ -535,12 +606,16 @@ def _multiple_shooting(run: _Run, st: _State) -> None:
             run.say(f"fit: multiple shooting: {ms.G} segments of about {ms.segment:g} s, defect weight {mu:g}")
         evaluate, solve = functools.partial(_evaluate_multiple, run, st, mu), functools.partial(_solve_multiple, run)
         rel_done = max(run.options.ftol, CONTINUATION_RTOL)
-        st.theta, st.nu_ms, cost, out = _lm_stage(run, st, evaluate, solve, st.theta, st.nu_ms, f"shooting {mu:g}", rel_done=rel_done, max_rejected=3)
+        st.theta, st.nu_ms, cost, out = _lm_stage(
+            run, st, evaluate, solve, st.theta, st.nu_ms, f"shooting {mu:g}", rel_done=rel_done, max_rejected=3
+        )
         b = int(np.argmin(cost))
         st.max_defect = float(np.max(np.abs(out["defect"][b]))) if ms.G > run.T else 0.0
         st.lm = None
         if st.max_defect <= DEFECT_CLOSED or level + 1 == len(MU_LEVELS):
-            run.say(f"fit: multiple shooting: largest defect {st.max_defect:.3g} noise levels; single shooting from here")
+            run.say(
+                f"fit: multiple shooting: largest defect {st.max_defect:.3g} noise levels; single shooting from here"
+            )
             st.nu = st.nu_ms[:, ms.seg.first]
             st.stage = 1
         else:
@@ -578,7 +653,9 @@ def _adam(run: _Run, st: _State) -> None:
         w = optax.apply_updates(w, upd)
         st.adam, st.adam_k = (w, ost), k + 1
         _save(run, st)
-        run.say(f"fit: adam {k + 1:3d}/{run.options.adam_steps}  cost {np.min(cost_k):.6e}  ({time.perf_counter() - run.t_begin:.1f} s)")
+        run.say(
+            f"fit: adam {k + 1:3d}/{run.options.adam_steps}  cost {np.min(cost_k):.6e}  ({time.perf_counter() - run.t_begin:.1f} s)"
+        )
     if st.adam_best is not None:
         st.theta, st.nu = st.adam_best[1], st.adam_best[2]
     st.stage = 1
@@ -588,7 +665,9 @@ def _single_shooting(run: _Run, st: _State) -> None:
     """Stages 1 and 2: Levenberg-Marquardt, the noise levels estimated in between (unless given)."""
     while st.stage in (1, 2):
         evaluate, solve = functools.partial(_evaluate_single, run, st), functools.partial(_solve_single, run)
-        st.theta, st.nu, cost, out = _lm_stage(run, st, evaluate, solve, st.theta, st.nu, f"stage {st.stage}", rel_done=run.options.ftol)
+        st.theta, st.nu, cost, out = _lm_stage(
+            run, st, evaluate, solve, st.theta, st.nu, f"stage {st.stage}", rel_done=run.options.ftol
+        )
         st.stage_converged = bool(st.lm.converged[int(np.argmin(cost))])
         st.lm = None
         if st.stage == 1 and run.options.estimate_sigma:
@@ -598,7 +677,9 @@ def _single_shooting(run: _Run, st: _State) -> None:
             st.sig = np.where(usable, est, st.sig)
             st.stage = 2
             kept = "" if usable.all() else " (residuals of 0 give no estimate: the level used is kept)"
-            run.say(f"fit: noise estimated: sigma_pos {st.sig[0] * 1e3:.4f} mm, sigma_rot {math.degrees(st.sig[1]):.4f} deg{kept}; refitting")
+            run.say(
+                f"fit: noise estimated: sigma_pos {st.sig[0] * 1e3:.4f} mm, sigma_rot {math.degrees(st.sig[1]):.4f} deg{kept}; refitting"
+            )
         else:
             st.stage = 3
             _save(run, st)
@@ -623,11 +704,25 @@ def _result(run: _Run, st: _State) -> FitResult:
     shooting_info: dict[str, Any] = {"method": "multiple" if run.shooting is not None else "single"}
     if run.shooting is not None:
         shooting_info |= {
-            "segment_s": run.shooting.segment, "segments": run.shooting.G, "largest_defect": st.max_defect,
+            "segment_s": run.shooting.segment,
+            "segments": run.shooting.G,
+            "largest_defect": st.max_defect,
             "closed": st.max_defect <= DEFECT_CLOSED,
-        }  # fmt: skip
+        }
     result = fit_result(
-        run.free, run.data, run.base, out["pose"], st.theta, st.nu, out["res"], out["J"], cost, st.sig, b, st.stage_converged,
-        st.total_it, run.t_begin,
-    )  # fmt: skip
+        run.free,
+        run.data,
+        run.base,
+        out["pose"],
+        st.theta,
+        st.nu,
+        out["res"],
+        out["J"],
+        cost,
+        st.sig,
+        b,
+        st.stage_converged,
+        st.total_it,
+        run.t_begin,
+    )
     return dataclasses.replace(result, shooting=shooting_info)

@@ -60,7 +60,9 @@ def expand(params: RobotParams, names: str | Sequence[str]) -> list[tuple[str, l
             continue
         field, index = parse_name(given)
         if field in UNIT_VECTORS:
-            raise ValueError(f"free parameter {given!r}: {field} holds unit vectors and cannot be fitted component by component; fix it.")
+            raise ValueError(
+                f"free parameter {given!r}: {field} holds unit vectors and cannot be fitted component by component; fix it."
+            )
         if field != "R_m":
             get_value(params, given)  # checks the index
         shape = () if field == "R_m" else tuple(getattr(params, field).shape)
@@ -128,7 +130,9 @@ def parse_fix_value(name: str, value: Any, expected: str = "a number (or a list 
         try:
             v = json.loads(v)
         except json.JSONDecodeError:
-            raise InputError(f"--fix {name}={value}: the value must be a number (or a JSON list of numbers for a whole field).") from None
+            raise InputError(
+                f"--fix {name}={value}: the value must be a number (or a JSON list of numbers for a whole field)."
+            ) from None
     arr = np.asarray(number_array(v, f"--fix {name}={value}", expected))
     if not np.all(np.isfinite(arr)):
         raise InputError(f"--fix {name}={value!r}: the value must be finite.")

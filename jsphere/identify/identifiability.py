@@ -68,7 +68,12 @@ def identifiability(
     lam, V = np.linalg.eigh(Fs)
     lam_max = max(float(lam[-1]), 1e-300)
     rel_sd = lambda info: math.sqrt(s2 / info) if info > 1e-14 * lam_max else math.inf
-    out: dict[str, Any] = {"condition_number": float(lam_max / max(lam[0], 1e-300 * lam_max)), "symmetries": {}, "directions": [], "warnings": []}
+    out: dict[str, Any] = {
+        "condition_number": float(lam_max / max(lam[0], 1e-300 * lam_max)),
+        "symmetries": {},
+        "directions": [],
+        "warnings": [],
+    }
     named = []
     for key, vec in symmetry_directions(names, values, params).items():
         e = vec / sc
@@ -76,7 +81,10 @@ def identifiability(
             continue
         e = e / np.linalg.norm(e)
         rel = rel_sd(float(e @ Fs @ e))
-        out["symmetries"][key] = {"relative_sd": rel, "combination": {n: float(w) for n, w in zip(names, e) if w != 0.0}}
+        out["symmetries"][key] = {
+            "relative_sd": rel,
+            "combination": {n: float(w) for n, w in zip(names, e) if w != 0.0},
+        }
         if rel > rel_tol:
             named.append(e)
             fields = [parse_name(n)[0] for n in names]

@@ -111,7 +111,9 @@ class LMState:
     @classmethod
     def start(cls, cost: np.ndarray, current: dict[str, Any]) -> LMState:
         S = cost.shape[0]
-        return cls(np.full(S, 1e-3), np.zeros(S, bool), np.zeros(S, int), np.zeros(S, int), cost.copy(), cost, 0, current)
+        return cls(
+            np.full(S, 1e-3), np.zeros(S, bool), np.zeros(S, int), np.zeros(S, int), cost.copy(), cost, 0, current
+        )
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The per-start arrays by name (`LM_KEYS`)."""
@@ -191,14 +193,24 @@ def _iterate(evaluate, solve, th, n, lm: LMState, o: LMOptions) -> tuple[np.ndar
     best_cost = np.where(acc, np.minimum(lm.best_cost, cost_n), lm.best_cost)
     # done: a negligible predicted or relative decrease, 3 accepted steps without
     # progress, or `max_rejected` rejections in a row (lambda grown by 10^max_rejected)
-    newly = (acc & (np.abs(rel) < o.rel_done)) | ((pred_n < o.gtol) & (lam <= 1.0)) | (stalled >= 3) | (rejected >= o.max_rejected)
+    newly = (
+        (acc & (np.abs(rel) < o.rel_done))
+        | ((pred_n < o.gtol) & (lam <= 1.0))
+        | (stalled >= 3)
+        | (rejected >= o.max_rejected)
+    )
     th = np.where(acc[:, None], th_new, th)
     n = np.where(acc[:, None, None], n_new, n)
     lm = LMState(
-        lam=np.where(acc, np.maximum(lam / 5.0, 1e-12), lam * 10.0), converged=lm.converged | newly, stalled=stalled,
-        rejected=rejected, best_cost=best_cost, cost=np.where(acc, cost_n, cost), it=lm.it + 1,
+        lam=np.where(acc, np.maximum(lam / 5.0, 1e-12), lam * 10.0),
+        converged=lm.converged | newly,
+        stalled=stalled,
+        rejected=rejected,
+        best_cost=best_cost,
+        cost=np.where(acc, cost_n, cost),
+        it=lm.it + 1,
         current=_select(acc, out_n, out),
-    )  # fmt: skip
+    )
     return th, n, lm, Step(acc, float(np.max(np.abs(dg) / o.step_scale)) if P else 0.0)
 
 

@@ -159,9 +159,21 @@ def _assemble_named(free: FreeParams, per_name: dict[str, float], params: RobotP
 
 
 def fit_result(
-    free: FreeParams, data: FitData, base: RobotParams, pose, theta, nu, res, J, cost, sig, b: int, converged: bool,
-    iterations: int, t_begin: float,
-) -> FitResult:  # fmt: skip
+    free: FreeParams,
+    data: FitData,
+    base: RobotParams,
+    pose,
+    theta,
+    nu,
+    res,
+    J,
+    cost,
+    sig,
+    b: int,
+    converged: bool,
+    iterations: int,
+    t_begin: float,
+) -> FitResult:
     """The `FitResult` of start `b` (the best) from the final evaluation of every start: `pose`
     (simulated `x, y, q`), `res`, `J` and `cost` as `jsphere.identify.residuals` gives them."""
     P = free.size
@@ -178,21 +190,40 @@ def fit_result(
     ident["sigma_note"] = "relative sd of each direction; warnings list directions with relative sd > 10%"
     trials = _trial_reports(data, pose, nu[b], b)
     verdict = judge(
-        [t["series"]["pos_err"] for t in trials], [np.radians(t["series"]["rot_err_deg"]) for t in trials], noise_floor(data),
-        names=data.names, converged=bool(converged), n_params=P + T * n_nu,
+        [t["series"]["pos_err"] for t in trials],
+        [np.radians(t["series"]["rot_err_deg"]) for t in trials],
+        noise_floor(data),
+        names=data.names,
+        converged=bool(converged),
+        n_params=P + T * n_nu,
         why_not=f"Levenberg-Marquardt reached max_iter in its last stage, {int(iterations)} iterations in all",
-    )  # fmt: skip
+    )
     status, status_reason = verdict.pop("status"), verdict.pop("reason")
     per_val = {n: float(v) for n, v in zip(free.names, values)}
     per_se = {n: float(s) for n, s in zip(free.names, se)}
     return FitResult(
-        params=params, free=list(free.names), given=free.given,
-        values=_assemble_named(free, per_val, params, np.nan), stderr=_assemble_named(free, per_se, params, 0.0),
-        covariance=cov, correlation=corr, cost=float(cost[b]), iterations=int(iterations), converged=bool(converged),
-        sigma_pos=float(sig[0]), sigma_rot=float(sig[1]), n_residuals=n_res, identifiability=ident, trials=trials,
-        starts=[float(c) for c in cost], kind=data.kind, elapsed_s=time.perf_counter() - t_begin,
-        status=status, status_reason=status_reason, verdict=verdict,
-    )  # fmt: skip
+        params=params,
+        free=list(free.names),
+        given=free.given,
+        values=_assemble_named(free, per_val, params, np.nan),
+        stderr=_assemble_named(free, per_se, params, 0.0),
+        covariance=cov,
+        correlation=corr,
+        cost=float(cost[b]),
+        iterations=int(iterations),
+        converged=bool(converged),
+        sigma_pos=float(sig[0]),
+        sigma_rot=float(sig[1]),
+        n_residuals=n_res,
+        identifiability=ident,
+        trials=trials,
+        starts=[float(c) for c in cost],
+        kind=data.kind,
+        elapsed_s=time.perf_counter() - t_begin,
+        status=status,
+        status_reason=status_reason,
+        verdict=verdict,
+    )
 
 
 def _covariance(free: FreeParams, th_b, res_b: np.ndarray, J_b, s2: float):

@@ -50,10 +50,26 @@ def _trial_outputs(free: FreeParams, kind, rtol, atol, max_steps, adjoint, base,
         controls = Torques(table, ())
         omega = nu[8:11]
     state0 = State(
-        q=q0, q_shell=jnp.array([1.0, 0.0, 0.0, 0.0], dt), omega=omega, Omega=Omega,
-        x=d["xy0"][0] + nu[6], y=d["xy0"][1] + nu[7], chi=jnp.zeros(p.n_wheels, dt),
-    )  # fmt: skip
-    tr = simulate(p, state0, controls, d["t1"], ts=d["ts"], rtol=rtol, atol=atol, max_steps=max_steps, throw=False, adjoint=adjoint)
+        q=q0,
+        q_shell=jnp.array([1.0, 0.0, 0.0, 0.0], dt),
+        omega=omega,
+        Omega=Omega,
+        x=d["xy0"][0] + nu[6],
+        y=d["xy0"][1] + nu[7],
+        chi=jnp.zeros(p.n_wheels, dt),
+    )
+    tr = simulate(
+        p,
+        state0,
+        controls,
+        d["t1"],
+        ts=d["ts"],
+        rtol=rtol,
+        atol=atol,
+        max_steps=max_steps,
+        throw=False,
+        adjoint=adjoint,
+    )
     ex = (tr.x - d["x"]) * d["wpos"] / sig[0]
     ey = (tr.y - d["y"]) * d["wpos"] / sig[0]
     er = quat_log(quat_mul(quat_conj(tr.q), d["q"])) * d["wrot"][:, None] / sig[1]
@@ -82,7 +98,9 @@ class _Functions:
 
         def jac_one(base, th, nu, d, sig):
             def f(z):
-                res, ok, pose, end = _trial_outputs(free, kind, rtol, atol, max_steps, dfx.ForwardMode(), base, z[:P], z[P:], d, sig)
+                res, ok, pose, end = _trial_outputs(
+                    free, kind, rtol, atol, max_steps, dfx.ForwardMode(), base, z[:P], z[P:], d, sig
+                )
                 return (res, end), (res, ok, pose, end)
 
             (J, Je), (res, ok, pose, end) = jax.jacfwd(f, has_aux=True)(jnp.concatenate([th, nu]))

@@ -112,7 +112,10 @@ def segment_trials(data: FitData, segment: float) -> Segments:
             pieces.append((i, a, b, last))
             trial_of.append(i)
     L = max(b - a + 1 for _, a, b, _ in pieces)
-    out = {k: [] for k in ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0", "name", "length", "start", "next")}
+    out = {
+        k: []
+        for k in ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0", "name", "length", "start", "next")
+    }
     for i, a, b, last in pieces:
         for k, v in _segment(data, i, a, b, last, L).items():
             out[k].append(v)
@@ -126,12 +129,20 @@ def segment_trials(data: FitData, segment: float) -> Segments:
         slot[i, : idx.size] = idx
         first[i] = idx[0]
     arrays = {k: np.stack(out[k]) for k in ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0")}
-    seg_data = FitData(**arrays, kind=data.kind, names=tuple(out["name"]), lengths=tuple(out["length"]), t_start=tuple(out["start"]))
+    seg_data = FitData(
+        **arrays, kind=data.kind, names=tuple(out["name"]), lengths=tuple(out["length"]), t_start=tuple(out["start"])
+    )
     has_next, nxt_xy0, nxt_q0 = zip(*out["next"])
     return Segments(
-        data=seg_data, trial=trial_of, slot=slot, has_next=np.asarray(has_next), next_xy0=np.stack(nxt_xy0),
-        next_q0=np.stack(nxt_q0), first=first, boundaries=tuple(cut_list),
-    )  # fmt: skip
+        data=seg_data,
+        trial=trial_of,
+        slot=slot,
+        has_next=np.asarray(has_next),
+        next_xy0=np.stack(nxt_xy0),
+        next_q0=np.stack(nxt_q0),
+        first=first,
+        boundaries=tuple(cut_list),
+    )
 
 
 def _segment(data: FitData, i: int, a: int, b: int, last: bool, L: int) -> dict:
@@ -155,7 +166,11 @@ def _segment(data: FitData, i: int, a: int, b: int, last: bool, L: int) -> dict:
         wp[-1] = wr[-1] = 0.0
     pad = lambda v, fill: np.concatenate([v, np.broadcast_to(fill, (L - m,) + v.shape[1:])])
     vp, vr = data.wpos[i, a : b + 1] > 0, data.wrot[i, a : b + 1] > 0
-    nxt = (True, np.array([data.x[i, b], data.y[i, b]]), data.q[i, b]) if not last else (False, np.zeros(2), np.array([1.0, 0.0, 0.0, 0.0]))
+    nxt = (
+        (True, np.array([data.x[i, b], data.y[i, b]]), data.q[i, b])
+        if not last
+        else (False, np.zeros(2), np.array([1.0, 0.0, 0.0, 0.0]))
+    )
     return {
         "ts": np.concatenate([ts, np.full(L - m, ts[-1])]),
         "tc": tc + over * dt,
@@ -272,4 +287,3 @@ def assemble(kind: str, P: int, res, J, e, Je, nu, mu, seg: dict, scale):
     gn = gn.reshape(T, Gmax * n)
     cost = 0.5 * jnp.sum(res * res) + 0.5 * jnp.sum(dw * dw)
     return (Hgg, Hgn, Hnn, gg, gn), cost, d
-

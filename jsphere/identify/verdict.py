@@ -295,10 +295,13 @@ def _numbers(status, reason, converged, floor, overall, per_trial, names, worst)
     trials = [
         {
             "name": names[i],
-            "sigma_pos_m": per_trial[i][0][2], "sigma_rot_deg": deg(per_trial[i][1][2]),
-            "ratio_pos": per_trial[i][0][0], "ratio_rot": per_trial[i][1][0],
-            "autocorr_pos": per_trial[i][0][1], "autocorr_rot": per_trial[i][1][1],
-        }  # fmt: skip
+            "sigma_pos_m": per_trial[i][0][2],
+            "sigma_rot_deg": deg(per_trial[i][1][2]),
+            "ratio_pos": per_trial[i][0][0],
+            "ratio_rot": per_trial[i][1][0],
+            "autocorr_pos": per_trial[i][0][1],
+            "autocorr_rot": per_trial[i][1][1],
+        }
         for i in range(len(per_trial))
     ]
     return {

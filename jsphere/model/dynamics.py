@@ -35,7 +35,9 @@ def _eye(x):
     return jnp.eye(3, dtype=x.dtype)
 
 
-def mass_blocks(p: RobotParams, d: Derived, gamma: Float[Array, "3"]) -> tuple[Float[Array, "3 3"], Float[Array, "3 3"]]:
+def mass_blocks(
+    p: RobotParams, d: Derived, gamma: Float[Array, "3"]
+) -> tuple[Float[Array, "3 3"], Float[Array, "3 3"]]:
     """The `gamma`-dependent blocks `B` (omega-Omega coupling) and `D` (Omega-Omega) of (3.4)."""
     E = _eye(gamma)
     B = d.B0 + d.mR0 * (dot(gamma, p.r_m) * E - outer(gamma, p.r_m))
@@ -78,7 +80,9 @@ def free_forces(p: RobotParams, d: Derived, gamma, omega, Omega) -> Float[Array,
     )
 
 
-def solve_accelerations(p: RobotParams, d: Derived, gamma, omega, Omega, K) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
+def solve_accelerations(
+    p: RobotParams, d: Derived, gamma, omega, Omega, K
+) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
     """(3.4) solved for `(omega_dot, Omega_dot)` with the 3x3 Schur complement of the constant
     `omega` block (`A^-1` precomputed in `derive`)."""
     B, D = mass_blocks(p, d, gamma)
@@ -100,7 +104,7 @@ def accelerations(
     gamma: Float[ArrayLike, "3"],
     omega: Float[ArrayLike, "3"],
     Omega: Float[ArrayLike, "3"],
-    K: Float[ArrayLike, "N"],
+    K: Float[ArrayLike, " N"],
 ) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
     """Angular accelerations `(omega_dot, Omega_dot)` of platform and shell from (3.4).
 
@@ -123,7 +127,9 @@ def free_Omega_dot(p: RobotParams, d: Derived, gamma, omega, Omega, omega_dot) -
     return solve3(B + D, free_forces(p, d, gamma, omega, Omega) - matvec(d.A + B.T, omega_dot))
 
 
-def required_torques(p: RobotParams, d: Derived, gamma, omega, Omega, omega_dot, Omega_dot, *, equation: int = 2) -> Float[Array, "N"]:
+def required_torques(
+    p: RobotParams, d: Derived, gamma, omega, Omega, omega_dot, Omega_dot, *, equation: int = 2
+) -> Float[Array, " N"]:
     """Axle torques realising given accelerations, from one equation of (3.4).
 
     `equation=2` uses `Sk^T K = B^T omega_dot + D Omega_dot - r2`; `equation=1` uses

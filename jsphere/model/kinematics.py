@@ -9,9 +9,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
-from .rotations import rotation_between
 from .linalg import cross, matvec
 from .params import Derived, RobotParams, derive
+from .rotations import rotation_between
 
 
 def rolling_velocity(params: RobotParams, gamma: Float[Array, "3"], Omega: Float[Array, "3"]) -> Float[Array, "3"]:
@@ -23,7 +23,7 @@ def _wheel_speeds(d: Derived, omega, Omega):
     return -matvec(d.Sk, omega - Omega)
 
 
-def wheel_speeds(params: RobotParams, omega: Float[ArrayLike, "3"], Omega: Float[ArrayLike, "3"]) -> Float[Array, "N"]:
+def wheel_speeds(params: RobotParams, omega: Float[ArrayLike, "3"], Omega: Float[ArrayLike, "3"]) -> Float[Array, " N"]:
     """Wheel rates relative to the platform, from the wheel constraint (2.4).
 
     `chi_dot_i = -k_i (omega - Omega, s_i)`, `k_i = R0/(Rw (s_i, n_i))`, `s_i = r_i x alpha_i`.
@@ -32,7 +32,7 @@ def wheel_speeds(params: RobotParams, omega: Float[ArrayLike, "3"], Omega: Float
     return _wheel_speeds(derive(params), jnp.asarray(omega), jnp.asarray(Omega))
 
 
-def relative_rate_from_wheel_speeds(params: RobotParams, chi_dot: Float[ArrayLike, "N"]) -> Float[Array, "3"]:
+def relative_rate_from_wheel_speeds(params: RobotParams, chi_dot: Float[ArrayLike, " N"]) -> Float[Array, "3"]:
     """`omega - Omega` realised by given wheel rates: the inverse of (2.4).
 
     For `N > 3` wheels the least-squares solution (the commands are projected onto the
@@ -47,8 +47,8 @@ def constraint_residuals(
     omega: Float[ArrayLike, "3"],
     Omega: Float[ArrayLike, "3"],
     v: Float[ArrayLike, "3"],
-    chi_dot: Float[ArrayLike, "N"],
-) -> tuple[Float[Array, "3"], Float[Array, "N"]]:
+    chi_dot: Float[ArrayLike, " N"],
+) -> tuple[Float[Array, "3"], Float[Array, " N"]]:
     """Residuals of the nonholonomic constraints for measured or simulated quantities.
 
     Returns `(F, G)` with `F = v - R0 Omega x gamma` (2.3) [m/s] and
@@ -89,7 +89,7 @@ def kinematic_wheel_speeds(
     Omega_gamma: Float[ArrayLike, ""] = 0.0,
     omega_gamma: Float[ArrayLike, ""] = 0.0,
     psi: Float[ArrayLike, ""] = 0.0,
-) -> Float[Array, "N"]:
+) -> Float[Array, " N"]:
     """Wheel rates of the kinematic model (2.9) for a planar velocity `rdot_c = (x_dot, y_dot)`.
 
     Assumes (Section 2) that the platform keeps its rest attitude `gamma = gamma_m` and only

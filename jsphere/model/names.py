@@ -25,7 +25,9 @@ def parse_name(name: str) -> tuple[str, tuple[int, ...]]:
         raise ValueError(f"a parameter name must be a string such as 'j' or 'I[0,0]'; got {name!r}.")
     m = _NAME.match(name)
     if not m:
-        raise ValueError(f"cannot parse parameter name {name!r}; use a field ({', '.join(_FIELDS)}), a component such as 'I[0,0]' or 'r_m[2]', or 'R_m'.")
+        raise ValueError(
+            f"cannot parse parameter name {name!r}; use a field ({', '.join(_FIELDS)}), a component such as 'I[0,0]' or 'r_m[2]', or 'R_m'."
+        )
     field, idx = m.group(1), m.group(2)
     index = tuple(int(i) for i in idx.split(",") if i.strip()) if idx else ()
     if field not in _FIELDS and field not in DERIVED:

@@ -14,10 +14,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from .._runtime.arrays import as_array
 from .._runtime.errors import InputError
 from .._runtime.files import read_mapping, write_mapping
 from .linalg import cross, dot, inv3, outer
-from .._runtime.arrays import as_array
 
 #: Values of the two parameters the paper omits, inferred from its own numbers
 #: (Omega_1 = 0.864 1/s after (5.1) and 0.852 1/s after the turn (5.6)); see docs/model.md.
@@ -82,7 +82,25 @@ class RobotParams(eqx.Module):
     c_roll: Float[Array, ""]
     c_axle: Float[Array, ""]
 
-    def __init__(self, R0, m0, I0, Rw, wheel_r, wheel_n, wheel_alpha, m, I, r_m, j=0.0, g=9.81, c_roll=0.0, c_axle=0.0, *, dtype=None):
+    def __init__(
+        self,
+        R0,
+        m0,
+        I0,
+        Rw,
+        wheel_r,
+        wheel_n,
+        wheel_alpha,
+        m,
+        I,
+        r_m,
+        j=0.0,
+        g=9.81,
+        c_roll=0.0,
+        c_axle=0.0,
+        *,
+        dtype=None,
+    ):
         if dtype is None:
             dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
         as_ = lambda x: as_array(x, dtype)  # noqa: E731
@@ -126,11 +144,20 @@ class RobotParams(eqx.Module):
         wheel_n = np.stack([c, s, np.ones(3)], axis=-1) / np.sqrt(2.0)
         wheel_alpha = np.stack([np.cos(phis - np.pi / 4), np.sin(phis - np.pi / 4), np.ones(3)], -1) / np.sqrt(2.0)
         return cls(
-            R0=0.15, m0=0.8, I0=0.012, Rw=0.07,
-            wheel_r=wheel_r, wheel_n=wheel_n, wheel_alpha=wheel_alpha,
-            m=2.5, I=np.diag([0.016, 0.016, 0.023]), r_m=np.array([0.0, 0.0, -R_m]),
-            j=j, g=g, dtype=dtype,
-        )  # fmt: skip
+            R0=0.15,
+            m0=0.8,
+            I0=0.012,
+            Rw=0.07,
+            wheel_r=wheel_r,
+            wheel_n=wheel_n,
+            wheel_alpha=wheel_alpha,
+            m=2.5,
+            I=np.diag([0.016, 0.016, 0.023]),
+            r_m=np.array([0.0, 0.0, -R_m]),
+            j=j,
+            g=g,
+            dtype=dtype,
+        )
 
     def replace(self, **changes) -> "RobotParams":
         """A copy with some fields changed, validated again (e.g. `p.replace(j=0.0)`).
@@ -253,7 +280,6 @@ def _checked_fields(d: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-
 class Rule(NamedTuple):
     """One rule every parameter set meets (`RULES`).
 
@@ -281,8 +307,12 @@ def _any_core(xp, x, k: int):
 
 
 def _finite_rule(f: str) -> Rule:
-    return Rule(f, f"{f} not finite", lambda xp, a: _any_core(xp, ~xp.isfinite(a[f]), _CORE_NDIM.get(f, 0)),
-                lambda a: "must be finite (got NaN or inf).")  # fmt: skip
+    return Rule(
+        f,
+        f"{f} not finite",
+        lambda xp, a: _any_core(xp, ~xp.isfinite(a[f]), _CORE_NDIM.get(f, 0)),
+        lambda a: "must be finite (got NaN or inf).",
+    )
 
 
 def _positive_rule(f: str, unit: str) -> Rule:
@@ -323,42 +353,121 @@ RULES: tuple[Rule, ...] = (
     *(_finite_rule(f) for f in _FIELDS),
     *(_positive_rule(f, unit) for f, unit in (("R0", "m"), ("Rw", "m"), ("m0", "kg"), ("m", "kg"), ("I0", "kg m^2"))),
     Rule("j", "j < 0", lambda xp, a: a["j"] < 0, lambda a: f"wheel axial inertia must be >= 0 kg m^2; got {a['j']}."),
-    Rule("c_roll", "c_roll < 0", lambda xp, a: a["c_roll"] < 0, lambda a: f"damping must be >= 0 N m s; got {a['c_roll']}."),
-    Rule("c_axle", "c_axle < 0", lambda xp, a: a["c_axle"] < 0, lambda a: f"damping must be >= 0 N m s; got {a['c_axle']}."),
+    Rule(
+        "c_roll",
+        "c_roll < 0",
+        lambda xp, a: a["c_roll"] < 0,
+        lambda a: f"damping must be >= 0 N m s; got {a['c_roll']}.",
+    ),
+    Rule(
+        "c_axle",
+        "c_axle < 0",
+        lambda xp, a: a["c_axle"] < 0,
+        lambda a: f"damping must be >= 0 N m s; got {a['c_axle']}.",
+    ),
     Rule("g", "g < 0", lambda xp, a: a["g"] < 0, lambda a: f"must be >= 0 m/s^2 (use 9.81); got {a['g']}."),
-    Rule("R0", "R0 > 10 m", lambda xp, a: a["R0"] > 10.0, lambda a: "is larger than 10 m: lengths are in metres, not millimetres."),
-    Rule("Rw", "Rw > 10 m", lambda xp, a: a["Rw"] > 10.0, lambda a: "is larger than 10 m: lengths are in metres, not millimetres."),
-    Rule("Rw", "Rw >= R0", lambda xp, a: a["Rw"] >= a["R0"],
-         lambda a: f"wheel radius must be smaller than the shell radius R0; got Rw={a['Rw']}, R0={a['R0']}."),
-    Rule("I", "I not symmetric",
-         lambda xp, a: _any_core(xp, xp.abs(a["I"] - xp.swapaxes(a["I"], -1, -2)) > 1e-12 + 1e-9 * xp.abs(xp.swapaxes(a["I"], -1, -2)), 2),
-         lambda a: "inertia tensor must be symmetric."),
-    Rule("I", "I not positive definite", lambda xp, a: _any_core(xp, _eig(xp, a) <= 0, 1),
-         lambda a: f"inertia tensor must be positive definite; eigenvalues {np.linalg.eigvalsh(a['I'])}."),
-    Rule("I", "I breaks the triangle inequality",
-         lambda xp, a: (lambda e: e[..., 2] - e[..., 0] - e[..., 1] > 1e-6 * xp.sum(e, axis=-1))(_eig(xp, a)),
-         lambda a: "the principal moments of inertia must satisfy the triangle inequality (the largest at most the sum "
-                   f"of the other two, as for any body); eigenvalues {np.linalg.eigvalsh(a['I'])}."),
-    Rule("r_m", "|r_m| >= R0", lambda xp, a: xp.linalg.norm(a["r_m"], axis=-1) >= a["R0"],
-         lambda a: f"centre of mass must lie inside the shell, |r_m| < R0; got |r_m| = {np.linalg.norm(a['r_m'], axis=-1)} m."),
-    Rule("r_m", "r_m = 0", lambda xp, a: xp.linalg.norm(a["r_m"], axis=-1) <= 0,
-         lambda a: "centre of mass must be off the shell centre (the rest attitude is gamma = -r_m/|r_m|); got r_m = 0."),
-    Rule("wheel_r", "wheel_r = 0", lambda xp, a: _any_core(xp, xp.linalg.norm(a["wheel_r"], axis=-1) <= 0, 1),
-         lambda a: "wheel positions must be non-zero (their direction defines s_i = r_i x alpha_i)."),
-    Rule("wheel_r", "|wheel_r| >= R0",
-         lambda xp, a: _any_core(xp, xp.linalg.norm(a["wheel_r"], axis=-1) >= a["R0"][..., None], 1),
-         lambda a: f"wheel centres must lie inside the shell, |r_i| < R0; got |r_i| = {np.linalg.norm(a['wheel_r'], axis=-1)} m."),
-    *(Rule(f, f"{f} not unit", lambda xp, a, f=f: _any_core(xp, _unit_error(xp, a, f) > 1e-6, 1),
-           lambda a, f=f: f"axes must be unit vectors (|v| = 1 within 1e-6); got norms {np.linalg.norm(a[f], axis=-1)}.")
-      for f in ("wheel_n", "wheel_alpha")),
-    Rule("wheel_alpha", "alpha_i parallel to r_i", lambda xp, a: _any_core(xp, _s(xp, a)[1] < 1e-9, 1),
-         lambda a: "roller axis alpha_i is parallel to r_i, so s_i = r_i x alpha_i = 0."),
-    Rule("wheel_n", "(s_i, n_i) = 0", lambda xp, a: _any_core(xp, xp.abs(_s_dot_n(xp, a)) < 1e-3, 1),
-         lambda a: "(s_i, n_i)/|s_i| must be away from zero (|.| >= 1e-3) or the wheel cannot drive the shell "
-                   f"(k_i = R0/(Rw (s_i, n_i)) is infinite); got {_s_dot_n(np, a)}."),
-    Rule("wheel_r", "s_i do not span 3-space", lambda xp, a: _s_conditioning(xp, a) < 1e-6,
-         lambda a: "the vectors s_i = r_i x alpha_i do not span 3-space: the wheels cannot set omega - Omega."),
-)  # fmt: skip
+    Rule(
+        "R0",
+        "R0 > 10 m",
+        lambda xp, a: a["R0"] > 10.0,
+        lambda a: "is larger than 10 m: lengths are in metres, not millimetres.",
+    ),
+    Rule(
+        "Rw",
+        "Rw > 10 m",
+        lambda xp, a: a["Rw"] > 10.0,
+        lambda a: "is larger than 10 m: lengths are in metres, not millimetres.",
+    ),
+    Rule(
+        "Rw",
+        "Rw >= R0",
+        lambda xp, a: a["Rw"] >= a["R0"],
+        lambda a: f"wheel radius must be smaller than the shell radius R0; got Rw={a['Rw']}, R0={a['R0']}.",
+    ),
+    Rule(
+        "I",
+        "I not symmetric",
+        lambda xp, a: _any_core(
+            xp, xp.abs(a["I"] - xp.swapaxes(a["I"], -1, -2)) > 1e-12 + 1e-9 * xp.abs(xp.swapaxes(a["I"], -1, -2)), 2
+        ),
+        lambda a: "inertia tensor must be symmetric.",
+    ),
+    Rule(
+        "I",
+        "I not positive definite",
+        lambda xp, a: _any_core(xp, _eig(xp, a) <= 0, 1),
+        lambda a: f"inertia tensor must be positive definite; eigenvalues {np.linalg.eigvalsh(a['I'])}.",
+    ),
+    Rule(
+        "I",
+        "I breaks the triangle inequality",
+        lambda xp, a: (lambda e: e[..., 2] - e[..., 0] - e[..., 1] > 1e-6 * xp.sum(e, axis=-1))(_eig(xp, a)),
+        lambda a: (
+            "the principal moments of inertia must satisfy the triangle inequality (the largest at most the sum "
+            f"of the other two, as for any body); eigenvalues {np.linalg.eigvalsh(a['I'])}."
+        ),
+    ),
+    Rule(
+        "r_m",
+        "|r_m| >= R0",
+        lambda xp, a: xp.linalg.norm(a["r_m"], axis=-1) >= a["R0"],
+        lambda a: (
+            f"centre of mass must lie inside the shell, |r_m| < R0; got |r_m| = {np.linalg.norm(a['r_m'], axis=-1)} m."
+        ),
+    ),
+    Rule(
+        "r_m",
+        "r_m = 0",
+        lambda xp, a: xp.linalg.norm(a["r_m"], axis=-1) <= 0,
+        lambda a: "centre of mass must be off the shell centre (the rest attitude is gamma = -r_m/|r_m|); got r_m = 0.",
+    ),
+    Rule(
+        "wheel_r",
+        "wheel_r = 0",
+        lambda xp, a: _any_core(xp, xp.linalg.norm(a["wheel_r"], axis=-1) <= 0, 1),
+        lambda a: "wheel positions must be non-zero (their direction defines s_i = r_i x alpha_i).",
+    ),
+    Rule(
+        "wheel_r",
+        "|wheel_r| >= R0",
+        lambda xp, a: _any_core(xp, xp.linalg.norm(a["wheel_r"], axis=-1) >= a["R0"][..., None], 1),
+        lambda a: (
+            f"wheel centres must lie inside the shell, |r_i| < R0; got |r_i| = {np.linalg.norm(a['wheel_r'], axis=-1)} m."
+        ),
+    ),
+    *(
+        Rule(
+            f,
+            f"{f} not unit",
+            lambda xp, a, f=f: _any_core(xp, _unit_error(xp, a, f) > 1e-6, 1),
+            lambda a, f=f: (
+                f"axes must be unit vectors (|v| = 1 within 1e-6); got norms {np.linalg.norm(a[f], axis=-1)}."
+            ),
+        )
+        for f in ("wheel_n", "wheel_alpha")
+    ),
+    Rule(
+        "wheel_alpha",
+        "alpha_i parallel to r_i",
+        lambda xp, a: _any_core(xp, _s(xp, a)[1] < 1e-9, 1),
+        lambda a: "roller axis alpha_i is parallel to r_i, so s_i = r_i x alpha_i = 0.",
+    ),
+    Rule(
+        "wheel_n",
+        "(s_i, n_i) = 0",
+        lambda xp, a: _any_core(xp, xp.abs(_s_dot_n(xp, a)) < 1e-3, 1),
+        lambda a: (
+            "(s_i, n_i)/|s_i| must be away from zero (|.| >= 1e-3) or the wheel cannot drive the shell "
+            f"(k_i = R0/(Rw (s_i, n_i)) is infinite); got {_s_dot_n(np, a)}."
+        ),
+    ),
+    Rule(
+        "wheel_r",
+        "s_i do not span 3-space",
+        lambda xp, a: _s_conditioning(xp, a) < 1e-6,
+        lambda a: "the vectors s_i = r_i x alpha_i do not span 3-space: the wheels cannot set omega - Omega.",
+    ),
+)
 #: the rules that need no particular shapes (checked before the shapes)
 _N_FINITE = len(_FIELDS)
 
@@ -435,7 +544,7 @@ class Derived(eqx.Module):
     """
 
     s: Float[Array, "N 3"]
-    k: Float[Array, "N"]
+    k: Float[Array, " N"]
     Sk: Float[Array, "N 3"]
     Jss: Float[Array, "3 3"]
     Jsn: Float[Array, "3 3"]
@@ -463,9 +572,19 @@ def derive(p: RobotParams) -> Derived:
     A = p.I + Jss - Jns - Jsn
     G = inv3(Sk.T @ Sk)
     return Derived(
-        s=s, k=k, Sk=Sk, Jss=Jss, Jsn=Jsn, Jns=Jns, A=A, A_inv=inv3(A),
-        Sk_pinv=G @ Sk.T, Sk_T_pinv=Sk @ G,
-        B0=Jns - Jss, D0=p.I0 * jnp.eye(3, dtype=A.dtype) + Jss,
-        mR0=p.m * p.R0, MR2=(p.m + p.m0) * p.R0**2, mg=p.m * p.g,
-    )  # fmt: skip
-
+        s=s,
+        k=k,
+        Sk=Sk,
+        Jss=Jss,
+        Jsn=Jsn,
+        Jns=Jns,
+        A=A,
+        A_inv=inv3(A),
+        Sk_pinv=G @ Sk.T,
+        Sk_T_pinv=Sk @ G,
+        B0=Jns - Jss,
+        D0=p.I0 * jnp.eye(3, dtype=A.dtype) + Jss,
+        mR0=p.m * p.R0,
+        MR2=(p.m + p.m0) * p.R0**2,
+        mg=p.m * p.g,
+    )

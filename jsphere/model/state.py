@@ -9,9 +9,9 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .kinematics import attitude_matrix
-from .rotations import quat_from_rotmat, quat_normalize, rotmat
 from .linalg import cross
 from .params import RobotParams
+from .rotations import quat_from_rotmat, quat_normalize, rotmat
 
 
 class Flat:
@@ -62,7 +62,7 @@ class State(eqx.Module):
     Omega: Float[Array, "3"]
     x: Float[Array, ""]
     y: Float[Array, ""]
-    chi: Float[Array, "N"]
+    chi: Float[Array, " N"]
 
     def __check_init__(self):
         leaves = (self.q, self.q_shell, self.omega, self.Omega, self.x, self.y, self.chi)
@@ -125,13 +125,17 @@ class State(eqx.Module):
         R = jnp.stack([alpha, beta, cross(alpha, beta)])
         chi = jnp.zeros(params.n_wheels, dt) if chi is None else jnp.asarray(chi, dt)
         return cls(
-            q=quat_from_rotmat(R), q_shell=quat_normalize(jnp.asarray(q_shell, dt)),
-            omega=jnp.asarray(omega, dt), Omega=jnp.asarray(Omega, dt),
-            x=jnp.asarray(x, dt), y=jnp.asarray(y, dt), chi=chi,
-        )  # fmt: skip
+            q=quat_from_rotmat(R),
+            q_shell=quat_normalize(jnp.asarray(q_shell, dt)),
+            omega=jnp.asarray(omega, dt),
+            Omega=jnp.asarray(Omega, dt),
+            x=jnp.asarray(x, dt),
+            y=jnp.asarray(y, dt),
+            chi=chi,
+        )
 
     # -------------------------------------------------------------- flat layout
-    def flatten(self) -> Float[Array, "16+N"]:
+    def flatten(self) -> Float[Array, " 16+N"]:
         """The integrator's flat vector `[q, q_shell, omega, Omega, x, y, chi]`."""
         return jnp.concatenate(
             [self.q, self.q_shell, self.omega, self.Omega, jnp.stack([self.x, self.y]), self.chi], axis=-1
@@ -148,9 +152,14 @@ def _rest_fields(params: RobotParams, x, y, psi) -> dict:
     Q = attitude_matrix(params, psi)
     z3 = jnp.zeros(3, dt)
     return dict(
-        q=quat_from_rotmat(Q.T).astype(dt), q_shell=jnp.array([1.0, 0.0, 0.0, 0.0], dt), omega=z3, Omega=z3,
-        x=jnp.asarray(x, dt), y=jnp.asarray(y, dt), chi=jnp.zeros(params.n_wheels, dt),
-    )  # fmt: skip
+        q=quat_from_rotmat(Q.T).astype(dt),
+        q_shell=jnp.array([1.0, 0.0, 0.0, 0.0], dt),
+        omega=z3,
+        Omega=z3,
+        x=jnp.asarray(x, dt),
+        y=jnp.asarray(y, dt),
+        chi=jnp.zeros(params.n_wheels, dt),
+    )
 
 
 def _unflatten(z) -> State:

@@ -65,8 +65,17 @@ class Trials(eqx.Module):
 def _simulate_gaits(trials: Trials, p: RobotParams, ts, dOmega) -> Trajectory:
     """Trial robot `p` executing the gaits exactly, saved at `ts` (their end)."""
     # per-trial steps: every trial's result is independent of the other trials of its chunk
-    return simulate_gaits(p, trials.gaits, ts=ts, reset=trials.reset, rtol=trials.rtol, atol=trials.atol, throw=False,
-                          Omega0=dOmega, batch_steps="per_trial")  # fmt: skip
+    return simulate_gaits(
+        p,
+        trials.gaits,
+        ts=ts,
+        reset=trials.reset,
+        rtol=trials.rtol,
+        atol=trials.atol,
+        throw=False,
+        Omega0=dOmega,
+        batch_steps="per_trial",
+    )
 
 
 def _simulate_replay(trials: Trials, p: RobotParams, T, dOmega, key) -> Trajectory:
@@ -79,9 +88,17 @@ def _simulate_replay(trials: Trials, p: RobotParams, T, dOmega, key) -> Trajecto
     ts_after = T + rp.settle * jnp.linspace(0.0, 1.0, SETTLE_SAMPLES, dtype=dt)  # the settling phase
     # per-trial steps: every trial's result is independent of the other trials of its chunk
     return simulate(
-        p, s0, ctrl, T + rp.settle, ts=ts_after, rtol=trials.rtol, atol=trials.atol, throw=False,
-        max_steps=rp.max_steps, batch_steps="per_trial",
-    )  # fmt: skip
+        p,
+        s0,
+        ctrl,
+        T + rp.settle,
+        ts=ts_after,
+        rtol=trials.rtol,
+        atol=trials.atol,
+        throw=False,
+        max_steps=rp.max_steps,
+        batch_steps="per_trial",
+    )
 
 
 def _trial(trials: Trials, T, i: Int[Array, ""]) -> tuple:

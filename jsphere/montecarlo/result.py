@@ -68,9 +68,14 @@ class MonteCarloResult:
         status = np.asarray(self.status)
         ok, failed, rejected = outcome_masks(status)
         codes, counts = np.unique(status[failed], return_counts=True)
-        head = {"n": int(self.n), "n_ok": int(ok.sum()), "n_failed": int(failed.sum()),
-                "failed_status": {str(int(c)): int(k) for c, k in zip(codes, counts)},
-                "n_rejected": int(rejected.sum()), "rejected": self.rejections()}  # fmt: skip
+        head = {
+            "n": int(self.n),
+            "n_ok": int(ok.sum()),
+            "n_failed": int(failed.sum()),
+            "failed_status": {str(int(c)): int(k) for c, k in zip(codes, counts)},
+            "n_rejected": int(rejected.sum()),
+            "rejected": self.rejections(),
+        }
         if not ok.any():
             return head
         return {**head, **self._stop_statistics(ok, level)}
@@ -84,13 +89,23 @@ class MonteCarloResult:
         s = -2.0 * math.log(1.0 - level)  # chi-squared quantile with 2 degrees of freedom
         q = [0.025, 0.5, 0.975]
         return {
-            "mean_xy_m": mean.tolist(), "cov_xy_m2": cov.tolist(),
+            "mean_xy_m": mean.tolist(),
+            "cov_xy_m2": cov.tolist(),
             "sd_xy_m": np.sqrt(np.diag(cov)).tolist(),
-            "ellipse": {"level": level, "semi_axes_m": np.sqrt(np.maximum(evals, 0) * s).tolist(),
-                        "angle_rad": float(math.atan2(evecs[1, -1], evecs[0, -1]))},
+            "ellipse": {
+                "level": level,
+                "semi_axes_m": np.sqrt(np.maximum(evals, 0) * s).tolist(),
+                "angle_rad": float(math.atan2(evecs[1, -1], evecs[0, -1])),
+            },
             "quantiles": {"q": q, "x_m": np.quantile(xy[:, 0], q).tolist(), "y_m": np.quantile(xy[:, 1], q).tolist()},
-            "distance_m": {"mean": float(np.hypot(*xy.T).mean()), "sd": float(np.hypot(*xy.T).std(ddof=1)) if len(xy) > 1 else 0.0},
+            "distance_m": {
+                "mean": float(np.hypot(*xy.T).mean()),
+                "sd": float(np.hypot(*xy.T).std(ddof=1)) if len(xy) > 1 else 0.0,
+            },
             "speed_final_m_s": {"mean": float(self.speed_final[ok].mean()), "max": float(self.speed_final[ok].max())},
-            "gamma3_sd_after": {"mean": float(self.gamma3_sd_after[ok].mean()),
-                                "q": q, "quantiles": np.quantile(self.gamma3_sd_after[ok], q).tolist()},
-        }  # fmt: skip
+            "gamma3_sd_after": {
+                "mean": float(self.gamma3_sd_after[ok].mean()),
+                "q": q,
+                "quantiles": np.quantile(self.gamma3_sd_after[ok], q).tolist(),
+            },
+        }

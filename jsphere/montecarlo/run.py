@@ -34,9 +34,13 @@ from ..controls import Sampled
 from ..gaits.gaits import Gait, simulate_gaits
 from ..model.params import RobotParams
 from ..solve.simulate import tolerances
-from .batch import CHUNK as CHUNK, Replay, Trials, run_batch
-from .result import REJECTED as REJECTED, MonteCarloResult
-from .sampling import MAX_REDRAWS as MAX_REDRAWS, REASONS as REASONS, Actuators, Draws
+from .batch import CHUNK as CHUNK
+from .batch import Replay, Trials, run_batch
+from .result import REJECTED as REJECTED
+from .result import MonteCarloResult
+from .sampling import MAX_REDRAWS as MAX_REDRAWS
+from .sampling import REASONS as REASONS
+from .sampling import Actuators, Draws
 from .store import BATCH_KEYS, StudyFolder, fingerprint
 from .study import MODES, check_settings, check_vary
 
@@ -121,9 +125,19 @@ def monte_carlo(
 
     Returns a `MonteCarloResult` (`x_final`, `y_final`, ... arrays of length `n`; `.stats()`).
     """
-    settings = check_settings("monte_carlo", {"n": n, "seed": seed, "batch_size": batch_size, "settle": settle,
-                                              "Omega0_sd": Omega0_sd, "plan_rate": plan_rate, "max_steps": max_steps,
-                                              "wait_timeout": wait_timeout})  # fmt: skip
+    settings = check_settings(
+        "monte_carlo",
+        {
+            "n": n,
+            "seed": seed,
+            "batch_size": batch_size,
+            "settle": settle,
+            "Omega0_sd": Omega0_sd,
+            "plan_rate": plan_rate,
+            "max_steps": max_steps,
+            "wait_timeout": wait_timeout,
+        },
+    )
     actuators = _check_mode(mode, actuators, rtol, atol)
     pi, pc = _check_processes(process_index, process_count, out)
     spec = check_vary(params, vary)
@@ -132,8 +146,19 @@ def monte_carlo(
     if commands is not None and mode == "gait":
         raise ValueError("monte_carlo: `commands` are replayed; use mode='torques' or 'wheel_speeds'.")
     replay = None if mode == "gait" else _replay(params, gaits, mode, commands, reset, actuators, settings)
-    run = _Run.create(params, gaits, spec, settings, reset=reset, rtol=rtol, atol=atol, replay=replay,
-                      commands=commands is not None, out=out, process=(pi, pc))  # fmt: skip
+    run = _Run.create(
+        params,
+        gaits,
+        spec,
+        settings,
+        reset=reset,
+        rtol=rtol,
+        atol=atol,
+        replay=replay,
+        commands=commands is not None,
+        out=out,
+        process=(pi, pc),
+    )
     if run.folder is not None:
         run.folder.open(run.fingerprint, run.n, run.seed, vary, set(run.mine), pc == 1)
     t_start = time.perf_counter()
@@ -167,7 +192,9 @@ def _check_processes(process_index, process_count, out) -> tuple[int, int]:
     if not 0 <= pi < pc:
         raise InputError(f"monte_carlo: process_index must be in [0, process_count); got {pi} of {pc}.")
     if pc > 1 and out is None:
-        raise InputError("monte_carlo: with several processes, pass `out`, a folder that every process can read and write.")
+        raise InputError(
+            "monte_carlo: with several processes, pass `out`, a folder that every process can read and write."
+        )
     return pi, pc
 
 
@@ -176,7 +203,9 @@ def _check_gaits(gaits) -> list[Gait]:
         raise InputError(f"monte_carlo: gaits must be a non-empty list of jsphere.Gait; got {type(gaits).__name__}.")
     gaits = list(gaits)
     if not gaits or not all(isinstance(g, Gait) for g in gaits):
-        raise InputError("monte_carlo: gaits must be a non-empty list of jsphere.Gait (e.g. [acceleration(), braking()]).")
+        raise InputError(
+            "monte_carlo: gaits must be a non-empty list of jsphere.Gait (e.g. [acceleration(), braking()])."
+        )
     return gaits
 
 
@@ -191,7 +220,9 @@ def _replay(params, gaits, mode, commands, reset, actuators, settings) -> Replay
         tsn, u = np.asarray(commands[0], np.float64), np.asarray(commands[1], np.float64)
         Sampled(jnp.asarray(tsn), jnp.asarray(u))  # validates the table
         if tsn[0] != 0.0 or u.shape[1:] != (params.n_wheels,):
-            raise ValueError(f"monte_carlo: commands must start at t = 0 and have {params.n_wheels} columns; got t0 = {tsn[0]}, shape {u.shape}.")
+            raise ValueError(
+                f"monte_carlo: commands must start at t = 0 and have {params.n_wheels} columns; got t0 = {tsn[0]}, shape {u.shape}."
+            )
     # the motors stop when the plan ends: a jump to zero at its last time stamp
     tsn, u = np.concatenate([tsn, tsn[-1:]]), np.concatenate([u, np.zeros_like(u[:1])])
     jump_ts = ()
@@ -240,8 +271,18 @@ class _Run:
             from jax.sharding import Mesh
 
             mesh = Mesh(np.array(devices), ("trials",))
-        trials = Trials(params, gaits, Draws.from_spec(spec, params.R0.dtype), jnp.asarray(seed, jnp.uint32), reset,
-                        rtol, atol, settings["Omega0_sd"], replay, mesh)  # fmt: skip
+        trials = Trials(
+            params,
+            gaits,
+            Draws.from_spec(spec, params.R0.dtype),
+            jnp.asarray(seed, jnp.uint32),
+            reset,
+            rtol,
+            atol,
+            settings["Omega0_sd"],
+            replay,
+            mesh,
+        )
         record = () if replay is None else _replay_record(replay, settings["plan_rate"], commands)
         options = (reset, "gait" if replay is None else replay.mode, repr(record), settings["Omega0_sd"])
         fp = fingerprint(params, gaits, spec, seed, B, options, rtol, atol)
@@ -274,8 +315,13 @@ def _own_batches(run: _Run, t_start: float, progress: bool) -> list[dict | None]
             el = time.perf_counter() - t_start
             rate = done_new / el if el > 0 else float("nan")
             left = (len(todo) - count - 1) * run.batch_size / rate if rate > 0 else float("nan")
-            print(f"\r{_PROGRESS} batch {count + 1}/{len(todo)}  {min(done_new, run.n)}/{run.n} trials  "
-                  f"{rate:,.0f} trials/s  eta {left:,.0f} s ", end="", file=sys.stderr, flush=True)  # fmt: skip
+            print(
+                f"\r{_PROGRESS} batch {count + 1}/{len(todo)}  {min(done_new, run.n)}/{run.n} trials  "
+                f"{rate:,.0f} trials/s  eta {left:,.0f} s ",
+                end="",
+                file=sys.stderr,
+                flush=True,
+            )
     if progress and done_new:
         print(file=sys.stderr)
     return parts
@@ -293,16 +339,27 @@ def _other_batches(run: _Run, parts: list, wait_timeout: float) -> None:
                 if parts[k] is None:
                     parts[k] = run.compute(k)
             elif time.monotonic() > deadline:
-                raise TimeoutError(f"monte_carlo: batch {k} ({run.folder.batch_path(k)}) did not appear within "
-                                   f"{wait_timeout} s; is every process running?")  # fmt: skip
+                raise TimeoutError(
+                    f"monte_carlo: batch {k} ({run.folder.batch_path(k)}) did not appear within "
+                    f"{wait_timeout} s; is every process running?"
+                )
             else:
                 time.sleep(_POLL_S)
 
 
 def _result(run: _Run, parts: list[dict], elapsed_s: float) -> MonteCarloResult:
     """The study's outcome: the batches joined, cut to `n` trials."""
-    cat = {key: np.concatenate([p[key] for p in parts])[:run.n] for key in parts[0]}
+    cat = {key: np.concatenate([p[key] for p in parts])[: run.n] for key in parts[0]}
     samples = {name: cat["vals"][:, j] for j, name in enumerate(run.trials.draws.names)}
-    return MonteCarloResult(n=run.n, seed=run.seed, samples=samples, x_final=cat["x"], y_final=cat["y"],
-                            speed_final=cat["speed"], status=cat["status"], gamma3_sd_after=cat["gamma3_sd"],
-                            elapsed_s=elapsed_s, reject_code=cat["reject"])  # fmt: skip
+    return MonteCarloResult(
+        n=run.n,
+        seed=run.seed,
+        samples=samples,
+        x_final=cat["x"],
+        y_final=cat["y"],
+        speed_final=cat["speed"],
+        status=cat["status"],
+        gamma3_sd_after=cat["gamma3_sd"],
+        elapsed_s=elapsed_s,
+        reject_code=cat["reject"],
+    )

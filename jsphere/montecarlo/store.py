@@ -37,8 +37,22 @@ def fingerprint(params, gaits, spec, seed, batch_size, options, rtol, atol) -> s
     """A hash of everything that changes a study's results (also the rules a draw must meet, the
     redraw limit of "truncate" and the chunk width); `options`: the other settings."""
     leaves = [np.asarray(x).tolist() for x in jax.tree_util.tree_leaves((params, gaits)) if hasattr(x, "shape")]
-    text = json.dumps([leaves, str(params.R0.dtype), str(jax.tree_util.tree_structure(gaits)), spec, seed, batch_size,
-                       repr(options), rtol, atol, REASONS, MAX_REDRAWS, CHUNK])  # fmt: skip
+    text = json.dumps(
+        [
+            leaves,
+            str(params.R0.dtype),
+            str(jax.tree_util.tree_structure(gaits)),
+            spec,
+            seed,
+            batch_size,
+            repr(options),
+            rtol,
+            atol,
+            REASONS,
+            MAX_REDRAWS,
+            CHUNK,
+        ]
+    )
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
@@ -58,7 +72,9 @@ class StudyFolder:
         trials; remove the temporary files a killed run left there (`remove_temporary_files`)."""
         folder = self.path
         if folder.exists() and not folder.is_dir():
-            raise InputError(f"monte_carlo: out = {folder} is a file; give a folder for the study (it is created if missing).")
+            raise InputError(
+                f"monte_carlo: out = {folder} is a file; give a folder for the study (it is created if missing)."
+            )
         folder.mkdir(parents=True, exist_ok=True)
         manifest = folder / "manifest.json"
         if manifest.exists():
@@ -69,8 +85,16 @@ class StudyFolder:
                     f"monte_carlo: {folder} holds batch files but no manifest.json, so it cannot tell which study they "
                     "belong to; delete them (or choose another `out` folder)."
                 )
-            atomic_write_json(manifest, {"fingerprint": fp, "n": n, "seed": seed, "batch_size": self.batch_size,
-                                         "vary": {k: list(v) for k, v in vary.items()}})  # fmt: skip
+            atomic_write_json(
+                manifest,
+                {
+                    "fingerprint": fp,
+                    "n": n,
+                    "seed": seed,
+                    "batch_size": self.batch_size,
+                    "vary": {k: list(v) for k, v in vary.items()},
+                },
+            )
         self.remove_temporary_files(mine, single)
 
     def _check_manifest(self, manifest: Path, fp: str, n: int) -> None:
@@ -120,8 +144,11 @@ class StudyFolder:
                 raise ValueError(f"shapes {shapes} do not match a batch of {B} trials")
         except Exception as e:  # noqa: BLE001 - any unreadable file is recomputed
             reason = str(e) if isinstance(e, ValueError) else f"{type(e).__name__}: {e}"
-            warnings.warn(f"monte_carlo: {path} is corrupt or incomplete ({reason}); recomputing that batch.",
-                          MonteCarloWarning, stacklevel=stacklevel + 1)  # fmt: skip
+            warnings.warn(
+                f"monte_carlo: {path} is corrupt or incomplete ({reason}); recomputing that batch.",
+                MonteCarloWarning,
+                stacklevel=stacklevel + 1,
+            )
             return None
         return part
 

@@ -57,8 +57,7 @@ def _target(params: RobotParams, name: str) -> tuple:
 
 def _check_distribution(name: str, spec) -> tuple[str, float, float, bool]:
     """`(kind, a, b, truncate)` of one valid entry of `vary`, else `InputError` naming it."""
-    form = (f"vary[{name!r}] must be ['normal', mean, sd] or ['uniform', low, high], optionally followed by "
-            f"'{TRUNCATE}'")  # fmt: skip
+    form = f"vary[{name!r}] must be ['normal', mean, sd] or ['uniform', low, high], optionally followed by '{TRUNCATE}'"
     if not isinstance(spec, (tuple, list)) or len(spec) not in (3, 4) or spec[0] not in DISTRIBUTIONS:
         raise InputError(f"{form}; got {spec!r}.")
     if len(spec) == 4 and spec[3] != TRUNCATE:
@@ -78,7 +77,9 @@ def _check_distribution(name: str, spec) -> tuple[str, float, float, bool]:
 def check_vary(params: RobotParams, vary: Mapping[str, Sequence]) -> list[tuple[str, str, float, float, bool]]:
     """`[(name, kind, a, b, truncate)]` of a valid `vary`, else `InputError` naming the entry."""
     if not isinstance(vary, Mapping):
-        raise InputError(f"vary must be a table {{name: [kind, a, b]}}, e.g. {{\"r_m[2]\": [\"normal\", -0.027, 1e-4]}}; got {vary!r}.")
+        raise InputError(
+            f'vary must be a table {{name: [kind, a, b]}}, e.g. {{"r_m[2]": ["normal", -0.027, 1e-4]}}; got {vary!r}.'
+        )
     out, seen = [], {}
     for name, spec in vary.items():
         if not isinstance(name, str):
@@ -90,7 +91,9 @@ def check_vary(params: RobotParams, vary: Mapping[str, Sequence]) -> list[tuple[
         if get_value(params, name).ndim != 0:
             raise InputError(f"vary[{name!r}]: vary scalar components (e.g. 'I[0,0]'), not a whole field.")
         t = _target(params, name)
-        other = next((o for o, ot in seen.items() if ot == t or (t[0] == ot[0] == "r_m" and (len(t) == 1 or len(ot) == 1))), None)
+        other = next(
+            (o for o, ot in seen.items() if ot == t or (t[0] == ot[0] == "r_m" and (len(t) == 1 or len(ot) == 1))), None
+        )
         if other is not None:
             raise InputError(f"vary: {other!r} and {name!r} set the same value; vary one of them.")
         seen[name] = t
@@ -104,11 +107,27 @@ def check_vary(params: RobotParams, vary: Mapping[str, Sequence]) -> list[tuple[
 GAITS = {"acceleration": acceleration, "braking": braking, "turn": turn}
 GAIT_KINDS = tuple(GAITS)
 #: the keys of a study file
-STUDY_KEYS = {"trials", "seed", "batch_size", "mode", "params", "Omega0_sd", "settle", "reset", "gaits", "vary",
-              "actuators"}  # fmt: skip
+STUDY_KEYS = {
+    "trials",
+    "seed",
+    "batch_size",
+    "mode",
+    "params",
+    "Omega0_sd",
+    "settle",
+    "reset",
+    "gaits",
+    "vary",
+    "actuators",
+}
 #: a study file's numeric keys and the `SETTINGS` they set
-_FILE_SETTINGS = {"trials": "n", "seed": "seed", "batch_size": "batch_size", "settle": "settle",
-                  "Omega0_sd": "Omega0_sd"}  # fmt: skip
+_FILE_SETTINGS = {
+    "trials": "n",
+    "seed": "seed",
+    "batch_size": "batch_size",
+    "settle": "settle",
+    "Omega0_sd": "Omega0_sd",
+}
 
 
 def load_study(path) -> dict:
@@ -142,18 +161,20 @@ def load_study(path) -> dict:
     """
     path = Path(path)
     cfg = _read_toml(path)
-    settings = check_settings(str(path), {_FILE_SETTINGS[k]: cfg[k] for k in _FILE_SETTINGS if k in cfg},
-                              names={v: k for k, v in _FILE_SETTINGS.items()})  # fmt: skip
+    settings = check_settings(
+        str(path),
+        {_FILE_SETTINGS[k]: cfg[k] for k in _FILE_SETTINGS if k in cfg},
+        names={v: k for k, v in _FILE_SETTINGS.items()},
+    )
     mode = cfg.get("mode", "gait")
     if mode not in MODES:
-        raise InputError(f"{path}: mode must be \"gait\", \"torques\" or \"wheel_speeds\"; got {mode!r}.")
+        raise InputError(f'{path}: mode must be "gait", "torques" or "wheel_speeds"; got {mode!r}.')
     reset = cfg.get("reset", False)
     if not isinstance(reset, (bool, list)):
         raise InputError(f"{path}: reset must be true, false or a list (one entry per gait boundary); got {reset!r}.")
     params = _study_params(path, cfg)
     gaits = _study_gaits(path, cfg.get("gaits", [{"kind": "acceleration"}, {"kind": "braking"}]))
-    kwargs = dict(vary=dict(cfg["vary"]), mode=mode,
-                  reset=reset, **{k: v for k, v in settings.items() if k != "n"})  # fmt: skip
+    kwargs = dict(vary=dict(cfg["vary"]), mode=mode, reset=reset, **{k: v for k, v in settings.items() if k != "n"})
     kwargs.setdefault("batch_size", 4096)
     if "actuators" in cfg:
         kwargs["actuators"] = _study_actuators(path, cfg["actuators"])
@@ -176,10 +197,12 @@ def _read_toml(path: Path) -> dict:
     if unknown:
         raise InputError(f"{path}: unknown key(s) {unknown}; expected {sorted(STUDY_KEYS)}.")
     if "vary" not in cfg:
-        raise InputError(f"{path}: a study needs a [vary] table, e.g. \"r_m[2]\" = [\"normal\", -0.027, 1e-4].")
+        raise InputError(f'{path}: a study needs a [vary] table, e.g. "r_m[2]" = ["normal", -0.027, 1e-4].')
     if not isinstance(cfg["vary"], dict):
-        raise InputError(f"{path}: vary must be a table of distributions, e.g. [vary] \"r_m[2]\" = [\"normal\", -0.027, 1e-4]; "
-                         f"got {cfg['vary']!r}.")  # fmt: skip
+        raise InputError(
+            f'{path}: vary must be a table of distributions, e.g. [vary] "r_m[2]" = ["normal", -0.027, 1e-4]; '
+            f"got {cfg['vary']!r}."
+        )
     return cfg
 
 
@@ -188,19 +211,25 @@ def _study_params(path: Path, cfg: dict) -> RobotParams:
     if "params" not in cfg:
         return RobotParams.paper()
     if not isinstance(cfg["params"], str):
-        raise InputError(f"{path}: params must be the path of a parameter file (.toml or .json); got {cfg['params']!r}.")
+        raise InputError(
+            f"{path}: params must be the path of a parameter file (.toml or .json); got {cfg['params']!r}."
+        )
     return RobotParams.load((path.parent / cfg["params"]).resolve())
 
 
 def _study_gaits(path: Path, gait_list) -> list:
     """The gaits of a study file's `gaits` list."""
     if not isinstance(gait_list, list) or not gait_list:
-        raise InputError(f"{path}: gaits must be a non-empty list of tables, e.g. gaits = [{{kind = \"acceleration\"}}, "
-                         f"{{kind = \"braking\"}}]; got {gait_list!r}.")  # fmt: skip
+        raise InputError(
+            f'{path}: gaits must be a non-empty list of tables, e.g. gaits = [{{kind = "acceleration"}}, '
+            f'{{kind = "braking"}}]; got {gait_list!r}.'
+        )
     gaits = []
     for k, g in enumerate(gait_list):
         if not isinstance(g, dict):
-            raise InputError(f"{path}: gaits[{k}] must be a table such as {{kind = \"acceleration\", theta_max = 0.1}}; got {g!r}.")
+            raise InputError(
+                f'{path}: gaits[{k}] must be a table such as {{kind = "acceleration", theta_max = 0.1}}; got {g!r}.'
+            )
         g = dict(g)
         kind = g.pop("kind", None)
         if kind not in GAIT_KINDS:

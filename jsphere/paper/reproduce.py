@@ -76,7 +76,13 @@ def _horizontal_speed(params, traj, i=-1) -> float:
 
 
 def full_stop_brake(
-    params: RobotParams, *, theta0: float = 0.1, phi0: float = math.pi / 4, iters: int = 8, tol: float = 1e-12, rate: float = 100.0
+    params: RobotParams,
+    *,
+    theta0: float = 0.1,
+    phi0: float = math.pi / 4,
+    iters: int = 8,
+    tol: float = 1e-12,
+    rate: float = 100.0,
 ):
     """`(theta_max, phi)` of the braking gait that stops the robot after acceleration (5.1) and
     turn (5.6), every gait starting from the previous end state (Newton on the horizontal
@@ -172,7 +178,6 @@ def _figure2(p: RobotParams, rate: float, straight: Trajectory, v_kin: float, ou
                     "swing make the dynamic model run ahead of the kinematic plan."))  # fmt: skip
 
 
-
 def _straight_stop(p: RobotParams, straight: Trajectory, straight_reset: Trajectory, out: _Tables):
     """Section 5.2 (1): the stop point of the straight line."""
     R0, rows, vals = float(p.R0), out.rows, out.vals
@@ -181,12 +186,13 @@ def _straight_stop(p: RobotParams, straight: Trajectory, straight_reset: Traject
     vals["straight_stop_m"] = {"continuation": [xs, ys], "reset_5.4": [xr, yr]}
     why = ("the paper's stop does not follow from its own Omega_1: any R_m, j giving Omega_1 = 0.864 stop at "
            f"~2 s * R0 * Omega_1 = {2 * R0 * 0.864 * 1e3:.1f} mm; 344.6 mm would need Omega_1 = 1.15 1/s.")  # fmt: skip
-    rows.append(Row("straight line stop, simulation", "(-0.0695, 344.6) mm", _mm(xs, ys), _mm(*to_figure_frame(xs, ys)), why))
+    rows.append(
+        Row("straight line stop, simulation", "(-0.0695, 344.6) mm", _mm(xs, ys), _mm(*to_figure_frame(xs, ys)), why)
+    )
     rows.append(Row("straight line stop, reset (5.4)", "", _mm(xr, yr), _mm(*to_figure_frame(xr, yr)),
                     f"with the reset the robot keeps {1e3 * _horizontal_speed(p, straight_reset):.2f} mm/s "
                     "(the dropped sideways part of Omega)."))  # fmt: skip
     rows.append(Row("straight line stop, experiment", "(-1.392 +- 28.9, 369.2 +- 37.7) mm", "", ""))
-
 
 
 def _turn_stops(p: RobotParams, rate: float, out: _Tables):
@@ -218,8 +224,10 @@ def _turn_stops(p: RobotParams, rate: float, out: _Tables):
         if name == "turn_printed":
             note += ": with the printed sign the 'braking' gait speeds the robot up"
         elif name == "turn_reset":
-            note += ("; theta_max = 0.1 at phi = pi/4 cannot cancel a speed of |(0.864, 0.852)| R0 (it removes "
-                     "0.864 R0 along the diagonal); the paper's stop point is therefore not reproducible")
+            note += (
+                "; theta_max = 0.1 at phi = pi/4 cannot cancel a speed of |(0.864, 0.852)| R0 (it removes "
+                "0.864 R0 along the diagonal); the paper's stop point is therefore not reproducible"
+            )
         rows.append(Row(label, "(-173.2, 519.4) mm" if name == "turn_reset" else "", _mm(x, y),
                         _mm(*to_figure_frame(x, y)), note))  # fmt: skip
     rows.append(Row("turn + brake stop, experiment", "(-151.3 +- 32.4, 482.4 +- 112.1) mm", "", ""))
@@ -284,5 +292,7 @@ def concatenate_trajectories(a: Trajectory, b: Trajectory) -> Trajectory:
     out = jax.tree_util.tree_map(join, a, b)
     seg = np.concatenate([a.segment, b.segment + np.max(a.segment) + 1])
     return eqx.tree_at(
-        lambda t: (t.segment, t.status, t.num_steps), out, (seg, np.maximum(a.status, b.status), a.num_steps + b.num_steps)
+        lambda t: (t.segment, t.status, t.num_steps),
+        out,
+        (seg, np.maximum(a.status, b.status), a.num_steps + b.num_steps),
     )

@@ -47,12 +47,19 @@ def _search_batch(b: _Batch, seed: int, progress: bool):
     lim_a, obj_a = (jax.tree_util.tree_map(lambda v: jnp.asarray(v, p.R0.dtype), m) for m in (b.lim, b.obj))
     z0 = _initial_guesses(p, b.targets, b.restarts, b.lim, s, seed)
     if progress:
-        print(f"jsphere plan: {len(b.targets)} target(s) x {b.restarts} restarts, Adam {s.adam_steps} + L-BFGS "
-              f"{s.lbfgs_steps} + LM {s.lm_steps} iterations (compiling ...)", file=sys.stderr, flush=True)  # fmt: skip
+        print(
+            f"jsphere plan: {len(b.targets)} target(s) x {b.restarts} restarts, Adam {s.adam_steps} + L-BFGS "
+            f"{s.lbfgs_steps} + LM {s.lm_steps} iterations (compiling ...)",
+            file=sys.stderr,
+            flush=True,
+        )
     zf, loss, _, Jf, _ = _search(p, jnp.asarray(b.targets, p.R0.dtype), z0, lim_a, obj_a, s)
     if progress:
-        print(f"jsphere plan: search done in {time.perf_counter() - b.t0:.1f} s; verifying with the accurate solver ...",
-              file=sys.stderr, flush=True)  # fmt: skip
+        print(
+            f"jsphere plan: search done in {time.perf_counter() - b.t0:.1f} s; verifying with the accurate solver ...",
+            file=sys.stderr,
+            flush=True,
+        )
     return np.asarray(zf), np.asarray(Jf), np.asarray(loss)
 
 
@@ -68,8 +75,9 @@ def _verified(b: _Batch, k: int, z, J):
 
     tr = accurate(gait_from_vector(jnp.asarray(z), lim, b.s))
     err = _terminal_errors(p, tr, b.targets[k])
-    _, gait, tr, err, steps = _correct_bias(p, z, J, b.targets[k], tr, err, accurate, lim, b.obj, b.s,
-                                            b.tol_position, b.tol_speed)  # fmt: skip
+    _, gait, tr, err, steps = _correct_bias(
+        p, z, J, b.targets[k], tr, err, accurate, lim, b.obj, b.s, b.tol_position, b.tol_speed
+    )
     b.iterations["newton"] += steps
     return gait, tr, err
 
@@ -78,9 +86,13 @@ def _search_model_errors(b: _Batch, k: int, gait) -> dict:
     """Terminal errors in the search model (no accurate re-simulation)."""
     p, tg = b.params, b.targets[k]
     ro = rollout(p, gait, b.s.n_steps)
-    return {"position_m": float(np.hypot(ro.x[-1] - tg[0], ro.y[-1] - tg[1])),
-            "speed_m_s": float(p.R0 * jnp.linalg.norm(ro.Omega[-1, :2])), "heading_rad": float("nan"),
-            "spin_rad_s": float(abs(ro.Omega[-1, 2])), "final": [float(ro.x[-1]), float(ro.y[-1]), float(ro.heading)]}  # fmt: skip
+    return {
+        "position_m": float(np.hypot(ro.x[-1] - tg[0], ro.y[-1] - tg[1])),
+        "speed_m_s": float(p.R0 * jnp.linalg.norm(ro.Omega[-1, :2])),
+        "heading_rad": float("nan"),
+        "spin_rad_s": float(abs(ro.Omega[-1, 2])),
+        "final": [float(ro.x[-1]), float(ro.y[-1]), float(ro.heading)],
+    }
 
 
 def _shortfall(b: _Batch, k: int, err: dict, rep: dict) -> list[str]:
@@ -88,14 +100,18 @@ def _shortfall(b: _Batch, k: int, err: dict, rep: dict) -> list[str]:
     the limits that bind."""
     out = []
     if err["position_m"] > b.tol_position:
-        out.append(f"final position misses by {1e3 * err['position_m']:.3f} mm (tolerance {1e3 * b.tol_position:.3f} mm)")
+        out.append(
+            f"final position misses by {1e3 * err['position_m']:.3f} mm (tolerance {1e3 * b.tol_position:.3f} mm)"
+        )
     if err["speed_m_s"] > b.tol_speed:
         out.append(f"final speed {1e3 * err['speed_m_s']:.3f} mm/s (tolerance {1e3 * b.tol_speed:.3f} mm/s)")
     if b.targets[k, 3] and err["heading_rad"] > b.tol_heading:
         out.append(f"final heading misses by {err['heading_rad']:.4f} rad (tolerance {b.tol_heading} rad)")
     for name, r in rep.items():
         if not r["ok"]:
-            out.append(f"limit {name} exceeded: {r['max']:.5g} > {r['limit']:.5g} (by {100 * (r['max'] / r['limit'] - 1):.1f}%)")
+            out.append(
+                f"limit {name} exceeded: {r['max']:.5g} > {r['limit']:.5g} (by {100 * (r['max'] / r['limit'] - 1):.1f}%)"
+            )
     binding = [n for n, r in rep.items() if r["ok"] and r["max"] > 0.95 * r["limit"]]
     if out and binding:
         out.append(f"binding limit(s): {', '.join(binding)}")
@@ -113,11 +129,21 @@ def _plan_for(b: _Batch, k: int, z, J, loss, verify: bool) -> Plan:
     shortfall = _shortfall(b, k, err, rep)
     tg = b.targets[k]
     return Plan(
-        params=b.params, gaits=[gait], legs=np.zeros((1, 3)), trajectory=tr, rate=b.rate,
-        target=np.array([tg[0], tg[1], tg[2] if tg[3] else np.nan]), errors=err,
-        limits_report=rep, feasible=not shortfall, shortfall=shortfall, iterations=dict(b.iterations),
-        elapsed_s=time.perf_counter() - b.t0, loss=float(np.min(loss)), restarts=b.restarts,
-    )  # fmt: skip
+        params=b.params,
+        gaits=[gait],
+        legs=np.zeros((1, 3)),
+        trajectory=tr,
+        rate=b.rate,
+        target=np.array([tg[0], tg[1], tg[2] if tg[3] else np.nan]),
+        errors=err,
+        limits_report=rep,
+        feasible=not shortfall,
+        shortfall=shortfall,
+        iterations=dict(b.iterations),
+        elapsed_s=time.perf_counter() - b.t0,
+        loss=float(np.min(loss)),
+        restarts=b.restarts,
+    )
 
 
 def plan_many(
@@ -151,13 +177,31 @@ def plan_many(
 
     Returns one `Plan` per target (infeasible ones have `feasible = False`; `plan` raises).
     """
-    targets = _check_request("plan_many", targets, limits, objective, settings, restarts, rate, seed,
-                             (("tol_position", tol_position), ("tol_speed", tol_speed), ("tol_heading", tol_heading)))  # fmt: skip
+    targets = _check_request(
+        "plan_many",
+        targets,
+        limits,
+        objective,
+        settings,
+        restarts,
+        rate,
+        seed,
+        (("tol_position", tol_position), ("tol_speed", tol_speed), ("tol_heading", tol_heading)),
+    )
     s = settings or PlanSettings()
     b = _Batch(
-        params=params, targets=_vec_targets(targets), lim=limits or Limits(), obj=objective or Objective(), s=s,
-        restarts=int(restarts), rate=rate, tol_position=tol_position, tol_speed=tol_speed, tol_heading=tol_heading,
-        t0=time.perf_counter(), iterations={"adam": s.adam_steps, "lbfgs": s.lbfgs_steps, "lm": s.lm_steps, "newton": 0},
-    )  # fmt: skip
+        params=params,
+        targets=_vec_targets(targets),
+        lim=limits or Limits(),
+        obj=objective or Objective(),
+        s=s,
+        restarts=int(restarts),
+        rate=rate,
+        tol_position=tol_position,
+        tol_speed=tol_speed,
+        tol_heading=tol_heading,
+        t0=time.perf_counter(),
+        iterations={"adam": s.adam_steps, "lbfgs": s.lbfgs_steps, "lm": s.lm_steps, "newton": 0},
+    )
     zf, Jf, loss = _search_batch(b, seed, progress)
     return [_plan_for(b, k, zf[k], Jf[k], loss[k], verify) for k in range(len(b.targets))]

@@ -53,8 +53,9 @@ def optimise_gaits(
     @eqx.filter_jit
     def solve(x0):
         # reverse-mode Jacobian: the adaptive solver's checkpointed loop has no forward mode
-        sol = optx.least_squares(r, optx.LevenbergMarquardt(rtol=0.0, atol=tol), x0, options={"jac": "bwd"},
-                                 max_steps=steps, throw=False)  # fmt: skip
+        sol = optx.least_squares(
+            r, optx.LevenbergMarquardt(rtol=0.0, atol=tol), x0, options={"jac": "bwd"}, max_steps=steps, throw=False
+        )
         return sol.value, r(sol.value, None), sol.stats["num_steps"]
 
     x, res, k = solve(jnp.asarray(x0, jnp.float64))

@@ -64,8 +64,17 @@ def plan(
     if heading is not None:
         real("plan", "heading", heading, low=None, unit="rad; None for a free final heading")
     _check_request("plan", [(to[0], to[1], heading)], limits, objective, settings, restarts, rate, seed)
-    pl = plan_many(params, [(to[0], to[1], heading)], limits=limits, objective=objective, settings=settings,
-                   restarts=restarts, rate=rate, seed=seed, progress=progress)[0]  # fmt: skip
+    pl = plan_many(
+        params,
+        [(to[0], to[1], heading)],
+        limits=limits,
+        objective=objective,
+        settings=settings,
+        restarts=restarts,
+        rate=rate,
+        seed=seed,
+        progress=progress,
+    )[0]
     if not pl.feasible and not allow_infeasible:
         raise PlanInfeasibleError(
             "jsphere.plan: the request cannot be met: "
@@ -112,21 +121,51 @@ def plan_route(
     rest sample at each stop dropped).
     """
     if isinstance(waypoints, (str, bytes)) or not isinstance(waypoints, Sequence) or not len(waypoints):
-        raise InputError(f"plan_route: waypoints must be a non-empty list of (x, y) or (x, y, heading); got {waypoints!r}.")
-    _check_request("plan_route", [tuple(w) if isinstance(w, (Sequence, np.ndarray)) else w for w in waypoints], limits,
-                   objective, settings, restarts, rate, seed, nan_free=False)  # fmt: skip
+        raise InputError(
+            f"plan_route: waypoints must be a non-empty list of (x, y) or (x, y, heading); got {waypoints!r}."
+        )
+    _check_request(
+        "plan_route",
+        [tuple(w) if isinstance(w, (Sequence, np.ndarray)) else w for w in waypoints],
+        limits,
+        objective,
+        settings,
+        restarts,
+        rate,
+        seed,
+        nan_free=False,
+    )
     poses, local, pose = _legs(waypoints)
-    legs = plan_many(params, local, limits=limits, objective=objective, settings=settings, restarts=restarts,
-                     rate=rate, seed=seed, progress=progress)  # fmt: skip
+    legs = plan_many(
+        params,
+        local,
+        limits=limits,
+        objective=objective,
+        settings=settings,
+        restarts=restarts,
+        rate=rate,
+        seed=seed,
+        progress=progress,
+    )
     tr, t_off, shortfall = _joined(legs, poses)
     err, rep = _route_errors(legs, poses, tr, t_off, limits or Limits())
     tx, ty, tpsi = pose
     pl = Plan(
-        params=params, gaits=[lg.gaits[0] for lg in legs], legs=np.asarray(poses), trajectory=tr, rate=rate,
-        target=np.array([tx, ty, tpsi]), errors=err, limits_report=rep, feasible=all(lg.feasible for lg in legs),
-        shortfall=shortfall, iterations=legs[0].iterations, elapsed_s=max(lg.elapsed_s for lg in legs),
-        loss=sum(lg.loss for lg in legs), restarts=int(restarts),
-    )  # fmt: skip
+        params=params,
+        gaits=[lg.gaits[0] for lg in legs],
+        legs=np.asarray(poses),
+        trajectory=tr,
+        rate=rate,
+        target=np.array([tx, ty, tpsi]),
+        errors=err,
+        limits_report=rep,
+        feasible=all(lg.feasible for lg in legs),
+        shortfall=shortfall,
+        iterations=legs[0].iterations,
+        elapsed_s=max(lg.elapsed_s for lg in legs),
+        loss=sum(lg.loss for lg in legs),
+        restarts=int(restarts),
+    )
     if not pl.feasible and not allow_infeasible:
         raise PlanInfeasibleError("jsphere.plan_route: " + "; ".join(shortfall), plan=pl)
     return pl

@@ -117,13 +117,19 @@ def _traced(*vs) -> bool:
 MAX_ROWS = 10_000_000
 
 
-def _check_request(where: str, targets, limits, objective, settings, restarts, rate, seed, tols=(), nan_free=True) -> list:
+def _check_request(
+    where: str, targets, limits, objective, settings, restarts, rate, seed, tols=(), nan_free=True
+) -> list:
     """Check a planning request before any work; return the targets as lists.
     Raises `InputError` naming the value: targets `(x, y)` or `(x, y, psi)` with finite
     numbers (`psi` None, or NaN with `nan_free`, for a free heading), `restarts >= 1`,
     `rate > 0`, `seed >= 0`, positive tolerances, and `Limits`, `Objective`, `PlanSettings`
     instances."""
-    for name, v, cls in (("limits", limits, Limits), ("objective", objective, Objective), ("settings", settings, PlanSettings)):
+    for name, v, cls in (
+        ("limits", limits, Limits),
+        ("objective", objective, Objective),
+        ("settings", settings, PlanSettings),
+    ):
         if v is not None and not isinstance(v, cls):
             raise InputError(f"{where}: {name} must be a jsphere.{cls.__name__}; got {type(v).__name__}.")
     whole(where, "restarts", restarts, 1)
@@ -133,8 +139,10 @@ def _check_request(where: str, targets, limits, objective, settings, restarts, r
         real(where, name, v, strict=True)
     lim = limits or Limits()
     if lim.max_time * rate > MAX_ROWS:
-        raise InputError(f"{where}: rate = {rate:g} Hz makes {lim.max_time * rate:.3g} rows over max_time = {lim.max_time:g} s "
-                         f"(at most {MAX_ROWS:.0e}); lower the rate.")  # fmt: skip
+        raise InputError(
+            f"{where}: rate = {rate:g} Hz makes {lim.max_time * rate:.3g} rows over max_time = {lim.max_time:g} s "
+            f"(at most {MAX_ROWS:.0e}); lower the rate."
+        )
     if isinstance(targets, (str, bytes)) or not isinstance(targets, Sequence) or not len(targets):
         raise InputError(f"{where}: targets must be a non-empty list of (x, y) or (x, y, heading); got {targets!r}.")
     out = []

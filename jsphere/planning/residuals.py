@@ -49,9 +49,13 @@ def _residuals(z, target, params, lim: Limits, obj: Objective, s: PlanSettings):
     h = ro.ts[1] - ro.ts[0]
     energy = h * jnp.sum(_smooth_abs(ro.K * ro.chi_dot))
     effort = h * jnp.sum(ro.K**2)
-    costs = jnp.stack([
-        jnp.sqrt(obj.energy * energy + 1e-30), jnp.sqrt(obj.time * gait.T + 1e-30), jnp.sqrt(obj.effort * effort + 1e-30),
-    ])  # fmt: skip
+    costs = jnp.stack(
+        [
+            jnp.sqrt(obj.energy * energy + 1e-30),
+            jnp.sqrt(obj.time * gait.T + 1e-30),
+            jnp.sqrt(obj.effort * effort + 1e-30),
+        ]
+    )
     return jnp.concatenate(
         [jnp.stack(term[:2]), term[2], term[3], lw * jnp.concatenate(lims) if lims else jnp.zeros(0), costs]
     )

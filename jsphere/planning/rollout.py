@@ -94,6 +94,12 @@ def rollout(params: RobotParams, gait: TiltGait, n_steps: int) -> Rollout:
     _, chi_dot, K = jax.vmap(lambda t, z: _gait_outputs(p, d, (gait, Qm), t, z, 0.0, T))(ts, zs)
     u = jax.vmap(gait.tilt)(ts)
     return Rollout(
-        ts=ts, x=zs[:, 14], y=zs[:, 15], Omega=zs[:, 11:14], chi_dot=chi_dot, K=K,
-        tilt2=jnp.sum(u**2, axis=-1), heading=_heading(rotmat(zs[-1, 0:4]), Qm),
-    )  # fmt: skip
+        ts=ts,
+        x=zs[:, 14],
+        y=zs[:, 15],
+        Omega=zs[:, 11:14],
+        chi_dot=chi_dot,
+        K=K,
+        tilt2=jnp.sum(u**2, axis=-1),
+        heading=_heading(rotmat(zs[-1, 0:4]), Qm),
+    )

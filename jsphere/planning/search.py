@@ -26,6 +26,7 @@ from .residuals import _loss, _residuals, _residuals_and_jacobian
 
 def _lbfgs(z0, target, params, lim, obj, s):
     """`lbfgs_steps` L-BFGS steps (optax) on `sum r^2`; a step to a non-finite point is dropped."""
+
     def f(z):
         return _loss(z, target, params, lim, obj, s)
 
@@ -80,8 +81,15 @@ def _search_one(z0, target, params, lim, obj, s):
         return (z_next, zb, rb, Jb, fb, lam, st_new), f
 
     r0 = _residuals(z0, target, params, lim, obj, s)
-    c0 = (z0, z0, jnp.zeros_like(r0), jnp.zeros((r0.shape[0], V), z0.dtype), jnp.asarray(jnp.inf, z0.dtype),
-          jnp.asarray(1e-3, z0.dtype), opt.init(z0))  # fmt: skip
+    c0 = (
+        z0,
+        z0,
+        jnp.zeros_like(r0),
+        jnp.zeros((r0.shape[0], V), z0.dtype),
+        jnp.asarray(jnp.inf, z0.dtype),
+        jnp.asarray(1e-3, z0.dtype),
+        opt.init(z0),
+    )
     c, hist = jax.lax.scan(body, c0, jnp.arange(s.adam_steps + s.lm_steps + 1))
     _, zb, _, Jb, fb, _, _ = c
     return zb, fb, Jb, hist

@@ -90,8 +90,13 @@ def _correct_bias(params, z, J_search, target, tr, err, accurate, lim, obj, s, t
             break
         fin = err["final"]
         Om = float(params.R0) * np.asarray(tr.Omega[-1])
-        r = np.concatenate([[fin[0] - target[0], fin[1] - target[1]], Om,
-                            [target[3] * math.remainder(fin[2] - target[2], 2 * math.pi)]])  # fmt: skip
+        r = np.concatenate(
+            [
+                [fin[0] - target[0], fin[1] - target[1]],
+                Om,
+                [target[3] * math.remainder(fin[2] - target[2], 2 * math.pi)],
+            ]
+        )
         z_new = z - np.linalg.lstsq(J[rows], r[rows], rcond=None)[0]
         g_new = gait_from_vector(jnp.asarray(z_new), lim, s)
         tr_new = accurate(g_new)

@@ -3,10 +3,6 @@ frame, and the atomic save."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
-import numpy as np
-
 from .._runtime.files import atomic_savefig
 
 

@@ -64,7 +64,9 @@ def fit_figures(result, out_dir, *, stem: str = "fit") -> list[Path]:
     floor_rot = f", noise floor {fr:.3f} deg" if isinstance(fr, float) and np.isfinite(fr) else ""
     n = len(trials)
     order = list(range(n)) if worst is None else [worst] + [k for k in range(n) if k != worst]
-    fig, axes = plt.subplots(n, 2, figsize=(10, 1.6 * n + 0.8 + (0.3 if worst_text else 0.0)), sharex="row", squeeze=False)
+    fig, axes = plt.subplots(
+        n, 2, figsize=(10, 1.6 * n + 0.8 + (0.3 if worst_text else 0.0)), sharex="row", squeeze=False
+    )
     for row, k in enumerate(order):
         tr = trials[k]
         s = tr["series"]

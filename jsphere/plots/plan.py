@@ -31,8 +31,18 @@ def plan_figure(plan, path, *, compare=None, title: str = "") -> None:
     t = cols["t"]
     idx = np.linspace(0, len(t) - 1, 12).astype(int)
     L = 0.05 * max(np.ptp(cols["x"]), np.ptp(cols["y"]), 0.1)
-    a.quiver(cols["x"][idx], cols["y"][idx], np.cos(cols["heading"][idx]), np.sin(cols["heading"][idx]),
-             angles="xy", scale_units="xy", scale=1 / L, width=0.004, color="0.4", label="platform heading")  # fmt: skip
+    a.quiver(
+        cols["x"][idx],
+        cols["y"][idx],
+        np.cos(cols["heading"][idx]),
+        np.sin(cols["heading"][idx]),
+        angles="xy",
+        scale_units="xy",
+        scale=1 / L,
+        width=0.004,
+        color="0.4",
+        label="platform heading",
+    )
     a.set_xlabel("x [m]")
     a.set_ylabel("y [m]")
     a.axis("equal")

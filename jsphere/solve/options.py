@@ -119,9 +119,14 @@ class SolverOptions(eqx.Module):
 
 
 _DEFAULTS = {
-    "rtol": None, "atol": None, "solver": None, "max_steps": 16384, "throw": True, "adjoint": None,
+    "rtol": None,
+    "atol": None,
+    "solver": None,
+    "max_steps": 16384,
+    "throw": True,
+    "adjoint": None,
     "batch_steps": "shared",
-}  # fmt: skip
+}
 
 
 def _same(a, b) -> bool:

@@ -33,7 +33,10 @@ def _homogeneous(controls):
     for dyn, st in parts[1:]:
         if jax.tree_util.tree_structure(dyn) != tdef or not eqx.tree_equal(st, st0):
             return None
-        if any(jnp.shape(u) != jnp.shape(v) for u, v in zip(jax.tree_util.tree_leaves(dyn), jax.tree_util.tree_leaves(dyn0))):
+        if any(
+            jnp.shape(u) != jnp.shape(v)
+            for u, v in zip(jax.tree_util.tree_leaves(dyn), jax.tree_util.tree_leaves(dyn0))
+        ):
             return None
     stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack([jnp.asarray(x) for x in xs]), *[d for d, _ in parts])
     return stacked, st0
@@ -93,16 +96,34 @@ def solve_segments(
             z = jnp.where(code != 0, jnp.nan, z)
         if layout.batch_solve:
             ys, failed, n_acc = _segment.solve(
-                component_field, component_control or _torque_control, solver, rtol, atol, max_steps, adjoint,
-                to_components(z), (p, d, control, a, b), t_save, layout,
-            )  # fmt: skip
+                component_field,
+                component_control or _torque_control,
+                solver,
+                rtol,
+                atol,
+                max_steps,
+                adjoint,
+                to_components(z),
+                (p, d, control, a, b),
+                t_save,
+                layout,
+            )
             return z, from_components(ys), failed, n_acc
         term, y0 = (dfx.ODETerm(component_field), to_components(z)) if layout.components else (dfx.ODETerm(field), z)
         sol = dfx.diffeqsolve(
-            term, solver, a, b, None, y0, (p, d, control, a, b),
-            saveat=dfx.SaveAt(ts=t_save, t1=True), stepsize_controller=controller,
-            max_steps=max_steps, throw=False, adjoint=adjoint,
-        )  # fmt: skip
+            term,
+            solver,
+            a,
+            b,
+            None,
+            y0,
+            (p, d, control, a, b),
+            saveat=dfx.SaveAt(ts=t_save, t1=True),
+            stepsize_controller=controller,
+            max_steps=max_steps,
+            throw=False,
+            adjoint=adjoint,
+        )
         ys = from_components(sol.ys) if layout.components else sol.ys
         return z, ys, sol.result != dfx.RESULTS.successful, sol.stats["num_accepted_steps"]
 
@@ -126,9 +147,15 @@ def solve_segments(
         return (ys[-1], zs, om, cd, Ks, seg, code, steps)
 
     carry = (
-        z0, jnp.zeros((T, z0.shape[0]), dt), jnp.zeros((T, 3), dt), jnp.zeros((T, N), dt),
-        jnp.zeros((T, N), dt), jnp.zeros((T,), jnp.int32), jnp.array(0, jnp.int32), jnp.array(0, jnp.int32),
-    )  # fmt: skip
+        z0,
+        jnp.zeros((T, z0.shape[0]), dt),
+        jnp.zeros((T, 3), dt),
+        jnp.zeros((T, N), dt),
+        jnp.zeros((T, N), dt),
+        jnp.zeros((T,), jnp.int32),
+        jnp.array(0, jnp.int32),
+        jnp.array(0, jnp.int32),
+    )
     _, zs, om, cd, Ks, seg, code, steps = _over_segments(one_segment, carry, segments)
     return zs, om, cd, Ks, seg, code, steps
 
@@ -143,8 +170,12 @@ def _over_segments(one_segment, carry, segments):
             carry = one_segment(carry, jnp.array(k, jnp.int32), control, a, b)
         return carry
     dyn, static = stacked
-    xs = (jnp.arange(n_seg, dtype=jnp.int32), dyn, jnp.stack([a for _, a, _ in segments]),
-          jnp.stack([b for _, _, b in segments]))  # fmt: skip
+    xs = (
+        jnp.arange(n_seg, dtype=jnp.int32),
+        dyn,
+        jnp.stack([a for _, a, _ in segments]),
+        jnp.stack([b for _, _, b in segments]),
+    )
 
     def body(c, x):
         k, dc, a, b = x

@@ -35,9 +35,15 @@ from .segments import solve_segments
 from .trajectory import Trajectory, _rebuild, assemble, raise_on_failure
 
 __all__ = [
-    "simulate", "Trajectory", "SolverOptions", "tolerances", "default_solver", "DEFAULT_TOLERANCES",
-    "FLOAT32_MIN_RTOL", "COMPONENT_LAYOUT",
-]  # fmt: skip
+    "simulate",
+    "Trajectory",
+    "SolverOptions",
+    "tolerances",
+    "default_solver",
+    "DEFAULT_TOLERANCES",
+    "FLOAT32_MIN_RTOL",
+    "COMPONENT_LAYOUT",
+]
 
 #: Batched torque- and gait-mode solves carry their state as scalar components
 #: (`jsphere.solve.batched.components`); `False` keeps the flat layout everywhere (for A/B
@@ -101,11 +107,12 @@ def simulate(
     Pure JAX: jit, vmap (over parameters, states, controls) and grad work.
     """
     if not isinstance(state0, State):
-        raise TypeError(f"simulate: state0 must be a jsphere.State (e.g. State.at_rest(params)); got {type(state0).__name__}.")
+        raise TypeError(
+            f"simulate: state0 must be a jsphere.State (e.g. State.at_rest(params)); got {type(state0).__name__}."
+        )
     if not isinstance(controls, (Torques, WheelSpeeds)):
         raise TypeError(
-            "simulate: controls must be jsphere.Torques(fn) or jsphere.WheelSpeeds(fn); "
-            f"got {type(controls).__name__}."
+            f"simulate: controls must be jsphere.Torques(fn) or jsphere.WheelSpeeds(fn); got {type(controls).__name__}."
         )
     out_shape = jax.eval_shape(controls, as_array(t0, params.R0.dtype)).shape
     if out_shape != (params.n_wheels,):
@@ -116,9 +123,16 @@ def simulate(
     if state0.chi.shape[-1] != params.n_wheels:
         raise ValueError(f"simulate: state0.chi has {state0.chi.shape[-1]} wheels but params has {params.n_wheels}.")
     opts = resolve(
-        options, where="simulate", rtol=rtol, atol=atol, solver=solver, max_steps=max_steps, throw=throw,
-        adjoint=adjoint, batch_steps=batch_steps,
-    )  # fmt: skip
+        options,
+        where="simulate",
+        rtol=rtol,
+        atol=atol,
+        solver=solver,
+        max_steps=max_steps,
+        throw=throw,
+        adjoint=adjoint,
+        batch_steps=batch_steps,
+    )
     dt = params.R0.dtype
     rtol, atol = opts.tolerances(dt)
     ts_out = None if ts is None else as_array(ts, dt)
@@ -127,9 +141,19 @@ def simulate(
         if tsn.ndim != 1 or np.any(np.diff(tsn) < 0) or not np.all(np.isfinite(tsn)):
             raise ValueError("simulate: ts must be a finite, non-decreasing 1-D array of times.")
     traj = _solve(
-        params, state0, controls, as_array(t0, dt), as_array(t1, dt), ts_out, opts.solver_or_default(), rtol, atol,
-        opts.max_steps, opts.adjoint_or_default(), steps_layout(opts.batch_steps, opts.throw),
-    )  # fmt: skip
+        params,
+        state0,
+        controls,
+        as_array(t0, dt),
+        as_array(t1, dt),
+        ts_out,
+        opts.solver_or_default(),
+        rtol,
+        atol,
+        opts.max_steps,
+        opts.adjoint_or_default(),
+        steps_layout(opts.batch_steps, opts.throw),
+    )
     return raise_on_failure(traj, opts.throw)
 
 
@@ -194,7 +218,9 @@ def _simulate(
     d = derive(params) if derived is None else derived
     if ts_out is None:
         ts_out = jnp.stack([t0, t1])
-    field, outputs = (_torque_field, _outputs_torque) if isinstance(controls, Torques) else (_wheel_field, _outputs_wheel)
+    field, outputs = (
+        (_torque_field, _outputs_torque) if isinstance(controls, Torques) else (_wheel_field, _outputs_wheel)
+    )
     edges = [t0] + [jnp.clip(jnp.asarray(tj, dt), t0, t1) for tj in controls.jump_ts] + [t1]
     segments = [(controls, a, b) for a, b in zip(edges[:-1], edges[1:])]
     z0 = state0.flatten().astype(dt)
@@ -208,8 +234,20 @@ def _simulate(
             return Flat.replace(z, omega=omega, Omega=Omega)
 
     zs, om, cd, Ks, seg, ok, steps = solve_segments(
-        field, outputs, params, d, segments, z0, ts_out, jump_fn=jump_fn, solver=solver,
-        rtol=rtol, atol=atol, max_steps=max_steps, adjoint=adjoint, layout=layout,
+        field,
+        outputs,
+        params,
+        d,
+        segments,
+        z0,
+        ts_out,
+        jump_fn=jump_fn,
+        solver=solver,
+        rtol=rtol,
+        atol=atol,
+        max_steps=max_steps,
+        adjoint=adjoint,
+        layout=layout,
         component_field=_torque_field_soa if layout.components else None,
-    )  # fmt: skip
+    )
     return assemble(params, d, ts_out, zs, om, cd, Ks, seg, ok, steps)

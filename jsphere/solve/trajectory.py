@@ -62,9 +62,16 @@ class Trajectory(eqx.Module):
 @jax.jit  # one compiled program when called eagerly, not one per operation
 def _state_at(traj: Trajectory, i) -> State:
     z = jnp.concatenate(
-        [traj.q[..., i, :], traj.q_shell[..., i, :], traj.omega[..., i, :], traj.Omega[..., i, :],
-         jnp.stack([traj.x[..., i], traj.y[..., i]], -1), traj.chi[..., i, :]], axis=-1,
-    )  # fmt: skip
+        [
+            traj.q[..., i, :],
+            traj.q_shell[..., i, :],
+            traj.omega[..., i, :],
+            traj.Omega[..., i, :],
+            jnp.stack([traj.x[..., i], traj.y[..., i]], -1),
+            traj.chi[..., i, :],
+        ],
+        axis=-1,
+    )
     return _unflatten(z)
 
 
@@ -78,10 +85,23 @@ def assemble(p, d, ts, zs, omega, chi_dot, K, segment, status, num_steps) -> Tra
     q = quat_normalize(zs[:, Flat.q])
     R = rotmat(q)
     return Trajectory(
-        ts=ts, x=zs[:, Flat.x], y=zs[:, Flat.y], gamma=R[:, 2], alpha=R[:, 0], beta=R[:, 1],
-        omega=omega, Omega=zs[:, Flat.Omega], chi=zs[:, Flat.chi], chi_dot=chi_dot, K=K,
-        q=q, q_shell=quat_normalize(zs[:, Flat.q_shell]), segment=segment, status=status, num_steps=num_steps,
-    )  # fmt: skip
+        ts=ts,
+        x=zs[:, Flat.x],
+        y=zs[:, Flat.y],
+        gamma=R[:, 2],
+        alpha=R[:, 0],
+        beta=R[:, 1],
+        omega=omega,
+        Omega=zs[:, Flat.Omega],
+        chi=zs[:, Flat.chi],
+        chi_dot=chi_dot,
+        K=K,
+        q=q,
+        q_shell=quat_normalize(zs[:, Flat.q_shell]),
+        segment=segment,
+        status=status,
+        num_steps=num_steps,
+    )
 
 
 def raise_on_failure(traj: Trajectory, throw: bool) -> Trajectory:

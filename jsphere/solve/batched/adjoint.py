@@ -115,6 +115,7 @@ class _Adjoint:
         def one(ti, yg):  # with respect to the state's rows: no transposed slices (pads)
             yi, g = yg
             rows = tuple(yi[r] for r in range(yi.shape[0]))
+
             def rates(y, da):
                 return f(ti, y, self.with_diff(da), self.pt_batched).astype(dtype)
 
@@ -226,8 +227,25 @@ class _Adjoint:
         return carry, Z
 
 
-def backward(m: Method, args, batched, diff, t0, t1, ts, y0, out, at, rec: Record, ct, *, max_steps, times,
-             elementwise=(), f_adjoint: Callable | None = None):  # fmt: skip
+def backward(
+    m: Method,
+    args,
+    batched,
+    diff,
+    t0,
+    t1,
+    ts,
+    y0,
+    out,
+    at,
+    rec: Record,
+    ct,
+    *,
+    max_steps,
+    times,
+    elementwise=(),
+    f_adjoint: Callable | None = None,
+):
     """The discrete adjoint of `jsphere.solve.batched.loop.forward` (or of `forward_per_trial`:
     its iterations, with each trial's own step sizes): the cotangents of
     `(y0, args[i] for i in diff)` for the cotangent `ct` of the saved states, with the accepted

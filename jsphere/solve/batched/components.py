@@ -151,7 +151,8 @@ def _blocks_and_forces(p: RobotParams, d: Derived, g, w, W, one=None, adjoint=Fa
     MR2 = (p.m + p.m0) * p.R0**2
     grm, gg = _dot(g, rm), _dot(g, g)
     B = tuple(
-        tuple(Jns[i][j] - Jss[i][j] + mR0 * ((grm if i == j else 0.0) - g[i] * rm[j]) for j in range(3)) for i in range(3)
+        tuple(Jns[i][j] - Jss[i][j] + mR0 * ((grm if i == j else 0.0) - g[i] * rm[j]) for j in range(3))
+        for i in range(3)
     )
     D = tuple(
         tuple((p.I0 if i == j else 0.0) + Jss[i][j] + MR2 * ((gg if i == j else 0.0) - g[i] * g[j]) for j in range(3))
@@ -166,7 +167,10 @@ def _blocks_and_forces(p: RobotParams, d: Derived, g, w, W, one=None, adjoint=Fa
     )
     Wg = _dot(W, g)
     r2 = _sub(
-        _sub(_sub(_scale(-MR2, _cross(g, gWxw)), _scale(mR0, _cross(g, _cross(w, _cross(w, rm))))), _scale(p.I0, _cross(w, W))),
+        _sub(
+            _sub(_scale(-MR2, _cross(g, gWxw)), _scale(mR0, _cross(g, _cross(w, _cross(w, rm))))),
+            _scale(p.I0, _cross(w, W)),
+        ),
         _scale(p.c_roll, _sub(W, _scale(Wg, g))),
     )
     return (B, D, *adjoint_kept((r1, r2), one, adjoint))

@@ -80,9 +80,11 @@ class BatchedSolve(eqx.Module):
     def loop_grad(self, axis_size, in_batched) -> bool:
         """Whether a batch's gradient is the discrete adjoint of the batch loop."""
         return (
-            _layout.SHARED_ADJOINT and self.loop and self.layout_for(axis_size).batch_solve
+            _layout.SHARED_ADJOINT
+            and self.loop
+            and self.layout_for(axis_size).batch_solve
             and any(jax.tree_util.tree_leaves(in_batched))
-        )  # fmt: skip
+        )
 
 
 def solve(fn, args, flat, steps: Layout):
@@ -198,7 +200,7 @@ def _reverse_fwd(engine: BatchedSolve, leaves):
             layout = engine.layout_for(axis_size)
             out = _chunked_vmap(lambda l: engine(l, layout), axis_size, in_batched, lv)
             # unbatched placeholders (one trial's worth) for the residuals the backward pass won't read
-            one = [jax.ShapeDtypeStruct(jnp.shape(x)[int(b):], jnp.result_type(x)) for x, b in zip(lv, batched)]
+            one = [jax.ShapeDtypeStruct(jnp.shape(x)[int(b) :], jnp.result_type(x)) for x, b in zip(lv, batched)]
             res = [jnp.zeros(r.shape, r.dtype) for r in jax.eval_shape(lambda l: flat_vjp(l)[1], one)]
             return (out, res), (jax.tree_util.tree_map(lambda _: True, out), [False] * len(res))
         out, res = jax.vmap(flat_vjp, in_axes=([0 if b else None for b in batched],), axis_size=axis_size)(lv)
@@ -219,7 +221,9 @@ def _reverse_bwd(engine: BatchedSolve, residuals: _Residuals, ct):
 
     def full_ct(cts, like):
         it = iter(cts)
-        return jax.tree_util.tree_unflatten(ct_def, [next(it) if k else np.zeros(jnp.shape(o), jax.dtypes.float0) for k, o in zip(keep, like)])
+        return jax.tree_util.tree_unflatten(
+            ct_def, [next(it) if k else np.zeros(jnp.shape(o), jax.dtypes.float0) for k, o in zip(keep, like)]
+        )
 
     def saved(lv, rs, cts):
         pull = jax.tree_util.tree_unflatten(residuals.saved_def, rs)
@@ -278,16 +282,22 @@ def _loop_vjp(engine: BatchedSolve, axis_size, lv_batched, ct_batched, lv, cts, 
         full = [c if b else x for c, x, b in zip(l_ch, lv, lv_batched)]
         # the vmapped solve's outputs are all batched: a cotangent shared by the batch is each trial's
         cc = [c if b else jnp.broadcast_to(x, (chunk,) + jnp.shape(x)) for c, x, b in zip(c_ch, cts, ct_batched)]
-        out, pull = jax.vjp(lambda l: jax.vmap(lambda x: engine(x, layout), in_axes=(in_axes,), axis_size=chunk)(l), full)
+        out, pull = jax.vjp(
+            lambda l: jax.vmap(lambda x: engine(x, layout), in_axes=(in_axes,), axis_size=chunk)(l), full
+        )
         g = pull(full_ct(cc, jax.tree_util.tree_leaves(out)))[0]
         return [x if k else None for x, k in zip(g, inexact)]  # no float0 through the map
 
     xs = ([x if b else None for x, b in zip(lv_b, lv_batched)], [c if b else None for c, b in zip(ct_b, ct_batched)])
-    grads = jax.lax.map(one, xs) if n > 1 else jax.tree_util.tree_map(lambda g: g[None], one(jax.tree_util.tree_map(lambda x: x[0], xs)))
+    grads = (
+        jax.lax.map(one, xs)
+        if n > 1
+        else jax.tree_util.tree_map(lambda g: g[None], one(jax.tree_util.tree_map(lambda x: x[0], xs)))
+    )
     result = []
     for g, b, x in zip(grads, lv_batched, lv):
         if g is None:  # integer leaves
-            result.append(np.zeros((axis_size,) + jnp.shape(x)[int(b):], jax.dtypes.float0))
+            result.append(np.zeros((axis_size,) + jnp.shape(x)[int(b) :], jax.dtypes.float0))
         elif b:
             result.append(g.reshape((n * chunk,) + g.shape[2:])[:axis_size])
         else:  # the batch's sum, in the first trial's row

@@ -53,7 +53,9 @@ def _initial_step(m: Method, args, batched, t0, y0, f0, rms, *, rtol, atol, fini
     f1 = m.rates(t0 + h0, y0 + h0 * f0, args, batched)
     d2 = rms((f1 - f0) / scale) / h0
     dmax = jnp.maximum(d1, d2)
-    h1 = jnp.where(dmax <= 1e-15, jnp.maximum(1e-6, h0 * 1e-3), (0.01 / jnp.where(dmax <= 1e-15, 1.0, dmax)) ** (1.0 / m.tab.order))
+    h1 = jnp.where(
+        dmax <= 1e-15, jnp.maximum(1e-6, h0 * 1e-3), (0.01 / jnp.where(dmax <= 1e-15, 1.0, dmax)) ** (1.0 / m.tab.order)
+    )
     h_init = jnp.minimum(100 * h0, h1)
     if finite:
         h_init = jnp.where(jnp.isfinite(h_init), h_init, 1e-6)
@@ -79,8 +81,11 @@ def _record_buffers(max_steps, n, B, dtype, per):
     and the number of slots used (`checkpoints`)."""
     C, _ = checkpoints(max_steps)
     return Record(
-        jnp.zeros((C + 1, n, B), dtype), jnp.zeros((max_steps,) + per, dtype), jnp.zeros((max_steps,) + per, dtype),
-        jnp.int32(1), jnp.int32(0),
+        jnp.zeros((C + 1, n, B), dtype),
+        jnp.zeros((max_steps,) + per, dtype),
+        jnp.zeros((max_steps,) + per, dtype),
+        jnp.int32(1),
+        jnp.int32(0),
     )
 
 
@@ -322,8 +327,24 @@ class _Passes:
         return (*t_bars, y0_bar, args_bar)
 
 
-def solve(f, t0, t1, y0, ts, args=(), batched=(), *, tab: Tableau, rtol, atol, max_steps: int, elementwise=(),
-          per_trial=False, fallback=False, f_adjoint: Callable | None = None):  # fmt: skip
+def solve(
+    f,
+    t0,
+    t1,
+    y0,
+    ts,
+    args=(),
+    batched=(),
+    *,
+    tab: Tableau,
+    rtol,
+    atol,
+    max_steps: int,
+    elementwise=(),
+    per_trial=False,
+    fallback=False,
+    f_adjoint: Callable | None = None,
+):
     """Integrate `y' = f(t, y, args, batched)` for the `(n, batch)` state `y0` from `t0` to
     `t1 >= t0`, with one step sequence for all columns (trials), saving at the sorted times `ts`
     (within `[t0, t1]`) and at `t1`. `args` is a list of arrays; `batched[i]` says whether

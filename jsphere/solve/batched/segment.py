@@ -127,10 +127,19 @@ class _Segment(eqx.Module):
         """One trial's solve with diffrax: `(ys, failed, num_accepted_steps)`."""
         a, b, ts = times
         sol = dfx.diffeqsolve(
-            dfx.ODETerm(self.field), self.solver, a, b, None, tuple(y0), self.rebuild(lv, a, b),
-            saveat=dfx.SaveAt(ts=ts, t1=True), stepsize_controller=dfx.PIDController(rtol=self.rtol, atol=self.atol),
-            max_steps=self.max_steps, throw=False, adjoint=self.adjoint,
-        )  # fmt: skip
+            dfx.ODETerm(self.field),
+            self.solver,
+            a,
+            b,
+            None,
+            tuple(y0),
+            self.rebuild(lv, a, b),
+            saveat=dfx.SaveAt(ts=ts, t1=True),
+            stepsize_controller=dfx.PIDController(rtol=self.rtol, atol=self.atol),
+            max_steps=self.max_steps,
+            throw=False,
+            adjoint=self.adjoint,
+        )
         return list(sol.ys), sol.result != dfx.RESULTS.successful, sol.stats["num_accepted_steps"]
 
     def batch_field(self, axis_size, adjoint=False):
@@ -143,8 +152,9 @@ class _Segment(eqx.Module):
             t_ax = 0 if jnp.ndim(t) else None  # one time per trial (per-trial steps) or one for all
             k = jax.vmap(
                 lambda t, l, a, b: self.control(t, self.rebuild(l, a, b)),
-                in_axes=(t_ax, _axes(batched[:-2]), *_axes(batched[-2:])), axis_size=axis_size,
-            )(t, args[:-2], *args[-2:])  # fmt: skip
+                in_axes=(t_ax, _axes(batched[:-2]), *_axes(batched[-2:])),
+                axis_size=axis_size,
+            )(t, args[:-2], *args[-2:])
             return k if isinstance(k, tuple) else k.T
 
         def f(t, y, args, batched):
@@ -159,7 +169,7 @@ class _Segment(eqx.Module):
                 lambda t, z, k, l, a, b: field(t, z, self.rebuild(l, a, b), k),
                 in_axes=(0 if jnp.ndim(t) else None, 0, 0, _axes(batched[:-2]), *_axes(batched[-2:])),
                 axis_size=axis_size,
-            )(t, tuple(y), K, args[:-2], *args[-2:])  # fmt: skip
+            )(t, tuple(y), K, args[:-2], *args[-2:])
             return jnp.stack(rates)
 
         return f
@@ -178,10 +188,22 @@ class _Segment(eqx.Module):
         tab = tableau(self.solver)
         if tab is not None:  # the batch loop (Dopri8, Dopri5, Tsit5)
             out, failed, accepted = loop.solve(
-                self.batch_field(axis_size), a, b, yb, ts, [*lv, a, b], [*l_b, False, False], tab=tab, rtol=self.rtol,
-                atol=self.atol, max_steps=self.max_steps, elementwise=self.elementwise, per_trial=per_trial,
-                fallback=self.layout is Layout.SHARED_STEPS_RETRY, f_adjoint=self.batch_field(axis_size, adjoint=True),
-            )  # fmt: skip
+                self.batch_field(axis_size),
+                a,
+                b,
+                yb,
+                ts,
+                [*lv, a, b],
+                [*l_b, False, False],
+                tab=tab,
+                rtol=self.rtol,
+                atol=self.atol,
+                max_steps=self.max_steps,
+                elementwise=self.elementwise,
+                per_trial=per_trial,
+                fallback=self.layout is Layout.SHARED_STEPS_RETRY,
+                f_adjoint=self.batch_field(axis_size, adjoint=True),
+            )
             per = per_trial or self.layout is Layout.SHARED_STEPS_RETRY  # failures and step counts per trial
         else:  # any other diffrax solver, in diffeqsolve
             out, failed, accepted, per = self.in_diffeqsolve(axis_size, times, y0, yb, lv, y_b, l_b)
@@ -196,10 +218,19 @@ class _Segment(eqx.Module):
         flags = [*l_b, False, False]
         field = self.batch_field(axis_size)
         sol = dfx.diffeqsolve(
-            dfx.ODETerm(lambda t, y, args: field(t, y, args, flags)), self.solver, a, b, None, yb, [*lv, a, b],
-            saveat=dfx.SaveAt(ts=ts, t1=True), stepsize_controller=SharedPIDController(self.rtol, self.atol),
-            max_steps=self.max_steps, throw=False, adjoint=self.adjoint,
-        )  # fmt: skip
+            dfx.ODETerm(lambda t, y, args: field(t, y, args, flags)),
+            self.solver,
+            a,
+            b,
+            None,
+            yb,
+            [*lv, a, b],
+            saveat=dfx.SaveAt(ts=ts, t1=True),
+            stepsize_controller=SharedPIDController(self.rtol, self.atol),
+            max_steps=self.max_steps,
+            throw=False,
+            adjoint=self.adjoint,
+        )
         out, failed, accepted = sol.ys, sol.result != dfx.RESULTS.successful, sol.stats["num_accepted_steps"]
         if self.layout is not Layout.SHARED_STEPS_RETRY:
             return out, failed, accepted, False
