@@ -26,7 +26,7 @@ import numpy as np
 
 import jsphere
 from jsphere._runtime.files import atomic_write_text
-from jsphere.capture.mocap import default_marker_set
+from jsphere.capture.synthetic import default_marker_set
 
 HERE = Path(__file__).resolve().parent
 

@@ -16,17 +16,11 @@ way reports a failure there rather than by an exception from inside the compiled
 
 from __future__ import annotations
 
-import contextlib
 import os
-import threading
 from pathlib import Path
-from typing import Iterator
 
 #: the environment variable that chooses the cache directory (before `XDG_CACHE_HOME`)
 CACHE_DIR_VARIABLE = "JSPHERE_CACHE_DIR"
-
-_LOCK = threading.Lock()
-
 
 def default_cache_dir() -> Path:
     """`$JSPHERE_CACHE_DIR` if set, else `$XDG_CACHE_HOME/jsphere/jax`, else
@@ -54,6 +48,7 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     import jax
 
     from . import export_cache
+    from .private import reset_jax_compilation_cache
 
     target = Path(path).expanduser() if path is not None else default_cache_dir()
     target.mkdir(parents=True, exist_ok=True)
@@ -62,70 +57,9 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)  # -1: no size threshold
     if previous and Path(previous) != target:
-        _reset_jax_cache()  # JAX opens its cache once; a new directory needs a fresh one
+        reset_jax_compilation_cache()  # JAX opens its cache once; a new directory needs a fresh one
     export_cache.enable(target)
     return target
 
 
-def _reset_jax_cache() -> None:
-    try:
-        from jax._src import compilation_cache as _cc
-
-        _cc.reset_cache()
-    except (ImportError, AttributeError):  # pragma: no cover - another JAX layout
-        pass
-
-
-def _errors_module():
-    """equinox's module of run-time checks, if it has the two names `callbacks_as_nan` sets
-    (`None` otherwise: then the block changes nothing)."""
-    try:
-        import equinox._errors as errors
-    except ImportError:  # pragma: no cover - a future equinox without this module
-        return None
-    ok = hasattr(errors, "EQX_ON_ERROR") and hasattr(errors, "branched_error_if_impl_jit")
-    return errors if ok else None
-
-
-_NAN_IMPL = None
-
-
-def _nan_impl(errors):
-    """equinox's jitted check with the `"default"` mode read as `"nan"`: a jit of its own, so
-    its traces are kept apart from those of the `"raise"` mode (equinox keys its cache of
-    traced checks on the arguments, not on the mode)."""
-    global _NAN_IMPL
-    if _NAN_IMPL is None:
-        import equinox as eqx
-
-        def impl(x, pred, index, msgs, *, on_error):
-            mode = "nan" if on_error == "default" else on_error
-            return errors.branched_error_if_impl(x, pred, index, msgs, on_error=mode)
-
-        _NAN_IMPL = eqx.filter_jit(impl)
-    return _NAN_IMPL
-
-
-@contextlib.contextmanager
-def callbacks_as_nan() -> Iterator[None]:
-    """Trace equinox's run-time checks in `"nan"` mode (no host callbacks) inside the block.
-
-    The mode is read when a check is *traced*: wrap the first call of a solve (the one that
-    traces and compiles it); a program compiled before, or outside the block, keeps the mode
-    it was traced with. An explicit `EQX_ON_ERROR` in the environment wins (e.g.
-    `EQX_ON_ERROR=breakpoint` for debugging), and the previous mode is restored on exit.
-    Failures inside such programs are reported through `Trajectory.status`, not raised.
-    Not thread-safe against checks traced in other threads meanwhile (they see `"nan"` too).
-    """
-    errors = _errors_module()
-    if errors is None or "EQX_ON_ERROR" in os.environ:
-        yield
-        return
-    with _LOCK:
-        previous = errors.EQX_ON_ERROR, errors.branched_error_if_impl_jit
-        errors.EQX_ON_ERROR, errors.branched_error_if_impl_jit = "nan", _nan_impl(errors)
-    try:
-        yield
-    finally:
-        with _LOCK:
-            errors.EQX_ON_ERROR, errors.branched_error_if_impl_jit = previous
+from .private import callbacks_as_nan as callbacks_as_nan  # noqa: E402  (re-exported)

@@ -6,14 +6,14 @@ from __future__ import annotations
 
 import os
 import sys
-from pathlib import Path
 
 _ONE_RUN_XLA_FLAG = "--xla_backend_optimization_level=0"
 
 
 def enable_compilation_cache() -> None:
-    """Persist XLA executables between processes (`$JSPHERE_CACHE_DIR`, default
-    `~/.cache/jsphere/jax`), so a second run skips compilation.
+    """Persist XLA executables between processes, in the library's one cache
+    (`jsphere.enable_compilation_cache`: `$JSPHERE_CACHE_DIR`, else `$XDG_CACHE_HOME/jsphere/jax`,
+    else `~/.cache/jsphere/jax`), so a second run skips compilation.
 
     JAX does not persist executables that contain host callbacks, and equinox's run-time
     checks inside diffrax are host callbacks. For the CLI (whose inputs are validated before
@@ -24,21 +24,14 @@ def enable_compilation_cache() -> None:
     a hundred small programs (eager operations between the solves) besides its solves, and with
     JAX's default threshold (1 s) a second run would compile them again.
     """
-    import jax
+    from .._runtime.compilation_cache import default_cache_dir
+    from .._runtime.compilation_cache import enable_compilation_cache as enable
+    from .._runtime.private import equinox_on_error, set_equinox_on_error
 
-    from .._runtime import export_cache as _aot
-    from .._runtime.private_cli import equinox_error_mode, set_equinox_error_mode
-
-    if "EQX_ON_ERROR" not in os.environ and equinox_error_mode() == "raise":
-        set_equinox_error_mode("nan")
-
-    path = os.environ.get("JSPHERE_CACHE_DIR", str(Path.home() / ".cache" / "jsphere" / "jax"))
+    if "EQX_ON_ERROR" not in os.environ and equinox_on_error() == "raise":
+        set_equinox_on_error("nan")
     try:
-        Path(path).mkdir(parents=True, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", path)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-        _aot.enable(path)  # exported solves: a second run skips their tracing too
+        enable(default_cache_dir())
     except Exception as e:  # a read-only home must not stop the run
         print(f"jsphere: compilation cache disabled ({e})", file=sys.stderr)
 
@@ -58,9 +51,9 @@ def compile_for_one_run() -> bool:
     if "xla_backend_optimization_level" in flags:
         return _ONE_RUN_XLA_FLAG in flags.split()
     if "jax" in sys.modules:
-        from .._runtime.private_cli import backends_initialised
+        from .._runtime.private import jax_backends_initialized
 
-        if backends_initialised():
+        if jax_backends_initialized():
             return False
     os.environ["XLA_FLAGS"] = f"{flags} {_ONE_RUN_XLA_FLAG}".strip()
     return True

@@ -51,8 +51,10 @@ def run(args) -> int:
 
     from .._runtime.errors import InputError
     from .._runtime.files import check_output
-    from ..capture.mocap import convert_raw, read_body_markers
-    from ..capture.trial import CaptureWarning, write_trial
+    from ..capture.body import read_body_markers
+    from ..capture.convert import convert_raw
+    from ..capture.trial import write_trial
+    from ..capture.validation import CaptureWarning
 
     if not all(math.isfinite(v) for v in args.body_offset):
         raise InputError(

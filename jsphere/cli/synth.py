@@ -51,7 +51,8 @@ def _check(args) -> None:
 
 def run(args) -> int:
     from .._runtime.files import check_output
-    from ..capture.trial import random_inputs, synthetic_trial, write_trial
+    from ..capture.synthetic import random_inputs, synthetic_trial
+    from ..capture.trial import write_trial
     from ..model.params import RobotParams
 
     _check(args)
