@@ -57,6 +57,7 @@ def _check_alone(good, tr, bad):
     assert np.all(np.asarray(tr.status)[keep] == 0) and int(np.asarray(tr.status)[bad]) != 0
 
 
+@pytest.mark.slow
 def test_hopeless_trial_fails_alone(run, amps):
     a, b = amps
     good = run(a, b)

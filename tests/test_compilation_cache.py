@@ -46,6 +46,7 @@ def _run(cache: Path) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow
 def test_second_process_hits_the_cache(tmp_path):
     cache = tmp_path / "cache"
     first = _run(cache)

@@ -175,6 +175,7 @@ def test_gradient_of_shared_gaits_is_the_per_trial_one():
     np.testing.assert_allclose(g[1], g1[1], rtol=1e-7)
 
 
+@pytest.mark.slow
 def test_shared_steps_for_gaits():
     """`simulate_gaits` under `vmap` over a gait parameter (problem 2 of benchmarks/): one step
     sequence for the batch on the component layout, each trial as a single call gives it (the

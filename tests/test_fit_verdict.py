@@ -218,6 +218,7 @@ def test_a_good_fit_is_converged_at_the_noise_floor(files, tmp_path, capsys):
     assert (tmp_path / "fit_overlay.png").exists() and (tmp_path / "fit_residuals.png").exists()
 
 
+@pytest.mark.slow
 def test_swapped_inputs_are_a_misfit(files, tmp_path, capsys):
     rc, lines, doc = run_fit(files["swapped"], tmp_path / "fit.json", capsys)
     assert rc == ExitCode.MISFIT == 6

@@ -42,6 +42,7 @@ def test_stop_spread_equals_linear_sensitivity(paper):
     assert res.stats()["n_failed"] == 0
 
 
+@pytest.mark.slow
 def test_same_seed_same_study_whatever_the_batch_size(paper, study):
     other = jsphere.monte_carlo(paper, GAITS, vary=VARY, n=256, seed=7, batch_size=256, progress=False)
     assert np.array_equal(study.x_final, other.x_final) and np.array_equal(study.y_final, other.y_final)
@@ -102,6 +103,7 @@ def test_names_round_trip(paper):
     assert jsphere.parse_name(" r_m [ 2 ] ") == ("r_m", (2,))
 
 
+@pytest.mark.slow
 def test_torque_replay_without_errors_reproduces_the_plan(paper):
     """The planned torques replayed open loop on the nominal robot stop where the gaits stop."""
     res = jsphere.monte_carlo(paper, GAITS, vary={}, n=64, batch_size=64, mode="torques", settle=0.5, progress=False)

@@ -123,6 +123,7 @@ def test_only_diffrax_methods_it_implements():
 @pytest.mark.parametrize(
     "solver", [pytest.param(dfx.Tsit5(), marks=pytest.mark.slow), dfx.Bosh3()], ids=lambda s: type(s).__name__
 )
+@pytest.mark.slow
 def test_other_solvers_through_simulate(monkeypatch, solver):
     """A batched `simulate` with another solver: Tsit5 in this loop, Bosh3 (not implemented
     here) in `diffeqsolve` with the shared controller; both as close to the per-trial solve as
@@ -189,6 +190,7 @@ def _loss_diffrax(w, c, y0, t1, ts):
     return _weighted(jax.vmap(one, in_axes=(0, 1), out_axes=2)(w, y0))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("capacity", [256, 2], ids=["every-step", "replayed"])
 def test_the_discrete_adjoint_matches_diffrax(monkeypatch, capacity):
     """Reverse mode through the shared loop (its discrete adjoint) against diffrax's own

@@ -9,6 +9,7 @@ import pytest
 import jsphere
 
 
+@pytest.mark.slow
 def test_gait_torques_drive_the_torque_mode(paper):
     """The gait's K(t), fed to the torque-driven simulation, reproduces the gait's motion."""
     tr = jsphere.simulate_gaits(paper, [jsphere.acceleration(), jsphere.braking()], rate=1000)
@@ -32,6 +33,7 @@ def test_gait_wheel_speeds_drive_the_wheel_mode(paper):
     np.testing.assert_allclose(sim.K[interior], tr.K[interior], atol=1e-5)
 
 
+@pytest.mark.slow
 def test_wheel_mode_jump_and_constraints(paper):
     """Starting the kinematic control from rest is an impulse; afterwards (2.4) holds exactly."""
     v = 0.15 * 0.864
@@ -104,6 +106,7 @@ def _fd(f, x, h):
     return (f(x + h) - f(x - h)) / (2 * h)
 
 
+@pytest.mark.slow
 def test_grad_of_final_position_wrt_params(paper):
     """Reverse-mode gradient of a torque-driven final x with respect to R_m, j and I vs finite differences."""
     a = jnp.array([0.05, 0.045, 0.055])
@@ -179,6 +182,7 @@ def test_float32_on_request(paper):
         jsphere.simulate(p32, jsphere.State.at_rest(p32), jsphere.Torques(lambda t: ph), 0.1, rtol=1e-8, atol=1e-10)
 
 
+@pytest.mark.slow
 def test_jacfwd_with_forward_mode_adjoint(paper):
     import diffrax
 

@@ -251,6 +251,7 @@ def test_failures_are_reported_per_trial_under_vmap():
         assert "max_steps" in str(e)
 
 
+@pytest.mark.slow
 def test_chunked_batches_and_the_small_batch_threshold(monkeypatch):
     """A batch above `BATCH_CHUNK` runs as chunks (padded), one below `COMPONENT_MIN_BATCH` in the
     flat layout: both give the per-trial results."""

@@ -22,6 +22,7 @@ from pathlib import Path
 #: the environment variable that chooses the cache directory (before `XDG_CACHE_HOME`)
 CACHE_DIR_VARIABLE = "JSPHERE_CACHE_DIR"
 
+
 def default_cache_dir() -> Path:
     """`$JSPHERE_CACHE_DIR` if set, else `$XDG_CACHE_HOME/jsphere/jax`, else
     `~/.cache/jsphere/jax`."""
