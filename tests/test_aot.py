@@ -26,6 +26,7 @@ def _free_roll(p):
     return jsphere.simulate(p, state, jsphere.Torques(jsphere.Zero(3)), 0.5, ts=jnp.linspace(0.0, 0.5, 6))
 
 
+@pytest.mark.slow
 def test_exported_solve_matches_the_direct_call_and_is_reused(aot_dir):
     p = jsphere.RobotParams.paper()
     _aot.enable(None)

@@ -434,6 +434,7 @@ def test_synthetic_torque_trial(torque_trial, paper):
     assert g.min() > 0.8 and g.min() < 0.9999
 
 
+@pytest.mark.slow
 def test_replaying_a_trial_reproduces_it(paper, truth_ws):
     """The trial's recorded inputs, interpolated (`Trial.controls`), replay the motion from
     `state0_guess` to well under the noise level: the inputs are recorded consistently."""

@@ -177,6 +177,7 @@ def test_gradient_of_the_loss_agrees_with_finite_differences(small_trials):
     assert fd == pytest.approx(g_nu[0, 0, 1], rel=1e-2)
 
 
+@pytest.mark.slow
 def test_killed_fit_resumes_from_checkpoint(small_trials, small_fit, tmp_path):
     res_full, _ = small_fit
     ckpt = tmp_path / "c.npz"
