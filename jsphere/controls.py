@@ -61,8 +61,7 @@ class Sampled(eqx.Module):
 
     @property
     def jump_ts(self) -> tuple[float, ...]:
-        ts = np.asarray(self.ts)
-        return tuple(float(t) for t in ts[1:][np.diff(ts) == 0])
+        return _repeated(np.asarray(self.ts))
 
     def __call__(self, t):
         ts, ys = self.ts, self.values
@@ -96,6 +95,24 @@ class Sampled(eqx.Module):
         return jnp.where(both, central, jnp.where(hl > 0, dl, dr))
 
 
+def _repeated(ts: np.ndarray) -> tuple[float, ...]:
+    """The times that occur twice in a table's time stamps (its jumps)."""
+    return tuple(float(t) for t in ts[1:][np.diff(ts) == 0])
+
+
+def _table_jumps(ts, kind: str) -> tuple[float, ...]:
+    """The jumps of a table with time stamps `ts`: its repeated times, or every inner time for
+    `kind="zoh"`. Read from the host values of `ts` (a NumPy or concrete JAX array, also inside
+    a `jit`); traced time stamps have no jump times to restart at, and are refused."""
+    if isinstance(ts, jax.core.Tracer):
+        raise ValueError(
+            "from_samples: the table's time stamps are traced (an argument of jit/vmap/grad); pass them as a "
+            "NumPy array or a constant, so that its jumps are known when the solve is built."
+        )
+    host = np.asarray(ts, dtype=float)
+    return tuple(float(t) for t in host[1:-1]) if kind == "zoh" else _repeated(host)
+
+
 class _Control(eqx.Module):
     """A function of time `fn(t) -> (N,)` and the static times `jump_ts` where it jumps."""
 
@@ -126,8 +143,7 @@ class Torques(_Control):
     def from_samples(cls, ts: Float[ArrayLike, " T"], K: Float[ArrayLike, "T N"], *, kind: str = "cubic") -> "Torques":
         """Torques from a table (repeat a time stamp to encode a jump)."""
         f = Sampled(jnp.asarray(ts), jnp.asarray(K), kind)
-        jumps = f.jump_ts if kind != "zoh" else tuple(float(t) for t in np.asarray(ts)[1:-1])
-        return cls(f, jumps)
+        return cls(f, _table_jumps(ts, kind))
 
 
 class WheelSpeeds(_Control):
@@ -150,7 +166,7 @@ class WheelSpeeds(_Control):
             raise ValueError(
                 "WheelSpeeds.from_samples: kind='zoh' would make every sample a jump; use 'linear' or 'cubic'."
             )
-        return cls(f, f.jump_ts)
+        return cls(f, _table_jumps(ts, kind))
 
     def value_and_rate(self, t):
         """`(chi_dot(t), chi_ddot(t))`, the rate by forward-mode autodiff."""

@@ -110,3 +110,51 @@ def test_nan_mode_leaves_no_host_callback(monkeypatch):
     with cc.callbacks_as_nan():
         assert "callback" not in lowered()
     assert "callback" in lowered()
+
+
+#: a new process: cache on, the quickstart's eager gradient of the stop point; prints the JAX
+#: cache misses of that call, the gradient and the exported programs kept
+CHILD_GRAD = """
+import json, sys
+import jax, jax.numpy as jnp
+from jax import monitoring
+jax.config.update("jax_enable_x64", True)
+import jsphere
+
+events = {"misses": 0}
+def listen(name, **kw):
+    if name == "/jax/compilation_cache/cache_misses": events["misses"] += 1
+path = jsphere.enable_compilation_cache(sys.argv[1])
+p = jsphere.RobotParams.paper()
+def stop(theta_max):
+    gaits = [jsphere.acceleration(theta_max=theta_max), jsphere.braking(theta_max=theta_max)]
+    return jsphere.simulate_gaits(p, gaits, ts=jnp.array([4.0])).x[-1]
+monitoring.register_event_listener(listen)
+g = float(jax.grad(stop)(0.1))
+print(json.dumps({**events, "grad": g, "exported": sorted(f.name for f in (path / "aot").iterdir())}))
+"""
+
+
+@pytest.mark.slow
+def test_second_process_gradient_is_loaded(tmp_path):
+    """An eager `jax.grad` through `simulate_gaits` exports its two programs (the solve and its
+    VJP); a second process loads them and compiles nothing, with the same gradient."""
+    cache = tmp_path / "cache"
+    env = {k: v for k, v in os.environ.items() if k not in ("EQX_ON_ERROR", "JSPHERE_CACHE_DIR")}
+    env["PYTHONPATH"] = str(ROOT)
+
+    def run():
+        proc = subprocess.run(
+            [sys.executable, "-c", CHILD_GRAD, str(cache)], capture_output=True, text=True, env=env, timeout=600
+        )
+        assert proc.returncode == 0, proc.stderr
+        assert "not exporting" not in proc.stderr, proc.stderr
+        return json.loads(proc.stdout.strip().splitlines()[-1])
+
+    first = run()
+    assert first["misses"] > 0 and len(first["exported"]) == 2, first
+    second = run()
+    assert second["misses"] == 0, second
+    assert second["exported"] == first["exported"]
+    assert second["grad"] == first["grad"]
+    assert abs(first["grad"] - 2.5847084951773) < 1e-9

@@ -3,9 +3,9 @@
 JAX's persistent compilation cache skips XLA's compilation in a second process, but not the
 tracing and lowering that produce its key, which dominate a second `jsphere reproduce` run
 (`docs/performance.md`). Here a compiled entry point (`_simulate`, `_simulate_gaits`) called
-with concrete inputs is exported once with `jax.export` (which cannot serialise host
-callbacks: the CLI switches equinox's run-time checks to their `nan` mode,
-`jsphere._runtime.private.set_equinox_on_error`) and serialised to
+with concrete inputs is exported once with `jax.export` (traced with equinox's run-time checks in their `nan` mode,
+`jsphere._runtime.private.callbacks_as_nan`, as host callbacks cannot be serialised: a failed
+solve is then reported by its status, not raised from inside the program) and serialised to
 `<cache>/aot/<key>.jaxexport`; later calls, in this process or the next, run the deserialised
 program, whose executable then comes from the compilation cache. (The executable itself is
 not kept: `jax.experimental.serialize_executable` broke later, unrelated programs of the same
@@ -35,6 +35,7 @@ import numpy as np
 
 from .arrays import under_jit
 from .files import atomic_write
+from .private import callbacks_as_nan
 
 _DIR: Path | None = None
 _LOADED: dict[str, Callable] = {}
@@ -147,7 +148,8 @@ def _load_or_export(key, fn, treedef, static, leaves) -> Callable:
             jax.ShapeDtypeStruct(np.shape(x), jnp.result_type(x), weak_type=bool(getattr(x, "weak_type", False)))
             for x in leaves
         ]
-        exported = jax.export.export(jax.jit(flat))(*avals)
+        with callbacks_as_nan():  # JAX cannot serialise host callbacks
+            exported = jax.export.export(jax.jit(flat))(*avals)
         atomic_write(path, lambda tmp: Path(tmp).write_bytes(bytes(exported.serialize())), suffix=".tmp")
     run = jax.jit(exported.call)
     _LOADED[key] = run

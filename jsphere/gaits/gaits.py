@@ -15,7 +15,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._runtime import export_cache as _aot
-from .._runtime.arrays import as_array
+from .._runtime.arrays import as_array, under_jit
 from .._runtime.checks import finite
 from .._runtime.errors import InputError
 from ..controls import Constant
@@ -37,8 +37,12 @@ from ..solve.trajectory import Trajectory, _rebuild, assemble, raise_on_failure
 
 def _real(x):
     """A float array of the default float dtype (strongly typed), so that Python floats and
-    NumPy/JAX scalars give the same compiled function."""
+    NumPy/JAX scalars give the same compiled function. Inside a `jit` a Python or NumPy value
+    stays a NumPy array, a constant known while tracing (a gait built inside a `jit` keeps a
+    known duration)."""
     dtype = x.dtype if hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.floating) else jnp.result_type(float)
+    if not isinstance(x, (jax.Array, jax.core.Tracer)) and under_jit():
+        return np.asarray(x, dtype)
     return as_array(x, dtype)
 
 
@@ -381,7 +385,7 @@ def _solve_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, max
     args = (params, gaits, initial, ts_out, resets)
     if not batch_engine_applies(True, adjoint) or not _traced(args):
         return _aot.call("simulate_gaits", _simulate_gaits, _rebuild, *args, *flat)
-    return _dispatch.solve(_simulate_gaits, args, flat, steps)
+    return _dispatch.solve(_simulate_gaits, _rebuild, args, flat, steps)
 
 
 @eqx.filter_jit  # one compiled program per kind of gait, not one per operation

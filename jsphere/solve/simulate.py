@@ -207,7 +207,7 @@ def _solve(
     args = (params, state0, controls, t0, t1, ts_out)
     if not _traced(args):
         return _aot.call("simulate", _simulate, _rebuild, *args, *flat)
-    return _dispatch.solve(_simulate, args, flat, steps)
+    return _dispatch.solve(_simulate, _rebuild, args, flat, steps)
 
 
 @eqx.filter_jit

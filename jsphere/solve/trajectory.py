@@ -114,11 +114,14 @@ def raise_on_failure(traj: Trajectory, throw: bool) -> Trajectory:
     """
     if not throw:
         return traj
-    if isinstance(traj.status, jax.core.Tracer):
-        status = jnp.max(traj.status)
+    status = traj.status
+    if isinstance(status, jax.core.Tracer):  # under an eager `jax.grad` its value is known
+        status = jax.lax.stop_gradient(status)
+    if isinstance(status, jax.core.Tracer):
+        status = jnp.max(status)
         failed = eqx.branched_error_if(traj.x, status != 0, jnp.maximum(status - 1, 0), RESULTS.failure_messages())
         return eqx.tree_at(lambda t: t.x, traj, failed)
-    status = int(np.max(np.asarray(traj.status)))
+    status = int(np.max(np.asarray(status)))
     if status != RESULTS.successful:
         raise RuntimeError(RESULTS.message(status))
     return traj

@@ -10,12 +10,14 @@ layouts from `SHARED_MIN_BATCH` trials, components from `COMPONENT_MIN_BATCH`), 
 `BATCH_CHUNK` trials.
 
 As `custom_vmap` has no reverse mode, the default adjoint wraps it in a custom VJP
-(`_reverse`) whose differentiated pass is the flat layout with diffrax's own VJP. Its forward
-pass is again a `custom_vmap`: small batches keep the pullback's residuals; batches in the
-batch loop run it and their backward pass is its discrete adjoint (`_loop_vjp`,
-`jsphere.solve.batched.adjoint`); other large batches run the component layout and recompute
-the flat VJP in the backward pass, in chunks of `GRAD_CHUNK` trials. `diffrax.ForwardMode`
-uses the `custom_vmap` directly (its `jvp` is supported).
+(`_reverse`). Its forward pass is the solve in the layout chosen by batching and keeps only
+the inputs; its backward pass recomputes the VJP of just the outputs whose cotangents are not
+zero: unbatched and in small batches the flat layout with diffrax's own VJP, in one compiled
+program; batches in the batch loop through its discrete adjoint (`_loop_vjp`,
+`jsphere.solve.batched.adjoint`); other large batches the flat VJP per trial, in chunks of
+`GRAD_CHUNK` trials. An eager `jax.grad` (no `jit` or `vmap` around) thus compiles two
+programs, the solve and its VJP, both kept by the exported-program cache when it is on.
+`diffrax.ForwardMode` uses the `custom_vmap` directly (its `jvp` is supported).
 
 Only traced calls come here (`jsphere.solve.simulate`): a call with concrete inputs cannot be
 under `vmap`, and takes diffrax's path directly.
@@ -23,6 +25,7 @@ under `vmap`, and takes diffrax's path directly.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import Any, Callable
 
@@ -31,7 +34,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.custom_derivatives import SymbolicZero
 
+from ..._runtime import export_cache as _aot
+from ..._runtime.arrays import under_jit
 from ...model.params import Derived, derive
 from . import layout as _layout
 from .layout import Layout
@@ -46,6 +52,7 @@ class BatchedSolve(eqx.Module):
     """One solve as the batch engine runs it: `fn(*args, *flat, layout=, derived=)` of the
     traced leaves `leaves` of `args` (its other parts, `static`, are constants), for a layout.
 
+    - `rebuild`: the solve's output (a `Trajectory`) from its leaves;
     - `flat`: `(solver, rtol, atol, max_steps, adjoint)`;
     - `derived`: the `Derived` constants when the parameters are concrete (folded by XLA);
     - `steps`: the layout a batch of at least `SHARED_MIN_BATCH` trials asks for
@@ -55,6 +62,7 @@ class BatchedSolve(eqx.Module):
     """
 
     fn: Callable
+    rebuild: Callable
     treedef: Any = eqx.field(static=True)
     static: Any
     flat: tuple
@@ -65,6 +73,15 @@ class BatchedSolve(eqx.Module):
     def __call__(self, leaves, layout: Layout):
         args = eqx.combine(jax.tree_util.tree_unflatten(self.treedef, leaves), self.static)
         return self.fn(*args, *self.flat, layout=layout, derived=self.derived)
+
+    @property
+    def name(self) -> str:
+        """The solve's name (its function's), for the exported-program cache."""
+        return getattr(self.fn, "__qualname__", "solve")
+
+    def unnamed(self) -> "BatchedSolve":
+        """This solve without its functions (`fn`, `rebuild`)."""
+        return dataclasses.replace(self, fn=None, rebuild=None)
 
     @property
     def shared(self) -> bool:
@@ -87,7 +104,7 @@ class BatchedSolve(eqx.Module):
         )
 
 
-def solve(fn, args, flat, steps: Layout):
+def solve(fn, rebuild, args, flat, steps: Layout):
     """`fn(*args, *flat, layout=..., derived=...)` with the layout chosen by batching: the flat
     state for a single call, components under `vmap` (with shared steps or per-trial steps in
     the batch loop from `SHARED_MIN_BATCH` trials, as `steps` asks); reverse mode through
@@ -102,7 +119,8 @@ def solve(fn, args, flat, steps: Layout):
         with jax.ensure_compile_time_eval():
             derived = derive(args[0])
     forward_mode = isinstance(adjoint, dfx.ForwardMode)
-    engine = BatchedSolve(fn, treedef, static, flat, derived, steps, tableau(flat[0]) is not None and not forward_mode)
+    loop = tableau(flat[0]) is not None and not forward_mode
+    engine = BatchedSolve(fn, rebuild, treedef, static, flat, derived, steps, loop)
     if forward_mode:
         return _dispatched(engine)(leaves)
     return _reverse(engine, leaves)
@@ -115,12 +133,12 @@ def _dispatched(engine: BatchedSolve):
 
     @jax.custom_batching.custom_vmap
     def f(leaves):
-        return engine(leaves, Layout.FLAT)
+        return _flat_primal(engine, leaves)
 
     @f.def_vmap
     def _rule(axis_size, in_batched, leaves):
         if not any(jax.tree_util.tree_leaves(in_batched)):  # e.g. the primal part of a batched jvp
-            out = engine(leaves, Layout.FLAT)
+            out = _flat_primal(engine, leaves)
             return out, jax.tree_util.tree_map(lambda _: False, out)
         layout = engine.layout_for(axis_size)
         out = _chunked_vmap(lambda lv: engine(lv, layout), axis_size, in_batched, leaves)
@@ -131,8 +149,11 @@ def _dispatched(engine: BatchedSolve):
 
 def _chunked_vmap(fn, axis_size, in_batched, *args, chunk=None):
     """`vmap(fn)` over the batched leaves of `args`, in chunks of at most `chunk` trials
-    (default `BATCH_CHUNK`)."""
+    (default `BATCH_CHUNK`); a batch of one is the unbatched call with the axis added."""
     chunk = chunk or _layout.BATCH_CHUNK
+    if axis_size == 1:  # e.g. `jax.jacfwd` of one scalar: the call itself, not a size-1 `vmap` of it
+        one = tuple(jax.tree_util.tree_map(lambda x, b: x[0] if b else x, a, b) for a, b in zip(args, in_batched))
+        return jax.tree_util.tree_map(lambda x: x[None], fn(*one))
     in_axes = tuple(jax.tree_util.tree_map(lambda b: 0 if b else None, b) for b in in_batched)
     if axis_size <= chunk:
         return jax.vmap(fn, in_axes=in_axes, axis_size=axis_size)(*args)
@@ -158,110 +179,115 @@ def _large(axis_size, in_batched) -> bool:
     return axis_size >= _layout.COMPONENT_MIN_BATCH and any(jax.tree_util.tree_leaves(in_batched))
 
 
-class _Residuals(eqx.Module):
-    """The residuals of `_reverse`: its inputs, the leaves of the flat layout's pullback
-    (placeholders where the backward pass recomputes), and the pullback's tree structure."""
-
-    leaves: list
-    saved: list
-    saved_def: Any = eqx.field(static=True)
-
-
 @functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
 def _reverse(engine: BatchedSolve, leaves):
     return _dispatched(engine)(leaves)
 
 
 def _reverse_fwd(engine: BatchedSolve, leaves):
-    """The primal with the layout chosen by batching, and residuals for `_reverse_bwd`.
-
-    Unbatched or in small batches: the flat layout's VJP (diffrax's checkpointed adjoint), its
-    residuals kept as arrays (the leaves of the pullback). In batches in the batch loop
-    (`BatchedSolve.loop_grad`) or large ones: the batch's layout, and no residuals
-    (placeholders of the same structure; the backward pass recomputes). `custom_vmap` needs
-    one output structure for both, hence the placeholders.
-    """
-    pullback_def = []  # the pullback's tree structure, known once `flat_vjp` is traced
-
-    def flat_vjp(lv):
-        out, pull = jax.vjp(lambda l: engine(l, Layout.FLAT), lv)
-        res, treedef = jax.tree_util.tree_flatten(pull)
-        pullback_def[:] = [treedef]
-        return out, res
-
-    @jax.custom_batching.custom_vmap
-    def f(lv):
-        return flat_vjp(lv)
-
-    @f.def_vmap
-    def _rule(axis_size, in_batched, lv):
-        (batched,) = in_batched
-        if engine.loop_grad(axis_size, batched) or _large(axis_size, batched):
-            layout = engine.layout_for(axis_size)
-            out = _chunked_vmap(lambda l: engine(l, layout), axis_size, in_batched, lv)
-            # unbatched placeholders (one trial's worth) for the residuals the backward pass won't read
-            one = [jax.ShapeDtypeStruct(jnp.shape(x)[int(b) :], jnp.result_type(x)) for x, b in zip(lv, batched)]
-            res = [jnp.zeros(r.shape, r.dtype) for r in jax.eval_shape(lambda l: flat_vjp(l)[1], one)]
-            return (out, res), (jax.tree_util.tree_map(lambda _: True, out), [False] * len(res))
-        out, res = jax.vmap(flat_vjp, in_axes=([0 if b else None for b in batched],), axis_size=axis_size)(lv)
-        return (out, res), jax.tree_util.tree_map(lambda _: True, (out, res))
-
-    out, res = f(list(leaves))
-    return out, _Residuals(list(leaves), res, pullback_def[0])
+    """The primal with the layout chosen by batching; the residuals are the inputs only (the
+    backward pass recomputes what it needs, `_reverse_bwd`)."""
+    values = [x.value for x in leaves]
+    return _primal(engine, values), values
 
 
-def _reverse_bwd(engine: BatchedSolve, residuals: _Residuals, ct):
-    """Apply the pullback saved by `_reverse_fwd`. In batches in the batch loop
-    (`BatchedSolve.loop_grad`): the VJP of the batched solve, whose steps have a discrete
-    adjoint, in chunks of `BATCH_CHUNK` trials (`_loop_vjp`). In other large batches: the flat
-    layout's VJP recomputed per trial, in chunks of `GRAD_CHUNK` trials."""
-    leaves, res = residuals.leaves, residuals.saved
-    flat_ct, ct_def = jax.tree_util.tree_flatten(ct)
-    keep = [jnp.result_type(c) != jax.dtypes.float0 for c in flat_ct]
+def _primal(engine: BatchedSolve, leaves):
+    """The solve of `_reverse`'s forward pass. With concrete inputs (an eager `jax.grad`: no
+    `vmap` or `jit` around) one compiled program, `_flat_primal` (through the exported-program
+    cache when it is on); otherwise the `custom_vmap` of `_dispatched`."""
+    if not has_tracer(leaves) and not under_jit():
+        primal = _exportable(_flat_primal, engine)
+        return _aot.call(f"primal:{engine.name}", primal, engine.rebuild, engine.unnamed(), leaves)
+    return _dispatched(engine)(leaves)
 
-    def full_ct(cts, like):
-        it = iter(cts)
-        return jax.tree_util.tree_unflatten(
-            ct_def, [next(it) if k else np.zeros(jnp.shape(o), jax.dtypes.float0) for k, o in zip(keep, like)]
-        )
 
-    def saved(lv, rs, cts):
-        pull = jax.tree_util.tree_unflatten(residuals.saved_def, rs)
-        return pull(full_ct(cts, flat_ct))[0]
-
-    def recompute(lv, cts):
-        out, pull = jax.vjp(lambda l: engine(l, Layout.FLAT), lv)
-        return pull(full_ct(cts, jax.tree_util.tree_leaves(out)))[0]
+def _reverse_bwd(engine: BatchedSolve, leaves, ct):
+    """The cotangents of the leaves: the VJP of only the outputs whose cotangent is not a
+    symbolic zero (the rest of the solve's outputs, and what only they need, are never
+    differentiated), recomputed from the inputs. Unbatched and in small batches: the flat
+    layout's VJP (diffrax's checkpointed adjoint), one compiled program (`_flat_vjp`). In
+    batches in the batch loop (`BatchedSolve.loop_grad`): the VJP of the batched solve, whose
+    steps have a discrete adjoint, in chunks of `BATCH_CHUNK` trials (`_loop_vjp`). In other
+    large batches: the flat layout's VJP per trial, in chunks of `GRAD_CHUNK` trials."""
+    flat_ct = jax.tree_util.tree_leaves(ct, is_leaf=lambda c: isinstance(c, SymbolicZero))
+    keep = tuple(not isinstance(c, SymbolicZero) and jnp.result_type(c) != jax.dtypes.float0 for c in flat_ct)
+    cts = [c for k, c in zip(keep, flat_ct) if k]
+    if not any(keep):
+        return ([_zero_cotangent(x) for x in leaves],)
+    if not has_tracer((leaves, cts)) and not under_jit():
+        vjp = _exportable(_flat_vjp, engine)
+        return (_aot.call(f"vjp:{engine.name}", vjp, _keep, engine.unnamed(), keep, leaves, cts),)
 
     @jax.custom_batching.custom_vmap
-    def f(lv, rs, cts):
-        return saved(lv, rs, cts)
+    def f(lv, cs):
+        return _flat_vjp(engine, keep, lv, cs)
 
     @f.def_vmap
-    def _rule(axis_size, in_batched, lv, rs, cts):
+    def _rule(axis_size, in_batched, lv, cs):
         if engine.loop_grad(axis_size, in_batched[0]):
-            out = _loop_vjp(engine, axis_size, in_batched[0], in_batched[2], lv, cts, full_ct)
-        elif _large(axis_size, in_batched[0]):
-            out = _chunked_vmap(recompute, axis_size, in_batched[::2], lv, cts, chunk=_layout.GRAD_CHUNK)
+            out = _loop_vjp(engine, keep, axis_size, in_batched[0], in_batched[1], lv, cs)
         else:
-            in_axes = tuple(jax.tree_util.tree_map(lambda b: 0 if b else None, b) for b in in_batched)
-            out = jax.vmap(saved, in_axes=in_axes, axis_size=axis_size)(lv, rs, cts)
+            chunk = _layout.GRAD_CHUNK if _large(axis_size, in_batched[0]) else None
+            out = _chunked_vmap(
+                lambda l, c: _selected_vjp(engine, keep, l, c), axis_size, in_batched, lv, cs, chunk=chunk
+            )
         return out, jax.tree_util.tree_map(lambda _: True, out)
 
-    return (f(leaves, res, [c for k, c in zip(keep, flat_ct) if k]),)
+    return (f(list(leaves), cts),)
 
 
-_reverse.defvjp(_reverse_fwd, _reverse_bwd)
+_reverse.defvjp(_reverse_fwd, _reverse_bwd, symbolic_zeros=True)
 
 
-def _loop_vjp(engine: BatchedSolve, axis_size, lv_batched, ct_batched, lv, cts, full_ct):
+def _keep(x):
+    return x
+
+
+def _exportable(program, engine: BatchedSolve):
+    """`program(engine, ...)` as a function of `engine.unnamed()`: the exported-program cache
+    keys a call by its arguments' structure, in which a function has no stable name; the
+    solve's function is in the cache's name instead (`BatchedSolve.name`)."""
+    return lambda unnamed, *args: program(dataclasses.replace(unnamed, fn=engine.fn, rebuild=engine.rebuild), *args)
+
+
+def _zero_cotangent(x):
+    if jnp.issubdtype(jnp.result_type(x), jnp.inexact):
+        return jnp.zeros(jnp.shape(x), jnp.result_type(x))
+    return np.zeros(jnp.shape(x), jax.dtypes.float0)
+
+
+def _selected(engine: BatchedSolve, keep, layout: Layout, leaves):
+    """The outputs of the solve whose cotangents are kept (`keep`, over its leaves)."""
+    out = jax.tree_util.tree_leaves(engine(leaves, layout))
+    return [o for k, o in zip(keep, out) if k]
+
+
+def _selected_vjp(engine: BatchedSolve, keep, leaves, cts):
+    """The cotangents of `leaves` for the cotangents `cts` of the kept outputs (flat layout)."""
+    _, pull = jax.vjp(lambda l: _selected(engine, keep, Layout.FLAT, l), leaves)
+    return pull(cts)[0]
+
+
+@eqx.filter_jit
+def _flat_primal(engine: BatchedSolve, leaves):
+    """One trial's solve in the flat layout, as one compiled program."""
+    return engine(leaves, Layout.FLAT)
+
+
+@eqx.filter_jit
+def _flat_vjp(engine: BatchedSolve, keep, leaves, cts):
+    """`_selected_vjp` as one compiled program (forward and backward pass together)."""
+    return _selected_vjp(engine, keep, leaves, cts)
+
+
+def _loop_vjp(engine: BatchedSolve, keep, axis_size, lv_batched, ct_batched, lv, cts):
     """Per-trial cotangents of the leaves `lv` of a batch solved in the batch loop (shared or
-    per-trial steps), for the cotangents `cts` of its outputs: `jax.vjp` of the batched solve
-    (`vmap` inside, so the batching rule of `jsphere.solve.batched.segment.solve` runs before
-    differentiation and the loop's discrete adjoint applies), chunk by chunk (`BATCH_CHUNK`
-    trials: padding trials get zero cotangents). The cotangents of leaves shared by the batch
-    are sums over the batch; they are returned in the first trial's row (zeros elsewhere),
-    which sums to the same."""
+    per-trial steps), for the cotangents `cts` of its kept outputs: `jax.vjp` of the batched
+    solve (`vmap` inside, so the batching rule of `jsphere.solve.batched.segment.solve` runs
+    before differentiation and the loop's discrete adjoint applies), chunk by chunk
+    (`BATCH_CHUNK` trials: padding trials get zero cotangents). The cotangents of leaves shared
+    by the batch are sums over the batch; they are returned in the first trial's row (zeros
+    elsewhere), which sums to the same."""
     chunk = min(axis_size, _layout.BATCH_CHUNK)
     layout = engine.layout_for(axis_size)
     n = -(-axis_size // chunk)
@@ -277,15 +303,16 @@ def _loop_vjp(engine: BatchedSolve, axis_size, lv_batched, ct_batched, lv, cts, 
     lv_b = [split(x, False) if b else x for x, b in zip(lv, lv_batched)]
     inexact = [jnp.issubdtype(jnp.result_type(x), jnp.inexact) for x in lv]
 
+    def batched(l):
+        return _selected(engine, keep, layout, l)
+
     def one(ch):
         l_ch, c_ch = ch
         full = [c if b else x for c, x, b in zip(l_ch, lv, lv_batched)]
         # the vmapped solve's outputs are all batched: a cotangent shared by the batch is each trial's
         cc = [c if b else jnp.broadcast_to(x, (chunk,) + jnp.shape(x)) for c, x, b in zip(c_ch, cts, ct_batched)]
-        out, pull = jax.vjp(
-            lambda l: jax.vmap(lambda x: engine(x, layout), in_axes=(in_axes,), axis_size=chunk)(l), full
-        )
-        g = pull(full_ct(cc, jax.tree_util.tree_leaves(out)))[0]
+        _, pull = jax.vjp(lambda l: jax.vmap(lambda x: batched(x), in_axes=(in_axes,), axis_size=chunk)(l), full)
+        g = pull(cc)[0]
         return [x if k else None for x, k in zip(g, inexact)]  # no float0 through the map
 
     xs = ([x if b else None for x, b in zip(lv_b, lv_batched)], [c if b else None for c, b in zip(ct_b, ct_batched)])
