@@ -4,6 +4,7 @@ the fields each function uses, the errors for the ones it cannot, and the named 
 (`RESULTS`) of `MonteCarloResult`."""
 
 import json
+import types
 
 import diffrax as dfx
 import jax
@@ -17,11 +18,16 @@ from jsphere.montecarlo import run as mc_run
 from jsphere.montecarlo.result import REJECTED, SUCCESS, outcome_masks
 from jsphere.montecarlo.store import fingerprint
 from jsphere.montecarlo.study import check_vary
+from jsphere.planning import verify
 from jsphere.solve.options import resolve, unused
 
 FIT_DEFAULTS = {"rtol": 1e-6, "atol": 1e-8, "max_steps": 16384}
 GAITS = [jsphere.acceleration(), jsphere.braking()]
 VARY = {"j": ("normal", 2.7e-4, 1e-6)}
+
+
+class Stop(Exception):
+    """Ends a call at the solve whose arguments a test records."""
 
 
 # ------------------------------------------------------------------ resolve with defaults
@@ -96,9 +102,6 @@ def test_fit_passes_the_solver_options_to_its_compiled_functions(paper, trials, 
     the fingerprint as without options."""
     seen, configs = [], []
 
-    class Stop(Exception):
-        pass
-
     def record(free, kind, rtol, atol, max_steps, solver=None):
         seen.append((rtol, atol, max_steps, solver))
         raise Stop
@@ -156,14 +159,41 @@ def test_plan_with_default_options_is_the_same_plan(paper, planned):
     assert same.errors == planned.errors
 
 
-def test_plan_route_verifies_with_the_options(paper):
+def _recorder(seen):
+    def solve(*args, **kw):
+        seen.append(kw.get("options"))
+        raise Stop
+
+    return solve
+
+
+def test_plan_functions_pass_the_options_to_the_verification(paper, monkeypatch):
+    """`plan_route` and `plan_many` (and `plan`, above) hand their options to the accurate
+    re-simulation, and `replay_errors` to its solve with its own `max_steps` default."""
+    seen = []
+    monkeypatch.setattr(verify, "simulate_gaits", _recorder(seen))
+    monkeypatch.setattr(verify, "simulate", _recorder(seen))
+    route = {k: v for k, v in PLAN.items() if k != "heading"}
+    o = SolverOptions(rtol=1e-7, atol=1e-9, solver=dfx.Tsit5(), max_steps=2000)
+    with pytest.raises(Stop):
+        jsphere.plan_route(paper, [(-0.5, -0.4, 0.8)], options=o, **route)
+    with pytest.raises(Stop):
+        jsphere.plan_many(paper, [(-0.5, -0.4, 0.8)], restarts=2, settings=SMALL, rate=200.0, options=o)
+    assert seen == [o, o]
+    table = {"t": np.linspace(0.0, 1.0, 5)} | {f"chi_dot_{i}": np.zeros(5) for i in (1, 2, 3)}
+    dummy = types.SimpleNamespace(table=lambda: table, params=paper)
+    for options, expected in ((None, SolverOptions(max_steps=65536)), (o, o)):
+        with pytest.raises(Stop):
+            jsphere.replay_errors(dummy, mode="wheel_speeds", options=options)
+        assert seen[-1] == expected
+
+
+@pytest.mark.slow
+def test_plan_verification_and_replay_fail_at_max_steps(paper, planned):
     # the options reach the accurate re-simulation: two steps cannot finish the manoeuvre
     route = {k: v for k, v in PLAN.items() if k != "heading"}
     with pytest.raises(RuntimeError, match="max_steps"):
         jsphere.plan_route(paper, [(-0.5, -0.4, 0.8)], options=SolverOptions(max_steps=2), **route)
-
-
-def test_replay_errors_with_options(planned):
     with pytest.raises(RuntimeError, match="max_steps"):
         jsphere.replay_errors(planned, options=SolverOptions(max_steps=3))
 
@@ -181,13 +211,13 @@ def test_plan_refuses_fields_it_does_not_use(paper, options, match):
         jsphere.plan(paper, (0.5, 0.0), options=options)
 
 
-def test_plan_many_and_route_refuse_them_too(paper, planned):
+def test_plan_many_and_route_refuse_them_too(paper):
     with pytest.raises(ValueError, match=r"^plan_many: options.throw"):
         jsphere.plan_many(paper, [(0.5, 0.0)], options=SolverOptions(throw=False))
     with pytest.raises(ValueError, match=r"^plan_route: options.adjoint"):
         jsphere.plan_route(paper, [(0.5, 0.0)], options=SolverOptions(adjoint=dfx.ForwardMode()))
     with pytest.raises(ValueError, match=r"^replay_errors: options.batch_steps"):
-        jsphere.replay_errors(planned, options=SolverOptions(batch_steps="per_trial"))
+        jsphere.replay_errors(None, options=SolverOptions(batch_steps="per_trial"))
     with pytest.raises(TypeError, match=r"^plan: options must be a jsphere.SolverOptions"):
         jsphere.plan(paper, (0.5, 0.0), options={"rtol": 1e-9})
 
@@ -195,6 +225,7 @@ def test_plan_many_and_route_refuse_them_too(paper, planned):
 # ------------------------------------------------------------------ monte_carlo
 
 
+@pytest.mark.slow
 def test_monte_carlo_max_steps_option_reports_the_status(paper, tmp_path):
     r = jsphere.monte_carlo(
         paper, GAITS, vary=VARY, n=64, batch_size=64, progress=False, out=tmp_path, options=SolverOptions(max_steps=4)
@@ -219,6 +250,31 @@ def test_monte_carlo_options_are_the_keywords(paper):
     b = jsphere.monte_carlo(paper, GAITS, **kw, options=SolverOptions(rtol=1e-8, atol=1e-10))
     np.testing.assert_array_equal(a.x_final, b.x_final)
     np.testing.assert_array_equal(a.status, b.status)
+
+
+def test_monte_carlo_passes_the_options_to_its_batches(paper, monkeypatch):
+    """The solver and gait mode's step limit reach the compiled batch; the replay modes' step
+    limit is `max_steps` or `options.max_steps` (65536 by default)."""
+    seen = []
+
+    def record(trials, idx):
+        seen.append((trials.rtol, trials.atol, trials.solver, trials.max_steps, trials.replay))
+        raise Stop
+
+    monkeypatch.setattr(mc_run, "run_batch", record)
+    kw = {"vary": VARY, "n": 64, "progress": False}
+    o = SolverOptions(rtol=1e-7, atol=1e-9, solver=dfx.Tsit5(), max_steps=500)
+    for extra in ({}, {"options": o}, {"rtol": 1e-7, "atol": 1e-9, "options": SolverOptions(solver=dfx.Tsit5())}):
+        with pytest.raises(Stop):
+            jsphere.monte_carlo(paper, GAITS, **kw, **extra)
+    assert seen[0] == (1e-8, 1e-10, None, 16384, None)
+    assert seen[1] == (1e-7, 1e-9, dfx.Tsit5(), 500, None)
+    assert seen[2] == (1e-7, 1e-9, dfx.Tsit5(), 16384, None)
+    cmd = (np.array([0.0, 1.0]), np.zeros((2, 3)))
+    for extra, limit in (({}, 65536), ({"max_steps": 700}, 700), ({"options": SolverOptions(max_steps=800)}, 800)):
+        with pytest.raises(Stop):
+            jsphere.monte_carlo(paper, GAITS, **kw, mode="torques", commands=cmd, **extra)
+        assert seen[-1][4].max_steps == limit and seen[-1][3] == 16384
 
 
 def _fingerprint(paper, name, n, seed, **solver):
