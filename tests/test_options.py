@@ -40,8 +40,9 @@ def test_merge_keywords_into_options():
 
 
 def test_results_codes_and_messages():
-    assert [int(c) for c in RESULTS] == [0, 1, 2]
-    assert RESULTS.successful == 0 and RESULTS(2) is RESULTS.nonfinite
+    assert [int(c) for c in RESULTS] == [0, 1, 2, -1]
+    assert RESULTS.successful == 0 and RESULTS(2) is RESULTS.nonfinite and RESULTS(-1) is RESULTS.rejected
+    assert len(RESULTS.failure_messages()) == 2
     assert "max_steps" in RESULTS.message(1) and "NaN" in RESULTS.message(np.int32(2))
     codes = jnp.array([0, 1, 2])
     np.testing.assert_array_equal(codes == RESULTS.successful, [True, False, False])

@@ -34,6 +34,8 @@ from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+import diffrax as dfx
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -43,6 +45,7 @@ from .._runtime.errors import InputError, SolverFailure
 from .._runtime.files import remove_stale_temporaries
 from ..model.names import parse_name
 from ..model.params import RobotParams
+from ..solve.options import SolverOptions, default_solver, resolve, unused
 from . import shooting as _shooting
 from .checkpoint import (
     _CHECKPOINT_FORMAT,
@@ -88,6 +91,7 @@ def fit(
     checkpoint: str | Path | None = None,
     restart: bool = False,
     progress: bool | Callable[[str], None] = False,
+    options: SolverOptions | None = None,
 ) -> FitResult:
     """Fit the free parameters of `params` to captured trials (position and orientation).
 
@@ -122,6 +126,12 @@ def fit(
       simulated positions within ~2 um of a 1e-11 solution over a few seconds of exciting
       input, far below capture noise (100 Hz tables: the cubic command has a kink in its rate
       at every sample, which makes tighter tolerances costly: `docs/performance.md`).
+    - `options`: a `SolverOptions`; its `rtol`, `atol`, `max_steps` and `solver` are used
+      (`resolve` with fit's own defaults above: an option at `SolverOptions`' default takes
+      the keyword's value, a keyword at fit's default leaves a set option, both set and
+      different is an error). `throw` and `batch_steps` are fit's own: a failed solve is a
+      start of infinite cost, and forward-mode derivatives give every trial its own steps.
+      `adjoint` set is an error (fit differentiates in forward mode, `diffrax.ForwardMode`).
     - `checkpoint`: a file (`.npz`) written atomically after every Adam and Levenberg-Marquardt
       step with the optimiser's whole state; a fit with the same data and configuration resumes
       from it to the same result, bit for bit, wherever it was stopped (`restart=True` ignores
@@ -142,6 +152,7 @@ def fit(
     _check_options(n_starts, max_iter, adam_steps, seed, sigma_pos, sigma_rot)
     _check_shooting(shooting, segment)
     _check_unknowns(data, fp_)
+    solve = _solver_options(options, rtol, atol, max_steps)
     options = _Options(
         n_starts=int(n_starts),
         spread=spread,
@@ -156,9 +167,10 @@ def fit(
         noise=noise,
         sigma_pos=sigma_pos,
         sigma_rot=sigma_rot,
-        rtol=rtol,
-        atol=atol,
-        max_steps=max_steps,
+        rtol=solve.rtol,
+        atol=solve.atol,
+        max_steps=solve.max_steps,
+        solver=None if eqx.tree_equal(solve.solver_or_default(), default_solver()) else solve.solver,
     )
     run, st = _setup(data, fp_, params, options, checkpoint, say, t_begin)
     _resume(run, st, restart)
@@ -183,6 +195,23 @@ def _check_free_and_fixed(free, fix) -> None:
             for fr in free_list:
                 if _overlaps(fname, fr.strip()):
                     raise InputError(f"{fname!r} is both free ({fr!r}) and fixed; choose one.")
+
+
+def _solver_options(options: SolverOptions | None, rtol, atol, max_steps) -> SolverOptions:
+    """`options` resolved with fit's solver keywords and their defaults (`resolve`)."""
+    unused(
+        options,
+        where="fit",
+        adjoint="fit differentiates its solves in forward mode (diffrax.ForwardMode), which it chooses itself",
+    )
+    return resolve(
+        options,
+        where="fit",
+        defaults={"rtol": 1e-6, "atol": 1e-8, "max_steps": 16384},
+        rtol=rtol,
+        atol=atol,
+        max_steps=max_steps,
+    )
 
 
 def _check_options(n_starts, max_iter, adam_steps, seed, sigma_pos, sigma_rot) -> None:
@@ -243,14 +272,18 @@ class _Options:
     rtol: float
     atol: float
     max_steps: int
+    solver: dfx.AbstractSolver | None = None  # None: simulate's default
 
     @property
     def estimate_sigma(self) -> bool:
         return self.sigma_pos is None or self.sigma_rot is None
 
     def config(self, sig: np.ndarray, multiple: bool) -> dict[str, Any]:
-        """What the checkpoint's fingerprint holds besides the data and the free parameters."""
-        return {
+        """What the checkpoint's fingerprint holds besides the data and the free parameters (the
+        solver only when it is not the default, so that a default fit's fingerprint does not
+        depend on whether it was given)."""
+        solver = {} if self.solver is None else {"solver": repr(self.solver)}
+        return solver | {
             "n_starts": self.n_starts,
             "spread": self.spread,
             "seed": self.seed,
@@ -364,7 +397,7 @@ def _setup(
     kind, S, P, T = data.kind, o.n_starts, free.size, data.ts.shape[0]
     multiple = _use_multiple(o.shooting, data, o.segment)
     seg = _shooting.segment_trials(data, o.segment) if multiple else None
-    fns = _functions(free, kind, float(o.rtol), float(o.atol), int(o.max_steps))
+    fns = _functions(free, kind, float(o.rtol), float(o.atol), int(o.max_steps), o.solver)
     sig = np.array([o.sigma_pos or 1e-3, o.sigma_rot or math.radians(0.5)])
     rng = np.random.default_rng(o.seed)
     theta = start_design(free, S, o.spread, rng)

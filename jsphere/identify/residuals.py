@@ -35,9 +35,10 @@ from .lm import _lm_step, _solve_arrow
 from .shooting import end_vector
 
 
-def _trial_outputs(free: FreeParams, kind, rtol, atol, max_steps, adjoint, base, theta, nu, d, sig):
+def _trial_outputs(free: FreeParams, kind, rtol, atol, max_steps, adjoint, base, theta, nu, d, sig, solver=None):
     """Whitened residuals `(5 M,)` of one trial, its solver status, the simulated pose and the
-    state at its last sample (`jsphere.identify.shooting.end_vector`)."""
+    state at its last sample (`jsphere.identify.shooting.end_vector`); `solver`: None for
+    `simulate`'s default."""
     p = free.to_params(theta, base)
     dt = p.R0.dtype
     q0 = quat_mul(d["q0"], quat_exp(nu[3:6]))
@@ -66,6 +67,7 @@ def _trial_outputs(free: FreeParams, kind, rtol, atol, max_steps, adjoint, base,
         ts=d["ts"],
         rtol=rtol,
         atol=atol,
+        solver=solver,
         max_steps=max_steps,
         throw=False,
         adjoint=adjoint,
@@ -83,7 +85,7 @@ def _trial_outputs(free: FreeParams, kind, rtol, atol, max_steps, adjoint, base,
 
 class _Functions:
     """The compiled functions of one fit configuration (cached: a second fit with the same
-    free names, transforms, input kind and shapes does not compile again).
+    free names, transforms, input kind, solver settings and shapes does not compile again).
 
     `jacobian(base, theta (S,P), nu (S,T,n), data, sigmas)`: whitened residuals `(S,T,K)`,
     solver status `(S,T)`, their Jacobian `(S,T,K,P+n)` with respect to `(theta, nu_i)` and
@@ -93,13 +95,15 @@ class _Functions:
     defects (`jsphere.identify.shooting.assemble`); `solve(blocks, lam)`: the LM step from blocks.
     """
 
-    def __init__(self, free: FreeParams, kind: str, rtol: float, atol: float, max_steps: int):
+    def __init__(
+        self, free: FreeParams, kind: str, rtol: float, atol: float, max_steps: int, solver: dfx.AbstractSolver | None
+    ):
         P = free.size
 
         def jac_one(base, th, nu, d, sig):
             def f(z):
                 res, ok, pose, end = _trial_outputs(
-                    free, kind, rtol, atol, max_steps, dfx.ForwardMode(), base, z[:P], z[P:], d, sig
+                    free, kind, rtol, atol, max_steps, dfx.ForwardMode(), base, z[:P], z[P:], d, sig, solver
                 )
                 return (res, end), (res, ok, pose, end)
 
@@ -123,8 +127,12 @@ class _Functions:
 _CACHE: dict[Any, _Functions] = {}
 
 
-def _functions(free: FreeParams, kind: str, rtol: float, atol: float, max_steps: int) -> _Functions:
-    key = (free.slots, kind, rtol, atol, max_steps)
+def _functions(
+    free: FreeParams, kind: str, rtol: float, atol: float, max_steps: int, solver: dfx.AbstractSolver | None = None
+) -> _Functions:
+    """The compiled functions of a configuration; `solver`: a diffrax solver (hashable, as
+    diffrax's are), None for `simulate`'s default."""
+    key = (free.slots, kind, rtol, atol, max_steps, solver)
     if key not in _CACHE:
-        _CACHE[key] = _Functions(free, kind, rtol, atol, max_steps)
+        _CACHE[key] = _Functions(free, kind, rtol, atol, max_steps, solver)
     return _CACHE[key]

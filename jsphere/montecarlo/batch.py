@@ -3,6 +3,7 @@ local devices, in one compiled function (`run_batch`) reused for every batch of 
 
 from __future__ import annotations
 
+import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -14,7 +15,7 @@ from ..model.linalg import cross
 from ..model.params import RobotParams
 from ..model.state import State
 from ..solve.simulate import Trajectory, simulate
-from .result import REJECTED
+from ..solve.status import RESULTS
 from .sampling import PERTURBATION_FOLD, Actuators, Draws, trial_key
 
 #: trials per vmapped chunk. Every trial is computed inside a vmap of exactly this width,
@@ -42,7 +43,9 @@ class Replay(eqx.Module):
 class Trials(eqx.Module):
     """What every trial of a study shares: the nominal robot, the gaits (executed exactly, or
     the commands of `replay`), the distributions and seed of the draws, and the solver's
-    settings. `mesh`: the local devices that share every batch (None for one device)."""
+    settings (`solver`: None for the default; `max_steps`: the step limit of gait mode, the
+    replay's own in the replay modes). `mesh`: the local devices that share every batch (None
+    for one device)."""
 
     params: RobotParams
     gaits: list[Gait]
@@ -54,6 +57,8 @@ class Trials(eqx.Module):
     Omega0_sd: float
     replay: Replay | None
     mesh: jax.sharding.Mesh | None
+    solver: dfx.AbstractSolver | None = None
+    max_steps: int = 16384
 
     @property
     def duration(self):
@@ -72,6 +77,8 @@ def _simulate_gaits(trials: Trials, p: RobotParams, ts, dOmega) -> Trajectory:
         reset=trials.reset,
         rtol=trials.rtol,
         atol=trials.atol,
+        solver=trials.solver,
+        max_steps=trials.max_steps,
         throw=False,
         Omega0=dOmega,
         batch_steps="per_trial",
@@ -95,6 +102,7 @@ def _simulate_replay(trials: Trials, p: RobotParams, T, dOmega, key) -> Trajecto
         ts=ts_after,
         rtol=trials.rtol,
         atol=trials.atol,
+        solver=trials.solver,
         throw=False,
         max_steps=rp.max_steps,
         batch_steps="per_trial",
@@ -107,7 +115,7 @@ def _trial(trials: Trials, T, i: Int[Array, ""]) -> tuple:
 
     A draw that breaks a rule of `RobotParams` is not simulated as drawn: the nominal
     parameters stand in for it (so that its solve is an ordinary one and does not hold up its
-    chunk), and its outcomes are replaced by NaN and the status `REJECTED`."""
+    chunk), and its outcomes are replaced by NaN and the status `RESULTS.rejected`."""
     params = trials.params
     dt = params.R0.dtype
     vals, code = trials.draws.draw(params, trials.seed, i)
@@ -123,7 +131,7 @@ def _trial(trials: Trials, T, i: Int[Array, ""]) -> tuple:
     g3 = tr.gamma[:, 2]
     nan = jnp.asarray(jnp.nan, dt)
     outcomes = tuple(jnp.where(valid, v, nan) for v in (tr.x[-1], tr.y[-1], speed, jnp.std(g3)))
-    status = jnp.where(valid, tr.status, REJECTED)
+    status = jnp.where(valid, tr.status, int(RESULTS.rejected))
     return vals, outcomes[0], outcomes[1], outcomes[2], status, outcomes[3], code
 
 

@@ -8,21 +8,22 @@ from typing import ClassVar
 
 import numpy as np
 
+from ..solve.status import RESULTS
 from .sampling import REASONS
 
-#: `MonteCarloResult.status` of a successful solve (`Trajectory.status`)
-SUCCESS = 0
+#: `MonteCarloResult.status` of a successful solve (`RESULTS.successful`)
+SUCCESS = RESULTS.successful
 #: `MonteCarloResult.status` of a trial whose drawn parameters break a rule of `RobotParams`
-#: (not simulated; `reject_code` says which rule). Solver outcomes are >= 0 (`Trajectory.status`).
-REJECTED = -1
+#: (`RESULTS.rejected`: not simulated; `reject_code` says which rule). Solver outcomes are >= 0.
+REJECTED = RESULTS.rejected
 
 
 def outcome_masks(status) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`(ok, failed, rejected)`: the trials whose solve succeeded, whose solve failed, and whose
     draw was rejected (not simulated), from their `status`."""
     status = np.asarray(status)
-    ok = status == SUCCESS
-    rejected = status == REJECTED
+    ok = status == RESULTS.successful
+    rejected = status == RESULTS.rejected
     return ok, ~ok & ~rejected, rejected
 
 
@@ -31,9 +32,11 @@ class MonteCarloResult:
     """Per-trial outcomes of `monte_carlo` (NumPy arrays of length `n`).
 
     `samples[name]`: the drawn values; `x_final, y_final` [m]: stop point; `speed_final` [m/s]:
-    speed of the shell centre at the end; `status`: 0 for a successful solve, 1 or 2 for a
-    failed one (see `Trajectory.status`), `REJECTED` (-1) for a draw whose parameters break a
-    rule of `RobotParams` (not simulated; its outcomes are NaN); `gamma3_sd_after`: standard
+    speed of the shell centre at the end; `status`: the `RESULTS` code of each trial as an
+    integer array: `successful` (0), a solver failure (`max_steps_reached` 1, `nonfinite` 2,
+    as `Trajectory.status`), or `rejected` (-1, `REJECTED`) for a draw whose parameters break
+    a rule of `RobotParams` (not simulated; its outcomes are NaN); `results`: the same as
+    `RESULTS` members; `gamma3_sd_after`: standard
     deviation of `gamma_3` over the settling time after the commands end (replay modes; the
     paper's sigma of Fig. 2; 0 in gait mode, where the gaits end on exact stationary motions);
     `reject_code`: 0 for a valid draw, else the index in `REASONS` of the rule it breaks.
@@ -53,6 +56,18 @@ class MonteCarloResult:
     elapsed_s: float = 0.0
     reject_code: np.ndarray | None = None
 
+    @property
+    def results(self) -> np.ndarray:
+        """`status` as `RESULTS` members (an object array of length `n`)."""
+        out = np.empty(len(self.status), object)
+        out[:] = [RESULTS(int(c)) for c in np.asarray(self.status)]
+        return out
+
+    def outcomes(self) -> dict[str, int]:
+        """`{RESULTS name: number of trials}` of the outcomes that occur, by code."""
+        codes, counts = np.unique(np.asarray(self.status), return_counts=True)
+        return {RESULTS(int(c)).name: int(k) for c, k in zip(codes, counts)}
+
     def rejections(self) -> dict[str, int]:
         """`{reason: number of draws}` of the rejected draws, most frequent first."""
         codes = np.zeros(self.n, np.int64) if self.reject_code is None else np.asarray(self.reject_code)
@@ -63,8 +78,8 @@ class MonteCarloResult:
     def stats(self, level: float = 0.95) -> dict:
         """Stop-point mean, covariance, the `level` confidence ellipse and quantiles (successful
         trials only), with the counts of successful trials (`n_ok`), solver failures
-        (`n_failed`, and `failed_status`: per status) and rejected draws (`n_rejected`, and
-        `rejected`: per broken rule)."""
+        (`n_failed`, and `failed_status`: per status code), rejected draws (`n_rejected`, and
+        `rejected`: per broken rule) and every outcome by its `RESULTS` name (`outcomes`)."""
         status = np.asarray(self.status)
         ok, failed, rejected = outcome_masks(status)
         codes, counts = np.unique(status[failed], return_counts=True)
@@ -75,6 +90,7 @@ class MonteCarloResult:
             "failed_status": {str(int(c)): int(k) for c, k in zip(codes, counts)},
             "n_rejected": int(rejected.sum()),
             "rejected": self.rejections(),
+            "outcomes": self.outcomes(),
         }
         if not ok.any():
             return head

@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 from typing import Mapping, Sequence
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -33,6 +34,7 @@ from .._runtime.errors import InputError
 from ..controls import Sampled
 from ..gaits.gaits import Gait, simulate_gaits
 from ..model.params import RobotParams
+from ..solve.options import SolverOptions, default_solver, resolve, unused
 from ..solve.simulate import tolerances
 from .batch import CHUNK as CHUNK
 from .batch import Replay, Trials, run_batch
@@ -48,6 +50,8 @@ from .study import MODES, check_settings, check_vary
 _PROGRESS = "[jsphere montecarlo]"
 #: seconds between two looks for another process's batch file
 _POLL_S = 0.2
+#: `monte_carlo`'s default step limit of the replay modes
+MAX_STEPS = 65536
 
 
 def monte_carlo(
@@ -73,6 +77,7 @@ def monte_carlo(
     process_index: int | None = None,
     process_count: int | None = None,
     wait_timeout: float = 24 * 3600.0,
+    options: SolverOptions | None = None,
 ) -> MonteCarloResult:
     """Run the gaits `n` times with parameters drawn from `vary`; return the stop points.
 
@@ -107,7 +112,8 @@ def monte_carlo(
     - `rtol`, `atol`: the solver's tolerances; default 1e-8, 1e-10 (float32 parameters: 1e-5,
       1e-7, as `simulate`).
     - `max_steps`: solver step limit per trial in the replay modes (noisy commands need many
-      steps: the noise is interpolated smoothly and the solver follows it).
+      steps: the noise is interpolated smoothly and the solver follows it). Gait mode solves
+      with `simulate_gaits`' limit (16384) unless `options.max_steps` sets it.
     - `Omega0_sd`: sd of a perturbation of the initial shell angular velocity [1/s].
     - `out`: a folder. Each finished batch is written there atomically, with a manifest; run
       the same call again after an interruption and it resumes (a folder holding a different
@@ -120,6 +126,14 @@ def monte_carlo(
       `out` (which all processes must see), then reads the others' batches from there (waiting
       up to `wait_timeout` s). Default: `jax.process_index()` / `jax.process_count()`, i.e. one
       process unless `jax.distributed.initialize()` was called (see docs/montecarlo.md).
+    - `options`: a `SolverOptions`; its `rtol`, `atol`, `max_steps` and `solver` are used
+      (`resolve` with monte_carlo's own default `max_steps=65536`: an option at
+      `SolverOptions`' default takes the keyword's value, a keyword at its default leaves a set
+      option, both set and different is an error). `throw` and `batch_steps` are
+      monte_carlo's own: a failed trial is reported in `status`, and every trial takes its own
+      steps, so that its result does not depend on the other trials of its chunk. `adjoint`
+      set is an error (nothing is differentiated). A solver other than `Dopri8` is part of
+      the study's fingerprint.
 
     Every argument is checked before any work; a bad one raises `InputError` naming it.
 
@@ -138,10 +152,11 @@ def monte_carlo(
             "wait_timeout": wait_timeout,
         },
     )
-    actuators = _check_mode(mode, actuators, rtol, atol)
+    opts = _solver_options(options, rtol, atol, settings)
+    actuators = _check_mode(mode, actuators, opts.rtol, opts.atol)
     pi, pc = _check_processes(process_index, process_count, out)
     spec = check_vary(params, vary)
-    rtol, atol = tolerances(params.R0.dtype, rtol, atol, where="monte_carlo")
+    rtol, atol = tolerances(params.R0.dtype, opts.rtol, opts.atol, where="monte_carlo")
     gaits = _check_gaits(gaits)
     if commands is not None and mode == "gait":
         raise ValueError("monte_carlo: `commands` are replayed; use mode='torques' or 'wheel_speeds'.")
@@ -154,6 +169,8 @@ def monte_carlo(
         reset=reset,
         rtol=rtol,
         atol=atol,
+        solver=opts.solver,
+        gait_max_steps=SolverOptions().max_steps if options is None else options.max_steps,
         replay=replay,
         commands=commands is not None,
         out=out,
@@ -168,6 +185,22 @@ def monte_carlo(
     if run.folder is not None:
         run.folder.write_stats(res.stats())
     return res
+
+
+def _solver_options(options: SolverOptions | None, rtol, atol, settings: dict) -> SolverOptions:
+    """The solver settings of a study: `options` resolved with the keywords (`max_steps`
+    defaults to `MAX_STEPS`); `settings["max_steps"]` becomes the replay modes' step limit."""
+    unused(options, where="monte_carlo", adjoint="monte_carlo does not differentiate its solves")
+    opts = resolve(
+        options,
+        where="monte_carlo",
+        defaults={"max_steps": MAX_STEPS},
+        rtol=rtol,
+        atol=atol,
+        max_steps=settings["max_steps"],
+    )
+    settings["max_steps"] = opts.max_steps
+    return opts
 
 
 def _check_mode(mode: str, actuators: Actuators | None, rtol, atol) -> Actuators:
@@ -243,6 +276,19 @@ def _replay_record(replay: Replay, plan_rate: float, commands: bool) -> tuple:
     return (replay.actuators, plan_rate, replay.settle, cmd_fp, replay.max_steps)
 
 
+def _solver_record(solver, gait_max_steps: int | None) -> tuple:
+    """The solver settings that change a study's results beyond its tolerances and the replay's
+    step limit, for its fingerprint: a solver other than the default and gait mode's step limit
+    where it is not `simulate_gaits`' default. Empty for the defaults, so that a study's
+    fingerprint does not depend on whether they were given."""
+    record = ()
+    if solver is not None and not eqx.tree_equal(solver, default_solver()):
+        record += (("solver", repr(solver)),)
+    if gait_max_steps is not None and gait_max_steps != SolverOptions().max_steps:
+        record += (("max_steps", gait_max_steps),)
+    return record
+
+
 @dataclasses.dataclass(frozen=True)
 class _Run:
     """A checked study laid out in batches: `n` trials with seed `seed` in `n_batches` batches of
@@ -260,7 +306,9 @@ class _Run:
     fingerprint: str
 
     @classmethod
-    def create(cls, params, gaits, spec, settings, *, reset, rtol, atol, replay, commands, out, process) -> "_Run":
+    def create(
+        cls, params, gaits, spec, settings, *, reset, rtol, atol, solver, gait_max_steps, replay, commands, out, process
+    ) -> "_Run":
         n, seed = settings["n"], settings["seed"]
         devices = jax.local_devices()
         unit = CHUNK * len(devices)
@@ -282,9 +330,12 @@ class _Run:
             settings["Omega0_sd"],
             replay,
             mesh,
+            solver,
+            gait_max_steps if replay is None else SolverOptions().max_steps,
         )
         record = () if replay is None else _replay_record(replay, settings["plan_rate"], commands)
         options = (reset, "gait" if replay is None else replay.mode, repr(record), settings["Omega0_sd"])
+        options += _solver_record(solver, gait_max_steps if replay is None else None)
         fp = fingerprint(params, gaits, spec, seed, B, options, rtol, atol)
         mine = tuple(k for k in range(n_batches) if k % process[1] == process[0])  # all of them on one host
         folder = StudyFolder(Path(out), B, len(spec)) if out is not None else None

@@ -14,11 +14,12 @@ import numpy as np
 
 from ..model.params import RobotParams
 from ..model.state import State
+from ..solve.options import SolverOptions
 from .problem import Limits, Objective, PlanSettings, _check_request, _vec_targets, gait_from_vector
 from .result import Plan
 from .rollout import rollout
 from .search import _initial_guesses, _search
-from .verify import _accurate, _correct_bias, _limit_report, _terminal_errors
+from .verify import _accurate, _correct_bias, _limit_report, _terminal_errors, verification_options
 
 
 @dataclasses.dataclass
@@ -37,6 +38,7 @@ class _Batch:
     tol_heading: float
     t0: float
     iterations: dict
+    options: SolverOptions | None = None  # of the accurate re-simulation
 
 
 def _search_batch(b: _Batch, seed: int, progress: bool):
@@ -71,7 +73,7 @@ def _verified(b: _Batch, k: int, z, J):
     alpha0, beta0 = np.asarray(st0.alpha), np.asarray(st0.beta)
 
     def accurate(gait):
-        return _accurate(p, gait, b.rate, alpha0, beta0, lim.max_time)
+        return _accurate(p, gait, b.rate, alpha0, beta0, lim.max_time, b.options)
 
     tr = accurate(gait_from_vector(jnp.asarray(z), lim, b.s))
     err = _terminal_errors(p, tr, b.targets[k])
@@ -161,6 +163,7 @@ def plan_many(
     tol_heading: float = 1e-3,
     verify: bool = True,
     progress: bool = False,
+    options: SolverOptions | None = None,
 ) -> list[Plan]:
     """Plan rest-to-rest manoeuvres from rest at the origin (heading 0) to each target, all in
     one compiled, vmapped search (`restarts x len(targets)` problems).
@@ -172,6 +175,9 @@ def plan_many(
     - `tol_*`: terminal tolerances for `Plan.feasible` [m, m/s, rad].
     - `verify`: re-simulate with the accurate solver (needed for the table; `False` returns
       the search model's result only, for benchmarks).
+    - `options`: a `SolverOptions` for that re-simulation (`simulate_gaits`; default Dopri8,
+      rtol 1e-10, atol 1e-12, max_steps 16384): its `rtol`, `atol`, `solver` and `max_steps`
+      are used; `throw`, `adjoint` and `batch_steps` set are errors.
 
     Every argument is checked before any work; a bad one raises `InputError` naming it.
 
@@ -188,6 +194,7 @@ def plan_many(
         seed,
         (("tol_position", tol_position), ("tol_speed", tol_speed), ("tol_heading", tol_heading)),
     )
+    options = verification_options("plan_many", options)
     s = settings or PlanSettings()
     b = _Batch(
         params=params,
@@ -202,6 +209,7 @@ def plan_many(
         tol_heading=tol_heading,
         t0=time.perf_counter(),
         iterations={"adam": s.adam_steps, "lbfgs": s.lbfgs_steps, "lm": s.lm_steps, "newton": 0},
+        options=options,
     )
     zf, Jf, loss = _search_batch(b, seed, progress)
     return [_plan_for(b, k, zf[k], Jf[k], loss[k], verify) for k in range(len(b.targets))]

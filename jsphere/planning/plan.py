@@ -21,10 +21,12 @@ import numpy as np
 from .._runtime.checks import real
 from .._runtime.errors import InputError
 from ..model.params import RobotParams
+from ..solve.options import SolverOptions
 from ..solve.simulate import Trajectory
 from .many import plan_many
 from .problem import Limits, Objective, PlanSettings, _check_request
 from .result import Plan, PlanInfeasibleError
+from .verify import verification_options
 
 __all__ = ["Limits", "Objective", "Plan", "PlanInfeasibleError", "PlanSettings", "plan", "plan_many", "plan_route"]
 
@@ -42,6 +44,7 @@ def plan(
     seed: int = 0,
     allow_infeasible: bool = False,
     progress: bool = False,
+    options: SolverOptions | None = None,
 ) -> Plan:
     """Plan a rest-to-rest manoeuvre from rest at the origin (platform axes = fixed axes) to
     `to = (x, y)` [m], optionally ending with platform heading `heading` [rad], within `limits`.
@@ -49,6 +52,9 @@ def plan(
     Raises `PlanInfeasibleError` (holding the best plan in `.plan`, and saying how far it falls
     short and which limit binds) if the tolerances or limits are not met, unless
     `allow_infeasible=True` (then check `Plan.feasible`).
+
+    `options`: a `SolverOptions` for the accurate re-simulation that verifies the plan (as in
+    `plan_many`).
 
     Example:
 
@@ -64,6 +70,7 @@ def plan(
     if heading is not None:
         real("plan", "heading", heading, low=None, unit="rad; None for a free final heading")
     _check_request("plan", [(to[0], to[1], heading)], limits, objective, settings, restarts, rate, seed)
+    verification_options("plan", options)
     pl = plan_many(
         params,
         [(to[0], to[1], heading)],
@@ -74,6 +81,7 @@ def plan(
         rate=rate,
         seed=seed,
         progress=progress,
+        options=options,
     )[0]
     if not pl.feasible and not allow_infeasible:
         raise PlanInfeasibleError(
@@ -111,6 +119,7 @@ def plan_route(
     seed: int = 0,
     allow_infeasible: bool = False,
     progress: bool = False,
+    options: SolverOptions | None = None,
 ) -> Plan:
     """A route from rest at the origin through `waypoints` `(x, y)` or `(x, y, psi)` [m, rad],
     stopping at each: one rest-to-rest manoeuvre per leg. Every leg is planned in its start
@@ -118,7 +127,8 @@ def plan_route(
     and turns about the vertical). A waypoint without a heading keeps the previous heading.
 
     Returns one `Plan` whose gaits are the legs and whose trajectory joins them (the duplicate
-    rest sample at each stop dropped).
+    rest sample at each stop dropped). `options`: a `SolverOptions` for the accurate
+    re-simulation of each leg (as in `plan_many`).
     """
     if isinstance(waypoints, (str, bytes)) or not isinstance(waypoints, Sequence) or not len(waypoints):
         raise InputError(
@@ -135,6 +145,7 @@ def plan_route(
         seed,
         nan_free=False,
     )
+    verification_options("plan_route", options)
     poses, local, pose = _legs(waypoints)
     legs = plan_many(
         params,
@@ -146,6 +157,7 @@ def plan_route(
         rate=rate,
         seed=seed,
         progress=progress,
+        options=options,
     )
     tr, t_off, shortfall = _joined(legs, poses)
     err, rep = _route_errors(legs, poses, tr, t_off, limits or Limits())

@@ -1,6 +1,7 @@
 """Verification of a plan with the accurate solver: the adaptive `simulate_gaits` (Dopri8,
-rtol 1e-10) on the output grid, terminal errors, exact limit checks, the correction of the
-search model's small RK4 bias, and the replay of an exported table through `simulate`."""
+rtol 1e-10, or as `SolverOptions` say) on the output grid, terminal errors, exact limit checks,
+the correction of the search model's small RK4 bias, and the replay of an exported table
+through `simulate`."""
 
 from __future__ import annotations
 
@@ -16,9 +17,26 @@ from ..gaits.gaits import simulate_gaits
 from ..model.kinematics import rest_attitude
 from ..model.rotations import rotation_between
 from ..model.state import State
+from ..solve.options import SolverOptions, resolve, unused
 from ..solve.simulate import Trajectory, simulate
 from .problem import Limits, gait_from_vector
 from .result import Plan
+
+#: `replay_errors`' step limit (a table sampled at the plan's rate has a kink at every sample)
+REPLAY_MAX_STEPS = 65536
+
+
+def verification_options(where: str, options: SolverOptions | None) -> SolverOptions | None:
+    """Check the `SolverOptions` of a verification: its `rtol`, `atol`, `solver` and
+    `max_steps` are used; `throw`, `adjoint` and `batch_steps` set are errors."""
+    unused(
+        options,
+        where=where,
+        throw="a verification that fails raises, as the plan cannot be checked",
+        adjoint="the verification is not differentiated",
+        batch_steps="the verification solves one manoeuvre at a time, unbatched",
+    )
+    return options
 
 
 def _limit_report(params, tr: Trajectory, T_total, lim: Limits) -> dict:
@@ -42,17 +60,18 @@ def _limit_report(params, tr: Trajectory, T_total, lim: Limits) -> dict:
     return {k: {"max": v, "limit": float(L), "ok": bool(v <= float(L) * (1 + 1e-9))} for k, (v, L) in rep.items()}
 
 
-def _accurate(params, gait, rate, alpha0, beta0, max_time):
-    """`simulate_gaits` (Dopri8, rtol 1e-10) sampled at `k / rate` for `k / rate < T`, plus
-    the end `T`. The grid is padded to a fixed length (`max_time * rate`) so that plans of
-    every duration share one compiled function; the padding is cut off afterwards."""
+def _accurate(params, gait, rate, alpha0, beta0, max_time, options: SolverOptions | None = None):
+    """`simulate_gaits` (Dopri8, rtol 1e-10, or as `options` say) sampled at `k / rate` for
+    `k / rate < T`, plus the end `T`. The grid is padded to a fixed length (`max_time * rate`)
+    so that plans of every duration share one compiled function; the padding is cut off
+    afterwards."""
     T = float(gait.T)
     n_max = math.ceil(max_time * rate) + 2
     grid = np.arange(n_max) / rate
     n = int(np.sum(grid < T - 1e-9)) + 1
     ts = np.minimum(grid, T)
     ts[n - 1 :] = T
-    tr = simulate_gaits(params, [gait], ts=ts, alpha0=alpha0, beta0=beta0)
+    tr = simulate_gaits(params, [gait], ts=ts, alpha0=alpha0, beta0=beta0, options=options)
     return jax.tree_util.tree_map(lambda v: v[:n] if jnp.ndim(v) >= 1 else v, tr)
 
 
@@ -108,10 +127,19 @@ def _correct_bias(params, z, J_search, target, tr, err, accurate, lim, obj, s, t
     return z, gait, tr, err, steps
 
 
-def replay_errors(plan_: Plan, *, mode: str = "torques") -> dict[str, Any]:
+def replay_errors(plan_: Plan, *, mode: str = "torques", options: SolverOptions | None = None) -> dict[str, Any]:
     """Re-simulate the exported table with the plain simulator (`simulate` with
     `Torques.from_samples(t, K)` or `WheelSpeeds.from_samples(t, chi_dot)`, cubic) from rest,
-    and compare the end with the plan's target and with the planned path."""
+    and compare the end with the plan's target and with the planned path.
+
+    `options`: a `SolverOptions` for that solve (`rtol`, `atol`, `solver`, `max_steps`;
+    `max_steps` defaults to `REPLAY_MAX_STEPS` here, as `resolve` describes); `throw`,
+    `adjoint` and `batch_steps` set are errors."""
+    opts = resolve(
+        verification_options("replay_errors", options),
+        where="replay_errors",
+        defaults={"max_steps": REPLAY_MAX_STEPS},
+    )
     cols = plan_.table()
     p = plan_.params
     N = p.n_wheels
@@ -122,7 +150,7 @@ def replay_errors(plan_: Plan, *, mode: str = "torques") -> dict[str, Any]:
         ctrl = WheelSpeeds.from_samples(ts, np.stack([cols[f"chi_dot_{i + 1}"] for i in range(N)], 1))
     else:
         raise ValueError(f"replay_errors: mode must be 'torques' or 'wheel_speeds'; got {mode!r}.")
-    tr = simulate(p, State.at_rest(p), ctrl, float(ts[-1]), ts=ts, max_steps=65536)
+    tr = simulate(p, State.at_rest(p), ctrl, float(ts[-1]), ts=ts, options=opts)
     x, y = float(tr.x[-1]), float(tr.y[-1])
     return {
         "final_xy": [x, y],

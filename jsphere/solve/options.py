@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numbers
 import warnings
+from collections.abc import Mapping
 from typing import Any, Literal
 
 import diffrax as dfx
@@ -73,6 +74,11 @@ class SolverOptions(eqx.Module):
 
     `simulate(..., options=SolverOptions(rtol=1e-10))` is `simulate(..., rtol=1e-10)`; keyword
     arguments given besides `options` are merged into it (`merge`).
+
+    `fit`, `plan`, `plan_route`, `plan_many`, `replay_errors` and `monte_carlo` take `options`
+    too: each uses the fields it can (its docstring says which), with its own defaults where
+    they differ from these (`resolve`), and refuses a field it cannot use set away from its
+    default.
     """
 
     rtol: Any = None
@@ -144,9 +150,55 @@ def _same(a, b) -> bool:
         return False
 
 
-def resolve(options: SolverOptions | None, *, where: str, **keywords) -> SolverOptions:
-    """The options of a call that takes `options=` and the same settings as keyword arguments:
-    `options` (default `SolverOptions()`) merged with `keywords` (`SolverOptions.merge`)."""
+def resolve(
+    options: SolverOptions | None, *, where: str, defaults: Mapping[str, Any] | None = None, **keywords
+) -> SolverOptions:
+    """The options of a call that takes `options=` and the same settings as keyword arguments.
+
+    Without `defaults`: `options` (default `SolverOptions()`) merged with `keywords`
+    (`SolverOptions.merge`), for functions whose keyword defaults are `SolverOptions`' own.
+
+    `defaults` (`{field: value}`) are the function's own defaults where they differ from
+    `SolverOptions`' (e.g. `fit`'s `rtol=1e-6`); a field named there but not in `keywords` is
+    taken as a keyword at that default. Per field of `keywords`:
+
+    - a field of `options` at `SolverOptions`' default takes the keyword's value (the
+      function's own default when the keyword is not given): an option set to exactly
+      `SolverOptions`' default cannot be told from one not set;
+    - a keyword at the function's own default, or equal to the option, leaves the option as
+      it is;
+    - a keyword and an option that are both set and differ are an error naming both.
+    """
     if options is not None and not isinstance(options, SolverOptions):
         raise TypeError(f"{where}: options must be a jsphere.SolverOptions; got {type(options).__name__}.")
-    return (SolverOptions() if options is None else options).merge(where=where, **keywords)
+    options = SolverOptions() if options is None else options
+    if defaults is None:
+        return options.merge(where=where, **keywords)
+    unknown = (set(keywords) | set(defaults)) - set(_DEFAULTS)
+    if unknown:
+        raise TypeError(f"{where}: unknown solver options {sorted(unknown)}; known: {list(_DEFAULTS)}.")
+    values = {name: getattr(options, name) for name in _DEFAULTS}
+    for name, value in ({**defaults, **keywords}).items():
+        own, current = defaults.get(name, _DEFAULTS[name]), values[name]
+        if _same(current, _DEFAULTS[name]):
+            values[name] = value
+        elif not (_same(value, own) or _same(value, current)):
+            raise ValueError(
+                f"{where}: {name}={value!r} conflicts with options.{name}={current!r}; give it in one place."
+            )
+    _check(where, values["max_steps"], values["batch_steps"])
+    return SolverOptions(**values)
+
+
+def unused(options: SolverOptions | None, *, where: str, **why: str) -> None:
+    """Refuse fields of `options` that a function does not use: for each `field=reason`, a
+    field set away from `SolverOptions`' default is an error naming it and `reason`
+    (`TypeError` if `options` is not a `SolverOptions`)."""
+    if options is None:
+        return
+    if not isinstance(options, SolverOptions):
+        raise TypeError(f"{where}: options must be a jsphere.SolverOptions; got {type(options).__name__}.")
+    for name, reason in why.items():
+        value = getattr(options, name)
+        if not _same(value, _DEFAULTS[name]):
+            raise ValueError(f"{where}: options.{name}={value!r} is not used: {reason}.")

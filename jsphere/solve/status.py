@@ -1,4 +1,5 @@
-"""Named result codes of a solve, as `Trajectory.status` reports them (one per trial under `vmap`)."""
+"""Named result codes of a solve, as `Trajectory.status` reports them (one per trial under `vmap`),
+and of a Monte-Carlo trial, as `MonteCarloResult.status` reports them."""
 
 from __future__ import annotations
 
@@ -14,7 +15,10 @@ class RESULTS(enum.IntEnum):
     - `max_steps_reached` (1): the solver stopped before the final time: it took `max_steps`
       steps, or its step size collapsed;
     - `nonfinite` (2): the state, the rates or the inputs became NaN or inf (including
-      inputs that are non-finite from the start).
+      inputs that are non-finite from the start);
+    - `rejected` (-1): not solved: a Monte-Carlo trial whose drawn parameters break a rule
+      of `RobotParams` (`MonteCarloResult.status` only; `Trajectory.status` is never
+      negative).
 
     An `IntEnum`: `traj.status == RESULTS.successful` works on arrays of codes, and
     `RESULTS.message(code)` gives the text `simulate` raises for a failure.
@@ -23,6 +27,7 @@ class RESULTS(enum.IntEnum):
     successful = 0
     max_steps_reached = 1
     nonfinite = 2
+    rejected = -1
 
     @classmethod
     def message(cls, code) -> str:
@@ -31,9 +36,9 @@ class RESULTS(enum.IntEnum):
 
     @classmethod
     def failure_messages(cls) -> tuple[str, ...]:
-        """The messages of the failure codes `1, 2, ...` in order (`eqx.branched_error_if`
-        indexes them by `code - 1`)."""
-        return tuple(_MESSAGES[c] for c in cls if c != cls.successful)
+        """The messages of the solver's failure codes `1, 2, ...` in order
+        (`eqx.branched_error_if` indexes them by `code - 1`)."""
+        return tuple(_MESSAGES[c] for c in sorted(cls) if c > cls.successful)
 
 
 _MESSAGES = {
@@ -47,5 +52,9 @@ _MESSAGES = {
     RESULTS.nonfinite: (
         "jsphere: the simulation produced NaN or inf. Check the controls (they must be finite) and "
         "the initial state. Pass throw=False to get `Trajectory.ok` per trial instead of this error."
+    ),
+    RESULTS.rejected: (
+        "jsphere: the trial was not simulated: its drawn parameters break a rule of RobotParams "
+        "(`MonteCarloResult.reject_code` says which). Narrow the distributions or truncate them."
     ),
 }
