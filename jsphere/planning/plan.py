@@ -41,14 +41,14 @@ def plan(
     rate: float = 1000.0,
     seed: int = 0,
     allow_infeasible: bool = False,
-    progress: bool = False,
+    progress: bool | None = None,
 ) -> Plan:
     """Plan a rest-to-rest manoeuvre from rest at the origin (platform axes = fixed axes) to
     `to = (x, y)` [m], optionally ending with platform heading `heading` [rad], within `limits`.
 
     Raises `PlanInfeasibleError` (holding the best plan in `.plan`, and saying how far it falls
     short and which limit binds) if the tolerances or limits are not met, unless
-    `allow_infeasible=True` (then check `Plan.feasible`).
+    `allow_infeasible=True` (then check `Plan.feasible`). `progress`: as for `plan_many`.
 
     Example:
 
@@ -110,7 +110,7 @@ def plan_route(
     rate: float = 1000.0,
     seed: int = 0,
     allow_infeasible: bool = False,
-    progress: bool = False,
+    progress: bool | None = None,
 ) -> Plan:
     """A route from rest at the origin through `waypoints` `(x, y)` or `(x, y, psi)` [m, rad],
     stopping at each: one rest-to-rest manoeuvre per leg. Every leg is planned in its start
@@ -118,7 +118,7 @@ def plan_route(
     and turns about the vertical). A waypoint without a heading keeps the previous heading.
 
     Returns one `Plan` whose gaits are the legs and whose trajectory joins them (the duplicate
-    rest sample at each stop dropped).
+    rest sample at each stop dropped). `progress`: as for `plan_many`.
     """
     if isinstance(waypoints, (str, bytes)) or not isinstance(waypoints, Sequence) or not len(waypoints):
         raise InputError(
