@@ -7,10 +7,10 @@ A `progress` argument of the library takes one of:
 - `False`: no bars and no lines;
 - a callable: it gets every line (no bars).
 
-Whatever the choice (but a callable), the lines also go to the `jsphere` logger (`INFO` for
-stages, `DEBUG` for the steps a bar shows), where a program that configured logging sees them;
-the command line configures it (`-q`: warnings only, `-v`: debug). When the logger has a
-handler, the lines go there only, not twice.
+Lines that are not given to a callable (stages at `INFO`; steps at `INFO`, or `DEBUG` while a
+bar shows them) go to the `jsphere` logger, where a program that configured logging sees them;
+the command line puts a handler there (`-q`: warnings only, `-v`: debug). Where that logger has
+no handler of its own, `True` and the bars print the `INFO` lines on stderr themselves.
 
 A long compilation is a phase of its own: `Progress.compiling` says "compiling (first call,
 ~N s)" before a program that is not compiled yet, and keeps that time out of the rates of the
