@@ -5,201 +5,118 @@ an internal omniwheel platform: theory and experiments", Proc. Steklov Inst. Mat
 Equation numbers in docstrings refer to that paper; `docs/model.md` lists every convention
 and every correction of the paper's typos.
 
-float64 is switched on at import (the paper's numbers are at the 0.1 mm level). Set the
-environment variable `JSPHERE_X64=0` before importing to keep JAX's float32 default.
+float64 is switched on when the package's first name is used (the paper's numbers are at the
+0.1 mm level). Set the environment variable `JSPHERE_X64=0` before that to keep JAX's float32
+default.
+
+The names below are imported when first used (PEP 562), so that `import jsphere` and the
+command line's `--help` do not import JAX; `from jsphere import X` and `jsphere.X` work as
+for any module.
 """
 
+import importlib as _importlib
 import os as _os
 
-import jax as _jax
-
-if _os.environ.get("JSPHERE_X64", "1") != "0":
-    _jax.config.update("jax_enable_x64", True)
-
-from ._runtime.compilation_cache import enable_compilation_cache as enable_compilation_cache
-from ._runtime.errors import ExitCode as ExitCode
-from ._runtime.errors import InputError as InputError
-from ._runtime.errors import SolverFailure as SolverFailure
-from .capture.body import read_body_markers as read_body_markers
-from .capture.c3d import read_c3d as read_c3d
-from .capture.convert import convert_raw as convert_raw
-from .capture.inputs import read_inputs_csv as read_inputs_csv
-from .capture.inputs import write_inputs_csv as write_inputs_csv
-from .capture.markers import MarkerData as MarkerData
-from .capture.motive import read_motive_csv as read_motive_csv
-from .capture.motive import write_motive_csv as write_motive_csv
-from .capture.pose import markers_to_trial as markers_to_trial
-from .capture.pose import rigid_body_pose as rigid_body_pose
-from .capture.synthetic import (
-    random_inputs as random_inputs,
-)
-from .capture.synthetic import (
-    synthetic_markers as synthetic_markers,
-)
-from .capture.synthetic import (
-    synthetic_trial as synthetic_trial,
-)
-from .capture.trial import (
-    Trial as Trial,
-)
-from .capture.trial import (
-    read_trial as read_trial,
-)
-from .capture.trial import (
-    read_trials as read_trials,
-)
-from .capture.trial import (
-    write_trial as write_trial,
-)
-from .capture.validation import CaptureWarning as CaptureWarning
-from .capture.vicon import read_vicon_csv as read_vicon_csv
-from .capture.vicon import write_vicon_csv as write_vicon_csv
-from .controls import (
-    Constant as Constant,
-)
-from .controls import (
-    Sampled as Sampled,
-)
-from .controls import (
-    StraightLine as StraightLine,
-)
-from .controls import (
-    Torques as Torques,
-)
-from .controls import (
-    WheelSpeeds as WheelSpeeds,
-)
-from .controls import (
-    Zero as Zero,
-)
-from .controls import (
-    kinematic_control as kinematic_control,
-)
-from .controls import (
-    straight_line as straight_line,
-)
-from .gaits.families import (
-    Smooth as Smooth,
-)
-from .gaits.families import (
-    TiltGait as TiltGait,
-)
-from .gaits.families import (
-    paper_gait as paper_gait,
-)
-from .gaits.families import (
-    smooth_gait as smooth_gait,
-)
-from .gaits.families import (
-    tilt_to_gamma as tilt_to_gamma,
-)
-from .gaits.gaits import (
-    Gait as Gait,
-)
-from .gaits.gaits import (
-    SinSquared as SinSquared,
-)
-from .gaits.gaits import (
-    acceleration as acceleration,
-)
-from .gaits.gaits import (
-    braking as braking,
-)
-from .gaits.gaits import (
-    simulate_gaits as simulate_gaits,
-)
-from .gaits.gaits import (
-    turn as turn,
-)
-from .identify.fit import fit as fit
-from .identify.free import FreeParams as FreeParams
-from .identify.least_squares import LeastSquaresResult as LeastSquaresResult
-from .identify.least_squares import least_squares as least_squares
-from .identify.report import FitResult as FitResult
-from .model.dynamics import (
-    accelerations as accelerations,
-)
-from .model.dynamics import (
-    dissipation as dissipation,
-)
-from .model.dynamics import (
-    energy as energy,
-)
-from .model.dynamics import (
-    kinetic_energy as kinetic_energy,
-)
-from .model.dynamics import (
-    potential_energy as potential_energy,
-)
-from .model.dynamics import (
-    power as power,
-)
-from .model.kinematics import (
-    constraint_residuals as constraint_residuals,
-)
-from .model.kinematics import (
-    kinematic_wheel_speeds as kinematic_wheel_speeds,
-)
-from .model.kinematics import (
-    relative_rate_from_wheel_speeds as relative_rate_from_wheel_speeds,
-)
-from .model.kinematics import (
-    rolling_velocity as rolling_velocity,
-)
-from .model.kinematics import (
-    wheel_speeds as wheel_speeds,
-)
-from .model.names import get_value as get_value
-from .model.names import parse_name as parse_name
-from .model.names import set_value as set_value
-from .model.params import RobotParams as RobotParams
-from .model.state import State as State
-from .montecarlo.result import MonteCarloResult as MonteCarloResult
-from .montecarlo.run import monte_carlo as monte_carlo
-from .montecarlo.sampling import Actuators as Actuators
-from .montecarlo.store import MonteCarloWarning as MonteCarloWarning
-from .paper.reproduce import reproduce as reproduce
-from .paper.reproduce import to_figure_frame as to_figure_frame
-from .planning.optimise import optimise_gaits as optimise_gaits
-from .planning.plan import (
-    Limits as Limits,
-)
-from .planning.plan import (
-    Objective as Objective,
-)
-from .planning.plan import (
-    Plan as Plan,
-)
-from .planning.plan import (
-    PlanInfeasibleError as PlanInfeasibleError,
-)
-from .planning.plan import (
-    PlanSettings as PlanSettings,
-)
-from .planning.plan import (
-    plan as plan,
-)
-from .planning.plan import (
-    plan_many as plan_many,
-)
-from .planning.plan import (
-    plan_route as plan_route,
-)
-from .planning.verify import replay_errors as replay_errors
-from .solve.options import SolverOptions as SolverOptions
-from .solve.simulate import simulate as simulate
-from .solve.status import RESULTS as RESULTS
-from .solve.trajectory import (
-    Trajectory as Trajectory,
-)
-from .solve.trajectory import (
-    energy_along as energy_along,
-)
-from .solve.trajectory import (
-    power_along as power_along,
-)
-from .solve.trajectory import (
-    trajectory_residuals as trajectory_residuals,
-)
-
 __version__ = "0.1.0"
+
+#: every public name, by the module that defines it
+_EXPORTS = {
+    "_runtime.compilation_cache": ("enable_compilation_cache",),
+    "_runtime.errors": ("ExitCode", "InputError", "SolverFailure"),
+    "capture.body": ("read_body_markers",),
+    "capture.c3d": ("read_c3d",),
+    "capture.convert": ("convert_raw",),
+    "capture.inputs": ("read_inputs_csv", "write_inputs_csv"),
+    "capture.markers": ("MarkerData",),
+    "capture.motive": ("read_motive_csv", "write_motive_csv"),
+    "capture.pose": ("markers_to_trial", "rigid_body_pose"),
+    "capture.synthetic": ("random_inputs", "synthetic_markers", "synthetic_trial"),
+    "capture.trial": ("Trial", "read_trial", "read_trials", "write_trial"),
+    "capture.validation": ("CaptureWarning",),
+    "capture.vicon": ("read_vicon_csv", "write_vicon_csv"),
+    "controls": (
+        "Constant",
+        "Sampled",
+        "StraightLine",
+        "Torques",
+        "WheelSpeeds",
+        "Zero",
+        "kinematic_control",
+        "straight_line",
+    ),
+    "gaits.families": ("Smooth", "TiltGait", "paper_gait", "smooth_gait", "tilt_to_gamma"),
+    "gaits.gaits": ("Gait", "SinSquared", "acceleration", "braking", "simulate_gaits", "turn"),
+    "identify.fit": ("fit",),
+    "identify.free": ("FreeParams",),
+    "identify.least_squares": ("LeastSquaresResult", "least_squares"),
+    "identify.report": ("FitResult",),
+    "model.dynamics": ("accelerations", "dissipation", "energy", "kinetic_energy", "potential_energy", "power"),
+    "model.kinematics": (
+        "constraint_residuals",
+        "kinematic_wheel_speeds",
+        "relative_rate_from_wheel_speeds",
+        "rolling_velocity",
+        "wheel_speeds",
+    ),
+    "model.names": ("get_value", "parse_name", "set_value"),
+    "model.params": ("RobotParams",),
+    "model.state": ("State",),
+    "montecarlo.result": ("MonteCarloResult",),
+    "montecarlo.run": ("monte_carlo",),
+    "montecarlo.sampling": ("Actuators",),
+    "montecarlo.store": ("MonteCarloWarning",),
+    "paper.reproduce": ("reproduce", "to_figure_frame"),
+    "planning.optimise": ("optimise_gaits",),
+    "planning.plan": (
+        "Limits",
+        "Objective",
+        "Plan",
+        "PlanInfeasibleError",
+        "PlanSettings",
+        "plan",
+        "plan_many",
+        "plan_route",
+    ),
+    "planning.verify": ("replay_errors",),
+    "solve.options": ("SolverOptions",),
+    "solve.simulate": ("simulate",),
+    "solve.status": ("RESULTS",),
+    "solve.trajectory": ("Trajectory", "energy_along", "power_along", "trajectory_residuals"),
+}
+
+_WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
+#: the subpackages, imported on first use as well (`jsphere.model.params.PAPER_J`)
+_SUBPACKAGES = frozenset(
+    "_runtime capture cli controls gaits identify model montecarlo paper planning plots solve".split()
+)
+
+__all__ = sorted(_WHERE)
+
+_x64_done = False
+
+
+def _switch_x64() -> None:
+    global _x64_done
+    _x64_done = True
+    if _os.environ.get("JSPHERE_X64", "1") != "0":
+        import jax
+
+        jax.config.update("jax_enable_x64", True)
+
+
+def __getattr__(name: str):
+    module = _WHERE.get(name)
+    if module is None and name not in _SUBPACKAGES:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    if not _x64_done:
+        _switch_x64()
+    if module is None:
+        return _importlib.import_module(f".{name}", __name__)
+    mod = _importlib.import_module(f".{module}", __name__)
+    for other in _EXPORTS[module]:  # the module's other names come with it
+        globals()[other] = getattr(mod, other)
+    return globals()[name]
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

@@ -1,16 +1,22 @@
 """The `jsphere` command line: its parser, the dispatch to one module per command (`reproduce`,
-`montecarlo`, `convert`, `synth`, `fit`, `plan`: each adds its sub-parser and runs it), and the
-mapping of every error to one line on stderr and its exit code (`ExitCode`).
+`montecarlo`, `convert`, `synth`, `fit`, `plan`: each adds its sub-parser, with its `EXAMPLES`,
+and runs it), the options every command has (`-q/--quiet`, `-v/--verbose`: the `jsphere`
+logger's level on stderr), and the mapping of every error to one line on stderr and its exit
+code (`ExitCode`).
 
-A command module imports nothing heavy at its top: `--help` and argument errors stay quick, and
-each command imports what it runs when it runs.
+A command module imports nothing heavy at its top, and neither does the `jsphere` package:
+`--help`, `--version` and argument errors stay quick, and each command imports what it runs
+when it runs.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import logging
 import os
 import sys
+import textwrap
 
 from . import convert, fit, montecarlo, plan, reproduce, synth
 from .compilation import compile_for_one_run, enable_compilation_cache
@@ -19,28 +25,101 @@ from .compilation import compile_for_one_run, enable_compilation_cache
 COMMANDS = (reproduce, montecarlo, convert, synth, fit, plan)
 
 
-def main(argv=None) -> int:
-    """Run `jsphere` with the arguments `argv` (default: the process's); return its exit code."""
+def version() -> str:
+    """The installed package's version (its metadata), else the source tree's `__version__`."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("jsphere")
+    except metadata.PackageNotFoundError:  # a source tree on the path: its package, imported already
+        return sys.modules["jsphere"].__version__
+
+
+def parser() -> argparse.ArgumentParser:
+    """The parser of `jsphere` and its commands."""
     from .._runtime.errors import EXIT_CODES_HELP
 
-    parser = argparse.ArgumentParser(
+    top = argparse.ArgumentParser(
         prog="jsphere",
-        description="Spherical robot with an internal omniwheel platform (JAX).",
-        epilog=EXIT_CODES_HELP,
+        description=textwrap.fill(
+            "Spherical robot with an internal omniwheel platform (JAX): the paper's numbers, Monte-Carlo "
+            "studies, motion capture, system identification and motion planning.",
+            88,
+        ),
+        epilog="examples:\n  jsphere reproduce --out jsphere-reproduce\n  jsphere fit --help\n\n" + EXIT_CODES_HELP,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    sub = parser.add_subparsers(dest="command", required=True)
+    top.add_argument("--version", action="version", version=f"%(prog)s {version()}")
+    sub = top.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for command in COMMANDS:
         command.add_parser(sub)
-    for command in sub.choices.values():  # every command's --help lists the exit codes
-        command.epilog = EXIT_CODES_HELP
-        command.formatter_class = argparse.RawDescriptionHelpFormatter
-    args = parser.parse_args(argv)
+        p = sub.choices[command.NAME]
+        p.formatter_class = argparse.RawDescriptionHelpFormatter
+        p.description = textwrap.fill(p.description or command.__doc__.strip().splitlines()[0], 88)
+        p.epilog = "examples:\n" + command.EXAMPLES.strip("\n") + "\n\n" + _exit_codes(EXIT_CODES_HELP, command.NAME)
+        out = p.add_argument_group("messages on stderr")
+        loud = out.add_mutually_exclusive_group()
+        loud.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only: no progress")
+        loud.add_argument("-v", "--verbose", action="store_true", help="also every step (debug messages)")
+    return top
+
+
+def _exit_codes(text: str, command: str) -> str:
+    """The exit codes of `command`: those of `text` that are not another command's own."""
+    names = {c.NAME for c in COMMANDS} - {command}
+    keep = [line for line in text.splitlines() if line.split("    ", 1)[-1].split(":", 1)[0].strip() not in names]
+    return "\n".join(keep)
+
+
+def main(argv=None) -> int:
+    """Run `jsphere` with the arguments `argv` (default: the process's); return its exit code."""
+    args = parser().parse_args(argv)
     if args.command == reproduce.NAME and not args.optimize:
         compile_for_one_run()
-    if not args.no_cache:
-        enable_compilation_cache()
-    return _run(args)
+    with _messages(args):
+        _float64()
+        if not args.no_cache:
+            enable_compilation_cache()
+        return _run(args)
+
+
+def _float64() -> None:
+    """The commands compute in float64 (the paper's numbers are at the 0.1 mm level)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+
+
+class _StderrHandler(logging.Handler):
+    """The `jsphere` logger's lines on the stderr of the moment, leaving progress bars intact."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        from .._runtime.progress import write
+
+        try:
+            write(self.format(record))
+        except Exception:  # noqa: BLE001 - logging must not end the command
+            self.handleError(record)
+
+
+@contextlib.contextmanager
+def _messages(args):
+    """The `jsphere` logger on stderr while a command runs: INFO (progress and stages), WARNING
+    with `--quiet`, DEBUG with `--verbose`."""
+    log = logging.getLogger("jsphere")
+    handler = _StderrHandler()
+    handler.setFormatter(logging.Formatter("%(message)s"))
+    level = logging.WARNING if args.quiet else logging.DEBUG if args.verbose else logging.INFO
+    old_level, old_propagate = log.level, log.propagate
+    log.addHandler(handler)
+    log.setLevel(level)
+    log.propagate = False
+    try:
+        yield
+    finally:
+        log.removeHandler(handler)
+        log.setLevel(old_level)
+        log.propagate = old_propagate
 
 
 #: What a command interrupted by Ctrl-C or SIGTERM has kept (the others write their files only

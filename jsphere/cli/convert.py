@@ -8,10 +8,21 @@ import sys
 from pathlib import Path
 
 NAME = "convert"
+EXAMPLES = """
+  jsphere convert capture.csv --format motive --inputs inputs.csv --out trial.csv
+  jsphere convert session.c3d --format c3d --inputs inputs.csv --rigid-body sphere --units mm --out trial.csv
+"""
 
 
 def add_parser(sub) -> None:
-    cv = sub.add_parser(NAME, help="raw motion-capture export + inputs table -> trial CSV (docs/capture.md)")
+    cv = sub.add_parser(
+        NAME,
+        help="raw motion-capture export + inputs table -> trial CSV (docs/capture.md)",
+        description="Convert a raw motion-capture export (Motive CSV, Vicon Nexus CSV or C3D) and the table of "
+        "the inputs sent to the wheels into a trial CSV for `jsphere fit` (docs/capture.md): the shell "
+        "centre's path and the platform's orientation, checked and resampled. Warnings name the frames "
+        "and markers they are about.",
+    )
     cv.add_argument("raw", help="the raw export (Motive CSV, Vicon Nexus CSV, or C3D)")
     cv.add_argument("--format", required=True, choices=("motive", "vicon", "c3d"))
     cv.add_argument("--inputs", required=True, help="inputs table: t, chi_dot_1..N or t, K_1..N")

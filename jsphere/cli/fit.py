@@ -5,14 +5,26 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from .options import Assignments, progress
+
 NAME = "fit"
+EXAMPLES = """
+  jsphere fit --free j --fix m=2.5 examples/data/ws_01.csv --out fit.json
+  jsphere fit trials/*.csv --free 'R_m,j,I[0,0],I[1,1],I[2,2],I0' --fix m=2.5,m0=0.8 --bound j=0:1e-3 --out fit.json
+"""
 #: what an interrupted fit keeps
 RESUMES = "the finished stages are kept in the checkpoint beside --out: rerun the same command to resume"
 
 
 def add_parser(sub) -> None:
-    ft = sub.add_parser(NAME, help="fit robot parameters to captured trials (docs/identification.md)")
-    ft.add_argument("trials", nargs="+", help="trial CSV files (docs/capture.md)")
+    ft = sub.add_parser(
+        NAME,
+        help="fit robot parameters to captured trials (docs/identification.md)",
+        description="Fit the free parameters of a robot to captured trials (position and orientation), by "
+        "Levenberg-Marquardt through the simulation; writes the result JSON, its figures and, while it "
+        "runs, a checkpoint from which a killed fit resumes. The last line on stdout is the verdict.",
+    )
+    ft.add_argument("trials", nargs="*", metavar="TRIAL", help="trial CSV files or folders of them (docs/capture.md)")
     ft.add_argument(
         "--free",
         required=True,
@@ -20,17 +32,18 @@ def add_parser(sub) -> None:
     )
     ft.add_argument(
         "--fix",
-        nargs="+",
-        action="extend",
+        action=Assignments,
+        spill="trials_after_options",
         metavar="NAME=VALUE",
-        help="set and hold a parameter (e.g. m=2.5; a JSON list for a whole field)",
+        help="set and hold a parameter (e.g. m=2.5; a JSON list for a whole field); repeat it or list several "
+        "(--fix m=2.5,m0=0.8)",
     )
     ft.add_argument(
         "--bound",
-        nargs="+",
-        action="extend",
+        action=Assignments,
+        spill="trials_after_options",
         metavar="NAME=LO:HI",
-        help="bounds of a free name (e.g. j=0:1e-3; an empty side is open)",
+        help="bounds of a free name (e.g. j=0:1e-3; an empty side is open); repeat it or list several",
     )
     ft.add_argument("--params", help="start values (.toml or .json; default: the paper's robot)")
     ft.add_argument(
@@ -61,7 +74,6 @@ def add_parser(sub) -> None:
         help="ignore the checkpoint a killed fit left (by default the fit resumes from it)",
     )
     ft.add_argument("--no-plots", action="store_true", help="skip the figures")
-    ft.add_argument("--quiet", action="store_true", help="no progress lines")
     ft.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
 
 
@@ -81,6 +93,7 @@ def run(args) -> int:
     from ..identify.verdict import headline
     from ..model.params import RobotParams
 
+    _gather_trials(args)
     out = Path(args.out)
     ckpt = out.with_name(out.name + ".ckpt.npz")
     figures = [out.with_name(f"{out.stem}_{k}.png") for k in ("overlay", "residuals")]
@@ -109,7 +122,7 @@ def run(args) -> int:
             sigma_rot=sigma_rot,
             checkpoint=ckpt,
             restart=args.restart,
-            progress=not args.quiet,
+            progress=progress(args),
         )
     written = res.save(out, plots=not args.no_plots)
     ckpt.unlink(missing_ok=True)
@@ -119,6 +132,15 @@ def run(args) -> int:
     print(f"wrote {', '.join(str(p) for p in written)}  ({res.elapsed_s:.1f} s)")
     print(f"jsphere fit: {headline(res.status, res.status_reason, res.verdict)}")  # the last line: the verdict
     return {"converged": ExitCode.OK, "not_converged": ExitCode.NOT_CONVERGED, "misfit": ExitCode.MISFIT}[res.status]
+
+
+def _gather_trials(args) -> None:
+    """The trial files given before the options and those after `--fix`/`--bound` values."""
+    from .._runtime.errors import InputError
+
+    args.trials = [*args.trials, *(getattr(args, "trials_after_options", None) or [])]
+    if not args.trials:
+        raise InputError("give at least one trial file or folder (e.g. jsphere fit trials/*.csv --free j).")
 
 
 def _check_paths(args, out: Path, writes: list[Path]) -> None:

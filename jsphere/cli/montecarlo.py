@@ -1,22 +1,44 @@
 """`jsphere montecarlo`: a Monte-Carlo study described by a TOML file
-(`jsphere.montecarlo.study.load_study`), resumable in its output folder."""
+(`jsphere.montecarlo.study.load_study`), resumable in its output folder. The statistics go to
+`OUT/stats.json` (jsphere's frame, metres), the terminal gets a short summary."""
 
 from __future__ import annotations
 
 import sys
 from pathlib import Path
 
+from .options import progress
+
 NAME = "montecarlo"
+EXAMPLES = """
+  jsphere montecarlo examples/study_straight_line.toml --out study
+  jsphere montecarlo examples/study_straight_line.toml --trials 100000 --seed 1 --batch-size 8192 --out study-1
+"""
 #: what an interrupted study keeps
 RESUMES = "the finished batches are kept in the --out folder: rerun the same command to resume"
 
 
 def add_parser(sub) -> None:
-    mc = sub.add_parser(NAME, help="a Monte-Carlo study of the gaits (TOML description; see load_study)")
+    mc = sub.add_parser(
+        NAME,
+        help="a Monte-Carlo study of the gaits (TOML description; see load_study)",
+        description="Run the gaits of a study file many times with parameters drawn from its [vary] "
+        "distributions (docs/montecarlo.md). Writes OUT/stats.json (stop points in jsphere's frame, metres), "
+        "OUT/stop_points.png and the finished batches, from which a killed study resumes; prints a short "
+        "summary.",
+    )
     mc.add_argument("config", help="study description (.toml)")
     mc.add_argument("--trials", type=int, help="number of trials (overrides the file)")
+    mc.add_argument("--seed", type=int, help="seed of the draws, in [0, 2**32) (overrides the file)")
+    mc.add_argument("--batch-size", type=int, help="trials per compiled call (overrides the file; default 4096)")
     mc.add_argument("--out", default="study", help="output folder; a killed study resumes there (default: ./study)")
     mc.add_argument("--no-plots", action="store_true", help="skip the figure")
+    mc.add_argument(
+        "--frame",
+        choices=("jsphere", "paper"),
+        default="jsphere",
+        help="frame of the figure: jsphere's (default, as stats.json) or the paper's figure frame (x_fig = -y, y_fig = x)",
+    )
     mc.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
 
 
@@ -25,10 +47,10 @@ def run(args) -> int:
 
     from .._runtime.checks import whole
     from .._runtime.errors import InputError, SolverFailure
-    from .._runtime.files import atomic_write_json, check_output, dumps_json
+    from .._runtime.files import atomic_write_json, check_output
     from ..gaits.gaits import simulate_gaits
     from ..montecarlo.run import monte_carlo
-    from ..montecarlo.study import load_study
+    from ..montecarlo.study import check_settings, load_study
 
     def one_line(message, category, filename, lineno, file=None, line=None):
         print(f"jsphere montecarlo: warning: {message}", file=sys.stderr, flush=True)
@@ -37,24 +59,24 @@ def run(args) -> int:
     writes = [out / name for name in ("stats.json", "manifest.json", *(() if args.no_plots else ("stop_points.png",)))]
     check_output(out, folder=True, writes=writes, inputs={"the study file": args.config})
     study = load_study(args.config)
-    n = whole("jsphere montecarlo", "--trials", args.trials, 1) if args.trials is not None else study["n"]
+    n = whole(NAME, "--trials", args.trials, 1) if args.trials is not None else study["n"]
+    given = {k: getattr(args, k) for k in ("seed", "batch_size") if getattr(args, k) is not None}
+    kwargs = study["kwargs"] | check_settings(NAME, given, names={"seed": "--seed", "batch_size": "--batch-size"})
     with warnings.catch_warnings():
         warnings.showwarning = one_line
-        res = monte_carlo(study["params"], study["gaits"], n=n, out=out, progress=True, **study["kwargs"])
+        res = monte_carlo(study["params"], study["gaits"], n=n, out=out, progress=progress(args), **kwargs)
     st = res.stats()
-    planned = simulate_gaits(study["params"], study["gaits"], reset=study["kwargs"]["reset"])
+    planned = simulate_gaits(study["params"], study["gaits"], reset=kwargs["reset"])
     st["planned_stop_m"] = [float(planned.x[-1]), float(planned.y[-1])]
     atomic_write_json(out / "stats.json", st)
-    print(dumps_json(st), end="")
     why = _report(st, n)
+    written = [out / "stats.json"]
     if st["n_ok"] and not args.no_plots:
         from ..plots import montecarlo_figure
 
-        montecarlo_figure(res, out / "stop_points.png", planned=st["planned_stop_m"])
-    print(
-        f"{n} trials ({st['n_ok']} ok, {st['n_failed']} failed, {st['n_rejected']} rejected) in {res.elapsed_s:.1f} s; "
-        f"results in {out}/"
-    )
+        montecarlo_figure(res, out / "stop_points.png", planned=st["planned_stop_m"], frame=args.frame)
+        written.append(out / "stop_points.png")
+    print(summary(st, n, res.elapsed_s, written))
     if not st["n_ok"]:
         if st["n_rejected"] == n:
             raise InputError(f"every draw was rejected ({why}); no statistics. Check the [vary] distributions.")
@@ -62,6 +84,25 @@ def run(args) -> int:
             f"no trial succeeded ({st['n_failed']} solver failures, {st['n_rejected']} rejected draws); no statistics."
         )
     return 0
+
+
+def summary(st: dict, n: int, elapsed_s: float, written) -> str:
+    """A few lines for the terminal: the counts, the stop point's mean and sd [mm] in jsphere's
+    frame, and the files."""
+    lines = [
+        f"jsphere montecarlo: {n} trials in {elapsed_s:.1f} s: {st['n_ok']} ok, {st['n_rejected']} rejected, "
+        f"{st['n_failed']} failed"
+    ]
+    if st["n_ok"]:
+        (mx, my), (sx, sy) = st["mean_xy_m"], st["sd_xy_m"]
+        px, py = st["planned_stop_m"]
+        lines += [
+            f"  stop point (jsphere frame): mean ({1e3 * mx:.3f}, {1e3 * my:.3f}) mm, sd ({1e3 * sx:.3f}, "
+            f"{1e3 * sy:.3f}) mm",
+            f"  planned stop: ({1e3 * px:.3f}, {1e3 * py:.3f}) mm",
+        ]
+    lines.append(f"  wrote {', '.join(str(p) for p in written)}")
+    return "\n".join(lines)
 
 
 def _report(st: dict, n: int) -> str:

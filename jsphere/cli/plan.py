@@ -6,11 +6,24 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from .options import progress
+
 NAME = "plan"
+EXAMPLES = """
+  jsphere plan --to 0.8 -0.5 --heading 1.0 --out plan.csv
+  jsphere plan --to 0.5 0 --max-torque 0.05 --max-time 8 --restarts 32 --no-plots --out plan.csv
+"""
 
 
 def add_parser(sub) -> None:
-    pp = sub.add_parser(NAME, help="plan a rest-to-rest manoeuvre to (X, Y) within motor limits; CSV of wheel commands")
+    pp = sub.add_parser(
+        NAME,
+        help="plan a rest-to-rest manoeuvre to (X, Y) within motor limits; CSV of wheel commands",
+        description="Plan a rest-to-rest manoeuvre from rest at the origin to (X, Y) [m], optionally with a final "
+        "heading, within motor limits, by gradients through the gait dynamics (docs/planning.md). Writes the "
+        "wheel commands as CSV, a JSON report and a figure; a plan that cannot meet the request is still "
+        "written (exit 3).",
+    )
     pp.add_argument(
         "--to",
         nargs=2,
@@ -28,8 +41,8 @@ def add_parser(sub) -> None:
     pp.add_argument("--energy-weight", type=float, default=0.0, help="cost per joule of motor energy (default 0)")
     pp.add_argument("--time-weight", type=float, default=1e-3, help="cost per second of duration (default 1e-3)")
     pp.add_argument("--rate", type=float, default=1000.0, help="rows per second of the CSV (default 1000)")
-    pp.add_argument("--restarts", type=int, default=8, help="random restarts (default 8)")
-    pp.add_argument("--seed", type=int, default=0)
+    pp.add_argument("--restarts", type=int, default=16, help="random restarts, the best is kept (default 16)")
+    pp.add_argument("--seed", type=int, default=0, help="seed of the restarts (default 0)")
     pp.add_argument("--params", help="a parameter file (.toml or .json) instead of the paper's robot")
     pp.add_argument(
         "--out",
@@ -69,7 +82,7 @@ def run(args) -> int:
         rate=args.rate,
         seed=args.seed,
         allow_infeasible=True,
-        progress=True,
+        progress=progress(args),
     )
     print(pl.summary())
     pl.to_csv(out)

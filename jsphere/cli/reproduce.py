@@ -5,11 +5,24 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+from .options import progress
+
 NAME = "reproduce"
+EXAMPLES = """
+  jsphere reproduce --out jsphere-reproduce
+  jsphere reproduce --params robot.toml --no-plots --out reproduce-robot
+"""
 
 
 def add_parser(sub) -> None:
-    rp = sub.add_parser(NAME, help="recompute every number of Section 5 of the paper, with figures")
+    rp = sub.add_parser(
+        NAME,
+        help="recompute every number of Section 5 of the paper, with figures",
+        description="Recompute every number of Section 5 of Karavaev & Kilin (2016): prints the table (the "
+        "paper's value, jsphere's, and jsphere's in the paper's figure frame), writes reproduce.json and the "
+        "figures, drawn in the paper's figure frame as the paper draws them. Compiled programs are kept in "
+        "the persistent cache: a second run is quicker.",
+    )
     rp.add_argument("--out", default="jsphere-reproduce", help="output folder (default: ./jsphere-reproduce)")
     rp.add_argument("--params", help="a parameter file (.toml or .json) instead of the paper's robot")
     rp.add_argument("--no-plots", action="store_true", help="skip the figures")
@@ -41,6 +54,7 @@ def _preload_matplotlib():
 
 def run(args) -> int:
     from .._runtime.files import atomic_write_json, check_output
+    from .._runtime.progress import Progress, logger
     from ..model.params import RobotParams
     from ..paper.reproduce import reproduce
     from ..plots import REPRODUCTION_FIGURES as figures
@@ -50,9 +64,11 @@ def run(args) -> int:
     check_output(out, folder=True, writes=writes, inputs={"the parameter file (--params)": args.params})
     params = RobotParams.load(args.params) if args.params else RobotParams.paper()
     t0 = time.perf_counter()
-    print("jsphere: reproducing Section 5 of Karavaev & Kilin (2016) ...", flush=True)
+    logger.info("jsphere reproduce: Section 5 of Karavaev & Kilin (2016)")
     loader = None if args.no_plots else _preload_matplotlib()
-    rep = reproduce(params, full_stop=not args.no_full_stop)
+    program = repr((sorted(params.to_dict().items()), not args.no_full_stop))
+    with Progress(progress(args)).compiling("reproduce", program, "jsphere reproduce"):
+        rep = reproduce(params, full_stop=not args.no_full_stop)
     print(rep.table())
     atomic_write_json(out / "reproduce.json", {"rows": [r.__dict__ for r in rep.rows], "values": rep.values})
     written = [out / "reproduce.json"]

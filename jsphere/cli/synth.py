@@ -5,10 +5,20 @@ from __future__ import annotations
 from pathlib import Path
 
 NAME = "synth"
+EXAMPLES = """
+  jsphere synth --out trials --trials 5 --duration 8
+  jsphere synth --out trials --kind torques --params robot.toml --pos-sd 5e-4 --seed 10
+"""
 
 
 def add_parser(sub) -> None:
-    sy = sub.add_parser(NAME, help="synthetic capture-like trial CSVs from random input programs")
+    sy = sub.add_parser(
+        NAME,
+        help="synthetic capture-like trial CSVs from random input programs",
+        description="Simulate a robot driven by random input programs and write capture-like trial CSVs, with "
+        "position and orientation noise and lost frames, as `jsphere convert` writes them (docs/capture.md): "
+        "data to try `jsphere fit` on. Trial i uses the seed SEED + i.",
+    )
     sy.add_argument("--out", required=True, help="output folder")
     sy.add_argument("--trials", type=int, default=3, help="number of trials (default 3)")
     sy.add_argument("--kind", default="wheel_speeds", choices=("wheel_speeds", "torques"))

@@ -27,7 +27,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import sys
 import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
@@ -43,6 +42,7 @@ import optax
 
 from .._runtime.errors import InputError, SolverFailure
 from .._runtime.files import remove_stale_temporaries
+from .._runtime.progress import Progress
 from ..model.names import parse_name
 from ..model.params import RobotParams
 from ..solve.options import SolverOptions, default_solver, resolve, unused
@@ -90,7 +90,7 @@ def fit(
     max_steps: int = 16384,
     checkpoint: str | Path | None = None,
     restart: bool = False,
-    progress: bool | Callable[[str], None] = False,
+    progress: bool | None | Callable[[str], None] = None,
     options: SolverOptions | None = None,
 ) -> FitResult:
     """Fit the free parameters of `params` to captured trials (position and orientation).
@@ -136,7 +136,9 @@ def fit(
       step with the optimiser's whole state; a fit with the same data and configuration resumes
       from it to the same result, bit for bit, wherever it was stopped (`restart=True` ignores
       it). A checkpoint that cannot be read or belongs to another fit is ignored with a warning.
-    - `progress`: `True` prints one line per iteration to stderr (or a callable gets it).
+    - `progress`: `None` (default): progress bars on stderr when it is a terminal; `True`:
+      bars, or one line per iteration where stderr is not a terminal; `False`: none; a
+      callable gets every line instead (`jsphere._runtime.progress`).
 
     Returns a `FitResult`. Raises `InputError` (a `ValueError`) for unknown or overlapping
     names, a name both free and fixed, bounds that exclude the start, trials that do not fit
@@ -144,7 +146,7 @@ def fit(
     is then removed), naming where the first start fails.
     """
     t_begin = time.perf_counter()
-    say = (lambda s: print(s, file=sys.stderr, flush=True)) if progress is True else (progress or (lambda s: None))
+    prog = Progress(progress)
     _check_free_and_fixed(free, fix)
     params = apply_fixes(params, fix)
     fp_ = FreeParams(params, free, bounds)
@@ -172,11 +174,11 @@ def fit(
         max_steps=solve.max_steps,
         solver=None if eqx.tree_equal(solve.solver_or_default(), default_solver()) else solve.solver,
     )
-    run, st = _setup(data, fp_, params, options, checkpoint, say, t_begin)
+    run, st = _setup(data, fp_, params, options, checkpoint, prog, t_begin)
     _resume(run, st, restart)
     run.say(
         f"fit: {run.T} trials ({data.kind}), {sum(data.lengths)} samples, {run.P} free parameters + {run.n_nu} nuisance per "
-        f"trial, {run.S} start(s); compiling ..."
+        f"trial, {run.S} start(s)"
     )
     _multiple_shooting(run, st)
     _adam(run, st)
@@ -342,8 +344,11 @@ class _Run:
     adam_shapes: tuple[tuple[int, ...], ...]
     checkpoint: Path | None
     fingerprint: str
-    say: Callable[[str], None]
+    progress: Progress
     t_begin: float
+
+    def say(self, line: str) -> None:
+        self.progress.say(line)
 
     @property
     def S(self) -> int:
@@ -390,7 +395,7 @@ class _State:
 
 
 def _setup(
-    data: FitData, free: FreeParams, params: RobotParams, o: _Options, checkpoint, say, t_begin
+    data: FitData, free: FreeParams, params: RobotParams, o: _Options, checkpoint, progress: Progress, t_begin
 ) -> tuple[_Run, _State]:
     """The run and its first state: the starts (the only random numbers of a fit, drawn from
     `seed`, part of the fingerprint), the segments of multiple shooting, Adam."""
@@ -430,7 +435,7 @@ def _setup(
         adam_shapes=tuple(np.shape(a) for a in jax.tree_util.tree_leaves(adam)),
         checkpoint=Path(checkpoint) if checkpoint is not None else None,
         fingerprint=_config_fingerprint(data, free, o.config(sig, multiple)),
-        say=say,
+        progress=progress,
         t_begin=t_begin,
     )
     stage = 4 if multiple else (0 if o.adam_steps > 0 else 1)
@@ -531,10 +536,18 @@ def _save(run: _Run, st: _State) -> None:
 # ----------------------------------------------------------------------------- evaluations and steps
 
 
+def _program(run: _Run, shooting: str) -> str:
+    """What identifies the compiled residuals of a fit (for `Progress.compiling`)."""
+    o, d = run.options, run.data
+    segments = () if run.shooting is None or shooting == "single" else run.shooting.seg.slot.shape
+    return repr((shooting, d.kind, d.ts.shape, run.free.names, o.n_starts, o.rtol, o.atol, o.max_steps, segments))
+
+
 def _evaluate_single(run: _Run, st: _State, th, n):
     """Cost `(S,)` (inf for a failed start), residuals, Jacobian and poses of single shooting."""
-    res, ok, J, pose = run.fns.jacobian(run.base, jnp.asarray(th), jnp.asarray(n), run.arrays, jnp.asarray(st.sig))
-    res, ok = np.asarray(res), np.asarray(ok)
+    with run.progress.compiling("fit", _program(run, "single"), "fit: single shooting"):
+        res, ok, J, pose = run.fns.jacobian(run.base, jnp.asarray(th), jnp.asarray(n), run.arrays, jnp.asarray(st.sig))
+        res, ok = np.asarray(res), np.asarray(ok)
     cost = np.where(ok.all(1), 0.5 * (res * res).sum((1, 2)), np.inf)
     st.last.update(pose=pose, ok=ok, data=run.data)
     return cost, {"res": res, "J": J, "pose": pose}
@@ -549,11 +562,12 @@ def _evaluate_multiple(run: _Run, st: _State, mu: float, th, n):
     """Cost `(S,)` (inf for a failed start), normal-equation blocks and defects of multiple
     shooting at defect weight `mu`."""
     ms = run.shooting
-    res, ok, J, pose, e, Je = run.fns.segments(
-        run.base, jnp.asarray(th), jnp.asarray(n), ms.arrays, jnp.asarray(st.sig)
-    )
-    blocks, cost, dfc = run.fns.assemble(res, J, e, Je, jnp.asarray(n), mu, ms.seg_arrays, ms.scale)
-    ok = np.asarray(ok)
+    with run.progress.compiling("fit", _program(run, "multiple"), "fit: multiple shooting"):
+        res, ok, J, pose, e, Je = run.fns.segments(
+            run.base, jnp.asarray(th), jnp.asarray(n), ms.arrays, jnp.asarray(st.sig)
+        )
+        blocks, cost, dfc = run.fns.assemble(res, J, e, Je, jnp.asarray(n), mu, ms.seg_arrays, ms.scale)
+        ok = np.asarray(ok)
     cost = np.where(ok.all(1), np.asarray(cost), np.inf)
     st.last.update(pose=pose, ok=ok, data=ms.seg.data)
     return cost, {"blocks": blocks, "defect": np.asarray(dfc)}
@@ -612,19 +626,22 @@ def _lm_stage(run: _Run, st: _State, evaluate, solve, th, n, label: str, *, rel_
         _save(run, st)
     o = run.options
     options = LMOptions(o.max_iter, rel_done, o.gtol, o.noise, run.free.theta_scales(), max_rejected)
-    for th, n, st.lm, step in levenberg_marquardt(evaluate, solve, th, n, st.lm, options):
-        st.total_it += 1
-        st.theta = th
-        if st.stage >= 4:
-            st.nu_ms = n
-        else:
-            st.nu = n
-        _save(run, st)
-        b = int(np.argmin(st.lm.cost))
-        run.say(
-            f"fit: LM {label} it {st.lm.it:3d}  cost {np.min(st.lm.cost):.6e}  lambda {st.lm.lam[b]:.1e}  "
-            f"step {step.length:.2e}  accepted {int(step.accepted.sum())}/{run.S}  ({time.perf_counter() - run.t_begin:.1f} s)"
-        )
+    with run.progress.bar(o.max_iter, f"fit: LM {label}", "it", initial=st.lm.it) as bar:
+        for th, n, st.lm, step in levenberg_marquardt(evaluate, solve, th, n, st.lm, options):
+            st.total_it += 1
+            st.theta = th
+            if st.stage >= 4:
+                st.nu_ms = n
+            else:
+                st.nu = n
+            _save(run, st)
+            b = int(np.argmin(st.lm.cost))
+            bar.update(1, f"cost {np.min(st.lm.cost):.4e}")
+            run.progress.step(
+                f"fit: LM {label} it {st.lm.it:3d}  cost {np.min(st.lm.cost):.6e}  lambda {st.lm.lam[b]:.1e}  "
+                f"step {step.length:.2e}  accepted {int(step.accepted.sum())}/{run.S}  ({time.perf_counter() - run.t_begin:.1f} s)"
+            )
+        bar.done()
     st.it = st.lm.it
     return th, n, st.lm.cost, st.lm.current
 
@@ -661,8 +678,16 @@ def _adam(run: _Run, st: _State) -> None:
     best point of each start is kept."""
     if st.stage != 0:
         return
+    with run.progress.bar(run.options.adam_steps, "fit: Adam", "step", initial=st.adam_k) as bar:
+        _adam_steps(run, st, *st.adam, bar)
+    if st.adam_best is not None:
+        st.theta, st.nu = st.adam_best[1], st.adam_best[2]
+    st.stage = 1
+
+
+def _adam_steps(run: _Run, st: _State, w, ost, bar) -> None:
+    """The Adam steps left (from `st.adam_k`), each saved; `bar` counts them."""
     P, scale = run.P, run.adam_scale
-    w, ost = st.adam
     for k in range(st.adam_k, run.options.adam_steps):
         zz = jax.tree_util.tree_map(lambda a, s: a * s, w, scale)
         cost_k, out_k = _evaluate_single(run, st, zz["theta"], zz["nu"])
@@ -686,12 +711,10 @@ def _adam(run: _Run, st: _State) -> None:
         w = optax.apply_updates(w, upd)
         st.adam, st.adam_k = (w, ost), k + 1
         _save(run, st)
-        run.say(
+        bar.update(1, f"cost {np.min(cost_k):.4e}")
+        run.progress.step(
             f"fit: adam {k + 1:3d}/{run.options.adam_steps}  cost {np.min(cost_k):.6e}  ({time.perf_counter() - run.t_begin:.1f} s)"
         )
-    if st.adam_best is not None:
-        st.theta, st.nu = st.adam_best[1], st.adam_best[2]
-    st.stage = 1
 
 
 def _single_shooting(run: _Run, st: _State) -> None:

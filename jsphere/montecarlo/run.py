@@ -19,7 +19,6 @@ import dataclasses
 import hashlib
 import math
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -31,6 +30,7 @@ import numpy as np
 
 from .._runtime.checks import real, whole
 from .._runtime.errors import InputError
+from .._runtime.progress import Progress
 from ..controls import Sampled
 from ..gaits.gaits import Gait, simulate_gaits
 from ..model.params import RobotParams
@@ -46,8 +46,10 @@ from .sampling import Actuators, Draws
 from .store import BATCH_KEYS, StudyFolder, fingerprint
 from .study import MODES, check_settings, check_vary
 
-#: the progress line's prefix
-_PROGRESS = "[jsphere montecarlo]"
+#: the progress lines' prefix
+_PROGRESS = "jsphere montecarlo:"
+#: seconds between two progress lines where no bar is drawn
+_LINE_S = 10.0
 #: seconds between two looks for another process's batch file
 _POLL_S = 0.2
 #: `monte_carlo`'s default step limit of the replay modes
@@ -73,7 +75,7 @@ def monte_carlo(
     commands: tuple | None = None,
     max_steps: int = 65536,
     out: str | os.PathLike | None = None,
-    progress: bool = True,
+    progress: bool | None = None,
     process_index: int | None = None,
     process_count: int | None = None,
     wait_timeout: float = 24 * 3600.0,
@@ -120,7 +122,10 @@ def monte_carlo(
       study is refused). A batch file that cannot be read (cut short, overwritten) is
       recomputed, with a `MonteCarloWarning` naming it; the hidden temporary files a killed
       run leaves are removed.
-    - `progress`: print a progress line to stderr.
+    - `progress`: `None` (default): a progress bar on stderr when it is a terminal; `True`: the
+      bar, or a line every few seconds where stderr is not a terminal; `False`: none
+      (`jsphere._runtime.progress`). The first batch, which compiles, is shown apart and left
+      out of the rate.
     - `process_index`, `process_count`: for several processes (hosts) sharing one study: each
       computes the batches `k` with `k % process_count == process_index` and writes them to
       `out` (which all processes must see), then reads the others' batches from there (waiting
@@ -179,7 +184,7 @@ def monte_carlo(
     if run.folder is not None:
         run.folder.open(run.fingerprint, run.n, run.seed, vary, set(run.mine), pc == 1)
     t_start = time.perf_counter()
-    parts = _own_batches(run, t_start, progress)
+    parts = _own_batches(run, Progress(progress))
     _other_batches(run, parts, settings["wait_timeout"])
     res = _result(run, parts, time.perf_counter() - t_start)
     if run.folder is not None:
@@ -294,7 +299,8 @@ class _Run:
     """A checked study laid out in batches: `n` trials with seed `seed` in `n_batches` batches of
     `batch_size` (a multiple of `CHUNK` times the number of local devices); this process
     computes the batches `mine`, and with a `folder` writes them there. `fingerprint`
-    identifies the study in its folder's manifest."""
+    identifies the study in its folder's manifest; `program` the compiled batch (the study
+    but its seed, and the devices)."""
 
     trials: Trials
     n: int
@@ -304,6 +310,7 @@ class _Run:
     mine: tuple[int, ...]
     folder: StudyFolder | None
     fingerprint: str
+    program: str
 
     @classmethod
     def create(
@@ -337,9 +344,10 @@ class _Run:
         options = (reset, "gait" if replay is None else replay.mode, repr(record), settings["Omega0_sd"])
         options += _solver_record(solver, gait_max_steps if replay is None else None)
         fp = fingerprint(params, gaits, spec, seed, B, options, rtol, atol)
+        program = f"{fingerprint(params, gaits, spec, 0, B, options, rtol, atol)}|{len(devices)}"
         mine = tuple(k for k in range(n_batches) if k % process[1] == process[0])  # all of them on one host
         folder = StudyFolder(Path(out), B, len(spec)) if out is not None else None
-        return cls(trials, n, seed, B, n_batches, mine, folder, fp)
+        return cls(trials, n, seed, B, n_batches, mine, folder, fp, program)
 
     def compute(self, k: int) -> dict:
         """Batch `k`, written to the folder (if any)."""
@@ -350,31 +358,36 @@ class _Run:
         return part
 
 
-def _own_batches(run: _Run, t_start: float, progress: bool) -> list[dict | None]:
+def _own_batches(run: _Run, progress: Progress) -> list[dict | None]:
     """The batches of the study, with this process's ones filled in: read from the folder, else
-    (or if the file is corrupt) computed, with a progress line on stderr."""
+    (or if the file is corrupt) computed. The first batch computed (which compiles) comes
+    first, then a bar over the others, whose rate starts after it."""
     parts: list = [None] * run.n_batches
     for k in run.mine:
         if run.folder is not None and run.folder.has_batch(k):
             parts[k] = run.folder.load_batch(k, stacklevel=3)
     todo = [k for k in run.mine if parts[k] is None]
-    done_new = 0
-    for count, k in enumerate(todo):
-        parts[k] = run.compute(k)
-        done_new += run.batch_size
-        if progress:
-            el = time.perf_counter() - t_start
-            rate = done_new / el if el > 0 else float("nan")
-            left = (len(todo) - count - 1) * run.batch_size / rate if rate > 0 else float("nan")
-            print(
-                f"\r{_PROGRESS} batch {count + 1}/{len(todo)}  {min(done_new, run.n)}/{run.n} trials  "
-                f"{rate:,.0f} trials/s  eta {left:,.0f} s ",
-                end="",
-                file=sys.stderr,
-                flush=True,
-            )
-    if progress and done_new:
-        print(file=sys.stderr)
+    if not todo:
+        return parts
+    trials = [min(run.batch_size, run.n - k * run.batch_size) for k in todo]
+    if len(todo) < len(run.mine):
+        progress.say(f"{_PROGRESS} {len(run.mine) - len(todo)} batch(es) read from {run.folder.path}")
+    with progress.compiling("montecarlo", run.program, f"{_PROGRESS} batch 1/{len(todo)}"):
+        parts[todo[0]] = run.compute(todo[0])
+    t0 = last = time.perf_counter()
+    with progress.bar(sum(trials), "jsphere montecarlo", "trial", initial=trials[0]) as bar:
+        for count, k in enumerate(todo[1:], start=1):
+            parts[k] = run.compute(k)
+            bar.update(trials[count])
+            now = time.perf_counter()
+            if now - last >= _LINE_S or count + 1 == len(todo):
+                last = now
+                rate = sum(trials[1 : count + 1]) / (now - t0)
+                left = sum(trials[count + 1 :]) / rate
+                progress.step(
+                    f"{_PROGRESS} batch {count + 1}/{len(todo)}  {sum(trials[: count + 1])}/{sum(trials)} trials  "
+                    f"{rate:,.0f} trials/s  eta {left:,.0f} s"
+                )
     return parts
 
 

@@ -4,7 +4,6 @@ each verified with the accurate solver."""
 from __future__ import annotations
 
 import dataclasses
-import sys
 import time
 from collections.abc import Sequence
 
@@ -12,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._runtime.progress import Progress
 from ..model.params import RobotParams
 from ..model.state import State
 from ..solve.options import SolverOptions
@@ -41,28 +41,25 @@ class _Batch:
     options: SolverOptions | None = None  # of the accurate re-simulation
 
 
-def _search_batch(b: _Batch, seed: int, progress: bool):
+def _search_batch(b: _Batch, seed: int, progress: Progress):
     """The vmapped search; returns the best decision vector per target `(B, V)`, its residual
-    Jacobian `(B, M, V)` and the loss of every restart `(B, R)`."""
+    Jacobian `(B, M, V)` and the loss of every restart `(B, R)`. One compiled call: the
+    progress shows its time, not its iterations."""
     p, s = b.params, b.s
     # numbers as arrays: other limits and weights reuse the compiled search (None stays static)
     lim_a, obj_a = (jax.tree_util.tree_map(lambda v: jnp.asarray(v, p.R0.dtype), m) for m in (b.lim, b.obj))
     z0 = _initial_guesses(p, b.targets, b.restarts, b.lim, s, seed)
-    if progress:
-        print(
-            f"jsphere plan: {len(b.targets)} target(s) x {b.restarts} restarts, Adam {s.adam_steps} + L-BFGS "
-            f"{s.lbfgs_steps} + LM {s.lm_steps} iterations (compiling ...)",
-            file=sys.stderr,
-            flush=True,
-        )
-    zf, loss, _, Jf, _ = _search(p, jnp.asarray(b.targets, p.R0.dtype), z0, lim_a, obj_a, s)
-    if progress:
-        print(
-            f"jsphere plan: search done in {time.perf_counter() - b.t0:.1f} s; verifying with the accurate solver ...",
-            file=sys.stderr,
-            flush=True,
-        )
-    return np.asarray(zf), np.asarray(Jf), np.asarray(loss)
+    progress.say(
+        f"jsphere plan: {len(b.targets)} target(s) x {b.restarts} restarts, Adam {s.adam_steps} + L-BFGS "
+        f"{s.lbfgs_steps} + LM {s.lm_steps} iterations"
+    )
+    limits_off = tuple(v is None for v in jax.tree_util.tree_leaves(b.lim, is_leaf=lambda v: v is None))
+    program = repr((z0.shape, z0.dtype, s, limits_off, p.n_wheels))
+    with progress.compiling("plan", program, "jsphere plan: search"), progress.phase("jsphere plan: search"):
+        zf, loss, _, Jf, _ = _search(p, jnp.asarray(b.targets, p.R0.dtype), z0, lim_a, obj_a, s)
+        zf, Jf, loss = np.asarray(zf), np.asarray(Jf), np.asarray(loss)
+    progress.say(f"jsphere plan: search done in {time.perf_counter() - b.t0:.1f} s; verifying with the accurate solver")
+    return zf, Jf, loss
 
 
 def _verified(b: _Batch, k: int, z, J):
@@ -162,7 +159,7 @@ def plan_many(
     tol_speed: float = 5e-4,
     tol_heading: float = 1e-3,
     verify: bool = True,
-    progress: bool = False,
+    progress: bool | None = None,
     options: SolverOptions | None = None,
 ) -> list[Plan]:
     """Plan rest-to-rest manoeuvres from rest at the origin (heading 0) to each target, all in
@@ -178,6 +175,9 @@ def plan_many(
     - `options`: a `SolverOptions` for that re-simulation (`simulate_gaits`; default Dopri8,
       rtol 1e-10, atol 1e-12, max_steps 16384): its `rtol`, `atol`, `solver` and `max_steps`
       are used; `throw`, `adjoint` and `batch_steps` set are errors.
+    - `progress`: `None` (default): progress bars on stderr when it is a terminal; `True`:
+      bars, or lines where stderr is not a terminal; `False`: none
+      (`jsphere._runtime.progress`).
 
     Every argument is checked before any work; a bad one raises `InputError` naming it.
 
@@ -211,5 +211,11 @@ def plan_many(
         iterations={"adam": s.adam_steps, "lbfgs": s.lbfgs_steps, "lm": s.lm_steps, "newton": 0},
         options=options,
     )
-    zf, Jf, loss = _search_batch(b, seed, progress)
-    return [_plan_for(b, k, zf[k], Jf[k], loss[k], verify) for k in range(len(b.targets))]
+    prog = Progress(progress)
+    zf, Jf, loss = _search_batch(b, seed, prog)
+    plans = []
+    with prog.bar(len(b.targets), "jsphere plan: verifying", "target") as bar:
+        for k in range(len(b.targets)):
+            plans.append(_plan_for(b, k, zf[k], Jf[k], loss[k], verify))
+            bar.update(1)
+    return plans

@@ -43,7 +43,7 @@ def plan(
     rate: float = 1000.0,
     seed: int = 0,
     allow_infeasible: bool = False,
-    progress: bool = False,
+    progress: bool | None = None,
     options: SolverOptions | None = None,
 ) -> Plan:
     """Plan a rest-to-rest manoeuvre from rest at the origin (platform axes = fixed axes) to
@@ -51,7 +51,7 @@ def plan(
 
     Raises `PlanInfeasibleError` (holding the best plan in `.plan`, and saying how far it falls
     short and which limit binds) if the tolerances or limits are not met, unless
-    `allow_infeasible=True` (then check `Plan.feasible`).
+    `allow_infeasible=True` (then check `Plan.feasible`). `progress`: as for `plan_many`.
 
     `options`: a `SolverOptions` for the accurate re-simulation that verifies the plan (as in
     `plan_many`).
@@ -118,7 +118,7 @@ def plan_route(
     rate: float = 1000.0,
     seed: int = 0,
     allow_infeasible: bool = False,
-    progress: bool = False,
+    progress: bool | None = None,
     options: SolverOptions | None = None,
 ) -> Plan:
     """A route from rest at the origin through `waypoints` `(x, y)` or `(x, y, psi)` [m, rad],
@@ -128,7 +128,7 @@ def plan_route(
 
     Returns one `Plan` whose gaits are the legs and whose trajectory joins them (the duplicate
     rest sample at each stop dropped). `options`: a `SolverOptions` for the accurate
-    re-simulation of each leg (as in `plan_many`).
+    re-simulation of each leg (as in `plan_many`). `progress`: as for `plan_many`.
     """
     if isinstance(waypoints, (str, bytes)) or not isinstance(waypoints, Sequence) or not len(waypoints):
         raise InputError(

@@ -1,4 +1,5 @@
-"""Figures in the style of the paper's Figs. 2 and 3 and the straight-line controls."""
+"""Figures in the style of the paper's Figs. 2 and 3 and the straight-line controls; the paths are
+drawn in the paper's figure frame (`x_fig = -y`, `y_fig = x`), as the paper draws them."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .base import finish, pyplot, xy_axes
+from .base import FRAME_LABELS, finish, pyplot, xy_axes
 
 
 def _fig_xy(tr):
@@ -21,8 +22,8 @@ def figure2(rep, path) -> None:
     for tr, lab, st in ((kin, "kinematic model (2.9)", "-"), (gait, "dynamic model (gaits)", "--")):
         a.plot(*_fig_xy(tr), st, label=lab)
         b.plot(np.asarray(tr.ts), np.asarray(tr.gamma[:, 2]), st, label=lab)
-    a.set_xlabel("x [mm] (paper's frame)")
-    a.set_ylabel("y [mm]")
+    a.set_xlabel(FRAME_LABELS["paper"][0])
+    a.set_ylabel(FRAME_LABELS["paper"][1])
     a.set_title("(a) trajectories, 0-8 s")
     a.axis("equal")
     a.legend()
