@@ -5,21 +5,18 @@ an internal omniwheel platform: theory and experiments", Proc. Steklov Inst. Mat
 Equation numbers in docstrings refer to that paper; `docs/model.md` lists every convention
 and every correction of the paper's typos.
 
-float64 is switched on at import (the paper's numbers are at the 0.1 mm level). Set the
-environment variable `JSPHERE_X64=0` before importing to keep JAX's float32 default.
+Importing jsphere changes no global state. Its numbers (the paper's are at the 0.1 mm level)
+need float64, which JAX leaves off: switch it on before creating arrays, with
+`jax.config.update("jax_enable_x64", True)` or `jsphere.enable_x64()`. A solve that runs in
+float32 only because float64 is off warns once (`PrecisionWarning`).
 """
-
-import os as _os
-
-import jax as _jax
-
-if _os.environ.get("JSPHERE_X64", "1") != "0":
-    _jax.config.update("jax_enable_x64", True)
 
 from ._runtime.compilation_cache import enable_compilation_cache as enable_compilation_cache
 from ._runtime.errors import ExitCode as ExitCode
 from ._runtime.errors import InputError as InputError
 from ._runtime.errors import SolverFailure as SolverFailure
+from ._runtime.precision import PrecisionWarning as PrecisionWarning
+from ._runtime.precision import enable_x64 as enable_x64
 from .capture.body import read_body_markers as read_body_markers
 from .capture.c3d import read_c3d as read_c3d
 from .capture.convert import convert_raw as convert_raw

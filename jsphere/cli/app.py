@@ -36,6 +36,9 @@ def main(argv=None) -> int:
         command.epilog = EXIT_CODES_HELP
         command.formatter_class = argparse.RawDescriptionHelpFormatter
     args = parser.parse_args(argv)
+    from .._runtime.precision import enable_x64
+
+    enable_x64()  # the commands compute in float64: before any JAX array is made
     if args.command == reproduce.NAME and not args.optimize:
         compile_for_one_run()
     if not args.no_cache:
