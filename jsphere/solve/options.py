@@ -38,7 +38,8 @@ def tolerances(
 ) -> tuple[Any, Any]:
     """`(rtol, atol)` with `None` replaced by the default for `dtype` (`defaults[dtype name]`),
     and a warning when a float32 solve is asked for an `rtol` its rounding cannot resolve.
-    Every solve passes here: float32 parameters while JAX's float64 is off warn once per
+    `simulate`, `simulate_gaits` and `monte_carlo` (and so `fit`, the planner's verification
+    and `reproduce`) pass here: float32 parameters while JAX's float64 is off warn once per
     process (`jsphere.PrecisionWarning`)."""
     warn_if_float32_by_default(dtype, where)
     name = "float32" if jnp.dtype(dtype).itemsize <= 4 else "float64"
