@@ -200,6 +200,7 @@ def main(argv=None) -> int:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     import jsphere
 
+    jsphere.enable_x64()  # the parameters in float64, as the CasADi model computes
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--batch", type=int, default=1024)
     ap.add_argument("--threads", type=int, default=os.cpu_count() or 2)

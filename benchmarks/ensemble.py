@@ -51,6 +51,8 @@ from jsphere._runtime.files import atomic_write_text  # noqa: E402
 from jsphere.model.params import derive  # noqa: E402
 from jsphere.solve.batched.components import torque_field_components  # noqa: E402
 
+jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
+
 PH = jnp.array([0.0, 2.1, 4.2])
 RTOL, ATOL, T1 = 1e-8, 1e-10, 4.0
 

@@ -25,6 +25,8 @@ import numpy as np  # noqa: E402
 
 import jsphere  # noqa: E402
 
+jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
+
 p = jsphere.RobotParams.paper()
 PH = jnp.array([0.0, 2.1, 4.2])
 A = jnp.asarray(0.05 * (1 + 0.1 * np.random.default_rng(0).standard_normal((1024, 3))))

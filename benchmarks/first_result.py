@@ -124,6 +124,7 @@ def _jsphere_child(task: str, cache_dir: str | None) -> dict:
 
     import jsphere
 
+    jax.config.update("jax_enable_x64", True)  # float64, as in the diffrax child
     rec = {"import_s": time.perf_counter() - t}
     if cache_dir:
         rec["cache"] = _enable_cache(cache_dir, jsphere)
@@ -229,7 +230,7 @@ def _dfx_child(task: str, cache_dir: str | None) -> dict:
     import jax.numpy as jnp
     import numpy as np
 
-    jax.config.update("jax_enable_x64", True)  # as jsphere does at import
+    jax.config.update("jax_enable_x64", True)  # float64, as in the jsphere child
     rec = {"import_s": time.perf_counter() - t}
     if cache_dir:
         rec["cache"] = _enable_cache(cache_dir)

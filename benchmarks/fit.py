@@ -26,6 +26,8 @@ import numpy as np
 import jsphere
 from jsphere._runtime.files import atomic_write_text
 
+jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
+
 #: the parameter set the fit does not know
 TRUTH = {"R_m": 0.029, "j": 3.2e-4, "m0": 0.9, "I0": 0.011, "I": np.diag([0.018, 0.015, 0.025])}
 

@@ -40,6 +40,8 @@ from jsphere.identify.free import FreeParams
 from jsphere.identify.residuals import _functions
 from jsphere.identify.starts import nuisance_guess
 
+jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from fit import metadata  # noqa: E402
 

@@ -35,6 +35,8 @@ import jsphere  # noqa: E402
 import jsphere.solve.simulate as S  # noqa: E402
 from jsphere._runtime.files import atomic_write_text  # noqa: E402
 
+jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
+
 PH = jnp.array([0.0, 2.1, 4.2])
 
 

@@ -28,6 +28,8 @@ import optimistix as optx
 
 import jsphere
 
+jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
+
 
 def with_optimistix(fun, x0, *, max_iter=50, ftol=1e-14, xtol=1e-12):
     """`optimistix.least_squares` with `optimistix.LevenbergMarquardt` (reverse-mode Jacobian),

@@ -20,6 +20,8 @@ import numpy as np
 import jsphere
 from jsphere._runtime.files import atomic_write_text
 
+jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
+
 ap = argparse.ArgumentParser()
 ap.add_argument("--trials", type=int, default=100_000)
 ap.add_argument("--baseline-trials", type=int, default=200)

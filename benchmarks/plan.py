@@ -30,6 +30,8 @@ from jsphere.planning.problem import _vec_targets, gait_from_vector
 from jsphere.planning.rollout import rollout
 from jsphere.planning.search import _initial_guesses, _search
 
+jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
+
 PLAN_DEFAULT_ITERATIONS = jsphere.PlanSettings().adam_steps + jsphere.PlanSettings().lm_steps + 1
 
 

@@ -43,8 +43,10 @@ from numpy_model import NumpyRobot, initial_state  # noqa: E402
 from scipy.integrate import solve_ivp  # noqa: E402
 from startup import measure as startup_measure  # noqa: E402
 
-import jsphere  # noqa: E402  (enables float64 in JAX)
+import jsphere  # noqa: E402
 from jsphere._runtime.files import atomic_write_text  # noqa: E402
+
+jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
 
 _SOURCE_AT_IMPORT = None  # set in main(), right after jsphere was imported
 T1 = 4.0

@@ -45,6 +45,8 @@ from jsphere.planning import search
 from jsphere.planning.problem import Limits, Objective, PlanSettings, _vec_targets
 from jsphere.planning.residuals import _residuals, _residuals_and_jacobian
 
+jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
+
 TARGETS = [(0.8, -0.5, 1.0), (-0.5, -0.4), (1.0, 1.0), (-1.0, 0.35)]
 
 

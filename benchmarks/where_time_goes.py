@@ -41,6 +41,8 @@ import jsphere  # noqa: E402
 from jsphere.model.params import derive  # noqa: E402
 from jsphere.solve.simulate import _torque_field  # noqa: E402
 
+jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
+
 PH = jnp.array([0.0, 2.1, 4.2])
 EVALS = 1300
 

@@ -16,6 +16,8 @@ import numpy as np
 
 import jsphere
 
+jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
+
 REPORTED = np.array([0.864, 0.852])
 SD = 0.0005 / math.sqrt(3.0)  # rounding to three decimals
 

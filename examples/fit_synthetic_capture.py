@@ -21,6 +21,8 @@ import numpy as np
 import jsphere
 from jsphere.cli.app import main
 
+jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
+
 ap = argparse.ArgumentParser()
 ap.add_argument("--kind", default="wheel_speeds", choices=["wheel_speeds", "torques"])
 ap.add_argument("--out", default="fit-study")

@@ -6,6 +6,8 @@ import numpy as np
 
 import jsphere
 
+jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
+
 p = jsphere.RobotParams.paper()
 ts = jnp.linspace(0.0, 8.0, 801)
 speed = float(p.R0) * 0.864  # the paper's Omega_1, (5.5)

@@ -28,6 +28,8 @@ import jsphere
 from jsphere._runtime.files import atomic_write_text
 from jsphere.capture.synthetic import default_marker_set
 
+jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
+
 HERE = Path(__file__).resolve().parent
 
 

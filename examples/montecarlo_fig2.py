@@ -20,6 +20,8 @@ import numpy as np
 import jsphere
 from jsphere.plots import figure2_study
 
+jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
+
 ap = argparse.ArgumentParser()
 ap.add_argument("--trials", type=int, default=100_000)
 ap.add_argument("--out", default="study-fig2")

@@ -16,6 +16,8 @@ import json
 import jsphere
 from jsphere.plots import montecarlo_figure
 
+jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
+
 ap = argparse.ArgumentParser()
 ap.add_argument("--trials", type=int, default=100_000)
 ap.add_argument("--mode", choices=["gait", "torques", "wheel_speeds"], default="gait")

@@ -19,6 +19,8 @@ import numpy as np
 import jsphere
 from jsphere.plots import plan_figure
 
+jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
+
 WAYPOINTS = [(0.45, 0.3), (0.9, -0.3), (1.35, 0.3)]
 
 

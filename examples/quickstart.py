@@ -6,6 +6,8 @@ import jax.numpy as jnp
 
 import jsphere
 
+jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
+
 p = jsphere.RobotParams.paper()
 tr = jsphere.simulate_gaits(p, [jsphere.acceleration(), jsphere.braking()])
 print(f"stop point: x = {1e3 * tr.x[-1]:.3f} mm, y = {1e3 * tr.y[-1]:.3f} mm")

@@ -5,9 +5,10 @@ an internal omniwheel platform: theory and experiments", Proc. Steklov Inst. Mat
 Equation numbers in docstrings refer to that paper; `docs/model.md` lists every convention
 and every correction of the paper's typos.
 
-float64 is switched on when the package's first name is used (the paper's numbers are at the
-0.1 mm level). Set the environment variable `JSPHERE_X64=0` before that to keep JAX's float32
-default.
+Importing jsphere changes no global state. Its numbers (the paper's are at the 0.1 mm level)
+need float64, which JAX leaves off: switch it on before creating arrays, with
+`jax.config.update("jax_enable_x64", True)` or `jsphere.enable_x64()`. A solve that runs in
+float32 only because float64 is off warns once (`PrecisionWarning`).
 
 The names below are imported when first used (PEP 562), so that `import jsphere` and the
 command line's `--help` do not import JAX; `from jsphere import X` and `jsphere.X` work as
@@ -15,7 +16,6 @@ for any module.
 """
 
 import importlib as _importlib
-import os as _os
 
 __version__ = "0.1.0"
 
@@ -23,6 +23,7 @@ __version__ = "0.1.0"
 _EXPORTS = {
     "_runtime.compilation_cache": ("enable_compilation_cache",),
     "_runtime.errors": ("ExitCode", "InputError", "SolverFailure"),
+    "_runtime.precision": ("PrecisionWarning", "enable_x64"),
     "capture.body": ("read_body_markers",),
     "capture.c3d": ("read_c3d",),
     "capture.convert": ("convert_raw",),
@@ -92,24 +93,10 @@ _SUBPACKAGES = frozenset(
 
 __all__ = sorted(_WHERE)
 
-_x64_done = False
-
-
-def _switch_x64() -> None:
-    global _x64_done
-    _x64_done = True
-    if _os.environ.get("JSPHERE_X64", "1") != "0":
-        import jax
-
-        jax.config.update("jax_enable_x64", True)
-
-
 def __getattr__(name: str):
     module = _WHERE.get(name)
     if module is None and name not in _SUBPACKAGES:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    if not _x64_done:
-        _switch_x64()
     if module is None:
         return _importlib.import_module(f".{name}", __name__)
     mod = _importlib.import_module(f".{module}", __name__)

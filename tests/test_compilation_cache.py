@@ -18,6 +18,7 @@ CHILD = """
 import json, sys
 from jax import monitoring
 import jsphere
+jsphere.enable_x64()
 from jsphere._runtime.compilation_cache import callbacks_as_nan, enable_compilation_cache
 import equinox._errors as errors
 

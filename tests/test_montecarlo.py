@@ -70,6 +70,7 @@ def test_four_host_devices_give_identical_results(study):
     script = textwrap.dedent(
         """
         import numpy as np, jax, jsphere
+        jax.config.update("jax_enable_x64", True)
         assert len(jax.local_devices()) == 4
         p = jsphere.RobotParams.paper()
         r = jsphere.monte_carlo(p, [jsphere.acceleration(), jsphere.braking()],

@@ -112,6 +112,7 @@ def test_setting_up_the_paper_robot_and_gaits_compiles_nothing():
         "    return orig(*a, **k)\n"
         "pxla.lower_sharding_computation = count\n"
         "import jsphere\n"
+        "jsphere.enable_x64()\n"
         "p = jsphere.RobotParams.paper()\n"
         "g = [jsphere.acceleration(), jsphere.turn(), jsphere.braking(theta_max=0.12, phi=0.7)]\n"
         "c = jsphere.kinematic_control(p, jsphere.straight_line(0.13), t_stop=4.0)\n"

@@ -36,6 +36,7 @@ import numpy as np
 from .arrays import under_jit
 from .files import atomic_write
 from .private import callbacks_as_nan
+from .precision import x64_enabled
 
 _DIR: Path | None = None
 _LOADED: dict[str, Callable] = {}
@@ -97,7 +98,7 @@ def _key(name: str, leaves, treedef, static) -> str | None:
         "jsphere-aot-1",
         name,
         _environment(),
-        str(jax.config.jax_enable_x64),
+        f"x64={x64_enabled()}",
         tree,
         *parts,
         *(f"{np.shape(x)}:{jnp.result_type(x)}:{bool(getattr(x, 'weak_type', False))}" for x in leaves),

@@ -7,13 +7,9 @@ import math
 import os
 import re
 import tempfile
+import tomllib
 from pathlib import Path
 from typing import Any
-
-try:  # Python >= 3.11
-    import tomllib
-except ModuleNotFoundError:  # pragma: no cover
-    import tomli as tomllib  # type: ignore[no-redef]
 
 
 def _umask() -> int:
@@ -127,23 +123,25 @@ def atomic_write_json(path, obj: Any) -> None:
     atomic_write_text(path, dumps_json(obj))
 
 
-def _toml_value(v: Any) -> str:
+def _toml_plain(v: Any) -> Any:
+    """`v` as the TOML values of a parameter file: every number a float (`1` is written `1.0`),
+    lists (nested), booleans and strings; anything else is a `TypeError`."""
     if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if isinstance(v, bool):
-        return "true" if v else "false"
+        return [_toml_plain(x) for x in v]
+    if isinstance(v, (bool, str)):
+        return v
     if isinstance(v, (int, float)):
-        return repr(float(v))
-    if isinstance(v, str):
-        return json.dumps(v)
+        return float(v)
     raise TypeError(f"cannot write {type(v).__name__} to TOML")
 
 
 def dumps_toml(d: dict[str, Any], header: str = "") -> str:
-    """A minimal TOML writer for flat tables of numbers and (nested) lists of numbers."""
-    lines = [f"# {line}" for line in header.splitlines()]
-    lines += [f"{k} = {_toml_value(v)}" for k, v in d.items()]
-    return "\n".join(lines) + "\n"
+    """TOML (`tomli_w`) of a flat table of numbers, strings and (nested) lists of numbers, after
+    `header` as comment lines."""
+    import tomli_w
+
+    comments = "".join(f"# {line}\n" for line in header.splitlines())
+    return comments + tomli_w.dumps({k: _toml_plain(v) for k, v in d.items()})
 
 
 def write_mapping(path, d: dict[str, Any], *, header: str = "") -> None:

@@ -17,6 +17,7 @@ from jaxtyping import Array, Float, Int
 from .._runtime.arrays import as_array
 from .._runtime.errors import InputError
 from .._runtime.files import read_mapping, write_mapping
+from .._runtime.precision import x64_enabled
 from .linalg import cross, dot, inv3, outer
 
 #: Values of the two parameters the paper omits, inferred from its own numbers
@@ -65,6 +66,10 @@ class RobotParams(eqx.Module):
     that look like metres: the shapes and the rules of `RULES`) and raises `ValueError` naming
     the field and the expected range. Validation is skipped for traced values (inside `jit`;
     `rule_code` checks those), and pytree operations such as `eqx.tree_at` do not re-validate.
+
+    `dtype` (of every constructor): the fields' float type; default float64 when JAX's float64
+    is on (`jsphere.enable_x64()`), else float32, with which the first solve warns once
+    (`jsphere.PrecisionWarning`).
     """
 
     R0: Float[Array, ""]
@@ -102,7 +107,7 @@ class RobotParams(eqx.Module):
         dtype=None,
     ):
         if dtype is None:
-            dtype = jnp.float64 if jax.config.jax_enable_x64 else jnp.float32
+            dtype = jnp.float64 if x64_enabled() else jnp.float32  # JAX's float64 switch
         as_ = lambda x: as_array(x, dtype)  # noqa: E731
         self.R0, self.m0, self.I0, self.Rw = as_(R0), as_(m0), as_(I0), as_(Rw)
         self.wheel_r, self.wheel_n, self.wheel_alpha = as_(wheel_r), as_(wheel_n), as_(wheel_alpha)

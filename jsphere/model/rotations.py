@@ -112,7 +112,22 @@ def quat_log(q: Float[Array, "... 4"]) -> Float[Array, "... 3"]:
 
 # ----------------------------------------------------------------------------- NumPy twins
 # float64 NumPy versions for the capture readers and the verdict, which work on whole files
-# outside JAX (the same conventions as the JAX functions above).
+# outside JAX (the same conventions as the JAX functions above). Conversions go through
+# `scipy.spatial.transform.Rotation` (imported when first used); the product and the logarithm
+# stay here, since they must carry the NaN of a capture gap through element by element.
+
+
+def _rotation():
+    from scipy.spatial.transform import Rotation
+
+    return Rotation
+
+
+def _stacked(a: np.ndarray, tail: tuple[int, ...]) -> tuple[np.ndarray, tuple[int, ...]]:
+    """`a` as one stack `(N, *tail)` for `Rotation`, and its leading shape."""
+    a = np.asarray(a, float)
+    lead = a.shape[: a.ndim - len(tail)]
+    return a.reshape((-1, *tail)), lead
 
 
 def quat_mul_np(p: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -132,13 +147,11 @@ def quat_mul_np(p: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 def quat_from_rotvec_np(r: np.ndarray) -> np.ndarray:
     """Unit quaternion of the rotation by `|r|` [rad] about `r/|r|` (`(..., 3)` -> `(..., 4)`;
-    NumPy twin of `quat_exp`)."""
-    r = np.asarray(r, float)
-    a = np.linalg.norm(r, axis=-1, keepdims=True)
-    half = 0.5 * a
-    # sin(a/2)/a -> 1/2 as a -> 0
-    k = np.where(a > 1e-12, np.sin(half) / np.where(a > 1e-12, a, 1.0), 0.5 - a * a / 48.0)
-    return np.concatenate([np.cos(half), k * r], axis=-1)
+    NumPy twin of `quat_exp`: `Rotation.from_rotvec`)."""
+    r, lead = _stacked(r, (3,))
+    if r.shape[0] == 0:
+        return np.zeros((*lead, 4))
+    return _rotation().from_rotvec(r).as_quat(scalar_first=True).reshape((*lead, 4))
 
 
 def quat_log_np(q: np.ndarray) -> np.ndarray:
@@ -154,61 +167,18 @@ def quat_log_np(q: np.ndarray) -> np.ndarray:
 
 def quat_from_rotmat_np(R: np.ndarray) -> np.ndarray:
     """Unit quaternions `(..., 4)` (w >= 0) of rotation matrices `(..., 3, 3)` (NumPy twin of
-    `quat_from_rotmat`, for stacks of matrices)."""
-    R = np.asarray(R, float)
-    tr = R[..., 0, 0] + R[..., 1, 1] + R[..., 2, 2]
-    c = np.stack(
-        [
-            np.stack(
-                [1 + tr, R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1
-            ),
-            np.stack(
-                [
-                    R[..., 2, 1] - R[..., 1, 2],
-                    1 + 2 * R[..., 0, 0] - tr,
-                    R[..., 0, 1] + R[..., 1, 0],
-                    R[..., 0, 2] + R[..., 2, 0],
-                ],
-                -1,
-            ),
-            np.stack(
-                [
-                    R[..., 0, 2] - R[..., 2, 0],
-                    R[..., 0, 1] + R[..., 1, 0],
-                    1 + 2 * R[..., 1, 1] - tr,
-                    R[..., 1, 2] + R[..., 2, 1],
-                ],
-                -1,
-            ),
-            np.stack(
-                [
-                    R[..., 1, 0] - R[..., 0, 1],
-                    R[..., 0, 2] + R[..., 2, 0],
-                    R[..., 1, 2] + R[..., 2, 1],
-                    1 + 2 * R[..., 2, 2] - tr,
-                ],
-                -1,
-            ),
-        ],
-        -2,
-    )
-    k = np.argmax(np.stack([tr, R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]], -1), axis=-1)
-    q = np.take_along_axis(c, k[..., None, None], axis=-2)[..., 0, :]
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    return np.where(q[..., :1] < 0, -q, q)
+    `quat_from_rotmat`, for stacks of matrices: `Rotation.from_matrix`)."""
+    R, lead = _stacked(R, (3, 3))
+    if R.shape[0] == 0:
+        return np.zeros((*lead, 4))
+    q = _rotation().from_matrix(R).as_quat(scalar_first=True).reshape((*lead, 4))
+    return np.where(q[..., :1] < 0, -q, q) + 0.0  # (+ 0.0: no negative zeros in written files)
 
 
 def rotmat_np(q: np.ndarray) -> np.ndarray:
     """Rotation matrices `(..., 3, 3)` of quaternions `(..., 4)` (w, x, y, z), body -> fixed
-    (NumPy twin of `rotmat`)."""
-    q = np.asarray(q, float)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        -2,
-    )
+    (NumPy twin of `rotmat`: `Rotation.from_quat`)."""
+    q, lead = _stacked(q, (4,))
+    if q.shape[0] == 0:
+        return np.zeros((*lead, 3, 3))
+    return _rotation().from_quat(q, scalar_first=True).as_matrix().reshape((*lead, 3, 3))

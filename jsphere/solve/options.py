@@ -12,6 +12,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._runtime.precision import warn_if_float32_by_default
+
 
 def default_solver() -> dfx.AbstractSolver:
     """The default Runge-Kutta method: `diffrax.Dopri8()` (8th order). At the tolerances the
@@ -36,7 +38,11 @@ def tolerances(
     dtype, rtol, atol, defaults=DEFAULT_TOLERANCES, *, where: str = "simulate", stacklevel: int = 3
 ) -> tuple[Any, Any]:
     """`(rtol, atol)` with `None` replaced by the default for `dtype` (`defaults[dtype name]`),
-    and a warning when a float32 solve is asked for an `rtol` its rounding cannot resolve."""
+    and a warning when a float32 solve is asked for an `rtol` its rounding cannot resolve.
+    `simulate`, `simulate_gaits` and `monte_carlo` (and so `fit`, the planner's verification
+    and `reproduce`) pass here: float32 parameters while JAX's float64 is off warn once per
+    process (`jsphere.PrecisionWarning`)."""
+    warn_if_float32_by_default(dtype, where)
     name = "float32" if jnp.dtype(dtype).itemsize <= 4 else "float64"
     rtol = defaults[name][0] if rtol is None else rtol
     atol = defaults[name][1] if atol is None else atol
