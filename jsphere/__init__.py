@@ -93,6 +93,7 @@ _SUBPACKAGES = frozenset(
 
 __all__ = sorted(_WHERE)
 
+
 def __getattr__(name: str):
     module = _WHERE.get(name)
     if module is None and name not in _SUBPACKAGES:

@@ -35,8 +35,8 @@ import numpy as np
 
 from .arrays import under_jit
 from .files import atomic_write
-from .private import callbacks_as_nan
 from .precision import x64_enabled
+from .private import callbacks_as_nan
 
 _DIR: Path | None = None
 _LOADED: dict[str, Callable] = {}

@@ -1,5 +1,8 @@
+"""`python -m jsphere.cli`: the command line."""
+
 import sys
 
 from .app import console
 
-sys.exit(console())
+if __name__ == "__main__":
+    sys.exit(console())
