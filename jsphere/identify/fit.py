@@ -42,6 +42,7 @@ import optax
 
 from .._runtime.errors import InputError, SolverFailure
 from .._runtime.files import remove_stale_temporaries
+from .._runtime.precision import warn_if_float32_by_default
 from .._runtime.progress import Progress
 from ..model.names import parse_name
 from ..model.params import RobotParams
@@ -154,6 +155,7 @@ def fit(
     _check_options(n_starts, max_iter, adam_steps, seed, sigma_pos, sigma_rot)
     _check_shooting(shooting, segment)
     _check_unknowns(data, fp_)
+    warn_if_float32_by_default(params.R0.dtype, "fit")
     solve = _solver_options(options, rtol, atol, max_steps)
     options = _Options(
         n_starts=int(n_starts),

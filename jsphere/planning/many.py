@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._runtime.precision import warn_if_float32_by_default
 from .._runtime.progress import Progress
 from ..model.params import RobotParams
 from ..model.state import State
@@ -195,6 +196,7 @@ def plan_many(
         (("tol_position", tol_position), ("tol_speed", tol_speed), ("tol_heading", tol_heading)),
     )
     options = verification_options("plan_many", options)
+    warn_if_float32_by_default(params.R0.dtype, "plan_many")
     s = settings or PlanSettings()
     b = _Batch(
         params=params,
