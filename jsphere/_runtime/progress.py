@@ -45,6 +45,8 @@ FIRST_CALL_S = {
 }
 #: the record beside the compilation cache
 RECORD = "first_calls.json"
+#: a recorded first call shorter than this [s] was not compiled: it is not used as an estimate
+MIN_RECORDED_S = 1.0
 #: the programs compiled in this process (`(kind, key)`)
 _COMPILED: set[tuple[str, str]] = set()
 _LOCK = threading.Lock()
@@ -234,7 +236,8 @@ def expected_compile_s(kind: str, full_key: str) -> float | None:
     if full_key in entry.get("keys", ()):
         return None
     last = entry.get("last_s")
-    return float(last) if isinstance(last, (int, float)) and last > 0 else FIRST_CALL_S.get(kind, 30.0)
+    fresh = isinstance(last, (int, float)) and last >= MIN_RECORDED_S
+    return float(last) if fresh else FIRST_CALL_S.get(kind, 30.0)
 
 
 def _record(kind: str, full_key: str, seconds: float, keep: int = 64) -> None:
@@ -247,7 +250,10 @@ def _record(kind: str, full_key: str, seconds: float, keep: int = 64) -> None:
     data = _read_record(folder)
     entry = data.get(kind) if isinstance(data.get(kind), dict) else {}
     keys = [k for k in entry.get("keys", []) if k != full_key][-(keep - 1) :] + [full_key]
-    data[kind] = {"keys": keys, "last_s": round(seconds, 1)}
+    # a first call quicker than MIN_RECORDED_S was served by JAX's cache (the same programs under
+    # another key), not compiled: it keeps the estimate it had
+    last = round(seconds, 1) if seconds >= MIN_RECORDED_S else entry.get("last_s")
+    data[kind] = {"keys": keys, "last_s": last}
     try:
         atomic_write_text(folder / RECORD, json.dumps(data, indent=1))
     except OSError:  # a read-only cache: the estimate stays the table's
