@@ -45,4 +45,4 @@ print(
     f"{1e3 * st['sd_xy_m'][0]:.1f}) mm; planned (-3.6, 259.2) mm"
 )
 print("paper: simulation (-0.07, 344.6) mm; experiment (-1.4 +- 28.9, 369.2 +- 37.7) mm (95 %, 5 runs)")
-montecarlo_figure(res, f"{args.out}/stop_points.png", planned=(float(plan.x[-1]), float(plan.y[-1])))
+montecarlo_figure(res, f"{args.out}/stop_points.png", planned=(float(plan.x[-1]), float(plan.y[-1])), frame="paper")
