@@ -4,6 +4,7 @@ first simulation or gradient, against plain diffrax on a problem of similar cost
     python benchmarks/first_result.py                 # cold and cached, 1 process each
     python benchmarks/first_result.py --repeat 3      # median over 3 processes per entry
     python benchmarks/first_result.py --quick         # gaits, grad and their baselines only
+    python benchmarks/first_result.py --xla-defaults  # also jsphere's tasks with XLA's default options
 
 Every entry is a new Python process (`python first_result.py --child TASK`) that times its
 steps with `time.perf_counter()` and prints them as JSON; the parent also times the whole
@@ -65,6 +66,8 @@ JSPHERE_TASKS = ("gaits", "simulate", "grad", "jacfwd")
 DFX_TASKS = ("dfx_solve", "dfx_grad", "dfx_jacfwd")
 RATIOS = {"gaits": "dfx_solve", "simulate": "dfx_solve", "grad": "dfx_grad", "jacfwd": "dfx_jacfwd"}
 QUICK_TASKS = ("gaits", "grad", "dfx_solve", "dfx_grad")
+#: the environment of the comparison runs with XLA's default options (`--xla-defaults`)
+XLA_DEFAULTS_ENV = {"JSPHERE_XLA_DEFAULTS": "1"}
 #: targets: first simulate_gaits and first gradient at most this many times the baseline's
 TARGET_RATIO = 2.5
 #: target: a second process's first gradient with the cache on, and the quickstart cold [s]
@@ -273,13 +276,13 @@ def _env() -> dict:
     return env
 
 
-def run_child(task: str, cache_dir: str | None = None) -> dict:
+def run_child(task: str, cache_dir: str | None = None, extra_env: dict | None = None) -> dict:
     cmd = [sys.executable, str(Path(__file__).resolve()), "--child", task] + (
         ["--cache-dir", cache_dir] if cache_dir else []
     )
     load = os.getloadavg()[0]
     t = time.perf_counter()
-    r = subprocess.run(cmd, env=_env(), capture_output=True, text=True, cwd=ROOT)
+    r = subprocess.run(cmd, env={**_env(), **(extra_env or {})}, capture_output=True, text=True, cwd=ROOT)
     wall = time.perf_counter() - t
     if r.returncode != 0:
         raise RuntimeError(f"{task} failed ({r.returncode}):\n{r.stderr[-3000:]}")
@@ -370,6 +373,11 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=1, help="processes per entry (the median is reported)")
     ap.add_argument("--quick", action="store_true", help=f"only {', '.join(QUICK_TASKS)}; no quickstart")
     ap.add_argument("--no-cache", action="store_true", help="skip the cached part")
+    ap.add_argument(
+        "--xla-defaults",
+        action="store_true",
+        help="also run the jsphere tasks cold with XLA's default options (JSPHERE_XLA_DEFAULTS=1), alternating",
+    )
     ap.add_argument("--out", type=Path, default=HERE / "results-first-result.json")
     ap.add_argument("--child", help=argparse.SUPPRESS)
     ap.add_argument("--cache-dir", help=argparse.SUPPRESS)
@@ -381,6 +389,7 @@ def main(argv=None) -> int:
     meta = metadata()
     tasks = QUICK_TASKS if args.quick else JSPHERE_TASKS + DFX_TASKS
     cold, cached = {}, {}
+    defaults = {}
     for task in tasks:
         cold[task] = _median([run_child(task) for _ in range(args.repeat)])
         r = cold[task]
@@ -390,6 +399,14 @@ def main(argv=None) -> int:
             file=sys.stderr,
             flush=True,
         )
+        if args.xla_defaults and not task.startswith("dfx_"):
+            defaults[task] = _median([run_child(task, extra_env=XLA_DEFAULTS_ENV) for _ in range(args.repeat)])
+            r = defaults[task]
+            print(
+                f"  cold   {task:<11} with XLA's defaults: first {r['first_s']:5.1f} s, second {r['second_s']:6.3f} s",
+                file=sys.stderr,
+                flush=True,
+            )
     quickstart = None
     if not args.quick:
         quickstart = _median([run_quickstart() for _ in range(args.repeat)])
@@ -409,6 +426,9 @@ def main(argv=None) -> int:
         "cold": _ratios(cold),
         "cold_cpu": _ratios(cold, "first_cpu_s"),
         "cached": _ratios(cached) if cached else {},
+        "options_over_xla_defaults": {
+            t: {k: cold[t][k] / defaults[t][k] for k in ("first_s", "first_cpu_s", "second_s")} for t in defaults
+        },
     }
     doc = {
         **meta,
@@ -419,6 +439,7 @@ def main(argv=None) -> int:
             "baseline": "13-state field, 6x6 jnp.linalg.solve, Dopri8, PIDController(1e-10, 1e-12), t in [0, 4]",
         },
         "cold": cold,
+        "cold_xla_defaults": defaults,
         "cached_second_process": cached,
         "quickstart_cold": quickstart,
         "ratios": ratios,
@@ -449,6 +470,11 @@ def main(argv=None) -> int:
         + ", ".join(f"{k} {v:.2f}" for k, v in ratios["cold_cpu"].items())
         + ")"
     )
+    for t, r in ratios["options_over_xla_defaults"].items():
+        print(
+            f"{t}: jsphere's compiler options over XLA's defaults: first {r['first_s']:.2f}x "
+            f"(cpu {r['first_cpu_s']:.2f}x), second call {r['second_s']:.2f}x"
+        )
     print(
         f"targets: first gaits / grad at most {TARGET_RATIO}x the baseline; cached first grad <= {TARGET_CACHED_GRAD_S} s; "
         f"quickstart cold < {TARGET_QUICKSTART_S} s"

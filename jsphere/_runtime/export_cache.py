@@ -37,6 +37,7 @@ from .arrays import under_jit
 from .files import atomic_write
 from .precision import x64_enabled
 from .private import callbacks_as_nan
+from .quick_compile import jit_concrete
 
 _DIR: Path | None = None
 _LOADED: dict[str, Callable] = {}
@@ -152,6 +153,6 @@ def _load_or_export(key, fn, treedef, static, leaves) -> Callable:
         with callbacks_as_nan():  # JAX cannot serialise host callbacks
             exported = jax.export.export(jax.jit(flat))(*avals)
         atomic_write(path, lambda tmp: Path(tmp).write_bytes(bytes(exported.serialize())), suffix=".tmp")
-    run = jax.jit(exported.call)
+    run = jit_concrete(exported.call)
     _LOADED[key] = run
     return run

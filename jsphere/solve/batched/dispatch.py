@@ -16,7 +16,9 @@ zero: unbatched and in small batches the flat layout with diffrax's own VJP, in 
 program; batches in the batch loop through its discrete adjoint (`_loop_vjp`,
 `jsphere.solve.batched.adjoint`); other large batches the flat VJP per trial, in chunks of
 `GRAD_CHUNK` trials. An eager `jax.grad` (no `jit` or `vmap` around) thus compiles two
-programs, the solve and its VJP, both kept by the exported-program cache when it is on.
+programs, the solve and its VJP, both kept by the exported-program cache when it is on; with
+at most `FORWARD_MAX_INPUTS` perturbed input scalars (a gradient with respect to a gait's
+amplitude, say) it compiles one, the solve with its Jacobian in forward mode (`_flat_jacfwd`).
 `diffrax.ForwardMode` uses the `custom_vmap` directly (its `jvp` is supported).
 
 Only traced calls come here (`jsphere.solve.simulate`): a call with concrete inputs cannot be
@@ -38,10 +40,15 @@ from jax.custom_derivatives import SymbolicZero
 
 from ..._runtime import export_cache as _aot
 from ..._runtime.arrays import under_jit
+from ..._runtime.quick_compile import eager_jit
 from ...model.params import Derived, derive
 from . import layout as _layout
 from .layout import Layout
 from .method import tableau
+
+#: An eager `jax.grad` with at most this many perturbed input scalars computes the Jacobian
+#: with respect to them in forward mode (`_reverse_fwd`; `docs/performance.md`).
+FORWARD_MAX_INPUTS = 8
 
 
 def has_tracer(tree) -> bool:
@@ -117,13 +124,17 @@ def solve(fn, rebuild, args, flat, steps: Layout):
     derived = None
     if not has_tracer(args[0]):  # concrete parameters: (2.4), (3.4)'s constants as constants (folded by XLA)
         with jax.ensure_compile_time_eval():
-            derived = derive(args[0])
+            derived = _derive(args[0])
     forward_mode = isinstance(adjoint, dfx.ForwardMode)
     loop = tableau(flat[0]) is not None and not forward_mode
     engine = BatchedSolve(fn, rebuild, treedef, static, flat, derived, steps, loop)
     if forward_mode:
         return _dispatched(engine)(leaves)
     return _reverse(engine, leaves)
+
+
+#: `derive` as one compiled program (for concrete parameters: not one small program per operation)
+_derive = eqx.filter_jit(derive)
 
 
 def _dispatched(engine: BatchedSolve):
@@ -186,8 +197,21 @@ def _reverse(engine: BatchedSolve, leaves):
 
 def _reverse_fwd(engine: BatchedSolve, leaves):
     """The primal with the layout chosen by batching; the residuals are the inputs only (the
-    backward pass recomputes what it needs, `_reverse_bwd`)."""
+    backward pass recomputes what it needs, `_reverse_bwd`). An eager call with at most
+    `FORWARD_MAX_INPUTS` perturbed input scalars computes its Jacobian with respect to them
+    in forward mode instead, in the same program as the primal (`_flat_jacfwd`): the
+    residual is that Jacobian, and the backward pass a product with it."""
     values = [x.value for x in leaves]
+    perturbed = tuple(
+        bool(x.perturbed) and jnp.issubdtype(jnp.result_type(v), jnp.inexact) for x, v in zip(leaves, values)
+    )
+    n = sum(int(np.size(v)) for v, p in zip(values, perturbed) if p)
+    if 0 < n <= FORWARD_MAX_INPUTS and not has_tracer(values) and not under_jit():
+        program = _exportable(_flat_jacfwd, engine)
+        out, jac = _aot.call(
+            f"jacfwd:{engine.name}", program, _with_jacobian(engine.rebuild), engine.unnamed(), perturbed, values
+        )
+        return out, (values, perturbed, jac)
     return _primal(engine, values), values
 
 
@@ -210,6 +234,8 @@ def _reverse_bwd(engine: BatchedSolve, leaves, ct):
     steps have a discrete adjoint, in chunks of `BATCH_CHUNK` trials (`_loop_vjp`). In other
     large batches: the flat layout's VJP per trial, in chunks of `GRAD_CHUNK` trials."""
     flat_ct = jax.tree_util.tree_leaves(ct, is_leaf=lambda c: isinstance(c, SymbolicZero))
+    if isinstance(leaves, tuple):  # the forward pass kept the Jacobian (`_flat_jacfwd`)
+        return (_jacobian_transpose(*leaves, flat_ct),)
     keep = tuple(not isinstance(c, SymbolicZero) and jnp.result_type(c) != jax.dtypes.float0 for c in flat_ct)
     cts = [c for k, c in zip(keep, flat_ct) if k]
     if not any(keep):
@@ -268,16 +294,95 @@ def _selected_vjp(engine: BatchedSolve, keep, leaves, cts):
     return pull(cts)[0]
 
 
-@eqx.filter_jit
+@eager_jit
 def _flat_primal(engine: BatchedSolve, leaves):
     """One trial's solve in the flat layout, as one compiled program."""
     return engine(leaves, Layout.FLAT)
 
 
-@eqx.filter_jit
+@eager_jit
 def _flat_vjp(engine: BatchedSolve, keep, leaves, cts):
     """`_selected_vjp` as one compiled program (forward and backward pass together)."""
     return _selected_vjp(engine, keep, leaves, cts)
+
+
+def _inexact(x) -> bool:
+    return jnp.issubdtype(jnp.result_type(x), jnp.inexact)
+
+
+@eager_jit
+def _flat_jacfwd(engine: BatchedSolve, perturbed, leaves):
+    """One trial's solve in the flat layout and the Jacobian of its floating-point outputs
+    with respect to the perturbed leaves, by forward mode (`diffrax.ForwardMode`: the same
+    discretised solve as the checkpointed adjoint differentiates, so the same derivative to
+    rounding), one tangent per input scalar under `vmap`. Returns the solve's output and the
+    Jacobian as an `(n_inputs, n_outputs)` array, outputs in the order of their leaves."""
+    forward = dataclasses.replace(engine, flat=engine.flat[:-1] + (dfx.ForwardMode(),))
+    idx = [i for i, p in enumerate(perturbed) if p]
+    xs = [leaves[i] for i in idx]
+    sizes = [int(np.size(x)) for x in xs]
+    splits = np.cumsum(sizes)[:-1].tolist()
+
+    def solve(ys):
+        lv = list(leaves)
+        for i, y in zip(idx, ys):
+            lv[i] = y
+        return forward(lv, Layout.FLAT)
+
+    def column(e):
+        tangents = [t.reshape(jnp.shape(x)).astype(jnp.result_type(x)) for t, x in zip(jnp.split(e, splits), xs)]
+        return jax.jvp(solve, (xs,), (tangents,))
+
+    dtype = jnp.result_type(*xs)
+    out, tangents = jax.vmap(column, out_axes=(None, 0))(jnp.eye(sum(sizes), dtype=dtype))
+    columns = [
+        t.reshape(t.shape[0], -1)
+        for o, t in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(tangents))
+        if _inexact(o)
+    ]
+    return out, jnp.concatenate(columns, axis=1)
+
+
+def _with_jacobian(rebuild):
+    """`rebuild` for `_flat_jacfwd`'s leaves: the solve's output, then the Jacobian."""
+    return lambda leaves: (rebuild(leaves[:-1]), leaves[-1])
+
+
+def _jacobian_transpose(values, perturbed, jac, flat_ct):
+    """The cotangents of the leaves `values` from the Jacobian of `_flat_jacfwd` and the
+    cotangents `flat_ct` of the solve's output leaves, in one compiled program."""
+    cts, offsets, offset = [], [], 0
+    for c in flat_ct:
+        zero = isinstance(c, SymbolicZero)
+        size = int(np.prod(c.shape)) if zero else int(np.size(c))
+        inexact = jnp.issubdtype(c.dtype if zero else jnp.result_type(c), jnp.inexact)
+        if inexact and not zero:
+            cts.append(c)
+            offsets.append((offset, size))
+        offset += size if inexact else 0
+    shapes = tuple((np.shape(x), jnp.result_type(x)) for x in values)
+    inexact = tuple(jnp.issubdtype(dt, jnp.inexact) for _, dt in shapes)
+    out = _contract(jac, cts, tuple(offsets), tuple(perturbed), shapes)
+    return [o if i else np.zeros(s, jax.dtypes.float0) for o, i, (s, _) in zip(out, inexact, shapes)]
+
+
+@eqx.filter_jit
+def _contract(jac, cts, offsets, perturbed, shapes):
+    total = sum(
+        (jac[:, a : a + n] @ jnp.ravel(c).astype(jac.dtype) for c, (a, n) in zip(cts, offsets)),
+        start=jnp.zeros(jac.shape[:1], jac.dtype),
+    )
+    out, start = [], 0
+    for p, (shape, dt) in zip(perturbed, shapes):
+        if not jnp.issubdtype(dt, jnp.inexact):
+            out.append(None)
+        elif p:
+            size = int(np.prod(shape))
+            out.append(total[start : start + size].reshape(shape).astype(dt))
+            start += size
+        else:
+            out.append(jnp.zeros(shape, dt))
+    return out
 
 
 def _loop_vjp(engine: BatchedSolve, keep, axis_size, lv_batched, ct_batched, lv, cts):

@@ -1,0 +1,88 @@
+"""XLA options for the programs of single, eager calls: compiled for a short first call.
+
+A script's first `simulate_gaits`, `simulate` or `jax.grad` through them spends most of its
+time in XLA's compiler, not in the solve (`docs/performance.md`, "Time to first result"). On
+the CPU, XLA's older (non-MLIR) fusion emitters and LLVM's optimisation level 1 compile these
+programs about twice as fast, and the compiled solve runs as fast within the noise of a
+shared machine. `eager_jit` compiles a function with these options when it is called with
+concrete arrays and no transformation around it (the programs jsphere compiles itself); under
+`jax.jit`, `vmap` or `grad` the call is traced into the caller's program as usual (JAX takes
+compiler options from the outermost `jit` only), and on other backends, or with an XLA that
+does not know the options, nothing changes.
+
+`JSPHERE_XLA_DEFAULTS=1` in the environment keeps XLA's own defaults for every program, and an
+option named in `XLA_FLAGS` keeps the value given there.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from typing import Callable
+
+import equinox as eqx
+import jax
+import numpy as np
+
+from .arrays import under_jit
+
+#: XLA options of the programs of eager calls on the CPU
+CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 1}
+#: the environment variable that keeps XLA's defaults
+DEFAULTS_VARIABLE = "JSPHERE_XLA_DEFAULTS"
+
+_SUPPORTED: bool | None = None
+
+
+def _probe(x):
+    return x + 1
+
+
+def options() -> dict | None:
+    """The compiler options for an eager call's program here, or `None` for XLA's defaults:
+    `CPU_OPTIONS` on the CPU backend where this XLA accepts them (checked once per process
+    by compiling a one-operation program)."""
+    global _SUPPORTED
+    if os.environ.get(DEFAULTS_VARIABLE, "") not in ("", "0"):
+        return None
+    if _SUPPORTED is None:
+        try:
+            _SUPPORTED = jax.default_backend() == "cpu"
+            if _SUPPORTED:
+                jax.jit(_probe, compiler_options=CPU_OPTIONS).lower(np.float32(0.0)).compile()
+        except Exception:  # noqa: BLE001 - an XLA without these options: its defaults
+            _SUPPORTED = False
+    if not _SUPPORTED:
+        return None
+    flags = os.environ.get("XLA_FLAGS", "")  # an option set there (e.g. by `jsphere reproduce`) stays as set
+    chosen = {k: v for k, v in CPU_OPTIONS.items() if k not in flags}
+    return chosen or None
+
+
+def _traced(tree) -> bool:
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree)) or under_jit()
+
+
+def eager_jit(fn: Callable) -> Callable:
+    """`equinox.filter_jit(fn)`, compiled with `options()` when called eagerly with concrete
+    arrays; traced calls use the plain `filter_jit` (one compiled function per shape each)."""
+    plain = eqx.filter_jit(fn)
+    quick: list = []
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        if _traced((args, kwargs)):
+            return plain(*args, **kwargs)
+        if not quick:
+            opts = options()
+            quick.append(eqx.filter_jit(fn, compiler_options=opts) if opts else plain)
+        return quick[0](*args, **kwargs)
+
+    return call
+
+
+def jit_concrete(fn: Callable) -> Callable:
+    """`jax.jit(fn)` with `options()`, for a function only ever called with concrete arrays
+    (an exported program's `call`)."""
+    opts = options()
+    return jax.jit(fn, compiler_options=opts) if opts else jax.jit(fn)
