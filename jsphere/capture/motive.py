@@ -83,7 +83,7 @@ def read_motive_csv(
     _check_times(t, lines, source)
     K = len(mnames)
     C = UP_TO_Z[up_axis]
-    raw = data[:, 2 : 2 + 3 * K].reshape(-1, K, 3)
+    raw = data[:, 2 : 2 + 3 * K].reshape(len(t), K, 3)
     scale = (
         _scale(units, file_units, detect_marker_units(raw), source) if K >= 2 else _scale_rb(units, file_units, source)
     )
