@@ -432,6 +432,9 @@ def test_fit_from_a_centimetre_motive3_take(tmp_path):
     res = jsphere.fit(trials, jsphere.RobotParams.paper(), "R_m,j", fix={"m": 2.5}, n_starts=1, max_iter=30)
     assert res.converged
     for name in ("R_m", "j"):
+        print(
+            f"{name}: {res.values[name]:.6g} +- {res.stderr[name]:.3g} (truth {float(jsphere.get_value(truth_params, name)):.6g})"
+        )
         want = float(jsphere.get_value(truth_params, name))
         se = res.stderr[name]
         assert 0 < se < 0.2 * abs(want)

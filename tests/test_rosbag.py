@@ -249,6 +249,11 @@ def test_bag_errors(tmp_path, run, capsys):
     assert "--inputs-topic TOPIC" in capsys.readouterr().err
     assert main([*base[:4], "--inputs-topic", "/joint_states", "--out", str(tmp_path / "t.csv")]) == 2
     assert "--format rosbag needs --pose-topic" in capsys.readouterr().err
+    take, _ = csv_files(tmp_path, run)
+    assert (
+        main(["convert", str(take), "--format", "motive", "--inputs", str(four), "--out", str(tmp_path / "t.csv")]) == 2
+    )
+    assert "a ROS bag; name its JointState topic with --inputs-topic TOPIC" in capsys.readouterr().err
     (tmp_path / "junk.bag").write_bytes(b"not a bag at all")
     with pytest.raises(jsphere.InputError, match="not a readable ROS bag"):
         jsphere.read_rosbag_poses(tmp_path / "junk.bag", "/pose")

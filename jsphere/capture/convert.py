@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 
@@ -116,3 +117,9 @@ def _check_bag_options(format, inputs, units, up_axis, pose_topic, inputs_topic,
         raise InputError("--inputs is needed: the inputs table, or a ROS bag with --inputs-topic TOPIC.")
     if joints is not None and inputs_topic is None:
         raise InputError("--joints names the wheels of a JointState topic; give --inputs-topic TOPIC too.")
+    if inputs is not None and inputs_topic is None and not isinstance(inputs, tuple):
+        where = Path(inputs)
+        if where.suffix in (".bag", ".db3", ".mcap") or (where / "metadata.yaml").exists():
+            raise InputError(
+                f"{where}: a ROS bag; name its JointState topic with --inputs-topic TOPIC (inputs_topic=)."
+            )
