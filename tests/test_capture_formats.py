@@ -295,14 +295,14 @@ def test_qualisys_3d(tmp_path, truth, columns, time, gaps):
     _check(jsphere.convert_raw(raw, _inputs(tmp_path, tr), format="qualisys", body_markers=BODY), tr)
 
 
-@pytest.mark.parametrize("rot_order", ["F", "C"])
-def test_qualisys_6dof(tmp_path, truth, rot_order):
+@pytest.mark.parametrize(("rot_order", "gaps"), [("F", "NaN"), ("C", "0.000000")])
+def test_qualisys_6dof(tmp_path, truth, rot_order, gaps):
     tr, _ = truth
     q, p = _pose(tr)
     q, p = q.copy(), p.copy()
     q[40:43], p[40:43] = np.nan, np.nan  # the body not seen
     other = (np.tile([1.0, 0, 0, 0], (tr.n_frames, 1)), np.zeros((tr.n_frames, 3)))
-    raw = write_qtm_6d(tmp_path / "take_6d.tsv", tr.t, {"robot": (q, p), "wand": other}, rot_order=rot_order)
+    raw = write_qtm_6d(tmp_path / "take_6d.tsv", tr.t, {"robot": (q, p), "wand": other}, rot_order=rot_order, gaps=gaps)
     with pytest.raises(
         jsphere.InputError, match=r"several 6DOF bodies \['robot', 'wand'\]; choose one with --rigid-body"
     ):
