@@ -28,7 +28,7 @@ INPUT_FIELDS = {"chi_dot": ("velocity", "wheel_speeds"), "K": ("effort", "torque
 def _reader(path):
     """An unopened `rosbags.highlevel.AnyReader` of the bag at `path`."""
     try:
-        from rosbags.highlevel import AnyReader
+        from rosbags.highlevel import AnyReader, AnyReaderError
     except ImportError:
         raise ImportError(
             "reading ROS bags needs rosbags: pip install jsphere[ros] (or pip install rosbags)."
@@ -38,17 +38,21 @@ def _reader(path):
         raise FileNotFoundError(f"ROS bag {path} does not exist.")
     if path.is_file() and path.suffix in (".db3", ".mcap") and (path.parent / "metadata.yaml").exists():
         path = path.parent  # a ROS 2 bag is its folder
-    return AnyReader([path])
+    try:
+        return AnyReader([path])
+    except AnyReaderError as e:
+        raise InputError(f"{path}: not a readable ROS bag (rosbags: {e}).") from None
 
 
 def _messages(path, topic: str, types: tuple[str, ...], what: str) -> tuple[list, np.ndarray, str]:
     """The messages of `topic` (deserialised), the bag's receive times [s] and the message type.
     A topic that is not in the bag, or of another type, is an `InputError` naming what there is."""
+    source = str(path)
+    reader = _reader(path)  # (rosbags is imported there, with advice where it is missing)
     from rosbags.highlevel import AnyReaderError
 
-    source = str(path)
     try:
-        with _reader(path) as reader:
+        with reader:
             topics = {name: info.msgtype for name, info in reader.topics.items()}
             if topic not in topics:
                 listing = ", ".join(f"{n} ({t})" for n, t in sorted(topics.items())) or "none"
