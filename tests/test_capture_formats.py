@@ -222,8 +222,8 @@ def test_cli_converts_a_centimetre_motive3_take(tmp_path, truth):
 # --------------------------------------------------------------------------- Qualisys QTM
 
 
-def _qtm_header(M, kind, names, *, version=True):
-    key = "MARKER_NAMES" if kind == "3D" else "BODY_NAMES"
+def _qtm_header(M, kind, names, *, version=False):
+    """The header of a QTM TSV export as QTM writes it (no FILE_VERSION line unless asked for)."""
     lines = ["FILE_VERSION\t2.0.0"] if version else []
     lines += [
         f"NO_OF_FRAMES\t{M}",
@@ -233,52 +233,65 @@ def _qtm_header(M, kind, names, *, version=True):
         "NO_OF_ANALOG\t0",
         "ANALOG_FREQUENCY\t0",
         "DESCRIPTION\t--",
-        "TIME_STAMP\t2025-03-14, 10:12:31.512\t12345.678",
+        "TIME_STAMP\t2025-03-14, 10:12:31.512\t12345.67800000",
         f"DATA_INCLUDED\t{kind}",
-        "EVENT\tstart\t1\t0.000",
-        key + "\t" + "\t".join(names),
     ]
     if kind == "3D":
+        lines += ["EVENT\tstart\t1\t0.000", "MARKER_NAMES\t" + "\t".join(names)]
         lines.append("TRAJECTORY_TYPES\t" + "\t".join(["Measured"] * len(names)))
+    else:
+        lines.append("BODY_NAMES\t" + "\t".join(names))
     return lines
 
 
+def _write_tsv(path, lines):
+    path.write_bytes(("\r\n".join(lines) + "\r\n").encode())  # QTM writes CRLF line ends
+    return path
+
+
 def write_qtm_3d(path, t, markers, names, *, columns=True, time=True, gaps="zeros"):
-    """A QTM 3D TSV export (QTM manual, Motion data (.tsv)): the header, the column row `Frame
-    Time <m> X ...`, millimetres in QTM's Z-up frame; a marker not seen is zeros (or blanks)."""
+    """A QTM 3D TSV export as QTM writes it (QTM manual, Motion data (.tsv)): the header, the
+    column row `Frame Time <m> X ...` ending in a tab, rows without one, millimetres in QTM's
+    Z-up frame; a marker not seen is zeros (or blanks)."""
     raw = markers * 1000.0
     lines = _qtm_header(len(t), "3D", names)
     if columns:
-        lines.append("\t".join(["Frame", "Time"][: 2 * time] + [f"{n} {a}" for n in names for a in "XYZ"]))
+        lines.append("\t".join(["Frame", "Time"][: 2 * time] + [f"{n} {a}" for n in names for a in "XYZ"]) + "\t")
     for i in range(len(t)):
         v = raw[i].reshape(-1)
         cells = [format(x, ".3f") if np.isfinite(x) else ("0.000" if gaps == "zeros" else "") for x in v]
         lines.append("\t".join([str(i + 1), f"{t[i]:.5f}"][: 2 * time] + cells))
-    path.write_text("\n".join(lines) + "\n")
-    return path
+    return _write_tsv(path, lines)
 
 
-def write_qtm_6d(path, t, bodies, *, rot_order="F", gaps="NaN"):
-    """A QTM 6DOF TSV export (QTM manual, 6DOF data (_6d.tsv)): `BODY_NAMES`, then per body the
-    columns X Y Z [mm], Roll Pitch Yaw [deg] (QTM standard: R = Rx Ry Rz), Residual, Rot[0..8]
-    (the rotation matrix column by column; `rot_order="C"` writes it row by row)."""
+_QTM_6D_FIELDS = ["X", "Y", "Z", "Roll", "Pitch", "Yaw", "Residual"] + [f"Rot[{i}]" for i in range(9)]
+
+
+def write_qtm_6d(path, t, bodies, *, names="first", gaps="NaN"):
+    """A QTM 6DOF TSV export as QTM writes it (QTM manual, 6DOF data (_6d.tsv)): `BODY_NAMES`,
+    then per body the columns `<body> X`, `Y`, `Z` [mm], `Roll`, `Pitch`, `Yaw` [deg] (QTM
+    standard: R = Rx Ry Rz), `Residual`, `Rot[0]`..`Rot[8]` (the rotation matrix column by
+    column), every row ending in a tab. `names="all"` names the body on every column,
+    `"none"` on none."""
     from scipy.spatial.transform import Rotation
 
     lines = _qtm_header(len(t), "6D", list(bodies))
-    fields = ["X", "Y", "Z", "Roll", "Pitch", "Yaw", "Residual"] + [f"Rot[{i}]" for i in range(9)]
-    lines.append("\t".join(["Frame", "Time"] + fields * len(bodies)))
+    head = ["Frame", "Time"]
+    for b in bodies:
+        pre = {"first": [f"{b} "] + [""] * 15, "all": [f"{b} "] * 16, "none": [""] * 16}[names]
+        head += [p + f for p, f in zip(pre, _QTM_6D_FIELDS)]
+    lines.append("\t".join(head) + "\t")
     for i in range(len(t)):
         cells = []
         for q, p in bodies.values():
             if not np.all(np.isfinite(q[i])):
-                cells += [gaps] * len(fields)
+                cells += [gaps] * len(_QTM_6D_FIELDS)
                 continue
             R = rotmat_np(q[i])
             ang = Rotation.from_matrix(R).as_euler("XYZ", degrees=True)
-            cells += _cells(np.concatenate([p[i] * 1000.0, ang, [0.4], R.reshape(-1, order=rot_order)]), ".6f")
-        lines.append("\t".join([str(i + 1), f"{t[i]:.5f}", *cells]))
-    path.write_text("\n".join(lines) + "\n")
-    return path
+            cells += _cells(np.concatenate([p[i] * 1000.0, ang, [0.4], R.reshape(-1, order="F")]), ".5f")
+        lines.append("\t".join([str(i + 1), f"{t[i]:.5f}", *cells]) + "\t")
+    return _write_tsv(path, lines)
 
 
 @pytest.mark.parametrize(
@@ -295,14 +308,14 @@ def test_qualisys_3d(tmp_path, truth, columns, time, gaps):
     _check(jsphere.convert_raw(raw, _inputs(tmp_path, tr), format="qualisys", body_markers=BODY), tr)
 
 
-@pytest.mark.parametrize(("rot_order", "gaps"), [("F", "NaN"), ("C", "0.000000")])
-def test_qualisys_6dof(tmp_path, truth, rot_order, gaps):
+@pytest.mark.parametrize(("names", "gaps"), [("first", "NaN"), ("all", "0.00000"), ("none", "")])
+def test_qualisys_6dof(tmp_path, truth, names, gaps):
     tr, _ = truth
     q, p = _pose(tr)
     q, p = q.copy(), p.copy()
     q[40:43], p[40:43] = np.nan, np.nan  # the body not seen
     other = (np.tile([1.0, 0, 0, 0], (tr.n_frames, 1)), np.zeros((tr.n_frames, 3)))
-    raw = write_qtm_6d(tmp_path / "take_6d.tsv", tr.t, {"robot": (q, p), "wand": other}, rot_order=rot_order, gaps=gaps)
+    raw = write_qtm_6d(tmp_path / "take_6d.tsv", tr.t, {"robot": (q, p), "wand": other}, names=names, gaps=gaps)
     with pytest.raises(
         jsphere.InputError, match=r"several 6DOF bodies \['robot', 'wand'\]; choose one with --rigid-body"
     ):
@@ -315,7 +328,7 @@ def test_qualisys_6dof(tmp_path, truth, rot_order, gaps):
     trial = jsphere.convert_raw(raw, _inputs(tmp_path, tr), format="qualisys", rigid_body="robot")
     v = trial.valid
     np.testing.assert_allclose(trial.x[v], tr.x[v], atol=2e-6)
-    assert _angle_deg(trial.q[v], tr.q[v]).max() < 1e-4
+    assert _angle_deg(trial.q[v], tr.q[v]).max() < 2e-3  # Rot[] written to 5 decimals, as QTM does
 
 
 def test_qualisys_6dof_euler_only_and_cli(tmp_path, truth):
@@ -337,6 +350,48 @@ def test_qualisys_6dof_euler_only_and_cli(tmp_path, truth):
         == 0
     )
     assert _angle_deg(jsphere.read_trial(out).q, tr.q).max() < 1e-3
+
+
+def _rx_ry_rz(roll, pitch, yaw):
+    """QTM's standard rotation (roll about X, pitch about the new Y, yaw about the new Z) [deg]."""
+    a, b, c = np.radians([roll, pitch, yaw])
+    Rx = np.array([[1, 0, 0], [0, np.cos(a), -np.sin(a)], [0, np.sin(a), np.cos(a)]])
+    Ry = np.array([[np.cos(b), 0, np.sin(b)], [0, 1, 0], [-np.sin(b), 0, np.cos(b)]])
+    Rz = np.array([[np.cos(c), -np.sin(c), 0], [np.sin(c), np.cos(c), 0], [0, 0, 1]])
+    return Rx @ Ry @ Rz
+
+
+def test_qualisys_6dof_conventions(tmp_path):
+    """One body in QTM's layout (the name in the X column only, rows ending in a tab, CRLF):
+    Rot[0..8] is R column by column and the angles are R = Rx(roll) Ry(pitch) Rz(yaw); a yaw
+    of 90 deg turns the body's x axis onto global +Y."""
+    angles = [(0.0, 0.0, 0.0), (0.0, 0.0, 90.0), (30.0, 20.0, 10.0), (-120.0, 45.0, 160.0)]
+    Rs = [_rx_ry_rz(*a) for a in angles]
+    rows = []
+    for i, (a, R) in enumerate(zip(angles, Rs)):
+        cells = [100.0 * i, -50.0, 20.0, *a, 0.5, *R.T.reshape(-1)]  # R.T row by row: R column by column
+        rows.append("\t".join([str(i + 1), f"{0.01 * i:.5f}", *(f"{x:.5f}" for x in cells)]) + "\t")
+    head = "\t".join(["Frame", "Time", "box X", *_QTM_6D_FIELDS[1:]]) + "\t"
+    raw = _write_tsv(tmp_path / "box_6d.tsv", [*_qtm_header(4, "6D", ["box"]), head, *rows])
+    for path in (raw, tmp_path / "angles_6d.tsv"):
+        if path != raw:  # the same file without its Rot[] columns
+            lines = [r.split("\t") for r in raw.read_text().splitlines()]
+            path.write_text("\n".join("\t".join(c[:9] if len(c) > 9 else c) for c in lines) + "\n")
+        data = jsphere.read_qualisys_tsv(path)
+        np.testing.assert_allclose(data.t, [0.0, 0.01, 0.02, 0.03])
+        np.testing.assert_allclose(data.rb_p, [[0.1 * i, -0.05, 0.02] for i in range(4)], atol=1e-9)
+        R_read = np.stack([rotmat_np(q) for q in data.rb_q])
+        np.testing.assert_allclose(R_read, np.stack(Rs), atol=2e-5)
+        np.testing.assert_allclose(R_read[1] @ [1.0, 0, 0], [0, 1.0, 0], atol=2e-5)
+
+
+def test_qualisys_3d_marker_names_with_spaces(tmp_path, truth):
+    """QTM's default marker names hold a space ("New 0000"): the columns `New 0000 X` match them."""
+    tr, m = truth
+    names = [f"New {i:04d}" for i in range(len(NAMES))]
+    data = jsphere.read_qualisys_tsv(write_qtm_3d(tmp_path / "new.tsv", tr.t, m, names))
+    assert data.names == tuple(names)
+    np.testing.assert_allclose(data.markers, m, atol=1e-6, equal_nan=True)
 
 
 def test_qualisys_errors(tmp_path, truth):

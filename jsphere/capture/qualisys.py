@@ -32,30 +32,35 @@ def read_qualisys_tsv(
 ) -> MarkerData:
     """Read a Qualisys Track Manager TSV export: 3D marker data or 6DOF rigid-body data.
 
-    Layout (QTM manual, "Motion data (.tsv)" and "6DOF data (_6d.tsv)"): header lines of a
-    variable name, a tab and its values (`FILE_VERSION`, `NO_OF_FRAMES`, `FREQUENCY`,
-    `TIME_STAMP`, `DATA_INCLUDED` `3D` or `6D`, `MARKER_NAMES` or `BODY_NAMES`, ...; the TSV
-    header must be included in the export), then a column row (`Frame`, `Time`, then `<marker>
-    X`, `<marker> Y`, `<marker> Z` per marker, or per body `X Y Z Roll Pitch Yaw Residual
-    Rot[0]..Rot[8]`) and one tab-separated row per frame. Without the column row the data are
-    `Frame, Time` and the coordinates, or the coordinates alone (times `frame / FREQUENCY`).
+    Layout (QTM manual, "Motion data (.tsv)" and "6DOF data (_6d.tsv)", checked against QTM
+    exports): header lines of a variable name, a tab and its values (`FILE_VERSION` where QTM
+    writes it, `NO_OF_FRAMES`, `NO_OF_CAMERAS`, `NO_OF_MARKERS` or `NO_OF_BODIES`, `FREQUENCY`,
+    `TIME_STAMP`, `DATA_INCLUDED` `3D` or `6D`, `MARKER_NAMES` or `BODY_NAMES`,
+    `TRAJECTORY_TYPES`, `EVENT`, ...; the TSV header must be included in the export), then a
+    column row and one tab-separated row per frame; lines may end in CRLF and rows in a tab.
 
-    - **3D**: a marker that is not seen is written as zeros (QTM's default) or blank cells:
-      both are gaps. The markers are returned by the names of `MARKER_NAMES`.
-    - **6DOF**: each body's pose is returned as `rb_q, rb_p` (no markers): the rotation
-      matrix `R` with `P_global = R P_local + P_origin`, read from `Rot[0..8]` column by column
-      (as QTM's MATLAB and real-time outputs), or, without those columns, from `Roll, Pitch,
-      Yaw` in QTM's standard definition `R = R_x(roll) R_y(pitch) R_z(yaw)` [deg]. Where both
-      are there and the angles say that `Rot` is row by row, it is read so. A body that is not
-      seen (NaN, blanks, or an all-zero rotation) is a gap. `rigid_body` names the body;
-      default: the only one (several are an `InputError` listing them).
+    - **3D**: columns `Frame`, `Time`, then `<marker> X`, `<marker> Y`, `<marker> Z` per marker
+      of `MARKER_NAMES` (names may hold spaces). A marker that is not seen is written as zeros
+      (QTM's default) or blank cells: both are gaps.
+    - **6DOF**: columns `Frame`, `Time`, then per body `<body> X`, `Y`, `Z`, `Roll`, `Pitch`,
+      `Yaw`, `Residual`, `Rot[0]` .. `Rot[8]` (QTM names the body in its first column only; a
+      body name on every column, or on none, with the groups in `BODY_NAMES` order, reads the
+      same). Each body's pose is returned as `rb_q, rb_p` (no markers): the rotation matrix `R`
+      with `P_global = R P_local + P_origin` ("Rotation angle calculations in QTM"), read from
+      `Rot[0..8]` column by column (`Rot[0..2]` is R's first column). Without those columns it
+      is built from `Roll, Pitch, Yaw` [deg] in QTM's standard definition (roll about X, then
+      pitch about the new Y, then yaw about the new Z: `R = R_x(roll) R_y(pitch) R_z(yaw)`);
+      angles exported in a custom Euler definition are not read. A body that is not seen (NaN,
+      blanks, or an all-zero rotation) is a gap. `rigid_body` names the body; default: the only
+      one (several are an `InputError` listing them).
 
-    `units`: QTM writes millimetres; `"auto"` detects metres or millimetres from the marker
-    spread (3D; millimetres where the spread cannot tell, and always for 6DOF), `"m"` /
-    `"mm"` declare them. `up_axis`: QTM's global frame is Z-up unless the calibration chose
-    otherwise (`"y"` for a Y-up lab frame). A file with fewer rows than `NO_OF_FRAMES`, or
-    whose last row is cut off mid-row, is an `InputError` naming both counts;
-    `allow_truncated=True` makes it a `CaptureWarning` and uses the complete frames.
+    Without the column row the data are `Frame, Time` and the values, or the values alone
+    (times `frame / FREQUENCY`). `units`: QTM writes millimetres; `"auto"` detects metres or
+    millimetres from the marker spread (3D; millimetres where the spread cannot tell, and
+    always for 6DOF), `"m"` / `"mm"` declare them. `up_axis`: QTM's global frame is Z-up unless
+    the calibration chose otherwise (`"y"` for a Y-up lab frame). A file with fewer rows than
+    `NO_OF_FRAMES`, or whose last row is cut off mid-row, is an `InputError` naming both
+    counts; `allow_truncated=True` makes it a `CaptureWarning` and uses the complete frames.
     """
     text = read_text(path)
     source = str(path)
@@ -75,6 +80,8 @@ def read_qualisys_tsv(
     columns = None
     if k < len(rows) and rows[k] and rows[k][0].strip() == "Frame":
         columns = [c.strip() for c in rows[k]]
+        while columns and not columns[-1]:  # QTM ends the column row with a tab
+            columns.pop()
         k += 1
     declared = meta.get("NO_OF_FRAMES", [""])[0].strip()
     ncol = len(columns) if columns is not None else len(rows[k]) if k < len(rows) else 0
@@ -151,21 +158,26 @@ def _read_3d(rows, k, columns, names, rate, units, up_axis, source) -> MarkerDat
 
 def _body_columns(columns: list[str], bodies: list[str], source: str, line: int) -> dict[str, dict[str, int]]:
     """The columns of each body: `{body: {field: column}}`. A column is `<body> <field>` or a bare
-    `<field>`; bare fields belong to the bodies of `BODY_NAMES` in turn, each starting at `X`."""
+    `<field>`. A named column starts that body's group and the bare fields after it belong to it
+    (QTM names a body in its `X` column only); a bare `X` outside a group starts the next body of
+    `BODY_NAMES`."""
     out: dict[str, dict[str, int]] = {}
-    turn = -1
+    turn, current = -1, None
     for j, c in enumerate(columns):
-        if c in ("Frame", "Time") or not c:
-            continue
         head, _, field = c.rpartition(" ")
         if field not in _FIELDS_6D:
             continue
-        if not head:
-            turn += field == "X"
-            if turn >= len(bodies) or turn < 0:
+        if head:
+            current = head
+            turn = bodies.index(head) if head in bodies else turn
+        elif current is None or field in out[current]:
+            turn += 1
+            if turn >= len(bodies):
                 raise InputError(f"{source}, line {line}: more 6DOF column groups than BODY_NAMES {bodies}.")
-            head = bodies[turn]
-        out.setdefault(head, {})[field] = j
+            current = bodies[turn]
+        if field in out.get(current, {}):
+            raise InputError(f"{source}, line {line}: column {c!r} of body {current!r} appears twice.")
+        out.setdefault(current, {})[field] = j
     return out
 
 
@@ -188,7 +200,7 @@ def _read_6d(rows, k, columns, bodies, rigid_body, rate, units, up_axis, source)
         raise InputError(
             f"{source}, line {k}: the columns of body {body!r} lack X, Y, Z and Rot[0..8] or Roll, Pitch, Yaw."
         )
-    fields = [f for f in ("X", "Y", "Z", *rot, *euler) if f in g]
+    fields = ["X", "Y", "Z", *(rot if all(f in g for f in rot) else euler)]
     lead = [c for c in ("Frame", "Time") if c in columns]
     data, lines = _numbers(rows, k, [columns.index(c) for c in lead] + [g[f] for f in fields], source, lead + fields)
     t = _times(data, lead, rate, lines, source)
@@ -209,21 +221,13 @@ def _read_6d(rows, k, columns, bodies, rigid_body, rate, units, up_axis, source)
 
 def _rotations(val: dict[str, np.ndarray], rot: list[str], euler: tuple[str, ...]) -> np.ndarray:
     """The `(M, 3, 3)` body -> global rotations of a 6DOF body from its `Rot[0..8]` (column by
-    column, or row by row where the Euler angles say so) or its QTM-standard Euler angles."""
-    ang = np.stack([val[f] for f in euler], axis=1) if all(f in val for f in euler) else None
-    R_euler = None
-    if ang is not None:
-        ok = np.all(np.isfinite(ang), axis=1)
-        R_euler = np.full((ang.shape[0], 3, 3), np.nan)
-        if np.any(ok):
-            R_euler[ok] = Rotation.from_euler("XYZ", ang[ok], degrees=True).as_matrix()  # R_x R_y R_z
-    if not all(f in val for f in rot):
-        return R_euler
-    flat = np.stack([val[f] for f in rot], axis=1)
-    R = np.swapaxes(flat.reshape(-1, 3, 3), 1, 2)  # column by column
-    if R_euler is not None:
-        d_col = np.nanmedian(np.abs(R - R_euler).max(axis=(1, 2)))
-        d_row = np.nanmedian(np.abs(np.swapaxes(R, 1, 2) - R_euler).max(axis=(1, 2)))
-        if d_row < 1e-3 < d_col:
-            R = np.swapaxes(R, 1, 2)
+    column), else from its angles in QTM's standard definition."""
+    if all(f in val for f in rot):
+        flat = np.stack([val[f] for f in rot], axis=1)
+        return np.swapaxes(flat.reshape(-1, 3, 3), 1, 2)  # Rot[0..2] is the first column
+    ang = np.stack([val[f] for f in euler], axis=1)
+    ok = np.all(np.isfinite(ang), axis=1)
+    R = np.full((ang.shape[0], 3, 3), np.nan)
+    if np.any(ok):
+        R[ok] = Rotation.from_euler("XYZ", ang[ok], degrees=True).as_matrix()  # intrinsic: R_x R_y R_z
     return R
