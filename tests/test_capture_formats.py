@@ -268,7 +268,7 @@ _QTM_6D_FIELDS = ["X", "Y", "Z", "Roll", "Pitch", "Yaw", "Residual"] + [f"Rot[{i
 
 
 def write_qtm_6d(path, t, bodies, *, names="first", gaps="NaN"):
-    """A QTM 6DOF TSV export as QTM writes it (QTM manual, 6DOF data (_6d.tsv)): `BODY_NAMES`,
+    """A QTM 6DOF TSV export as QTM writes it: `BODY_NAMES`,
     then per body the columns `<body> X`, `Y`, `Z` [mm], `Roll`, `Pitch`, `Yaw` [deg] (QTM
     standard: R = Rx Ry Rz), `Residual`, `Rot[0]`..`Rot[8]` (the rotation matrix column by
     column), every row ending in a tab. `names="all"` names the body on every column,

@@ -32,12 +32,12 @@ def read_qualisys_tsv(
 ) -> MarkerData:
     """Read a Qualisys Track Manager TSV export: 3D marker data or 6DOF rigid-body data.
 
-    Layout (QTM manual, "Motion data (.tsv)" and "6DOF data (_6d.tsv)", checked against QTM
-    exports): header lines of a variable name, a tab and its values (`FILE_VERSION` where QTM
-    writes it, `NO_OF_FRAMES`, `NO_OF_CAMERAS`, `NO_OF_MARKERS` or `NO_OF_BODIES`, `FREQUENCY`,
-    `TIME_STAMP`, `DATA_INCLUDED` `3D` or `6D`, `MARKER_NAMES` or `BODY_NAMES`,
-    `TRAJECTORY_TYPES`, `EVENT`, ...; the TSV header must be included in the export), then a
-    column row and one tab-separated row per frame; lines may end in CRLF and rows in a tab.
+    Layout (QTM manual, "Motion data (.tsv)", and QTM's 3D and 6DOF exports): header lines of
+    a variable name, a tab and its values (`FILE_VERSION` where QTM writes it, `NO_OF_FRAMES`,
+    `NO_OF_CAMERAS`, `NO_OF_MARKERS` or `NO_OF_BODIES`, `FREQUENCY`, `TIME_STAMP`,
+    `DATA_INCLUDED` `3D` or `6D`, `MARKER_NAMES` or `BODY_NAMES`, `TRAJECTORY_TYPES`, `EVENT`,
+    ...; the TSV header must be included in the export), then a column row and one
+    tab-separated row per frame; lines may end in CRLF and rows in a tab.
 
     - **3D**: columns `Frame`, `Time`, then `<marker> X`, `<marker> Y`, `<marker> Z` per marker
       of `MARKER_NAMES` (names may hold spaces). A marker that is not seen is written as zeros
@@ -48,11 +48,12 @@ def read_qualisys_tsv(
       same). Each body's pose is returned as `rb_q, rb_p` (no markers): the rotation matrix `R`
       with `P_global = R P_local + P_origin` ("Rotation angle calculations in QTM"), read from
       `Rot[0..8]` column by column (`Rot[0..2]` is R's first column). Without those columns it
-      is built from `Roll, Pitch, Yaw` [deg] in QTM's standard definition (roll about X, then
-      pitch about the new Y, then yaw about the new Z: `R = R_x(roll) R_y(pitch) R_z(yaw)`);
-      angles exported in a custom Euler definition are not read. A body that is not seen (NaN,
-      blanks, or an all-zero rotation) is a gap. `rigid_body` names the body; default: the only
-      one (several are an `InputError` listing them).
+      is built from `Roll, Pitch, Yaw` [deg] in QTM's standard definition (QTM manual,
+      "Rotation angles in QTM": roll about X, then pitch about the new Y, then yaw about the new
+      Z: `R = R_x(roll) R_y(pitch) R_z(yaw)`); angles exported in a custom Euler definition are
+      not read. A body that is not seen (NaN, blanks, or an all-zero rotation) is a gap.
+      `rigid_body` names the body; default: the only one (several are an `InputError` listing
+      them).
 
     Without the column row the data are `Frame, Time` and the values, or the values alone
     (times `frame / FREQUENCY`). `units`: QTM writes millimetres; `"auto"` detects metres or
