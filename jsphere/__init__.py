@@ -31,6 +31,8 @@ _EXPORTS = {
     "capture.markers": ("MarkerData",),
     "capture.motive": ("read_motive_csv", "write_motive_csv"),
     "capture.pose": ("markers_to_trial", "rigid_body_pose"),
+    "capture.qualisys": ("read_qualisys_tsv",),
+    "capture.rosbag": ("read_rosbag_inputs", "read_rosbag_poses"),
     "capture.synthetic": ("random_inputs", "synthetic_markers", "synthetic_trial"),
     "capture.trial": ("Trial", "read_trial", "read_trials", "write_trial"),
     "capture.validation": ("CaptureWarning",),

@@ -689,7 +689,7 @@ def test_raw_error_not_the_format(tmp_path):
     with pytest.raises(ValueError, match=r"no 'Trajectories' section"):
         jsphere.read_vicon_csv(p)
     with pytest.raises(ValueError, match=r"format must be one of"):
-        jsphere.convert_raw(p, p, format="qualisys")
+        jsphere.convert_raw(p, p, format="trc")
 
 
 def test_raw_error_times(tmp_path, markers_truth):

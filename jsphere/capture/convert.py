@@ -1,16 +1,22 @@
-"""One call from a raw export and an inputs table to a `Trial` (`convert_raw`)."""
+"""One call from a raw export and an inputs table (or a ROS bag) to a `Trial` (`convert_raw`)."""
 
 from __future__ import annotations
 
+import dataclasses
+from pathlib import Path
+
 import numpy as np
 
+from .._runtime.errors import InputError
 from .c3d import read_c3d
 from .motive import read_motive_csv
 from .pose import markers_to_trial
+from .qualisys import read_qualisys_tsv
+from .rosbag import read_rosbag_inputs, read_rosbag_poses
 from .trial import Trial
 from .vicon import read_vicon_csv
 
-RAW_FORMATS = ("motive", "vicon", "c3d")
+RAW_FORMATS = ("motive", "vicon", "c3d", "qualisys", "rosbag")
 
 
 def convert_raw(
@@ -28,10 +34,25 @@ def convert_raw(
     time_offset: float = 0.0,
     name: str | None = None,
     allow_truncated: bool = False,
+    subject: str | None = None,
+    pose_topic: str | None = None,
+    inputs_topic: str | None = None,
+    input_kind: str | None = None,
+    joints=None,
+    n_wheels: int | None = None,
 ) -> Trial:
-    """Read a raw export (`format`: `"motive"`, `"vicon"` or `"c3d"`) and make a `Trial` with the
-    inputs table `inputs` (`markers_to_trial`). `up_axis` defaults to the exporter's default
-    (`"y"` for Motive, `"z"` otherwise); `rigid_body` selects a Motive asset or a Vicon subject.
+    """Read a raw export (`format`: `"motive"`, `"vicon"`, `"c3d"`, `"qualisys"` or `"rosbag"`)
+    and make a `Trial` with the inputs table `inputs` (`markers_to_trial`). `up_axis` defaults
+    to the exporter's default (`"y"` for Motive, `"z"` otherwise); `rigid_body` selects a Motive
+    asset or a QTM 6DOF body, `subject` a Vicon subject (`rigid_body` too, when `subject` is None).
+
+    **ROS bags.** `format="rosbag"` reads the poses on `pose_topic` of the bag `path`
+    (`read_rosbag_poses`). With `inputs_topic`, the inputs come from that
+    `sensor_msgs/JointState` topic (`read_rosbag_inputs`: `input_kind` `"chi_dot"`, the
+    default, or `"K"`; `joints`; `n_wheels`) of the bag `inputs`, or of `path` itself when
+    `inputs` is None; the markers may then come from any format. Times from two bags share
+    the bag clock and start at the earlier first message; a bag beside another file starts at
+    its own first message (align the clocks with `time_offset`).
 
     A file cut short (an export with fewer frames than its header declares, a last row cut off
     mid-row) is an `InputError` naming both counts; `allow_truncated=True` makes it a
@@ -39,13 +60,32 @@ def convert_raw(
     in the result are `CaptureWarning`s naming the likely cause."""
     if format not in RAW_FORMATS:
         raise ValueError(f"convert_raw: format must be one of {RAW_FORMATS}; got {format!r}.")
+    _check_bag_options(format, inputs, units, up_axis, pose_topic, inputs_topic, joints)
     kw = {"units": units, "allow_truncated": allow_truncated}
     if format == "motive":
         data = read_motive_csv(path, rigid_body=rigid_body, up_axis=up_axis or "y", **kw)
     elif format == "vicon":
-        data = read_vicon_csv(path, subject=rigid_body, up_axis=up_axis or "z", **kw)
+        data = read_vicon_csv(path, subject=subject or rigid_body, up_axis=up_axis or "z", **kw)
+    elif format == "qualisys":
+        data = read_qualisys_tsv(path, rigid_body=rigid_body, up_axis=up_axis or "z", **kw)
+    elif format == "rosbag":
+        data = read_rosbag_poses(path, pose_topic)
     else:
         data = read_c3d(path, up_axis=up_axis or "z", **kw)
+    if inputs_topic is not None:
+        t_in, u_in, kind, _ = read_rosbag_inputs(
+            path if inputs is None else inputs,
+            inputs_topic,
+            input_kind=input_kind or "chi_dot",
+            joints=joints,
+            n_wheels=n_wheels,
+        )
+        t0 = min(float(data.t[0]), float(t_in[0])) if format == "rosbag" else float(t_in[0])
+        inputs = (t_in - t0, u_in, kind)
+    else:
+        t0 = float(data.t[0])
+    if format == "rosbag":
+        data = dataclasses.replace(data, t=data.t - t0)
     return markers_to_trial(
         data,
         inputs,
@@ -57,3 +97,29 @@ def convert_raw(
         name=name,
         allow_truncated=allow_truncated,
     )
+
+
+def _check_bag_options(format, inputs, units, up_axis, pose_topic, inputs_topic, joints) -> None:
+    """`InputError` for options that do not fit the format: a ROS bag without its topics, topics
+    without a bag, lengths or axes declared for a bag (REP 103: metres, Z up)."""
+    if format == "rosbag":
+        if pose_topic is None:
+            raise InputError("--format rosbag needs --pose-topic TOPIC (pose_topic=): the topic of the poses.")
+        if units not in ("auto", "m") or up_axis not in (None, "z"):
+            raise InputError("a ROS bag's poses are in metres with Z up (REP 103); drop --units and --up-axis.")
+        if inputs is None and inputs_topic is None:
+            raise InputError(
+                "the inputs: --inputs-topic TOPIC (a sensor_msgs/JointState topic of the bag) or --inputs TABLE."
+            )
+    elif pose_topic is not None:
+        raise InputError(f"--pose-topic is for --format rosbag; the poses of --format {format} come from its file.")
+    elif inputs is None:
+        raise InputError("--inputs is needed: the inputs table, or a ROS bag with --inputs-topic TOPIC.")
+    if joints is not None and inputs_topic is None:
+        raise InputError("--joints names the wheels of a JointState topic; give --inputs-topic TOPIC too.")
+    if inputs is not None and inputs_topic is None and not isinstance(inputs, tuple):
+        where = Path(inputs)
+        if where.suffix in (".bag", ".db3", ".mcap") or (where / "metadata.yaml").exists():
+            raise InputError(
+                f"{where}: a ROS bag; name its JointState topic with --inputs-topic TOPIC (inputs_topic=)."
+            )

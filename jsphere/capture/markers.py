@@ -50,26 +50,37 @@ def detect_marker_units(markers: np.ndarray) -> str | None:
     return None
 
 
+#: metres per unit of the length units a raw export may declare
+UNIT_SCALE = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
+_UNIT_WORDS = {"m": "metres", "cm": "centimetres", "mm": "millimetres"}
+
+
 def _scale(declared: str, file_units: str | None, detected: str | None, source: str) -> float:
-    if declared not in ("auto", "m", "mm"):
-        raise ValueError(f"{source}: units must be 'auto', 'm' or 'mm'; got {declared!r}.")
+    """Metres per unit of the marker coordinates: the file's own units (`file_units`), else the
+    declared ones, else the detected ones. A declaration that contradicts the file, or a spread
+    that contradicts the units, is an error. Centimetres come from the file or the declaration
+    only: the spread of a marker set in centimetres (0.5-100) looks like metres or millimetres."""
+    if declared not in ("auto", *UNIT_SCALE):
+        raise ValueError(f"{source}: units must be 'auto', 'm', 'cm' or 'mm'; got {declared!r}.")
     if file_units is not None and declared != "auto" and declared != file_units:
         raise ValueError(
             f"{source}: units={declared!r} was declared but the file says its lengths are in {file_units!r}; "
             "drop the argument (the file's units are used) or re-export the file."
         )
     units = file_units if file_units is not None else declared
+    if units == "cm":
+        return UNIT_SCALE["cm"]
     if detected is not None and units != "auto" and detected != units:
         raise ValueError(
             f"{source}: the lengths are declared in {units!r} but the marker spread looks like "
-            f"{'millimetres' if detected == 'mm' else 'metres'}; pass units={detected!r} if the file is wrong, "
+            f"{_UNIT_WORDS[detected]}; pass units={detected!r} if the file is wrong, "
             "or check the export scale."
         )
     if units == "auto":
         if detected is None:
             raise ValueError(f"{source}: cannot tell whether lengths are in m or mm; pass units='m' or units='mm'.")
         units = detected
-    return 1.0 if units == "m" else 1e-3
+    return UNIT_SCALE[units]
 
 
 def _scale_rb(units: str, file_units: str | None, source: str) -> float:

@@ -9,7 +9,7 @@ import numpy as np
 from .._runtime.errors import InputError
 from .._runtime.files import atomic_write_text
 from ..model.rotations import quat_from_rotmat_np, quat_mul_np
-from .markers import UP_TO_Z, MarkerData, _scale, _scale_rb, detect_marker_units
+from .markers import UNIT_SCALE, UP_TO_Z, MarkerData, _scale, _scale_rb, detect_marker_units
 from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, separator_hint
 from .validation import sign_continuous
 
@@ -23,13 +23,19 @@ def read_motive_csv(
     up_axis: str = "y",
     allow_truncated: bool = False,
 ) -> MarkerData:
-    """Read an OptiTrack Motive CSV export (format version 1.2x and later).
+    """Read an OptiTrack Motive CSV export (Motive 2 and 3, format version 1.2x and later).
 
     Layout (https://docs.optitrack.com/motive/data-export/data-export-csv): line 1 `Format
-    Version,...,Length Units,Meters|Millimeters,...`; a blank line; rows `,Type,...` (`Rigid
-    Body`, `Rigid Body Marker`, `Marker`), `,Name,...`, `,ID,...`, a row naming `Rotation` /
-    `Position` / `Mean Marker Error`, then `Frame,Time (Seconds),X,Y,Z,...`; rigid-body rotations
-    are quaternions in the order **X, Y, Z, W**. Occluded markers are blank cells (gaps).
+    Version,...,Rotation Type,...,Length Units,Meters|Centimeters|Millimeters,...`; a blank
+    line; rows `,Type,...` (`Rigid Body`, `Rigid Body Marker`, `Marker`, `Bone`, `Bone Marker`),
+    `,Name,...`, `,ID,...`, in Motive 3 a `,Parent,...` row, a row naming each column's kind
+    (`Rotation`, `Position`, `Mean Marker Error`, `Marker Quality`), then `Frame,Time
+    (Seconds),X,Y,Z,...`, the columns in any order. Rigid-body rotations are quaternions in the
+    order **X, Y, Z, W** (`Rotation Type,Quaternion`); Euler rotation types are read only where
+    the rigid body's own pose is not needed (an `InputError` names the setting otherwise).
+    Occluded markers are blank cells (gaps). The markers read are the labelled `Marker` columns
+    (not the solved `Rigid Body Marker` / `Bone Marker` ones, nor `Unlabeled ...` markers); with
+    a rigid body, those named `"<rigid body>:..."` if there are any.
 
     **Arguments:**
     - `rigid_body`: the asset name; selects that rigid body and the markers named `"<name>:..."`.
@@ -37,7 +43,7 @@ def read_motive_csv(
     - `use`: `"markers"` (poses from the `Marker` columns by `rigid_body_pose`), `"rigid_body"`
       (Motive's own solved pose, kept in `MarkerData.rb_q/rb_p`), or `"auto"` (markers if there
       are at least 3 marker columns, else the rigid body). The markers are always returned.
-    - `units`: `"auto"` (the file's `Length Units`, else detected), `"m"` or `"mm"`.
+    - `units`: `"auto"` (the file's `Length Units`, else detected), `"m"`, `"cm"` or `"mm"`.
     - `up_axis`: `"y"` (Motive's default) or `"z"`; Y-up data are turned into jsphere's Z-up frame
       by `UP_TO_Z["y"]`: `(X, Y, Z) = (X_m, -Z_m, Y_m)`.
     - `allow_truncated`: a file cut short (fewer data rows than line 1's `Total Exported
@@ -56,6 +62,7 @@ def read_motive_csv(
     mnames, cols, colnames = _marker_columns(head, body)
     want_rb = use == "rigid_body" or (use == "auto" and len(mnames) < 3)
     if want_rb:
+        _check_rotation_type(meta, source)
         need, rb_cols = _rigid_body_columns(head, body, source)
         cols, colnames = cols + rb_cols, colnames + [f"{body} {k[0]} {k[1]}" for k in need]
     declared = int(meta["Total Exported Frames"]) if meta.get("Total Exported Frames", "").isdigit() else None
@@ -76,7 +83,7 @@ def read_motive_csv(
     _check_times(t, lines, source)
     K = len(mnames)
     C = UP_TO_Z[up_axis]
-    raw = data[:, 2 : 2 + 3 * K].reshape(-1, K, 3)
+    raw = data[:, 2 : 2 + 3 * K].reshape(len(t), K, 3)
     scale = (
         _scale(units, file_units, detect_marker_units(raw), source) if K >= 2 else _scale_rb(units, file_units, source)
     )
@@ -93,16 +100,28 @@ def _line_one(rows: list[list[str]], source: str) -> tuple[dict[str, str], str |
             f"{separator_hint(rows[0][:1]) if rows and rows[0] else ''}."
         )
     meta = {rows[0][i].strip(): rows[0][i + 1].strip() for i in range(0, len(rows[0]) - 1, 2)}
-    if meta.get("Rotation Type", "Quaternion") != "Quaternion":
-        raise ValueError(
-            f"{source}, line 1: Rotation Type is {meta['Rotation Type']!r}; export with Rotation Type = Quaternion."
-        )
-    file_units = {"Meters": "m", "Millimeters": "mm"}.get(meta.get("Length Units", ""), None)
+    file_units = _LENGTH_UNITS.get(meta.get("Length Units", ""), None)
     if meta.get("Length Units") and file_units is None:
-        raise ValueError(
-            f"{source}, line 1: Length Units {meta['Length Units']!r} not supported; export in Meters or Millimeters."
+        raise InputError(
+            f"{source}, line 1: Length Units {meta['Length Units']!r} not understood; export in Meters, Centimeters or "
+            "Millimeters."
         )
     return meta, file_units
+
+
+#: Motive's `Length Units` and jsphere's names for them
+_LENGTH_UNITS = {"Meters": "m", "Centimeters": "cm", "Millimeters": "mm"}
+
+
+def _check_rotation_type(meta: dict[str, str], source: str) -> None:
+    """Raise `InputError` unless the rigid-body rotations are quaternions (Motive's Euler types
+    `XYZ`, `XZY`, ... leave the convention of their angles to the reader)."""
+    kind = meta.get("Rotation Type", "Quaternion")
+    if kind != "Quaternion":
+        raise InputError(
+            f"{source}, line 1: Rotation Type is {kind!r} (Euler angles), and the rigid body's own pose is needed; "
+            "export again with the CSV export option Rotation Type = Quaternion, or export at least 3 markers."
+        )
 
 
 @dataclass(frozen=True)
@@ -162,6 +181,8 @@ def _marker_columns(head: _Header, body: str | None) -> tuple[list[str], list[in
             continue
         mk.setdefault(nm, {})[head.cell("axes", j)] = j
     mk = {n: c for n, c in mk.items() if set(c) >= {"X", "Y", "Z"}}
+    if body is not None and any(n.startswith(f"{body}:") for n in mk):  # the body's own markers, not stray ones
+        mk = {n: c for n, c in mk.items() if n.startswith(f"{body}:")}
     mnames = list(mk)
     cols = [0, 1] + [mk[n][a] for n in mnames for a in "XYZ"]
     colnames = ["Frame", "Time (Seconds)"] + [f"{n} {a}" for n in mnames for a in "XYZ"]
@@ -210,7 +231,7 @@ def write_motive_csv(
     With `rb_q (M, 4)` (w, x, y, z; body -> fixed) and `rb_p (M, 3)` [m], a `Rigid Body` block is
     written first: Rotation X, Y, Z, W, Position X, Y, Z, Mean Marker Error."""
     C = UP_TO_Z[up_axis]
-    s = 1.0 if units == "m" else 1000.0
+    s = 1.0 / UNIT_SCALE[units]
     raw = np.einsum("ji,mkj->mki", C, np.asarray(markers, float)) * s  # C^T: jsphere -> Motive
     M, K = raw.shape[:2]
     full = [f"{rigid_body}:{n}" for n in names]
@@ -235,7 +256,7 @@ def write_motive_csv(
     lines = [
         "Format Version,1.23,Take Name,jsphere-synthetic,Capture Frame Rate,{r:.6f},Export Frame Rate,{r:.6f},"
         "Rotation Type,Quaternion,Length Units,{u},Coordinate Space,Global".format(
-            r=1.0 / float(np.median(np.diff(t))), u="Meters" if units == "m" else "Millimeters"
+            r=1.0 / float(np.median(np.diff(t))), u={v: k for k, v in _LENGTH_UNITS.items()}[units]
         ),
         "",
         ",Type," + ",".join(types),
@@ -244,7 +265,7 @@ def write_motive_csv(
         ",," + ",".join(kinds),
         "Frame,Time (Seconds)," + ",".join(axes),
     ]
-    length_fmt = ".6f" if units == "m" else ".3f"
+    length_fmt = {"m": ".6f", "cm": ".4f", "mm": ".3f"}[units]
     fmts = [".6f" if k in ("Rotation", "Mean Marker Error") else length_fmt for k in kinds]
     data = np.concatenate(blocks, axis=1)
     for i in range(M):

@@ -14,17 +14,20 @@ from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, se
 def read_vicon_csv(
     path, *, subject: str | None = None, units: str = "auto", up_axis: str = "z", allow_truncated: bool = False
 ) -> MarkerData:
-    """Read a Vicon Nexus "Trajectories" CSV export.
+    """Read a Vicon Nexus CSV export (Nexus 2): its `Trajectories` section.
 
-    Layout (e.g. https://ccu.uni-konstanz.de/wiki/ , Vicon Nexus reference guide): a line
-    `Trajectories`, the frame rate [Hz], a row with each marker's name `Subject:Marker` in the
-    column of its X, then `Frame,Sub Frame,X,Y,Z,...`, a units row (`mm`), then one row per
-    frame, up to a blank line (other sections, e.g. `Devices`, may come before or after). Blank
-    cells are gaps. Time is `(Frame - first Frame) / rate` [s] (`Sub Frame` is 0
-    in trajectory exports; other values are an error).
+    Layout (Vicon Nexus reference guide, "Export data to a CSV file"): sections `Devices`
+    (force plates, analog channels), `Joints`, `Model Outputs`, `Segments` and `Trajectories`,
+    each a line with its name, the rate [Hz], a row of names, `Frame,Sub Frame,...`, a units row
+    and one row per frame, up to a blank line. Only `Trajectories` is read, wherever it comes:
+    its names row holds each marker's `Subject:Marker` in the column of its X, the units row
+    `mm`. Blank cells are gaps; unlabelled trajectories (names starting with `*`) are left out.
+    Time is `(Frame - first Frame) / rate` [s] (`Sub Frame` is 0 in trajectory exports; other
+    values are an error).
 
-    `subject` keeps the markers named `"<subject>:..."` (default: all). `units`: `"auto"` (the
-    units row), `"m"` or `"mm"`. `up_axis`: Vicon is Z-up by default. A file cut short (the
+    `subject` keeps the markers named `"<subject>:..."`; default: the only subject, and with
+    several an `InputError` listing them. `units`: `"auto"` (the units row), `"m"` or `"mm"`.
+    `up_axis`: Vicon is Z-up by default. A file cut short (the
     section runs to the end of the file and its last row has fewer cells than the header) is an
     `InputError` naming both counts; `allow_truncated=True` makes it a `CaptureWarning` and
     drops that row.
@@ -53,15 +56,27 @@ def read_vicon_csv(
     if not found_units <= {"mm", "m"} or len(found_units) > 1:
         raise ValueError(f"{source}, line {i0 + 5}: units row {sorted(found_units)} not understood; expected mm or m.")
     file_units = found_units.pop() if found_units else None
-    mk = []
-    for j in range(2, len(hdr) - 2):
-        nm = names[j].strip() if j < len(names) else ""
-        if nm and hdr[j].strip() == "X" and (subject is None or nm.split(":")[0] == subject):
-            mk.append((nm, j))
-    if not mk:
-        raise ValueError(
-            f"{source}, line {i0 + 3}: no marker trajectories" + (f" of subject {subject!r}." if subject else ".")
+    named = [
+        (nm, j)
+        for j in range(2, len(hdr) - 2)
+        if (nm := names[j].strip() if j < len(names) else "") and hdr[j].strip() == "X" and not nm.startswith("*")
+    ]
+    subjects = sorted({nm.split(":")[0] for nm, _ in named if ":" in nm})
+    if subject is None and len(subjects) > 1:
+        raise InputError(
+            f"{source}, line {i0 + 3}: the trajectories hold several subjects {subjects}; choose one with --subject NAME "
+            "(subject=NAME)."
         )
+    if subject is not None and subject not in subjects:
+        raise InputError(
+            f"{source}, line {i0 + 3}: no subject {subject!r} in the trajectories; "
+            + (f"the file has {subjects}." if subjects else "its markers have no 'Subject:' prefix: drop --subject.")
+        )
+    if subject is None and subjects:
+        subject = subjects[0]
+    mk = [(nm, j) for nm, j in named if subject is None or nm.split(":")[0] == subject]
+    if not mk:
+        raise ValueError(f"{source}, line {i0 + 3}: no marker trajectories.")
     cols = [0, 1] + [j + a for _, j in mk for a in range(3)]
     colnames = ["Frame", "Sub Frame"] + [f"{n} {a}" for n, _ in mk for a in "XYZ"]
     end = next((i for i in range(i0 + 5, len(rows)) if not any(c.strip() for c in rows[i])), len(rows))

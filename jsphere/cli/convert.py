@@ -11,27 +11,45 @@ NAME = "convert"
 EXAMPLES = """
   jsphere convert capture.csv --format motive --inputs inputs.csv --out trial.csv
   jsphere convert session.c3d --format c3d --inputs inputs.csv --rigid-body sphere --units mm --out trial.csv
+  jsphere convert run.bag --format rosbag --pose-topic /mocap/robot/pose --inputs-topic /joint_states \
+      --input-kind chi_dot --joints wheel_1,wheel_2,wheel_3 --out trial.csv
+  jsphere convert take.tsv --format qualisys --inputs run_bag/ --inputs-topic /joint_states --out trial.csv
 """
 
 
 def add_parser(sub) -> None:
     cv = sub.add_parser(
         NAME,
-        help="raw motion-capture export + inputs table -> trial CSV (docs/capture.md)",
-        description="Convert a raw motion-capture export (Motive CSV, Vicon Nexus CSV or C3D) and the table of "
-        "the inputs sent to the wheels into a trial CSV for `jsphere fit` (docs/capture.md): the shell "
-        "centre's path and the platform's orientation, checked and resampled. Warnings name the frames "
-        "and markers they are about.",
+        help="raw motion-capture export or ROS bag + inputs -> trial CSV (docs/capture.md)",
+        description="Convert a raw motion-capture export (Motive CSV, Vicon Nexus CSV, C3D, Qualisys TSV) or the "
+        "poses of a ROS bag, and the inputs sent to the wheels (a table, or a JointState topic of a ROS bag) into a "
+        "trial CSV for `jsphere fit` (docs/capture.md): the shell centre's path and the platform's orientation, "
+        "checked and resampled. Warnings name the frames and markers they are about.",
     )
-    cv.add_argument("raw", help="the raw export (Motive CSV, Vicon Nexus CSV, or C3D)")
-    cv.add_argument("--format", required=True, choices=("motive", "vicon", "c3d"))
-    cv.add_argument("--inputs", required=True, help="inputs table: t, chi_dot_1..N or t, K_1..N")
+    cv.add_argument("raw", help="the raw export (Motive CSV, Vicon Nexus CSV, C3D, Qualisys TSV) or a ROS bag")
+    cv.add_argument("--format", required=True, choices=("motive", "vicon", "c3d", "qualisys", "rosbag"))
+    cv.add_argument(
+        "--inputs",
+        help="inputs table (t, chi_dot_1..N or t, K_1..N), or a ROS bag read with --inputs-topic "
+        "(default with --format rosbag: the bag itself)",
+    )
     cv.add_argument("--out", required=True, help="the trial CSV to write (never one of the input files)")
     cv.add_argument(
-        "--units", default="auto", choices=("auto", "m", "mm"), help="length units of the export (default: auto)"
+        "--units", default="auto", choices=("auto", "m", "cm", "mm"), help="length units of the export (default: auto)"
     )
     cv.add_argument("--up-axis", choices=("y", "z"), help="the export's up axis (default: y for Motive, z otherwise)")
-    cv.add_argument("--rigid-body", help="Motive rigid body / Vicon subject whose markers to use")
+    cv.add_argument("--rigid-body", help="Motive rigid body / Qualisys 6DOF body (or Vicon subject) to use")
+    cv.add_argument("--subject", help="Vicon Nexus subject whose trajectories to use (needed when there are several)")
+    cv.add_argument("--pose-topic", help="ROS bag: the PoseStamped, TransformStamped or Odometry topic of the poses")
+    cv.add_argument("--inputs-topic", help="ROS bag: the sensor_msgs/JointState topic of the wheel inputs")
+    cv.add_argument(
+        "--input-kind",
+        choices=("chi_dot", "K"),
+        help="which input family to read: from a JointState, velocity (chi_dot) or effort (K); from an inputs table "
+        "holding both, its columns (default for a JointState: chi_dot)",
+    )
+    cv.add_argument("--joints", help="ROS bag: the wheels' joint names in wheel order, comma-separated (default: all)")
+    cv.add_argument("--params", help="the robot (.toml or .json): the inputs must have one column per wheel")
     cv.add_argument(
         "--body-markers",
         help="CSV name,x,y,z: the markers in the platform frame [m] (default: from the first full frame)",
@@ -66,6 +84,7 @@ def run(args) -> int:
     from ..capture.convert import convert_raw
     from ..capture.trial import write_trial
     from ..capture.validation import CaptureWarning
+    from ..model.params import RobotParams
 
     if not all(math.isfinite(v) for v in args.body_offset):
         raise InputError(
@@ -74,8 +93,14 @@ def run(args) -> int:
     if not math.isfinite(args.time_offset):
         raise InputError(f"--time-offset must be a finite number of seconds; got {args.time_offset:g}.")
     out = Path(args.out)
-    inputs = {"the raw export": args.raw, "the inputs table": args.inputs, "the body markers": args.body_markers}
+    inputs = {
+        "the raw export": args.raw,
+        "the inputs table": args.inputs,
+        "the body markers": args.body_markers,
+        "the robot": args.params,
+    }
     check_output(out, inputs=inputs, example=str(out / "trial.csv"))
+    n_wheels = RobotParams.load(args.params).n_wheels if args.params else None
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", CaptureWarning)
         try:
@@ -91,7 +116,18 @@ def run(args) -> int:
                 body_offset=tuple(args.body_offset),
                 time_offset=args.time_offset,
                 allow_truncated=args.allow_truncated,
+                subject=args.subject,
+                pose_topic=args.pose_topic,
+                inputs_topic=args.inputs_topic,
+                input_kind=args.input_kind,
+                joints=args.joints,
+                n_wheels=n_wheels,
             )
+            if n_wheels is not None and trial.n_wheels != n_wheels:
+                raise InputError(
+                    f"{args.inputs or args.raw}: the inputs hold {trial.n_wheels} wheels but the robot ({args.params}) has "
+                    f"{n_wheels}; give one column per wheel."
+                )
         finally:  # the warnings of a conversion that then fails say what went before
             for w in caught:
                 if issubclass(w.category, CaptureWarning):

@@ -1,0 +1,234 @@
+"""Qualisys Track Manager (QTM) TSV exports: 3D marker data and 6DOF rigid-body data
+(`read_qualisys_tsv`)."""
+
+from __future__ import annotations
+
+import csv
+import io
+import re
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from .._runtime.errors import InputError
+from ..model.rotations import quat_from_rotmat_np
+from .markers import UP_TO_Z, MarkerData, _scale, detect_marker_units
+from .text import _check_times, _cut_short, _data_end, _numbers, read_text
+from .validation import sign_continuous
+
+#: a header line of a QTM TSV file: an upper-case variable name, a tab, its values
+_KEY = re.compile(r"^[A-Z][A-Z0-9_]*$")
+#: the fields of a 6DOF body's columns (`Rot[0]`..`Rot[8]`: its rotation matrix column by column)
+_FIELDS_6D = ("X", "Y", "Z", "Roll", "Pitch", "Yaw", "Residual", *(f"Rot[{i}]" for i in range(9)))
+
+
+def read_qualisys_tsv(
+    path,
+    *,
+    rigid_body: str | None = None,
+    units: str = "auto",
+    up_axis: str = "z",
+    allow_truncated: bool = False,
+) -> MarkerData:
+    """Read a Qualisys Track Manager TSV export: 3D marker data or 6DOF rigid-body data.
+
+    Layout (QTM manual, "Motion data (.tsv)", and QTM's 3D and 6DOF exports): header lines of
+    a variable name, a tab and its values (`FILE_VERSION` where QTM writes it, `NO_OF_FRAMES`,
+    `NO_OF_CAMERAS`, `NO_OF_MARKERS` or `NO_OF_BODIES`, `FREQUENCY`, `TIME_STAMP`,
+    `DATA_INCLUDED` `3D` or `6D`, `MARKER_NAMES` or `BODY_NAMES`, `TRAJECTORY_TYPES`, `EVENT`,
+    ...; the TSV header must be included in the export), then a column row and one
+    tab-separated row per frame; lines may end in CRLF and rows in a tab.
+
+    - **3D**: columns `Frame`, `Time`, then `<marker> X`, `<marker> Y`, `<marker> Z` per marker
+      of `MARKER_NAMES` (names may hold spaces). A marker that is not seen is written as zeros
+      (QTM's default) or blank cells: both are gaps.
+    - **6DOF**: columns `Frame`, `Time`, then per body `<body> X`, `Y`, `Z`, `Roll`, `Pitch`,
+      `Yaw`, `Residual`, `Rot[0]` .. `Rot[8]` (QTM names the body in its first column only; a
+      body name on every column, or on none, with the groups in `BODY_NAMES` order, reads the
+      same). Each body's pose is returned as `rb_q, rb_p` (no markers): the rotation matrix `R`
+      with `P_global = R P_local + P_origin` ("Rotation angle calculations in QTM"), read from
+      `Rot[0..8]` column by column (`Rot[0..2]` is R's first column). Without those columns it
+      is built from `Roll, Pitch, Yaw` [deg] in QTM's standard definition (QTM manual,
+      "Rotation angles in QTM": roll about X, then pitch about the new Y, then yaw about the new
+      Z: `R = R_x(roll) R_y(pitch) R_z(yaw)`); angles exported in a custom Euler definition are
+      not read. A body that is not seen (NaN, blanks, or an all-zero rotation) is a gap.
+      `rigid_body` names the body; default: the only one (several are an `InputError` listing
+      them).
+
+    Without the column row the data are `Frame, Time` and the values, or the values alone
+    (times `frame / FREQUENCY`). `units`: QTM writes millimetres; `"auto"` detects metres or
+    millimetres from the marker spread (3D; millimetres where the spread cannot tell, and
+    always for 6DOF), `"m"` / `"mm"` declare them. `up_axis`: QTM's global frame is Z-up unless
+    the calibration chose otherwise (`"y"` for a Y-up lab frame). A file with fewer rows than
+    `NO_OF_FRAMES`, or whose last row is cut off mid-row, is an `InputError` naming both
+    counts; `allow_truncated=True` makes it a `CaptureWarning` and uses the complete frames.
+    """
+    text = read_text(path)
+    source = str(path)
+    if up_axis not in UP_TO_Z:
+        raise ValueError(f"{source}: up_axis must be 'y' or 'z'; got {up_axis!r}.")
+    rows = list(csv.reader(io.StringIO(text, newline=""), delimiter="\t"))
+    meta, k = _header(rows, source)
+    kind = meta.get("DATA_INCLUDED", ["3D"])[0].strip().upper()
+    if kind not in ("3D", "6D"):
+        raise InputError(
+            f"{source}: DATA_INCLUDED is {kind!r}; export 3D or 6DOF data to TSV (QTM: File > Export > To TSV)."
+        )
+    try:
+        rate = float(meta["FREQUENCY"][0])
+    except (KeyError, IndexError, ValueError):
+        rate = float("nan")
+    columns = None
+    if k < len(rows) and rows[k] and rows[k][0].strip() == "Frame":
+        columns = [c.strip() for c in rows[k]]
+        while columns and not columns[-1]:  # QTM ends the column row with a tab
+            columns.pop()
+        k += 1
+    declared = meta.get("NO_OF_FRAMES", [""])[0].strip()
+    ncol = len(columns) if columns is not None else len(rows[k]) if k < len(rows) else 0
+    end = _cut_short(
+        rows,
+        k,
+        _data_end(rows, k),
+        ncol,
+        source,
+        allow_truncated,
+        declared=int(declared) if declared.isdigit() else None,
+        field="NO_OF_FRAMES",
+    )
+    if end <= k:
+        raise InputError(f"{source}: no data rows after the header (line {k}).")
+    if kind == "3D":
+        names = [n.strip() for n in meta.get("MARKER_NAMES", []) if n.strip()]
+        if not names:
+            raise InputError(f"{source}: no MARKER_NAMES line in the header; export with the TSV header included.")
+        return _read_3d(rows[:end], k, columns, names, rate, units, up_axis, source)
+    bodies = [n.strip() for n in meta.get("BODY_NAMES", []) if n.strip()]
+    return _read_6d(rows[:end], k, columns, bodies, rigid_body, rate, units, up_axis, source)
+
+
+def _header(rows: list[list[str]], source: str) -> tuple[dict[str, list[str]], int]:
+    """The header variables `{NAME: values}` and the index of the first row after them."""
+    meta: dict[str, list[str]] = {}
+    k = 0
+    while k < len(rows) and rows[k] and _KEY.match(rows[k][0].strip()):
+        meta.setdefault(rows[k][0].strip(), rows[k][1:])
+        k += 1
+    if not meta:
+        raise InputError(
+            f"{source}, line 1: not a QTM TSV export with its header (expected lines like 'NO_OF_FRAMES<tab>...'); "
+            "export again with Include TSV header checked."
+        )
+    return meta, k
+
+
+def _times(data: np.ndarray, lead: list[str], rate: float, lines, source: str) -> np.ndarray:
+    """The frame times [s] from the leading columns `lead` of `data` (`Frame`, `Time`): the
+    `Time` column, else `(Frame - first Frame) / FREQUENCY`, else `row / FREQUENCY`."""
+    if "Time" in lead:
+        t = data[:, lead.index("Time")]
+    else:
+        if not rate > 0:
+            raise InputError(f"{source}: no Time column and no positive FREQUENCY in the header; export the time data.")
+        t = (data[:, 0] - data[0, 0]) / rate if "Frame" in lead else np.arange(data.shape[0]) / rate
+    _check_times(t, lines, source)
+    return t
+
+
+def _read_3d(rows, k, columns, names, rate, units, up_axis, source) -> MarkerData:
+    K = len(names)
+    if columns is not None:
+        where = {c: j for j, c in enumerate(columns)}
+        missing = [f"{n} {a}" for n in names for a in "XYZ" if f"{n} {a}" not in where]
+        if missing:
+            raise InputError(f"{source}, line {k}: no column {missing[0]!r} for a marker of MARKER_NAMES.")
+        lead = [c for c in ("Frame", "Time") if c in where]
+        cols = [where[c] for c in lead] + [where[f"{n} {a}"] for n in names for a in "XYZ"]
+    else:
+        lead = ["Frame", "Time"] if len(rows[k]) >= 3 * K + 2 else []
+        cols = list(range(len(lead) + 3 * K))
+    data, lines = _numbers(rows, k, cols, source, lead + [f"{n} {a}" for n in names for a in "XYZ"])
+    t = _times(data, lead, rate, lines, source)
+    raw = data[:, len(lead) :].reshape(-1, K, 3)
+    raw[np.all(raw == 0.0, axis=2)] = np.nan  # QTM writes a marker that is not seen as zeros
+    detected = detect_marker_units(raw)
+    scale = _scale(units, None, detected if (detected or units != "auto") else "mm", source)
+    markers = np.einsum("ij,mkj->mki", UP_TO_Z[up_axis], raw) * scale
+    return MarkerData(t, markers, tuple(names), source, lines)
+
+
+def _body_columns(columns: list[str], bodies: list[str], source: str, line: int) -> dict[str, dict[str, int]]:
+    """The columns of each body: `{body: {field: column}}`. A column is `<body> <field>` or a bare
+    `<field>`. A named column starts that body's group and the bare fields after it belong to it
+    (QTM names a body in its `X` column only); a bare `X` outside a group starts the next body of
+    `BODY_NAMES`."""
+    out: dict[str, dict[str, int]] = {}
+    turn, current = -1, None
+    for j, c in enumerate(columns):
+        head, _, field = c.rpartition(" ")
+        if field not in _FIELDS_6D:
+            continue
+        if head:
+            current = head
+            turn = bodies.index(head) if head in bodies else turn
+        elif current is None or field in out[current]:
+            turn += 1
+            if turn >= len(bodies):
+                raise InputError(f"{source}, line {line}: more 6DOF column groups than BODY_NAMES {bodies}.")
+            current = bodies[turn]
+        if field in out.get(current, {}):
+            raise InputError(f"{source}, line {line}: column {c!r} of body {current!r} appears twice.")
+        out.setdefault(current, {})[field] = j
+    return out
+
+
+def _read_6d(rows, k, columns, bodies, rigid_body, rate, units, up_axis, source) -> MarkerData:
+    if columns is None:
+        if len(bodies) != 1:
+            raise InputError(f"{source}: 6DOF data without a column row; export again with Include TSV header checked.")
+        columns = ["Frame", "Time", *_FIELDS_6D]
+    groups = _body_columns(columns, bodies or ["body"], source, k)
+    names = sorted(groups)
+    if rigid_body is None and len(names) > 1:
+        raise InputError(f"{source}: the file holds several 6DOF bodies {names}; choose one with --rigid-body NAME.")
+    body = rigid_body if rigid_body is not None else (names[0] if names else None)
+    if body not in groups:
+        raise InputError(f"{source}: no 6DOF body named {body!r}; the file has {names}.")
+    g = groups[body]
+    rot = [f"Rot[{i}]" for i in range(9)]
+    euler = ("Roll", "Pitch", "Yaw")
+    if not all(f in g for f in "XYZ") or not (all(f in g for f in rot) or all(f in g for f in euler)):
+        raise InputError(
+            f"{source}, line {k}: the columns of body {body!r} lack X, Y, Z and Rot[0..8] or Roll, Pitch, Yaw."
+        )
+    fields = ["X", "Y", "Z", *(rot if all(f in g for f in rot) else euler)]
+    lead = [c for c in ("Frame", "Time") if c in columns]
+    data, lines = _numbers(rows, k, [columns.index(c) for c in lead] + [g[f] for f in fields], source, lead + fields)
+    t = _times(data, lead, rate, lines, source)
+    val = {f: data[:, len(lead) + i] for i, f in enumerate(fields)}
+    p = np.stack([val[a] for a in "XYZ"], axis=1)
+    R = _rotations(val, rot, euler)
+    gap = ~np.all(np.isfinite(p), axis=1) | ~np.all(np.isfinite(R), axis=(1, 2)) | np.all(R == 0.0, axis=(1, 2))
+    R[gap] = np.eye(3)
+    scale = _scale(units, None, None if units != "auto" else "mm", source)
+    C = UP_TO_Z[up_axis]
+    q = quat_from_rotmat_np(C @ R)
+    q[gap] = np.nan
+    pp = p @ C.T * scale
+    pp[gap] = np.nan
+    empty = np.zeros((len(t), 0, 3))
+    return MarkerData(t, empty, (), source, lines, sign_continuous(q), pp)
+
+
+def _rotations(val: dict[str, np.ndarray], rot: list[str], euler: tuple[str, ...]) -> np.ndarray:
+    """The `(M, 3, 3)` body -> global rotations of a 6DOF body from its `Rot[0..8]` (column by
+    column), else from its angles in QTM's standard definition."""
+    if all(f in val for f in rot):
+        flat = np.stack([val[f] for f in rot], axis=1)
+        return np.swapaxes(flat.reshape(-1, 3, 3), 1, 2)  # Rot[0..2] is the first column
+    ang = np.stack([val[f] for f in euler], axis=1)
+    ok = np.all(np.isfinite(ang), axis=1)
+    R = np.full((ang.shape[0], 3, 3), np.nan)
+    if np.any(ok):
+        R[ok] = Rotation.from_euler("XYZ", ang[ok], degrees=True).as_matrix()  # intrinsic: R_x R_y R_z
+    return R

@@ -1,0 +1,186 @@
+"""Robot logs in ROS bags, read through `rosbags` (pure Python, no ROS install): poses
+(`read_rosbag_poses`) and the wheel inputs from `sensor_msgs/JointState` (`read_rosbag_inputs`).
+
+ROS 1 bags (`*.bag`) and ROS 2 bags (a folder with `metadata.yaml` and its sqlite3 `*.db3` or
+MCAP `*.mcap` storage; the storage file itself is accepted too) are read alike. Each message's
+header stamp is its time; where the stamps are missing (zero), the time the bag recorded the
+message is used, with a `CaptureWarning`. Times are seconds since the Unix epoch, as in the bag.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from .._runtime.errors import InputError
+from .markers import MarkerData
+from .validation import CaptureWarning, sign_continuous
+
+#: message types that carry a pose (REP 103: metres, X forward, Y left, Z up)
+POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/TransformStamped", "nav_msgs/msg/Odometry")
+JOINT_STATE = "sensor_msgs/msg/JointState"
+#: `--input-kind`: the JointState field it reads and the trial's kind of inputs
+INPUT_FIELDS = {"chi_dot": ("velocity", "wheel_speeds"), "K": ("effort", "torques")}
+
+
+def _reader(path):
+    """An unopened `rosbags.highlevel.AnyReader` of the bag at `path`."""
+    try:
+        from rosbags.highlevel import AnyReader, AnyReaderError
+    except ImportError:
+        raise ImportError(
+            "reading ROS bags needs rosbags: pip install jsphere[ros] (or pip install rosbags)."
+        ) from None
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"ROS bag {path} does not exist.")
+    if path.is_file() and path.suffix in (".db3", ".mcap") and (path.parent / "metadata.yaml").exists():
+        path = path.parent  # a ROS 2 bag is its folder
+    try:
+        return AnyReader([path])
+    except AnyReaderError as e:
+        raise InputError(f"{path}: not a readable ROS bag (rosbags: {e}).") from None
+
+
+def _messages(path, topic: str, types: tuple[str, ...], what: str) -> tuple[list, np.ndarray, str]:
+    """The messages of `topic` (deserialised), the bag's receive times [s] and the message type.
+    A topic that is not in the bag, or of another type, is an `InputError` naming what there is."""
+    source = str(path)
+    reader = _reader(path)  # (rosbags is imported there, with advice where it is missing)
+    from rosbags.highlevel import AnyReaderError
+
+    try:
+        with reader:
+            topics = {name: info.msgtype for name, info in reader.topics.items()}
+            if topic not in topics:
+                listing = ", ".join(f"{n} ({t})" for n, t in sorted(topics.items())) or "none"
+                raise InputError(f"{source}: no topic {topic!r} in the bag; its topics: {listing}.")
+            if topics[topic] not in types:
+                raise InputError(
+                    f"{source}: topic {topic!r} holds {topics[topic]}, not {what} ({' or '.join(types)}); "
+                    f"choose a topic of that type."
+                )
+            conns = [c for c in reader.connections if c.topic == topic]
+            msgs, times = [], []
+            for conn, stamp, raw in reader.messages(connections=conns):
+                msgs.append(reader.deserialize(raw, conn.msgtype))
+                times.append(stamp * 1e-9)
+    except AnyReaderError as e:
+        raise InputError(f"{source}: not a readable ROS bag (rosbags: {e}).") from None
+    if not msgs:
+        raise InputError(f"{source}: topic {topic!r} holds no messages.")
+    return msgs, np.asarray(times), topics[topic]
+
+
+def _clock(headers: list, bag_times: np.ndarray, source: str, topic: str) -> np.ndarray:
+    """The message times [s]: their header stamps, or the bag's receive times (with a
+    `CaptureWarning`) where any stamp is zero; sorted order is the caller's check."""
+    stamps = np.array([h.stamp.sec + 1e-9 * h.stamp.nanosec for h in headers])
+    zero = stamps == 0.0
+    if not np.any(zero):
+        return stamps
+    warnings.warn(
+        f"{source}: {int(zero.sum())} of the {len(stamps)} messages of {topic} have no header stamp; using the times "
+        "the bag recorded them (they include the transport delay).",
+        CaptureWarning,
+        stacklevel=3,
+    )
+    return bag_times
+
+
+def _increasing(t: np.ndarray, source: str, topic: str) -> None:
+    bad = np.nonzero(np.diff(t) <= 0)[0]
+    if bad.size:
+        i = int(bad[0]) + 1
+        raise InputError(
+            f"{source}: the stamps of {topic} are not strictly increasing (message {i + 1} at {t[i]:.9f} s follows "
+            f"{t[i - 1]:.9f} s); record the topic with distinct stamps, in order."
+        )
+
+
+def read_rosbag_poses(path, topic: str) -> MarkerData:
+    """The poses on `topic` of a ROS bag: `geometry_msgs/PoseStamped`, `TransformStamped` or
+    `nav_msgs/Odometry` (e.g. from vrpn_client_ros or mocap4r2), in metres in a Z-up frame
+    (REP 103). Returns `MarkerData` without markers, the pose in `rb_q` (scalar first, body ->
+    fixed) and `rb_p`; a quaternion of zeros or a non-finite value is a gap. Times: header
+    stamps [s since the epoch], else the bag's times with a `CaptureWarning`."""
+    source = str(path)
+    msgs, bag_t, msgtype = _messages(path, topic, POSE_TYPES, "poses")
+    if msgtype.endswith("TransformStamped"):
+        poses = [(m.transform.translation, m.transform.rotation) for m in msgs]
+    elif msgtype.endswith("Odometry"):
+        poses = [(m.pose.pose.position, m.pose.pose.orientation) for m in msgs]
+    else:
+        poses = [(m.pose.position, m.pose.orientation) for m in msgs]
+    t = _clock([m.header for m in msgs], bag_t, source, topic)
+    _increasing(t, source, topic)
+    p = np.array([[v.x, v.y, v.z] for v, _ in poses], float)
+    q = np.array([[r.w, r.x, r.y, r.z] for _, r in poses], float)
+    norm = np.linalg.norm(q, axis=1)
+    gap = ~np.all(np.isfinite(p), axis=1) | ~np.isfinite(norm) | (norm < 0.5)
+    q[gap], p[gap] = np.nan, np.nan
+    q[~gap] /= norm[~gap, None]
+    return MarkerData(t, np.zeros((len(t), 0, 3)), (), source, None, sign_continuous(q), p)
+
+
+def read_rosbag_inputs(
+    path, topic: str, *, input_kind: str = "chi_dot", joints=None, n_wheels: int | None = None
+) -> tuple[np.ndarray, np.ndarray, str, list[str]]:
+    """The wheel inputs on `topic` (`sensor_msgs/JointState`) of a ROS bag.
+
+    `input_kind`: `"chi_dot"` reads `velocity` (wheel rates relative to the platform [rad/s],
+    encoder readings or commands), `"K"` reads `effort` (axle torques [N m]). `joints`: the
+    wheels' joint names in wheel order (a list or a comma-separated string); default: every
+    joint of the messages, in their order. `n_wheels`: the robot's number of wheels, checked.
+
+    Returns `(t, values (T, N), kind, joint names)` like `read_inputs_csv`, `t` in seconds since
+    the epoch (header stamps, else the bag's times with a `CaptureWarning`). A missing topic, a
+    topic of another type, a joint that is not in a message, an empty `velocity`/`effort`, or a
+    joint count other than `n_wheels` is an `InputError` saying what there is.
+    """
+    source = str(path)
+    if input_kind not in INPUT_FIELDS:
+        raise InputError(f"{source}: input kind must be one of {list(INPUT_FIELDS)}; got {input_kind!r}.")
+    field, kind = INPUT_FIELDS[input_kind]
+    if isinstance(joints, str):
+        joints = [j.strip() for j in joints.split(",") if j.strip()]
+    msgs, bag_t, _ = _messages(path, topic, (JOINT_STATE,), "joint states")
+    first = list(msgs[0].name)
+    names = list(joints) if joints else first
+    values = np.empty((len(msgs), len(names)))
+    for i, m in enumerate(msgs):
+        have = list(m.name)
+        vals = np.asarray(getattr(m, field), float)
+        if len(vals) != len(have):
+            filled = [f for f in ("position", "velocity", "effort") if len(getattr(m, f)) == len(have) and have]
+            other = {"velocity": "K", "effort": "chi_dot"}[field]
+            raise InputError(
+                f"{source}: message {i + 1} of {topic} has {len(vals)} {field} values for its {len(have)} joints "
+                f"{have} (it fills {', '.join(filled) or 'none of position, velocity, effort'}); "
+                + (f"--input-kind {other} reads {'effort' if other == 'K' else 'velocity'}." if filled else "")
+            )
+        if not joints and have != first:
+            raise InputError(
+                f"{source}: the joints of {topic} change at message {i + 1} ({have}, first {first}); name the wheels "
+                "with --joints (joints=)."
+            )
+        missing = [j for j in names if j not in have]
+        if missing:
+            raise InputError(f"{source}: message {i + 1} of {topic} has no joint {missing[0]!r}; its joints: {have}.")
+        values[i] = vals[[have.index(j) for j in names]]
+    if n_wheels is not None and len(names) != n_wheels:
+        raise InputError(
+            f"{source}: {topic} gives {len(names)} joints {names} but the robot has {n_wheels} wheels; name its wheels in "
+            "wheel order with --joints (joints=)."
+        )
+    bad = np.argwhere(~np.isfinite(values))
+    if bad.size:
+        i, j = int(bad[0, 0]), int(bad[0, 1])
+        raise InputError(f"{source}: message {i + 1} of {topic}: {field} of joint {names[j]!r} is not finite.")
+    t = _clock([m.header for m in msgs], bag_t, source, topic)
+    _increasing(t, source, topic)
+    if len(t) < 2:
+        raise InputError(f"{source}: {topic} holds {len(t)} message; the inputs need at least 2.")
+    return t, values, kind, names
