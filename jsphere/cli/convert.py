@@ -11,6 +11,7 @@ NAME = "convert"
 EXAMPLES = """
   jsphere convert capture.csv --format motive --inputs inputs.csv --out trial.csv
   jsphere convert session.c3d --format c3d --inputs inputs.csv --rigid-body sphere --units mm --out trial.csv
+  jsphere convert capture.csv --format motive --inputs plan.csv --input-kind chi_dot --time-offset auto --out trial.csv
 """
 
 
@@ -26,6 +27,12 @@ def add_parser(sub) -> None:
     cv.add_argument("raw", help="the raw export (Motive CSV, Vicon Nexus CSV, or C3D)")
     cv.add_argument("--format", required=True, choices=("motive", "vicon", "c3d"))
     cv.add_argument("--inputs", required=True, help="inputs table: t, chi_dot_1..N or t, K_1..N")
+    cv.add_argument(
+        "--input-kind",
+        choices=("chi_dot", "K"),
+        help="which input family to read: from a JointState, velocity (chi_dot) or effort (K); from an inputs table "
+        "holding both, its columns",
+    )
     cv.add_argument("--out", required=True, help="the trial CSV to write (never one of the input files)")
     cv.add_argument(
         "--units", default="auto", choices=("auto", "m", "mm"), help="length units of the export (default: auto)"
@@ -45,7 +52,10 @@ def add_parser(sub) -> None:
         help="shell centre relative to the marker centroid, platform frame [m]",
     )
     cv.add_argument(
-        "--time-offset", type=float, default=0.0, help="added to the capture times to match the inputs' clock [s]"
+        "--time-offset",
+        default="0",
+        help="added to the capture times to match the inputs' clock [s], or 'auto': estimated from the data (wheel "
+        "speeds: the measured velocity against the one the inputs imply) and printed",
     )
     cv.add_argument(
         "--allow-truncated",
@@ -57,6 +67,7 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
+    import functools
     import math
     import warnings
 
@@ -64,6 +75,7 @@ def run(args) -> int:
     from .._runtime.files import check_output
     from ..capture.body import read_body_markers
     from ..capture.convert import convert_raw
+    from ..capture.inputs import read_inputs_csv
     from ..capture.trial import write_trial
     from ..capture.validation import CaptureWarning
 
@@ -71,8 +83,7 @@ def run(args) -> int:
         raise InputError(
             f"--body-offset X Y Z must be finite numbers [m]; got {' '.join(f'{v:g}' for v in args.body_offset)}."
         )
-    if not math.isfinite(args.time_offset):
-        raise InputError(f"--time-offset must be a finite number of seconds; got {args.time_offset:g}.")
+    time_offset = _time_offset(args.time_offset)
     out = Path(args.out)
     inputs = {"the raw export": args.raw, "the inputs table": args.inputs, "the body markers": args.body_markers}
     check_output(out, inputs=inputs, example=str(out / "trial.csv"))
@@ -80,18 +91,24 @@ def run(args) -> int:
         warnings.simplefilter("always", CaptureWarning)
         try:
             body = read_body_markers(args.body_markers) if args.body_markers else None
-            trial = convert_raw(
+            t_in, u_in, kind, _ = read_inputs_csv(
+                args.inputs, kind=args.input_kind, allow_truncated=args.allow_truncated
+            )
+            convert = functools.partial(
+                convert_raw,
                 args.raw,
-                args.inputs,
+                (t_in, u_in, kind),
                 format=args.format,
                 units=args.units,
                 up_axis=args.up_axis,
                 rigid_body=args.rigid_body,
                 body_markers=body,
                 body_offset=tuple(args.body_offset),
-                time_offset=args.time_offset,
                 allow_truncated=args.allow_truncated,
             )
+            if time_offset is None:
+                time_offset = _estimate_offset(convert, t_in, u_in, kind)
+            trial = convert(time_offset=time_offset)
         finally:  # the warnings of a conversion that then fails say what went before
             for w in caught:
                 if issubclass(w.category, CaptureWarning):
@@ -101,3 +118,37 @@ def run(args) -> int:
     write_trial(out, trial)
     print(f"{trial!r} -> {out}")
     return 0
+
+
+def _time_offset(value: str) -> float | None:
+    """The `--time-offset` in seconds, None for `auto`."""
+    import math
+
+    from .._runtime.errors import InputError
+
+    if value.strip().lower() == "auto":
+        return None
+    try:
+        v = float(value)
+    except ValueError:
+        v = math.nan
+    if not math.isfinite(v):
+        raise InputError(f"--time-offset must be a finite number of seconds or 'auto'; got {value!r}.")
+    return v
+
+
+def _estimate_offset(convert, t_in, u_in, kind) -> float:
+    """`--time-offset auto`: the capture converted once without an offset (its warnings held
+    back), the offset estimated from it and the inputs (`estimate_time_offset`), printed."""
+    import warnings
+
+    from ..capture.clock import estimate_time_offset
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        first = convert(time_offset=0.0)
+    offset, corr = estimate_time_offset(first.t, first.x, first.y, first.q, t_in, u_in, kind)
+    print(
+        f"jsphere convert: time offset estimated: {offset:+.4f} s (correlation {corr:.3f}); --time-offset {offset:.4f}"
+    )
+    return offset
