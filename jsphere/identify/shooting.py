@@ -241,7 +241,7 @@ def defect(kind: str, end, nu_next, next_xy0, next_q0, scale):
     if kind == "torques":
         parts.append(end[9:12] - nu_next[8:11])
     if nu_next.shape[0] > len(NUISANCE[kind]):  # the clock offset, last
-        parts.append(end[END_SIZE:] - nu_next[-1:])
+        parts.append(end[-1:] - nu_next[-1:])  # end: `end_vector`, then the offset
     return jnp.concatenate(parts) / scale
 
 
