@@ -2,13 +2,16 @@
 
     python examples/lab_loop.py [--out lab-loop]
 
-1. Plan a manoeuvre with the model we have (the paper's values): `jsphere plan --commands`.
-2. The "lab" runs the commands: a robot whose true R_m and j differ from the model's, wheel
-   servos that follow the commands with a lag, encoders logged on the robot's clock, a motion
-   capture (marker noise, dropped frames) whose clock runs 0.15 s behind the robot's.
-3. Identification trials (exciting wheel-speed programs) run the same way, then
-   `jsphere convert --time-offset auto`, `jsphere fit --fit-time-offset` on three of them and
-   `jsphere compare` on the two held out, for the fitted and the starting model.
+1. Plan a manoeuvre with the model we have (the paper's values) and write its axle torques
+   for the robot: `jsphere plan --commands commands_1.csv --command-kind K`.
+2. The "lab" runs the commands: a robot whose true R_m and j differ from the model's, motor
+   drivers that follow the commands with a lag. Driven by torques, where it stops depends on
+   R_m and j.
+3. Identification trials: exciting wheel-speed programs, run the same way (servos with a lag,
+   encoders logged on the robot's clock, a motion capture with marker noise and dropped frames
+   whose clock runs 0.15 s behind the robot's), then `jsphere convert --time-offset auto`,
+   `jsphere fit --fit-time-offset` on three of them and `jsphere compare` on the two held
+   out, for the fitted and for the starting model.
 4. Plan again with the fitted robot (`--params fit.json`) and run it: it lands closer.
 
 Writes everything under OUT, and OUT/loop.json: where each plan stopped and the fitted values.
@@ -29,7 +32,7 @@ jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default i
 MODEL = jsphere.RobotParams.paper()  # what we believe before the loop
 TRUTH = MODEL.replace(R_m=0.0290, j=3.2e-4)  # the robot in the lab
 CLOCK = 0.15  # the capture's clock runs this much behind the robot's [s]
-LAG = 0.02  # the wheel servos follow their commands with this time constant [s]
+LAG = 0.02  # the wheel servos and motor drivers follow their commands with this time constant [s]
 START = 0.5  # the robot starts its commands this long after its log starts [s]
 RATE = 100.0  # command, encoder and capture rate [Hz]
 TARGET = (0.4, 0.1)
@@ -44,8 +47,9 @@ def cli(*args) -> None:
 
 
 def servo(t_cmd, u_cmd, tau):
-    """The robot's clock `tau` and the wheel speeds its servos reach: a first-order lag of time
-    constant `LAG` behind the commands, which start at `START` and hold their last row."""
+    """What the servos (wheel speeds) or drivers (torques) reach at the robot's times `tau`: a
+    first-order lag of time constant `LAG` behind the commands, which start at `START` and hold
+    their last row."""
     dt = 1e-3
     fine = np.arange(0.0, tau[-1] + dt / 2, dt)
     u = np.stack([np.interp(fine - START, t_cmd, u_cmd[:, i], left=0.0) for i in range(u_cmd.shape[1])], 1)
@@ -63,12 +67,13 @@ def run_on_robot(commands: Path, folder: Path, name: str, seed: int, capture: bo
     t_cmd, u_cmd, kind, _ = jsphere.read_inputs_csv(commands)
     tau = np.arange(int((START + t_cmd[-1] + 1.0) * RATE) + 1) / RATE
     wheels = servo(t_cmd, u_cmd, tau)
-    controls = jsphere.WheelSpeeds.from_samples(tau, wheels)
+    drive = jsphere.WheelSpeeds if kind == "wheel_speeds" else jsphere.Torques
+    controls = drive.from_samples(tau, wheels)
     state0 = jsphere.State.at_rest(TRUTH)
     end = jsphere.simulate(TRUTH, state0, controls, float(tau[-1]), rtol=1e-9, atol=1e-11)
     final = np.array([float(end.x[-1]), float(end.y[-1])])
     if capture:
-        jsphere.write_inputs_csv(folder / f"{name}_encoders.csv", tau, wheels, "wheel_speeds")
+        jsphere.write_inputs_csv(folder / f"{name}_encoders.csv", tau, wheels, kind)
         stamps = np.arange(int(0.3 * RATE), int((tau[-1] - CLOCK - 0.3) * RATE)) / RATE  # capture clock
         seen = jsphere.simulate(TRUTH, state0, controls, float(tau[-1]), ts=stamps + CLOCK, rtol=1e-9, atol=1e-11)
         poses = jsphere.Trial(
@@ -121,7 +126,7 @@ def main_loop(out: Path) -> dict:
         "--commands",
         out / "commands_1.csv",
         "--command-kind",
-        "chi_dot",
+        "K",
         "--out",
         out / "plan_1.csv",
     )
@@ -148,6 +153,8 @@ def main_loop(out: Path) -> dict:
         out / "fit.json",
         "--commands",
         out / "commands_2.csv",
+        "--command-kind",
+        "K",
         "--out",
         out / "plan_2.csv",
     )

@@ -7,7 +7,8 @@ the residuals are the simulated minus the captured position and orientation, whi
     r_pos = (x_sim - x_meas, y_sim - y_meas) / sigma_pos
     r_rot = Log(q_sim^-1 q_meas) / sigma_rot          (rotation vector, platform frame)
 
-with gap frames masked. In wheel-speed mode `omega(0) = Omega(0) + w(0)` follows from the
+with gap frames masked. With a fitted clock offset (the last nuisance value) the inputs drive
+the model at `t + offset`. In wheel-speed mode `omega(0) = Omega(0) + w(0)` follows from the
 command (2.4), so the impulsive start of `simulate` changes nothing. All trials run in one
 compiled function (vmapped over trials, padded to a common length with masked samples) and all
 starts in the same call (vmapped over starts). The Jacobian of each trial's residuals with
