@@ -149,7 +149,7 @@ def fit(
       nuisance value: the trial's inputs drive the model at `t + offset` (a capture clock that
       runs 0.15 s behind the inputs' gives +0.15 s), bounded smoothly to `+- max_time_offset`
       (`offset = max tanh(v / max)`), started at the quick estimate of
-      `jsphere.capture.estimate_time_offset`. Beyond the ends of a trial's table its inputs are
+      `jsphere.estimate_time_offset`. Beyond the ends of a trial's table its inputs are
       held. The offsets and their standard errors are `FitResult.time_offset` and
       `time_offset_stderr`.
 
@@ -313,31 +313,28 @@ class _Options:
         solver only when it is not the default, so that a default fit's fingerprint does not
         depend on whether it was given)."""
         solver = {} if self.solver is None else {"solver": repr(self.solver)}
-        offset = {} if self.max_time_offset == 0 else {"max_time_offset": self.max_time_offset}
-        return (
-            solver
-            | offset
-            | {
-                "n_starts": self.n_starts,
-                "spread": self.spread,
-                "seed": self.seed,
-                "adam_steps": self.adam_steps,
-                "adam_lr": self.adam_lr,
-                "max_iter": self.max_iter,
-                "ftol": self.ftol,
-                "gtol": self.gtol,
-                "noise": self.noise,
-                "sig": sig.tolist(),
-                "estimate_sigma": self.estimate_sigma,
-                "rtol": self.rtol,
-                "atol": self.atol,
-                "max_steps": self.max_steps,
-                "format": _CHECKPOINT_FORMAT,
-                "multiple": multiple,
-                "segment": self.segment,
-                "mu": list(MU_LEVELS),
-            }
-        )
+        if self.max_time_offset:
+            solver = solver | {"max_time_offset": self.max_time_offset}
+        return solver | {
+            "n_starts": self.n_starts,
+            "spread": self.spread,
+            "seed": self.seed,
+            "adam_steps": self.adam_steps,
+            "adam_lr": self.adam_lr,
+            "max_iter": self.max_iter,
+            "ftol": self.ftol,
+            "gtol": self.gtol,
+            "noise": self.noise,
+            "sig": sig.tolist(),
+            "estimate_sigma": self.estimate_sigma,
+            "rtol": self.rtol,
+            "atol": self.atol,
+            "max_steps": self.max_steps,
+            "format": _CHECKPOINT_FORMAT,
+            "multiple": multiple,
+            "segment": self.segment,
+            "mu": list(MU_LEVELS),
+        }
 
 
 @dataclasses.dataclass(frozen=True)
