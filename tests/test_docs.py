@@ -45,6 +45,7 @@ EXAMPLES = {
     "montecarlo_stop_points.py": ["--trials", "64", "--out", "{tmp}/study"],
     "montecarlo_fig2.py": ["--trials", "64", "--out", "{tmp}/fig2"],
     "fit_synthetic_capture.py": ["--out", "{tmp}/fit"],
+    "lab_loop.py": ["--out", "{tmp}/lab"],
 }
 
 

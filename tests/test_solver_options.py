@@ -102,7 +102,7 @@ def test_fit_passes_the_solver_options_to_its_compiled_functions(paper, trials, 
     the fingerprint as without options."""
     seen, configs = [], []
 
-    def record(free, kind, rtol, atol, max_steps, solver=None):
+    def record(free, kind, rtol, atol, max_steps, solver=None, max_offset=0.0):
         seen.append((rtol, atol, max_steps, solver))
         raise Stop
 

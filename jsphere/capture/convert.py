@@ -9,6 +9,7 @@ import numpy as np
 
 from .._runtime.errors import InputError
 from .c3d import read_c3d
+from .inputs import read_inputs_csv
 from .motive import read_motive_csv
 from .pose import markers_to_trial
 from .qualisys import read_qualisys_tsv
@@ -50,7 +51,8 @@ def convert_raw(
     (`read_rosbag_poses`). With `inputs_topic`, the inputs come from that
     `sensor_msgs/JointState` topic (`read_rosbag_inputs`: `input_kind` `"chi_dot"`, the
     default, or `"K"`; `joints`; `n_wheels`) of the bag `inputs`, or of `path` itself when
-    `inputs` is None; the markers may then come from any format. Times from two bags share
+    `inputs` is None; the markers may then come from any format. An inputs table holding both
+    input families (a plan's CSV) is read with `input_kind` choosing its columns. Times from two bags share
     the bag clock and start at the earlier first message; a bag beside another file starts at
     its own first message (align the clocks with `time_offset`).
 
@@ -84,6 +86,8 @@ def convert_raw(
         inputs = (t_in - t0, u_in, kind)
     else:
         t0 = float(data.t[0])
+        if not isinstance(inputs, tuple):  # an inputs table, or a plan's with both families (`input_kind`)
+            inputs = read_inputs_csv(inputs, kind=input_kind, allow_truncated=allow_truncated)[:3]
     if format == "rosbag":
         data = dataclasses.replace(data, t=data.t - t0)
     return markers_to_trial(

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 
+from .._runtime.errors import InputError
 from .._runtime.files import atomic_write_text
 from .text import (
     _check_times,
@@ -18,12 +21,18 @@ from .text import (
 from .validation import INPUT_PREFIX, KINDS
 
 
-def read_inputs_csv(path, *, allow_truncated: bool = False) -> tuple[np.ndarray, np.ndarray, str, list[str]]:
+def read_inputs_csv(
+    path, *, kind: str | None = None, allow_truncated: bool = False
+) -> tuple[np.ndarray, np.ndarray, str, list[str]]:
     """Read an inputs table: columns `t` [s] and `chi_dot_1..N` [rad/s] or `K_1..N` [N m] (lines
     starting with `#` before the header are comments). Returns `(t, values, kind, names)`.
-    Blank cells, NaN and non-increasing times are errors naming the line. A last row with fewer
-    cells than the header (a file cut off mid-row) is an `InputError` naming both counts; with
-    `allow_truncated=True` it is a `CaptureWarning` and the row is dropped."""
+
+    A table holding both families (a plan's CSV, `jsphere plan --out`) needs `kind`, which
+    chooses the columns: `"chi_dot"` (or `"wheel_speeds"`) or `"K"` (or `"torques"`); other
+    columns are ignored. Blank cells, NaN and non-increasing times are errors naming the line. A
+    last row with fewer cells than the header (a file cut off mid-row) is an `InputError` naming
+    both counts; with `allow_truncated=True` it is a `CaptureWarning` and the row is dropped."""
+    want = input_kind(kind)
     path, rows = _read_lines(path)
     source = str(path)
     k = 0
@@ -34,7 +43,7 @@ def read_inputs_csv(path, *, allow_truncated: bool = False) -> tuple[np.ndarray,
     header = [h.strip() for h in rows[k]]
     if "t" not in header:
         raise ValueError(f"{source}, line {k + 1}: missing required column t (time [s]){separator_hint(rows[k])}.")
-    kind, in_cols = _input_columns(header, f"{source}, line {k + 1}")
+    kind, in_cols = _input_columns(_one_family(header, want, f"{source}, line {k + 1}"), f"{source}, line {k + 1}")
     names = [header[j] for j in in_cols]
     check_unique_columns(header, f"{source}, line {k + 1}", ["t", *names])
     end = _cut_short(rows, k + 1, _data_end(rows, k + 1), len(header), source, allow_truncated, noun="rows")
@@ -49,6 +58,46 @@ def read_inputs_csv(path, *, allow_truncated: bool = False) -> tuple[np.ndarray,
             f"{source}, line {lines[i]}: input column {names[c]} is blank or not finite; inputs may not have gaps."
         )
     return data[:, 0], data[:, 1:], kind, names
+
+
+#: the names of the input families: the CLI's `chi_dot` / `K` and the trial's kinds
+KIND_NAMES = {"chi_dot": "wheel_speeds", "K": "torques", "wheel_speeds": "wheel_speeds", "torques": "torques"}
+
+
+def input_kind(kind: str | None) -> str | None:
+    """`"wheel_speeds"` or `"torques"` for an input family named `chi_dot`, `K`, `wheel_speeds`
+    or `torques` (None stays None); `InputError` for another name."""
+    if kind is None:
+        return None
+    if kind not in KIND_NAMES:
+        raise InputError(f"input kind {kind!r}: choose 'chi_dot' (wheel speeds) or 'K' (torques).")
+    return KIND_NAMES[kind]
+
+
+def _family(h: str) -> str | None:
+    """The input family of a column name, or None."""
+    for kind, prefix in INPUT_PREFIX.items():
+        if re.fullmatch(rf"{re.escape(prefix)}\d+", h):
+            return kind
+    return None
+
+
+def _one_family(header: list[str], want: str | None, where: str) -> list[str]:
+    """The header with the columns of the other input family blanked (`want`), or as it is when
+    it holds one family; a header with both and no `want` is an error that says how to choose."""
+    families = {_family(h) for h in header} - {None}
+    if want is None:
+        if len(families) == 2:
+            raise ValueError(
+                f"{where}: both chi_dot_* and K_* columns are present (a plan's CSV holds both); choose one family with "
+                "kind='chi_dot' or kind='K' (jsphere convert --input-kind chi_dot|K)."
+            )
+        return header
+    if want not in families:
+        raise ValueError(
+            f"{where}: no {INPUT_PREFIX[want]}1..N columns for input kind {want!r}; the table has {', '.join(header)}."
+        )
+    return [h if _family(h) in (None, want) else "" for h in header]
 
 
 def write_inputs_csv(path, t: np.ndarray, values: np.ndarray, kind: str) -> None:

@@ -11,6 +11,7 @@ NAME = "convert"
 EXAMPLES = """
   jsphere convert capture.csv --format motive --inputs inputs.csv --out trial.csv
   jsphere convert session.c3d --format c3d --inputs inputs.csv --rigid-body sphere --units mm --out trial.csv
+  jsphere convert capture.csv --format motive --inputs plan.csv --input-kind chi_dot --time-offset auto --out trial.csv
   jsphere convert run.bag --format rosbag --pose-topic /mocap/robot/pose --inputs-topic /joint_states \
       --input-kind chi_dot --joints wheel_1,wheel_2,wheel_3 --out trial.csv
   jsphere convert take.tsv --format qualisys --inputs run_bag/ --inputs-topic /joint_states --out trial.csv
@@ -63,7 +64,10 @@ def add_parser(sub) -> None:
         help="shell centre relative to the marker centroid, platform frame [m]",
     )
     cv.add_argument(
-        "--time-offset", type=float, default=0.0, help="added to the capture times to match the inputs' clock [s]"
+        "--time-offset",
+        default="0",
+        help="added to the capture times to match the inputs' clock [s], or 'auto': estimated from the data (wheel "
+        "speeds: the measured velocity against the one the inputs imply) and printed",
     )
     cv.add_argument(
         "--allow-truncated",
@@ -75,6 +79,7 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
+    import functools
     import math
     import warnings
 
@@ -90,8 +95,7 @@ def run(args) -> int:
         raise InputError(
             f"--body-offset X Y Z must be finite numbers [m]; got {' '.join(f'{v:g}' for v in args.body_offset)}."
         )
-    if not math.isfinite(args.time_offset):
-        raise InputError(f"--time-offset must be a finite number of seconds; got {args.time_offset:g}.")
+    time_offset = _time_offset(args.time_offset)
     out = Path(args.out)
     inputs = {
         "the raw export": args.raw,
@@ -105,7 +109,8 @@ def run(args) -> int:
         warnings.simplefilter("always", CaptureWarning)
         try:
             body = read_body_markers(args.body_markers) if args.body_markers else None
-            trial = convert_raw(
+            convert = functools.partial(
+                convert_raw,
                 args.raw,
                 args.inputs,
                 format=args.format,
@@ -114,7 +119,6 @@ def run(args) -> int:
                 rigid_body=args.rigid_body,
                 body_markers=body,
                 body_offset=tuple(args.body_offset),
-                time_offset=args.time_offset,
                 allow_truncated=args.allow_truncated,
                 subject=args.subject,
                 pose_topic=args.pose_topic,
@@ -123,6 +127,9 @@ def run(args) -> int:
                 joints=args.joints,
                 n_wheels=n_wheels,
             )
+            if time_offset is None:
+                time_offset = _estimate_offset(convert, args)
+            trial = convert(time_offset=time_offset)
             if n_wheels is not None and trial.n_wheels != n_wheels:
                 raise InputError(
                     f"{args.inputs or args.raw}: the inputs hold {trial.n_wheels} wheels but the robot ({args.params}) has "
@@ -137,3 +144,46 @@ def run(args) -> int:
     write_trial(out, trial)
     print(f"{trial!r} -> {out}")
     return 0
+
+
+def _time_offset(value: str) -> float | None:
+    """The `--time-offset` in seconds, None for `auto`."""
+    import math
+
+    from .._runtime.errors import InputError
+
+    if value.strip().lower() == "auto":
+        return None
+    try:
+        v = float(value)
+    except ValueError:
+        v = math.nan
+    if not math.isfinite(v):
+        raise InputError(f"--time-offset must be a finite number of seconds or 'auto'; got {value!r}.")
+    return v
+
+
+def _estimate_offset(convert, args) -> float:
+    """`--time-offset auto`: the capture converted once without an offset (its warnings held
+    back), the offset estimated from its poses and the inputs (`estimate_time_offset`: the
+    inputs table as written, or the inputs of a ROS bag as the conversion resampled them),
+    printed."""
+    import warnings
+
+    from ..capture.clock import estimate_time_offset
+    from ..capture.inputs import read_inputs_csv
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        first = convert(time_offset=0.0)
+        if args.inputs is not None and args.inputs_topic is None:
+            t_in, u_in, kind, _ = read_inputs_csv(
+                args.inputs, kind=args.input_kind, allow_truncated=args.allow_truncated
+            )
+        else:
+            t_in, u_in, kind = first.t, first.inputs, first.kind
+    offset, corr = estimate_time_offset(first.t, first.x, first.y, first.q, t_in, u_in, kind)
+    print(
+        f"jsphere convert: time offset estimated: {offset:+.4f} s (correlation {corr:.3f}); --time-offset {offset:.4f}"
+    )
+    return offset

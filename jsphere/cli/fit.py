@@ -11,6 +11,7 @@ NAME = "fit"
 EXAMPLES = """
   jsphere fit --free j --fix m=2.5 examples/data/ws_01.csv --out fit.json
   jsphere fit trials/*.csv --free 'R_m,j,I[0,0],I[1,1],I[2,2],I0' --fix m=2.5,m0=0.8 --bound j=0:1e-3 --out fit.json
+  jsphere fit trials/*.csv --free R_m,j --fix m0=0.8 --fit-time-offset --out fit.json
 """
 #: what an interrupted fit keeps
 RESUMES = "the finished stages are kept in the checkpoint beside --out: rerun the same command to resume"
@@ -69,6 +70,19 @@ def add_parser(sub) -> None:
     ft.add_argument("--sigma-pos", type=float, help="position noise [m] (default: estimated)")
     ft.add_argument("--sigma-rot-deg", type=float, help="orientation noise [deg] (default: estimated)")
     ft.add_argument(
+        "--fit-time-offset",
+        action="store_true",
+        help="estimate each trial's clock offset between its inputs and its capture (inputs at t + offset) as a "
+        "nuisance value; fit.json reports time_offset and time_offset_stderr [s] in trial order",
+    )
+    ft.add_argument(
+        "--max-time-offset",
+        type=float,
+        default=0.5,
+        metavar="SECONDS",
+        help="the largest clock offset, either way [s] (default 0.5)",
+    )
+    ft.add_argument(
         "--restart",
         action="store_true",
         help="ignore the checkpoint a killed fit left (by default the fit resumes from it)",
@@ -123,6 +137,8 @@ def run(args) -> int:
             checkpoint=ckpt,
             restart=args.restart,
             progress=progress(args),
+            fit_time_offset=args.fit_time_offset,
+            max_time_offset=args.max_time_offset,
         )
     written = res.save(out, plots=not args.no_plots)
     ckpt.unlink(missing_ok=True)

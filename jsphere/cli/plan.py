@@ -12,6 +12,7 @@ NAME = "plan"
 EXAMPLES = """
   jsphere plan --to 0.8 -0.5 --heading 1.0 --out plan.csv
   jsphere plan --to 0.5 0 --max-torque 0.05 --max-time 8 --restarts 32 --no-plots --out plan.csv
+  jsphere plan --to 0.8 0 --rate 100 --commands commands.csv --command-kind chi_dot --out plan.csv
 """
 
 
@@ -49,6 +50,18 @@ def add_parser(sub) -> None:
         default="plan.csv",
         help="CSV of t, K_i, chi_dot_i, x, y, gamma_1..3, heading, tilt (default plan.csv); .json and .png beside it",
     )
+    pp.add_argument(
+        "--commands",
+        metavar="FILE",
+        help="also write the commands for the robot as an inputs table at --rate: t, chi_dot_1..N or t, K_1..N "
+        "(docs/lab.md), the table that `jsphere convert --inputs` reads",
+    )
+    pp.add_argument(
+        "--command-kind",
+        choices=("chi_dot", "K"),
+        default="chi_dot",
+        help="the commands' family: wheel speeds chi_dot [rad/s] or axle torques K [N m] (default chi_dot)",
+    )
     pp.add_argument("--no-plots", action="store_true", help="skip the figure")
     pp.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
 
@@ -63,6 +76,14 @@ def run(args) -> int:
 
     out = Path(args.out)
     writes = [out.with_suffix(".json"), *([] if args.no_plots else [out.with_suffix(".png")])]
+    if args.commands:
+        if Path(args.commands).resolve() in {p.resolve() for p in [out, *writes]}:
+            from .._runtime.errors import InputError
+
+            raise InputError(
+                f"--commands {args.commands}: the plan writes that file itself; give the commands another name."
+            )
+        writes.append(Path(args.commands))
     check_output(
         out,
         writes=writes,
@@ -100,6 +121,9 @@ def run(args) -> int:
     }
     atomic_write_json(out.with_suffix(".json"), info)
     written = [out, out.with_suffix(".json")]
+    if args.commands:
+        pl.write_commands(args.commands, args.command_kind, args.rate)
+        written.append(Path(args.commands))
     if not args.no_plots:
         from ..plots import plan_figure
 

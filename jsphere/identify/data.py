@@ -32,6 +32,27 @@ NUISANCE = {
         "omega0_z",
     ),
 }
+#: the nuisance parameter of a trial's clock offset (`fit(..., fit_time_offset=True)`), last in order
+TIME_OFFSET = "time_offset"
+
+
+def nuisance_names(kind: str, time_offset: bool = False) -> tuple[str, ...]:
+    """The nuisance parameters of one trial, in order: `NUISANCE[kind]`, then `time_offset`
+    when the clock offset is fitted."""
+    return NUISANCE[kind] + ((TIME_OFFSET,) if time_offset else ())
+
+
+def offset_from_nuisance(v, max_offset: float):
+    """The clock offset [s] of the nuisance value `v`: `max_offset tanh(v / max_offset)`, so that
+    every value keeps within `+- max_offset` (and `v` is the offset itself when it is small)."""
+    import jax.numpy as jnp
+
+    return max_offset * jnp.tanh(v / max_offset)
+
+
+def nuisance_from_offset(offset, max_offset: float):
+    """The inverse of `offset_from_nuisance` (offsets clipped to 0.999 `max_offset`)."""
+    return max_offset * np.arctanh(np.clip(np.asarray(offset, float) / max_offset, -0.999, 0.999))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -42,7 +63,8 @@ class FitData:
     times (padded beyond the end, values held); `u (T, M, N)`: inputs; `t1 (T,)`: durations;
     `x, y (T, M)`, `q (T, M, 4)`: measurements (0 / identity at gaps); `wpos, wrot (T, M)`:
     1.0 where the position / orientation was measured; `xy0 (T, 2)`, `q0 (T, 4)`: the first
-    measured pose of each trial.
+    measured pose of each trial. `max_offset` [s]: the bound of each trial's clock offset when it
+    is fitted (its inputs then drive the model at `t + offset`), 0 when it is not.
     """
 
     ts: np.ndarray
@@ -60,6 +82,12 @@ class FitData:
     names: tuple[str, ...]
     lengths: tuple[int, ...]
     t_start: tuple[float, ...]
+    max_offset: float = 0.0
+
+    @property
+    def nuisance(self) -> tuple[str, ...]:
+        """The names of each trial's nuisance parameters (`nuisance_names`)."""
+        return nuisance_names(self.kind, self.max_offset > 0)
 
     def arrays(self) -> dict[str, jax.Array]:
         return {
@@ -74,8 +102,9 @@ class FitData:
         return h.hexdigest()
 
 
-def pack_trials(trials: Sequence, params: RobotParams) -> FitData:
-    """Check the trials against `params` and pack them (see `FitData`).
+def pack_trials(trials: Sequence, params: RobotParams, *, max_offset: float = 0.0) -> FitData:
+    """Check the trials against `params` and pack them (see `FitData`; `max_offset` > 0: each
+    trial's clock offset is fitted within `+- max_offset` seconds).
 
     A trial needs `t (M,)`, `x, y (M,)` [m] (NaN at gaps), `q (M, 4)` (platform -> fixed,
     NaN rows at gaps), `inputs (M, N)`, `kind` and `name` (the `Trial` of `jsphere.capture.trial`).
@@ -121,7 +150,14 @@ def pack_trials(trials: Sequence, params: RobotParams) -> FitData:
         lengths.append(m)
         starts.append(float(t0))
     arrs = {k: np.stack(v) for k, v in out.items()}
-    return FitData(**arrs, kind=kind, names=tuple(names), lengths=tuple(lengths), t_start=tuple(starts))
+    return FitData(
+        **arrs,
+        kind=kind,
+        names=tuple(names),
+        lengths=tuple(lengths),
+        t_start=tuple(starts),
+        max_offset=float(max_offset),
+    )
 
 
 def _checked_arrays(tr, k: int, N: int):

@@ -2,10 +2,13 @@
 
 The cost `1/2 sum r^2` of the whitened residuals of all trials (`jsphere.identify.residuals`)
 is minimised over the free parameters `theta` (see `FreeParams`) and, per trial, the nuisance
-parameters `nu` (`jsphere.identify.data.NUISANCE`):
+parameters `nu` (`jsphere.identify.data.nuisance_names`):
 
     wheel speeds: nu = (Omega(0) [3], initial rotation offset [3], x0, y0 offsets [2])
     torques:      nu = (Omega(0) [3], initial rotation offset [3], x0, y0 offsets [2], omega(0) [3])
+
+and, with `fit_time_offset=True`, one more: the offset of the trial's capture clock from its
+inputs' clock (the inputs drive the model at `t + offset`, `|offset| < max_time_offset`).
 
 The optimisation runs in stages (the checkpoint's `stage`), every start vmapped in one batch:
 
@@ -57,7 +60,7 @@ from .checkpoint import (
     _save_checkpoint,
     _unflat_evaluation,
 )
-from .data import NUISANCE, FitData, pack_trials
+from .data import FitData, pack_trials
 from .free import FreeParams, _overlaps, _split_names, apply_fixes
 from .lm import LM_KEYS, LMOptions, LMState, levenberg_marquardt
 from .report import FitResult, fit_result
@@ -93,6 +96,8 @@ def fit(
     restart: bool = False,
     progress: bool | None | Callable[[str], None] = None,
     options: SolverOptions | None = None,
+    fit_time_offset: bool = False,
+    max_time_offset: float = 0.5,
 ) -> FitResult:
     """Fit the free parameters of `params` to captured trials (position and orientation).
 
@@ -140,6 +145,13 @@ def fit(
     - `progress`: `None` (default): progress bars on stderr when it is a terminal; `True`:
       bars, or one line per iteration where stderr is not a terminal; `False`: none; a
       callable gets every line instead (`jsphere._runtime.progress`).
+    - `fit_time_offset`, `max_time_offset` [s]: estimate each trial's clock offset as one more
+      nuisance value: the trial's inputs drive the model at `t + offset` (a capture clock that
+      runs 0.15 s behind the inputs' gives +0.15 s), bounded smoothly to `+- max_time_offset`
+      (`offset = max tanh(v / max)`), started at the quick estimate of
+      `jsphere.estimate_time_offset`. Beyond the ends of a trial's table its inputs are
+      held. The offsets and their standard errors are `FitResult.time_offset` and
+      `time_offset_stderr`.
 
     Returns a `FitResult`. Raises `InputError` (a `ValueError`) for unknown or overlapping
     names, a name both free and fixed, bounds that exclude the start, trials that do not fit
@@ -151,7 +163,8 @@ def fit(
     _check_free_and_fixed(free, fix)
     params = apply_fixes(params, fix)
     fp_ = FreeParams(params, free, bounds)
-    data = pack_trials(trials, params)
+    max_offset = _check_time_offset(fit_time_offset, max_time_offset)
+    data = pack_trials(trials, params, max_offset=max_offset)
     _check_options(n_starts, max_iter, adam_steps, seed, sigma_pos, sigma_rot)
     _check_shooting(shooting, segment)
     _check_unknowns(data, fp_)
@@ -175,6 +188,7 @@ def fit(
         atol=solve.atol,
         max_steps=solve.max_steps,
         solver=None if eqx.tree_equal(solve.solver_or_default(), default_solver()) else solve.solver,
+        max_time_offset=max_offset,
     )
     run, st = _setup(data, fp_, params, options, checkpoint, prog, t_begin)
     _resume(run, st, restart)
@@ -199,6 +213,17 @@ def _check_free_and_fixed(free, fix) -> None:
             for fr in free_list:
                 if _overlaps(fname, fr.strip()):
                     raise InputError(f"{fname!r} is both free ({fr!r}) and fixed; choose one.")
+
+
+def _check_time_offset(fit_time_offset, max_time_offset) -> float:
+    """The bound of the fitted clock offsets [s], 0 when they are not fitted."""
+    if not isinstance(fit_time_offset, (bool, np.bool_)):
+        raise InputError(f"fit: fit_time_offset must be True or False; got {fit_time_offset!r}.")
+    if isinstance(max_time_offset, bool) or not (
+        isinstance(max_time_offset, (int, float, np.number)) and 0 < max_time_offset < math.inf
+    ):
+        raise InputError(f"fit: max_time_offset must be a positive number of seconds; got {max_time_offset!r}.")
+    return float(max_time_offset) if fit_time_offset else 0.0
 
 
 def _solver_options(options: SolverOptions | None, rtol, atol, max_steps) -> SolverOptions:
@@ -239,7 +264,7 @@ def _check_shooting(shooting, segment) -> None:
 
 
 def _check_unknowns(data: FitData, free: FreeParams) -> None:
-    P, T, n_nu = free.size, data.ts.shape[0], len(NUISANCE[data.kind])
+    P, T, n_nu = free.size, data.ts.shape[0], len(data.nuisance)
     n_res = int(2 * data.wpos.sum() + 3 * data.wrot.sum())
     if n_res <= P + T * n_nu:
         raise InputError(
@@ -277,6 +302,7 @@ class _Options:
     atol: float
     max_steps: int
     solver: dfx.AbstractSolver | None = None  # None: simulate's default
+    max_time_offset: float = 0.0  # 0: the clock offsets are not fitted
 
     @property
     def estimate_sigma(self) -> bool:
@@ -287,6 +313,8 @@ class _Options:
         solver only when it is not the default, so that a default fit's fingerprint does not
         depend on whether it was given)."""
         solver = {} if self.solver is None else {"solver": repr(self.solver)}
+        if self.max_time_offset:
+            solver = solver | {"max_time_offset": self.max_time_offset}
         return solver | {
             "n_starts": self.n_starts,
             "spread": self.spread,
@@ -366,7 +394,7 @@ class _Run:
 
     @property
     def n_nu(self) -> int:
-        return len(NUISANCE[self.data.kind])
+        return len(self.data.nuisance)
 
 
 @dataclasses.dataclass
@@ -404,7 +432,7 @@ def _setup(
     kind, S, P, T = data.kind, o.n_starts, free.size, data.ts.shape[0]
     multiple = _use_multiple(o.shooting, data, o.segment)
     seg = _shooting.segment_trials(data, o.segment) if multiple else None
-    fns = _functions(free, kind, float(o.rtol), float(o.atol), int(o.max_steps), o.solver)
+    fns = _functions(free, kind, float(o.rtol), float(o.atol), int(o.max_steps), o.solver, o.max_time_offset)
     sig = np.array([o.sigma_pos or 1e-3, o.sigma_rot or math.radians(0.5)])
     rng = np.random.default_rng(o.seed)
     theta = start_design(free, S, o.spread, rng)
@@ -412,10 +440,14 @@ def _setup(
     ms, nu_ms = None, None
     if multiple:
         position = np.concatenate([np.arange(len(c) - 1) for c in seg.boundaries])
-        dscale = jnp.asarray(_shooting.defect_scale(kind, sig, float(params.R0), o.segment))
+        offset = o.max_time_offset > 0
+        dscale = jnp.asarray(_shooting.defect_scale(kind, sig, float(params.R0), o.segment, offset))
         ms = _Shooting(seg, o.segment, position, seg.data.arrays(), seg.arrays(), dscale)
-        nu_ms = np.repeat(nuisance_guess(seg.data, params)[None], S, 0)
-    nu_scale = np.array([_NU_SCALE[n.split("_")[0]] for n in NUISANCE[kind]])
+        nu_ms = nuisance_guess(seg.data, params, time_offset=False)
+        if offset:  # every segment starts at its trial's estimate
+            nu_ms = np.concatenate([nu_ms, nu[0, seg.trial, -1:]], axis=1)
+        nu_ms = np.repeat(nu_ms[None], S, 0)
+    nu_scale = np.array([_NU_SCALE[n.split("_")[0]] for n in data.nuisance])
     n_nu = nu_scale.shape[0]
     scale = {
         "theta": jnp.asarray(np.broadcast_to(free.theta_scales(), (S, P))),
@@ -783,4 +815,5 @@ def _result(run: _Run, st: _State) -> FitResult:
         st.total_it,
         run.t_begin,
     )
-    return dataclasses.replace(result, shooting=shooting_info)
+    solve_options = {"rtol": run.options.rtol, "atol": run.options.atol, "max_steps": run.options.max_steps}
+    return dataclasses.replace(result, shooting=shooting_info, solve_options=solve_options)

@@ -21,10 +21,10 @@ from .._runtime.files import atomic_write_json
 from ..model.names import parse_name
 from ..model.params import _FIELDS, RobotParams
 from ..model.rotations import quat_conj, quat_log, quat_mul
-from .data import NUISANCE, FitData
+from .data import TIME_OFFSET, FitData, offset_from_nuisance
 from .free import FreeParams
 from .identifiability import identifiability
-from .lm import marginal_information
+from .lm import _blocks, marginal_information
 from .verdict import judge, noise_floor
 
 
@@ -41,7 +41,10 @@ class FitResult:
     verdict on the fit (`"converged"`, `"not_converged"` or `"misfit"`, and one sentence: see
     `jsphere.identify.verdict`), `verdict`: the numbers behind it (the capture's noise floor, the
     residual sigmas and their ratios to it, their lag-1 autocorrelations, per trial, the worst
-    trial's name)."""
+    trial's name); `time_offset`, `time_offset_stderr` [s]: per trial, in trial order, the
+    fitted clock offsets and their standard errors (`fit(..., fit_time_offset=True)`; None
+    otherwise); `solve_options`: the fit's ODE tolerances (`rtol`, `atol`, `max_steps`), which
+    `predict` uses."""
 
     params: RobotParams
     free: list[str]
@@ -65,6 +68,19 @@ class FitResult:
     status_reason: str = ""
     verdict: dict[str, Any] = dataclasses.field(default_factory=dict)
     shooting: dict[str, Any] = dataclasses.field(default_factory=dict)
+    time_offset: list[float] | None = None
+    time_offset_stderr: list[float] | None = None
+    solve_options: dict[str, Any] = dataclasses.field(default_factory=dict, repr=False)
+
+    def predict(self, trials, **kwargs):
+        """The fitted model on `trials` (held out from the fit, or the fit's own): each trial
+        simulated from its own initial pose with the fitted parameters, its initial velocities
+        estimated as the fit estimates them (`jsphere.compare`, which takes the same keywords;
+        the fit's solver tolerances by default). Returns a `CompareResult`: its `predicted` holds
+        the simulated trials, its `trials` the scores."""
+        from .compare import compare
+
+        return compare(self.params, trials, **(self.solve_options | kwargs))
 
     def to_json(self) -> dict[str, Any]:
         """The JSON document (`RobotParams.load` reads its `params`)."""
@@ -92,7 +108,11 @@ class FitResult:
             "starts_cost": fin(self.starts),
             "elapsed_s": self.elapsed_s,
             "shooting": fin(self.shooting),
-        }
+        } | (
+            {}
+            if self.time_offset is None
+            else {"time_offset": fin(self.time_offset), "time_offset_stderr": fin(self.time_offset_stderr)}
+        )
 
     def save(self, path, *, plots: bool = True) -> list[Path]:
         """Write the JSON atomically and, unless `plots=False`, `<stem>_overlay.png` and
@@ -120,6 +140,9 @@ class FitResult:
         )
         for w in self.identifiability.get("warnings", []):
             lines.append(f"warning: {w}")
+        if self.time_offset is not None:
+            for t, v, s in zip(self.trials, self.time_offset, self.time_offset_stderr):
+                lines.append(f"time offset of {t['name']}: {v * 1e3:.2f} +- {s * 1e3:.2f} ms")
         if self.status:
             lines.append(f"status: {self.status}: {self.status_reason}")
         return "\n".join(lines)
@@ -189,6 +212,7 @@ def fit_result(
     ident = identifiability(free, values, F_phys, s2, params)
     ident["sigma_note"] = "relative sd of each direction; warnings list directions with relative sd > 10%"
     trials = _trial_reports(data, pose, nu[b], b)
+    offsets = _time_offsets(data, np.asarray(nu[b]), np.asarray(res[b]), J[b], P, s2)
     verdict = judge(
         [t["series"]["pos_err"] for t in trials],
         [np.radians(t["series"]["rot_err_deg"]) for t in trials],
@@ -223,7 +247,31 @@ def fit_result(
         status=status,
         status_reason=status_reason,
         verdict=verdict,
+        time_offset=None if offsets is None else offsets[0],
+        time_offset_stderr=None if offsets is None else offsets[1],
     )
+
+
+def _time_offsets(data: FitData, nu_b: np.ndarray, res_b: np.ndarray, J_b, P: int, s2: float):
+    """The fitted clock offsets [s] and their standard errors per trial, or None where they are
+    not fitted. The covariance of a trial's nuisance block of the block-arrow normal equations
+    (`jsphere.identify.lm`) is `s2 (A + A Hng F^-1 Hgn A)`, `A = Hnn^-1` and `F` the marginal
+    information of the free parameters; the offset's is mapped through `offset_from_nuisance`."""
+    if data.max_offset <= 0:
+        return None
+    m = data.max_offset
+    Hgg, Hgn, Hnn, _, _ = (np.asarray(a) for a in _blocks(jnp.asarray(res_b), J_b, P))
+    F = marginal_information(jnp.asarray(res_b), J_b, P)
+    Finv = np.linalg.pinv(F, rcond=1e-13, hermitian=True)
+    values, errors = [], []
+    for t in range(Hnn.shape[0]):
+        A = np.linalg.pinv(Hnn[t], rcond=1e-13, hermitian=True)
+        cov = A + A @ Hgn[t].T @ Finv @ Hgn[t] @ A
+        v = float(nu_b[t, -1])
+        slope = 1.0 - math.tanh(v / m) ** 2
+        values.append(float(offset_from_nuisance(v, m)))
+        errors.append(float(math.sqrt(max(s2 * cov[-1, -1], 0.0)) * slope))
+    return values, errors
 
 
 def _covariance(free: FreeParams, th_b, res_b: np.ndarray, J_b, s2: float):
@@ -260,7 +308,7 @@ def _trial_reports(data: FitData, pose, nu_b: np.ndarray, b: int) -> list[dict[s
     plots) of start `b`."""
     xs, ys, qs = (np.asarray(a[b]) for a in pose)
     rot_err = np.asarray(quat_log(quat_mul(quat_conj(jnp.asarray(qs)), jnp.asarray(data.q))))
-    names_nu = NUISANCE[data.kind]
+    names_nu = data.nuisance
     trials = []
     for i in range(data.ts.shape[0]):
         m = data.lengths[i]
@@ -273,7 +321,10 @@ def _trial_reports(data: FitData, pose, nu_b: np.ndarray, b: int) -> list[dict[s
                 "samples": m,
                 "rms_pos_m": float(np.sqrt((ep[wp] ** 2).sum(1).mean())),
                 "rms_rot_deg": float(np.degrees(np.sqrt((er[wr] ** 2).sum(1).mean()))),
-                "nuisance": {k: float(v) for k, v in zip(names_nu, nu_b[i])},
+                "nuisance": {
+                    k: float(offset_from_nuisance(v, data.max_offset)) if k == TIME_OFFSET else float(v)
+                    for k, v in zip(names_nu, nu_b[i])
+                },
                 "series": {
                     "t": data.ts[i, :m] + data.t_start[i],
                     "x": np.where(wp, data.x[i, :m], np.nan),

@@ -7,7 +7,8 @@ the residuals are the simulated minus the captured position and orientation, whi
     r_pos = (x_sim - x_meas, y_sim - y_meas) / sigma_pos
     r_rot = Log(q_sim^-1 q_meas) / sigma_rot          (rotation vector, platform frame)
 
-with gap frames masked. In wheel-speed mode `omega(0) = Omega(0) + w(0)` follows from the
+with gap frames masked. With a fitted clock offset (the last nuisance value) the inputs drive
+the model at `t + offset`. In wheel-speed mode `omega(0) = Omega(0) + w(0)` follows from the
 command (2.4), so the impulsive start of `simulate` changes nothing. All trials run in one
 compiled function (vmapped over trials, padded to a common length with masked samples) and all
 starts in the same call (vmapped over starts). The Jacobian of each trial's residuals with
@@ -30,23 +31,42 @@ from ..model.rotations import quat_conj, quat_exp, quat_log, quat_mul
 from ..model.state import State
 from ..solve.simulate import simulate
 from . import shooting as _shooting
+from .data import offset_from_nuisance
 from .free import FreeParams
 from .lm import _lm_step, _solve_arrow
 from .shooting import end_vector
 
 
-def _trial_outputs(free: FreeParams, kind, rtol, atol, max_steps, adjoint, base, theta, nu, d, sig, solver=None):
+def _trial_outputs(
+    free: FreeParams, kind, rtol, atol, max_steps, adjoint, base, theta, nu, d, sig, solver=None, max_offset=0.0
+):
     """Whitened residuals `(5 M,)` of one trial, its solver status, the simulated pose and the
-    state at its last sample (`jsphere.identify.shooting.end_vector`); `solver`: None for
-    `simulate`'s default."""
+    state at its last sample (`jsphere.identify.shooting.end_vector`, and the clock offset's
+    nuisance value when it is fitted); `solver`: None for `simulate`'s default."""
     p = free.to_params(theta, base)
+    return trial_model(p, kind, rtol, atol, max_steps, adjoint, nu, d, sig, solver, max_offset)
+
+
+def trial_model(p, kind, rtol, atol, max_steps, adjoint, nu, d, sig, solver=None, max_offset=0.0):
+    """The model of one trial with parameters `p` (a `RobotParams`): see `_trial_outputs`.
+
+    `nu`: the trial's nuisance values (`jsphere.identify.data.nuisance_names`); with
+    `max_offset > 0` the last is its clock offset (`offset_from_nuisance`), and the inputs drive
+    the model at `t + offset` (their table's knots move by `-offset`; beyond its ends the end
+    values are held)."""
     dt = p.R0.dtype
     q0 = quat_mul(d["q0"], quat_exp(nu[3:6]))
     Omega = nu[0:3]
-    table = Sampled(d["tc"], d["u"], "cubic")
+    if max_offset > 0:
+        offset = offset_from_nuisance(nu[-1], max_offset)
+        table = Sampled(d["tc"] - offset, d["u"], "cubic")
+        u0 = table(jnp.zeros((), dt))
+    else:
+        table = Sampled(d["tc"], d["u"], "cubic")
+        u0 = d["u"][0]
     if kind == "wheel_speeds":
         controls = WheelSpeeds(table, ())
-        omega = Omega + relative_rate_from_wheel_speeds(p, d["u"][0])
+        omega = Omega + relative_rate_from_wheel_speeds(p, u0)
     else:
         controls = Torques(table, ())
         omega = nu[8:11]
@@ -77,6 +97,8 @@ def _trial_outputs(free: FreeParams, kind, rtol, atol, max_steps, adjoint, base,
     er = quat_log(quat_mul(quat_conj(tr.q), d["q"])) * d["wrot"][:, None] / sig[1]
     res = jnp.concatenate([ex, ey, er.reshape(-1)])
     end = end_vector(tr)
+    if max_offset > 0:
+        end = jnp.concatenate([end, nu[-1:]])
     ok = tr.ok & jnp.all(jnp.isfinite(res)) & jnp.all(jnp.isfinite(end))
     res = jnp.where(ok, res, 0.0)
     end = jnp.where(ok, end, 0.0)
@@ -96,14 +118,21 @@ class _Functions:
     """
 
     def __init__(
-        self, free: FreeParams, kind: str, rtol: float, atol: float, max_steps: int, solver: dfx.AbstractSolver | None
+        self,
+        free: FreeParams,
+        kind: str,
+        rtol: float,
+        atol: float,
+        max_steps: int,
+        solver: dfx.AbstractSolver | None,
+        max_offset: float = 0.0,
     ):
         P = free.size
 
         def jac_one(base, th, nu, d, sig):
             def f(z):
                 res, ok, pose, end = _trial_outputs(
-                    free, kind, rtol, atol, max_steps, dfx.ForwardMode(), base, z[:P], z[P:], d, sig, solver
+                    free, kind, rtol, atol, max_steps, dfx.ForwardMode(), base, z[:P], z[P:], d, sig, solver, max_offset
                 )
                 return (res, end), (res, ok, pose, end)
 
@@ -128,11 +157,17 @@ _CACHE: dict[Any, _Functions] = {}
 
 
 def _functions(
-    free: FreeParams, kind: str, rtol: float, atol: float, max_steps: int, solver: dfx.AbstractSolver | None = None
+    free: FreeParams,
+    kind: str,
+    rtol: float,
+    atol: float,
+    max_steps: int,
+    solver: dfx.AbstractSolver | None = None,
+    max_offset: float = 0.0,
 ) -> _Functions:
     """The compiled functions of a configuration; `solver`: a diffrax solver (hashable, as
-    diffrax's are), None for `simulate`'s default."""
-    key = (free.slots, kind, rtol, atol, max_steps, solver)
+    diffrax's are), None for `simulate`'s default; `max_offset` > 0: the clock offsets are fitted."""
+    key = (free.slots, kind, rtol, atol, max_steps, solver, max_offset)
     if key not in _CACHE:
-        _CACHE[key] = _Functions(free, kind, rtol, atol, max_steps, solver)
+        _CACHE[key] = _Functions(free, kind, rtol, atol, max_steps, solver, max_offset)
     return _CACHE[key]

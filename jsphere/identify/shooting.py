@@ -8,11 +8,15 @@ initial state of the segment, in the same form as a trial's (`jsphere.identify.d
 from the capture. The continuity defects between consecutive segments of a trial,
 
     d_s = state(end of segment s) (-) state0(segment s+1)
-        = (Omega_end - Omega0', Log(q_end^-1 q0'), x_end - x0', y_end - y0' [, omega_end - omega0'])
+        = (Omega_end - Omega0', Log(q_end^-1 q0'), x_end - x0', y_end - y0' [, omega_end - omega0']
+           [, offset - offset'])
 
 each component divided by the change that one noise level makes over a segment (`defect_scale`),
 become residuals of weight `mu`. The fit raises `mu` until the defects vanish, which is a
-continuation from independent segments to one trajectory per trial.
+continuation from independent segments to one trajectory per trial. A fitted clock offset
+(`jsphere.identify.data.TIME_OFFSET`) is a nuisance value of every segment, its defect the
+difference from the next segment's; each segment's table of inputs then reaches far enough
+beyond its ends for the largest offset.
 
 Given the parameters `theta`, segments are independent, so they are simulated in one vmapped
 batch. The normal equations are an arrow over trials whose nuisance block per trial is block
@@ -24,13 +28,14 @@ in single shooting (`jsphere.identify.lm._solve_arrow`).
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..model.rotations import quat_conj, quat_exp, quat_log, quat_mul
-from .data import FitData
+from .data import NUISANCE, FitData
 
 #: the end state of a segment as one vector: q (4), x, y, Omega (3), omega (3)
 END_SIZE = 13
@@ -116,8 +121,12 @@ def segment_trials(data: FitData, segment: float) -> Segments:
         k: []
         for k in ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0", "name", "length", "start", "next")
     }
+    extra = 2
+    if data.max_offset > 0:
+        dt = float(np.median(np.diff(data.tc[0, : data.lengths[0]])))
+        extra += int(math.ceil(data.max_offset / dt))
     for i, a, b, last in pieces:
-        for k, v in _segment(data, i, a, b, last, L).items():
+        for k, v in _segment(data, i, a, b, last, L, extra).items():
             out[k].append(v)
     G = len(pieces)
     trial_of = np.asarray(trial_of)
@@ -130,7 +139,12 @@ def segment_trials(data: FitData, segment: float) -> Segments:
         first[i] = idx[0]
     arrays = {k: np.stack(out[k]) for k in ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0")}
     seg_data = FitData(
-        **arrays, kind=data.kind, names=tuple(out["name"]), lengths=tuple(out["length"]), t_start=tuple(out["start"])
+        **arrays,
+        kind=data.kind,
+        names=tuple(out["name"]),
+        lengths=tuple(out["length"]),
+        t_start=tuple(out["start"]),
+        max_offset=data.max_offset,
     )
     has_next, nxt_xy0, nxt_q0 = zip(*out["next"])
     return Segments(
@@ -145,16 +159,17 @@ def segment_trials(data: FitData, segment: float) -> Segments:
     )
 
 
-def _segment(data: FitData, i: int, a: int, b: int, last: bool, L: int) -> dict:
+def _segment(data: FitData, i: int, a: int, b: int, last: bool, L: int, extra: int = 2) -> dict:
     """Samples `a..b` of trial `i` as a trial of its own, padded to `L` samples: its arrays (as
     `FitData`'s), name, length, start time, and `next`: whether a segment follows and the
-    captured pose where it starts."""
-    Lc = L + 4  # control knots: two more on each side, so that the cubic table is the trial's
+    captured pose where it starts. The segment's table of inputs holds `extra` more knots on
+    each side (2: the cubic table is the trial's; more for a fitted clock offset)."""
+    Lc = L + 2 * extra
     m = b - a + 1
     t0 = data.ts[i, a]
     ts = data.ts[i, a : b + 1] - t0
-    # knots a-2 .. b+2 of the trial's table (its padding continues past its end)
-    lo = max(a - 2, 0)
+    # knots a-extra .. b+extra of the trial's table (its padding continues past its end)
+    lo = max(a - extra, 0)
     kn = np.arange(lo, lo + Lc)
     kn_c = np.minimum(kn, data.tc.shape[1] - 1)
     tc = data.tc[i, kn_c] - t0
@@ -190,16 +205,20 @@ def _segment(data: FitData, i: int, a: int, b: int, last: bool, L: int) -> dict:
     }
 
 
-def defect_scale(kind: str, sig, R0: float, segment: float) -> np.ndarray:
+def defect_scale(kind: str, sig, R0: float, segment: float, time_offset: bool = False) -> np.ndarray:
     """The size of each defect component that counts as one noise level: `sigma_rot` for the
     orientation, `sigma_pos` for the position, and for the velocities the error that moves the
     pose by one noise level over a segment (`sigma_pos / (R0 tau)` for the shell's rolling rate
-    `Omega`, `sigma_rot / tau` for the platform's `omega`), `tau` the segment length."""
+    `Omega`, `sigma_rot / tau` for the platform's `omega`), `tau` the segment length; for a
+    fitted clock offset `sigma_pos / R0` seconds (the time in which a shell rolling at 1 rad/s
+    moves by one noise level)."""
     sp, sr = float(sig[0]), float(sig[1])
     tau = max(float(segment), 1e-3)
     out = [sp / (R0 * tau)] * 3 + [sr] * 3 + [sp] * 2
     if kind == "torques":
         out += [sr / tau] * 3
+    if time_offset:
+        out += [sp / R0]
     return np.asarray(out)
 
 
@@ -209,8 +228,9 @@ def end_vector(traj) -> jax.Array:
 
 
 def defect(kind: str, end, nu_next, next_xy0, next_q0, scale):
-    """Continuity defect between a segment's end state `end` (`end_vector`) and the initial
-    state of the next segment (its nuisance `nu_next` and captured pose), divided by `scale`."""
+    """Continuity defect between a segment's end state `end` (`end_vector`, then the segment's
+    clock offset where it is fitted) and the initial state of the next segment (its nuisance
+    `nu_next` and captured pose), divided by `scale`."""
     q_end, x_end, y_end, Om_end = end[0:4], end[4], end[5], end[6:9]
     q0n = quat_mul(next_q0, quat_exp(nu_next[3:6]))
     parts = [
@@ -220,6 +240,8 @@ def defect(kind: str, end, nu_next, next_xy0, next_q0, scale):
     ]
     if kind == "torques":
         parts.append(end[9:12] - nu_next[8:11])
+    if nu_next.shape[0] > len(NUISANCE[kind]):  # the clock offset, last
+        parts.append(end[-1:] - nu_next[-1:])  # end: `end_vector`, then the offset
     return jnp.concatenate(parts) / scale
 
 

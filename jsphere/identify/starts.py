@@ -7,14 +7,16 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
+from .._runtime.errors import InputError
+from ..capture.clock import estimate_time_offset
 from ..model.kinematics import relative_rate_from_wheel_speeds
 from ..model.params import RobotParams
 from ..model.rotations import quat_conj, quat_log, quat_mul, rotmat
-from .data import NUISANCE, FitData
+from .data import NUISANCE, FitData, nuisance_from_offset
 from .free import FreeParams
 
 #: typical step of each nuisance parameter (1/s, rad, m): for Adam and the start spread
-_NU_SCALE = {"Omega0": 0.05, "rot0": 0.01, "x0": 0.002, "y0": 0.002, "omega0": 0.05}
+_NU_SCALE = {"Omega0": 0.05, "rot0": 0.01, "x0": 0.002, "y0": 0.002, "omega0": 0.05, "time": 0.01}
 
 
 def _line_rate(t, y):
@@ -23,12 +25,15 @@ def _line_rate(t, y):
     return (tt[:, None] * (y - y.mean(0))).sum(0) / max((tt * tt).sum(), 1e-300)
 
 
-def nuisance_guess(data: FitData, params: RobotParams, *, window: float = 0.1) -> np.ndarray:
+def nuisance_guess(data: FitData, params: RobotParams, *, window: float = 0.1, time_offset: bool = True) -> np.ndarray:
     """Initial nuisance parameters `(T, n)` from the first `window` seconds of each trial:
     the platform's angular velocity from the orientations, the horizontal shell rate from
-    the rolling velocity `v = R0 Omega x gamma` (2.3); offsets 0."""
+    the rolling velocity `v = R0 Omega x gamma` (2.3); offsets 0. A fitted clock offset starts
+    at the quick estimate from the whole trial (`jsphere.capture.clock.estimate_time_offset`),
+    or 0 where there is none; `time_offset=False` leaves it out."""
     T = data.ts.shape[0]
-    n = len(NUISANCE[data.kind])
+    offset = time_offset and data.max_offset > 0
+    n = len(NUISANCE[data.kind]) + offset
     nu = np.zeros((T, n))
     R0 = float(params.R0)
     for i in range(T):
@@ -54,7 +59,24 @@ def nuisance_guess(data: FitData, params: RobotParams, *, window: float = 0.1) -
             Om_f = np.array([-v[1] / R0, v[0] / R0, (R @ omega)[2]])
             nu[i, 0:3] = R.T @ Om_f
             nu[i, 8:11] = omega
+        if offset:
+            nu[i, -1] = nuisance_from_offset(_offset_guess(data, i, params), data.max_offset)
     return nu
+
+
+def _offset_guess(data: FitData, i: int, params: RobotParams) -> float:
+    """The quick estimate of trial `i`'s clock offset, 0 where the data give none."""
+    m = data.lengths[i]
+    wp, wr = data.wpos[i, :m] > 0, data.wrot[i, :m] > 0
+    x, y = np.where(wp, data.x[i, :m], np.nan), np.where(wp, data.y[i, :m], np.nan)
+    q = np.where(wr[:, None], data.q[i, :m], np.nan)
+    try:
+        off, corr = estimate_time_offset(
+            data.ts[i, :m], x, y, q, data.tc[i, :m], data.u[i, :m], data.kind, params, max_offset=data.max_offset
+        )
+    except InputError:
+        return 0.0
+    return off if corr > 0.5 else 0.0
 
 
 def start_design(free: FreeParams, n_starts: int, spread: float, rng: np.random.Generator) -> np.ndarray:

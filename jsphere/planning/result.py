@@ -91,6 +91,39 @@ class Plan:
         lines = [",".join(names)] + [",".join(repr(float(v)) for v in row) for row in data]
         atomic_write_text(path, "\n".join(lines) + "\n")
 
+    def commands(self, kind: str = "chi_dot", rate: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """The commands for the robot: `(t (M,), values (M, N))`, the wheel speeds `chi_dot_i`
+        [rad/s] (`kind="chi_dot"`) or the axle torques `K_i` [N m] (`kind="K"`) in the sign
+        convention of `docs/capture.md` (the model's), at `rate` rows per second from `t = 0`
+        to the plan's end (default: the plan's own `rate`), interpolated linearly from the
+        trajectory. The robot is at rest at the last row."""
+        from ..capture.inputs import input_kind
+
+        want = input_kind(kind)
+        if want is None:
+            raise ValueError("Plan.commands: kind must be 'chi_dot' or 'K'.")
+        rate = self.rate if rate is None else float(rate)
+        if not (np.isfinite(rate) and rate > 0):
+            raise ValueError(f"Plan.commands: rate must be a positive number of rows per second; got {rate!r}.")
+        tr = self.trajectory
+        ts = np.asarray(tr.ts)
+        vals = np.asarray(tr.chi_dot if want == "wheel_speeds" else tr.K)
+        T = float(ts[-1])
+        t = np.arange(int(np.floor(T * rate + 1e-9)) + 1) / rate
+        if T - t[-1] > 1e-9:
+            t = np.append(t, T)
+        keep = np.concatenate([np.diff(ts) > 0, [True]])  # a repeated time: its value from then on
+        out = np.stack([np.interp(t, ts[keep], vals[keep, i]) for i in range(vals.shape[1])], axis=1)
+        return t, out
+
+    def write_commands(self, path, kind: str = "chi_dot", rate: float | None = None) -> None:
+        """Write `commands(kind, rate)` as an inputs table, `t, chi_dot_1..N` or `t, K_1..N`: the
+        table that `read_inputs_csv` and `jsphere convert --inputs` read (atomically)."""
+        from ..capture.inputs import input_kind, write_inputs_csv
+
+        t, values = self.commands(kind, rate)
+        write_inputs_csv(path, t, values, input_kind(kind))
+
     def summary(self) -> str:
         """A few lines for a terminal: target, errors, limits, feasibility, iterations, time."""
         e = self.errors

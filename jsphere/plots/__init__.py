@@ -1,7 +1,8 @@
 """Figures (matplotlib, imported lazily), one module per family: the paper's figures, fits,
-plans and Monte-Carlo studies. Each function takes a result object and writes a PNG
+models compared with trials, plans and Monte-Carlo studies. Each function takes a result object and writes a PNG
 atomically; this layer imports nothing from the layers whose results it draws."""
 
+from .compare import compare_figure as compare_figure
 from .fit import fit_figures as fit_figures
 from .fit import worst_trial as worst_trial
 from .montecarlo import figure2_study as figure2_study

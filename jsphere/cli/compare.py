@@ -1,0 +1,74 @@
+"""`jsphere compare`: a model scored on captured trials it was not fitted to (docs/lab.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+NAME = "compare"
+EXAMPLES = """
+  jsphere compare held_out/*.csv --params fit.json --out compare.json
+  jsphere compare trial_07.csv trial_08.csv --params robot.toml --no-plots --out compare.json
+"""
+
+
+def add_parser(sub) -> None:
+    cp = sub.add_parser(
+        NAME,
+        help="score a model on captured trials: fit %%, whiteness of the residuals (docs/lab.md)",
+        description="Simulate each trial with the given parameters from its own initial pose (its initial "
+        "velocities estimated as the fit estimates them) and score it: the normalised fit "
+        "100 (1 - |y - y_hat| / |y - mean(y)|) of x, y and the orientation, the residuals' autocorrelation (the "
+        "fraction of lags outside the 99 % band) and their cross-correlation with the inputs, per trial and "
+        "overall. Writes compare.json and a figure per trial.",
+    )
+    cp.add_argument("trials", nargs="+", metavar="TRIAL", help="trial CSV files or folders of them (docs/capture.md)")
+    cp.add_argument(
+        "--params", required=True, metavar="FILE", help="the model: a fit.json or a parameter file (.toml or .json)"
+    )
+    cp.add_argument(
+        "--out", default="compare.json", help="result JSON (default compare.json); the figures go beside it"
+    )
+    cp.add_argument("--lags", type=int, default=25, help="largest lag of the correlations [samples] (default 25)")
+    cp.add_argument(
+        "--fit-time-offset",
+        action="store_true",
+        help="estimate each trial's clock offset too (as jsphere fit --fit-time-offset)",
+    )
+    cp.add_argument(
+        "--max-time-offset", type=float, default=0.5, metavar="SECONDS", help="the largest clock offset [s]"
+    )
+    cp.add_argument("--no-plots", action="store_true", help="skip the figures")
+    cp.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
+
+
+def run(args) -> int:
+    """`jsphere compare`: exit 0 once the scores are written, whatever they are."""
+    from .._runtime.errors import ExitCode, InputError
+    from .._runtime.files import check_output
+    from ..capture.trial import read_trials
+    from ..identify.compare import compare, figure_name
+    from ..model.params import RobotParams
+
+    out = Path(args.out)
+    if not out.is_dir() and out.suffix.lower() != ".json":
+        raise InputError(f"--out {out}: the result is JSON; give a path ending in .json.")
+    inputs = {
+        "the trial file": [t for t in args.trials if not Path(t).is_dir()],
+        "the parameter file (--params)": args.params,
+    }
+    check_output(out, inputs=inputs, example=str(out / "compare.json"))
+    params = RobotParams.load(args.params)
+    trials = read_trials(args.trials)
+    figures = [] if args.no_plots else [out.with_name(f"{out.stem}_{figure_name(t.name)}.png") for t in trials]
+    check_output(out, writes=figures, inputs=inputs, example=str(out / "compare.json"))
+    res = compare(
+        params,
+        trials,
+        lags=args.lags,
+        fit_time_offset=args.fit_time_offset,
+        max_time_offset=args.max_time_offset,
+    )
+    written = res.save(out, plots=not args.no_plots)
+    print(res.table())
+    print(f"wrote {', '.join(str(p) for p in written)}")
+    return ExitCode.OK

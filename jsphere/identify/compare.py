@@ -1,0 +1,377 @@
+"""Validation of a model on trials: `compare` (simulated against measured, per trial and overall).
+
+Each trial is simulated with the given parameters from its own initial pose; its nuisance values
+(the initial velocities and the small offsets of the initial pose, and the clock offset where it
+is asked for: `jsphere.identify.data.nuisance_names`) are estimated as the fit estimates them,
+by Levenberg-Marquardt on the trial's whitened residuals with the parameters held. Then:
+
+- the normalised fit `100 (1 - |y - y_hat| / |y - mean(y)|)` [%] of `x`, `y` and the platform's
+  orientation (`rot`: `y` the rotation vector from the first measured orientation, `y - y_hat`
+  the rotation vector of `q_sim^-1 q_meas`, norms over all samples and components);
+- the residuals' autocorrelation at lags `1..lags` per channel (`x`, `y`, `rot_x..z`) and the
+  fraction outside the 99 % band `+- 2.576 / sqrt(N)` of white noise (`whiteness`);
+- their cross-correlation with each input at lags `-lags..lags`, with the same band.
+
+A right model leaves white residuals (about 1 % of the lags outside the band) and a fit near
+100 % where the motion is large against the noise; a wrong one scores lower and leaves
+correlated residuals.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import diffrax as dfx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._runtime.errors import InputError, SolverFailure
+from .._runtime.files import atomic_write_json
+from ..capture.trial import Trial
+from ..model.params import RobotParams
+from ..model.rotations import quat_conj, quat_log, quat_mul
+from .data import TIME_OFFSET, FitData, offset_from_nuisance, pack_trials
+from .residuals import trial_model
+from .starts import nuisance_guess
+
+#: the 99 % two-sided quantile of the standard normal distribution
+Z99 = 2.5758293035489004
+#: the residual channels, in the order of `series["residuals"]`'s columns
+CHANNELS = ("x", "y", "rot_x", "rot_y", "rot_z")
+
+
+@dataclasses.dataclass
+class CompareResult:
+    """What `compare` returns. `trials`: per trial `name`, `fit_percent` (`x`, `y`, `rot`),
+    `whiteness` (`acf_outside_99`: the fraction of autocorrelations at lags `1..lags` outside the
+    99 % band, over all channels; per channel under `channels`; `band`, `lags`),
+    `cross_correlation` (`ccf_outside_99`, `max_abs`, per input under `inputs`), RMS residuals,
+    the nuisance values, and under `series` the time series for the figures (not written to JSON);
+    `overall`: the same scores over all trials together (fits of the pooled norms, fractions over
+    all lags); `predicted`: the simulated trials (`Trial`s with the simulated pose and the
+    measured inputs); `params`: the parameters compared."""
+
+    trials: list[dict[str, Any]]
+    overall: dict[str, Any]
+    predicted: list[Trial]
+    params: RobotParams
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON document: `trials` (each with `name`, `fit_percent`, `whiteness`, ...),
+        `overall` and the `params` compared."""
+        return {
+            "trials": [{k: v for k, v in t.items() if k != "series"} for t in self.trials],
+            "overall": self.overall,
+            "params": self.params.to_dict(),
+        }
+
+    def save(self, path, *, plots: bool = True) -> list[Path]:
+        """Write the JSON atomically and, unless `plots=False`, one figure per trial beside it,
+        `<stem>_<trial>.png` (`jsphere.plots.compare_figure`). Returns the paths written."""
+        path = Path(path)
+        atomic_write_json(path, _finite(self.to_json()))
+        written = [path]
+        if plots:
+            from ..plots import compare_figure
+
+            for t in self.trials:
+                written.append(compare_figure(t, path.with_name(f"{path.stem}_{figure_name(t['name'])}.png")))
+        return written
+
+    def table(self) -> str:
+        """A plain-text summary: fits [%] and the whiteness per trial, then overall."""
+        lines = [f"{'trial':<20} {'fit x %':>8} {'fit y %':>8} {'fit rot %':>9} {'acf out 99':>10} {'ccf out 99':>10}"]
+        for t in [*self.trials, self.overall]:
+            f = t["fit_percent"]
+            lines.append(
+                f"{t['name'][:20]:<20} {f['x']:>8.2f} {f['y']:>8.2f} {f['rot']:>9.2f} "
+                f"{t['whiteness']['acf_outside_99']:>10.3f} {t['cross_correlation']['ccf_outside_99']:>10.3f}"
+            )
+        return "\n".join(lines)
+
+
+def figure_name(name: str) -> str:
+    """A trial's name as part of a file name (letters, digits, `-`, `_`, `.`; others `_`)."""
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "trial"
+
+
+def compare(
+    params: RobotParams,
+    trials: Sequence[Trial],
+    *,
+    lags: int = 25,
+    sigma_pos: float = 1e-3,
+    sigma_rot: float = math.radians(0.5),
+    fit_time_offset: bool = False,
+    max_time_offset: float = 0.5,
+    max_iter: int = 30,
+    rtol: float = 1e-6,
+    atol: float = 1e-8,
+    max_steps: int = 16384,
+) -> CompareResult:
+    """Simulate each trial with `params` and score it against the measurement (module docstring).
+
+    **Arguments:**
+    - `params`: the model (e.g. `FitResult.params`, or `RobotParams.load("fit.json")`).
+    - `trials`: `Trial`s of one input kind with the wheel count of `params`.
+    - `lags`: the largest lag of the correlations [samples].
+    - `sigma_pos` [m], `sigma_rot` [rad]: weights of position and orientation in the estimate
+      of the nuisance values (the capture's noise levels).
+    - `fit_time_offset`, `max_time_offset`: estimate each trial's clock offset too (as `fit`).
+    - `max_iter`: Levenberg-Marquardt iterations of the nuisance estimate.
+    - `rtol`, `atol`, `max_steps`: the ODE solver's (`fit`'s defaults).
+
+    Returns a `CompareResult`. Raises `InputError` for trials that do not fit `params` or bad
+    options, `SolverFailure` when a trial cannot be simulated (named)."""
+    if isinstance(lags, bool) or not isinstance(lags, (int, np.integer)) or lags < 1:
+        raise InputError(f"compare: lags must be an integer >= 1; got {lags!r}.")
+    for name, v in (("sigma_pos", sigma_pos), ("sigma_rot", sigma_rot), ("max_time_offset", max_time_offset)):
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.number)) or not 0 < v < math.inf:
+            raise InputError(f"compare: {name} must be a positive number; got {v!r}.")
+    trials = list(trials)
+    data = pack_trials(trials, params, max_offset=float(max_time_offset) if fit_time_offset else 0.0)
+    sig = np.array([float(sigma_pos), float(sigma_rot)])
+    nu, pose, ok = _estimate_nuisance(params, data, sig, int(max_iter), float(rtol), float(atol), int(max_steps))
+    bad = np.flatnonzero(~ok)
+    if bad.size:
+        raise SolverFailure(
+            f"compare: the simulation of trial {data.names[int(bad[0])]!r} with these parameters did not reach its end "
+            "(or gave non-finite values); check the parameters and that trial's inputs."
+        )
+    reports, predicted = [], []
+    for i, tr in enumerate(trials):
+        rep = _trial_report(data, i, pose, nu[i], np.asarray(tr.inputs, float), lags)
+        reports.append(rep)
+        s = rep["series"]
+        m = data.lengths[i]
+        predicted.append(
+            Trial(
+                np.asarray(tr.t, float),
+                s["x_sim"],
+                s["y_sim"],
+                np.asarray(pose[2][i, :m]),
+                np.asarray(tr.inputs, float),
+                data.kind,
+                name=f"{data.names[i]}_predicted",
+            )
+        )
+    return CompareResult(trials=reports, overall=_overall(reports, lags), predicted=predicted, params=params)
+
+
+# ----------------------------------------------------------------------------- the nuisance values
+
+_COMPILED: dict[Any, Any] = {}
+
+
+def _model(kind: str, rtol: float, atol: float, max_steps: int, max_offset: float):
+    """The compiled residuals and their Jacobian with respect to each trial's nuisance values,
+    vmapped over trials: `(params, nu (T, n), data, sig) -> (res, ok, J, pose)`."""
+    key = (kind, rtol, atol, max_steps, max_offset)
+    if key not in _COMPILED:
+
+        def one(p, nu, d, sig):
+            def f(z):
+                res, ok, pose, _ = trial_model(
+                    p, kind, rtol, atol, max_steps, dfx.ForwardMode(), z, d, sig, None, max_offset
+                )
+                return res, (res, ok, pose)
+
+            J, (res, ok, pose) = jax.jacfwd(f, has_aux=True)(nu)
+            return res, ok, J, pose
+
+        _COMPILED[key] = jax.jit(jax.vmap(one, in_axes=(None, 0, 0, None)))
+    return _COMPILED[key]
+
+
+def _estimate_nuisance(params, data: FitData, sig, max_iter: int, rtol, atol, max_steps):
+    """Each trial's nuisance values by Levenberg-Marquardt with `params` held (trials are then
+    independent: one small damped Gauss-Newton step per trial, all in one vmapped call). Returns
+    the values `(T, n)`, the simulated poses there and whether each trial's solve succeeded."""
+    fn = _model(data.kind, rtol, atol, max_steps, data.max_offset)
+    arrays, sig_j = data.arrays(), jnp.asarray(sig)
+    nu = nuisance_guess(data, params)
+    res, ok, J, pose = fn(params, jnp.asarray(nu), arrays, sig_j)
+    res, ok, J, pose = np.asarray(res), np.asarray(ok), np.asarray(J), tuple(np.asarray(a) for a in pose)
+    cost = np.where(ok, 0.5 * (res * res).sum(1), np.inf)
+    lam = np.full(nu.shape[0], 1e-3)
+    done = ~np.isfinite(cost)
+    for _ in range(max_iter):
+        if done.all():
+            break
+        H = np.einsum("tkn,tkm->tnm", J, J)
+        g = np.einsum("tkn,tk->tn", J, res)
+        d = np.diagonal(H, axis1=1, axis2=2)
+        Hd = H + (lam[:, None] * d + 1e-12 * d.max(1, keepdims=True) + 1e-300)[:, :, None] * np.eye(H.shape[1])
+        step = -np.linalg.solve(Hd, g[..., None])[..., 0]
+        step = np.where(done[:, None], 0.0, step)
+        r2, ok2, J2, pose2 = fn(params, jnp.asarray(nu + step), arrays, sig_j)
+        r2, ok2, J2 = np.asarray(r2), np.asarray(ok2), np.asarray(J2)
+        c2 = np.where(ok2, 0.5 * (r2 * r2).sum(1), np.inf)
+        better = (c2 < cost) & ~done
+        small = better & (cost - c2 <= 1e-10 * np.maximum(cost, 1e-300) + 1e-8)
+        nu = np.where(better[:, None], nu + step, nu)
+        res = np.where(better[:, None], r2, res)
+        J = np.where(better[:, None, None], J2, J)
+        pose = tuple(
+            np.where(better.reshape((-1,) + (1,) * (np.ndim(b) - 1)), np.asarray(a), b) for a, b in zip(pose2, pose)
+        )
+        cost = np.where(better, c2, cost)
+        lam = np.where(better, np.maximum(lam / 5.0, 1e-12), lam * 10.0)
+        done |= small | (lam > 1e10)
+    return nu, tuple(np.asarray(a) for a in pose), np.isfinite(cost)
+
+
+# ----------------------------------------------------------------------------- the scores
+
+
+def _norms(err: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """`(|err|^2, |y - mean(y)|^2)`, sums over all entries (`y (n, ...)`)."""
+    return float((err**2).sum()), float(((y - y.mean(0)) ** 2).sum())
+
+
+def _fit_percent(norms: tuple[float, float]) -> float:
+    """`100 (1 - |err| / |y - mean(y)|)` from `_norms`."""
+    num, den = norms
+    return 100.0 * (1.0 - math.sqrt(num / den)) if den > 0 else -math.inf
+
+
+def _acf(e: np.ndarray, w: np.ndarray, lags: int) -> np.ndarray:
+    """Autocorrelation `(lags + 1,)` of a series `e` measured where `w` (gaps left out of each
+    lag's products, each lag's mean scaled to all measured pairs)."""
+    e = np.where(w, e - e[w].mean(), 0.0)
+    c0 = (e * e).sum() / max(w.sum(), 1)
+    out = np.ones(lags + 1)
+    for k in range(1, lags + 1):
+        pairs = (w[k:] & w[:-k]).sum()
+        out[k] = ((e[k:] * e[:-k]).sum() / max(pairs, 1)) / c0 if pairs and c0 > 0 else 0.0
+    return out
+
+
+def _ccf(e: np.ndarray, w: np.ndarray, u: np.ndarray, lags: int) -> np.ndarray:
+    """Cross-correlation `(2 lags + 1,)` of a residual series `e` (measured where `w`) with an
+    input `u`, at lags `-lags..lags` (`e(t)` against `u(t - k)`)."""
+    e = np.where(w, e - e[w].mean(), 0.0)
+    u = u - u.mean()
+    se, su = math.sqrt((e * e).sum() / max(w.sum(), 1)), math.sqrt((u * u).mean())
+    out = np.zeros(2 * lags + 1)
+    if se == 0 or su == 0:
+        return out
+    n = len(e)
+    for j, k in enumerate(range(-lags, lags + 1)):
+        a, b = (e[k:], u[: n - k]) if k >= 0 else (e[: n + k], u[-k:])
+        ww = w[k:] if k >= 0 else w[: n + k]
+        out[j] = (a * b).sum() / max(ww.sum(), 1) / (se * su)
+    return out
+
+
+def _trial_report(data: FitData, i: int, pose, nu_i: np.ndarray, inputs: np.ndarray, lags: int) -> dict[str, Any]:
+    m = data.lengths[i]
+    wp, wr = data.wpos[i, :m] > 0, data.wrot[i, :m] > 0
+    xs, ys, qs = (np.asarray(a[i, :m]) for a in pose)
+    q_meas = data.q[i, :m]
+    rot_err = np.asarray(quat_log(quat_mul(quat_conj(jnp.asarray(qs)), jnp.asarray(q_meas))))
+    rot_meas = np.asarray(quat_log(quat_mul(quat_conj(jnp.asarray(data.q0[i])), jnp.asarray(q_meas))))
+    ex, ey = xs - data.x[i, :m], ys - data.y[i, :m]
+    norms = {
+        "x": _norms(ex[wp], data.x[i, :m][wp]),
+        "y": _norms(ey[wp], data.y[i, :m][wp]),
+        "rot": _norms(rot_err[wr], rot_meas[wr]),
+    }
+    fit = {k: _fit_percent(v) for k, v in norms.items()}
+    resid = np.stack([ex, ey, *rot_err.T], 1)
+    masks = [wp, wp, wr, wr, wr]
+    n_eff = int(wp.sum())
+    band = Z99 / math.sqrt(max(n_eff, 1))
+    acfs = np.stack([_acf(resid[:, c], masks[c], lags) for c in range(len(CHANNELS))])
+    outside = np.abs(acfs[:, 1:]) > band
+    u = np.asarray(inputs, float)[:m]
+    ccfs = np.stack(
+        [
+            np.stack([_ccf(resid[:, c], masks[c], u[:, j], lags) for j in range(u.shape[1])])
+            for c in range(len(CHANNELS))
+        ]
+    )  # (channel, input, lag)
+    c_out = np.abs(ccfs) > band
+    names_nu = data.nuisance
+    return {
+        "name": data.names[i],
+        "samples": m,
+        "fit_percent": fit,
+        "whiteness": {
+            "acf_outside_99": float(outside.mean()),
+            "band": band,
+            "lags": lags,
+            "channels": {c: float(outside[k].mean()) for k, c in enumerate(CHANNELS)},
+        },
+        "cross_correlation": {
+            "ccf_outside_99": float(c_out.mean()),
+            "max_abs": float(np.abs(ccfs).max()),
+            "band": band,
+            "lags": lags,
+            "inputs": {f"input_{j + 1}": float(c_out[:, j].mean()) for j in range(u.shape[1])},
+        },
+        "rms_pos_m": float(np.sqrt((ex[wp] ** 2 + ey[wp] ** 2).mean())),
+        "rms_rot_deg": float(np.degrees(np.sqrt((rot_err[wr] ** 2).sum(1).mean()))),
+        "nuisance": {
+            k: float(offset_from_nuisance(v, data.max_offset)) if k == TIME_OFFSET else float(v)
+            for k, v in zip(names_nu, nu_i)
+        },
+        "series": {
+            "t": data.ts[i, :m] + data.t_start[i],
+            "x": np.where(wp, data.x[i, :m], np.nan),
+            "y": np.where(wp, data.y[i, :m], np.nan),
+            "x_sim": xs,
+            "y_sim": ys,
+            "residuals": np.where(np.stack(masks, 1), resid, np.nan),
+            "acf": acfs,
+            "channels": CHANNELS,
+            "band": band,
+            "fit_percent": fit,
+            "norms": norms,
+        },
+    }
+
+
+def _overall(reports: list[dict[str, Any]], lags: int) -> dict[str, Any]:
+    """The scores of all trials together: fits from the pooled norms (each trial about its own
+    mean), fractions over all trials' lags (weighted by their counts), RMS over all samples."""
+    fit = {}
+    for key in ("x", "y", "rot"):
+        num = sum(r["series"]["norms"][key][0] for r in reports)
+        den = sum(r["series"]["norms"][key][1] for r in reports)
+        fit[key] = 100.0 * (1.0 - math.sqrt(num / den)) if den > 0 else -math.inf
+    n = np.array([r["samples"] for r in reports], float)
+    wavg = lambda vals: float((np.asarray(vals) * n).sum() / n.sum())
+    return {
+        "name": "overall",
+        "trials": len(reports),
+        "samples": int(n.sum()),
+        "fit_percent": fit,
+        "whiteness": {
+            "acf_outside_99": wavg([r["whiteness"]["acf_outside_99"] for r in reports]),
+            "lags": lags,
+        },
+        "cross_correlation": {
+            "ccf_outside_99": wavg([r["cross_correlation"]["ccf_outside_99"] for r in reports]),
+            "max_abs": max(r["cross_correlation"]["max_abs"] for r in reports),
+            "lags": lags,
+        },
+        "rms_pos_m": math.sqrt(wavg([r["rms_pos_m"] ** 2 for r in reports])),
+        "rms_rot_deg": math.sqrt(wavg([r["rms_rot_deg"] ** 2 for r in reports])),
+    }
+
+
+def _finite(v):
+    """Non-finite floats as None (JSON has no inf/NaN)."""
+    if isinstance(v, dict):
+        return {k: _finite(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_finite(x) for x in v]
+    if isinstance(v, (float, np.floating)):
+        return float(v) if math.isfinite(v) else None
+    return v
