@@ -209,12 +209,11 @@ def prepare(
     options: SolverOptions | None = None,
     out: str | os.PathLike | None = None,
     distributed: bool = False,
-    folder_batch_size: bool = False,
 ) -> "_Run":
     """Check the arguments of a study (those of `monte_carlo`) and lay it out in batches, over
-    this process's devices or (`distributed`) every process's; with `folder_batch_size`, the
-    batches of the manifest in `out` where it has one that these devices can share (workers
-    on nodes with other device counts, `--gather`, which computes nothing)."""
+    this process's devices or (`distributed`) every process's. A study folder `out` that
+    exists keeps its batch size where these devices can share it (a study extended to more
+    trials, workers on nodes with other device counts, `--gather`, which computes nothing)."""
     settings = check_settings(
         "monte_carlo",
         {
@@ -234,8 +233,6 @@ def prepare(
     gaits = _check_gaits(gaits)
     if commands is not None and mode == "gait":
         raise ValueError("monte_carlo: `commands` are replayed; use mode='torques' or 'wheel_speeds'.")
-    if folder_batch_size and out is None:
-        raise InputError("monte_carlo: workers and --gather share a study through its folder; pass `out`.")
     replay = None if mode == "gait" else _replay(params, gaits, mode, commands, reset, actuators, settings)
     return _Run.create(
         params,
@@ -252,7 +249,6 @@ def prepare(
         commands=commands is not None,
         out=out,
         distributed=distributed,
-        folder_batch_size=folder_batch_size,
     )
 
 
@@ -383,15 +379,16 @@ class _Run:
         commands,
         out,
         distributed,
-        folder_batch_size,
     ) -> "_Run":
         n, seed = settings["n"], settings["seed"]
         distributed = distributed and jax.process_count() > 1
         devices = jax.devices() if distributed else jax.local_devices()
         unit = CHUNK * len(devices)
         B = int(math.ceil(max(1, min(settings["batch_size"], n)) / unit) * unit)
-        if folder_batch_size:
-            recorded = StudyFolder.manifest_batch_size(out)
+        if out is not None:  # a study's folder keeps its batches (results do not depend on them)
+            recorded = StudyFolder.manifest_batch_size(out) if not distributed or jax.process_index() == 0 else None
+            if distributed:  # process 0's folder, which the others need not see
+                recorded = int(share_from_process_0(np.int64(recorded or 0))) or None
             B = recorded if recorded is not None and recorded % unit == 0 else B
         n_batches = int(math.ceil(n / B))
         mesh = None

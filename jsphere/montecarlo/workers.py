@@ -56,7 +56,8 @@ def work(
     creates the folder; the others check that it holds the same study. Batches follow the
     folder's batch size where this node's devices can share it."""
     claim_timeout = real("monte_carlo", "claim_timeout", claim_timeout, unit="s")
-    run = prepare(params, gaits, out=out, folder_batch_size=True, **study)
+    _check_out(out)
+    run = prepare(params, gaits, out=out, **study)
     run.open_folder()
     progress = Progress(progress)
     computed, claimed = [], {}
@@ -89,6 +90,11 @@ def work(
     return WorkReport(tuple(computed), claimed, done, run.n_batches)
 
 
+def _check_out(out) -> None:
+    if out is None:
+        raise InputError("monte_carlo: workers and their gather share a study through its folder; pass `out`.")
+
+
 def _finished(run: _Run, k: int) -> bool:
     """Whether batch `k` is in the folder and can be read (a corrupt one is computed again)."""
     return run.folder.has_batch(k) and run.folder.load_batch(k, stacklevel=4) is not None
@@ -100,7 +106,8 @@ def gather(params, gaits, *, out, **study) -> MonteCarloResult:
     `study`: the study's arguments, as `monte_carlo` takes them. Removes what workers leave
     behind (temporary files, claims) once every batch is there."""
     t0 = time.perf_counter()
-    run = prepare(params, gaits, out=out, folder_batch_size=True, **study)
+    _check_out(out)
+    run = prepare(params, gaits, out=out, **study)
     path = run.folder.path
     if not (path / "manifest.json").exists():
         raise InputError(f"monte_carlo: {path} holds no study (no manifest.json); run the workers first.")
