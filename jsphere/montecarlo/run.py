@@ -99,7 +99,9 @@ def monte_carlo(
     - `n`, `seed`: number of trials and the seed (`0 <= seed < 2**32`). Trial `i` uses the key
       `fold_in(PRNGKey(seed), i)`: the same study whatever `batch_size` or device count.
     - `batch_size`: trials per compiled call (memory stays bounded for any `n`); rounded up to
-      a multiple of 64 times the number of local devices, over which each batch is sharded.
+      a multiple of 64 times the number of devices, over which each batch is sharded (a study
+      folder `out` that exists keeps the batch size of its manifest where the devices can
+      share it).
       Inside, trials run in vmapped chunks of 64 (`CHUNK`), so results are bitwise identical
       for any batch size and device count.
     - `mode`: `"gait"` (default): each trial executes the gaits exactly (the paper's
@@ -388,7 +390,7 @@ class _Run:
         if out is not None:  # a study's folder keeps its batches (results do not depend on them)
             recorded = StudyFolder.manifest_batch_size(out) if not distributed or jax.process_index() == 0 else None
             if distributed:  # process 0's folder, which the others need not see
-                recorded = int(share_from_process_0(np.int64(recorded or 0))) or None
+                recorded = int(share_from_process_0(np.int32(recorded or 0))) or None
             B = recorded if recorded is not None and recorded % unit == 0 else B
         n_batches = int(math.ceil(n / B))
         mesh = None

@@ -114,7 +114,7 @@ class StudyFolder:
                 )
             if _create_exclusively(manifest, record):
                 return
-        old_n = self._check_manifest(manifest, fp, n)
+        old_n = self.check_manifest(fp, n)
         if old_n < n:
             atomic_write_json(manifest, record)
 
@@ -127,8 +127,10 @@ class StudyFolder:
             return None
         return size if isinstance(size, int) and not isinstance(size, bool) and size > 0 else None
 
-    def _check_manifest(self, manifest: Path, fp: str, n: int) -> int:
-        """The number of trials of the study in `manifest`, which must be `fp` with at most `n`."""
+    def check_manifest(self, fp: str, n: int) -> int:
+        """The number of trials of the study in the folder's manifest, which must be `fp` with at
+        most `n`."""
+        manifest = self.path / "manifest.json"
         try:
             old = json.loads(manifest.read_text())
             if not isinstance(old, dict):

@@ -111,7 +111,12 @@ def gather(params, gaits, *, out, **study) -> MonteCarloResult:
     path = run.folder.path
     if not (path / "manifest.json").exists():
         raise InputError(f"monte_carlo: {path} holds no study (no manifest.json); run the workers first.")
-    run.open_folder()
+    recorded = run.folder.check_manifest(run.fingerprint, run.n)
+    if recorded < run.n:
+        raise InputError(
+            f"monte_carlo: {path} holds this study with {recorded} trials; run workers with n = {run.n} (--trials) "
+            f"first, or gather {recorded}."
+        )
     parts = [run.folder.load_batch(k, stacklevel=3) if run.folder.has_batch(k) else None for k in range(run.n_batches)]
     missing = [k for k, p in enumerate(parts) if p is None]
     if missing:
