@@ -240,7 +240,6 @@ def prepare(
         params,
         gaits,
         spec,
-        vary,
         settings,
         reset=reset,
         rtol=rtol,
@@ -251,6 +250,7 @@ def prepare(
         commands=commands is not None,
         out=out,
         distributed=distributed,
+        vary=vary,
     )
 
 
@@ -369,7 +369,6 @@ class _Run:
         params,
         gaits,
         spec,
-        vary,
         settings,
         *,
         reset,
@@ -380,7 +379,8 @@ class _Run:
         replay,
         commands,
         out,
-        distributed,
+        distributed=False,
+        vary=None,
     ) -> "_Run":
         n, seed = settings["n"], settings["seed"]
         distributed = distributed and jax.process_count() > 1
@@ -419,7 +419,7 @@ class _Run:
         program = f"{fingerprint(params, gaits, spec, 0, B, options, rtol, atol)}|{len(devices)}"
         folder = StudyFolder(Path(out), B, len(spec)) if out is not None else None
         writer = not distributed or jax.process_index() == 0
-        return cls(trials, dict(vary), n, seed, B, n_batches, folder, fp, program, distributed, writer)
+        return cls(trials, dict(vary or {}), n, seed, B, n_batches, folder, fp, program, distributed, writer)
 
     def open_folder(self) -> None:
         """Create the study's folder or check the study in it (`StudyFolder.open`)."""
