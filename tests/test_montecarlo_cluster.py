@@ -101,6 +101,29 @@ def test_workers_skip_fresh_claims_take_over_stale_ones_and_gather_names_what_is
         gather(paper, GAITS, vary=VARY, n=256, seed=7, out=tmp_path / "empty")
 
 
+def test_distributed_settings_are_checked(paper, tmp_path, capsys):
+    """A distributed run's settings without `distributed`, and `distributed=True` in a process
+    that has made JAX arrays before starting JAX's distributed runtime, are refused with what to
+    do; so are the command line's conflicting or stray options."""
+    from jsphere.cli.app import main
+
+    with pytest.raises(InputError, match="coordinator, num_processes set up a distributed run; pass distributed=True"):
+        jsphere.monte_carlo(paper, GAITS, vary=VARY, n=64, coordinator="127.0.0.1:1234", num_processes=2)
+    with pytest.raises(
+        InputError, match=r"starts only before JAX makes any array; call jax.distributed.initialize\(\)"
+    ):
+        jsphere.monte_carlo(paper, GAITS, vary=VARY, n=64, distributed=True)
+    cfg = tmp_path / "study.toml"
+    cfg.write_text(STUDY_TOML)
+    assert main(["montecarlo", str(cfg), "--out", str(tmp_path / "o"), "--process-id", "1"]) == 2
+    assert "--process-id set up a distributed run; add --distributed" in capsys.readouterr().err
+    assert main(["montecarlo", str(cfg), "--out", str(tmp_path / "o"), "--worker", "--claim-timeout", "-1"]) == 2
+    assert "--claim-timeout must be a finite number >= 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["montecarlo", str(cfg), "--worker", "--gather"])
+    assert "not allowed with argument" in capsys.readouterr().err
+
+
 # ---------------------------------------------------------------- the SLURM scripts
 
 

@@ -10,6 +10,8 @@ shared (`share_from_process_0`).
 
 from __future__ import annotations
 
+import itertools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -17,6 +19,7 @@ import numpy as np
 
 from .._runtime.checks import whole
 from .._runtime.errors import InputError
+from .._runtime.private import distributed_barrier
 
 
 def start_distributed(distributed: bool | None, coordinator, num_processes, process_id) -> bool:
@@ -64,10 +67,23 @@ def start_distributed(distributed: bool | None, coordinator, num_processes, proc
     return True
 
 
+#: how long a process waits for the others at a barrier before a collective [s]
+BARRIER_TIMEOUT_S = 24 * 3600.0
+_barriers = itertools.count()
+
+
+def meet(what: str) -> None:
+    """Wait for every process before a collective: JAX's CPU collectives fail when a process
+    comes more than 30 s after the others (one still compiling, or computing a slower shard),
+    the runtime's barrier waits `BARRIER_TIMEOUT_S`. Every process calls the same sequence."""
+    distributed_barrier(f"jsphere-montecarlo-{next(_barriers)}-{what}", BARRIER_TIMEOUT_S)
+
+
 def share_from_process_0(tree):
     """`tree` as process 0 has it, on every process (each passes a tree of the same shapes)."""
     from jax.experimental import multihost_utils
 
+    meet("share")
     return jax.tree_util.tree_map(np.asarray, multihost_utils.broadcast_one_to_all(tree))
 
 
@@ -84,6 +100,8 @@ def gather_batch(out) -> tuple:
     """The outcomes of a batch, sharded over every process's devices, whole on every process."""
     from jax.experimental import multihost_utils
 
+    jax.block_until_ready(out)
+    meet("gather")
     return tuple(np.asarray(a) for a in multihost_utils.process_allgather(out, tiled=True))
 
 
