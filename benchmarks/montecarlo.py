@@ -1,18 +1,31 @@
 """Monte-Carlo throughput: 10^5 trials of the paper's 4 s straight-line manoeuvre.
 
     python benchmarks/montecarlo.py [--trials 100000] [--out benchmarks/results-montecarlo.json]
+    python benchmarks/montecarlo.py --workers 2 [--trials 1000000]
 
 Measures, in one run, the same study through `jsphere.monte_carlo` (gait mode, trials in
 vmapped chunks, sharded over local devices) and, as the baseline, a plain loop of
 `jsphere.simulate_gaits` calls on the same robot (one trial at a time, compiled once), and
 reports the ratio. Writes JSON with the machine, device and versions.
+
+With `--workers K`: the same study as a study file, run by `jsphere montecarlo` in one process
+and by K `jsphere montecarlo --worker` processes at once followed by `--gather`, each in new
+processes with a warm compilation cache (start-up included, as on a cluster), alternating
+(one process, workers, one process) so that a change in the machine's load shows; the ratio is
+the workers' rate over the mean of the two one-process rates (written to
+`results-montecarlo-workers.json`).
 """
 
 import argparse
 import json
 import os
 import platform
+import shutil
+import subprocess
+import sys
+import tempfile
 import time
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -26,8 +39,84 @@ ap = argparse.ArgumentParser()
 ap.add_argument("--trials", type=int, default=100_000)
 ap.add_argument("--baseline-trials", type=int, default=200)
 ap.add_argument("--batch-size", type=int, default=8192)
-ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results-montecarlo.json"))
+ap.add_argument("--workers", type=int, default=0, help="compare K --worker processes with one process")
+ap.add_argument("--out", default=None, help="JSON file (default: benchmarks/results-montecarlo[-workers].json)")
 args = ap.parse_args()
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+#: the study of the comparison of workers with one process, as a study file
+STUDY = """trials = 1000
+seed = 0
+batch_size = {batch}
+gaits = [{{kind = "acceleration"}}, {{kind = "braking"}}]
+[vary]
+"r_m[2]" = ["normal", -0.0270146, 1e-4]
+"""
+
+
+def _jsphere(*argv: str, env: dict) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "jsphere.cli.app", "montecarlo", *argv, "--no-plots", "-q"]
+    return subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
+def _wait(*procs: subprocess.Popen) -> None:
+    for p in procs:
+        _, err = p.communicate()
+        if p.returncode:
+            raise SystemExit(f"jsphere montecarlo failed ({p.returncode}): {err}")
+
+
+def workers_against_one_process(n: int, k: int, batch: int, out: str) -> None:
+    """One process against `k` workers and a gather, on the same study of `n` trials."""
+    tmp = Path(tempfile.mkdtemp(prefix="jsphere-mc-workers-"))
+    env = dict(os.environ, JSPHERE_CACHE_DIR=str(tmp / "cache"))
+    study = tmp / "study.toml"
+    study.write_text(STUDY.format(batch=batch))
+    _wait(_jsphere(str(study), "--trials", str(batch), "--out", str(tmp / "warm"), env=env))  # fills the cache
+
+    def one(name):
+        t = time.perf_counter()
+        _wait(_jsphere(str(study), "--trials", str(n), "--out", str(tmp / name), env=env))
+        return n / (time.perf_counter() - t)
+
+    one_a = one("one-a")
+    t = time.perf_counter()
+    _wait(
+        *[
+            _jsphere(str(study), "--trials", str(n), "--out", str(tmp / "workers"), "--worker", env=env)
+            for _ in range(k)
+        ]
+    )
+    _wait(_jsphere(str(study), "--trials", str(n), "--out", str(tmp / "workers"), "--gather", env=env))
+    workers = n / (time.perf_counter() - t)
+    one_b = one("one-b")
+    same = (tmp / "workers" / "stats.json").read_bytes() == (tmp / "one-a" / "stats.json").read_bytes()
+    shutil.rmtree(tmp)
+    row = {
+        "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(), "loadavg": os.getloadavg()},
+        "versions": {"jax": jax.__version__, "jsphere": jsphere.__version__, "numpy": np.__version__},
+        "trials": n,
+        "batch_size": batch,
+        "workers": k,
+        "one_process_trials_per_s": [one_a, one_b],
+        "workers_trials_per_s": workers,
+        "ratio_workers_vs_one_process": workers / ((one_a + one_b) / 2),
+        "stats_identical": same,
+    }
+    print(f"{'':34s}{'trials/s':>12s}")
+    print(f"{'one process (before, after)':34s}{one_a:>12,.0f}{one_b:>12,.0f}")
+    print(f"{f'{k} workers + gather':34s}{workers:>12,.0f}")
+    print(f"ratio {row['ratio_workers_vs_one_process']:.2f}x; statistics identical: {same}; load {os.getloadavg()}")
+    atomic_write_text(out, json.dumps(row, indent=2) + "\n")
+
+
+if args.workers:
+    workers_against_one_process(
+        args.trials, args.workers, args.batch_size, args.out or os.path.join(HERE, "results-montecarlo-workers.json")
+    )
+    raise SystemExit(0)
+args.out = args.out or os.path.join(HERE, "results-montecarlo.json")
 
 p = jsphere.RobotParams.paper()
 gaits = [jsphere.acceleration(), jsphere.braking()]

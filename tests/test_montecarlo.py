@@ -135,32 +135,25 @@ def test_cli_montecarlo(tmp_path, study, capsys):
     assert "normal" in capsys.readouterr().err
 
 
-@pytest.mark.slow
-def test_two_processes_share_one_study(study, tmp_path):
-    """Two processes (as on two hosts) split the batches through a shared folder; both return the
-    whole study, identical to a single process."""
-    script = textwrap.dedent(
-        """
-        import sys, numpy as np, jsphere
-        p = jsphere.RobotParams.paper()
-        r = jsphere.monte_carlo(p, [jsphere.acceleration(), jsphere.braking()],
-                                vary={"r_m[2]": ("normal", -0.0270146, 1e-4)}, n=256, seed=7, batch_size=128,
-                                progress=False, out=sys.argv[1], process_index=int(sys.argv[2]), process_count=2,
-                                wait_timeout=600)
-        np.save(sys.argv[3], np.stack([r.x_final, r.y_final]))
-        """
-    )
-    folder = tmp_path / "shared"
-    procs = [
-        subprocess.Popen([sys.executable, "-c", script, str(folder), str(i), str(tmp_path / f"r{i}.npy")])
-        for i in range(2)
-    ]
-    assert all(p.wait(timeout=900) == 0 for p in procs)
-    for i in range(2):
-        xy = np.load(tmp_path / f"r{i}.npy")
-        assert np.array_equal(xy[0], study.x_final) and np.array_equal(xy[1], study.y_final)
-    with pytest.raises(ValueError, match="shared|every process"):
-        jsphere.monte_carlo(jsphere.RobotParams.paper(), GAITS, vary=VARY, n=8, process_index=0, process_count=2)
+def test_a_finished_study_extends_to_more_trials(paper, study, tmp_path):
+    """Run again with a larger n, a finished study computes only its new batches; its first trials
+    are the smaller study's, bit for bit. A smaller n or any other change is refused."""
+    out = tmp_path / "study"
+    kw = dict(vary=VARY, seed=7, batch_size=128, out=out, progress=False)
+    small = jsphere.monte_carlo(paper, GAITS, n=100, **kw)
+    np.testing.assert_array_equal(small.x_final, study.x_final[:100])
+    mtime = (out / "batch_000000.npz").stat().st_mtime_ns
+    big = jsphere.monte_carlo(paper, GAITS, n=256, **kw)
+    assert np.array_equal(big.x_final, study.x_final) and big.stats() == study.stats()
+    assert (out / "batch_000000.npz").stat().st_mtime_ns == mtime  # not recomputed
+    assert json.loads((out / "manifest.json").read_text())["n"] == 256
+    assert json.loads((out / "stats.json").read_text())["n"] == 256
+    with pytest.raises(InputError, match="with 256 trials; a study is extended to more trials but not cut to fewer"):
+        jsphere.monte_carlo(paper, GAITS, n=100, **kw)
+    with pytest.raises(InputError, match="different study"):
+        jsphere.monte_carlo(paper, GAITS, n=512, **(kw | {"seed": 8}))
+    with pytest.raises(InputError, match="different study"):
+        jsphere.monte_carlo(paper, GAITS, n=512, **(kw | {"vary": {"r_m[2]": ("normal", -0.0270146, 2e-4)}}))
 
 
 def test_kinematic_command_replay_matches_fig2(paper):

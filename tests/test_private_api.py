@@ -60,3 +60,16 @@ def test_jax_backends_initialized():
         )
     jax.numpy.zeros(1).block_until_ready()
     assert private.jax_backends_initialized() is True
+
+
+def test_jax_distributed_barrier():
+    try:
+        from jax._src import distributed
+
+        distributed.global_state.client  # noqa: B018
+    except (ImportError, AttributeError) as e:
+        pytest.fail(
+            f"jax {jax.__version__} moved jax._src.distributed.global_state.client, whose barrier "
+            f"`monte_carlo(distributed=True)` uses before its collectives: {e}. Update jsphere/_runtime/private.py."
+        )
+    private.distributed_barrier("unused", 1.0)  # no runtime in this process: nothing to wait for

@@ -282,7 +282,7 @@ def _fingerprint(paper, name, n, seed, **solver):
     settings = {"n": n, "seed": seed, "plan_rate": 200.0, "Omega0_sd": 0.0, "batch_size": n}
     kw = {"reset": False, "rtol": 1e-8, "atol": 1e-10, "replay": None, "commands": False, "out": None}
     solver = {"solver": None, "gait_max_steps": 16384, **solver}
-    return mc_run._Run.create(paper, GAITS, spec, settings, process=(0, 1), **kw, **solver).fingerprint
+    return mc_run._Run.create(paper, GAITS, spec, settings, **kw, **solver).fingerprint
 
 
 def test_monte_carlo_fingerprint(paper):

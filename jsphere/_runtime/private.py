@@ -9,7 +9,8 @@ which library changed when one of them moves:
 - equinox: the module-level switch of its run-time checks (`equinox._errors.EQX_ON_ERROR`),
   which the environment variable `EQX_ON_ERROR` sets only at import;
 - jax: whether its backends (the CPU client) exist yet (`jax._src.xla_bridge`), since an XLA
-  flag set after that changes nothing.
+  flag set after that changes nothing; the distributed runtime's barrier
+  (`jax._src.distributed`), which waits longer than the CPU collectives do.
 """
 
 from __future__ import annotations
@@ -152,3 +153,15 @@ def callbacks_as_nan() -> Iterator[None]:
     finally:
         with _LOCK:
             errors.EQX_ON_ERROR, errors.branched_error_if_impl_jit = previous
+
+
+def distributed_barrier(name: str, timeout_s: float) -> None:
+    """Wait until every process of JAX's distributed runtime reaches the barrier `name` (at most
+    `timeout_s`): the runtime's client (`jax._src.distributed.global_state.client`). JAX's CPU
+    collectives (gloo) give a late process 30 s; this barrier lets processes that compile or
+    compute for longer meet before a collective. Nothing without the runtime."""
+    from jax._src import distributed
+
+    client = distributed.global_state.client
+    if client is not None:
+        client.wait_at_barrier(name, int(timeout_s * 1000))

@@ -1,6 +1,10 @@
 """`jsphere montecarlo`: a Monte-Carlo study described by a TOML file
 (`jsphere.montecarlo.study.load_study`), resumable in its output folder. The statistics go to
-`OUT/stats.json` (jsphere's frame, metres), the terminal gets a short summary."""
+`OUT/stats.json` (jsphere's frame, metres), the terminal gets a short summary.
+
+Beyond one process: `--distributed` runs the study on every process of a JAX multi-process job
+(one allocation, e.g. `srun` over several nodes); `--worker` computes the batches no other
+worker holds and exits, and `--gather` joins them (independent jobs, e.g. a SLURM array)."""
 
 from __future__ import annotations
 
@@ -13,7 +17,12 @@ NAME = "montecarlo"
 EXAMPLES = """
   jsphere montecarlo examples/study_straight_line.toml --out study
   jsphere montecarlo examples/study_straight_line.toml --trials 100000 --seed 1 --batch-size 8192 --out study-1
+  srun jsphere montecarlo study.toml --out /shared/study --distributed        # every task of a SLURM job
+  jsphere montecarlo study.toml --out /shared/study --worker                   # in each job of an array
+  jsphere montecarlo study.toml --out /shared/study --gather                   # once the workers are done
 """
+#: `--claim-timeout`'s default [s] (`jsphere.montecarlo.workers.CLAIM_TIMEOUT`)
+CLAIM_TIMEOUT_S = 3600.0
 #: what an interrupted study keeps
 RESUMES = "the finished batches are kept in the --out folder: rerun the same command to resume"
 
@@ -40,6 +49,31 @@ def add_parser(sub) -> None:
         help="frame of the figure: jsphere's (default, as stats.json) or the paper's figure frame (x_fig = -y, y_fig = x)",
     )
     mc.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
+    many = mc.add_argument_group("several processes or jobs (docs/montecarlo.md, examples/cluster/)")
+    how = many.add_mutually_exclusive_group()
+    how.add_argument(
+        "--distributed",
+        action="store_true",
+        help="one study on every process of a JAX multi-process job (SLURM, Open MPI, ... detected; else "
+        "--coordinator, --num-processes, --process-id); process 0 writes OUT",
+    )
+    how.add_argument(
+        "--worker",
+        action="store_true",
+        help="compute the batches of OUT that no other worker holds, then exit (no waiting); OUT shared by all",
+    )
+    how.add_argument("--gather", action="store_true", help="join the batches of OUT: statistics and figure")
+    many.add_argument("--coordinator", metavar="HOST:PORT", help="with --distributed: process 0's address and a port")
+    many.add_argument("--num-processes", type=int, metavar="N", help="with --distributed: the number of processes")
+    many.add_argument("--process-id", type=int, metavar="I", help="with --distributed: this process's id, 0 .. N-1")
+    many.add_argument(
+        "--claim-timeout",
+        type=float,
+        default=CLAIM_TIMEOUT_S,
+        metavar="S",
+        help=f"with --worker: take over a batch claimed S seconds ago and still missing (default {CLAIM_TIMEOUT_S:.0f}; "
+        "longer than a batch takes)",
+    )
 
 
 def run(args) -> int:
@@ -49,12 +83,20 @@ def run(args) -> int:
     from .._runtime.errors import InputError, SolverFailure
     from .._runtime.files import atomic_write_json, check_output
     from ..gaits.gaits import simulate_gaits
+    from ..montecarlo.distributed import start_distributed
     from ..montecarlo.run import monte_carlo
     from ..montecarlo.study import check_settings, load_study
+    from ..montecarlo.workers import gather, work
 
     def one_line(message, category, filename, lineno, file=None, line=None):
         print(f"jsphere montecarlo: warning: {message}", file=sys.stderr, flush=True)
 
+    setup = {"--coordinator": args.coordinator, "--num-processes": args.num_processes, "--process-id": args.process_id}
+    given = [name for name, v in setup.items() if v is not None]
+    if given and not args.distributed:
+        raise InputError(f"{NAME}: {', '.join(given)} set up a distributed run; add --distributed.")
+    if args.distributed:  # before the study file makes any JAX array
+        start_distributed(True, args.coordinator, args.num_processes, args.process_id)
     out = Path(args.out)
     writes = [out / name for name in ("stats.json", "manifest.json", *(() if args.no_plots else ("stop_points.png",)))]
     check_output(out, folder=True, writes=writes, inputs={"the study file": args.config})
@@ -64,7 +106,29 @@ def run(args) -> int:
     kwargs = study["kwargs"] | check_settings(NAME, given, names={"seed": "--seed", "batch_size": "--batch-size"})
     with warnings.catch_warnings():
         warnings.showwarning = one_line
-        res = monte_carlo(study["params"], study["gaits"], n=n, out=out, progress=progress(args), **kwargs)
+        if args.worker:
+            timeout = _claim_timeout(args.claim_timeout)
+            report = work(
+                study["params"], study["gaits"], n=n, out=out, claim_timeout=timeout, progress=progress(args), **kwargs
+            )
+            print(report.summary())
+            return 0
+        if args.gather:
+            res = gather(study["params"], study["gaits"], n=n, out=out, **kwargs)
+        else:
+            res = monte_carlo(
+                study["params"],
+                study["gaits"],
+                n=n,
+                out=out,
+                progress=progress(args),
+                distributed=args.distributed,
+                **kwargs,
+            )
+    import jax
+
+    if args.distributed and jax.process_index() != 0:
+        return 0  # process 0 writes the files and the summary
     st = res.stats()
     planned = simulate_gaits(study["params"], study["gaits"], reset=kwargs["reset"])
     st["planned_stop_m"] = [float(planned.x[-1]), float(planned.y[-1])]
@@ -84,6 +148,12 @@ def run(args) -> int:
             f"no trial succeeded ({st['n_failed']} solver failures, {st['n_rejected']} rejected draws); no statistics."
         )
     return 0
+
+
+def _claim_timeout(value: float) -> float:
+    from .._runtime.checks import real
+
+    return real(NAME, "--claim-timeout", value, unit="s")
 
 
 def summary(st: dict, n: int, elapsed_s: float, written) -> str:

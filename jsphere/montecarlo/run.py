@@ -1,16 +1,18 @@
 """Monte-Carlo studies of gait motions: vmapped batches, deterministic seeds, resumable files.
 
 Each trial `i` draws its parameters from `jax.random.fold_in(PRNGKey(seed), i)`, so a study is
-the same whatever the batch size or the number of devices; a draw that breaks a rule of
-`RobotParams` is rejected (not simulated) or, for "truncate" distributions, drawn again;
-batches are sharded over all local devices; finished batches are written atomically to `out/`
-and a killed study resumes there (a corrupt batch file is recomputed).
+the same whatever the batch size, the number of devices or processes, and whether it ran in one
+go; a draw that breaks a rule of `RobotParams` is rejected (not simulated) or, for "truncate"
+distributions, drawn again; batches are sharded over the devices; finished batches are written
+atomically to `out/` and a killed study resumes there (a corrupt batch file is recomputed).
 
-`monte_carlo` checks its arguments, lays the study out in batches (`_Run`), computes this
-process's batches (`_own_batches`), collects the other processes' (`_other_batches`) and joins
-them into a `MonteCarloResult`. The modules beside this one hold the steps' parts: `study` (the
+`monte_carlo` checks its arguments and lays the study out in batches (`prepare`, a `_Run`),
+then computes the batches that are not in its folder yet (`_compute`), on this process's
+devices or, with JAX's distributed runtime, on every process's (`distributed`), and joins them
+into a `MonteCarloResult`. The modules beside this one hold the steps' parts: `study` (the
 checks and the study file), `sampling` (the draws), `batch` (the compiled batch), `store` (the
-study folder) and `result` (the outcome and its statistics).
+study folder), `result` (the outcome and its statistics), `distributed` (several processes in
+one job) and `workers` (independent jobs sharing a folder through `claims`).
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._runtime.checks import real, whole
+from .._runtime.checks import real
 from .._runtime.errors import InputError
 from .._runtime.progress import Progress
 from ..controls import Sampled
@@ -38,6 +40,7 @@ from ..solve.options import SolverOptions, default_solver, resolve, unused
 from ..solve.simulate import tolerances
 from .batch import CHUNK as CHUNK
 from .batch import Replay, Trials, run_batch
+from .distributed import batch_template, gather_batch, global_indices, share_from_process_0, start_distributed
 from .result import REJECTED as REJECTED
 from .result import MonteCarloResult
 from .sampling import MAX_REDRAWS as MAX_REDRAWS
@@ -50,8 +53,6 @@ from .study import MODES, check_settings, check_vary
 _PROGRESS = "jsphere montecarlo:"
 #: seconds between two progress lines where no bar is drawn
 _LINE_S = 10.0
-#: seconds between two looks for another process's batch file
-_POLL_S = 0.2
 #: `monte_carlo`'s default step limit of the replay modes
 MAX_STEPS = 65536
 
@@ -76,9 +77,10 @@ def monte_carlo(
     max_steps: int = 65536,
     out: str | os.PathLike | None = None,
     progress: bool | None = None,
-    process_index: int | None = None,
-    process_count: int | None = None,
-    wait_timeout: float = 24 * 3600.0,
+    distributed: bool | None = None,
+    coordinator: str | None = None,
+    num_processes: int | None = None,
+    process_id: int | None = None,
     options: SolverOptions | None = None,
 ) -> MonteCarloResult:
     """Run the gaits `n` times with parameters drawn from `vary`; return the stop points.
@@ -97,7 +99,9 @@ def monte_carlo(
     - `n`, `seed`: number of trials and the seed (`0 <= seed < 2**32`). Trial `i` uses the key
       `fold_in(PRNGKey(seed), i)`: the same study whatever `batch_size` or device count.
     - `batch_size`: trials per compiled call (memory stays bounded for any `n`); rounded up to
-      a multiple of 64 times the number of local devices, over which each batch is sharded.
+      a multiple of 64 times the number of devices, over which each batch is sharded (a study
+      folder `out` that exists keeps the batch size of its manifest where the devices can
+      share it).
       Inside, trials run in vmapped chunks of 64 (`CHUNK`), so results are bitwise identical
       for any batch size and device count.
     - `mode`: `"gait"` (default): each trial executes the gaits exactly (the paper's
@@ -119,18 +123,26 @@ def monte_carlo(
     - `Omega0_sd`: sd of a perturbation of the initial shell angular velocity [1/s].
     - `out`: a folder. Each finished batch is written there atomically, with a manifest; run
       the same call again after an interruption and it resumes (a folder holding a different
-      study is refused). A batch file that cannot be read (cut short, overwritten) is
+      study is refused). A finished study run again with a larger `n` computes only the new
+      batches: its first trials are those of the smaller study, bit for bit. A batch file that cannot be read (cut short, overwritten) is
       recomputed, with a `MonteCarloWarning` naming it; the hidden temporary files a killed
       run leaves are removed.
     - `progress`: `None` (default): a progress bar on stderr when it is a terminal; `True`: the
       bar, or a line every few seconds where stderr is not a terminal; `False`: none
       (`jsphere._runtime.progress`). The first batch, which compiles, is shown apart and left
       out of the rate.
-    - `process_index`, `process_count`: for several processes (hosts) sharing one study: each
-      computes the batches `k` with `k % process_count == process_index` and writes them to
-      `out` (which all processes must see), then reads the others' batches from there (waiting
-      up to `wait_timeout` s). Default: `jax.process_index()` / `jax.process_count()`, i.e. one
-      process unless `jax.distributed.initialize()` was called (see docs/montecarlo.md).
+    - `distributed`: run the study on every device of every process of a JAX multi-process
+      job (one process per node or per GPU, all calling `monte_carlo` with the same arguments):
+      the trials of each batch are sharded over a global mesh of all the devices, each process
+      runs its own shard, the results are gathered on every process
+      (`jax.experimental.multihost_utils`) and process 0 writes the batches and statistics to
+      `out` (a folder that only process 0 needs to see). Every process returns the whole study,
+      bitwise that of a single process. `True` starts JAX's distributed runtime
+      (`jax.distributed.initialize`) unless it is running: from the cluster's environment
+      (SLURM, Open MPI, ...) or from `coordinator` (`"host:port"` of process 0),
+      `num_processes` and `process_id`. JAX starts it only before it has made any array, so
+      call `jax.distributed.initialize()` at the top of the script when in doubt. `None`
+      (default): distributed when the runtime is running with several processes.
     - `options`: a `SolverOptions`; its `rtol`, `atol`, `max_steps` and `solver` are used
       (`resolve` with monte_carlo's own default `max_steps=65536`: an option at
       `SolverOptions`' default takes the keyword's value, a keyword at its default leaves a set
@@ -144,6 +156,66 @@ def monte_carlo(
 
     Returns a `MonteCarloResult` (`x_final`, `y_final`, ... arrays of length `n`; `.stats()`).
     """
+    distributed = start_distributed(distributed, coordinator, num_processes, process_id)
+    run = prepare(
+        params,
+        gaits,
+        vary=vary,
+        n=n,
+        seed=seed,
+        batch_size=batch_size,
+        reset=reset,
+        rtol=rtol,
+        atol=atol,
+        mode=mode,
+        actuators=actuators,
+        Omega0_sd=Omega0_sd,
+        plan_rate=plan_rate,
+        settle=settle,
+        commands=commands,
+        max_steps=max_steps,
+        options=options,
+        out=out,
+        distributed=distributed,
+    )
+    t_start = time.perf_counter()
+    if run.distributed:
+        parts = run_distributed(run, Progress(progress if run.writer else False))
+    else:
+        parts = _read_folder(run)
+        _compute(run, parts, Progress(progress))
+    res = _result(run, parts, time.perf_counter() - t_start)
+    if run.folder is not None and run.writer:
+        run.folder.write_stats(res.stats())
+    return res
+
+
+def prepare(
+    params: RobotParams,
+    gaits: Sequence[Gait],
+    *,
+    vary: Mapping[str, Sequence],
+    n: int,
+    seed: int = 0,
+    batch_size: int = 1024,
+    reset=False,
+    rtol: float | None = None,
+    atol: float | None = None,
+    mode: str = "gait",
+    actuators: Actuators | None = None,
+    Omega0_sd: float = 0.0,
+    plan_rate: float = 200.0,
+    settle: float = 1.0,
+    commands: tuple | None = None,
+    max_steps: int = 65536,
+    options: SolverOptions | None = None,
+    out: str | os.PathLike | None = None,
+    distributed: bool = False,
+) -> "_Run":
+    """Check the arguments of a study (those of `monte_carlo`) and lay it out in batches, over
+    this process's devices or (`distributed`) every process's. A study folder `out` that
+    exists keeps its batch size where these devices can share it (a study extended to more
+    trials, workers on nodes with other device counts, `--gather`, which computes nothing)."""
     settings = check_settings(
         "monte_carlo",
         {
@@ -154,19 +226,17 @@ def monte_carlo(
             "Omega0_sd": Omega0_sd,
             "plan_rate": plan_rate,
             "max_steps": max_steps,
-            "wait_timeout": wait_timeout,
         },
     )
     opts = _solver_options(options, rtol, atol, settings)
     actuators = _check_mode(mode, actuators, opts.rtol, opts.atol)
-    pi, pc = _check_processes(process_index, process_count, out)
     spec = check_vary(params, vary)
     rtol, atol = tolerances(params.R0.dtype, opts.rtol, opts.atol, where="monte_carlo")
     gaits = _check_gaits(gaits)
     if commands is not None and mode == "gait":
         raise ValueError("monte_carlo: `commands` are replayed; use mode='torques' or 'wheel_speeds'.")
     replay = None if mode == "gait" else _replay(params, gaits, mode, commands, reset, actuators, settings)
-    run = _Run.create(
+    return _Run.create(
         params,
         gaits,
         spec,
@@ -179,17 +249,9 @@ def monte_carlo(
         replay=replay,
         commands=commands is not None,
         out=out,
-        process=(pi, pc),
+        distributed=distributed,
+        vary=vary,
     )
-    if run.folder is not None:
-        run.folder.open(run.fingerprint, run.n, run.seed, vary, set(run.mine), pc == 1)
-    t_start = time.perf_counter()
-    parts = _own_batches(run, Progress(progress))
-    _other_batches(run, parts, settings["wait_timeout"])
-    res = _result(run, parts, time.perf_counter() - t_start)
-    if run.folder is not None:
-        run.folder.write_stats(res.stats())
-    return res
 
 
 def _solver_options(options: SolverOptions | None, rtol, atol, settings: dict) -> SolverOptions:
@@ -221,19 +283,6 @@ def _check_mode(mode: str, actuators: Actuators | None, rtol, atol) -> Actuators
     if actuators is not None and not isinstance(actuators, Actuators):
         raise InputError(f"monte_carlo: actuators must be a jsphere.Actuators; got {type(actuators).__name__}.")
     return actuators or Actuators()
-
-
-def _check_processes(process_index, process_count, out) -> tuple[int, int]:
-    """`(index, count)` of this process among those sharing the study (JAX's by default)."""
-    pi = jax.process_index() if process_index is None else whole("monte_carlo", "process_index", process_index, 0)
-    pc = jax.process_count() if process_count is None else whole("monte_carlo", "process_count", process_count, 1)
-    if not 0 <= pi < pc:
-        raise InputError(f"monte_carlo: process_index must be in [0, process_count); got {pi} of {pc}.")
-    if pc > 1 and out is None:
-        raise InputError(
-            "monte_carlo: with several processes, pass `out`, a folder that every process can read and write."
-        )
-    return pi, pc
 
 
 def _check_gaits(gaits) -> list[Gait]:
@@ -297,29 +346,52 @@ def _solver_record(solver, gait_max_steps: int | None) -> tuple:
 @dataclasses.dataclass(frozen=True)
 class _Run:
     """A checked study laid out in batches: `n` trials with seed `seed` in `n_batches` batches of
-    `batch_size` (a multiple of `CHUNK` times the number of local devices); this process
-    computes the batches `mine`, and with a `folder` writes them there. `fingerprint`
-    identifies the study in its folder's manifest; `program` the compiled batch (the study
-    but its seed, and the devices)."""
+    `batch_size` (a multiple of `CHUNK` times the number of devices), with `vary` as given;
+    with a `folder`, batches are read from it and written to it (by the `writer`: process 0 of
+    a `distributed` job, the only process otherwise). `fingerprint` identifies the study in its
+    folder's manifest; `program` the compiled batch (the study but its seed, and the devices)."""
 
     trials: Trials
+    vary: Mapping
     n: int
     seed: int
     batch_size: int
     n_batches: int
-    mine: tuple[int, ...]
     folder: StudyFolder | None
     fingerprint: str
     program: str
+    distributed: bool = False
+    writer: bool = True
 
     @classmethod
     def create(
-        cls, params, gaits, spec, settings, *, reset, rtol, atol, solver, gait_max_steps, replay, commands, out, process
+        cls,
+        params,
+        gaits,
+        spec,
+        settings,
+        *,
+        reset,
+        rtol,
+        atol,
+        solver,
+        gait_max_steps,
+        replay,
+        commands,
+        out,
+        distributed=False,
+        vary=None,
     ) -> "_Run":
         n, seed = settings["n"], settings["seed"]
-        devices = jax.local_devices()
+        distributed = distributed and jax.process_count() > 1
+        devices = jax.devices() if distributed else jax.local_devices()
         unit = CHUNK * len(devices)
         B = int(math.ceil(max(1, min(settings["batch_size"], n)) / unit) * unit)
+        if out is not None:  # a study's folder keeps its batches (results do not depend on them)
+            recorded = StudyFolder.manifest_batch_size(out) if not distributed or jax.process_index() == 0 else None
+            if distributed:  # process 0's folder, which the others need not see
+                recorded = int(share_from_process_0(np.int32(recorded or 0))) or None
+            B = recorded if recorded is not None and recorded % unit == 0 else B
         n_batches = int(math.ceil(n / B))
         mesh = None
         if len(devices) > 1:  # each device runs its share of every batch
@@ -345,33 +417,81 @@ class _Run:
         options += _solver_record(solver, gait_max_steps if replay is None else None)
         fp = fingerprint(params, gaits, spec, seed, B, options, rtol, atol)
         program = f"{fingerprint(params, gaits, spec, 0, B, options, rtol, atol)}|{len(devices)}"
-        mine = tuple(k for k in range(n_batches) if k % process[1] == process[0])  # all of them on one host
         folder = StudyFolder(Path(out), B, len(spec)) if out is not None else None
-        return cls(trials, n, seed, B, n_batches, mine, folder, fp, program)
+        writer = not distributed or jax.process_index() == 0
+        return cls(trials, dict(vary or {}), n, seed, B, n_batches, folder, fp, program, distributed, writer)
+
+    def open_folder(self) -> None:
+        """Create the study's folder or check the study in it (`StudyFolder.open`)."""
+        self.folder.open(self.fingerprint, self.n, self.seed, self.vary)
+
+    def trials_of(self, k: int) -> int:
+        """The trials of batch `k` that belong to the study (the last batch may hold more)."""
+        return min(self.batch_size, self.n - k * self.batch_size)
 
     def compute(self, k: int) -> dict:
-        """Batch `k`, written to the folder (if any)."""
-        idx = jnp.arange(k * self.batch_size, (k + 1) * self.batch_size, dtype=jnp.int32)
-        part = dict(zip(BATCH_KEYS, (np.asarray(a) for a in jax.device_get(run_batch(self.trials, idx)))))
-        if self.folder is not None:
+        """Batch `k`, written to the folder (if any, by the writer). In a distributed run every
+        process computes its shard of the batch and gets the whole batch back."""
+        lo, hi = k * self.batch_size, (k + 1) * self.batch_size
+        if self.distributed:
+            out = gather_batch(run_batch(self.trials, global_indices(self.trials.mesh, lo, hi)))
+        else:
+            out = jax.device_get(run_batch(self.trials, jnp.arange(lo, hi, dtype=jnp.int32)))
+        part = dict(zip(BATCH_KEYS, (np.asarray(a) for a in out)))
+        if self.folder is not None and self.writer:
             self.folder.save_batch(k, part)
         return part
 
 
-def _own_batches(run: _Run, progress: Progress) -> list[dict | None]:
-    """The batches of the study, with this process's ones filled in: read from the folder, else
-    (or if the file is corrupt) computed. The first batch computed (which compiles) comes
-    first, then a bar over the others, whose rate starts after it."""
+def _read_folder(run: _Run) -> list[dict | None]:
+    """The batches of the study found in its folder (None for the others); opens the folder and
+    removes the temporary files a killed run left there."""
     parts: list = [None] * run.n_batches
-    for k in run.mine:
-        if run.folder is not None and run.folder.has_batch(k):
-            parts[k] = run.folder.load_batch(k, stacklevel=3)
-    todo = [k for k in run.mine if parts[k] is None]
-    if not todo:
+    if run.folder is None:
         return parts
-    trials = [min(run.batch_size, run.n - k * run.batch_size) for k in todo]
-    if len(todo) < len(run.mine):
-        progress.say(f"{_PROGRESS} {len(run.mine) - len(todo)} batch(es) read from {run.folder.path}")
+    run.open_folder()
+    run.folder.remove_temporary_files(range(run.n_batches), others=True)
+    for k in range(run.n_batches):
+        if run.folder.has_batch(k):
+            parts[k] = run.folder.load_batch(k, stacklevel=3)
+    return parts
+
+
+def run_distributed(run: _Run, progress: Progress) -> list[dict]:
+    """The batches of a distributed study: process 0 reads those in the folder and tells the
+    others, then every process computes its shard of each missing batch (`_compute`). A folder
+    that process 0 refuses ends every process, with process 0's message."""
+    parts: list = [None] * run.n_batches
+    refused = None
+    if run.writer and run.folder is not None:
+        try:
+            parts = _read_folder(run)
+        except InputError as e:
+            refused = e
+    if share_from_process_0(np.int32(refused is not None)):
+        if refused is not None:
+            raise refused
+        raise InputError(f"monte_carlo: process 0 could not use out = {run.folder.path}; its message says why.")
+    done = share_from_process_0(np.array([p is not None for p in parts], np.int32))
+    if done.any():
+        template = batch_template(run.trials, run.batch_size)
+        for k in np.flatnonzero(done):
+            got = parts[k] if run.writer else {key: np.zeros(a.shape, a.dtype) for key, a in template.items()}
+            parts[k] = share_from_process_0({key: np.asarray(got[key], template[key].dtype) for key in BATCH_KEYS})
+    _compute(run, parts, progress)
+    return parts
+
+
+def _compute(run: _Run, parts: list, progress: Progress, todo: Sequence[int] | None = None) -> None:
+    """Compute the batches `todo` (default: those missing from `parts`) into `parts`. The first
+    batch computed (which compiles) comes first, then a bar over the others, whose rate starts
+    after it."""
+    todo = [k for k in range(run.n_batches) if parts[k] is None] if todo is None else list(todo)
+    if not todo:
+        return
+    trials = [run.trials_of(k) for k in todo]
+    if len(todo) < run.n_batches and run.folder is not None:
+        progress.say(f"{_PROGRESS} {run.n_batches - len(todo)} batch(es) read from {run.folder.path}")
     with progress.compiling("montecarlo", run.program, f"{_PROGRESS} batch 1/{len(todo)}"):
         parts[todo[0]] = run.compute(todo[0])
     t0 = last = time.perf_counter()
@@ -388,27 +508,6 @@ def _own_batches(run: _Run, progress: Progress) -> list[dict | None]:
                     f"{_PROGRESS} batch {count + 1}/{len(todo)}  {sum(trials[: count + 1])}/{sum(trials)} trials  "
                     f"{rate:,.0f} trials/s  eta {left:,.0f} s"
                 )
-    return parts
-
-
-def _other_batches(run: _Run, parts: list, wait_timeout: float) -> None:
-    """Fill in the other processes' batches from the shared folder, waiting up to `wait_timeout`
-    s for each to appear; one that cannot be read is computed here (the same bytes as its
-    owner's)."""
-    deadline = time.monotonic() + wait_timeout
-    for k in range(run.n_batches):
-        while parts[k] is None:
-            if run.folder.has_batch(k):
-                parts[k] = run.folder.load_batch(k, stacklevel=3)
-                if parts[k] is None:
-                    parts[k] = run.compute(k)
-            elif time.monotonic() > deadline:
-                raise TimeoutError(
-                    f"monte_carlo: batch {k} ({run.folder.batch_path(k)}) did not appear within "
-                    f"{wait_timeout} s; is every process running?"
-                )
-            else:
-                time.sleep(_POLL_S)
 
 
 def _result(run: _Run, parts: list[dict], elapsed_s: float) -> MonteCarloResult:

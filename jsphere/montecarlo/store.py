@@ -4,6 +4,7 @@ whatever the run that wrote them), its statistics, and what a killed run leaves 
     out/manifest.json          the study's fingerprint, n, seed, batch size and vary
     out/batch_000000.npz ...   the outcomes of each finished batch (`BATCH_KEYS`)
     out/stats.json             `MonteCarloResult.stats()` of the whole study
+    out/claim_000042.json      a worker's claim of a batch it computes (`claims`)
 """
 
 from __future__ import annotations
@@ -11,6 +12,8 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import os
+import tempfile
 import warnings
 import zipfile
 from pathlib import Path
@@ -19,7 +22,7 @@ import jax
 import numpy as np
 
 from .._runtime.errors import InputError
-from .._runtime.files import atomic_write, atomic_write_json, temporary_pattern
+from .._runtime.files import atomic_write, atomic_write_json, dumps_json, temporary_pattern
 from .batch import CHUNK
 from .sampling import MAX_REDRAWS, REASONS
 
@@ -31,6 +34,22 @@ _TEMPORARY = temporary_pattern(r"(batch_(\d{6})|manifest|stats|stop_points)", r"
 
 class MonteCarloWarning(UserWarning):
     """Something `monte_carlo` repaired on its own (a corrupt batch file it recomputes)."""
+
+
+def _create_exclusively(path: Path, record: dict) -> bool:
+    """Write the JSON `record` to `path` unless it exists (complete or not at all: a hidden
+    temporary file linked into place); False if it exists."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
+    tmp = Path(tmp)
+    with os.fdopen(fd, "w") as f:
+        f.write(dumps_json(record))
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        return False
+    finally:
+        tmp.unlink(missing_ok=True)
+    return True
 
 
 def fingerprint(params, gaits, spec, seed, batch_size, options, rtol, atol) -> str:
@@ -67,9 +86,12 @@ class StudyFolder:
     def batch_path(self, k: int) -> Path:
         return self.path / f"batch_{k:06d}.npz"
 
-    def open(self, fp: str, n: int, seed: int, vary, mine: set[int], single: bool) -> None:
-        """Create the folder with its manifest, or check that it holds the study `fp` of `n`
-        trials; remove the temporary files a killed run left there (`remove_temporary_files`)."""
+    def open(self, fp: str, n: int, seed: int, vary) -> None:
+        """Create the folder with its manifest, or check that it holds the study `fp` with at
+        most `n` trials; a study of fewer trials is extended to `n` (its manifest rewritten: the
+        batches it has are the first ones of the larger study, whose trials depend only on the
+        seed and their index). Two processes that create the same folder at once write one
+        manifest (created exclusively), and the second checks it."""
         folder = self.path
         if folder.exists() and not folder.is_dir():
             raise InputError(
@@ -77,27 +99,38 @@ class StudyFolder:
             )
         folder.mkdir(parents=True, exist_ok=True)
         manifest = folder / "manifest.json"
-        if manifest.exists():
-            self._check_manifest(manifest, fp, n)
-        else:
+        record = {
+            "fingerprint": fp,
+            "n": n,
+            "seed": seed,
+            "batch_size": self.batch_size,
+            "vary": {k: list(v) for k, v in vary.items()},
+        }
+        if not manifest.exists():
             if any(folder.glob("batch_*.npz")):
                 raise InputError(
                     f"monte_carlo: {folder} holds batch files but no manifest.json, so it cannot tell which study they "
                     "belong to; delete them (or choose another `out` folder)."
                 )
-            atomic_write_json(
-                manifest,
-                {
-                    "fingerprint": fp,
-                    "n": n,
-                    "seed": seed,
-                    "batch_size": self.batch_size,
-                    "vary": {k: list(v) for k, v in vary.items()},
-                },
-            )
-        self.remove_temporary_files(mine, single)
+            if _create_exclusively(manifest, record):
+                return
+        old_n = self.check_manifest(fp, n)
+        if old_n < n:
+            atomic_write_json(manifest, record)
 
-    def _check_manifest(self, manifest: Path, fp: str, n: int) -> None:
+    @staticmethod
+    def manifest_batch_size(path) -> int | None:
+        """The batch size recorded in the manifest of the folder `path`, if it has a readable one."""
+        try:
+            size = json.loads((Path(path) / "manifest.json").read_text()).get("batch_size")
+        except (OSError, ValueError, AttributeError):
+            return None
+        return size if isinstance(size, int) and not isinstance(size, bool) and size > 0 else None
+
+    def check_manifest(self, fp: str, n: int) -> int:
+        """The number of trials of the study in the folder's manifest, which must be `fp` with at
+        most `n`."""
+        manifest = self.path / "manifest.json"
         try:
             old = json.loads(manifest.read_text())
             if not isinstance(old, dict):
@@ -107,19 +140,27 @@ class StudyFolder:
                 f"monte_carlo: {manifest} is not a valid study manifest ({e}), so the batches in {self.path} cannot be "
                 "trusted; delete the folder (or choose another `out`) to run the study again."
             ) from None
-        if old.get("fingerprint") != fp or old.get("n") != n:
+        old_n = old.get("n")
+        if old.get("fingerprint") != fp or not isinstance(old_n, int):
             raise InputError(
-                f"monte_carlo: {self.path} holds a different study (other parameters, gaits, vary, seed, n or "
-                "batch size); choose another `out` folder or delete it."
+                f"monte_carlo: {self.path} holds a different study (other parameters, gaits, vary, seed, mode, "
+                "tolerances or batch size); choose another `out` folder or delete it."
             )
+        if old_n > n:
+            raise InputError(
+                f"monte_carlo: {self.path} holds this study with {old_n} trials; a study is extended to more trials "
+                f"but not cut to fewer: give n (--trials) >= {old_n}, or another `out` folder."
+            )
+        return old_n
 
-    def remove_temporary_files(self, mine: set[int], single: bool) -> None:
-        """Remove the hidden temporary files a killed run left in the folder: those of the batches
-        `mine` (this process's), and (with a single process, `single`, where no other process may
-        be writing them) those of the manifest, the statistics and the figure."""
+    def remove_temporary_files(self, batches, others: bool) -> None:
+        """Remove the hidden temporary files a killed run left in the folder: those of the batch
+        files `batches` (which no other process is writing), and with `others` (no other
+        process may be writing them) those of the manifest, the statistics and the figure."""
+        batches = set(batches)
         for f in self.path.iterdir():
             m = _TEMPORARY.fullmatch(f.name)
-            if m and (int(m.group(2)) in mine if m.group(2) else single):
+            if m and (int(m.group(2)) in batches if m.group(2) else others):
                 f.unlink(missing_ok=True)
 
     def has_batch(self, k: int) -> bool:

@@ -34,7 +34,6 @@ SETTINGS = {
     "Omega0_sd": lambda w, k, v: real(w, k, v, unit="1/s"),
     "plan_rate": lambda w, k, v: real(w, k, v, strict=True, unit="Hz"),
     "max_steps": lambda w, k, v: whole(w, k, v, 1),
-    "wait_timeout": lambda w, k, v: real(w, k, v, unit="s"),
 }
 
 

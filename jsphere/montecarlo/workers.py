@@ -1,0 +1,152 @@
+"""A study shared by independent jobs through its folder (`jsphere montecarlo --worker` and
+`--gather`): each worker computes the batches no other worker holds and exits, whatever the
+others do; the gather joins the batches once they are all there.
+
+Workers never wait for one another, so any number of them, started in any order, at any time,
+one at a time if the queue allows no more, finish the study between them (a SLURM array whose
+concurrency limit is below its task count included). A worker claims a batch before computing
+it (`claims`); a claim older than `claim_timeout` whose batch is still missing is taken over.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Sequence
+
+from .._runtime.checks import real
+from .._runtime.errors import InputError
+from .._runtime.progress import Progress
+from . import claims
+from .result import MonteCarloResult
+from .run import _PROGRESS, _result, _Run, prepare
+
+#: `work`'s default: seconds after which another worker takes over a claimed batch that is
+#: still missing (longer than a batch takes)
+CLAIM_TIMEOUT = 3600.0
+
+
+@dataclasses.dataclass(frozen=True)
+class WorkReport:
+    """What a worker did: the batches it `computed`, those it left to other workers' fresh
+    claims (`claimed`: batch -> claim), and how many of the study's `n_batches` are `done`."""
+
+    computed: tuple[int, ...]
+    claimed: dict[int, claims.Claim]
+    done: int
+    n_batches: int
+
+    def summary(self) -> str:
+        line = f"{_PROGRESS} this worker computed {len(self.computed)} batch(es); {self.done} of {self.n_batches} done"
+        if self.done == self.n_batches:
+            return line + "; every batch is there: run with --gather for the statistics"
+        rest = self.n_batches - self.done
+        return (
+            line + f"; {rest} left, {len(self.claimed)} of them claimed by other workers "
+            "(start another worker when they end; a claim older than --claim-timeout is taken over)"
+        )
+
+
+def work(
+    params, gaits, *, out, claim_timeout: float = CLAIM_TIMEOUT, progress: bool | None = None, **study
+) -> WorkReport:
+    """Compute the batches of the study in `out` that are missing and not claimed by another
+    worker (claims older than `claim_timeout` seconds are taken over), then return; no
+    waiting. `study`: the study's arguments, as `monte_carlo` takes them. The first worker
+    creates the folder; the others check that it holds the same study. Batches follow the
+    folder's batch size where this node's devices can share it."""
+    claim_timeout = real("monte_carlo", "claim_timeout", claim_timeout, unit="s")
+    _check_out(out)
+    run = prepare(params, gaits, out=out, **study)
+    run.open_folder()
+    progress = Progress(progress)
+    computed, claimed = [], {}
+    path = run.folder.path
+    for k in range(run.n_batches):
+        if _finished(run, k):
+            continue
+        if not claims.try_claim(path, k, claim_timeout):
+            claim = claims.read_claim(claims.claim_path(path, k))
+            if claim is not None and not run.folder.has_batch(k):
+                claimed[k] = claim
+            continue
+        try:
+            if _finished(run, k):  # written since the first look
+                continue
+            run.folder.remove_temporary_files([k], others=False)
+            t = time.perf_counter()
+            if computed:
+                run.compute(k)
+                rate = f", {run.trials_of(k) / (time.perf_counter() - t):,.0f} trials/s"
+            else:
+                with progress.compiling("montecarlo", run.program, f"{_PROGRESS} batch {k} (compiles)"):
+                    run.compute(k)
+                rate = ""
+            computed.append(k)
+            progress.step(f"{_PROGRESS} {run.folder.batch_path(k).name} written ({len(computed)} by this worker{rate})")
+        finally:
+            claims.release(path, k)
+    done = sum(run.folder.has_batch(k) for k in range(run.n_batches))
+    return WorkReport(tuple(computed), claimed, done, run.n_batches)
+
+
+def _check_out(out) -> None:
+    if out is None:
+        raise InputError("monte_carlo: workers and their gather share a study through its folder; pass `out`.")
+
+
+def _finished(run: _Run, k: int) -> bool:
+    """Whether batch `k` is in the folder and can be read (a corrupt one is computed again)."""
+    return run.folder.has_batch(k) and run.folder.load_batch(k, stacklevel=4) is not None
+
+
+def gather(params, gaits, *, out, **study) -> MonteCarloResult:
+    """The study in `out` joined from its batch files, its statistics written to
+    `out/stats.json`; `InputError` naming the missing batches (and who claims them) if any are.
+    `study`: the study's arguments, as `monte_carlo` takes them. Removes what workers leave
+    behind (temporary files, claims) once every batch is there."""
+    t0 = time.perf_counter()
+    _check_out(out)
+    run = prepare(params, gaits, out=out, **study)
+    path = run.folder.path
+    if not (path / "manifest.json").exists():
+        raise InputError(f"monte_carlo: {path} holds no study (no manifest.json); run the workers first.")
+    recorded = run.folder.check_manifest(run.fingerprint, run.n)
+    if recorded < run.n:
+        raise InputError(
+            f"monte_carlo: {path} holds this study with {recorded} trials; run workers with n = {run.n} (--trials) "
+            f"first, or gather {recorded}."
+        )
+    parts = [run.folder.load_batch(k, stacklevel=3) if run.folder.has_batch(k) else None for k in range(run.n_batches)]
+    missing = [k for k, p in enumerate(parts) if p is None]
+    if missing:
+        raise InputError(f"monte_carlo: {path}: {_describe_missing(path, missing, run.n_batches)}")
+    run.folder.remove_temporary_files(range(run.n_batches), others=True)
+    for k in range(run.n_batches):
+        claims.claim_path(path, k).unlink(missing_ok=True)
+    res = _result(run, parts, time.perf_counter() - t0)
+    run.folder.write_stats(res.stats())
+    return res
+
+
+def _describe_missing(path, missing: Sequence[int], n_batches: int) -> str:
+    """`"3 of 10 batches missing: 2, 5-6 (5 claimed by host:pid, 3 min ago); ..."`."""
+    now = time.time()
+    held = {k: c for k in missing if (c := claims.read_claim(claims.claim_path(path, k))) is not None}
+    text = f"{len(missing)} of {n_batches} batches missing: {_ranges(missing)}"
+    if held:
+        shown = list(held.items())[:5]
+        text += " (" + "; ".join(f"{k} claimed by {c.describe(now)}" for k, c in shown)
+        text += f"; {len(held) - 5} more claimed)" if len(held) > 5 else ")"
+    return text + "; run more workers (--worker), then --gather again."
+
+
+def _ranges(ks: Sequence[int]) -> str:
+    """`[2, 5, 6, 7]` -> `"2, 5-7"`."""
+    out, start = [], None
+    for i, k in enumerate(ks):
+        start = k if start is None else start
+        if i + 1 == len(ks) or ks[i + 1] != k + 1:
+            out.append(f"{start}" if start == k else f"{start}-{k}")
+            start = None
+    return ", ".join(out)
