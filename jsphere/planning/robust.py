@@ -68,7 +68,9 @@ def replay_end(params: RobotParams, ts, table, mode: str = "wheel_speeds"):
     control, field = (
         (WheelSpeeds(tab, ()), _wheel_field) if mode == "wheel_speeds" else (Torques(tab, ()), _torque_field)
     )
-    args = (params, d, control, jnp.zeros((), dt), ts[-1])
+    # the end of the control lies past the table: the last stage of each step is evaluated just
+    # inside its interval instead (the table's left limit, differentiable in the knot times)
+    args = (params, d, control, jnp.zeros((), dt), ts[-1] + 1.0)
 
     def f(t, z):
         return field(t, z, args)
@@ -78,7 +80,7 @@ def replay_end(params: RobotParams, ts, table, mode: str = "wheel_speeds"):
         k1 = f(t, z)
         k2 = f(t + 0.5 * h, z + 0.5 * h * k1)
         k3 = f(t + 0.5 * h, z + 0.5 * h * k2)
-        k4 = f(t + h, z + h * k3)
+        k4 = f(t + h * (1.0 - 1e-12), z + h * k3)
         return z + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4), None
 
     z0 = State.at_rest(params).flatten().astype(dt)
@@ -312,6 +314,7 @@ def plan_robust(
     seed: int = 0,
     progress: bool | None = None,
     options: SolverOptions | None = None,
+    nominal: Plan | None = None,
 ) -> RobustPlan:
     """A rest-to-rest manoeuvre to `to = (x, y)` [m] whose miss stays small over the robots
     that `uncertainty` allows, executed as wheel speeds (see the module's description).
@@ -326,6 +329,8 @@ def plan_robust(
     - `check_samples` (>= 1000 for the reports): the fresh draw on which `miss_mc` compares
       the nominal and the robust plan.
     - `seed`: of the restarts and of both draws (the check draw uses its own stream).
+    - `nominal`: the nominal plan, if planned already (`plan` with the nominal parameters and
+      the same request); else it is planned here.
 
     Returns a `RobustPlan`. Raises `InputError` for a bad argument, before any work.
     """
@@ -347,18 +352,23 @@ def plan_robust(
     p_nom = uncertainty.nominal(params)
     _, draw = uncertainty.draw(params, samples, seed)
     _, check = uncertainty.draw(params, check_samples, seed + 1_000_003)
-    nominal = plan_many(
-        p_nom,
-        [(to[0], to[1], heading)],
-        limits=lim,
-        objective=obj,
-        settings=s,
-        restarts=max(restarts, 2),
-        rate=rate,
-        seed=seed,
-        progress=progress,
-        options=options,
-    )[0]
+    if nominal is not None and not isinstance(nominal, Plan):
+        raise InputError(f"plan_robust: nominal must be a jsphere.Plan; got {type(nominal).__name__}.")
+    nominal = (
+        nominal
+        or plan_many(
+            p_nom,
+            [(to[0], to[1], heading)],
+            limits=lim,
+            objective=obj,
+            settings=s,
+            restarts=max(restarts, 2),
+            rate=rate,
+            seed=seed,
+            progress=progress,
+            options=options,
+        )[0]
+    )
     target = jnp.asarray(_vec_targets([(to[0], to[1], heading)])[0], p_nom.R0.dtype)
     z_nom = decision_vector(nominal.gaits[0], lim)
     z0s = jnp.asarray(_starts(z_nom, restarts, lim, seed), p_nom.R0.dtype)
