@@ -13,7 +13,6 @@ standard deviations 3 %, 20 %, 10 %, 5 %). Prints a table and writes
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
