@@ -49,6 +49,9 @@ from .rollout import rollout
 from .uncertainty import Uncertainty
 from .verify import _accurate, _limit_report, _terminal_errors
 
+#: the relative gain in the p95 miss on a validation draw that the robust search's plan needs
+#: over the nominal plan to be kept
+KEEP_MARGIN = 0.05
 #: the replay modes: the table column a robot executes
 MODES = ("wheel_speeds", "torques")
 
@@ -257,7 +260,9 @@ class RobustPlan:
     nominal parameters are traded for the spread); `nominal`: the plan for the nominal
     parameters; `miss_mc`: `{"nominal": ..., "robust": ...}` (`miss_summary`, metres) over a
     fresh draw of `check_samples` parameter sets, independent of the `samples` sets the search
-    used; `objective`: the robust objective of the start (nominal plan) and of the result."""
+    used; `objective`: the robust objective of the start (nominal plan) and of the result;
+    `kept`: whether the search's plan was kept (False: it did not land better than the nominal
+    plan on a validation draw, and `plan` is the nominal plan)."""
 
     plan: Plan
     nominal: Plan
@@ -269,6 +274,7 @@ class RobustPlan:
     seed: int
     objective: dict[str, float]
     elapsed_s: float
+    kept: bool = True
 
     def to_json(self) -> dict[str, Any]:
         """The `robust` section of plan.json (`miss_mc` is written beside it)."""
@@ -281,6 +287,7 @@ class RobustPlan:
             "seed": self.seed,
             "mode": "wheel_speeds",
             "objective": self.objective,
+            "kept": self.kept,
             "nominal_duration_s": self.nominal.duration,
             "nominal_errors": self.nominal.errors,
             "elapsed_s": self.elapsed_s,
@@ -293,6 +300,11 @@ class RobustPlan:
             f"draws the miss is mean {1e3 * n['mean']:.3f} / p95 {1e3 * n['p95']:.3f} mm for the nominal plan "
             f"(T = {self.nominal.duration:.2f} s), mean {1e3 * r['mean']:.3f} / p95 {1e3 * r['p95']:.3f} mm for the "
             f"robust one (T = {self.plan.duration:.2f} s)"
+            + (
+                ""
+                if self.kept
+                else "; the search's plan did not land better on a validation draw: the nominal plan is kept"
+            )
         )
 
 
@@ -327,7 +339,9 @@ def plan_robust(
     - `restarts`: starts of the robust search, vmapped: the nominal plan and slower versions.
     - `robust_steps`: its Levenberg-Marquardt iterations.
     - `check_samples` (>= 1000 for the reports): the fresh draw on which `miss_mc` compares
-      the nominal and the robust plan.
+      the nominal and the robust plan. The search's plan is kept only if its p95 miss on a
+      third, independent draw of that size is at least `KEEP_MARGIN` (5 %) below the nominal
+      plan's; otherwise the robust plan is the nominal plan (`RobustPlan.kept` False).
     - `seed`: of the restarts and of both draws (the check draw uses its own stream).
     - `nominal`: the nominal plan, if planned already (`plan` with the nominal parameters and
       the same request); else it is planned here.
@@ -383,6 +397,12 @@ def plan_robust(
     best = int(np.argmin(fs))
     f_start = float(robust_objective(z_nom, target, p_nom, draw, lim_a, obj_a, s, quantile))
     robust = _verified_plan(p_nom, zs[best], target, lim, s, rate, options, nominal, t0)
+    # the search saw only `samples` robots: keep its plan only if it also lands better on
+    # another independent draw (by KEEP_MARGIN), else the nominal plan is the robust one
+    _, valid = uncertainty.draw(params, check_samples, seed + 2_000_003)
+    p95 = {k: miss_summary(miss_distribution(pl, valid))["p95"] for k, pl in (("n", nominal), ("r", robust))}
+    kept = p95["r"] < (1.0 - KEEP_MARGIN) * p95["n"]
+    robust = robust if kept else nominal
     prog.say(f"jsphere plan: replaying both plans on {check_samples} fresh draws")
     miss_mc = {
         "nominal": miss_summary(miss_distribution(nominal, check)),
@@ -399,7 +419,8 @@ def plan_robust(
         quantile=float(quantile),
         check_samples=int(check_samples),
         seed=int(seed),
-        objective={"nominal": f_start, "robust": float(fs[best])},
+        objective={"nominal": f_start, "robust": float(fs[best]) if kept else f_start},
+        kept=bool(kept),
         elapsed_s=time.perf_counter() - t0,
     )
 
