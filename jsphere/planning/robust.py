@@ -59,11 +59,12 @@ MODES = ("wheel_speeds", "torques")
 # ----------------------------------------------------------------------------- replay
 
 
-def replay_end(params: RobotParams, ts, table, mode: str = "wheel_speeds"):
+def replay_end(params: RobotParams, ts, table, mode: str = "wheel_speeds", grid=None):
     """The state at `ts[-1]` of a robot from rest (`State.at_rest`) that executes the table
     `table (T, N)` (cubic, as `WheelSpeeds.from_samples`/`Torques.from_samples` read it),
-    integrated with classical RK4, one step per interval of `ts` (pure JAX, vmappable over
-    `params`). Returns `(x, y, Omega (3,), gamma (3,))`."""
+    integrated with classical RK4, one step per interval of `grid` (default: of `ts`; a grid
+    must start at `ts[0]` and end at `ts[-1]`) (pure JAX, vmappable over `params`). Returns
+    `(x, y, Omega (3,), gamma (3,))`."""
     d = derive(params)
     dt = params.R0.dtype
     ts = jnp.asarray(ts, dt)
@@ -74,12 +75,13 @@ def replay_end(params: RobotParams, ts, table, mode: str = "wheel_speeds"):
     # the end of the control lies past the table: the last stage of each step is evaluated just
     # inside its interval instead (the table's left limit, differentiable in the knot times)
     args = (params, d, control, jnp.zeros((), dt), ts[-1] + 1.0)
+    grid = ts if grid is None else jnp.asarray(grid, dt)
 
     def f(t, z):
         return field(t, z, args)
 
     def step(z, k):
-        t, h = ts[k], ts[k + 1] - ts[k]
+        t, h = grid[k], grid[k + 1] - grid[k]
         k1 = f(t, z)
         k2 = f(t + 0.5 * h, z + 0.5 * h * k1)
         k3 = f(t + 0.5 * h, z + 0.5 * h * k2)
@@ -87,14 +89,26 @@ def replay_end(params: RobotParams, ts, table, mode: str = "wheel_speeds"):
         return z + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4), None
 
     z0 = State.at_rest(params).flatten().astype(dt)
-    zT, _ = jax.lax.scan(step, z0, jnp.arange(ts.shape[0] - 1))
+    zT, _ = jax.lax.scan(step, z0, jnp.arange(grid.shape[0] - 1))
     return zT[Flat.x], zT[Flat.y], zT[Flat.Omega], rotmat(zT[Flat.q])[2]
 
 
+#: the longest RK4 step of `miss_distribution` [s]: a table at a higher rate is integrated
+#: over several rows per step (its cubic interpolant is smooth between rows)
+REPLAY_STEP = 0.005
+
+
+def _replay_grid(ts: np.ndarray) -> np.ndarray:
+    """Every `stride`-th row of `ts` (and its last), `stride` the most rows within `REPLAY_STEP`."""
+    stride = max(1, int(REPLAY_STEP / max(float(np.median(np.diff(ts))), 1e-12)))
+    grid = ts[::stride]
+    return grid if grid[-1] == ts[-1] else np.append(grid, ts[-1])
+
+
 @eqx.filter_jit
-def _replay_batch(samples: RobotParams, ts, table, mode: str):
+def _replay_batch(samples: RobotParams, ts, table, mode: str, grid):
     def one(p):
-        x, y, Om, g = replay_end(p, ts, table, mode)
+        x, y, Om, g = replay_end(p, ts, table, mode, grid)
         return x, y, p.R0 * jnp.linalg.norm(jnp.cross(Om, g))
 
     return jax.vmap(one)(samples)
@@ -104,7 +118,8 @@ def miss_distribution(
     plan_: Plan, samples: RobotParams, *, mode: str = "wheel_speeds", batch: int = 512
 ) -> dict[str, np.ndarray]:
     """Replay a plan's table (`Plan.table`, the column of `mode`) on every parameter set of
-    `samples` (stacked `RobotParams`, e.g. `Uncertainty.draw`), RK4 on the table's own rows.
+    `samples` (stacked `RobotParams`, e.g. `Uncertainty.draw`), RK4 on the table's rows
+    (several rows per step for tables faster than `1 / REPLAY_STEP`).
     Returns per set `miss_m` (distance of the end from the plan's target), `speed_m_s`
     (`R0 |Omega x gamma|` at the end) and `final_xy (n, 2)`."""
     if mode not in MODES:
@@ -115,10 +130,11 @@ def miss_distribution(
     ts = cols["t"]
     table = np.stack([cols[f"{key}_{i + 1}"] for i in range(N)], axis=1)
     n = int(np.shape(samples.R0)[0])
+    grid = _replay_grid(ts)
     xs, ys, vs = [], [], []
     for a in range(0, n, batch):
         part = jax.tree_util.tree_map(lambda v, a=a: v[a : a + batch], samples)
-        x, y, v = _replay_batch(part, ts, table, mode)
+        x, y, v = _replay_batch(part, ts, table, mode, grid)
         xs.append(np.asarray(x))
         ys.append(np.asarray(y))
         vs.append(np.asarray(v))
