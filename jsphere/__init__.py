@@ -82,6 +82,8 @@ _EXPORTS = {
         "plan_many",
         "plan_route",
     ),
+    "planning.robust": ("RobustPlan", "miss_distribution", "plan_robust"),
+    "planning.uncertainty": ("Uncertainty",),
     "planning.verify": ("replay_errors",),
     "solve.options": ("SolverOptions",),
     "solve.simulate": ("simulate",),

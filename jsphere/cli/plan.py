@@ -13,6 +13,7 @@ EXAMPLES = """
   jsphere plan --to 0.8 -0.5 --heading 1.0 --out plan.csv
   jsphere plan --to 0.5 0 --max-torque 0.05 --max-time 8 --restarts 32 --no-plots --out plan.csv
   jsphere plan --to 0.8 0 --rate 100 --commands commands.csv --command-kind chi_dot --out plan.csv
+  jsphere plan --to 0.6 0.3 --robust fit.json --samples 64 --quantile 0.95 --out robust.csv
 """
 
 
@@ -63,6 +64,26 @@ def add_parser(sub) -> None:
         help="the commands' family: wheel speeds chi_dot [rad/s] or axle torques K [N m] (default chi_dot)",
     )
     pp.add_argument("--no-plots", action="store_true", help="skip the figure")
+    rb = pp.add_argument_group("robust to the robot's uncertainty (docs/planning.md)")
+    rb.add_argument(
+        "--robust",
+        metavar="FILE",
+        help="a fit result (fit.json: values, stderr, correlation) or a study (.toml: its [vary] table): plan for "
+        "every robot it allows, executed as wheel speeds; plan.json gets miss_mc",
+    )
+    rb.add_argument("--samples", type=int, default=64, help="parameter sets drawn for the robust search (default 64)")
+    rb.add_argument(
+        "--quantile",
+        type=float,
+        default=0.95,
+        help="the search minimises the mean loss of the drawn sets above this quantile (default 0.95; 0: all)",
+    )
+    rb.add_argument(
+        "--check-samples",
+        type=int,
+        default=1000,
+        help="fresh parameter sets on which miss_mc compares the nominal and the robust plan (default 1000)",
+    )
     pp.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
 
 
@@ -87,12 +108,13 @@ def run(args) -> int:
     check_output(
         out,
         writes=writes,
-        inputs={"the parameter file (--params)": args.params},
+        inputs={"the parameter file (--params)": args.params, "the uncertainty file (--robust)": args.robust},
         example=str(Path(args.out) / "plan.csv"),
     )
     limits = _limits(args)
     params = RobotParams.load(args.params) if args.params else RobotParams.paper()
     obj = Objective(energy=args.energy_weight, time=args.time_weight)
+    uncertainty, params = _uncertainty(args) if args.robust else (None, params)
     pl = plan(
         params,
         tuple(args.to),
@@ -105,6 +127,8 @@ def run(args) -> int:
         allow_infeasible=True,
         progress=progress(args),
     )
+    robust = _robust(args, params, uncertainty, limits, obj, pl) if args.robust else None
+    pl = robust.plan if robust else pl
     print(pl.summary())
     pl.to_csv(out)
     info = {
@@ -119,6 +143,9 @@ def run(args) -> int:
         "restarts": pl.restarts,
         "rate_hz": pl.rate,
     }
+    if robust:
+        info["miss_mc"] = robust.miss_mc
+        info["robust"] = robust.to_json()
     atomic_write_json(out.with_suffix(".json"), info)
     written = [out, out.with_suffix(".json")]
     if args.commands:
@@ -157,3 +184,56 @@ def _limits(args):
     if args.max_time is not None:
         lim_kw["max_time"] = float(args.max_time)
     return Limits(**lim_kw)
+
+
+def _robust(args, params, uncertainty, limits, obj, nominal):
+    """`plan_robust` for `--robust FILE`, from the nominal plan; prints its summary."""
+    from ..planning.robust import plan_robust
+
+    robust = plan_robust(
+        params,
+        tuple(args.to),
+        uncertainty,
+        heading=args.heading,
+        limits=limits,
+        objective=obj,
+        samples=args.samples,
+        quantile=args.quantile,
+        check_samples=args.check_samples,
+        restarts=min(args.restarts, 4),
+        rate=args.rate,
+        seed=args.seed,
+        progress=progress(args),
+        nominal=nominal,
+    )
+    print(robust.summary())
+    return robust
+
+
+def _uncertainty(args):
+    """The `Uncertainty` of `--robust` and the nominal parameters: a fit result's estimate and
+    covariance (its `params` unless `--params` is given), or a study's `vary` table (its
+    parameters unless `--params` is given)."""
+    from .._runtime.errors import InputError
+    from .._runtime.files import read_mapping
+    from ..model.params import RobotParams
+    from ..planning.uncertainty import Uncertainty
+
+    path = Path(args.robust)
+    if path.suffix.lower() == ".toml":
+        from ..montecarlo.study import check_vary, load_study
+
+        study = load_study(path)
+        params = RobotParams.load(args.params) if args.params else study["params"]
+        try:
+            entries = check_vary(params, study["kwargs"]["vary"])
+        except ValueError as e:
+            raise InputError(f"{path}: {e}") from None
+        unc = Uncertainty.from_vary(entries, source=str(path))
+        return unc, unc.nominal(params)
+    if path.suffix.lower() != ".json":
+        raise InputError(f"--robust {path}: expected a fit result (.json) or a Monte-Carlo study (.toml).")
+    fit = read_mapping(path)
+    params = RobotParams.load(args.params) if args.params else RobotParams.load(path)
+    unc = Uncertainty.from_fit(fit, source=str(path))
+    return unc, unc.nominal(params)
