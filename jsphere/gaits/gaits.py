@@ -405,6 +405,8 @@ def _check_start(params, gait, alpha0, beta0) -> None:
     a, b = np.asarray(alpha0, np.float64), np.asarray(beta0, np.float64)
     if abs(np.linalg.norm(a) - 1) > 1e-6 or abs(np.linalg.norm(b) - 1) > 1e-6 or abs(a @ b) > 1e-6:
         raise ValueError(f"simulate_gaits: alpha0 and beta0 must be orthonormal; got {a}, {b}.")
+    if any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(gait)):
+        return  # traced gait coefficients (a gradient with respect to the gait): gamma(0) is not known here
     try:
         g0 = np.asarray(_start_gamma(params.r_m, gait), np.float64)
     except (
