@@ -42,3 +42,8 @@ def under_jit() -> bool:
     operation (e.g. `jnp.zeros(()) + 0.0`, one more small program per process).
     """
     return isinstance(jax.device_put(np.float32(0.0)), jax.core.Tracer)
+
+
+def traced(tree) -> bool:
+    """Whether a call may be under a transformation: traced leaves in `tree`, or inside a `jit`."""
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree)) or under_jit()

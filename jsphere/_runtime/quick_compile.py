@@ -24,7 +24,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from .arrays import under_jit
+from .arrays import traced
 
 #: XLA options of the programs of eager calls on the CPU
 CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 1}
@@ -59,10 +59,6 @@ def options() -> dict | None:
     return chosen or None
 
 
-def _traced(tree) -> bool:
-    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree)) or under_jit()
-
-
 def eager_jit(fn: Callable) -> Callable:
     """`equinox.filter_jit(fn)`, compiled with `options()` when called eagerly with concrete
     arrays; traced calls use the plain `filter_jit` (one compiled function per shape each)."""
@@ -71,7 +67,7 @@ def eager_jit(fn: Callable) -> Callable:
 
     @functools.wraps(fn)
     def call(*args, **kwargs):
-        if _traced((args, kwargs)):
+        if traced((args, kwargs)):
             return plain(*args, **kwargs)
         if not quick:
             opts = options()

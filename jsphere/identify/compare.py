@@ -74,7 +74,7 @@ class CompareResult:
         """Write the JSON atomically and, unless `plots=False`, one figure per trial beside it,
         `<stem>_<trial>.png` (`jsphere.plots.compare_figure`). Returns the paths written."""
         path = Path(path)
-        atomic_write_json(path, _finite(self.to_json()))
+        atomic_write_json(path, self.to_json())  # non-finite values as null
         written = [path]
         if plots:
             from ..plots import compare_figure
@@ -364,14 +364,3 @@ def _overall(reports: list[dict[str, Any]], lags: int) -> dict[str, Any]:
         "rms_pos_m": math.sqrt(wavg([r["rms_pos_m"] ** 2 for r in reports])),
         "rms_rot_deg": math.sqrt(wavg([r["rms_rot_deg"] ** 2 for r in reports])),
     }
-
-
-def _finite(v):
-    """Non-finite floats as None (JSON has no inf/NaN)."""
-    if isinstance(v, dict):
-        return {k: _finite(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_finite(x) for x in v]
-    if isinstance(v, (float, np.floating)):
-        return float(v) if math.isfinite(v) else None
-    return v

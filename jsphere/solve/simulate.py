@@ -13,7 +13,8 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from .._runtime import export_cache as _aot
-from .._runtime.arrays import as_array, under_jit
+from .._runtime.arrays import as_array
+from .._runtime.arrays import traced as _traced
 from .._runtime.quick_compile import eager_jit
 from ..controls import Torques, WheelSpeeds
 from ..model.dynamics import servo_jump
@@ -21,7 +22,6 @@ from ..model.params import RobotParams, derive
 from ..model.rotations import rotmat
 from ..model.state import Flat, State
 from .batched import dispatch as _dispatch
-from .batched.dispatch import has_tracer as _has_tracer
 from .batched.layout import Layout, steps_layout
 from .fields import (
     _outputs_torque,
@@ -178,13 +178,6 @@ def _explicit_closure(controls, t0):
     if not any(isinstance(c, jax.core.Tracer) for c in jax.tree_util.tree_leaves(conv)):
         return controls  # nothing traced is closed over: keep the control (and its compilation)
     return type(controls)(_ClosedControl(conv, dyn), controls.jump_ts)
-
-
-def _traced(tree) -> bool:
-    """Whether a call may be under a transformation: traced inputs, or inside a `jit`."""
-    if _has_tracer(tree):
-        return True
-    return under_jit()
 
 
 def batch_engine_applies(controls_ok: bool, adjoint) -> bool:
