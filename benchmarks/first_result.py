@@ -24,12 +24,16 @@ tolerances):
   `Dopri8`, `PIDController(rtol=1e-10, atol=1e-12)`, t in [0, 4]; its first solve, first
   `jax.grad` (diffrax's default `RecursiveCheckpointAdjoint`) and first `jax.jacfwd`
   (`ForwardMode`);
+- `fit`: the first iteration of `jsphere.fit` (`R_m, j` from one 3 s torque trial at 50 Hz made
+  by `synthetic_trial` before the clock starts; one start, no Adam steps, one LM iteration);
+- `plan`: the first `jsphere.plan(p, (0.3, 0.1))` with 2 restarts, one Adam and one LM step;
 - `quickstart`: `python examples/quickstart.py` as a whole (outside wall time only).
 
 Each child reports `import_s` (its imports), `first_s` (the first call, results ready; and
 `first_cpu_s`, the CPU time of the process's threads meanwhile, less sensitive to other load) and
 `second_s` (the same call again: the run time, so that `first_s - second_s` is the tracing
-and compilation). Each task runs cold (no persistent cache), then with a persistent
+and compilation), and `phases`: the first call's tracing, lowering and XLA time summed from
+JAX's monitoring events, and the number of programs it compiled. Each task runs cold (no persistent cache), then with a persistent
 compilation cache in a fresh temporary directory, twice: the second process is reported.
 The cache is switched on with `jsphere.enable_compilation_cache(dir)` where jsphere has it,
 else with JAX's options (`jax_compilation_cache_dir`, and thresholds of 0 so every program
@@ -62,7 +66,7 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 
-JSPHERE_TASKS = ("gaits", "simulate", "grad", "jacfwd")
+JSPHERE_TASKS = ("gaits", "simulate", "grad", "jacfwd", "fit", "plan")
 DFX_TASKS = ("dfx_solve", "dfx_grad", "dfx_jacfwd")
 RATIOS = {"gaits": "dfx_solve", "simulate": "dfx_solve", "grad": "dfx_grad", "jacfwd": "dfx_jacfwd"}
 QUICK_TASKS = ("gaits", "grad", "dfx_solve", "dfx_grad")
@@ -118,6 +122,30 @@ def _timed(f, *args):
     return out, time.perf_counter() - t, time.process_time() - c
 
 
+#: JAX's duration events of a program's way to the device, by the name kept in the JSON
+_PHASE_EVENTS = {
+    "/jax/core/compile/jaxpr_trace_duration": "trace_s",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower_s",
+    "/jax/core/compile/backend_compile_duration": "compile_s",
+}
+
+
+def _phases(jax) -> dict:
+    """Totals, from now on, of the time JAX spends tracing, lowering and compiling programs
+    (its monitoring events; nested traces overlap, so `trace_s` may exceed the wall time),
+    and the number of programs compiled."""
+    totals = {"trace_s": 0.0, "lower_s": 0.0, "compile_s": 0.0, "programs": 0}
+
+    def listen(event, duration, **_):
+        key = _PHASE_EVENTS.get(event)
+        if key is not None:
+            totals[key] += float(duration)
+            totals["programs"] += key == "compile_s"
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    return totals
+
+
 def _jsphere_child(task: str, cache_dir: str | None) -> dict:
     t = time.perf_counter()
     import diffrax as dfx
@@ -147,6 +175,23 @@ def _jsphere_child(task: str, cache_dir: str | None) -> dict:
         def f():
             return jsphere.simulate(p, state0, jsphere.Torques.from_samples(ts, K), 4.0, ts=ts).x
 
+    elif task == "fit":
+        ts = np.linspace(0.0, 3.0, 301)
+        K = 0.02 * (np.sin(np.pi * ts / 3.0) ** 2 * np.sin(2.0 * ts))[:, None] * np.array([1.0, -0.5, -0.5])
+        truth = p.replace(R_m=1.02 * float(p.R_m))
+        trial = jsphere.synthetic_trial(truth, jsphere.Torques.from_samples(ts, K), 3.0, rate=50.0, seed=1)
+
+        def f():
+            r = jsphere.fit([trial], p, "R_m,j", n_starts=1, adam_steps=0, max_iter=1, progress=False)
+            return np.asarray(r.params.R_m)
+
+    elif task == "plan":
+        settings = jsphere.PlanSettings(adam_steps=1, lm_steps=1)
+
+        def f():
+            pl = jsphere.plan(p, (0.3, 0.1), settings=settings, restarts=2, allow_infeasible=True, progress=False)
+            return np.asarray(pl.trajectory.x)
+
     else:
         adjoint = dfx.ForwardMode() if task == "jacfwd" else None
 
@@ -161,8 +206,10 @@ def _jsphere_child(task: str, cache_dir: str | None) -> dict:
 
     import contextlib
 
+    phases = _phases(jax)
     with _checks_as_nan(jsphere) if cache_dir else contextlib.nullcontext():
         out, rec["first_s"], rec["first_cpu_s"] = _timed(f)
+    rec["phases"] = dict(phases)
     _, rec["second_s"], _ = _timed(f)
     rec["value"] = float(np.ravel(np.asarray(out))[-1])
     return rec
@@ -255,7 +302,9 @@ def _dfx_child(task: str, cache_dir: str | None) -> dict:
         def f():
             return d(0.1)
 
+    phases = _phases(jax)
     out, rec["first_s"], rec["first_cpu_s"] = _timed(f)
+    rec["phases"] = dict(phases)
     _, rec["second_s"], _ = _timed(f)
     rec["value"] = float(np.ravel(np.asarray(out))[-1])
     return rec
@@ -323,6 +372,8 @@ def _median(runs: list[dict]) -> dict:
     keys = [k for k, v in runs[0].items() if isinstance(v, (int, float)) and not isinstance(v, bool)]
     out = {k: statistics.median(r[k] for r in runs) for k in keys}
     out.update({k: v for k, v in runs[0].items() if isinstance(v, str)})
+    if "phases" in runs[0]:
+        out["phases"] = {k: statistics.median(r["phases"][k] for r in runs) for k in runs[0]["phases"]}
     out["runs"] = runs
     return out
 
@@ -373,6 +424,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=1, help="processes per entry (the median is reported)")
     ap.add_argument("--quick", action="store_true", help=f"only {', '.join(QUICK_TASKS)}; no quickstart")
     ap.add_argument("--no-cache", action="store_true", help="skip the cached part")
+    ap.add_argument("--tasks", nargs="+", choices=JSPHERE_TASKS + DFX_TASKS, help="only these tasks; no quickstart")
     ap.add_argument(
         "--xla-defaults",
         action="store_true",
@@ -387,7 +439,7 @@ def main(argv=None) -> int:
         return 0
 
     meta = metadata()
-    tasks = QUICK_TASKS if args.quick else JSPHERE_TASKS + DFX_TASKS
+    tasks = tuple(args.tasks) if args.tasks else QUICK_TASKS if args.quick else JSPHERE_TASKS + DFX_TASKS
     cold, cached = {}, {}
     defaults = {}
     for task in tasks:
@@ -408,7 +460,7 @@ def main(argv=None) -> int:
                 flush=True,
             )
     quickstart = None
-    if not args.quick:
+    if not args.quick and not args.tasks:
         quickstart = _median([run_quickstart() for _ in range(args.repeat)])
         print(f"  cold   quickstart  process {quickstart['wall_s']:5.1f} s", file=sys.stderr, flush=True)
     if not args.no_cache:
@@ -465,6 +517,11 @@ def main(argv=None) -> int:
         print(line)
     if quickstart:
         print(f"{'quickstart':<11} {'':>7} {'':>7} {'':>7} {'':>8} {quickstart['wall_s']:8.2f}")
+    print(f"\n{'cold, first call':<17} {'trace':>7} {'lower':>7} {'compile':>8} {'programs':>9}")
+    for task in tasks:
+        ph = cold[task].get("phases")
+        if ph:
+            print(f"{task:<17} {ph['trace_s']:7.2f} {ph['lower_s']:7.2f} {ph['compile_s']:8.2f} {ph['programs']:9.0f}")
     print(
         "ratio: first_s over the baseline's (cpu: "
         + ", ".join(f"{k} {v:.2f}" for k, v in ratios["cold_cpu"].items())

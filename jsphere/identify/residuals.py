@@ -25,6 +25,7 @@ import diffrax as dfx
 import jax
 import jax.numpy as jnp
 
+from .._runtime.quick_compile import eager_jit
 from ..controls import Sampled, Torques, WheelSpeeds
 from ..model.kinematics import relative_rate_from_wheel_speeds
 from ..model.rotations import quat_conj, quat_exp, quat_log, quat_mul
@@ -141,16 +142,16 @@ class _Functions:
 
         over_trials = lambda f: jax.vmap(f, in_axes=(None, None, 0, 0, None))
         over_starts = lambda f: jax.vmap(f, in_axes=(None, 0, 0, None, None))
-        both = jax.jit(over_starts(over_trials(jac_one)))
+        both = eager_jit(over_starts(over_trials(jac_one)))
         self.segments = both
-        self.jacobian = jax.jit(lambda *a: both(*a)[:4])
-        self.step = jax.jit(jax.vmap(functools.partial(_lm_step, P=P)))
+        self.jacobian = eager_jit(lambda *a: both(*a)[:4])
+        self.step = eager_jit(jax.vmap(functools.partial(_lm_step, P=P)))
 
         def assemble(res, J, e, Je, nu, mu, seg, scale):
             return _shooting.assemble(kind, P, res, J, e, Je, nu, mu, seg, scale)
 
-        self.assemble = jax.jit(jax.vmap(assemble, in_axes=(0, 0, 0, 0, 0, None, None, None)))
-        self.solve = jax.jit(jax.vmap(_solve_arrow, in_axes=(0, 0)))
+        self.assemble = eager_jit(jax.vmap(assemble, in_axes=(0, 0, 0, 0, 0, None, None, None)))
+        self.solve = eager_jit(jax.vmap(_solve_arrow, in_axes=(0, 0)))
 
 
 _CACHE: dict[Any, _Functions] = {}
