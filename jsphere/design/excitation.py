@@ -12,17 +12,16 @@ import numpy as np
 
 from .._runtime.checks import real, whole
 from .._runtime.errors import InputError
-from .._runtime.progress import FIRST_CALL_S, Progress
+from .._runtime.progress import Progress
 from ..identify.free import FreeParams
 from ..model.params import RobotParams
 from ..planning.problem import Limits
 from .information import Grid, Noise, problem
 from .inputs import KINDS, Spec, match_rms, programmes, random_multisine, random_start, rms, sample_times, table
-from .optimise import evaluate, limits_report, maximise
+from .optimise import evaluate, limit_values, limits_report, maximise
 from .prediction import d_criterion, fit_information
 from .result import DesignResult
 
-FIRST_CALL_S.setdefault("design", 40.0)  # the criterion's gradient, reverse over forward mode
 #: the RMS of the starts' `s_i(t)` in units of the limit: well inside the limits the penalty watches
 START_SCALE = 0.1
 
@@ -88,7 +87,9 @@ def design_excitation(
     real("design_excitation", "rate", rate, strict=True, unit="Hz")
     real("design_excitation", "capture_rate", capture_rate, strict=True, unit="Hz")
     if capture_rate * duration < 4:
-        raise InputError(f"design_excitation: capture_rate x duration must give at least 4 samples; got {capture_rate * duration:g}.")
+        raise InputError(
+            f"design_excitation: capture_rate x duration must give at least 4 samples; got {capture_rate * duration:g}."
+        )
     try:
         fp = FreeParams(params, free)
     except ValueError as e:
@@ -102,6 +103,7 @@ def design_excitation(
     )
     key = repr((spec, fp.names, grid.rate, grid.substeps, restarts))
     with prog.bar(steps + 1, "design: Adam", "step") as bar:
+
         def on_step(k, obj):
             bar.update(1, f"log det {np.nanmax(np.where(np.isfinite(obj), obj, np.nan)):.3f}")
             prog.step(f"design: step {k:3d}/{steps}  best objective {np.nanmax(obj):.4f}")
@@ -116,13 +118,14 @@ def design_excitation(
         raise SolverFailure("design: the model of every restart failed (non-finite criterion); try smaller limits.")
     b = int(np.nanargmax(np.where(np.isfinite(obj), obj, -np.inf)))
     z = zb[b]
-    progs = programmes(jnp.asarray(z), spec)
-    tables = [table(p, rate) for p in progs]
+    tables = [table(p, rate) for p in programmes(jnp.asarray(z), spec)]
     design_rms = rms(np.concatenate([u for _, u in tables]))
-    zb_unit = random_multisine(spec, np.random.default_rng([seed, 1]))
-    z_base, base_rms = match_rms(zb_unit, spec, design_rms, rate)
+    _, _, _, ext = evaluate(jnp.asarray(z), pr, lim)
+    design_limits = limit_values(pr, ext, tables, lim)
+    prog.say("design: the baseline (random multisines of the same RMS amplitude within the same limits) ...")
+    z_base, base_limits, phi_base = _baseline(pr, lim, design_rms, design_limits, rate, seed)
     base_tables = [table(p, rate) for p in programmes(jnp.asarray(z_base), spec)]
-    _, phi_base, _ = (np.asarray(a) for a in evaluate(jnp.asarray(z_base)[None], pr, lim))
+    base_rms = rms(np.concatenate([u for _, u in base_tables]))
     prog.say("design: standard errors of the design and the baseline (the fit's Jacobian) ...")
     t_cap = sample_times(duration, capture_rate)
     cap = lambda zz: [table_at(p, t_cap) for p in programmes(jnp.asarray(zz), spec)]
@@ -138,14 +141,13 @@ def design_excitation(
         tables=tables,
         baseline_tables=base_tables,
         criterion={"design": d_criterion(fp, values, F_d), "baseline": d_criterion(fp, values, F_b)},
-        criterion_model={"design": float(phi[b]), "baseline": float(phi_base[0])},
+        criterion_model={"design": float(phi[b]), "baseline": phi_base},
         stderr_predicted={n: float(s) for n, s in zip(fp.names, se_d)},
         stderr_predicted_baseline={n: float(s) for n, s in zip(fp.names, se_b)},
         rms={"design": design_rms, "baseline": base_rms},
-        limits=limits_report(pr, z, lim, tables),
-        restarts=[
-            {"start": float(s), "final": float(f), "penalty": float(p)} for s, f, p in zip(start_obj, obj, pen)
-        ],
+        limits=limits_report(design_limits),
+        limits_baseline=limits_report(base_limits),
+        restarts=[{"start": float(s), "final": float(f), "penalty": float(p)} for s, f, p in zip(start_obj, obj, pen)],
         settings={
             "trials": trials,
             "n_freqs": n_freqs,
@@ -164,6 +166,38 @@ def design_excitation(
         },
         elapsed_s=time.perf_counter() - t_begin,
     )
+
+
+def _baseline(pr, lim: Limits, design_rms: float, design_limits, rate: float, seed: int):
+    """A random multisine (`random_multisine`, seed `(seed, 1)`) of the design's RMS amplitude,
+    scaled down where that breaks a limit further than the design does (each limit's allowance:
+    the larger of the limit and the design's own largest value), to the largest scale that keeps
+    them (bisection). Returns its coefficients, its `limit_values` and its model criterion."""
+    spec = pr.spec
+    unit = random_multisine(spec, np.random.default_rng([seed, 1]))
+    z_rms, _ = match_rms(unit, spec, design_rms, rate)
+    allowance = [None if limit is None else max(limit, v) for _, v, limit in design_limits]
+
+    def check(zz):
+        tables = [table(p, rate) for p in programmes(jnp.asarray(zz), spec)]
+        _, phi, _, ext = evaluate(jnp.asarray(zz), pr, lim)
+        entries = limit_values(pr, ext, tables, lim)
+        ok = all(a is None or v <= a * (1 + 1e-9) for (_, v, _), a in zip(entries, allowance))
+        return ok, entries, float(phi)
+
+    ok, entries, phi = check(z_rms)
+    if ok:
+        return z_rms, entries, phi
+    lo, hi = 0.0, 1.0
+    for _ in range(20):
+        mid = 0.5 * (lo + hi)
+        if check(mid * z_rms)[0]:
+            lo = mid
+        else:
+            hi = mid
+    z = lo * z_rms
+    _, entries, phi = check(z)
+    return z, entries, phi
 
 
 def table_at(prog, t: np.ndarray) -> np.ndarray:

@@ -172,18 +172,37 @@ def marginal(J: Float[Array, "T R Q"], P: int) -> Float[Array, "P P"]:
     return 0.5 * (F + F.T)
 
 
+class Free:
+    """`FreeParams` as a static field: equal (and hashed) by its slots, the names and transforms
+    that are all a compiled criterion depends on, so that designs with the same free names share
+    one compilation."""
+
+    def __init__(self, free: FreeParams):
+        self.params = free
+
+    def __hash__(self) -> int:
+        return hash(self.params.slots)
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, Free) and other.params.slots == self.params.slots
+
+
 class Problem(eqx.Module):
     """What the criterion of a design depends on besides its coefficients: the free parameters
     at the design's values (`theta0`, the map to physical values), the nuisance values at rest,
     the noise levels and the model grid."""
 
-    free: FreeParams = eqx.field(static=True)
+    static_free: Free = eqx.field(static=True)
     base: RobotParams
     spec: Spec
     noise: Noise
     grid: Grid
     theta0: Float[Array, " P"]
     q_rest: Float[Array, "4"]
+
+    @property
+    def free(self) -> FreeParams:
+        return self.static_free.params
 
     @property
     def kind(self) -> str:
@@ -237,7 +256,7 @@ def problem(params: RobotParams, free: FreeParams, spec: Spec, noise: Noise, gri
     """The `Problem` of a design at `params` (the free names' values and transforms of `free`)."""
     dt = params.R0.dtype
     return Problem(
-        free=free,
+        static_free=Free(free),
         base=params,
         spec=spec,
         noise=noise,

@@ -4,7 +4,7 @@ for the limits the programmes do not keep by construction, every random restart 
 
 Objective (maximised) of the coefficients `z`:
 
-    Phi(z) - weight sum_c mean(max(0, v_c / limit_c - (1 - margin))^2)
+    Phi(z) - weight sum_c sum(max(0, v_c / limit_c - (1 - margin))^2)
 
 over the wheel rates `|chi_dot_i|` (torque inputs; wheel-speed inputs keep their limit by
 construction), the torque rates `|dK_i/dt|` (torque inputs) and the platform's tilt from its
@@ -22,6 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from jaxtyping import Array, Float
 
 from ..planning.problem import Limits
 from .information import Problem
@@ -35,31 +36,39 @@ MARGIN = 0.03
 def _hinge(v, limit):
     if limit is None:
         return jnp.zeros((), v.dtype)
-    return jnp.mean(jnp.maximum(0.0, jnp.abs(v) / limit - (1.0 - MARGIN)) ** 2)
+    return jnp.sum(jnp.maximum(0.0, jnp.abs(v) / limit - (1.0 - MARGIN)) ** 2)
+
+
+def extremes(pr: Problem, z, ro) -> Float[Array, "3"]:
+    """The largest wheel rate `|chi_dot_i|` [rad/s], platform tilt [rad] and input rate
+    `|du_i/dt|` (N m/s for torques) of the programmes `z` on the model grid (`ro`: their
+    rollouts, batched over trials)."""
+    ts = jnp.asarray(pr.grid.times(pr.spec.duration), z.dtype)
+
+    def rate(c):
+        prog = programme(c, pr.spec)
+        return jax.vmap(lambda t: jax.jvp(prog, (t,), (jnp.ones_like(t),))[1])(ts)
+
+    du = jax.vmap(rate)(coefficients(z, pr.spec))
+    return jnp.stack([jnp.max(jnp.abs(ro.chi_dot)), jnp.max(ro.tilt), jnp.max(jnp.abs(du))]), du
 
 
 def penalty(pr: Problem, z, ro, lim: Limits):
     """The limit penalty (module docstring, without the weight) of the programmes `z` and their
-    rollouts `ro` (batched over trials)."""
+    rollouts `ro` (batched over trials), and `extremes`."""
+    ext, du = extremes(pr, z, ro)
     total = _hinge(ro.tilt, lim.max_tilt)
     if pr.spec.kind == "K":
-        total = total + _hinge(ro.chi_dot, lim.max_wheel_speed)
-        ts = jnp.asarray(pr.grid.times(pr.spec.duration), z.dtype)
-
-        def rate(c):
-            prog = programme(c, pr.spec)
-            return jax.vmap(lambda t: jax.jvp(prog, (t,), (jnp.ones_like(t),))[1])(ts)
-
-        total = total + _hinge(jax.vmap(rate)(coefficients(z, pr.spec)), lim.max_torque_rate)
-    return total
+        total = total + _hinge(ro.chi_dot, lim.max_wheel_speed) + _hinge(du, lim.max_torque_rate)
+    return total, ext
 
 
 def objective(z, pr: Problem, lim: Limits):
-    """`(objective, (Phi, penalty))` of the coefficients `z` (module docstring)."""
+    """`(objective, (Phi, penalty, extremes))` of the coefficients `z` (module docstring)."""
     Fs, ro = pr.information(z)
     phi = jnp.linalg.slogdet(Fs)[1]
-    pen = penalty(pr, z, ro, lim)
-    return phi - PENALTY_WEIGHT * pen, (phi, pen)
+    pen, ext = penalty(pr, z, ro, lim)
+    return phi - PENALTY_WEIGHT * pen, (phi, pen, ext)
 
 
 @eqx.filter_jit
@@ -68,10 +77,10 @@ def _value_and_grad(zs, pr: Problem, lim: Limits):
 
 
 @eqx.filter_jit
-def evaluate(zs, pr: Problem, lim: Limits):
-    """`(objective, Phi, penalty)` of each row of `zs (R, V)`."""
-    obj, (phi, pen) = jax.vmap(objective, in_axes=(0, None, None))(zs, pr, lim)
-    return obj, phi, pen
+def evaluate(z, pr: Problem, lim: Limits):
+    """`(objective, Phi, penalty, extremes)` of one coefficient vector `z (V,)`."""
+    obj, (phi, pen, ext) = objective(z, pr, lim)
+    return obj, phi, pen, ext
 
 
 def maximise(
@@ -96,7 +105,7 @@ def maximise(
     best_phi = np.full(R, np.nan)
     best_pen = np.full(R, np.nan)
     for k in range(steps + 1):
-        (obj, (phi, pen)), g = _value_and_grad(z, pr, lim)
+        (obj, (phi, pen, _)), g = _value_and_grad(z, pr, lim)
         obj, phi, pen = np.asarray(obj), np.asarray(phi), np.asarray(pen)
         ok = np.isfinite(obj)
         better = ok & (obj > best)
@@ -112,20 +121,12 @@ def maximise(
     return best_z, best, best_phi, best_pen
 
 
-@eqx.filter_jit
-def _extremes(z, pr: Problem):
-    _, ro = pr.information(z)
-    return jnp.max(jnp.abs(ro.chi_dot)), jnp.max(ro.tilt)
-
-
-def limits_report(pr: Problem, z, lim: Limits, tables) -> dict[str, dict[str, float | bool | None]]:
-    """Per limit its largest value over the programmes (`tables`: the written inputs; the wheel
-    rates and tilt from the model grid), the limit and whether it is kept."""
-    chi, tilt = (float(v) for v in _extremes(jnp.asarray(z), pr))
-    out: dict[str, dict] = {}
+def limit_values(pr: Problem, ext, tables, lim: Limits) -> list[tuple[str, float, float | None]]:
+    """`(name, largest value, limit)` of every limit of the input kind: the input itself from the
+    written `tables`, the others from `extremes` (`ext`) on the model grid."""
     u_max = max(float(np.max(np.abs(u))) for _, u in tables)
+    chi, tilt, rate = (float(v) for v in ext)
     if pr.spec.kind == "K":
-        rate = max(float(np.max(np.abs(np.diff(u, axis=0) / np.diff(tt)[:, None]))) for tt, u in tables)
         entries = [
             ("torque_N_m", u_max, lim.max_torque),
             ("torque_rate_N_m_s", rate, lim.max_torque_rate),
@@ -133,7 +134,12 @@ def limits_report(pr: Problem, z, lim: Limits, tables) -> dict[str, dict[str, fl
         ]
     else:
         entries = [("wheel_speed_rad_s", u_max, lim.max_wheel_speed)]
-    entries.append(("tilt_rad", tilt, lim.max_tilt))
-    for name, v, limit in entries:
-        out[name] = {"max": v, "limit": limit, "ok": True if limit is None else bool(v <= limit * (1 + 1e-9))}
-    return out
+    return entries + [("tilt_rad", tilt, lim.max_tilt)]
+
+
+def limits_report(entries) -> dict[str, dict[str, float | bool | None]]:
+    """Per limit its largest value, the limit and whether it is kept (`limit_values`)."""
+    return {
+        name: {"max": v, "limit": limit, "ok": True if limit is None else bool(v <= limit * (1 + 1e-9))}
+        for name, v, limit in entries
+    }

@@ -56,4 +56,3 @@ def d_criterion(free: FreeParams, values: np.ndarray, F_v: np.ndarray) -> float:
     S = np.maximum(np.abs(values), 0.1 * free.scales())
     sign, ld = np.linalg.slogdet(S[:, None] * F_v * S[None, :])
     return float(ld) if sign > 0 else -math.inf
-

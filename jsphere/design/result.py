@@ -46,8 +46,9 @@ class DesignResult:
       `criterion_model`: the same on the optimisation's model grid.
     - `stderr_predicted`, `stderr_predicted_baseline`: per free name, the standard error a fit of
       the design's (the baseline's) trials would report, in physical units.
-    - `rms`: the RMS amplitude of both (the baseline's matches the design's); `limits`: per
-      limit the largest value, the limit and whether it is kept; `restarts`: per restart its
+    - `rms`: the RMS amplitude of both (the baseline's is the design's unless that breaks a limit
+      the design keeps); `limits`, `limits_baseline`: per limit the largest value, the limit and
+      whether it is kept; `restarts`: per restart its
       start and final criterion; `settings`: the sizes, noise levels, rates and seed;
       `elapsed_s`.
     """
@@ -65,6 +66,7 @@ class DesignResult:
     stderr_predicted_baseline: dict[str, float]
     rms: dict[str, float]
     limits: dict[str, dict[str, Any]]
+    limits_baseline: dict[str, dict[str, Any]]
     restarts: list[dict[str, float]]
     settings: dict[str, Any]
     elapsed_s: float
@@ -96,6 +98,7 @@ class DesignResult:
             "factor": self.factor,
             "rms": self.rms,
             "limits": self.limits,
+            "limits_baseline": self.limits_baseline,
             "restarts": self.restarts,
             "settings": self.settings,
             "elapsed_s": self.elapsed_s,
@@ -120,7 +123,7 @@ class DesignResult:
         c = self.criterion
         lines.append(
             f"criterion log det: design {c['design']:.3f}, baseline {c['baseline']:.3f} "
-            f"(RMS amplitude {self.rms['design']:.4g}, equal for both); {self.elapsed_s:.1f} s"
+            f"(RMS amplitude {self.rms['design']:.4g} / {self.rms['baseline']:.4g}); {self.elapsed_s:.1f} s"
         )
         bad = [k for k, v in self.limits.items() if not v["ok"]]
         if bad:
