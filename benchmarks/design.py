@@ -25,12 +25,10 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import jsphere
 from jsphere.controls import Sampled, Torques
-from jsphere.design.inputs import Spec, match_rms, programmes, random_multisine, table
 
 ROOT = Path(__file__).resolve().parents[1]
 jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
@@ -53,23 +51,29 @@ def main(argv=None) -> int:
     out = work / "design.csv"
     cmd = [sys.executable, "-m", "jsphere.cli", "design", "--free", FREE, "--duration", str(args.duration)]
     cmd += ["--kind", "K", "--trials", str(args.trials), "--restarts", str(args.restarts), "--steps", str(args.steps)]
-    cmd += ["--seed", str(args.seed), "--out", str(out), "--no-cache", "-q"]
+    cmd += [
+        "--seed",
+        str(args.seed),
+        "--out",
+        str(out),
+        "--baseline-out",
+        str(work / "baseline.csv"),
+        "--no-cache",
+        "-q",
+    ]
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True, env=env)
     t_design = time.perf_counter() - t0
     doc = json.loads(out.with_suffix(".json").read_text())
 
-    # the design's tables as written; the baseline's as the command draws them (same seed and RMS)
+    # the design's and the baseline's tables as written
     p = jsphere.RobotParams.paper()
-    paths = [out] if args.trials == 1 else [out.with_name(f"design_{k + 1}.csv") for k in range(args.trials)]
-    design_tables = [jsphere.read_inputs_csv(q)[:2] for q in paths]
-    s = doc["settings"]
-    spec = Spec("K", args.trials, p.n_wheels, s["n_freqs"], args.duration, s["f_max_hz"], s["ramp_s"], s["limit"])
-    z, _ = match_rms(
-        random_multisine(spec, np.random.default_rng([args.seed, 1])), spec, doc["rms"]["design"], doc["rate_hz"]
+    names = lambda stem: (
+        [work / f"{stem}.csv"] if args.trials == 1 else [work / f"{stem}_{k + 1}.csv" for k in range(args.trials)]
     )
-    baseline_tables = [table(q, doc["rate_hz"]) for q in programmes(jnp.asarray(z), spec)]
+    design_tables = [jsphere.read_inputs_csv(q)[:2] for q in names("design")]
+    baseline_tables = [jsphere.read_inputs_csv(q)[:2] for q in names("baseline")]
     truth = p
     for name, f in TRUTH.items():
         truth = jsphere.set_value(truth, name, jsphere.get_value(p, name) * f)
@@ -98,7 +102,7 @@ def main(argv=None) -> int:
         fitted[which]["status"] = fr.status
 
     rows = [
-        ("command", " ".join(["jsphere", *cmd[3:-4]])),
+        ("command", " ".join(["jsphere", *cmd[3:-6]])),
         ("design, end to end (cold) [s]", f"{t_design:.1f}"),
         ("fit of the design's trials [s]", f"{t_fit['design']:.1f}"),
         ("criterion design / baseline", f"{doc['criterion']['design']:.3f} / {doc['criterion']['baseline']:.3f}"),
@@ -141,7 +145,9 @@ def main(argv=None) -> int:
         "criterion": doc["criterion"],
         "criterion_model": doc["criterion_model"],
         "rms": doc["rms"],
+        "baseline_equal_rms": doc["baseline_equal_rms"],
         "limits": doc["limits"],
+        "limits_baseline": doc["limits_baseline"],
         "truth_factors": TRUTH,
         "factor_baseline_over_design": factors,
         "fitted": fitted,

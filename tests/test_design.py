@@ -15,12 +15,13 @@ from jsphere.cli.app import main
 from jsphere.design.excitation import design_excitation
 from jsphere.design.information import Grid, Noise, problem
 from jsphere.design.inputs import Spec, programmes, random_start, table
-from jsphere.design.optimise import _value_and_grad, evaluate, maximise
+from jsphere.design.optimise import _value_and_grad, maximise
 from jsphere.identify.free import FreeParams
 
 #: tiny trials (1.5 s) with the command's defaults otherwise (6 frequencies up to 1.5 Hz, 0.5 s
 #: ramps, max_torque 0.1 N m, a 20 Hz model grid with 2 RK4 steps per sample): the search's
-#: gradient is compiled once for the whole file, the command's run included
+#: gradient is compiled once for the tests that need it (slow: the compilation dominates), the
+#: command's run included
 SPEC = Spec(kind="K", trials=2, wheels=3, n_freqs=6, duration=1.5, f_max=1.5, ramp=0.5, limit=0.1)
 GRID = Grid(rate=20.0, substeps=2)
 
@@ -50,6 +51,7 @@ def test_programmes_rest_at_both_ends_within_limit_and_round_trip(tmp_path):
         np.testing.assert_allclose(u2, u, rtol=1e-9, atol=1e-15)
 
 
+@pytest.mark.slow  # compiles the criterion's gradient (about 30-40 s on 2 cores)
 def test_criterion_gradient_matches_central_differences(small):
     # the search's own compiled gradient of the objective (criterion minus the limit penalty;
     # two rows, as the two starts of the search test): row 1 breaks the limits
@@ -68,6 +70,7 @@ def test_criterion_gradient_matches_central_differences(small):
             assert float(jnp.dot(g[r], d)) == pytest.approx(want, rel=1e-4, abs=1e-6 * (1 + abs(float(obj[r]))))
 
 
+@pytest.mark.slow  # compiles the criterion's gradient (about 30-40 s on 2 cores)
 def test_search_beats_its_start_and_a_random_multisine(small):
     from jsphere.design.inputs import match_rms, random_multisine
 
@@ -87,6 +90,7 @@ def test_search_beats_its_start_and_a_random_multisine(small):
     assert obj[best] > float(obj_base[0])
 
 
+@pytest.mark.slow  # compiles the criterion's gradient (about 30-40 s on 2 cores)
 def test_cli_writes_one_table_per_trial_and_the_json(tmp_path, capsys):
     out = tmp_path / "design.csv"
     argv = ["design", "--free", "j,I[2,2]", "--duration", "1.5", "--kind", "K", "--trials", "2"]

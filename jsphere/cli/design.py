@@ -59,6 +59,11 @@ def add_parser(sub) -> None:
         default="design.csv",
         help="the inputs table (M = 1), or the stem of design_1.csv .. (M > 1); <stem>.json beside it (default design.csv)",
     )
+    dp.add_argument(
+        "--baseline-out",
+        metavar="FILE",
+        help="also write the baseline's tables (random multisines), named as --out: to run them on the robot too",
+    )
     dp.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
 
 
@@ -108,9 +113,14 @@ def run(args) -> int:
     _checked(args)
     out = Path(args.out)
     tables = table_paths(out, args.trials)
+    baseline = [] if args.baseline_out is None else table_paths(args.baseline_out, args.trials)
+    if {Path(p).resolve() for p in baseline} & {Path(p).resolve() for p in [*tables, json_path(out)]}:
+        from .._runtime.errors import InputError
+
+        raise InputError(f"--baseline-out {args.baseline_out}: the design writes that file itself; give another name.")
     check_output(
         out,
-        writes=[*tables, json_path(out)],
+        writes=[*tables, *baseline, json_path(out)],
         inputs={"the parameter file (--params)": args.params},
         example=str(out / "design.csv"),
     )
@@ -133,6 +143,6 @@ def run(args) -> int:
         progress=progress(args),
     )
     print(result.table())
-    written = result.save(out)
+    written = result.save(out, baseline=args.baseline_out)
     print(f"wrote {', '.join(str(p) for p in written)}")
     return ExitCode.OK

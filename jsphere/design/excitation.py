@@ -23,7 +23,7 @@ from .prediction import d_criterion, fit_information
 from .result import DesignResult
 
 #: the RMS of the starts' `s_i(t)` in units of the limit: well inside the limits the penalty watches
-START_SCALE = 0.1
+START_SCALE = 0.03
 
 
 def design_excitation(
@@ -123,7 +123,7 @@ def design_excitation(
     _, _, _, ext = evaluate(jnp.asarray(z), pr, lim)
     design_limits = limit_values(pr, ext, tables, lim)
     prog.say("design: the baseline (random multisines of the same RMS amplitude within the same limits) ...")
-    z_base, base_limits, phi_base = _baseline(pr, lim, design_rms, design_limits, rate, seed)
+    z_base, base_limits, phi_base, equal = _baseline(pr, lim, design_rms, design_limits, rate, seed)
     base_tables = [table(p, rate) for p in programmes(jnp.asarray(z_base), spec)]
     base_rms = rms(np.concatenate([u for _, u in base_tables]))
     prog.say("design: standard errors of the design and the baseline (the fit's Jacobian) ...")
@@ -132,6 +132,16 @@ def design_excitation(
     kind_t = spec.trial_kind
     values, F_d, _, se_d = fit_information(params, fp, kind_t, t_cap, cap(z), sigma_pos, sigma_rot)
     _, F_b, _, se_b = fit_information(params, fp, kind_t, t_cap, cap(z_base), sigma_pos, sigma_rot)
+    equal_rms = None
+    if equal is not None:  # the multisine at the design's RMS, which breaks a limit: for reference
+        _, F_e, _, se_e = fit_information(params, fp, kind_t, t_cap, cap(equal[0]), sigma_pos, sigma_rot)
+        equal_rms = {
+            "rms": design_rms,
+            "criterion": d_criterion(fp, values, F_e),
+            "criterion_model": equal[2],
+            "stderr_predicted": {n: float(s) for n, s in zip(fp.names, se_e)},
+            "limits": limits_report(equal[1]),
+        }
     return DesignResult(
         kind=kind,
         free=list(fp.names),
@@ -147,6 +157,7 @@ def design_excitation(
         rms={"design": design_rms, "baseline": base_rms},
         limits=limits_report(design_limits),
         limits_baseline=limits_report(base_limits),
+        baseline_equal_rms=equal_rms,
         restarts=[{"start": float(s), "final": float(f), "penalty": float(p)} for s, f, p in zip(start_obj, obj, pen)],
         settings={
             "trials": trials,
@@ -172,7 +183,9 @@ def _baseline(pr, lim: Limits, design_rms: float, design_limits, rate: float, se
     """A random multisine (`random_multisine`, seed `(seed, 1)`) of the design's RMS amplitude,
     scaled down where that breaks a limit further than the design does (each limit's allowance:
     the larger of the limit and the design's own largest value), to the largest scale that keeps
-    them (bisection). Returns its coefficients, its `limit_values` and its model criterion."""
+    them (bisection). Returns its coefficients, its `limit_values` and its model criterion, and
+    the same of the multisine at the design's RMS amplitude where that was scaled down (else
+    None)."""
     spec = pr.spec
     unit = random_multisine(spec, np.random.default_rng([seed, 1]))
     z_rms, _ = match_rms(unit, spec, design_rms, rate)
@@ -187,7 +200,8 @@ def _baseline(pr, lim: Limits, design_rms: float, design_limits, rate: float, se
 
     ok, entries, phi = check(z_rms)
     if ok:
-        return z_rms, entries, phi
+        return z_rms, entries, phi, None
+    equal = (z_rms, entries, phi)
     lo, hi = 0.0, 1.0
     for _ in range(20):
         mid = 0.5 * (lo + hi)
@@ -197,7 +211,7 @@ def _baseline(pr, lim: Limits, design_rms: float, design_limits, rate: float, se
             hi = mid
     z = lo * z_rms
     _, entries, phi = check(z)
-    return z, entries, phi
+    return z, entries, phi, equal
 
 
 def table_at(prog, t: np.ndarray) -> np.ndarray:

@@ -48,7 +48,9 @@ class DesignResult:
       the design's (the baseline's) trials would report, in physical units.
     - `rms`: the RMS amplitude of both (the baseline's is the design's unless that breaks a limit
       the design keeps); `limits`, `limits_baseline`: per limit the largest value, the limit and
-      whether it is kept; `restarts`: per restart its
+      whether it is kept; `baseline_equal_rms`: where the baseline had to be scaled below the
+      design's RMS amplitude to keep a limit, the multisine at the design's RMS for reference
+      (its criterion, predicted standard errors and limits), else None; `restarts`: per restart its
       start and final criterion; `settings`: the sizes, noise levels, rates and seed;
       `elapsed_s`.
     """
@@ -67,6 +69,7 @@ class DesignResult:
     rms: dict[str, float]
     limits: dict[str, dict[str, Any]]
     limits_baseline: dict[str, dict[str, Any]]
+    baseline_equal_rms: dict[str, Any] | None
     restarts: list[dict[str, float]]
     settings: dict[str, Any]
     elapsed_s: float
@@ -99,19 +102,26 @@ class DesignResult:
             "rms": self.rms,
             "limits": self.limits,
             "limits_baseline": self.limits_baseline,
+            "baseline_equal_rms": self.baseline_equal_rms,
             "restarts": self.restarts,
             "settings": self.settings,
             "elapsed_s": self.elapsed_s,
         }
 
-    def save(self, out) -> list[Path]:
+    def save(self, out, *, baseline=None) -> list[Path]:
         """Write the inputs tables and the JSON document (each atomically, names in the module
-        docstring); returns the paths written."""
+        docstring), and with `baseline` (a path named as `out`) the baseline's tables; returns
+        the paths written."""
         paths = table_paths(out, len(self.tables))
         for p, (t, u) in zip(paths, self.tables):
             write_inputs_csv(p, t, u, self.trial_kind)
+        extra = []
+        if baseline is not None:
+            extra = table_paths(baseline, len(self.baseline_tables))
+            for p, (t, u) in zip(extra, self.baseline_tables):
+                write_inputs_csv(p, t, u, self.trial_kind)
         atomic_write_json(json_path(out), self.to_json())
-        return [*paths, json_path(out)]
+        return [*paths, *extra, json_path(out)]
 
     def table(self) -> str:
         """Per free name its predicted standard error for the design and the baseline, and their
