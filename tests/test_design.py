@@ -155,7 +155,12 @@ def test_predicted_standard_errors_match_fits_of_another_robot(paper):
     for which, tables in (("design", res.tables), ("baseline", res.baseline_tables)):
         trials = [
             jsphere.synthetic_trial(
-                truth, Torques(Sampled(jnp.asarray(t), jnp.asarray(u), "cubic")), 4.0, rate=100.0, seed=k, name=f"{which}{k}"
+                truth,
+                Torques(Sampled(jnp.asarray(t), jnp.asarray(u), "cubic")),
+                4.0,
+                rate=100.0,
+                seed=k,
+                name=f"{which}{k}",
             )
             for k, (t, u) in enumerate(tables)
         ]

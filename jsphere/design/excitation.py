@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._runtime.checks import real, whole
-from .._runtime.errors import InputError
+from .._runtime.errors import InputError, SolverFailure
 from .._runtime.progress import Progress
 from ..identify.free import FreeParams
 from ..model.params import RobotParams
@@ -72,8 +72,9 @@ def design_excitation(
     - `progress`: as for `jsphere.fit`.
 
     The baseline is random multisines (equal amplitudes, random phases, the same frequencies,
-    window and saturation) of the same RMS amplitude as the design. Returns a `DesignResult`;
-    raises `InputError` for a bad value.
+    window and saturation) of the same RMS amplitude as the design, scaled down where that breaks
+    a limit the design keeps (`docs/design.md`). Returns a `DesignResult`; raises `InputError`
+    for a bad value, `SolverFailure` where the model of every start fails.
     """
     t_begin = time.perf_counter()
     prog = Progress(progress)
@@ -113,8 +114,6 @@ def design_excitation(
         start_obj = obj.copy()
         zb, obj, phi, pen = maximise(zb, pr, lim, steps=steps, learning_rate=learning_rate, on_step=on_step)
     if not np.isfinite(obj).any():
-        from .._runtime.errors import SolverFailure
-
         raise SolverFailure("design: the model of every restart failed (non-finite criterion); try smaller limits.")
     b = int(np.nanargmax(np.where(np.isfinite(obj), obj, -np.inf)))
     z = zb[b]

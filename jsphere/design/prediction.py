@@ -10,6 +10,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
+from .._runtime.errors import SolverFailure
 from ..capture.trial import Trial
 from ..controls import Sampled, Torques, WheelSpeeds
 from ..identify.data import pack_trials
@@ -46,7 +47,9 @@ def fit_information(params: RobotParams, free: FreeParams, kind: str, t, tables,
     sig = jnp.asarray([sigma_pos, sigma_rot])
     res, ok, J, _ = fns.jacobian(params, theta, nu, data.arrays(), sig)
     if not bool(np.all(np.asarray(ok))):
-        raise RuntimeError("the fit's model of a design trial did not reach its end")
+        raise SolverFailure(
+            "design: the fit's model of a design trial did not reach its end (max_steps); try smaller limits."
+        )
     values, F_v, cov, se, _ = _covariance(free, free.theta0, np.asarray(res[0]), J[0], 1.0)
     return values, F_v, cov, se
 
