@@ -173,3 +173,11 @@ def test_predicted_standard_errors_match_fits_of_another_robot(paper):
             ratio = fitted[which][n] / pred[n]
             assert 1 / 1.6 < ratio < 1.6, (n, which, ratio)
     assert all(fitted["design"][n] < fitted["baseline"][n] for n in res.free)
+
+
+def test_file_names_one_table_or_one_per_trial(tmp_path):
+    from jsphere.design.result import json_path, table_paths
+
+    assert table_paths(tmp_path / "design.csv", 1) == [tmp_path / "design.csv"]
+    assert table_paths(tmp_path / "d.csv", 3) == [tmp_path / f"d_{k}.csv" for k in (1, 2, 3)]
+    assert json_path(tmp_path / "design.csv") == tmp_path / "design.json"
