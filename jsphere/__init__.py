@@ -48,6 +48,8 @@ _EXPORTS = {
         "kinematic_control",
         "straight_line",
     ),
+    "design.excitation": ("design_excitation",),
+    "design.result": ("DesignResult",),
     "gaits.families": ("Smooth", "TiltGait", "paper_gait", "smooth_gait", "tilt_to_gamma"),
     "gaits.gaits": ("Gait", "SinSquared", "acceleration", "braking", "simulate_gaits", "turn"),
     "identify.compare": ("CompareResult", "compare"),
@@ -94,7 +96,7 @@ _EXPORTS = {
 _WHERE = {name: module for module, names in _EXPORTS.items() for name in names}
 #: the subpackages, imported on first use as well (`jsphere.model.params.PAPER_J`)
 _SUBPACKAGES = frozenset(
-    "_runtime capture cli controls gaits identify model montecarlo paper planning plots solve".split()
+    "_runtime capture cli controls design gaits identify model montecarlo paper planning plots solve".split()
 )
 
 __all__ = sorted(_WHERE)

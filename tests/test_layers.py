@@ -25,6 +25,7 @@ LAYERS = {
     "planning": 8,
     "montecarlo": 8,
     "paper": 9,
+    "design": 9,  # excitation design: identify, planning, capture, solve, model
     "cli": 10,
     "__init__": 11,
 }

@@ -42,6 +42,7 @@ FIRST_CALL_S = {
     "plan": 60.0,  # the planner's vmapped search
     "montecarlo": 45.0,  # one batch of trials
     "reproduce": 17.0,  # every solve of Section 5
+    "design": 40.0,  # the design criterion's gradient (reverse over forward mode)
 }
 #: the record beside the compilation cache
 RECORD = "first_calls.json"

@@ -1,0 +1,260 @@
+"""`design_excitation`: input programmes that make a fit's free parameters as well determined as
+possible (D-optimal), with their predicted standard errors and those of a random baseline."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+
+import jax.numpy as jnp
+import numpy as np
+
+from .._runtime.checks import real, whole
+from .._runtime.errors import InputError, SolverFailure
+from .._runtime.progress import Progress
+from ..identify.free import FreeParams
+from ..model.params import RobotParams
+from ..planning.problem import Limits
+from .information import Grid, Noise, problem
+from .inputs import KINDS, Spec, match_rms, programmes, random_multisine, random_start, rms, sample_times, table
+from .optimise import evaluate, limit_values, limits_report, maximise
+from .prediction import d_criterion, fit_information
+from .result import DesignResult
+
+#: the RMS of the starts' `s_i(t)` in units of the limit: well inside the limits the penalty watches
+START_SCALE = 0.03
+
+
+def design_excitation(
+    params: RobotParams,
+    free: str | Sequence[str],
+    duration: float,
+    kind: str = "K",
+    *,
+    trials: int = 1,
+    limits: Limits | None = None,
+    sigma_pos: float = 1e-3,
+    sigma_rot: float = math.radians(0.5),
+    restarts: int = 4,
+    steps: int = 60,
+    seed: int = 0,
+    n_freqs: int = 6,
+    f_max: float = 1.5,
+    ramp: float = 0.5,
+    learning_rate: float = 0.02,
+    model_rate: float = 20.0,
+    substeps: int = 2,
+    rate: float = 100.0,
+    capture_rate: float = 100.0,
+    progress: bool | None | Callable[[str], None] = None,
+) -> DesignResult:
+    """Input programmes for `trials` identification trials of `duration` [s] that maximise the
+    D-optimal criterion of the free parameters (`jsphere.design.information`).
+
+    **Arguments:**
+    - `params`: the robot (the parameters at which the information is evaluated).
+    - `free`: the names to identify, as for `jsphere.fit` (`"r_m[2],j,I[2,2]"`).
+    - `kind`: `"K"` (axle torques, within `limits.max_torque`) or `"chi_dot"` (wheel speeds,
+      within `limits.max_wheel_speed`). Wheel-speed inputs fix the rolling kinematics whatever
+      the inertias, so inertias are identifiable through torque inputs only.
+    - `limits`: a `jsphere.Limits` (defaults as for `plan`): the programmes keep the input
+      limit by construction; torque rate, wheel rate (torques) and platform tilt are kept by a
+      penalty on the optimisation's model (`jsphere.design.optimise`).
+    - `sigma_pos` [m], `sigma_rot` [rad]: the capture's noise levels.
+    - `restarts`, `steps`, `seed`, `learning_rate`: random starts, all vmapped, and Adam steps;
+      the result is deterministic for a given `seed`.
+    - `n_freqs`, `f_max` [Hz], `ramp` [s]: the programmes' frequencies `j f_max / n_freqs` and
+      ramp time (`jsphere.design.inputs`).
+    - `model_rate` [Hz], `substeps`: the optimisation's model grid (RK4 steps per sample).
+    - `rate`: rows per second of the tables; `capture_rate` [Hz]: the capture rate of the
+      predicted standard errors.
+    - `progress`: as for `jsphere.fit`.
+
+    The baseline is random multisines (equal amplitudes, random phases, the same frequencies,
+    window and saturation) of the same RMS amplitude as the design, scaled down where that breaks
+    a limit the design keeps (`docs/design.md`). Returns a `DesignResult`; raises `InputError`
+    for a bad value, `SolverFailure` where the model of every start fails.
+    """
+    t_begin = time.perf_counter()
+    prog = Progress(progress)
+    spec, lim, noise, grid = _checked(
+        params, duration, kind, trials, limits, sigma_pos, sigma_rot, n_freqs, f_max, ramp, model_rate, substeps
+    )
+    restarts = whole("design_excitation", "restarts", restarts, 1)
+    steps = whole("design_excitation", "steps", steps, 0)
+    seed = whole("design_excitation", "seed", seed, 0)
+    real("design_excitation", "learning_rate", learning_rate, strict=True)
+    real("design_excitation", "rate", rate, strict=True, unit="Hz")
+    real("design_excitation", "capture_rate", capture_rate, strict=True, unit="Hz")
+    if capture_rate * duration < 4:
+        raise InputError(
+            f"design_excitation: capture_rate x duration must give at least 4 samples; got {capture_rate * duration:g}."
+        )
+    try:
+        fp = FreeParams(params, free)
+    except ValueError as e:
+        raise InputError(f"--free {free}: {e}") from None
+    pr = problem(params, fp, spec, noise, grid)
+    rng = np.random.default_rng(seed)
+    z0s = np.stack([random_start(spec, rng, START_SCALE) for _ in range(restarts)])
+    prog.say(
+        f"design: {trials} trial(s) of {duration:g} s ({spec.trial_kind}), {fp.size} free parameters, "
+        f"{spec.size} coefficients, {restarts} restart(s) x {steps} Adam steps"
+    )
+    key = repr((spec, fp.names, grid.rate, grid.substeps, restarts))
+    with prog.bar(steps + 1, "design: Adam", "step") as bar:
+
+        def on_step(k, obj):
+            bar.update(1, f"log det {np.nanmax(np.where(np.isfinite(obj), obj, np.nan)):.3f}")
+            prog.step(f"design: step {k:3d}/{steps}  best objective {np.nanmax(obj):.4f}")
+
+        with prog.compiling("design", key, "design: the criterion's gradient"):
+            zb, obj, phi, pen = maximise(z0s, pr, lim, steps=0)
+        start_obj = obj.copy()
+        zb, obj, phi, pen = maximise(zb, pr, lim, steps=steps, learning_rate=learning_rate, on_step=on_step)
+    if not np.isfinite(obj).any():
+        raise SolverFailure("design: the model of every restart failed (non-finite criterion); try smaller limits.")
+    b = int(np.nanargmax(np.where(np.isfinite(obj), obj, -np.inf)))
+    z = zb[b]
+    tables = [table(p, rate) for p in programmes(jnp.asarray(z), spec)]
+    design_rms = rms(np.concatenate([u for _, u in tables]))
+    _, _, _, ext = evaluate(jnp.asarray(z), pr, lim)
+    design_limits = limit_values(pr, ext, tables, lim)
+    prog.say("design: the baseline (random multisines of the same RMS amplitude within the same limits) ...")
+    z_base, base_limits, phi_base, equal = _baseline(pr, lim, design_rms, design_limits, rate, seed)
+    base_tables = [table(p, rate) for p in programmes(jnp.asarray(z_base), spec)]
+    base_rms = rms(np.concatenate([u for _, u in base_tables]))
+    prog.say("design: standard errors of the design and the baseline (the fit's Jacobian) ...")
+    t_cap = sample_times(duration, capture_rate)
+    cap = lambda zz: [table_at(p, t_cap) for p in programmes(jnp.asarray(zz), spec)]
+    kind_t = spec.trial_kind
+    values, F_d, _, se_d = fit_information(params, fp, kind_t, t_cap, cap(z), sigma_pos, sigma_rot)
+    _, F_b, _, se_b = fit_information(params, fp, kind_t, t_cap, cap(z_base), sigma_pos, sigma_rot)
+    equal_rms = None
+    if equal is not None:  # the multisine at the design's RMS, which breaks a limit: for reference
+        _, F_e, _, se_e = fit_information(params, fp, kind_t, t_cap, cap(equal[0]), sigma_pos, sigma_rot)
+        equal_rms = {
+            "rms": design_rms,
+            "criterion": d_criterion(fp, values, F_e),
+            "criterion_model": equal[2],
+            "stderr_predicted": {n: float(s) for n, s in zip(fp.names, se_e)},
+            "limits": limits_report(equal[1]),
+        }
+    return DesignResult(
+        kind=kind,
+        free=list(fp.names),
+        values={n: float(v) for n, v in zip(fp.names, values)},
+        duration=float(duration),
+        rate=float(rate),
+        tables=tables,
+        baseline_tables=base_tables,
+        criterion={"design": d_criterion(fp, values, F_d), "baseline": d_criterion(fp, values, F_b)},
+        criterion_model={"design": float(phi[b]), "baseline": phi_base},
+        stderr_predicted={n: float(s) for n, s in zip(fp.names, se_d)},
+        stderr_predicted_baseline={n: float(s) for n, s in zip(fp.names, se_b)},
+        rms={"design": design_rms, "baseline": base_rms},
+        limits=limits_report(design_limits),
+        limits_baseline=limits_report(base_limits),
+        baseline_equal_rms=equal_rms,
+        restarts=[{"start": float(s), "final": float(f), "penalty": float(p)} for s, f, p in zip(start_obj, obj, pen)],
+        settings={
+            "trials": trials,
+            "n_freqs": n_freqs,
+            "f_max_hz": f_max,
+            "ramp_s": ramp,
+            "limit": spec.limit,
+            "sigma_pos_m": sigma_pos,
+            "sigma_rot_deg": math.degrees(sigma_rot),
+            "restarts": restarts,
+            "steps": steps,
+            "seed": seed,
+            "learning_rate": learning_rate,
+            "model_rate_hz": grid.rate,
+            "substeps": grid.substeps,
+            "capture_rate_hz": capture_rate,
+        },
+        elapsed_s=time.perf_counter() - t_begin,
+    )
+
+
+def _baseline(pr, lim: Limits, design_rms: float, design_limits, rate: float, seed: int):
+    """A random multisine (`random_multisine`, seed `(seed, 1)`) of the design's RMS amplitude,
+    scaled down where that breaks a limit further than the design does (each limit's allowance:
+    the larger of the limit and the design's own largest value), to the largest scale that keeps
+    them (bisection). Returns its coefficients, its `limit_values` and its model criterion, and
+    the same of the multisine at the design's RMS amplitude where that was scaled down (else
+    None)."""
+    spec = pr.spec
+    unit = random_multisine(spec, np.random.default_rng([seed, 1]))
+    z_rms, _ = match_rms(unit, spec, design_rms, rate)
+    allowance = [None if limit is None else max(limit, v) for _, v, limit in design_limits]
+
+    def check(zz):
+        tables = [table(p, rate) for p in programmes(jnp.asarray(zz), spec)]
+        _, phi, _, ext = evaluate(jnp.asarray(zz), pr, lim)
+        entries = limit_values(pr, ext, tables, lim)
+        ok = all(a is None or v <= a * (1 + 1e-9) for (_, v, _), a in zip(entries, allowance))
+        return ok, entries, float(phi)
+
+    ok, entries, phi = check(z_rms)
+    if ok:
+        return z_rms, entries, phi, None
+    equal = (z_rms, entries, phi)
+    lo, hi = 0.0, 1.0
+    for _ in range(20):
+        mid = 0.5 * (lo + hi)
+        if check(mid * z_rms)[0]:
+            lo = mid
+        else:
+            hi = mid
+    z = lo * z_rms
+    _, entries, phi = check(z)
+    return z, entries, phi, equal
+
+
+def table_at(prog, t: np.ndarray) -> np.ndarray:
+    """A programme's values `(R, N)` at the times `t`."""
+    from .inputs import _values
+
+    return np.asarray(_values(prog, jnp.asarray(t, prog.coef.dtype)))
+
+
+def _checked(params, duration, kind, trials, limits, sigma_pos, sigma_rot, n_freqs, f_max, ramp, model_rate, substeps):
+    """The `Spec`, `Limits`, `Noise` and `Grid` of a request; `InputError` naming a bad value."""
+    where = "design_excitation"
+    if not isinstance(params, RobotParams):
+        raise InputError(f"{where}: params must be a jsphere.RobotParams; got {type(params).__name__}.")
+    if kind not in KINDS:
+        raise InputError(f"{where}: kind must be 'K' (torques) or 'chi_dot' (wheel speeds); got {kind!r}.")
+    duration = real(where, "duration", duration, strict=True, unit="s")
+    trials = whole(where, "trials", trials, 1)
+    if limits is not None and not isinstance(limits, Limits):
+        raise InputError(f"{where}: limits must be a jsphere.Limits; got {type(limits).__name__}.")
+    lim = limits or Limits()
+    limit = lim.max_torque if kind == "K" else lim.max_wheel_speed
+    if limit is None:
+        which = "max_torque (--max-torque)" if kind == "K" else "max_wheel_speed (--max-wheel-speed)"
+        raise InputError(f"{where}: the programmes need a finite {which}: they are scaled to it.")
+    sigma_pos = real(where, "sigma_pos", sigma_pos, strict=True, unit="m")
+    sigma_rot = real(where, "sigma_rot", sigma_rot, strict=True, unit="rad")
+    n_freqs = whole(where, "n_freqs", n_freqs, 1)
+    f_max = real(where, "f_max", f_max, strict=True, unit="Hz")
+    ramp = real(where, "ramp", ramp, strict=True, unit="s")
+    if 2 * ramp > duration:
+        raise InputError(f"{where}: ramp = {ramp:g} s needs a duration of at least {2 * ramp:g} s; got {duration:g} s.")
+    model_rate = real(where, "model_rate", model_rate, strict=True, unit="Hz")
+    substeps = whole(where, "substeps", substeps, 1)
+    if model_rate < 2 * f_max:
+        raise InputError(f"{where}: model_rate = {model_rate:g} Hz must be at least 2 f_max = {2 * f_max:g} Hz.")
+    spec = Spec(
+        kind=kind,
+        trials=trials,
+        wheels=params.n_wheels,
+        n_freqs=n_freqs,
+        duration=duration,
+        f_max=f_max,
+        ramp=ramp,
+        limit=float(limit),
+    )
+    return spec, lim, Noise(sigma_pos, sigma_rot), Grid(model_rate, substeps)
