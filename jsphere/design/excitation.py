@@ -129,11 +129,11 @@ def design_excitation(
     t_cap = sample_times(duration, capture_rate)
     cap = lambda zz: [table_at(p, t_cap) for p in programmes(jnp.asarray(zz), spec)]
     kind_t = spec.trial_kind
-    values, F_d, _, se_d = fit_information(params, fp, kind_t, t_cap, cap(z), sigma_pos, sigma_rot)
-    _, F_b, _, se_b = fit_information(params, fp, kind_t, t_cap, cap(z_base), sigma_pos, sigma_rot)
+    values, F_d, _, se_d, ext_d = fit_information(params, fp, kind_t, t_cap, cap(z), sigma_pos, sigma_rot)
+    _, F_b, _, se_b, ext_b = fit_information(params, fp, kind_t, t_cap, cap(z_base), sigma_pos, sigma_rot)
     equal_rms = None
     if equal is not None:  # the multisine at the design's RMS, which breaks a limit: for reference
-        _, F_e, _, se_e = fit_information(params, fp, kind_t, t_cap, cap(equal[0]), sigma_pos, sigma_rot)
+        _, F_e, _, se_e, _ = fit_information(params, fp, kind_t, t_cap, cap(equal[0]), sigma_pos, sigma_rot)
         equal_rms = {
             "rms": design_rms,
             "criterion": d_criterion(fp, values, F_e),
@@ -154,8 +154,9 @@ def design_excitation(
         stderr_predicted={n: float(s) for n, s in zip(fp.names, se_d)},
         stderr_predicted_baseline={n: float(s) for n, s in zip(fp.names, se_b)},
         rms={"design": design_rms, "baseline": base_rms},
-        limits=limits_report(design_limits),
-        limits_baseline=limits_report(base_limits),
+        limits=limits_report(_accurate(kind, design_limits, ext_d)),
+        limits_baseline=limits_report(_accurate(kind, base_limits, ext_b)),
+        limits_model=limits_report(design_limits),
         baseline_equal_rms=equal_rms,
         restarts=[{"start": float(s), "final": float(f), "penalty": float(p)} for s, f, p in zip(start_obj, obj, pen)],
         settings={
@@ -211,6 +212,14 @@ def _baseline(pr, lim: Limits, design_rms: float, design_limits, rate: float, se
     z = lo * z_rms
     _, entries, phi = check(z)
     return z, entries, phi, equal
+
+
+def _accurate(kind: str, entries, extremes):
+    """`limit_values`' entries with the wheel rate (of torque inputs) and the tilt replaced by
+    the accurate solver's (`extremes`: largest wheel rate, largest tilt)."""
+    chi, tilt = extremes
+    swap = {"tilt_rad": tilt, **({"wheel_speed_rad_s": chi} if kind == "K" else {})}
+    return [(name, swap.get(name, v), limit) for name, v, limit in entries]
 
 
 def table_at(prog, t: np.ndarray) -> np.ndarray:

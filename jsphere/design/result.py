@@ -48,7 +48,9 @@ class DesignResult:
       the design's (the baseline's) trials would report, in physical units.
     - `rms`: the RMS amplitude of both (the baseline's is the design's unless that breaks a limit
       the design keeps); `limits`, `limits_baseline`: per limit the largest value, the limit and
-      whether it is kept; `baseline_equal_rms`: where the baseline had to be scaled below the
+      whether it is kept, with the wheel rates and the tilt of the accurate solver's run of the
+      tables at the capture rate; `limits_model`: the design's on the search's RK4 model;
+      `baseline_equal_rms`: where the baseline had to be scaled below the
       design's RMS amplitude to keep a limit, the multisine at the design's RMS for reference
       (its criterion, predicted standard errors and limits), else None; `restarts`: per restart its
       start and final criterion; `settings`: the sizes, noise levels, rates and seed;
@@ -69,6 +71,7 @@ class DesignResult:
     rms: dict[str, float]
     limits: dict[str, dict[str, Any]]
     limits_baseline: dict[str, dict[str, Any]]
+    limits_model: dict[str, dict[str, Any]]
     baseline_equal_rms: dict[str, Any] | None
     restarts: list[dict[str, float]]
     settings: dict[str, Any]
@@ -102,6 +105,7 @@ class DesignResult:
             "rms": self.rms,
             "limits": self.limits,
             "limits_baseline": self.limits_baseline,
+            "limits_model": self.limits_model,
             "baseline_equal_rms": self.baseline_equal_rms,
             "restarts": self.restarts,
             "settings": self.settings,
@@ -137,5 +141,5 @@ class DesignResult:
         )
         bad = [k for k, v in self.limits.items() if not v["ok"]]
         if bad:
-            lines.append("limits exceeded on the model: " + ", ".join(bad))
+            lines.append("limits exceeded (accurate solver): " + ", ".join(bad))
         return "\n".join(lines)
