@@ -39,10 +39,10 @@ def _hinge(v, limit):
     return jnp.sum(jnp.maximum(0.0, jnp.abs(v) / limit - (1.0 - MARGIN)) ** 2)
 
 
-def extremes(pr: Problem, z, ro) -> Float[Array, "3"]:
+def extremes(pr: Problem, z, ro) -> tuple[Float[Array, "3"], Float[Array, "M S N"]]:
     """The largest wheel rate `|chi_dot_i|` [rad/s], platform tilt [rad] and input rate
     `|du_i/dt|` (N m/s for torques) of the programmes `z` on the model grid (`ro`: their
-    rollouts, batched over trials)."""
+    rollouts, batched over trials), and the input rates `du_i/dt` themselves."""
     ts = jnp.asarray(pr.grid.times(pr.spec.duration), z.dtype)
 
     def rate(c):
