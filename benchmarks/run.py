@@ -1,6 +1,7 @@
 """Throughput benchmark of jsphere against a scipy baseline, in one run.
 
     python benchmarks/run.py [--quick] [--out benchmarks/results.json]
+    python benchmarks/run.py --device gpu --batches 1024,100000,1000000 --problems 1,3 --no-casadi --no-startup
 
 Problem 1: paper robot from rest, torques K_i(t) = a_i sin(pi t + 2.1 (i-1)), a_i = 0.05 (1 + 0.1 z_i),
            z ~ N(0, 1) per trial (numpy default_rng(0)), [0, 4] s, rtol 1e-8, atol 1e-10, final x, y.
@@ -150,7 +151,7 @@ def environment() -> dict:
         except PackageNotFoundError:
             return None
 
-    dev = jax.devices()[0]
+    dev = jax.config.jax_default_device or jax.devices()[0]
     return {
         "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "machine": {
@@ -165,6 +166,7 @@ def environment() -> dict:
             "device_kind": dev.device_kind,
             "device": str(dev),
             "device_count": jax.device_count(),
+            "platform": dev.platform,
             "x64": bool(jax.config.jax_enable_x64),
         },
         "versions": {
@@ -209,8 +211,17 @@ def problem1_jsphere(p, Z, batches, repeats):
         r = time_call(f, A, repeats=repeats)
         tr = r["_out"]
         finals[B] = np.stack([np.asarray(tr.x[:, -1]), np.asarray(tr.y[:, -1])], -1)
-        rows.append(rate_row(r, B, tr.num_steps, all_ok=bool(np.all(np.asarray(tr.ok)))))
+        rows.append(rate_row(r, B, tr.num_steps, all_ok=bool(np.all(np.asarray(tr.ok))), **device_memory()))
     return rows, finals
+
+
+def device_memory() -> dict:
+    """The device's peak memory in use so far in this process (bytes), where the backend reports
+    it (GPUs do, the CPU backend does not). Batches run in increasing size, so the peak read after
+    a batch is that batch's."""
+    dev = jax.config.jax_default_device or jax.devices()[0]
+    stats = dev.memory_stats() or {}
+    return {"device_peak_bytes": stats.get("peak_bytes_in_use"), "device_bytes_limit": stats.get("bytes_limit")}
 
 
 def scipy_trial(model, q0, a, rtol=RTOL, atol=ATOL):
@@ -313,7 +324,7 @@ def problem2(p, batches, repeats):
         return tr.x[-1], tr.num_steps
 
     f = jax.jit(jax.vmap(one))
-    TH = np.random.default_rng(1).uniform(0.05, 0.15, max(batches))
+    TH = np.random.default_rng(1).uniform(0.05, 0.15, max(batches, default=0))
     rows = []
     for B in batches:
         log(f"[P2] gaits batch {B} ...")
@@ -409,6 +420,12 @@ def fmt_table(res) -> str:
             f"{'P1 torques, jsphere jit+vmap':<34}{r['batch']:>8}{r['trials_per_s']:>12.1f}{r['median_s']:>11.4f}"
             f"{r['compile_s']:>11.2f}{r['repeats']:>6}{r['steps_mean']:>9.0f}/{r['steps_max']:<6}{r['trials_per_s'] / sc['trials_per_s']:>9.1f}x"
         )
+    mem = [r for r in res["problem1"]["jsphere"] if r.get("device_peak_bytes")]
+    if mem:
+        L.append(
+            "  device memory, peak in use after the batch: "
+            + ", ".join(f"{r['batch']}: {r['device_peak_bytes'] / 2**30:.2f} GiB" for r in mem)
+        )
     L.append(
         f"{'P1 torques, scipy DOP853 (serial)':<34}{sc['trials']:>8}{sc['trials_per_s']:>12.2f}{sc['median_s']:>11.4f}"
         f"{'-':>11}{sc['repeats']:>6}{sc['steps_mean']:>9.0f}{'':<7}{1.0:>9.1f}x"
@@ -490,7 +507,28 @@ def main(argv=None) -> int:
         action="store_true",
         help="skip the start-up measurement (benchmarks/startup.py's default configuration)",
     )
+    ap.add_argument(
+        "--device",
+        default=None,
+        help="the JAX platform to run on (cpu, gpu, tpu; default JAX's default backend)",
+    )
+    ap.add_argument(
+        "--batches",
+        default=None,
+        help="problem 1's batch sizes, comma separated (default 1,64,1024 and 16384 unless --quick, and 10^6 on a GPU)",
+    )
+    ap.add_argument(
+        "--problems",
+        default="1,2,3",
+        help="which problems to run, comma separated (1 is always run: its checks anchor the others)",
+    )
     args = ap.parse_args(argv)
+    if args.device is not None:
+        try:
+            jax.config.update("jax_default_device", jax.devices(args.device)[0])
+        except RuntimeError as e:
+            ap.error(f"--device {args.device}: {e}")
+    problems = {int(k) for k in args.problems.split(",")} | {1}
     if args.out is None:
         args.out = HERE / ("results-quick.json" if args.quick else "results.json")
     t_start = time.perf_counter()
@@ -498,16 +536,23 @@ def main(argv=None) -> int:
     _SOURCE_AT_IMPORT = _source_digest()
 
     env = environment()
-    gpu = env["jax"]["backend"] in ("gpu", "cuda", "rocm")
+    gpu = env["jax"]["platform"] in ("gpu", "cuda", "rocm")
     repeats = 2 if args.quick else 3
     b1 = [1, 64, 1024] + ([] if args.quick else [16384]) + ([10**6] if gpu else [])
-    b2 = [1, 64, 1024]
-    b3 = [64] if args.quick else [64, 1024]
+    if args.batches:
+        b1 = sorted(int(float(b)) for b in args.batches.split(","))
+    b2 = [1, 64, 1024] if 2 in problems else []
+    b3 = ([64] if args.quick else [64, 1024]) if 3 in problems else []
     n_scipy = 3 if args.quick else 10
     log(
         f"jsphere benchmark ({'quick' if args.quick else 'full'}): backend {env['jax']['backend']} "
         f"({env['jax']['device_kind']}), {env['machine']['cpu_count']} CPUs"
     )
+    with jax.default_device(jax.config.jax_default_device or jax.devices()[0]):
+        return run_all(args, env, gpu, repeats, b1, b2, b3, n_scipy, t_start)
+
+
+def run_all(args, env, gpu, repeats, b1, b2, b3, n_scipy, t_start) -> int:
 
     p = jsphere.RobotParams.paper()
     Z = np.random.default_rng(0).standard_normal((max(b1), 3))
