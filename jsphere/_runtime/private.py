@@ -1,6 +1,6 @@
 """Every use of a private part of jax, equinox or diffrax, in one place.
 
-jsphere relies on these few internals; `tests/test_private_api.py` checks each one and says
+jsphere relies on these few internals; `tests/runtime/test_private_api.py` checks each one and says
 which library changed when one of them moves:
 
 - diffrax: the Butcher tableau of an explicit Runge-Kutta solver (`solver.tableau`, with its

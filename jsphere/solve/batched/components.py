@@ -10,7 +10,7 @@ and (3.4) is written out component by component (measurements: `docs/performance
 For a single trial the same code is slower (every scalar becomes its own small operation in
 the integrator's loop), which is why `simulate` uses this layout only when it is batched
 (`jsphere.solve.batched.dispatch`). The equations are those of `jsphere.model.dynamics` (docstrings there);
-`tests/test_soa.py` checks the two implementations against each other to rounding (the gait
+`tests/solve/test_component_layout.py` checks the two implementations against each other to rounding (the gait
 field against `jsphere.gaits.gaits._gait_field`).
 """
 

@@ -21,7 +21,7 @@ error sums as library reductions, a dynamic-update-slice per stage). Here:
 (Measurements: `docs/performance.md`.)
 
 Reverse mode: `solve` has a discrete adjoint (`jsphere.solve.batched.adjoint`), which matches
-diffrax's autodiff of per-trial solves (tests/test_shared_rk.py).
+diffrax's autodiff of per-trial solves (tests/solve/test_batched_loop.py).
 
 The same loop also runs batches with per-trial steps (`forward_per_trial`): each trial has its
 own time and step size, in lockstep, so the batch is still one vectorised loop but no trial

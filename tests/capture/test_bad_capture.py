@@ -21,7 +21,7 @@ from jsphere.capture.trial import trial_to_csv
 from jsphere.capture.validation import CaptureWarning, implausible
 from jsphere.cli.app import main
 
-DATA = Path(__file__).resolve().parents[1] / "examples" / "data"
+DATA = Path(__file__).resolve().parents[2] / "examples" / "data"
 RAW = DATA / "raw"
 
 

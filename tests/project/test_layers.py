@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-PACKAGE = Path(__file__).resolve().parent.parent / "jsphere"
+PACKAGE = Path(__file__).resolve().parents[2] / "jsphere"
 
 #: Each subpackage (or top-level module) and its layer: a module may import from its own
 #: subpackage and from lower layers only.

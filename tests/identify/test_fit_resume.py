@@ -33,7 +33,7 @@ from jsphere.identify import fit as _fit
 
 FREE = "R_m,j"
 OPTS = {"n_starts": 2, "adam_steps": 2, "max_iter": 15}
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,7 @@ from jsphere import RobotParams
 FIELDS = ("R0", "m0", "I0", "Rw", "wheel_r", "wheel_n", "wheel_alpha", "m", "I", "r_m", "j", "g", "c_roll", "c_axle")
 REFERENCE = Path(
     os.environ.get(
-        "JSPHERE_REFERENCE", Path(__file__).resolve().parents[2] / "shared" / "reference" / "reference_cases.json"
+        "JSPHERE_REFERENCE", Path(__file__).resolve().parents[3] / "shared" / "reference" / "reference_cases.json"
     )
 )
 

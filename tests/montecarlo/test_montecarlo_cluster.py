@@ -19,7 +19,7 @@ from jsphere._runtime.errors import InputError
 from jsphere.montecarlo import claims
 from jsphere.montecarlo.workers import gather, work
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 CLUSTER = ROOT / "examples" / "cluster"
 VARY = {"r_m[2]": ("normal", -0.0270146, 1e-4)}
 GAITS = [jsphere.acceleration(), jsphere.braking()]

@@ -1,4 +1,4 @@
-"""A user's mistakes through the command line: each line of `tests/bad_inputs/cases.txt` is one
+"""A user's mistakes through the command line: each line of `tests/cli/bad_inputs/cases.txt` is one
 class of mistake with its exit code and a fragment of its one-line message; no traceback."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pytest
 from jsphere import cli
 
 HERE = Path(__file__).resolve().parent / "bad_inputs"
-DATA = HERE.parents[1] / "examples" / "data"
+DATA = HERE.parents[2] / "examples" / "data"
 
 
 def _cases():
@@ -23,7 +23,7 @@ def _cases():
 
 
 def run_cli(command: str, tmp_path, monkeypatch, capsys) -> tuple[int, str, str]:
-    """`jsphere COMMAND` in-process from `tests/bad_inputs/`: (exit code, stdout, stderr)."""
+    """`jsphere COMMAND` in-process from `tests/cli/bad_inputs/`: (exit code, stdout, stderr)."""
     monkeypatch.chdir(HERE)
     argv = shlex.split(command.replace("{tmp}", str(tmp_path)).replace("{data}", str(DATA)))
     if "--no-cache" not in argv:
@@ -52,7 +52,7 @@ def test_interrupt_exits_130(tmp_path):
     import sys
     import time
 
-    env = {**os.environ, "PYTHONPATH": str(HERE.parents[1])}
+    env = {**os.environ, "PYTHONPATH": str(HERE.parents[2])}
     # Python's own SIGINT handler, also where the tests run as a background job (which ignores SIGINT)
     script = (
         "import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
@@ -101,9 +101,9 @@ def test_help_and_argument_errors_import_no_jax():
         "        pass\n"
         "print(sorted(m for m in ('jax', 'numpy', 'equinox') if m in sys.modules))\n"
     )
-    env = {**os.environ, "PYTHONPATH": str(HERE.parents[1])}
+    env = {**os.environ, "PYTHONPATH": str(HERE.parents[2])}
     done = subprocess.run(
-        [sys.executable, "-c", script, str(HERE.parents[1] / "jsphere")],
+        [sys.executable, "-c", script, str(HERE.parents[2] / "jsphere")],
         capture_output=True,
         text=True,
         env=env,

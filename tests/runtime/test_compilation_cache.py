@@ -10,7 +10,7 @@ import pytest
 
 from jsphere._runtime import compilation_cache as cc
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 #: a new process: cache on, the first `simulate_gaits` traced in equinox's "nan" mode; prints
 #: the JAX cache hits and misses of that call, the stop point and the mode restored after it

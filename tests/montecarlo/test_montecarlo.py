@@ -371,7 +371,7 @@ def test_cli_killed_anywhere_resumes_to_the_same_files(tmp_path):
         os.environ,
         JSPHERE_CACHE_DIR=str(tmp_path / "cache"),
         JAX_PLATFORMS="cpu",
-        PYTHONPATH=str(Path(__file__).resolve().parents[1]),
+        PYTHONPATH=str(Path(__file__).resolve().parents[2]),
     )
     ref, res = tmp_path / "ref", tmp_path / "res"
     p = _cli(ref, study, env)

@@ -784,7 +784,7 @@ def test_cli_synth_and_convert(tmp_path, markers_truth, capsys):
 
 # --------------------------------------------------------------------------- the shipped example dataset
 
-DATA = Path(__file__).resolve().parents[1] / "examples" / "data"
+DATA = Path(__file__).resolve().parents[2] / "examples" / "data"
 
 
 def test_example_dataset_reads_and_converts():

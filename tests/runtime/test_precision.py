@@ -18,7 +18,7 @@ import jsphere
 from jsphere._runtime import precision
 from jsphere.solve.options import tolerances
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture

@@ -20,7 +20,7 @@ from jsphere.capture.synthetic import default_marker_set
 from jsphere.cli.app import main
 from jsphere.identify.compare import Z99, _acf, _ccf, _fit_percent, _norms
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 RAW = ROOT / "examples" / "data" / "raw"
 TRUTH = jsphere.RobotParams.paper().replace(R_m=0.029, j=3.2e-4)
 

@@ -19,7 +19,7 @@ from jsphere._runtime.errors import ExitCode
 from jsphere._runtime.progress import Progress
 from jsphere.cli.app import COMMANDS, main, parser, version
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT / "examples" / "data"
 
 
