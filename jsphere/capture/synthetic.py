@@ -167,6 +167,58 @@ def synthetic_trial(
     return Trial(ts, x, y, q, u, kind, None, name=name)
 
 
+# --------------------------------------------------------------------------- capture glitches
+
+
+def add_glitches(
+    trial: Trial,
+    *,
+    ghost: float = 0.01,
+    ghost_jump: tuple[float, float] = (0.01, 0.05),
+    swaps: int = 2,
+    swap_frames: tuple[int, int] = (5, 15),
+    swap_deg: tuple[float, float] = (30.0, 90.0),
+    seed: int = 0,
+) -> tuple[Trial, np.ndarray]:
+    """`trial` with the glitches of a real capture, and the 0-based rows it spoiled (sorted).
+
+    - ghost frames: each measured frame (not the first) with probability `ghost`, its position
+      moved by `ghost_jump` [m] (uniform between the two) in a random horizontal direction, for
+      that frame alone (a reflection taken for a marker);
+    - marker swaps: `swaps` bursts of `swap_frames` consecutive frames (uniform between the two,
+      inclusive) at random places (not overlapping, not the first frame), whose orientation is
+      turned by `swap_deg` [deg] (uniform, one angle per burst) about a random axis (the rigid
+      body fit flips while two markers are swapped).
+
+    Gaps stay gaps; deterministic for a given `seed`."""
+    rng = np.random.default_rng(seed)
+    M = trial.n_frames
+    x, y, q = np.array(trial.x, float), np.array(trial.y, float), np.array(trial.q, float)
+    bad = np.zeros(M, bool)
+    lo, hi = swap_frames
+    for _ in range(swaps):
+        for _try in range(100):
+            n = int(rng.integers(lo, hi + 1))
+            k = int(rng.integers(1, max(M - n, 2)))
+            if not bad[max(k - 1, 0) : k + n + 1].any():
+                break
+        axis = rng.normal(size=3)
+        angle = np.deg2rad(rng.uniform(*swap_deg))
+        turn = quat_from_rotvec_np(angle * axis / np.linalg.norm(axis))
+        q[k : k + n] = quat_mul_np(q[k : k + n], np.broadcast_to(turn, (min(n, M - k), 4)))
+        bad[k : k + n] = True
+    ghosts = (rng.random(M) < ghost) & ~bad
+    ghosts[0] = False
+    k = np.flatnonzero(ghosts)
+    jump = rng.uniform(*ghost_jump, k.size)
+    heading = rng.uniform(0.0, 2 * np.pi, k.size)
+    x[k] += jump * np.cos(heading)
+    y[k] += jump * np.sin(heading)
+    bad |= ghosts
+    bad &= trial.valid
+    return Trial(trial.t, x, y, q, trial.inputs, trial.kind, trial.z, name=trial.name), np.flatnonzero(bad)
+
+
 # --------------------------------------------------------------------------- synthetic markers
 
 

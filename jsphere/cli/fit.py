@@ -83,6 +83,13 @@ def add_parser(sub) -> None:
         help="the largest clock offset, either way [s] (default 0.5)",
     )
     ft.add_argument(
+        "--loss",
+        choices=("l2", "huber", "cauchy", "soft_l1"),
+        default="cauchy",
+        help="how each frame's residuals enter the cost: cauchy (default), huber or soft_l1 set aside ghost frames and "
+        "marker swaps, listed under 'outliers' in the result JSON by trial file; l2: plain least squares",
+    )
+    ft.add_argument(
         "--restart",
         action="store_true",
         help="ignore the checkpoint a killed fit left (by default the fit resumes from it)",
@@ -115,7 +122,8 @@ def run(args) -> int:
     fix = _parse_assignments(args.fix, "--fix")
     bounds = _parse_bounds(args.bound)
     params = RobotParams.load(args.params) if args.params else RobotParams.paper()
-    trials = read_trials(args.trials)
+    files = _trial_files(args.trials)
+    trials = read_trials(files)
     for f in [(out, ".tmp"), *((g, None) for g in figures)]:  # what a killed writer left
         remove_stale_temporaries(*f)
     sigma_rot = None if args.sigma_rot_deg is None else args.sigma_rot_deg * 3.141592653589793 / 180.0
@@ -139,7 +147,10 @@ def run(args) -> int:
             progress=progress(args),
             fit_time_offset=args.fit_time_offset,
             max_time_offset=args.max_time_offset,
+            loss=args.loss,
         )
+    # the frames set aside, by the file each trial came from (in the order read)
+    res.outliers = {f.name: v for f, v in zip(files, res.outliers.values())}
     written = res.save(out, plots=not args.no_plots)
     ckpt.unlink(missing_ok=True)
     print(res.table())
@@ -157,6 +168,15 @@ def _gather_trials(args) -> None:
     args.trials = [*args.trials, *(getattr(args, "trials_after_options", None) or [])]
     if not args.trials:
         raise InputError("give at least one trial file or folder (e.g. jsphere fit trials/*.csv --free j).")
+
+
+def _trial_files(paths) -> list[Path]:
+    """The trial files of `paths`, as `read_trials` reads them (a folder: its `*.csv` files,
+    sorted, hidden ones skipped)."""
+    out = []
+    for p in map(Path, paths):
+        out += [f for f in sorted(p.glob("*.csv")) if not f.name.startswith(".")] if p.is_dir() else [p]
+    return out
 
 
 def _check_paths(args, out: Path, writes: list[Path]) -> None:

@@ -65,8 +65,10 @@ from .free import FreeParams, _overlaps, _split_names, apply_fixes
 from .lm import LM_KEYS, LMOptions, LMState, levenberg_marquardt
 from .report import FitResult, fit_result
 from .residuals import _Functions, _functions
+from .robust import DEFAULT_LOSS, check_loss, reweigh, robust_cost
 from .shooting import CONTINUATION_RTOL, DEFECT_CLOSED, MU_LEVELS, Segments
 from .starts import _NU_SCALE, nuisance_guess, start_design
+from .verdict import robust_sd
 
 
 def fit(
@@ -98,6 +100,7 @@ def fit(
     options: SolverOptions | None = None,
     fit_time_offset: bool = False,
     max_time_offset: float = 0.5,
+    loss: str = DEFAULT_LOSS,
 ) -> FitResult:
     """Fit the free parameters of `params` to captured trials (position and orientation).
 
@@ -152,6 +155,11 @@ def fit(
       `jsphere.estimate_time_offset`. Beyond the ends of a trial's table its inputs are
       held. The offsets and their standard errors are `FitResult.time_offset` and
       `time_offset_stderr`.
+    - `loss`: how a frame's residuals (position and orientation together) enter the cost:
+      `"cauchy"` (default), `"huber"`, `"soft_l1"` or `"l2"` (plain least squares), at a scale of
+      `SCALE` noise levels (`jsphere.identify.robust`). Frames the loss sets aside (weight below
+      one half: ghost frames, marker swaps) are `FitResult.outliers`; the noise levels are then
+      estimated from the residuals without them.
 
     Returns a `FitResult`. Raises `InputError` (a `ValueError`) for unknown or overlapping
     names, a name both free and fixed, bounds that exclude the start, trials that do not fit
@@ -167,6 +175,7 @@ def fit(
     data = pack_trials(trials, params, max_offset=max_offset)
     _check_options(n_starts, max_iter, adam_steps, seed, sigma_pos, sigma_rot)
     _check_shooting(shooting, segment)
+    check_loss(loss, "fit")
     _check_unknowns(data, fp_)
     warn_if_float32_by_default(params.R0.dtype, "fit")
     solve = _solver_options(options, rtol, atol, max_steps)
@@ -189,6 +198,7 @@ def fit(
         max_steps=solve.max_steps,
         solver=None if eqx.tree_equal(solve.solver_or_default(), default_solver()) else solve.solver,
         max_time_offset=max_offset,
+        loss=loss,
     )
     run, st = _setup(data, fp_, params, options, checkpoint, prog, t_begin)
     _resume(run, st, restart)
@@ -303,6 +313,7 @@ class _Options:
     max_steps: int
     solver: dfx.AbstractSolver | None = None  # None: simulate's default
     max_time_offset: float = 0.0  # 0: the clock offsets are not fitted
+    loss: str = "l2"  # `jsphere.identify.robust`
 
     @property
     def estimate_sigma(self) -> bool:
@@ -315,6 +326,8 @@ class _Options:
         solver = {} if self.solver is None else {"solver": repr(self.solver)}
         if self.max_time_offset:
             solver = solver | {"max_time_offset": self.max_time_offset}
+        if self.loss != "l2":
+            solver = solver | {"loss": self.loss}
         return solver | {
             "n_starts": self.n_starts,
             "spread": self.spread,
@@ -582,13 +595,26 @@ def _evaluate_single(run: _Run, st: _State, th, n):
     with run.progress.compiling("fit", _program(run, "single"), "fit: single shooting"):
         res, ok, J, pose = run.fns.jacobian(run.base, jnp.asarray(th), jnp.asarray(n), run.arrays, jnp.asarray(st.sig))
         res, ok = np.asarray(res), np.asarray(ok)
-    cost = np.where(ok.all(1), 0.5 * (res * res).sum((1, 2)), np.inf)
+    if run.options.loss == "l2":
+        cost = np.where(ok.all(1), 0.5 * (res * res).sum((1, 2)), np.inf)
+    else:
+        cost = np.where(ok.all(1), np.asarray(robust_cost(run.options.loss, jnp.asarray(res))), np.inf)
     st.last.update(pose=pose, ok=ok, data=run.data)
     return cost, {"res": res, "J": J, "pose": pose}
 
 
+def _weighted(run: _Run, res, J):
+    """The residuals and Jacobian as Levenberg-Marquardt sees them: reweighted for a robust
+    loss (`jsphere.identify.robust.reweigh`), as they are for `l2`. An evaluation holds them
+    unweighted, so that the checkpoint does too and the weights follow from what it holds."""
+    if run.options.loss == "l2":
+        return res, J
+    return reweigh(run.options.loss, jnp.asarray(res), J)
+
+
 def _solve_single(run: _Run, out, lam):
-    dg, dn, pred = run.fns.step(jnp.asarray(out["res"]), out["J"], jnp.asarray(lam))
+    res, J = _weighted(run, out["res"], out["J"])
+    dg, dn, pred = run.fns.step(jnp.asarray(res), J, jnp.asarray(lam))
     return np.asarray(dg), np.asarray(dn), np.asarray(pred)
 
 
@@ -600,9 +626,14 @@ def _evaluate_multiple(run: _Run, st: _State, mu: float, th, n):
         res, ok, J, pose, e, Je = run.fns.segments(
             run.base, jnp.asarray(th), jnp.asarray(n), ms.arrays, jnp.asarray(st.sig)
         )
+        robust = 0.0
+        if run.options.loss != "l2":  # the weighted squares replaced by the robust cost
+            robust = robust_cost(run.options.loss, res)
+            res, J = _weighted(run, res, J)
+            robust = robust - 0.5 * jnp.sum(res * res, axis=(1, 2))
         blocks, cost, dfc = run.fns.assemble(res, J, e, Je, jnp.asarray(n), mu, ms.seg_arrays, ms.scale)
         ok = np.asarray(ok)
-    cost = np.where(ok.all(1), np.asarray(cost), np.inf)
+    cost = np.where(ok.all(1), np.asarray(cost + robust), np.inf)
     st.last.update(pose=pose, ok=ok, data=ms.seg.data)
     return cost, {"blocks": blocks, "defect": np.asarray(dfc)}
 
@@ -725,7 +756,7 @@ def _adam_steps(run: _Run, st: _State, w, ost, bar) -> None:
     for k in range(st.adam_k, run.options.adam_steps):
         zz = jax.tree_util.tree_map(lambda a, s: a * s, w, scale)
         cost_k, out_k = _evaluate_single(run, st, zz["theta"], zz["nu"])
-        res_k, J_k = out_k["res"], out_k["J"]
+        res_k, J_k = _weighted(run, out_k["res"], out_k["J"])
         if st.adam_best is None:
             st.adam_best = (cost_k.copy(), np.asarray(zz["theta"]).copy(), np.asarray(zz["nu"]).copy())
         else:
@@ -761,7 +792,9 @@ def _single_shooting(run: _Run, st: _State) -> None:
         st.stage_converged = bool(st.lm.converged[int(np.argmin(cost))])
         st.lm = None
         if st.stage == 1 and run.options.estimate_sigma:
-            est = _estimate_sigma(out["res"][int(np.argmin(cost))], run.data, st.sig, run.P + run.T * run.n_nu)
+            est = _estimate_sigma(
+                out["res"][int(np.argmin(cost))], run.data, st.sig, run.P + run.T * run.n_nu, run.options.loss
+            )
             # residuals of exactly 0 (noise-free data) give no estimate: keep the level used
             usable = np.isfinite(est) & (est > 0)
             st.sig = np.where(usable, est, st.sig)
@@ -775,15 +808,21 @@ def _single_shooting(run: _Run, st: _State) -> None:
             _save(run, st)
 
 
-def _estimate_sigma(res_b, data: FitData, sig, n_par: int) -> np.ndarray:
+def _estimate_sigma(res_b, data: FitData, sig, n_par: int, loss: str = "l2") -> np.ndarray:
     """Noise levels from the whitened residuals of the best start (dof-corrected; in numpy, whose
-    sums do not depend on where the residuals were computed)."""
+    sums do not depend on where the residuals were computed). For a robust loss, the RMS of the
+    values within 5 robust sd of 0 (`jsphere.identify.verdict.robust_sd`, as the capture's noise
+    floor): ghost frames and swaps would otherwise inflate the levels, and the loss's scale."""
     res_b = np.asarray(res_b)
     M = data.ts.shape[1]
     pos = res_b[:, : 2 * M] * sig[0]
     rot = res_b[:, 2 * M :] * sig[1]
     n_pos, n_rot = 2 * data.wpos.sum(), 3 * data.wrot.sum()
     frac = 1.0 - n_par / (n_pos + n_rot)
+    if loss != "l2":
+        held_pos = np.concatenate([data.wpos, data.wpos], axis=1) > 0
+        held_rot = np.repeat(data.wrot, 3, axis=1) > 0
+        return np.array([robust_sd(pos[held_pos]), robust_sd(rot[held_rot])]) / math.sqrt(frac)
     return np.sqrt(np.array([(pos * pos).sum() / (n_pos * frac), (rot * rot).sum() / (n_rot * frac)]))
 
 
@@ -814,6 +853,7 @@ def _result(run: _Run, st: _State) -> FitResult:
         st.stage_converged,
         st.total_it,
         run.t_begin,
+        loss=run.options.loss,
     )
     solve_options = {"rtol": run.options.rtol, "atol": run.options.atol, "max_steps": run.options.max_steps}
     return dataclasses.replace(result, shooting=shooting_info, solve_options=solve_options)

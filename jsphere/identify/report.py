@@ -2,7 +2,9 @@
 residuals, the verdict) and its JSON document.
 
 Covariance: `s^2 F^-1` with `F` the Gauss-Newton information of `theta` after eliminating the
-nuisance parameters (`jsphere.identify.lm.marginal_information`), mapped to physical units.
+nuisance parameters (`jsphere.identify.lm.marginal_information`), mapped to physical units. For a
+robust loss `F` is that of the reweighted residuals and `s^2` the M-estimator's variance factor
+(`jsphere.identify.robust.variance_factor`).
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from .data import TIME_OFFSET, FitData, offset_from_nuisance
 from .free import FreeParams
 from .identifiability import identifiability
 from .lm import _blocks, marginal_information
+from .robust import REJECT, frame_weights, reweigh, variance_factor
 from .verdict import judge, noise_floor
 
 
@@ -44,7 +47,9 @@ class FitResult:
     trial's name); `time_offset`, `time_offset_stderr` [s]: per trial, in trial order, the
     fitted clock offsets and their standard errors (`fit(..., fit_time_offset=True)`; None
     otherwise); `solve_options`: the fit's ODE tolerances (`rtol`, `atol`, `max_steps`), which
-    `predict` uses."""
+    `predict` uses; `loss`: the fit's loss (`jsphere.identify.robust`); `outliers`: per trial
+    (by name, in trial order) the frames the loss set aside (weight below one half), as
+    `{"frames": [0-based row numbers of the trial's data rows], "count": n}`."""
 
     params: RobotParams
     free: list[str]
@@ -71,6 +76,8 @@ class FitResult:
     time_offset: list[float] | None = None
     time_offset_stderr: list[float] | None = None
     solve_options: dict[str, Any] = dataclasses.field(default_factory=dict, repr=False)
+    loss: str = "l2"
+    outliers: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
 
     def predict(self, trials, **kwargs):
         """The fitted model on `trials` (held out from the fit, or the fit's own): each trial
@@ -108,6 +115,8 @@ class FitResult:
             "starts_cost": fin(self.starts),
             "elapsed_s": self.elapsed_s,
             "shooting": fin(self.shooting),
+            "loss": self.loss,
+            "outliers": self.outliers,
         } | (
             {}
             if self.time_offset is None
@@ -196,28 +205,42 @@ def fit_result(
     converged: bool,
     iterations: int,
     t_begin: float,
+    *,
+    loss: str = "l2",
 ) -> FitResult:
     """The `FitResult` of start `b` (the best) from the final evaluation of every start: `pose`
-    (simulated `x, y, q`), `res`, `J` and `cost` as `jsphere.identify.residuals` gives them."""
+    (simulated `x, y, q`), `res`, `J` (unweighted) and `cost` as `jsphere.identify.residuals`
+    gives them; `loss`: the fit's (`jsphere.identify.robust`)."""
     P = free.size
     T = data.ts.shape[0]
     n_nu = nu.shape[-1]
     th_b = theta[b]
     n_res = int(2 * data.wpos.sum() + 3 * data.wrot.sum())
     dof = max(n_res - P - T * n_nu, 1)
-    s2 = float(2.0 * cost[b] / dof)
-    values, F_phys, cov, se, corr = _covariance(free, th_b, np.asarray(res[b]), J[b], s2)
+    counts = 2 * data.wpos + 3 * data.wrot
+    res_b, J_b = np.asarray(res[b]), J[b]
+    set_aside = (frame_weights(loss, res_b) < REJECT) & (counts > 0)
+    if loss == "l2":
+        s2 = float(2.0 * cost[b] / dof)
+    else:
+        s2 = variance_factor(loss, res_b, counts, P + T * n_nu)
+        res_b, J_b = reweigh(loss, jnp.asarray(res_b)[None], J_b[None])
+        res_b, J_b = np.asarray(res_b[0]), J_b[0]
+    values, F_phys, cov, se, corr = _covariance(free, th_b, res_b, J_b, s2)
     params = free.to_params(jnp.asarray(th_b), base)
     params = RobotParams(**{f: getattr(params, f) for f in _FIELDS}, dtype=base.R0.dtype)
     ident = identifiability(free, values, F_phys, s2, params)
     ident["sigma_note"] = "relative sd of each direction; warnings list directions with relative sd > 10%"
-    trials = _trial_reports(data, pose, nu[b], b)
-    offsets = _time_offsets(data, np.asarray(nu[b]), np.asarray(res[b]), J[b], P, s2)
+    trials = _trial_reports(data, pose, nu[b], b, set_aside)
+    offsets = _time_offsets(data, np.asarray(nu[b]), res_b, J_b, P, s2)
+    kept = [~t["series"]["set_aside"][:, None] for t in trials]
     verdict = judge(
-        [t["series"]["pos_err"] for t in trials],
-        [np.radians(t["series"]["rot_err_deg"]) for t in trials],
+        [np.where(k, t["series"]["pos_err"], np.nan) for t, k in zip(trials, kept)],
+        [np.where(k, np.radians(t["series"]["rot_err_deg"]), np.nan) for t, k in zip(trials, kept)],
         noise_floor(data),
         names=data.names,
+        set_aside=[int(t["set_aside"]) for t in trials],
+        measured=[int((counts[i, : data.lengths[i]] > 0).sum()) for i in range(T)],
         converged=bool(converged),
         n_params=P + T * n_nu,
         why_not=f"Levenberg-Marquardt reached max_iter in its last stage, {int(iterations)} iterations in all",
@@ -249,6 +272,11 @@ def fit_result(
         verdict=verdict,
         time_offset=None if offsets is None else offsets[0],
         time_offset_stderr=None if offsets is None else offsets[1],
+        loss=loss,
+        outliers={
+            t["name"]: {"frames": np.flatnonzero(t["series"]["set_aside"]).tolist(), "count": t["set_aside"]}
+            for t in trials
+        },
     )
 
 
@@ -303,15 +331,16 @@ def _covariance(free: FreeParams, th_b, res_b: np.ndarray, J_b, s2: float):
     return values, F_phys, cov, se, corr
 
 
-def _trial_reports(data: FitData, pose, nu_b: np.ndarray, b: int) -> list[dict[str, Any]]:
-    """Per trial: RMS residuals, nuisance values and the measured and fitted series (for the
-    plots) of start `b`."""
+def _trial_reports(data: FitData, pose, nu_b: np.ndarray, b: int, set_aside: np.ndarray) -> list[dict[str, Any]]:
+    """Per trial: RMS residuals (of the frames not set aside: `set_aside (T, M)`), the number
+    set aside, nuisance values and the measured and fitted series (for the plots) of start `b`."""
     xs, ys, qs = (np.asarray(a[b]) for a in pose)
     rot_err = np.asarray(quat_log(quat_mul(quat_conj(jnp.asarray(qs)), jnp.asarray(data.q))))
     names_nu = data.nuisance
     trials = []
     for i in range(data.ts.shape[0]):
         m = data.lengths[i]
+        out = set_aside[i, :m]
         wp, wr = data.wpos[i, :m] > 0, data.wrot[i, :m] > 0
         ep = np.stack([xs[i, :m] - data.x[i, :m], ys[i, :m] - data.y[i, :m]], 1)
         er = rot_err[i, :m]
@@ -319,8 +348,9 @@ def _trial_reports(data: FitData, pose, nu_b: np.ndarray, b: int) -> list[dict[s
             {
                 "name": data.names[i],
                 "samples": m,
-                "rms_pos_m": float(np.sqrt((ep[wp] ** 2).sum(1).mean())),
-                "rms_rot_deg": float(np.degrees(np.sqrt((er[wr] ** 2).sum(1).mean()))),
+                "rms_pos_m": float(np.sqrt((ep[wp & ~out] ** 2).sum(1).mean())),
+                "rms_rot_deg": float(np.degrees(np.sqrt((er[wr & ~out] ** 2).sum(1).mean()))),
+                "set_aside": int(out.sum()),
                 "nuisance": {
                     k: float(offset_from_nuisance(v, data.max_offset)) if k == TIME_OFFSET else float(v)
                     for k, v in zip(names_nu, nu_b[i])
@@ -333,6 +363,7 @@ def _trial_reports(data: FitData, pose, nu_b: np.ndarray, b: int) -> list[dict[s
                     "y_sim": ys[i, :m],
                     "pos_err": np.where(wp[:, None], ep, np.nan),
                     "rot_err_deg": np.where(wr[:, None], np.degrees(er), np.nan),
+                    "set_aside": out,
                 },
             }
         )

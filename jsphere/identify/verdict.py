@@ -19,6 +19,12 @@ The rules (thresholds are the module constants below):
    all trials or of the worst trial, is more than `FAR` times the noise floor, or more than
    `MODERATE` times with a lag-1 autocorrelation above `CORRELATED` (far from white);
 3. otherwise `converged`.
+
+Frames a robust loss set aside (`jsphere.identify.robust`: ghost frames, marker swaps) are left
+out of the residual sigmas and counted per trial. Where more than `REJECTED` of a trial's
+measured frames are set aside, the reason names the trial ("trial 'X': 12 % of frames rejected:
+check the capture"): a misfit is then put down to the capture, not to the model, and a fit
+whose other frames sit at the noise floor stays `converged` with that warning in its reason.
 """
 
 from __future__ import annotations
@@ -48,6 +54,8 @@ MAX_SPAN = 3.5
 FLOOR_RESOLUTION = (1e-5, 1e-4)
 #: third differences beyond this many robust sd (`1.4826 median |e|`) are outliers
 OUTLIER = 5.0
+#: the share of a trial's measured frames set aside above which the verdict names the trial
+REJECTED = 0.05
 #: scale of the median absolute value to the standard deviation of a normal variable
 _MAD = 1.4826
 
@@ -116,7 +124,7 @@ def third_differences(data) -> tuple[np.ndarray, np.ndarray]:
     return cat(pos), cat(rot)
 
 
-def _robust_sd(e: np.ndarray) -> float:
+def robust_sd(e: np.ndarray) -> float:
     """The sd of normal noise from values `e` that may hold a few outliers (a marker swap, a
     glitch): `s0 = 1.4826 median |e|`, then the RMS of the values within `OUTLIER s0` of 0 (the
     RMS is ~2.7x as efficient as the median, which matters for a few hundred differences;
@@ -136,7 +144,7 @@ def noise_floor(data) -> tuple[float, float]:
     `data` is a `jsphere.identify.fit.FitData`. Third differences over runs of 4 consecutive measured
     frames (`third_differences`) remove every motion up to a quadratic; white noise of sd `s`
     gives differences of sd `s` after normalisation (`sqrt(20) s` for evenly spaced frames
-    before it), estimated by their RMS after removing outliers (`_robust_sd`). Overlapping
+    before it), estimated by their RMS after removing outliers (`robust_sd`). Overlapping
     differences are correlated (-0.75 at lag 1), so `n` differences estimate `s` to a relative
     sd of about `sqrt(2.3 / (2 n))`: 3 % for the ~1200 position differences of two trials of
     3 s at 100 Hz, 6.5 % for two trials of 1.5 s at 50 Hz (over 200 noise draws: 3.3 % and
@@ -144,7 +152,7 @@ def noise_floor(data) -> tuple[float, float]:
     `MIN_DIFFERENCES` differences gives NaN. Capture noise that is not white (a capture system
     that smooths its output) has less high-frequency content, so its floor comes out low."""
     pos, rot = third_differences(data)
-    return _robust_sd(pos), _robust_sd(rot)
+    return robust_sd(pos), robust_sd(rot)
 
 
 # ----------------------------------------------------------------------------- whiteness
@@ -193,6 +201,8 @@ def judge(
     converged: bool = True,
     why_not: str = "",
     n_params: int = 0,
+    set_aside: Sequence[int] | None = None,
+    measured: Sequence[int] | None = None,
 ) -> dict[str, Any]:
     """The verdict on a fit from its residuals.
 
@@ -205,6 +215,9 @@ def judge(
       not converge, why (e.g. "Levenberg-Marquardt stopped at max_iter").
     - `n_params`: the number of fitted values (free and nuisance), for the residual sigmas'
       dof correction `sqrt(sum e^2 / (n (1 - n_params / n_total)))`.
+    - `set_aside`, `measured`: per trial the frames a robust loss set aside (already NaN in
+      `pos_err`, `rot_err`) and the frames measured; more than `REJECTED` of them names the
+      trial in the reason (module docstring).
 
     Returns a dict: `status` (`"converged"`, `"not_converged"` or `"misfit"`, see the module's
     rules), `reason` (one sentence), and the numbers in JSON units: `noise_floor_pos_m`,
@@ -212,7 +225,7 @@ def judge(
     `ratio_pos`, `ratio_rot` (sigma / floor), `autocorr_pos`, `autocorr_rot` (lag-1),
     `worst_trial` (the name of the trial with the highest ratio), `trials` (per trial
     `name`, `sigma_pos_m`, `sigma_rot_deg`, `ratio_pos`, `ratio_rot`, `autocorr_pos`,
-    `autocorr_rot`), `optimiser_converged` and `thresholds`.
+    `autocorr_rot`, `set_aside`), `optimiser_converged`, `set_aside` (all trials) and `thresholds`.
     """
     T = len(pos_err)
     names = list(names) if names is not None else [f"trial{i}" for i in range(T)]
@@ -225,8 +238,20 @@ def judge(
     key = lambda i: max((r for r, _, _ in per_trial[i] if math.isfinite(r)), default=-math.inf)
     worst = max(range(T), key=key) if T else None
     scopes = [("", overall)] + ([(names[worst], per_trial[worst])] if worst is not None else [])
-    status, reason = _status(_hits(scopes), overall, per_trial, names, worst, fl, converged, why_not)
-    return _numbers(status, reason, converged, floor, overall, per_trial, names, worst)
+    aside = list(set_aside) if set_aside is not None else [0] * T
+    held = list(measured) if measured is not None else [0] * T
+    rejected = [
+        f"trial {names[i]!r}: {100.0 * aside[i] / held[i]:.0f} % of frames rejected: check the capture"
+        for i in range(T)
+        if held[i] and aside[i] > REJECTED * held[i]
+    ]
+    status, reason = _status(_hits(scopes), overall, per_trial, names, worst, fl, converged, why_not, rejected)
+    out = _numbers(status, reason, converged, floor, overall, per_trial, names, worst)
+    for t, n in zip(out["trials"], aside):
+        t["set_aside"] = int(n)
+    out["set_aside"] = int(sum(aside))
+    out["thresholds"]["rejected"] = REJECTED
+    return out
 
 
 def _scope(errs, frac: float, fl) -> list[tuple[float, float, float]]:
@@ -252,8 +277,9 @@ def _hits(scopes) -> list[tuple[str, int, float, float, str]]:
     return hits
 
 
-def _status(hits, overall, per_trial, names, worst, fl, converged: bool, why_not: str) -> tuple[str, str]:
-    """The status and its one-sentence reason (the module's rules)."""
+def _status(hits, overall, per_trial, names, worst, fl, converged: bool, why_not: str, rejected=()) -> tuple[str, str]:
+    """The status and its one-sentence reason (the module's rules); `rejected`: per trial with
+    too many frames set aside, its sentence."""
     T = len(per_trial)
     ratios = f"{_x(overall[0][0])} (position) and {_x(overall[1][0])} (orientation) the capture's noise floor"
     worst_text = ""
@@ -273,6 +299,13 @@ def _status(hits, overall, per_trial, names, worst, fl, converged: bool, why_not
             f"the optimiser did not converge ({why_not or 'it stopped before its convergence test was met'}){far}{no_floor}: "
             "the values and standard errors are not final; rerun with more iterations (--max-iter) or more starts (--n-starts)."
         )
+    capture = "; ".join(rejected)
+    if hits and capture:
+        return "misfit", (
+            f"{capture}; the residual sigmas of the frames kept are {ratios}{worst_text}{no_floor}: a capture with this "
+            "many bad frames (ghost frames, marker swaps) does not determine the fit; clean the capture or convert it "
+            "again (jsphere convert leaves frames of suspect markers out)."
+        )
     if hits:
         if any(h[4] == "far" for h in hits):
             what = f"the residual sigmas are {ratios}{worst_text}"
@@ -286,7 +319,8 @@ def _status(hits, overall, per_trial, names, worst, fl, converged: bool, why_not
             f"(--n-starts), other start values (--params, --fix) or more free parameters, and check the inputs and capture of {check}."
         )
     acs = f"lag-1 autocorrelations {overall[0][1]:.2f} and {overall[1][1]:.2f}"
-    return "converged", f"the optimiser converged and the residual sigmas are {ratios}, {acs}{no_floor}."
+    capture = f"; {capture}" if capture else ""
+    return "converged", f"the optimiser converged and the residual sigmas are {ratios}, {acs}{no_floor}{capture}."
 
 
 def _numbers(status, reason, converged, floor, overall, per_trial, names, worst) -> dict[str, Any]:
