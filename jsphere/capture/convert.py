@@ -41,6 +41,7 @@ def convert_raw(
     input_kind: str | None = None,
     joints=None,
     n_wheels: int | None = None,
+    keep_suspect: bool = False,
 ) -> Trial:
     """Read a raw export (`format`: `"motive"`, `"vicon"`, `"c3d"`, `"qualisys"` or `"rosbag"`)
     and make a `Trial` with the inputs table `inputs` (`markers_to_trial`). `up_axis` defaults
@@ -59,7 +60,9 @@ def convert_raw(
     A file cut short (an export with fewer frames than its header declares, a last row cut off
     mid-row) is an `InputError` naming both counts; `allow_truncated=True` makes it a
     `CaptureWarning` and uses the complete frames. Implausible speeds, turn rates or time units
-    in the result are `CaptureWarning`s naming the likely cause."""
+    in the result are `CaptureWarning`s naming the likely cause. Frames of a suspect marker fit (a
+    swapped or ghost marker) are gaps, with a warning saying how many, unless `keep_suspect`
+    (`markers_to_trial`)."""
     if format not in RAW_FORMATS:
         raise ValueError(f"convert_raw: format must be one of {RAW_FORMATS}; got {format!r}.")
     _check_bag_options(format, inputs, units, up_axis, pose_topic, inputs_topic, joints)
@@ -100,6 +103,7 @@ def convert_raw(
         time_offset=time_offset,
         name=name,
         allow_truncated=allow_truncated,
+        keep_suspect=keep_suspect,
     )
 
 

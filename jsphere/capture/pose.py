@@ -108,6 +108,7 @@ def markers_to_trial(
     name: str | None = None,
     max_gap_fraction: float = 0.5,
     allow_truncated: bool = False,
+    keep_suspect: bool = False,
 ) -> Trial:
     """A `Trial` from raw marker data and an inputs table.
 
@@ -125,6 +126,9 @@ def markers_to_trial(
       frame.
     - `max_rms`: frames whose marker fit has an RMS residual above this [m] are gaps.
     - `allow_truncated`: passed to `read_inputs_csv`.
+    - `keep_suspect`: keep the frames whose marker fit residual is more than `SUSPECT` times the
+      take's median (and above `SUSPECT_FLOOR`): a swapped or ghost marker, which would otherwise
+      spoil the pose. By default they are gaps, with a `CaptureWarning` saying how many.
 
     Given body markers whose distances from each other disagree with the export's (by more than
     10%: markers in millimetres, or of another robot) are an `InputError`. The trial is checked
@@ -149,7 +153,9 @@ def markers_to_trial(
     A = np.eye(3) if alignment is None else np.asarray(alignment, float)
     if A.shape != (3, 3) or not np.allclose(A @ A.T, np.eye(3), atol=1e-6) or np.linalg.det(A) < 0:
         raise ValueError(f"{source}: alignment must be a 3x3 rotation matrix (platform -> body frame).")
-    q_body, p_body = (data.rb_q, data.rb_p) if data.rb_q is not None else _body_pose(data, body_markers, max_rms)
+    q_body, p_body = (
+        (data.rb_q, data.rb_p) if data.rb_q is not None else _body_pose(data, body_markers, max_rms, keep_suspect)
+    )
     q, centre = _platform_pose(q_body, p_body, A, off.reshape(3))
     t = data.t + time_offset
     keep = _overlap(t, t_in, source)
@@ -181,9 +187,12 @@ def markers_to_trial(
     return Trial(tt, x, y, qq, uu, kind, z, name=name or Path(source).stem)
 
 
-def _body_pose(data: MarkerData, body_markers, max_rms: float) -> tuple[np.ndarray, np.ndarray]:
+def _body_pose(
+    data: MarkerData, body_markers, max_rms: float, keep_suspect: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
     """The body frame's pose `(q (M, 4), p (M, 3))` from the markers (`rigid_body_pose`), with
-    the body markers given, matched by name or estimated."""
+    the body markers given, matched by name or estimated; frames of a suspect marker fit are
+    gaps unless `keep_suspect` (`suspect_frames`)."""
     source = data.source
     if len(data.names) < 3:
         raise ValueError(f"{source}: {len(data.names)} marker(s) {list(data.names)}; a pose needs at least 3 markers.")
@@ -198,8 +207,39 @@ def _body_pose(data: MarkerData, body_markers, max_rms: float) -> tuple[np.ndarr
         )
     known = np.all(np.isfinite(body_markers), axis=1)  # markers left out of a body_markers dict
     _check_body_scale(data.markers[:, known], body_markers[known], source)
-    q_body, p_body, _ = rigid_body_pose(data.markers[:, known], body_markers[known], max_rms=max_rms)
+    q_body, p_body, rms = rigid_body_pose(data.markers[:, known], body_markers[known], max_rms=max_rms)
+    suspect = suspect_frames(rms)
+    if suspect.any() and not keep_suspect:
+        q_body, p_body = q_body.copy(), p_body.copy()
+        q_body[suspect], p_body[suspect] = np.nan, np.nan
+        warnings.warn(
+            f"{source}: {int(suspect.sum())} frame(s) whose marker fit residual is more than {SUSPECT:g}x the take's "
+            f"median ({np.nanmedian(rms) * 1e3:.3g} mm) are left out as missing (a swapped or ghost marker); "
+            "--keep-suspect (keep_suspect=True) keeps them.",
+            CaptureWarning,
+            stacklevel=3,
+        )
     return q_body, p_body
+
+
+#: a frame whose marker fit residual is more than this many times the take's median is suspect
+SUSPECT = 5.0
+#: ... and above this [m]: a capture resolves about 0.1 mm, so a take of residuals near 0 does
+#: not make every frame suspect
+SUSPECT_FLOOR = 2e-4
+
+
+def suspect_frames(rms: np.ndarray) -> np.ndarray:
+    """Frames whose RMS marker fit residual `rms (M,)` [m] (NaN at gaps) is more than `SUSPECT`
+    times the take's median and above `SUSPECT_FLOOR`: a marker swapped with another or a
+    ghost marker taken for one. White marker noise gives squared residuals of chi^2 with
+    `3 K - 6` degrees of freedom (`K` markers): their 99.99 % point is 2.3x the median residual
+    for 4 markers, 3x for 3, so a take of clean frames has none."""
+    ok = np.isfinite(rms)
+    if not ok.any():
+        return np.zeros(rms.shape, bool)
+    limit = max(SUSPECT * float(np.median(rms[ok])), SUSPECT_FLOOR)
+    return ok & (np.where(ok, rms, 0.0) > limit)
 
 
 def _platform_pose(

@@ -75,6 +75,12 @@ def add_parser(sub) -> None:
         help="convert an export cut short (fewer frames than its header declares, a last row cut off) "
         "with a warning instead of an error",
     )
+    cv.add_argument(
+        "--keep-suspect",
+        action="store_true",
+        help="keep the frames whose marker fit residual is far above the take's median (more than 5x: a swapped or "
+        "ghost marker); by default they are written as missing, with a warning saying how many",
+    )
     cv.add_argument("--no-cache", action="store_true", help=argparse.SUPPRESS)
 
 
@@ -120,6 +126,7 @@ def run(args) -> int:
                 body_markers=body,
                 body_offset=tuple(args.body_offset),
                 allow_truncated=args.allow_truncated,
+                keep_suspect=args.keep_suspect,
                 subject=args.subject,
                 pose_topic=args.pose_topic,
                 inputs_topic=args.inputs_topic,

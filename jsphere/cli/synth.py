@@ -8,6 +8,7 @@ NAME = "synth"
 EXAMPLES = """
   jsphere synth --out trials --trials 5 --duration 8
   jsphere synth --out trials --kind torques --params robot.toml --pos-sd 5e-4 --seed 10
+  jsphere synth --out trials --trials 5 --glitches
 """
 
 
@@ -28,6 +29,13 @@ def add_parser(sub) -> None:
     sy.add_argument("--pos-sd", type=float, default=1e-3, help="position noise [m] (default 1e-3)")
     sy.add_argument("--rot-sd-deg", type=float, default=0.5, help="orientation noise per axis [deg] (default 0.5)")
     sy.add_argument("--dropout", type=float, default=0.02, help="fraction of frames lost (default 0.02)")
+    sy.add_argument(
+        "--glitches",
+        action="store_true",
+        help="spoil frames as a real capture does: about 1 %% ghost frames (the position off by 1-5 cm for one frame) "
+        "and 2 marker-swap bursts per trial (5-15 frames, the orientation off by 30-90 deg); the rows spoiled are "
+        "printed",
+    )
     sy.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
 
 
@@ -61,7 +69,7 @@ def _check(args) -> None:
 
 def run(args) -> int:
     from .._runtime.files import check_output
-    from ..capture.synthetic import random_inputs, synthetic_trial
+    from ..capture.synthetic import add_glitches, random_inputs, synthetic_trial
     from ..capture.trial import write_trial
     from ..model.params import RobotParams
 
@@ -83,6 +91,10 @@ def run(args) -> int:
             seed=seed,
             name=name,
         )
+        spoiled = ""
+        if args.glitches:
+            trial, rows = add_glitches(trial, seed=seed)
+            spoiled = f" (glitches in rows {', '.join(map(str, rows))})"
         write_trial(out / f"{trial.name}.csv", trial)
-        print(f"{trial!r} -> {out / (trial.name + '.csv')}")
+        print(f"{trial!r} -> {out / (trial.name + '.csv')}{spoiled}")
     return 0
