@@ -168,6 +168,7 @@ def fit(
     """
     t_begin = time.perf_counter()
     prog = Progress(progress)
+    check_loss(loss, "fit")
     _check_free_and_fixed(free, fix)
     params = apply_fixes(params, fix)
     fp_ = FreeParams(params, free, bounds)
@@ -175,7 +176,6 @@ def fit(
     data = pack_trials(trials, params, max_offset=max_offset)
     _check_options(n_starts, max_iter, adam_steps, seed, sigma_pos, sigma_rot)
     _check_shooting(shooting, segment)
-    check_loss(loss, "fit")
     _check_unknowns(data, fp_)
     warn_if_float32_by_default(params.R0.dtype, "fit")
     solve = _solver_options(options, rtol, atol, max_steps)

@@ -25,6 +25,12 @@ def worst_trial(result) -> tuple[int | None, str]:
     return k, text
 
 
+def _set_aside(series) -> np.ndarray:
+    """Where the frames of a trial's series were set aside by the fit's loss (none if not given)."""
+    out = series.get("set_aside")
+    return np.zeros(len(series["t"]), bool) if out is None else np.asarray(out, bool)
+
+
 def fit_figures(result, out_dir, *, stem: str = "fit") -> list[Path]:
     """`<stem>_overlay.png` (captured and fitted paths, one colour per trial) and
     `<stem>_residuals.png` (position [mm] and orientation [deg] residuals vs time per trial)
@@ -32,7 +38,9 @@ def fit_figures(result, out_dir, *, stem: str = "fit") -> list[Path]:
 
     The worst-fitting trial (`worst_trial`) is drawn bold and named in the overlay's title, and
     comes first in the residual figure, titled with its name and its residual sigmas relative
-    to the capture's noise floor, and the fit's status."""
+    to the capture's noise floor, and the fit's status. Frames a robust loss set aside (ghost
+    frames, marker swaps: `FitResult.outliers`) are red crosses in both figures, and the
+    residual axes are scaled to the frames kept."""
     plt = pyplot()
     out_dir = Path(out_dir)
     trials = result.trials
@@ -46,9 +54,15 @@ def fit_figures(result, out_dir, *, stem: str = "fit") -> list[Path]:
         ax.plot(1e3 * s["x"], 1e3 * s["y"], ".", ms=1.5, color=c, alpha=0.5)
         label = f"{tr['name']} ({1e3 * tr['rms_pos_m']:.2f} mm){' - worst' if bold else ''}"
         ax.plot(1e3 * s["x_sim"], 1e3 * s["y_sim"], "-", lw=2.2 if bold else 1, color=c, label=label)
+        out = _set_aside(s)
+        if out.any():
+            ax.plot(1e3 * s["x"][out], 1e3 * s["y"][out], "x", ms=4, color="red")
     ax.set_xlabel("x [mm]")
     ax.set_ylabel("y [mm]")
+    n_out = sum(int(_set_aside(tr["series"]).sum()) for tr in trials)
     title = "captured (dots) and fitted (lines) paths; RMS position residual"
+    if n_out:
+        title += f"; {n_out} frames set aside (red crosses)"
     if worst_text:
         title += f"\n{status}worst {worst_text}"
     ax.set_title(title, fontsize=8 if worst_text else 9)
@@ -75,6 +89,13 @@ def fit_figures(result, out_dir, *, stem: str = "fit") -> list[Path]:
         a.plot(s["t"], 1e3 * s["pos_err"][:, 1], lw=0.6, label="y")
         for i, lab in enumerate("xyz"):
             b.plot(s["t"], s["rot_err_deg"][:, i], lw=0.6, label=lab)
+        out = _set_aside(s)
+        if out.any():  # the frames set aside: crosses at the axis' edge, the axes scaled to the frames kept
+            for ax_, err, unit in ((a, s["pos_err"], 1e3), (b, s["rot_err_deg"], 1.0)):
+                kept = unit * err[~out]
+                top = np.nanmax(np.abs(kept)) * 1.1 if np.isfinite(kept).any() else 1.0
+                ax_.set_ylim(-top, top)
+                ax_.plot(s["t"][out], np.full(int(out.sum()), 0.9 * top), "x", ms=3, color="red", label="set aside")
         emph = {"color": "C3", "fontweight": "bold"} if k == worst and n > 1 else {}
         a.set_ylabel(f"{tr['name']}\n[mm]", fontsize=7, **emph)
         b.set_ylabel("[deg]", fontsize=7)
