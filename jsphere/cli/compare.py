@@ -37,6 +37,13 @@ def add_parser(sub) -> None:
     cp.add_argument(
         "--max-time-offset", type=float, default=0.5, metavar="SECONDS", help="the largest clock offset [s]"
     )
+    cp.add_argument(
+        "--loss",
+        choices=("l2", "huber", "cauchy", "soft_l1"),
+        default="cauchy",
+        help="the loss of the initial-velocity estimate, as jsphere fit's (default cauchy): frames it sets aside "
+        "(ghost frames, marker swaps) are left out of the scores and listed per trial under 'outliers'",
+    )
     cp.add_argument("--no-plots", action="store_true", help="skip the figures")
     cp.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
 
@@ -67,8 +74,14 @@ def run(args) -> int:
         lags=args.lags,
         fit_time_offset=args.fit_time_offset,
         max_time_offset=args.max_time_offset,
+        loss=args.loss,
     )
     written = res.save(out, plots=not args.no_plots)
     print(res.table())
+    for t in res.trials:
+        if t["outliers"]["count"]:
+            print(
+                f"{t['name']}: {t['outliers']['count']} frame(s) set aside by the {args.loss} loss (ghost frames, swaps)"
+            )
     print(f"wrote {', '.join(str(p) for p in written)}")
     return ExitCode.OK

@@ -12,6 +12,10 @@ by Levenberg-Marquardt on the trial's whitened residuals with the parameters hel
   fraction outside the 99 % band `+- 2.576 / sqrt(N)` of white noise (`whiteness`);
 - their cross-correlation with each input at lags `-lags..lags`, with the same band.
 
+The nuisance values are estimated with the fit's robust loss (`loss`, `jsphere.identify.robust`):
+frames it sets aside (ghost frames, marker swaps) are each trial's `outliers`, and are left out of
+its scores.
+
 A right model leaves white residuals (about 1 % of the lags outside the band) and a fit near
 100 % where the motion is large against the noise; a wrong one scores lower and leaves
 correlated residuals.
@@ -37,6 +41,7 @@ from ..model.params import RobotParams
 from ..model.rotations import quat_conj, quat_log, quat_mul
 from .data import TIME_OFFSET, FitData, offset_from_nuisance, pack_trials
 from .residuals import trial_model
+from .robust import DEFAULT_LOSS, REJECT, check_loss, frame_weights, reweigh, robust_cost
 from .starts import nuisance_guess
 
 #: the 99 % two-sided quantile of the standard normal distribution
@@ -113,6 +118,7 @@ def compare(
     rtol: float = 1e-6,
     atol: float = 1e-8,
     max_steps: int = 16384,
+    loss: str = DEFAULT_LOSS,
 ) -> CompareResult:
     """Simulate each trial with `params` and score it against the measurement (module docstring).
 
@@ -125,6 +131,8 @@ def compare(
     - `fit_time_offset`, `max_time_offset`: estimate each trial's clock offset too (as `fit`).
     - `max_iter`: Levenberg-Marquardt iterations of the nuisance estimate.
     - `rtol`, `atol`, `max_steps`: the ODE solver's (`fit`'s defaults).
+    - `loss`: the loss of the nuisance estimate, as `fit`'s (`jsphere.identify.robust`); the
+      frames it sets aside are each trial's `outliers` (`{"frames": [rows], "count": n}`).
 
     Returns a `CompareResult`. Raises `InputError` for trials that do not fit `params` or bad
     options, `SolverFailure` when a trial cannot be simulated (named)."""
@@ -133,10 +141,14 @@ def compare(
     for name, v in (("sigma_pos", sigma_pos), ("sigma_rot", sigma_rot), ("max_time_offset", max_time_offset)):
         if isinstance(v, bool) or not isinstance(v, (int, float, np.number)) or not 0 < v < math.inf:
             raise InputError(f"compare: {name} must be a positive number; got {v!r}.")
+    check_loss(loss, "compare")
     trials = list(trials)
     data = pack_trials(trials, params, max_offset=float(max_time_offset) if fit_time_offset else 0.0)
     sig = np.array([float(sigma_pos), float(sigma_rot)])
-    nu, pose, ok = _estimate_nuisance(params, data, sig, int(max_iter), float(rtol), float(atol), int(max_steps))
+    nu, pose, ok, res = _estimate_nuisance(
+        params, data, sig, int(max_iter), float(rtol), float(atol), int(max_steps), loss
+    )
+    aside = (frame_weights(loss, res) < REJECT) & ((data.wpos > 0) | (data.wrot > 0))
     bad = np.flatnonzero(~ok)
     if bad.size:
         raise SolverFailure(
@@ -145,7 +157,7 @@ def compare(
         )
     reports, predicted = [], []
     for i, tr in enumerate(trials):
-        rep = _trial_report(data, i, pose, nu[i], np.asarray(tr.inputs, float), lags)
+        rep = _trial_report(data, i, pose, nu[i], np.asarray(tr.inputs, float), lags, aside[i])
         reports.append(rep)
         s = rep["series"]
         m = data.lengths[i]
@@ -188,30 +200,43 @@ def _model(kind: str, rtol: float, atol: float, max_steps: int, max_offset: floa
     return _COMPILED[key]
 
 
-def _estimate_nuisance(params, data: FitData, sig, max_iter: int, rtol, atol, max_steps):
+def _robust(loss: str, res, J=None):
+    """Per trial the cost of whitened residuals `res (T, K)` for `loss`, and with `J` the
+    reweighted residuals and Jacobian (`jsphere.identify.robust`)."""
+    if J is None:
+        return 0.5 * (res * res).sum(1) if loss == "l2" else np.asarray(robust_cost(loss, jnp.asarray(res)[:, None]))
+    if loss == "l2":
+        return res, J
+    rw, Jw = reweigh(loss, jnp.asarray(res)[:, None], jnp.asarray(J)[:, None])
+    return np.asarray(rw[:, 0]), np.asarray(Jw[:, 0])
+
+
+def _estimate_nuisance(params, data: FitData, sig, max_iter: int, rtol, atol, max_steps, loss: str = "l2"):
     """Each trial's nuisance values by Levenberg-Marquardt with `params` held (trials are then
-    independent: one small damped Gauss-Newton step per trial, all in one vmapped call). Returns
-    the values `(T, n)`, the simulated poses there and whether each trial's solve succeeded."""
+    independent: one small damped Gauss-Newton step per trial, all in one vmapped call), on the
+    cost of `loss`. Returns the values `(T, n)`, the simulated poses there, whether each trial's
+    solve succeeded and the whitened residuals `(T, K)`."""
     fn = _model(data.kind, rtol, atol, max_steps, data.max_offset)
     arrays, sig_j = data.arrays(), jnp.asarray(sig)
     nu = nuisance_guess(data, params)
     res, ok, J, pose = fn(params, jnp.asarray(nu), arrays, sig_j)
     res, ok, J, pose = np.asarray(res), np.asarray(ok), np.asarray(J), tuple(np.asarray(a) for a in pose)
-    cost = np.where(ok, 0.5 * (res * res).sum(1), np.inf)
+    cost = np.where(ok, _robust(loss, res), np.inf)
     lam = np.full(nu.shape[0], 1e-3)
     done = ~np.isfinite(cost)
     for _ in range(max_iter):
         if done.all():
             break
-        H = np.einsum("tkn,tkm->tnm", J, J)
-        g = np.einsum("tkn,tk->tn", J, res)
+        rw, Jw = _robust(loss, res, J)
+        H = np.einsum("tkn,tkm->tnm", Jw, Jw)
+        g = np.einsum("tkn,tk->tn", Jw, rw)
         d = np.diagonal(H, axis1=1, axis2=2)
         Hd = H + (lam[:, None] * d + 1e-12 * d.max(1, keepdims=True) + 1e-300)[:, :, None] * np.eye(H.shape[1])
         step = -np.linalg.solve(Hd, g[..., None])[..., 0]
         step = np.where(done[:, None], 0.0, step)
         r2, ok2, J2, pose2 = fn(params, jnp.asarray(nu + step), arrays, sig_j)
         r2, ok2, J2 = np.asarray(r2), np.asarray(ok2), np.asarray(J2)
-        c2 = np.where(ok2, 0.5 * (r2 * r2).sum(1), np.inf)
+        c2 = np.where(ok2, _robust(loss, r2), np.inf)
         better = (c2 < cost) & ~done
         small = better & (cost - c2 <= 1e-10 * np.maximum(cost, 1e-300) + 1e-8)
         nu = np.where(better[:, None], nu + step, nu)
@@ -223,7 +248,7 @@ def _estimate_nuisance(params, data: FitData, sig, max_iter: int, rtol, atol, ma
         cost = np.where(better, c2, cost)
         lam = np.where(better, np.maximum(lam / 5.0, 1e-12), lam * 10.0)
         done |= small | (lam > 1e10)
-    return nu, tuple(np.asarray(a) for a in pose), np.isfinite(cost)
+    return nu, tuple(np.asarray(a) for a in pose), np.isfinite(cost), res
 
 
 # ----------------------------------------------------------------------------- the scores
@@ -269,9 +294,12 @@ def _ccf(e: np.ndarray, w: np.ndarray, u: np.ndarray, lags: int) -> np.ndarray:
     return out
 
 
-def _trial_report(data: FitData, i: int, pose, nu_i: np.ndarray, inputs: np.ndarray, lags: int) -> dict[str, Any]:
+def _trial_report(
+    data: FitData, i: int, pose, nu_i: np.ndarray, inputs: np.ndarray, lags: int, aside=None
+) -> dict[str, Any]:
     m = data.lengths[i]
-    wp, wr = data.wpos[i, :m] > 0, data.wrot[i, :m] > 0
+    out = np.zeros(m, bool) if aside is None else np.asarray(aside[:m], bool)
+    wp, wr = (data.wpos[i, :m] > 0) & ~out, (data.wrot[i, :m] > 0) & ~out
     xs, ys, qs = (np.asarray(a[i, :m]) for a in pose)
     q_meas = data.q[i, :m]
     rot_err = np.asarray(quat_log(quat_mul(quat_conj(jnp.asarray(qs)), jnp.asarray(q_meas))))
@@ -315,6 +343,7 @@ def _trial_report(data: FitData, i: int, pose, nu_i: np.ndarray, inputs: np.ndar
             "lags": lags,
             "inputs": {f"input_{j + 1}": float(c_out[:, j].mean()) for j in range(u.shape[1])},
         },
+        "outliers": {"frames": np.flatnonzero(out).tolist(), "count": int(out.sum())},
         "rms_pos_m": float(np.sqrt((ex[wp] ** 2 + ey[wp] ** 2).mean())),
         "rms_rot_deg": float(np.degrees(np.sqrt((rot_err[wr] ** 2).sum(1).mean()))),
         "nuisance": {

@@ -139,9 +139,9 @@ def test_glitch_generator_spoils_what_it_says():
     c = clean[0]
     moved = np.hypot(t.x - c.x, t.y - c.y)
     turned = np.degrees(2 * np.arccos(np.clip(np.abs(np.sum(t.q * c.q, 1)), 0, 1)))
-    spoiled = np.flatnonzero((moved > 0) | (turned > 1e-6))
+    spoiled = np.flatnonzero((moved > 1e-9) | (turned > 1e-3))
     np.testing.assert_array_equal(spoiled, rows)
-    ghosts, swaps = rows[moved[rows] > 0], rows[turned[rows] > 1e-6]
+    ghosts, swaps = rows[moved[rows] > 1e-9], rows[turned[rows] > 1e-3]
     assert np.all((moved[ghosts] >= 0.01 - 1e-12) & (moved[ghosts] <= 0.05 + 1e-12))
     assert np.all((turned[swaps] >= 30 - 1e-9) & (turned[swaps] <= 90 + 1e-9))
     assert 10 <= swaps.size <= 30 and 1 <= ghosts.size <= 20  # 2 bursts of 5-15 frames; ~1 % of 601 frames
@@ -205,3 +205,16 @@ def test_unknown_loss_is_refused(small_files, tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["fit", str(small_files[0][0]), "--free", "j", "--loss", "tukey"])
     assert "invalid choice: 'tukey'" in capsys.readouterr().err
+
+
+def test_compare_sets_aside_the_bad_frames_with_the_fits_loss(small_files):
+    paths, bad = small_files
+    trials = [jsphere.read_trial(p) for p in paths]
+    rob = jsphere.compare(TRUTH, trials)
+    l2 = jsphere.compare(TRUTH, trials, loss="l2")
+    for t, p, name in zip(rob.trials, paths, ("t0", "t1")):
+        frames = set(t["outliers"]["frames"])
+        assert len(bad[name] & frames) >= 0.8 * len(bad[name]) and len(frames - bad[name]) <= 1
+    assert all(t["outliers"]["count"] == 0 for t in l2.trials)
+    # the frames set aside are out of the scores: the robust residuals are at the noise
+    assert max(t["rms_pos_m"] for t in rob.trials) < 2e-3 < max(t["rms_pos_m"] for t in l2.trials)
