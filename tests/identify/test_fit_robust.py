@@ -218,3 +218,63 @@ def test_compare_sets_aside_the_bad_frames_with_the_fits_loss(small_files):
     assert all(t["outliers"]["count"] == 0 for t in l2.trials)
     # the frames set aside are out of the scores: the robust residuals are at the noise
     assert max(t["rms_pos_m"] for t in rob.trials) < 2e-3 < max(t["rms_pos_m"] for t in l2.trials)
+
+
+# ------------------------------------------------------------------ slow: the acceptance case, coverage
+
+
+def other_robot() -> jsphere.RobotParams:
+    """A robot 5-20 % away from the paper's (that of `benchmarks/fit_length.py`)."""
+    return jsphere.RobotParams.paper().replace(
+        m0=0.85, I0=0.0105, j=3.2e-4, r_m=np.array([0.0, 0.0, -0.031]), I=np.diag([0.018, 0.0145, 0.026])
+    )
+
+
+@pytest.mark.slow
+def test_jsphere_fit_with_its_defaults_survives_a_glitchy_capture(tmp_path, capsys):
+    """Five 6 s torque trials at 100 Hz, 1 mm / 0.5 deg noise, ~1 % ghost frames and two swap
+    bursts per trial; `jsphere fit` with its defaults and 7 free parameters: exit 0, every value
+    within 3 standard errors, at least 80 % of the bad frames named in fit.json."""
+    robot = other_robot()
+    free = "r_m[2],j,I[0,0],I[1,1],I[2,2],m0,I0"
+    paths, bad = [], {}
+    for i in range(5):
+        u = jsphere.random_inputs(robot, 6.0, kind="torques", f_min=0.3, f_max=0.7, seed=i)
+        t, rows = add_glitches(jsphere.synthetic_trial(robot, u, 6.0, seed=i, name=f"take{i}"), seed=i)
+        paths.append(tmp_path / f"take{i}.csv")
+        jsphere.write_trial(paths[-1], t)
+        bad[paths[-1].name] = set(rows.tolist())
+    out = tmp_path / "fit.json"
+    rc = main(["fit", *map(str, paths), "--free", free, "--out", str(out), "--quiet", "--no-cache"])
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    doc = json.loads(out.read_text())
+    assert rc == ExitCode.OK, last
+    z = {n: (doc["values"][n] - float(jsphere.get_value(robot, n))) / doc["stderr"][n] for n in doc["free"]}
+    print("errors in SE:", {k: round(v, 2) for k, v in z.items()})
+    assert all(abs(v) < 3 for v in z.values()), z
+    named = sum(len(bad[k] & set(v["frames"])) for k, v in doc["outliers"].items())
+    injected = sum(len(b) for b in bad.values())
+    print(f"bad frames named: {named}/{injected}")
+    assert named >= 0.8 * injected
+    assert (tmp_path / "fit_residuals.png").exists()
+
+
+@pytest.mark.slow
+def test_standard_errors_of_glitchy_fits_cover_the_truth():
+    """Over 20 glitchy captures (3 wheel-speed trials of 4 s, 4 free values): about 95 % of the
+    true values within 2 standard errors (at least 85 % of the 80), and about 68 % within 1 (between
+    50 and 90 %: standard errors neither too small nor too large)."""
+    robot = jsphere.RobotParams.paper().replace(R_m=0.029, j=3.2e-4, I0=0.011, I=np.diag([0.02, 0.02, 0.025]))
+    fix = {k: np.asarray(jsphere.get_value(robot, k)).tolist() for k in ("m", "m0", "I[0,0]", "I[1,1]")}
+    within1 = within2 = total = 0
+    for seed in range(20):
+        trials, _ = glitchy([1000 + 10 * seed + i for i in range(3)], 4.0, 100.0, params=robot)
+        res = jsphere.fit(
+            trials, jsphere.RobotParams.paper(), "R_m,j,I[2,2],I0", fix=fix, n_starts=1, adam_steps=0, progress=False
+        )
+        z = np.abs(list(z_scores(res, robot).values()))
+        print(f"seed {seed}: |z| {np.round(z, 2)}, {sum(v['count'] for v in res.outliers.values())} frames set aside")
+        within1, within2, total = within1 + int((z < 1).sum()), within2 + int((z < 2).sum()), total + z.size
+    print(f"truth within 1 SE: {within1}/{total}, within 2 SE: {within2}/{total}")
+    assert within2 >= 0.85 * total
+    assert 0.5 * total <= within1 <= 0.9 * total
