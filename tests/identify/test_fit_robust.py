@@ -278,3 +278,16 @@ def test_standard_errors_of_glitchy_fits_cover_the_truth():
     print(f"truth within 1 SE: {within1}/{total}, within 2 SE: {within2}/{total}")
     assert within2 >= 0.85 * total
     assert 0.5 * total <= within1 <= 0.9 * total
+
+
+def test_synth_glitches_spoils_the_rows_it_prints(tmp_path, capsys):
+    args = ["synth", "--trials", "1", "--duration", "3", "--dropout", "0", "--seed", "4", "--no-cache"]
+    assert main([*args, "--out", str(tmp_path / "clean")]) == 0
+    capsys.readouterr()
+    assert main([*args, "--out", str(tmp_path / "glitchy"), "--glitches"]) == 0
+    printed = capsys.readouterr().out.split("glitches in rows ")[1].split(")")[0]
+    rows = [int(r) for r in printed.split(", ")]
+    a = jsphere.read_trial(tmp_path / "clean" / "wheel_speeds_00.csv")
+    b = jsphere.read_trial(tmp_path / "glitchy" / "wheel_speeds_00.csv")
+    differ = (np.abs(a.x - b.x) > 1e-6) | (np.abs(a.y - b.y) > 1e-6) | np.any(np.abs(a.q - b.q) > 1e-6, axis=1)
+    assert np.flatnonzero(differ).tolist() == rows and len(rows) >= 10
