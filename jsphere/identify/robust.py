@@ -22,8 +22,9 @@ The gradient of the weighted sum of squares is then the gradient of the robust c
 Gauss-Newton matrix `sum_f w_f J_f^T J_f` the robust cost's without the term in `rho''`
 (which can make it indefinite). Steps are accepted on the robust cost itself.
 
-`SCALE^2 = 20.5` is the 99.9 % point of chi^2 with 5 degrees of freedom: a frame of Gaussian
-noise has weight below one half (`REJECT`, the frames reported as set aside) once in a thousand.
+`SCALE^2 = 20.5` is the 99.9 % point of chi^2 with 5 degrees of freedom: under Cauchy a frame of
+Gaussian noise has weight below one half (`REJECT`, the frames reported as set aside) once in a
+thousand (under Huber and soft-L1, whose weights fall more slowly, almost never).
 Cauchy is the default: its influence `w s` falls back to `c^2` for a frame far off (a swap of
 60 degrees at 0.5 degree noise keeps `1e-3` of its least-squares influence), where Huber's and
 soft-L1's grow as `|r_f|` without bound, and a burst of a dozen such frames moves the fit by
