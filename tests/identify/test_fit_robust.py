@@ -4,8 +4,9 @@ with many frames set aside, and fits of glitchy captures (ghost frames, marker s
 
 The default-lane fits share the shape of the verdict's tests (2 wheel-speed trials of 1.5 s at
 50 Hz, free `R_m, j`, `m` fixed, one start), so that a session running both compiles once; the
-acceptance case of five 6 s trials and 7 free parameters and the coverage over 20 glitchy fits
-are `slow`.
+acceptance case of five 6 s trials and 7 free parameters, the coverage over 20 glitchy fits,
+`compare` (a program of its own to compile) and the generator's ranges on a 6 s trial are
+`slow`.
 """
 
 from __future__ import annotations
@@ -132,6 +133,7 @@ def z_scores(res, truth):
     return {n: (res.values[n] - float(jsphere.get_value(truth, n))) / res.stderr[n] for n in res.free}
 
 
+@pytest.mark.slow
 def test_glitch_generator_spoils_what_it_says():
     clean, _ = glitchy([5], 6.0, 100.0, glitches=False)
     (t,), bad = glitchy([5], 6.0, 100.0)
@@ -207,6 +209,7 @@ def test_unknown_loss_is_refused(small_files, tmp_path, capsys):
     assert "invalid choice: 'tukey'" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_compare_sets_aside_the_bad_frames_with_the_fits_loss(small_files):
     paths, bad = small_files
     trials = [jsphere.read_trial(p) for p in paths]
