@@ -331,6 +331,11 @@ def _covariance(free: FreeParams, th_b, res_b: np.ndarray, J_b, s2: float):
     return values, F_phys, cov, se, corr
 
 
+def _rms(e: np.ndarray) -> float:
+    """The RMS norm of the rows of `e`; NaN for none (every frame of a trial set aside)."""
+    return float(np.sqrt((e**2).sum(1).mean())) if len(e) else math.nan
+
+
 def _trial_reports(data: FitData, pose, nu_b: np.ndarray, b: int, set_aside: np.ndarray) -> list[dict[str, Any]]:
     """Per trial: RMS residuals (of the frames not set aside: `set_aside (T, M)`), the number
     set aside, nuisance values and the measured and fitted series (for the plots) of start `b`."""
@@ -348,8 +353,8 @@ def _trial_reports(data: FitData, pose, nu_b: np.ndarray, b: int, set_aside: np.
             {
                 "name": data.names[i],
                 "samples": m,
-                "rms_pos_m": float(np.sqrt((ep[wp & ~out] ** 2).sum(1).mean())),
-                "rms_rot_deg": float(np.degrees(np.sqrt((er[wr & ~out] ** 2).sum(1).mean()))),
+                "rms_pos_m": _rms(ep[wp & ~out]),
+                "rms_rot_deg": float(np.degrees(_rms(er[wr & ~out]))),
                 "set_aside": int(out.sum()),
                 "nuisance": {
                     k: float(offset_from_nuisance(v, data.max_offset)) if k == TIME_OFFSET else float(v)

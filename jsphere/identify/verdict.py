@@ -25,6 +25,9 @@ out of the residual sigmas and counted per trial. Where more than `REJECTED` of 
 measured frames are set aside, the reason names the trial ("trial 'X': 12 % of frames rejected:
 check the capture"): a misfit is then put down to the capture, not to the model, and a fit
 whose other frames sit at the noise floor stays `converged` with that warning in its reason.
+More than `ABANDONED` of a trial's frames set aside is no capture's glitches but a fit that has
+left the trial out (a wrong valley, where the redescending Cauchy loss lets a whole trial go, or a
+trial the model does not describe): a `misfit` naming the trial.
 """
 
 from __future__ import annotations
@@ -56,6 +59,8 @@ FLOOR_RESOLUTION = (1e-5, 1e-4)
 OUTLIER = 5.0
 #: the share of a trial's measured frames set aside above which the verdict names the trial
 REJECTED = 0.05
+#: the share of a trial's measured frames set aside above which the fit has left the trial out
+ABANDONED = 0.5
 #: scale of the median absolute value to the standard deviation of a normal variable
 _MAD = 1.4826
 
@@ -245,7 +250,19 @@ def judge(
         for i in range(T)
         if held[i] and aside[i] > REJECTED * held[i]
     ]
-    status, reason = _status(_hits(scopes), overall, per_trial, names, worst, fl, converged, why_not, rejected)
+    left_out = [names[i] for i in range(T) if held[i] and aside[i] > ABANDONED * held[i]]
+    if left_out and converged:
+        status, reason = (
+            "misfit",
+            (
+                f"the fit has set aside more than {ABANDONED:.0%} of the frames of {', '.join(map(repr, left_out))}: it "
+                "has left the trial out (a wrong valley, or a trial the model does not describe), not a capture's "
+                "glitches; try more starts (--n-starts), other start values (--params, --fix) or --loss huber, and "
+                "check that trial's inputs and capture."
+            ),
+        )
+    else:
+        status, reason = _status(_hits(scopes), overall, per_trial, names, worst, fl, converged, why_not, rejected)
     out = _numbers(status, reason, converged, floor, overall, per_trial, names, worst)
     for t, n in zip(out["trials"], aside):
         t["set_aside"] = int(n)

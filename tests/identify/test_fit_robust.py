@@ -110,6 +110,9 @@ def test_the_verdict_names_a_trial_with_many_frames_set_aside():
         [p * 5 for p in pos], [r * 5 for r in rot], FLOOR, names=["a", "b"], set_aside=[24, 0], measured=[200, 200]
     )
     assert far["status"] == "misfit" and "check the capture" in far["reason"] and "wrong valley" not in far["reason"]
+    # most of a trial set aside: the fit has left it out, whatever the frames kept look like
+    gone = judge(pos, rot, FLOOR, names=["a", "b"], set_aside=[150, 2], measured=[200, 200])
+    assert gone["status"] == "misfit" and "frames of 'a': it has left the trial out" in gone["reason"]
 
 
 # ------------------------------------------------------------------ glitchy fits
