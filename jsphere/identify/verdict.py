@@ -257,8 +257,8 @@ def judge(
             (
                 f"the fit has set aside more than {ABANDONED:.0%} of the frames of {', '.join(map(repr, left_out))}: it "
                 "has left the trial out (a wrong valley, or a trial the model does not describe), not a capture's "
-                "glitches; try more starts (--n-starts), other start values (--params, --fix) or --loss huber, and "
-                "check that trial's inputs and capture."
+                "glitches; try more starts (--n-starts) or other start values (--params, --fix), and check that "
+                "trial's inputs and capture."
             ),
         )
     else:
