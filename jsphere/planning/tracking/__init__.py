@@ -14,4 +14,8 @@ from .lqr import Weights
 from .table import read_track_csv
 from .track import Tracker, track
 
-__all__ = ["Conditions", "Tracker", "Weights", "read_track_csv", "track"]
+#: the names under which `jsphere` exports them
+TrackWeights = Weights
+TrackConditions = Conditions
+
+__all__ = ["Conditions", "TrackConditions", "TrackWeights", "Tracker", "Weights", "read_track_csv", "track"]

@@ -58,8 +58,10 @@ class Conditions(eqx.Module):
 
     def to_json(self) -> dict:
         a = self.actuators
-        out = {k: getattr(self, k) for k in ("start_sd", "heading_sd", "delay_s", "pos_sd", "att_sd", "omega_sd",
-                                             "wheel_sd", "settle")}
+        out = {
+            k: getattr(self, k)
+            for k in ("start_sd", "heading_sd", "delay_s", "pos_sd", "att_sd", "omega_sd", "wheel_sd", "settle")
+        }
         out["actuators"] = {"gain_sd": a.gain_sd, "delay_s": a.delay_s, "delay_sd": a.delay_sd, "white_sd": a.white_sd}
         return out
 
@@ -75,10 +77,23 @@ def _start(p: RobotParams, key, c: Conditions):
     return Flat.replace(z, q=q)
 
 
-def run_one(p: RobotParams, key, ts_h, K_ff: Float[Array, "M N"], ref: Float[Array, "M S"], G: Float[Array, "M N 11"],
-            target: Float[Array, "2"], c: Conditions, max_torque, n_settle: int, closed: bool):
+def run_one(
+    p: RobotParams,
+    key,
+    ts_h,
+    K_ff: Float[Array, "M N"],
+    ref: Float[Array, "M S"],
+    G: Float[Array, "M N 11"],
+    target: Float[Array, "2"],
+    c: Conditions,
+    max_torque,
+    n_settle: int,
+    closed,
+):
     """One draw: the robot `p` from a perturbed start runs the table (`K_ff`, `ref`, `G`, one row
     per interval of `ts_h` seconds, the last row held) for `M - 1 + n_settle` intervals.
+    `closed`: 1 for the closed loop, 0 for the open loop (the feed-forward alone; a traced
+    number, so that both loops share one compiled program).
     Returns `(miss [m], end speed [m/s], largest commanded |K| [N m], end state)`."""
     d = derive(p)
     dt = ref.dtype
@@ -98,14 +113,11 @@ def run_one(p: RobotParams, key, ts_h, K_ff: Float[Array, "M N"], ref: Float[Arr
         kn = jax.random.fold_in(k_noise, k)
         k1, k2, k3 = jax.random.split(kn, 3)
         row = jnp.minimum(k, M - 1)
-        if closed:
-            seen = jnp.maximum(k - n_meas, 0)
-            n = sd * jax.random.normal(k1, (11,), dt)
-            n = n.at[8:11].set(n[5:8] + c.wheel_sd * jax.random.normal(k2, (3,), dt))
-            e = state_error(zbuf[0], ref[jnp.minimum(seen, M - 1)]) + n
-            u = K_ff[row] - G[row] @ e
-        else:
-            u = K_ff[row]
+        seen = jnp.maximum(k - n_meas, 0)
+        n = sd * jax.random.normal(k1, (11,), dt)
+        n = n.at[8:11].set(n[5:8] + c.wheel_sd * jax.random.normal(k2, (3,), dt))
+        e = state_error(zbuf[0], ref[jnp.minimum(seen, M - 1)]) + n
+        u = K_ff[row] - closed * (G[row] @ e)
         umax = jnp.maximum(umax, jnp.max(jnp.abs(u)))
         u = jnp.clip(u, -lim, lim)
         ubuf = jnp.concatenate([ubuf[1:], u[None]], axis=0)
@@ -124,8 +136,9 @@ def run_one(p: RobotParams, key, ts_h, K_ff: Float[Array, "M N"], ref: Float[Arr
 
 
 @eqx.filter_jit
-def run_batch(samples: RobotParams, keys, ts_h: float, K_ff, ref, G, target, c: Conditions, max_torque,
-              n_settle: int, closed: bool):
+def run_batch(
+    samples: RobotParams, keys, ts_h: float, K_ff, ref, G, target, c: Conditions, max_torque, n_settle: int, closed
+):
     """`run_one` vmapped over the drawn robots `samples` (stacked) and their `keys`."""
 
     def one(p, k):

@@ -63,12 +63,23 @@ class Weights(eqx.Module):
         return jnp.asarray([e[0]] * 2 + [e[1]] * 3 + [e[2]] * 6, dtype)
 
     def to_json(self) -> dict:
-        return {"q_pos": self.q_pos, "q_att": self.q_att, "q_rate": self.q_rate, "r": self.r,
-                "expected": list(self.expected)}
+        return {
+            "q_pos": self.q_pos,
+            "q_att": self.q_att,
+            "q_rate": self.q_rate,
+            "r": self.r,
+            "expected": list(self.expected),
+        }
 
 
-def riccati(A: Float[Array, "M n n"], B: Float[Array, "M n m"], Q: Float[Array, "n n"], R: Float[Array, "m m"],
-            P_end: Float[Array, "n n"]):
+@jax.jit
+def riccati(
+    A: Float[Array, "M n n"],
+    B: Float[Array, "M n m"],
+    Q: Float[Array, "n n"],
+    R: Float[Array, "m m"],
+    P_end: Float[Array, "n n"],
+):
     """The finite-horizon discrete Riccati recursion backwards from `P_M = P_end`:
     `G_k = (R + B_k^T P_{k+1} B_k)^-1 B_k^T P_{k+1} A_k`, `P_k = Q + A_k^T P_{k+1} (A_k - B_k G_k)`.
     Returns the gains `G (M, m, n)` (the command `du_k = -G_k e_k`) and `P (M + 1, n, n)`."""
@@ -120,6 +131,7 @@ def complement(w: Float[Array, " n"]) -> Float[Array, "n n-1"]:
     return U[:, : n - 1]
 
 
+@jax.jit
 def terminal_regulator(A, B, Q, R):
     """The infinite-horizon regulator of the map at rest `(A, B)` on the complement of its
     conserved mode (module docstring). Returns `(G (m, n), P (n, n), w (n,), V (n, n-1))`."""

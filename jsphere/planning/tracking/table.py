@@ -19,8 +19,18 @@ from ...model.state import ERROR_SIZE, Flat
 
 #: the reference state's columns and where they are in the flat state
 STATE_COLUMNS = (
-    ("x", Flat.x), ("y", Flat.y), ("qw", 0), ("qx", 1), ("qy", 2), ("qz", 3),
-    ("omega_1", 8), ("omega_2", 9), ("omega_3", 10), ("Omega_1", 11), ("Omega_2", 12), ("Omega_3", 13),
+    ("x", Flat.x),
+    ("y", Flat.y),
+    ("qw", 0),
+    ("qx", 1),
+    ("qy", 2),
+    ("qz", 3),
+    ("omega_1", 8),
+    ("omega_2", 9),
+    ("omega_3", 10),
+    ("Omega_1", 11),
+    ("Omega_2", 12),
+    ("Omega_3", 13),
 )
 
 

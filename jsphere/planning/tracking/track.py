@@ -15,9 +15,9 @@ import numpy as np
 
 from ..._runtime.checks import real, whole
 from ..._runtime.errors import InputError, SolverFailure
+from ...model.kinematics import rest_attitude
 from ...model.params import RobotParams
 from ...model.rotations import rotation_between, rotmat
-from ...model.kinematics import rest_attitude
 from ...model.state import Flat, State
 from ..problem import Limits
 from ..result import Plan
@@ -113,7 +113,9 @@ def _plan_input(plan) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, RobotP
         keep = np.concatenate([np.diff(ts) > 0, [True]])
         return ts[keep], K[keep], np.asarray(plan.target[:2], float), plan.params
     if not isinstance(plan, (str, Path)):
-        raise InputError(f"track: plan must be a jsphere.Plan or the path of a plan CSV or JSON; got {type(plan).__name__}.")
+        raise InputError(
+            f"track: plan must be a jsphere.Plan or the path of a plan CSV or JSON; got {type(plan).__name__}."
+        )
     from ..._runtime.files import read_mapping
     from ...capture.inputs import read_inputs_csv
 
@@ -141,8 +143,9 @@ def _heading(p: RobotParams, q) -> jax.Array:
     return jnp.arctan2(M[1, 0], M[0, 0])
 
 
-def gains(t_plan, K_plan, params: RobotParams, *, rate: float, weights: Weights, target=None,
-          max_torque: float | None = 0.1):
+def gains(
+    t_plan, K_plan, params: RobotParams, *, rate: float, weights: Weights, target=None, max_torque: float | None = 0.1
+):
     """The table of `Tracker` (without evaluation) for the torque table `(t_plan, K_plan)`:
     feed-forward at the midpoint of each interval (linear interpolation), the reference held
     row by row from rest, the Jacobians (`flow.linearise`), the terminal regulator at the
@@ -178,7 +181,9 @@ def gains(t_plan, K_plan, params: RobotParams, *, rate: float, weights: Weights,
         G_all = jnp.concatenate([G, G_end[None]])
         ask = jnp.abs(K_all) + jnp.linalg.norm(G_all * sigma, axis=-1)
         if not bool(jnp.all(jnp.isfinite(G_all))):
-            raise SolverFailure("track: the Riccati recursion gave gains that are not finite; check the plan and weights.")
+            raise SolverFailure(
+                "track: the Riccati recursion gave gains that are not finite; check the plan and weights."
+            )
         if max_torque is None or float(jnp.max(ask)) <= max_torque:
             break
         scale *= 2.0
@@ -211,12 +216,19 @@ def default_uncertainty(params: RobotParams) -> Uncertainty:
     from ...model.names import get_value
 
     a = np.asarray([float(get_value(params, n)) for n in DEFAULT_NAMES])
-    return Uncertainty(DEFAULT_NAMES, ("normal",) * len(a), a, DEFAULT_SPREAD * np.abs(a), None,
-                       f"default: {DEFAULT_SPREAD:.0%} sd on {', '.join(DEFAULT_NAMES)}")
+    return Uncertainty(
+        DEFAULT_NAMES,
+        ("normal",) * len(a),
+        a,
+        DEFAULT_SPREAD * np.abs(a),
+        None,
+        f"default: {DEFAULT_SPREAD:.0%} sd on {', '.join(DEFAULT_NAMES)}",
+    )
 
 
-def evaluate(tracker: Tracker, samples: RobotParams, *, conditions: Conditions | None = None, seed: int = 0,
-             source: str = "") -> dict:
+def evaluate(
+    tracker: Tracker, samples: RobotParams, *, conditions: Conditions | None = None, seed: int = 0, source: str = ""
+) -> dict:
     """`miss_mc` of a tracker: the plan open loop (feed-forward only) and closed loop on every
     robot of `samples` (stacked `RobotParams`), same draws and same noise for both (the
     conditions of `evaluate.Conditions`). Raises `SolverFailure` if any trial is not finite."""
@@ -228,12 +240,18 @@ def evaluate(tracker: Tracker, samples: RobotParams, *, conditions: Conditions |
     keys = jax.random.split(jax.random.PRNGKey(seed), n)
     arrs = [jnp.asarray(v, dt) for v in (tracker.K_ff, tracker.reference, tracker.G, tracker.target)]
     out = {}
-    for name, closed in (("open_loop", False), ("closed_loop", True)):
+    for name, closed in (("open_loop", 0.0), ("closed_loop", 1.0)):
         parts = []
         for a in range(0, n, BATCH):
             part = jax.tree_util.tree_map(lambda v, a=a: v[a : a + BATCH], samples)
-            parts.append([np.asarray(x) for x in run_batch(part, keys[a : a + BATCH], h, *arrs, c,
-                                                           tracker.max_torque, n_settle, closed)])
+            parts.append(
+                [
+                    np.asarray(x)
+                    for x in run_batch(
+                        part, keys[a : a + BATCH], h, *arrs, c, tracker.max_torque, n_settle, jnp.asarray(closed, dt)
+                    )
+                ]
+            )
         miss, speed, umax = (np.concatenate([p[i] for p in parts]) for i in range(3))
         bad = ~(np.isfinite(miss) & np.isfinite(speed))
         if bad.any():
