@@ -7,8 +7,9 @@ intervals ago (`delay_s` rounded to whole intervals; the measurement model of `d
 capture pose with noise `pos_sd`, `att_sd`, platform rate from a gyro with noise `omega_sd`,
 `Omega = omega - (omega - Omega)` with the relative rate from the wheel encoders through (2.4),
 noise `wheel_sd`), compares it with the reference at the measurement's time, and commands
-`K = K_ff,k - G_k e`, clipped to the torque limit; the motors apply `gain * (K + noise)`
-(`Actuators`' gain and white noise, its delay rounded to whole intervals); the robot moves
+`K = K_ff,k - G_k e`, clipped to the torque limit; the motors apply `gain * (K + noise)` `motor_delay_s`
+later (the gain, delay and white noise of `jsphere.Actuators`, the delay rounded to whole
+intervals); the robot moves
 by `flow.interval` with that torque held. The open loop is the same with `G = 0`.
 """
 
@@ -24,8 +25,22 @@ from ...model.linalg import cross
 from ...model.params import RobotParams, derive
 from ...model.rotations import quat_exp, quat_mul, rotmat
 from ...model.state import Flat, State, state_error
-from ...montecarlo.sampling import Actuators
 from .flow import interval
+
+#: the fields of `Conditions`
+FIELDS = (
+    "start_sd",
+    "heading_sd",
+    "delay_s",
+    "pos_sd",
+    "att_sd",
+    "omega_sd",
+    "wheel_sd",
+    "gain_sd",
+    "motor_delay_s",
+    "white_sd",
+    "settle",
+)
 
 
 class Conditions(eqx.Module):
@@ -34,7 +49,9 @@ class Conditions(eqx.Module):
     - `start_sd` [m], `heading_sd` [rad]: the start pose's offset per axis and about the vertical.
     - `delay_s` [s], `pos_sd` [m], `att_sd` [rad], `omega_sd`, `wheel_sd` [rad/s]: the fed-back
       state's delay and noise (module docstring).
-    - `actuators`: the motors' gain, delay and noise (`Actuators`; `band_sd` is not used here).
+    - `gain_sd`, `motor_delay_s` [s], `white_sd` [N m]: the motors, as `jsphere.Actuators`' fields:
+      per draw and wheel a gain `1 + gain_sd z`, the command applied `motor_delay_s` late, white
+      noise on each period's command.
     - `settle` [s]: how long the robot runs past the plan's end before its miss is taken.
 
     Defaults: a start within a few mm, a capture at 100 Hz or faster with 0.2 mm and 2 mrad of
@@ -49,21 +66,17 @@ class Conditions(eqx.Module):
     att_sd: float = 2e-3
     omega_sd: float = 0.01
     wheel_sd: float = 0.01
-    actuators: Actuators = Actuators(gain_sd=0.025, white_sd=5e-4)
+    gain_sd: float = 0.025
+    motor_delay_s: float = 0.0
+    white_sd: float = 5e-4
     settle: float = 2.0
 
     def __check_init__(self):
-        for name in ("start_sd", "heading_sd", "delay_s", "pos_sd", "att_sd", "omega_sd", "wheel_sd", "settle"):
+        for name in FIELDS:
             real("Conditions", name, getattr(self, name))
 
     def to_json(self) -> dict:
-        a = self.actuators
-        out = {
-            k: getattr(self, k)
-            for k in ("start_sd", "heading_sd", "delay_s", "pos_sd", "att_sd", "omega_sd", "wheel_sd", "settle")
-        }
-        out["actuators"] = {"gain_sd": a.gain_sd, "delay_s": a.delay_s, "delay_sd": a.delay_sd, "white_sd": a.white_sd}
-        return out
+        return {k: getattr(self, k) for k in FIELDS}
 
 
 def _start(p: RobotParams, key, c: Conditions):
@@ -99,10 +112,9 @@ def run_one(
     dt = ref.dtype
     M, N = K_ff.shape
     n_meas = int(round(c.delay_s / ts_h))
-    a = c.actuators
-    n_act = int(round(a.delay_s / ts_h))
+    n_act = int(round(c.motor_delay_s / ts_h))
     k_start, k_gain, k_noise = jax.random.split(key, 3)
-    gain = 1.0 + a.gain_sd * jax.random.normal(k_gain, (N,), dt)
+    gain = 1.0 + c.gain_sd * jax.random.normal(k_gain, (N,), dt)
     z0 = _start(p, k_start, c)
     steps = M - 1 + n_settle
     sd = jnp.asarray([c.pos_sd] * 2 + [c.att_sd] * 3 + [c.omega_sd] * 3 + [0.0] * 3, dt)
@@ -121,7 +133,7 @@ def run_one(
         umax = jnp.maximum(umax, jnp.max(jnp.abs(u)))
         u = jnp.clip(u, -lim, lim)
         ubuf = jnp.concatenate([ubuf[1:], u[None]], axis=0)
-        applied = gain * (ubuf[0] + a.white_sd * jax.random.normal(k3, (N,), dt))
+        applied = gain * (ubuf[0] + c.white_sd * jax.random.normal(k3, (N,), dt))
         zn = interval(p, d, z, applied, ts_h)
         zbuf = jnp.concatenate([zbuf[1:], zn[None]], axis=0)
         return (zn, zbuf, ubuf, umax), None
