@@ -66,7 +66,6 @@ class Tracker:
     conserved: np.ndarray
     eigenvalues: np.ndarray
     miss_mc: dict | None = None
-    evaluation: dict | None = None
     elapsed_s: dict = dataclasses.field(default_factory=dict)
 
     def table(self) -> dict[str, np.ndarray]:
