@@ -35,7 +35,7 @@ def main(argv=None) -> int:
     ap.add_argument("--to", nargs=2, type=float, default=(0.4, 0.2))
     ap.add_argument("--samples", type=int, default=1000)
     ap.add_argument("--rate", type=float, default=100.0)
-    ap.add_argument("--restarts", type=int, default=4)
+    ap.add_argument("--restarts", type=int, default=16, help="as `jsphere plan`")
     ap.add_argument("--out", default=str(Path(__file__).with_name("results-track.json")))
     args = ap.parse_args(argv)
     p = jsphere.RobotParams.paper()

@@ -134,6 +134,7 @@ def test_a_tight_torque_limit_raises_r(small):
         (["track", "PLAN", "--rate", "0"], "rate"),
         (["track", "PLAN", "--q-pos", "-1"], "q_pos"),
         (["track", "PLAN", "--samples", "-3"], "samples"),
+        (["track", "PLAN", "--vary", "study.json"], ".toml"),
     ],
 )
 def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, capsys, argv, message):
