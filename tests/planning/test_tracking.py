@@ -126,6 +126,29 @@ def test_a_tight_torque_limit_raises_r(small):
     assert (np.abs(tight["K_ff"]) + np.linalg.norm(tight["G"] * sigma, axis=-1)).max() <= 0.02
 
 
+def test_weights_file_and_flags(tmp_path):
+    import argparse
+
+    from jsphere.cli.track import _weights
+
+    f = tmp_path / "weights.toml"
+    f.write_text("q_pos = 1e6\nr = 1e4\nexpected = [0.002, 0.01, 0.05]\n")
+    ns = argparse.Namespace(weights=str(f), q_pos=None, q_att=100.0, q_rate=None, r=None)
+    w = _weights(ns)
+    assert (w.q_pos, w.q_att, w.r, w.expected) == (1e6, 100.0, 1e4, (0.002, 0.01, 0.05))
+    f.write_text("q_position = 1\n")
+    with pytest.raises(jsphere.InputError, match="q_position"):
+        _weights(ns)
+
+
+def test_a_table_that_is_not_a_track_table_is_refused(tmp_path):
+    t, K = _bump(rate=20.0)
+    plan = tmp_path / "plan.csv"
+    jsphere.write_inputs_csv(plan, t, K, "torques")
+    with pytest.raises(jsphere.InputError, match="not a track table"):
+        read_track_csv(plan)
+
+
 @pytest.mark.parametrize(
     "argv, message",
     [
