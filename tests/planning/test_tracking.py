@@ -268,3 +268,23 @@ def test_cli_end_to_end_with_its_defaults(planned, tmp_path):
     assert info["target"] == list(TARGET)
     table = read_track_csv(out)
     assert table["G"].shape == (len(table["t"]), 3, 11)
+    # robots drawn from a fit's estimate and covariance, as `plan --robust`
+    names = ("r_m[2]", "j", "I[2,2]")
+    vals = [float(jsphere.get_value(P, n)) for n in names]
+    fit = tmp_path / "fit.json"
+    fit.write_text(
+        json.dumps(
+            {
+                "free": list(names),
+                "values": dict(zip(names, vals)),
+                "stderr": {n: 0.03 * abs(v) for n, v in zip(names, vals)},
+                "correlation": np.eye(3).tolist(),
+            }
+        )
+    )
+    P.save(tmp_path / "robot.toml")
+    argv = ["track", str(folder / "plan.csv"), "--robust", str(fit), "--params", str(tmp_path / "robot.toml")]
+    assert main([*argv, "--samples", "64", "--out", str(tmp_path / "fit_track.csv")]) == 0
+    mc = json.loads((tmp_path / "fit_track.json").read_text())["miss_mc"]
+    assert mc["source"] == str(fit) and mc["samples"] == 64
+    assert mc["closed_loop"]["p95"] < 0.005 < mc["open_loop"]["mean"]

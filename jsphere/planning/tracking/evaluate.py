@@ -7,10 +7,10 @@ intervals ago (`delay_s` rounded to whole intervals; the measurement model of `d
 capture pose with noise `pos_sd`, `att_sd`, platform rate from a gyro with noise `omega_sd`,
 `Omega = omega - (omega - Omega)` with the relative rate from the wheel encoders through (2.4),
 noise `wheel_sd`), compares it with the reference at the measurement's time, and commands
-`K = K_ff,k - G_k e`, clipped to the torque limit; the motors apply `gain * (K + noise)` `motor_delay_s`
-later (the gain, delay and white noise of `jsphere.Actuators`, the delay rounded to whole
-intervals); the robot moves
-by `flow.interval` with that torque held. The open loop is the same with `G = 0`.
+`K = K_ff,k - G_k e`, clipped to the torque limit; the motors apply `gain * (K + noise)`
+`motor_delay_s` later (the gain, delay and white noise of `jsphere.Actuators`, the delay rounded
+to whole intervals); the robot moves by `flow.interval` with that torque held. The open loop is
+the same with `G = 0`. The miss is taken `settle` seconds after the plan's end.
 """
 
 from __future__ import annotations
