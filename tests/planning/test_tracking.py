@@ -149,6 +149,17 @@ def test_a_table_that_is_not_a_track_table_is_refused(tmp_path):
         read_track_csv(plan)
 
 
+@pytest.mark.slow
+def test_a_trial_that_is_not_finite_is_an_error_not_a_nan(small):
+    from jsphere.planning.tracking.track import evaluate
+
+    tr = jsphere.Tracker(**small)
+    bad = set_value(P, "I[0,0]", float("nan"))
+    robots = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), P, bad)
+    with pytest.raises(jsphere.SolverFailure, match="1 of 2 open loop trials are not finite"):
+        evaluate(tr, robots, conditions=jsphere.TrackConditions(settle=0.1))
+
+
 @pytest.mark.parametrize(
     "argv, message",
     [
