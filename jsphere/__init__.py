@@ -85,6 +85,7 @@ _EXPORTS = {
         "plan_route",
     ),
     "planning.robust": ("RobustPlan", "miss_distribution", "plan_robust"),
+    "planning.tracking": ("TrackConditions", "TrackWeights", "Tracker", "read_track_csv", "track"),
     "planning.uncertainty": ("Uncertainty",),
     "planning.verify": ("replay_errors",),
     "solve.options": ("SolverOptions",),
