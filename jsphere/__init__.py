@@ -65,6 +65,7 @@ _EXPORTS = {
         "rolling_velocity",
         "wheel_speeds",
     ),
+    "model.limits": ("Limits",),
     "model.names": ("get_value", "parse_name", "set_value"),
     "model.params": ("RobotParams",),
     "model.state": ("State",),
@@ -75,7 +76,6 @@ _EXPORTS = {
     "paper.reproduce": ("reproduce", "to_figure_frame"),
     "planning.optimise": ("optimise_gaits",),
     "planning.plan": (
-        "Limits",
         "Objective",
         "Plan",
         "PlanInfeasibleError",
