@@ -76,8 +76,8 @@ def run(args) -> int:
 
     from .._runtime.errors import ExitCode, InputError
     from .._runtime.files import atomic_write_json, check_output
+    from ..model.limits import Limits
     from ..model.params import RobotParams
-    from ..planning.problem import Limits
     from ..planning.tracking import track
     from .plan import _uncertainty
 

@@ -1,8 +1,8 @@
 """The model's flow over one control interval with the torques held (zero-order hold), the
 reference motion it gives, and its Jacobians in the error coordinates of `state_error`.
 
-The flow is the torque-mode vector field of (3.4), (3.5) with (2.2)-(2.4) (`_torque_field`,
-the one `simulate` integrates) advanced by classical RK4 steps on the control grid; at the
+The flow is the torque-mode vector field of (3.4), (3.5) with (2.2)-(2.4) (the one `simulate`
+integrates) advanced by the search models' classical RK4 (`jsphere.solve.fixed_grid`) on the control grid; at the
 control rates a robot runs (100 Hz and up, steps of at most `1 / rate`) its error against the
 adaptive solver is far below the millimetre (test `test_flow_matches_simulate`).
 """
@@ -16,7 +16,8 @@ from jaxtyping import Array, Float
 
 from ...model.params import Derived, RobotParams, derive
 from ...model.state import ERROR_SIZE, state_error, state_plus
-from ...solve.fields import _torque_field
+from ...solve.fixed_grid import rk4_step
+from ...solve.internal import torque_field
 
 
 def interval(p: RobotParams, d: Derived, z: Float[Array, " S"], K: Float[Array, " N"], h, substeps: int = 1):
@@ -25,21 +26,10 @@ def interval(p: RobotParams, d: Derived, z: Float[Array, " S"], K: Float[Array, 
     args = (p, d, lambda t: K, jnp.zeros((), z.dtype), jnp.asarray(jnp.inf, z.dtype))
 
     def f(z):
-        return _torque_field(jnp.zeros((), z.dtype), z, args)
-
-    hs = h / substeps
-    # classical RK4 as a loop over its stages (as `planning.rollout`): stage i evaluates f at
-    # z + c_i h k_{i-1} and adds w_i k_i; one f in the compiled graph, not four
-    cw = jnp.asarray([[0.0, 1.0 / 6.0], [0.5, 1.0 / 3.0], [0.5, 1.0 / 3.0], [1.0, 1.0 / 6.0]], z.dtype)
+        return torque_field(jnp.zeros((), z.dtype), z, args)
 
     def step(z, _):
-        def stage(carry, c):
-            acc, k_prev = carry
-            k = f(z + c[0] * hs * k_prev)
-            return (acc + c[1] * k, k), None
-
-        (acc, _), _ = jax.lax.scan(stage, (jnp.zeros_like(z), jnp.zeros_like(z)), cw)
-        return z + hs * acc, None
+        return rk4_step(lambda t, z: f(z), 0.0, z, h / substeps), None
 
     z, _ = jax.lax.scan(step, z, None, length=substeps)
     return z

@@ -16,12 +16,12 @@ import numpy as np
 from ..._runtime.checks import real, whole
 from ..._runtime.errors import InputError, SolverFailure
 from ...model.kinematics import rest_attitude
+from ...model.limits import Limits
 from ...model.params import RobotParams
 from ...model.rotations import rotation_between, rotmat
 from ...model.state import Flat, State
-from ..problem import Limits
+from ...model.uncertainty import Uncertainty
 from ..result import Plan
-from ..uncertainty import Uncertainty
 from .evaluate import Conditions, run_batch
 from .flow import linearise, reference
 from .lqr import Weights, riccati, terminal_regulator
