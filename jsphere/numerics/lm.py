@@ -208,7 +208,7 @@ class LevenbergMarquardt(eqx.Module):
     def candidate(self, x, step, predicted):
         """`x + step`, the step shortened to `max_step`; `x` itself where the result is not
         finite. Returns it and the predicted decrease (`inf`: a shortened step, NaN: none)."""
-        predicted = jnp.asarray(predicted)
+        x, step, predicted = jax.tree_util.tree_map(jnp.asarray, (x, step, predicted))
         batch = predicted.shape
         if self.max_step < math.inf:
             scale = jax.tree_util.tree_map(lambda _: 1.0, x) if self.step_scale is None else self.step_scale
@@ -226,7 +226,11 @@ class LevenbergMarquardt(eqx.Module):
         """Accept or reject `x_new` (its `cost`, `inf` for a failed evaluation, its evaluation
         and `predicted` decrease from `candidate`; `inf`: no prediction). Returns the point and
         the state."""
-        cost_n = jnp.asarray(cost)
+        # (every operation in XLA, whether the state was saved and loaded as NumPy arrays or not)
+        state = eqx.tree_at(
+            lambda s: [getattr(s, k) for k in LM_KEYS], state, [jnp.asarray(getattr(state, k)) for k in LM_KEYS]
+        )
+        cost_n, predicted = jnp.asarray(cost), jnp.asarray(predicted)
         old, lam = state.cost, state.lam
         near = (predicted < self.noise) & (cost_n < old + self.noise)
         acc = jnp.isfinite(cost_n) & ((cost_n < old) | near) & ~state.converged & ~jnp.isnan(predicted)
