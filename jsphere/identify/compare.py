@@ -191,7 +191,9 @@ def _model(kind: str, rtol: float, atol: float, max_steps: int, max_offset: floa
 
 
 #: the nuisance estimate's iteration: one dense problem per trial, damped as the fit's
-NUISANCE_LM = LevenbergMarquardt(jax.vmap(Dense(shift=1e-12)), rel_done=1e-10, gtol=1e-8, max_stalled=3, max_rejected=8)
+NUISANCE_LM = LevenbergMarquardt(
+    eqx.filter_vmap(Dense(shift=1e-12)), rel_done=1e-10, gtol=1e-8, max_stalled=3, max_rejected=8
+)
 
 
 def _estimate_nuisance(params, data: FitData, sig, max_iter: int, rtol, atol, max_steps):
