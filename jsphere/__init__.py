@@ -55,7 +55,7 @@ _EXPORTS = {
     "identify.compare": ("CompareResult", "compare"),
     "identify.fit": ("fit",),
     "identify.free": ("FreeParams",),
-    "identify.least_squares": ("LeastSquaresResult", "least_squares"),
+    "numerics.least_squares": ("LeastSquaresResult", "least_squares"),
     "identify.report": ("FitResult",),
     "model.dynamics": ("accelerations", "dissipation", "energy", "kinetic_energy", "potential_energy", "power"),
     "model.kinematics": (

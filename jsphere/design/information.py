@@ -15,7 +15,7 @@ sampled at `rate` [Hz] and whitened as the fit's residuals:
 
     F = sum_t (Hgg_t - Hgn_t Hnn_t^-1 Hng_t)
 
-(`jsphere.identify.lm.marginal_information`), mapped to the physical values `v` of the free
+(`jsphere.numerics.lm.marginal_information`), mapped to the physical values `v` of the free
 names, `F_v = A^-T F A^-1`, `A = d v / d theta`. The predicted covariance of `v` is `F_v^-1`
 (the fit's, with noise levels that are right: `s^2 = 1`) and the D-optimal criterion is
 

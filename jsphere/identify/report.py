@@ -2,7 +2,7 @@
 residuals, the verdict) and its JSON document.
 
 Covariance: `s^2 F^-1` with `F` the Gauss-Newton information of `theta` after eliminating the
-nuisance parameters (`jsphere.identify.lm.marginal_information`), mapped to physical units.
+nuisance parameters (`jsphere.numerics.lm.marginal_information`), mapped to physical units.
 """
 
 from __future__ import annotations
@@ -22,10 +22,10 @@ from ..model.internal import FIELDS
 from ..model.names import parse_name
 from ..model.params import RobotParams
 from ..model.rotations import quat_conj, quat_log, quat_mul
+from ..numerics.lm import blocks, marginal_information
 from .data import TIME_OFFSET, FitData, offset_from_nuisance
 from .free import FreeParams
 from .identifiability import identifiability
-from .lm import _blocks, marginal_information
 from .verdict import judge, noise_floor
 
 
@@ -261,7 +261,7 @@ def _time_offsets(data: FitData, nu_b: np.ndarray, res_b: np.ndarray, J_b, P: in
     if data.max_offset <= 0:
         return None
     m = data.max_offset
-    Hgg, Hgn, Hnn, _, _ = (np.asarray(a) for a in _blocks(jnp.asarray(res_b), J_b, P))
+    Hgg, Hgn, Hnn, _, _ = (np.asarray(a) for a in blocks(jnp.asarray(res_b), J_b, P))
     F = marginal_information(jnp.asarray(res_b), J_b, P)
     Finv = np.linalg.pinv(F, rcond=1e-13, hermitian=True)
     values, errors = [], []

@@ -20,6 +20,7 @@ LAYERS = {
     "solve.batched": 4,
     "solve": 5,
     "gaits": 6,
+    "numerics": 6.5,  # least squares that know nothing of the robot; imports nothing of the package
     "capture": 7,
     "identify": 8,
     "planning": 8,
