@@ -2,6 +2,7 @@
 models compared with trials, plans and Monte-Carlo studies. Each function takes a result object and writes a PNG
 atomically; this layer imports nothing from the layers whose results it draws."""
 
+from .animate import animate as animate
 from .compare import compare_figure as compare_figure
 from .fit import fit_figures as fit_figures
 from .fit import worst_trial as worst_trial
