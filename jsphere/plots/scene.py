@@ -122,6 +122,8 @@ def body_from_poses(params: RobotParams, t, x, y, R, *, chi_dot=None, label: str
 
     t, x, y, R = (np.asarray(a, float) for a in (t, x, y, R))
     ok = np.isfinite(x) & np.isfinite(y) & np.all(np.isfinite(R), axis=(1, 2))
+    later = np.flatnonzero(ok)
+    ok[later[:-1][np.diff(t[later]) <= 0]] = False  # a repeated time (a jump in a table): its last row
     if chi_dot is not None:
         chi_dot = np.asarray(chi_dot, float)[ok]
     t, x, y, R = t[ok], x[ok], y[ok], R[ok]

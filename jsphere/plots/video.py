@@ -9,6 +9,7 @@ NaN, so a frame draws a dozen artists per robot."""
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -201,7 +202,17 @@ def render(scenes: list[Scene], path, *, fps: float, speed: float, size=(640, 48
 
     def write(tmp):
         canvas = fig.canvas
-        with writer.saving(fig, tmp, dpi), Progress(progress).bar(total, "animate", unit="frame") as bar:
+        with warnings.catch_warnings():
+            # ffmpeg is started by fork and exec at once: JAX's threads are not touched in the child
+            warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+            writer.setup(fig, tmp, dpi)
+        try:
+            frames_of(canvas)
+        finally:
+            writer.finish()
+
+    def frames_of(canvas) -> None:
+        with Progress(progress).bar(total, "animate", unit="frame") as bar:
             for scene, times, frames, residual in prepared:
                 lo, hi = _limits(scene, frames)
                 R0 = float(scene.params.R0)

@@ -145,7 +145,10 @@ def write_html(scenes: list[Scene], path, *, fps: float, speed: float, size=(900
     eye = dict(x=1.3, y=-1.6, z=0.9) if view == "3d" else dict(x=0.0, y=0.0, z=2.5)
     # a slider step waits for the frames drawn before it ("afterall"): interrupted, plotly's
     # animation promise rejects unhandled (a console error at each click on the rail)
-    step = lambda name: [[name], dict(mode="afterall", frame=dict(duration=0, redraw=True), transition=dict(duration=0))]
+    step = lambda name: [
+        [name],
+        dict(mode="afterall", frame=dict(duration=0, redraw=True), transition=dict(duration=0)),
+    ]
     play = dict(frame=dict(duration=1000.0 / fps, redraw=True), transition=dict(duration=0), fromcurrent=True)
     stop = dict(mode="immediate", frame=dict(duration=0, redraw=False), transition=dict(duration=0))
     span = hi - lo

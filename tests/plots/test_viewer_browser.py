@@ -119,7 +119,9 @@ def test_viewer_loads_offline_draws_and_its_slider_moves_the_robot(viewer, tmp_p
         for domain in ("Runtime", "Log", "Network", "Page"):
             page.call(f"{domain}.enable")
         page.call("Page.navigate", url=viewer.as_uri())
-        page.wait_for("!!(window.jsphereViewer && window.jsphereViewer._fullLayout && document.readyState == 'complete')")
+        page.wait_for(
+            "!!(window.jsphereViewer && window.jsphereViewer._fullLayout && document.readyState == 'complete')"
+        )
         time.sleep(1.0)  # the WebGL scene's first draw
         shot = base64.b64decode(page.call("Page.captureScreenshot", format="png")["data"])
         centre = "window.jsphereViewer.data[0].x.reduce((a, b) => a + b, 0) / window.jsphereViewer.data[0].x.length"
