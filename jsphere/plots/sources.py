@@ -241,8 +241,8 @@ def scenes_from_path(path, extra=(), *, params: RobotParams | None = None, trial
         record = _read_json(path)
         if not isinstance(record, dict) or "params" not in record or "trials" not in record:
             raise InputError(f"{path}: not a fit result (no params and trials); give a fit.json of jsphere fit.")
-        model = params if params is not None else RobotParams.load(path)
         found = _fit_trials(path, record, list(extra))
+        model = params if params is not None else RobotParams.load(path)
         if trials:
             unknown = [n for n in trials if n not in {t.name for t in found}]
             if unknown:
