@@ -133,12 +133,23 @@ class _Robot:
         self.path.set_data_3d(p[:, 0], p[:, 1], np.zeros(len(p)))
 
 
-def render(scenes: list[Scene], path, *, fps: float, speed: float, size=(640, 480), view: str = "3d", progress=None):
+def render(
+    scenes: list[Scene],
+    path,
+    *,
+    fps: float,
+    speed: float,
+    size=(640, 480),
+    view: str = "3d",
+    progress=None,
+    blit: bool = True,
+) -> int:
     """Write the `scenes`, one after the other, as a video to `path` (`.mp4` or `.gif`,
     atomically): `fps` frames per second, `speed` the playback factor (a run of `T` s lasts
     `T / speed` s), `size` `(width, height)` [pixels], `view` `"3d"` or `"top"`. `progress`: as
-    the library's (`jsphere._runtime.progress`); a bar counts the frames. Returns the number
-    of frames written."""
+    the library's (`jsphere._runtime.progress`); a bar counts the frames. `blit=False` draws
+    each frame in full and lets the writer grab it, as matplotlib's animations do (the
+    baseline of `benchmarks/animate.py`). Returns the number of frames written."""
     from .base import pyplot
 
     path = Path(path)
@@ -187,7 +198,7 @@ def render(scenes: list[Scene], path, *, fps: float, speed: float, size=(640, 48
     dynamic = [a for r in robots for a in r.artists] + [target, cloud, ellipse]
     texts = [title, status, extra]
     for art in dynamic + texts:
-        art.set_animated(True)  # left out of the background, drawn over it each frame
+        art.set_animated(blit)  # left out of the background, drawn over it each frame
 
     def push() -> None:
         """Hand the canvas as it stands to the writer (matplotlib's writers grab a frame by
@@ -239,6 +250,17 @@ def render(scenes: list[Scene], path, *, fps: float, speed: float, size=(640, 48
                 background = canvas.copy_from_bbox(fig.bbox)
                 end = 0.9 * times[-1]
                 for k, t in enumerate(times):
+                    if not blit:
+                        last = scene.cloud is not None and t >= end
+                        cloud.set_visible(last)
+                        ellipse.set_visible(last and scene.ellipse is not None)
+                        for robot, f in zip(robots, frames):
+                            robot.show(f, k)
+                        status.set_text(_status(t, frames[0], k))
+                        extra.set_text(residual[k] if residual is not None else "")
+                        writer.grab_frame()
+                        bar.update()
+                        continue
                     canvas.restore_region(background)
                     last = scene.cloud is not None and t >= end
                     cloud.set_visible(last)
