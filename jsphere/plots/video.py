@@ -200,6 +200,8 @@ def render(
     for art in dynamic + texts:
         art.set_animated(blit)  # left out of the background, drawn over it each frame
 
+    palette: list = []
+
     def push() -> None:
         """Hand the canvas as it stands to the writer (matplotlib's writers grab a frame by
         drawing the whole figure again; here only the moving artists were drawn)."""
@@ -209,7 +211,12 @@ def render(
         else:
             from PIL import Image
 
-            writer._frames.append(Image.frombuffer("RGBA", (W, H), bytes(buf), "raw", "RGBA", 0, 1).convert("RGB"))
+            im = Image.frombuffer("RGBA", (W, H), bytes(buf), "raw", "RGBA", 0, 1).convert("RGB")
+            # one palette for the whole GIF (its first frame's) and no dithering: the frames differ
+            # only where the robot moved, and the GIF stores only those differences
+            if not palette:
+                palette.append(im.quantize(colors=255, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE))
+            writer._frames.append(im.quantize(palette=palette[0], dither=Image.Dither.NONE))
 
     def write(tmp):
         canvas = fig.canvas
