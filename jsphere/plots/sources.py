@@ -182,7 +182,7 @@ def plan_table_scene(path, params: RobotParams | None = None) -> Scene:
             feasible = "feasible plan" if rec.get("feasible") else "plan (NOT feasible)"
         except (ValueError, TypeError, UnicodeDecodeError):
             pass
-    title = f"{feasible or 'plan'} {path.name} to ({target[0]:.3f}, {target[1]:.3f}) m in {body.duration:.2f} s"
+    title = f"{feasible or 'plan'} ({path.name}) to ({target[0]:.3f}, {target[1]:.3f}) m in {body.duration:.2f} s"
     return Scene([body], params, title=title, target=target)
 
 

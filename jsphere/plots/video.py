@@ -67,7 +67,7 @@ def _limits(scene: Scene, frames: list[BodyFrames]) -> tuple[np.ndarray, np.ndar
 
 def _status(t: float, f: BodyFrames, k: int) -> str:
     rates = ", ".join(f"{v:+6.1f}" for v in f.chi_dot[k])
-    return f"t = {t:5.2f} s   speed {1e3 * f.speed[k]:6.1f} mm/s   wheel rates chi_dot = ({rates}) rad/s"
+    return f"t = {t:5.2f} s   speed {1e3 * f.speed[k]:6.1f} mm/s\nwheel rates chi_dot = ({rates}) rad/s"
 
 
 class _Robot:
@@ -168,7 +168,8 @@ def render(
     n_bodies = max(len(s.bodies) for s in scenes)
 
     fig = plt.figure(figsize=(W / dpi, H / dpi), dpi=dpi)
-    ax = fig.add_axes((0.0, 0.07, 1.0, 0.86), projection="3d", proj_type="ortho")
+    small = 7.0 * min(1.0, W / 640.0) + 0.5  # [pt]: the texts keep their place on small pictures
+    ax = fig.add_axes((0.0, 0.09, 1.0, 0.84), projection="3d", proj_type="ortho")
     ax.view_init(*VIEWS[view])
     ax.set_xlabel("X [m] (fixed frame)", fontsize=7, labelpad=-2)
     ax.set_ylabel("Y [m] (fixed frame)", fontsize=7, labelpad=-2)
@@ -176,9 +177,9 @@ def render(
     ax.tick_params(labelsize=6, pad=0)
     if view == "top":
         ax.set_zticks([])
-    title = fig.text(0.01, 0.985, "", fontsize=8, va="top", ha="left")
-    status = fig.text(0.01, 0.01, "", fontsize=7, va="bottom", ha="left", family="monospace")
-    extra = fig.text(0.99, 0.985, "", fontsize=7, va="top", ha="right", family="monospace")
+    title = fig.text(0.01, 0.985, "", fontsize=small + 0.5, va="top", ha="left")
+    status = fig.text(0.01, 0.01, "", fontsize=small, va="bottom", ha="left", family="monospace")
+    extra = fig.text(0.99, 0.93, "", fontsize=small, va="top", ha="right", family="monospace")
     first = prepared[0][0]
     template = _sphere_template(float(first.params.R0))
     robots = [_Robot(ax, template, COLOURS[i % len(COLOURS)]) for i in range(n_bodies)]
@@ -237,7 +238,7 @@ def render(
                 ax.set_xlim(lo[0], hi[0])
                 ax.set_ylim(lo[1], hi[1])
                 ax.set_zlim(0.0, 2.0 * R0)
-                ax.set_box_aspect((hi[0] - lo[0], hi[1] - lo[1], 2.0 * R0), zoom=1.25)
+                ax.set_box_aspect((hi[0] - lo[0], hi[1] - lo[1], 2.0 * R0), zoom=1.35)
                 for i, robot in enumerate(robots):
                     on = i < len(scene.bodies)
                     robot.visible(on)

@@ -125,7 +125,7 @@ def write_html(scenes: list[Scene], path, *, fps: float, speed: float, size=(900
             data.append(_xyz(np.c_[scene.cloud, np.zeros(len(scene.cloud))]) if show_end else empty)
             el = scene.ellipse
             data.append(_xyz(np.c_[el, np.zeros(len(el))]) if show_end and el is not None else empty)
-            text = _status(t, fr[0], k) + (f"<br>{residual[k]}" if residual is not None else "")
+            text = _status(t, fr[0], k).replace("\n", "<br>") + (f"<br>{residual[k]}" if residual is not None else "")
             name = f"{len(frames)}"
             frames.append(
                 go.Frame(
