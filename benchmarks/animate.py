@@ -1,6 +1,7 @@
 """What an animation costs: a 10 s clip at 30 frames per second (the paper's straight line,
 acceleration (5.1) and braking (5.3), 4 s of run played at speed 0.4: 300 frames, 640 x 480)
-as MP4 and GIF, and the HTML viewer of the same run (its size). The MP4 is also written the way
+as MP4 and GIF, and the HTML viewer of the same run at 30 and 15 (its default) frames per second
+(its size). The MP4 is also written the way
 matplotlib's animations write (every frame drawn in full, then grabbed by the writer), the
 same-run baseline of the blitted frames (docs/decisions/viewer.md, docs/performance.md).
 
@@ -60,7 +61,8 @@ def main() -> int:
                 lambda p: render([scene], p, fps=fps, speed=speed, size=size, progress=False, blit=False),
             ),
             ("gif", "blitted (jsphere)", lambda p: render([scene], p, fps=fps, speed=speed, size=size, progress=False)),
-            ("html", "plotly, bundle embedded", lambda p: write_html([scene], p, fps=fps, speed=speed)),
+            ("html", "plotly, bundle embedded, 30 fps", lambda p: write_html([scene], p, fps=fps, speed=speed)),
+            ("html", "plotly, bundle embedded, 15 fps", lambda p: write_html([scene], p, fps=15.0, speed=speed)),
         ]
         for k, (suffix, how, make) in enumerate(cases):
             path = Path(tmp) / f"clip{k}.{suffix}"
@@ -76,9 +78,9 @@ def main() -> int:
     print(
         f"10 s clip at {fps:.0f} fps ({int(round(10 * fps))} frames, {size[0]} x {size[1]}), load {os.getloadavg()[0]:.2f}"
     )
-    print(f"{'output':<6} {'how':<32} {'wall [s]':>9} {'CPU [s]':>8} {'size [MB]':>10}")
+    print(f"{'output':<6} {'how':<34} {'wall [s]':>9} {'CPU [s]':>8} {'size [MB]':>10}")
     for r in rows:
-        print(f"{r['output']:<6} {r['how']:<32} {r['wall_s']:>9.1f} {r['cpu_s']:>8.1f} {r['bytes'] / 1e6:>10.2f}")
+        print(f"{r['output']:<6} {r['how']:<34} {r['wall_s']:>9.1f} {r['cpu_s']:>8.1f} {r['bytes'] / 1e6:>10.2f}")
     print(f"blitted frames against full redraws (MP4, same run): {ratio:.1f}x faster")
     atomic_write_json(
         args.out,

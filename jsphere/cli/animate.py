@@ -35,7 +35,7 @@ def add_parser(sub) -> None:
     an.add_argument(
         "--params", metavar="FILE", help="the robot drawn (.toml or .json); default the input's own or the paper's"
     )
-    an.add_argument("--fps", type=float, help="frames per second (default 30; 20 for .gif)")
+    an.add_argument("--fps", type=float, help="frames per second (default 30; 20 for .gif, 15 for .html)")
     an.add_argument(
         "--speed", type=float, default=1.0, help="playback factor: a run of T s plays in T/SPEED s (default 1)"
     )

@@ -10,8 +10,9 @@ from .scene import Scene
 
 #: the outputs by suffix
 SUFFIXES = (".mp4", ".gif", ".html")
-#: frames per second by default: GIF frame delays are whole centiseconds (20 fps: 5 cs)
-DEFAULT_FPS = {".mp4": 30.0, ".gif": 20.0, ".html": 30.0}
+#: frames per second by default: GIF frame delays are whole centiseconds (20 fps: 5 cs); the
+#: viewer holds every frame's geometry (15 fps: about 0.5 MB per second of playback)
+DEFAULT_FPS = {".mp4": 30.0, ".gif": 20.0, ".html": 15.0}
 #: the picture's size [pixels] by default
 DEFAULT_SIZE = {".mp4": (640, 480), ".gif": (480, 360), ".html": (900, 700)}
 
@@ -81,7 +82,7 @@ def animate(
       beside the folder with the folder's `[vary]`).
     - `params`: the robot drawn (default: the source's own, else the paper's).
     - `trials`: the names of a fit's trials to show (default all).
-    - `fps`: frames per second (default 30; 20 for GIF); `speed`: playback factor (a run of `T`
+    - `fps`: frames per second (default 30; 20 for GIF, 15 for HTML); `speed`: playback factor (a run of `T`
       s plays in `T / speed` s, within one frame); `size`: `(width, height)` [pixels];
       `view`: `"3d"` or `"top"` (from above).
     - `progress`: as elsewhere in jsphere (`None`: a bar on a terminal).

@@ -15,7 +15,7 @@ import numpy as np
 
 from .._runtime.files import atomic_write_text
 from .scene import Scene
-from .video import _limits, _sphere_template, _status, scene_frames
+from .video import _limits, _status, scene_frames
 
 #: the trace colours of the robots of a scene (as the video's)
 _COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#bcbd22", "#17becf")
@@ -33,20 +33,30 @@ def _xyz(pts: np.ndarray, kind: str = "scatter3d") -> dict:
     return out
 
 
-def _sphere_mesh(R0: float):
-    """Vertices `(V, 3)` and triangles `(i, j, k)` of a sphere of radius `R0` about the origin."""
-    quads = _sphere_template(R0, 16, 10)
-    verts = quads.reshape(-1, 3)
-    n = len(quads)
-    i = np.concatenate([4 * np.arange(n), 4 * np.arange(n)])
-    j = np.concatenate([4 * np.arange(n) + 1, 4 * np.arange(n) + 2])
-    k = np.concatenate([4 * np.arange(n) + 2, 4 * np.arange(n) + 3])
+def _sphere_mesh(R0: float, n_lon: int = 16, n_lat: int = 10):
+    """Vertices `(V, 3)` and triangles `(i, j, k)` of a sphere of radius `R0` about the origin
+    (a longitude-latitude grid, each vertex stored once)."""
+    lon = np.linspace(0.0, 2 * np.pi, n_lon, endpoint=False)
+    lat = np.linspace(-np.pi / 2, np.pi / 2, n_lat + 1)
+    Lo, La = np.meshgrid(lon, lat, indexing="ij")
+    verts = R0 * np.stack([np.cos(La) * np.cos(Lo), np.cos(La) * np.sin(Lo), np.sin(La)], -1).reshape(-1, 3)
+    idx = lambda a, b: (a % n_lon) * (n_lat + 1) + b
+    a, b = np.meshgrid(np.arange(n_lon), np.arange(n_lat), indexing="ij")
+    a, b = a.ravel(), b.ravel()
+    i = np.concatenate([idx(a, b), idx(a, b)])
+    j = np.concatenate([idx(a + 1, b), idx(a + 1, b + 1)])
+    k = np.concatenate([idx(a + 1, b + 1), idx(a, b + 1)])
     return verts, (i, j, k)
+
+
+#: the most points of a path in one frame (the path drawn so far, thinned evenly)
+PATH_POINTS = 80
 
 
 def _robot_traces(f, k: int, verts: np.ndarray) -> list[dict]:
     """The data of one robot's traces at frame `k` (`_PARTS` order)."""
-    path = np.concatenate([f.path[: k + 1], np.zeros((k + 1, 1))], axis=1)
+    keep = np.unique(np.linspace(0, k, min(k + 1, PATH_POINTS)).round().astype(int))
+    path = np.concatenate([f.path[keep], np.zeros((keep.size, 1))], axis=1)
     return [
         _xyz(verts + f.centre[k], "mesh3d"),
         _xyz(f.meridians[k]),
