@@ -40,9 +40,9 @@ def main() -> int:
     from jsphere._runtime.files import atomic_write_json
 
     jsphere.enable_x64()
-    from jsphere.plots.scene import Scene, body_from_trajectory
-    from jsphere.plots.video import render
-    from jsphere.plots.viewer import write_html
+    from jsphere.plots.animation.scene import Scene, body_from_trajectory
+    from jsphere.plots.animation.video import render
+    from jsphere.plots.animation.viewer import write_html
 
     params = jsphere.RobotParams.paper()
     traj = jsphere.simulate_gaits(params, [jsphere.acceleration(), jsphere.braking()])

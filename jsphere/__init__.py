@@ -86,6 +86,7 @@ _EXPORTS = {
     ),
     "planning.robust": ("RobustPlan", "miss_distribution", "plan_robust"),
     "planning.uncertainty": ("Uncertainty",),
+    "plots.animation": ("animate",),
     "planning.verify": ("replay_errors",),
     "solve.options": ("SolverOptions",),
     "solve.simulate": ("simulate",),

@@ -54,7 +54,7 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     from .._runtime.errors import ExitCode, InputError
     from .._runtime.files import check_output
-    from ..plots.animate import SUFFIXES, animate
+    from ..plots.animation.api import SUFFIXES, animate
 
     out = Path(args.out)
     if out.suffix.lower() not in SUFFIXES:

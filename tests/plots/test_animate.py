@@ -11,7 +11,7 @@ import pytest
 
 import jsphere
 from jsphere.planning.result import Plan
-from jsphere.plots.scene import Scene, body_frames, body_from_poses, body_from_trajectory, rolling_attitude
+from jsphere.plots.animation.scene import Scene, body_frames, body_from_poses, body_from_trajectory, rolling_attitude
 
 # the test reads the videos back with imageio-ffmpeg's reader: a subprocess, started by fork and exec at once
 pytestmark = pytest.mark.filterwarnings(r"ignore:os\.fork\(\) was called:RuntimeWarning")
@@ -89,7 +89,7 @@ def _plan_of(paper, straight) -> Plan:
 def test_plan_table_gives_back_the_plans_attitudes(paper, straight, tmp_path):
     """A plan CSV holds `gamma` and the heading: the platform's attitude read from it is the
     plan's, and the shell's attitude integrated from its path and wheel rates is the state's."""
-    from jsphere.plots.sources import plan_table_scene
+    from jsphere.plots.animation.sources import plan_table_scene
 
     plan = _plan_of(paper, straight)
     plan.to_csv(tmp_path / "plan.csv")
@@ -105,12 +105,12 @@ def test_plan_table_gives_back_the_plans_attitudes(paper, straight, tmp_path):
 
 @pytest.mark.parametrize("suffix", [".mp4", ".gif", ".html"])
 def test_animate_a_plan_object(paper, straight, tmp_path, suffix):
-    """`jsphere.plots.animate` on a `Plan`: the MP4 lasts the run's duration / speed within a
+    """`jsphere.animate` on a `Plan`: the MP4 lasts the run's duration / speed within a
     frame, the GIF holds as many frames, the HTML file one slider step per frame."""
     import imageio_ffmpeg
     from PIL import Image
 
-    from jsphere.plots import animate
+    from jsphere.plots.animation import animate
 
     plan = _plan_of(paper, straight)
     out = animate(plan, tmp_path / f"plan{suffix}", fps=8, speed=2.0, size=(160, 120), progress=False)
@@ -132,7 +132,7 @@ def test_a_video_shows_the_robot_move(paper, straight, tmp_path):
     """Frames of the MP4 differ where the robot moves and the first frame is not blank."""
     import imageio_ffmpeg
 
-    from jsphere.plots import animate
+    from jsphere.plots.animation import animate
 
     scene = Scene([body_from_trajectory(straight, label="gaits")], paper, title="straight line", target=(0.26, 0.0))
     out = animate(scene, tmp_path / "s.mp4", fps=4, speed=1.0, size=(200, 150), view="top", progress=False)

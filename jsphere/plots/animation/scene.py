@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
-    from ..model.params import RobotParams
+    from ...model.params import RobotParams
 
 
 @dataclasses.dataclass
@@ -118,7 +118,7 @@ def body_from_poses(params: RobotParams, t, x, y, R, *, chi_dot=None, label: str
     about the vertical that the wheel rates `chi_dot (T, N)` [rad/s] give through (2.4) when
     they are known (else none). Without wheel rates (torque inputs), the wheel rates are those
     (2.4) gives for that shell motion; the wheel angles integrate the rates."""
-    from ..model.params import derive
+    from ...model.params import derive
 
     t, x, y, R = (np.asarray(a, float) for a in (t, x, y, R))
     ok = np.isfinite(x) & np.isfinite(y) & np.all(np.isfinite(R), axis=(1, 2))
@@ -149,7 +149,7 @@ def body_from_poses(params: RobotParams, t, x, y, R, *, chi_dot=None, label: str
 def body_from_trajectory(traj, *, label: str = "", ghost: bool = False) -> Body:
     """A `Body` from a `Trajectory`: the shell's attitude is the state's `q_shell`, the wheel
     angles and rates the state's `chi`, `chi_dot`."""
-    from ..model.rotations import rotmat_np
+    from ...model.rotations import rotmat_np
 
     ts = np.asarray(traj.ts, float)
     keep = np.concatenate([np.diff(ts) > 0, [True]])  # a repeated time (a jump): its last value
@@ -169,7 +169,7 @@ def body_from_trajectory(traj, *, label: str = "", ghost: bool = False) -> Body:
 
 def body_from_trial(params: RobotParams, trial, *, label: str | None = None, ghost: bool = False) -> Body:
     """A `Body` from a `Trial` (`body_from_poses`; its wheel speeds, if those are its inputs)."""
-    from ..model.rotations import rotmat_np
+    from ...model.rotations import rotmat_np
 
     if not np.any(trial.valid):
         raise ValueError(f"trial {trial.name!r} has no frame with a pose; nothing to animate.")
@@ -232,7 +232,7 @@ def frame_times(duration: float, fps: float, speed: float) -> np.ndarray:
 def _slerp(t, R, at) -> np.ndarray:
     from scipy.spatial.transform import Rotation, Slerp
 
-    from ..model.rotations import quat_from_rotmat_np
+    from ...model.rotations import quat_from_rotmat_np
 
     return Slerp(t, Rotation.from_quat(quat_from_rotmat_np(R), scalar_first=True))(np.clip(at, t[0], t[-1])).as_matrix()
 

@@ -12,11 +12,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .._runtime.errors import InputError
+from ..._runtime.errors import InputError
 from .scene import Scene, body_from_poses, body_from_trajectory, body_from_trial, platform_from_table
 
 if TYPE_CHECKING:
-    from ..model.params import RobotParams
+    from ...model.params import RobotParams
 
 #: the columns of a plan table that the animation reads (`Plan.table`)
 PLAN_COLUMNS = ("t", "x", "y", "gamma_1", "gamma_2", "gamma_3", "heading")
@@ -51,7 +51,7 @@ def fit_scenes(params: RobotParams, trials, *, worst: str | None = None, status:
     simulated from the trial's own initial pose, its initial velocities estimated as the fit
     estimates them) ghosted over it, with the residual on screen; the worst-fitting trial first
     (`worst`, a fit's `verdict["worst_trial"]`; else the largest RMS position residual)."""
-    from ..identify.compare import compare
+    from ...identify.compare import compare
 
     trials = list(trials)
     res = compare(params, trials)
@@ -77,9 +77,9 @@ def montecarlo_scene(folder, study, params: RobotParams | None = None, *, paths:
     the study's gaits executed by the robots drawn for its first `paths` successful trials
     (growing together), and all the stop points of the folder with the 95 % ellipse of its
     `stats.json` at the end. `params`: the nominal robot (default: the study's)."""
-    from ..gaits.gaits import simulate_gaits
-    from ..montecarlo.sampling import with_values
-    from ..montecarlo.study import load_study
+    from ...gaits.gaits import simulate_gaits
+    from ...montecarlo.sampling import with_values
+    from ...montecarlo.study import load_study
 
     folder = Path(folder)
     manifest, stats = _read_json(folder / "manifest.json"), _read_json(folder / "stats.json")
@@ -138,7 +138,7 @@ def _read_json(path: Path) -> dict:
 
 
 def _csv_header(path: Path) -> list[str]:
-    from ..capture.text import read_text
+    from ...capture.text import read_text
 
     for line in read_text(path).splitlines():
         if line.strip() and not line.lstrip().startswith("#"):
@@ -150,7 +150,7 @@ def plan_table_scene(path, params: RobotParams | None = None) -> Scene:
     """A plan table (`jsphere plan --out plan.csv`): the platform's attitude from its `gamma_1..3`
     and `heading`, the wheel rates `chi_dot_i`, the target from `plan.json` beside it (else the
     last row). `params`: the robot planned for (default: the paper's)."""
-    from ..model.params import RobotParams
+    from ...model.params import RobotParams
 
     path = Path(path)
     params = params if params is not None else RobotParams.paper()
@@ -189,7 +189,7 @@ def plan_table_scene(path, params: RobotParams | None = None) -> Scene:
 def _fit_trials(fit_path: Path, record: dict, given) -> list:
     """The trials of the fit `record`: the files `given` (or those in the folders given), else
     `<name>.csv` beside the fit's JSON; an error names the trials that are missing."""
-    from ..capture.trial import read_trials
+    from ...capture.trial import read_trials
 
     names = [t.get("name") for t in record.get("trials", []) if isinstance(t, dict)]
     if given:
@@ -215,8 +215,8 @@ def scenes_from_path(path, extra=(), *, params: RobotParams | None = None, trial
     """The scenes of a file or folder (module docstring). `extra`: a fit's trial files, or a
     Monte-Carlo folder's study file; `params`: the robot drawn (default: the file's own, else
     the paper's); `trials`: the names of a fit's trials to show (default all)."""
-    from ..capture.trial import read_trial
-    from ..model.params import RobotParams
+    from ...capture.trial import read_trial
+    from ...model.params import RobotParams
 
     path = Path(path)
     if not path.exists():

@@ -3,7 +3,7 @@ nothing fetched from the network; docs/decisions/viewer.md) with the 3-D scene t
 zoom, play/pause, a time slider, and the overlays of the video (time, speed, wheel rates, a
 fit's residual, a plan's target, a study's stop points and ellipse).
 
-Each frame of the slider holds the geometry that `jsphere.plots.scene.body_frames` computed
+Each frame of the slider holds the geometry that `jsphere.plots.animation.scene.body_frames` computed
 for the video, rounded to 0.1 mm. The page sets `window.jsphereViewer` to the plot's element
 (for scripts and the browser test)."""
 
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .._runtime.files import atomic_write_text
+from ..._runtime.files import atomic_write_text
 from .scene import Scene
 from .video import _limits, _status, scene_frames
 

@@ -2,7 +2,7 @@
 carries; no system ffmpeg) or GIF (Pillow), written with matplotlib's animation writers.
 
 Built for speed: the figure and its artists are made once (Agg), the geometry of every frame
-is computed beforehand with NumPy (`jsphere.plots.scene.body_frames`), and each frame only
+is computed beforehand with NumPy (`jsphere.plots.animation.scene.body_frames`), and each frame only
 moves the artists (`set_data_3d`, `set_verts`, `set_text`) before the writer grabs it. Every
 kind of line of a robot (meridians, wheels, ...) is one artist whose polylines are broken by
 NaN, so a frame draws a dozen artists per robot."""
@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .._runtime.files import atomic_write
-from .._runtime.progress import Progress
+from ..._runtime.files import atomic_write
+from ..._runtime.progress import Progress
 from .scene import BodyFrames, Scene, body_frames, frame_times, residual_text
 
 #: the writers by file suffix
@@ -150,7 +150,7 @@ def render(
     the library's (`jsphere._runtime.progress`); a bar counts the frames. `blit=False` draws
     each frame in full and lets the writer grab it, as matplotlib's animations do (the
     baseline of `benchmarks/animate.py`). Returns the number of frames written."""
-    from .base import pyplot
+    from ..base import pyplot
 
     path = Path(path)
     suffix = path.suffix.lower()

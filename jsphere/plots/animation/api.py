@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .._runtime.errors import InputError
+from ..._runtime.errors import InputError
 from .scene import Scene
 
 #: the outputs by suffix
@@ -19,10 +19,10 @@ DEFAULT_SIZE = {".mp4": (640, 480), ".gif": (480, 360), ".html": (900, 700)}
 
 def scenes_of(source, *, params=None, captures=None, trials=None) -> list[Scene]:
     """The `Scene`s of `source` (see `animate`)."""
-    from ..capture.trial import Trial
-    from ..model.params import RobotParams
-    from ..planning.result import Plan
-    from ..solve.trajectory import Trajectory
+    from ...capture.trial import Trial
+    from ...model.params import RobotParams
+    from ...planning.result import Plan
+    from ...solve.trajectory import Trajectory
     from . import sources
 
     if isinstance(source, Scene):
@@ -71,7 +71,7 @@ def animate(
     geometry (`wheel_r`, `wheel_n`, `wheel_alpha`, `Rw`; the spokes turn with `chi_i`, the roller
     axis `alpha_i` at the contact), the centre of mass `r_m`, the path on the floor and the
     target; the time, speed and wheel rates `chi_dot_i` on screen. Axes: jsphere's fixed frame
-    [m], Z up. `jsphere.plots.scene` says where each piece comes from.
+    [m], Z up. `jsphere.plots.animation.scene` says where each piece comes from.
 
     **Arguments:**
     - `source`: a `Trajectory`; a `Trial`; a `Plan`; a `FitResult` with `captures` (its trials:
