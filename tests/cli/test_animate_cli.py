@@ -132,6 +132,7 @@ def test_montecarlo_scene_draws_the_studys_trials(paper, tmp_path):
     folder = _study(tmp_path, paper)
     scene = montecarlo_scene(folder, tmp_path / "study.toml")
     assert len(scene.bodies) == 5 and len(scene.cloud) == 15
+    assert [b.label for b in scene.bodies] == ["trial 0", "trial 1", "trial 2", "trial 4", "trial 5"]  # 3 failed
     stops = np.array([[b.x[-1], b.y[-1]] for b in scene.bodies])
     assert np.all(np.abs(stops[:, 0] - 0.2592) < 5e-3)  # the straight line's stop, each robot its own
     assert len({round(float(s), 9) for s in stops[:, 0]}) == 5

@@ -89,11 +89,13 @@ def montecarlo_scene(folder, study, params: RobotParams | None = None, *, paths:
     batches = sorted(folder.glob("batch_*.npz"))
     if not batches:
         raise InputError(f"{folder}: no batch files (batch_*.npz); run the study there first (jsphere montecarlo).")
-    vals, xs, ys = [], [], []
+    vals, xs, ys, index = [], [], [], []
     for path in batches:
         try:
             with np.load(path, allow_pickle=False) as z:
                 ok = np.asarray(z["status"]) == 0
+                first = int(path.stem.split("_")[-1]) * int(manifest.get("batch_size", ok.size))
+                index.append(first + np.flatnonzero(ok))
                 vals.append(np.asarray(z["vals"])[ok])
                 xs.append(np.asarray(z["x"])[ok])
                 ys.append(np.asarray(z["y"])[ok])
@@ -101,7 +103,7 @@ def montecarlo_scene(folder, study, params: RobotParams | None = None, *, paths:
             raise InputError(
                 f"{path}: not a batch of a study ({e}); run the study again (jsphere montecarlo)."
             ) from None
-    vals = np.concatenate(vals)
+    vals, index = np.concatenate(vals), np.concatenate(index)
     cloud = np.stack([np.concatenate(xs), np.concatenate(ys)], axis=-1)
     if not len(cloud):
         raise InputError(f"{folder}: no successful trial; nothing to animate.")
@@ -110,7 +112,7 @@ def montecarlo_scene(folder, study, params: RobotParams | None = None, *, paths:
     for i in range(min(paths, len(vals))):
         p = with_values(base, names, vals[i]) if names else base
         tr = simulate_gaits(p, st["gaits"], reset=reset)
-        bodies.append(body_from_trajectory(tr, label=f"trial {i}"))
+        bodies.append(body_from_trajectory(tr, label=f"trial {index[i]}"))
     ellipse = _ellipse(stats) if stats.get("ellipse") else None
     title = f"Monte-Carlo study {folder.name}: {len(bodies)} of {len(cloud)} trials; stop points and 95 % ellipse at the end"
     return Scene(bodies, base, title=title, cloud=cloud, ellipse=ellipse)
