@@ -348,7 +348,10 @@ def body_frames(body: Body, params: RobotParams, times: np.ndarray) -> BodyFrame
     platform = rot(ring) + centre[:, None]
     com = rot(np.asarray(params.r_m, float)) + centre
     mast = np.stack([centre, com], axis=1)
-    speed = np.hypot(np.gradient(x, at, edge_order=1), np.gradient(y, at, edge_order=1)) if F > 1 else np.zeros(F)
+    h = 0.05  # [s]: the speed is the mean over 0.1 s about each frame (captures are noisy)
+    lo, hi = np.clip(at - h, t[0], t[-1]), np.clip(at + h, t[0], t[-1])
+    span = np.maximum(hi - lo, 1e-12)
+    speed = np.hypot(_lerp(t, body.x, hi) - _lerp(t, body.x, lo), _lerp(t, body.y, hi) - _lerp(t, body.y, lo)) / span
     return BodyFrames(
         centre,
         meridians,

@@ -100,13 +100,13 @@ class _Robot:
             self.path,
         ]
 
-    def style(self, ghost: bool, colour: str, label: str) -> None:
+    def style(self, ghost: bool, colour: str, label: str, crowd: int = 1) -> None:
         a = 0.35 if ghost else 1.0
         ls = "--" if ghost else "-"
         for art in self.artists[1:]:
             art.set_alpha(a * (0.8 if art is self.meridians else 1.0))
         self.shell.set_facecolor(colour)
-        self.shell.set_alpha(0.05 if ghost else 0.10)
+        self.shell.set_alpha((0.05 if ghost else 0.10) / max(1, crowd - 1))  # robots drawn over each other
         self.meridians.set_color(colour)
         self.path.set_color(colour)
         self.path.set_linestyle(ls)
@@ -244,7 +244,7 @@ def render(
                     robot.visible(on)
                     if on:
                         b = scene.bodies[i]
-                        robot.style(b.ghost, COLOURS[0 if b.ghost else i % len(COLOURS)], b.label)
+                        robot.style(b.ghost, COLOURS[0 if b.ghost else i % len(COLOURS)], b.label, len(scene.bodies))
                 if scene.target is not None:
                     target.set_data_3d([scene.target[0]], [scene.target[1]], [0.0])
                 target.set_visible(scene.target is not None)
