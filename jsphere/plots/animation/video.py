@@ -22,7 +22,7 @@ from .scene import BodyFrames, Scene, body_frames, frame_times, residual_text
 VIDEO_SUFFIXES = (".mp4", ".gif")
 #: the camera of each view: (elevation, azimuth) [deg]
 VIEWS = {"3d": (22.0, -60.0), "top": (90.0, -90.0)}
-#: the colours of the robots of a scene (a ghost takes its measured body's colour)
+#: the colours of the robots of a scene (a ghost, the model over a capture, is orange)
 COLOURS = ("C0", "C1", "C2", "C4", "C5", "C6", "C8", "C9")
 
 
@@ -244,7 +244,7 @@ def render(
                     robot.visible(on)
                     if on:
                         b = scene.bodies[i]
-                        robot.style(b.ghost, COLOURS[0 if b.ghost else i % len(COLOURS)], b.label, len(scene.bodies))
+                        robot.style(b.ghost, COLOURS[1 if b.ghost else i % len(COLOURS)], b.label, len(scene.bodies))
                 if scene.target is not None:
                     target.set_data_3d([scene.target[0]], [scene.target[1]], [0.0])
                 target.set_visible(scene.target is not None)
