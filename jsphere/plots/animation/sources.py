@@ -67,7 +67,7 @@ def fit_scenes(params: RobotParams, trials, *, worst: str | None = None, status:
         which = " - worst fit" if rank == 0 and len(trials) > 1 else ""
         rms_text = f"RMS {1e3 * rms[tr.name]:.2f} mm" if tr.name in rms else ""
         head = f"{status}; " if status else ""
-        title = f"{head}trial {tr.name}{which}: capture (blue) and fitted model (orange, faint), {rms_text}"
+        title = f"{head}trial {tr.name}{which}, {rms_text}\ncapture (blue) and fitted model (orange, faint)"
         scenes.append(Scene(bodies, params, title=title, residual=True))
     return scenes
 

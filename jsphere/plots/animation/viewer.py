@@ -142,7 +142,7 @@ def write_html(scenes: list[Scene], path, *, fps: float, speed: float, size=(900
                     name=name,
                     data=data,
                     traces=list(range(extra + 3)),
-                    layout=dict(annotations=[_note(scene.title, 1.0), _note(text, 0.0)]),
+                    layout=dict(annotations=[_note(scene.title.replace("\n", "<br>"), 1.0), _note(text, 0.0)]),
                 )
             )
             names.append(name)
