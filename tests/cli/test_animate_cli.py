@@ -114,6 +114,7 @@ def _study(tmp: Path, paper) -> Path:
     return folder
 
 
+@pytest.mark.slow
 def test_animate_a_montecarlo_folder(paper, straight, tmp_path):
     """A handful of the study's trials (their gaits executed by their drawn robots) and the stop
     points; the study file is found beside the folder or given after it; the folder is input:
