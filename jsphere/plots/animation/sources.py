@@ -78,7 +78,7 @@ def montecarlo_scene(folder, study, params: RobotParams | None = None, *, paths:
     (growing together), and all the stop points of the folder with the 95 % ellipse of its
     `stats.json` at the end. `params`: the nominal robot (default: the study's)."""
     from ...gaits.gaits import simulate_gaits
-    from ...montecarlo.sampling import with_values
+    from ...model.names import set_value
     from ...montecarlo.study import load_study
 
     folder = Path(folder)
@@ -110,7 +110,9 @@ def montecarlo_scene(folder, study, params: RobotParams | None = None, *, paths:
     reset = st["kwargs"].get("reset", False)
     bodies = []
     for i in range(min(paths, len(vals))):
-        p = with_values(base, names, vals[i]) if names else base
+        p = base
+        for name, v in zip(names, vals[i]):  # the robot drawn for the trial
+            p = set_value(p, name, v)
         tr = simulate_gaits(p, st["gaits"], reset=reset)
         bodies.append(body_from_trajectory(tr, label=f"trial {index[i]}"))
     ellipse = _ellipse(stats) if stats.get("ellipse") else None
