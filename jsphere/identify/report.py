@@ -18,8 +18,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._runtime.files import atomic_write_json
+from ..model.internal import FIELDS
 from ..model.names import parse_name
-from ..model.params import _FIELDS, RobotParams
+from ..model.params import RobotParams
 from ..model.rotations import quat_conj, quat_log, quat_mul
 from .data import TIME_OFFSET, FitData, offset_from_nuisance
 from .free import FreeParams
@@ -208,7 +209,7 @@ def fit_result(
     s2 = float(2.0 * cost[b] / dof)
     values, F_phys, cov, se, corr = _covariance(free, th_b, np.asarray(res[b]), J[b], s2)
     params = free.to_params(jnp.asarray(th_b), base)
-    params = RobotParams(**{f: getattr(params, f) for f in _FIELDS}, dtype=base.R0.dtype)
+    params = RobotParams(**{f: getattr(params, f) for f in FIELDS}, dtype=base.R0.dtype)
     ident = identifiability(free, values, F_phys, s2, params)
     ident["sigma_note"] = "relative sd of each direction; warnings list directions with relative sd > 10%"
     trials = _trial_reports(data, pose, nu[b], b)

@@ -39,7 +39,8 @@ from ..controls import Sampled, Torques, WheelSpeeds
 from ..model.params import RobotParams, derive
 from ..model.rotations import rotmat
 from ..model.state import Flat, State
-from ..solve.fields import _torque_field, _wheel_field
+from ..solve.fixed_grid import integrate
+from ..solve.internal import torque_field, wheel_field
 from ..solve.options import SolverOptions
 from .many import plan_many
 from .problem import Limits, Objective, PlanSettings, _duration_inv, _vec_targets, gait_from_vector
@@ -62,34 +63,21 @@ MODES = ("wheel_speeds", "torques")
 def replay_end(params: RobotParams, ts, table, mode: str = "wheel_speeds", grid=None):
     """The state at `ts[-1]` of a robot from rest (`State.at_rest`) that executes the table
     `table (T, N)` (cubic, as `WheelSpeeds.from_samples`/`Torques.from_samples` read it),
-    integrated with classical RK4, one step per interval of `grid` (default: of `ts`; a grid
-    must start at `ts[0]` and end at `ts[-1]`) (pure JAX, vmappable over `params`). Returns
+    integrated with classical RK4 (`jsphere.solve.fixed_grid`), one step per interval of `grid`
+    (default: of `ts`; a grid must start at `ts[0]` and end at `ts[-1]`) (pure JAX, vmappable
+    over `params`). Returns
     `(x, y, Omega (3,), gamma (3,))`."""
     d = derive(params)
     dt = params.R0.dtype
     ts = jnp.asarray(ts, dt)
     tab = Sampled(ts, jnp.asarray(table, dt), "cubic")
-    control, field = (
-        (WheelSpeeds(tab, ()), _wheel_field) if mode == "wheel_speeds" else (Torques(tab, ()), _torque_field)
-    )
+    control, field = (WheelSpeeds(tab, ()), wheel_field) if mode == "wheel_speeds" else (Torques(tab, ()), torque_field)
     # the end of the control lies past the table: the last stage of each step is evaluated just
     # inside its interval instead (the table's left limit, differentiable in the knot times)
     args = (params, d, control, jnp.zeros((), dt), ts[-1] + 1.0)
     grid = ts if grid is None else jnp.asarray(grid, dt)
-
-    def f(t, z):
-        return field(t, z, args)
-
-    def step(z, k):
-        t, h = grid[k], grid[k + 1] - grid[k]
-        k1 = f(t, z)
-        k2 = f(t + 0.5 * h, z + 0.5 * h * k1)
-        k3 = f(t + 0.5 * h, z + 0.5 * h * k2)
-        k4 = f(t + h * (1.0 - 1e-12), z + h * k3)
-        return z + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4), None
-
     z0 = State.at_rest(params).flatten().astype(dt)
-    zT, _ = jax.lax.scan(step, z0, jnp.arange(grid.shape[0] - 1))
+    zT = integrate(lambda t, z: field(t, z, args), z0, grid, last=1.0 - 1e-12, save=False)
     return zT[Flat.x], zT[Flat.y], zT[Flat.Omega], rotmat(zT[Flat.q])[2]
 
 
