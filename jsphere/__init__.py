@@ -88,6 +88,7 @@ _EXPORTS = {
     "planning.robust": ("RobustPlan", "miss_distribution", "plan_robust"),
     "planning.tracking": ("TrackConditions", "TrackWeights", "Tracker", "read_track_csv", "track"),
     "planning.verify": ("replay_errors",),
+    "plots.animation": ("animate",),
     "solve.options": ("SolverOptions",),
     "solve.simulate": ("simulate",),
     "solve.status": ("RESULTS",),

@@ -27,6 +27,7 @@ LAYERS = {
     "montecarlo": 8,
     "paper": 9,
     "design": 9,  # excitation design: identify, planning, capture, solve, model
+    "plots.animation": 9,  # animations: read runs from files, replay fits and studies (capture, identify, montecarlo)
     "cli": 10,
     "__init__": 11,
 }
