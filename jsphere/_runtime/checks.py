@@ -21,6 +21,11 @@ def is_number(v) -> bool:
     return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
 
 
+def is_traced(*vs) -> bool:
+    """Whether any of `vs` is a JAX array or tracer (checked by the caller under `jit`, not here)."""
+    return any(isinstance(v, (jax.core.Tracer, jax.Array)) for v in vs)
+
+
 def whole(where: str, name: str, v, low: int, high: int | None = None) -> int:
     """`v` as an int if it is a whole number in `[low, high]` (a float such as `1e4` that is
     whole is accepted; `10.9` is not truncated), else `InputError` naming `name`."""

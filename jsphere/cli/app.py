@@ -1,6 +1,6 @@
 """The `jsphere` command line: its parser, the dispatch to one module per command (`reproduce`,
-`montecarlo`, `convert`, `synth`, `fit`, `compare`, `plan`, `design`: each adds its sub-parser, with its `EXAMPLES`,
-and runs it), the options every command has (`-q/--quiet`, `-v/--verbose`: the `jsphere`
+`montecarlo`, `convert`, `synth`, `fit`, `compare`, `plan`, `track`, `design`, `animate`: each adds
+its sub-parser, with its `EXAMPLES`, and runs it), the options every command has (`-q/--quiet`, `-v/--verbose`: the `jsphere`
 logger's level on stderr), and the mapping of every error to one line on stderr and its exit
 code (`ExitCode`).
 
@@ -18,11 +18,11 @@ import os
 import sys
 import textwrap
 
-from . import compare, convert, design, fit, montecarlo, plan, reproduce, synth
+from . import animate, compare, convert, design, fit, montecarlo, plan, reproduce, synth, track
 from .compilation import compile_for_one_run, enable_compilation_cache
 
 #: the commands, in the order `jsphere --help` lists them
-COMMANDS = (reproduce, montecarlo, convert, synth, fit, compare, plan, design)
+COMMANDS = (reproduce, montecarlo, convert, synth, fit, compare, plan, track, design, animate)
 
 
 def version() -> str:

@@ -14,8 +14,8 @@ from .._runtime.checks import real, whole
 from .._runtime.errors import InputError, SolverFailure
 from .._runtime.progress import Progress
 from ..identify.free import FreeParams
+from ..model.limits import Limits
 from ..model.params import RobotParams
-from ..planning.problem import Limits
 from .information import Grid, Noise, problem
 from .inputs import KINDS, Spec, match_rms, programmes, random_multisine, random_start, rms, sample_times, table
 from .optimise import evaluate, limit_values, limits_report, maximise

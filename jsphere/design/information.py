@@ -15,7 +15,7 @@ sampled at `rate` [Hz] and whitened as the fit's residuals:
 
     F = sum_t (Hgg_t - Hgn_t Hnn_t^-1 Hng_t)
 
-(`jsphere.identify.lm.marginal_information`), mapped to the physical values `v` of the free
+(`jsphere.numerics.lm.marginal_information`), mapped to the physical values `v` of the free
 names, `F_v = A^-T F A^-1`, `A = d v / d theta`. The predicted covariance of `v` is `F_v^-1`
 (the fit's, with noise levels that are right: `s^2 = 1`) and the D-optimal criterion is
 
@@ -46,7 +46,8 @@ from ..model.kinematics import relative_rate_from_wheel_speeds
 from ..model.params import RobotParams, derive
 from ..model.rotations import quat_conj, quat_exp, quat_log, quat_mul, rotmat
 from ..model.state import Flat, State
-from ..solve.fields import _torque_field, _wheel_field
+from ..solve.fixed_grid import Rollout, integrate
+from ..solve.internal import torque_field, wheel_field
 from .inputs import Programme, Spec, coefficients, programme
 
 
@@ -69,17 +70,6 @@ class Grid(eqx.Module):
         return np.linspace(0.0, duration, n + 1)
 
 
-class Rollout(eqx.Module):
-    """A trial of the RK4 model at the sample times: poses, wheel rates and the platform's
-    tilt from its rest attitude [rad]."""
-
-    x: Float[Array, " S"]
-    y: Float[Array, " S"]
-    q: Float[Array, "S 4"]
-    chi_dot: Float[Array, "S N"]
-    tilt: Float[Array, " S"]
-
-
 def initial_state(p: RobotParams, kind: str, nu, q_rest, u0) -> State:
     """The initial state of nuisance values `nu` (`trial_model`'s): the rest attitude `q_rest`
     turned by `rot0 = nu[3:6]`, `Omega(0) = nu[0:3]`, `(x0, y0) = nu[6:8]`, and `omega(0) =
@@ -99,43 +89,23 @@ def initial_state(p: RobotParams, kind: str, nu, q_rest, u0) -> State:
 
 
 def rk4_rollout(p: RobotParams, kind: str, prog: Programme, nu, q_rest, grid: Grid) -> Rollout:
-    """Integrate one trial by classical RK4 (`grid.substeps` steps per sample interval) with the
+    """Integrate one trial by classical RK4 (`jsphere.solve.fixed_grid`, `grid.substeps` steps per
+    sample interval, the attitude quaternion normalised after each) with the
     simulator's vector field of `kind` (pure JAX: jit, vmap, jacfwd and grad work)."""
     dt = p.R0.dtype
     d = derive(p)
     T = prog.duration
     ts = jnp.asarray(grid.times(T), dt)
-    n = ts.shape[0] - 1
-    h = T / (n * grid.substeps)
     control = Torques(prog) if kind == "torques" else WheelSpeeds(prog)
-    field = _torque_field if kind == "torques" else _wheel_field
+    field = torque_field if kind == "torques" else wheel_field
     args = (p, d, control, jnp.zeros((), dt), jnp.asarray(T + 1.0, dt))
     z0 = initial_state(p, kind, nu, q_rest, prog(jnp.zeros((), dt))).flatten().astype(dt)
     gm = -p.r_m / jnp.linalg.norm(p.r_m)
 
-    def f(t, z):
-        return field(t, z, args)
+    def unit_q(z):
+        return z.at[Flat.q].set(z[Flat.q] / jnp.linalg.norm(z[Flat.q]))
 
-    # classical RK4 written as a loop over its stages (as `jsphere.planning.rollout`): stage i
-    # evaluates f at (t + c_i h, z + c_i h k_{i-1}) and adds w_i k_i; one f in the compiled graph
-    cw = jnp.stack([jnp.array([0.0, 0.5, 0.5, 1.0], dt), jnp.array([1.0, 2.0, 2.0, 1.0], dt) / 6.0], axis=1)
-
-    def rk4(z, t):
-        def stage(carry, c):
-            acc, k_prev = carry
-            k = f(t + c[0] * h, z + c[0] * h * k_prev)
-            return (acc + c[1] * k, k), None
-
-        (acc, _), _ = jax.lax.scan(stage, (jnp.zeros_like(z), jnp.zeros_like(z)), cw)
-        z = z + h * acc
-        return z.at[Flat.q].set(z[Flat.q] / jnp.linalg.norm(z[Flat.q])), None
-
-    def step(z, t):
-        z1, _ = rk4(z, t)
-        return z1, z1
-
-    _, zs = jax.lax.scan(step, z0, h * jnp.arange(n * grid.substeps, dtype=dt))
-    zs = jnp.concatenate([z0[None], zs[grid.substeps - 1 :: grid.substeps]])
+    zs = integrate(lambda t, z: field(t, z, args), z0, ts, substeps=grid.substeps, project=unit_q)
 
     def outputs(t, z):
         if kind == "torques":  # (2.4)
@@ -147,7 +117,7 @@ def rk4_rollout(p: RobotParams, kind: str, prog: Programme, nu, q_rest, grid: Gr
         return chi_dot, jnp.arccos(c)
 
     chi_dot, tilt = jax.vmap(outputs)(ts, zs)
-    return Rollout(zs[:, Flat.x], zs[:, Flat.y], zs[:, Flat.q], chi_dot, tilt)
+    return Rollout(ts=ts, zs=zs, chi_dot=chi_dot, tilt=tilt)
 
 
 def whitened(ro: Rollout, noise: Noise) -> Float[Array, " R"]:

@@ -8,7 +8,7 @@ Objective (maximised) of the coefficients `z`:
 
 over the wheel rates `|chi_dot_i|` (torque inputs; wheel-speed inputs keep their limit by
 construction), the torque rates `|dK_i/dt|` (torque inputs) and the platform's tilt from its
-rest attitude, each on the model grid of every trial (`jsphere.design.information.Rollout`).
+rest attitude, each on the model grid of every trial (`jsphere.solve.fixed_grid.Rollout`).
 The torques of torque programmes keep `max_torque` by construction (`jsphere.design.inputs`).
 The gradient is `jax.grad` of `Phi` through the forward-mode Jacobian (reverse over forward).
 """
@@ -24,7 +24,7 @@ import numpy as np
 import optax
 from jaxtyping import Array, Float
 
-from ..planning.problem import Limits
+from ..model.limits import Limits
 from .information import Problem
 from .inputs import coefficients, programme
 

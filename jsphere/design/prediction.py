@@ -15,8 +15,7 @@ from ..capture.trial import Trial
 from ..controls import Sampled, Torques, WheelSpeeds
 from ..identify.data import pack_trials
 from ..identify.free import FreeParams
-from ..identify.report import _covariance
-from ..identify.residuals import _functions
+from ..identify.internal import covariance, fit_functions
 from ..model.params import RobotParams
 from ..model.state import State
 from ..solve.simulate import simulate
@@ -50,7 +49,7 @@ def fit_information(params: RobotParams, free: FreeParams, kind: str, t, tables,
     trials = [r for r, _ in runs]
     extremes = tuple(max(e[i] for _, e in runs) for i in range(2))
     data = pack_trials(trials, params)
-    fns = _functions(free, kind, RTOL, ATOL, MAX_STEPS, None, 0.0)
+    fns = fit_functions(free, kind, RTOL, ATOL, MAX_STEPS, None, 0.0)
     theta = jnp.asarray(free.theta0)[None]
     nu = jnp.zeros((1, len(trials), len(data.nuisance)))
     sig = jnp.asarray([sigma_pos, sigma_rot])
@@ -59,7 +58,7 @@ def fit_information(params: RobotParams, free: FreeParams, kind: str, t, tables,
         raise SolverFailure(
             "design: the fit's model of a design trial did not reach its end (max_steps); try smaller limits."
         )
-    values, F_v, cov, se, _ = _covariance(free, free.theta0, np.asarray(res[0]), J[0], 1.0)
+    values, F_v, cov, se, _ = covariance(free, free.theta0, np.asarray(res[0]), J[0], 1.0)
     return values, F_v, cov, se, extremes
 
 

@@ -16,6 +16,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._runtime import export_cache as _aot
 from .._runtime.arrays import as_array, under_jit
+from .._runtime.arrays import traced as _traced
 from .._runtime.checks import finite
 from .._runtime.errors import InputError
 from .._runtime.quick_compile import eager_jit
@@ -29,11 +30,12 @@ from ..model.state import Flat, State
 from ..solve.batched import dispatch as _dispatch
 from ..solve.batched.components import gait_field_components, unit
 from ..solve.batched.layout import Layout, steps_layout
-from ..solve.fields import _kin_rates
+from ..solve.internal import kin_rates as _kin_rates
+from ..solve.internal import rebuild as _rebuild
 from ..solve.options import DEFAULT_TOLERANCES, SolverOptions, resolve
 from ..solve.segments import solve_segments
-from ..solve.simulate import _traced, batch_engine_applies
-from ..solve.trajectory import Trajectory, _rebuild, assemble, raise_on_failure
+from ..solve.simulate import batch_engine_applies
+from ..solve.trajectory import Trajectory, assemble, raise_on_failure
 
 
 def _real(x):

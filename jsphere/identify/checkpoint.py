@@ -14,9 +14,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._runtime.files import atomic_write
+from ..numerics.lm import LM_KEYS
 from .data import FitData
 from .free import FreeParams
-from .lm import LM_KEYS
 from .shooting import MU_LEVELS
 
 #: version of the checkpoint's contents (part of its fingerprint: a checkpoint written by

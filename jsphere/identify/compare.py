@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import diffrax as dfx
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -39,6 +40,7 @@ from .._runtime.files import atomic_write_json
 from ..capture.trial import Trial
 from ..model.params import RobotParams
 from ..model.rotations import quat_conj, quat_log, quat_mul
+from ..numerics.lm import Dense, LevenbergMarquardt
 from .data import TIME_OFFSET, FitData, offset_from_nuisance, pack_trials
 from .residuals import trial_model
 from .robust import DEFAULT_LOSS, REJECT, check_loss, frame_weights, reweigh, robust_cost
@@ -200,55 +202,45 @@ def _model(kind: str, rtol: float, atol: float, max_steps: int, max_offset: floa
     return _COMPILED[key]
 
 
-def _robust(loss: str, res, J=None):
-    """Per trial the cost of whitened residuals `res (T, K)` for `loss`, and with `J` the
-    reweighted residuals and Jacobian (`jsphere.identify.robust`)."""
-    if J is None:
-        return 0.5 * (res * res).sum(1) if loss == "l2" else np.asarray(robust_cost(loss, jnp.asarray(res)[:, None]))
-    if loss == "l2":
-        return res, J
-    rw, Jw = reweigh(loss, jnp.asarray(res)[:, None], jnp.asarray(J)[:, None])
-    return np.asarray(rw[:, 0]), np.asarray(Jw[:, 0])
+#: the nuisance estimate's iteration: one dense problem per trial, damped as the fit's
+NUISANCE_LM = LevenbergMarquardt(
+    eqx.filter_vmap(Dense(shift=1e-12)), rel_done=1e-10, gtol=1e-8, max_stalled=3, max_rejected=8
+)
 
 
 def _estimate_nuisance(params, data: FitData, sig, max_iter: int, rtol, atol, max_steps, loss: str = "l2"):
-    """Each trial's nuisance values by Levenberg-Marquardt with `params` held (trials are then
-    independent: one small damped Gauss-Newton step per trial, all in one vmapped call), on the
-    cost of `loss`. Returns the values `(T, n)`, the simulated poses there, whether each trial's
-    solve succeeded and the whitened residuals `(T, K)`."""
+    """Each trial's nuisance values by Levenberg-Marquardt (`NUISANCE_LM`) with `params` held
+    (trials are then independent: one small damped Gauss-Newton step per trial, all in one
+    vmapped call), on the cost of `loss` (`jsphere.identify.robust`: the reweighted residuals
+    and Jacobian are the linearisation). Returns the values `(T, n)`, the simulated poses there,
+    whether each trial's solve succeeded and the whitened residuals `(T, K)`."""
     fn = _model(data.kind, rtol, atol, max_steps, data.max_offset)
     arrays, sig_j = data.arrays(), jnp.asarray(sig)
-    nu = nuisance_guess(data, params)
-    res, ok, J, pose = fn(params, jnp.asarray(nu), arrays, sig_j)
-    res, ok, J, pose = np.asarray(res), np.asarray(ok), np.asarray(J), tuple(np.asarray(a) for a in pose)
-    cost = np.where(ok, _robust(loss, res), np.inf)
-    lam = np.full(nu.shape[0], 1e-3)
-    done = ~np.isfinite(cost)
+
+    def evaluate(nu):
+        res, ok, J, pose = fn(params, jnp.asarray(nu), arrays, sig_j)
+        if loss == "l2":
+            cost, linear = 0.5 * (res * res).sum(1), (res, J)
+        else:
+            cost = robust_cost(loss, res[:, None])
+            rw, Jw = reweigh(loss, res[:, None], J[:, None])
+            linear = (rw[:, 0], Jw[:, 0])
+        return jnp.where(ok, cost, jnp.inf), (linear, pose, res)
+
+    nu = jnp.asarray(nuisance_guess(data, params))
+    state = NUISANCE_LM.init(*evaluate(nu))
+    state = eqx.tree_at(lambda s: s.converged, state, ~jnp.isfinite(state.cost))
     for _ in range(max_iter):
-        if done.all():
+        if bool(np.all(state.converged)):
             break
-        rw, Jw = _robust(loss, res, J)
-        H = np.einsum("tkn,tkm->tnm", Jw, Jw)
-        g = np.einsum("tkn,tk->tn", Jw, rw)
-        d = np.diagonal(H, axis1=1, axis2=2)
-        Hd = H + (lam[:, None] * d + 1e-12 * d.max(1, keepdims=True) + 1e-300)[:, :, None] * np.eye(H.shape[1])
-        step = -np.linalg.solve(Hd, g[..., None])[..., 0]
-        step = np.where(done[:, None], 0.0, step)
-        r2, ok2, J2, pose2 = fn(params, jnp.asarray(nu + step), arrays, sig_j)
-        r2, ok2, J2 = np.asarray(r2), np.asarray(ok2), np.asarray(J2)
-        c2 = np.where(ok2, _robust(loss, r2), np.inf)
-        better = (c2 < cost) & ~done
-        small = better & (cost - c2 <= 1e-10 * np.maximum(cost, 1e-300) + 1e-8)
-        nu = np.where(better[:, None], nu + step, nu)
-        res = np.where(better[:, None], r2, res)
-        J = np.where(better[:, None, None], J2, J)
-        pose = tuple(
-            np.where(better.reshape((-1,) + (1,) * (np.ndim(b) - 1)), np.asarray(a), b) for a, b in zip(pose2, pose)
-        )
-        cost = np.where(better, c2, cost)
-        lam = np.where(better, np.maximum(lam / 5.0, 1e-12), lam * 10.0)
-        done |= small | (lam > 1e10)
-    return nu, tuple(np.asarray(a) for a in pose), np.isfinite(cost), res
+        nu_new, predicted = NUISANCE_LM.candidate(nu, *NUISANCE_LM.solve(state.current[0], state.lam))
+        nu, state = NUISANCE_LM.update(nu, nu_new, state, *evaluate(nu_new), predicted)
+    return (
+        np.asarray(nu),
+        tuple(np.asarray(a) for a in state.current[1]),
+        np.isfinite(np.asarray(state.cost)),
+        np.asarray(state.current[2]),
+    )
 
 
 # ----------------------------------------------------------------------------- the scores

@@ -16,7 +16,7 @@ The optimisation runs in stages (the checkpoint's `stage`), every start vmapped 
   states, their continuity defects closed by a rising weight `MU_LEVELS[k]`:
   `jsphere.identify.shooting`);
 - `0`: otherwise a few Adam steps (optax) from the starts (`jsphere.identify.starts`);
-- `1`: Levenberg-Marquardt to convergence (`jsphere.identify.lm`);
+- `1`: Levenberg-Marquardt to convergence (`jsphere.numerics.lm`, the block-arrow solve);
 - `2`: the noise levels estimated from the residuals, Levenberg-Marquardt again;
 - `3`: done: the best start is kept, its covariance and verdict assembled
   (`jsphere.identify.report`, `jsphere.identify.verdict`).
@@ -49,6 +49,7 @@ from .._runtime.precision import warn_if_float32_by_default
 from .._runtime.progress import Progress
 from ..model.names import parse_name
 from ..model.params import RobotParams
+from ..numerics.lm import LM_KEYS, LevenbergMarquardt, LMState, iterate
 from ..solve.options import SolverOptions, default_solver, resolve, unused
 from . import shooting as _shooting
 from .checkpoint import (
@@ -62,7 +63,6 @@ from .checkpoint import (
 )
 from .data import FitData, pack_trials
 from .free import FreeParams, _overlaps, _split_names, apply_fixes
-from .lm import LM_KEYS, LMOptions, LMState, levenberg_marquardt
 from .report import FitResult, fit_result
 from .residuals import _Functions, _functions
 from .robust import DEFAULT_LOSS, check_loss, reweigh, robust_cost
@@ -615,7 +615,7 @@ def _weighted(run: _Run, res, J):
 def _solve_single(run: _Run, out, lam):
     res, J = _weighted(run, out["res"], out["J"])
     dg, dn, pred = run.fns.step(jnp.asarray(res), J, jnp.asarray(lam))
-    return np.asarray(dg), np.asarray(dn), np.asarray(pred)
+    return (np.asarray(dg), np.asarray(dn)), np.asarray(pred)
 
 
 def _evaluate_multiple(run: _Run, st: _State, mu: float, th, n):
@@ -642,7 +642,7 @@ def _solve_multiple(run: _Run, out, lam):
     ms = run.shooting
     dg, dn, pred = run.fns.solve(out["blocks"], jnp.asarray(lam))
     dn = np.asarray(dn).reshape(run.S, run.T, ms.Gmax, run.n_nu)[:, ms.seg.trial, ms.position]
-    return np.asarray(dg), dn, np.asarray(pred)
+    return (np.asarray(dg), dn), np.asarray(pred)
 
 
 def _first_failure(data: FitData, pose, ok) -> str:
@@ -679,6 +679,11 @@ def _fail(run: _Run, st: _State, where: str):
 # ----------------------------------------------------------------------------- the stages
 
 
+#: the longest Levenberg-Marquardt step, in the free parameters' scaled units (`theta_scales`:
+#: a factor e^2 for a log-transformed value)
+STEP_MAX = 2.0
+
+
 def _lm_stage(run: _Run, st: _State, evaluate, solve, th, n, label: str, *, rel_done: float, max_rejected: int = 8):
     """Levenberg-Marquardt on every start from `(th, n)`, or from the state loaded, until the
     best start has converged or `max_iter`; saves after every step. Returns the final point,
@@ -687,12 +692,26 @@ def _lm_stage(run: _Run, st: _State, evaluate, solve, th, n, label: str, *, rel_
         cost, out = evaluate(th, n)
         if not np.isfinite(cost).any():
             _fail(run, st, f"Levenberg-Marquardt {label}")
-        st.lm = LMState.start(cost, out)
+    o, scales = run.options, run.free.theta_scales()
+    # accepted within the ODE solver's noise floor `noise`; a step longer than `STEP_MAX` is
+    # shortened: a start far off can otherwise jump to parameters whose motion takes the ODE
+    # solver `max_steps` steps, and the whole vmapped batch waits for it
+    lm = LevenbergMarquardt(
+        rel_done=rel_done,
+        gtol=o.gtol,
+        noise=o.noise,
+        max_stalled=3,
+        max_rejected=max_rejected,
+        max_step=STEP_MAX,
+        step_scale=(scales, np.inf),
+    )
+    if st.lm is None:
+        st.lm = lm.init(cost, out)
         _save(run, st)
-    o = run.options
-    options = LMOptions(o.max_iter, rel_done, o.gtol, o.noise, run.free.theta_scales(), max_rejected)
     with run.progress.bar(o.max_iter, f"fit: LM {label}", "it", initial=st.lm.it) as bar:
-        for th, n, st.lm, step in levenberg_marquardt(evaluate, solve, th, n, st.lm, options):
+        for (th_next, n), st.lm, (th_new, _) in iterate(lm, lambda x: evaluate(*x), solve, (th, n), st.lm, o.max_iter):
+            length = float(np.max(np.abs(np.asarray(th_new) - th) / scales, initial=0.0))
+            th, n = np.asarray(th_next), np.asarray(n)
             st.total_it += 1
             st.theta = th
             if st.stage >= 4:
@@ -704,7 +723,7 @@ def _lm_stage(run: _Run, st: _State, evaluate, solve, th, n, label: str, *, rel_
             bar.update(1, f"cost {np.min(st.lm.cost):.4e}")
             run.progress.step(
                 f"fit: LM {label} it {st.lm.it:3d}  cost {np.min(st.lm.cost):.6e}  lambda {st.lm.lam[b]:.1e}  "
-                f"step {step.length:.2e}  accepted {int(step.accepted.sum())}/{run.S}  ({time.perf_counter() - run.t_begin:.1f} s)"
+                f"step {length:.2e}  accepted {int(np.sum(st.lm.rejected == 0))}/{run.S}  ({time.perf_counter() - run.t_begin:.1f} s)"
             )
         bar.done()
     st.it = st.lm.it

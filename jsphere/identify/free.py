@@ -29,8 +29,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._runtime.errors import InputError
+from ..model.internal import FIELDS
 from ..model.names import get_value, parse_name, set_value
-from ..model.params import _FIELDS, RobotParams, number_array
+from ..model.params import RobotParams, number_array
 
 #: fields that must stay > 0 (log transform by default)
 POSITIVE = ("R0", "m0", "I0", "Rw", "m", "R_m")
@@ -157,7 +158,7 @@ def apply_fixes(params: RobotParams, fix: Mapping[str, Any] | None) -> RobotPara
             raise InputError(f"--fix {name}: R_m is a scalar; got shape {arr.shape}.")
         p = set_value(p, name, arr)
     try:
-        return RobotParams(**{f: getattr(p, f) for f in _FIELDS}, dtype=params.R0.dtype)
+        return RobotParams(**{f: getattr(p, f) for f in FIELDS}, dtype=params.R0.dtype)
     except ValueError as e:
         raise InputError(f"after --fix: {e}") from None
 

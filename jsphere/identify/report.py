@@ -2,7 +2,7 @@
 residuals, the verdict) and its JSON document.
 
 Covariance: `s^2 F^-1` with `F` the Gauss-Newton information of `theta` after eliminating the
-nuisance parameters (`jsphere.identify.lm.marginal_information`), mapped to physical units. For a
+nuisance parameters (`jsphere.numerics.lm.marginal_information`), mapped to physical units. For a
 robust loss `F` is that of the reweighted residuals and `s^2` the M-estimator's variance factor
 (`jsphere.identify.robust.variance_factor`).
 """
@@ -20,13 +20,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._runtime.files import atomic_write_json
+from ..model.internal import FIELDS
 from ..model.names import parse_name
-from ..model.params import _FIELDS, RobotParams
+from ..model.params import RobotParams
 from ..model.rotations import quat_conj, quat_log, quat_mul
+from ..numerics.lm import blocks, marginal_information
 from .data import TIME_OFFSET, FitData, offset_from_nuisance
 from .free import FreeParams
 from .identifiability import identifiability
-from .lm import _blocks, marginal_information
 from .robust import REJECT, frame_weights, reweigh, variance_factor
 from .verdict import judge, noise_floor
 
@@ -228,7 +229,7 @@ def fit_result(
         res_b, J_b = np.asarray(res_b[0]), J_b[0]
     values, F_phys, cov, se, corr = _covariance(free, th_b, res_b, J_b, s2)
     params = free.to_params(jnp.asarray(th_b), base)
-    params = RobotParams(**{f: getattr(params, f) for f in _FIELDS}, dtype=base.R0.dtype)
+    params = RobotParams(**{f: getattr(params, f) for f in FIELDS}, dtype=base.R0.dtype)
     ident = identifiability(free, values, F_phys, s2, params)
     ident["sigma_note"] = "relative sd of each direction; warnings list directions with relative sd > 10%"
     trials = _trial_reports(data, pose, nu[b], b, set_aside)
@@ -288,7 +289,7 @@ def _time_offsets(data: FitData, nu_b: np.ndarray, res_b: np.ndarray, J_b, P: in
     if data.max_offset <= 0:
         return None
     m = data.max_offset
-    Hgg, Hgn, Hnn, _, _ = (np.asarray(a) for a in _blocks(jnp.asarray(res_b), J_b, P))
+    Hgg, Hgn, Hnn, _, _ = (np.asarray(a) for a in blocks(jnp.asarray(res_b), J_b, P))
     F = marginal_information(jnp.asarray(res_b), J_b, P)
     Finv = np.linalg.pinv(F, rcond=1e-13, hermitian=True)
     values, errors = [], []

@@ -30,11 +30,11 @@ from ..controls import Sampled, Torques, WheelSpeeds
 from ..model.kinematics import relative_rate_from_wheel_speeds
 from ..model.rotations import quat_conj, quat_exp, quat_log, quat_mul
 from ..model.state import State
+from ..numerics.lm import arrow_step, solve_arrow
 from ..solve.simulate import simulate
 from . import shooting as _shooting
 from .data import offset_from_nuisance
 from .free import FreeParams
-from .lm import _lm_step, _solve_arrow
 from .shooting import end_vector
 
 
@@ -145,13 +145,13 @@ class _Functions:
         both = eager_jit(over_starts(over_trials(jac_one)))
         self.segments = both
         self.jacobian = eager_jit(lambda *a: both(*a)[:4])
-        self.step = eager_jit(jax.vmap(functools.partial(_lm_step, P=P)))
+        self.step = eager_jit(jax.vmap(functools.partial(arrow_step, P=P)))
 
         def assemble(res, J, e, Je, nu, mu, seg, scale):
             return _shooting.assemble(kind, P, res, J, e, Je, nu, mu, seg, scale)
 
         self.assemble = eager_jit(jax.vmap(assemble, in_axes=(0, 0, 0, 0, 0, None, None, None)))
-        self.solve = eager_jit(jax.vmap(_solve_arrow, in_axes=(0, 0)))
+        self.solve = eager_jit(jax.vmap(solve_arrow, in_axes=(0, 0)))
 
 
 _CACHE: dict[Any, _Functions] = {}

@@ -22,7 +22,7 @@ Given the parameters `theta`, segments are independent, so they are simulated in
 batch. The normal equations are an arrow over trials whose nuisance block per trial is block
 tridiagonal (a defect couples consecutive segments). It is assembled as a dense
 `(G n, G n)` block per trial (`G` segments of at most `n` nuisance parameters) and eliminated as
-in single shooting (`jsphere.identify.lm._solve_arrow`).
+in single shooting (`jsphere.numerics.lm.solve_arrow`).
 """
 
 from __future__ import annotations

@@ -11,7 +11,7 @@ from jaxtyping import Array, ArrayLike, Float
 from .kinematics import attitude_matrix
 from .linalg import cross
 from .params import RobotParams
-from .rotations import quat_from_rotmat, quat_normalize, rotmat
+from .rotations import quat_conj, quat_exp, quat_from_rotmat, quat_log, quat_mul, quat_normalize, rotmat
 
 
 class Flat:
@@ -167,3 +167,28 @@ def _unflatten(z) -> State:
     for name in ("q", "q_shell", "omega", "Omega", "x", "y", "chi"):
         object.__setattr__(s, name, z[..., getattr(Flat, name)])
     return s
+
+
+#: the size of `state_error`: position (2), attitude (3), `omega` (3), `Omega` (3)
+ERROR_SIZE = 11
+
+
+def state_error(z: Float[Array, " 16+N"], z_ref: Float[Array, " 16+N"]) -> Float[Array, " 11"]:
+    """The error of the flat state `z` from the reference `z_ref`, in the tangent space of the
+    motion that matters for the shell's path: `(x - x_r, y - y_r, a_1, a_2, a_3, omega - omega_r,
+    Omega - Omega_r)`, where `a` is the rotation vector [rad] of `R_r^T R` (the platform's attitude
+    relative to the reference's, platform components). The shell's attitude and the wheel
+    angles do not enter (the dynamics (3.4), (2.2)-(2.4) do not depend on them)."""
+    a = quat_log(quat_mul(quat_conj(z_ref[Flat.q]), z[Flat.q]))
+    return jnp.concatenate(
+        [z[Flat.xy] - z_ref[Flat.xy], a, z[Flat.omega] - z_ref[Flat.omega], z[Flat.Omega] - z_ref[Flat.Omega]]
+    )
+
+
+def state_plus(z_ref: Float[Array, " 16+N"], e: Float[Array, " 11"]) -> Float[Array, " 16+N"]:
+    """The flat state at the error `e` (as `state_error`) from `z_ref`: `R = R_r exp(a)`, the other
+    parts added; the shell's attitude and the wheel angles as in `z_ref`. The inverse of
+    `state_error`: `state_error(state_plus(z_r, e), z_r) = e` for `|a| < pi`."""
+    q = quat_mul(z_ref[Flat.q], quat_exp(e[2:5]))
+    out = Flat.replace(z_ref, q=q, omega=z_ref[Flat.omega] + e[5:8], Omega=z_ref[Flat.Omega] + e[8:11])
+    return out.at[Flat.xy].add(e[0:2])

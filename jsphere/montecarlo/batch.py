@@ -16,7 +16,7 @@ from ..model.params import RobotParams
 from ..model.state import State
 from ..solve.simulate import Trajectory, simulate
 from ..solve.status import RESULTS
-from .sampling import PERTURBATION_FOLD, Actuators, Draws, trial_key
+from .sampling import PERTURBATION_FOLD, Actuators, Uncertainty, trial_key
 
 #: trials per vmapped chunk. Every trial is computed inside a vmap of exactly this width,
 #: whatever the batch size or device count, which keeps results bitwise reproducible (XLA
@@ -49,7 +49,7 @@ class Trials(eqx.Module):
 
     params: RobotParams
     gaits: list[Gait]
-    draws: Draws
+    draws: Uncertainty
     seed: UInt32[Array, ""]
     reset: bool | list
     rtol: float
@@ -118,7 +118,7 @@ def _trial(trials: Trials, T, i: Int[Array, ""]) -> tuple:
     chunk), and its outcomes are replaced by NaN and the status `RESULTS.rejected`."""
     params = trials.params
     dt = params.R0.dtype
-    vals, code = trials.draws.draw(params, trials.seed, i)
+    vals, code = trials.draws.draw_one(params, trials.seed, i)
     valid = code == 0
     p = trials.draws.robot(params, vals, valid)
     k_omega, k_act = jax.random.split(jax.random.fold_in(trial_key(trials.seed, i), PERTURBATION_FOLD))

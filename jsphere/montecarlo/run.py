@@ -45,7 +45,7 @@ from .result import REJECTED as REJECTED
 from .result import MonteCarloResult
 from .sampling import MAX_REDRAWS as MAX_REDRAWS
 from .sampling import REASONS as REASONS
-from .sampling import Actuators, Draws
+from .sampling import Actuators, Uncertainty
 from .store import BATCH_KEYS, StudyFolder, fingerprint
 from .study import MODES, check_settings, check_vary
 
@@ -401,7 +401,7 @@ class _Run:
         trials = Trials(
             params,
             gaits,
-            Draws.from_spec(spec, params.R0.dtype),
+            Uncertainty.from_spec(spec, params.R0.dtype),
             jnp.asarray(seed, jnp.uint32),
             reset,
             rtol,

@@ -18,7 +18,7 @@ from ..model.state import State
 from ..solve.options import SolverOptions
 from .problem import Limits, Objective, PlanSettings, _check_request, _vec_targets, gait_from_vector
 from .result import Plan
-from .rollout import rollout
+from .rollout import heading, rollout
 from .search import _initial_guesses, _search
 from .verify import _accurate, _correct_bias, _limit_report, _terminal_errors, verification_options
 
@@ -91,7 +91,7 @@ def _search_model_errors(b: _Batch, k: int, gait) -> dict:
         "speed_m_s": float(p.R0 * jnp.linalg.norm(ro.Omega[-1, :2])),
         "heading_rad": float("nan"),
         "spin_rad_s": float(abs(ro.Omega[-1, 2])),
-        "final": [float(ro.x[-1]), float(ro.y[-1]), float(ro.heading)],
+        "final": [float(ro.x[-1]), float(ro.y[-1]), float(heading(p, ro))],
     }
 
 

@@ -7,7 +7,7 @@ import jax
 import jax.numpy as jnp
 
 from .problem import Limits, Objective, PlanSettings, gait_from_vector
-from .rollout import rollout
+from .rollout import heading, rollout, tilt2
 
 
 def _wrap(a):
@@ -32,7 +32,7 @@ def _residuals(z, target, params, lim: Limits, obj: Objective, s: PlanSettings):
         (ro.x[-1] - xt) / obj.position_scale,
         (ro.y[-1] - yt) / obj.position_scale,
         R0 * ro.Omega[-1] / obj.speed_scale,
-        jnp.atleast_1d(has_psi * _wrap(ro.heading - psi_t) / obj.heading_scale),
+        jnp.atleast_1d(has_psi * _wrap(heading(params, ro) - psi_t) / obj.heading_scale),
     ]
     S = ro.ts.shape[0]
     lw = jnp.sqrt(obj.limit_weight / S)
@@ -42,7 +42,7 @@ def _residuals(z, target, params, lim: Limits, obj: Objective, s: PlanSettings):
     if lim.max_wheel_speed is not None:
         lims.append(_hinge(jnp.abs(ro.chi_dot), lim.max_wheel_speed, obj.margin).ravel())
     if lim.max_tilt is not None:
-        lims.append(jax.nn.relu(ro.tilt2 / lim.max_tilt**2 - (1.0 - obj.margin) ** 2))
+        lims.append(jax.nn.relu(tilt2(gait, ro) / lim.max_tilt**2 - (1.0 - obj.margin) ** 2))
     if lim.max_torque_rate is not None:
         rate = jnp.diff(ro.K, axis=0) / (ro.ts[1] - ro.ts[0])
         lims.append(_hinge(jnp.abs(rate), lim.max_torque_rate, obj.margin).ravel())

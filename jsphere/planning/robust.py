@@ -39,13 +39,15 @@ from ..controls import Sampled, Torques, WheelSpeeds
 from ..model.params import RobotParams, derive
 from ..model.rotations import rotmat
 from ..model.state import Flat, State
-from ..solve.fields import _torque_field, _wheel_field
+from ..solve.fixed_grid import integrate
+from ..solve.internal import torque_field, wheel_field
 from ..solve.options import SolverOptions
 from .many import plan_many
 from .problem import Limits, Objective, PlanSettings, _duration_inv, _vec_targets, gait_from_vector
 from .residuals import _residuals
 from .result import Plan
 from .rollout import rollout
+from .search import SEARCH_LM
 from .uncertainty import Uncertainty
 from .verify import _accurate, _limit_report, _terminal_errors
 
@@ -62,34 +64,21 @@ MODES = ("wheel_speeds", "torques")
 def replay_end(params: RobotParams, ts, table, mode: str = "wheel_speeds", grid=None):
     """The state at `ts[-1]` of a robot from rest (`State.at_rest`) that executes the table
     `table (T, N)` (cubic, as `WheelSpeeds.from_samples`/`Torques.from_samples` read it),
-    integrated with classical RK4, one step per interval of `grid` (default: of `ts`; a grid
-    must start at `ts[0]` and end at `ts[-1]`) (pure JAX, vmappable over `params`). Returns
+    integrated with classical RK4 (`jsphere.solve.fixed_grid`), one step per interval of `grid`
+    (default: of `ts`; a grid must start at `ts[0]` and end at `ts[-1]`) (pure JAX, vmappable
+    over `params`). Returns
     `(x, y, Omega (3,), gamma (3,))`."""
     d = derive(params)
     dt = params.R0.dtype
     ts = jnp.asarray(ts, dt)
     tab = Sampled(ts, jnp.asarray(table, dt), "cubic")
-    control, field = (
-        (WheelSpeeds(tab, ()), _wheel_field) if mode == "wheel_speeds" else (Torques(tab, ()), _torque_field)
-    )
+    control, field = (WheelSpeeds(tab, ()), wheel_field) if mode == "wheel_speeds" else (Torques(tab, ()), torque_field)
     # the end of the control lies past the table: the last stage of each step is evaluated just
     # inside its interval instead (the table's left limit, differentiable in the knot times)
     args = (params, d, control, jnp.zeros((), dt), ts[-1] + 1.0)
     grid = ts if grid is None else jnp.asarray(grid, dt)
-
-    def f(t, z):
-        return field(t, z, args)
-
-    def step(z, k):
-        t, h = grid[k], grid[k + 1] - grid[k]
-        k1 = f(t, z)
-        k2 = f(t + 0.5 * h, z + 0.5 * h * k1)
-        k3 = f(t + 0.5 * h, z + 0.5 * h * k2)
-        k4 = f(t + h * (1.0 - 1e-12), z + h * k3)
-        return z + h / 6.0 * (k1 + 2.0 * k2 + 2.0 * k3 + k4), None
-
     z0 = State.at_rest(params).flatten().astype(dt)
-    zT, _ = jax.lax.scan(step, z0, jnp.arange(grid.shape[0] - 1))
+    zT = integrate(lambda t, z: field(t, z, args), z0, grid, last=1.0 - 1e-12, save=False)
     return zT[Flat.x], zT[Flat.y], zT[Flat.Omega], rotmat(zT[Flat.q])[2]
 
 
@@ -188,49 +177,35 @@ def _robust_residuals(z, target, params, samples, lim, obj, s, k: int):
 
 
 def _robust_one(z0, target, params, samples, lim, obj, s, k: int, steps: int):
-    """Levenberg-Marquardt with delayed acceptance (as `jsphere.planning.search._search_one`) on
-    `_robust_residuals`; returns the best point and its objective."""
-    V = z0.shape[0]
-    eye = jnp.eye(V, dtype=z0.dtype)
+    """Levenberg-Marquardt with delayed acceptance (`jsphere.planning.search.SEARCH_LM`, the
+    damping changing from the second iteration on) on `_robust_residuals`; returns the best
+    point and its objective."""
 
-    def rj(z):
-        def f(z):
-            out = _robust_residuals(z, target, params, samples, lim, obj, s, k)
-            return out, out
-
-        J, r = jax.jacfwd(f, has_aux=True)(z)
-        return r, J
+    def f(z):
+        out = _robust_residuals(z, target, params, samples, lim, obj, s, k)
+        return out, out
 
     def body(c, it):
-        z, zb, rb, Jb, fb, lam = c
-        r, J = rj(z)
-        f = jnp.sum(r**2)
-        ok = jnp.isfinite(f) & jnp.all(jnp.isfinite(J))
-        better = ok & (f < fb)
-        zb, rb, Jb, fb = (jnp.where(better, a, b) for a, b in ((z, zb), (r, rb), (J, Jb), (f, fb)))
-        lam = jnp.where(it > 0, jnp.where(better, jnp.maximum(lam / 3.0, 1e-12), jnp.minimum(lam * 4.0, 1e12)), lam)
-        JtJ = Jb.T @ Jb
-        step = -jnp.linalg.solve(JtJ + lam * (jnp.diag(jnp.diag(JtJ)) + 1e-9 * eye), Jb.T @ rb)
-        z_next = zb + jnp.where(jnp.all(jnp.isfinite(step)), step, 0.0)
-        return (z_next, zb, rb, Jb, fb, lam), f
+        z, pred, zb, lm = c
+        J, r = jax.jacfwd(f, has_aux=True)(z)
+        cost = jnp.sum(r**2)
+        cost = jnp.where(jnp.isfinite(cost) & jnp.all(jnp.isfinite(J)), cost, jnp.inf)
+        zb, new = SEARCH_LM.update(zb, z, lm, cost, (r, J), pred)
+        lm = eqx.tree_at(lambda m: m.lam, new, jnp.where(it > 0, new.lam, lm.lam))
+        z_next, pred = SEARCH_LM.propose(zb, lm)
+        return (z_next, pred, zb, lm), None
 
     r0 = _robust_residuals(z0, target, params, samples, lim, obj, s, k)
-    c0 = (
-        z0,
-        z0,
-        r0,
-        jnp.zeros((r0.shape[0], V), z0.dtype),
-        jnp.asarray(jnp.inf, z0.dtype),
-        jnp.asarray(1e-3, z0.dtype),
-    )
-    (_, zb, _, _, fb, _), hist = jax.lax.scan(body, c0, jnp.arange(steps + 1))
-    return zb, fb, hist
+    inf = jnp.asarray(jnp.inf, z0.dtype)
+    lm0 = SEARCH_LM.init(inf, (r0, jnp.zeros((r0.shape[0], z0.shape[0]), z0.dtype)))
+    (_, _, zb, lm), _ = jax.lax.scan(body, (z0, inf, z0, lm0), jnp.arange(steps + 1))
+    return zb, lm.cost
 
 
 @eqx.filter_jit
 def _robust_search(z0s, target, params, samples, lim, obj, s, k: int, steps: int):
     """Every start of `z0s (R, V)` under one `vmap`; returns `(z (R, V), objective (R,))`."""
-    zb, fb, _ = jax.vmap(lambda z: _robust_one(z, target, params, samples, lim, obj, s, k, steps))(z0s)
+    zb, fb = jax.vmap(lambda z: _robust_one(z, target, params, samples, lim, obj, s, k, steps))(z0s)
     return zb, jnp.where(jnp.isfinite(fb), fb, jnp.inf)
 
 

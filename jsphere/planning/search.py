@@ -20,6 +20,7 @@ from ..model.dynamics import mass_blocks
 from ..model.kinematics import rest_attitude
 from ..model.params import RobotParams, derive
 from ..model.rotations import rotation_between
+from ..numerics.lm import Dense, LevenbergMarquardt
 from .problem import _duration_inv, _n_vars
 from .residuals import _loss, _residuals, _residuals_and_jacobian
 
@@ -45,54 +46,46 @@ def _lbfgs(z0, target, params, lim, obj, s):
     return z, hist
 
 
+#: the search's Levenberg-Marquardt: delayed acceptance, the damping / 3 on success and x 4 on failure
+SEARCH_LM = LevenbergMarquardt(Dense(floor=1e-9), decrease=3.0, increase=4.0, lam_max=1e12)
+
+
 def _search_one(z0, target, params, lim, obj, s):
-    """Adam (`adam_steps`) then Levenberg-Marquardt (`lm_steps`) in one `lax.scan` whose body
-    evaluates the residuals and their Jacobian once, so the model is compiled once (an
-    `optimistix.LevenbergMarquardt` after an Adam scan compiles it three times: see
+    """Adam (`adam_steps`) then Levenberg-Marquardt (`lm_steps`, `SEARCH_LM`) in one `lax.scan`
+    whose body evaluates the residuals and their Jacobian once, so the model is compiled once
+    (an `optimistix.LevenbergMarquardt` after an Adam scan compiles it three times: see
     `benchmarks/solvers.py`).
 
-    LM with delayed acceptance: each iteration evaluates the candidate of the previous one; it
-    is accepted (damping / 3) if it lowers `sum r^2`, else the damping grows x 4 and a new
-    step is taken from the best point. Returns the best point, its loss, its Jacobian and the
-    loss history."""
+    LM with delayed acceptance: each iteration evaluates the candidate of the previous one (an
+    Adam step or an LM step from the best point) and keeps it if it lowers `sum r^2`; the
+    damping changes from the second LM iteration on. Returns the best point, its loss, its
+    Jacobian and the loss history."""
     opt = optax.adam(s.learning_rate)
-    V = z0.shape[0]
-    eye = jnp.eye(V, dtype=z0.dtype)
 
     def body(c, k):
-        z, zb, rb, Jb, fb, lam, st = c
+        z, pred, zb, lm, st = c
         r, J = _residuals_and_jacobian(z, target, params, lim, obj, s)
         f = jnp.sum(r**2)
         ok = jnp.isfinite(f) & jnp.all(jnp.isfinite(J))
-        better = ok & (f < fb)
-        zb, rb, Jb, fb = (jnp.where(better, a, b) for a, b in ((z, zb), (r, rb), (J, Jb), (f, fb)))
+        zb, new = SEARCH_LM.update(zb, z, lm, jnp.where(ok, f, jnp.inf), (r, J), pred)
+        lm = eqx.tree_at(lambda m: m.lam, new, jnp.where(k > s.adam_steps, new.lam, lm.lam))
         # Adam step from the current point
         g = jnp.where(ok, 2.0 * J.T @ r, 0.0)
         up, st_new = opt.update(g, st, z)
         z_adam = jnp.where(ok, optax.apply_updates(z, up), zb)
         # LM step from the best point
+        z_lm, pred_lm = SEARCH_LM.propose(zb, lm)
         lm_phase = k >= s.adam_steps
-        grow = jnp.where(better, jnp.maximum(lam / 3.0, 1e-12), jnp.minimum(lam * 4.0, 1e12))
-        lam = jnp.where(k > s.adam_steps, grow, lam)
-        JtJ = Jb.T @ Jb
-        step = -jnp.linalg.solve(JtJ + lam * (jnp.diag(jnp.diag(JtJ)) + 1e-9 * eye), Jb.T @ rb)
-        z_lm = zb + jnp.where(jnp.all(jnp.isfinite(step)), step, 0.0)
         z_next = jnp.where(lm_phase, z_lm, z_adam)
-        return (z_next, zb, rb, Jb, fb, lam, st_new), f
+        return (z_next, jnp.where(lm_phase, pred_lm, jnp.inf), zb, lm, st_new), f
 
     r0 = _residuals(z0, target, params, lim, obj, s)
-    c0 = (
-        z0,
-        z0,
-        jnp.zeros_like(r0),
-        jnp.zeros((r0.shape[0], V), z0.dtype),
-        jnp.asarray(jnp.inf, z0.dtype),
-        jnp.asarray(1e-3, z0.dtype),
-        opt.init(z0),
-    )
+    V = z0.shape[0]
+    lm0 = SEARCH_LM.init(jnp.asarray(jnp.inf, z0.dtype), (jnp.zeros_like(r0), jnp.zeros((r0.shape[0], V), z0.dtype)))
+    c0 = (z0, jnp.asarray(jnp.inf, z0.dtype), z0, lm0, opt.init(z0))
     c, hist = jax.lax.scan(body, c0, jnp.arange(s.adam_steps + s.lm_steps + 1))
-    _, zb, _, Jb, fb, _, _ = c
-    return zb, fb, Jb, hist
+    _, _, zb, lm, _ = c
+    return zb, lm.cost, lm.current[1], hist
 
 
 @eqx.filter_jit

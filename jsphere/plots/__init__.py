@@ -1,6 +1,7 @@
 """Figures (matplotlib, imported lazily), one module per family: the paper's figures, fits,
 models compared with trials, plans and Monte-Carlo studies. Each function takes a result object and writes a PNG
-atomically; this layer imports nothing from the layers whose results it draws."""
+atomically; this layer imports nothing from the layers whose results it draws. The animations
+(`jsphere.plots.animation`), which read and replay runs, sit above those layers."""
 
 from .compare import compare_figure as compare_figure
 from .fit import fit_figures as fit_figures

@@ -10,11 +10,12 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from ..model.dynamics import energy, power
+from ..model.internal import unflatten
 from ..model.kinematics import wheel_speeds
 from ..model.linalg import cross
 from ..model.params import RobotParams
 from ..model.rotations import quat_normalize, rotmat
-from ..model.state import Flat, State, _unflatten
+from ..model.state import Flat, State
 from .status import RESULTS
 
 
@@ -72,7 +73,7 @@ def _state_at(traj: Trajectory, i) -> State:
         ],
         axis=-1,
     )
-    return _unflatten(z)
+    return unflatten(z)
 
 
 def _rebuild(leaves) -> Trajectory:

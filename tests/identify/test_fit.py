@@ -109,7 +109,10 @@ def test_small_fit_recovers_truth_within_standard_errors(small_fit, small_truth)
     assert res.sigma_pos == pytest.approx(1e-3, rel=0.15)
     assert math.degrees(res.sigma_rot) == pytest.approx(0.5, rel=0.15)
     assert float(res.params.m) == 2.5 and float(res.params.R_m) == pytest.approx(res.values["R_m"])
-    assert abs(res.correlation[0, 1]) <= 1.0 and res.correlation[0, 0] == 1.0
+    # the correlation is the covariance scaled by the standard errors, which are its diagonal's roots
+    se = np.array([res.stderr[n] for n in res.free])
+    np.testing.assert_allclose(se, np.sqrt(np.diag(res.covariance)), rtol=1e-12)
+    np.testing.assert_allclose(res.correlation, res.covariance / np.outer(se, se), rtol=1e-10, atol=1e-14)
     assert all(t["rms_pos_m"] < 2e-3 for t in res.trials)
 
 

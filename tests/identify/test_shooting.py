@@ -21,9 +21,9 @@ from jsphere.controls import Sampled
 from jsphere.identify import shooting as _shooting
 from jsphere.identify.data import pack_trials
 from jsphere.identify.free import FreeParams
-from jsphere.identify.lm import _solve_arrow
 from jsphere.identify.residuals import _functions, _trial_outputs
 from jsphere.identify.starts import nuisance_guess, start_design
+from jsphere.numerics.lm import solve_arrow
 
 FREE7 = "r_m[2],j,I[0,0],I[1,1],I[2,2],m0,I0"
 
@@ -103,7 +103,7 @@ def test_the_defect_of_a_continuous_trajectory_is_zero():
 
 
 def test_block_assembly_and_step_match_a_dense_solve_of_a_linear_model():
-    """`assemble` and `_solve_arrow` against the dense normal equations, for segments whose
+    """`assemble` and `solve_arrow` against the dense normal equations, for segments whose
     residuals and end states are linear in `(theta, nu_g)`: two trials of three and two
     segments, a wheel-speed (8) nuisance size."""
     rng = np.random.default_rng(4)
@@ -145,7 +145,7 @@ def test_block_assembly_and_step_match_a_dense_solve_of_a_linear_model():
         "wheel_speeds", P, r, jnp.asarray(Jr), e, jnp.asarray(Je), jnp.asarray(nu), mu, seg, scale
     )
     lam = 0.03
-    dg, dn, pred = jax.jit(_solve_arrow)(blocks, lam)
+    dg, dn, pred = jax.jit(solve_arrow)(blocks, lam)
     dn = np.asarray(dn).reshape(2, 3, n)[trial, [0, 1, 2, 0, 1]]
     rd = np.asarray(jax.jit(residuals)(z))
     Jd = np.asarray(jax.jit(jax.jacfwd(residuals))(z))

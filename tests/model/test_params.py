@@ -204,10 +204,14 @@ def test_invalid_params_raise_naming_field(base, make, field, extra):
 
 
 def test_valid_variants_construct(base):
-    """Sanity: the variants above differ from a valid set only in the broken field."""
-    RobotParams(**base)
-    RobotParams(**{**base, "j": 0.0, "g": 0.0})
-    RobotParams(**{**base, "I": [[0.016, 0.001, 0.0], [0.001, 0.016, 0.0], [0.0, 0.0, 0.023]]})
+    """Sanity: the variants above differ from a valid set only in the broken field; the valid
+    sets keep the values given and break no rule."""
+    plain = RobotParams(**base)
+    still = RobotParams(**{**base, "j": 0.0, "g": 0.0})
+    coupled = RobotParams(**{**base, "I": [[0.016, 0.001, 0.0], [0.001, 0.016, 0.0], [0.0, 0.0, 0.023]]})
+    assert float(still.j) == 0.0 and float(still.g) == 0.0
+    assert float(coupled.I[0, 1]) == 0.001 and float(coupled.I[1, 0]) == 0.001
+    assert [int(rule_code(p)) for p in (plain, still, coupled)] == [0, 0, 0]
 
 
 @pytest.fixture(scope="module")

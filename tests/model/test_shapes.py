@@ -3,7 +3,9 @@ the checker): every annotation holds on real inputs, and a wrong shape is refuse
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import jsphere
@@ -25,30 +27,36 @@ K = jnp.array([0.1, -0.2, 0.05])
 Q = jnp.array([0.9, 0.1, -0.3, 0.2]) / jnp.linalg.norm(jnp.array([0.9, 0.1, -0.3, 0.2]))
 
 CALLS = {
-    "accelerations": lambda: checked(dynamics.accelerations)(P, GAMMA, OMEGA, SHELL, K),
-    "wheel_speeds": lambda: checked(kinematics.wheel_speeds)(P, OMEGA, SHELL),
-    "relative_rate_from_wheel_speeds": lambda: checked(kinematics.relative_rate_from_wheel_speeds)(P, K),
-    "constraint_residuals": lambda: checked(kinematics.constraint_residuals)(
+    "accelerations": lambda check: check(dynamics.accelerations)(P, GAMMA, OMEGA, SHELL, K),
+    "wheel_speeds": lambda check: check(kinematics.wheel_speeds)(P, OMEGA, SHELL),
+    "relative_rate_from_wheel_speeds": lambda check: check(kinematics.relative_rate_from_wheel_speeds)(P, K),
+    "constraint_residuals": lambda check: check(kinematics.constraint_residuals)(
         P, GAMMA, OMEGA, SHELL, kinematics.rolling_velocity(P, GAMMA, SHELL), kinematics.wheel_speeds(P, OMEGA, SHELL)
     ),
-    "rolling_velocity": lambda: checked(kinematics.rolling_velocity)(P, GAMMA, SHELL),
-    "kinematic_wheel_speeds": lambda: checked(kinematics.kinematic_wheel_speeds)(P, jnp.array([0.1, 0.0])),
-    "kinetic_energy": lambda: checked(dynamics.kinetic_energy)(P, GAMMA, OMEGA, SHELL),
-    "potential_energy": lambda: checked(dynamics.potential_energy)(P, GAMMA),
-    "power": lambda: checked(dynamics.power)(P, OMEGA, SHELL, K),
-    "cross": lambda: checked(linalg.cross)(OMEGA, SHELL),
-    "dot": lambda: checked(linalg.dot)(OMEGA, SHELL),
-    "matvec": lambda: checked(linalg.matvec)(jnp.eye(3), SHELL),
-    "solve3": lambda: checked(linalg.solve3)(jnp.eye(3) * 2.0, SHELL),
-    "quat_mul": lambda: checked(rotations.quat_mul)(Q, Q),
-    "rotmat": lambda: checked(rotations.rotmat)(Q),
-    "quat_normalize": lambda: checked(rotations.quat_normalize)(2.0 * Q),
+    "rolling_velocity": lambda check: check(kinematics.rolling_velocity)(P, GAMMA, SHELL),
+    "kinematic_wheel_speeds": lambda check: check(kinematics.kinematic_wheel_speeds)(P, jnp.array([0.1, 0.0])),
+    "kinetic_energy": lambda check: check(dynamics.kinetic_energy)(P, GAMMA, OMEGA, SHELL),
+    "potential_energy": lambda check: check(dynamics.potential_energy)(P, GAMMA),
+    "power": lambda check: check(dynamics.power)(P, OMEGA, SHELL, K),
+    "cross": lambda check: check(linalg.cross)(OMEGA, SHELL),
+    "dot": lambda check: check(linalg.dot)(OMEGA, SHELL),
+    "matvec": lambda check: check(linalg.matvec)(jnp.eye(3), SHELL),
+    "solve3": lambda check: check(linalg.solve3)(jnp.eye(3) * 2.0, SHELL),
+    "quat_mul": lambda check: check(rotations.quat_mul)(Q, Q),
+    "rotmat": lambda check: check(rotations.rotmat)(Q),
+    "quat_normalize": lambda check: check(rotations.quat_normalize)(2.0 * Q),
 }
 
 
 @pytest.mark.parametrize("name", sorted(CALLS))
 def test_annotations_hold(name):
-    CALLS[name]()
+    """The type-checked call accepts the real inputs and returns what the plain call returns."""
+    got, want = CALLS[name](checked), CALLS[name](lambda f: f)
+    leaves, ref = jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)
+    assert len(leaves) == len(ref) > 0
+    for a, b in zip(leaves, ref):
+        assert jnp.shape(a) == jnp.shape(b) and bool(jnp.all(jnp.isfinite(a)))
+        np.testing.assert_array_equal(a, b)
 
 
 @pytest.mark.parametrize(

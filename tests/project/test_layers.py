@@ -20,12 +20,14 @@ LAYERS = {
     "solve.batched": 4,
     "solve": 5,
     "gaits": 6,
+    "numerics": 6.5,  # least squares that know nothing of the robot; imports nothing of the package
     "capture": 7,
     "identify": 8,
     "planning": 8,
     "montecarlo": 8,
     "paper": 9,
     "design": 9,  # excitation design: identify, planning, capture, solve, model
+    "plots.animation": 9,  # animations: read runs from files, replay fits and studies (capture, identify, montecarlo)
     "cli": 10,
     "__init__": 11,
 }
@@ -119,3 +121,50 @@ def test_no_import_cycles():
     for m in sorted(GRAPH):
         if not state.get(m):
             visit(m)
+
+
+def _package(module: str) -> str:
+    """The top-level subpackage (or top-level module) that `module` belongs to."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "__init__"
+
+
+def _private_imports(name: str, path: Path, known: set[str]) -> list[str]:
+    """`_`-prefixed names that `name` imports from another subpackage (a module's own name,
+    such as `_runtime`, is not a private name)."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    out = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if not isinstance(node, ast.ImportFrom):
+            continue
+        if node.level:
+            base = package.split(".")
+            base = base[: len(base) - (node.level - 1)]
+            target = ".".join(base + ([node.module] if node.module else []))
+        else:
+            target = node.module or ""
+        if not target.startswith("jsphere") or _package(target) == _package(name):
+            continue
+        out += [
+            f"{target}.{a.name} (line {node.lineno})"
+            for a in node.names
+            if a.name.startswith("_") and f"{target}.{a.name}" not in known
+        ]
+    return out
+
+
+def test_no_private_names_across_packages():
+    """What a package shares with others is public inside it (`jsphere.<package>.internal`):
+    no module imports another package's `_`-prefixed names."""
+    modules = _modules()
+    found = {name: _private_imports(name, path, set(modules)) for name, path in modules.items()}
+    found = {k: v for k, v in found.items() if v}
+    assert not found, f"private names imported across packages: {found}"
+
+
+def test_private_import_check_sees_one(tmp_path):
+    """The check above flags a planted import of another package's private name."""
+    f = tmp_path / "probe.py"
+    f.write_text("from ..model.params import _FIELDS, RobotParams\nfrom .problem import _duration\n")
+    found = _private_imports("jsphere.planning.probe", f, set(_modules()))
+    assert found == ["jsphere.model.params._FIELDS (line 1)"]

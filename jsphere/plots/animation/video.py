@@ -1,0 +1,294 @@
+"""Animations as video: MP4 (H.264 through the ffmpeg binary that the `imageio-ffmpeg` wheel
+carries; no system ffmpeg) or GIF (Pillow), written with matplotlib's animation writers.
+
+Built for speed: the figure and its artists are made once (Agg), the geometry of every frame
+is computed beforehand with NumPy (`jsphere.plots.animation.scene.body_frames`), and each frame only
+moves the artists (`set_data_3d`, `set_verts`, `set_text`) before the writer grabs it. Every
+kind of line of a robot (meridians, wheels, ...) is one artist whose polylines are broken by
+NaN, so a frame draws a dozen artists per robot."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ..._runtime.files import atomic_write
+from ..._runtime.progress import Progress
+from .scene import BodyFrames, Scene, body_frames, frame_times, residual_text
+
+#: the writers by file suffix
+VIDEO_SUFFIXES = (".mp4", ".gif")
+#: the camera of each view: (elevation, azimuth) [deg]
+VIEWS = {"3d": (22.0, -60.0), "top": (90.0, -90.0)}
+#: the colours of the robots of a scene (a ghost, the model over a capture, is orange)
+COLOURS = ("C0", "C1", "C2", "C4", "C5", "C6", "C8", "C9")
+
+
+def _sphere_template(R0: float, n_lon: int = 14, n_lat: int = 8) -> np.ndarray:
+    """The quadrilaterals `(n_lon n_lat, 4, 3)` of a sphere of radius `R0` about the origin."""
+    lon = np.linspace(0.0, 2 * np.pi, n_lon + 1)
+    lat = np.linspace(-np.pi / 2, np.pi / 2, n_lat + 1)
+    p = lambda a, b: R0 * np.array([np.cos(b) * np.cos(a), np.cos(b) * np.sin(a), np.sin(b)])
+    quads = [
+        [p(lon[i], lat[j]), p(lon[i + 1], lat[j]), p(lon[i + 1], lat[j + 1]), p(lon[i], lat[j + 1])]
+        for i in range(n_lon)
+        for j in range(n_lat)
+    ]
+    return np.asarray(quads)
+
+
+def scene_frames(scene: Scene, fps: float, speed: float):
+    """The frames of one scene: run times `(F,)`, `BodyFrames` per body, and the residual text
+    per frame (a fit's scene) or None."""
+    times = frame_times(scene.duration, fps, speed)
+    frames = [body_frames(b, scene.params, times) for b in scene.bodies]
+    residual = residual_text(frames[0], frames[1]) if scene.residual and len(frames) > 1 else None
+    return times, frames, residual
+
+
+def _limits(scene: Scene, frames: list[BodyFrames]) -> tuple[np.ndarray, np.ndarray]:
+    """The floor box `(x0, y0), (x1, y1)` [m] that holds every path, the target and the cloud,
+    with a shell radius and a margin around."""
+    pts = [f.path for f in frames]
+    if scene.target is not None:
+        pts.append(np.asarray(scene.target, float)[None, :2])
+    if scene.cloud is not None and len(scene.cloud):
+        pts.append(np.asarray(scene.cloud, float))
+    if scene.ellipse is not None:
+        pts.append(np.asarray(scene.ellipse, float))
+    p = np.concatenate(pts)
+    p = p[np.all(np.isfinite(p), axis=1)]
+    pad = 1.25 * float(scene.params.R0)
+    lo, hi = p.min(0) - pad, p.max(0) + pad
+    return lo, hi
+
+
+def _status(t: float, f: BodyFrames, k: int) -> str:
+    rates = ", ".join(f"{v:+6.1f}" for v in f.chi_dot[k])
+    return f"t = {t:5.2f} s   speed {1e3 * f.speed[k]:6.1f} mm/s\nwheel rates chi_dot = ({rates}) rad/s"
+
+
+class _Robot:
+    """The artists of one robot (made once; `show` moves them to a frame)."""
+
+    def __init__(self, ax, template: np.ndarray, colour: str):
+        from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+        self.template = template
+        self.shell = Poly3DCollection(template, facecolor=colour, edgecolor="none", alpha=0.10)
+        ax.add_collection3d(self.shell)
+        nan = [np.nan]
+        self.meridians = ax.plot(nan, nan, nan, "-", color=colour, lw=0.8, alpha=0.8)[0]
+        self.equator = ax.plot(nan, nan, nan, "-", color="k", lw=1.0, alpha=0.7)[0]
+        self.platform = ax.plot(nan, nan, nan, "-", color="0.25", lw=2.0)[0]
+        self.wheels = ax.plot(nan, nan, nan, "-", color="C3", lw=1.2)[0]
+        self.rollers = ax.plot(nan, nan, nan, "-", color="C2", lw=1.5)[0]
+        self.mast = ax.plot(nan, nan, nan, "-", color="0.4", lw=1.0)[0]
+        self.com = ax.plot(nan, nan, nan, "o", color="k", ms=4)[0]
+        self.path = ax.plot(nan, nan, nan, "-", color=colour, lw=1.6)[0]
+        self.artists = [
+            self.shell,
+            self.meridians,
+            self.equator,
+            self.platform,
+            self.wheels,
+            self.rollers,
+            self.mast,
+            self.com,
+            self.path,
+        ]
+
+    def style(self, ghost: bool, colour: str, label: str, crowd: int = 1) -> None:
+        a = 0.35 if ghost else 1.0
+        ls = "--" if ghost else "-"
+        for art in self.artists[1:]:
+            art.set_alpha(a * (0.8 if art is self.meridians else 1.0))
+        self.shell.set_facecolor(colour)
+        self.shell.set_alpha((0.05 if ghost else 0.10) / max(1, crowd - 1))  # robots drawn over each other
+        self.meridians.set_color(colour)
+        self.path.set_color(colour)
+        self.path.set_linestyle(ls)
+        self.platform.set_linestyle(ls)
+        self.path.set_label(label)
+
+    def visible(self, on: bool) -> None:
+        for art in self.artists:
+            art.set_visible(on)
+
+    def show(self, f: BodyFrames, k: int) -> None:
+        def put(line, pts):
+            line.set_data_3d(pts[..., 0], pts[..., 1], pts[..., 2])
+
+        self.shell.set_verts(self.template + f.centre[k])
+        put(self.meridians, f.meridians[k])
+        put(self.equator, f.equator[k])
+        put(self.platform, f.platform[k])
+        put(self.wheels, f.wheels[k])
+        put(self.rollers, f.rollers[k])
+        put(self.mast, f.mast[k])
+        put(self.com, f.com[k][None])
+        p = f.path[: k + 1]
+        self.path.set_data_3d(p[:, 0], p[:, 1], np.zeros(len(p)))
+
+
+def render(
+    scenes: list[Scene],
+    path,
+    *,
+    fps: float,
+    speed: float,
+    size=(640, 480),
+    view: str = "3d",
+    progress=None,
+    blit: bool = True,
+) -> int:
+    """Write the `scenes`, one after the other, as a video to `path` (`.mp4` or `.gif`,
+    atomically): `fps` frames per second, `speed` the playback factor (a run of `T` s lasts
+    `T / speed` s), `size` `(width, height)` [pixels], `view` `"3d"` or `"top"`. `progress`: as
+    the library's (`jsphere._runtime.progress`); a bar counts the frames. `blit=False` draws
+    each frame in full and lets the writer grab it, as matplotlib's animations do (the
+    baseline of `benchmarks/animate.py`). Returns the number of frames written."""
+    from ..base import pyplot
+
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in VIDEO_SUFFIXES:
+        raise ValueError(f"{path}: a video ends in .mp4 or .gif; got {path.suffix or 'no suffix'!r}.")
+    if view not in VIEWS:
+        raise ValueError(f"view must be '3d' or 'top'; got {view!r}.")
+    plt = pyplot()
+    from matplotlib import animation
+
+    W, H = (int(v) + int(v) % 2 for v in size)  # H.264 wants even sizes
+    dpi = 100
+    prepared = [(s, *scene_frames(s, fps, speed)) for s in scenes]
+    total = sum(len(p[1]) for p in prepared)
+    n_bodies = max(len(s.bodies) for s in scenes)
+
+    fig = plt.figure(figsize=(W / dpi, H / dpi), dpi=dpi)
+    small = 7.0 * min(1.0, W / 640.0) + 0.5  # [pt]: the texts keep their place on small pictures
+    ax = fig.add_axes((0.0, 0.09, 1.0, 0.84), projection="3d", proj_type="ortho")
+    ax.view_init(*VIEWS[view])
+    ax.set_xlabel("X [m] (fixed frame)", fontsize=7, labelpad=-2)
+    ax.set_ylabel("Y [m] (fixed frame)", fontsize=7, labelpad=-2)
+    ax.set_zlabel("Z [m]" if view == "3d" else "", fontsize=7, labelpad=-4)
+    ax.tick_params(labelsize=6, pad=0)
+    if view == "top":
+        ax.set_zticks([])
+    title = fig.text(0.01, 0.985, "", fontsize=small + 0.5, va="top", ha="left")
+    status = fig.text(0.01, 0.01, "", fontsize=small, va="bottom", ha="left", family="monospace")
+    extra = fig.text(0.99, 0.93, "", fontsize=small, va="top", ha="right", family="monospace")
+    first = prepared[0][0]
+    template = _sphere_template(float(first.params.R0))
+    robots = [_Robot(ax, template, COLOURS[i % len(COLOURS)]) for i in range(n_bodies)]
+    nan = [np.nan]
+    target = ax.plot(nan, nan, nan, "x", color="C3", ms=9, mew=2, label="target")[0]
+    cloud = ax.plot(nan, nan, nan, ".", color="0.3", ms=2, alpha=0.6, label="stop points")[0]
+    ellipse = ax.plot(nan, nan, nan, "-", color="C3", lw=1.2, label="95 % ellipse")[0]
+
+    if suffix == ".mp4":
+        import imageio_ffmpeg
+
+        plt.rcParams["animation.ffmpeg_path"] = imageio_ffmpeg.get_ffmpeg_exe()
+        writer = animation.FFMpegWriter(fps=fps, codec="libx264", extra_args=["-pix_fmt", "yuv420p", "-crf", "23"])
+    else:
+        writer = animation.PillowWriter(fps=fps)
+
+    dynamic = [a for r in robots for a in r.artists] + [target, cloud, ellipse]
+    texts = [title, status, extra]
+    for art in dynamic + texts:
+        art.set_animated(blit)  # left out of the background, drawn over it each frame
+
+    palette: list = []
+
+    def push() -> None:
+        """Hand the canvas as it stands to the writer (matplotlib's writers grab a frame by
+        drawing the whole figure again; here only the moving artists were drawn)."""
+        buf = fig.canvas.buffer_rgba()
+        if suffix == ".mp4":
+            writer._proc.stdin.write(buf)
+        else:
+            from PIL import Image
+
+            im = Image.frombuffer("RGBA", (W, H), bytes(buf), "raw", "RGBA", 0, 1).convert("RGB")
+            # one palette for the whole GIF (its first frame's) and no dithering: the frames differ
+            # only where the robot moved, and the GIF stores only those differences
+            if not palette:
+                palette.append(im.quantize(colors=255, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE))
+            writer._frames.append(im.quantize(palette=palette[0], dither=Image.Dither.NONE))
+
+    def write(tmp):
+        canvas = fig.canvas
+        with warnings.catch_warnings():
+            # ffmpeg is started by fork and exec at once: JAX's threads are not touched in the child
+            warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
+            writer.setup(fig, tmp, dpi)
+        try:
+            frames_of(canvas)
+        finally:
+            writer.finish()
+
+    def frames_of(canvas) -> None:
+        with Progress(progress).bar(total, "animate", unit="frame") as bar:
+            for scene, times, frames, residual in prepared:
+                lo, hi = _limits(scene, frames)
+                R0 = float(scene.params.R0)
+                ax.set_xlim(lo[0], hi[0])
+                ax.set_ylim(lo[1], hi[1])
+                ax.set_zlim(0.0, 2.0 * R0)
+                ax.set_box_aspect((hi[0] - lo[0], hi[1] - lo[1], 2.0 * R0), zoom=1.35)
+                for i, robot in enumerate(robots):
+                    on = i < len(scene.bodies)
+                    robot.visible(on)
+                    if on:
+                        b = scene.bodies[i]
+                        robot.style(b.ghost, COLOURS[1 if b.ghost else i % len(COLOURS)], b.label, len(scene.bodies))
+                if scene.target is not None:
+                    target.set_data_3d([scene.target[0]], [scene.target[1]], [0.0])
+                target.set_visible(scene.target is not None)
+                if scene.cloud is not None:
+                    cloud.set_data_3d(scene.cloud[:, 0], scene.cloud[:, 1], np.zeros(len(scene.cloud)))
+                if scene.ellipse is not None:
+                    e = scene.ellipse
+                    ellipse.set_data_3d(e[:, 0], e[:, 1], np.zeros(len(e)))
+                title.set_text(scene.title)
+                canvas.draw()  # the axes, their panes, ticks and labels: the same for every frame
+                background = canvas.copy_from_bbox(fig.bbox)
+                end = 0.9 * times[-1]
+                for k, t in enumerate(times):
+                    if not blit:
+                        last = scene.cloud is not None and t >= end
+                        cloud.set_visible(last)
+                        ellipse.set_visible(last and scene.ellipse is not None)
+                        for robot, f in zip(robots, frames):
+                            robot.show(f, k)
+                        status.set_text(_status(t, frames[0], k))
+                        extra.set_text(residual[k] if residual is not None else "")
+                        writer.grab_frame()
+                        bar.update()
+                        continue
+                    canvas.restore_region(background)
+                    last = scene.cloud is not None and t >= end
+                    cloud.set_visible(last)
+                    ellipse.set_visible(last and scene.ellipse is not None)
+                    for robot, f in zip(robots, frames):
+                        robot.show(f, k)
+                        robot.shell.do_3d_projection()
+                        ax.draw_artist(robot.shell)
+                    for robot in robots[: len(frames)]:
+                        for art in robot.artists[1:]:
+                            ax.draw_artist(art)
+                    for art in (target, cloud, ellipse):
+                        ax.draw_artist(art)
+                    status.set_text(_status(t, frames[0], k))
+                    extra.set_text(residual[k] if residual is not None else "")
+                    for art in texts:
+                        fig.draw_artist(art)
+                    push()
+                    bar.update()
+
+    atomic_write(path, write)
+    plt.close(fig)
+    return total

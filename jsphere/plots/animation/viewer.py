@@ -1,0 +1,223 @@
+"""The interactive viewer: one self-contained HTML file (plotly, its offline bundle embedded,
+nothing fetched from the network; docs/decisions/viewer.md) with the 3-D scene to rotate and
+zoom, play/pause, a time slider, and the overlays of the video (time, speed, wheel rates, a
+fit's residual, a plan's target, a study's stop points and ellipse).
+
+Each frame of the slider holds the geometry that `jsphere.plots.animation.scene.body_frames` computed
+for the video, rounded to 0.1 mm. The page sets `window.jsphereViewer` to the plot's element
+(for scripts and the browser test)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..._runtime.files import atomic_write_text
+from .scene import Scene
+from .video import _limits, _status, scene_frames
+
+#: the trace colours of the robots of a scene (as the video's)
+_COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#bcbd22", "#17becf")
+#: the traces of one robot, in order
+_PARTS = ("shell", "meridians", "equator", "platform", "wheels", "rollers", "mast", "path")
+
+
+def _xyz(pts: np.ndarray, kind: str = "scatter3d") -> dict:
+    """Plotly's `x, y, z` of points `(P, 3)` [m], 0.1 mm steps, NaN as gaps (None), for a trace of
+    type `kind`."""
+    out = {"type": kind}
+    for i, key in enumerate("xyz"):
+        v = np.round(np.asarray(pts[..., i], float), 4)
+        out[key] = [None if not np.isfinite(a) else float(a) for a in v]
+    return out
+
+
+def _sphere_mesh(R0: float, n_lon: int = 16, n_lat: int = 10):
+    """Vertices `(V, 3)` and triangles `(i, j, k)` of a sphere of radius `R0` about the origin
+    (a longitude-latitude grid, each vertex stored once)."""
+    lon = np.linspace(0.0, 2 * np.pi, n_lon, endpoint=False)
+    lat = np.linspace(-np.pi / 2, np.pi / 2, n_lat + 1)
+    Lo, La = np.meshgrid(lon, lat, indexing="ij")
+    verts = R0 * np.stack([np.cos(La) * np.cos(Lo), np.cos(La) * np.sin(Lo), np.sin(La)], -1).reshape(-1, 3)
+    idx = lambda a, b: (a % n_lon) * (n_lat + 1) + b
+    a, b = np.meshgrid(np.arange(n_lon), np.arange(n_lat), indexing="ij")
+    a, b = a.ravel(), b.ravel()
+    i = np.concatenate([idx(a, b), idx(a, b)])
+    j = np.concatenate([idx(a + 1, b), idx(a + 1, b + 1)])
+    k = np.concatenate([idx(a + 1, b + 1), idx(a, b + 1)])
+    return verts, (i, j, k)
+
+
+#: the most points of a path in one frame (the path drawn so far, thinned evenly)
+PATH_POINTS = 80
+
+
+def _robot_traces(f, k: int, verts: np.ndarray) -> list[dict]:
+    """The data of one robot's traces at frame `k` (`_PARTS` order)."""
+    keep = np.unique(np.linspace(0, k, min(k + 1, PATH_POINTS)).round().astype(int))
+    path = np.concatenate([f.path[keep], np.zeros((keep.size, 1))], axis=1)
+    return [
+        _xyz(verts + f.centre[k], "mesh3d"),
+        _xyz(f.meridians[k]),
+        _xyz(f.equator[k]),
+        _xyz(f.platform[k]),
+        _xyz(f.wheels[k]),
+        _xyz(f.rollers[k]),
+        _xyz(np.concatenate([f.mast[k], f.com[k][None]])),
+        _xyz(path),
+    ]
+
+
+def write_html(scenes: list[Scene], path, *, fps: float, speed: float, size=(900, 700), view: str = "3d") -> int:
+    """Write the viewer of `scenes` (one after the other on the slider) to `path` (atomically):
+    frames at `fps` per second of playback, `speed` the playback factor, `size` `(width, height)`
+    [pixels] of the plot, `view` the starting camera (`"3d"` or `"top"`). Returns the number of
+    frames."""
+    import plotly.graph_objects as go
+
+    path = Path(path)
+    if path.suffix.lower() != ".html":
+        raise ValueError(f"{path}: the viewer is an HTML file; give a path ending in .html.")
+    prepared = [(s, *scene_frames(s, fps, speed)) for s in scenes]
+    n_bodies = max(len(s.bodies) for s in scenes)
+    params = scenes[0].params
+    R0 = float(params.R0)
+    verts, (ti, tj, tk) = _sphere_mesh(R0)
+    lo = np.min([_limits(s, f)[0] for s, _, f, _ in prepared], axis=0)
+    hi = np.max([_limits(s, f)[1] for s, _, f, _ in prepared], axis=0)
+
+    traces = []
+    for b in range(n_bodies):
+        c = _COLOURS[b % len(_COLOURS)]
+        traces += [
+            go.Mesh3d(
+                i=ti, j=tj, k=tk, color=c, opacity=0.12, hoverinfo="skip", name=f"shell {b + 1}", showlegend=False
+            ),
+            go.Scatter3d(mode="lines", line=dict(color=c, width=3), name=f"meridians {b + 1}", showlegend=False),
+            go.Scatter3d(mode="lines", line=dict(color="black", width=3), name="equator", showlegend=False),
+            go.Scatter3d(mode="lines", line=dict(color="#444444", width=6), name="platform", showlegend=False),
+            go.Scatter3d(mode="lines", line=dict(color="#d62728", width=4), name="omniwheels", showlegend=False),
+            go.Scatter3d(mode="lines", line=dict(color="#2ca02c", width=5), name="roller axes", showlegend=False),
+            go.Scatter3d(
+                mode="lines+markers",
+                line=dict(color="#666666", width=3),
+                marker=dict(size=[0, 5], color="black"),
+                name="centre of mass",
+                showlegend=False,
+            ),
+            go.Scatter3d(mode="lines", line=dict(color=c, width=5), name=f"path {b + 1}"),
+        ]
+    extra = len(traces)
+    traces += [
+        go.Scatter3d(mode="markers", marker=dict(symbol="x", size=6, color="#d62728"), name="target"),
+        go.Scatter3d(mode="markers", marker=dict(size=2, color="#555555"), name="stop points"),
+        go.Scatter3d(mode="lines", line=dict(color="#d62728", width=4), name="95 % ellipse"),
+    ]
+    empty = {"type": "scatter3d", "x": [], "y": [], "z": []}
+
+    frames, names, run_times = [], [], []
+    for s_idx, (scene, times, fr, residual) in enumerate(prepared):
+        end = 0.9 * times[-1]
+        for k, t in enumerate(times):
+            data = []
+            for b in range(n_bodies):
+                if b < len(fr):
+                    parts = _robot_traces(fr[b], k, verts)
+                    if scene.bodies[b].ghost:  # the model over the capture: fainter
+                        parts = [p | {"opacity": 0.06 if i == 0 else 0.45} for i, p in enumerate(parts)]
+                    data += parts
+                else:
+                    data += [{"type": "mesh3d", "x": [], "y": [], "z": []}] + [empty] * (len(_PARTS) - 1)
+            tgt = scene.target
+            data.append(_xyz(np.array([[tgt[0], tgt[1], 0.0]])) if tgt is not None else empty)
+            show_end = scene.cloud is not None and t >= end
+            data.append(_xyz(np.c_[scene.cloud, np.zeros(len(scene.cloud))]) if show_end else empty)
+            el = scene.ellipse
+            data.append(_xyz(np.c_[el, np.zeros(len(el))]) if show_end and el is not None else empty)
+            text = _status(t, fr[0], k).replace("\n", "<br>") + (f"<br>{residual[k]}" if residual is not None else "")
+            name = f"{len(frames)}"
+            frames.append(
+                go.Frame(
+                    name=name,
+                    data=data,
+                    traces=list(range(extra + 3)),
+                    layout=dict(annotations=[_note(scene.title.replace("\n", "<br>"), 1.0), _note(text, 0.0)]),
+                )
+            )
+            names.append(name)
+            run_times.append(f"{s_idx + 1}:{t:.2f} s" if len(prepared) > 1 else f"{t:.2f} s")
+
+    first = frames[0]
+    fig = go.Figure(data=traces, frames=frames)
+    for tr, d in zip(fig.data, first.data):
+        tr.update(d)
+    eye = dict(x=1.3, y=-1.6, z=0.9) if view == "3d" else dict(x=0.0, y=0.0, z=2.5)
+    # a slider step waits for the frames drawn before it ("afterall"): interrupted, plotly's
+    # animation promise rejects unhandled (a console error at each click on the rail)
+    step = lambda name: [
+        [name],
+        dict(mode="afterall", frame=dict(duration=0, redraw=True), transition=dict(duration=0)),
+    ]
+    play = dict(frame=dict(duration=1000.0 / fps, redraw=True), transition=dict(duration=0), fromcurrent=True)
+    stop = dict(mode="immediate", frame=dict(duration=0, redraw=False), transition=dict(duration=0))
+    span = hi - lo
+    fig.update_layout(
+        width=int(size[0]),
+        height=int(size[1]),
+        margin=dict(l=0, r=0, t=40, b=0),
+        annotations=list(first.layout.annotations),
+        scene=dict(
+            xaxis=dict(title="X [m] (fixed frame)", range=[lo[0], hi[0]]),
+            yaxis=dict(title="Y [m] (fixed frame)", range=[lo[1], hi[1]]),
+            zaxis=dict(title="Z [m]", range=[0.0, 2.0 * R0]),
+            aspectmode="manual",
+            aspectratio=dict(x=1.0, y=span[1] / span[0], z=2.0 * R0 / span[0]),
+            camera=dict(eye=eye, up=dict(x=0, y=1, z=0) if view == "top" else dict(x=0, y=0, z=1)),
+        ),
+        legend=dict(x=0.0, y=0.9, font=dict(size=10)),
+        updatemenus=[
+            dict(
+                type="buttons",
+                direction="left",
+                x=0.0,
+                y=0.0,
+                xanchor="left",
+                yanchor="top",
+                buttons=[
+                    dict(label="play", method="animate", args=[None, play]),
+                    dict(label="pause", method="animate", args=[[None], stop]),
+                ],
+            )
+        ],
+        sliders=[
+            dict(
+                active=0,
+                x=0.12,
+                y=0.0,
+                len=0.86,
+                yanchor="top",
+                currentvalue=dict(prefix="t = ", font=dict(size=11)),
+                steps=[dict(label=lab, method="animate", args=step(n)) for n, lab in zip(names, run_times)],
+            )
+        ],
+    )
+    post = "window.jsphereViewer = document.getElementById('{plot_id}');"
+    html = fig.to_html(include_plotlyjs=True, full_html=True, post_script=post, config=dict(displaylogo=False))
+    atomic_write_text(path, html)
+    return len(frames)
+
+
+def _note(text: str, y: float) -> dict:
+    return dict(
+        text=text,
+        x=0.01,
+        y=y,
+        xref="paper",
+        yref="paper",
+        xanchor="left",
+        yanchor="top" if y > 0.5 else "bottom",
+        showarrow=False,
+        align="left",
+        font=dict(size=11, family="monospace"),
+    )
