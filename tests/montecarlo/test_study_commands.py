@@ -2,6 +2,7 @@
 `jsphere design` replayed on every perturbed robot, from the command line."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -97,3 +98,11 @@ def test_jsphere_montecarlo_replays_the_table(tmp_path, paper, nominal, capsys):
     assert stats["mean_xy_m"] == pytest.approx(stats["planned_stop_m"], abs=1e-6)
     assert stats["planned_stop_m"] == pytest.approx([nominal["x"][-1], nominal["y"][-1]], abs=5e-3)
     assert "planned stop" in capsys.readouterr().out
+
+
+def test_the_example_study_of_a_command_table_loads():
+    root = Path(__file__).resolve().parents[2] / "examples"
+    study = load_study(root / "study_commands.toml")
+    ts, K = study["kwargs"]["commands"]
+    assert study["kwargs"]["mode"] == "torques" and K.shape == (len(ts), 3) and ts[0] == 0.0
+    assert np.abs(K).max() > 1e-3  # the gaits' torques, not an empty table
