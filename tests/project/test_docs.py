@@ -189,6 +189,11 @@ def test_every_relative_link_and_repository_path_resolves():
     assert not missing, "\n".join(missing)
 
 
+def test_the_documents_name_no_private_module():
+    private = [f"{p.relative_to(ROOT)}: {m}" for p in DOCUMENTS for m in re.findall(r"jsphere\._\w+", p.read_text())]
+    assert not private, "\n".join(private)
+
+
 def test_every_page_is_in_the_site_and_linked_from_the_index():
     nav = set(re.findall(r"^\s*-\s+(?:[^:\n]+:\s+)?([\w/.-]+\.md)\s*$", (ROOT / "mkdocs.yml").read_text(), flags=re.M))
     pages = {str(p.relative_to(ROOT / "docs")) for p in (ROOT / "docs").rglob("*.md")}
