@@ -1,6 +1,7 @@
 #!/bin/bash
 # Submit the worker array and, after it (whatever became of its tasks), the gather job. The
-# jobs inherit STUDY, OUT, TRIALS and CLAIM_TIMEOUT from this shell.
+# jobs inherit STUDY, OUT, TRIALS, CLAIM_TIMEOUT and JSPHERE_VENV (the environment jsphere is
+# installed in, with the GPU extra: pip install -e ".[gpu]"; see worker_array.sbatch) from this shell.
 #
 #   STUDY=study.toml OUT=/shared/$USER/study TRIALS=10000000 examples/cluster/submit_array.sh
 set -euo pipefail

@@ -125,7 +125,7 @@ def _check_c3d_parameters(params: bytes, endian: str, source: str) -> None:
 
 
 def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: bool = False) -> MarkerData:
-    """Read marker trajectories from a C3D file through `ezc3d` (`pip install jsphere[c3d]`).
+    """Read marker trajectories from a C3D file through `ezc3d` (`pip install -e ".[c3d]"` in the jsphere source folder).
 
     Uses `POINT:LABELS`, `POINT:RATE`, `POINT:UNITS` and `data.points` `(4, K, M)`; a point whose
     residual (`data.meta_points.residuals`) is negative is a gap. Times are frame / rate from 0.
@@ -157,7 +157,7 @@ def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: 
         import ezc3d
     except ImportError:
         raise ImportError(
-            "read_c3d needs the optional dependency ezc3d: pip install jsphere[c3d] (or pip install ezc3d)."
+            'read_c3d needs the optional dependency ezc3d: pip install ezc3d (or pip install -e ".[c3d]" in the jsphere source folder).'
         ) from None
     try:
         c = ezc3d.c3d(str(path))

@@ -66,6 +66,7 @@ def convert_raw(
     if format not in RAW_FORMATS:
         raise ValueError(f"convert_raw: format must be one of {RAW_FORMATS}; got {format!r}.")
     _check_bag_options(format, inputs, units, up_axis, pose_topic, inputs_topic, joints)
+    _check_body_options(format, rigid_body, subject)
     kw = {"units": units, "allow_truncated": allow_truncated}
     if format == "motive":
         data = read_motive_csv(path, rigid_body=rigid_body, up_axis=up_axis or "y", **kw)
@@ -105,6 +106,26 @@ def convert_raw(
         allow_truncated=allow_truncated,
         keep_suspect=keep_suspect,
     )
+
+
+#: the formats whose files name bodies: `rigid_body` (a Vicon subject too) and `subject`
+RIGID_BODY_FORMATS = ("motive", "qualisys", "vicon")
+SUBJECT_FORMATS = ("vicon",)
+
+
+def _check_body_options(format, rigid_body, subject) -> None:
+    """`InputError` for a body named in a format whose files name none (a C3D file holds points,
+    a ROS bag a pose topic)."""
+    if rigid_body is not None and format not in RIGID_BODY_FORMATS:
+        raise InputError(
+            f"--rigid-body (rigid_body=) selects a body of a Motive, Qualisys or Vicon export; --format {format} has "
+            "none: drop it (C3D: the markers are the points; ROS bag: --pose-topic)."
+        )
+    if subject is not None and format not in SUBJECT_FORMATS:
+        raise InputError(
+            f"--subject (subject=) selects a Vicon Nexus subject; --format {format} has none: drop it"
+            + (" (use --rigid-body)." if format in RIGID_BODY_FORMATS else ".")
+        )
 
 
 def _check_bag_options(format, inputs, units, up_axis, pose_topic, inputs_topic, joints) -> None:

@@ -31,7 +31,7 @@ def _reader(path):
         from rosbags.highlevel import AnyReader, AnyReaderError
     except ImportError:
         raise ImportError(
-            "reading ROS bags needs rosbags: pip install jsphere[ros] (or pip install rosbags)."
+            'reading ROS bags needs rosbags: pip install rosbags (or pip install -e ".[ros]" in the jsphere source folder).'
         ) from None
     path = Path(path)
     if not path.exists():

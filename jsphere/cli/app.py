@@ -46,7 +46,8 @@ def parser() -> argparse.ArgumentParser:
             "studies, motion capture, system identification and motion planning.",
             88,
         ),
-        epilog="examples:\n  jsphere reproduce --out jsphere-reproduce\n  jsphere fit --help\n\n" + EXIT_CODES_HELP,
+        epilog="examples:\n  jsphere reproduce --out jsphere-reproduce\n  jsphere fit --help\n\n"
+        + EXIT_CODES_HELP.replace(_RESUME, "; fit and montecarlo keep what was finished: rerun to resume"),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     top.add_argument("--version", action="version", version=f"%(prog)s {version()}")
@@ -68,7 +69,13 @@ def _exit_codes(text: str, command: str) -> str:
     """The exit codes of `command`: those of `text` that are not another command's own."""
     names = {c.NAME for c in COMMANDS} - {command}
     keep = [line for line in text.splitlines() if line.split("    ", 1)[-1].split(":", 1)[0].strip() not in names]
+    if command not in _RESUMES:  # only fit and montecarlo resume; the others write their files at the end
+        keep = [line.replace(_RESUME, ", nothing written (files are written at the end)") for line in keep]
     return "\n".join(keep)
+
+
+#: how the exit code 130 of `EXIT_CODES_HELP` ends for a command that resumes
+_RESUME = " after saving what was finished; rerun to resume"
 
 
 def main(argv=None) -> int:

@@ -10,9 +10,9 @@ from pathlib import Path
 NAME = "convert"
 EXAMPLES = """
   jsphere convert capture.csv --format motive --inputs inputs.csv --out trial.csv
-  jsphere convert session.c3d --format c3d --inputs inputs.csv --rigid-body sphere --units mm --out trial.csv
+  jsphere convert session.c3d --format c3d --inputs inputs.csv --units mm --out trial.csv
   jsphere convert capture.csv --format motive --inputs plan.csv --input-kind chi_dot --time-offset auto --out trial.csv
-  jsphere convert run.bag --format rosbag --pose-topic /mocap/robot/pose --inputs-topic /joint_states \
+  jsphere convert run.bag --format rosbag --pose-topic /mocap/robot/pose --inputs-topic /joint_states \\
       --input-kind chi_dot --joints wheel_1,wheel_2,wheel_3 --out trial.csv
   jsphere convert take.tsv --format qualisys --inputs run_bag/ --inputs-topic /joint_states --out trial.csv
 """

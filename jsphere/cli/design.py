@@ -24,7 +24,8 @@ def add_parser(sub) -> None:
         "Fisher information of the free parameters (the per-trial initial velocities as nuisance values, as in "
         "`jsphere fit`), within motor limits, smooth and at rest at both ends (docs/design.md). Writes one inputs "
         "table per trial (`--out`, or <stem>_k for k = 1..M when M > 1) and <stem>.json with the predicted "
-        "standard errors of the design and of random multisines of the same RMS amplitude.",
+        "standard errors of the design and of random multisines of the design's RMS amplitude (scaled down where "
+        "that breaks a motor limit further than the design does).",
     )
     dp.add_argument("--free", required=True, help="the names to identify, as for fit: 'r_m[2],j,I[2,2]'")
     dp.add_argument("--duration", type=float, required=True, help="length of each trial [s]")

@@ -1,5 +1,5 @@
 """`jsphere montecarlo`: a Monte-Carlo study described by a TOML file
-(`jsphere.montecarlo.study.load_study`), resumable in its output folder. The statistics go to
+(docs/montecarlo.md), resumable in its output folder. The statistics go to
 `OUT/stats.json` (jsphere's frame, metres), the terminal gets a short summary.
 
 Beyond one process: `--distributed` runs the study on every process of a JAX multi-process job
@@ -30,8 +30,9 @@ RESUMES = "the finished batches are kept in the --out folder: rerun the same com
 def add_parser(sub) -> None:
     mc = sub.add_parser(
         NAME,
-        help="a Monte-Carlo study of the gaits (TOML description; see load_study)",
-        description="Run the gaits of a study file many times with parameters drawn from its [vary] "
+        help="a Monte-Carlo study of the gaits or of a command table (TOML study file; docs/montecarlo.md)",
+        description='Run the gaits of a study file, or replay its command table (commands = "FILE", as written '
+        "by plan --commands or design), many times with parameters drawn from its [vary] "
         "distributions (docs/montecarlo.md). Writes OUT/stats.json (stop points in jsphere's frame, metres), "
         "OUT/stop_points.png and the finished batches, from which a killed study resumes; prints a short "
         "summary.",
@@ -130,8 +131,11 @@ def run(args) -> int:
     if args.distributed and jax.process_index() != 0:
         return 0  # process 0 writes the files and the summary
     st = res.stats()
-    planned = simulate_gaits(study["params"], study["gaits"], reset=kwargs["reset"])
-    st["planned_stop_m"] = [float(planned.x[-1]), float(planned.y[-1])]
+    if kwargs.get("commands") is None:
+        planned = simulate_gaits(study["params"], study["gaits"], reset=kwargs["reset"])
+        st["planned_stop_m"] = [float(planned.x[-1]), float(planned.y[-1])]
+    else:
+        st["planned_stop_m"] = replayed_stop(study["params"], kwargs)
     atomic_write_json(out / "stats.json", st)
     why = _report(st, n)
     written = [out / "stats.json"]
@@ -148,6 +152,23 @@ def run(args) -> int:
             f"no trial succeeded ({st['n_failed']} solver failures, {st['n_rejected']} rejected draws); no statistics."
         )
     return 0
+
+
+def replayed_stop(params, kwargs) -> list[float]:
+    """Where the nominal robot stops under a study's command table: the table as it is (no
+    actuator errors), the motors stopped at its last time, then the study's settling time."""
+    import numpy as np
+
+    from ..controls import Torques, WheelSpeeds
+    from ..model.state import State
+    from ..solve.simulate import simulate
+
+    ts, u = kwargs["commands"]
+    ts, u = np.concatenate([ts, ts[-1:]]), np.concatenate([u, np.zeros_like(u[:1])])
+    control = (Torques if kwargs["mode"] == "torques" else WheelSpeeds).from_samples(ts, u)
+    t1 = float(ts[-1]) + kwargs.get("settle", 1.0)
+    tr = simulate(params, State.at_rest(params), control, t1, max_steps=kwargs.get("max_steps", 65536))
+    return [float(tr.x[-1]), float(tr.y[-1])]
 
 
 def _claim_timeout(value: float) -> float:

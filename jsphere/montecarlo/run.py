@@ -128,9 +128,8 @@ def monte_carlo(
       recomputed, with a `MonteCarloWarning` naming it; the hidden temporary files a killed
       run leaves are removed.
     - `progress`: `None` (default): a progress bar on stderr when it is a terminal; `True`: the
-      bar, or a line every few seconds where stderr is not a terminal; `False`: none
-      (`jsphere._runtime.progress`). The first batch, which compiles, is shown apart and left
-      out of the rate.
+      bar, or a line every few seconds where stderr is not a terminal; `False`: none.
+      The first batch, which compiles, is shown apart and left out of the rate.
     - `distributed`: run the study on every device of every process of a JAX multi-process
       job (one process per node or per GPU, all calling `monte_carlo` with the same arguments):
       the trials of each batch are sharded over a global mesh of all the devices, each process

@@ -9,6 +9,8 @@ import math
 from pathlib import Path
 from typing import Mapping, Sequence
 
+import numpy as np
+
 from .._runtime.checks import is_number, real, whole
 from .._runtime.errors import InputError
 from .._runtime.files import tomllib
@@ -118,6 +120,7 @@ STUDY_KEYS = {
     "gaits",
     "vary",
     "actuators",
+    "commands",
 }
 #: a study file's numeric keys and the `SETTINGS` they set
 _FILE_SETTINGS = {
@@ -141,6 +144,7 @@ def load_study(path) -> dict:
         settle = 1.0              # [s] (replay modes), >= 0
         reset = false
         gaits = [{kind = "acceleration", theta_max = 0.1, phi = 0.0, T = 2.0}, {kind = "braking"}]
+        commands = "plan-commands.csv"  # replay modes: a command table instead of the gaits' plan
         [vary]                    # names as in `jsphere fit --free`
         "r_m[2]" = ["normal", -0.0270146, 1e-4]
         j = ["uniform", 2.0e-4, 3.5e-4]
@@ -154,6 +158,12 @@ def load_study(path) -> dict:
     inertia tensor no body has, the centre of mass outside the shell, ...) are not simulated
     and are counted apart; with a last entry `"truncate"` such draws are redrawn instead (the
     distribution truncated to valid robots; docs/montecarlo.md).
+
+    `commands` names a command table (a path relative to this file), as `jsphere plan --commands`
+    or `jsphere design` write it: with `mode = "torques"` its columns `t, K_1..K_N` [N m], with
+    `mode = "wheel_speeds"` its columns `t, chi_dot_1..N` [rad/s] (other columns are ignored).
+    Each trial replays it through `[actuators]` instead of the gaits' plan; the gaits are then
+    only the record. The table starts at `t = 0` and has one column per wheel.
 
     Every value is checked here, before any work: a bad one raises `InputError` naming the file
     and the key. Returns `{"params", "gaits", "n", "kwargs"}`: the arguments of `monte_carlo`.
@@ -177,6 +187,8 @@ def load_study(path) -> dict:
     kwargs.setdefault("batch_size", 4096)
     if "actuators" in cfg:
         kwargs["actuators"] = _study_actuators(path, cfg["actuators"])
+    if "commands" in cfg:
+        kwargs["commands"] = study_commands(path, cfg["commands"], mode, params.n_wheels)
     try:  # the checks monte_carlo makes before any work, with this file's name
         check_vary(params, kwargs["vary"])
     except ValueError as e:
@@ -238,6 +250,38 @@ def _study_gaits(path: Path, gait_list) -> list:
         except (TypeError, ValueError) as e:
             raise InputError(f"{path}: gaits[{k}]: {e}") from None
     return gaits
+
+
+def study_commands(path: Path, name, mode: str, n_wheels: int) -> tuple[np.ndarray, np.ndarray]:
+    """`(ts, values)` of the command table a study file's `commands` key names (relative to the
+    study file): its `K_1..N` columns with `mode = "torques"`, its `chi_dot_1..N` columns with
+    `mode = "wheel_speeds"` (`read_inputs_csv`). `InputError` naming the file and the key when the
+    mode replays nothing, the file cannot be read, or the table does not start at `t = 0` with
+    one column per wheel."""
+    from ..capture.inputs import read_inputs_csv
+
+    if mode == "gait":
+        raise InputError(
+            f'{path}: commands are replayed through the actuators; set mode = "torques" (columns K_1..K_N) or '
+            f'mode = "wheel_speeds" (columns chi_dot_1..N).'
+        )
+    if not isinstance(name, str):
+        raise InputError(f"{path}: commands must be the path of a command table (.csv); got {name!r}.")
+    table = (path.parent / name).resolve()
+    if not table.is_file():
+        raise InputError(f"{path}: commands = {name!r}: no such file {table}.")
+    try:
+        ts, values, _, names = read_inputs_csv(table, kind=mode)
+    except ValueError as e:
+        raise InputError(f"{path}: commands = {name!r}: {e}") from None
+    if ts[0] != 0.0:
+        raise InputError(f"{path}: commands = {name!r}: the table must start at t = 0; its first time is {ts[0]:g} s.")
+    if values.shape[1] != n_wheels:
+        raise InputError(
+            f"{path}: commands = {name!r}: the robot has {n_wheels} wheels; the table has {len(names)} columns "
+            f"({', '.join(names)})."
+        )
+    return ts, values
 
 
 def _study_actuators(path: Path, act) -> Actuators:
