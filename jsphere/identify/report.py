@@ -284,7 +284,7 @@ def fit_result(
 def _time_offsets(data: FitData, nu_b: np.ndarray, res_b: np.ndarray, J_b, P: int, s2: float):
     """The fitted clock offsets [s] and their standard errors per trial, or None where they are
     not fitted. The covariance of a trial's nuisance block of the block-arrow normal equations
-    (`jsphere.identify.lm`) is `s2 (A + A Hng F^-1 Hgn A)`, `A = Hnn^-1` and `F` the marginal
+    (`jsphere.numerics.lm`) is `s2 (A + A Hng F^-1 Hgn A)`, `A = Hnn^-1` and `F` the marginal
     information of the free parameters; the offset's is mapped through `offset_from_nuisance`."""
     if data.max_offset <= 0:
         return None

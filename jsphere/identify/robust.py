@@ -16,7 +16,7 @@ and Ceres, `rho(z) = z + O(z^2)` near 0):
     cauchy   rho(z) = log(1 + z)                         (the default)
 
 The fit minimises it by iteratively reweighted least squares inside its Levenberg-Marquardt
-(`jsphere.identify.lm`): at every point it evaluates, each frame's residuals and their Jacobian
+(`jsphere.numerics.lm`): at every point it evaluates, each frame's residuals and their Jacobian
 are multiplied by `sqrt(w_f)`, `w_f = rho'(z_f)`, the weights held fixed in the derivatives.
 The gradient of the weighted sum of squares is then the gradient of the robust cost, and its
 Gauss-Newton matrix `sum_f w_f J_f^T J_f` the robust cost's without the term in `rho''`
