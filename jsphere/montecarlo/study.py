@@ -45,8 +45,10 @@ SETTINGS = {
 #: defaults: the start pose's spread and the fed-back state's delay and noise of `jsphere
 #: track`'s evaluation (`jsphere.planning.tracking.Conditions`), the torque limit of `Limits`
 FEEDBACK = {
-    **{k: getattr(Conditions(), k) for k in ("start_sd", "heading_sd", "delay_s", "pos_sd", "att_sd", "omega_sd")},
-    "wheel_sd": Conditions().wheel_sd,
+    **{
+        k: getattr(Conditions(), k)
+        for k in ("start_sd", "heading_sd", "delay_s", "pos_sd", "att_sd", "omega_sd", "wheel_sd")
+    },
     "max_torque": Limits().max_torque,
 }
 #: their units
