@@ -132,6 +132,36 @@ def test_jsphere_montecarlo_of_a_track_table_is_the_tracking_closed_loop(tables,
     assert stats["speed_final_m_s"]["max"] == pytest.approx(float(speed), abs=1e-12)
 
 
+def test_monte_carlo_with_a_track_table_is_the_tracking_closed_loop(tables):
+    """`monte_carlo(track=...)` (the first rows of the table, a short settling) with no spread and
+    exact motors and measurement: every trial is the tracking evaluation's closed loop."""
+    _, tr = tables
+    small = {k: v[:6] for k, v in tr.items()}
+    exact = {k: 0.0 for k in FEEDBACK if k != "max_torque"}
+    res = jsphere.monte_carlo(
+        P,
+        [jsphere.acceleration()],
+        vary={"j": ("normal", float(P.j), 0.0)},
+        n=64,
+        batch_size=64,
+        mode="torques",
+        track=small,
+        feedback=exact,
+        settle=0.1,
+        progress=False,
+    )
+    c = Conditions(**{**{k: 0.0 for k in FIELDS}, "settle": 0.1})
+    ref = np.zeros((6, Flat.size + 3))
+    ref[:, Flat.q], ref[:, Flat.omega], ref[:, Flat.Omega] = small["q"], small["omega"], small["Omega"]
+    ref[:, Flat.x], ref[:, Flat.y] = small["x"], small["y"]
+    target = jnp.asarray([small["x"][-1], small["y"][-1]])
+    K_ff, G = jnp.asarray(small["K_ff"]), jnp.asarray(small["G"])
+    _, _, _, zT = run_one(P, jnp.zeros(2, jnp.uint32), 0.05, K_ff, jnp.asarray(ref), G, target, c, 0.1, 2, 1.0)
+    assert np.all(res.status == 0)
+    np.testing.assert_allclose(res.x_final, float(zT[Flat.x]), rtol=0, atol=1e-13)
+    np.testing.assert_allclose(res.y_final, float(zT[Flat.y]), rtol=0, atol=1e-13)
+
+
 def _misses(study: Path, target) -> np.ndarray:
     s = load_study(study)
     res = jsphere.monte_carlo(s["params"], s["gaits"], n=s["n"], progress=False, **s["kwargs"])
