@@ -30,9 +30,10 @@ RESUMES = "the finished batches are kept in the --out folder: rerun the same com
 def add_parser(sub) -> None:
     mc = sub.add_parser(
         NAME,
-        help="a Monte-Carlo study of the gaits or of a command table (TOML study file; docs/montecarlo.md)",
+        help="a Monte-Carlo study of the gaits, a command table or a feedback table (TOML study file; docs/montecarlo.md)",
         description='Run the gaits of a study file, or replay its command table (commands = "FILE", as written '
-        "by plan --commands or design), many times with parameters drawn from its [vary] "
+        'by plan --commands or design) or run its feedback table closed loop (track = "FILE", as written by '
+        "track --out), many times with parameters drawn from its [vary] "
         "distributions (docs/montecarlo.md). Writes OUT/stats.json (stop points in jsphere's frame, metres), "
         "OUT/stop_points.png and the finished batches, from which a killed study resumes; prints a short "
         "summary.",
@@ -131,7 +132,9 @@ def run(args) -> int:
     if args.distributed and jax.process_index() != 0:
         return 0  # process 0 writes the files and the summary
     st = res.stats()
-    if kwargs.get("commands") is None:
+    if kwargs.get("track") is not None:  # the table's last reference: where the controller holds the robot
+        st["planned_stop_m"] = [float(kwargs["track"]["x"][-1]), float(kwargs["track"]["y"][-1])]
+    elif kwargs.get("commands") is None:
         planned = simulate_gaits(study["params"], study["gaits"], reset=kwargs["reset"])
         st["planned_stop_m"] = [float(planned.x[-1]), float(planned.y[-1])]
     else:

@@ -13,7 +13,8 @@ from ..controls import Torques, WheelSpeeds
 from ..gaits.gaits import Gait, simulate_gaits
 from ..model.linalg import cross
 from ..model.params import RobotParams
-from ..model.state import State
+from ..model.state import Flat, State
+from ..planning.tracking.evaluate import Conditions, run_one
 from ..solve.simulate import Trajectory, simulate
 from ..solve.status import RESULTS
 from .sampling import PERTURBATION_FOLD, Actuators, Uncertainty, trial_key
@@ -40,6 +41,25 @@ class Replay(eqx.Module):
     jump_ts: tuple[float, ...]
 
 
+class ClosedLoop(eqx.Module):
+    """A feedback table (`track.csv` of `jsphere track`) run closed loop on every trial's robot
+    (a study's `track` key): per control interval of `ts_h` seconds the command
+    `K = K_ff - G e` from the measured state (`conditions`: the start pose, the fed-back state's
+    noise and delay, the motors' gain, delay and white noise), clipped to `max_torque`, held
+    over the interval; after the last row that row is held, for `n_settle` intervals. The step
+    is the tracking evaluation's own (`jsphere.planning.tracking.evaluate.run_one`)."""
+
+    ts_h: float
+    K_ff: Float[Array, "M N"]
+    ref: Float[Array, "M S"]
+    G: Float[Array, "M N 11"]
+    target: Float[Array, "2"]
+    conditions: Conditions
+    max_torque: float | None
+    n_settle: int
+    mode: str = "track"
+
+
 class Trials(eqx.Module):
     """What every trial of a study shares: the nominal robot, the gaits (executed exactly, or
     the commands of `replay`), the distributions and seed of the draws, and the solver's
@@ -55,7 +75,7 @@ class Trials(eqx.Module):
     rtol: float
     atol: float
     Omega0_sd: float
-    replay: Replay | None
+    replay: Replay | ClosedLoop | None
     mesh: jax.sharding.Mesh | None
     solver: dfx.AbstractSolver | None = None
     max_steps: int = 16384
@@ -64,6 +84,8 @@ class Trials(eqx.Module):
     def duration(self):
         """When the gaits (or the replayed commands) end [s]."""
         dt = self.params.R0.dtype
+        if isinstance(self.replay, ClosedLoop):
+            return jnp.asarray(self.replay.ts_h * (self.replay.K_ff.shape[0] - 1), dt)
         return sum(jnp.asarray(g.T, dt) for g in self.gaits) if self.replay is None else self.replay.plan[0][-1]
 
 
@@ -109,6 +131,20 @@ def _simulate_replay(trials: Trials, p: RobotParams, T, dOmega, key) -> Trajecto
     )
 
 
+def _closed_loop(trials: Trials, p: RobotParams, key) -> tuple:
+    """Trial robot `p` under the feedback table: `(x, y, speed, status, gamma3_sd)` at the end of
+    the settling time; `status` is `nonfinite` where the end state is not finite; the tilt's
+    spread is not recorded (0)."""
+    cl = trials.replay
+    one = jnp.ones((), cl.ref.dtype)
+    _, speed, _, zT = run_one(
+        p, key, cl.ts_h, cl.K_ff, cl.ref, cl.G, cl.target, cl.conditions, cl.max_torque, cl.n_settle, one
+    )
+    ok = jnp.all(jnp.isfinite(zT)) & jnp.isfinite(speed)
+    status = jnp.where(ok, int(RESULTS.successful), int(RESULTS.nonfinite))
+    return zT[Flat.x], zT[Flat.y], speed, status, jnp.zeros_like(speed)
+
+
 def _trial(trials: Trials, T, i: Int[Array, ""]) -> tuple:
     """Trial `i`, whose gaits or commands end at `T`: `(vals, x, y, speed, status, gamma3_sd,
     reject_code)`.
@@ -123,13 +159,18 @@ def _trial(trials: Trials, T, i: Int[Array, ""]) -> tuple:
     p = trials.draws.robot(params, vals, valid)
     k_omega, k_act = jax.random.split(jax.random.fold_in(trial_key(trials.seed, i), PERTURBATION_FOLD))
     dOmega = trials.Omega0_sd * jax.random.normal(k_omega, (3,), dt)
+    nan = jnp.asarray(jnp.nan, dt)
+    if isinstance(trials.replay, ClosedLoop):
+        x, y, speed, status, g3sd = _closed_loop(trials, p, k_act)
+        outcomes = tuple(jnp.where(valid, v, nan) for v in (x, y, speed, g3sd))
+        status = jnp.where(valid, status, int(RESULTS.rejected))
+        return vals, outcomes[0], outcomes[1], outcomes[2], status, outcomes[3], code
     if trials.replay is None:
         tr = _simulate_gaits(trials, p, jnp.reshape(T, (1,)), dOmega)
     else:
         tr = _simulate_replay(trials, p, T, dOmega, k_act)
     speed = p.R0 * jnp.linalg.norm(cross(tr.Omega[-1], tr.gamma[-1]))
     g3 = tr.gamma[:, 2]
-    nan = jnp.asarray(jnp.nan, dt)
     outcomes = tuple(jnp.where(valid, v, nan) for v in (tr.x[-1], tr.y[-1], speed, jnp.std(g3)))
     status = jnp.where(valid, tr.status, int(RESULTS.rejected))
     return vals, outcomes[0], outcomes[1], outcomes[2], status, outcomes[3], code

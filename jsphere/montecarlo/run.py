@@ -36,10 +36,12 @@ from .._runtime.progress import Progress
 from ..controls import Sampled
 from ..gaits.gaits import Gait, simulate_gaits
 from ..model.params import RobotParams
+from ..model.state import Flat
+from ..planning.tracking.evaluate import Conditions
 from ..solve.options import SolverOptions, default_solver, resolve, unused
 from ..solve.simulate import tolerances
 from .batch import CHUNK as CHUNK
-from .batch import Replay, Trials, run_batch
+from .batch import ClosedLoop, Replay, Trials, run_batch
 from .distributed import batch_template, gather_batch, global_indices, share_from_process_0, start_distributed
 from .result import REJECTED as REJECTED
 from .result import MonteCarloResult
@@ -47,7 +49,7 @@ from .sampling import MAX_REDRAWS as MAX_REDRAWS
 from .sampling import REASONS as REASONS
 from .sampling import Actuators, Uncertainty
 from .store import BATCH_KEYS, StudyFolder, fingerprint
-from .study import MODES, check_settings, check_vary
+from .study import MODES, check_feedback, check_settings, check_vary
 
 #: the progress lines' prefix
 _PROGRESS = "jsphere montecarlo:"
@@ -74,6 +76,8 @@ def monte_carlo(
     plan_rate: float = 200.0,
     settle: float = 1.0,
     commands: tuple | None = None,
+    track: Mapping | None = None,
+    feedback: Mapping | None = None,
     max_steps: int = 65536,
     out: str | os.PathLike | None = None,
     progress: bool | None = None,
@@ -115,6 +119,15 @@ def monte_carlo(
       a time stamp to encode a jump (wheel-speed jumps are impulses, see `simulate`); the motors
       stop at its last time. `gaits` is then not replayed (pass the gaits the commands belong
       to, for the record).
+    - `track`: a feedback table as `jsphere.planning.tracking.read_track_csv` returns it (a
+      `track.csv` of `jsphere track`), run closed loop instead of the gaits' plan (`mode` must
+      be "torques"): every `1/rate` seconds the command `K = K_ff - G e` from the measured
+      state, clipped to the torque limit, held over the period, through `actuators` (gain,
+      `delay_s` rounded to whole periods, white noise); after the last row that row is held
+      for `settle` seconds. The step is the tracking evaluation's (`evaluate.run_one`).
+      `feedback`: the measured state's noise and delay, the start pose's spread and the torque
+      limit (`FEEDBACK` of `jsphere.montecarlo.study`, whose defaults are `jsphere track`'s
+      evaluation's). `Omega0_sd`, `actuators.delay_sd` and `actuators.band_sd` must be 0.
     - `rtol`, `atol`: the solver's tolerances; default 1e-8, 1e-10 (float32 parameters: 1e-5,
       1e-7, as `simulate`).
     - `max_steps`: solver step limit per trial in the replay modes (noisy commands need many
@@ -172,6 +185,8 @@ def monte_carlo(
         plan_rate=plan_rate,
         settle=settle,
         commands=commands,
+        track=track,
+        feedback=feedback,
         max_steps=max_steps,
         options=options,
         out=out,
@@ -206,6 +221,8 @@ def prepare(
     plan_rate: float = 200.0,
     settle: float = 1.0,
     commands: tuple | None = None,
+    track: Mapping | None = None,
+    feedback: Mapping | None = None,
     max_steps: int = 65536,
     options: SolverOptions | None = None,
     out: str | os.PathLike | None = None,
@@ -234,7 +251,12 @@ def prepare(
     gaits = _check_gaits(gaits)
     if commands is not None and mode == "gait":
         raise ValueError("monte_carlo: `commands` are replayed; use mode='torques' or 'wheel_speeds'.")
-    replay = None if mode == "gait" else _replay(params, gaits, mode, commands, reset, actuators, settings)
+    if track is not None:
+        replay = _closed_loop(params, track, feedback, mode, commands, actuators, settings)
+    elif feedback is not None:
+        raise InputError("monte_carlo: `feedback` sets up the closed loop of a `track` table; give `track`.")
+    else:
+        replay = None if mode == "gait" else _replay(params, gaits, mode, commands, reset, actuators, settings)
     return _Run.create(
         params,
         gaits,
@@ -318,10 +340,62 @@ def _replay(params, gaits, mode, commands, reset, actuators, settings) -> Replay
     return Replay(mode, plan, actuators, settings["settle"], settings["max_steps"], jump_ts)
 
 
-def _replay_record(replay: Replay, plan_rate: float, commands: bool) -> tuple:
+def _closed_loop(params, track, feedback, mode, commands, actuators, settings) -> ClosedLoop:
+    """The closed loop of a feedback table `track` (`read_track_csv`'s dict) on a study's
+    robots: its rows at their rate, the reference as flat states, the conditions of the
+    evaluation from `feedback` (`check_feedback`), the actuators and the settling time."""
+    if mode != "torques" or commands is not None:
+        raise InputError("monte_carlo: a `track` table commands torques; use mode='torques' and no `commands`.")
+    if settings["Omega0_sd"] != 0 or actuators.delay_sd != 0 or actuators.band_sd != 0:
+        raise InputError(
+            "monte_carlo: the closed loop of a `track` table starts from `feedback.start_sd` and `heading_sd` and "
+            "takes the actuators' gain_sd, delay_s and white_sd; set Omega0_sd, delay_sd and band_sd to 0."
+        )
+    fb = check_feedback("monte_carlo: feedback", feedback or {})
+    t, K_ff, G = (np.asarray(track[k], np.float64) for k in ("t", "K_ff", "G"))
+    N = params.n_wheels
+    if K_ff.ndim != 2 or K_ff.shape[1] != N or G.shape != (len(t), N, 11) or len(t) < 2:
+        raise InputError(
+            f"monte_carlo: the track table has {K_ff.shape[-1]} torque columns and {len(t)} rows; the robot has {N} "
+            "wheels and the table needs at least 2 rows."
+        )
+    h = float(t[1] - t[0])
+    if not np.allclose(np.diff(t), h, rtol=1e-6, atol=0.0):
+        raise InputError("monte_carlo: the track table's times t must be equally spaced (one row per control period).")
+    dt = params.R0.dtype
+    ref = np.zeros((len(t), Flat.size + N))
+    ref[:, Flat.q] = track["q"]
+    ref[:, Flat.q_shell] = [1.0, 0.0, 0.0, 0.0]
+    ref[:, Flat.omega], ref[:, Flat.Omega] = track["omega"], track["Omega"]
+    ref[:, Flat.x], ref[:, Flat.y] = track["x"], track["y"]
+    conditions = Conditions(
+        **{k: v for k, v in fb.items() if k != "max_torque"},
+        gain_sd=actuators.gain_sd,
+        motor_delay_s=actuators.delay_s,
+        white_sd=actuators.white_sd,
+        settle=settings["settle"],
+    )
+    return ClosedLoop(
+        h,
+        jnp.asarray(K_ff, dt),
+        jnp.asarray(ref, dt),
+        jnp.asarray(G, dt),
+        jnp.asarray([ref[-1, Flat.x], ref[-1, Flat.y]], dt),
+        conditions,
+        fb["max_torque"],
+        int(math.ceil(settings["settle"] / h - 1e-9)),
+    )
+
+
+def _replay_record(replay: Replay | ClosedLoop, plan_rate: float, commands: bool) -> tuple:
     """What of a replay changes a study's results, for its fingerprint: the actuators, the plan's
     rate, the settling time, a hash of the given `commands` (None for the gaits' own plan) and
-    the step limit."""
+    the step limit; for a closed loop, its conditions, torque limit, settling and a hash of its
+    table."""
+    if isinstance(replay, ClosedLoop):
+        arrays = (replay.K_ff, replay.ref, replay.G)
+        table = hashlib.sha256(b"".join(np.ascontiguousarray(a).tobytes() for a in arrays)).hexdigest()
+        return ("track", replay.ts_h, replay.conditions.to_json(), replay.max_torque, replay.n_settle, table)
     cmd_fp = None
     if commands:
         ts, u = replay.plan

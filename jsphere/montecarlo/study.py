@@ -15,8 +15,10 @@ from .._runtime.checks import is_number, real, whole
 from .._runtime.errors import InputError
 from .._runtime.files import tomllib
 from ..gaits.gaits import acceleration, braking, turn
+from ..model.limits import Limits
 from ..model.names import get_value, parse_name
 from ..model.params import RobotParams
+from ..planning.tracking.evaluate import Conditions
 from .sampling import Actuators
 
 #: the distributions of `vary` and the names of their two numbers
@@ -37,6 +39,43 @@ SETTINGS = {
     "plan_rate": lambda w, k, v: real(w, k, v, strict=True, unit="Hz"),
     "max_steps": lambda w, k, v: whole(w, k, v, 1),
 }
+
+
+#: the keys of a study's `[feedback]` table (the closed loop of a `track` table) and their
+#: defaults: the start pose's spread and the fed-back state's delay and noise of `jsphere
+#: track`'s evaluation (`jsphere.planning.tracking.Conditions`), the torque limit of `Limits`
+FEEDBACK = {
+    **{
+        k: getattr(Conditions(), k)
+        for k in ("start_sd", "heading_sd", "delay_s", "pos_sd", "att_sd", "omega_sd", "wheel_sd")
+    },
+    "max_torque": Limits().max_torque,
+}
+#: their units
+_FEEDBACK_UNITS = {
+    "start_sd": "m",
+    "heading_sd": "rad",
+    "delay_s": "s",
+    "pos_sd": "m",
+    "att_sd": "rad",
+    "omega_sd": "rad/s",
+    "wheel_sd": "rad/s",
+    "max_torque": "N m",
+}
+
+
+def check_feedback(where: str, values: Mapping) -> dict:
+    """The `FEEDBACK` settings `values` checked (finite numbers >= 0, the torque limit > 0) and
+    completed with the defaults; `InputError` naming the key under `where`."""
+    if not isinstance(values, Mapping):
+        raise InputError(f"{where} must be a table (e.g. [feedback] delay_s = 0.01); got {values!r}.")
+    unknown = sorted(set(values) - set(FEEDBACK))
+    if unknown:
+        raise InputError(f"{where}: unknown key(s) {unknown}; expected {sorted(FEEDBACK)}.")
+    out = dict(FEEDBACK)
+    for k, v in values.items():
+        out[k] = real(where, k, v, strict=k == "max_torque", unit=_FEEDBACK_UNITS[k])
+    return out
 
 
 def check_settings(where: str, values: Mapping, names: Mapping[str, str] | None = None) -> dict:
@@ -121,6 +160,8 @@ STUDY_KEYS = {
     "vary",
     "actuators",
     "commands",
+    "track",
+    "feedback",
 }
 #: a study file's numeric keys and the `SETTINGS` they set
 _FILE_SETTINGS = {
@@ -145,12 +186,15 @@ def load_study(path) -> dict:
         reset = false
         gaits = [{kind = "acceleration", theta_max = 0.1, phi = 0.0, T = 2.0}, {kind = "braking"}]
         commands = "plan-commands.csv"  # replay modes: a command table instead of the gaits' plan
+        track = "track.csv"       # or: a feedback table of `jsphere track`, run closed loop
         [vary]                    # names as in `jsphere fit --free`
         "r_m[2]" = ["normal", -0.0270146, 1e-4]
         j = ["uniform", 2.0e-4, 3.5e-4]
         m0 = ["normal", 0.8, 0.3, "truncate"]   # truncated to valid robots (m0 > 0)
         [actuators]               # replay modes only; see jsphere.Actuators
         gain_sd = 0.02
+        delay_s = 0.01
+        [feedback]                # with track only; defaults: FEEDBACK
         delay_s = 0.01
 
     A distribution is `["normal", mean, sd]` or `["uniform", low, high]` with finite numbers
@@ -165,6 +209,13 @@ def load_study(path) -> dict:
     Each trial replays it through `[actuators]` instead of the gaits' plan; the gaits are then
     only the record. The table starts at `t = 0` and has one column per wheel.
 
+    `track` names a feedback table (`track.csv` of `jsphere track`, a path relative to this
+    file) that every trial runs closed loop (`monte_carlo`'s `track`), through `[actuators]`
+    (`gain_sd`, `delay_s`, `white_sd`), with the measurement model of `[feedback]` (`FEEDBACK`:
+    the start pose's spread, the fed-back state's delay and noise, the torque limit; defaults
+    those of `jsphere track`'s evaluation). It takes the place of `gaits` and `commands`
+    (neither may be given); `mode` is "torques" (the default here).
+
     Every value is checked here, before any work: a bad one raises `InputError` naming the file
     and the key. Returns `{"params", "gaits", "n", "kwargs"}`: the arguments of `monte_carlo`.
     """
@@ -175,7 +226,7 @@ def load_study(path) -> dict:
         {_FILE_SETTINGS[k]: cfg[k] for k in _FILE_SETTINGS if k in cfg},
         names={v: k for k, v in _FILE_SETTINGS.items()},
     )
-    mode = cfg.get("mode", "gait")
+    mode = cfg.get("mode", "torques" if "track" in cfg else "gait")
     if mode not in MODES:
         raise InputError(f'{path}: mode must be "gait", "torques" or "wheel_speeds"; got {mode!r}.')
     reset = cfg.get("reset", False)
@@ -187,8 +238,14 @@ def load_study(path) -> dict:
     kwargs.setdefault("batch_size", 4096)
     if "actuators" in cfg:
         kwargs["actuators"] = _study_actuators(path, cfg["actuators"])
-    if "commands" in cfg:
+    if "commands" in cfg and "track" not in cfg:
         kwargs["commands"] = study_commands(path, cfg["commands"], mode, params.n_wheels)
+    if "track" in cfg:
+        kwargs["track"] = study_track(path, cfg, mode, params.n_wheels)
+        kwargs["feedback"] = check_feedback(f"{path}: [feedback]", cfg.get("feedback", {}))
+        _check_track_actuators(path, kwargs)
+    elif "feedback" in cfg:
+        raise InputError(f'{path}: [feedback] sets up the closed loop of a feedback table; add track = "track.csv".')
     try:  # the checks monte_carlo makes before any work, with this file's name
         check_vary(params, kwargs["vary"])
     except ValueError as e:
@@ -282,6 +339,61 @@ def study_commands(path: Path, name, mode: str, n_wheels: int) -> tuple[np.ndarr
             f"({', '.join(names)})."
         )
     return ts, values
+
+
+def study_track(path: Path, cfg: dict, mode: str, n_wheels: int) -> dict:
+    """The feedback table a study file's `track` key names (relative to the study file), read by
+    `jsphere.planning.tracking.read_track_csv`. `InputError` naming the file and the key when the
+    study also has `gaits` or `commands`, its mode is not "torques", the file cannot be read, or
+    the table has not one torque column per wheel, at least two rows and one rate."""
+    from ..planning.tracking.table import read_track_csv
+
+    name = cfg["track"]
+    for other in ("gaits", "commands"):
+        if other in cfg:
+            raise InputError(
+                f"{path}: track = {name!r} and {other}: the feedback table takes the place of the {other}; "
+                f"give one of them."
+            )
+    if mode != "torques":
+        raise InputError(
+            f'{path}: track: a feedback table commands axle torques; set mode = "torques" or leave it out.'
+        )
+    if not isinstance(name, str):
+        raise InputError(
+            f"{path}: track must be the path of a feedback table (track.csv of jsphere track); got {name!r}."
+        )
+    table = (path.parent / name).resolve()
+    if not table.is_file():
+        raise InputError(f"{path}: track = {name!r}: no such file {table}.")
+    try:
+        tab = read_track_csv(table)
+    except ValueError as e:
+        raise InputError(f"{path}: track = {name!r}: {e}") from None
+    N, M = tab["K_ff"].shape[1], len(tab["t"])
+    if N != n_wheels:
+        raise InputError(f"{path}: track = {name!r}: the robot has {n_wheels} wheels; the table has gains for {N}.")
+    if M < 2 or not np.allclose(np.diff(tab["t"]), tab["t"][1] - tab["t"][0], rtol=1e-6, atol=0.0):
+        raise InputError(
+            f"{path}: track = {name!r}: the table needs at least 2 rows, one per control period (equally spaced t)."
+        )
+    return tab
+
+
+def _check_track_actuators(path: Path, kwargs: dict) -> None:
+    """The closed loop of a `track` table takes the actuators' gain, delay and white noise, and
+    starts as `[feedback]` says: `InputError` for the settings it does not model."""
+    act = kwargs.get("actuators") or Actuators()
+    for key, v in (("[actuators] delay_sd", act.delay_sd), ("[actuators] band_sd", act.band_sd)):
+        if v != 0:
+            raise InputError(
+                f"{path}: {key} = {v}: the closed loop of a track table takes a fixed delay and white noise; set it to 0."
+            )
+    if kwargs.get("Omega0_sd", 0.0) != 0:
+        raise InputError(
+            f"{path}: Omega0_sd: the closed loop of a track table starts as [feedback] start_sd and heading_sd say; "
+            "leave Omega0_sd out."
+        )
 
 
 def _study_actuators(path: Path, act) -> Actuators:

@@ -24,7 +24,7 @@ LAYERS = {
     "capture": 7,
     "identify": 8,
     "planning": 8,
-    "montecarlo": 8,
+    "montecarlo": 8.5,  # studies replay the feedback tables of `planning.tracking` (a study's `track` key)
     "paper": 9,
     "design": 9,  # excitation design: identify, planning, capture, solve, model
     "plots.animation": 9,  # animations: read runs from files, replay fits and studies (capture, identify, montecarlo)
