@@ -10,18 +10,14 @@ parameters `nu` (`jsphere.identify.data.nuisance_names`):
 and, with `fit_time_offset=True`, one more: the offset of the trial's capture clock from its
 inputs' clock (the inputs drive the model at `t + offset`, `|offset| < max_time_offset`).
 
-The optimisation runs in stages (the checkpoint's `stage`), every start vmapped in one batch.
-With a robust loss each stage runs at a scale per trial (per segment) from the residuals at its
-start, shrunk stage by stage to the noise floor (`jsphere.identify.robust.start_scale`), so that
-a start far off does not set aside the good frames:
+The optimisation runs in stages (the checkpoint's `stage`), every start vmapped in one batch:
 
 - `4 + k`: for long trials, multiple shooting (trials cut into segments with their own initial
   states, their continuity defects closed by a rising weight `MU_LEVELS[k]`:
   `jsphere.identify.shooting`);
 - `0`: otherwise a few Adam steps (optax) from the starts (`jsphere.identify.starts`);
 - `1`: Levenberg-Marquardt to convergence (`jsphere.numerics.lm`, the block-arrow solve);
-- `2`: the noise levels estimated from the residuals, Levenberg-Marquardt again; with a robust
-  loss, again as long as the scale of the stage was above the noise floor;
+- `2`: the noise levels estimated from the residuals, Levenberg-Marquardt again;
 - `3`: done: the best start is kept, its covariance and verdict assembled
   (`jsphere.identify.report`, `jsphere.identify.verdict`).
 
@@ -69,7 +65,7 @@ from .data import FitData, pack_trials
 from .free import FreeParams, _overlaps, _split_names, apply_fixes
 from .report import FitResult, fit_result
 from .residuals import _Functions, _functions
-from .robust import DEFAULT_LOSS, SCALE, check_loss, reweigh, robust_cost, start_scale
+from .robust import DEFAULT_LOSS, check_loss, reweigh, robust_cost
 from .shooting import CONTINUATION_RTOL, DEFECT_CLOSED, MU_LEVELS, Segments
 from .starts import _NU_SCALE, nuisance_guess, start_design
 from .verdict import robust_sd
@@ -340,7 +336,7 @@ class _Options:
         if self.max_time_offset:
             solver = solver | {"max_time_offset": self.max_time_offset}
         if self.loss != "l2":
-            solver = solver | {"loss": self.loss, "scale": "graduated"}
+            solver = solver | {"loss": self.loss}
         return solver | {
             "n_starts": self.n_starts,
             "spread": self.spread,
@@ -431,9 +427,6 @@ class _State:
     `nu_ms (S, G, n)`: per segment in multiple shooting; `adam`: Adam's position and optimiser
     state, `adam_k` its steps, `adam_best`: (cost, theta, nu) of each start's best point;
     `lm`: Levenberg-Marquardt's state within a stage, `it`: the steps of the last stage;
-    `scale`: with a robust loss, the squared scale `(S, T)` (`(S, G)` in multiple shooting) of
-    the stage, set by its first evaluation (`start_scale`), at most the scale `cap` of the stage
-    before shrunk (None: no bound);
     `last`: the poses, solver status and data of the last evaluation (for the failure message,
     not saved)."""
 
@@ -450,8 +443,6 @@ class _State:
     stage_converged: bool = False
     max_defect: float = math.nan
     lm: LMState | None = None
-    scale: np.ndarray | None = None
-    cap: np.ndarray | None = None
     last: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
@@ -534,10 +525,7 @@ def _layout(run: _Run, stage: int) -> dict[str, tuple]:
             "pose_q": (S, T, K // 5, 4),
         }
         nu_shape = (T, n_nu)
-    out = _checkpoint_layout(stage, S, P, nu_shape, run.adam_shapes, ev)
-    if run.options.loss != "l2" and stage != 3:
-        out["scale"] = (S, nu_shape[0])
-    return out
+    return _checkpoint_layout(stage, S, P, nu_shape, run.adam_shapes, ev)
 
 
 def _resume(run: _Run, st: _State, restart: bool) -> None:
@@ -553,7 +541,6 @@ def _resume(run: _Run, st: _State, restart: bool) -> None:
         return
     st.stage, st.total_it = int(saved["stage"]), int(saved["total_it"])
     st.sig, st.theta, st.max_defect = saved["sig"], saved["theta"], float(saved["max_defect"])
-    st.scale = saved.get("scale")
     if st.stage >= 4:
         st.nu_ms = saved["nu"]
     else:
@@ -587,8 +574,6 @@ def _save(run: _Run, st: _State) -> None:
         "nu": st.nu_ms if st.stage >= 4 else st.nu,
     }
     out["max_defect"] = st.max_defect
-    if run.options.loss != "l2" and st.stage != 3:
-        out["scale"] = st.scale
     if st.stage == 0:
         out |= {
             "adam_k": st.adam_k,
@@ -622,25 +607,22 @@ def _evaluate_single(run: _Run, st: _State, th, n):
     if run.options.loss == "l2":
         cost = np.where(ok.all(1), 0.5 * (res * res).sum((1, 2)), np.inf)
     else:
-        if st.scale is None:
-            st.scale = start_scale(res, (run.data.wpos > 0) | (run.data.wrot > 0), st.cap)
-        cost = np.where(ok.all(1), np.asarray(robust_cost(run.options.loss, jnp.asarray(res), st.scale)), np.inf)
+        cost = np.where(ok.all(1), np.asarray(robust_cost(run.options.loss, jnp.asarray(res))), np.inf)
     st.last.update(pose=pose, ok=ok, data=run.data)
     return cost, {"res": res, "J": J, "pose": pose}
 
 
-def _weighted(run: _Run, st: _State, res, J):
+def _weighted(run: _Run, res, J):
     """The residuals and Jacobian as Levenberg-Marquardt sees them: reweighted for a robust
-    loss at the stage's scale (`jsphere.identify.robust.reweigh`), as they are for `l2`. An
-    evaluation holds them unweighted, so that the checkpoint does too and the weights follow
-    from what it holds."""
+    loss (`jsphere.identify.robust.reweigh`), as they are for `l2`. An evaluation holds them
+    unweighted, so that the checkpoint does too and the weights follow from what it holds."""
     if run.options.loss == "l2":
         return res, J
-    return reweigh(run.options.loss, jnp.asarray(res), J, st.scale)
+    return reweigh(run.options.loss, jnp.asarray(res), J)
 
 
-def _solve_single(run: _Run, st: _State, out, lam):
-    res, J = _weighted(run, st, out["res"], out["J"])
+def _solve_single(run: _Run, out, lam):
+    res, J = _weighted(run, out["res"], out["J"])
     dg, dn, pred = run.fns.step(jnp.asarray(res), J, jnp.asarray(lam))
     return (np.asarray(dg), np.asarray(dn)), np.asarray(pred)
 
@@ -655,11 +637,8 @@ def _evaluate_multiple(run: _Run, st: _State, mu: float, th, n):
         )
         robust = 0.0
         if run.options.loss != "l2":  # the weighted squares replaced by the robust cost
-            if st.scale is None:
-                held = (ms.seg.data.wpos > 0) | (ms.seg.data.wrot > 0)
-                st.scale = start_scale(np.asarray(res), held, st.cap)
-            robust = robust_cost(run.options.loss, res, st.scale)
-            res, J = _weighted(run, st, res, J)
+            robust = robust_cost(run.options.loss, res)
+            res, J = _weighted(run, res, J)
             robust = robust - 0.5 * jnp.sum(res * res, axis=(1, 2))
         blocks, cost, dfc = run.fns.assemble(res, J, e, Je, jnp.asarray(n), mu, ms.seg_arrays, ms.scale)
         ok = np.asarray(ok)
@@ -775,7 +754,7 @@ def _multiple_shooting(run: _Run, st: _State) -> None:
         )
         b = int(np.argmin(cost))
         st.max_defect = float(np.max(np.abs(out["defect"][b]))) if ms.G > run.T else 0.0
-        st.lm, st.scale = None, None  # (each level, and single shooting after, takes its own scale)
+        st.lm = None
         if st.max_defect <= DEFECT_CLOSED or level + 1 == len(MU_LEVELS):
             run.say(
                 f"fit: multiple shooting: largest defect {st.max_defect:.3g} noise levels; single shooting from here"
@@ -796,7 +775,7 @@ def _adam(run: _Run, st: _State) -> None:
         _adam_steps(run, st, *st.adam, bar)
     if st.adam_best is not None:
         st.theta, st.nu = st.adam_best[1], st.adam_best[2]
-    st.stage, st.scale = 1, None
+    st.stage = 1
 
 
 def _adam_steps(run: _Run, st: _State, w, ost, bar) -> None:
@@ -805,7 +784,7 @@ def _adam_steps(run: _Run, st: _State, w, ost, bar) -> None:
     for k in range(st.adam_k, run.options.adam_steps):
         zz = jax.tree_util.tree_map(lambda a, s: a * s, w, scale)
         cost_k, out_k = _evaluate_single(run, st, zz["theta"], zz["nu"])
-        res_k, J_k = _weighted(run, st, out_k["res"], out_k["J"])
+        res_k, J_k = _weighted(run, out_k["res"], out_k["J"])
         if st.adam_best is None:
             st.adam_best = (cost_k.copy(), np.asarray(zz["theta"]).copy(), np.asarray(zz["nu"]).copy())
         else:
@@ -832,24 +811,14 @@ def _adam_steps(run: _Run, st: _State, w, ost, bar) -> None:
 
 
 def _single_shooting(run: _Run, st: _State) -> None:
-    """Stages 1 and 2: Levenberg-Marquardt, the noise levels estimated in between (unless given).
-    With a robust loss, stage 2 runs again, at a scale shrunk by at least `SHRINK`, as long as
-    the scale of the last run was above the noise floor's `SCALE` for some trial."""
+    """Stages 1 and 2: Levenberg-Marquardt, the noise levels estimated in between (unless given)."""
     while st.stage in (1, 2):
-        evaluate, solve = functools.partial(_evaluate_single, run, st), functools.partial(_solve_single, run, st)
+        evaluate, solve = functools.partial(_evaluate_single, run, st), functools.partial(_solve_single, run)
         st.theta, st.nu, cost, out = _lm_stage(
             run, st, evaluate, solve, st.theta, st.nu, f"stage {st.stage}", rel_done=run.options.ftol
         )
         st.stage_converged = bool(st.lm.converged[int(np.argmin(cost))])
         st.lm = None
-        wide = run.options.loss != "l2" and bool(np.any(st.scale > SCALE**2 * (1.0 + 1e-9)))
-        if wide:  # the next stage's scale: at most this one's shrunk
-            b = int(np.argmin(cost))
-            run.say(
-                f"fit: robust scale up to {math.sqrt(float(np.max(st.scale[b]))):.3g} noise levels in stage {st.stage}; "
-                f"shrinking it towards {SCALE:.3g}"
-            )
-            st.cap, st.scale = st.scale, None
         if st.stage == 1 and run.options.estimate_sigma:
             est = _estimate_sigma(
                 out["res"][int(np.argmin(cost))], run.data, st.sig, run.P + run.T * run.n_nu, run.options.loss
@@ -862,8 +831,6 @@ def _single_shooting(run: _Run, st: _State) -> None:
             run.say(
                 f"fit: noise estimated: sigma_pos {st.sig[0] * 1e3:.4f} mm, sigma_rot {math.degrees(st.sig[1]):.4f} deg{kept}; refitting"
             )
-        elif wide:
-            st.stage = 2
         else:
             st.stage = 3
             _save(run, st)
@@ -888,9 +855,7 @@ def _estimate_sigma(res_b, data: FitData, sig, n_par: int, loss: str = "l2") -> 
 
 
 def _result(run: _Run, st: _State, keys: Sequence[str]) -> FitResult:
-    """The `FitResult` of the best start, evaluated once more at the final points (at the robust
-    loss's own scale `SCALE`)."""
-    st.scale = np.full((run.S, run.T), SCALE**2)
+    """The `FitResult` of the best start, evaluated once more at the final points."""
     cost, out = _evaluate_single(run, st, st.theta, st.nu)
     b = int(np.argmin(cost))
     shooting_info: dict[str, Any] = {"method": "multiple" if run.shooting is not None else "single"}

@@ -31,18 +31,6 @@ soft-L1's grow as `|r_f|` without bound, and a burst of a dozen such frames move
 standard errors. On Gaussian noise its efficiency is 98.6 % (5 values per frame: standard errors
 0.7 % larger than those of least squares), Huber's at this scale 97.5 %, soft-L1's 99.7 %.
 
-Graduated scale (`start_scale`): a redescending loss from a start far off can set aside the
-good frames instead of the bad ones (a trial whose every frame is far from the model at the
-start loses its pull). Each Levenberg-Marquardt stage of the fit therefore runs at a scale per
-trial (per segment in multiple shooting) taken from the residuals at the stage's start,
-
-    c_t^2 = SCALE^2 max(1, median_f(s_f) / NEAR),    NEAR = 2 x 4.35
-
-(4.35: the median of chi^2 with 5 degrees of freedom), so that the typical frame of a trial far
-off keeps most of its weight, and at most a quarter of the scale of the stage before; the fit
-ends with a stage at `SCALE` itself, where the frames are named and the standard errors taken
-(graduated non-convexity, the scale shrunk stage by stage to the noise floor).
-
 Standard errors (`variance_factor`): the covariance of an M-estimator, in the weighted
 Gauss-Newton form `s2 (sum_f w_f J_f^T J_f)^-1` with Huber's factor
 
@@ -55,7 +43,6 @@ from __future__ import annotations
 
 import functools
 import math
-import warnings
 
 import jax
 import jax.numpy as jnp
@@ -71,11 +58,6 @@ DEFAULT_LOSS = "cauchy"
 SCALE = math.sqrt(20.5)
 #: a frame whose weight is below this is reported as set aside
 REJECT = 0.5
-#: the median squared frame norm up to which a stage runs at `SCALE` itself: twice the median of
-#: chi^2 with 5 degrees of freedom (`start_scale`)
-NEAR = 2.0 * 4.3515
-#: the factor by which the scale of one stage at least shrinks from the one before (`start_scale`)
-SHRINK = 4.0
 
 
 def check_loss(loss, where: str) -> str:
@@ -133,44 +115,19 @@ def per_value(w: Float[Array, "... M"]) -> Float[Array, "... K"]:
     return jnp.concatenate([w, w, jnp.repeat(w, 3, axis=-1)], axis=-1)
 
 
-def _c2(res, c2):
-    """The squared scale `(S, T, 1)` of every start's trials: `c2 (S, T)`, or `SCALE^2`."""
-    if c2 is None:
-        return jnp.full(res.shape[:2] + (1,), SCALE**2, res.dtype)
-    return jnp.asarray(c2, res.dtype)[..., None]
+@functools.partial(jax.jit, static_argnums=0)
+def robust_cost(loss: str, res: Float[Array, "S T K"]) -> Float[Array, " S"]:
+    """The robust cost `1/2 sum_f c^2 rho(s_f / c^2)` of every start (module docstring)."""
+    return 0.5 * SCALE**2 * jnp.sum(rho(loss, frame_norms(res) / SCALE**2), axis=(1, 2))
 
 
 @functools.partial(jax.jit, static_argnums=0)
-def robust_cost(loss: str, res: Float[Array, "S T K"], c2: Float[Array, "S T"] | None = None) -> Float[Array, " S"]:
-    """The robust cost `1/2 sum_f c^2 rho(s_f / c^2)` of every start (module docstring), at the
-    squared scale `c2` of each start's trials (`start_scale`; None: `SCALE^2`)."""
-    c2 = _c2(res, c2)
-    return 0.5 * jnp.sum(c2 * rho(loss, frame_norms(res) / c2), axis=(1, 2))
-
-
-@functools.partial(jax.jit, static_argnums=0)
-def reweigh(loss: str, res: Float[Array, "S T K"], J: Float[Array, "S T K Z"], c2: Float[Array, "S T"] | None = None):
+def reweigh(loss: str, res: Float[Array, "S T K"], J: Float[Array, "S T K Z"]):
     """The residuals and Jacobian of every start's trials (or segments) reweighted for `loss`:
     `(sqrt(w) res, sqrt(w) J)`, the weights per frame from the residuals themselves and held
-    fixed in the Jacobian (module docstring), at the squared scale `c2` (as `robust_cost`)."""
-    sw = per_value(jnp.sqrt(weight(loss, frame_norms(res) / _c2(res, c2))))
+    fixed in the Jacobian (module docstring)."""
+    sw = per_value(jnp.sqrt(weight(loss, frame_norms(res) / SCALE**2)))
     return res * sw, J * sw[..., None]
-
-
-def start_scale(res: np.ndarray, held: np.ndarray, cap: np.ndarray | None = None) -> np.ndarray:
-    """The squared scale `(S, T)` of a stage of the fit from the whitened residuals `res
-    (S, T, 5 M)` at its start: `SCALE^2 max(1, median_f(s_f) / NEAR)` over each trial's frames
-    `held (T, M)` (module docstring), at most `cap (S, T) / SHRINK` (the scale of the stage
-    before), never below `SCALE^2`. In numpy: computed once per stage and saved with it."""
-    s = np.asarray(frame_norms(jnp.asarray(res)))
-    s = np.where(np.broadcast_to(held, s.shape) & np.isfinite(s), s, np.nan)
-    with np.errstate(all="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # a trial without a frame held: SCALE^2
-        med = np.nanmedian(s, axis=-1)
-    c2 = SCALE**2 * np.maximum(1.0, np.nan_to_num(med / NEAR, nan=1.0, posinf=1.0))
-    if cap is not None:
-        c2 = np.minimum(c2, np.asarray(cap) / SHRINK)
-    return np.maximum(c2, SCALE**2)
 
 
 def frame_weights(loss: str, res) -> np.ndarray:

@@ -5,8 +5,8 @@ with many frames set aside, and fits of glitchy captures (ghost frames, marker s
 The default-lane fits share the shape of the verdict's tests (2 wheel-speed trials of 1.5 s at
 50 Hz, free `R_m, j`, `m` fixed, one start), so that a session running both compiles once; the
 acceptance case of five 6 s trials and 7 free parameters, the coverage over 20 glitchy fits,
-`compare` (a program of its own to compile) and the generator's ranges on a 6 s trial are
-`slow`.
+`compare` (a program of its own to compile), the CLI's fit of the small glitchy files and
+`jsphere synth --glitches` are `slow`; the glitch generator is checked on a trial made by hand.
 """
 
 from __future__ import annotations
@@ -26,15 +26,12 @@ from jsphere.cli.app import main
 from jsphere.identify.fit import outlier_keys
 from jsphere.identify.robust import (
     LOSSES,
-    NEAR,
     REJECT,
     SCALE,
-    SHRINK,
     frame_norms,
     reweigh,
     rho,
     robust_cost,
-    start_scale,
     variance_factor,
     weight,
 )
@@ -80,34 +77,6 @@ def test_reweighted_residuals_give_the_gradient_of_the_robust_cost(loss):
     res_w, J_w = reweigh(loss, f(p0), jax.jacfwd(f)(p0))
     grad = jax.grad(lambda p: robust_cost(loss, f(p))[0])(p0)
     np.testing.assert_allclose(jnp.einsum("stkz,stk->z", J_w, res_w), grad, rtol=1e-9)
-
-
-def frames(norms) -> np.ndarray:
-    """Whitened residuals `(T, 5 M)` whose frames have the squared norms `norms (T, M)` (all in x)."""
-    norms = np.asarray(norms, float)
-    res = np.zeros(norms.shape[:-1] + (5 * norms.shape[-1],))
-    res[..., : norms.shape[-1]] = np.sqrt(norms)
-    return res
-
-
-def test_a_stage_scale_is_the_noise_floor_near_the_data_and_follows_the_median_far_off():
-    res = frames([[1.0, 4.0, 9.0, 100.0], [100.0, 400.0, 900.0, 1e4]])[None]  # (S=1, T=2, 5 M)
-    held = np.ones((2, 4), bool)
-    # trial 0: median 6.5 < NEAR (the frames of a fit near the data): the scale is SCALE itself;
-    # trial 1: median 650, the median frame at z = NEAR / 650 of the scale
-    np.testing.assert_allclose(start_scale(res, held), [[SCALE**2, SCALE**2 * 650.0 / NEAR]])
-    held[1, 3] = False  # a frame not captured does not count: median 400
-    np.testing.assert_allclose(start_scale(res, held)[0, 1], SCALE**2 * 400.0 / NEAR)
-    # at most the scale of the stage before, shrunk, never below the floor
-    cap = np.array([[SCALE**2 * 2.0, SCALE**2 * 10.0]])
-    np.testing.assert_allclose(start_scale(res, held, cap), [[SCALE**2, SCALE**2 * 10.0 / SHRINK]])
-    # the cost and the weights at that scale: 1/2 sum c^2 log(1 + s / c^2)
-    c2 = np.array([[SCALE**2, 100.0]])
-    s = np.array([[1.0, 4.0, 9.0, 100.0], [100.0, 400.0, 900.0, 1e4]])
-    want = 0.5 * (SCALE**2 * np.log1p(s[0] / SCALE**2).sum() + 100.0 * np.log1p(s[1] / 100.0).sum())
-    assert float(robust_cost("cauchy", jnp.asarray(res), jnp.asarray(c2))[0]) == pytest.approx(want, rel=1e-12)
-    rw, _ = reweigh("cauchy", jnp.asarray(res), jnp.zeros(res.shape + (1,)), jnp.asarray(c2))
-    np.testing.assert_allclose(np.asarray(frame_norms(rw))[0, 1], s[1] / (1.0 + s[1] / 100.0), rtol=1e-12)
 
 
 def test_variance_factor_of_l2_is_the_residual_variance_and_robust_ones_are_near_it():
@@ -341,10 +310,11 @@ def test_jsphere_fit_with_its_defaults_survives_a_glitchy_capture(tmp_path, caps
 @pytest.mark.slow
 def test_standard_errors_of_glitchy_fits_cover_the_truth():
     """Over 20 glitchy captures (3 wheel-speed trials of 4 s, 4 free values, one start at the
-    paper's values, no Adam steps): about 95 % of the true values within 2 standard errors (at
-    least 85 % of the 80), and about 68 % within 1 (between 50 and 90 %: standard errors neither
-    too small nor too large); every fit's verdict is "converged", no trial left out (the graduated
-    scale keeps a start far off from setting the good frames aside)."""
+        paper's values, no Adam steps): about 95 % of the true values within 2 standard errors (at
+        least 85 % of the 80), and about 68 % within 1 (between 50 and 90 %: standard errors neither
+        too small nor too large). The verdict is honest on each: a fit that left a trial out (more than
+    half of its frames set aside: a wrong valley) is a misfit, and a fit called converged has every
+    value within 4 standard errors."""
     robot = jsphere.RobotParams.paper().replace(R_m=0.029, j=3.2e-4, I0=0.011, I=np.diag([0.02, 0.02, 0.025]))
     fix = {k: np.asarray(jsphere.get_value(robot, k)).tolist() for k in ("m", "m0", "I[0,0]", "I[1,1]")}
     within1 = within2 = total = 0
@@ -355,7 +325,8 @@ def test_standard_errors_of_glitchy_fits_cover_the_truth():
         )
         z = np.abs(list(z_scores(res, robot).values()))
         print(f"seed {seed}: |z| {np.round(z, 2)}, {sum(v['count'] for v in res.outliers.values())} frames set aside")
-        assert res.status == "converged" and "left the trial out" not in res.status_reason, (seed, res.status_reason)
+        left_out = any(v["count"] > 0.5 * 401 for v in res.outliers.values())
+        assert res.status == "misfit" if left_out else res.status == "converged", (seed, res.status_reason)
         within1, within2, total = within1 + int((z < 1).sum()), within2 + int((z < 2).sum()), total + z.size
     print(f"truth within 1 SE: {within1}/{total}, within 2 SE: {within2}/{total}")
     assert within2 >= 0.85 * total
