@@ -45,6 +45,8 @@ class Trial(eqx.Module):
     - `kind`: `"wheel_speeds"` or `"torques"` (static).
     - `z`: `(M,)` shell-centre height [m] or `None`.
     - `name`: a label (the file stem for trials read from files) (static).
+    - `source`: the file the trial was read from (`read_trial`), or None (static): the fit names
+      a trial's frames set aside by its file name (`FitResult.outliers`).
 
     A frame is a gap if any of its pose values is missing; then all its pose values are NaN.
     Construction validates (strictly increasing finite times, finite inputs, unit quaternions:
@@ -60,10 +62,12 @@ class Trial(eqx.Module):
     kind: str = eqx.field(static=True)
     z: np.ndarray | None = None
     name: str = eqx.field(static=True, default="trial")
+    source: str | None = eqx.field(static=True, default=None)
 
-    def __init__(self, t, x, y, q, inputs, kind: str, z=None, name: str = "trial"):
+    def __init__(self, t, x, y, q, inputs, kind: str, z=None, name: str = "trial", source: str | None = None):
         t, x, y, q, inputs, z = _checked(t, x, y, q, inputs, kind, z, source=f"trial {name!r}", check_length=False)
         self.t, self.x, self.y, self.q, self.inputs, self.kind, self.z, self.name = t, x, y, q, inputs, kind, z, name
+        self.source = None if source is None else str(source)
 
     # -------------------------------------------------------------- views
     @property
@@ -121,7 +125,7 @@ class Trial(eqx.Module):
     def replace(self, **changes) -> Trial:
         """A copy with some fields changed (validated again)."""
         d = {"t": self.t, "x": self.x, "y": self.y, "q": self.q, "inputs": self.inputs, "kind": self.kind}
-        d.update({"z": self.z, "name": self.name})
+        d.update({"z": self.z, "name": self.name, "source": self.source})
         d.update(changes)
         return Trial(**d)
 
@@ -228,7 +232,7 @@ def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> T
     )
     name = meta.get("name", path.stem)
     warn_implausible(t, x, y, q, source, z, units_hint="declare '# units: mm' in the file (or pass units='mm')")
-    return Trial(t, x, y, q, inputs, kind, z, name=name)
+    return Trial(t, x, y, q, inputs, kind, z, name=name, source=source)
 
 
 def _comments_and_rows(text: str, source: str) -> tuple[dict[str, str], int, list[list[str]]]:

@@ -149,8 +149,6 @@ def run(args) -> int:
             max_time_offset=args.max_time_offset,
             loss=args.loss,
         )
-    # the frames set aside, by the file each trial came from (in the order read)
-    res.outliers = {f.name: v for f, v in zip(files, res.outliers.values())}
     written = res.save(out, plots=not args.no_plots)
     ckpt.unlink(missing_ok=True)
     print(res.table())

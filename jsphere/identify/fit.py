@@ -158,7 +158,8 @@ def fit(
     - `loss`: how a frame's residuals (position and orientation together) enter the cost:
       `"cauchy"` (default), `"huber"`, `"soft_l1"` or `"l2"` (plain least squares), at a scale of
       `SCALE` noise levels (`jsphere.identify.robust`). Frames the loss sets aside (weight below
-      one half: ghost frames, marker swaps) are `FitResult.outliers`; the noise levels are then
+      one half: ghost frames, marker swaps) are `FitResult.outliers`, by the file name of each
+      trial read from a file (`Trial.source`), else by its name; the noise levels are then
       estimated from the residuals without them.
 
     Returns a `FitResult`. Raises `InputError` (a `ValueError`) for unknown or overlapping
@@ -209,7 +210,15 @@ def fit(
     _multiple_shooting(run, st)
     _adam(run, st)
     _single_shooting(run, st)
-    return _result(run, st)
+    return _result(run, st, outlier_keys(trials))
+
+
+def outlier_keys(trials: Sequence) -> list[str]:
+    """Each trial's key in `FitResult.outliers`: the name of the file it was read from
+    (`Trial.source`), else its name; where two files share a name, their paths."""
+    sources = [getattr(t, "source", None) for t in trials]
+    names = [Path(s).name if s is not None else t.name for s, t in zip(sources, trials)]
+    return [s if s is not None and names.count(n) > 1 else n for s, n in zip(sources, names)]
 
 
 # ----------------------------------------------------------------------------- checks
@@ -845,7 +854,7 @@ def _estimate_sigma(res_b, data: FitData, sig, n_par: int, loss: str = "l2") -> 
     return np.sqrt(np.array([(pos * pos).sum() / (n_pos * frac), (rot * rot).sum() / (n_rot * frac)]))
 
 
-def _result(run: _Run, st: _State) -> FitResult:
+def _result(run: _Run, st: _State, keys: Sequence[str]) -> FitResult:
     """The `FitResult` of the best start, evaluated once more at the final points."""
     cost, out = _evaluate_single(run, st, st.theta, st.nu)
     b = int(np.argmin(cost))
@@ -873,6 +882,7 @@ def _result(run: _Run, st: _State) -> FitResult:
         st.total_it,
         run.t_begin,
         loss=run.options.loss,
+        keys=keys,
     )
     solve_options = {"rtol": run.options.rtol, "atol": run.options.atol, "max_steps": run.options.max_steps}
     return dataclasses.replace(result, shooting=shooting_info, solve_options=solve_options)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -49,7 +50,8 @@ class FitResult:
     fitted clock offsets and their standard errors (`fit(..., fit_time_offset=True)`; None
     otherwise); `solve_options`: the fit's ODE tolerances (`rtol`, `atol`, `max_steps`), which
     `predict` uses; `loss`: the fit's loss (`jsphere.identify.robust`); `outliers`: per trial
-    (by name, in trial order) the frames the loss set aside (weight below one half), as
+    (by the name of the file it was read from, `Trial.source`, else by its name; in trial
+    order) the frames the loss set aside (weight below one half), as
     `{"frames": [0-based row numbers of the trial's data rows], "count": n}`."""
 
     params: RobotParams
@@ -208,10 +210,12 @@ def fit_result(
     t_begin: float,
     *,
     loss: str = "l2",
+    keys: Sequence[str] | None = None,
 ) -> FitResult:
     """The `FitResult` of start `b` (the best) from the final evaluation of every start: `pose`
     (simulated `x, y, q`), `res`, `J` (unweighted) and `cost` as `jsphere.identify.residuals`
-    gives them; `loss`: the fit's (`jsphere.identify.robust`)."""
+    gives them; `loss`: the fit's (`jsphere.identify.robust`); `keys`: each trial's key in
+    `outliers` (None: the trials' names)."""
     P = free.size
     T = data.ts.shape[0]
     n_nu = nu.shape[-1]
@@ -275,8 +279,8 @@ def fit_result(
         time_offset_stderr=None if offsets is None else offsets[1],
         loss=loss,
         outliers={
-            t["name"]: {"frames": np.flatnonzero(t["series"]["set_aside"]).tolist(), "count": t["set_aside"]}
-            for t in trials
+            k: {"frames": np.flatnonzero(t["series"]["set_aside"]).tolist(), "count": t["set_aside"]}
+            for k, t in zip(data.names if keys is None else keys, trials)
         },
     )
 
