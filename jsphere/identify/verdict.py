@@ -14,7 +14,8 @@ the capture's own noise floor, estimated from the data alone, and looks at their
 The rules (thresholds are the module constants below):
 
 1. `not_converged` when the optimiser says it did not converge; the reason also gives the
-   residual ratio when the residuals are far above the floor.
+   residual ratio when the residuals are far above the floor; `misfit` instead when a ratio is
+   above `UNREACHABLE` (more iterations do not bring it to the floor).
 2. otherwise `misfit` when the residual sigma of a channel (position or orientation), over
    all trials or of the worst trial, is more than `FAR` times the noise floor, or more than
    `MODERATE` times with a lag-1 autocorrelation above `CORRELATED` (far from white);
@@ -44,6 +45,10 @@ from ..model.rotations import quat_log_np, quat_mul_np
 FAR = 3.0
 #: residual sigma / noise floor above which correlated residuals make a fit a misfit
 MODERATE = 1.5
+#: residual sigma / noise floor above which a fit that ran out of iterations is a misfit: more
+#: iterations do not bring residuals this far off to the noise floor (a model that does not
+#: describe the trials, under a robust loss, keeps moving frames in and out of the fit)
+UNREACHABLE = 3 * FAR
 #: lag-1 autocorrelation above which residuals are far from white
 CORRELATED = 0.8
 #: fewest third differences (per channel, all trials) for a noise floor; fewer give NaN
@@ -310,6 +315,13 @@ def _status(hits, overall, per_trial, names, worst, fl, converged: bool, why_not
         if unjudged
         else ""
     )
+    if not converged and any(h[4] == "far" and h[2] > UNREACHABLE for h in hits):
+        return "misfit", (
+            f"the optimiser did not converge ({why_not or 'it stopped before its convergence test was met'}) and the "
+            f"residual sigmas are {ratios}{worst_text}{no_floor}: more iterations will not bring them to the noise "
+            "floor; the fit is in a wrong valley or the model does not describe the trials; try more starts "
+            "(--n-starts), other start values (--params, --fix) or more free parameters, and check the inputs and capture."
+        )
     if not converged:
         far = f"; the residual sigmas are {ratios}{worst_text}" if hits else ""
         return "not_converged", (

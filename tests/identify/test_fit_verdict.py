@@ -19,7 +19,7 @@ import jsphere
 from jsphere._runtime.errors import EXIT_CODES_HELP, ExitCode
 from jsphere.cli.app import main
 from jsphere.identify.data import pack_trials
-from jsphere.identify.verdict import CORRELATED, FAR, MODERATE, headline, judge, lag1, noise_floor
+from jsphere.identify.verdict import CORRELATED, FAR, MODERATE, UNREACHABLE, headline, judge, lag1, noise_floor
 from jsphere.plots import worst_trial
 
 TRUTH = jsphere.RobotParams.paper().replace(R_m=0.029, j=3.2e-4)
@@ -105,6 +105,18 @@ def test_smooth_residuals_far_above_the_floor_are_a_misfit():
     assert v["ratio_pos"] > FAR and v["autocorr_pos"] > 0.99
     assert "7.07x (position)" in v["reason"] and "--n-starts" in v["reason"]
     assert headline(v["status"], v["reason"], v) == f"misfit: {v['reason']}"
+
+
+def test_an_unconverged_fit_far_beyond_reach_of_the_floor_is_a_misfit():
+    """Out of iterations at 7x the floor: not converged (more iterations may reach it); at 14x,
+    above `UNREACHABLE`: a misfit whose reason still says the optimiser stopped."""
+    p, r = smooth(300, 10.0)
+    v = judge([p], [r], FLOOR, names=["a"], converged=False, why_not="max_iter")
+    assert FAR < v["ratio_pos"] < UNREACHABLE and v["status"] == "not_converged" and "--max-iter" in v["reason"]
+    p, r = smooth(300, 20.0)
+    v = judge([p], [r], FLOOR, names=["a"], converged=False, why_not="max_iter")
+    assert v["ratio_pos"] > UNREACHABLE and v["status"] == "misfit"
+    assert "did not converge (max_iter)" in v["reason"] and "--n-starts" in v["reason"]
 
 
 def test_moderately_high_residuals_are_a_misfit_only_when_far_from_white():
