@@ -5,7 +5,7 @@
 Problem 2 (the paper's acceleration + braking gaits, `theta_max` per trial, `simulate_gaits`
 under `vmap`) is timed in three variants: the default (shared steps, components),
 `batch_steps="per_trial"` (per-trial steps in lockstep), and the flat layout with per-trial
-steps in diffrax's loop (`jsphere.solve.simulate.COMPONENT_LAYOUT = False`).
+steps in diffrax's loop (`batch_steps="diffrax"`).
 
 Problem 1 in three variants, compiled and timed in the same process: the public API as a user
 writes it (`jax.jit(jax.vmap(simulate))`, its default `batch_steps="shared"`), the public API
@@ -107,34 +107,23 @@ def public_solver(p, batch_steps="shared"):
 
 def problem2_rows(p, batches):
     """Problem 2 (`run.problem2`) per batch: shared, per-trial (components), per-trial flat."""
-    import jsphere.solve.simulate as S
-
     TH = np.random.default_rng(1).uniform(0.05, 0.15, max(batches))
     rows = []
     for B in batches:
         th = jnp.asarray(TH[:B])
         out = {}
-        for name, steps, flat in (
-            ("shared", "shared", False),
-            ("per_trial", "per_trial", False),
-            ("per_trial_flat", "per_trial", True),
-        ):
-            old, S.COMPONENT_LAYOUT = S.COMPONENT_LAYOUT, not flat  # traced (and read) at the first call
-            try:
-                f = jax.jit(
-                    jax.vmap(
-                        lambda t, steps=steps: jsphere.simulate_gaits(
-                            p,
-                            [jsphere.acceleration(theta_max=t), jsphere.braking(theta_max=t)],
-                            ts=jnp.array([0.0, 4.0]),
-                            batch_steps=steps,
-                        )
+        for name, steps in (("shared", "shared"), ("per_trial", "per_trial"), ("per_trial_flat", "diffrax")):
+            f = jax.jit(
+                jax.vmap(
+                    lambda t, steps=steps: jsphere.simulate_gaits(
+                        p,
+                        [jsphere.acceleration(theta_max=t), jsphere.braking(theta_max=t)],
+                        ts=jnp.array([0.0, 4.0]),
+                        batch_steps=steps,
                     )
                 )
-                r = time_call(f, th, repeats=3)
-            finally:
-                S.COMPONENT_LAYOUT = old
-            out[name] = r
+            )
+            out[name] = time_call(f, th, repeats=3)
         ref = out["per_trial_flat"]["_out"]
         row = {"batch": B}
         for name, r in out.items():

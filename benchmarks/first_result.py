@@ -4,7 +4,7 @@ first simulation or gradient, against plain diffrax on a problem of similar cost
     python benchmarks/first_result.py                 # cold and cached, 1 process each
     python benchmarks/first_result.py --repeat 3      # median over 3 processes per entry
     python benchmarks/first_result.py --quick         # gaits, grad and their baselines only
-    python benchmarks/first_result.py --xla-defaults  # also jsphere's tasks with XLA's default options
+    python benchmarks/first_result.py --fast-start    # also jsphere's tasks with `jsphere.FastStart`
 
 Every entry is a new Python process (`python first_result.py --child TASK`) that times its
 steps with `time.perf_counter()` and prints them as JSON; the parent also times the whole
@@ -70,8 +70,10 @@ JSPHERE_TASKS = ("gaits", "simulate", "grad", "jacfwd", "fit", "plan")
 DFX_TASKS = ("dfx_solve", "dfx_grad", "dfx_jacfwd")
 RATIOS = {"gaits": "dfx_solve", "simulate": "dfx_solve", "grad": "dfx_grad", "jacfwd": "dfx_jacfwd"}
 QUICK_TASKS = ("gaits", "grad", "dfx_solve", "dfx_grad")
-#: the environment of the comparison runs with XLA's default options (`--xla-defaults`)
-XLA_DEFAULTS_ENV = {"JSPHERE_XLA_DEFAULTS": "1"}
+#: the environment of the comparison runs whose solves take `SolverOptions(programs=FastStart(...))`
+#: (`--fast-start`: compiled with the eager options, exported beside the persistent cache)
+FAST_START_ENV_NAME = "JSPHERE_BENCHMARK_FAST_START"
+FAST_START_ENV = {FAST_START_ENV_NAME: "1"}
 #: targets: first simulate_gaits and first gradient at most this many times the baseline's
 TARGET_RATIO = 2.5
 #: target: a second process's first gradient with the cache on, and the quickstart cold [s]
@@ -160,11 +162,14 @@ def _jsphere_child(task: str, cache_dir: str | None) -> dict:
     if cache_dir:
         rec["cache"] = _enable_cache(cache_dir, jsphere)
     p = jsphere.RobotParams.paper()
+    options = None
+    if os.environ.get(FAST_START_ENV_NAME):
+        options = jsphere.SolverOptions(programs=jsphere.FastStart(cache_dir))
 
     if task == "gaits":
 
         def f():
-            return jsphere.simulate_gaits(p, [jsphere.acceleration(), jsphere.braking()]).x
+            return jsphere.simulate_gaits(p, [jsphere.acceleration(), jsphere.braking()], options=options).x
 
     elif task == "simulate":
         ts = np.concatenate([np.linspace(0.0, 2.0, 201), np.linspace(2.0, 4.0, 201)])
@@ -173,7 +178,7 @@ def _jsphere_child(task: str, cache_dir: str | None) -> dict:
         state0 = jsphere.State.at_rest(p)
 
         def f():
-            return jsphere.simulate(p, state0, jsphere.Torques.from_samples(ts, K), 4.0, ts=ts).x
+            return jsphere.simulate(p, state0, jsphere.Torques.from_samples(ts, K), 4.0, ts=ts, options=options).x
 
     elif task == "fit":
         ts = np.linspace(0.0, 3.0, 301)
@@ -194,10 +199,12 @@ def _jsphere_child(task: str, cache_dir: str | None) -> dict:
 
     else:
         adjoint = dfx.ForwardMode() if task == "jacfwd" else None
+        options = options or jsphere.SolverOptions()
+        options = jsphere.SolverOptions(adjoint=adjoint, programs=options.programs)
 
         def stop(theta_max):
             gaits = [jsphere.acceleration(theta_max=theta_max), jsphere.braking(theta_max=theta_max)]
-            return jsphere.simulate_gaits(p, gaits, ts=jnp.array([4.0]), adjoint=adjoint).x[-1]
+            return jsphere.simulate_gaits(p, gaits, ts=jnp.array([4.0]), options=options).x[-1]
 
         d = jax.grad(stop) if task == "grad" else jax.jacfwd(stop)
 
@@ -426,9 +433,9 @@ def main(argv=None) -> int:
     ap.add_argument("--no-cache", action="store_true", help="skip the cached part")
     ap.add_argument("--tasks", nargs="+", choices=JSPHERE_TASKS + DFX_TASKS, help="only these tasks; no quickstart")
     ap.add_argument(
-        "--xla-defaults",
+        "--fast-start",
         action="store_true",
-        help="also run the jsphere tasks cold with XLA's default options (JSPHERE_XLA_DEFAULTS=1), alternating",
+        help="also run the jsphere tasks cold with SolverOptions(programs=jsphere.FastStart()), alternating",
     )
     ap.add_argument("--out", type=Path, default=HERE / "results-first-result.json")
     ap.add_argument("--child", help=argparse.SUPPRESS)
@@ -441,7 +448,7 @@ def main(argv=None) -> int:
     meta = metadata()
     tasks = tuple(args.tasks) if args.tasks else QUICK_TASKS if args.quick else JSPHERE_TASKS + DFX_TASKS
     cold, cached = {}, {}
-    defaults = {}
+    fast = {}
     for task in tasks:
         cold[task] = _median([run_child(task) for _ in range(args.repeat)])
         r = cold[task]
@@ -451,11 +458,11 @@ def main(argv=None) -> int:
             file=sys.stderr,
             flush=True,
         )
-        if args.xla_defaults and not task.startswith("dfx_"):
-            defaults[task] = _median([run_child(task, extra_env=XLA_DEFAULTS_ENV) for _ in range(args.repeat)])
-            r = defaults[task]
+        if args.fast_start and not task.startswith("dfx_"):
+            fast[task] = _median([run_child(task, extra_env=FAST_START_ENV) for _ in range(args.repeat)])
+            r = fast[task]
             print(
-                f"  cold   {task:<11} with XLA's defaults: first {r['first_s']:5.1f} s, second {r['second_s']:6.3f} s",
+                f"  cold   {task:<11} with FastStart:      first {r['first_s']:5.1f} s, second {r['second_s']:6.3f} s",
                 file=sys.stderr,
                 flush=True,
             )
@@ -478,8 +485,8 @@ def main(argv=None) -> int:
         "cold": _ratios(cold),
         "cold_cpu": _ratios(cold, "first_cpu_s"),
         "cached": _ratios(cached) if cached else {},
-        "options_over_xla_defaults": {
-            t: {k: cold[t][k] / defaults[t][k] for k in ("first_s", "first_cpu_s", "second_s")} for t in defaults
+        "fast_start_over_default": {
+            t: {k: fast[t][k] / cold[t][k] for k in ("first_s", "first_cpu_s", "second_s")} for t in fast
         },
     }
     doc = {
@@ -491,7 +498,7 @@ def main(argv=None) -> int:
             "baseline": "13-state field, 6x6 jnp.linalg.solve, Dopri8, PIDController(1e-10, 1e-12), t in [0, 4]",
         },
         "cold": cold,
-        "cold_xla_defaults": defaults,
+        "cold_fast_start": fast,
         "cached_second_process": cached,
         "quickstart_cold": quickstart,
         "ratios": ratios,
@@ -527,9 +534,9 @@ def main(argv=None) -> int:
         + ", ".join(f"{k} {v:.2f}" for k, v in ratios["cold_cpu"].items())
         + ")"
     )
-    for t, r in ratios["options_over_xla_defaults"].items():
+    for t, r in ratios["fast_start_over_default"].items():
         print(
-            f"{t}: jsphere's compiler options over XLA's defaults: first {r['first_s']:.2f}x "
+            f"{t}: FastStart over the default: first {r['first_s']:.2f}x "
             f"(cpu {r['first_cpu_s']:.2f}x), second call {r['second_s']:.2f}x"
         )
     print(

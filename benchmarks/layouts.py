@@ -4,9 +4,9 @@
 
 Problem 1 of `run.py` (paper robot, `K_i = a_i sin(pi t + 2.1 (i - 1))`, 4 s, rtol 1e-8, atol
 1e-10) through the public API, `jax.jit(jax.vmap(lambda a: simulate(...)))`, once with
-`jsphere.solve.simulate.COMPONENT_LAYOUT = False` (every solve carries the flat `(16+N,)` state, as
-before the component layout existed) and once with the default (`True`: under `vmap` the state
-is a tuple of scalar components, `jsphere.solve.batched.components`). Both variants are compiled and timed in the
+`batch_steps="diffrax"` (diffrax's own `vmap`: every solve carries the flat `(16+N,)` state) and
+once with the default (`"shared"`: under `vmap` the state is a tuple of scalar components,
+`jsphere.solve.batched.components`, in the batch loop). Both variants are compiled and timed in the
 same process, alternating, so the ratio is meaningful on a noisy machine. Also: the reverse-mode
 gradient of problem 3 (batch-summed squared final positions w.r.t. 7 parameters) over the
 forward time, both layouts. Prints a table; writes JSON atomically.
@@ -32,7 +32,6 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 import jsphere  # noqa: E402
-import jsphere.solve.simulate as S  # noqa: E402
 from jsphere._runtime.files import atomic_write_text  # noqa: E402
 
 jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
@@ -40,7 +39,12 @@ jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default i
 PH = jnp.array([0.0, 2.1, 4.2])
 
 
-def _p1(p):
+def _steps(flag: bool) -> str:
+    """`batch_steps` of a variant: the component layout (`True`) or diffrax's flat `vmap`."""
+    return "shared" if flag else "diffrax"
+
+
+def _p1(p, flag):
     def one(a):
         tr = jsphere.simulate(
             p,
@@ -49,26 +53,27 @@ def _p1(p):
             4.0,
             rtol=1e-8,
             atol=1e-10,
+            batch_steps=_steps(flag),
         )
         return tr.x[-1], tr.y[-1], tr.num_steps
 
     return jax.jit(jax.vmap(one))
 
 
-def _p3(p0):
+def _p3(p0, flag):
     def loss(theta, A):
         I = p0.I.at[jnp.diag_indices(3)].set(theta[2:5])
         p = eqx.tree_at(
             lambda q: (q.r_m, q.j, q.I, q.m0, q.I0), p0, (p0.r_m.at[2].set(theta[0]), theta[1], I, theta[5], theta[6])
         )
-        xy = _p1_traced(p, A)
+        xy = _p1_traced(p, A, flag)
         return jnp.sum(xy[0] ** 2 + xy[1] ** 2)
 
     theta = jnp.stack([p0.r_m[2], p0.j, p0.I[0, 0], p0.I[1, 1], p0.I[2, 2], p0.m0, p0.I0])
     return jax.jit(loss), jax.jit(jax.grad(loss)), theta
 
 
-def _p1_traced(p, A):
+def _p1_traced(p, A, flag):
     tr = jax.vmap(
         lambda a: jsphere.simulate(
             p,
@@ -77,6 +82,7 @@ def _p1_traced(p, A):
             4.0,
             rtol=1e-8,
             atol=1e-10,
+            batch_steps=_steps(flag),
         )
     )(A)
     return tr.x[:, -1], tr.y[:, -1]
@@ -94,15 +100,6 @@ def _time(f, *args, reps=3):
     return out, first, float(np.median(ts)), ts
 
 
-def _with_layout(flag, fn):
-    old = S.COMPONENT_LAYOUT
-    S.COMPONENT_LAYOUT = flag
-    try:
-        return fn()
-    finally:
-        S.COMPONENT_LAYOUT = old
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--batches", type=int, nargs="+", default=[64, 1024, 4096])
@@ -117,8 +114,8 @@ def main(argv=None) -> int:
     for B in args.batches:
         A = jnp.asarray(0.05 * (1 + 0.1 * Z[:B]))
         res = {}
-        for flag in (False, True):  # fresh jit per layout: the flag is read at trace time
-            res[flag] = _with_layout(flag, lambda: _time(_p1(p), A))
+        for flag in (False, True):
+            res[flag] = _time(_p1(p, flag), A)
             print(
                 f"[P1 batch {B}] {'components' if flag else 'flat'}: {B / res[flag][2]:.0f}/s",
                 file=sys.stderr,
@@ -148,10 +145,10 @@ def main(argv=None) -> int:
     for flag in (False, True):
 
         def run():
-            fwd, grad, theta = _p3(p)
+            fwd, grad, theta = _p3(p, flag)
             return _time(fwd, theta, A), _time(grad, theta, A)
 
-        g[flag] = _with_layout(flag, run)
+        g[flag] = run()
         print(f"[P3 batch {B}] {'components' if flag else 'flat'} done", file=sys.stderr, flush=True)
     gdiff = float(jnp.max(jnp.abs(g[False][1][0] - g[True][1][0]) / jnp.abs(g[False][1][0])))
     for flag in (False, True):

@@ -10,32 +10,17 @@ import pytest
 
 jax.config.update("jax_enable_x64", True)
 
-# The CLI, run in-process by the tests, switches on the persistent caches: they go to a folder
-# of this test run, never to the user's cache.
+# The CLI, run in-process by the tests, switches on JAX's persistent cache and exports its
+# solves: they go to a folder of this test run, never to the user's cache.
 _CACHE = tempfile.mkdtemp(prefix="jsphere-test-cache-")
 os.environ["JSPHERE_CACHE_DIR"] = _CACHE
 atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)
 
 import jsphere  # noqa: E402
-from jsphere._runtime import export_cache  # noqa: E402
-from jsphere._runtime.private import equinox_on_error, set_equinox_on_error  # noqa: E402
 
 REFERENCE = Path(__file__).resolve().parents[1].parent / "shared" / "reference" / "reference_cases.json"
 if "JSPHERE_REFERENCE" in os.environ:
     REFERENCE = Path(os.environ["JSPHERE_REFERENCE"])
-
-
-@pytest.fixture(autouse=True)
-def _library_defaults():
-    """Each test starts from the library's defaults: an in-process CLI run leaves the exported-
-    program cache on and equinox's checks in `nan` mode, which would change what later tests
-    trace (a program loaded from the cache is never traced again)."""
-    aot, mode = export_cache._DIR, equinox_on_error()
-    yield
-    if export_cache._DIR != aot:
-        export_cache.enable(None if aot is None else aot.parent)
-    if mode is not None and equinox_on_error() != mode:
-        set_equinox_on_error(mode)
 
 
 @pytest.fixture(scope="session")

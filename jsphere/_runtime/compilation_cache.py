@@ -1,9 +1,10 @@
 """A persistent compilation cache for jsphere's programs, shared by the library and the CLI.
 
 `enable_compilation_cache(path)` switches on JAX's persistent compilation cache (every
-executable kept, however quick its compilation or small its size) and jsphere's cache of
-exported programs (`jsphere._runtime.export_cache`) in the same directory, so that a new
-process loads the programs an earlier one compiled instead of compiling them again.
+executable kept, however quick its compilation or small its size), so that a new process
+loads the programs an earlier one compiled instead of compiling them again. Exported solves,
+which also skip tracing, are kept beside them by `jsphere.FastStart(path)` where a caller asks
+for it (`SolverOptions(programs=...)`; the command line does).
 
 JAX never writes an executable that contains a host callback, and equinox's run-time checks
 (`eqx.error_if`, used by diffrax, e.g. on `SaveAt(ts=...)`) are host callbacks in equinox's
@@ -37,10 +38,11 @@ def default_cache_dir() -> Path:
 def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     """Keep compiled programs in `path` (default `default_cache_dir()`) for later processes.
 
-    Switches on JAX's persistent compilation cache with no thresholds (every program is
-    written: the eager operations around a solve compile in milliseconds each, and reloading
-    them is still cheaper than compiling them again) and jsphere's cache of exported
-    programs under `path/aot`. Returns the directory used (created if missing).
+    Switches on JAX's persistent compilation cache (a setting of JAX for the whole process)
+    with no thresholds: every program is written, as the eager operations around a solve
+    compile in milliseconds each, and reloading them is still cheaper than compiling them
+    again. Returns the directory used (created if missing); `jsphere.FastStart(path)` keeps
+    exported solves in the same directory.
 
     Programs with host callbacks are not written by JAX; trace the solves inside
     `callbacks_as_nan()` for them to be kept. The cache is trusted code: do not point it at a
@@ -48,7 +50,6 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     """
     import jax
 
-    from . import export_cache
     from .private import reset_jax_compilation_cache
 
     target = Path(path).expanduser() if path is not None else default_cache_dir()
@@ -59,7 +60,6 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)  # -1: no size threshold
     if previous and Path(previous) != target:
         reset_jax_compilation_cache()  # JAX opens its cache once; a new directory needs a fresh one
-    export_cache.enable(target)
     return target
 
 

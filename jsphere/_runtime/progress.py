@@ -209,10 +209,10 @@ def _full_key(kind: str, key: str) -> str:
     the backend, float precision and `XLA_FLAGS`."""
     import jax
 
-    from .export_cache import _environment
+    from .fast_start import environment
 
     h = hashlib.sha256()
-    for part in (kind, key, _environment(), str(jax.config.jax_enable_x64), os.environ.get("XLA_FLAGS", "")):
+    for part in (kind, key, environment(), str(jax.config.jax_enable_x64), os.environ.get("XLA_FLAGS", "")):
         h.update(part.encode() + b"\0")
     return h.hexdigest()[:32]
 

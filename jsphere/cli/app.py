@@ -19,7 +19,7 @@ import sys
 import textwrap
 
 from . import animate, compare, convert, design, fit, montecarlo, plan, reproduce, synth, track
-from .compilation import compile_for_one_run, enable_compilation_cache
+from .compilation import compile_for_one_run, fast_start
 
 #: the commands, in the order `jsphere --help` lists them
 COMMANDS = (reproduce, montecarlo, convert, synth, fit, compare, plan, track, design, animate)
@@ -85,9 +85,9 @@ def main(argv=None) -> int:
         compile_for_one_run()
     with _messages(args):
         _float64()
-        if not args.no_cache:
-            enable_compilation_cache()
-        return _run(args)
+        with fast_start(cache=not args.no_cache) as programs:
+            args.programs = programs  # the commands' solves run their programs through it
+            return _run(args)
 
 
 def _float64() -> None:

@@ -1,39 +1,51 @@
-"""How a `jsphere` process compiles: the persistent compilation cache shared by its runs
-(`enable_compilation_cache`) and, for a one-off job, quick rather than fast programs
-(`compile_for_one_run`). The measurements behind both: docs/performance.md."""
+"""How a `jsphere` command compiles: the persistent compilation cache shared by its runs and
+exported solves (`fast_start`) and, for a one-off job, quick rather than fast programs
+(`compile_for_one_run`). The library's solves are pure: this is the command line's choice, made
+at its edge. The measurements behind it: docs/performance.md."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
+from typing import Iterator
 
 _ONE_RUN_XLA_FLAG = "--xla_backend_optimization_level=0"
 
 
-def enable_compilation_cache() -> None:
-    """Persist XLA executables between processes, in the library's one cache
-    (`jsphere.enable_compilation_cache`: `$JSPHERE_CACHE_DIR`, else `$XDG_CACHE_HOME/jsphere/jax`,
-    else `~/.cache/jsphere/jax`), so a second run skips compilation.
+@contextlib.contextmanager
+def fast_start(cache: bool = True) -> Iterator:
+    """While a command runs: its solves' programs compiled quickly and, with `cache`, kept for
+    the next run. Yields the `jsphere.FastStart` the command passes to its solves
+    (`SolverOptions(programs=...)`).
 
-    JAX does not persist executables that contain host callbacks, and equinox's run-time
-    checks inside diffrax are host callbacks. For the CLI (whose inputs are validated before
-    any solve, and whose solver failures jsphere reports itself, outside the compiled code)
-    those checks are switched to equinox's `nan` mode unless `EQX_ON_ERROR` is set.
-
-    Every executable is kept, however quick its compilation: `jsphere reproduce` compiles about
-    a hundred small programs (eager operations between the solves) besides its solves, and with
-    JAX's default threshold (1 s) a second run would compile them again.
+    With `cache`: XLA executables persist between processes in the library's one cache
+    (`jsphere.enable_compilation_cache`: `$JSPHERE_CACHE_DIR`, else
+    `$XDG_CACHE_HOME/jsphere/jax`, else `~/.cache/jsphere/jax`), every one kept however quick
+    its compilation (`jsphere reproduce` compiles about a hundred small eager programs besides
+    its solves), and the solves are exported beside them. JAX does not persist executables
+    that contain host callbacks, and equinox's run-time checks inside diffrax are host
+    callbacks: for the command (whose inputs are validated before any solve, and whose solver
+    failures jsphere reports itself, outside the compiled code) those checks are traced in
+    equinox's `nan` mode unless `EQX_ON_ERROR` is set, and the previous mode is back when the
+    command ends.
     """
-    from .._runtime.compilation_cache import default_cache_dir
-    from .._runtime.compilation_cache import enable_compilation_cache as enable
-    from .._runtime.private import equinox_on_error, set_equinox_on_error
+    from .._runtime.compilation_cache import default_cache_dir, enable_compilation_cache
+    from .._runtime.fast_start import FastStart
+    from .._runtime.private import equinox_errors_as, equinox_on_error
 
-    if "EQX_ON_ERROR" not in os.environ and equinox_on_error() == "raise":
-        set_equinox_on_error("nan")
+    if not cache:
+        yield FastStart()
+        return
     try:
-        enable(default_cache_dir())
+        folder = enable_compilation_cache(default_cache_dir())
     except Exception as e:  # a read-only home must not stop the run
         print(f"jsphere: compilation cache disabled ({e})", file=sys.stderr)
+        yield FastStart()
+        return
+    quiet = "EQX_ON_ERROR" in os.environ or equinox_on_error() != "raise"
+    with contextlib.nullcontext() if quiet else equinox_errors_as("nan"):
+        yield FastStart(folder)
 
 
 def compile_for_one_run() -> bool:

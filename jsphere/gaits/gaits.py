@@ -14,12 +14,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from .._runtime import export_cache as _aot
 from .._runtime.arrays import as_array, under_jit
 from .._runtime.arrays import traced as _traced
 from .._runtime.checks import finite
 from .._runtime.errors import InputError
-from .._runtime.quick_compile import eager_jit
 from ..controls import Constant
 from ..model.dynamics import free_Omega_dot, required_torques
 from ..model.kinematics import rest_attitude
@@ -290,10 +288,10 @@ def simulate_gaits(
     - `batch_steps`: under `jax.vmap`, `"shared"` (default) integrates a batch of at least 32
       trials with one step sequence on contiguous components (`jsphere.solve.batched.dispatch`; each
       trial still meets its tolerance), `"per_trial"` gives every trial its own steps (in
-      lockstep, in the same loop: a trial's result does not depend on its batch), as
-      `simulate` does.
+      lockstep, in the same loop: a trial's result does not depend on its batch), `"diffrax"`
+      diffrax's own `vmap` of the flat state, as `simulate` does.
     - `options`: a `SolverOptions` (any of `rtol`, `atol`, `solver`, `max_steps`, `throw`,
-      `adjoint`, `batch_steps`), merged with the keyword arguments as in `simulate`.
+      `adjoint`, `batch_steps`, `programs`), merged with the keyword arguments as in `simulate`.
 
     Returns a `Trajectory`; `segment` tells which gait each sample belongs to.
     """
@@ -343,7 +341,7 @@ def simulate_gaits(
         atol,
         opts.max_steps,
         opts.adjoint_or_default(),
-        steps_layout(opts.batch_steps, opts.throw),
+        opts,
     )
     return raise_on_failure(traj, opts.throw)
 
@@ -379,16 +377,18 @@ def _reset_data(resets, dt):
     return modes, values
 
 
-def _solve_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, max_steps, adjoint, steps: Layout):
+def _solve_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, max_steps, adjoint, opts):
     """`_simulate_gaits` with the state layout chosen by batching, as `jsphere.solve.simulate._solve`
     does for torques: the flat state for a single call (diffrax's path directly), components
     (and shared steps, with `batch_steps="shared"`) under `vmap`
     (`jsphere.solve.batched.dispatch`)."""
     flat = (solver, rtol, atol, max_steps, adjoint)
     args = (params, gaits, initial, ts_out, resets)
-    if not batch_engine_applies(True, adjoint) or not _traced(args):
-        return _aot.call("simulate_gaits", _simulate_gaits, _rebuild, *args, *flat)
-    return _dispatch.solve(_simulate_gaits, _rebuild, args, flat, steps)
+    if not batch_engine_applies(True, adjoint, opts.batch_steps) or not _traced(args):
+        return _dispatch.run_program(opts.programs, "simulate_gaits", _simulate_gaits, _rebuild, *args, *flat)
+    return _dispatch.solve(
+        _simulate_gaits, _rebuild, args, flat, steps_layout(opts.batch_steps, opts.throw), opts.programs
+    )
 
 
 @eqx.filter_jit  # one compiled program per kind of gait, not one per operation
@@ -425,7 +425,7 @@ def _check_start(params, gait, alpha0, beta0) -> None:
         )
 
 
-@eager_jit
+@eqx.filter_jit
 def _simulate_gaits(
     params, gaits, initial, ts_out, resets, solver, rtol, atol, max_steps, adjoint, layout=Layout.FLAT, derived=None
 ):

@@ -18,6 +18,7 @@ import numpy as np
 from ..controls import kinematic_control, straight_line
 from ..gaits.gaits import acceleration, braking, simulate_gaits, turn
 from ..model.params import RobotParams
+from ..solve.options import SolverOptions
 from ..solve.simulate import Trajectory, simulate
 
 
@@ -83,6 +84,7 @@ def full_stop_brake(
     iters: int = 8,
     tol: float = 1e-12,
     rate: float = 100.0,
+    options: SolverOptions | None = None,
 ):
     """`(theta_max, phi)` of the braking gait that stops the robot after acceleration (5.1) and
     turn (5.6), every gait starting from the previous end state (Newton on the horizontal
@@ -91,10 +93,11 @@ def full_stop_brake(
     The finite differences reuse the forward simulation compiled for the table; an autodiff
     Jacobian (`optimistix`, as in `jsphere.optimise_gaits`) would compile a reverse-mode program
     through the adaptive solver first, which costs far more than the whole solve here
-    (`benchmarks/solvers.py`)."""
+    (`benchmarks/solvers.py`). `options` go to `simulate_gaits`."""
+    run = _Run(rate, options)
 
     def residual(x):
-        tr = _host(simulate_gaits(params, [acceleration(), turn(), braking(theta_max=x[0], phi=x[1])], rate=rate))
+        tr = run.gaits(params, [acceleration(), turn(), braking(theta_max=x[0], phi=x[1])])
         return np.asarray(tr.Omega[-1, :2])
 
     x = np.array([theta0, phi0])
@@ -117,26 +120,47 @@ class _Tables:
     trajs: dict[str, Trajectory] = dataclasses.field(default_factory=dict)
 
 
-def reproduce(params: RobotParams | None = None, *, rate: float = 100.0, full_stop: bool = True) -> Reproduction:
-    """Recompute every number of Section 5 (see `docs/model.md` for the conventions)."""
+@dataclasses.dataclass(frozen=True)
+class _Run:
+    """How the sections below solve: output `rate` [Hz] and the `SolverOptions` of every solve."""
+
+    rate: float = 100.0
+    options: SolverOptions | None = None
+
+    def gaits(self, p, gaits, **kwargs) -> Trajectory:
+        return _host(simulate_gaits(p, gaits, rate=self.rate, options=self.options, **kwargs))
+
+    def torques(self, p, state0, controls, t1, **kwargs) -> Trajectory:
+        return simulate(p, state0, controls, t1, options=self.options, **kwargs)
+
+
+def reproduce(
+    params: RobotParams | None = None,
+    *,
+    rate: float = 100.0,
+    full_stop: bool = True,
+    options: SolverOptions | None = None,
+) -> Reproduction:
+    """Recompute every number of Section 5 (see `docs/model.md` for the conventions).
+    `options` go to every solve (`jsphere reproduce` passes its `FastStart` there)."""
     p = RobotParams.paper() if params is None else params
-    out = _Tables()
-    straight, straight_reset, v_kin = _acceleration(p, rate, out)
-    _figure2(p, rate, straight, v_kin, out)
+    out, run = _Tables(), _Run(rate, options)
+    straight, straight_reset, v_kin = _acceleration(p, run, out)
+    _figure2(p, run, straight, v_kin, out)
     _straight_stop(p, straight, straight_reset, out)
-    _turn_stops(p, rate, out)
+    _turn_stops(p, run, out)
     if full_stop:
-        _full_stop(p, rate, out)
+        _full_stop(p, run, out)
     out.vals["params"] = p.to_dict()
     return Reproduction(out.rows, out.vals, out.trajs)
 
 
-def _acceleration(p: RobotParams, rate: float, out: _Tables):
+def _acceleration(p: RobotParams, run: _Run, out: _Tables):
     """Section 5.1: acceleration (5.1), (5.2), then braking (5.3); `Omega_1` and the speed of the
     kinematic run (5.5). Returns the straight runs (continuing, with the reset (5.4)) and that speed."""
     R0, rows, vals, trajs = float(p.R0), out.rows, out.vals, out.trajs
-    straight = _host(simulate_gaits(p, [acceleration(), braking()], rate=rate))
-    straight_reset = _host(simulate_gaits(p, [acceleration(), braking()], reset=True, rate=rate))
+    straight = run.gaits(p, [acceleration(), braking()])
+    straight_reset = run.gaits(p, [acceleration(), braking()], reset=True)
     trajs["straight"], trajs["straight_reset"] = straight, straight_reset
     i_acc = int(np.nonzero(np.asarray(straight.segment) == 0)[0][-1])
     Om1 = np.asarray(straight.Omega[i_acc])
@@ -152,13 +176,13 @@ def _acceleration(p: RobotParams, rate: float, out: _Tables):
     return straight, straight_reset, v_kin
 
 
-def _figure2(p: RobotParams, rate: float, straight: Trajectory, v_kin: float, out: _Tables):
+def _figure2(p: RobotParams, run: _Run, straight: Trajectory, v_kin: float, out: _Tables):
     """Fig. 2: kinematic control (2.9) through the dynamic model next to gait control."""
     rows, vals, trajs = out.rows, out.vals, out.trajs
-    ts8 = np.linspace(0.0, 8.0, int(8 * rate) + 1)
+    ts8 = np.linspace(0.0, 8.0, int(8 * run.rate) + 1)
     wheels = kinematic_control(p, straight_line(v_kin), t_stop=4.0)
-    kin = _host(simulate(p, _at_rest(p), wheels, 8.0, ts=ts8))
-    gait8 = _gaits_then_stopped(p, straight, wheels, ts8)
+    kin = _host(run.torques(p, _at_rest(p), wheels, 8.0, ts=ts8))
+    gait8 = _gaits_then_stopped(p, run, straight, wheels, ts8)
     trajs["kinematic"], trajs["gait_8s"] = kin, gait8
     sig = {}
     for name, tr in (("kinematic", kin), ("gait", gait8)):
@@ -171,7 +195,7 @@ def _figure2(p: RobotParams, rate: float, straight: Trajectory, v_kin: float, ou
                     "dissipation, so the simulated oscillation does not decay (the experiment's does)."))  # fmt: skip
     rows.append(Row("sigma of gamma_3, t in [4, 8] s, gaits", "0.001 (experiment)", f"{sig['gait'][0]:.2e}", "",
                     "the gaits end on rest exactly (no reset), so the platform stays upright."))  # fmt: skip
-    xk, yk = float(kin.x[int(4 * rate)]), float(kin.y[int(4 * rate)])
+    xk, yk = float(kin.x[int(4 * run.rate)]), float(kin.y[int(4 * run.rate)])
     vals["kinematic_position_t4_m"] = [xk, yk]
     rows.append(Row("kinematic run, position at t = 4 s", "(0, 520) mm (planned)", _mm(xk, yk), _mm(*to_figure_frame(xk, yk)),
                     "the planned path is 4 s * 0.13 m/s; the impulsive start of the wheels and the platform's "
@@ -195,14 +219,14 @@ def _straight_stop(p: RobotParams, straight: Trajectory, straight_reset: Traject
     rows.append(Row("straight line stop, experiment", "(-1.392 +- 28.9, 369.2 +- 37.7) mm", "", ""))
 
 
-def _turn_stops(p: RobotParams, rate: float, out: _Tables):
+def _turn_stops(p: RobotParams, run: _Run, out: _Tables):
     """Section 5.2 (2): acceleration, turn (5.6), braking at `phi = pi/4`, under the readings of (5.7)."""
     rows, vals, trajs = out.rows, out.vals, out.trajs
     gaits3 = [acceleration(), turn(), braking(phi=math.pi / 4)]
-    t_reset = _host(simulate_gaits(p, gaits3, reset=[True, None], rate=rate))
-    t_cont = _host(simulate_gaits(p, gaits3, rate=rate))
-    t_sign = _host(simulate_gaits(p, gaits3, reset=[True, (-0.868, 0.852, 0.0)], rate=rate))
-    t_print = _host(simulate_gaits(p, gaits3, reset=[True, (0.868, 0.852, 0.0)], rate=rate))
+    t_reset = run.gaits(p, gaits3, reset=[True, None])
+    t_cont = run.gaits(p, gaits3)
+    t_sign = run.gaits(p, gaits3, reset=[True, (-0.868, 0.852, 0.0)])
+    t_print = run.gaits(p, gaits3, reset=[True, (0.868, 0.852, 0.0)])
     trajs.update(turn_reset=t_reset, turn_continuation=t_cont, turn_signfixed=t_sign, turn_printed=t_print)
     i_turn = int(np.nonzero(np.asarray(t_reset.segment) == 1)[0][-1])
     Om_turn = np.asarray(t_reset.Omega[i_turn])
@@ -233,11 +257,11 @@ def _turn_stops(p: RobotParams, rate: float, out: _Tables):
     rows.append(Row("turn + brake stop, experiment", "(-151.3 +- 32.4, 482.4 +- 112.1) mm", "", ""))
 
 
-def _full_stop(p: RobotParams, rate: float, out: _Tables):
+def _full_stop(p: RobotParams, run: _Run, out: _Tables):
     """The braking gait that stops the robot after the turn (`full_stop_brake`) and its stop point."""
     rows, vals, trajs = out.rows, out.vals, out.trajs
-    th, ph, res = full_stop_brake(p, rate=rate)
-    fs = _host(simulate_gaits(p, [acceleration(), turn(), braking(theta_max=th, phi=ph)], rate=rate))
+    th, ph, res = full_stop_brake(p, rate=run.rate, options=run.options)
+    fs = run.gaits(p, [acceleration(), turn(), braking(theta_max=th, phi=ph)])
     trajs["turn_full_stop"] = fs
     vals["full_stop_brake"] = {"theta_max": th, "phi": ph, "stop_m": [float(fs.x[-1]), float(fs.y[-1])]}
     rows.append(Row("braking that stops after the turn", "-", f"theta_max = {th:.5f}, phi = {ph:.5f}", "",
@@ -257,7 +281,7 @@ def _at_rest(p):
     return State.at_rest(p)
 
 
-def _gaits_then_stopped(p: RobotParams, gaits: Trajectory, wheels, ts8) -> Trajectory:
+def _gaits_then_stopped(p: RobotParams, run: _Run, gaits: Trajectory, wheels, ts8) -> Trajectory:
     """The gait motion `gaits` followed, until `ts8[-1]`, by the omniwheels stopped
     (`chi_dot = 0`), as after the kinematic run: "the motion of the robot lasted 4 s, after which
     the omniwheels stopped" (Section 5.1).
@@ -275,7 +299,7 @@ def _gaits_then_stopped(p: RobotParams, gaits: Trajectory, wheels, ts8) -> Traje
     k = int(round(step))
     if wheels.fn.t_stop is None or t_end < wheels.fn.t_stop or abs(step - k) > 1e-9 or k < 1:
         raise ValueError("_gaits_then_stopped: the gaits must end after the wheels' t_stop, on ts8's grid")
-    after = simulate(p, gaits.state(-1), wheels, t1, t0=t_end, ts=fine)
+    after = run.torques(p, gaits.state(-1), wheels, t1, t0=t_end, ts=fine)
     keep = np.arange(k, n, k)  # the samples after t_end on ts8's grid
     after = jax.tree_util.tree_map(lambda a: a[keep] if np.ndim(a) >= 1 else a, _host(after))
     return concatenate_trajectories(gaits, after)

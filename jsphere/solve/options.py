@@ -5,7 +5,7 @@ from __future__ import annotations
 import numbers
 import warnings
 from collections.abc import Mapping
-from typing import Any, Literal
+from typing import Any, Callable, Literal
 
 import diffrax as dfx
 import equinox as eqx
@@ -31,7 +31,7 @@ DEFAULT_TOLERANCES = {"float64": (1e-8, 1e-10), "float32": (1e-5, 1e-7)}
 #: and are rejected at random, worst in batches with shared steps.
 FLOAT32_MIN_RTOL = 1e-5
 
-BATCH_STEPS = ("shared", "per_trial")
+BATCH_STEPS = ("shared", "per_trial", "diffrax")
 
 
 def tolerances(
@@ -60,7 +60,7 @@ def tolerances(
 
 def _check(where: str, max_steps, batch_steps) -> None:
     if batch_steps not in BATCH_STEPS:
-        raise ValueError(f"{where}: batch_steps must be 'shared' or 'per_trial'; got {batch_steps!r}.")
+        raise ValueError(f"{where}: batch_steps must be 'shared', 'per_trial' or 'diffrax'; got {batch_steps!r}.")
     if isinstance(max_steps, bool) or not isinstance(max_steps, numbers.Integral) or max_steps < 1:
         raise ValueError(f"{where}: max_steps must be a positive integer; got {max_steps!r}.")
 
@@ -76,7 +76,13 @@ class SolverOptions(eqx.Module):
     - `throw`: raise on a failed solve, or report it in `Trajectory.status`;
     - `adjoint`: a diffrax adjoint; `None`: `diffrax.RecursiveCheckpointAdjoint()`
       (`diffrax.ForwardMode()` for `jax.jacfwd`);
-    - `batch_steps`: under `vmap`, `"shared"` (one step sequence for a batch) or `"per_trial"`.
+    - `batch_steps`: under `vmap`, `"shared"` (one step sequence for a batch), `"per_trial"`
+      (each trial its own steps, in the same vectorised loop) or `"diffrax"` (diffrax's own
+      `vmap` of the flat state, bypassing the batch engine: the engine's reference);
+    - `programs`: how the programs of a call with concrete inputs are compiled and run,
+      `programs(name, fn, rebuild, *args)` in place of `fn(*args)`; `None`: `fn(*args)` (jitted
+      in this process). `jsphere.FastStart()` compiles them for a short first call and keeps
+      them on disk for the next process (what the command line does).
 
     `simulate(..., options=SolverOptions(rtol=1e-10))` is `simulate(..., rtol=1e-10)`; keyword
     arguments given besides `options` are merged into it (`merge`).
@@ -93,7 +99,8 @@ class SolverOptions(eqx.Module):
     max_steps: int = eqx.field(static=True, default=16384)
     throw: bool = eqx.field(static=True, default=True)
     adjoint: dfx.AbstractAdjoint | None = None
-    batch_steps: Literal["shared", "per_trial"] = eqx.field(static=True, default="shared")
+    batch_steps: Literal["shared", "per_trial", "diffrax"] = eqx.field(static=True, default="shared")
+    programs: Callable | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         _check("SolverOptions", self.max_steps, self.batch_steps)
@@ -138,6 +145,7 @@ _DEFAULTS = {
     "throw": True,
     "adjoint": None,
     "batch_steps": "shared",
+    "programs": None,
 }
 
 

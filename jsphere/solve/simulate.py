@@ -12,10 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
-from .._runtime import export_cache as _aot
 from .._runtime.arrays import as_array
 from .._runtime.arrays import traced as _traced
-from .._runtime.quick_compile import eager_jit
 from ..controls import Torques, WheelSpeeds
 from ..model.dynamics import servo_jump
 from ..model.params import RobotParams, derive
@@ -31,7 +29,14 @@ from .fields import (
     _torque_field_soa,
     _wheel_field,
 )
-from .options import DEFAULT_TOLERANCES, FLOAT32_MIN_RTOL, SolverOptions, default_solver, resolve, tolerances
+from .options import (
+    DEFAULT_TOLERANCES,
+    FLOAT32_MIN_RTOL,
+    SolverOptions,
+    default_solver,
+    resolve,
+    tolerances,
+)
 from .segments import solve_segments
 from .trajectory import Trajectory, _rebuild, assemble, raise_on_failure
 
@@ -43,13 +48,7 @@ __all__ = [
     "default_solver",
     "DEFAULT_TOLERANCES",
     "FLOAT32_MIN_RTOL",
-    "COMPONENT_LAYOUT",
 ]
-
-#: Batched torque- and gait-mode solves carry their state as scalar components
-#: (`jsphere.solve.batched.components`); `False` keeps the flat layout everywhere (for A/B
-#: measurements: benchmarks/layouts.py, benchmarks/ensemble.py).
-COMPONENT_LAYOUT = True
 
 
 def simulate(
@@ -99,11 +98,13 @@ def simulate(
       its own step-size control: with `Dopri8`, `Dopri5` or `Tsit5` the batch runs in the same
       vectorised loop, every trial with its own times, steps, failures and `num_steps` (in
       lockstep), so a trial's result is bitwise the same in any batch; its gradient is the
-      discrete adjoint of those per-trial steps. It changes nothing for unbatched calls, nor
-      when `t0`, `t1`, `ts` or `jump_ts` are batched. (Speed: `docs/performance.md`.)
+      discrete adjoint of those per-trial steps. `"diffrax"` is diffrax's own `vmap` of the
+      flat state (per-trial steps; the reference the others are measured against). It changes
+      nothing for unbatched calls, nor when `t0`, `t1`, `ts` or `jump_ts` are batched.
+      (Speed: `docs/performance.md`.)
     - `options`: a `SolverOptions` holding any of `rtol`, `atol`, `solver`, `max_steps`,
-      `throw`, `adjoint`, `batch_steps`; a keyword argument given as well must agree with it
-      unless one of the two is at its default (`SolverOptions.merge`).
+      `throw`, `adjoint`, `batch_steps`, `programs`; a keyword argument given as well must
+      agree with it unless one of the two is at its default (`SolverOptions.merge`).
 
     Pure JAX: jit, vmap (over parameters, states, controls) and grad work.
     """
@@ -153,7 +154,7 @@ def simulate(
         atol,
         opts.max_steps,
         opts.adjoint_or_default(),
-        steps_layout(opts.batch_steps, opts.throw),
+        opts,
     )
     return raise_on_failure(traj, opts.throw)
 
@@ -180,31 +181,33 @@ def _explicit_closure(controls, t0):
     return type(controls)(_ClosedControl(conv, dyn), controls.jump_ts)
 
 
-def batch_engine_applies(controls_ok: bool, adjoint) -> bool:
+def batch_engine_applies(controls_ok: bool, adjoint, batch_steps: str) -> bool:
     """Whether a traced solve goes through the batch engine (`jsphere.solve.batched.dispatch`):
-    component layouts on, a mode that has a component field, and an adjoint the engine
-    supports. Every other call takes diffrax's path directly."""
-    return COMPONENT_LAYOUT and controls_ok and type(adjoint) in (dfx.RecursiveCheckpointAdjoint, dfx.ForwardMode)
+    a mode that has a component field, an adjoint the engine supports, and `batch_steps` other
+    than `"diffrax"`. Every other call takes diffrax's path directly."""
+    engine_adjoint = type(adjoint) in (dfx.RecursiveCheckpointAdjoint, dfx.ForwardMode)
+    return controls_ok and engine_adjoint and batch_steps != "diffrax"
 
 
-def _solve(
-    params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_steps, adjoint, steps=Layout.SHARED_STEPS
-) -> Trajectory:
+def _solve(params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_steps, adjoint, opts) -> Trajectory:
     """`_simulate` with the state layout chosen by batching: concrete calls (which no `vmap`
     can be around) and calls the batch engine does not take run `_simulate` directly (through
-    the exported-program cache); traced torque-mode calls go through the engine's batching
+    `opts.programs` when given); traced torque-mode calls go through the engine's batching
     rule (`jsphere.solve.batched.dispatch`)."""
     flat = (solver, rtol, atol, max_steps, adjoint)
-    if not batch_engine_applies(isinstance(controls, Torques), adjoint):
-        return _aot.call("simulate", _simulate, _rebuild, params, state0, controls, t0, t1, ts_out, *flat)
+    run = opts.programs
+    if not batch_engine_applies(isinstance(controls, Torques), adjoint, opts.batch_steps):
+        return _dispatch.run_program(
+            run, "simulate", _simulate, _rebuild, params, state0, controls, t0, t1, ts_out, *flat
+        )
     controls = _explicit_closure(controls, t0)
     args = (params, state0, controls, t0, t1, ts_out)
     if not _traced(args):
-        return _aot.call("simulate", _simulate, _rebuild, *args, *flat)
-    return _dispatch.solve(_simulate, _rebuild, args, flat, steps)
+        return _dispatch.run_program(run, "simulate", _simulate, _rebuild, *args, *flat)
+    return _dispatch.solve(_simulate, _rebuild, args, flat, steps_layout(opts.batch_steps, opts.throw), run)
 
 
-@eager_jit
+@eqx.filter_jit
 def _simulate(
     params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_steps, adjoint, layout=Layout.FLAT, derived=None
 ):

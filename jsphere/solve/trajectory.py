@@ -77,7 +77,7 @@ def _state_at(traj: Trajectory, i) -> State:
 
 
 def _rebuild(leaves) -> Trajectory:
-    """A `Trajectory` from its leaves (in field order; for `jsphere._runtime.export_cache`)."""
+    """A `Trajectory` from its leaves (in field order; for `SolverOptions.programs`)."""
     return Trajectory(*leaves)
 
 

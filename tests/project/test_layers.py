@@ -168,3 +168,37 @@ def test_private_import_check_sees_one(tmp_path):
     f.write_text("from ..model.params import _FIELDS, RobotParams\nfrom .problem import _duration\n")
     found = _private_imports("jsphere.planning.probe", f, set(_modules()))
     assert found == ["jsphere.model.params._FIELDS (line 1)"]
+
+
+#: the machinery of a quick start (exported programs, compile options, equinox's error mode, the
+#: persistent cache, first-call records): the command line's, or a caller's explicit choice
+START_UP = {
+    "jsphere._runtime.fast_start",
+    "jsphere._runtime.quick_compile",
+    "jsphere._runtime.compilation_cache",
+    "jsphere._runtime.progress",
+}
+#: the numerical core: pure functions of their arguments
+PURE = ("model", "controls", "solve", "solve.batched", "gaits")
+
+
+def _reachable(name: str) -> set[str]:
+    seen, todo = set(), [name]
+    while todo:
+        for target in GRAPH.get(todo.pop(), ()):
+            if target not in seen:
+                seen.add(target)
+                todo.append(target)
+    return seen
+
+
+@pytest.mark.parametrize("name", sorted(n for n in GRAPH if _layer(n)[0] in PURE))
+def test_the_core_imports_no_start_up_machinery(name):
+    """`simulate`, `simulate_gaits` and the batch engine read and switch no process-global
+    state: what makes a first call quick is passed in (`SolverOptions.programs`)."""
+    assert not (_reachable(name) & START_UP), f"{name} reaches {sorted(_reachable(name) & START_UP)}"
+    private = PACKAGE / "_runtime" / "private.py"
+    for node in ast.walk(ast.parse(Path(GRAPH and _modules()[name]).read_text())):
+        if isinstance(node, ast.ImportFrom) and (node.module or "").endswith("private"):
+            names = {a.name for a in node.names}
+            assert names <= {"rk_tableau"}, f"{name} imports {names} from {private.name}"

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import jsphere
-from jsphere._runtime import export_cache, quick_compile
+from jsphere._runtime import quick_compile
 from jsphere.solve.batched import dispatch
 
 
@@ -40,7 +40,6 @@ def _stop(p, theta_max, ts=(4.0,)):
 
 def test_eager_gradient_of_few_inputs_is_forward_mode(monkeypatch):
     p = jsphere.RobotParams.paper()
-    monkeypatch.setattr(export_cache, "_DIR", None)  # a program loaded from the cache is not traced
     seen = []
     original = dispatch._flat_jacfwd
     monkeypatch.setattr(dispatch, "_flat_jacfwd", lambda *a: seen.append(1) or original(*a))

@@ -16,7 +16,7 @@ zero: unbatched and in small batches the flat layout with diffrax's own VJP, in 
 program; batches in the batch loop through its discrete adjoint (`_loop_vjp`,
 `jsphere.solve.batched.adjoint`); other large batches the flat VJP per trial, in chunks of
 `GRAD_CHUNK` trials. An eager `jax.grad` (no `jit` or `vmap` around) thus compiles two
-programs, the solve and its VJP, both kept by the exported-program cache when it is on; with
+programs, the solve and its VJP (both run by `SolverOptions.programs` when given); with
 at most `FORWARD_MAX_INPUTS` perturbed input scalars (a gradient with respect to a gait's
 amplitude, say) it compiles one, the solve with its Jacobian in forward mode (`_flat_jacfwd`).
 `diffrax.ForwardMode` uses the `custom_vmap` directly (its `jvp` is supported).
@@ -38,9 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
-from ..._runtime import export_cache as _aot
 from ..._runtime.arrays import under_jit
-from ..._runtime.quick_compile import eager_jit
 from ...model.params import Derived, derive
 from . import layout as _layout
 from .layout import Layout
@@ -49,6 +47,13 @@ from .method import tableau
 #: An eager `jax.grad` with at most this many perturbed input scalars computes the Jacobian
 #: with respect to them in forward mode (`_reverse_fwd`; `docs/performance.md`).
 FORWARD_MAX_INPUTS = 8
+
+
+def run_program(programs: Callable | None, name: str, fn: Callable, rebuild: Callable, *args):
+    """`fn(*args)`, or `programs(name, fn, rebuild, *args)` where the caller gave a way to run
+    it (`SolverOptions.programs`). `fn` returns an `equinox.Module` of arrays and
+    `rebuild(leaves)` makes it again from its leaves."""
+    return fn(*args) if programs is None else programs(name, fn, rebuild, *args)
 
 
 def has_tracer(tree) -> bool:
@@ -65,7 +70,8 @@ class BatchedSolve(eqx.Module):
     - `steps`: the layout a batch of at least `SHARED_MIN_BATCH` trials asks for
       (`jsphere.solve.batched.layout.steps_layout`);
     - `loop`: whether the batch loop (`jsphere.solve.batched.loop`) integrates this solver in
-      reverse mode, so that batches take it and their gradient is its discrete adjoint.
+      reverse mode, so that batches take it and their gradient is its discrete adjoint;
+    - `programs`: how an eager gradient's programs are run (`SolverOptions.programs`).
     """
 
     fn: Callable
@@ -76,6 +82,7 @@ class BatchedSolve(eqx.Module):
     derived: Derived | None
     steps: Layout = eqx.field(static=True)
     loop: bool = eqx.field(static=True)
+    programs: Callable | None = eqx.field(static=True, default=None)
 
     def __call__(self, leaves, layout: Layout):
         args = eqx.combine(jax.tree_util.tree_unflatten(self.treedef, leaves), self.static)
@@ -83,12 +90,12 @@ class BatchedSolve(eqx.Module):
 
     @property
     def name(self) -> str:
-        """The solve's name (its function's), for the exported-program cache."""
+        """The solve's name (its function's), naming its programs (`SolverOptions.programs`)."""
         return getattr(self.fn, "__qualname__", "solve")
 
     def unnamed(self) -> "BatchedSolve":
-        """This solve without its functions (`fn`, `rebuild`)."""
-        return dataclasses.replace(self, fn=None, rebuild=None)
+        """This solve without its functions (`fn`, `rebuild`, `programs`)."""
+        return dataclasses.replace(self, fn=None, rebuild=None, programs=None)
 
     @property
     def shared(self) -> bool:
@@ -111,12 +118,13 @@ class BatchedSolve(eqx.Module):
         )
 
 
-def solve(fn, rebuild, args, flat, steps: Layout):
+def solve(fn, rebuild, args, flat, steps: Layout, programs: Callable | None = None):
     """`fn(*args, *flat, layout=..., derived=...)` with the layout chosen by batching: the flat
     state for a single call, components under `vmap` (with shared steps or per-trial steps in
     the batch loop from `SHARED_MIN_BATCH` trials, as `steps` asks); reverse mode through
     `_reverse`, forward mode (`flat[-1]` a `diffrax.ForwardMode`) through `_dispatched`.
-    `args[0]` are the `RobotParams`; `flat` ends with the adjoint."""
+    `args[0]` are the `RobotParams`; `flat` ends with the adjoint; `programs` runs an eager
+    gradient's programs (`SolverOptions.programs`)."""
     adjoint = flat[-1]
     # only traced leaves are inputs of the dispatched solve; concrete ones stay constants (folded by XLA)
     dyn, static = eqx.partition(args, lambda x: isinstance(x, jax.core.Tracer))
@@ -127,7 +135,7 @@ def solve(fn, rebuild, args, flat, steps: Layout):
             derived = _derive(args[0])
     forward_mode = isinstance(adjoint, dfx.ForwardMode)
     loop = tableau(flat[0]) is not None and not forward_mode
-    engine = BatchedSolve(fn, rebuild, treedef, static, flat, derived, steps, loop)
+    engine = BatchedSolve(fn, rebuild, treedef, static, flat, derived, steps, loop, programs)
     if forward_mode:
         return _dispatched(engine)(leaves)
     return _reverse(engine, leaves)
@@ -208,8 +216,14 @@ def _reverse_fwd(engine: BatchedSolve, leaves):
     n = sum(int(np.size(v)) for v, p in zip(values, perturbed) if p)
     if 0 < n <= FORWARD_MAX_INPUTS and not has_tracer(values) and not under_jit():
         program = _exportable(_flat_jacfwd, engine)
-        out, jac = _aot.call(
-            f"jacfwd:{engine.name}", program, _with_jacobian(engine.rebuild), engine.unnamed(), perturbed, values
+        out, jac = run_program(
+            engine.programs,
+            f"jacfwd:{engine.name}",
+            program,
+            _with_jacobian(engine.rebuild),
+            engine.unnamed(),
+            perturbed,
+            values,
         )
         return out, (values, perturbed, jac)
     return _primal(engine, values), values
@@ -217,11 +231,11 @@ def _reverse_fwd(engine: BatchedSolve, leaves):
 
 def _primal(engine: BatchedSolve, leaves):
     """The solve of `_reverse`'s forward pass. With concrete inputs (an eager `jax.grad`: no
-    `vmap` or `jit` around) one compiled program, `_flat_primal` (through the exported-program
-    cache when it is on); otherwise the `custom_vmap` of `_dispatched`."""
+    `vmap` or `jit` around) one compiled program, `_flat_primal` (run by `engine.programs`
+    when given); otherwise the `custom_vmap` of `_dispatched`."""
     if not has_tracer(leaves) and not under_jit():
         primal = _exportable(_flat_primal, engine)
-        return _aot.call(f"primal:{engine.name}", primal, engine.rebuild, engine.unnamed(), leaves)
+        return run_program(engine.programs, f"primal:{engine.name}", primal, engine.rebuild, engine.unnamed(), leaves)
     return _dispatched(engine)(leaves)
 
 
@@ -242,7 +256,7 @@ def _reverse_bwd(engine: BatchedSolve, leaves, ct):
         return ([_zero_cotangent(x) for x in leaves],)
     if not has_tracer((leaves, cts)) and not under_jit():
         vjp = _exportable(_flat_vjp, engine)
-        return (_aot.call(f"vjp:{engine.name}", vjp, _keep, engine.unnamed(), keep, leaves, cts),)
+        return (run_program(engine.programs, f"vjp:{engine.name}", vjp, _keep, engine.unnamed(), keep, leaves, cts),)
 
     @jax.custom_batching.custom_vmap
     def f(lv, cs):
@@ -270,9 +284,10 @@ def _keep(x):
 
 
 def _exportable(program, engine: BatchedSolve):
-    """`program(engine, ...)` as a function of `engine.unnamed()`: the exported-program cache
-    keys a call by its arguments' structure, in which a function has no stable name; the
-    solve's function is in the cache's name instead (`BatchedSolve.name`)."""
+    """`program(engine, ...)` as a function of `engine.unnamed()`: a cache of programs
+    (`SolverOptions.programs`) keys a call by its arguments' structure, in which a function
+    has no stable name; the solve's function is in the program's name instead
+    (`BatchedSolve.name`)."""
     return lambda unnamed, *args: program(dataclasses.replace(unnamed, fn=engine.fn, rebuild=engine.rebuild), *args)
 
 
@@ -294,13 +309,13 @@ def _selected_vjp(engine: BatchedSolve, keep, leaves, cts):
     return pull(cts)[0]
 
 
-@eager_jit
+@eqx.filter_jit
 def _flat_primal(engine: BatchedSolve, leaves):
     """One trial's solve in the flat layout, as one compiled program."""
     return engine(leaves, Layout.FLAT)
 
 
-@eager_jit
+@eqx.filter_jit
 def _flat_vjp(engine: BatchedSolve, keep, leaves, cts):
     """`_selected_vjp` as one compiled program (forward and backward pass together)."""
     return _selected_vjp(engine, keep, leaves, cts)
@@ -310,7 +325,7 @@ def _inexact(x) -> bool:
     return jnp.issubdtype(jnp.result_type(x), jnp.inexact)
 
 
-@eager_jit
+@eqx.filter_jit
 def _flat_jacfwd(engine: BatchedSolve, perturbed, leaves):
     """One trial's solve in the flat layout and the Jacobian of its floating-point outputs
     with respect to the perturbed leaves, by forward mode (`diffrax.ForwardMode`: the same

@@ -1,0 +1,185 @@
+"""`FastStart`: the programs of a script's or command's first solves, compiled for a short
+first call and kept on disk for the next process.
+
+A solve is pure: `simulate` and `simulate_gaits` compile their program with `jax.jit` in this
+process and keep nothing else. Where a process's first calls matter (the command line, a
+script run again and again), the caller passes a `FastStart` as `SolverOptions(programs=...)`;
+it runs each program of a call with concrete inputs (`_simulate`, `_simulate_gaits`, an eager
+gradient's programs) in its place:
+
+- compiled with the eager options of `jsphere._runtime.quick_compile` (on the CPU, XLA's older
+  fusion emitters at optimisation level 1: about half the compile time, the same run time;
+  docs/decisions/eager-solves-compile-with-xla-s.md);
+- with a `path`, exported once with `jax.export` (traced with equinox's run-time checks in
+  their `nan` mode, `jsphere._runtime.private.callbacks_as_nan`, as host callbacks cannot be
+  serialised: a failed solve is then reported by its status, not raised from inside the
+  program) to `<path>/aot/<key>.jaxexport`; later calls, in this process or the next, run the
+  deserialised program, whose executable comes from JAX's persistent compilation cache when
+  that is on (`jsphere.enable_compilation_cache`). A second process then skips tracing and
+  lowering (docs/decisions/persistent-compilation-cache-and-exported-solves.md).
+
+The key hashes everything the program depends on: its name, the source of every `jsphere`
+module, the versions of jax, jaxlib, diffrax and equinox, the backend and float precision, the
+tree structure of the arguments, the shapes and dtypes of their arrays, and the values of
+their non-array parts. A call whose non-array parts have no stable value (a `lambda`, a
+function defined outside jsphere, any object printed with its address) is not exported, and
+any failure of the exported path falls back to the ordinary call.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .arrays import under_jit
+from .files import atomic_write
+from .precision import x64_enabled
+from .private import callbacks_as_nan
+from .quick_compile import jit_concrete
+from .quick_compile import options as quick_options
+
+_ENVIRONMENT: str | None = None
+_PLAIN = (bool, int, float, complex, str, type(None))
+_FUNCTION_MODULES = ("jsphere.", "jax.", "jax", "numpy")
+
+
+class FastStart:
+    """Runs the programs of solves with concrete inputs for a quick first call
+    (`SolverOptions(programs=FastStart(path))`).
+
+    **Arguments:**
+    - `path`: a folder for exported programs (`<path>/aot`), kept for later processes; `None`
+      (default): nothing on disk, only the quicker compilation.
+
+    `jsphere reproduce` and the other commands pass `FastStart(<cache>)`, the cache of
+    `jsphere.enable_compilation_cache`. The folder is trusted code: do not point it at a
+    directory that others can write to.
+
+    A solve this process traced before with equinox's run-time checks in their default
+    `raise` mode keeps that trace (diffrax's `jit` holds it), whose host callbacks cannot be
+    exported: it then runs as usual, with a note on stderr. Pass the `FastStart` from the
+    first solve on, or set `EQX_ON_ERROR=nan` (the command line traces every solve in `nan`
+    mode).
+    """
+
+    def __init__(self, path: str | os.PathLike | None = None):
+        self.path = None if path is None else Path(path).expanduser() / "aot"
+        self._loaded: dict[str, Callable] = {}
+        self._failed: set[str] = set()  # keys whose export failed (e.g. host callbacks)
+        self._quick: dict[str, Callable] = {}
+
+    def __repr__(self) -> str:
+        return f"FastStart({None if self.path is None else str(self.path.parent)!r})"
+
+    def __call__(self, name: str, fn: Callable, rebuild: Callable, *args):
+        """`fn(*args)`, through an exported program where there is a folder and the call has a
+        stable key, else compiled with the eager options. `fn` returns an `equinox.Module` of
+        arrays; `rebuild(leaves)` makes it again from its leaves (its tree structure is not
+        serialised)."""
+        dyn, static = eqx.partition(args, eqx.is_array)
+        leaves, treedef = jax.tree_util.tree_flatten(dyn)
+        if any(isinstance(x, jax.core.Tracer) for x in leaves) or under_jit():
+            return fn(*args)  # traced inputs, or inside a user's jit: the caller's program
+        key = None if self.path is None else _key(name, leaves, treedef, static)
+        if key is not None and key not in self._failed:
+            try:
+                run = self._loaded.get(key) or self._load_or_export(key, fn, treedef, static, leaves)
+                return rebuild(run(*leaves))
+            except Exception as e:  # noqa: BLE001 - the exported path is an optimisation only
+                self._failed.add(key)
+                print(f"jsphere: not exporting {name} ({type(e).__name__}: {e}); running it directly", file=sys.stderr)
+        return self._quickly(name, fn)(*args)
+
+    def _quickly(self, name: str, fn: Callable) -> Callable:
+        """`fn` compiled with the eager options (one jit per program name: `fn` may be a new
+        closure at every call, of the same program)."""
+        if name not in self._quick:
+            opts = quick_options()
+            self._quick[name] = eqx.filter_jit(fn, compiler_options=opts) if opts else fn
+        return self._quick[name]
+
+    def _load_or_export(self, key, fn, treedef, static, leaves) -> Callable:
+        path = self.path / f"{key}.jaxexport"
+        exported = None
+        if path.exists():
+            try:
+                exported = jax.export.deserialize(bytearray(path.read_bytes()))
+            except Exception:  # noqa: BLE001 - a truncated or foreign file: export it again
+                exported = None
+        if exported is None:
+
+            def flat(*lv):
+                out = fn(*eqx.combine(jax.tree_util.tree_unflatten(treedef, lv), static))
+                return jax.tree_util.tree_leaves(out)
+
+            avals = [
+                jax.ShapeDtypeStruct(np.shape(x), jnp.result_type(x), weak_type=bool(getattr(x, "weak_type", False)))
+                for x in leaves
+            ]
+            with callbacks_as_nan():  # JAX cannot serialise host callbacks
+                exported = jax.export.export(jax.jit(flat))(*avals)
+            atomic_write(path, lambda tmp: Path(tmp).write_bytes(bytes(exported.serialize())), suffix=".tmp")
+        run = jit_concrete(exported.call)
+        self._loaded[key] = run
+        return run
+
+
+def environment() -> str:
+    """What every exported program depends on besides its arguments (computed once): the
+    source of every jsphere module, library versions, backend and float precision."""
+    global _ENVIRONMENT
+    if _ENVIRONMENT is None:
+        import diffrax
+        import jaxlib
+
+        h = hashlib.sha256()
+        package = Path(__file__).resolve().parent.parent
+        for f in sorted(package.rglob("*.py")):
+            h.update(f.relative_to(package).as_posix().encode() + b"\0" + f.read_bytes())
+        for item in (jax.__version__, jaxlib.__version__, diffrax.__version__, eqx.__version__, jax.default_backend()):
+            h.update(str(item).encode() + b"\0")
+        _ENVIRONMENT = h.hexdigest()
+    return _ENVIRONMENT
+
+
+def _stable(x: Any) -> str | None:
+    """A process-independent text for a non-array leaf, or `None` if it has none."""
+    if isinstance(x, _PLAIN):
+        return f"{type(x).__name__}:{x!r}"
+    if isinstance(x, np.dtype):
+        return f"dtype:{x}"
+    mod, qual = getattr(x, "__module__", None), getattr(x, "__qualname__", None)
+    if callable(x) and isinstance(mod, str) and isinstance(qual, str) and "<" not in qual:
+        if mod == "jsphere" or mod.startswith(_FUNCTION_MODULES):
+            return f"fn:{mod}.{qual}"
+    return None
+
+
+def _key(name: str, leaves, treedef, static) -> str | None:
+    s_leaves, s_def = jax.tree_util.tree_flatten(static)
+    parts = [_stable(x) for x in s_leaves]
+    if any(p is None for p in parts):
+        return None
+    tree = f"{treedef}|{s_def}"
+    if " at 0x" in tree:  # an object identified by its address
+        return None
+    h = hashlib.sha256()
+    for item in (
+        "jsphere-aot-1",
+        name,
+        environment(),
+        f"x64={x64_enabled()}",
+        tree,
+        *parts,
+        *(f"{np.shape(x)}:{jnp.result_type(x)}:{bool(getattr(x, 'weak_type', False))}" for x in leaves),
+    ):
+        h.update(str(item).encode() + b"\0")
+    return h.hexdigest()[:40]

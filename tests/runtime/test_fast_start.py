@@ -1,0 +1,79 @@
+"""`FastStart`, the programs of eager solves compiled quickly and exported to disk (what the
+command line passes to its solves): same results as the ordinary call, from memory and from
+the file; no export for calls without a stable key; a damaged file is replaced."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jsphere
+from jsphere._runtime import fast_start
+from jsphere._runtime.private import equinox_errors_as
+
+
+@pytest.fixture
+def nan_mode():
+    """Every solve of the test traced with equinox's checks in `nan` mode, as the command line
+    does: a trace with host callbacks (raise mode) cannot be exported."""
+    with equinox_errors_as("nan"):
+        yield
+
+
+def _free_roll(p, programs=None):
+    state = eqx.tree_at(lambda s: s.Omega, jsphere.State.at_rest(p), jnp.array([0.0, 0.5, 0.1]))
+    options = jsphere.SolverOptions(programs=programs)
+    return jsphere.simulate(
+        p, state, jsphere.Torques(jsphere.Zero(3)), 0.5, ts=jnp.linspace(0.0, 0.5, 6), options=options
+    )
+
+
+def test_quick_programs_match_the_direct_call():
+    p = jsphere.RobotParams.paper()
+    fast = jsphere.FastStart()
+    assert fast.path is None
+    want, got = _free_roll(p), _free_roll(p, fast)
+    for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-15)
+    assert list(fast._quick) == ["simulate"]  # one program, compiled with the eager options once
+    _free_roll(p.replace(R0=0.16), fast)
+    assert len(fast._quick) == 1
+
+
+@pytest.mark.slow
+def test_exported_solve_matches_the_direct_call_and_is_reused(tmp_path, nan_mode):
+    p = jsphere.RobotParams.paper()
+    aot_dir = tmp_path / "aot"
+    want = _free_roll(p)
+    first = _free_roll(p, jsphere.FastStart(tmp_path))  # exports, writes the file, runs the exported program
+    files = list(aot_dir.glob("*.jaxexport"))
+    assert len(files) == 1
+    again = _free_roll(p.replace(R0=0.16), jsphere.FastStart(tmp_path))  # as a new process: from the file
+    assert list(aot_dir.glob("*.jaxexport")) == files
+    for a, b in zip(jax.tree_util.tree_leaves(first), jax.tree_util.tree_leaves(want)):  # other compiler options
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-15)
+    direct = _free_roll(p.replace(R0=0.16))
+    np.testing.assert_allclose(np.asarray(again.x), np.asarray(direct.x), rtol=1e-12, atol=1e-15)
+    assert float(jnp.max(jnp.abs(again.x - first.x))) > 0  # the parameters were inputs, not constants
+
+    # a damaged file is exported again
+    files[0].write_bytes(b"not an export")
+    repaired = _free_roll(p, jsphere.FastStart(tmp_path))
+    np.testing.assert_array_equal(np.asarray(repaired.y), np.asarray(first.y))
+    assert files[0].stat().st_size > 1000
+
+
+@pytest.mark.slow
+def test_calls_without_a_stable_key_are_not_exported(tmp_path, nan_mode):
+    p = jsphere.RobotParams.paper()
+    K = jnp.array([0.01, 0.0, -0.01])
+    options = jsphere.SolverOptions(programs=jsphere.FastStart(tmp_path))
+    tr = jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(lambda t: K * t), 0.2, options=options)
+    assert bool(tr.ok)  # a lambda: no stable key
+    jax.jit(
+        lambda a: jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(jsphere.Zero(3)), a, options=options).x
+    )(0.2)  # traced
+    assert not (tmp_path / "aot").exists() or not list((tmp_path / "aot").glob("*.jaxexport"))
+    assert fast_start._stable(lambda t: t) is None and fast_start._stable(object()) is None
+    assert fast_start._stable(1.5) == "float:1.5" and fast_start._stable(jnp.sin) is not None
