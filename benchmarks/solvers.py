@@ -44,6 +44,7 @@ from jsphere.planning import rollout as rollout_mod
 from jsphere.planning import search
 from jsphere.planning.problem import Limits, Objective, PlanSettings, _vec_targets
 from jsphere.planning.residuals import _residuals, _residuals_and_jacobian
+from jsphere.solve.batched.field_args import FieldArgs
 
 jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
 
@@ -150,7 +151,7 @@ def _states_diffrax(p, gait, n):
         T,
         T / n,
         State.at_rest(p).flatten().astype(dt),
-        args=(p, derive(p), (gait, Qm), jnp.zeros((), dt), T),
+        args=FieldArgs(p, derive(p), (gait, Qm), jnp.zeros((), dt), T),
         stepsize_controller=diffrax.ConstantStepSize(),
         saveat=diffrax.SaveAt(t0=True, steps=True),
         max_steps=n,

@@ -39,6 +39,7 @@ import jax.numpy as jnp  # noqa: E402
 
 import jsphere  # noqa: E402
 from jsphere.model.params import derive  # noqa: E402
+from jsphere.solve.batched.field_args import FieldArgs  # noqa: E402
 from jsphere.solve.simulate import _torque_field  # noqa: E402
 
 jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
@@ -100,7 +101,7 @@ def rhs_only(p, A):
     def loop(a):
         ctrl = jsphere.Torques(Sine(a))
         return jax.lax.fori_loop(
-            0, EVALS, lambda i, z: z + 1e-6 * _torque_field(i * 1e-3, z, (p, d, ctrl, 0.0, 4.0)), z0
+            0, EVALS, lambda i, z: z + 1e-6 * _torque_field(i * 1e-3, z, FieldArgs(p, d, ctrl, 0.0, 4.0)), z0
         )
 
     _, first, best = best_of(jax.jit(jax.vmap(loop)), A)
@@ -169,7 +170,7 @@ def lean_loop(p, A):
 
     def one(a):
         ctrl = jsphere.Torques(Sine(a))
-        y, n = _lean_solve(lambda t, z: _torque_field(t, z, (p, d, ctrl, 0.0, 4.0)), 0.0, 4.0, z0, 1e-8, 1e-10)
+        y, n = _lean_solve(lambda t, z: _torque_field(t, z, FieldArgs(p, d, ctrl, 0.0, 4.0)), 0.0, 4.0, z0, 1e-8, 1e-10)
         return y[14], n
 
     (x, n), first, best = best_of(jax.jit(jax.vmap(one)), A)

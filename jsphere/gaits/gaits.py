@@ -27,10 +27,11 @@ from ..model.rotations import rotation_between, rotmat
 from ..model.state import Flat, State
 from ..solve.batched import dispatch as _dispatch
 from ..solve.batched.components import gait_field_components, unit
+from ..solve.batched.field_args import FieldArgs
 from ..solve.batched.layout import Layout, steps_layout
 from ..solve.internal import kin_rates as _kin_rates
 from ..solve.internal import rebuild as _rebuild
-from ..solve.options import DEFAULT_TOLERANCES, SolverOptions, resolve
+from ..solve.options import DEFAULT_TOLERANCES, SolverOptions, solver_options
 from ..solve.segments import solve_segments
 from ..solve.simulate import batch_engine_applies
 from ..solve.trajectory import Trajectory, assemble, raise_on_failure
@@ -195,9 +196,11 @@ def turn(theta_max: float = 0.1, phi: float = math.pi / 2, T: float = 2.0, *, pe
 # ----------------------------------------------------------------------- integration
 
 
-def _gait_field(t, z, args):
-    p, d, (gait, Qm), a, _ = args
-    gamma, omega, omega_dot = gait.kinematics(Qm, t - a)
+def _gait_field(t, z, args: FieldArgs):
+    """The flat state's rates under a gait (`args.control = (gait, Q_m)`): `gamma`, `omega`
+    prescribed, `Omega` from the control-free sum of (3.4)."""
+    p, d = args.params, args.derived
+    gamma, omega, omega_dot = _gait_kinematics(t, args)
     Omega = z[Flat.Omega]
     Omega_dot = free_Omega_dot(p, d, gamma, omega, Omega, omega_dot)
     # positions use the prescribed gamma(t); q is integrated with the same omega(t)
@@ -206,23 +209,31 @@ def _gait_field(t, z, args):
     return jnp.concatenate([dq, dqs, omega_dot, Omega_dot, dxy, chi_dot])
 
 
-def _gait_inputs(t, args):
+def _gait_kinematics(t, args: FieldArgs):
+    """`(gamma, omega, omega_dot)` the segment's gait prescribes at time `t`."""
+    gait, Qm = args.control
+    return gait.kinematics(Qm, t - args.t_start)
+
+
+def _gait_inputs(t, args: FieldArgs):
     """`(gamma, omega, omega_dot)` the gait prescribes at time `t`, as a 9-tuple of scalars
     (the inputs of `_gait_field_soa`)."""
-    _, _, (gait, Qm), a, _ = args
-    return gait.kinematics_components(Qm, t - a)
+    gait, Qm = args.control
+    return gait.kinematics_components(Qm, t - args.t_start)
 
 
-def _gait_field_soa(t, y, args, kin=None, adjoint=False):
+def _gait_field_soa(t, y, args: FieldArgs, kin=None, adjoint=False):
     """`_gait_field` on a tuple of scalar components (`jsphere.solve.batched.components`), for
     batched solves; `kin`: the gait's `(gamma, omega, omega_dot)` as a 9-tuple, if the caller
     has evaluated it. (`adjoint`: the same field for the discrete adjoint.)"""
-    return gait_field_components(args[0], args[1], _gait_inputs(t, args) if kin is None else kin, y, unit(t))
+    kin = _gait_inputs(t, args) if kin is None else kin
+    return gait_field_components(args.params, args.derived, kin, y, unit(t))
 
 
-def _gait_outputs(p, d, control, t, z, a, b):
-    gait, Qm = control
-    gamma, omega, omega_dot = gait.kinematics(Qm, t - a)
+def _gait_outputs(t, z, args: FieldArgs):
+    """`(omega, chi_dot, K)` at a saved state under a gait: `K` the torques it requires."""
+    p, d = args.params, args.derived
+    gamma, omega, omega_dot = _gait_kinematics(t, args)
     Omega = z[Flat.Omega]
     Omega_dot = free_Omega_dot(p, d, gamma, omega, Omega, omega_dot)
     K = required_torques(p, d, gamma, omega, Omega, omega_dot, Omega_dot)
@@ -256,10 +267,10 @@ def simulate_gaits(
     rtol: float | None = None,
     atol: float | None = None,
     solver: dfx.AbstractSolver | None = None,
-    max_steps: int = 16384,
-    throw: bool = True,
+    max_steps: int | None = None,
+    throw: bool | None = None,
     adjoint: dfx.AbstractAdjoint | None = None,
-    batch_steps: str = "shared",
+    batch_steps: str | None = None,
     options: SolverOptions | None = None,
 ) -> Trajectory:
     """Execute a sequence of gaits (Section 4) and return the motion, torques and wheel rates.
@@ -290,8 +301,10 @@ def simulate_gaits(
       trial still meets its tolerance), `"per_trial"` gives every trial its own steps (in
       lockstep, in the same loop: a trial's result does not depend on its batch), `"diffrax"`
       diffrax's own `vmap` of the flat state, as `simulate` does.
+    - `solver`, `max_steps`, `throw`, `adjoint`: as in `simulate`.
     - `options`: a `SolverOptions` (any of `rtol`, `atol`, `solver`, `max_steps`, `throw`,
-      `adjoint`, `batch_steps`, `programs`), merged with the keyword arguments as in `simulate`.
+      `adjoint`, `batch_steps`, `programs`); a keyword given wins over its field, as in
+      `simulate`.
 
     Returns a `Trajectory`; `segment` tells which gait each sample belongs to.
     """
@@ -307,7 +320,7 @@ def simulate_gaits(
         resets = list(reset)
         if len(resets) != nb:
             raise ValueError(f"simulate_gaits: reset needs one entry per gait boundary ({nb}); got {len(resets)}.")
-    opts = resolve(
+    opts = solver_options(
         options,
         where="simulate_gaits",
         rtol=rtol,

@@ -50,7 +50,7 @@ from .._runtime.progress import Progress
 from ..model.names import parse_name
 from ..model.params import RobotParams
 from ..numerics.lm import LM_KEYS, LevenbergMarquardt, LMState, iterate
-from ..solve.options import SolverOptions, default_solver, resolve, unused
+from ..solve.options import SolverOptions, default_solver, solver_options, unused
 from . import shooting as _shooting
 from .checkpoint import (
     _CHECKPOINT_FORMAT,
@@ -69,6 +69,10 @@ from .robust import DEFAULT_LOSS, check_loss, reweigh, robust_cost
 from .shooting import CONTINUATION_RTOL, DEFECT_CLOSED, MU_LEVELS, Segments
 from .starts import _NU_SCALE, nuisance_guess, start_design
 from .verdict import robust_sd
+
+#: fit's solver settings where neither a keyword nor `options` sets them: positions within ~2 um
+#: of a 1e-11 solution over a few seconds of exciting input
+FIT_TOLERANCES = {"rtol": 1e-6, "atol": 1e-8}
 
 
 def fit(
@@ -91,9 +95,9 @@ def fit(
     noise: float = 1.0,
     sigma_pos: float | None = None,
     sigma_rot: float | None = None,
-    rtol: float = 1e-6,
-    atol: float = 1e-8,
-    max_steps: int = 16384,
+    rtol: float | None = None,
+    atol: float | None = None,
+    max_steps: int | None = None,
     checkpoint: str | Path | None = None,
     restart: bool = False,
     progress: bool | None | Callable[[str], None] = None,
@@ -131,14 +135,14 @@ def fit(
     - `sigma_pos` [m], `sigma_rot` [rad]: noise levels. If not given they start at 1 mm and
       0.5 deg and are estimated from the residuals after the first stage, and the fit is
       finished with the estimates.
-    - `rtol`, `atol`, `max_steps`: the ODE solver's (see `simulate`). The defaults keep the
+    - `rtol`, `atol`, `max_steps`: the ODE solver's (see `simulate`); default 1e-6, 1e-8,
+      16384 (`FIT_TOLERANCES`). The defaults keep the
       simulated positions within ~2 um of a 1e-11 solution over a few seconds of exciting
       input, far below capture noise (100 Hz tables: the cubic command has a kink in its rate
       at every sample, which makes tighter tolerances costly: `docs/performance.md`).
-    - `options`: a `SolverOptions`; its `rtol`, `atol`, `max_steps` and `solver` are used
-      (`resolve` with fit's own defaults above: an option at `SolverOptions`' default takes
-      the keyword's value, a keyword at fit's default leaves a set option, both set and
-      different is an error). `throw` and `batch_steps` are fit's own: a failed solve is a
+    - `options`: a `SolverOptions`; its `rtol`, `atol`, `max_steps` and `solver` are used,
+      with fit's own defaults above where it leaves them at `SolverOptions`' defaults; a
+      keyword given wins over its field. `throw` and `batch_steps` are fit's own: a failed solve is a
       start of infinite cost, and forward-mode derivatives give every trial its own steps.
       `adjoint` set is an error (fit differentiates in forward mode, `diffrax.ForwardMode`).
     - `checkpoint`: a file (`.npz`) written atomically after every Adam and Levenberg-Marquardt
@@ -246,20 +250,14 @@ def _check_time_offset(fit_time_offset, max_time_offset) -> float:
 
 
 def _solver_options(options: SolverOptions | None, rtol, atol, max_steps) -> SolverOptions:
-    """`options` resolved with fit's solver keywords and their defaults (`resolve`)."""
+    """`options` with fit's solver keywords (a keyword given wins) and fit's defaults."""
     unused(
         options,
         where="fit",
         adjoint="fit differentiates its solves in forward mode (diffrax.ForwardMode), which it chooses itself",
     )
-    return resolve(
-        options,
-        where="fit",
-        defaults={"rtol": 1e-6, "atol": 1e-8, "max_steps": 16384},
-        rtol=rtol,
-        atol=atol,
-        max_steps=max_steps,
-    )
+    opts = solver_options(options, where="fit", rtol=rtol, atol=atol, max_steps=max_steps)
+    return opts.or_defaults(**FIT_TOLERANCES)
 
 
 def _check_options(n_starts, max_iter, adam_steps, seed, sigma_pos, sigma_rot) -> None:

@@ -38,7 +38,7 @@ from ..gaits.gaits import Gait, simulate_gaits
 from ..model.params import RobotParams
 from ..model.state import Flat
 from ..planning.tracking.evaluate import Conditions
-from ..solve.options import SolverOptions, default_solver, resolve, unused
+from ..solve.options import SolverOptions, default_solver, solver_options, unused
 from ..solve.simulate import tolerances
 from .batch import CHUNK as CHUNK
 from .batch import ClosedLoop, Replay, Trials, run_batch
@@ -78,7 +78,7 @@ def monte_carlo(
     commands: tuple | None = None,
     track: Mapping | None = None,
     feedback: Mapping | None = None,
-    max_steps: int = 65536,
+    max_steps: int | None = None,
     out: str | os.PathLike | None = None,
     progress: bool | None = None,
     distributed: bool | None = None,
@@ -130,7 +130,7 @@ def monte_carlo(
       evaluation's). `Omega0_sd`, `actuators.delay_sd` and `actuators.band_sd` must be 0.
     - `rtol`, `atol`: the solver's tolerances; default 1e-8, 1e-10 (float32 parameters: 1e-5,
       1e-7, as `simulate`).
-    - `max_steps`: solver step limit per trial in the replay modes (noisy commands need many
+    - `max_steps`: solver step limit per trial in the replay modes, default 65536 (noisy commands need many
       steps: the noise is interpolated smoothly and the solver follows it). Gait mode solves
       with `simulate_gaits`' limit (16384) unless `options.max_steps` sets it.
     - `Omega0_sd`: sd of a perturbation of the initial shell angular velocity [1/s].
@@ -156,9 +156,8 @@ def monte_carlo(
       call `jax.distributed.initialize()` at the top of the script when in doubt. `None`
       (default): distributed when the runtime is running with several processes.
     - `options`: a `SolverOptions`; its `rtol`, `atol`, `max_steps` and `solver` are used
-      (`resolve` with monte_carlo's own default `max_steps=65536`: an option at
-      `SolverOptions`' default takes the keyword's value, a keyword at its default leaves a set
-      option, both set and different is an error). `throw` and `batch_steps` are
+      (`max_steps` 65536 where it is at `SolverOptions`' default); a keyword given wins over
+      its field. `throw` and `batch_steps` are
       monte_carlo's own: a failed trial is reported in `status`, and every trial takes its own
       steps, so that its result does not depend on the other trials of its chunk. `adjoint`
       set is an error (nothing is differentiated). A solver other than `Dopri8` is part of
@@ -223,7 +222,7 @@ def prepare(
     commands: tuple | None = None,
     track: Mapping | None = None,
     feedback: Mapping | None = None,
-    max_steps: int = 65536,
+    max_steps: int | None = None,
     options: SolverOptions | None = None,
     out: str | os.PathLike | None = None,
     distributed: bool = False,
@@ -241,10 +240,10 @@ def prepare(
             "settle": settle,
             "Omega0_sd": Omega0_sd,
             "plan_rate": plan_rate,
-            "max_steps": max_steps,
+            "max_steps": MAX_STEPS if max_steps is None else max_steps,
         },
     )
-    opts = _solver_options(options, rtol, atol, settings)
+    opts = _solver_options(options, rtol, atol, max_steps, settings)
     actuators = _check_mode(mode, actuators, opts.rtol, opts.atol)
     spec = check_vary(params, vary)
     rtol, atol = tolerances(params.R0.dtype, opts.rtol, opts.atol, where="monte_carlo")
@@ -275,18 +274,12 @@ def prepare(
     )
 
 
-def _solver_options(options: SolverOptions | None, rtol, atol, settings: dict) -> SolverOptions:
-    """The solver settings of a study: `options` resolved with the keywords (`max_steps`
+def _solver_options(options: SolverOptions | None, rtol, atol, max_steps, settings: dict) -> SolverOptions:
+    """The solver settings of a study: `options` with the keywords given (`max_steps`
     defaults to `MAX_STEPS`); `settings["max_steps"]` becomes the replay modes' step limit."""
     unused(options, where="monte_carlo", adjoint="monte_carlo does not differentiate its solves")
-    opts = resolve(
-        options,
-        where="monte_carlo",
-        defaults={"max_steps": MAX_STEPS},
-        rtol=rtol,
-        atol=atol,
-        max_steps=settings["max_steps"],
-    )
+    opts = solver_options(options, where="monte_carlo", rtol=rtol, atol=atol, max_steps=max_steps)
+    opts = opts.or_defaults(max_steps=MAX_STEPS)
     settings["max_steps"] = opts.max_steps
     return opts
 

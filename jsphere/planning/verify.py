@@ -17,7 +17,7 @@ from ..gaits.gaits import simulate_gaits
 from ..model.kinematics import rest_attitude
 from ..model.rotations import rotation_between
 from ..model.state import State
-from ..solve.options import SolverOptions, resolve, unused
+from ..solve.options import SolverOptions, solver_options, unused
 from ..solve.simulate import Trajectory, simulate
 from .problem import Limits, gait_from_vector
 from .result import Plan
@@ -133,13 +133,10 @@ def replay_errors(plan_: Plan, *, mode: str = "torques", options: SolverOptions 
     and compare the end with the plan's target and with the planned path.
 
     `options`: a `SolverOptions` for that solve (`rtol`, `atol`, `solver`, `max_steps`;
-    `max_steps` defaults to `REPLAY_MAX_STEPS` here, as `resolve` describes); `throw`,
-    `adjoint` and `batch_steps` set are errors."""
-    opts = resolve(
-        verification_options("replay_errors", options),
-        where="replay_errors",
-        defaults={"max_steps": REPLAY_MAX_STEPS},
-    )
+    `max_steps` defaults to `REPLAY_MAX_STEPS` here where it is at `SolverOptions`' default);
+    `throw`, `adjoint` and `batch_steps` set are errors."""
+    opts = solver_options(verification_options("replay_errors", options), where="replay_errors")
+    opts = opts.or_defaults(max_steps=REPLAY_MAX_STEPS)
     cols = plan_.table()
     p = plan_.params
     N = p.n_wheels

@@ -13,6 +13,7 @@ from ..model.params import Derived, RobotParams
 from ..model.rotations import quat_rate_body, quat_rate_fixed, rotmat
 from ..model.state import Flat
 from .batched.components import torque_field_components, unit
+from .batched.field_args import FieldArgs
 
 
 def _left_limit(b):
@@ -32,34 +33,32 @@ def _kin_rates(p: RobotParams, z, R, gamma, omega, Omega):
     return quat_rate_body(z[Flat.q], omega), quat_rate_fixed(z[Flat.q_shell], matvec(R, Omega)), vf[:2]
 
 
-def _torque_field(t, z, args):
+def _torque_field(t, z, args: FieldArgs):
     """(3.4), (3.5) with (2.2)-(2.4) in torque mode: the flat state's rates."""
-    p, d, control, _, t_end = args
+    p, d = args.params, args.derived
     omega, Omega = z[Flat.omega], z[Flat.Omega]
     R = rotmat(z[Flat.q])
     gamma = R[2]
-    K = control(_control_time(t, t_end))
+    K = _torque_control(t, args)
     omega_dot, Omega_dot = solve_accelerations(p, d, gamma, omega, Omega, K)
     dq, dqs, dxy = _kin_rates(p, z, R, gamma, omega, Omega)
     chi_dot = -matvec(d.Sk, omega - Omega)
     return jnp.concatenate([dq, dqs, omega_dot, Omega_dot, dxy, chi_dot])
 
 
-def _torque_control(t, args):
+def _torque_control(t, args: FieldArgs):
     """The axle torques `K(t)` of a torque-mode segment (left limit at its end)."""
-    _, _, control, _, t_end = args
-    return control(_control_time(t, t_end))
+    return args.control(_control_time(t, args.t_end))
 
 
-def _torque_field_soa(t, y, args, K=None, adjoint=False):
+def _torque_field_soa(t, y, args: FieldArgs, K=None, adjoint=False):
     """`_torque_field` on a tuple of scalar components (`jsphere.solve.batched.components`), for
     batched solves; `K`: the torques as a tuple of scalars, if the caller has evaluated them
     already; `adjoint`: the form the batch loop's discrete adjoint differentiates."""
-    p, d = args[0], args[1]
     if K is None:
         K = _torque_control(t, args)
         K = tuple(K[..., i] for i in range(K.shape[-1]))
-    return torque_field_components(p, d, K, y, unit(t), adjoint=adjoint)
+    return torque_field_components(args.params, args.derived, K, y, unit(t), adjoint=adjoint)
 
 
 def _servo_inputs(d: Derived, control: WheelSpeeds, t):
@@ -67,28 +66,30 @@ def _servo_inputs(d: Derived, control: WheelSpeeds, t):
     return -matvec(d.Sk_pinv, u), -matvec(d.Sk_pinv, u_dot)
 
 
-def _wheel_field(t, z, args):
+def _wheel_field(t, z, args: FieldArgs):
     """Wheel-speed mode (servo constraints): the flat state's rates."""
-    p, d, control, _, t_end = args
+    p, d = args.params, args.derived
     Omega = z[Flat.Omega]
     R = rotmat(z[Flat.q])
     gamma = R[2]
-    w, w_dot = _servo_inputs(d, control, _control_time(t, t_end))
+    w, w_dot = _servo_inputs(d, args.control, _control_time(t, args.t_end))
     omega, omega_dot, Omega_dot, _ = servo_accelerations(p, d, gamma, Omega, w, w_dot)
     dq, dqs, dxy = _kin_rates(p, z, R, gamma, omega, Omega)
     chi_dot = -matvec(d.Sk, w)
     return jnp.concatenate([dq, dqs, omega_dot, Omega_dot, dxy, chi_dot])
 
 
-def _outputs_torque(p, d, control, t, z, t_start, t_end):
+def _outputs_torque(t, z, args: FieldArgs):
+    """`(omega, chi_dot, K)` at a saved state in torque mode."""
     omega, Omega = z[Flat.omega], z[Flat.Omega]
-    K = control(_control_time(t, t_end))
-    return omega, -matvec(d.Sk, omega - Omega), K
+    return omega, -matvec(args.derived.Sk, omega - Omega), _torque_control(t, args)
 
 
-def _outputs_wheel(p, d, control, t, z, t_start, t_end):
+def _outputs_wheel(t, z, args: FieldArgs):
+    """`(omega, chi_dot, K)` at a saved state in wheel-speed mode."""
+    p, d = args.params, args.derived
     Omega = z[Flat.Omega]
     gamma = rotmat(z[Flat.q])[2]
-    w, w_dot = _servo_inputs(d, control, _control_time(t, t_end))
+    w, w_dot = _servo_inputs(d, args.control, _control_time(t, args.t_end))
     omega, _, _, K = servo_accelerations(p, d, gamma, Omega, w, w_dot)
     return omega, -matvec(d.Sk, w), K

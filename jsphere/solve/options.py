@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import numbers
 import warnings
-from collections.abc import Mapping
 from typing import Any, Callable, Literal
 
 import diffrax as dfx
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 
 from .._runtime.precision import warn_if_float32_by_default
@@ -66,8 +65,7 @@ def _check(where: str, max_steps, batch_steps) -> None:
 
 
 class SolverOptions(eqx.Module):
-    """How `simulate` and `simulate_gaits` integrate (each field as their keyword argument of
-    the same name):
+    """How `simulate` and `simulate_gaits` integrate:
 
     - `rtol`, `atol`: tolerances of the adaptive step-size controller; `None`: the default for
       the parameters' precision (`DEFAULT_TOLERANCES`, `jsphere.gaits.gaits.GAIT_TOLERANCES`);
@@ -84,13 +82,13 @@ class SolverOptions(eqx.Module):
       in this process). `jsphere.FastStart()` compiles them for a short first call and keeps
       them on disk for the next process (what the command line does).
 
-    `simulate(..., options=SolverOptions(rtol=1e-10))` is `simulate(..., rtol=1e-10)`; keyword
-    arguments given besides `options` are merged into it (`merge`).
+    Each field is also a keyword argument of `simulate` and `simulate_gaits` (a shortcut): a
+    keyword given wins over the same field of `options` (`given`).
 
     `fit`, `plan`, `plan_route`, `plan_many`, `replay_errors` and `monte_carlo` take `options`
-    too: each uses the fields it can (its docstring says which), with its own defaults where
-    they differ from these (`resolve`), and refuses a field it cannot use set away from its
-    default.
+    too: each uses the fields it can (its docstring says which), with its own defaults for the
+    fields left at `SolverOptions`' defaults (`or_defaults`), and refuses a field it cannot use
+    set away from its default (`unused`).
     """
 
     rtol: Any = None
@@ -105,26 +103,14 @@ class SolverOptions(eqx.Module):
     def __check_init__(self):
         _check("SolverOptions", self.max_steps, self.batch_steps)
 
-    def merge(self, *, where: str = "SolverOptions", **keywords) -> "SolverOptions":
-        """These options with `keywords` (fields of `SolverOptions`) on top. A keyword at its
-        default value leaves the option as it is; one that differs from the default replaces
-        an option at its default; a keyword and an option that both differ from the default
-        and from each other are an error naming both."""
-        unknown = set(keywords) - set(_DEFAULTS)
-        if unknown:
-            raise TypeError(f"{where}: unknown solver options {sorted(unknown)}; known: {list(_DEFAULTS)}.")
-        values = {name: getattr(self, name) for name in _DEFAULTS}
-        for name, value in keywords.items():
-            default, current = _DEFAULTS[name], values[name]
-            if _same(value, default) or _same(value, current):
-                continue
-            if not _same(current, default):
-                raise ValueError(
-                    f"{where}: {name}={value!r} conflicts with options.{name}={current!r}; give it in one place."
-                )
-            values[name] = value
-        _check(where, values["max_steps"], values["batch_steps"])
-        return SolverOptions(**values)
+    def given(self, **shortcuts) -> "SolverOptions":
+        """These options with each keyword shortcut that was given (not `None`) in its field."""
+        return dataclasses.replace(self, **{k: v for k, v in shortcuts.items() if v is not None})
+
+    def or_defaults(self, **defaults) -> "SolverOptions":
+        """These options with a function's own `defaults` for the fields at `SolverOptions`'
+        defaults (an option set to exactly that default cannot be told from one not set)."""
+        return dataclasses.replace(self, **{k: v for k, v in defaults.items() if _at_default(self, k)})
 
     def tolerances(self, dtype, defaults=DEFAULT_TOLERANCES, *, where: str = "simulate") -> tuple[Any, Any]:
         """`(rtol, atol)` for parameters of `dtype` (`tolerances`)."""
@@ -137,71 +123,17 @@ class SolverOptions(eqx.Module):
         return dfx.RecursiveCheckpointAdjoint() if self.adjoint is None else self.adjoint
 
 
-_DEFAULTS = {
-    "rtol": None,
-    "atol": None,
-    "solver": None,
-    "max_steps": 16384,
-    "throw": True,
-    "adjoint": None,
-    "batch_steps": "shared",
-    "programs": None,
-}
+def _at_default(options: SolverOptions, name: str) -> bool:
+    """Whether a field of `options` is at `SolverOptions`' default (`None` or a plain value)."""
+    value, default = getattr(options, name), getattr(SolverOptions(), name)
+    return value is default or (default is not None and isinstance(value, (bool, int, str)) and value == default)
 
 
-def _same(a, b) -> bool:
-    """Whether two option values are the same (`None` only equals `None`; solvers and adjoints
-    by their type and fields; traced values are never the same as anything else)."""
-    if a is b:
-        return True
-    if a is None or b is None:
-        return False
-    if isinstance(a, jax.core.Tracer) or isinstance(b, jax.core.Tracer):
-        return False
-    try:
-        return bool(eqx.tree_equal(a, b))
-    except Exception:  # noqa: BLE001 - values that cannot be compared are different
-        return False
-
-
-def resolve(
-    options: SolverOptions | None, *, where: str, defaults: Mapping[str, Any] | None = None, **keywords
-) -> SolverOptions:
-    """The options of a call that takes `options=` and the same settings as keyword arguments.
-
-    Without `defaults`: `options` (default `SolverOptions()`) merged with `keywords`
-    (`SolverOptions.merge`), for functions whose keyword defaults are `SolverOptions`' own.
-
-    `defaults` (`{field: value}`) are the function's own defaults where they differ from
-    `SolverOptions`' (e.g. `fit`'s `rtol=1e-6`); a field named there but not in `keywords` is
-    taken as a keyword at that default. Per field of `keywords`:
-
-    - a field of `options` at `SolverOptions`' default takes the keyword's value (the
-      function's own default when the keyword is not given): an option set to exactly
-      `SolverOptions`' default cannot be told from one not set;
-    - a keyword at the function's own default, or equal to the option, leaves the option as
-      it is;
-    - a keyword and an option that are both set and differ are an error naming both.
-    """
+def solver_options(options: SolverOptions | None, *, where: str, **shortcuts) -> SolverOptions:
+    """`options` (default `SolverOptions()`) with the keyword shortcuts given (`given`)."""
     if options is not None and not isinstance(options, SolverOptions):
         raise TypeError(f"{where}: options must be a jsphere.SolverOptions; got {type(options).__name__}.")
-    options = SolverOptions() if options is None else options
-    if defaults is None:
-        return options.merge(where=where, **keywords)
-    unknown = (set(keywords) | set(defaults)) - set(_DEFAULTS)
-    if unknown:
-        raise TypeError(f"{where}: unknown solver options {sorted(unknown)}; known: {list(_DEFAULTS)}.")
-    values = {name: getattr(options, name) for name in _DEFAULTS}
-    for name, value in ({**defaults, **keywords}).items():
-        own, current = defaults.get(name, _DEFAULTS[name]), values[name]
-        if _same(current, _DEFAULTS[name]):
-            values[name] = value
-        elif not (_same(value, own) or _same(value, current)):
-            raise ValueError(
-                f"{where}: {name}={value!r} conflicts with options.{name}={current!r}; give it in one place."
-            )
-    _check(where, values["max_steps"], values["batch_steps"])
-    return SolverOptions(**values)
+    return (SolverOptions() if options is None else options).given(**shortcuts)
 
 
 def unused(options: SolverOptions | None, *, where: str, **why: str) -> None:
@@ -214,5 +146,5 @@ def unused(options: SolverOptions | None, *, where: str, **why: str) -> None:
         raise TypeError(f"{where}: options must be a jsphere.SolverOptions; got {type(options).__name__}.")
     for name, reason in why.items():
         value = getattr(options, name)
-        if not _same(value, _DEFAULTS[name]):
+        if not _at_default(options, name):
             raise ValueError(f"{where}: options.{name}={value!r} is not used: {reason}.")

@@ -11,6 +11,7 @@ import jax.numpy as jnp
 from ..model.params import Derived, RobotParams
 from .batched import segment as _segment
 from .batched.components import from_components, to_components
+from .batched.field_args import FieldArgs
 from .batched.layout import Layout
 from .fields import _torque_control
 from .status import RESULTS
@@ -69,9 +70,9 @@ def solve_segments(
     component_field=None,
     component_control=None,
 ):
-    """Integrate `field(t, z, (p, d, control, a, b))` over consecutive segments
+    """Integrate `field(t, z, FieldArgs(p, d, control, a, b))` over consecutive segments
     `(control, a, b)`, restarting at each (after `z = jump_fn(k, a, z, control)` if given),
-    and sample the flat state and `outputs(p, d, control, t, z, a, b)` at `ts_out`.
+    and sample the flat state and `outputs(t, z, args)` at `ts_out`.
 
     Segments whose controls share a structure (e.g. the paper's gaits) run in one
     `lax.scan`, so compile time does not grow with their number. `layout`
@@ -104,7 +105,7 @@ def solve_segments(
                 max_steps,
                 adjoint,
                 to_components(z),
-                (p, d, control, a, b),
+                FieldArgs(p, d, control, a, b),
                 t_save,
                 layout,
             )
@@ -117,7 +118,7 @@ def solve_segments(
             b,
             None,
             y0,
-            (p, d, control, a, b),
+            FieldArgs(p, d, control, a, b),
             saveat=dfx.SaveAt(ts=t_save, t1=True),
             stepsize_controller=controller,
             max_steps=max_steps,
@@ -134,13 +135,14 @@ def solve_segments(
         t_save = jnp.clip(ts_out, a, b)
         z, ys, failed, n_acc = solve_one(k, z, code, control, a, b, t_save)
         mask = _sample_masks(ts_out, a, b, k == n_seg - 1)
-        out = jax.vmap(lambda t, zz: outputs(p, d, control, t, zz, a, b))(t_save, ys[:-1])
+        args = FieldArgs(p, d, control, a, b)
+        out = jax.vmap(lambda t, zz: outputs(t, zz, args))(t_save, ys[:-1])
         zs = jnp.where(mask[:, None], ys[:-1], zs)
         om = jnp.where(mask[:, None], out[0], om)
         cd = jnp.where(mask[:, None], out[1], cd)
         Ks = jnp.where(mask[:, None], out[2], Ks)
         seg = jnp.where(mask, k, seg)
-        bad_start = ~jnp.all(jnp.isfinite(field(a, z, (p, d, control, a, b))))
+        bad_start = ~jnp.all(jnp.isfinite(field(a, z, args)))
         finite = jnp.all(jnp.isfinite(ys)) & jnp.all(jnp.isfinite(out[2]))
         code = jnp.where(code != 0, code, _status(failed, bad_start, finite))
         steps = steps + n_acc

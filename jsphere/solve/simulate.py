@@ -34,7 +34,7 @@ from .options import (
     FLOAT32_MIN_RTOL,
     SolverOptions,
     default_solver,
-    resolve,
+    solver_options,
     tolerances,
 )
 from .segments import solve_segments
@@ -62,10 +62,10 @@ def simulate(
     rtol: float | None = None,
     atol: float | None = None,
     solver: dfx.AbstractSolver | None = None,
-    max_steps: int = 16384,
-    throw: bool = True,
+    max_steps: int | None = None,
+    throw: bool | None = None,
     adjoint: dfx.AbstractAdjoint | None = None,
-    batch_steps: Literal["shared", "per_trial"] = "shared",
+    batch_steps: Literal["shared", "per_trial", "diffrax"] | None = None,
     options: SolverOptions | None = None,
 ) -> Trajectory:
     """Integrate the equations of motion (3.4), (3.5) with (2.2)-(2.4) from `state0`.
@@ -85,7 +85,7 @@ def simulate(
       estimates would be rounding noise).
     - `solver`: a diffrax solver (default `Dopri8`); `adjoint`: a diffrax adjoint (default
       `RecursiveCheckpointAdjoint`; use `diffrax.ForwardMode()` for `jax.jacfwd`).
-    - `throw`: raise on solver failure (max steps, NaN). With `throw=False` the failure is
+    - `throw`: raise on solver failure (max steps, NaN; default). With `throw=False` the failure is
       reported in `Trajectory.ok` instead (per trial under `vmap`): a trial that fails fails
       alone, and the others get the results they get in a batch without it (a batch with
       shared steps that fail is solved again with per-trial steps).
@@ -102,9 +102,10 @@ def simulate(
       flat state (per-trial steps; the reference the others are measured against). It changes
       nothing for unbatched calls, nor when `t0`, `t1`, `ts` or `jump_ts` are batched.
       (Speed: `docs/performance.md`.)
+    - `max_steps`: the most steps a segment may take (default 16384).
     - `options`: a `SolverOptions` holding any of `rtol`, `atol`, `solver`, `max_steps`,
-      `throw`, `adjoint`, `batch_steps`, `programs`; a keyword argument given as well must
-      agree with it unless one of the two is at its default (`SolverOptions.merge`).
+      `throw`, `adjoint`, `batch_steps`, `programs` (each keyword above is a shortcut of its
+      field: a keyword given wins over `options`).
 
     Pure JAX: jit, vmap (over parameters, states, controls) and grad work.
     """
@@ -124,7 +125,7 @@ def simulate(
         )
     if state0.chi.shape[-1] != params.n_wheels:
         raise ValueError(f"simulate: state0.chi has {state0.chi.shape[-1]} wheels but params has {params.n_wheels}.")
-    opts = resolve(
+    opts = solver_options(
         options,
         where="simulate",
         rtol=rtol,

@@ -8,13 +8,13 @@ import pytest
 
 import jsphere
 from jsphere import RESULTS, SolverOptions
-from jsphere.solve.options import resolve
+from jsphere.solve.options import solver_options
 
 
 def test_defaults_and_validation():
     o = SolverOptions()
-    got = (o.rtol, o.atol, o.solver, o.max_steps, o.throw, o.adjoint, o.batch_steps)
-    assert got == (None, None, None, 16384, True, None, "shared")
+    got = (o.rtol, o.atol, o.solver, o.max_steps, o.throw, o.adjoint, o.batch_steps, o.programs)
+    assert got == (None, None, None, 16384, True, None, "shared", None)
     assert isinstance(o.solver_or_default(), dfx.Dopri8)
     assert isinstance(o.adjoint_or_default(), dfx.RecursiveCheckpointAdjoint)
     assert o.tolerances(jnp.float64) == (1e-8, 1e-10)
@@ -24,19 +24,24 @@ def test_defaults_and_validation():
         SolverOptions(max_steps=0)
 
 
-def test_merge_keywords_into_options():
+def test_keyword_shortcuts_win_over_options():
     o = SolverOptions(rtol=1e-9, solver=dfx.Tsit5())
-    m = resolve(
-        o, where="simulate", rtol=None, atol=1e-12, solver=dfx.Tsit5(), max_steps=16384, batch_steps="per_trial"
-    )
-    assert (m.rtol, m.atol, type(m.solver), m.max_steps, m.batch_steps) == (1e-9, 1e-12, dfx.Tsit5, 16384, "per_trial")
-    assert resolve(None, where="simulate", max_steps=100).max_steps == 100
-    with pytest.raises(ValueError, match=r"simulate: rtol=1e-07 conflicts with options.rtol=1e-09"):
-        resolve(o, where="simulate", rtol=1e-7)
-    with pytest.raises(ValueError, match="solver"):
-        resolve(o, where="simulate", solver=dfx.Dopri5())
-    with pytest.raises(TypeError, match="SolverOptions"):
-        resolve({"rtol": 1e-9}, where="simulate")
+    m = solver_options(o, where="simulate", rtol=None, atol=1e-12, max_steps=100, batch_steps="per_trial")
+    assert (m.rtol, m.atol, type(m.solver), m.max_steps, m.batch_steps) == (1e-9, 1e-12, dfx.Tsit5, 100, "per_trial")
+    assert solver_options(o, where="simulate", rtol=1e-7).rtol == 1e-7  # the keyword given wins
+    assert solver_options(None, where="simulate") == SolverOptions()
+    with pytest.raises(ValueError, match="max_steps"):
+        solver_options(o, where="simulate", max_steps=0)
+    with pytest.raises(TypeError, match=r"^simulate: options must be a jsphere.SolverOptions; got dict.$"):
+        solver_options({"rtol": 1e-9}, where="simulate")
+
+
+def test_a_function_s_own_defaults_fill_the_fields_left_at_solver_options_defaults():
+    own = {"rtol": 1e-6, "max_steps": 65536}
+    assert SolverOptions().or_defaults(**own) == SolverOptions(rtol=1e-6, max_steps=65536)
+    assert SolverOptions(rtol=1e-9, max_steps=50).or_defaults(**own) == SolverOptions(rtol=1e-9, max_steps=50)
+    # an option set to exactly SolverOptions' default cannot be told from one not set
+    assert SolverOptions(max_steps=16384).or_defaults(**own).max_steps == 65536
 
 
 def test_results_codes_and_messages():
@@ -56,5 +61,5 @@ def test_simulate_with_options_is_simulate_with_keywords():
     b = jsphere.simulate(p, s, u, 0.5, options=SolverOptions(rtol=1e-9, max_steps=4096))
     np.testing.assert_array_equal(a.x, b.x)
     assert int(b.status) == RESULTS.successful and bool(b.ok)
-    with pytest.raises(ValueError, match="max_steps"):
-        jsphere.simulate(p, s, u, 0.5, max_steps=100, options=SolverOptions(max_steps=4096))
+    c = jsphere.simulate(p, s, u, 0.5, rtol=1e-9, options=SolverOptions(rtol=1e-3, max_steps=4096))
+    np.testing.assert_array_equal(a.x, c.x)  # the keyword given wins over the option

@@ -1,5 +1,5 @@
 """`SolverOptions` in `fit`, `plan`, `plan_route`, `plan_many`, `replay_errors` and `monte_carlo`:
-the rule that merges them with each function's own keyword defaults (`resolve(defaults=...)`),
+each function's own defaults for the fields left at `SolverOptions`' defaults (`or_defaults`),
 the fields each function uses, the errors for the ones it cannot, and the named outcomes
 (`RESULTS`) of `MonteCarloResult`."""
 
@@ -19,9 +19,8 @@ from jsphere.montecarlo.result import REJECTED, SUCCESS, outcome_masks
 from jsphere.montecarlo.store import fingerprint
 from jsphere.montecarlo.study import check_vary
 from jsphere.planning import verify
-from jsphere.solve.options import resolve, unused
+from jsphere.solve.options import unused
 
-FIT_DEFAULTS = {"rtol": 1e-6, "atol": 1e-8, "max_steps": 16384}
 GAITS = [jsphere.acceleration(), jsphere.braking()]
 VARY = {"j": ("normal", 2.7e-4, 1e-6)}
 
@@ -30,38 +29,7 @@ class Stop(Exception):
     """Ends a call at the solve whose arguments a test records."""
 
 
-# ------------------------------------------------------------------ resolve with defaults
-
-
-def test_resolve_with_defaults_takes_each_branch():
-    # no options: the keywords as given (the function's own defaults when not given)
-    o = resolve(None, where="fit", defaults=FIT_DEFAULTS, rtol=1e-6, atol=1e-8, max_steps=16384)
-    assert (o.rtol, o.atol, o.max_steps) == (1e-6, 1e-8, 16384)
-    # an option at SolverOptions' default takes the keyword's value
-    o = resolve(SolverOptions(atol=1e-9), where="fit", defaults=FIT_DEFAULTS, rtol=1e-7, atol=1e-8, max_steps=100)
-    assert (o.rtol, o.atol, o.max_steps) == (1e-7, 1e-9, 100)
-    # a keyword at the function's own default leaves a set option as it is
-    o = resolve(SolverOptions(rtol=1e-9, max_steps=50), where="fit", defaults=FIT_DEFAULTS, rtol=1e-6, max_steps=16384)
-    assert (o.rtol, o.max_steps) == (1e-9, 50)
-    # a keyword equal to the option is no conflict
-    assert resolve(SolverOptions(rtol=1e-9), where="fit", defaults=FIT_DEFAULTS, rtol=1e-9).rtol == 1e-9
-    # both set and different: one line naming both
-    with pytest.raises(ValueError, match=r"^fit: rtol=1e-07 conflicts with options.rtol=1e-09; give it in one place.$"):
-        resolve(SolverOptions(rtol=1e-9), where="fit", defaults=FIT_DEFAULTS, rtol=1e-7)
-    # a field named in defaults only is a keyword at that default
-    o = resolve(None, where="replay_errors", defaults={"max_steps": 65536})
-    assert o.max_steps == 65536 and o.rtol is None
-    assert resolve(SolverOptions(max_steps=10), where="r", defaults={"max_steps": 65536}).max_steps == 10
-    with pytest.raises(TypeError, match="unknown solver options"):
-        resolve(None, where="fit", defaults={"tolerance": 1e-6})
-    with pytest.raises(ValueError, match="max_steps must be a positive integer"):
-        resolve(None, where="fit", defaults=FIT_DEFAULTS, max_steps=0)
-
-
-def test_resolve_without_defaults_is_merge():
-    o = SolverOptions(rtol=1e-9, solver=dfx.Tsit5())
-    kw = {"rtol": None, "atol": 1e-12, "solver": dfx.Tsit5(), "max_steps": 16384, "batch_steps": "per_trial"}
-    assert resolve(o, where="simulate", **kw) == o.merge(where="simulate", **kw)
+# ------------------------------------------------------------------ fields a function cannot use
 
 
 def test_unused_fields_are_refused_one_line():
@@ -120,21 +88,20 @@ def test_fit_passes_the_solver_options_to_its_compiled_functions(paper, trials, 
         {"options": SolverOptions(solver=dfx.Tsit5(), atol=1e-9)},
         {"rtol": 1e-7, "max_steps": 8192},
         {"options": SolverOptions(rtol=1e-7, max_steps=8192)},
+        {"rtol": 1e-7, "options": SolverOptions(rtol=1e-9, max_steps=8192)},  # the keyword wins
     ]
     for kw in calls:
         with pytest.raises(Stop):
             jsphere.fit(trials, paper, "j", **FIT, **kw)
     assert seen[0] == seen[1] == (1e-6, 1e-8, 16384, None)
     assert seen[2] == (1e-6, 1e-9, 16384, dfx.Tsit5())
-    assert seen[3] == seen[4] == (1e-7, 1e-8, 8192, None)
+    assert seen[3] == seen[4] == seen[5] == (1e-7, 1e-8, 8192, None)
     assert configs[0] == configs[1] and "solver" not in configs[0]
     assert configs[2]["solver"] == repr(dfx.Tsit5()) and configs[2]["atol"] == 1e-9
     assert configs[3] == configs[4] != configs[0]
 
 
 def test_fit_option_errors(paper, trials):
-    with pytest.raises(ValueError, match=r"^fit: rtol=1e-07 conflicts with options.rtol=1e-09"):
-        jsphere.fit(trials, paper, "j", rtol=1e-7, options=SolverOptions(rtol=1e-9), **FIT)
     with pytest.raises(ValueError, match=r"^fit: options.adjoint=.* is not used: fit differentiates"):
         jsphere.fit(trials, paper, "j", options=SolverOptions(adjoint=dfx.ForwardMode()), **FIT)
     with pytest.raises(TypeError, match="options must be a jsphere.SolverOptions"):
@@ -271,7 +238,12 @@ def test_monte_carlo_passes_the_options_to_its_batches(paper, monkeypatch):
     assert seen[1] == (1e-7, 1e-9, dfx.Tsit5(), 500, None)
     assert seen[2] == (1e-7, 1e-9, dfx.Tsit5(), 16384, None)
     cmd = (np.array([0.0, 1.0]), np.zeros((2, 3)))
-    for extra, limit in (({}, 65536), ({"max_steps": 700}, 700), ({"options": SolverOptions(max_steps=800)}, 800)):
+    for extra, limit in (
+        ({}, 65536),
+        ({"max_steps": 700}, 700),
+        ({"options": SolverOptions(max_steps=800)}, 800),
+        ({"max_steps": 700, "options": SolverOptions(max_steps=800)}, 700),  # the keyword wins
+    ):
         with pytest.raises(Stop):
             jsphere.monte_carlo(paper, GAITS, **kw, mode="torques", commands=cmd, **extra)
         assert seen[-1][4].max_steps == limit and seen[-1][3] == 16384
@@ -303,8 +275,6 @@ def test_monte_carlo_fingerprint(paper):
 
 
 def test_monte_carlo_option_errors(paper):
-    with pytest.raises(ValueError, match=r"^monte_carlo: max_steps=100 conflicts with options.max_steps=200"):
-        jsphere.monte_carlo(paper, GAITS, vary=VARY, n=4, max_steps=100, options=SolverOptions(max_steps=200))
     with pytest.raises(ValueError, match=r"^monte_carlo: options.adjoint=.* is not used: monte_carlo does not"):
         jsphere.monte_carlo(paper, GAITS, vary=VARY, n=4, options=SolverOptions(adjoint=dfx.ForwardMode()))
     with pytest.raises(jsphere.InputError, match=r"monte_carlo: rtol must be a finite number > 0"):
