@@ -81,83 +81,48 @@ def design_excitation(
     spec, lim, noise, grid = _checked(
         params, duration, kind, trials, limits, sigma_pos, sigma_rot, n_freqs, f_max, ramp, model_rate, substeps
     )
-    restarts = whole("design_excitation", "restarts", restarts, 1)
-    steps = whole("design_excitation", "steps", steps, 0)
-    seed = whole("design_excitation", "seed", seed, 0)
-    real("design_excitation", "learning_rate", learning_rate, strict=True)
-    real("design_excitation", "rate", rate, strict=True, unit="Hz")
-    real("design_excitation", "capture_rate", capture_rate, strict=True, unit="Hz")
-    if capture_rate * duration < 4:
-        raise InputError(
-            f"design_excitation: capture_rate x duration must give at least 4 samples; got {capture_rate * duration:g}."
-        )
-    try:
-        fp = FreeParams(params, free)
-    except ValueError as e:
-        raise InputError(f"--free {free}: {e}") from None
+    fp, restarts, steps, seed = _checked_run(
+        params, free, duration, restarts, steps, seed, learning_rate, rate, capture_rate
+    )
     pr = problem(params, fp, spec, noise, grid)
-    rng = np.random.default_rng(seed)
-    z0s = np.stack([random_start(spec, rng, START_SCALE) for _ in range(restarts)])
     prog.say(
         f"design: {trials} trial(s) of {duration:g} s ({spec.trial_kind}), {fp.size} free parameters, "
         f"{spec.size} coefficients, {restarts} restart(s) x {steps} Adam steps"
     )
-    key = repr((spec, fp.names, grid.rate, grid.substeps, restarts))
-    with prog.bar(steps + 1, "design: Adam", "step") as bar:
-
-        def on_step(k, obj):
-            bar.update(1, f"log det {np.nanmax(np.where(np.isfinite(obj), obj, np.nan)):.3f}")
-            prog.step(f"design: step {k:3d}/{steps}  best objective {np.nanmax(obj):.4f}")
-
-        with prog.compiling("design", key, "design: the criterion's gradient"):
-            zb, obj, phi, pen = maximise(z0s, pr, lim, steps=0)
-        start_obj = obj.copy()
-        zb, obj, phi, pen = maximise(zb, pr, lim, steps=steps, learning_rate=learning_rate, on_step=on_step)
-    if not np.isfinite(obj).any():
-        raise SolverFailure("design: the model of every restart failed (non-finite criterion); try smaller limits.")
+    start_obj, zb, obj, phi, pen = _optimise(prog, pr, lim, fp, restarts, steps, seed, learning_rate)
     b = int(np.nanargmax(np.where(np.isfinite(obj), obj, -np.inf)))
     z = zb[b]
-    tables = [table(p, rate) for p in programmes(jnp.asarray(z), spec)]
+    tables = _tables(z, spec, rate)
     design_rms = rms(np.concatenate([u for _, u in tables]))
     _, _, _, ext = evaluate(jnp.asarray(z), pr, lim)
     design_limits = limit_values(pr, ext, tables, lim)
     prog.say("design: the baseline (random multisines of the same RMS amplitude within the same limits) ...")
     z_base, base_limits, phi_base, equal = _baseline(pr, lim, design_rms, design_limits, rate, seed)
-    base_tables = [table(p, rate) for p in programmes(jnp.asarray(z_base), spec)]
-    base_rms = rms(np.concatenate([u for _, u in base_tables]))
+    base_tables = _tables(z_base, spec, rate)
     prog.say("design: standard errors of the design and the baseline (the fit's Jacobian) ...")
     t_cap = sample_times(duration, capture_rate)
     cap = lambda zz: [table_at(p, t_cap) for p in programmes(jnp.asarray(zz), spec)]
-    kind_t = spec.trial_kind
-    values, F_d, _, se_d, ext_d = fit_information(params, fp, kind_t, t_cap, cap(z), sigma_pos, sigma_rot)
-    _, F_b, _, se_b, ext_b = fit_information(params, fp, kind_t, t_cap, cap(z_base), sigma_pos, sigma_rot)
-    equal_rms = None
-    if equal is not None:  # the multisine at the design's RMS, which breaks a limit: for reference
-        _, F_e, _, se_e, _ = fit_information(params, fp, kind_t, t_cap, cap(equal[0]), sigma_pos, sigma_rot)
-        equal_rms = {
-            "rms": design_rms,
-            "criterion": d_criterion(fp, values, F_e),
-            "criterion_model": equal[2],
-            "stderr_predicted": {n: float(s) for n, s in zip(fp.names, se_e)},
-            "limits": limits_report(equal[1]),
-        }
+    info = lambda zz: fit_information(params, fp, spec.trial_kind, t_cap, cap(zz), sigma_pos, sigma_rot)
+    named = lambda v: {n: float(x) for n, x in zip(fp.names, v)}
+    values, F_d, _, se_d, ext_d = info(z)
+    _, F_b, _, se_b, ext_b = info(z_base)
     return DesignResult(
         kind=kind,
         free=list(fp.names),
-        values={n: float(v) for n, v in zip(fp.names, values)},
+        values=named(values),
         duration=float(duration),
         rate=float(rate),
         tables=tables,
         baseline_tables=base_tables,
         criterion={"design": d_criterion(fp, values, F_d), "baseline": d_criterion(fp, values, F_b)},
         criterion_model={"design": float(phi[b]), "baseline": phi_base},
-        stderr_predicted={n: float(s) for n, s in zip(fp.names, se_d)},
-        stderr_predicted_baseline={n: float(s) for n, s in zip(fp.names, se_b)},
-        rms={"design": design_rms, "baseline": base_rms},
+        stderr_predicted=named(se_d),
+        stderr_predicted_baseline=named(se_b),
+        rms={"design": design_rms, "baseline": rms(np.concatenate([u for _, u in base_tables]))},
         limits=limits_report(_accurate(kind, design_limits, ext_d)),
         limits_baseline=limits_report(_accurate(kind, base_limits, ext_b)),
         limits_model=limits_report(design_limits),
-        baseline_equal_rms=equal_rms,
+        baseline_equal_rms=None if equal is None else _equal_rms(fp, values, info, equal, design_rms),
         restarts=[{"start": float(s), "final": float(f), "penalty": float(p)} for s, f, p in zip(start_obj, obj, pen)],
         settings={
             "trials": trials,
@@ -179,6 +144,67 @@ def design_excitation(
     )
 
 
+def _optimise(prog: Progress, pr, lim: Limits, fp: FreeParams, restarts: int, steps: int, seed: int, learning_rate):
+    """Adam on the criterion from `restarts` random starts (vmapped; `seed`), with a progress bar
+    on `prog`. Returns the starts' objectives and each start's final coefficients, objective,
+    model criterion and penalty; raises `SolverFailure` where the model of every start fails."""
+    spec, grid = pr.spec, pr.grid
+    rng = np.random.default_rng(seed)
+    z0s = np.stack([random_start(spec, rng, START_SCALE) for _ in range(restarts)])
+    key = repr((spec, fp.names, grid.rate, grid.substeps, restarts))
+    with prog.bar(steps + 1, "design: Adam", "step") as bar:
+
+        def on_step(k, obj):
+            bar.update(1, f"log det {np.nanmax(np.where(np.isfinite(obj), obj, np.nan)):.3f}")
+            prog.step(f"design: step {k:3d}/{steps}  best objective {np.nanmax(obj):.4f}")
+
+        with prog.compiling("design", key, "design: the criterion's gradient"):
+            zb, obj, phi, pen = maximise(z0s, pr, lim, steps=0)
+        start_obj = obj.copy()
+        zb, obj, phi, pen = maximise(zb, pr, lim, steps=steps, learning_rate=learning_rate, on_step=on_step)
+    if not np.isfinite(obj).any():
+        raise SolverFailure("design: the model of every restart failed (non-finite criterion); try smaller limits.")
+    return start_obj, zb, obj, phi, pen
+
+
+def _checked_run(params, free, duration, restarts, steps, seed, learning_rate, rate, capture_rate):
+    """The `FreeParams` and the checked `restarts`, `steps` and `seed` of a request (its learning
+    rate and rates checked too); `InputError` naming a bad value."""
+    restarts = whole("design_excitation", "restarts", restarts, 1)
+    steps = whole("design_excitation", "steps", steps, 0)
+    seed = whole("design_excitation", "seed", seed, 0)
+    real("design_excitation", "learning_rate", learning_rate, strict=True)
+    real("design_excitation", "rate", rate, strict=True, unit="Hz")
+    real("design_excitation", "capture_rate", capture_rate, strict=True, unit="Hz")
+    if capture_rate * duration < 4:
+        raise InputError(
+            f"design_excitation: capture_rate x duration must give at least 4 samples; got {capture_rate * duration:g}."
+        )
+    try:
+        return FreeParams(params, free), restarts, steps, seed
+    except ValueError as e:
+        raise InputError(f"--free {free}: {e}") from None
+
+
+def _equal_rms(fp: FreeParams, values, info: Callable, equal, design_rms: float) -> dict:
+    """The report of the multisine at the design's RMS amplitude, which breaks a limit (`equal`:
+    its coefficients, `limit_values` and model criterion; `info`: `fit_information` of
+    coefficients): for reference."""
+    _, F_e, _, se_e, _ = info(equal[0])
+    return {
+        "rms": design_rms,
+        "criterion": d_criterion(fp, values, F_e),
+        "criterion_model": equal[2],
+        "stderr_predicted": {n: float(s) for n, s in zip(fp.names, se_e)},
+        "limits": limits_report(equal[1]),
+    }
+
+
+def _tables(z, spec: Spec, rate: float) -> list:
+    """The tables `(t, u)`, `rate` rows per second, of the programmes of the coefficients `z`."""
+    return [table(p, rate) for p in programmes(jnp.asarray(z), spec)]
+
+
 def _baseline(pr, lim: Limits, design_rms: float, design_limits, rate: float, seed: int):
     """A random multisine (`random_multisine`, seed `(seed, 1)`) of the design's RMS amplitude,
     scaled down where that breaks a limit further than the design does (each limit's allowance:
@@ -192,7 +218,7 @@ def _baseline(pr, lim: Limits, design_rms: float, design_limits, rate: float, se
     allowance = [None if limit is None else max(limit, v) for _, v, limit in design_limits]
 
     def check(zz):
-        tables = [table(p, rate) for p in programmes(jnp.asarray(zz), spec)]
+        tables = _tables(zz, spec, rate)
         _, phi, _, ext = evaluate(jnp.asarray(zz), pr, lim)
         entries = limit_values(pr, ext, tables, lim)
         ok = all(a is None or v <= a * (1 + 1e-9) for (_, v, _), a in zip(entries, allowance))

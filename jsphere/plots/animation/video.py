@@ -24,6 +24,8 @@ VIDEO_SUFFIXES = (".mp4", ".gif")
 VIEWS = {"3d": (22.0, -60.0), "top": (90.0, -90.0)}
 #: the colours of the robots of a scene (a ghost, the model over a capture, is orange)
 COLOURS = ("C0", "C1", "C2", "C4", "C5", "C6", "C8", "C9")
+#: the resolution of the videos' figures [dots per inch]
+_DPI = 100
 
 
 def _sphere_template(R0: float, n_lon: int = 14, n_lat: int = 8) -> np.ndarray:
@@ -133,6 +135,120 @@ class _Robot:
         self.path.set_data_3d(p[:, 0], p[:, 1], np.zeros(len(p)))
 
 
+class _Video:
+    """A video being written: its figure (made once: the axes, the texts, a `_Robot` per body
+    and the scene's markers) and its writer; `scene` sets the figure up for a scene, `frame`
+    moves the artists to a frame and hands the picture to the writer."""
+
+    def __init__(self, plt, suffix: str, size: tuple[int, int], fps: float, view: str, R0: float, bodies: int, blit):
+        from matplotlib import animation
+
+        W, H = self.size = size
+        self.suffix, self.blit, self.palette = suffix, blit, []
+        fig = self.fig = plt.figure(figsize=(W / _DPI, H / _DPI), dpi=_DPI)
+        small = 7.0 * min(1.0, W / 640.0) + 0.5  # [pt]: the texts keep their place on small pictures
+        ax = self.ax = fig.add_axes((0.0, 0.09, 1.0, 0.84), projection="3d", proj_type="ortho")
+        ax.view_init(*VIEWS[view])
+        ax.set_xlabel("X [m] (fixed frame)", fontsize=7, labelpad=-2)
+        ax.set_ylabel("Y [m] (fixed frame)", fontsize=7, labelpad=-2)
+        ax.set_zlabel("Z [m]" if view == "3d" else "", fontsize=7, labelpad=-4)
+        ax.tick_params(labelsize=6, pad=0)
+        if view == "top":
+            ax.set_zticks([])
+        self.title = fig.text(0.01, 0.985, "", fontsize=small + 0.5, va="top", ha="left")
+        self.status = fig.text(0.01, 0.01, "", fontsize=small, va="bottom", ha="left", family="monospace")
+        self.extra = fig.text(0.99, 0.93, "", fontsize=small, va="top", ha="right", family="monospace")
+        template = _sphere_template(R0)
+        self.robots = [_Robot(ax, template, COLOURS[i % len(COLOURS)]) for i in range(bodies)]
+        nan = [np.nan]
+        self.target = ax.plot(nan, nan, nan, "x", color="C3", ms=9, mew=2, label="target")[0]
+        self.cloud = ax.plot(nan, nan, nan, ".", color="0.3", ms=2, alpha=0.6, label="stop points")[0]
+        self.ellipse = ax.plot(nan, nan, nan, "-", color="C3", lw=1.2, label="95 % ellipse")[0]
+        if suffix == ".mp4":
+            import imageio_ffmpeg
+
+            plt.rcParams["animation.ffmpeg_path"] = imageio_ffmpeg.get_ffmpeg_exe()
+            extra_args = ["-pix_fmt", "yuv420p", "-crf", "23"]
+            self.writer = animation.FFMpegWriter(fps=fps, codec="libx264", extra_args=extra_args)
+        else:
+            self.writer = animation.PillowWriter(fps=fps)
+        self.texts = [self.title, self.status, self.extra]
+        for art in [a for r in self.robots for a in r.artists] + [self.target, self.cloud, self.ellipse] + self.texts:
+            art.set_animated(blit)  # left out of the background, drawn over it each frame
+
+    def scene(self, scene: Scene, frames: list[BodyFrames]) -> None:
+        """Set the axes' box, the robots' styles, the markers and the title for `scene`, and draw
+        the background (the axes, their panes, ticks and labels: the same for every frame)."""
+        ax, n = self.ax, len(scene.bodies)
+        lo, hi = _limits(scene, frames)
+        R0 = float(scene.params.R0)
+        ax.set_xlim(lo[0], hi[0])
+        ax.set_ylim(lo[1], hi[1])
+        ax.set_zlim(0.0, 2.0 * R0)
+        ax.set_box_aspect((hi[0] - lo[0], hi[1] - lo[1], 2.0 * R0), zoom=1.35)
+        for i, robot in enumerate(self.robots):
+            robot.visible(i < n)
+            if i < n:
+                b = scene.bodies[i]
+                robot.style(b.ghost, COLOURS[1 if b.ghost else i % len(COLOURS)], b.label, n)
+        if scene.target is not None:
+            self.target.set_data_3d([scene.target[0]], [scene.target[1]], [0.0])
+        self.target.set_visible(scene.target is not None)
+        if scene.cloud is not None:
+            self.cloud.set_data_3d(scene.cloud[:, 0], scene.cloud[:, 1], np.zeros(len(scene.cloud)))
+        if scene.ellipse is not None:
+            e = scene.ellipse
+            self.ellipse.set_data_3d(e[:, 0], e[:, 1], np.zeros(len(e)))
+        self.title.set_text(scene.title)
+        self.fig.canvas.draw()
+        self.background = self.fig.canvas.copy_from_bbox(self.fig.bbox)
+
+    def frame(self, scene: Scene, frames: list[BodyFrames], residual, k: int, t: float, end: float) -> None:
+        """Move the artists to frame `k` (run time `t`; the stop points and ellipse are shown from
+        `end` on) and hand the picture to the writer: blitted, only the moving artists drawn over
+        the background, else the whole figure drawn by the writer."""
+        ax = self.ax
+        if self.blit:
+            self.fig.canvas.restore_region(self.background)
+        last = scene.cloud is not None and t >= end
+        self.cloud.set_visible(last)
+        self.ellipse.set_visible(last and scene.ellipse is not None)
+        for robot, f in zip(self.robots, frames):
+            robot.show(f, k)
+        self.status.set_text(_status(t, frames[0], k))
+        self.extra.set_text(residual[k] if residual is not None else "")
+        if not self.blit:
+            self.writer.grab_frame()
+            return
+        for robot in self.robots[: len(frames)]:
+            robot.shell.do_3d_projection()
+            ax.draw_artist(robot.shell)
+        for robot in self.robots[: len(frames)]:
+            for art in robot.artists[1:]:
+                ax.draw_artist(art)
+        for art in (self.target, self.cloud, self.ellipse):
+            ax.draw_artist(art)
+        for art in self.texts:
+            self.fig.draw_artist(art)
+        self._push()
+
+    def _push(self) -> None:
+        """Hand the canvas as it stands to the writer (matplotlib's writers grab a frame by
+        drawing the whole figure again; here only the moving artists were drawn)."""
+        buf = self.fig.canvas.buffer_rgba()
+        if self.suffix == ".mp4":
+            self.writer._proc.stdin.write(buf)
+            return
+        from PIL import Image
+
+        im = Image.frombuffer("RGBA", self.size, bytes(buf), "raw", "RGBA", 0, 1).convert("RGB")
+        # one palette for the whole GIF (its first frame's) and no dithering: the frames differ
+        # only where the robot moved, and the GIF stores only those differences
+        if not self.palette:
+            self.palette.append(im.quantize(colors=255, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE))
+        self.writer._frames.append(im.quantize(palette=self.palette[0], dither=Image.Dither.NONE))
+
+
 def render(
     scenes: list[Scene],
     path,
@@ -159,136 +275,28 @@ def render(
     if view not in VIEWS:
         raise ValueError(f"view must be '3d' or 'top'; got {view!r}.")
     plt = pyplot()
-    from matplotlib import animation
-
     W, H = (int(v) + int(v) % 2 for v in size)  # H.264 wants even sizes
-    dpi = 100
     prepared = [(s, *scene_frames(s, fps, speed)) for s in scenes]
     total = sum(len(p[1]) for p in prepared)
-    n_bodies = max(len(s.bodies) for s in scenes)
-
-    fig = plt.figure(figsize=(W / dpi, H / dpi), dpi=dpi)
-    small = 7.0 * min(1.0, W / 640.0) + 0.5  # [pt]: the texts keep their place on small pictures
-    ax = fig.add_axes((0.0, 0.09, 1.0, 0.84), projection="3d", proj_type="ortho")
-    ax.view_init(*VIEWS[view])
-    ax.set_xlabel("X [m] (fixed frame)", fontsize=7, labelpad=-2)
-    ax.set_ylabel("Y [m] (fixed frame)", fontsize=7, labelpad=-2)
-    ax.set_zlabel("Z [m]" if view == "3d" else "", fontsize=7, labelpad=-4)
-    ax.tick_params(labelsize=6, pad=0)
-    if view == "top":
-        ax.set_zticks([])
-    title = fig.text(0.01, 0.985, "", fontsize=small + 0.5, va="top", ha="left")
-    status = fig.text(0.01, 0.01, "", fontsize=small, va="bottom", ha="left", family="monospace")
-    extra = fig.text(0.99, 0.93, "", fontsize=small, va="top", ha="right", family="monospace")
-    first = prepared[0][0]
-    template = _sphere_template(float(first.params.R0))
-    robots = [_Robot(ax, template, COLOURS[i % len(COLOURS)]) for i in range(n_bodies)]
-    nan = [np.nan]
-    target = ax.plot(nan, nan, nan, "x", color="C3", ms=9, mew=2, label="target")[0]
-    cloud = ax.plot(nan, nan, nan, ".", color="0.3", ms=2, alpha=0.6, label="stop points")[0]
-    ellipse = ax.plot(nan, nan, nan, "-", color="C3", lw=1.2, label="95 % ellipse")[0]
-
-    if suffix == ".mp4":
-        import imageio_ffmpeg
-
-        plt.rcParams["animation.ffmpeg_path"] = imageio_ffmpeg.get_ffmpeg_exe()
-        writer = animation.FFMpegWriter(fps=fps, codec="libx264", extra_args=["-pix_fmt", "yuv420p", "-crf", "23"])
-    else:
-        writer = animation.PillowWriter(fps=fps)
-
-    dynamic = [a for r in robots for a in r.artists] + [target, cloud, ellipse]
-    texts = [title, status, extra]
-    for art in dynamic + texts:
-        art.set_animated(blit)  # left out of the background, drawn over it each frame
-
-    palette: list = []
-
-    def push() -> None:
-        """Hand the canvas as it stands to the writer (matplotlib's writers grab a frame by
-        drawing the whole figure again; here only the moving artists were drawn)."""
-        buf = fig.canvas.buffer_rgba()
-        if suffix == ".mp4":
-            writer._proc.stdin.write(buf)
-        else:
-            from PIL import Image
-
-            im = Image.frombuffer("RGBA", (W, H), bytes(buf), "raw", "RGBA", 0, 1).convert("RGB")
-            # one palette for the whole GIF (its first frame's) and no dithering: the frames differ
-            # only where the robot moved, and the GIF stores only those differences
-            if not palette:
-                palette.append(im.quantize(colors=255, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE))
-            writer._frames.append(im.quantize(palette=palette[0], dither=Image.Dither.NONE))
+    R0 = float(prepared[0][0].params.R0)
+    video = _Video(plt, suffix, (W, H), fps, view, R0, max(len(s.bodies) for s in scenes), blit)
 
     def write(tmp):
-        canvas = fig.canvas
         with warnings.catch_warnings():
             # ffmpeg is started by fork and exec at once: JAX's threads are not touched in the child
             warnings.filterwarnings("ignore", message=r"os\.fork\(\) was called", category=RuntimeWarning)
-            writer.setup(fig, tmp, dpi)
+            video.writer.setup(video.fig, tmp, _DPI)
         try:
-            frames_of(canvas)
-        finally:
-            writer.finish()
-
-    def frames_of(canvas) -> None:
-        with Progress(progress).bar(total, "animate", unit="frame") as bar:
-            for scene, times, frames, residual in prepared:
-                lo, hi = _limits(scene, frames)
-                R0 = float(scene.params.R0)
-                ax.set_xlim(lo[0], hi[0])
-                ax.set_ylim(lo[1], hi[1])
-                ax.set_zlim(0.0, 2.0 * R0)
-                ax.set_box_aspect((hi[0] - lo[0], hi[1] - lo[1], 2.0 * R0), zoom=1.35)
-                for i, robot in enumerate(robots):
-                    on = i < len(scene.bodies)
-                    robot.visible(on)
-                    if on:
-                        b = scene.bodies[i]
-                        robot.style(b.ghost, COLOURS[1 if b.ghost else i % len(COLOURS)], b.label, len(scene.bodies))
-                if scene.target is not None:
-                    target.set_data_3d([scene.target[0]], [scene.target[1]], [0.0])
-                target.set_visible(scene.target is not None)
-                if scene.cloud is not None:
-                    cloud.set_data_3d(scene.cloud[:, 0], scene.cloud[:, 1], np.zeros(len(scene.cloud)))
-                if scene.ellipse is not None:
-                    e = scene.ellipse
-                    ellipse.set_data_3d(e[:, 0], e[:, 1], np.zeros(len(e)))
-                title.set_text(scene.title)
-                canvas.draw()  # the axes, their panes, ticks and labels: the same for every frame
-                background = canvas.copy_from_bbox(fig.bbox)
-                end = 0.9 * times[-1]
-                for k, t in enumerate(times):
-                    if not blit:
-                        last = scene.cloud is not None and t >= end
-                        cloud.set_visible(last)
-                        ellipse.set_visible(last and scene.ellipse is not None)
-                        for robot, f in zip(robots, frames):
-                            robot.show(f, k)
-                        status.set_text(_status(t, frames[0], k))
-                        extra.set_text(residual[k] if residual is not None else "")
-                        writer.grab_frame()
+            with Progress(progress).bar(total, "animate", unit="frame") as bar:
+                for scene, times, frames, residual in prepared:
+                    video.scene(scene, frames)
+                    end = 0.9 * times[-1]
+                    for k, t in enumerate(times):
+                        video.frame(scene, frames, residual, k, t, end)
                         bar.update()
-                        continue
-                    canvas.restore_region(background)
-                    last = scene.cloud is not None and t >= end
-                    cloud.set_visible(last)
-                    ellipse.set_visible(last and scene.ellipse is not None)
-                    for robot, f in zip(robots, frames):
-                        robot.show(f, k)
-                        robot.shell.do_3d_projection()
-                        ax.draw_artist(robot.shell)
-                    for robot in robots[: len(frames)]:
-                        for art in robot.artists[1:]:
-                            ax.draw_artist(art)
-                    for art in (target, cloud, ellipse):
-                        ax.draw_artist(art)
-                    status.set_text(_status(t, frames[0], k))
-                    extra.set_text(residual[k] if residual is not None else "")
-                    for art in texts:
-                        fig.draw_artist(art)
-                    push()
-                    bar.update()
+        finally:
+            video.writer.finish()
 
     atomic_write(path, write)
-    plt.close(fig)
+    plt.close(video.fig)
     return total

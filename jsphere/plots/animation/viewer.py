@@ -69,24 +69,11 @@ def _robot_traces(f, k: int, verts: np.ndarray) -> list[dict]:
     ]
 
 
-def write_html(scenes: list[Scene], path, *, fps: float, speed: float, size=(900, 700), view: str = "3d") -> int:
-    """Write the viewer of `scenes` (one after the other on the slider) to `path` (atomically):
-    frames at `fps` per second of playback, `speed` the playback factor, `size` `(width, height)`
-    [pixels] of the plot, `view` the starting camera (`"3d"` or `"top"`). Returns the number of
-    frames."""
-    import plotly.graph_objects as go
-
-    path = Path(path)
-    if path.suffix.lower() != ".html":
-        raise ValueError(f"{path}: the viewer is an HTML file; give a path ending in .html.")
-    prepared = [(s, *scene_frames(s, fps, speed)) for s in scenes]
-    n_bodies = max(len(s.bodies) for s in scenes)
-    params = scenes[0].params
-    R0 = float(params.R0)
-    verts, (ti, tj, tk) = _sphere_mesh(R0)
-    lo = np.min([_limits(s, f)[0] for s, _, f, _ in prepared], axis=0)
-    hi = np.max([_limits(s, f)[1] for s, _, f, _ in prepared], axis=0)
-
+def _traces(go, n_bodies: int, triangles) -> list:
+    """The figure's traces, styled and named (the frames hold their data): `_PARTS` of each of
+    `n_bodies` robots (`triangles`: the shell mesh's), then the target, the stop points and the
+    ellipse."""
+    ti, tj, tk = triangles
     traces = []
     for b in range(n_bodies):
         c = _COLOURS[b % len(_COLOURS)]
@@ -108,51 +95,56 @@ def write_html(scenes: list[Scene], path, *, fps: float, speed: float, size=(900
             ),
             go.Scatter3d(mode="lines", line=dict(color=c, width=5), name=f"path {b + 1}"),
         ]
-    extra = len(traces)
-    traces += [
+    return traces + [
         go.Scatter3d(mode="markers", marker=dict(symbol="x", size=6, color="#d62728"), name="target"),
         go.Scatter3d(mode="markers", marker=dict(size=2, color="#555555"), name="stop points"),
         go.Scatter3d(mode="lines", line=dict(color="#d62728", width=4), name="95 % ellipse"),
     ]
-    empty = {"type": "scatter3d", "x": [], "y": [], "z": []}
 
-    frames, names, run_times = [], [], []
+
+def _frame_data(scene: Scene, fr: list, n_bodies: int, verts: np.ndarray, k: int, show_end: bool) -> list[dict]:
+    """The data of every trace (`_traces` order) at frame `k` of `scene` (`fr`: its bodies'
+    frames; `show_end`: the stop points and ellipse are shown)."""
+    empty = {"type": "scatter3d", "x": [], "y": [], "z": []}
+    data = []
+    for b in range(n_bodies):
+        if b < len(fr):
+            parts = _robot_traces(fr[b], k, verts)
+            if scene.bodies[b].ghost:  # the model over the capture: fainter
+                parts = [p | {"opacity": 0.06 if i == 0 else 0.45} for i, p in enumerate(parts)]
+            data += parts
+        else:
+            data += [{"type": "mesh3d", "x": [], "y": [], "z": []}] + [empty] * (len(_PARTS) - 1)
+    tgt, el = scene.target, scene.ellipse
+    data.append(_xyz(np.array([[tgt[0], tgt[1], 0.0]])) if tgt is not None else empty)
+    data.append(_xyz(np.c_[scene.cloud, np.zeros(len(scene.cloud))]) if show_end else empty)
+    data.append(_xyz(np.c_[el, np.zeros(len(el))]) if show_end and el is not None else empty)
+    return data
+
+
+def _frames(go, prepared: list, n_bodies: int, verts: np.ndarray) -> tuple[list, list[str]]:
+    """The slider's frames of the `prepared` scenes (`(scene, times, frames, residual)`) and the
+    run time that labels each."""
+    frames, run_times = [], []
     for s_idx, (scene, times, fr, residual) in enumerate(prepared):
         end = 0.9 * times[-1]
         for k, t in enumerate(times):
-            data = []
-            for b in range(n_bodies):
-                if b < len(fr):
-                    parts = _robot_traces(fr[b], k, verts)
-                    if scene.bodies[b].ghost:  # the model over the capture: fainter
-                        parts = [p | {"opacity": 0.06 if i == 0 else 0.45} for i, p in enumerate(parts)]
-                    data += parts
-                else:
-                    data += [{"type": "mesh3d", "x": [], "y": [], "z": []}] + [empty] * (len(_PARTS) - 1)
-            tgt = scene.target
-            data.append(_xyz(np.array([[tgt[0], tgt[1], 0.0]])) if tgt is not None else empty)
-            show_end = scene.cloud is not None and t >= end
-            data.append(_xyz(np.c_[scene.cloud, np.zeros(len(scene.cloud))]) if show_end else empty)
-            el = scene.ellipse
-            data.append(_xyz(np.c_[el, np.zeros(len(el))]) if show_end and el is not None else empty)
+            data = _frame_data(scene, fr, n_bodies, verts, k, scene.cloud is not None and t >= end)
             text = _status(t, fr[0], k).replace("\n", "<br>") + (f"<br>{residual[k]}" if residual is not None else "")
-            name = f"{len(frames)}"
             frames.append(
                 go.Frame(
-                    name=name,
+                    name=f"{len(frames)}",
                     data=data,
-                    traces=list(range(extra + 3)),
+                    traces=list(range(len(data))),
                     layout=dict(annotations=[_note(scene.title.replace("\n", "<br>"), 1.0), _note(text, 0.0)]),
                 )
             )
-            names.append(name)
             run_times.append(f"{s_idx + 1}:{t:.2f} s" if len(prepared) > 1 else f"{t:.2f} s")
+    return frames, run_times
 
-    first = frames[0]
-    fig = go.Figure(data=traces, frames=frames)
-    for tr, d in zip(fig.data, first.data):
-        tr.update(d)
-    eye = dict(x=1.3, y=-1.6, z=0.9) if view == "3d" else dict(x=0.0, y=0.0, z=2.5)
+
+def _controls(fps: float, frames: list, run_times: list[str]) -> dict:
+    """The layout's play/pause buttons and time slider over `frames` (labelled `run_times`)."""
     # a slider step waits for the frames drawn before it ("afterall"): interrupted, plotly's
     # animation promise rejects unhandled (a console error at each click on the rail)
     step = lambda name: [
@@ -161,21 +153,7 @@ def write_html(scenes: list[Scene], path, *, fps: float, speed: float, size=(900
     ]
     play = dict(frame=dict(duration=1000.0 / fps, redraw=True), transition=dict(duration=0), fromcurrent=True)
     stop = dict(mode="immediate", frame=dict(duration=0, redraw=False), transition=dict(duration=0))
-    span = hi - lo
-    fig.update_layout(
-        width=int(size[0]),
-        height=int(size[1]),
-        margin=dict(l=0, r=0, t=40, b=0),
-        annotations=list(first.layout.annotations),
-        scene=dict(
-            xaxis=dict(title="X [m] (fixed frame)", range=[lo[0], hi[0]]),
-            yaxis=dict(title="Y [m] (fixed frame)", range=[lo[1], hi[1]]),
-            zaxis=dict(title="Z [m]", range=[0.0, 2.0 * R0]),
-            aspectmode="manual",
-            aspectratio=dict(x=1.0, y=span[1] / span[0], z=2.0 * R0 / span[0]),
-            camera=dict(eye=eye, up=dict(x=0, y=1, z=0) if view == "top" else dict(x=0, y=0, z=1)),
-        ),
-        legend=dict(x=0.0, y=0.9, font=dict(size=10)),
+    return dict(
         updatemenus=[
             dict(
                 type="buttons",
@@ -198,9 +176,49 @@ def write_html(scenes: list[Scene], path, *, fps: float, speed: float, size=(900
                 len=0.86,
                 yanchor="top",
                 currentvalue=dict(prefix="t = ", font=dict(size=11)),
-                steps=[dict(label=lab, method="animate", args=step(n)) for n, lab in zip(names, run_times)],
+                steps=[dict(label=lab, method="animate", args=step(f.name)) for f, lab in zip(frames, run_times)],
             )
         ],
+    )
+
+
+def write_html(scenes: list[Scene], path, *, fps: float, speed: float, size=(900, 700), view: str = "3d") -> int:
+    """Write the viewer of `scenes` (one after the other on the slider) to `path` (atomically):
+    frames at `fps` per second of playback, `speed` the playback factor, `size` `(width, height)`
+    [pixels] of the plot, `view` the starting camera (`"3d"` or `"top"`). Returns the number of
+    frames."""
+    import plotly.graph_objects as go
+
+    path = Path(path)
+    if path.suffix.lower() != ".html":
+        raise ValueError(f"{path}: the viewer is an HTML file; give a path ending in .html.")
+    prepared = [(s, *scene_frames(s, fps, speed)) for s in scenes]
+    n_bodies = max(len(s.bodies) for s in scenes)
+    R0 = float(scenes[0].params.R0)
+    verts, triangles = _sphere_mesh(R0)
+    lo = np.min([_limits(s, f)[0] for s, _, f, _ in prepared], axis=0)
+    hi = np.max([_limits(s, f)[1] for s, _, f, _ in prepared], axis=0)
+    frames, run_times = _frames(go, prepared, n_bodies, verts)
+    fig = go.Figure(data=_traces(go, n_bodies, triangles), frames=frames)
+    for tr, d in zip(fig.data, frames[0].data):
+        tr.update(d)
+    eye = dict(x=1.3, y=-1.6, z=0.9) if view == "3d" else dict(x=0.0, y=0.0, z=2.5)
+    span = hi - lo
+    fig.update_layout(
+        width=int(size[0]),
+        height=int(size[1]),
+        margin=dict(l=0, r=0, t=40, b=0),
+        annotations=list(frames[0].layout.annotations),
+        scene=dict(
+            xaxis=dict(title="X [m] (fixed frame)", range=[lo[0], hi[0]]),
+            yaxis=dict(title="Y [m] (fixed frame)", range=[lo[1], hi[1]]),
+            zaxis=dict(title="Z [m]", range=[0.0, 2.0 * R0]),
+            aspectmode="manual",
+            aspectratio=dict(x=1.0, y=span[1] / span[0], z=2.0 * R0 / span[0]),
+            camera=dict(eye=eye, up=dict(x=0, y=1, z=0) if view == "top" else dict(x=0, y=0, z=1)),
+        ),
+        legend=dict(x=0.0, y=0.9, font=dict(size=10)),
+        **_controls(fps, frames, run_times),
     )
     post = "window.jsphereViewer = document.getElementById('{plot_id}');"
     html = fig.to_html(include_plotlyjs=True, full_html=True, post_script=post, config=dict(displaylogo=False))

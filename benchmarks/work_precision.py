@@ -1,0 +1,492 @@
+"""Work-precision of problem 1 of `run.py`: accuracy against throughput for jsphere, CasADi's
+compiled fixed-step RK4 and scipy's DOP853, all measured in one run.
+
+    python benchmarks/work_precision.py                  # full run (about 8 min on 2 CPU cores)
+    python benchmarks/work_precision.py --quick          # fewer settings, batch 256 (about 1.5 min)
+    python benchmarks/work_precision.py --batch 1024 --repeats 3 --out benchmarks/results-work-precision.json \
+        --figure docs/images/work-precision.png
+
+The problem is problem 1 of `run.py` (its definitions are imported from there): the paper's robot
+from rest, torques `K_i = a_i sin(pi t + 2.1 (i - 1))`, `a_i = 0.05 (1 + 0.1 z_i)`, `z` the rows
+of `default_rng(0).standard_normal`, over [0, 4] s; the output is the final `(x, y)`.
+
+For every method and setting the script measures:
+
+- the error: the largest distance `|(x, y) - (x_ref, y_ref)|` of the final position [m] over
+  the first `--error-trials` trials (16; 4 with `--quick`), against scipy DOP853 at rtol 1e-13,
+  atol 1e-14 on the numpy model of `numpy_model.py`. jsphere (Dopri8) at rtol 1e-13, atol 1e-15
+  solves the same trials as a second reference; the largest distance between the two
+  references is reported (it is the floor of the error axis);
+- the throughput: trials/s = trials per call / the median wall time of the steady-state calls
+  (`run.time_call`'s rule for jsphere: at least `--repeats` calls, more while they total under
+  1 s); compilation (first call minus the median for jsphere, construction with the C compiler
+  plus the first call's excess for CasADi) is reported separately and not counted.
+
+Methods and settings:
+
+- jsphere: `jax.jit(jax.vmap(lambda a: jsphere.simulate(p, State.at_rest(p), Torques(...), 4.0,
+  rtol=rtol, atol=rtol / 100, solver=S)))` on a batch of `--batch` trials (1024), the public API
+  with its defaults (steps shared by the batch); S = Dopri8, Tsit5 at rtol 1e-3 ... 1e-11 and
+  Dopri5 at every other decade; the error is that of the batch's first trials.
+- CasADi: `casadi_baseline.rk4_batch` (the right-hand side in SX, RK4 folded with `mapaccum`,
+  C `-O3`, mapped over the CPU's threads) at 25 ... 6400 steps over 4 s, same batch.
+- scipy: `run.scipy_trial` (`solve_ivp(method="DOP853")` on `numpy_model.NumpyRobot.rhs`, one
+  trial at a time) at rtol 1e-3 ... 1e-11, atol = rtol / 100, on the error trials only; its
+  trials/s is that of those trials run one after another.
+
+Then, for each accuracy decade from 1e-3 m to 1e-9 m, the fastest *measured* setting of each
+method whose error is at most that decade (no interpolation between settings), and the ratios
+jsphere / CasADi and jsphere / scipy of their trials/s (jsphere: the fastest of its solvers).
+
+Prints a table to stdout (progress to stderr), writes the JSON atomically (default
+`benchmarks/results-work-precision.json`) and a log-log figure (default
+`docs/images/work-precision.png`; with `--quick` both default to `...-quick` names beside the JSON).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import math
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+sys.path.insert(0, str(ROOT))  # the jsphere of this checkout
+sys.path.insert(0, str(HERE))
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+import diffrax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import run  # noqa: E402  (problem 1: amplitudes, phases, the scipy trial, timing, environment)
+from numpy_model import NumpyRobot  # noqa: E402
+
+import jsphere  # noqa: E402
+from jsphere._runtime.files import atomic_savefig  # noqa: E402
+
+try:
+    import casadi as ca
+    from casadi_baseline import _timed as casadi_timed
+    from casadi_baseline import rk4_batch
+except ImportError:  # pragma: no cover - optional benchmark dependency
+    ca = None
+
+REF_RTOL, REF_ATOL = 1e-13, 1e-14  # scipy DOP853 reference
+JS_REF_RTOL, JS_REF_ATOL = 1e-13, 1e-15  # jsphere Dopri8, the second reference
+DECADES = [1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9]
+SOLVERS = {"Dopri8": diffrax.Dopri8, "Tsit5": diffrax.Tsit5, "Dopri5": diffrax.Dopri5}
+
+FULL = {
+    "batch": 1024,
+    "repeats": 3,
+    "error_trials": 16,
+    "jsphere": {
+        "Dopri8": [10.0**-k for k in range(3, 12)],
+        "Tsit5": [10.0**-k for k in range(3, 12)],
+        "Dopri5": [10.0**-k for k in range(3, 12, 2)],
+    },
+    "casadi_steps": [25, 50, 100, 200, 400, 800, 1600, 3200, 6400],
+    "scipy_rtols": [10.0**-k for k in range(3, 12)],
+}
+QUICK = {
+    "batch": 256,
+    "repeats": 2,
+    "error_trials": 4,
+    "jsphere": {"Dopri8": [1e-3, 1e-6, 1e-9], "Tsit5": [1e-3, 1e-6, 1e-9]},
+    "casadi_steps": [50, 200, 800],
+    "scipy_rtols": [1e-3, 1e-6, 1e-9],
+}
+
+log = run.log
+
+
+def final_error(xy: np.ndarray, ref: np.ndarray) -> float:
+    """Largest distance between final positions, (n, 2) against (n, 2)."""
+    return float(np.max(np.hypot(*(np.asarray(xy) - ref).T)))
+
+
+# ------------------------------------------------------------------------ jsphere
+
+
+def jsphere_batch_fn(p, solver, rtol: float, atol: float):
+    """Problem 1 through the public API, `jit(vmap)` over the amplitude rows."""
+    phases = jnp.asarray(run.PHASES)
+    return jax.jit(
+        jax.vmap(
+            lambda a: jsphere.simulate(
+                p,
+                jsphere.State.at_rest(p),
+                jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + phases)),
+                run.T1,
+                rtol=rtol,
+                atol=atol,
+                solver=solver,
+            )
+        )
+    )
+
+
+def final_xy(tr) -> np.ndarray:
+    return np.stack([np.asarray(tr.x[:, -1]), np.asarray(tr.y[:, -1])], -1)
+
+
+def jsphere_rows(p, A, ref, grid, repeats):
+    rows = []
+    n = ref.shape[0]
+    for name, rtols in grid.items():
+        for rtol in rtols:
+            log(f"[jsphere] {name} rtol {rtol:.0e}, batch {A.shape[0]} ...")
+            f = jsphere_batch_fn(p, SOLVERS[name](), rtol, rtol / 100)
+            r = run.time_call(f, A, repeats=repeats)
+            tr = r["_out"]
+            row = {
+                "method": f"jsphere {name}",
+                "setting": f"rtol {rtol:.0e}",
+                "rtol": rtol,
+                "atol": rtol / 100,
+                "batch": int(A.shape[0]),
+                "error_m": final_error(final_xy(tr)[:n], ref),
+                "trials_per_s": A.shape[0] / r["median_s"],
+                "steps_mean": float(np.mean(np.asarray(tr.num_steps))),
+                "all_ok": bool(np.all(np.asarray(tr.ok))),
+                **run.public(r),
+            }
+            log(
+                f"      error {row['error_m']:.1e} m, {row['trials_per_s']:.0f} trials/s, compile {r['compile_s']:.1f} s"
+            )
+            rows.append(row)
+    return rows
+
+
+# ------------------------------------------------------------------------ CasADi
+
+
+@contextlib.contextmanager
+def in_temporary_folder():
+    """CasADi's shell compiler writes its sources to the current folder: keep them out of the checkout."""
+    here = os.getcwd()
+    with tempfile.TemporaryDirectory() as tmp:
+        os.chdir(tmp)
+        try:
+            yield
+        finally:
+            os.chdir(here)
+
+
+def casadi_rows(model, q0, A, ref, steps_list, repeats, threads):
+    if ca is None:
+        return [{"method": "CasADi RK4", "error": "not run: CasADi is not installed (pip install casadi)"}]
+    B, n = A.shape[0], ref.shape[0]
+    y0 = np.tile(np.concatenate([np.asarray(q0, float), np.zeros(8)])[:, None], (1, B))
+    rows = []
+    with in_temporary_folder():
+        for steps in steps_list:
+            log(f"[CasADi] RK4 {steps} steps, batch {B}, {threads} threads ...")
+            t = time.perf_counter()
+            F = rk4_batch(model, B, threads, steps)
+            build = time.perf_counter() - t
+            out, first, med, times = casadi_timed(F, y0, A.T, repeats=repeats)
+            xy = out[10:12].T
+            err = final_error(xy[:n], ref) if np.all(np.isfinite(xy[:n])) else math.inf
+            row = {
+                "method": "CasADi RK4",
+                "setting": f"{steps} steps",
+                "steps": steps,
+                "batch": B,
+                "threads": threads,
+                "error_m": err,
+                "trials_per_s": B / med,
+                "build_s": build,
+                "first_call_s": first,
+                "median_s": med,
+                "compile_s": build + max(first - med, 0.0),
+                "repeats": len(times),
+                "times_s": times,
+            }
+            log(f"      error {err:.1e} m, {row['trials_per_s']:.0f} trials/s, build {build:.1f} s")
+            rows.append(row)
+    return rows
+
+
+# ------------------------------------------------------------------------ scipy
+
+
+def scipy_rows(model, q0, A, ref, rtols, repeats):
+    rows = []
+    run.scipy_trial(model, q0, A[0])  # warm-up (imports, caches)
+    for rtol in rtols:
+        log(f"[scipy] DOP853 rtol {rtol:.0e}, {A.shape[0]} trials x {repeats} ...")
+        times, sols = [], None
+        for _ in range(repeats):
+            t = time.perf_counter()
+            sols = [run.scipy_trial(model, q0, a, rtol=rtol, atol=rtol / 100) for a in A]
+            times.append(time.perf_counter() - t)
+        med = statistics.median(times)
+        row = {
+            "method": "scipy DOP853",
+            "setting": f"rtol {rtol:.0e}",
+            "rtol": rtol,
+            "atol": rtol / 100,
+            "batch": int(A.shape[0]),
+            "error_m": final_error(np.array([s.y[10:12, -1] for s in sols]), ref),
+            "trials_per_s": A.shape[0] / med,
+            "s_per_trial": med / A.shape[0],
+            "median_s": med,
+            "compile_s": 0.0,
+            "repeats": repeats,
+            "times_s": times,
+            "steps_mean": float(np.mean([len(s.t) - 1 for s in sols])),
+        }
+        log(f"      error {row['error_m']:.1e} m, {row['trials_per_s']:.2f} trials/s")
+        rows.append(row)
+    return rows
+
+
+# ------------------------------------------------------------------------ report
+
+GROUPS = {"jsphere": "jsphere", "CasADi": "CasADi RK4", "scipy": "scipy DOP853"}
+
+
+def crossover(rows):
+    """For each decade, the fastest measured row of each method group with error <= decade."""
+    out = []
+    for d in DECADES:
+        entry = {"accuracy_m": d}
+        for g, prefix in GROUPS.items():
+            ok = [r for r in rows if "error" not in r and r["method"].startswith(prefix) and r["error_m"] <= d]
+            best = max(ok, key=lambda r: r["trials_per_s"]) if ok else None
+            entry[g] = (
+                None
+                if best is None
+                else {k: best[k] for k in ("method", "setting", "error_m", "trials_per_s", "compile_s")}
+            )
+        js = entry["jsphere"]
+        for g in ("CasADi", "scipy"):
+            other = entry[g]
+            entry[f"jsphere_over_{g}"] = js["trials_per_s"] / other["trials_per_s"] if js and other else None
+        out.append(entry)
+    return out
+
+
+def fmt_rows(rows) -> list[str]:
+    hdr = f"{'method':<16}{'setting':>12}{'error m':>11}{'trials/s':>12}{'compile s':>11}{'steps':>8}{'batch':>7}"
+    L = [hdr, "-" * len(hdr)]
+    for r in rows:
+        if "error" in r:
+            L.append(f"{r['method']:<16}  {r['error']}")
+            continue
+        steps = r.get("steps_mean", r.get("steps"))
+        L.append(
+            f"{r['method']:<16}{r['setting']:>12}{r['error_m']:>11.1e}{r['trials_per_s']:>12.1f}"
+            f"{r['compile_s']:>11.2f}{steps:>8.0f}{r['batch']:>7}"
+        )
+    return L
+
+
+def fmt_crossover(cross) -> list[str]:
+    def cell(e):
+        if e is None:
+            return f"{'not reached':>34}"
+        name = e["method"].replace("jsphere ", "").replace("CasADi RK4", "RK4").replace("scipy DOP853", "DOP853")
+        return f"{name + ' ' + e['setting']:>22}{e['trials_per_s']:>12.1f}"
+
+    def ratio(x):
+        return f"{x:>10.1f}x" if x is not None else f"{'-':>11}"
+
+    hdr = (
+        f"{'error <=':>9}{'jsphere (fastest solver)':>34}{'CasADi RK4':>34}{'scipy DOP853':>34}"
+        f"{'js/CasADi':>11}{'js/scipy':>11}"
+    )
+    L = [
+        "fastest measured setting at least this accurate (no interpolation), setting and trials/s:",
+        hdr,
+        "-" * len(hdr),
+    ]
+    for e in cross:
+        L.append(
+            f"{e['accuracy_m']:>9.0e}{cell(e['jsphere'])}{cell(e['CasADi'])}{cell(e['scipy'])}"
+            f"{ratio(e['jsphere_over_CasADi'])}{ratio(e['jsphere_over_scipy'])}"
+        )
+    return L
+
+
+def figure(rows, path: Path, floor_m: float, title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    styles = {
+        "jsphere Dopri8": ("C0", "o", "-"),
+        "jsphere Tsit5": ("C2", "s", "-"),
+        "jsphere Dopri5": ("C4", "D", "-"),
+        "CasADi RK4": ("C1", "^", "--"),
+        "scipy DOP853": ("C3", "v", ":"),
+    }
+    fig, ax = plt.subplots(figsize=(8.0, 5.6), dpi=120)
+    for method, (color, marker, ls) in styles.items():
+        pts = [r for r in rows if r.get("method") == method and math.isfinite(r.get("error_m", math.inf))]
+        if not pts:
+            continue
+        x = [max(r["error_m"], 1.05e-12) for r in pts]  # errors below the axis drawn at its edge
+        y = [r["trials_per_s"] for r in pts]
+        ax.plot(x, y, ls, color=color, marker=marker, label=method, lw=1.5, ms=5)
+        for r, xi, yi in zip(pts, x, y):
+            lab = r["setting"].replace("rtol ", "").replace(" steps", "")
+            ax.annotate(lab, (xi, yi), textcoords="offset points", xytext=(4, 3), fontsize=6, color=color)
+    ax.axvspan(1e-12, max(floor_m, 1e-12), color="0.85", zorder=0, label="reference agreement")
+    ax.text(
+        0.99,
+        0.01,
+        "point labels: rtol (jsphere, scipy), steps over 4 s (CasADi)",
+        transform=ax.transAxes,
+        ha="right",
+        va="bottom",
+        fontsize=7,
+        color="0.3",
+    )
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlim(1e-12, 1e-1)
+    ax.set_xlabel("largest final-position error [m]")
+    ax.set_ylabel("throughput [trials/s] (compilation excluded)")
+    ax.set_title(title, fontsize=9)
+    ax.grid(True, which="major", alpha=0.4)
+    ax.grid(True, which="minor", alpha=0.1)
+    ax.legend(fontsize=8, loc="lower left")
+    fig.tight_layout()
+    atomic_savefig(fig, path)
+    plt.close(fig)
+
+
+# ------------------------------------------------------------------------ main
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--batch", type=int, default=None, help="trials per jsphere and CasADi call (1024; 256 in --quick)")
+    ap.add_argument(
+        "--repeats", type=int, default=None, help="steady-state calls per setting, at least (3; 2 in --quick)"
+    )
+    ap.add_argument("--error-trials", type=int, default=None, help="trials the error is taken over (16; 4 in --quick)")
+    ap.add_argument("--quick", action="store_true", help="fewer settings, smaller batch: a smoke run")
+    ap.add_argument("--out", type=Path, default=None, help="JSON output, written atomically")
+    ap.add_argument("--figure", type=Path, default=None, help="the PNG (log-log, error against trials/s)")
+    ap.add_argument("--threads", type=int, default=os.cpu_count() or 2, help="CasADi's map threads (CPU count)")
+    args = ap.parse_args(argv)
+    cfg = dict(QUICK if args.quick else FULL)
+    for k in ("batch", "repeats", "error_trials"):
+        if getattr(args, k) is not None:
+            cfg[k] = getattr(args, k)
+    if args.out is None:
+        args.out = HERE / ("results-work-precision-quick.json" if args.quick else "results-work-precision.json")
+    if args.figure is None:
+        args.figure = args.out.with_suffix(".png") if args.quick else ROOT / "docs" / "images" / "work-precision.png"
+    B, n_err, repeats = cfg["batch"], cfg["error_trials"], cfg["repeats"]
+    if n_err > B:
+        ap.error("--error-trials must not exceed --batch")
+
+    t_start = time.perf_counter()
+    run._SOURCE_AT_IMPORT = run._source_digest()
+    env = run.environment()
+    env["versions"]["casadi"] = ca.__version__ if ca is not None else None
+    log(
+        f"work-precision ({'quick' if args.quick else 'full'}): batch {B}, error over {n_err} trials, "
+        f"backend {jax.default_backend()} ({env['jax']['device']}), {os.cpu_count()} CPUs"
+    )
+
+    p = jsphere.RobotParams.paper()
+    model = NumpyRobot.from_params(p)
+    q0 = np.asarray(jsphere.State.at_rest(p).q)
+    A = run.amplitudes(np.random.default_rng(0).standard_normal((B, 3)))
+
+    log(f"[reference] scipy DOP853 rtol {REF_RTOL:.0e}, atol {REF_ATOL:.0e}, {n_err} trials ...")
+    t = time.perf_counter()
+    ref_sols = [run.scipy_trial(model, q0, a, rtol=REF_RTOL, atol=REF_ATOL) for a in A[:n_err]]
+    ref = np.array([s.y[10:12, -1] for s in ref_sols])
+    ref_s = time.perf_counter() - t
+    log(f"[reference] jsphere Dopri8 rtol {JS_REF_RTOL:.0e}, atol {JS_REF_ATOL:.0e}, {n_err} trials ...")
+    tr = jax.block_until_ready(jsphere_batch_fn(p, diffrax.Dopri8(), JS_REF_RTOL, JS_REF_ATOL)(jnp.asarray(A[:n_err])))
+    ref_js = final_xy(tr)
+    agree = final_error(ref_js, ref)
+    log(f"      references agree to {agree:.1e} m")
+    reference = {
+        "used": f"scipy DOP853 rtol {REF_RTOL:.0e} atol {REF_ATOL:.0e} on numpy_model.NumpyRobot",
+        "trials": n_err,
+        "wall_s": ref_s,
+        "steps_mean": float(np.mean([len(s.t) - 1 for s in ref_sols])),
+        "final_xy": ref.tolist(),
+        "check": f"jsphere Dopri8 rtol {JS_REF_RTOL:.0e} atol {JS_REF_ATOL:.0e}, same trials (batch {n_err})",
+        "check_all_ok": bool(np.all(np.asarray(tr.ok))),
+        "max_distance_between_references_m": agree,
+    }
+
+    rows = jsphere_rows(p, jnp.asarray(A), ref, cfg["jsphere"], repeats)
+    rows += casadi_rows(model, q0, A, ref, cfg["casadi_steps"], repeats, args.threads)
+    rows += scipy_rows(model, q0, A[:n_err], ref, cfg["scipy_rtols"], repeats)
+    cross = crossover(rows)
+
+    end_digest = run._source_digest()
+    env["jsphere_git"]["source_sha256_end"] = end_digest
+    env["jsphere_git"]["changed_during_run"] = end_digest != run._SOURCE_AT_IMPORT
+    if env["jsphere_git"]["changed_during_run"]:
+        log("WARNING: jsphere/*.py changed on disk during the run; the numbers are for the code imported at the start.")
+    env["machine"]["loadavg_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+    wall = time.perf_counter() - t_start
+    table = fmt_rows(rows) + [""] + fmt_crossover(cross)
+    table += [
+        "",
+        f"error: largest |(x, y) - reference| of the final position over the first {n_err} trials; reference "
+        f"{reference['used']}; the jsphere reference ({reference['check']}) is {agree:.1e} m from it",
+    ]
+    res = {
+        **env,
+        "mode": "quick" if args.quick else "full",
+        "settings": {
+            "problem": "run.py problem 1: paper robot from rest, K_i = a_i sin(pi t + 2.1 (i - 1)), [0, 4] s",
+            "amplitudes": "0.05 (1 + 0.1 z), z ~ default_rng(0).standard_normal((batch, 3)), rows 0..batch-1",
+            "batch": B,
+            "repeats": repeats,
+            "error_trials": n_err,
+            "error": "max over the first error_trials trials of the distance |(x, y) - reference| at t = 4 s [m]",
+            "atol": "rtol / 100 (jsphere and scipy)",
+            "jsphere": {k: v for k, v in cfg["jsphere"].items()},
+            "jsphere_call": "jax.jit(jax.vmap(simulate(..., rtol, atol, solver)))(amplitudes), default batch_steps",
+            "casadi_steps": cfg["casadi_steps"],
+            "casadi_threads": args.threads,
+            "scipy_rtols": cfg["scipy_rtols"],
+            "scipy_trials": n_err,
+            "throughput": "trials per call / median steady-state wall time; compilation excluded",
+            "compile_s": "jsphere: first call minus median; CasADi: construction (C compile) plus first-call excess",
+            "crossover_rule": "fastest measured setting with error <= the decade, no interpolation",
+        },
+        "reference": reference,
+        "rows": rows,
+        "crossover": cross,
+        "wall_time_s": wall,
+        "table": table,
+    }
+    run.write_json_atomic(args.out, res)
+    title = (
+        f"problem 1 (4 s, batch {B}; scipy one trial at a time): {env['machine']['cpu_count']} CPUs, "
+        f"JAX {jax.default_backend()}, load {env['machine']['loadavg_start'][0]:.1f}-"
+        f"{env['machine']['loadavg_end'][0]:.1f}, {env['date_utc'][:10]}"
+    )
+    figure(rows, args.figure, agree, title)
+    print("\n".join(table))
+    print(f"\nwall time {wall:.0f} s; JSON written to {args.out}, figure to {args.figure}")
+    ok = all(r.get("all_ok", True) for r in rows) and reference["check_all_ok"]
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
