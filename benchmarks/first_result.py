@@ -4,7 +4,7 @@ first simulation or gradient, against plain diffrax on a problem of similar cost
     python benchmarks/first_result.py                 # cold and cached, 1 process each
     python benchmarks/first_result.py --repeat 3      # median over 3 processes per entry
     python benchmarks/first_result.py --quick         # gaits, grad and their baselines only
-    python benchmarks/first_result.py --fast-start    # also jsphere's tasks with `jsphere.FastStart`
+    python benchmarks/first_result.py --xla-defaults  # also jsphere's tasks with XLA's default options
 
 Every entry is a new Python process (`python first_result.py --child TASK`) that times its
 steps with `time.perf_counter()` and prints them as JSON; the parent also times the whole
@@ -35,7 +35,8 @@ Each child reports `import_s` (its imports), `first_s` (the first call, results 
 and compilation), and `phases`: the first call's tracing, lowering and XLA time summed from
 JAX's monitoring events, and the number of programs it compiled. Each task runs cold (no persistent cache), then with a persistent
 compilation cache in a fresh temporary directory, twice: the second process is reported.
-The cache is switched on with `jsphere.enable_compilation_cache(dir)` where jsphere has it,
+The cache is switched on with `jsphere.enable_compilation_cache(dir)` where jsphere has it
+(and the solves take `SolverOptions(programs=jsphere.FastStart(dir))`, exported beside it),
 else with JAX's options (`jax_compilation_cache_dir`, and thresholds of 0 so every program
 is kept). JAX does not write executables that contain host callbacks (equinox's run-time
 checks in diffrax are such callbacks): with the cache on, jsphere's first call is traced inside
@@ -70,10 +71,8 @@ JSPHERE_TASKS = ("gaits", "simulate", "grad", "jacfwd", "fit", "plan")
 DFX_TASKS = ("dfx_solve", "dfx_grad", "dfx_jacfwd")
 RATIOS = {"gaits": "dfx_solve", "simulate": "dfx_solve", "grad": "dfx_grad", "jacfwd": "dfx_jacfwd"}
 QUICK_TASKS = ("gaits", "grad", "dfx_solve", "dfx_grad")
-#: the environment of the comparison runs whose solves take `SolverOptions(programs=FastStart(...))`
-#: (`--fast-start`: compiled with the eager options, exported beside the persistent cache)
-FAST_START_ENV_NAME = "JSPHERE_BENCHMARK_FAST_START"
-FAST_START_ENV = {FAST_START_ENV_NAME: "1"}
+#: the environment of the comparison runs with XLA's default options (`--xla-defaults`)
+XLA_DEFAULTS_ENV = {"JSPHERE_XLA_DEFAULTS": "1"}
 #: targets: first simulate_gaits and first gradient at most this many times the baseline's
 TARGET_RATIO = 2.5
 #: target: a second process's first gradient with the cache on, and the quickstart cold [s]
@@ -162,8 +161,8 @@ def _jsphere_child(task: str, cache_dir: str | None) -> dict:
     if cache_dir:
         rec["cache"] = _enable_cache(cache_dir, jsphere)
     p = jsphere.RobotParams.paper()
-    options = None
-    if os.environ.get(FAST_START_ENV_NAME):
+    options = None  # with the cache on: the solves exported beside it, as the command line's are
+    if cache_dir and hasattr(jsphere, "FastStart"):
         options = jsphere.SolverOptions(programs=jsphere.FastStart(cache_dir))
 
     if task == "gaits":
@@ -199,12 +198,10 @@ def _jsphere_child(task: str, cache_dir: str | None) -> dict:
 
     else:
         adjoint = dfx.ForwardMode() if task == "jacfwd" else None
-        options = options or jsphere.SolverOptions()
-        options = jsphere.SolverOptions(adjoint=adjoint, programs=options.programs)
 
         def stop(theta_max):
             gaits = [jsphere.acceleration(theta_max=theta_max), jsphere.braking(theta_max=theta_max)]
-            return jsphere.simulate_gaits(p, gaits, ts=jnp.array([4.0]), options=options).x[-1]
+            return jsphere.simulate_gaits(p, gaits, ts=jnp.array([4.0]), adjoint=adjoint, options=options).x[-1]
 
         d = jax.grad(stop) if task == "grad" else jax.jacfwd(stop)
 
@@ -433,9 +430,9 @@ def main(argv=None) -> int:
     ap.add_argument("--no-cache", action="store_true", help="skip the cached part")
     ap.add_argument("--tasks", nargs="+", choices=JSPHERE_TASKS + DFX_TASKS, help="only these tasks; no quickstart")
     ap.add_argument(
-        "--fast-start",
+        "--xla-defaults",
         action="store_true",
-        help="also run the jsphere tasks cold with SolverOptions(programs=jsphere.FastStart()), alternating",
+        help="also run the jsphere tasks cold with XLA's default options (JSPHERE_XLA_DEFAULTS=1), alternating",
     )
     ap.add_argument("--out", type=Path, default=HERE / "results-first-result.json")
     ap.add_argument("--child", help=argparse.SUPPRESS)
@@ -448,7 +445,7 @@ def main(argv=None) -> int:
     meta = metadata()
     tasks = tuple(args.tasks) if args.tasks else QUICK_TASKS if args.quick else JSPHERE_TASKS + DFX_TASKS
     cold, cached = {}, {}
-    fast = {}
+    defaults = {}
     for task in tasks:
         cold[task] = _median([run_child(task) for _ in range(args.repeat)])
         r = cold[task]
@@ -458,11 +455,11 @@ def main(argv=None) -> int:
             file=sys.stderr,
             flush=True,
         )
-        if args.fast_start and not task.startswith("dfx_"):
-            fast[task] = _median([run_child(task, extra_env=FAST_START_ENV) for _ in range(args.repeat)])
-            r = fast[task]
+        if args.xla_defaults and not task.startswith("dfx_"):
+            defaults[task] = _median([run_child(task, extra_env=XLA_DEFAULTS_ENV) for _ in range(args.repeat)])
+            r = defaults[task]
             print(
-                f"  cold   {task:<11} with FastStart:      first {r['first_s']:5.1f} s, second {r['second_s']:6.3f} s",
+                f"  cold   {task:<11} with XLA's defaults: first {r['first_s']:5.1f} s, second {r['second_s']:6.3f} s",
                 file=sys.stderr,
                 flush=True,
             )
@@ -485,8 +482,8 @@ def main(argv=None) -> int:
         "cold": _ratios(cold),
         "cold_cpu": _ratios(cold, "first_cpu_s"),
         "cached": _ratios(cached) if cached else {},
-        "fast_start_over_default": {
-            t: {k: fast[t][k] / cold[t][k] for k in ("first_s", "first_cpu_s", "second_s")} for t in fast
+        "options_over_xla_defaults": {
+            t: {k: cold[t][k] / defaults[t][k] for k in ("first_s", "first_cpu_s", "second_s")} for t in defaults
         },
     }
     doc = {
@@ -498,7 +495,7 @@ def main(argv=None) -> int:
             "baseline": "13-state field, 6x6 jnp.linalg.solve, Dopri8, PIDController(1e-10, 1e-12), t in [0, 4]",
         },
         "cold": cold,
-        "cold_fast_start": fast,
+        "cold_xla_defaults": defaults,
         "cached_second_process": cached,
         "quickstart_cold": quickstart,
         "ratios": ratios,
@@ -534,9 +531,9 @@ def main(argv=None) -> int:
         + ", ".join(f"{k} {v:.2f}" for k, v in ratios["cold_cpu"].items())
         + ")"
     )
-    for t, r in ratios["fast_start_over_default"].items():
+    for t, r in ratios["options_over_xla_defaults"].items():
         print(
-            f"{t}: FastStart over the default: first {r['first_s']:.2f}x "
+            f"{t}: jsphere's compiler options over XLA's defaults: first {r['first_s']:.2f}x "
             f"(cpu {r['first_cpu_s']:.2f}x), second call {r['second_s']:.2f}x"
         )
     print(

@@ -1,22 +1,18 @@
-"""`FastStart`: the programs of a script's or command's first solves, compiled for a short
-first call and kept on disk for the next process.
+"""`FastStart`: the programs of a script's or command's solves kept on disk, so that the next
+process skips tracing them.
 
-A solve is pure: `simulate` and `simulate_gaits` compile their program with `jax.jit` in this
-process and keep nothing else. Where a process's first calls matter (the command line, a
-script run again and again), the caller passes a `FastStart` as `SolverOptions(programs=...)`;
-it runs each program of a call with concrete inputs (`_simulate`, `_simulate_gaits`, an eager
-gradient's programs) in its place:
-
-- compiled with the eager options of `jsphere._runtime.quick_compile` (on the CPU, XLA's older
-  fusion emitters at optimisation level 1: about half the compile time, the same run time;
-  docs/decisions/eager-solves-compile-with-xla-s.md);
-- with a `path`, exported once with `jax.export` (traced with equinox's run-time checks in
-  their `nan` mode, `jsphere._runtime.private.callbacks_as_nan`, as host callbacks cannot be
-  serialised: a failed solve is then reported by its status, not raised from inside the
-  program) to `<path>/aot/<key>.jaxexport`; later calls, in this process or the next, run the
-  deserialised program, whose executable comes from JAX's persistent compilation cache when
-  that is on (`jsphere.enable_compilation_cache`). A second process then skips tracing and
-  lowering (docs/decisions/persistent-compilation-cache-and-exported-solves.md).
+A solve is pure: `simulate` and `simulate_gaits` compile their program in this process and
+keep nothing else. Where a process's first calls matter (the command line, a script run again
+and again), the caller passes a `FastStart(path)` as `SolverOptions(programs=...)`; it runs
+each program of a call with concrete inputs (`_simulate`, `_simulate_gaits`, an eager
+gradient's programs) in its place, exported once with `jax.export` (traced with equinox's
+run-time checks in their `nan` mode, `jsphere._runtime.private.callbacks_as_nan`, as host
+callbacks cannot be serialised: a failed solve is then reported by its status, not raised from
+inside the program) to `<path>/aot/<key>.jaxexport`. Later calls, in this process or the next,
+run the deserialised program, compiled with the eager options of
+`jsphere._runtime.quick_compile`, whose executable comes from JAX's persistent compilation
+cache when that is on (`jsphere.enable_compilation_cache`): a second process skips tracing and
+lowering (docs/decisions/persistent-compilation-cache-and-exported-solves.md).
 
 The key hashes everything the program depends on: its name, the source of every `jsphere`
 module, the versions of jax, jaxlib, diffrax and equinox, the backend and float precision, the
@@ -44,7 +40,6 @@ from .files import atomic_write
 from .precision import x64_enabled
 from .private import callbacks_as_nan
 from .quick_compile import jit_concrete
-from .quick_compile import options as quick_options
 
 _ENVIRONMENT: str | None = None
 _PLAIN = (bool, int, float, complex, str, type(None))
@@ -52,12 +47,8 @@ _FUNCTION_MODULES = ("jsphere.", "jax.", "jax", "numpy")
 
 
 class FastStart:
-    """Runs the programs of solves with concrete inputs for a quick first call
-    (`SolverOptions(programs=FastStart(path))`).
-
-    **Arguments:**
-    - `path`: a folder for exported programs (`<path>/aot`), kept for later processes; `None`
-      (default): nothing on disk, only the quicker compilation.
+    """Runs the programs of solves with concrete inputs as programs exported to `path/aot`,
+    kept for later processes (`SolverOptions(programs=FastStart(path))`).
 
     `jsphere reproduce` and the other commands pass `FastStart(<cache>)`, the cache of
     `jsphere.enable_compilation_cache`. The folder is trusted code: do not point it at a
@@ -70,25 +61,23 @@ class FastStart:
     mode).
     """
 
-    def __init__(self, path: str | os.PathLike | None = None):
-        self.path = None if path is None else Path(path).expanduser() / "aot"
+    def __init__(self, path: str | os.PathLike):
+        self.path = Path(path).expanduser() / "aot"
         self._loaded: dict[str, Callable] = {}
         self._failed: set[str] = set()  # keys whose export failed (e.g. host callbacks)
-        self._quick: dict[str, Callable] = {}
 
     def __repr__(self) -> str:
-        return f"FastStart({None if self.path is None else str(self.path.parent)!r})"
+        return f"FastStart({str(self.path.parent)!r})"
 
     def __call__(self, name: str, fn: Callable, rebuild: Callable, *args):
-        """`fn(*args)`, through an exported program where there is a folder and the call has a
-        stable key, else compiled with the eager options. `fn` returns an `equinox.Module` of
-        arrays; `rebuild(leaves)` makes it again from its leaves (its tree structure is not
-        serialised)."""
+        """`fn(*args)`, through an exported program where the call has a stable key. `fn` returns
+        an `equinox.Module` of arrays; `rebuild(leaves)` makes it again from its leaves (its
+        tree structure is not serialised)."""
         dyn, static = eqx.partition(args, eqx.is_array)
         leaves, treedef = jax.tree_util.tree_flatten(dyn)
         if any(isinstance(x, jax.core.Tracer) for x in leaves) or under_jit():
             return fn(*args)  # traced inputs, or inside a user's jit: the caller's program
-        key = None if self.path is None else _key(name, leaves, treedef, static)
+        key = _key(name, leaves, treedef, static)
         if key is not None and key not in self._failed:
             try:
                 run = self._loaded.get(key) or self._load_or_export(key, fn, treedef, static, leaves)
@@ -96,15 +85,7 @@ class FastStart:
             except Exception as e:  # noqa: BLE001 - the exported path is an optimisation only
                 self._failed.add(key)
                 print(f"jsphere: not exporting {name} ({type(e).__name__}: {e}); running it directly", file=sys.stderr)
-        return self._quickly(name, fn)(*args)
-
-    def _quickly(self, name: str, fn: Callable) -> Callable:
-        """`fn` compiled with the eager options (one jit per program name: `fn` may be a new
-        closure at every call, of the same program)."""
-        if name not in self._quick:
-            opts = quick_options()
-            self._quick[name] = eqx.filter_jit(fn, compiler_options=opts) if opts else fn
-        return self._quick[name]
+        return fn(*args)
 
     def _load_or_export(self, key, fn, treedef, static, leaves) -> Callable:
         path = self.path / f"{key}.jaxexport"

@@ -15,9 +15,9 @@ _ONE_RUN_XLA_FLAG = "--xla_backend_optimization_level=0"
 
 @contextlib.contextmanager
 def fast_start(cache: bool = True) -> Iterator:
-    """While a command runs: its solves' programs compiled quickly and, with `cache`, kept for
-    the next run. Yields the `jsphere.FastStart` the command passes to its solves
-    (`SolverOptions(programs=...)`).
+    """While a command runs, with `cache`: its solves' programs kept for the next run. Yields
+    the `jsphere.FastStart` the command passes to its solves (`SolverOptions(programs=...)`),
+    or `None` without `cache`.
 
     With `cache`: XLA executables persist between processes in the library's one cache
     (`jsphere.enable_compilation_cache`: `$JSPHERE_CACHE_DIR`, else
@@ -35,13 +35,13 @@ def fast_start(cache: bool = True) -> Iterator:
     from .._runtime.private import equinox_errors_as, equinox_on_error
 
     if not cache:
-        yield FastStart()
+        yield None
         return
     try:
         folder = enable_compilation_cache(default_cache_dir())
     except Exception as e:  # a read-only home must not stop the run
         print(f"jsphere: compilation cache disabled ({e})", file=sys.stderr)
-        yield FastStart()
+        yield None
         return
     quiet = "EQX_ON_ERROR" in os.environ or equinox_on_error() != "raise"
     with contextlib.nullcontext() if quiet else equinox_errors_as("nan"):

@@ -18,6 +18,7 @@ from .._runtime.arrays import as_array, under_jit
 from .._runtime.arrays import traced as _traced
 from .._runtime.checks import finite
 from .._runtime.errors import InputError
+from .._runtime.quick_compile import eager_jit
 from ..controls import Constant
 from ..model.dynamics import free_Omega_dot, required_torques
 from ..model.kinematics import rest_attitude
@@ -438,7 +439,7 @@ def _check_start(params, gait, alpha0, beta0) -> None:
         )
 
 
-@eqx.filter_jit
+@eager_jit
 def _simulate_gaits(
     params, gaits, initial, ts_out, resets, solver, rtol, atol, max_steps, adjoint, layout=Layout.FLAT, derived=None
 ):

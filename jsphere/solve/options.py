@@ -79,8 +79,8 @@ class SolverOptions(eqx.Module):
       `vmap` of the flat state, bypassing the batch engine: the engine's reference);
     - `programs`: how the programs of a call with concrete inputs are compiled and run,
       `programs(name, fn, rebuild, *args)` in place of `fn(*args)`; `None`: `fn(*args)` (jitted
-      in this process). `jsphere.FastStart()` compiles them for a short first call and keeps
-      them on disk for the next process (what the command line does).
+      in this process). `jsphere.FastStart(path)` keeps them on disk, exported, for the next
+      process (what the command line does).
 
     Each field is also a keyword argument of `simulate` and `simulate_gaits` (a shortcut): a
     keyword given wins over the same field of `options` (`given`).

@@ -14,6 +14,7 @@ from jaxtyping import ArrayLike, Float
 
 from .._runtime.arrays import as_array
 from .._runtime.arrays import traced as _traced
+from .._runtime.quick_compile import eager_jit
 from ..controls import Torques, WheelSpeeds
 from ..model.dynamics import servo_jump
 from ..model.params import RobotParams, derive
@@ -208,7 +209,7 @@ def _solve(params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_ste
     return _dispatch.solve(_simulate, _rebuild, args, flat, steps_layout(opts.batch_steps, opts.throw), run)
 
 
-@eqx.filter_jit
+@eager_jit
 def _simulate(
     params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_steps, adjoint, layout=Layout.FLAT, derived=None
 ):

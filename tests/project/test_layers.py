@@ -170,11 +170,11 @@ def test_private_import_check_sees_one(tmp_path):
     assert found == ["jsphere.model.params._FIELDS (line 1)"]
 
 
-#: the machinery of a quick start (exported programs, compile options, equinox's error mode, the
-#: persistent cache, first-call records): the command line's, or a caller's explicit choice
+#: the machinery of a quick start (exported programs, equinox's error mode, the persistent
+#: cache, first-call records): the command line's, or a caller's explicit choice. (The compiler
+#: options of eager programs, `jsphere._runtime.quick_compile`, are a property of the programs.)
 START_UP = {
     "jsphere._runtime.fast_start",
-    "jsphere._runtime.quick_compile",
     "jsphere._runtime.compilation_cache",
     "jsphere._runtime.progress",
 }

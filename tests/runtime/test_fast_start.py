@@ -1,5 +1,5 @@
-"""`FastStart`, the programs of eager solves compiled quickly and exported to disk (what the
-command line passes to its solves): same results as the ordinary call, from memory and from
+"""`FastStart`, the programs of eager solves exported to disk (what the command line passes to
+its solves): same results as the ordinary call, from memory and from
 the file; no export for calls without a stable key; a damaged file is replaced."""
 
 import equinox as eqx
@@ -29,18 +29,6 @@ def _free_roll(p, programs=None):
     )
 
 
-def test_quick_programs_match_the_direct_call():
-    p = jsphere.RobotParams.paper()
-    fast = jsphere.FastStart()
-    assert fast.path is None
-    want, got = _free_roll(p), _free_roll(p, fast)
-    for a, b in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want)):
-        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-15)
-    assert list(fast._quick) == ["simulate"]  # one program, compiled with the eager options once
-    _free_roll(p.replace(R0=0.16), fast)
-    assert len(fast._quick) == 1
-
-
 @pytest.mark.slow
 def test_exported_solve_matches_the_direct_call_and_is_reused(tmp_path, nan_mode):
     p = jsphere.RobotParams.paper()
@@ -51,7 +39,7 @@ def test_exported_solve_matches_the_direct_call_and_is_reused(tmp_path, nan_mode
     assert len(files) == 1
     again = _free_roll(p.replace(R0=0.16), jsphere.FastStart(tmp_path))  # as a new process: from the file
     assert list(aot_dir.glob("*.jaxexport")) == files
-    for a, b in zip(jax.tree_util.tree_leaves(first), jax.tree_util.tree_leaves(want)):  # other compiler options
+    for a, b in zip(jax.tree_util.tree_leaves(first), jax.tree_util.tree_leaves(want)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-15)
     direct = _free_roll(p.replace(R0=0.16))
     np.testing.assert_allclose(np.asarray(again.x), np.asarray(direct.x), rtol=1e-12, atol=1e-15)

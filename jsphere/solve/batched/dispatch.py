@@ -39,6 +39,7 @@ import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
 from ..._runtime.arrays import under_jit
+from ..._runtime.quick_compile import eager_jit
 from ...model.params import Derived, derive
 from . import layout as _layout
 from .layout import Layout
@@ -309,13 +310,13 @@ def _selected_vjp(engine: BatchedSolve, keep, leaves, cts):
     return pull(cts)[0]
 
 
-@eqx.filter_jit
+@eager_jit
 def _flat_primal(engine: BatchedSolve, leaves):
     """One trial's solve in the flat layout, as one compiled program."""
     return engine(leaves, Layout.FLAT)
 
 
-@eqx.filter_jit
+@eager_jit
 def _flat_vjp(engine: BatchedSolve, keep, leaves, cts):
     """`_selected_vjp` as one compiled program (forward and backward pass together)."""
     return _selected_vjp(engine, keep, leaves, cts)
@@ -325,7 +326,7 @@ def _inexact(x) -> bool:
     return jnp.issubdtype(jnp.result_type(x), jnp.inexact)
 
 
-@eqx.filter_jit
+@eager_jit
 def _flat_jacfwd(engine: BatchedSolve, perturbed, leaves):
     """One trial's solve in the flat layout and the Jacobian of its floating-point outputs
     with respect to the perturbed leaves, by forward mode (`diffrax.ForwardMode`: the same
