@@ -12,6 +12,10 @@ from typing import Iterator
 
 _ONE_RUN_XLA_FLAG = "--xla_backend_optimization_level=0"
 
+#: one `FastStart` per cache folder, so that a process running several commands (a test suite,
+#: a notebook calling `main`) loads each exported program once
+_FAST_STARTS: dict = {}
+
 
 @contextlib.contextmanager
 def fast_start(cache: bool = True) -> Iterator:
@@ -45,7 +49,7 @@ def fast_start(cache: bool = True) -> Iterator:
         return
     quiet = "EQX_ON_ERROR" in os.environ or equinox_on_error() != "raise"
     with contextlib.nullcontext() if quiet else equinox_errors_as("nan"):
-        yield FastStart(folder)
+        yield _FAST_STARTS.setdefault(folder, FastStart(folder))
 
 
 def compile_for_one_run() -> bool:
