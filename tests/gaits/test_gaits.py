@@ -9,6 +9,7 @@ import jsphere
 from jsphere.model.params import derive
 
 
+@pytest.mark.slow
 def test_user_gait_with_yaw_ends_stationary(paper):
     """A gait with omega_gamma != 0 turns the platform; the robot ends on a stationary motion."""
     yaw = lambda t: 0.5 * jnp.sin(jnp.pi * t) ** 2  # noqa: E731
@@ -25,6 +26,7 @@ def test_user_gait_with_yaw_ends_stationary(paper):
     assert float(res["gamma_vs_axes"]) < 1e-8 and float(res["wheels"]) < 1e-9
 
 
+@pytest.mark.slow
 def test_four_wheels_least_norm_torques(paper):
     """With N > 3 wheels the gait torques are the least-norm solution, and they drive the
     torque-mode simulation along the same motion."""

@@ -96,6 +96,7 @@ def test_quaternion_log_exp_are_inverse_and_smooth_at_zero():
 # ------------------------------------------------------------------ the fit
 
 
+@pytest.mark.slow
 def test_small_fit_recovers_truth_within_standard_errors(small_fit, small_truth):
     res, _ = small_fit
     assert res.converged
@@ -116,6 +117,7 @@ def test_small_fit_recovers_truth_within_standard_errors(small_fit, small_truth)
     assert all(t["rms_pos_m"] < 2e-3 for t in res.trials)
 
 
+@pytest.mark.slow
 def test_result_json_loads_as_params_and_plots_are_written(small_fit, tmp_path):
     res, _ = small_fit
     written = res.save(tmp_path / "fit.json")
@@ -327,6 +329,7 @@ def test_apply_fixes_accepts_json_lists():
 # ------------------------------------------------------------------ CLI
 
 
+@pytest.mark.slow
 def test_cli_fit_writes_json_plots_and_loadable_params(small_trials, small_fit, tmp_path, capsys):
     paths = []
     for t in small_trials:

@@ -31,6 +31,10 @@ from jsphere.cli.app import main
 from jsphere.identify import checkpoint as _checkpoint
 from jsphere.identify import fit as _fit
 
+#: a real fit to every checkpoint and back (~40 s): run with `-m slow`
+pytestmark = pytest.mark.slow
+
+
 FREE = "R_m,j"
 OPTS = {"n_starts": 2, "adam_steps": 2, "max_iter": 15}
 ROOT = Path(__file__).resolve().parents[2]

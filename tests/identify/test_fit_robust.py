@@ -233,6 +233,7 @@ def test_a_glitchy_capture_fits_and_names_its_bad_frames_by_file(small_files, tm
     assert all(abs(v) < 3 for v in z.values()), z
 
 
+@pytest.mark.slow
 def test_robust_fit_of_clean_data_is_the_least_squares_fit():
     """No cost on clean data: values within 0.2 standard errors, standard errors within 10 %."""
     trials, _ = glitchy((0, 2), 1.5, 50.0, glitches=False)

@@ -156,6 +156,7 @@ def test_a_finished_study_extends_to_more_trials(paper, study, tmp_path):
         jsphere.monte_carlo(paper, GAITS, n=512, **(kw | {"vary": {"r_m[2]": ("normal", -0.0270146, 2e-4)}}))
 
 
+@pytest.mark.slow
 def test_kinematic_command_replay_matches_fig2(paper):
     """Replaying the kinematic control (2.9) as a command table (jump to zero at 4 s, an impulse)
     gives the rocking of `jsphere reproduce` (sd of gamma_3 over [4, 8] s about 0.020)."""

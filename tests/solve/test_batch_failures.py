@@ -67,6 +67,7 @@ def test_hopeless_trial_fails_alone(run, amps):
     _check_alone(good, run(a_bad, b), BAD)
 
 
+@pytest.mark.slow
 def test_diverging_trial_fails_alone(run, amps):
     a, b = amps
     good = run(a, b)

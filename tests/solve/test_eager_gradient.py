@@ -53,6 +53,7 @@ def test_eager_gradient_of_few_inputs_is_forward_mode(monkeypatch):
     assert float(jax.jit(pull)(jnp.asarray(2.0))[0]) == pytest.approx(2 * g, rel=1e-12)
 
 
+@pytest.mark.slow
 def test_forward_and_reverse_eager_gradients_agree(monkeypatch):
     """The checkpointed adjoint and forward mode differentiate the same discretised solve."""
     p = jsphere.RobotParams.paper()

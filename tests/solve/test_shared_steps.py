@@ -224,6 +224,7 @@ def test_per_trial_steps_do_not_depend_on_the_batch():
     assert np.max(np.abs(np.asarray(one.x - big.x[5]))) < 1e-8
 
 
+@pytest.mark.slow
 def test_a_failing_trial_leaves_per_trial_steps_alone():
     """A trial with NaN inputs fails alone; every other trial is bitwise what it is without it."""
     run = jax.jit(jax.vmap(lambda a: _sim(a, throw=False, batch_steps="per_trial")))

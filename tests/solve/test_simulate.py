@@ -21,6 +21,7 @@ def test_gait_torques_drive_the_torque_mode(paper):
     np.testing.assert_allclose(sim.gamma, tr.gamma, atol=1e-7)
 
 
+@pytest.mark.slow
 def test_gait_wheel_speeds_drive_the_wheel_mode(paper):
     """The gait's chi_dot(t), fed to the wheel-speed (servo) mode, reproduces the motion."""
     tr = jsphere.simulate_gaits(paper, [jsphere.acceleration(), jsphere.braking()], rate=1000)
