@@ -144,7 +144,8 @@ def fit(
       with fit's own defaults above where it leaves them at `SolverOptions`' defaults; a
       keyword given wins over its field. `throw` and `batch_steps` are fit's own: a failed solve is a
       start of infinite cost, and forward-mode derivatives give every trial its own steps.
-      `adjoint` set is an error (fit differentiates in forward mode, `diffrax.ForwardMode`).
+      `adjoint` and `programs` set are errors (fit differentiates in forward mode, `diffrax.ForwardMode`,
+      and compiles its own programs).
     - `checkpoint`: a file (`.npz`) written atomically after every Adam and Levenberg-Marquardt
       step with the optimiser's whole state; a fit with the same data and configuration resumes
       from it to the same result, bit for bit, wherever it was stopped (`restart=True` ignores
@@ -255,6 +256,7 @@ def _solver_options(options: SolverOptions | None, rtol, atol, max_steps) -> Sol
         options,
         where="fit",
         adjoint="fit differentiates its solves in forward mode (diffrax.ForwardMode), which it chooses itself",
+        programs="fit compiles its residuals and Jacobians as programs of its own",
     )
     opts = solver_options(options, where="fit", rtol=rtol, atol=atol, max_steps=max_steps)
     return opts.or_defaults(**FIT_TOLERANCES)

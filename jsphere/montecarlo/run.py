@@ -160,8 +160,8 @@ def monte_carlo(
       its field. `throw` and `batch_steps` are
       monte_carlo's own: a failed trial is reported in `status`, and every trial takes its own
       steps, so that its result does not depend on the other trials of its chunk. `adjoint`
-      set is an error (nothing is differentiated). A solver other than `Dopri8` is part of
-      the study's fingerprint.
+      and `programs` set are errors (nothing is differentiated; the solves are batched). A
+      solver other than `Dopri8` is part of the study's fingerprint.
 
     Every argument is checked before any work; a bad one raises `InputError` naming it.
 
@@ -277,7 +277,12 @@ def prepare(
 def _solver_options(options: SolverOptions | None, rtol, atol, max_steps, settings: dict) -> SolverOptions:
     """The solver settings of a study: `options` with the keywords given (`max_steps`
     defaults to `MAX_STEPS`); `settings["max_steps"]` becomes the replay modes' step limit."""
-    unused(options, where="monte_carlo", adjoint="monte_carlo does not differentiate its solves")
+    unused(
+        options,
+        where="monte_carlo",
+        adjoint="monte_carlo does not differentiate its solves",
+        programs="monte_carlo's solves are batched (traced), never eager",
+    )
     opts = solver_options(options, where="monte_carlo", rtol=rtol, atol=atol, max_steps=max_steps)
     opts = opts.or_defaults(max_steps=MAX_STEPS)
     settings["max_steps"] = opts.max_steps

@@ -104,6 +104,8 @@ def test_fit_passes_the_solver_options_to_its_compiled_functions(paper, trials, 
 def test_fit_option_errors(paper, trials):
     with pytest.raises(ValueError, match=r"^fit: options.adjoint=.* is not used: fit differentiates"):
         jsphere.fit(trials, paper, "j", options=SolverOptions(adjoint=dfx.ForwardMode()), **FIT)
+    with pytest.raises(ValueError, match=r"^fit: options.programs=.* is not used: fit compiles"):
+        jsphere.fit(trials, paper, "j", options=SolverOptions(programs=jsphere.FastStart("unused")), **FIT)
     with pytest.raises(TypeError, match="options must be a jsphere.SolverOptions"):
         jsphere.fit(trials, paper, "j", options={"rtol": 1e-9}, **FIT)
 
@@ -277,6 +279,8 @@ def test_monte_carlo_fingerprint(paper):
 def test_monte_carlo_option_errors(paper):
     with pytest.raises(ValueError, match=r"^monte_carlo: options.adjoint=.* is not used: monte_carlo does not"):
         jsphere.monte_carlo(paper, GAITS, vary=VARY, n=4, options=SolverOptions(adjoint=dfx.ForwardMode()))
+    with pytest.raises(ValueError, match=r"^monte_carlo: options.programs=.* is not used: monte_carlo's solves"):
+        jsphere.monte_carlo(paper, GAITS, vary=VARY, n=4, options=SolverOptions(programs=jsphere.FastStart("unused")))
     with pytest.raises(jsphere.InputError, match=r"monte_carlo: rtol must be a finite number > 0"):
         jsphere.monte_carlo(paper, GAITS, vary=VARY, n=4, options=SolverOptions(rtol=-1.0))
 
