@@ -102,6 +102,7 @@ def test_the_defect_of_a_continuous_trajectory_is_zero():
     assert d[6] == pytest.approx(-1e-3) and d[3] == pytest.approx(2e-3, rel=1e-6)
 
 
+@pytest.mark.slow
 def test_block_assembly_and_step_match_a_dense_solve_of_a_linear_model():
     """`assemble` and `solve_arrow` against the dense normal equations, for segments whose
     residuals and end states are linear in `(theta, nu_g)`: two trials of three and two

@@ -112,6 +112,7 @@ def test_csv_table_and_torque_replay(paper, planned, tmp_path):
     assert rep["path_deviation_m"] < 1e-4
 
 
+@pytest.mark.slow
 def test_infeasible_request_says_how_far_and_which_limit(paper):
     lim = jsphere.Limits(max_time=3.0, max_tilt=0.05)
     with pytest.raises(jsphere.PlanInfeasibleError) as e:

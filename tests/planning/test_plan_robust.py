@@ -107,6 +107,7 @@ def test_rk4_replay_matches_the_plain_simulator(paper, mode):
         assert abs(float(tr.x[-1])) > 1e-3  # the table moves the robot
 
 
+@pytest.mark.slow
 def test_replay_gradient_matches_finite_differences(paper):
     """The derivative of the replayed end position with respect to the table's amplitude, its
     duration and a parameter (`j`), by forward mode, against central differences."""

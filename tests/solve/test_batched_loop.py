@@ -209,6 +209,7 @@ def test_the_discrete_adjoint_matches_diffrax(monkeypatch, capacity):
     assert np.max(np.abs(np.asarray(ours[0]))) > 1.0  # not trivially zero
 
 
+@pytest.mark.slow
 def test_the_adjoint_of_a_batch_with_a_saved_start_and_no_save_times():
     """Rows saved at `t0` are `y0` itself (cotangent straight to `y0`); no save times at all."""
     y0 = jnp.stack([jnp.ones(4), jnp.zeros(4)])
@@ -239,7 +240,7 @@ def _linear(t, y, args, batched):  # y' = M y, M (2, 2) per trial or shared, or 
     return jnp.stack([rows[i][0] * y[0] + rows[i][1] * y[1] for i in range(2)])
 
 
-@pytest.mark.parametrize("batched", [True, False], ids=["per-trial", "shared"])
+@pytest.mark.parametrize("batched", [pytest.param(True, marks=pytest.mark.slow), False], ids=["per-trial", "shared"])
 def test_the_adjoint_of_an_argument_taken_element_by_element(batched):
     """An argument in `elementwise` reaches the field's VJPs as nested tuples of per-trial
     scalars (`_elements`): the same gradient as the array itself, and as central differences."""

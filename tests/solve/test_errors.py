@@ -276,6 +276,7 @@ def test_simulate_max_steps_throw_false(p, s0):
     assert int(tr.num_steps) <= 5
 
 
+@pytest.mark.slow
 def test_simulate_vmap_ok_per_trial(p, s0):
     amps = jnp.asarray(np.stack([GOOD, NAN]))
 
