@@ -183,15 +183,9 @@ def test_outliers_are_keyed_by_the_file_a_trial_was_read_from(tmp_path):
     assert outlier_keys(read) == [str(tmp_path / "a" / "take.csv"), "other.csv", str(tmp_path / "b" / "take.csv")]
 
 
-def test_a_fit_of_trials_read_from_files_names_their_bad_frames_by_file(small_files, tmp_path):
-    """`jsphere.fit` on trials from `read_trial` and `FitResult.save`: fit.json's `outliers` by file
-    name, at least 80 % of the bad frames named, clean frames kept, the values within 3 SE."""
-    paths, bad = small_files
-    trials = [jsphere.read_trial(p) for p in paths]
-    res = jsphere.fit(trials, jsphere.RobotParams.paper(), "R_m,j", fix={"m": 2.5}, n_starts=1, progress=False)
-    res.save(tmp_path / "fit.json", plots=False)
-    doc = json.loads((tmp_path / "fit.json").read_text())
-    assert list(doc["outliers"]) == list(res.outliers) == [p.name for p in paths]
+def check_named_outliers(doc, paths, bad):
+    """fit.json's `outliers` per trial file: counts that match the frames, at least 80 % of the
+    injected bad frames named, clean frames kept, and the verdict's total."""
     found = injected = 0
     for p, name in zip(paths, ("t0", "t1")):
         entry = doc["outliers"][p.name]
@@ -201,6 +195,18 @@ def test_a_fit_of_trials_read_from_files_names_their_bad_frames_by_file(small_fi
         assert len(set(entry["frames"]) - bad[name]) <= 1  # clean frames are kept
     assert found >= 0.8 * injected, (found, injected)
     assert doc["verdict"]["set_aside"] == sum(e["count"] for e in doc["outliers"].values())
+
+
+def test_a_fit_of_trials_read_from_files_names_their_bad_frames_by_file(small_files, tmp_path):
+    """`jsphere.fit` on trials from `read_trial` and `FitResult.save`: fit.json's `outliers` by file
+    name, at least 80 % of the bad frames named, clean frames kept, the values within 3 SE."""
+    paths, bad = small_files
+    trials = [jsphere.read_trial(p) for p in paths]
+    res = jsphere.fit(trials, jsphere.RobotParams.paper(), "R_m,j", fix={"m": 2.5}, n_starts=1, progress=False)
+    res.save(tmp_path / "fit.json", plots=False)
+    doc = json.loads((tmp_path / "fit.json").read_text())
+    assert list(doc["outliers"]) == list(res.outliers) == [p.name for p in paths]
+    check_named_outliers(doc, paths, bad)
     assert res.status == "converged", res.status_reason
     assert all(abs(v) < 3 for v in z_scores(res, TRUTH).values())
 
@@ -220,15 +226,7 @@ def test_a_glitchy_capture_fits_and_names_its_bad_frames_by_file(small_files, tm
     rc, doc = run_cli(paths, tmp_path / "fit.json", capsys)
     assert rc == ExitCode.OK and doc["loss"] == "cauchy"
     assert list(doc["outliers"]) == [p.name for p in paths]  # keyed by the trials' file names
-    found = injected = 0
-    for p, name in zip(paths, ("t0", "t1")):
-        entry = doc["outliers"][p.name]
-        assert entry["count"] == len(entry["frames"])
-        found += len(bad[name] & set(entry["frames"]))
-        injected += len(bad[name])
-        assert len(set(entry["frames"]) - bad[name]) <= 1  # clean frames are kept
-    assert found >= 0.8 * injected, (found, injected)
-    assert doc["verdict"]["set_aside"] == sum(e["count"] for e in doc["outliers"].values())
+    check_named_outliers(doc, paths, bad)
     z = {n: (doc["values"][n] - float(jsphere.get_value(TRUTH, n))) / doc["stderr"][n] for n in doc["free"]}
     assert all(abs(v) < 3 for v in z.values()), z
 
