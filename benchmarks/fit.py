@@ -2,6 +2,7 @@
 
     python benchmarks/fit.py                                  # 20 trials x 601 samples, wheel speeds
     python benchmarks/fit.py --trials 5 --duration 4:8 --kind torques --free R_m,j,I[0,0],I[1,1],I[2,2],m0,I0 --fix m
+    python benchmarks/fit.py ... --solver Dopri8                # another diffrax solver than the fit's Tsit5
 
 Draws `--trials` capture-like trials (`jsphere.synthetic_trial`: `random_inputs`, 100 Hz,
 1 mm position and 0.5 deg orientation noise) from a parameter set that differs from the
@@ -25,6 +26,7 @@ import numpy as np
 
 import jsphere
 from jsphere._runtime.files import atomic_write_text
+from jsphere.identify.fit import FIT_SOLVER
 
 jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
 
@@ -90,12 +92,20 @@ def main():
     ap.add_argument("--fix", default="m,m0", help="names set to the truth (comma-separated)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--n-starts", type=int, default=2)
+    ap.add_argument("--solver", help="a diffrax solver's name (e.g. Dopri8); default: the fit's own (FIT_SOLVER)")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results-fit.json"))
     args = ap.parse_args()
     lo, _, hi = args.duration.partition(":")
     durations = (float(lo), float(hi or lo))
     fix_names = [n for n in args.fix.split(",") if n]
-    res, rows, elapsed, trials = run(args.kind, args.trials, durations, args.free, fix_names, args.seed, args.n_starts)
+    kw = {}
+    if args.solver:
+        import diffrax
+
+        kw["options"] = jsphere.SolverOptions(solver=getattr(diffrax, args.solver)())
+    res, rows, elapsed, trials = run(
+        args.kind, args.trials, durations, args.free, fix_names, args.seed, args.n_starts, **kw
+    )
     print(
         f"\n{args.trials} trials ({args.kind}), {sum(len(t.t) for t in trials)} samples; fit {elapsed:.1f} s "
         f"({res.iterations} LM iterations, {args.n_starts} starts, converged {res.converged})"
@@ -117,6 +127,7 @@ def main():
             "fix": fix_names,
             "n_starts": args.n_starts,
             "seed": args.seed,
+            "solver": args.solver or type(FIT_SOLVER).__name__,
         },
         "fit_s_including_compile": elapsed,
         "iterations": res.iterations,

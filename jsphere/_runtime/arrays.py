@@ -5,6 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.interpreters.partial_eval import DynamicJaxprTracer
 from jaxtyping import Array
 
 
@@ -42,6 +43,14 @@ def under_jit() -> bool:
     operation (e.g. `jnp.zeros(()) + 0.0`, one more small program per process).
     """
     return isinstance(jax.device_put(np.float32(0.0)), jax.core.Tracer)
+
+
+def transformed(tree) -> bool:
+    """Whether a leaf of `tree` is traced by a transformation other than `jit` (`jvp`, `vmap`)."""
+    return any(
+        isinstance(x, jax.core.Tracer) and not isinstance(x, DynamicJaxprTracer)
+        for x in jax.tree_util.tree_leaves(tree)
+    )
 
 
 def traced(tree) -> bool:

@@ -40,7 +40,7 @@ from .._runtime.files import atomic_write_json
 from ..capture.trial import Trial
 from ..model.params import RobotParams
 from ..model.rotations import quat_conj, quat_log, quat_mul
-from ..numerics.lm import Dense, LevenbergMarquardt
+from ..numerics.lm import Dense, LevenbergMarquardt, host_candidate, host_update
 from .data import TIME_OFFSET, FitData, offset_from_nuisance, pack_trials
 from .residuals import trial_model
 from .robust import DEFAULT_LOSS, REJECT, check_loss, frame_weights, reweigh, robust_cost
@@ -206,6 +206,8 @@ def _model(kind: str, rtol: float, atol: float, max_steps: int, max_offset: floa
 NUISANCE_LM = LevenbergMarquardt(
     eqx.filter_vmap(Dense(shift=1e-12)), rel_done=1e-10, gtol=1e-8, max_stalled=3, max_rejected=8
 )
+#: its linear solve as one compiled program
+_nuisance_step = eqx.filter_jit(NUISANCE_LM.solve)
 
 
 def _estimate_nuisance(params, data: FitData, sig, max_iter: int, rtol, atol, max_steps, loss: str = "l2"):
@@ -233,8 +235,8 @@ def _estimate_nuisance(params, data: FitData, sig, max_iter: int, rtol, atol, ma
     for _ in range(max_iter):
         if bool(np.all(state.converged)):
             break
-        nu_new, predicted = NUISANCE_LM.candidate(nu, *NUISANCE_LM.solve(state.current[0], state.lam))
-        nu, state = NUISANCE_LM.update(nu, nu_new, state, *evaluate(nu_new), predicted)
+        nu_new, predicted = host_candidate(NUISANCE_LM, nu, *_nuisance_step(state.current[0], state.lam))
+        nu, state = host_update(NUISANCE_LM, nu, nu_new, state, *evaluate(nu_new), predicted)
     return (
         np.asarray(nu),
         tuple(np.asarray(a) for a in state.current[1]),

@@ -20,7 +20,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import equinox as eqx
@@ -218,6 +218,10 @@ def _I_to_chol(I) -> list[float]:
     return [math.log(L[0, 0]), L[1, 0], math.log(L[1, 1]), L[2, 0], L[2, 1], math.log(L[2, 2])]
 
 
+#: `FreeParams.compiled` by slots
+_COMPILED: dict[tuple[Slot, ...], tuple[Callable, Callable]] = {}
+
+
 class FreeParams:
     """The free parameters of a fit and their transforms (static configuration, not a pytree).
 
@@ -338,6 +342,15 @@ class FreeParams:
                 p = set_value(p, s.names[0], _forward(s.kind, s.lo, s.hi, u[0]))
             k += s.size
         return p
+
+    def compiled(self) -> tuple[Callable, Callable]:
+        """`(physical_and_jacobian(theta), to_params(theta, base))`, compiled once per process
+        for the `slots` they depend on: the physical values with `d physical / d theta`, and
+        `to_params` with its `base` given."""
+        if self.slots not in _COMPILED:
+            jacobian = jax.jacfwd(self.physical)
+            _COMPILED[self.slots] = (jax.jit(lambda th: (self.physical(th), jacobian(th))), jax.jit(self.to_params))
+        return _COMPILED[self.slots]
 
     def physical_covariance(self, theta, cov_theta) -> np.ndarray:
         """Map a covariance of `theta` to the physical values: `A C A^T`, `A = d physical/d theta`."""

@@ -16,7 +16,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -24,7 +23,7 @@ from .._runtime.files import atomic_write_json
 from ..model.internal import FIELDS
 from ..model.names import parse_name
 from ..model.params import RobotParams
-from ..model.rotations import quat_conj, quat_log, quat_mul
+from ..model.rotations import quat_log_np, quat_mul_np
 from ..numerics.lm import blocks, marginal_information
 from .data import TIME_OFFSET, FitData, offset_from_nuisance
 from .free import FreeParams
@@ -232,7 +231,7 @@ def fit_result(
         res_b, J_b = reweigh(loss, jnp.asarray(res_b)[None], J_b[None])
         res_b, J_b = np.asarray(res_b[0]), J_b[0]
     values, F_phys, cov, se, corr = _covariance(free, th_b, res_b, J_b, s2)
-    params = free.to_params(jnp.asarray(th_b), base)
+    params = free.compiled()[1](jnp.asarray(th_b), base)
     params = RobotParams(**{f: getattr(params, f) for f in FIELDS}, dtype=base.R0.dtype)
     ident = identifiability(free, values, F_phys, s2, params)
     ident["sigma_note"] = "relative sd of each direction; warnings list directions with relative sd > 10%"
@@ -314,12 +313,11 @@ def _covariance(free: FreeParams, th_b, res_b: np.ndarray, J_b, s2: float):
     determine) and the correlations."""
     P = free.size
     F = marginal_information(jnp.asarray(res_b), J_b, P)  # information of theta (whitened)
-    A = np.asarray(jax.jacfwd(free.physical)(jnp.asarray(th_b)))
+    values, A = (np.asarray(a) for a in free.compiled()[0](jnp.asarray(th_b)))
     # (pinv: a transform at the edge of its range, e.g. exp(u) -> 0, has a zero derivative; the
     # name then gets no information, and an infinite standard error)
     Ainv = np.linalg.pinv(A)
     F_phys = Ainv.T @ F @ Ainv
-    values = np.asarray(free.physical(jnp.asarray(th_b)))
     sc = np.maximum(np.abs(values), 0.1 * free.scales())
     Fs = sc[:, None] * F_phys * sc[None, :]
     lam, V = np.linalg.eigh(Fs)
@@ -345,7 +343,8 @@ def _trial_reports(data: FitData, pose, nu_b: np.ndarray, b: int, set_aside: np.
     """Per trial: RMS residuals (of the frames not set aside: `set_aside (T, M)`), the number
     set aside, nuisance values and the measured and fitted series (for the plots) of start `b`."""
     xs, ys, qs = (np.asarray(a[b]) for a in pose)
-    rot_err = np.asarray(quat_log(quat_mul(quat_conj(jnp.asarray(qs)), jnp.asarray(data.q))))
+    with np.errstate(divide="ignore", invalid="ignore"):  # (padding: zero quaternions)
+        rot_err = quat_log_np(quat_mul_np(qs * np.array([1.0, -1.0, -1.0, -1.0]), data.q))
     names_nu = data.nuisance
     trials = []
     for i in range(data.ts.shape[0]):

@@ -92,6 +92,7 @@ def trial_model(p, kind, rtol, atol, max_steps, adjoint, nu, d, sig, solver=None
         max_steps=max_steps,
         throw=False,
         adjoint=adjoint,
+        batch_steps="diffrax",  # (forward mode: per-trial steps, which diffrax's own vmap gives)
     )
     ex = (tr.x - d["x"]) * d["wpos"] / sig[0]
     ey = (tr.y - d["y"]) * d["wpos"] / sig[0]
@@ -130,21 +131,28 @@ class _Functions:
     ):
         P = free.size
 
-        def jac_one(base, th, nu, d, sig):
+        def jac_one(base, th, nu, d, sig, ends):
             def f(z):
                 res, ok, pose, end = _trial_outputs(
                     free, kind, rtol, atol, max_steps, dfx.ForwardMode(), base, z[:P], z[P:], d, sig, solver, max_offset
                 )
-                return (res, end), (res, ok, pose, end)
+                return ((res, end) if ends else res), (res, ok, pose, end)
 
-            (J, Je), (res, ok, pose, end) = jax.jacfwd(f, has_aux=True)(jnp.concatenate([th, nu]))
-            return res, ok, J, pose, end, Je
+            J, (res, ok, pose, end) = jax.jacfwd(f, has_aux=True)(jnp.concatenate([th, nu]))
+            return (res, ok, J[0], pose, end, J[1]) if ends else (res, ok, J, pose)
 
-        over_trials = lambda f: jax.vmap(f, in_axes=(None, None, 0, 0, None))
-        over_starts = lambda f: jax.vmap(f, in_axes=(None, 0, 0, None, None))
-        both = eager_jit(over_starts(over_trials(jac_one)))
-        self.segments = both
-        self.jacobian = eager_jit(lambda *a: both(*a)[:4])
+        def every(base, th, nu, d, sig, ends):
+            """`jac_one` of every start and trial, in one `vmap` over both (one batching of the solve)."""
+            S, T = nu.shape[:2]
+            d = jax.tree_util.tree_map(lambda a: jnp.tile(a, (S,) + (1,) * (a.ndim - 1)), d)
+            out = jax.vmap(functools.partial(jac_one, ends=ends), in_axes=(None, 0, 0, 0, None))(
+                base, jnp.repeat(th, T, axis=0), nu.reshape((S * T,) + nu.shape[2:]), d, sig
+            )
+            return jax.tree_util.tree_map(lambda a: a.reshape((S, T) + a.shape[1:]), out)
+
+        # (single shooting needs no Jacobian of the trials' end states)
+        self.jacobian = eager_jit(functools.partial(every, ends=False))
+        self.segments = eager_jit(functools.partial(every, ends=True))
         self.step = eager_jit(jax.vmap(functools.partial(arrow_step, P=P)))
 
         def assemble(res, J, e, Je, nu, mu, seg, scale):

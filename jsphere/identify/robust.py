@@ -130,18 +130,24 @@ def reweigh(loss: str, res: Float[Array, "S T K"], J: Float[Array, "S T K Z"]):
     return res * sw, J * sw[..., None]
 
 
+@functools.partial(jax.jit, static_argnums=0)
+def _frame_terms(loss: str, res: Float[Array, "... K"]):
+    """Per frame of `res`: `s_f`, `z_f = s_f / c^2`, `rho'(z_f)` and `rho''(z_f)`."""
+    s = frame_norms(res)
+    z = s / SCALE**2
+    return s, z, weight(loss, z), curvature(loss, z)
+
+
 def frame_weights(loss: str, res) -> np.ndarray:
     """The weights `rho'(z_f)` `(..., M)` of the frames of whitened residuals `res (..., 5 M)`."""
-    return np.asarray(weight(loss, frame_norms(jnp.asarray(res)) / SCALE**2))
+    return np.asarray(_frame_terms(loss, jnp.asarray(res))[2])
 
 
 def variance_factor(loss: str, res: np.ndarray, counts: np.ndarray, n_par: int) -> float:
     """The variance factor `s2` of the weighted Gauss-Newton covariance (module docstring) from
     the unweighted whitened residuals `res (T, 5 M)` of the best start and the number of values
     each frame holds, `counts (T, M)` (0 for a frame not captured)."""
-    s = np.asarray(frame_norms(jnp.asarray(res)))
-    z = s / SCALE**2
-    w, d2 = np.asarray(weight(loss, jnp.asarray(z))), np.asarray(curvature(loss, jnp.asarray(z)))
+    s, z, w, d2 = (np.asarray(a) for a in _frame_terms(loss, jnp.asarray(res)))
     held = counts > 0
     n = float(counts.sum())
     dof = max(n - n_par, 1.0)

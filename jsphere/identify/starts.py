@@ -4,19 +4,24 @@ hypercube) and the nuisance parameters guessed from the first frames of each tri
 
 from __future__ import annotations
 
-import jax.numpy as jnp
+import equinox as eqx
+import jax
 import numpy as np
 
 from .._runtime.errors import InputError
 from ..capture.clock import estimate_time_offset
 from ..model.kinematics import relative_rate_from_wheel_speeds
 from ..model.params import RobotParams
-from ..model.rotations import quat_conj, quat_log, quat_mul, rotmat
+from ..model.rotations import quat_log_np, quat_mul_np, rotmat_np
 from .data import NUISANCE, FitData, nuisance_from_offset
 from .free import FreeParams
 
 #: typical step of each nuisance parameter (1/s, rad, m): for Adam and the start spread
 _NU_SCALE = {"Omega0": 0.05, "rot0": 0.01, "x0": 0.002, "y0": 0.002, "omega0": 0.05, "time": 0.01}
+#: the conjugate of a quaternion is its product with this
+_CONJ = np.array([1.0, -1.0, -1.0, -1.0])
+#: `relative_rate_from_wheel_speeds` of a stack of commands, as one compiled program
+_relative_rates = eqx.filter_jit(jax.vmap(relative_rate_from_wheel_speeds, in_axes=(None, 0)))
 
 
 def _line_rate(t, y):
@@ -36,6 +41,8 @@ def nuisance_guess(data: FitData, params: RobotParams, *, window: float = 0.1, t
     n = len(NUISANCE[data.kind]) + offset
     nu = np.zeros((T, n))
     R0 = float(params.R0)
+    if data.kind == "wheel_speeds":  # the start's commanded relative rate, every trial at once
+        w0 = np.asarray(_relative_rates(params, data.u[:, 0]))
     for i in range(T):
         m = data.lengths[i]
         t = data.ts[i, :m]
@@ -43,18 +50,17 @@ def nuisance_guess(data: FitData, params: RobotParams, *, window: float = 0.1, t
         if sel.sum() < 3:
             sel = np.arange(m) < 3
         pr, rr = sel & (data.wpos[i, :m] > 0), sel & (data.wrot[i, :m] > 0)
-        q0 = data.q0[i]
-        R = np.asarray(rotmat(jnp.asarray(q0)))  # platform -> fixed
+        q0 = np.asarray(data.q0[i], float)
+        R = rotmat_np(q0)  # platform -> fixed
         omega = np.zeros(3)
         if rr.sum() >= 3:
-            rv = np.asarray(quat_log(quat_mul(quat_conj(jnp.asarray(q0)), jnp.asarray(data.q[i, :m][rr]))))
+            rv = quat_log_np(quat_mul_np(q0 * _CONJ, data.q[i, :m][rr]))
             omega = _line_rate(t[rr], rv)
         v = np.zeros(2)
         if pr.sum() >= 3:
             v = _line_rate(t[pr], np.stack([data.x[i, :m][pr], data.y[i, :m][pr]], 1))
         if data.kind == "wheel_speeds":
-            w0 = np.asarray(relative_rate_from_wheel_speeds(params, jnp.asarray(data.u[i, 0])))
-            nu[i, 0:3] = omega - w0
+            nu[i, 0:3] = omega - w0[i]
         else:
             Om_f = np.array([-v[1] / R0, v[0] / R0, (R @ omega)[2]])
             nu[i, 0:3] = R.T @ Om_f

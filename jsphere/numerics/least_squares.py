@@ -17,7 +17,7 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from .lm import Dense, LevenbergMarquardt
+from .lm import Dense, LevenbergMarquardt, host_propose, host_update
 
 #: `least_squares`' iteration: accepted decreases only, the damping / 5 (down to 1e-15) or x 10
 LEAST_SQUARES_LM = LevenbergMarquardt(Dense(floor=1e-300), lam_min=1e-15)
@@ -63,12 +63,12 @@ def least_squares(
     state = lm.init(0.5 * float(r @ r), (r, np.asarray(jf(x))))
     converged, k = False, 0
     for k in range(1, max_iter + 1):
-        x_new, predicted = lm.propose(x, state)
+        x_new, predicted = host_propose(lm, x, state)
         r_new = np.asarray(f(x_new))
         cost = 0.5 * float(r_new @ r_new)
         x_old, old = x, float(state.cost)
-        x, state = lm.update(
-            x, x_new, state, cost if np.isfinite(cost) else np.inf, (r_new, state.current[1]), predicted
+        x, state = host_update(
+            lm, x, x_new, state, cost if np.isfinite(cost) else np.inf, (r_new, state.current[1]), predicted
         )
         x = np.asarray(x)
         if int(state.rejected) == 0:  # accepted: the Jacobian there

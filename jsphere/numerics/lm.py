@@ -112,10 +112,14 @@ def arrow_step(res, J, lam, P: int):
     return solve_arrow(blocks(res, J, P), lam)
 
 
+#: `blocks` as one compiled program, for arrays on the host
+_blocks = jax.jit(blocks, static_argnums=2)
+
+
 def marginal_information(res, J, P: int) -> np.ndarray:
     """Gauss-Newton information of `theta` with the groups' parameters eliminated:
     `F = Hgg - sum_t Hgn_t Hnn_t^-1 Hng_t` (numpy, float64)."""
-    Hgg, Hgn, Hnn, _, _ = (np.asarray(a) for a in blocks(res, J, P))
+    Hgg, Hgn, Hnn, _, _ = (np.asarray(a) for a in _blocks(res, J, P))
     F = Hgg.copy()
     for t in range(Hnn.shape[0]):
         F -= Hgn[t] @ np.linalg.pinv(Hnn[t], rcond=1e-13, hermitian=True) @ Hgn[t].T
@@ -258,6 +262,53 @@ class LevenbergMarquardt(eqx.Module):
         return _pick(acc, x_new, x), new
 
 
+# ----------------------------------------------------------------------------- driven from the host
+
+
+def _arrays(tree):
+    """Every leaf of `tree` as an array (a Python number would be a static argument of
+    `filter_jit`, compiled again for each value)."""
+    return jax.tree_util.tree_map(jnp.asarray, tree)
+
+
+@eqx.filter_jit
+def _propose(lm: LevenbergMarquardt, x, state: LMState):
+    return lm.propose(x, state)
+
+
+@eqx.filter_jit
+def _candidate(lm: LevenbergMarquardt, x, step, predicted):
+    return lm.candidate(x, step, predicted)
+
+
+@eqx.filter_jit
+def _update(lm: LevenbergMarquardt, x, x_new, state: LMState, cost, evaluation, predicted):
+    return lm.update(x, x_new, state, cost, evaluation, predicted)
+
+
+def _counted(state: LMState) -> LMState:
+    """`state` with its step count out of the compiled programs (counted on the host)."""
+    return eqx.tree_at(lambda s: s.it, state, replace=0)
+
+
+def host_propose(lm: LevenbergMarquardt, x, state: LMState):
+    """`lm.propose` as one compiled program (per `lm` and shapes), for a loop driven from the
+    host: eager, each operation would compile a program of its own on its first call."""
+    return _propose(lm, _arrays(x), _arrays(_counted(state)))
+
+
+def host_candidate(lm: LevenbergMarquardt, x, step, predicted):
+    """`lm.candidate` as one compiled program (`host_propose`)."""
+    return _candidate(lm, *_arrays((x, step, predicted)))
+
+
+def host_update(lm: LevenbergMarquardt, x, x_new, state: LMState, cost, evaluation, predicted):
+    """`lm.update` as one compiled program (`host_propose`); the step count `it` stays a
+    Python number."""
+    x, new = _update(lm, *_arrays((x, x_new, _counted(state), cost, evaluation, predicted)))
+    return x, eqx.tree_at(lambda s: s.it, new, replace=state.it + 1)
+
+
 def iterate(
     lm: LevenbergMarquardt, evaluate: Callable, solve: Callable, x, state: LMState, max_iter: int
 ) -> Iterator[tuple[Any, LMState, Any]]:
@@ -267,7 +318,7 @@ def iterate(
     after every step the point, the state and the candidate evaluated, so that the caller can
     save and report (a problem's step was accepted where `state.rejected == 0`)."""
     while state.it < max_iter and not state.best_converged:
-        x_new, predicted = lm.candidate(x, *solve(state.current, state.lam))
+        x_new, predicted = host_candidate(lm, x, *solve(state.current, state.lam))
         cost, evaluation = evaluate(x_new)
-        x, state = lm.update(x, x_new, state, cost, evaluation, predicted)
+        x, state = host_update(lm, x, x_new, state, cost, evaluation, predicted)
         yield x, state, x_new

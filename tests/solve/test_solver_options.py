@@ -66,8 +66,8 @@ def test_fit_with_options_is_fit_with_keywords(paper, trials):
 
 def test_fit_passes_the_solver_options_to_its_compiled_functions(paper, trials, monkeypatch):
     """The solver settings reach the residual functions (their cache key) and the checkpoint's
-    fingerprint, the same whether given as keywords or as options; the default solver leaves
-    the fingerprint as without options."""
+    fingerprint, the same whether given as keywords or as options; without a solver named the
+    fit's own (`FIT_SOLVER`) is used."""
     seen, configs = [], []
 
     def record(free, kind, rtol, atol, max_steps, solver=None, max_offset=0.0):
@@ -93,10 +93,11 @@ def test_fit_passes_the_solver_options_to_its_compiled_functions(paper, trials, 
     for kw in calls:
         with pytest.raises(Stop):
             jsphere.fit(trials, paper, "j", **FIT, **kw)
-    assert seen[0] == seen[1] == (1e-6, 1e-8, 16384, None)
+    assert seen[0] == (1e-6, 1e-8, 16384, dfx.Tsit5())  # the fit's own solver, FIT_SOLVER
+    assert seen[1] == (1e-6, 1e-8, 16384, None)  # simulate's default, Dopri8
     assert seen[2] == (1e-6, 1e-9, 16384, dfx.Tsit5())
-    assert seen[3] == seen[4] == seen[5] == (1e-7, 1e-8, 8192, None)
-    assert configs[0] == configs[1] and "solver" not in configs[0]
+    assert seen[3] == seen[4] == seen[5] == (1e-7, 1e-8, 8192, dfx.Tsit5())
+    assert configs[0]["solver"] == repr(dfx.Tsit5()) and "solver" not in configs[1]
     assert configs[2]["solver"] == repr(dfx.Tsit5()) and configs[2]["atol"] == 1e-9
     assert configs[3] == configs[4] != configs[0]
 
