@@ -354,7 +354,7 @@ class FreeParams:
 
     def physical_covariance(self, theta, cov_theta) -> np.ndarray:
         """Map a covariance of `theta` to the physical values: `A C A^T`, `A = d physical/d theta`."""
-        A = np.asarray(jax.jacfwd(self.physical)(jnp.asarray(theta, jnp.float64)))
+        A = np.asarray(self.compiled()[0](jnp.asarray(theta, jnp.float64))[1])
         return A @ np.asarray(cov_theta) @ A.T
 
     def scales(self) -> np.ndarray:

@@ -23,7 +23,7 @@ from .._runtime.files import atomic_write_json
 from ..model.internal import FIELDS
 from ..model.names import parse_name
 from ..model.params import RobotParams
-from ..model.rotations import quat_log_np, quat_mul_np
+from ..model.rotations import quat_conj_np, quat_log_np, quat_mul_np
 from ..numerics.lm import blocks, marginal_information
 from .data import TIME_OFFSET, FitData, offset_from_nuisance
 from .free import FreeParams
@@ -344,7 +344,7 @@ def _trial_reports(data: FitData, pose, nu_b: np.ndarray, b: int, set_aside: np.
     set aside, nuisance values and the measured and fitted series (for the plots) of start `b`."""
     xs, ys, qs = (np.asarray(a[b]) for a in pose)
     with np.errstate(divide="ignore", invalid="ignore"):  # (padding: zero quaternions)
-        rot_err = quat_log_np(quat_mul_np(qs * np.array([1.0, -1.0, -1.0, -1.0]), data.q))
+        rot_err = quat_log_np(quat_mul_np(quat_conj_np(qs), data.q))
     names_nu = data.nuisance
     trials = []
     for i in range(data.ts.shape[0]):

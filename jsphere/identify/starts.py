@@ -12,14 +12,12 @@ from .._runtime.errors import InputError
 from ..capture.clock import estimate_time_offset
 from ..model.kinematics import relative_rate_from_wheel_speeds
 from ..model.params import RobotParams
-from ..model.rotations import quat_log_np, quat_mul_np, rotmat_np
+from ..model.rotations import quat_conj_np, quat_log_np, quat_mul_np, rotmat_np
 from .data import NUISANCE, FitData, nuisance_from_offset
 from .free import FreeParams
 
 #: typical step of each nuisance parameter (1/s, rad, m): for Adam and the start spread
 _NU_SCALE = {"Omega0": 0.05, "rot0": 0.01, "x0": 0.002, "y0": 0.002, "omega0": 0.05, "time": 0.01}
-#: the conjugate of a quaternion is its product with this
-_CONJ = np.array([1.0, -1.0, -1.0, -1.0])
 #: `relative_rate_from_wheel_speeds` of a stack of commands, as one compiled program
 _relative_rates = eqx.filter_jit(jax.vmap(relative_rate_from_wheel_speeds, in_axes=(None, 0)))
 
@@ -54,7 +52,7 @@ def nuisance_guess(data: FitData, params: RobotParams, *, window: float = 0.1, t
         R = rotmat_np(q0)  # platform -> fixed
         omega = np.zeros(3)
         if rr.sum() >= 3:
-            rv = quat_log_np(quat_mul_np(q0 * _CONJ, data.q[i, :m][rr]))
+            rv = quat_log_np(quat_mul_np(quat_conj_np(q0), data.q[i, :m][rr]))
             omega = _line_rate(t[rr], rv)
         v = np.zeros(2)
         if pr.sum() >= 3:

@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from ..model.rotations import quat_log_np, quat_mul_np
+from ..model.rotations import quat_conj_np, quat_log_np, quat_mul_np
 
 #: residual sigma / noise floor above which a fit is a misfit
 FAR = 3.0
@@ -127,7 +127,7 @@ def third_differences(data) -> tuple[np.ndarray, np.ndarray]:
             idx = k[:, None] + np.arange(4)
             c = _coefficients(t[idx])
             q = data.q[i, :m]
-            q0_inv = q[k] * np.array([1.0, -1.0, -1.0, -1.0])
+            q0_inv = quat_conj_np(q[k])
             v = np.stack([quat_log_np(quat_mul_np(q0_inv, q[k + j])) for j in range(1, 4)], 1)  # (n, 3 steps, 3 axes)
             rot.append(np.einsum("nj,nja->na", c[:, 1:], v).reshape(-1))
     cat = lambda parts: np.concatenate(parts) if parts else np.zeros(0)

@@ -145,6 +145,11 @@ def quat_mul_np(p: np.ndarray, q: np.ndarray) -> np.ndarray:
     )
 
 
+def quat_conj_np(q: np.ndarray) -> np.ndarray:
+    """Conjugates of `(..., 4)` quaternions (NumPy twin of `quat_conj`)."""
+    return np.asarray(q) * np.array([1.0, -1.0, -1.0, -1.0])
+
+
 def quat_from_rotvec_np(r: np.ndarray) -> np.ndarray:
     """Unit quaternion of the rotation by `|r|` [rad] about `r/|r|` (`(..., 3)` -> `(..., 4)`;
     NumPy twin of `quat_exp`: `Rotation.from_rotvec`)."""
