@@ -132,6 +132,7 @@ def test_jsphere_montecarlo_of_a_track_table_is_the_tracking_closed_loop(tables,
     assert stats["speed_final_m_s"]["max"] == pytest.approx(float(speed), abs=1e-12)
 
 
+@pytest.mark.slow  # (the command-line test above runs the same closed loop in the default lane)
 def test_monte_carlo_with_a_track_table_is_the_tracking_closed_loop(tables):
     """`monte_carlo(track=...)` (the first rows of the table, a short settling) with no spread and
     exact motors and measurement: every trial is the tracking evaluation's closed loop."""
