@@ -81,7 +81,7 @@ class FastStart:
         if key is not None and key not in self._failed:
             try:
                 run = self._loaded.get(key) or self._load_or_export(key, fn, treedef, static, leaves)
-                return rebuild(run(*leaves))
+                return rebuild(run(*_committed(leaves)))
             except Exception as e:  # noqa: BLE001 - the exported path is an optimisation only
                 self._failed.add(key)
                 print(f"jsphere: not exporting {name} ({type(e).__name__}: {e}); running it directly", file=sys.stderr)
@@ -111,6 +111,15 @@ class FastStart:
         run = jit_concrete(exported.call)
         self._loaded[key] = run
         return run
+
+
+def _committed(leaves: list) -> list:
+    """The arguments as arrays committed to a device. A program's `call` compiles once per
+    pattern of committed and uncommitted arguments (an array a program made is committed, one
+    made from NumPy is not), so that a loop feeding one call's results to the next would
+    compile it twice."""
+    device = jax.devices()[0]
+    return [x if isinstance(x, jax.Array) and x.committed else jax.device_put(x, device) for x in leaves]
 
 
 def environment() -> str:

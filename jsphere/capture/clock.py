@@ -12,7 +12,6 @@ import math
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.signal import savgol_filter
 
 from .._runtime.errors import InputError
 from ..model.kinematics import relative_rate_from_wheel_speeds
@@ -66,6 +65,8 @@ def estimate_time_offset(
         raise InputError("estimate_time_offset: fewer than 10 measured frames; the offset cannot be estimated.")
     dt = float(np.median(np.diff(t)))
     win = min(max(5, int(round(0.2 / dt)) | 1), len(t) if len(t) % 2 else len(t) - 1)
+    from scipy.signal import savgol_filter  # (imported here: `import scipy.signal` takes ~0.8 s)
+
     smooth = lambda a, deriv=0: savgol_filter(np.interp(t, t[ok], a[ok]), win, 3, deriv=deriv, delta=dt)
     lags = np.arange(-max_offset, max_offset + 0.5e-3, 1e-3)
     v = np.stack([smooth(x, 1), smooth(y, 1)], 1)

@@ -149,8 +149,10 @@ def fit(
       solver: `diffrax.Tsit5()`, `FIT_SOLVER`); a
       keyword given wins over its field. `throw` and `batch_steps` are fit's own: a failed solve is a
       start of infinite cost, and forward-mode derivatives give every trial its own steps.
-      `adjoint` and `programs` set are errors (fit differentiates in forward mode, `diffrax.ForwardMode`,
-      and compiles its own programs).
+      `adjoint` set is an error (fit differentiates in forward mode, `diffrax.ForwardMode`).
+      `programs` runs the fit's residual, Jacobian and step programs: a `jsphere.FastStart`
+      keeps them, exported, so that the next process's fit of the same shapes skips tracing them
+      (`jsphere fit` passes its cache's).
     - `checkpoint`: a file (`.npz`) written atomically after every Adam and Levenberg-Marquardt
       step with the optimiser's whole state; a fit with the same data and configuration resumes
       from it to the same result, bit for bit, wherever it was stopped (`restart=True` ignores
@@ -211,7 +213,7 @@ def fit(
         max_time_offset=max_offset,
         loss=loss,
     )
-    run, st = _setup(data, fp_, params, options, checkpoint, prog, t_begin)
+    run, st = _setup(data, fp_, params, options, checkpoint, prog, t_begin, solve.programs)
     _resume(run, st, restart)
     run.say(
         f"fit: {run.T} trials ({data.kind}), {sum(data.lengths)} samples, {run.P} free parameters + {run.n_nu} nuisance per "
@@ -261,7 +263,6 @@ def _solver_options(options: SolverOptions | None, rtol, atol, max_steps) -> Sol
         options,
         where="fit",
         adjoint="fit differentiates its solves in forward mode (diffrax.ForwardMode), which it chooses itself",
-        programs="fit compiles its residuals and Jacobians as programs of its own",
     )
     opts = solver_options(options, where="fit", rtol=rtol, atol=atol, max_steps=max_steps)
     return opts.or_defaults(solver=FIT_SOLVER, **FIT_TOLERANCES)
@@ -400,6 +401,7 @@ class _Run:
     adam: optax.GradientTransformation
     adam_shapes: tuple[tuple[int, ...], ...]
     checkpoint: Path | None
+    programs: Any  # `SolverOptions.programs`: how the programs of `fns` run (None: directly)
     fingerprint: str
     progress: Progress
     t_begin: float
@@ -452,7 +454,14 @@ class _State:
 
 
 def _setup(
-    data: FitData, free: FreeParams, params: RobotParams, o: _Options, checkpoint, progress: Progress, t_begin
+    data: FitData,
+    free: FreeParams,
+    params: RobotParams,
+    o: _Options,
+    checkpoint,
+    progress: Progress,
+    t_begin,
+    programs=None,
 ) -> tuple[_Run, _State]:
     """The run and its first state: the starts (the only random numbers of a fit, drawn from
     `seed`, part of the fingerprint), the segments of multiple shooting, Adam."""
@@ -495,6 +504,7 @@ def _setup(
         adam=opt,
         adam_shapes=tuple(np.shape(a) for a in jax.tree_util.tree_leaves(adam)),
         checkpoint=Path(checkpoint) if checkpoint is not None else None,
+        programs=programs,
         fingerprint=_config_fingerprint(data, free, o.config(sig, multiple)),
         progress=progress,
         t_begin=t_begin,
@@ -607,7 +617,9 @@ def _program(run: _Run, shooting: str) -> str:
 def _evaluate_single(run: _Run, st: _State, th, n):
     """Cost `(S,)` (inf for a failed start), residuals, Jacobian and poses of single shooting."""
     with run.progress.compiling("fit", _program(run, "single"), "fit: single shooting"):
-        res, ok, J, pose = run.fns.jacobian(run.base, jnp.asarray(th), jnp.asarray(n), run.arrays, jnp.asarray(st.sig))
+        res, ok, J, pose = run.fns.run(
+            run.programs, "jacobian", run.base, jnp.asarray(th), jnp.asarray(n), run.arrays, jnp.asarray(st.sig)
+        )
         res, ok = np.asarray(res), np.asarray(ok)
     if run.options.loss == "l2":
         cost = np.where(ok.all(1), 0.5 * (res * res).sum((1, 2)), np.inf)
@@ -628,7 +640,7 @@ def _weighted(run: _Run, res, J):
 
 def _solve_single(run: _Run, out, lam):
     res, J = _weighted(run, out["res"], out["J"])
-    dg, dn, pred = run.fns.step(jnp.asarray(res), J, jnp.asarray(lam))
+    dg, dn, pred = run.fns.run(run.programs, "step", jnp.asarray(res), J, jnp.asarray(lam))
     return (np.asarray(dg), np.asarray(dn)), np.asarray(pred)
 
 
@@ -637,15 +649,18 @@ def _evaluate_multiple(run: _Run, st: _State, mu: float, th, n):
     shooting at defect weight `mu`."""
     ms = run.shooting
     with run.progress.compiling("fit", _program(run, "multiple"), "fit: multiple shooting"):
-        res, ok, J, pose, e, Je = run.fns.segments(
-            run.base, jnp.asarray(th), jnp.asarray(n), ms.arrays, jnp.asarray(st.sig)
+        res, ok, J, pose, e, Je = run.fns.run(
+            run.programs, "segments", run.base, jnp.asarray(th), jnp.asarray(n), ms.arrays, jnp.asarray(st.sig)
         )
         robust = 0.0
         if run.options.loss != "l2":  # the weighted squares replaced by the robust cost
             robust = robust_cost(run.options.loss, res)
             res, J = _weighted(run, res, J)
             robust = robust - 0.5 * jnp.sum(res * res, axis=(1, 2))
-        blocks, cost, dfc = run.fns.assemble(res, J, e, Je, jnp.asarray(n), mu, ms.seg_arrays, ms.scale)
+        # (`mu` an array: one program for every level)
+        blocks, cost, dfc = run.fns.run(
+            run.programs, "assemble", res, J, e, Je, jnp.asarray(n), jnp.asarray(mu), ms.seg_arrays, ms.scale
+        )
         ok = np.asarray(ok)
     cost = np.where(ok.all(1), np.asarray(cost + robust), np.inf)
     st.last.update(pose=pose, ok=ok, data=ms.seg.data)
@@ -654,7 +669,7 @@ def _evaluate_multiple(run: _Run, st: _State, mu: float, th, n):
 
 def _solve_multiple(run: _Run, out, lam):
     ms = run.shooting
-    dg, dn, pred = run.fns.solve(out["blocks"], jnp.asarray(lam))
+    dg, dn, pred = run.fns.run(run.programs, "solve", out["blocks"], jnp.asarray(lam))
     dn = np.asarray(dn).reshape(run.S, run.T, ms.Gmax, run.n_nu)[:, ms.seg.trial, ms.position]
     return (np.asarray(dg), dn), np.asarray(pred)
 

@@ -31,6 +31,7 @@ from ..model.kinematics import relative_rate_from_wheel_speeds
 from ..model.rotations import quat_conj, quat_exp, quat_log, quat_mul
 from ..model.state import State
 from ..numerics.lm import arrow_step, solve_arrow
+from ..solve.batched.dispatch import run_program
 from ..solve.simulate import simulate
 from . import shooting as _shooting
 from .data import offset_from_nuisance
@@ -130,6 +131,9 @@ class _Functions:
         max_offset: float = 0.0,
     ):
         P = free.size
+        # what the programs close over, as a stable text (an object shown by its address has none)
+        key = repr((free.slots, kind, rtol, atol, max_steps, solver, max_offset))
+        self.key = None if " at 0x" in key else key
 
         def jac_one(base, th, nu, d, sig, ends):
             def f(z):
@@ -160,6 +164,28 @@ class _Functions:
 
         self.assemble = eager_jit(jax.vmap(assemble, in_axes=(0, 0, 0, 0, 0, None, None, None)))
         self.solve = eager_jit(jax.vmap(solve_arrow, in_axes=(0, 0)))
+
+    def run(self, programs, name: str, *args):
+        """`self.<name>(*args)`, or `programs(...)` in its place (`SolverOptions.programs`: a
+        `jsphere.FastStart` keeps the program, exported, for the next process)."""
+        fn = getattr(self, name)
+        if programs is None or self.key is None:
+            return fn(*args)
+        rebuild = functools.partial(jax.tree_util.tree_unflatten, _OUTPUTS[name])
+        return run_program(programs, f"fit.{name}:{self.key}", fn, rebuild, *args)
+
+
+#: the structure of each program's output (`_Functions.run` rebuilds it from the leaves)
+_OUTPUTS = {
+    name: jax.tree_util.tree_structure(template)
+    for name, template in {
+        "jacobian": (0, 0, 0, (0, 0, 0)),
+        "segments": (0, 0, 0, (0, 0, 0), 0, 0),
+        "step": (0, 0, 0),
+        "assemble": ((0, 0, 0, 0, 0), 0, 0),
+        "solve": (0, 0, 0),
+    }.items()
+}
 
 
 _CACHE: dict[Any, _Functions] = {}

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import jsphere
+from jsphere._runtime.private import equinox_errors_as
 from jsphere.cli.app import main
 from jsphere.identify.data import pack_trials
 from jsphere.identify.free import FreeParams, apply_fixes, expand
@@ -349,6 +350,29 @@ def test_cli_fit_writes_json_plots_and_loadable_params(small_trials, small_fit, 
     assert not (out.parent / "fit.json.ckpt.npz").exists()
     assert jsphere.RobotParams.load(out).n_wheels == 3
     assert "R_m" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_fit_through_fast_start_is_the_fit_and_its_programs_are_kept(small_truth, tmp_path, capsys):
+    """`SolverOptions(programs=FastStart(...))`, as `jsphere fit` passes its cache's: the same
+    fit; the residual and step programs exported once, and a new `FastStart` (the next
+    process) runs them from the files without exporting again. (Trials of their own length: a
+    program this process traced before with equinox's checks raising cannot be exported.)"""
+    trials = make_trials(small_truth, 2, 1.2, seed=3)
+    paper = jsphere.RobotParams.paper()
+    with equinox_errors_as("nan"):  # as the command line traces (host callbacks cannot be exported)
+        opts = jsphere.SolverOptions(programs=jsphere.FastStart(tmp_path))
+        a = jsphere.fit(trials, paper, FREE, fix={"m": 2.5}, options=opts, **OPTS)
+        files = sorted((tmp_path / "aot").glob("*.jaxexport"))
+        again = jsphere.SolverOptions(programs=jsphere.FastStart(tmp_path))
+        b = jsphere.fit(trials, paper, FREE, fix={"m": 2.5}, options=again, **OPTS)
+    direct = jsphere.fit(trials, paper, FREE, fix={"m": 2.5}, **OPTS)
+    assert a.values == pytest.approx(direct.values, rel=1e-12) and a.cost == pytest.approx(direct.cost, rel=1e-12)
+    assert b.values == a.values and b.cost == a.cost
+    assert len(files) == 2  # the residuals with their Jacobian, and the Levenberg-Marquardt step
+    assert sorted((tmp_path / "aot").glob("*.jaxexport")) == files
+    assert "not exporting" not in capsys.readouterr().err
+    assert len(again.programs._loaded) == 2
 
 
 @pytest.mark.parametrize(

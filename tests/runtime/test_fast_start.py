@@ -52,6 +52,21 @@ def test_exported_solve_matches_the_direct_call_and_is_reused(tmp_path, nan_mode
     assert files[0].stat().st_size > 1000
 
 
+def test_an_exported_program_compiles_once_for_committed_and_uncommitted_arguments(tmp_path):
+    """A loop feeding one call's results (committed arrays) to the next, mixed with arrays made
+    from NumPy (uncommitted), runs one compiled program."""
+    fs = jsphere.FastStart(tmp_path)
+    f = jax.jit(lambda a, b: (a * b, a + b))
+    x = np.arange(3.0)
+    first = fs("test.pair", f, tuple, x, x)
+    second = fs("test.pair", f, tuple, first[0], x)
+    third = fs("test.pair", f, tuple, jnp.asarray(x), second[1])
+    (run,) = fs._loaded.values()
+    assert run._cache_size() == 1
+    np.testing.assert_array_equal(np.asarray(second[0]), x**3)
+    np.testing.assert_array_equal(np.asarray(third[0]), x * (x**2 + x))
+
+
 @pytest.mark.slow
 def test_calls_without_a_stable_key_are_not_exported(tmp_path, nan_mode):
     p = jsphere.RobotParams.paper()

@@ -105,8 +105,6 @@ def test_fit_passes_the_solver_options_to_its_compiled_functions(paper, trials, 
 def test_fit_option_errors(paper, trials):
     with pytest.raises(ValueError, match=r"^fit: options.adjoint=.* is not used: fit differentiates"):
         jsphere.fit(trials, paper, "j", options=SolverOptions(adjoint=dfx.ForwardMode()), **FIT)
-    with pytest.raises(ValueError, match=r"^fit: options.programs=.* is not used: fit compiles"):
-        jsphere.fit(trials, paper, "j", options=SolverOptions(programs=jsphere.FastStart("unused")), **FIT)
     with pytest.raises(TypeError, match="options must be a jsphere.SolverOptions"):
         jsphere.fit(trials, paper, "j", options={"rtol": 1e-9}, **FIT)
 
