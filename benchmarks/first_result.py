@@ -186,7 +186,7 @@ def _jsphere_child(task: str, cache_dir: str | None) -> dict:
         trial = jsphere.synthetic_trial(truth, jsphere.Torques.from_samples(ts, K), 3.0, rate=50.0, seed=1)
 
         def f():
-            r = jsphere.fit([trial], p, "R_m,j", n_starts=1, adam_steps=0, max_iter=1, progress=False)
+            r = jsphere.fit([trial], p, "R_m,j", n_starts=1, adam_steps=0, max_iter=1, progress=False, options=options)
             return np.asarray(r.params.R_m)
 
     elif task == "plan":

@@ -26,29 +26,37 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Callable
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 CONFIGS = {"default": [], "optimize": ["--optimize"], "no-plots": ["--no-plots"]}
 
 
-def run_once(cache_dir: str, out_dir: str, *extra: str) -> float:
+def run_once(cache_dir: str, argv: list[str]) -> float:
+    """Seconds of one `jsphere` process (`python -m jsphere.cli.app *argv`) with the cache in
+    `cache_dir`, timed from the outside."""
     env = dict(
         os.environ, JSPHERE_CACHE_DIR=cache_dir, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")
     )
     env.pop("XLA_FLAGS", None)
-    cmd = [sys.executable, "-m", "jsphere.cli.app", "reproduce", "--out", out_dir, *extra]
+    cmd = [sys.executable, "-m", "jsphere.cli.app", *argv]
     t = time.perf_counter()
     subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     return time.perf_counter() - t
 
 
-def measure(tmp: str, name: str, extra: list[str], cached_runs: int = 3) -> dict:
-    """A first process with an empty cache in `tmp`, then `cached_runs` processes reusing it
-    (their median is `second_process_s`)."""
-    cache, out = os.path.join(tmp, f"cache-{name}"), os.path.join(tmp, f"out-{name}")
-    first = run_once(cache, out, *extra)
-    seconds = [run_once(cache, out, *extra) for _ in range(cached_runs)]
+def reproduce_argv(tmp: str, name: str, extra: list[str]) -> list[str]:
+    """`jsphere reproduce` of configuration `name` (its options `extra`), writing into `tmp`."""
+    return ["reproduce", "--out", os.path.join(tmp, f"out-{name}"), *extra]
+
+
+def measure(tmp: str, name: str, extra: list[str], cached_runs: int = 3, command: Callable = reproduce_argv) -> dict:
+    """A first process of `command(tmp, name, extra)` (its arguments) with an empty cache in
+    `tmp`, then `cached_runs` processes reusing it (their median is `second_process_s`)."""
+    cache, argv = os.path.join(tmp, f"cache-{name}"), command(tmp, name, extra)
+    first = run_once(cache, argv)
+    seconds = [run_once(cache, argv) for _ in range(cached_runs)]
     size = sum(f.stat().st_size for f in Path(cache).rglob("*") if f.is_file())
     return {
         "args": extra,
@@ -69,7 +77,7 @@ def main(argv=None) -> int:
             runs[name] = measure(tmp, name, extra)
             r = runs[name]
             print(f"  {name:<9} first {r['first_process_s']:5.1f} s, second {r['second_process_s']:4.1f} s", flush=True)
-        no_cache = run_once(os.path.join(tmp, "unused"), os.path.join(tmp, "out"), "--no-cache")
+        no_cache = run_once(os.path.join(tmp, "unused"), reproduce_argv(tmp, "no-cache", ["--no-cache"]))
     d, b = runs["default"], runs["optimize"]
     res = {
         "command": "python -m jsphere.cli.app reproduce",

@@ -38,8 +38,8 @@ logger = logging.getLogger("jsphere")
 #: Seconds of a first call (tracing and compiling, no cache) of each kind of program, on
 #: 2 CPU cores: the estimate until the cache's record holds a time of this machine.
 FIRST_CALL_S = {
-    "fit": 60.0,  # the residuals and their Jacobian, single or multiple shooting
-    "plan": 60.0,  # the planner's vmapped search
+    "fit": 10.0,  # the residuals and their Jacobian, single or multiple shooting
+    "plan": 20.0,  # the planner's vmapped search
     "montecarlo": 45.0,  # one batch of trials
     "reproduce": 17.0,  # every solve of Section 5
     "design": 40.0,  # the design criterion's gradient (reverse over forward mode)
