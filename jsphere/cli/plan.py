@@ -94,6 +94,7 @@ def run(args) -> int:
     from .._runtime.files import atomic_write_json, check_output
     from ..model.params import RobotParams
     from ..planning.plan import Objective, plan
+    from ..solve.options import SolverOptions
 
     out = Path(args.out)
     writes = [out.with_suffix(".json"), *([] if args.no_plots else [out.with_suffix(".png")])]
@@ -126,6 +127,7 @@ def run(args) -> int:
         seed=args.seed,
         allow_infeasible=True,
         progress=progress(args),
+        options=SolverOptions(programs=args.programs),  # the verification's program kept for the next run
     )
     robust = _robust(args, params, uncertainty, limits, obj, pl) if args.robust else None
     pl = robust.plan if robust else pl
@@ -189,6 +191,7 @@ def _limits(args):
 def _robust(args, params, uncertainty, limits, obj, nominal):
     """`plan_robust` for `--robust FILE`, from the nominal plan; prints its summary."""
     from ..planning.robust import plan_robust
+    from ..solve.options import SolverOptions
 
     robust = plan_robust(
         params,
@@ -205,6 +208,7 @@ def _robust(args, params, uncertainty, limits, obj, nominal):
         seed=args.seed,
         progress=progress(args),
         nominal=nominal,
+        options=SolverOptions(programs=args.programs),
     )
     print(robust.summary())
     return robust

@@ -272,3 +272,33 @@ def test_stop_points_figure_is_in_jsphere_frame_unless_asked(monkeypatch, tmp_pa
     assert mean == pytest.approx([-3.5, 258.8], abs=0.05)
     with pytest.raises(ValueError, match="frame must be"):
         figures.montecarlo_figure(res, tmp_path / "x.png", frame="figure")
+
+
+@pytest.mark.parametrize("robust", [False, True])
+def test_plan_passes_its_fast_start_to_the_verifications(robust, tmp_path, monkeypatch, capsys):
+    """`jsphere plan` gives `plan` (and `plan_robust` with `--robust`) its cache's `FastStart`, as
+    `fit` and `reproduce` do, so that the verification's program is kept for the next run."""
+    import jsphere
+    from jsphere._runtime.errors import InputError
+    from jsphere.planning import plan as plan_module
+    from jsphere.planning import robust as robust_module
+
+    seen = []
+
+    def record(*args, options=None, **kw):
+        seen.append(options)
+        if robust and len(seen) == 1:
+            return "nominal"
+        raise InputError("recorded")
+
+    monkeypatch.setattr(plan_module, "plan", record)
+    monkeypatch.setattr(robust_module, "plan_robust", record)
+    extra = []
+    if robust:
+        vary = tmp_path / "study.toml"
+        vary.write_text('[vary]\n"r_m[2]" = ["normal", -0.0270146, 1e-4]\n')
+        extra = ["--robust", str(vary)]
+    rc = main(["plan", "--to", "0.3", "0.1", "--out", str(tmp_path / "plan.csv"), "--no-plots", "--quiet", *extra])
+    assert rc == ExitCode.BAD_INPUT and "recorded" in capsys.readouterr().err
+    assert len(seen) == 1 + robust
+    assert all(isinstance(o.programs, jsphere.FastStart) for o in seen), seen

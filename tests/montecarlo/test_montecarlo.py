@@ -42,6 +42,23 @@ def test_stop_spread_equals_linear_sensitivity(paper):
     assert res.stats()["n_failed"] == 0
 
 
+def test_options_at_the_default_tolerance_are_the_study_without_options(paper, study):
+    """`SolverOptions(rtol, atol)` at the default tolerances give the study without options, bit
+    for bit (the same compiled batch)."""
+    again = jsphere.monte_carlo(
+        paper,
+        GAITS,
+        vary=VARY,
+        n=256,
+        seed=7,
+        batch_size=128,
+        progress=False,
+        options=jsphere.SolverOptions(rtol=1e-8, atol=1e-10),
+    )
+    np.testing.assert_array_equal(again.x_final, study.x_final)
+    np.testing.assert_array_equal(again.status, study.status)
+
+
 @pytest.mark.slow
 def test_same_seed_same_study_whatever_the_batch_size(paper, study):
     other = jsphere.monte_carlo(paper, GAITS, vary=VARY, n=256, seed=7, batch_size=256, progress=False)

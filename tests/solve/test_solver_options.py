@@ -121,6 +121,7 @@ def planned(paper):
     return jsphere.plan(paper, (-0.5, -0.4), **PLAN)
 
 
+@pytest.mark.slow
 def test_plan_with_default_options_is_the_same_plan(paper, planned):
     same = jsphere.plan(paper, (-0.5, -0.4), options=SolverOptions(), **PLAN)
     np.testing.assert_array_equal(same.trajectory.x, planned.trajectory.x)
@@ -208,16 +209,6 @@ def test_monte_carlo_max_steps_option_reports_the_status(paper, tmp_path):
     assert (
         manifest["fingerprint"] == _fingerprint(paper, "j", 64, 0, gait_max_steps=4) != _fingerprint(paper, "j", 64, 0)
     )
-
-
-def test_monte_carlo_options_are_the_keywords(paper):
-    """`options.rtol` at the default tolerance is the study without options, bit for bit (the
-    settings of `test_montecarlo.py`'s study: the same compiled batch)."""
-    kw = {"vary": {"r_m[2]": ("normal", -0.0270146, 1e-4)}, "n": 256, "seed": 7, "batch_size": 128, "progress": False}
-    a = jsphere.monte_carlo(paper, GAITS, **kw)
-    b = jsphere.monte_carlo(paper, GAITS, **kw, options=SolverOptions(rtol=1e-8, atol=1e-10))
-    np.testing.assert_array_equal(a.x_final, b.x_final)
-    np.testing.assert_array_equal(a.status, b.status)
 
 
 def test_monte_carlo_passes_the_options_to_its_batches(paper, monkeypatch):
