@@ -45,3 +45,20 @@ def paper():
 def straight(paper):
     """Acceleration (5.1) + braking (5.3) of the paper's robot, true end states, 100 Hz."""
     return jsphere.simulate_gaits(paper, [jsphere.acceleration(), jsphere.braking()])
+
+
+@pytest.fixture
+def programs_compiled(monkeypatch):
+    """The XLA programs lowered while the test runs (one entry each), to check that host values
+    become device arrays without one."""
+    from jax._src.interpreters import pxla
+
+    seen = []
+    lower = pxla.lower_sharding_computation
+
+    def count(*args, **kwargs):
+        seen.append(args[1] if len(args) > 1 else "?")
+        return lower(*args, **kwargs)
+
+    monkeypatch.setattr(pxla, "lower_sharding_computation", count)
+    return seen

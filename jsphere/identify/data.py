@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._runtime.arrays import to_jax
 from .._runtime.errors import InputError
 from ..capture.validation import KINDS
 from ..model.params import RobotParams
@@ -45,7 +46,6 @@ def nuisance_names(kind: str, time_offset: bool = False) -> tuple[str, ...]:
 def offset_from_nuisance(v, max_offset: float):
     """The clock offset [s] of the nuisance value `v`: `max_offset tanh(v / max_offset)`, so that
     every value keeps within `+- max_offset` (and `v` is the offset itself when it is small)."""
-    import jax.numpy as jnp
 
     return max_offset * jnp.tanh(v / max_offset)
 
@@ -91,8 +91,7 @@ class FitData:
 
     def arrays(self) -> dict[str, jax.Array]:
         return {
-            k: jnp.asarray(getattr(self, k))
-            for k in ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0")
+            k: to_jax(getattr(self, k)) for k in ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0")
         }
 
     def fingerprint(self) -> str:

@@ -43,6 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from .._runtime.arrays import to_jax
 from .._runtime.errors import InputError, SolverFailure
 from .._runtime.files import remove_stale_temporaries
 from .._runtime.precision import warn_if_float32_by_default
@@ -453,6 +454,13 @@ class _State:
     last: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
+def adam_start(opt: optax.GradientTransformation, w):
+    """`opt.init(w)` for the fit's Adam (`scale_by_adam`, then a scale), made on the host: its
+    state at the start is zeros (the step count and both moments), and `opt.init` would compile
+    one small program per shape for them."""
+    return jax.tree_util.tree_map(lambda s: to_jax(np.zeros(s.shape, s.dtype)), jax.eval_shape(opt.init, w))
+
+
 def _setup(
     data: FitData,
     free: FreeParams,
@@ -477,7 +485,7 @@ def _setup(
     if multiple:
         position = np.concatenate([np.arange(len(c) - 1) for c in seg.boundaries])
         offset = o.max_time_offset > 0
-        dscale = jnp.asarray(_shooting.defect_scale(kind, sig, float(params.R0), o.segment, offset))
+        dscale = to_jax(_shooting.defect_scale(kind, sig, float(params.R0), o.segment, offset))
         ms = _Shooting(seg, o.segment, position, seg.data.arrays(), seg.arrays(), dscale)
         nu_ms = nuisance_guess(seg.data, params, time_offset=False)
         if offset:  # every segment starts at its trial's estimate
@@ -486,12 +494,12 @@ def _setup(
     nu_scale = np.array([_NU_SCALE[n.split("_")[0]] for n in data.nuisance])
     n_nu = nu_scale.shape[0]
     scale = {
-        "theta": jnp.asarray(np.broadcast_to(free.theta_scales(), (S, P))),
-        "nu": jnp.asarray(np.broadcast_to(nu_scale, (S, T, n_nu))),
+        "theta": to_jax(np.broadcast_to(free.theta_scales(), (S, P)).copy()),
+        "nu": to_jax(np.broadcast_to(nu_scale, (S, T, n_nu)).copy()),
     }
     opt = optax.chain(optax.scale_by_adam(), optax.scale(-o.adam_lr))
-    w = jax.tree_util.tree_map(lambda a, s: a / s, {"theta": jnp.asarray(theta), "nu": jnp.asarray(nu)}, scale)
-    adam = (w, opt.init(w))
+    w = jax.tree_util.tree_map(lambda a, s: to_jax(a / np.asarray(s)), {"theta": theta, "nu": nu}, scale)
+    adam = (w, adam_start(opt, w))
     run = _Run(
         data=data,
         free=free,
@@ -618,13 +626,13 @@ def _evaluate_single(run: _Run, st: _State, th, n):
     """Cost `(S,)` (inf for a failed start), residuals, Jacobian and poses of single shooting."""
     with run.progress.compiling("fit", _program(run, "single"), "fit: single shooting"):
         res, ok, J, pose = run.fns.run(
-            run.programs, "jacobian", run.base, jnp.asarray(th), jnp.asarray(n), run.arrays, jnp.asarray(st.sig)
+            run.programs, "jacobian", run.base, to_jax(th), to_jax(n), run.arrays, to_jax(st.sig)
         )
         res, ok = np.asarray(res), np.asarray(ok)
     if run.options.loss == "l2":
         cost = np.where(ok.all(1), 0.5 * (res * res).sum((1, 2)), np.inf)
     else:
-        cost = np.where(ok.all(1), np.asarray(robust_cost(run.options.loss, jnp.asarray(res))), np.inf)
+        cost = np.where(ok.all(1), np.asarray(robust_cost(run.options.loss, to_jax(res))), np.inf)
     st.last.update(pose=pose, ok=ok, data=run.data)
     return cost, {"res": res, "J": J, "pose": pose}
 
@@ -635,12 +643,12 @@ def _weighted(run: _Run, res, J):
     unweighted, so that the checkpoint does too and the weights follow from what it holds."""
     if run.options.loss == "l2":
         return res, J
-    return reweigh(run.options.loss, jnp.asarray(res), J)
+    return reweigh(run.options.loss, to_jax(res), J)
 
 
 def _solve_single(run: _Run, out, lam):
     res, J = _weighted(run, out["res"], out["J"])
-    dg, dn, pred = run.fns.run(run.programs, "step", jnp.asarray(res), J, jnp.asarray(lam))
+    dg, dn, pred = run.fns.run(run.programs, "step", to_jax(res), J, to_jax(lam))
     return (np.asarray(dg), np.asarray(dn)), np.asarray(pred)
 
 
@@ -650,7 +658,7 @@ def _evaluate_multiple(run: _Run, st: _State, mu: float, th, n):
     ms = run.shooting
     with run.progress.compiling("fit", _program(run, "multiple"), "fit: multiple shooting"):
         res, ok, J, pose, e, Je = run.fns.run(
-            run.programs, "segments", run.base, jnp.asarray(th), jnp.asarray(n), ms.arrays, jnp.asarray(st.sig)
+            run.programs, "segments", run.base, to_jax(th), to_jax(n), ms.arrays, to_jax(st.sig)
         )
         robust = 0.0
         if run.options.loss != "l2":  # the weighted squares replaced by the robust cost
@@ -659,7 +667,7 @@ def _evaluate_multiple(run: _Run, st: _State, mu: float, th, n):
             robust = robust - 0.5 * jnp.sum(res * res, axis=(1, 2))
         # (`mu` an array: one program for every level)
         blocks, cost, dfc = run.fns.run(
-            run.programs, "assemble", res, J, e, Je, jnp.asarray(n), jnp.asarray(mu), ms.seg_arrays, ms.scale
+            run.programs, "assemble", res, J, e, Je, to_jax(n), to_jax(mu), ms.seg_arrays, ms.scale
         )
         ok = np.asarray(ok)
     cost = np.where(ok.all(1), np.asarray(cost + robust), np.inf)
@@ -669,7 +677,7 @@ def _evaluate_multiple(run: _Run, st: _State, mu: float, th, n):
 
 def _solve_multiple(run: _Run, out, lam):
     ms = run.shooting
-    dg, dn, pred = run.fns.run(run.programs, "solve", out["blocks"], jnp.asarray(lam))
+    dg, dn, pred = run.fns.run(run.programs, "solve", out["blocks"], to_jax(lam))
     dn = np.asarray(dn).reshape(run.S, run.T, ms.Gmax, run.n_nu)[:, ms.seg.trial, ms.position]
     return (np.asarray(dg), dn), np.asarray(pred)
 
@@ -748,11 +756,13 @@ def _lm_stage(run: _Run, st: _State, evaluate, solve, th, n, label: str, *, rel_
             else:
                 st.nu = n
             _save(run, st)
-            b = int(np.argmin(st.lm.cost))
-            bar.update(1, f"cost {np.min(st.lm.cost):.4e}")
+            # (NumPy's functions would call the JAX arrays' methods: one small program each)
+            costs, lam, rejected = (np.asarray(a) for a in (st.lm.cost, st.lm.lam, st.lm.rejected))
+            b = int(np.argmin(costs))
+            bar.update(1, f"cost {np.min(costs):.4e}")
             run.progress.step(
-                f"fit: LM {label} it {st.lm.it:3d}  cost {np.min(st.lm.cost):.6e}  lambda {st.lm.lam[b]:.1e}  "
-                f"step {length:.2e}  accepted {int(np.sum(st.lm.rejected == 0))}/{run.S}  ({time.perf_counter() - run.t_begin:.1f} s)"
+                f"fit: LM {label} it {st.lm.it:3d}  cost {np.min(costs):.6e}  lambda {lam[b]:.1e}  "
+                f"step {length:.2e}  accepted {int(np.sum(rejected == 0))}/{run.S}  ({time.perf_counter() - run.t_begin:.1f} s)"
             )
         bar.done()
     st.it = st.lm.it
@@ -773,7 +783,7 @@ def _multiple_shooting(run: _Run, st: _State) -> None:
             run, st, evaluate, solve, st.theta, st.nu_ms, f"shooting {mu:g}", rel_done=rel_done, max_rejected=3
         )
         b = int(np.argmin(cost))
-        st.max_defect = float(np.max(np.abs(out["defect"][b]))) if ms.G > run.T else 0.0
+        st.max_defect = float(np.max(np.abs(np.asarray(out["defect"])[b]))) if ms.G > run.T else 0.0
         st.lm = None
         if st.max_defect <= DEFECT_CLOSED or level + 1 == len(MU_LEVELS):
             run.say(
@@ -837,11 +847,16 @@ def _single_shooting(run: _Run, st: _State) -> None:
         st.theta, st.nu, cost, out = _lm_stage(
             run, st, evaluate, solve, st.theta, st.nu, f"stage {st.stage}", rel_done=run.options.ftol
         )
-        st.stage_converged = bool(st.lm.converged[int(np.argmin(cost))])
+        cost = np.asarray(cost)
+        st.stage_converged = bool(np.asarray(st.lm.converged)[int(np.argmin(cost))])
         st.lm = None
         if st.stage == 1 and run.options.estimate_sigma:
             est = _estimate_sigma(
-                out["res"][int(np.argmin(cost))], run.data, st.sig, run.P + run.T * run.n_nu, run.options.loss
+                np.asarray(out["res"])[int(np.argmin(cost))],
+                run.data,
+                st.sig,
+                run.P + run.T * run.n_nu,
+                run.options.loss,
             )
             # residuals of exactly 0 (noise-free data) give no estimate: keep the level used
             usable = np.isfinite(est) & (est > 0)

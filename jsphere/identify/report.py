@@ -16,9 +16,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import jax.numpy as jnp
 import numpy as np
 
+from .._runtime.arrays import to_jax
 from .._runtime.files import atomic_write_json
 from ..model.internal import FIELDS
 from ..model.names import parse_name
@@ -222,16 +222,16 @@ def fit_result(
     n_res = int(2 * data.wpos.sum() + 3 * data.wrot.sum())
     dof = max(n_res - P - T * n_nu, 1)
     counts = 2 * data.wpos + 3 * data.wrot
-    res_b, J_b = np.asarray(res[b]), J[b]
+    res_b, J_b = np.asarray(res)[b], np.asarray(J)[b]
     set_aside = (frame_weights(loss, res_b) < REJECT) & (counts > 0)
     if loss == "l2":
         s2 = float(2.0 * cost[b] / dof)
     else:
         s2 = variance_factor(loss, res_b, counts, P + T * n_nu)
-        res_b, J_b = reweigh(loss, jnp.asarray(res_b)[None], J_b[None])
+        res_b, J_b = reweigh(loss, to_jax(res_b[None]), to_jax(J_b[None]))
         res_b, J_b = np.asarray(res_b[0]), J_b[0]
     values, F_phys, cov, se, corr = _covariance(free, th_b, res_b, J_b, s2)
-    params = free.compiled()[1](jnp.asarray(th_b), base)
+    params = free.compiled()[1](to_jax(th_b), base)
     params = RobotParams(**{f: getattr(params, f) for f in FIELDS}, dtype=base.R0.dtype)
     ident = identifiability(free, values, F_phys, s2, params)
     ident["sigma_note"] = "relative sd of each direction; warnings list directions with relative sd > 10%"
@@ -292,8 +292,8 @@ def _time_offsets(data: FitData, nu_b: np.ndarray, res_b: np.ndarray, J_b, P: in
     if data.max_offset <= 0:
         return None
     m = data.max_offset
-    Hgg, Hgn, Hnn, _, _ = (np.asarray(a) for a in blocks(jnp.asarray(res_b), J_b, P))
-    F = marginal_information(jnp.asarray(res_b), J_b, P)
+    Hgg, Hgn, Hnn, _, _ = (np.asarray(a) for a in blocks(to_jax(res_b), to_jax(J_b), P))
+    F = marginal_information(to_jax(res_b), to_jax(J_b), P)
     Finv = np.linalg.pinv(F, rcond=1e-13, hermitian=True)
     values, errors = [], []
     for t in range(Hnn.shape[0]):
@@ -312,8 +312,8 @@ def _covariance(free: FreeParams, th_b, res_b: np.ndarray, J_b, s2: float):
     (pseudo-inverse on the scaled names; stderr `inf` along directions the data do not
     determine) and the correlations."""
     P = free.size
-    F = marginal_information(jnp.asarray(res_b), J_b, P)  # information of theta (whitened)
-    values, A = (np.asarray(a) for a in free.compiled()[0](jnp.asarray(th_b)))
+    F = marginal_information(to_jax(res_b), to_jax(J_b), P)  # information of theta (whitened)
+    values, A = (np.asarray(a) for a in free.compiled()[0](to_jax(th_b)))
     # (pinv: a transform at the edge of its range, e.g. exp(u) -> 0, has a zero derivative; the
     # name then gets no information, and an infinite standard error)
     Ainv = np.linalg.pinv(A)
@@ -342,7 +342,7 @@ def _rms(e: np.ndarray) -> float:
 def _trial_reports(data: FitData, pose, nu_b: np.ndarray, b: int, set_aside: np.ndarray) -> list[dict[str, Any]]:
     """Per trial: RMS residuals (of the frames not set aside: `set_aside (T, M)`), the number
     set aside, nuisance values and the measured and fitted series (for the plots) of start `b`."""
-    xs, ys, qs = (np.asarray(a[b]) for a in pose)
+    xs, ys, qs = (np.asarray(a)[b] for a in pose)
     with np.errstate(divide="ignore", invalid="ignore"):  # (padding: zero quaternions)
         rot_err = quat_log_np(quat_mul_np(quat_conj_np(qs), data.q))
     names_nu = data.nuisance

@@ -49,6 +49,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._runtime.arrays import to_jax
+
 #: the losses by name; `l2` is plain least squares
 LOSSES = ("l2", "huber", "cauchy", "soft_l1")
 #: the loss of `fit` and `compare` unless one is given
@@ -140,14 +142,14 @@ def _frame_terms(loss: str, res: Float[Array, "... K"]):
 
 def frame_weights(loss: str, res) -> np.ndarray:
     """The weights `rho'(z_f)` `(..., M)` of the frames of whitened residuals `res (..., 5 M)`."""
-    return np.asarray(_frame_terms(loss, jnp.asarray(res))[2])
+    return np.asarray(_frame_terms(loss, to_jax(res))[2])
 
 
 def variance_factor(loss: str, res: np.ndarray, counts: np.ndarray, n_par: int) -> float:
     """The variance factor `s2` of the weighted Gauss-Newton covariance (module docstring) from
     the unweighted whitened residuals `res (T, 5 M)` of the best start and the number of values
     each frame holds, `counts (T, M)` (0 for a frame not captured)."""
-    s, z, w, d2 = (np.asarray(a) for a in _frame_terms(loss, jnp.asarray(res)))
+    s, z, w, d2 = (np.asarray(a) for a in _frame_terms(loss, to_jax(res)))
     held = counts > 0
     n = float(counts.sum())
     dof = max(n - n_par, 1.0)

@@ -48,6 +48,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._runtime.arrays import to_jax
+
 #: the per-problem arrays of `LMState` (what a checkpoint saves besides `it` and `current`)
 LM_KEYS = ("lam", "converged", "stalled", "rejected", "best_cost", "cost")
 
@@ -199,10 +201,10 @@ class LevenbergMarquardt(eqx.Module):
 
     def init(self, cost, evaluation) -> LMState:
         """The state at the start point, its cost (`inf`: failed) and its evaluation."""
-        cost = jnp.asarray(cost)
-        zeros = jnp.zeros(cost.shape, int)
-        lam = jnp.full(cost.shape, self.lam0, cost.dtype)
-        return LMState(lam, jnp.zeros(cost.shape, bool), zeros, zeros, cost, cost, 0, evaluation)
+        cost = to_jax(cost)  # (host values: device arrays, not one small program each)
+        zeros = to_jax(np.zeros(cost.shape, int))
+        lam = to_jax(np.full(cost.shape, self.lam0, cost.dtype))
+        return LMState(lam, to_jax(np.zeros(cost.shape, bool)), zeros, zeros, cost, cost, 0, evaluation)
 
     def propose(self, x, state: LMState):
         """The next point from `x` (`candidate` of `solve`'s step) and the predicted decrease."""
@@ -268,7 +270,7 @@ class LevenbergMarquardt(eqx.Module):
 def _arrays(tree):
     """Every leaf of `tree` as an array (a Python number would be a static argument of
     `filter_jit`, compiled again for each value)."""
-    return jax.tree_util.tree_map(jnp.asarray, tree)
+    return jax.tree_util.tree_map(to_jax, tree)
 
 
 @eqx.filter_jit

@@ -9,14 +9,17 @@ wheel speeds and torques), the 20-seed honesty study and the benchmark-size fit 
 import json
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
 import jsphere
 from jsphere._runtime.private import equinox_errors_as
 from jsphere.cli.app import main
 from jsphere.identify.data import pack_trials
+from jsphere.identify.fit import adam_start
 from jsphere.identify.free import FreeParams, apply_fixes, expand
 from jsphere.identify.identifiability import identifiability, symmetry_directions
 from jsphere.identify.residuals import _functions
@@ -470,3 +473,16 @@ def test_benchmark_size_fit_finishes_in_minutes():
     )
     assert time.perf_counter() - t < 15 * 60
     assert res.converged and all(abs(v) < 4 for v in z.values()), z
+
+
+def test_adams_start_is_optax_init_made_on_the_host(programs_compiled):
+    """The fit's Adam starts from `opt.init(w)` (zeros), made without an XLA program."""
+    opt = optax.chain(optax.scale_by_adam(), optax.scale(-0.01))
+    w = {"theta": jax.device_put(np.ones((3, 7))), "nu": jax.device_put(np.ones((3, 2, 11)))}
+    state = adam_start(opt, w)
+    assert programs_compiled == []
+    reference = opt.init(w)
+    assert jax.tree_util.tree_structure(state) == jax.tree_util.tree_structure(reference)
+    for a, b in zip(jax.tree_util.tree_leaves(state), jax.tree_util.tree_leaves(reference)):
+        assert a.dtype == b.dtype and a.shape == b.shape
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

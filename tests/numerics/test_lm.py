@@ -149,3 +149,15 @@ def test_a_host_driven_run_restarted_from_its_saved_state_is_bit_for_bit_the_sam
         np.testing.assert_array_equal(getattr(sa, k), getattr(sb, k))
     np.testing.assert_allclose(xa[int(np.argmin(sa.cost))], [1.0, 1.0], atol=1e-7)
     assert sa.best_converged
+
+
+def test_a_start_from_host_values_compiles_nothing(programs_compiled):
+    """`init` from NumPy costs (as the fit's host loop gives them) makes its arrays without XLA
+    programs: eager, each would be one more program to compile in a fit's first iteration."""
+    cost = np.array([1.5, np.inf, 0.25, 3.0, 7.0, 2.0, 0.5])  # (a shape no other test uses)
+    state = LevenbergMarquardt(lam0=1e-2).init(cost, {"r": np.ones((7, 3))})
+    assert programs_compiled == []
+    np.testing.assert_array_equal(np.asarray(state.cost), cost)
+    np.testing.assert_array_equal(np.asarray(state.lam), np.full(7, 1e-2))
+    assert state.lam.dtype == cost.dtype and not np.asarray(state.converged).any()
+    assert np.asarray(state.rejected).tolist() == [0] * 7 and state.it == 0
