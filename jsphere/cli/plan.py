@@ -116,6 +116,7 @@ def run(args) -> int:
     params = RobotParams.load(args.params) if args.params else RobotParams.paper()
     obj = Objective(energy=args.energy_weight, time=args.time_weight)
     uncertainty, params = _uncertainty(args) if args.robust else (None, params)
+    options = SolverOptions(programs=args.programs)  # the verifications' program kept for the next run
     pl = plan(
         params,
         tuple(args.to),
@@ -127,9 +128,9 @@ def run(args) -> int:
         seed=args.seed,
         allow_infeasible=True,
         progress=progress(args),
-        options=SolverOptions(programs=args.programs),  # the verification's program kept for the next run
+        options=options,
     )
-    robust = _robust(args, params, uncertainty, limits, obj, pl) if args.robust else None
+    robust = _robust(args, params, uncertainty, limits, obj, pl, options) if args.robust else None
     pl = robust.plan if robust else pl
     print(pl.summary())
     pl.to_csv(out)
@@ -188,10 +189,9 @@ def _limits(args):
     return Limits(**lim_kw)
 
 
-def _robust(args, params, uncertainty, limits, obj, nominal):
+def _robust(args, params, uncertainty, limits, obj, nominal, options):
     """`plan_robust` for `--robust FILE`, from the nominal plan; prints its summary."""
     from ..planning.robust import plan_robust
-    from ..solve.options import SolverOptions
 
     robust = plan_robust(
         params,
@@ -208,7 +208,7 @@ def _robust(args, params, uncertainty, limits, obj, nominal):
         seed=args.seed,
         progress=progress(args),
         nominal=nominal,
-        options=SolverOptions(programs=args.programs),
+        options=options,
     )
     print(robust.summary())
     return robust

@@ -493,12 +493,10 @@ def _setup(
         nu_ms = np.repeat(nu_ms[None], S, 0)
     nu_scale = np.array([_NU_SCALE[n.split("_")[0]] for n in data.nuisance])
     n_nu = nu_scale.shape[0]
-    scale = {
-        "theta": to_jax(np.broadcast_to(free.theta_scales(), (S, P)).copy()),
-        "nu": to_jax(np.broadcast_to(nu_scale, (S, T, n_nu)).copy()),
-    }
+    scale_np = {"theta": np.broadcast_to(free.theta_scales(), (S, P)), "nu": np.broadcast_to(nu_scale, (S, T, n_nu))}
+    scale = jax.tree_util.tree_map(lambda s: to_jax(s.copy()), scale_np)
     opt = optax.chain(optax.scale_by_adam(), optax.scale(-o.adam_lr))
-    w = jax.tree_util.tree_map(lambda a, s: to_jax(a / np.asarray(s)), {"theta": theta, "nu": nu}, scale)
+    w = jax.tree_util.tree_map(lambda a, s: to_jax(a / s), {"theta": theta, "nu": nu}, scale_np)
     adam = (w, adam_start(opt, w))
     run = _Run(
         data=data,
