@@ -197,6 +197,7 @@ def check_named_outliers(doc, paths, bad):
     assert doc["verdict"]["set_aside"] == sum(e["count"] for e in doc["outliers"].values())
 
 
+@pytest.mark.slow
 def test_a_fit_of_trials_read_from_files_names_their_bad_frames_by_file(small_files, tmp_path):
     """`jsphere.fit` on trials from `read_trial` and `FitResult.save`: fit.json's `outliers` by file
     name, at least 80 % of the bad frames named, clean frames kept, the values within 3 SE."""
