@@ -43,6 +43,13 @@ def _homogeneous(controls):
     return stacked, st0
 
 
+def _primal(tree):
+    """`tree` with its arrays held out of differentiation, for a check whose tangents nothing
+    reads: under `jvp` (the fit's forward-mode Jacobians) they would still be traced."""
+    arrays, rest = eqx.partition(tree, eqx.is_array)
+    return eqx.combine(jax.lax.stop_gradient(arrays), rest)
+
+
 def _status(failed, bad_start, finite):
     """The segment's `RESULTS` code. diffrax fills the save points it never reached with inf, so
     its result decides first."""
@@ -142,7 +149,7 @@ def solve_segments(
         cd = jnp.where(mask[:, None], out[1], cd)
         Ks = jnp.where(mask[:, None], out[2], Ks)
         seg = jnp.where(mask, k, seg)
-        bad_start = ~jnp.all(jnp.isfinite(field(a, z, args)))
+        bad_start = ~jnp.all(jnp.isfinite(field(a, *_primal((z, args)))))
         finite = jnp.all(jnp.isfinite(ys)) & jnp.all(jnp.isfinite(out[2]))
         code = jnp.where(code != 0, code, _status(failed, bad_start, finite))
         steps = steps + n_acc
