@@ -25,19 +25,12 @@ class Sampled(eqx.Module):
     polynomials (slopes from 3-point differences, second-order accurate; `kind="cubic"`).
 
     A repeated time stamp marks a jump: the first row is the value just before, the second the
-    value from then on. Outside `[ts[0], ts[-1]]` the end values are held. A cubic table's
-    slopes are computed once, when it is made (`slopes`), not at every evaluation inside a
-    solve.
+    value from then on. Outside `[ts[0], ts[-1]]` the end values are held.
     """
 
     ts: Float[Array, " T"]
     values: Float[Array, "T N"]
     kind: str = eqx.field(static=True, default="cubic")
-    slopes: Float[Array, "T N"] | None = eqx.field(repr=False)
-
-    def __init__(self, ts, values, kind: str = "cubic"):
-        self.ts, self.values, self.kind = ts, values, kind
-        self.slopes = _knot_slopes(ts, values) if kind == "cubic" else None
 
     def __check_init__(self):
         if self.kind not in ("linear", "cubic", "zoh"):
@@ -84,36 +77,22 @@ class Sampled(eqx.Module):
             return jnp.where(s < 1.0, y0, y1)
         if self.kind == "linear":
             return y0 + s * (y1 - y0)
-        m0, m1 = self.slopes[i], self.slopes[i + 1]
+        m0, m1 = self._slope(i), self._slope(i + 1)
         s2, s3 = s * s, s * s * s
         h00, h10, h01, h11 = 2 * s3 - 3 * s2 + 1, s3 - 2 * s2 + s, -2 * s3 + 3 * s2, s3 - s2
         return h00 * y0 + h10 * h * m0 + h01 * y1 + h11 * h * m1
 
-
-def _knot_slopes(ts, ys):
-    """The second-order slope of a cubic table at each knot (3-point differences, one-sided at
-    the ends and beside jumps), or `None` for a table `Sampled.__check_init__` refuses. Concrete
-    tables are computed on the host (no compiled programs for a table made eagerly)."""
-    if isinstance(ts, jax.core.Tracer) or isinstance(ys, jax.core.Tracer):
-        return _slopes(jnp, jnp.asarray(ts), jnp.asarray(ys))
-    ts, ys = np.asarray(ts), np.asarray(ys)
-    with np.errstate(all="ignore"):  # a non-finite table is refused by `__check_init__`
-        slopes = _slopes(np, ts, ys)
-    return None if slopes is None else to_jax(slopes)
-
-
-def _slopes(xp, ts, ys):
-    if ys.ndim != 2 or ts.ndim != 1 or ts.shape[0] < 2 or ys.shape[0] != ts.shape[0]:
-        return None
-    hl = xp.diff(ts, prepend=ts[:1])[:, None]  # ts[k] - ts[k-1], zero at the first knot
-    hr = xp.diff(ts, append=ts[-1:])[:, None]  # ts[k+1] - ts[k], zero at the last
-    dy = xp.diff(ys, axis=0)
-    zero = xp.zeros_like(ys[:1])
-    dl = xp.concatenate([zero, dy]) / xp.where(hl > 0, hl, 1.0)  # (ys[k] - ys[k-1]) / hl
-    dr = xp.concatenate([dy, zero]) / xp.where(hr > 0, hr, 1.0)
-    both = (hl > 0) & (hr > 0)
-    central = (hr * dl + hl * dr) / xp.where(both, hl + hr, 1.0)
-    return xp.where(both, central, xp.where(hl > 0, dl, dr))
+    def _slope(self, k):
+        """Second-order slope at knot k, one-sided at the ends and beside jumps."""
+        ts, ys = self.ts, self.values
+        n = ts.shape[0]
+        km, kp = jnp.maximum(k - 1, 0), jnp.minimum(k + 1, n - 1)
+        hl, hr = ts[k] - ts[km], ts[kp] - ts[k]
+        dl = (ys[k] - ys[km]) / jnp.where(hl > 0, hl, 1.0)
+        dr = (ys[kp] - ys[k]) / jnp.where(hr > 0, hr, 1.0)
+        both = (hl > 0) & (hr > 0)
+        central = (hr * dl + hl * dr) / jnp.where(both, hl + hr, 1.0)
+        return jnp.where(both, central, jnp.where(hl > 0, dl, dr))
 
 
 def _repeated(ts: np.ndarray) -> tuple[float, ...]:

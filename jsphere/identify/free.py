@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._runtime.errors import InputError
+from .._runtime.quick_compile import jit_concrete
 from ..model.internal import FIELDS
 from ..model.names import get_value, parse_name, set_value
 from ..model.params import RobotParams, number_array
@@ -349,7 +350,10 @@ class FreeParams:
         `to_params` with its `base` given."""
         if self.slots not in _COMPILED:
             jacobian = jax.jacfwd(self.physical)
-            _COMPILED[self.slots] = (jax.jit(lambda th: (self.physical(th), jacobian(th))), jax.jit(self.to_params))
+            _COMPILED[self.slots] = (
+                jit_concrete(lambda th: (self.physical(th), jacobian(th))),
+                jit_concrete(self.to_params),
+            )
         return _COMPILED[self.slots]
 
     def physical_covariance(self, theta, cov_theta) -> np.ndarray:

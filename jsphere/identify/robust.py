@@ -41,15 +41,14 @@ Gauss-Newton form `s2 (sum_f w_f J_f^T J_f)^-1` with Huber's factor
 
 from __future__ import annotations
 
-import functools
 import math
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
 from .._runtime.arrays import to_jax
+from .._runtime.quick_compile import eager_jit
 
 #: the losses by name; `l2` is plain least squares
 LOSSES = ("l2", "huber", "cauchy", "soft_l1")
@@ -117,13 +116,13 @@ def per_value(w: Float[Array, "... M"]) -> Float[Array, "... K"]:
     return jnp.concatenate([w, w, jnp.repeat(w, 3, axis=-1)], axis=-1)
 
 
-@functools.partial(jax.jit, static_argnums=0)
+@eager_jit
 def robust_cost(loss: str, res: Float[Array, "S T K"]) -> Float[Array, " S"]:
     """The robust cost `1/2 sum_f c^2 rho(s_f / c^2)` of every start (module docstring)."""
     return 0.5 * SCALE**2 * jnp.sum(rho(loss, frame_norms(res) / SCALE**2), axis=(1, 2))
 
 
-@functools.partial(jax.jit, static_argnums=0)
+@eager_jit
 def reweigh(loss: str, res: Float[Array, "S T K"], J: Float[Array, "S T K Z"]):
     """The residuals and Jacobian of every start's trials (or segments) reweighted for `loss`:
     `(sqrt(w) res, sqrt(w) J)`, the weights per frame from the residuals themselves and held
@@ -132,7 +131,7 @@ def reweigh(loss: str, res: Float[Array, "S T K"], J: Float[Array, "S T K Z"]):
     return res * sw, J * sw[..., None]
 
 
-@functools.partial(jax.jit, static_argnums=0)
+@eager_jit
 def _frame_terms(loss: str, res: Float[Array, "... K"]):
     """Per frame of `res`: `s_f`, `z_f = s_f / c^2`, `rho'(z_f)` and `rho''(z_f)`."""
     s = frame_norms(res)

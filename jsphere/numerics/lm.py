@@ -49,6 +49,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .._runtime.arrays import to_jax
+from .._runtime.quick_compile import eager_jit
 
 #: the per-problem arrays of `LMState` (what a checkpoint saves besides `it` and `current`)
 LM_KEYS = ("lam", "converged", "stalled", "rejected", "best_cost", "cost")
@@ -273,17 +274,17 @@ def _arrays(tree):
     return jax.tree_util.tree_map(to_jax, tree)
 
 
-@eqx.filter_jit
+@eager_jit
 def _propose(lm: LevenbergMarquardt, x, state: LMState):
     return lm.propose(x, state)
 
 
-@eqx.filter_jit
+@eager_jit
 def _candidate(lm: LevenbergMarquardt, x, step, predicted):
     return lm.candidate(x, step, predicted)
 
 
-@eqx.filter_jit
+@eager_jit
 def _update(lm: LevenbergMarquardt, x, x_new, state: LMState, cost, evaluation, predicted):
     return lm.update(x, x_new, state, cost, evaluation, predicted)
 
