@@ -46,7 +46,6 @@ def nuisance_names(kind: str, time_offset: bool = False) -> tuple[str, ...]:
 def offset_from_nuisance(v, max_offset: float):
     """The clock offset [s] of the nuisance value `v`: `max_offset tanh(v / max_offset)`, so that
     every value keeps within `+- max_offset` (and `v` is the offset itself when it is small)."""
-
     return max_offset * jnp.tanh(v / max_offset)
 
 
