@@ -206,13 +206,39 @@ def problem1_jsphere(p, Z, batches, repeats):
     )
     rows, finals = [], {}
     for B in batches:
-        log(f"[P1] jsphere batch {B} ...")
-        A = jnp.asarray(amplitudes(Z[:B]))
+        A, k = split(jnp.asarray(amplitudes(Z[:B])))
+        log(f"[P1] jsphere batch {B} on {k} device(s) ...")
         r = time_call(f, A, repeats=repeats)
         tr = r["_out"]
         finals[B] = np.stack([np.asarray(tr.x[:, -1]), np.asarray(tr.y[:, -1])], -1)
-        rows.append(rate_row(r, B, tr.num_steps, all_ok=bool(np.all(np.asarray(tr.ok))), **device_memory()))
+        ok = bool(np.all(np.asarray(tr.ok)))
+        rows.append(rate_row(r, B, tr.num_steps, devices=k, all_ok=ok, **device_memory()))
+        if B == ONE_DEVICE_BATCH and k > 1:  # the same batch on one device, in the same run
+            log(f"[P1] jsphere batch {B} on 1 device ...")
+            r = time_call(f, jnp.asarray(amplitudes(Z[:B])), repeats=repeats)
+            tr = r["_out"]
+            rows.append(rate_row(r, B, tr.num_steps, devices=1, all_ok=bool(np.all(np.asarray(tr.ok)))))
     return rows, finals
+
+
+#: the batch that problem 1 also runs on one device when it is split over several
+ONE_DEVICE_BATCH = 1024
+
+
+def devices() -> list:
+    """The devices a batch is split over: every device of the platform the benchmark runs on
+    (`--device`; `--cores` CPU devices on a CPU)."""
+    dev = jax.config.jax_default_device or jax.devices()[0]
+    return jax.devices(dev.platform)
+
+
+def split(x):
+    """`(x, k)`: `x` split along its trial axis over the `k` devices of `devices()`
+    (`jsphere.shard_trials`), or on the one device when its length is not a multiple of them."""
+    devs = devices()
+    if len(devs) == 1 or x.shape[0] % len(devs):
+        return x, 1
+    return jsphere.shard_trials(x, devs), len(devs)
 
 
 def device_memory() -> dict:
@@ -327,15 +353,16 @@ def problem2(p, batches, repeats):
     TH = np.random.default_rng(1).uniform(0.05, 0.15, max(batches, default=0))
     rows = []
     for B in batches:
-        log(f"[P2] gaits batch {B} ...")
+        th, k = split(jnp.asarray(TH[:B]))
+        log(f"[P2] gaits batch {B} on {k} device(s) ...")
         try:
-            r = time_call(f, jnp.asarray(TH[:B]), repeats=repeats)
+            r = time_call(f, th, repeats=repeats)
         except Exception as e:  # noqa: BLE001  (report, don't hide: e.g. vmap over theta_max failing)
             rows.append({"batch": B, "error": f"{type(e).__name__}: {e}"})
             log(f"      FAILED: {type(e).__name__}: {e}")
             continue
         x, steps = (np.asarray(v) for v in r["_out"])
-        rows.append(rate_row(r, B, steps, x_final_first=float(x[0]), theta_max_first=float(TH[0])))
+        rows.append(rate_row(r, B, steps, devices=k, x_final_first=float(x[0]), theta_max_first=float(TH[0])))
     return rows
 
 
@@ -371,8 +398,8 @@ def problem3(p0, Z, batches, repeats):
     fwd, grad = jax.jit(loss), jax.jit(jax.grad(loss))
     rows, fd = [], None
     for B in batches:
-        A = jnp.asarray(amplitudes(Z[:B]))
-        log(f"[P3] forward batch {B} ...")
+        A, k = split(jnp.asarray(amplitudes(Z[:B])))
+        log(f"[P3] forward batch {B} on {k} device(s) ...")
         rf = time_call(fwd, theta0, A, repeats=repeats)
         log(f"[P3] grad batch {B} ...")
         rg = time_call(grad, theta0, A, repeats=repeats)
@@ -380,6 +407,7 @@ def problem3(p0, Z, batches, repeats):
         rows.append(
             {
                 "batch": B,
+                "devices": k,
                 "forward": public(rf),
                 "grad": public(rg),
                 "grad_over_forward": rg["median_s"] / rf["median_s"],
@@ -411,13 +439,13 @@ def problem3(p0, Z, batches, repeats):
 
 def fmt_table(res) -> str:
     L = []
-    hdr = f"{'problem':<34}{'batch':>8}{'trials/s':>12}{'median s':>11}{'compile s':>11}{'reps':>6}{'steps mean/max':>16}{'vs scipy':>10}"
+    hdr = f"{'problem':<34}{'batch':>8}{'devices':>8}{'trials/s':>12}{'median s':>11}{'compile s':>11}{'reps':>6}{'steps mean/max':>16}{'vs scipy':>10}"
     L.append(hdr)
     L.append("-" * len(hdr))
     sc = res["problem1"]["scipy"]
     for r in res["problem1"]["jsphere"]:
         L.append(
-            f"{'P1 torques, jsphere jit+vmap':<34}{r['batch']:>8}{r['trials_per_s']:>12.1f}{r['median_s']:>11.4f}"
+            f"{'P1 torques, jsphere jit+vmap':<34}{r['batch']:>8}{r.get('devices', 1):>8}{r['trials_per_s']:>12.1f}{r['median_s']:>11.4f}"
             f"{r['compile_s']:>11.2f}{r['repeats']:>6}{r['steps_mean']:>9.0f}/{r['steps_max']:<6}{r['trials_per_s'] / sc['trials_per_s']:>9.1f}x"
         )
     mem = [r for r in res["problem1"]["jsphere"] if r.get("device_peak_bytes")]
@@ -427,32 +455,32 @@ def fmt_table(res) -> str:
             + ", ".join(f"{r['batch']}: {r['device_peak_bytes'] / 2**30:.2f} GiB" for r in mem)
         )
     L.append(
-        f"{'P1 torques, scipy DOP853 (serial)':<34}{sc['trials']:>8}{sc['trials_per_s']:>12.2f}{sc['median_s']:>11.4f}"
+        f"{'P1 torques, scipy DOP853 (serial)':<34}{sc['trials']:>8}{'-':>8}{sc['trials_per_s']:>12.2f}{sc['median_s']:>11.4f}"
         f"{'-':>11}{sc['repeats']:>6}{sc['steps_mean']:>9.0f}{'':<7}{1.0:>9.1f}x"
     )
     for r in res["problem1"].get("casadi", []):
         if "error" in r:
-            L.append(f"{'P1 CasADi':<34}{'':>8}  {r['error'][:70]}")
+            L.append(f"{'P1 CasADi':<34}{'':>16}  {r['error'][:70]}")
             continue
         L.append(
-            f"{r['name'][:33]:<34}{r['batch']:>8}{r['trials_per_s']:>12.1f}{r['median_s']:>11.4f}"
+            f"{r['name'][:33]:<34}{r['batch']:>8}{str(r.get('threads', '-')) + ' thr':>8}{r['trials_per_s']:>12.1f}{r['median_s']:>11.4f}"
             f"{r['build_s']:>11.2f}{len(r['times_s']):>6}{'':>16}{r['ratio_vs_scipy']:>9.1f}x"
         )
     for r in res["problem2"]:
         if "error" in r:
-            L.append(f"{'P2 gaits, jsphere jit+vmap':<34}{r['batch']:>8}  FAILED: {r['error'][:60]}")
+            L.append(f"{'P2 gaits, jsphere jit+vmap':<34}{r['batch']:>8}{'':>8}  FAILED: {r['error'][:60]}")
             continue
         L.append(
-            f"{'P2 gaits, jsphere jit+vmap':<34}{r['batch']:>8}{r['trials_per_s']:>12.1f}{r['median_s']:>11.4f}"
+            f"{'P2 gaits, jsphere jit+vmap':<34}{r['batch']:>8}{r.get('devices', 1):>8}{r['trials_per_s']:>12.1f}{r['median_s']:>11.4f}"
             f"{r['compile_s']:>11.2f}{r['repeats']:>6}{r['steps_mean']:>9.0f}/{r['steps_max']:<6}{'':>10}"
         )
     L.append("")
-    hdr3 = f"{'P3 gradient (7 params)':<34}{'batch':>8}{'grad s':>12}{'forward s':>11}{'grad/fwd':>10}{'grad compile s':>16}"
+    hdr3 = f"{'P3 gradient (7 params)':<34}{'batch':>8}{'devices':>8}{'grad s':>12}{'forward s':>11}{'grad/fwd':>10}{'grad compile s':>16}"
     L.append(hdr3)
     L.append("-" * len(hdr3))
     for r in res["problem3"]["rows"]:
         L.append(
-            f"{'jax.grad of sum(x^2 + y^2)':<34}{r['batch']:>8}{r['grad']['median_s']:>12.4f}{r['forward']['median_s']:>11.4f}"
+            f"{'jax.grad of sum(x^2 + y^2)':<34}{r['batch']:>8}{r.get('devices', 1):>8}{r['grad']['median_s']:>12.4f}{r['forward']['median_s']:>11.4f}"
             f"{r['grad_over_forward']:>10.2f}{r['grad']['compile_s']:>16.2f}"
         )
     L.append("")
@@ -522,7 +550,14 @@ def main(argv=None) -> int:
         default="1,2,3",
         help="which problems to run, comma separated (1 is always run: its checks anchor the others)",
     )
+    ap.add_argument(
+        "--cores",
+        type=int,
+        default=None,
+        help="CPU devices, one per core (default: every core of this process; 1: JAX's single CPU device)",
+    )
     args = ap.parse_args(argv)
+    jsphere.use_cpu_cores(args.cores)  # before JAX's first operation
     if args.device is not None:
         try:
             jax.config.update("jax_default_device", jax.devices(args.device)[0])

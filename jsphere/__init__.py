@@ -22,6 +22,7 @@ __version__ = "0.1.0"
 #: every public name, by the module that defines it
 _EXPORTS = {
     "_runtime.compilation_cache": ("enable_compilation_cache",),
+    "_runtime.cores": ("shard_trials", "use_cpu_cores"),
     "_runtime.fast_start": ("FastStart",),
     "_runtime.errors": ("ExitCode", "InputError", "SolverFailure"),
     "_runtime.precision": ("PrecisionWarning", "enable_x64"),

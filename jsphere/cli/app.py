@@ -85,6 +85,7 @@ def main(argv=None) -> int:
         compile_for_one_run()
     with _messages(args):
         _float64()
+        _cores()
         with fast_start(cache=not args.no_cache) as programs:
             args.programs = programs  # the commands' solves run their programs through it
             return _run(args)
@@ -96,6 +97,22 @@ def _float64() -> None:
     from .._runtime.precision import enable_x64
 
     enable_x64()
+
+
+def _cores() -> None:
+    """One CPU device per core (`jsphere.use_cpu_cores`), so that `montecarlo`'s batches run on
+    every core; not where the environment sets a count (`JAX_NUM_CPU_DEVICES`, or XLA's
+    `--xla_force_host_platform_device_count`) or JAX has started already (a call from Python)."""
+    import os
+
+    from .._runtime.cores import use_cpu_cores
+
+    if "JAX_NUM_CPU_DEVICES" in os.environ or "device_count" in os.environ.get("XLA_FLAGS", ""):
+        return
+    try:
+        use_cpu_cores()
+    except RuntimeError:  # JAX runs already, with its own count
+        pass
 
 
 class _StderrHandler(logging.Handler):

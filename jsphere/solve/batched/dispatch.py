@@ -169,7 +169,8 @@ def _dispatched(engine: BatchedSolve):
 
 def _chunked_vmap(fn, axis_size, in_batched, *args, chunk=None):
     """`vmap(fn)` over the batched leaves of `args`, in chunks of at most `chunk` trials
-    (default `BATCH_CHUNK`); a batch of one is the unbatched call with the axis added."""
+    (default `BATCH_CHUNK`; trial `a n + b` of `n` chunks in chunk `b`, `to_chunks`); a
+    batch of one is the unbatched call with the axis added."""
     chunk = chunk or _layout.BATCH_CHUNK
     if axis_size == 1:  # e.g. `jax.jacfwd` of one scalar: the call itself, not a size-1 `vmap` of it
         one = tuple(jax.tree_util.tree_map(lambda x, b: x[0] if b else x, a, b) for a, b in zip(args, in_batched))
@@ -178,21 +179,32 @@ def _chunked_vmap(fn, axis_size, in_batched, *args, chunk=None):
     if axis_size <= chunk:
         return jax.vmap(fn, in_axes=in_axes, axis_size=axis_size)(*args)
     n = -(-axis_size // chunk)
-    pad = n * chunk - axis_size
-
-    def split(x):  # pad with copies of the last trial (valid inputs), then (n, chunk, ...)
-        x = jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]) if pad else x
-        return x.reshape((n, chunk) + x.shape[1:])
-
     batched = [eqx.partition(a, b) for a, b in zip(args, in_batched)]
-    chunks = tuple(jax.tree_util.tree_map(split, bt) for bt, _ in batched)
+    chunks = tuple(jax.tree_util.tree_map(lambda x: to_chunks(x, n, chunk), bt) for bt, _ in batched)
 
     def one(ch):
         full = tuple(eqx.combine(c, un) for c, (_, un) in zip(ch, batched))
         return jax.vmap(fn, in_axes=in_axes, axis_size=chunk)(*full)
 
     out = jax.lax.map(one, chunks)
-    return jax.tree_util.tree_map(lambda x: x.reshape((n * chunk,) + x.shape[2:])[:axis_size], out)
+    return jax.tree_util.tree_map(lambda x: from_chunks(x, axis_size), out)
+
+
+def to_chunks(x, n: int, chunk: int, zero: bool = False):
+    """The batch `x (B, ...)` as `n` chunks of `chunk` trials, `(n, chunk, ...)`: trial
+    `a n + b` is trial `a` of chunk `b`, so that every chunk takes its share from each part
+    of the batch. A batch split over devices along its trial axis (`jsphere.shard_trials`)
+    stays split: each device runs its part of every chunk. The batch is padded to `n chunk`
+    trials with copies of its last trial (valid inputs), or with zeros (`zero`)."""
+    pad = n * chunk - x.shape[0]
+    if pad:
+        x = jnp.concatenate([x, jnp.zeros_like(x[-pad:]) if zero else jnp.repeat(x[-1:], pad, axis=0)])
+    return jnp.swapaxes(x.reshape((chunk, n) + x.shape[1:]), 0, 1)
+
+
+def from_chunks(y, axis_size: int):
+    """`to_chunks` undone: `(n, chunk, ...)` -> the first `axis_size` trials, in order."""
+    return jnp.swapaxes(y, 0, 1).reshape((y.shape[0] * y.shape[1],) + y.shape[2:])[:axis_size]
 
 
 def _large(axis_size, in_batched) -> bool:
@@ -412,16 +424,10 @@ def _loop_vjp(engine: BatchedSolve, keep, axis_size, lv_batched, ct_batched, lv,
     chunk = min(axis_size, _layout.BATCH_CHUNK)
     layout = engine.layout_for(axis_size)
     n = -(-axis_size // chunk)
-    pad = n * chunk - axis_size
     in_axes = [0 if b else None for b in lv_batched]
-
-    def split(x, zero):  # (axis_size, ...) -> (n, chunk, ...); pad with the last trial (or zeros)
-        if pad:
-            x = jnp.concatenate([x, jnp.zeros_like(x[-pad:]) if zero else jnp.repeat(x[-1:], pad, axis=0)])
-        return x.reshape((n, chunk) + x.shape[1:])
-
-    ct_b = [split(c, True) if b else c for c, b in zip(cts, ct_batched)]
-    lv_b = [split(x, False) if b else x for x, b in zip(lv, lv_batched)]
+    # the forward pass's chunks (`_chunked_vmap`): their shared steps are the ones differentiated
+    ct_b = [to_chunks(c, n, chunk, zero=True) if b else c for c, b in zip(cts, ct_batched)]
+    lv_b = [to_chunks(x, n, chunk) if b else x for x, b in zip(lv, lv_batched)]
     inexact = [jnp.issubdtype(jnp.result_type(x), jnp.inexact) for x in lv]
 
     def batched(l):
@@ -447,7 +453,7 @@ def _loop_vjp(engine: BatchedSolve, keep, axis_size, lv_batched, ct_batched, lv,
         if g is None:  # integer leaves
             result.append(np.zeros((axis_size,) + jnp.shape(x)[int(b) :], jax.dtypes.float0))
         elif b:
-            result.append(g.reshape((n * chunk,) + g.shape[2:])[:axis_size])
+            result.append(from_chunks(g, axis_size))
         else:  # the batch's sum, in the first trial's row
             total = jnp.sum(g, axis=0)
             result.append(jnp.zeros((axis_size,) + total.shape, total.dtype).at[0].set(total))
