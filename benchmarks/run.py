@@ -7,6 +7,9 @@ Problem 1: paper robot from rest, torques K_i(t) = a_i sin(pi t + 2.1 (i-1)), a_
            z ~ N(0, 1) per trial (numpy default_rng(0)), [0, 4] s, rtol 1e-8, atol 1e-10, final x, y.
            jsphere (jit + vmap of the public `simulate`) vs scipy `solve_ivp(DOP853)` on an
            independent numpy right-hand side (benchmarks/numpy_model.py), one trial at a time.
+Devices:   on a CPU, one device per core (`--cores`, `jsphere.use_cpu_cores`); every batch that
+           divides among the devices is split over them (`jsphere.shard_trials`), and problem 1's
+           batch of 1024 runs on one device too, in the same run (the ratio of the two).
 Problem 2: acceleration + braking gaits, theta_max ~ U(0.05, 0.15) per trial (default_rng(1)), final x.
 Problem 3: cost of jax.grad of sum(x_f^2 + y_f^2) over a batch of problem 1 with respect to
            (r_m[2] = -R_m, j, diag I, m0, I0), relative to the forward pass of the same batch.

@@ -26,8 +26,10 @@ Methods and settings:
 
 - jsphere: `jax.jit(jax.vmap(lambda a: jsphere.simulate(p, State.at_rest(p), Torques(...), 4.0,
   rtol=rtol, atol=rtol / 100, solver=S)))` on a batch of `--batch` trials (1024), the public API
-  with its defaults (steps shared by the batch); S = Dopri8, Tsit5 at rtol 1e-3 ... 1e-11 and
-  Dopri5 at every other decade; the error is that of the batch's first trials.
+  with its defaults (steps shared by the batch), the batch split over one CPU device per core
+  (`jsphere.use_cpu_cores`, `jsphere.shard_trials`; `--cores`), as CasADi's map is over the CPU's
+  threads; S = Dopri8, Tsit5 at rtol 1e-3 ... 1e-11 and Dopri5 at every other decade; the error
+  is that of the batch's first trials.
 - CasADi: `casadi_baseline.rk4_batch` (the right-hand side in SX, RK4 folded with `mapaccum`,
   C `-O3`, mapped over the CPU's threads) at 25 ... 6400 steps over 4 s, same batch.
 - scipy: `run.scipy_trial` (`solve_ivp(method="DOP853")` on `numpy_model.NumpyRobot.rhs`, one
@@ -382,7 +384,14 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=None, help="JSON output, written atomically")
     ap.add_argument("--figure", type=Path, default=None, help="the PNG (log-log, error against trials/s)")
     ap.add_argument("--threads", type=int, default=os.cpu_count() or 2, help="CasADi's map threads (CPU count)")
+    ap.add_argument(
+        "--cores",
+        type=int,
+        default=None,
+        help="CPU devices jsphere's batch is split over, one per core (default: every core of this process)",
+    )
     args = ap.parse_args(argv)
+    jsphere.use_cpu_cores(args.cores)  # before JAX's first operation
     cfg = dict(QUICK if args.quick else FULL)
     for k in ("batch", "repeats", "error_trials"):
         if getattr(args, k) is not None:
@@ -430,7 +439,9 @@ def main(argv=None) -> int:
         "max_distance_between_references_m": agree,
     }
 
-    rows = jsphere_rows(p, jnp.asarray(A), ref, cfg["jsphere"], repeats)
+    A_split, devices = run.split(jnp.asarray(A))  # over the CPU devices, as CasADi's map over threads
+    env["jsphere_devices"] = devices
+    rows = jsphere_rows(p, A_split, ref, cfg["jsphere"], repeats)
     rows += casadi_rows(model, q0, A, ref, cfg["casadi_steps"], repeats, args.threads)
     rows += scipy_rows(model, q0, A[:n_err], ref, cfg["scipy_rtols"], repeats)
     cross = crossover(rows)

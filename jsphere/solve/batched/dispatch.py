@@ -169,8 +169,8 @@ def _dispatched(engine: BatchedSolve):
 
 def _chunked_vmap(fn, axis_size, in_batched, *args, chunk=None):
     """`vmap(fn)` over the batched leaves of `args`, in chunks of at most `chunk` trials
-    (default `BATCH_CHUNK`; trial `a n + b` of `n` chunks in chunk `b`, `to_chunks`); a
-    batch of one is the unbatched call with the axis added."""
+    (default `BATCH_CHUNK`; which trials share a chunk: `to_chunks`); a batch of one is the
+    unbatched call with the axis added."""
     chunk = chunk or _layout.BATCH_CHUNK
     if axis_size == 1:  # e.g. `jax.jacfwd` of one scalar: the call itself, not a size-1 `vmap` of it
         one = tuple(jax.tree_util.tree_map(lambda x, b: x[0] if b else x, a, b) for a, b in zip(args, in_batched))
@@ -190,21 +190,35 @@ def _chunked_vmap(fn, axis_size, in_batched, *args, chunk=None):
     return jax.tree_util.tree_map(lambda x: from_chunks(x, axis_size), out)
 
 
+def chunk_parts(chunk: int) -> int:
+    """Into how many parts `to_chunks` divides a chunk: the number of devices of JAX's
+    default backend where it divides `chunk` (one per core after `jsphere.use_cpu_cores`),
+    else 1."""
+    d = len(jax.devices())
+    return d if chunk % d == 0 else 1
+
+
 def to_chunks(x, n: int, chunk: int, zero: bool = False):
-    """The batch `x (B, ...)` as `n` chunks of `chunk` trials, `(n, chunk, ...)`: trial
-    `a n + b` is trial `a` of chunk `b`, so that every chunk takes its share from each part
-    of the batch. A batch split over devices along its trial axis (`jsphere.shard_trials`)
-    stays split: each device runs its part of every chunk. The batch is padded to `n chunk`
-    trials with copies of its last trial (valid inputs), or with zeros (`zero`)."""
+    """The batch `x (B, ...)` as `n` chunks of `chunk` trials, `(n, chunk, ...)`, padded to `n
+    chunk` trials with copies of its last trial (valid inputs) or with zeros (`zero`). With one
+    device, chunk `b` holds trials `b chunk ... (b + 1) chunk - 1`. With `D = chunk_parts(chunk)`
+    devices, the padded batch is `D` equal parts, and chunk `b` holds the `b`-th run of `chunk /
+    D` trials of every part: a batch split over the devices along its trial axis
+    (`jsphere.shard_trials`) stays split, each device running its own trials of every chunk."""
     pad = n * chunk - x.shape[0]
     if pad:
         x = jnp.concatenate([x, jnp.zeros_like(x[-pad:]) if zero else jnp.repeat(x[-1:], pad, axis=0)])
-    return jnp.swapaxes(x.reshape((chunk, n) + x.shape[1:]), 0, 1)
+    d = chunk_parts(chunk)
+    x = jnp.swapaxes(x.reshape((d, n, chunk // d) + x.shape[1:]), 0, 1)
+    return x.reshape((n, chunk) + x.shape[3:])
 
 
 def from_chunks(y, axis_size: int):
     """`to_chunks` undone: `(n, chunk, ...)` -> the first `axis_size` trials, in order."""
-    return jnp.swapaxes(y, 0, 1).reshape((y.shape[0] * y.shape[1],) + y.shape[2:])[:axis_size]
+    n, chunk = y.shape[:2]
+    d = chunk_parts(chunk)
+    y = jnp.swapaxes(y.reshape((n, d, chunk // d) + y.shape[2:]), 0, 1)
+    return y.reshape((n * chunk,) + y.shape[3:])[:axis_size]
 
 
 def _large(axis_size, in_batched) -> bool:
