@@ -41,7 +41,11 @@ ap.add_argument("--baseline-trials", type=int, default=200)
 ap.add_argument("--batch-size", type=int, default=8192)
 ap.add_argument("--workers", type=int, default=0, help="compare K --worker processes with one process")
 ap.add_argument("--out", default=None, help="JSON file (default: benchmarks/results-montecarlo[-workers].json)")
+ap.add_argument(
+    "--cores", type=int, default=None, help="CPU devices, one per core (default: every core; 1: JAX's single device)"
+)
 args = ap.parse_args()
+CORES = jsphere.use_cpu_cores(args.cores)  # before JAX's first operation: monte_carlo splits its batches over them
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 #: the study of the comparison of workers with one process, as a study file

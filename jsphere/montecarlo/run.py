@@ -466,9 +466,9 @@ class _Run:
         n_batches = int(math.ceil(n / B))
         mesh = None
         if len(devices) > 1:  # each device runs its share of every batch
-            from jax.sharding import Mesh
+            from .._runtime.cores import trial_mesh
 
-            mesh = Mesh(np.array(devices), ("trials",))
+            mesh = trial_mesh(devices)
         trials = Trials(
             params,
             gaits,
