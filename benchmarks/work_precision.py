@@ -1,7 +1,7 @@
 """Work-precision of problem 1 of `run.py`: accuracy against throughput for jsphere, CasADi's
 compiled fixed-step RK4 and scipy's DOP853, all measured in one run.
 
-    python benchmarks/work_precision.py                  # full run (about 8 min on 2 CPU cores)
+    python benchmarks/work_precision.py                  # full run (about 4.5 min on 2 CPU cores)
     python benchmarks/work_precision.py --quick          # fewer settings, batch 256 (about 1.5 min)
     python benchmarks/work_precision.py --batch 1024 --repeats 3 --out benchmarks/results-work-precision.json \
         --figure docs/images/work-precision.png
