@@ -33,8 +33,7 @@ def use_cpu_cores(n: int | None = None) -> int:
 
     This is JAX's `jax_num_cpu_devices`, which takes effect only before JAX runs its first
     operation: call it right after `import jax` (and `jsphere.enable_x64()`). `jax.devices()`
-    then lists `n` CPU devices; a computation whose inputs are not split runs on the first,
-    as before. On a machine whose default backend is a GPU this changes nothing there.
+    then lists `n` CPU devices; a computation whose inputs are not split runs on the first. On a machine whose default backend is a GPU this changes nothing there.
     Raises `RuntimeError` (one line, what to do) when JAX has already started with another
     count; the same count again is allowed.
     """
