@@ -105,10 +105,11 @@ def gather_batch(out) -> tuple:
     return tuple(np.asarray(a) for a in multihost_utils.process_allgather(out, tiled=True))
 
 
-def batch_template(trials, batch_size: int) -> dict:
-    """Zero arrays with the shapes and dtypes of a batch's outcomes, by `BATCH_KEYS`."""
+def batch_template(trials, padded: int, batch_size: int) -> dict:
+    """Zero arrays with the shapes and dtypes of a batch's outcomes, by `BATCH_KEYS`: `batch_size`
+    trials of a batch computed as `padded` trials."""
     from .batch import run_batch
     from .store import BATCH_KEYS
 
-    shapes = eqx.filter_eval_shape(run_batch, trials, jax.ShapeDtypeStruct((batch_size,), jnp.int32))
-    return {key: np.zeros(s.shape, s.dtype) for key, s in zip(BATCH_KEYS, shapes)}
+    shapes = eqx.filter_eval_shape(run_batch, trials, jax.ShapeDtypeStruct((padded,), jnp.int32))
+    return {key: np.zeros((batch_size,) + s.shape[1:], s.dtype) for key, s in zip(BATCH_KEYS, shapes)}

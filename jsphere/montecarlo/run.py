@@ -102,10 +102,10 @@ def monte_carlo(
       (at most `MAX_REDRAWS` times), which samples it conditioned on a valid robot.
     - `n`, `seed`: number of trials and the seed (`0 <= seed < 2**32`). Trial `i` uses the key
       `fold_in(PRNGKey(seed), i)`: the same study whatever `batch_size` or device count.
-    - `batch_size`: trials per compiled call (memory stays bounded for any `n`); rounded up to
-      a multiple of 64 times the number of devices, over which each batch is sharded (a study
-      folder `out` that exists keeps the batch size of its manifest where the devices can
-      share it).
+    - `batch_size`: trials per batch (memory stays bounded for any `n`); rounded up to a
+      multiple of 64. Each batch is sharded over the devices; where it does not divide into
+      chunks of 64 per device, the next trials' draws fill the last chunks and are dropped. A
+      study folder `out` that exists keeps the batch size of its manifest.
       Inside, trials run in vmapped chunks of 64 (`CHUNK`), so results are bitwise identical
       for any batch size and device count.
     - `mode`: `"gait"` (default): each trial executes the gaits exactly (the paper's
@@ -417,7 +417,8 @@ def _solver_record(solver, gait_max_steps: int | None) -> tuple:
 @dataclasses.dataclass(frozen=True)
 class _Run:
     """A checked study laid out in batches: `n` trials with seed `seed` in `n_batches` batches of
-    `batch_size` (a multiple of `CHUNK` times the number of devices), with `vary` as given;
+    `batch_size` (a multiple of `CHUNK`; computed as `padded` trials, whole chunks on every
+    device), with `vary` as given;
     with a `folder`, batches are read from it and written to it (by the `writer`: process 0 of
     a `distributed` job, the only process otherwise). `fingerprint` identifies the study in its
     folder's manifest; `program` the compiled batch (the study but its seed, and the devices)."""
@@ -433,6 +434,7 @@ class _Run:
     program: str
     distributed: bool = False
     writer: bool = True
+    padded: int = 0  # the trials computed per batch: `batch_size` rounded up to whole chunks per device
 
     @classmethod
     def create(
@@ -456,14 +458,15 @@ class _Run:
         n, seed = settings["n"], settings["seed"]
         distributed = distributed and jax.process_count() > 1
         devices = jax.devices() if distributed else jax.local_devices()
-        unit = CHUNK * len(devices)
-        B = int(math.ceil(max(1, min(settings["batch_size"], n)) / unit) * unit)
+        B = int(math.ceil(max(1, min(settings["batch_size"], n)) / CHUNK) * CHUNK)
         if out is not None:  # a study's folder keeps its batches (results do not depend on them)
             recorded = StudyFolder.manifest_batch_size(out) if not distributed or jax.process_index() == 0 else None
             if distributed:  # process 0's folder, which the others need not see
                 recorded = int(share_from_process_0(np.int32(recorded or 0))) or None
-            B = recorded if recorded is not None and recorded % unit == 0 else B
+            B = recorded if recorded is not None and recorded % CHUNK == 0 else B
         n_batches = int(math.ceil(n / B))
+        unit = CHUNK * len(devices)  # a batch is computed as whole chunks on every device
+        padded = int(math.ceil(B / unit) * unit)
         mesh = None
         if len(devices) > 1:  # each device runs its share of every batch
             from .._runtime.cores import trial_mesh
@@ -490,7 +493,7 @@ class _Run:
         program = f"{fingerprint(params, gaits, spec, 0, B, options, rtol, atol)}|{len(devices)}"
         folder = StudyFolder(Path(out), B, len(spec)) if out is not None else None
         writer = not distributed or jax.process_index() == 0
-        return cls(trials, dict(vary or {}), n, seed, B, n_batches, folder, fp, program, distributed, writer)
+        return cls(trials, dict(vary or {}), n, seed, B, n_batches, folder, fp, program, distributed, writer, padded)
 
     def open_folder(self) -> None:
         """Create the study's folder or check the study in it (`StudyFolder.open`)."""
@@ -503,12 +506,12 @@ class _Run:
     def compute(self, k: int) -> dict:
         """Batch `k`, written to the folder (if any, by the writer). In a distributed run every
         process computes its shard of the batch and gets the whole batch back."""
-        lo, hi = k * self.batch_size, (k + 1) * self.batch_size
+        lo, hi = k * self.batch_size, k * self.batch_size + self.padded  # the trials after the batch's are dropped
         if self.distributed:
             out = gather_batch(run_batch(self.trials, global_indices(self.trials.mesh, lo, hi)))
         else:
             out = jax.device_get(run_batch(self.trials, jnp.arange(lo, hi, dtype=jnp.int32)))
-        part = dict(zip(BATCH_KEYS, (np.asarray(a) for a in out)))
+        part = dict(zip(BATCH_KEYS, (np.asarray(a)[: self.batch_size] for a in out)))
         if self.folder is not None and self.writer:
             self.folder.save_batch(k, part)
         return part
@@ -545,7 +548,7 @@ def run_distributed(run: _Run, progress: Progress) -> list[dict]:
         raise InputError(f"monte_carlo: process 0 could not use out = {run.folder.path}; its message says why.")
     done = share_from_process_0(np.array([p is not None for p in parts], np.int32))
     if done.any():
-        template = batch_template(run.trials, run.batch_size)
+        template = batch_template(run.trials, run.padded, run.batch_size)
         for k in np.flatnonzero(done):
             got = parts[k] if run.writer else {key: np.zeros(a.shape, a.dtype) for key, a in template.items()}
             parts[k] = share_from_process_0({key: np.asarray(got[key], template[key].dtype) for key in BATCH_KEYS})
