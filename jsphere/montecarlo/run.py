@@ -103,9 +103,10 @@ def monte_carlo(
     - `n`, `seed`: number of trials and the seed (`0 <= seed < 2**32`). Trial `i` uses the key
       `fold_in(PRNGKey(seed), i)`: the same study whatever `batch_size` or device count.
     - `batch_size`: trials per batch (memory stays bounded for any `n`); rounded up to a
-      multiple of 64. Each batch is sharded over the devices; where it does not divide into
-      chunks of 64 per device, the next trials' draws fill the last chunks and are dropped. A
-      study folder `out` that exists keeps the batch size of its manifest.
+      multiple of 64. Each batch is sharded over as many local devices as divide it into whole
+      chunks of 64 (a distributed batch over every device, the next trials' draws filling its
+      last chunks and dropped). A study folder `out` that exists keeps the batch size of its
+      manifest.
       Inside, trials run in vmapped chunks of 64 (`CHUNK`), so results are bitwise identical
       for any batch size and device count.
     - `mode`: `"gait"` (default): each trial executes the gaits exactly (the paper's
@@ -465,6 +466,8 @@ class _Run:
                 recorded = int(share_from_process_0(np.int32(recorded or 0))) or None
             B = recorded if recorded is not None and recorded % CHUNK == 0 else B
         n_batches = int(math.ceil(n / B))
+        if not distributed:  # as many local devices as divide the batch into whole chunks
+            devices = devices[: max(k for k in range(1, len(devices) + 1) if B % (CHUNK * k) == 0)]
         unit = CHUNK * len(devices)  # a batch is computed as whole chunks on every device
         padded = int(math.ceil(B / unit) * unit)
         mesh = None

@@ -277,10 +277,11 @@ def test_distributed_two_processes_with_cpu_collectives_match_one_process(study,
     """`jsphere montecarlo --distributed --coordinator 127.0.0.1:PORT --num-processes 2
     --process-id I`: two processes of 2 host devices each (a global mesh of 4 devices, CPU
     collectives through gloo); process 0 writes the batches and statistics, bitwise those of
-    one process; a second run resumes from the batches (one deleted: only it is computed).
-    ~1-2 min on 2 cores."""
+    one process; a second run resumes from the batches (one deleted: only it is computed). A
+    batch of 192 trials is computed as 256 (whole chunks of 64 on the 4 devices: the next
+    trials' draws fill them and are dropped). ~1-2 min on 2 cores."""
     cfg = tmp_path / "study.toml"
-    cfg.write_text(STUDY_TOML.replace("batch_size = 128", "batch_size = 256"))
+    cfg.write_text(STUDY_TOML.replace("batch_size = 128", "batch_size = 192"))
     out = tmp_path / "out"
     env = _env(
         tmp_path,
@@ -299,8 +300,9 @@ def test_distributed_two_processes_with_cpu_collectives_match_one_process(study,
     done = run()
     assert "256 trials in" in done[0].stdout and "trials in" not in done[1].stdout  # process 0 reports
     assert _stats_file(out) == json.loads(json.dumps(study.stats()))
-    assert sorted(f.name for f in out.iterdir()) == ["batch_000000.npz", "manifest.json", "stats.json"]
-    assert json.loads((out / "manifest.json").read_text())["batch_size"] == 256  # 64 trials per device
+    files = ["batch_000000.npz", "batch_000001.npz", "manifest.json", "stats.json"]
+    assert sorted(f.name for f in out.iterdir()) == files
+    assert json.loads((out / "manifest.json").read_text())["batch_size"] == 192
     first = (out / "batch_000000.npz").read_bytes()
     (out / "batch_000000.npz").write_bytes(b"")  # cut short: recomputed, with a warning on process 0
     done = run()
