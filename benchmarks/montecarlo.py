@@ -45,7 +45,7 @@ ap.add_argument(
     "--cores", type=int, default=None, help="CPU devices, one per core (default: every core; 1: JAX's single device)"
 )
 args = ap.parse_args()
-CORES = jsphere.use_cpu_cores(args.cores)  # before JAX's first operation: monte_carlo splits its batches over them
+jsphere.use_cpu_cores(args.cores)  # before JAX's first operation: monte_carlo splits its batches over them
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 #: the study of the comparison of workers with one process, as a study file

@@ -209,18 +209,17 @@ def problem1_jsphere(p, Z, batches, repeats):
     )
     rows, finals = [], {}
     for B in batches:
-        A, k = split(jnp.asarray(amplitudes(Z[:B])))
-        log(f"[P1] jsphere batch {B} on {k} device(s) ...")
-        r = time_call(f, A, repeats=repeats)
-        tr = r["_out"]
-        finals[B] = np.stack([np.asarray(tr.x[:, -1]), np.asarray(tr.y[:, -1])], -1)
-        ok = bool(np.all(np.asarray(tr.ok)))
-        rows.append(rate_row(r, B, tr.num_steps, devices=k, all_ok=ok, **device_memory()))
-        if B == ONE_DEVICE_BATCH and k > 1:  # the same batch on one device, in the same run
-            log(f"[P1] jsphere batch {B} on 1 device ...")
-            r = time_call(f, jnp.asarray(amplitudes(Z[:B])), repeats=repeats)
+        A = jnp.asarray(amplitudes(Z[:B]))
+        runs = [split(A)]
+        if B == ONE_DEVICE_BATCH and runs[0][1] > 1:  # the same batch on one device, in the same run
+            runs.append((A, 1))
+        for x, k in runs:
+            log(f"[P1] jsphere batch {B} on {k} device(s) ...")
+            r = time_call(f, x, repeats=repeats)
             tr = r["_out"]
-            rows.append(rate_row(r, B, tr.num_steps, devices=1, all_ok=bool(np.all(np.asarray(tr.ok)))))
+            finals.setdefault(B, np.stack([np.asarray(tr.x[:, -1]), np.asarray(tr.y[:, -1])], -1))
+            ok = bool(np.all(np.asarray(tr.ok)))
+            rows.append(rate_row(r, B, tr.num_steps, devices=k, all_ok=ok, **device_memory()))
     return rows, finals
 
 

@@ -79,7 +79,7 @@ def shard_trials(tree, devices=None):
     split = NamedSharding(mesh, PartitionSpec("trials"))
 
     def place(x):
-        if not isinstance(x, jax.Array) and not hasattr(x, "__array__"):
+        if not hasattr(x, "__array__"):  # jax and numpy arrays and scalars
             return x
         shape = getattr(x, "shape", ())
         if len(shape) == 0 or shape[0] % k:

@@ -435,7 +435,12 @@ class _Run:
     program: str
     distributed: bool = False
     writer: bool = True
-    padded: int = 0  # the trials computed per batch: `batch_size` rounded up to whole chunks per device
+
+    @property
+    def padded(self) -> int:
+        """The trials computed per batch: `batch_size` rounded up to whole chunks on every device."""
+        unit = CHUNK * (1 if self.trials.mesh is None else self.trials.mesh.devices.size)
+        return -(-self.batch_size // unit) * unit
 
     @classmethod
     def create(
@@ -468,8 +473,6 @@ class _Run:
         n_batches = int(math.ceil(n / B))
         if not distributed:  # as many local devices as divide the batch into whole chunks
             devices = devices[: max(k for k in range(1, len(devices) + 1) if B % (CHUNK * k) == 0)]
-        unit = CHUNK * len(devices)  # a batch is computed as whole chunks on every device
-        padded = int(math.ceil(B / unit) * unit)
         mesh = None
         if len(devices) > 1:  # each device runs its share of every batch
             from .._runtime.cores import trial_mesh
@@ -496,7 +499,7 @@ class _Run:
         program = f"{fingerprint(params, gaits, spec, 0, B, options, rtol, atol)}|{len(devices)}"
         folder = StudyFolder(Path(out), B, len(spec)) if out is not None else None
         writer = not distributed or jax.process_index() == 0
-        return cls(trials, dict(vary or {}), n, seed, B, n_batches, folder, fp, program, distributed, writer, padded)
+        return cls(trials, dict(vary or {}), n, seed, B, n_batches, folder, fp, program, distributed, writer)
 
     def open_folder(self) -> None:
         """Create the study's folder or check the study in it (`StudyFolder.open`)."""
