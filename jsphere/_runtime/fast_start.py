@@ -87,6 +87,28 @@ class FastStart:
                 print(f"jsphere: not exporting {name} ({type(e).__name__}: {e}); running it directly", file=sys.stderr)
         return fn(*args)
 
+    def compile(self, name: str, fn: Callable, *args, traced: Callable = lambda: None) -> None:
+        """Export (or load) and compile the program `self(name, fn, rebuild, *args)` runs,
+        without running it, so that a call with arguments of the same shapes runs at once;
+        `traced()` is called between exporting and compiling. A call without a stable key
+        compiles `fn.lower(*args)` where `fn` has one. Failures are left to the call itself
+        to report (`traced()` is called all the same)."""
+        dyn, static = eqx.partition(args, eqx.is_array)
+        leaves, treedef = jax.tree_util.tree_flatten(dyn)
+        key = _key(name, leaves, treedef, static)
+        try:
+            if key is None:
+                lowered = fn.lower(*args) if hasattr(fn, "lower") else None
+            elif key not in self._failed:
+                run = self._loaded.get(key) or self._load_or_export(key, fn, treedef, static, leaves)
+                lowered = run.lower(*_committed(leaves))
+            else:
+                lowered = None
+        finally:
+            traced()
+        if lowered is not None:
+            lowered.compile()
+
     def _load_or_export(self, key, fn, treedef, static, leaves) -> Callable:
         path = self.path / f"{key}.jaxexport"
         exported = None

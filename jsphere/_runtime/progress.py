@@ -141,6 +141,16 @@ class Progress:
             for b in self._open:
                 b.restart_clock()
 
+    def compiled(self, kind: str, key: str, seconds: float) -> None:
+        """Note that the program `compiling(kind, key, ...)` would introduce was compiled
+        meanwhile (in `seconds`, e.g. in a thread of its own): its first call says nothing."""
+        full = _full_key(kind, key)
+        fresh = expected_compile_s(kind, full) is not None
+        with _LOCK:
+            _COMPILED.add((kind, full))
+        if fresh:
+            _record(kind, full, seconds)
+
 
 class _Bar:
     """One tqdm bar (nothing without bars); a context manager that closes it."""

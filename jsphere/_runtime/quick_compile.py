@@ -63,6 +63,7 @@ def eager_jit(fn: Callable) -> Callable:
     """`equinox.filter_jit(fn)`, compiled with `options()` when called eagerly with concrete
     arrays; traced calls use the plain `filter_jit` (one compiled function per shape each),
     and calls under `jvp` or `vmap` (`transformed`) inside a `jit` call `fn` itself.
+    `eager_jit(fn).lower(*args)` lowers the eager call's program without running it.
 
     (Measured with `benchmarks/first_result.py`: inlined under `jvp` and `vmap`, a fit's
     residual-Jacobian program traces and compiles in 0.7x the time; inlined in every traced
@@ -71,6 +72,12 @@ def eager_jit(fn: Callable) -> Callable:
     plain = eqx.filter_jit(fn)
     quick: list = []
 
+    def eager():
+        if not quick:
+            opts = options()
+            quick.append(eqx.filter_jit(fn, compiler_options=opts) if opts else plain)
+        return quick[0]
+
     @functools.wraps(fn)
     def call(*args, **kwargs):
         if traced((args, kwargs)):
@@ -78,11 +85,14 @@ def eager_jit(fn: Callable) -> Callable:
             # program: a nested program would be processed again by each transformation around it
             inline = transformed((args, kwargs)) and under_jit()
             return fn(*args, **kwargs) if inline else plain(*args, **kwargs)
-        if not quick:
-            opts = options()
-            quick.append(eqx.filter_jit(fn, compiler_options=opts) if opts else plain)
-        return quick[0](*args, **kwargs)
+        return eager()(*args, **kwargs)
 
+    def lower(*args, **kwargs):
+        """The eager call's program for these arguments, lowered (`.compile()` compiles it: an
+        eager call with arguments of the same shapes then runs that executable)."""
+        return eager().lower(*args, **kwargs)
+
+    call.lower = lower
     return call
 
 

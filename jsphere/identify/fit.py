@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import threading
 import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
@@ -220,10 +221,13 @@ def fit(
         f"fit: {run.T} trials ({data.kind}), {sum(data.lengths)} samples, {run.P} free parameters + {run.n_nu} nuisance per "
         f"trial, {run.S} start(s)"
     )
-    _multiple_shooting(run, st)
-    _adam(run, st)
-    _single_shooting(run, st)
-    return _result(run, st, outlier_keys(trials))
+    try:
+        _multiple_shooting(run, st)
+        _adam(run, st)
+        _single_shooting(run, st)
+        return _result(run, st, outlier_keys(trials))
+    finally:
+        _wait_ahead(st)
 
 
 def outlier_keys(trials: Sequence) -> list[str]:
@@ -436,7 +440,7 @@ class _State:
     state, `adam_k` its steps, `adam_best`: (cost, theta, nu) of each start's best point;
     `lm`: Levenberg-Marquardt's state within a stage, `it`: the steps of the last stage;
     `last`: the poses, solver status and data of the last evaluation (for the failure message,
-    not saved)."""
+    not saved); `ahead`: the thread compiling single shooting's program, if one runs (not saved)."""
 
     stage: int
     sig: np.ndarray
@@ -452,6 +456,7 @@ class _State:
     max_defect: float = math.nan
     lm: LMState | None = None
     last: dict[str, Any] = dataclasses.field(default_factory=dict)
+    ahead: threading.Thread | None = None  # compiling single shooting's program (`_compile_ahead`)
 
 
 def adam_start(opt: optax.GradientTransformation, w):
@@ -620,9 +625,41 @@ def _program(run: _Run, shooting: str) -> str:
     return repr((shooting, d.kind, d.ts.shape, run.free.names, o.n_starts, o.rtol, o.atol, o.max_steps, segments))
 
 
+def _compile_ahead(run: _Run, st: _State) -> None:
+    """Start compiling single shooting's program in a thread of its own, once multiple
+    shooting's program is traced: it is traced while XLA compiles multiple shooting's (which
+    releases Python's lock) and compiled while multiple shooting's steps run (on one core), so
+    that single shooting starts without compiling
+    (docs/decisions/single-shooting-compiled-during-multiple.md). A failure in the thread is
+    left to the program's first call to report."""
+    if st.ahead is not None or st.nu_ms is None:
+        return
+    args = (run.base, to_jax(st.theta), to_jax(st.nu_ms[:, run.shooting.seg.first]), run.arrays, to_jax(st.sig))
+    key = _program(run, "single")
+
+    def work():
+        t0 = time.perf_counter()
+        try:
+            run.fns.compile(run.programs, "jacobian", *args)
+        except Exception:  # noqa: BLE001 - the first call compiles it again and says what fails
+            return
+        run.progress.compiled("fit", key, time.perf_counter() - t0)
+
+    st.ahead = threading.Thread(target=work, name="jsphere-fit-compile", daemon=True)
+    st.ahead.start()
+
+
+def _wait_ahead(st: _State) -> None:
+    """Wait for the thread of `_compile_ahead`, if one runs."""
+    if st.ahead is not None:
+        st.ahead.join()
+        st.ahead = None
+
+
 def _evaluate_single(run: _Run, st: _State, th, n):
     """Cost `(S,)` (inf for a failed start), residuals, Jacobian and poses of single shooting."""
     with run.progress.compiling("fit", _program(run, "single"), "fit: single shooting"):
+        _wait_ahead(st)
         res, ok, J, pose = run.fns.run(
             run.programs, "jacobian", run.base, to_jax(th), to_jax(n), run.arrays, to_jax(st.sig)
         )
@@ -655,9 +692,10 @@ def _evaluate_multiple(run: _Run, st: _State, mu: float, th, n):
     shooting at defect weight `mu`."""
     ms = run.shooting
     with run.progress.compiling("fit", _program(run, "multiple"), "fit: multiple shooting"):
-        res, ok, J, pose, e, Je = run.fns.run(
-            run.programs, "segments", run.base, to_jax(th), to_jax(n), ms.arrays, to_jax(st.sig)
-        )
+        args = (run.base, to_jax(th), to_jax(n), ms.arrays, to_jax(st.sig))
+        if st.ahead is None:  # single shooting's program compiles meanwhile (`_compile_ahead`)
+            run.fns.compile(run.programs, "segments", *args, traced=lambda: _compile_ahead(run, st))
+        res, ok, J, pose, e, Je = run.fns.run(run.programs, "segments", *args)
         robust = 0.0
         if run.options.loss != "l2":  # the weighted squares replaced by the robust cost
             robust = robust_cost(run.options.loss, res)

@@ -19,7 +19,7 @@ few dozen tangent columns instead of a reverse pass per residual.
 from __future__ import annotations
 
 import functools
-from typing import Any
+from typing import Any, Callable
 
 import diffrax as dfx
 import jax
@@ -31,7 +31,7 @@ from ..model.kinematics import relative_rate_from_wheel_speeds
 from ..model.rotations import quat_conj, quat_exp, quat_log, quat_mul
 from ..model.state import State
 from ..numerics.lm import arrow_step, solve_arrow
-from ..solve.batched.dispatch import run_program
+from ..solve.batched.dispatch import compile_program, run_program
 from ..solve.simulate import simulate
 from . import shooting as _shooting
 from .data import offset_from_nuisance
@@ -173,6 +173,12 @@ class _Functions:
             return fn(*args)
         rebuild = functools.partial(jax.tree_util.tree_unflatten, _OUTPUTS[name])
         return run_program(programs, f"fit.{name}:{self.key}", fn, rebuild, *args)
+
+    def compile(self, programs, name: str, *args, traced: Callable = lambda: None) -> None:
+        """Compile the program `run(programs, name, *args)` runs, without running it;
+        `traced()` is called once it is traced, before XLA compiles it."""
+        fn = getattr(self, name)
+        compile_program(None if self.key is None else programs, f"fit.{name}:{self.key}", fn, *args, traced=traced)
 
 
 #: the structure of each program's output (`_Functions.run` rebuilds it from the leaves)

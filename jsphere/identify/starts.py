@@ -83,18 +83,31 @@ def _offset_guess(data: FitData, i: int, params: RobotParams) -> float:
     return off if corr > 0.5 else 0.0
 
 
+def latin_hypercube(n: int, d: int, rng: np.random.Generator) -> np.ndarray:
+    """`(n, d)` points of a Latin hypercube in `[0, 1)^d` (McKay, Beckman and Conover 1979):
+    in each dimension one point in each of the `n` strata `[k/n, (k+1)/n)`, uniform within its
+    stratum, the strata in a random order per dimension. Drawn, as `scipy.stats.qmc.
+    LatinHypercube(d, rng=rng).random(n)` draws its default (scrambled) form, from a child of
+    `rng` (`rng.spawn(1)[0]`): the same points, without the half second `scipy.stats` takes to
+    import (docs/decisions/hand-written-code-kept.md)."""
+    rng = rng.spawn(1)[0]
+    jitter = rng.uniform(size=(n, d))
+    strata = np.tile(np.arange(1, n + 1), (d, 1))
+    for row in strata:
+        rng.shuffle(row)
+    return (strata.T - jitter) / n
+
+
 def start_design(free: FreeParams, n_starts: int, spread: float, rng: np.random.Generator) -> np.ndarray:
     """`theta (S, P)` of `n_starts` starts: the first at the start values, the others a
-    Latin hypercube (space-filling, `scipy.stats.qmc`) over a box: for a name with bounds on
+    Latin hypercube (space-filling, `latin_hypercube`) over a box: for a name with bounds on
     both sides uniform in the physical value within them; for the others `+- 2 spread` times
     the coordinate's scale about the start (log-transformed values: factors of `e^(+-2 spread)`)."""
-    from scipy.stats import qmc
-
     P = free.size
     theta = np.repeat(free.theta0[None], n_starts, 0)
     if n_starts < 2 or P == 0:
         return theta
-    u = qmc.LatinHypercube(d=P, rng=rng).random(n_starts - 1)
+    u = latin_hypercube(n_starts - 1, P, rng)
     ts = free.theta_scales()
     box = theta[1:] + 2.0 * spread * ts * (2.0 * u - 1.0)
     k = 0

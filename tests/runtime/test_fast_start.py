@@ -11,6 +11,8 @@ import pytest
 import jsphere
 from jsphere._runtime import fast_start
 from jsphere._runtime.private import equinox_errors_as
+from jsphere._runtime.quick_compile import eager_jit
+from jsphere.solve.batched.dispatch import compile_program
 
 
 @pytest.fixture
@@ -65,6 +67,42 @@ def test_an_exported_program_compiles_once_for_committed_and_uncommitted_argumen
     assert run._cache_size() == 1
     np.testing.assert_array_equal(np.asarray(second[0]), x**3)
     np.testing.assert_array_equal(np.asarray(third[0]), x * (x**2 + x))
+
+
+def _compiles(f) -> int:
+    """How many programs XLA compiles while `f()` runs."""
+    seen = []
+
+    def listen(event, duration, **_):
+        if event.endswith("backend_compile_duration"):
+            seen.append(duration)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        f()
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    return len(seen)
+
+
+def test_a_program_compiled_ahead_runs_without_compiling(tmp_path):
+    """`FastStart.compile` exports and compiles what a call runs, without running it (and calls
+    `traced` in between); the call then compiles nothing. The same for an `eager_jit` function
+    and its `lower`, through `compile_program` without `programs`."""
+    fs, order = jsphere.FastStart(tmp_path), []
+    f = jax.jit(lambda a, b: (jnp.sin(a) * b, a - b))
+    x = np.linspace(0.0, 1.0, 7)
+    assert _compiles(lambda: fs.compile("test.ahead", f, x, x, traced=lambda: order.append("traced"))) >= 1
+    assert order == ["traced"] and len(list((tmp_path / "aot").glob("*.jaxexport"))) == 1
+    out = []
+    assert _compiles(lambda: out.append(fs("test.ahead", f, tuple, x, 2 * x))) == 0
+    np.testing.assert_array_equal(np.asarray(out[0][1]), -x)
+
+    g = eager_jit(lambda a: jnp.cos(a) + a)
+    compile_program(None, "unused", g, x, traced=lambda: order.append("lowered"))
+    assert order[-1] == "lowered"
+    assert _compiles(lambda: out.append(g(x))) == 0
+    np.testing.assert_allclose(np.asarray(out[1]), np.cos(x) + x, rtol=1e-15)
 
 
 @pytest.mark.slow

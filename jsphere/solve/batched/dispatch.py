@@ -57,6 +57,22 @@ def run_program(programs: Callable | None, name: str, fn: Callable, rebuild: Cal
     return fn(*args) if programs is None else programs(name, fn, rebuild, *args)
 
 
+def compile_program(programs: Callable | None, name: str, fn: Callable, *args, traced: Callable = lambda: None) -> None:
+    """Compile what `run_program(programs, name, fn, rebuild, *args)` runs, without running
+    it: `fn.lower(*args).compile()` (`fn` an `eager_jit` function), or `programs.compile(name,
+    fn, *args, traced=traced)` where the caller's `programs` has that method
+    (`jsphere.FastStart`); nothing for other `programs`. `traced()` is called once the program
+    is traced and lowered, before XLA compiles it (which releases Python's lock)."""
+    if programs is None:
+        lowered = fn.lower(*args)
+        traced()
+        lowered.compile()
+    elif hasattr(programs, "compile"):
+        programs.compile(name, fn, *args, traced=traced)
+    else:
+        traced()
+
+
 def has_tracer(tree) -> bool:
     return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree))
 
