@@ -51,6 +51,15 @@ def use_cpu_cores(n: int | None = None) -> int:
     return n
 
 
+def split_devices(n: int, devices=None) -> list:
+    """The devices a batch of `n` equal shares is split over: the first `k` of `devices`
+    (default: every device of JAX's default backend), `k` the most that divide `n`."""
+    import jax
+
+    devices = list(jax.devices() if devices is None else devices)
+    return devices[: max(k for k in range(1, len(devices) + 1) if n % k == 0)]
+
+
 def trial_mesh(devices=None):
     """A one-axis mesh, `"trials"`, over `devices` (default: every device of JAX's default
     backend)."""

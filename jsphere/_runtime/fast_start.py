@@ -15,9 +15,9 @@ cache when that is on (`jsphere.enable_compilation_cache`): a second process ski
 lowering (docs/decisions/persistent-compilation-cache-and-exported-solves.md).
 
 The key hashes everything the program depends on: its name, the source of every `jsphere`
-module, the versions of jax, jaxlib, diffrax and equinox, the backend and float precision, the
-tree structure of the arguments, the shapes and dtypes of their arrays, and the values of
-their non-array parts. A call whose non-array parts have no stable value (a `lambda`, a
+module, the versions of jax, jaxlib, diffrax and equinox, the backend, its device count and
+float precision, the tree structure of the arguments, the shapes and dtypes of their arrays,
+and the values of their non-array parts. A call whose non-array parts have no stable value (a `lambda`, a
 function defined outside jsphere, any object printed with its address) is not exported, and
 any failure of the exported path falls back to the ordinary call.
 """
@@ -146,7 +146,8 @@ def _committed(leaves: list) -> list:
 
 def environment() -> str:
     """What every exported program depends on besides its arguments (computed once): the
-    source of every jsphere module, library versions, backend and float precision."""
+    source of every jsphere module, library versions, the backend and its device count (a
+    program may split its work over the devices)."""
     global _ENVIRONMENT
     if _ENVIRONMENT is None:
         import diffrax
@@ -156,7 +157,14 @@ def environment() -> str:
         package = Path(__file__).resolve().parent.parent
         for f in sorted(package.rglob("*.py")):
             h.update(f.relative_to(package).as_posix().encode() + b"\0" + f.read_bytes())
-        for item in (jax.__version__, jaxlib.__version__, diffrax.__version__, eqx.__version__, jax.default_backend()):
+        for item in (
+            jax.__version__,
+            jaxlib.__version__,
+            diffrax.__version__,
+            eqx.__version__,
+            jax.default_backend(),
+            jax.device_count(),
+        ):
             h.update(str(item).encode() + b"\0")
         _ENVIRONMENT = h.hexdigest()
     return _ENVIRONMENT

@@ -24,7 +24,10 @@ from typing import Any, Callable
 import diffrax as dfx
 import jax
 import jax.numpy as jnp
+import numpy as np
+from jax.sharding import NamedSharding, PartitionSpec
 
+from .._runtime.cores import split_devices, trial_mesh
 from .._runtime.quick_compile import eager_jit
 from ..controls import Sampled, Torques, WheelSpeeds
 from ..model.kinematics import relative_rate_from_wheel_speeds
@@ -118,6 +121,12 @@ class _Functions:
     single shooting. `segments(...)`: the same for the segments of multiple shooting, with each
     segment's end state and its Jacobian; `assemble(...)`: their normal-equation blocks, cost and
     defects (`jsphere.identify.shooting.assemble`); `solve(blocks, lam)`: the LM step from blocks.
+
+    `split`: `run` and `compile` split the starts x trials of `jacobian` and `segments` over
+    as many devices as divide them (`jsphere.use_cpu_cores`: one per CPU core), each device
+    solving its share (`jax.shard_map`); their inputs are copied to those devices and their
+    outputs come back to the first, where the other programs run. A call of `jacobian` or
+    `segments` itself runs on one device.
     """
 
     def __init__(
@@ -129,8 +138,10 @@ class _Functions:
         max_steps: int,
         solver: dfx.AbstractSolver | None,
         max_offset: float = 0.0,
+        split: bool = False,
     ):
         P = free.size
+        self.split = split
         # what the programs close over, as a stable text (an object shown by its address has none)
         key = repr((free.slots, kind, rtol, atol, max_steps, solver, max_offset))
         self.key = None if " at 0x" in key else key
@@ -145,18 +156,32 @@ class _Functions:
             J, (res, ok, pose, end) = jax.jacfwd(f, has_aux=True)(jnp.concatenate([th, nu]))
             return (res, ok, J[0], pose, end, J[1]) if ends else (res, ok, J, pose)
 
-        def every(base, th, nu, d, sig, ends):
-            """`jac_one` of every start and trial, in one `vmap` over both (one batching of the solve)."""
+        def every(base, th, nu, d, sig, ends, split):
+            """`jac_one` of every start and trial, in one `vmap` over both (one batching of the
+            solve); with `split`, each of `_devices(nu)` solves its share."""
             S, T = nu.shape[:2]
             d = jax.tree_util.tree_map(lambda a: jnp.tile(a, (S,) + (1,) * (a.ndim - 1)), d)
-            out = jax.vmap(functools.partial(jac_one, ends=ends), in_axes=(None, 0, 0, 0, None))(
-                base, jnp.repeat(th, T, axis=0), nu.reshape((S * T,) + nu.shape[2:]), d, sig
-            )
+            solves = jax.vmap(functools.partial(jac_one, ends=ends), in_axes=(None, 0, 0, 0, None))
+            devices = _devices(nu) if split else ()
+            if len(devices) > 1:
+                one, trials = PartitionSpec(), PartitionSpec("trials")
+                solves = jax.shard_map(
+                    solves,
+                    mesh=trial_mesh(devices),
+                    in_specs=(one, trials, trials, trials, one),
+                    out_specs=trials,
+                    check_vma=False,
+                )
+            out = solves(base, jnp.repeat(th, T, axis=0), nu.reshape((S * T,) + nu.shape[2:]), d, sig)
             return jax.tree_util.tree_map(lambda a: a.reshape((S, T) + a.shape[1:]), out)
 
         # (single shooting needs no Jacobian of the trials' end states)
-        self.jacobian = eager_jit(functools.partial(every, ends=False))
-        self.segments = eager_jit(functools.partial(every, ends=True))
+        self.jacobian = eager_jit(functools.partial(every, ends=False, split=False))
+        self.segments = eager_jit(functools.partial(every, ends=True, split=False))
+        self._split = {
+            "jacobian": eager_jit(functools.partial(every, ends=False, split=True)),
+            "segments": eager_jit(functools.partial(every, ends=True, split=True)),
+        }
         self.step = eager_jit(jax.vmap(functools.partial(arrow_step, P=P)))
 
         def assemble(res, J, e, Je, nu, mu, seg, scale):
@@ -165,20 +190,41 @@ class _Functions:
         self.assemble = eager_jit(jax.vmap(assemble, in_axes=(0, 0, 0, 0, 0, None, None, None)))
         self.solve = eager_jit(jax.vmap(solve_arrow, in_axes=(0, 0)))
 
+    def _program(self, name: str, args) -> tuple[Callable, tuple, Any]:
+        """The function `run(_, name, *args)` calls, its arguments placed where it runs, and
+        the device its outputs go to (None: where they are)."""
+        devices = _devices(args[2]) if self.split and name in self._split else ()
+        if len(devices) < 2:
+            return getattr(self, name), args, None
+        everywhere = NamedSharding(trial_mesh(devices), PartitionSpec())
+        placed = jax.tree_util.tree_map(
+            lambda x: jax.device_put(x, everywhere) if isinstance(x, (jax.Array, np.ndarray)) else x, args
+        )
+        return self._split[name], placed, devices[0]
+
     def run(self, programs, name: str, *args):
-        """`self.<name>(*args)`, or `programs(...)` in its place (`SolverOptions.programs`: a
-        `jsphere.FastStart` keeps the program, exported, for the next process)."""
-        fn = getattr(self, name)
+        """`self.<name>(*args)` (split over devices with `split`), or `programs(...)` in its
+        place (`SolverOptions.programs`: a `jsphere.FastStart` keeps the program, exported, for
+        the next process)."""
+        fn, args, home = self._program(name, args)
         if programs is None or self.key is None:
-            return fn(*args)
-        rebuild = functools.partial(jax.tree_util.tree_unflatten, _OUTPUTS[name])
-        return run_program(programs, f"fit.{name}:{self.key}", fn, rebuild, *args)
+            out = fn(*args)
+        else:
+            rebuild = functools.partial(jax.tree_util.tree_unflatten, _OUTPUTS[name])
+            out = run_program(programs, f"fit.{name}:{self.key}:{home is not None}", fn, rebuild, *args)
+        return out if home is None else jax.device_put(out, home)
 
     def compile(self, programs, name: str, *args, traced: Callable = lambda: None) -> None:
         """Compile the program `run(programs, name, *args)` runs, without running it;
         `traced()` is called once it is traced, before XLA compiles it."""
-        fn = getattr(self, name)
-        compile_program(None if self.key is None else programs, f"fit.{name}:{self.key}", fn, *args, traced=traced)
+        fn, args, home = self._program(name, args)
+        name = f"fit.{name}:{self.key}:{home is not None}"
+        compile_program(None if self.key is None else programs, name, fn, *args, traced=traced)
+
+
+def _devices(nu) -> list:
+    """The devices the starts x trials (or segments) of `nu (S, T, n)` are split over."""
+    return split_devices(nu.shape[0] * nu.shape[1])
 
 
 #: the structure of each program's output (`_Functions.run` rebuilds it from the leaves)
@@ -205,10 +251,12 @@ def _functions(
     max_steps: int,
     solver: dfx.AbstractSolver | None = None,
     max_offset: float = 0.0,
+    split: bool = False,
 ) -> _Functions:
     """The compiled functions of a configuration; `solver`: a diffrax solver (hashable, as
-    diffrax's are), None for `simulate`'s default; `max_offset` > 0: the clock offsets are fitted."""
-    key = (free.slots, kind, rtol, atol, max_steps, solver, max_offset)
+    diffrax's are), None for `simulate`'s default; `max_offset` > 0: the clock offsets are
+    fitted; `split`: see `_Functions`."""
+    key = (free.slots, kind, rtol, atol, max_steps, solver, max_offset, split)
     if key not in _CACHE:
-        _CACHE[key] = _Functions(free, kind, rtol, atol, max_steps, solver, max_offset)
+        _CACHE[key] = _Functions(free, kind, rtol, atol, max_steps, solver, max_offset, split)
     return _CACHE[key]

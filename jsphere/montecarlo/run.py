@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._runtime.checks import real
+from .._runtime.cores import split_devices, trial_mesh
 from .._runtime.errors import InputError
 from .._runtime.progress import Progress
 from ..controls import Sampled
@@ -472,12 +473,8 @@ class _Run:
             B = recorded if recorded is not None and recorded % CHUNK == 0 else B
         n_batches = int(math.ceil(n / B))
         if not distributed:  # as many local devices as divide the batch into whole chunks
-            devices = devices[: max(k for k in range(1, len(devices) + 1) if B % (CHUNK * k) == 0)]
-        mesh = None
-        if len(devices) > 1:  # each device runs its share of every batch
-            from .._runtime.cores import trial_mesh
-
-            mesh = trial_mesh(devices)
+            devices = split_devices(B // CHUNK, devices)
+        mesh = trial_mesh(devices) if len(devices) > 1 else None  # each device runs its share of every batch
         trials = Trials(
             params,
             gaits,
