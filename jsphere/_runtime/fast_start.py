@@ -90,20 +90,25 @@ class FastStart:
     def compile(self, name: str, fn: Callable, *args, traced: Callable = lambda: None) -> None:
         """Export (or load) and compile the program `self(name, fn, rebuild, *args)` runs,
         without running it, so that a call with arguments of the same shapes runs at once;
-        `traced()` is called between exporting and compiling. A call without a stable key
-        compiles `fn.lower(*args)` where `fn` has one. Failures are left to the call itself
-        to report (`traced()` is called all the same)."""
+        `traced()` is called between tracing and compiling. Where the call would run `fn`
+        itself (no stable key, or an export that fails: noted as the call notes it), this
+        compiles `fn.lower(*args)`, where `fn` has one."""
         dyn, static = eqx.partition(args, eqx.is_array)
         leaves, treedef = jax.tree_util.tree_flatten(dyn)
         key = _key(name, leaves, treedef, static)
+        lowered = None
         try:
-            if key is None:
-                lowered = fn.lower(*args) if hasattr(fn, "lower") else None
-            elif key not in self._failed:
-                run = self._loaded.get(key) or self._load_or_export(key, fn, treedef, static, leaves)
-                lowered = run.lower(*_committed(leaves))
-            else:
-                lowered = None
+            if key is not None and key not in self._failed:
+                try:
+                    run = self._loaded.get(key) or self._load_or_export(key, fn, treedef, static, leaves)
+                    lowered = run.lower(*_committed(leaves))
+                except Exception as e:  # noqa: BLE001 - as in `__call__`: the call runs `fn` itself
+                    self._failed.add(key)
+                    print(
+                        f"jsphere: not exporting {name} ({type(e).__name__}: {e}); running it directly", file=sys.stderr
+                    )
+            if lowered is None and hasattr(fn, "lower"):
+                lowered = fn.lower(*args)
         finally:
             traced()
         if lowered is not None:

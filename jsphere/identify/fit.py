@@ -694,7 +694,10 @@ def _evaluate_multiple(run: _Run, st: _State, mu: float, th, n):
     with run.progress.compiling("fit", _program(run, "multiple"), "fit: multiple shooting"):
         args = (run.base, to_jax(th), to_jax(n), ms.arrays, to_jax(st.sig))
         if st.ahead is None:  # single shooting's program compiles meanwhile (`_compile_ahead`)
-            run.fns.compile(run.programs, "segments", *args, traced=lambda: _compile_ahead(run, st))
+            try:
+                run.fns.compile(run.programs, "segments", *args, traced=lambda: _compile_ahead(run, st))
+            except Exception:  # noqa: BLE001 - the call below compiles it again and says what fails
+                pass
         res, ok, J, pose, e, Je = run.fns.run(run.programs, "segments", *args)
         robust = 0.0
         if run.options.loss != "l2":  # the weighted squares replaced by the robust cost

@@ -87,8 +87,9 @@ def _compiles(f) -> int:
 
 def test_a_program_compiled_ahead_runs_without_compiling(tmp_path):
     """`FastStart.compile` exports and compiles what a call runs, without running it (and calls
-    `traced` in between); the call then compiles nothing. The same for an `eager_jit` function
-    and its `lower`, through `compile_program` without `programs`."""
+    `traced` in between); the call then compiles nothing. A program that cannot be exported is
+    compiled as the call runs it. The same for an `eager_jit` function and its `lower`, through
+    `compile_program` without `programs`."""
     fs, order = jsphere.FastStart(tmp_path), []
     f = jax.jit(lambda a, b: (jnp.sin(a) * b, a - b))
     x = np.linspace(0.0, 1.0, 7)
@@ -98,11 +99,18 @@ def test_a_program_compiled_ahead_runs_without_compiling(tmp_path):
     assert _compiles(lambda: out.append(fs("test.ahead", f, tuple, x, 2 * x))) == 0
     np.testing.assert_array_equal(np.asarray(out[0][1]), -x)
 
+    # a program that cannot be exported (a host callback) is compiled as the call will run it
+    h = jax.jit(lambda a: (jax.debug.callback(lambda v: None, a), a * 3.0)[1])
+    fs.compile("test.callback", h, x, traced=lambda: order.append("callback"))
+    assert order[-1] == "callback" and len(fs._failed) == 1
+    assert _compiles(lambda: out.append(fs("test.callback", h, lambda leaves: leaves[0], x))) == 0
+    np.testing.assert_array_equal(np.asarray(out[-1]), 3.0 * x)
+
     g = eager_jit(lambda a: jnp.cos(a) + a)
     compile_program(None, "unused", g, x, traced=lambda: order.append("lowered"))
     assert order[-1] == "lowered"
     assert _compiles(lambda: out.append(g(x))) == 0
-    np.testing.assert_allclose(np.asarray(out[1]), np.cos(x) + x, rtol=1e-15)
+    np.testing.assert_allclose(np.asarray(out[-1]), np.cos(x) + x, rtol=1e-15)
 
 
 @pytest.mark.slow
