@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import NamedSharding, PartitionSpec
 
+from .._runtime.arrays import to_jax
 from .._runtime.cores import split_devices, trial_mesh
 from .._runtime.quick_compile import eager_jit
 from ..controls import Sampled, Torques, WheelSpeeds
@@ -125,8 +126,8 @@ class _Functions:
     `split`: `run` and `compile` split the starts x trials of `jacobian` and `segments` over
     as many devices as divide them (`jsphere.use_cpu_cores`: one per CPU core), each device
     solving its share (`jax.shard_map`); their inputs are copied to those devices and their
-    outputs come back to the first, where the other programs run. A call of `jacobian` or
-    `segments` itself runs on one device.
+    outputs come back to the default device, where the other programs run. A call of
+    `jacobian` or `segments` itself runs on one device.
     """
 
     def __init__(
@@ -192,7 +193,7 @@ class _Functions:
 
     def _program(self, name: str, args) -> tuple[Callable, tuple, Any]:
         """The function `run(_, name, *args)` calls, its arguments placed where it runs, and
-        the device its outputs go to (None: where they are)."""
+        the first of its devices when it spans several (None: one device)."""
         devices = _devices(args[2]) if self.split and name in self._split else ()
         if len(devices) < 2:
             return getattr(self, name), args, None
@@ -212,7 +213,11 @@ class _Functions:
         else:
             rebuild = functools.partial(jax.tree_util.tree_unflatten, _OUTPUTS[name])
             out = run_program(programs, f"fit.{name}:{self.key}:{home is not None}", fn, rebuild, *args)
-        return out if home is None else jax.device_put(out, home)
+        if home is None:
+            return out
+        # on the default device, uncommitted as every other program's inputs are (a committed
+        # array would compile each later program again)
+        return jax.tree_util.tree_map(lambda a: to_jax(np.asarray(a)), out)
 
     def compile(self, programs, name: str, *args, traced: Callable = lambda: None) -> None:
         """Compile the program `run(programs, name, *args)` runs, without running it;
