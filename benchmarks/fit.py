@@ -39,11 +39,12 @@ def truth_params() -> jsphere.RobotParams:
 
 
 def make_trials(truth, n, durations, kind, seed, rate=100.0):
-    """`n` synthetic trials; durations drawn uniformly from `durations = (lo, hi)` [s]."""
+    """`n` synthetic trials; durations drawn uniformly from `durations = (lo, hi)` [s], or
+    `durations` itself when it is a list of `n` lengths [s]."""
     rng = np.random.default_rng(seed)
     out = []
     for i in range(n):
-        t1 = float(np.round(rng.uniform(*durations) * rate) / rate)
+        t1 = durations[i] if isinstance(durations, list) else float(np.round(rng.uniform(*durations) * rate) / rate)
         u = jsphere.random_inputs(truth, t1, kind=kind, seed=seed * 1000 + i)
         out.append(jsphere.synthetic_trial(truth, u, t1, rate=rate, seed=seed * 1000 + i, name=f"trial{i:02d}"))
     return out

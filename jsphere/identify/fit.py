@@ -481,7 +481,9 @@ def _setup(
     kind, S, P, T = data.kind, o.n_starts, free.size, data.ts.shape[0]
     multiple = _use_multiple(o.shooting, data, o.segment)
     seg = _shooting.segment_trials(data, o.segment) if multiple else None
-    fns = _functions(free, kind, float(o.rtol), float(o.atol), int(o.max_steps), o.solver, o.max_time_offset, True)
+    fns = _functions(
+        free, kind, float(o.rtol), float(o.atol), int(o.max_steps), o.solver, o.max_time_offset, split=True
+    )
     sig = np.array([o.sigma_pos or 1e-3, o.sigma_rot or math.radians(0.5)])
     rng = np.random.default_rng(o.seed)
     theta = start_design(free, S, o.spread, rng)
