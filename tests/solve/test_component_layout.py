@@ -251,6 +251,16 @@ def test_failures_are_reported_per_trial_under_vmap():
         assert "max_steps" in str(e)
 
 
+def test_large_batches_are_chunked_for_the_platform_they_run_on(monkeypatch):
+    """Chunks of `BATCH_CHUNK` trials on a CPU, of `ACCELERATOR_BATCH_CHUNK` on a GPU (the
+    platform of the default device where one is set, else the default backend)."""
+    assert L.batch_chunk() == L.BATCH_CHUNK == 1024
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert L.batch_chunk() == L.ACCELERATOR_BATCH_CHUNK
+    with jax.default_device(jax.devices("cpu")[0]):
+        assert L.batch_chunk() == L.BATCH_CHUNK
+
+
 @pytest.mark.slow
 def test_chunked_batches_and_the_small_batch_threshold(monkeypatch):
     """A batch above `BATCH_CHUNK` runs as chunks (padded), one below `COMPONENT_MIN_BATCH` in the

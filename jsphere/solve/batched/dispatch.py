@@ -7,7 +7,7 @@ and XLA on CPU vectorises the right-hand side (3.4) over the batch, while the fl
 choice is made by `jax.custom_batching.custom_vmap` (`_dispatched`): the unbatched call runs
 `Layout.FLAT`, the batching rule the layout of `BatchedSolve.layout_for` (the batch loop's
 layouts from `SHARED_MIN_BATCH` trials, components from `COMPONENT_MIN_BATCH`), in chunks of
-`BATCH_CHUNK` trials.
+`batch_chunk()` trials (1024 on a CPU).
 
 As `custom_vmap` has no reverse mode, the default adjoint wraps it in a custom VJP
 (`_reverse`). Its forward pass is the solve in the layout chosen by batching and keeps only
@@ -185,9 +185,9 @@ def _dispatched(engine: BatchedSolve):
 
 def _chunked_vmap(fn, axis_size, in_batched, *args, chunk=None):
     """`vmap(fn)` over the batched leaves of `args`, in chunks of at most `chunk` trials
-    (default `BATCH_CHUNK`; which trials share a chunk: `to_chunks`); a batch of one is the
+    (default `batch_chunk()`; which trials share a chunk: `to_chunks`); a batch of one is the
     unbatched call with the axis added."""
-    chunk = chunk or _layout.BATCH_CHUNK
+    chunk = chunk or _layout.batch_chunk()
     if axis_size == 1:  # e.g. `jax.jacfwd` of one scalar: the call itself, not a size-1 `vmap` of it
         one = tuple(jax.tree_util.tree_map(lambda x, b: x[0] if b else x, a, b) for a, b in zip(args, in_batched))
         return jax.tree_util.tree_map(lambda x: x[None], fn(*one))
@@ -288,7 +288,7 @@ def _reverse_bwd(engine: BatchedSolve, leaves, ct):
     differentiated), recomputed from the inputs. Unbatched and in small batches: the flat
     layout's VJP (diffrax's checkpointed adjoint), one compiled program (`_flat_vjp`). In
     batches in the batch loop (`BatchedSolve.loop_grad`): the VJP of the batched solve, whose
-    steps have a discrete adjoint, in chunks of `BATCH_CHUNK` trials (`_loop_vjp`). In other
+    steps have a discrete adjoint, in chunks of `batch_chunk()` trials (`_loop_vjp`). In other
     large batches: the flat layout's VJP per trial, in chunks of `GRAD_CHUNK` trials."""
     flat_ct = jax.tree_util.tree_leaves(ct, is_leaf=lambda c: isinstance(c, SymbolicZero))
     if isinstance(leaves, tuple):  # the forward pass kept the Jacobian (`_flat_jacfwd`)
@@ -448,10 +448,10 @@ def _loop_vjp(engine: BatchedSolve, keep, axis_size, lv_batched, ct_batched, lv,
     per-trial steps), for the cotangents `cts` of its kept outputs: `jax.vjp` of the batched
     solve (`vmap` inside, so the batching rule of `jsphere.solve.batched.segment.solve` runs
     before differentiation and the loop's discrete adjoint applies), chunk by chunk
-    (`BATCH_CHUNK` trials: padding trials get zero cotangents). The cotangents of leaves shared
+    (`batch_chunk()` trials: padding trials get zero cotangents). The cotangents of leaves shared
     by the batch are sums over the batch; they are returned in the first trial's row (zeros
     elsewhere), which sums to the same."""
-    chunk = min(axis_size, _layout.BATCH_CHUNK)
+    chunk = min(axis_size, _layout.batch_chunk())
     layout = engine.layout_for(axis_size)
     n = -(-axis_size // chunk)
     in_axes = [0 if b else None for b in lv_batched]

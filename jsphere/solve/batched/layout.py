@@ -62,9 +62,26 @@ SHARED_MIN_BATCH = 32
 #: Smallest batch that carries its state as components when the batch loop is not used.
 COMPONENT_MIN_BATCH = 256
 
-#: Largest batch one vectorised solve takes; bigger batches run as a `lax.map` over chunks of
-#: this many trials, so that the solver's working set stays in cache on CPU.
+#: Largest batch one vectorised solve takes on a CPU; bigger batches run as a `lax.map` over
+#: chunks of this many trials, so that the solver's working set stays in cache.
 BATCH_CHUNK = 1024
+
+#: The same on a GPU or another accelerator (`batch_chunk`), not measured: its kernels need
+#: many trials each to fill the device; the gradient of a chunk keeps about 40 KB of
+#: checkpoints per trial, 10 GB for this many.
+ACCELERATOR_BATCH_CHUNK = 2**18
+
+
+def batch_chunk() -> int:
+    """The chunk size of large batches on the platform JAX computes on by default (its default
+    device's, where one is set): `BATCH_CHUNK` on a CPU, `ACCELERATOR_BATCH_CHUNK` elsewhere
+    (docs/decisions/batches-in-chunks-of-1024-trials.md)."""
+    import jax
+
+    device = jax.config.jax_default_device
+    platform = device.platform if device is not None and not isinstance(device, str) else jax.default_backend()
+    return BATCH_CHUNK if platform == "cpu" else ACCELERATOR_BATCH_CHUNK
+
 
 #: Chunk size of the backward pass of large batches outside the batch loop (the flat layout's
 #: VJP, recomputed).
