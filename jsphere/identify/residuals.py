@@ -191,29 +191,29 @@ class _Functions:
         self.assemble = eager_jit(jax.vmap(assemble, in_axes=(0, 0, 0, 0, 0, None, None, None)))
         self.solve = eager_jit(jax.vmap(solve_arrow, in_axes=(0, 0)))
 
-    def _program(self, name: str, args) -> tuple[Callable, tuple, Any]:
+    def _program(self, name: str, args) -> tuple[Callable, tuple, bool]:
         """The function `run(_, name, *args)` calls, its arguments placed where it runs, and
-        the first of its devices when it spans several (None: one device)."""
+        whether it spans several devices."""
         devices = _devices(args[2]) if self.split and name in self._split else ()
         if len(devices) < 2:
-            return getattr(self, name), args, None
+            return getattr(self, name), args, False
         everywhere = NamedSharding(trial_mesh(devices), PartitionSpec())
         placed = jax.tree_util.tree_map(
             lambda x: jax.device_put(x, everywhere) if isinstance(x, (jax.Array, np.ndarray)) else x, args
         )
-        return self._split[name], placed, devices[0]
+        return self._split[name], placed, True
 
     def run(self, programs, name: str, *args):
         """`self.<name>(*args)` (split over devices with `split`), or `programs(...)` in its
         place (`SolverOptions.programs`: a `jsphere.FastStart` keeps the program, exported, for
         the next process)."""
-        fn, args, home = self._program(name, args)
+        fn, args, split = self._program(name, args)
         if programs is None or self.key is None:
             out = fn(*args)
         else:
             rebuild = functools.partial(jax.tree_util.tree_unflatten, _OUTPUTS[name])
-            out = run_program(programs, f"fit.{name}:{self.key}:{home is not None}", fn, rebuild, *args)
-        if home is None:
+            out = run_program(programs, f"fit.{name}:{self.key}:{split}", fn, rebuild, *args)
+        if not split:
             return out
         # on the default device, uncommitted as every other program's inputs are (a committed
         # array would compile each later program again)
@@ -222,8 +222,8 @@ class _Functions:
     def compile(self, programs, name: str, *args, traced: Callable = lambda: None) -> None:
         """Compile the program `run(programs, name, *args)` runs, without running it;
         `traced()` is called once it is traced, before XLA compiles it."""
-        fn, args, home = self._program(name, args)
-        name = f"fit.{name}:{self.key}:{home is not None}"
+        fn, args, split = self._program(name, args)
+        name = f"fit.{name}:{self.key}:{split}"
         compile_program(None if self.key is None else programs, name, fn, *args, traced=traced)
 
 

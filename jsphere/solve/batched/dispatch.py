@@ -61,8 +61,8 @@ def compile_program(programs: Callable | None, name: str, fn: Callable, *args, t
     """Compile what `run_program(programs, name, fn, rebuild, *args)` runs, without running
     it: `fn.lower(*args).compile()` (`fn` an `eager_jit` function), or `programs.compile(name,
     fn, *args, traced=traced)` where the caller's `programs` has that method
-    (`jsphere.FastStart`); nothing for other `programs`. `traced()` is called once the program
-    is traced and lowered, before XLA compiles it (which releases Python's lock)."""
+    (`jsphere.FastStart`); for other `programs` nothing is compiled. `traced()` is called once
+    the program is traced and lowered, before XLA compiles it (which releases Python's lock)."""
     if programs is None:
         lowered = fn.lower(*args)
         traced()
