@@ -23,6 +23,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's jsphere first
 
+from jsphere._runtime.files import atomic_write_text  # noqa: E402
+
 HERE = Path(__file__).resolve().parent
 FREE = "R_m,j,I[0,0],I[1,1],I[2,2],m0,I0"
 DURATIONS = [15.0, 15.0, 15.0, 30.0]
@@ -97,9 +99,7 @@ def main(argv=None) -> int:
         label = f"{r['device']['count']} device(s)"
         print(f"{label:<44} {med[k]:7.1f} {max(abs(x) for x in r['z'].values()):8.2f} {r['iterations']:11d}")
     print(f"one device / one per core: {res['one_device_over_per_core']:.2f}; target {TARGET_S:.0f} s")
-    tmp = args.out.with_suffix(".tmp")
-    tmp.write_text(json.dumps(res, indent=2) + "\n")
-    tmp.replace(args.out)
+    atomic_write_text(args.out, json.dumps(res, indent=2) + "\n")
     return 0
 
 
