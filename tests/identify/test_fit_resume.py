@@ -290,7 +290,7 @@ def failing(monkeypatch):
     real = _fit._functions
 
     def install(k0: int, finite_calls: int):
-        monkeypatch.setattr(_fit, "_functions", lambda *a: _Failing(real(*a), k0, finite_calls))
+        monkeypatch.setattr(_fit, "_functions", lambda *a, **kw: _Failing(real(*a, **kw), k0, finite_calls))
 
     return install
 
