@@ -3,7 +3,7 @@ first simulation or gradient, against plain diffrax on a problem of similar cost
 
     python benchmarks/first_result.py                 # cold and cached, 1 process each
     python benchmarks/first_result.py --repeat 3      # median over 3 processes per entry
-    python benchmarks/first_result.py --quick         # gaits, grad and their baselines only
+    python benchmarks/first_result.py --quick         # gaits, grad and their baselines only (no record unless --out)
     python benchmarks/first_result.py --xla-defaults  # also jsphere's tasks with XLA's default options
 
 Every entry is a new Python process (`python first_result.py --child TASK`) that times its
@@ -434,7 +434,13 @@ def main(argv=None) -> int:
         action="store_true",
         help="also run the jsphere tasks cold with XLA's default options (JSPHERE_XLA_DEFAULTS=1), alternating",
     )
-    ap.add_argument("--out", type=Path, default=HERE / "results-first-result.json")
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="JSON record (default: benchmarks/results-first-result.json for a full run; "
+        "a run of some tasks, --tasks or --quick, writes one only where --out is given)",
+    )
     ap.add_argument("--child", help=argparse.SUPPRESS)
     ap.add_argument("--cache-dir", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -541,10 +547,14 @@ def main(argv=None) -> int:
         f"quickstart cold < {TARGET_QUICKSTART_S} s"
     )
 
-    tmp = args.out.with_suffix(".tmp")
+    out = args.out or (None if args.tasks or args.quick else HERE / "results-first-result.json")
+    if out is None:  # the record of the full run stays whole
+        print("not written: a run of some tasks writes its record only to --out")
+        return 0
+    tmp = out.with_suffix(".tmp")
     tmp.write_text(json.dumps(doc, indent=2) + "\n")
-    tmp.replace(args.out)
-    print(f"wrote {args.out}")
+    tmp.replace(out)
+    print(f"wrote {out}")
     return 0
 
 
