@@ -83,9 +83,13 @@ class FastStart:
                 run = self._loaded.get(key) or self._load_or_export(key, fn, treedef, static, leaves)
                 return rebuild(run(*_committed(leaves)))
             except Exception as e:  # noqa: BLE001 - the exported path is an optimisation only
-                self._failed.add(key)
-                print(f"jsphere: not exporting {name} ({type(e).__name__}: {e}); running it directly", file=sys.stderr)
+                self._not_exported(key, name, e)
         return fn(*args)
+
+    def _not_exported(self, key: str, name: str, e: Exception) -> None:
+        """`fn` runs itself for this key from now on; said once, on stderr."""
+        self._failed.add(key)
+        print(f"jsphere: not exporting {name} ({type(e).__name__}: {e}); running it directly", file=sys.stderr)
 
     def compile(self, name: str, fn: Callable, *args, traced: Callable = lambda: None) -> None:
         """Export (or load) and compile the program `self(name, fn, rebuild, *args)` runs,
@@ -103,10 +107,7 @@ class FastStart:
                     run = self._loaded.get(key) or self._load_or_export(key, fn, treedef, static, leaves)
                     lowered = run.lower(*_committed(leaves))
                 except Exception as e:  # noqa: BLE001 - as in `__call__`: the call runs `fn` itself
-                    self._failed.add(key)
-                    print(
-                        f"jsphere: not exporting {name} ({type(e).__name__}: {e}); running it directly", file=sys.stderr
-                    )
+                    self._not_exported(key, name, e)
             if lowered is None and hasattr(fn, "lower"):
                 lowered = fn.lower(*args)
         finally:

@@ -636,7 +636,7 @@ def _compile_ahead(run: _Run, st: _State) -> None:
     left to the program's first call to report."""
     if st.ahead is not None or st.nu_ms is None:
         return
-    args = (run.base, to_jax(st.theta), to_jax(st.nu_ms[:, run.shooting.seg.first]), run.arrays, to_jax(st.sig))
+    args = (run.base, to_jax(st.theta), to_jax(_trial_nu(run, st.nu_ms)), run.arrays, to_jax(st.sig))
     key = _program(run, "single")
 
     def work():
@@ -649,6 +649,12 @@ def _compile_ahead(run: _Run, st: _State) -> None:
 
     st.ahead = threading.Thread(target=work, name="jsphere-fit-compile", daemon=True)
     st.ahead.start()
+
+
+def _trial_nu(run: _Run, nu_ms):
+    """Each trial's nuisance parameters `(S, T, n)`: its first segment's, of multiple shooting's
+    `(S, G, n)`."""
+    return nu_ms[:, run.shooting.seg.first]
 
 
 def _wait_ahead(st: _State) -> None:
@@ -830,7 +836,7 @@ def _multiple_shooting(run: _Run, st: _State) -> None:
             run.say(
                 f"fit: multiple shooting: largest defect {st.max_defect:.3g} noise levels; single shooting from here"
             )
-            st.nu = st.nu_ms[:, ms.seg.first]
+            st.nu = _trial_nu(run, st.nu_ms)
             st.stage = 1
         else:
             run.say(f"fit: multiple shooting: largest defect {st.max_defect:.3g} noise levels; raising the weight")
