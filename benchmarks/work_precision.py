@@ -1,7 +1,7 @@
 """Work-precision of problem 1 of `run.py`: accuracy against throughput for jsphere, CasADi's
 compiled fixed-step RK4 and scipy's DOP853, all measured in one run.
 
-    python benchmarks/work_precision.py                  # full run (about 4.5 min on 2 CPU cores)
+    python benchmarks/work_precision.py                  # full run (about 5 min on 2 CPU cores)
     python benchmarks/work_precision.py --quick          # fewer settings, batch 256 (about 1.5 min)
     python benchmarks/work_precision.py --batch 1024 --repeats 3 --out benchmarks/results-work-precision.json \
         --figure docs/images/work-precision.png
@@ -28,8 +28,9 @@ Methods and settings:
   rtol=rtol, atol=rtol / 100, solver=S)))` on a batch of `--batch` trials (1024), the public API
   with its defaults (steps shared by the batch), the batch split over one CPU device per core
   (`jsphere.use_cpu_cores`, `jsphere.shard_trials`; `--cores`), as CasADi's map is over the CPU's
-  threads; S = Dopri8, Tsit5 at rtol 1e-3 ... 1e-11 and Dopri5 at every other decade; the error
-  is that of the batch's first trials.
+  threads; S = Dopri8, Tsit5 and Verner's 7(6) pair (`verner.Vern7`, run by jsphere's batch
+  loop as a user-defined tableau) at rtol 1e-3 ... 1e-11, and Dopri5 at every other decade; the
+  error is that of the batch's first trials.
 - CasADi: `casadi_baseline.rk4_batch` (the right-hand side in SX, RK4 folded with `mapaccum`,
   C `-O3`, mapped over the CPU's threads) at 25 ... 6400 steps over 4 s, same batch.
 - scipy: `run.scipy_trial` (`solve_ivp(method="DOP853")` on `numpy_model.NumpyRobot.rhs`, one
@@ -71,9 +72,11 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import run  # noqa: E402  (problem 1: amplitudes, phases, the scipy trial, timing, environment)
 from numpy_model import NumpyRobot  # noqa: E402
+from verner import Vern7  # noqa: E402
 
 import jsphere  # noqa: E402
 from jsphere._runtime.files import atomic_savefig  # noqa: E402
+from jsphere.solve.batched.method import tableau  # noqa: E402
 
 try:
     import casadi as ca
@@ -85,7 +88,7 @@ except ImportError:  # pragma: no cover - optional benchmark dependency
 REF_RTOL, REF_ATOL = 1e-13, 1e-14  # scipy DOP853 reference
 JS_REF_RTOL, JS_REF_ATOL = 1e-13, 1e-15  # jsphere Dopri8, the second reference
 DECADES = [1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9]
-SOLVERS = {"Dopri8": diffrax.Dopri8, "Tsit5": diffrax.Tsit5, "Dopri5": diffrax.Dopri5}
+SOLVERS = {"Dopri8": diffrax.Dopri8, "Tsit5": diffrax.Tsit5, "Dopri5": diffrax.Dopri5, "Vern7": Vern7}
 
 FULL = {
     "batch": 1024,
@@ -95,6 +98,7 @@ FULL = {
         "Dopri8": [10.0**-k for k in range(3, 12)],
         "Tsit5": [10.0**-k for k in range(3, 12)],
         "Dopri5": [10.0**-k for k in range(3, 12, 2)],
+        "Vern7": [10.0**-k for k in range(3, 12)],
     },
     "casadi_steps": [25, 50, 100, 200, 400, 800, 1600, 3200, 6400],
     "scipy_rtols": [10.0**-k for k in range(3, 12)],
@@ -103,7 +107,7 @@ QUICK = {
     "batch": 256,
     "repeats": 2,
     "error_trials": 4,
-    "jsphere": {"Dopri8": [1e-3, 1e-6, 1e-9], "Tsit5": [1e-3, 1e-6, 1e-9]},
+    "jsphere": {"Dopri8": [1e-3, 1e-6, 1e-9], "Tsit5": [1e-3, 1e-6, 1e-9], "Vern7": [1e-6]},
     "casadi_steps": [50, 200, 800],
     "scipy_rtols": [1e-3, 1e-6, 1e-9],
 }
@@ -159,6 +163,8 @@ def jsphere_rows(p, A, ref, grid, repeats):
                 "error_m": final_error(final_xy(tr)[:n], ref),
                 "trials_per_s": A.shape[0] / r["median_s"],
                 "steps_mean": float(np.mean(np.asarray(tr.num_steps))),
+                # field evaluations per accepted step: the stages after the first (first same as last)
+                "evaluations_per_step": int(tableau(SOLVERS[name]()).a.shape[0] - 1),
                 "all_ok": bool(np.all(np.asarray(tr.ok))),
                 **run.public(r),
             }
@@ -256,15 +262,26 @@ def scipy_rows(model, q0, A, ref, rtols, repeats):
 # ------------------------------------------------------------------------ report
 
 GROUPS = {"jsphere": "jsphere", "CasADi": "CasADi RK4", "scipy": "scipy DOP853"}
+#: solvers measured for comparison, not among jsphere's own: left out of the decade table
+#: ("jsphere (fastest solver)"), compared with Dopri8 at equal error instead (`equal_error`)
+COMPARED_ONLY = ("jsphere Vern7",)
 
 
 def crossover(rows):
-    """For each decade, the fastest measured row of each method group with error <= decade."""
+    """For each decade, the fastest measured row of each method group with error <= decade
+    (jsphere's own solvers only: `COMPARED_ONLY` left out)."""
     out = []
     for d in DECADES:
         entry = {"accuracy_m": d}
         for g, prefix in GROUPS.items():
-            ok = [r for r in rows if "error" not in r and r["method"].startswith(prefix) and r["error_m"] <= d]
+            ok = [
+                r
+                for r in rows
+                if "error" not in r
+                and r["method"].startswith(prefix)
+                and r["method"] not in COMPARED_ONLY
+                and r["error_m"] <= d
+            ]
             best = max(ok, key=lambda r: r["trials_per_s"]) if ok else None
             entry[g] = (
                 None
@@ -277,6 +294,59 @@ def crossover(rows):
             entry[f"jsphere_over_{g}"] = js["trials_per_s"] / other["trials_per_s"] if js and other else None
         out.append(entry)
     return out
+
+
+def equal_error(rows, method: str, against: str = "jsphere Dopri8") -> list[dict]:
+    """For each setting of `method` whose error lies within the errors measured for `against`:
+    the throughput of `against` at that error, interpolated linearly in log(error) and
+    log(trials/s) between its two nearest settings, and the ratio of the two throughputs; the
+    same for the field evaluations per trial (accepted steps x evaluations per step), a
+    measure that does not depend on the machine's speed at the time."""
+    ref = sorted((r for r in rows if r.get("method") == against and "error" not in r), key=lambda r: r["error_m"])
+    le = np.log10([r["error_m"] for r in ref])
+    lt = np.log10([r["trials_per_s"] for r in ref])
+    lw = np.log10([r["steps_mean"] * r["evaluations_per_step"] for r in ref])
+    out = []
+    for r in rows:
+        if r.get("method") != method or "error" in r or not le.size or not le[0] <= np.log10(r["error_m"]) <= le[-1]:
+            continue
+        at = float(10 ** np.interp(np.log10(r["error_m"]), le, lt))
+        work = float(10 ** np.interp(np.log10(r["error_m"]), le, lw))
+        evaluations = r["steps_mean"] * r["evaluations_per_step"]
+        out.append(
+            {
+                "method": method,
+                "setting": r["setting"],
+                "error_m": r["error_m"],
+                "trials_per_s": r["trials_per_s"],
+                "against": against,
+                "against_trials_per_s": at,
+                "ratio": r["trials_per_s"] / at,
+                "evaluations": evaluations,
+                "against_evaluations": work,
+                "evaluations_ratio": evaluations / work,
+            }
+        )
+    return out
+
+
+def fmt_equal_error(cmp) -> list[str]:
+    if not cmp:
+        return []
+    a, b = cmp[0]["method"].replace("jsphere ", ""), cmp[0]["against"].replace("jsphere ", "")
+    L = [f"{a} against {b} at equal error ({b} interpolated in log-log between its settings):"]
+    hdr = (
+        f"{'setting':>12}{'error m':>11}{a + ' trials/s':>20}{b + ' trials/s':>20}{'ratio':>8}"
+        f"{a + ' evals':>16}{b + ' evals':>16}{'ratio':>8}"
+    )
+    L += [hdr, "-" * len(hdr)]
+    for c in cmp:
+        L.append(
+            f"{c['setting']:>12}{c['error_m']:>11.1e}{c['trials_per_s']:>20.1f}"
+            f"{c['against_trials_per_s']:>20.1f}{c['ratio']:>7.2f}x"
+            f"{c['evaluations']:>16.0f}{c['against_evaluations']:>16.0f}{c['evaluations_ratio']:>7.2f}x"
+        )
+    return L
 
 
 def fmt_rows(rows) -> list[str]:
@@ -331,6 +401,7 @@ def figure(rows, path: Path, floor_m: float, title: str) -> None:
         "jsphere Dopri8": ("C0", "o", "-"),
         "jsphere Tsit5": ("C2", "s", "-"),
         "jsphere Dopri5": ("C4", "D", "-"),
+        "jsphere Vern7": ("C5", "v", "-"),
         "CasADi RK4": ("C1", "^", "--"),
         "scipy DOP853": ("C3", "v", ":"),
     }
@@ -445,6 +516,7 @@ def main(argv=None) -> int:
     rows += casadi_rows(model, q0, A, ref, cfg["casadi_steps"], repeats, args.threads)
     rows += scipy_rows(model, q0, A[:n_err], ref, cfg["scipy_rtols"], repeats)
     cross = crossover(rows)
+    compared = [c for m in COMPARED_ONLY for c in equal_error(rows, m)]
 
     end_digest = run._source_digest()
     env["jsphere_git"]["source_sha256_end"] = end_digest
@@ -453,7 +525,7 @@ def main(argv=None) -> int:
         log("WARNING: jsphere/*.py changed on disk during the run; the numbers are for the code imported at the start.")
     env["machine"]["loadavg_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
     wall = time.perf_counter() - t_start
-    table = fmt_rows(rows) + [""] + fmt_crossover(cross)
+    table = fmt_rows(rows) + [""] + fmt_crossover(cross) + [""] + fmt_equal_error(compared)
     table += [
         "",
         f"error: largest |(x, y) - reference| of the final position over the first {n_err} trials; reference "
@@ -478,11 +550,15 @@ def main(argv=None) -> int:
             "scipy_trials": n_err,
             "throughput": "trials per call / median steady-state wall time; compilation excluded",
             "compile_s": "jsphere: first call minus median; CasADi: construction (C compile) plus first-call excess",
-            "crossover_rule": "fastest measured setting with error <= the decade, no interpolation",
+            "crossover_rule": "fastest measured setting with error <= the decade, no interpolation; "
+            f"jsphere's own solvers only ({', '.join(COMPARED_ONLY)} compared in equal_error)",
+            "equal_error_rule": "Dopri8's trials/s (and field evaluations per trial: accepted steps x "
+            "evaluations_per_step) at the same error, interpolated linearly in log-log",
         },
         "reference": reference,
         "rows": rows,
         "crossover": cross,
+        "equal_error": compared,
         "wall_time_s": wall,
         "table": table,
     }

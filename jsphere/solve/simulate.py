@@ -96,7 +96,8 @@ def simulate(
       batch within the tolerance; `max_steps` and `num_steps` count the shared steps;
       `jsphere.solve.batched.segment`); its gradient is the discrete adjoint of the shared
       steps (within the tolerance of the per-trial gradient). `"per_trial"` gives each trial
-      its own step-size control: with `Dopri8`, `Dopri5` or `Tsit5` the batch runs in the same
+      its own step-size control: with `Dopri8`, `Dopri5`, `Tsit5` or a method of one's own
+      (`jsphere.solve.batched.method.tableau`) the batch runs in the same
       vectorised loop, every trial with its own times, steps, failures and `num_steps` (in
       lockstep), so a trial's result is bitwise the same in any batch; its gradient is the
       discrete adjoint of those per-trial steps. `"diffrax"` is diffrax's own `vmap` of the

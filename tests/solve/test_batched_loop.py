@@ -120,6 +120,40 @@ def test_only_diffrax_methods_it_implements():
     assert RK.tableau(dfx.Dopri8()) is not None and RK.tableau(dfx.Bosh3()) is None
 
 
+class _OwnDopri5(dfx.AbstractERK):
+    """A user's own method: Dopri5's tableau, declared outside diffrax."""
+
+    tableau = dfx.Dopri5.tableau
+    interpolation_cls = dfx.Dopri5.interpolation_cls
+
+    def order(self, terms):
+        return 5
+
+
+class _OwnHeun(dfx.AbstractERK):
+    """A user's own method that is not first same as last."""
+
+    tableau = dfx.Heun.tableau
+    interpolation_cls = dfx.Heun.interpolation_cls
+
+    def order(self, terms):
+        return 2
+
+
+def test_a_users_own_first_same_as_last_method_runs_in_the_loop():
+    """A user-defined explicit method with a first-same-as-last tableau is implemented (the
+    same tableau as diffrax's solver of that tableau, and the same solve to the last bit); one
+    that is not first same as last is left to `diffeqsolve`."""
+    own, ref = RK.tableau(_OwnDopri5()), RK.tableau(dfx.Dopri5())
+    np.testing.assert_array_equal(own.a, ref.a)
+    np.testing.assert_array_equal(own.b_error, ref.b_error)
+    assert own.order == 5 and RK.tableau(_OwnHeun()) is None
+    ys, failed, accepted = _solve(_OwnDopri5())
+    want = _solve(dfx.Dopri5())
+    assert not bool(failed) and int(accepted) == int(want[2])
+    np.testing.assert_array_equal(ys, want[0])
+
+
 @pytest.mark.parametrize(
     "solver", [pytest.param(dfx.Tsit5(), marks=pytest.mark.slow), dfx.Bosh3()], ids=lambda s: type(s).__name__
 )

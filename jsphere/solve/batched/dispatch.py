@@ -269,7 +269,15 @@ def _reverse_fwd(engine: BatchedSolve, leaves):
             values,
         )
         return out, (values, perturbed, jac)
-    return _primal(engine, values), values
+    return _primal(engine, values), _Inputs(values, perturbed)
+
+
+class _Inputs(eqx.Module):
+    """The residuals of `_reverse_fwd` without a Jacobian: the inputs, and which of them are
+    differentiated (the backward pass takes the VJP with respect to those only)."""
+
+    values: list
+    perturbed: tuple = eqx.field(static=True)
 
 
 def _primal(engine: BatchedSolve, leaves):
@@ -282,37 +290,40 @@ def _primal(engine: BatchedSolve, leaves):
     return _dispatched(engine)(leaves)
 
 
-def _reverse_bwd(engine: BatchedSolve, leaves, ct):
+def _reverse_bwd(engine: BatchedSolve, res, ct):
     """The cotangents of the leaves: the VJP of only the outputs whose cotangent is not a
     symbolic zero (the rest of the solve's outputs, and what only they need, are never
-    differentiated), recomputed from the inputs. Unbatched and in small batches: the flat
+    differentiated), with respect to only the perturbed inputs (the others get zeros),
+    recomputed from the inputs. Unbatched and in small batches: the flat
     layout's VJP (diffrax's checkpointed adjoint), one compiled program (`_flat_vjp`). In
     batches in the batch loop (`BatchedSolve.loop_grad`): the VJP of the batched solve, whose
     steps have a discrete adjoint, in chunks of `batch_chunk()` trials (`_loop_vjp`). In other
     large batches: the flat layout's VJP per trial, in chunks of `GRAD_CHUNK` trials."""
     flat_ct = jax.tree_util.tree_leaves(ct, is_leaf=lambda c: isinstance(c, SymbolicZero))
-    if isinstance(leaves, tuple):  # the forward pass kept the Jacobian (`_flat_jacfwd`)
-        return (_jacobian_transpose(*leaves, flat_ct),)
+    if isinstance(res, tuple):  # the forward pass kept the Jacobian (`_flat_jacfwd`)
+        return (_jacobian_transpose(*res, flat_ct),)
+    leaves, perturbed = res.values, res.perturbed
     keep = tuple(not isinstance(c, SymbolicZero) and jnp.result_type(c) != jax.dtypes.float0 for c in flat_ct)
     cts = [c for k, c in zip(keep, flat_ct) if k]
-    if not any(keep):
+    if not any(keep) or not any(perturbed):
         return ([_zero_cotangent(x) for x in leaves],)
     if not has_tracer((leaves, cts)) and not under_jit():
         vjp = _exportable(_flat_vjp, engine)
-        return (run_program(engine.programs, f"vjp:{engine.name}", vjp, _keep, engine.unnamed(), keep, leaves, cts),)
+        args = (engine.unnamed(), keep, perturbed, leaves, cts)
+        return (run_program(engine.programs, f"vjp:{engine.name}", vjp, _keep, *args),)
 
     @jax.custom_batching.custom_vmap
     def f(lv, cs):
-        return _flat_vjp(engine, keep, lv, cs)
+        return _flat_vjp(engine, keep, perturbed, lv, cs)
 
     @f.def_vmap
     def _rule(axis_size, in_batched, lv, cs):
         if engine.loop_grad(axis_size, in_batched[0]):
-            out = _loop_vjp(engine, keep, axis_size, in_batched[0], in_batched[1], lv, cs)
+            out = _loop_vjp(engine, keep, perturbed, axis_size, in_batched[0], in_batched[1], lv, cs)
         else:
             chunk = _layout.GRAD_CHUNK if _large(axis_size, in_batched[0]) else None
             out = _chunked_vmap(
-                lambda l, c: _selected_vjp(engine, keep, l, c), axis_size, in_batched, lv, cs, chunk=chunk
+                lambda l, c: _selected_vjp(engine, keep, perturbed, l, c), axis_size, in_batched, lv, cs, chunk=chunk
             )
         return out, jax.tree_util.tree_map(lambda _: True, out)
 
@@ -346,10 +357,19 @@ def _selected(engine: BatchedSolve, keep, layout: Layout, leaves):
     return [o for k, o in zip(keep, out) if k]
 
 
-def _selected_vjp(engine: BatchedSolve, keep, leaves, cts):
-    """The cotangents of `leaves` for the cotangents `cts` of the kept outputs (flat layout)."""
-    _, pull = jax.vjp(lambda l: _selected(engine, keep, Layout.FLAT, l), leaves)
-    return pull(cts)[0]
+def _with(leaves, perturbed, xs):
+    """`leaves` with the perturbed ones (`perturbed`, over `leaves`) replaced by `xs`."""
+    lv, it = list(leaves), iter(xs)
+    return [next(it) if p else x for x, p in zip(lv, perturbed)]
+
+
+def _selected_vjp(engine: BatchedSolve, keep, perturbed, leaves, cts):
+    """The cotangents of `leaves` for the cotangents `cts` of the kept outputs (flat layout):
+    by the VJP with respect to the perturbed leaves; zeros for the others."""
+    xs = [x for x, p in zip(leaves, perturbed) if p]
+    _, pull = jax.vjp(lambda xs: _selected(engine, keep, Layout.FLAT, _with(leaves, perturbed, xs)), xs)
+    g = iter(pull(cts)[0])
+    return [next(g) if p else _zero_cotangent(x) for x, p in zip(leaves, perturbed)]
 
 
 @eager_jit
@@ -359,9 +379,9 @@ def _flat_primal(engine: BatchedSolve, leaves):
 
 
 @eager_jit
-def _flat_vjp(engine: BatchedSolve, keep, leaves, cts):
+def _flat_vjp(engine: BatchedSolve, keep, perturbed, leaves, cts):
     """`_selected_vjp` as one compiled program (forward and backward pass together)."""
-    return _selected_vjp(engine, keep, leaves, cts)
+    return _selected_vjp(engine, keep, perturbed, leaves, cts)
 
 
 def _inexact(x) -> bool:
@@ -443,14 +463,15 @@ def _contract(jac, cts, offsets, perturbed, shapes):
     return out
 
 
-def _loop_vjp(engine: BatchedSolve, keep, axis_size, lv_batched, ct_batched, lv, cts):
+def _loop_vjp(engine: BatchedSolve, keep, perturbed, axis_size, lv_batched, ct_batched, lv, cts):
     """Per-trial cotangents of the leaves `lv` of a batch solved in the batch loop (shared or
     per-trial steps), for the cotangents `cts` of its kept outputs: `jax.vjp` of the batched
     solve (`vmap` inside, so the batching rule of `jsphere.solve.batched.segment.solve` runs
     before differentiation and the loop's discrete adjoint applies), chunk by chunk
     (`batch_chunk()` trials: padding trials get zero cotangents). The cotangents of leaves shared
     by the batch are sums over the batch; they are returned in the first trial's row (zeros
-    elsewhere), which sums to the same."""
+    elsewhere), which sums to the same. Leaves not `perturbed` get zeros: the discrete adjoint
+    computes no cotangents for them."""
     chunk = min(axis_size, _layout.batch_chunk())
     layout = engine.layout_for(axis_size)
     n = -(-axis_size // chunk)
@@ -458,7 +479,6 @@ def _loop_vjp(engine: BatchedSolve, keep, axis_size, lv_batched, ct_batched, lv,
     # the forward pass's chunks (`_chunked_vmap`): their shared steps are the ones differentiated
     ct_b = [to_chunks(c, n, chunk, zero=True) if b else c for c, b in zip(cts, ct_batched)]
     lv_b = [to_chunks(x, n, chunk) if b else x for x, b in zip(lv, lv_batched)]
-    inexact = [jnp.issubdtype(jnp.result_type(x), jnp.inexact) for x in lv]
 
     def batched(l):
         return _selected(engine, keep, layout, l)
@@ -468,9 +488,11 @@ def _loop_vjp(engine: BatchedSolve, keep, axis_size, lv_batched, ct_batched, lv,
         full = [c if b else x for c, x, b in zip(l_ch, lv, lv_batched)]
         # the vmapped solve's outputs are all batched: a cotangent shared by the batch is each trial's
         cc = [c if b else jnp.broadcast_to(x, (chunk,) + jnp.shape(x)) for c, x, b in zip(c_ch, cts, ct_batched)]
-        _, pull = jax.vjp(lambda l: jax.vmap(lambda x: batched(x), in_axes=(in_axes,), axis_size=chunk)(l), full)
-        g = pull(cc)[0]
-        return [x if k else None for x, k in zip(g, inexact)]  # no float0 through the map
+        solve = jax.vmap(batched, in_axes=(in_axes,), axis_size=chunk)
+        xs = [x for x, p in zip(full, perturbed) if p]
+        _, pull = jax.vjp(lambda xs: solve(_with(full, perturbed, xs)), xs)
+        g = iter(pull(cc)[0])
+        return [next(g) if p else None for p in perturbed]  # no float0 through the map
 
     xs = ([x if b else None for x, b in zip(lv_b, lv_batched)], [c if b else None for c, b in zip(ct_b, ct_batched)])
     grads = (
@@ -480,8 +502,8 @@ def _loop_vjp(engine: BatchedSolve, keep, axis_size, lv_batched, ct_batched, lv,
     )
     result = []
     for g, b, x in zip(grads, lv_batched, lv):
-        if g is None:  # integer leaves
-            result.append(np.zeros((axis_size,) + jnp.shape(x)[int(b) :], jax.dtypes.float0))
+        if g is None:  # leaves not perturbed, integer leaves among them
+            result.append(_zero_cotangent(np.zeros((axis_size,) + jnp.shape(x)[int(b) :], jnp.result_type(x))))
         elif b:
             result.append(from_chunks(g, axis_size))
         else:  # the batch's sum, in the first trial's row

@@ -14,7 +14,8 @@ import numpy as np
 from ..._runtime.private import rk_tableau
 
 #: The diffrax solvers this method implements (explicit, first-same-as-last tableaus whose
-#: dense output is built from the stage increments).
+#: dense output is built from the stage increments); a user's own such method runs in it too
+#: (`tableau`).
 SUPPORTED = (dfx.Dopri8, dfx.Dopri5, dfx.Tsit5)
 
 
@@ -31,8 +32,13 @@ class Tableau(NamedTuple):
 
 
 def tableau(solver) -> Tableau | None:
-    """The tableau of `solver` if this method implements it (`SUPPORTED`), else `None`."""
-    if type(solver) not in SUPPORTED:
+    """The tableau of `solver` if this method implements it, else `None`: diffrax's solvers in
+    `SUPPORTED`, and a user's own explicit Runge-Kutta method (a subclass of
+    `diffrax.AbstractERK` defined outside diffrax) whose tableau is first same as last, its
+    solution the last stage's argument (`y1 = y + sum_j a_sj K_j`, `c_s = 1`)."""
+    cls = type(solver)
+    own = isinstance(solver, dfx.AbstractERK) and not cls.__module__.startswith("diffrax")
+    if cls not in SUPPORTED and not own:
         return None
     tab = rk_tableau(solver)
     s = len(tab.a_lower) + 1
@@ -41,7 +47,10 @@ def tableau(solver) -> Tableau | None:
         a[i + 1, : len(row)] = np.asarray(row)
     c = np.concatenate([[0.0], np.asarray(tab.c)])
     # first same as last, solution same as last stage: y1 is the last stage's argument
-    assert tab.fsal and tab.ssal and np.array_equal(a[-1], np.asarray(tab.b_sol)) and c[-1] == 1.0
+    fits = tab.fsal and tab.ssal and np.array_equal(a[-1], np.asarray(tab.b_sol)) and c[-1] == 1.0
+    if not fits:
+        assert own, cls  # diffrax's own solvers in SUPPORTED all fit
+        return None
     return Tableau(a, c, np.asarray(tab.b_error), solver.order(None), solver.interpolation_cls)
 
 
