@@ -503,7 +503,9 @@ def _loop_vjp(engine: BatchedSolve, keep, perturbed, axis_size, lv_batched, ct_b
     result = []
     for g, b, x in zip(grads, lv_batched, lv):
         if g is None:  # leaves not perturbed, integer leaves among them
-            result.append(_zero_cotangent(np.zeros((axis_size,) + jnp.shape(x)[int(b) :], jnp.result_type(x))))
+            result.append(
+                _zero_cotangent(jax.ShapeDtypeStruct((axis_size,) + jnp.shape(x)[int(b) :], jnp.result_type(x)))
+            )
         elif b:
             result.append(from_chunks(g, axis_size))
         else:  # the batch's sum, in the first trial's row
