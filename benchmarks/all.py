@@ -1,0 +1,140 @@
+"""Every benchmark behind `docs/performance.md`, one after another, each in a new process.
+
+    python benchmarks/all.py              # every step not yet done for this source (resumes)
+    python benchmarks/all.py --list       # the steps, their commands and result files
+    python benchmarks/all.py --only run,work_precision
+    python benchmarks/all.py --fresh      # every step again, whatever was done before
+
+Each step is one script of this folder with the arguments that write the result file the
+performance page cites (`STEPS`); its numbers are that file's. The steps run in turn, never
+two at once (they time the machine). After each step the state file (default
+`benchmarks/.all-state.json`) records it, with the digest of `jsphere/` it ran on: a run that
+is killed goes on from the first step not done for the same source when started again, and a
+changed source runs every step again. A summary of the run (each step's command, exit status,
+wall time and result file) is written to `--out` (default `benchmarks/results-all.json`),
+both files atomically.
+
+Exit status: 0 if every step selected exited 0, 1 if one failed (the others still run), 2 for
+an unknown step name.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+
+#: (name, script and arguments, result file): the commands `docs/performance.md` gives
+STEPS = (
+    ("run", ["run.py"], "results.json"),
+    ("work_precision", ["work_precision.py"], "results-work-precision.json"),
+    ("ensemble", ["ensemble.py"], "results-ensemble.json"),
+    ("layouts", ["layouts.py"], "results-layouts.json"),
+    ("startup", ["startup.py"], "results-startup.json"),
+    ("first_result", ["first_result.py"], "results-first-result.json"),
+    ("fit_startup", ["fit_startup.py"], "results-fit-startup.json"),
+    ("fit_long", ["fit_long.py"], "results-fit-long.json"),
+    ("fit_length", ["fit_length.py"], "results-fit-length.json"),
+    ("fit_solver", ["fit_solver.py"], "results-fit-solver.json"),
+    ("robust_fit", ["robust_fit.py"], "results-robust-fit.json"),
+    ("montecarlo", ["montecarlo.py"], "results-montecarlo.json"),
+    (
+        "montecarlo_workers",
+        ["montecarlo.py", "--workers", "2", "--trials", "1000000"],
+        "results-montecarlo-workers.json",
+    ),
+    ("track", ["track.py"], "results-track.json"),
+    ("animate", ["animate.py"], "results-animate.json"),
+)
+
+
+def source_digest(root: Path = ROOT) -> str:
+    """SHA-256 of the package's Python files (paths and contents)."""
+    h = hashlib.sha256()
+    for p in sorted((root / "jsphere").rglob("*.py")):
+        h.update(str(p.relative_to(root)).encode())
+        h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+def write_json(path: Path, data) -> None:
+    """`data` as JSON at `path`, atomically (a temporary file beside it, then `os.replace`)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    with os.fdopen(fd, "w") as f:
+        json.dump(data, f, indent=1)
+    os.replace(tmp, path)
+
+
+def read_state(path: Path, digest: str) -> dict:
+    """The steps done for `digest` (`{name: record}`); none for another source or no file."""
+    try:
+        state = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return state.get("done", {}) if state.get("source_sha256") == digest else {}
+
+
+def run_steps(steps, state_path: Path, out: Path, *, fresh: bool = False, folder: Path = HERE, log=print) -> int:
+    """Run `steps` (`(name, argv, result file)`, `argv` a script of `folder` and its arguments)
+    in turn, skipping those the state file records as done for this source unless `fresh`.
+    Returns the exit status (module docstring)."""
+    digest = source_digest()
+    done = {} if fresh else read_state(state_path, digest)
+    failed = False
+    for i, (name, argv, result) in enumerate(steps, 1):
+        if name in done and done[name]["returncode"] == 0:
+            log(f"[{i}/{len(steps)}] {name}: done for this source ({done[name]['finished_utc']}), skipped")
+            continue
+        cmd = [sys.executable, str(folder / argv[0]), *argv[1:]]
+        log(f"[{i}/{len(steps)}] {name}: {' '.join(['python', 'benchmarks/' + argv[0], *argv[1:]])} ...")
+        t = time.perf_counter()
+        rc = subprocess.run(cmd, cwd=ROOT).returncode
+        wall = time.perf_counter() - t
+        log(f"[{i}/{len(steps)}] {name}: exit {rc}, {wall:.0f} s, {result}")
+        failed |= rc != 0
+        done[name] = {
+            "command": ["python", f"benchmarks/{argv[0]}", *argv[1:]],
+            "result_file": f"benchmarks/{result}",
+            "returncode": rc,
+            "wall_s": wall,
+            "finished_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        }
+        write_json(state_path, {"source_sha256": digest, "done": done})
+    write_json(out, {"source_sha256": digest, "steps": [done[n] | {"name": n} for n, _, _ in steps if n in done]})
+    return 1 if failed else 0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--list", action="store_true", help="print the steps and exit")
+    ap.add_argument("--only", default="", help="comma-separated step names (default: all)")
+    ap.add_argument("--fresh", action="store_true", help="run every selected step again")
+    ap.add_argument("--state", type=Path, default=HERE / ".all-state.json")
+    ap.add_argument("--out", type=Path, default=HERE / "results-all.json")
+    args = ap.parse_args(argv)
+    names = [n for n in args.only.split(",") if n]
+    known = {s[0] for s in STEPS}
+    if unknown := [n for n in names if n not in known]:
+        print(f"all.py: unknown step {unknown[0]!r}; the steps are {', '.join(s[0] for s in STEPS)}", file=sys.stderr)
+        return 2
+    steps = [s for s in STEPS if not names or s[0] in names]
+    if args.list:
+        for name, a, result in steps:
+            print(f"{name:<20} python benchmarks/{' '.join(a):<58} -> benchmarks/{result}")
+        return 0
+    return run_steps(steps, args.state, args.out, fresh=args.fresh, log=lambda s: print(s, file=sys.stderr, flush=True))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
