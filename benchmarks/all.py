@@ -47,6 +47,7 @@ STEPS = (
     ("fit_length", ["fit_length.py"], "results-fit-length.json"),
     ("fit_solver", ["fit_solver.py"], "results-fit-solver.json"),
     ("robust_fit", ["robust_fit.py"], "results-robust-fit.json"),
+    ("traced_gradient", ["traced_gradient.py"], "results-traced-gradient.json"),
     ("montecarlo", ["montecarlo.py"], "results-montecarlo.json"),
     (
         "montecarlo_workers",

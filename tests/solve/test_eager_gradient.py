@@ -3,6 +3,7 @@ forward mode (`jsphere.solve.batched.dispatch`), which must equal reverse mode's
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -51,6 +52,32 @@ def test_eager_gradient_of_few_inputs_is_forward_mode(monkeypatch):
     # the pullback of the same forward pass, applied to a cotangent traced by `jit`
     y, pull = jax.vjp(lambda th: _stop(p, th), jnp.asarray(0.1))
     assert float(jax.jit(pull)(jnp.asarray(2.0))[0]) == pytest.approx(2 * g, rel=1e-12)
+
+
+def _end(p, a, j):
+    q = eqx.tree_at(lambda q: q.j, p, j)
+    tq = jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + jnp.array([0.0, 2.1, 4.2])))
+    tr = jsphere.simulate(q, jsphere.State.at_rest(q), tq, 0.5, rtol=1e-9, atol=1e-11)
+    return tr.x[-1] ** 2 + tr.y[-1] ** 2
+
+
+def test_a_traced_gradient_of_few_inputs_is_forward_mode(monkeypatch):
+    """`jit(grad)` of one solve with respect to a scalar (the wheels' inertia, which leaves the
+    state at rest as it is) takes forward mode and agrees with reverse mode; under `vmap` the
+    batch keeps its discrete adjoint."""
+    p, a = jsphere.RobotParams.paper(), jnp.array([0.05, 0.04, 0.06])
+    seen = []
+    original = dispatch._flat_jacfwd
+    monkeypatch.setattr(dispatch, "_flat_jacfwd", lambda *args: seen.append(1) or original(*args))
+    g = float(jax.jit(jax.grad(lambda j: _end(p, a, j)))(3e-4))
+    assert seen, "a jitted gradient with respect to one scalar should take the forward-mode path"
+    seen.clear()
+    monkeypatch.setattr(dispatch, "TRACED_FORWARD_MAX_INPUTS", 0)
+    assert float(jax.jit(jax.grad(lambda j: _end(p, a, j)))(3e-4)) == pytest.approx(g, rel=1e-10)
+    assert not seen
+    monkeypatch.setattr(dispatch, "TRACED_FORWARD_MAX_INPUTS", 4)
+    batch = jax.jit(jax.grad(lambda j: jnp.sum(jax.vmap(lambda ai: _end(p, ai, j))(jnp.stack([a, 0.9 * a])))))
+    assert np.isfinite(float(batch(3e-4))) and not seen
 
 
 @pytest.mark.slow

@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
-from ..._runtime.arrays import under_jit
+from ..._runtime.arrays import transformed, under_jit
 from ..._runtime.quick_compile import eager_jit
 from ...model.params import Derived, derive
 from . import layout as _layout
@@ -48,6 +48,10 @@ from .method import tableau
 #: An eager `jax.grad` with at most this many perturbed input scalars computes the Jacobian
 #: with respect to them in forward mode (`_reverse_fwd`; `docs/performance.md`).
 FORWARD_MAX_INPUTS = 8
+#: The same for an unbatched gradient traced by `jit` (no `vmap` around the solve): there no
+#: compilation is saved, and forward mode is faster than the reverse pass only for few
+#: tangents (`docs/decisions/an-eager-gradient-of-few-inputs.md`).
+TRACED_FORWARD_MAX_INPUTS = 4
 
 
 def run_program(programs: Callable | None, name: str, fn: Callable, rebuild: Callable, *args):
@@ -249,15 +253,17 @@ def _reverse(engine: BatchedSolve, leaves):
 def _reverse_fwd(engine: BatchedSolve, leaves):
     """The primal with the layout chosen by batching; the residuals are the inputs only (the
     backward pass recomputes what it needs, `_reverse_bwd`). An eager call with at most
-    `FORWARD_MAX_INPUTS` perturbed input scalars computes its Jacobian with respect to them
-    in forward mode instead, in the same program as the primal (`_flat_jacfwd`): the
+    `FORWARD_MAX_INPUTS` perturbed input scalars, or an unbatched one traced by `jit` alone
+    with at most `TRACED_FORWARD_MAX_INPUTS`, computes its Jacobian with respect to them in
+    forward mode instead, with the primal (`_flat_jacfwd`; one program when eager): the
     residual is that Jacobian, and the backward pass a product with it."""
     values = [x.value for x in leaves]
     perturbed = tuple(
         bool(x.perturbed) and jnp.issubdtype(jnp.result_type(v), jnp.inexact) for x, v in zip(leaves, values)
     )
     n = sum(int(np.size(v)) for v, p in zip(values, perturbed) if p)
-    if 0 < n <= FORWARD_MAX_INPUTS and not has_tracer(values) and not under_jit():
+    eager = not has_tracer(values) and not under_jit()
+    if 0 < n <= FORWARD_MAX_INPUTS and eager:
         program = _exportable(_flat_jacfwd, engine)
         out, jac = run_program(
             engine.programs,
@@ -268,6 +274,9 @@ def _reverse_fwd(engine: BatchedSolve, leaves):
             perturbed,
             values,
         )
+        return out, (values, perturbed, jac)
+    if 0 < n <= TRACED_FORWARD_MAX_INPUTS and not eager and not transformed(values):  # under `jit` alone
+        out, jac = _flat_jacfwd(engine, perturbed, values)
         return out, (values, perturbed, jac)
     return _primal(engine, values), _Inputs(values, perturbed)
 
