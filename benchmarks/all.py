@@ -21,18 +21,19 @@ an unknown step name.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
-import os
 import subprocess
 import sys
-import tempfile
 import time
 from datetime import datetime, timezone
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
+sys.path.insert(0, str(HERE))
+
+from run import _source_digest as source_digest  # noqa: E402  (the digest the result files record)
+from run import write_json_atomic as write_json  # noqa: E402
 
 #: (name, script and arguments, result file): the commands `docs/performance.md` gives
 STEPS = (
@@ -57,24 +58,6 @@ STEPS = (
     ("track", ["track.py"], "results-track.json"),
     ("animate", ["animate.py"], "results-animate.json"),
 )
-
-
-def source_digest(root: Path = ROOT) -> str:
-    """SHA-256 of the package's Python files (paths and contents)."""
-    h = hashlib.sha256()
-    for p in sorted((root / "jsphere").rglob("*.py")):
-        h.update(str(p.relative_to(root)).encode())
-        h.update(p.read_bytes())
-    return h.hexdigest()
-
-
-def write_json(path: Path, data) -> None:
-    """`data` as JSON at `path`, atomically (a temporary file beside it, then `os.replace`)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        json.dump(data, f, indent=1)
-    os.replace(tmp, path)
 
 
 def read_state(path: Path, digest: str) -> dict:

@@ -368,8 +368,8 @@ def _selected(engine: BatchedSolve, keep, layout: Layout, leaves):
 
 def _with(leaves, perturbed, xs):
     """`leaves` with the perturbed ones (`perturbed`, over `leaves`) replaced by `xs`."""
-    lv, it = list(leaves), iter(xs)
-    return [next(it) if p else x for x, p in zip(lv, perturbed)]
+    it = iter(xs)
+    return [next(it) if p else x for x, p in zip(leaves, perturbed)]
 
 
 def _selected_vjp(engine: BatchedSolve, keep, perturbed, leaves, cts):
