@@ -67,7 +67,7 @@ from .data import FitData, pack_trials
 from .free import FreeParams, _overlaps, _split_names, apply_fixes
 from .report import FitResult, fit_result
 from .residuals import _Functions, _functions
-from .robust import DEFAULT_LOSS, check_loss, reweigh, robust_cost
+from .robust import DEFAULT_LOSS, check_loss, reweigh, reweigh_with_excess, robust_cost
 from .shooting import CONTINUATION_RTOL, DEFECT_CLOSED, MU_LEVELS, Segments
 from .starts import _NU_SCALE, nuisance_guess, start_design
 from .verdict import robust_sd
@@ -707,17 +707,16 @@ def _evaluate_multiple(run: _Run, st: _State, mu: float, th, n):
             except Exception:  # noqa: BLE001 - the call below compiles it again and says what fails
                 pass
         res, ok, J, pose, e, Je = run.fns.run(run.programs, "segments", *args)
-        robust = 0.0
+        excess = 0.0
         if run.options.loss != "l2":  # the weighted squares replaced by the robust cost
-            robust = robust_cost(run.options.loss, res)
-            res, J = _weighted(run, res, J)
-            robust = robust - 0.5 * jnp.sum(res * res, axis=(1, 2))
+            res, J, excess = reweigh_with_excess(run.options.loss, res, J)
+            excess = np.asarray(excess)
         # (`mu` an array: one program for every level)
         blocks, cost, dfc = run.fns.run(
             run.programs, "assemble", res, J, e, Je, to_jax(n), to_jax(mu), ms.seg_arrays, ms.scale
         )
         ok = np.asarray(ok)
-    cost = np.where(ok.all(1), np.asarray(cost + robust), np.inf)
+    cost = np.where(ok.all(1), np.asarray(cost) + excess, np.inf)
     st.last.update(pose=pose, ok=ok, data=ms.seg.data)
     return cost, {"blocks": blocks, "defect": np.asarray(dfc)}
 

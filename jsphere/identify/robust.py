@@ -132,6 +132,15 @@ def reweigh(loss: str, res: Float[Array, "S T K"], J: Float[Array, "S T K Z"]):
 
 
 @eager_jit
+def reweigh_with_excess(loss: str, res: Float[Array, "S T K"], J: Float[Array, "S T K Z"]):
+    """`reweigh(loss, res, J)` and, per start, the robust cost less the half sum of squares of
+    the reweighted residuals `(S,)`: added to a cost computed from the reweighted residuals
+    (multiple shooting's `assemble`), it gives the robust cost. One program for the three."""
+    res_w, J_w = reweigh(loss, res, J)
+    return res_w, J_w, robust_cost(loss, res) - 0.5 * jnp.sum(res_w * res_w, axis=(1, 2))
+
+
+@eager_jit
 def _frame_terms(loss: str, res: Float[Array, "... K"]):
     """Per frame of `res`: `s_f`, `z_f = s_f / c^2`, `rho'(z_f)` and `rho''(z_f)`."""
     s = frame_norms(res)
