@@ -27,11 +27,13 @@ import tempfile
 import time
 from pathlib import Path
 
-import jax
-import numpy as np
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's jsphere first
 
-import jsphere
-from jsphere._runtime.files import atomic_write_text
+import jax  # noqa: E402
+import numpy as np  # noqa: E402
+
+import jsphere  # noqa: E402
+from jsphere._runtime.files import atomic_write_text  # noqa: E402
 
 jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
 

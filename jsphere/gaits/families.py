@@ -31,6 +31,7 @@ from jaxtyping import Array, Float
 from .._runtime.checks import finite
 from .._runtime.errors import InputError
 from ..model.linalg import matvec
+from ..numerics.trig import cos, sin, sincos
 from .gaits import Gait, _real, _zero
 
 
@@ -50,7 +51,7 @@ class Smooth(eqx.Module):
     def __call__(self, t):
         s = t / self.T
         k = jnp.arange(self.coeffs.shape[-1], dtype=self.coeffs.dtype)
-        basis = jnp.cos(jnp.pi * k * s) * jnp.sin(jnp.pi * s) ** self.power
+        basis = cos(jnp.pi * k * s) * sin(jnp.pi * s) ** self.power
         return self.coeffs @ basis
 
 
@@ -60,16 +61,16 @@ def _sinc_cos(s):
     small = s < 1e-3
     ss = jnp.where(small, 1.0, s)
     r = jnp.sqrt(ss)
-    sinc = jnp.where(small, 1.0 - s / 6 + s**2 / 120 - s**3 / 5040, jnp.sin(r) / r)
-    cos = jnp.where(small, 1.0 - s / 2 + s**2 / 24 - s**3 / 720, jnp.cos(r))
-    return sinc, cos
+    sin_r, cos_r = sincos(r)
+    sinc = jnp.where(small, 1.0 - s / 6 + s**2 / 120 - s**3 / 5040, sin_r / r)
+    return sinc, jnp.where(small, 1.0 - s / 2 + s**2 / 24 - s**3 / 720, cos_r)
 
 
 def tilt_to_gamma(u: Float[Array, " 2"]) -> Float[Array, " 3"]:
     """`gamma` (before the rest-attitude rotation `Q_m`) for the tilt vector `u` [rad]:
     `(sin|u| u/|u|, cos|u|)`, i.e. (4.2) with `theta = |u|`, `phi = atan2(u_2, u_1)`."""
-    sinc, cos = _sinc_cos(u[0] ** 2 + u[1] ** 2)
-    return jnp.stack([sinc * u[0], sinc * u[1], cos])
+    sinc, cos_u = _sinc_cos(u[0] ** 2 + u[1] ** 2)
+    return jnp.stack([sinc * u[0], sinc * u[1], cos_u])
 
 
 class _TiltAngle(eqx.Module):
@@ -77,8 +78,8 @@ class _TiltAngle(eqx.Module):
 
     def __call__(self, t):
         u = self.tilt(t)
-        sinc, cos = _sinc_cos(u[0] ** 2 + u[1] ** 2)
-        return jnp.arctan2(sinc * jnp.sqrt(u[0] ** 2 + u[1] ** 2), cos)
+        sinc, cos_u = _sinc_cos(u[0] ** 2 + u[1] ** 2)
+        return jnp.arctan2(sinc * jnp.sqrt(u[0] ** 2 + u[1] ** 2), cos_u)
 
 
 class _TiltDirection(eqx.Module):
@@ -156,6 +157,7 @@ def paper_gait(theta_max: float, phi: float = 0.0, T: float = 2.0) -> TiltGait:
     c = jnp.zeros(2 * n - 1).at[0].set(n)
     for j in range(1, n):
         c = c.at[2 * j].set(2.0 * (n - j))
-    direction = jnp.stack([jnp.cos(_real(phi)), jnp.sin(_real(phi))])
+    sp, cp = sincos(_real(phi))
+    direction = jnp.stack([cp, sp])
     coeffs = _real(theta_max) * direction[:, None] * c[None, :]
     return TiltGait(Smooth(coeffs, T, 2), None, T)

@@ -26,6 +26,7 @@ from ..model.linalg import cross, matvec
 from ..model.params import RobotParams, derive
 from ..model.rotations import rotation_between, rotmat
 from ..model.state import Flat, State
+from ..numerics.trig import sin, sincos
 from ..solve.batched import dispatch as _dispatch
 from ..solve.batched.components import gait_field_components, unit
 from ..solve.batched.field_args import FieldArgs
@@ -60,7 +61,7 @@ class SinSquared(eqx.Module):
     period: Float[Array, ""] = eqx.field(converter=_real, default=1.0)
 
     def __call__(self, t):
-        return self.amplitude * jnp.sin(jnp.pi * t / self.period) ** 2
+        return self.amplitude * sin(jnp.pi * t / self.period) ** 2
 
 
 def _zero(t):
@@ -100,9 +101,8 @@ class Gait(eqx.Module):
 
     def gamma(self, Qm, t):
         """`gamma(t)` of (4.2), rotated to the robot's rest attitude by `Q_m`."""
-        th, ph = self.theta(t), self.phi(t)
-        st = jnp.sin(th)
-        return matvec(Qm, jnp.stack([st * jnp.cos(ph), st * jnp.sin(ph), jnp.cos(th)]))
+        (st, ct), (sp, cp) = sincos(self.theta(t)), sincos(self.phi(t))
+        return matvec(Qm, jnp.stack([st * cp, st * sp, ct]))
 
     def kinematics(self, Qm, t):
         """`(gamma, omega, omega_dot)` at local time `t` (derivatives by forward-mode autodiff)."""
@@ -122,9 +122,8 @@ class Gait(eqx.Module):
         if type(self).gamma is Gait.gamma:
 
             def gamma(u):
-                th, ph = self.theta(u), self.phi(u)
-                st = jnp.sin(th)
-                v = (st * jnp.cos(ph), st * jnp.sin(ph), jnp.cos(th))
+                (st, ct), (sp, cp) = sincos(self.theta(u)), sincos(self.phi(u))
+                v = (st * cp, st * sp, ct)
                 return tuple(Qm[i, 0] * v[0] + Qm[i, 1] * v[1] + Qm[i, 2] * v[2] for i in range(3))
         else:
 
@@ -244,8 +243,8 @@ def _gait_outputs(t, z, args: FieldArgs):
 def _rolling_direction(gait: Gait, Qm):
     """Horizontal direction of the shell's angular velocity a gait produces: `Q_m (-sin phi,
     cos phi, 0)` at the gait's midpoint."""
-    ph = gait.phi(0.5 * gait.T)
-    return matvec(Qm, jnp.stack([-jnp.sin(ph), jnp.cos(ph), jnp.zeros_like(ph)]))
+    sp, cp = sincos(gait.phi(0.5 * gait.T))
+    return matvec(Qm, jnp.stack([-sp, cp, jnp.zeros_like(sp)]))
 
 
 #: Tolerances `(rtol, atol)` of `simulate_gaits` by the parameters' precision when none are
