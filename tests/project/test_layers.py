@@ -14,13 +14,13 @@ PACKAGE = Path(__file__).resolve().parents[2] / "jsphere"
 #: subpackage and from lower layers only.
 LAYERS = {
     "_runtime": 0,
+    "numerics": 0.5,  # least squares, sine and cosine: know nothing of the robot; import only `_runtime`
     "plots": 1,  # draws the result objects it is given; imports only `_runtime`
     "model": 2,
     "controls": 3,
     "solve.batched": 4,
     "solve": 5,
     "gaits": 6,
-    "numerics": 6.5,  # least squares that know nothing of the robot; imports nothing of the package
     "capture": 7,
     "identify": 8,
     "planning": 8,
