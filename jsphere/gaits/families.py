@@ -31,8 +31,7 @@ from jaxtyping import Array, Float
 from .._runtime.checks import finite
 from .._runtime.errors import InputError
 from ..model.linalg import matvec
-from ..numerics.trig import cos, sin, sincos
-from .gaits import Gait, _real, _zero
+from .gaits import Gait, _real, _zero, cos, sin, sincos
 
 
 class Smooth(eqx.Module):

@@ -4,6 +4,7 @@ control-free equation; torques `K(t)` and wheel rates `chi_dot(t)` as outputs.
 
 from __future__ import annotations
 
+import contextvars
 import math
 from typing import Callable, Sequence
 
@@ -26,7 +27,7 @@ from ..model.linalg import cross, matvec
 from ..model.params import RobotParams, derive
 from ..model.rotations import rotation_between, rotmat
 from ..model.state import Flat, State
-from ..numerics.trig import sin, sincos
+from ..numerics import trig
 from ..solve.batched import dispatch as _dispatch
 from ..solve.batched.components import gait_field_components, unit
 from ..solve.batched.field_args import FieldArgs
@@ -37,6 +38,27 @@ from ..solve.options import DEFAULT_TOLERANCES, SolverOptions, solver_options
 from ..solve.segments import solve_segments
 from ..solve.simulate import batch_engine_applies
 from ..solve.trajectory import Trajectory, assemble, raise_on_failure
+
+#: Whether the kinematics being traced are a batched solve's (`Gait.kinematics_components`).
+_BATCHED = contextvars.ContextVar("jsphere_gait_kinematics_batched", default=False)
+
+
+def sincos(x):
+    """`(sin x, cos x)` for the gaits: `jsphere.numerics.trig`'s elementwise polynomials while
+    a batched solve's kinematics are traced, where each trial evaluates its own; XLA's own
+    functions elsewhere (a single solve evaluates one of each per stage, and the polynomials
+    cost it compile time: docs/decisions/sine-and-cosine-in-elementwise-arithmetic.md)."""
+    return trig.sincos(x) if _BATCHED.get() else (jnp.sin(x), jnp.cos(x))
+
+
+def sin(x):
+    """`sin x` as `sincos` chooses it."""
+    return trig.sin(x) if _BATCHED.get() else jnp.sin(x)
+
+
+def cos(x):
+    """`cos x` as `sincos` chooses it."""
+    return trig.cos(x) if _BATCHED.get() else jnp.cos(x)
 
 
 def _real(x):
@@ -118,7 +140,15 @@ class Gait(eqx.Module):
         """`kinematics` as a 9-tuple of scalars `(gamma, omega, omega_dot)`, for batched solves:
         under `vmap` every component is one contiguous vector (faster than the stacked
         3-vectors, `docs/performance.md`). A subclass that overrides
-        `gamma` is differentiated through its own `gamma`."""
+        `gamma` is differentiated through its own `gamma`. Its sines and cosines are
+        `jsphere.numerics.trig`'s (`sincos`)."""
+        token = _BATCHED.set(True)
+        try:
+            return self._kinematics_components(Qm, t)
+        finally:
+            _BATCHED.reset(token)
+
+    def _kinematics_components(self, Qm, t) -> tuple:
         if type(self).gamma is Gait.gamma:
 
             def gamma(u):

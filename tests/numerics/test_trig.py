@@ -79,3 +79,30 @@ def test_a_batched_gait_solve_matches_the_single_solves():
     batched = jax.jit(jax.vmap(end))(th)
     single = np.array([float(end(t)) for t in th[:4]])
     np.testing.assert_allclose(np.asarray(batched[:4]), single, rtol=0, atol=1e-8)
+
+
+def test_the_gait_kinematics_of_batched_solves_use_them_and_single_solves_xla_s():
+    """Batched solves' kinematics (`kinematics_components`) are traced with these polynomials,
+    a single solve's (`kinematics`) with XLA's `sin` and `cos`; the values agree."""
+    import jsphere
+    from jsphere.gaits import gaits as G
+
+    gait = jsphere.acceleration(theta_max=0.1, phi=0.3)
+    Qm, t = jnp.eye(3), jnp.asarray(0.37)
+    single = jnp.concatenate(gait.kinematics(Qm, t))
+    batched = jnp.stack(gait.kinematics_components(Qm, t))
+    np.testing.assert_allclose(batched, single, rtol=0, atol=1e-15)
+
+    def primitives(jaxpr) -> set:
+        found = set()
+        for e in jaxpr.eqns:
+            found.add(e.primitive.name)
+            for v in e.params.values():
+                for sub in v if isinstance(v, (tuple, list)) else (v,):
+                    if hasattr(sub, "eqns") or hasattr(sub, "jaxpr"):
+                        found |= primitives(getattr(sub, "jaxpr", sub))
+        return found
+
+    assert "sin" in primitives(jax.make_jaxpr(lambda t: gait.kinematics(Qm, t))(t).jaxpr)
+    assert not {"sin", "cos"} & primitives(jax.make_jaxpr(lambda t: gait.kinematics_components(Qm, t))(t).jaxpr)
+    assert not G._BATCHED.get()  # reset after the trace
