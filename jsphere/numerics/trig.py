@@ -17,8 +17,9 @@ which XLA vectorises and fuses into the surrounding kernels (about 1 ns per elem
 
 Against the C library (`tests/numerics/test_trig.py`): within one unit in the last place of
 1 (2.2e-16) for every `|x| < 1e9` tried, and within 2 units in the last place of the value on
-`[-pi, pi]`; small angles keep their relative accuracy. Their derivatives are each other (`jax.custom_jvp`), so a `jvp` or `grad` through them is the same
-polynomials again. Other dtypes use `jnp.sin`, `jnp.cos`.
+`[-pi, pi]`; small angles keep their relative accuracy. Their derivatives are each other
+(`jax.custom_jvp`), so a `jvp` or `grad` through them is the same polynomials again. Other
+dtypes use `jnp.sin`, `jnp.cos`.
 """
 
 from __future__ import annotations
