@@ -9,17 +9,20 @@ which XLA vectorises and fuses into the surrounding kernels (about 1 ns per elem
 
 - **Reduction** (Cody and Waite): `x = k pi/2 + r`, `k = round(2 x / pi)`, with `pi/2` split
   into three parts of which the first two have 33 significant bits, so that `k * PIO2_1` and
-  `k * PIO2_2` are exact for `|k| < 2^20` and `r` is accurate to a few units in the last place
-  of `|r| <= pi/4`.
+  `k * PIO2_2` are exact for `|k| < 2^20` (`|x| <= LIMIT = 2^20`), whether or not XLA fuses a
+  product with its difference, and `r` is accurate to a few units in the last place of
+  `|r| <= pi/4`.
 - **Kernels** on `[-pi/4, pi/4]`: the minimax polynomials of fdlibm's `__kernel_sin` and
   `__kernel_cos` (Sun Microsystems, 1993; their coefficients below), of degree 13 and 14.
 - **Quadrant**: `k mod 4` picks `+-sin r` or `+-cos r`.
 
 Against the C library (`tests/numerics/test_trig.py`): within one unit in the last place of
-1 (2.2e-16) for every `|x| < 1e9` tried, and within 2 units in the last place of the value on
-`[-pi, pi]`; small angles keep their relative accuracy. Their derivatives are each other
-(`jax.custom_jvp`), so a `jvp` or `grad` through them is the same polynomials again. Other
-dtypes use `jnp.sin`, `jnp.cos`.
+1 (2.2e-16) for every `|x| <= LIMIT` tried, and within 2 units in the last place of the value
+on `[-pi, pi]`; small angles keep their relative accuracy. Beyond `LIMIT` (about 1.05e6) the
+reduction would lose digits (every one of them near 1e16), so there both are NaN rather than a
+wrong number; the gaits' angles and times are far below it. Their
+derivatives are each other (`jax.custom_jvp`), so a `jvp` or `grad` through them is the same
+polynomials again. Other dtypes use `jnp.sin`, `jnp.cos`.
 """
 
 from __future__ import annotations
@@ -30,6 +33,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+#: the largest `|x|` evaluated; beyond, NaN (module docstring)
+LIMIT = 2.0**20
 #: `pi/2 = PIO2_1 + PIO2_2 + PIO2_3` (fdlibm's split: 33 + 33 + 53 significant bits)
 PIO2_1 = 1.57079632673412561417e00
 PIO2_2 = 6.07710050630396597660e-11
@@ -72,7 +77,10 @@ def _sincos64(x):
     odd = (q == 1.0) | (q == 3.0)
     sin = jnp.where(odd, c, s)
     cos = jnp.where(odd, s, c)
-    return jnp.where(q >= 2.0, -sin, sin), jnp.where((q == 1.0) | (q == 2.0), -cos, cos)
+    sin = jnp.where(q >= 2.0, -sin, sin)
+    cos = jnp.where((q == 1.0) | (q == 2.0), -cos, cos)
+    inside = jnp.abs(x) <= LIMIT
+    return jnp.where(inside, sin, jnp.nan), jnp.where(inside, cos, jnp.nan)
 
 
 @_sincos64.defjvp
