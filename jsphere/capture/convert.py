@@ -9,6 +9,7 @@ import numpy as np
 
 from .._runtime.errors import InputError
 from .c3d import read_c3d
+from .centre import check_centre_height
 from .inputs import read_inputs_csv
 from .motive import read_motive_csv
 from .pose import markers_to_trial
@@ -42,6 +43,7 @@ def convert_raw(
     joints=None,
     n_wheels: int | None = None,
     keep_suspect: bool = False,
+    shell_radius: float | None = None,
 ) -> Trial:
     """Read a raw export (`format`: `"motive"`, `"vicon"`, `"c3d"`, `"qualisys"` or `"rosbag"`)
     and make a `Trial` with the inputs table `inputs` (`markers_to_trial`). `up_axis` defaults
@@ -62,7 +64,14 @@ def convert_raw(
     `CaptureWarning` and uses the complete frames. Implausible speeds, turn rates or time units
     in the result are `CaptureWarning`s naming the likely cause. Frames of a suspect marker fit (a
     swapped or ghost marker) are gaps, with a warning saying how many, unless `keep_suspect`
-    (`markers_to_trial`)."""
+    (`markers_to_trial`).
+
+    **The shell centre.** With `shell_radius` (the robot's `R0` [m]), the converted centre's
+    height is compared with it (`check_centre_height`): a `CaptureWarning` where its median is
+    more than 3 mm from `R0`, or where it varies by more than 5 mm, naming the options of
+    `format` that put the centre where it belongs (`body_markers`/`body_offset` for markers,
+    `body_offset` or the rigid body's pivot point for an exporter's pose, the pose topic's frame
+    for a ROS bag)."""
     if format not in RAW_FORMATS:
         raise ValueError(f"convert_raw: format must be one of {RAW_FORMATS}; got {format!r}.")
     _check_bag_options(format, inputs, units, up_axis, pose_topic, inputs_topic, joints)
@@ -94,7 +103,7 @@ def convert_raw(
             inputs = read_inputs_csv(inputs, kind=input_kind, allow_truncated=allow_truncated)[:3]
     if format == "rosbag":
         data = dataclasses.replace(data, t=data.t - t0)
-    return markers_to_trial(
+    trial = markers_to_trial(
         data,
         inputs,
         body_markers=body_markers,
@@ -106,6 +115,52 @@ def convert_raw(
         allow_truncated=allow_truncated,
         keep_suspect=keep_suspect,
     )
+    if shell_radius is not None:
+        fix, example, floor = _centre_fix(format, data.rb_q is not None, body_markers is not None, body_offset)
+        check_centre_height(trial, shell_radius, source=data.source, fix=fix, example=example, floor=floor)
+    return trial
+
+
+def _centre_fix(format: str, exporter_pose: bool, body_given: bool, body_offset):
+    """`(fix, example, floor)` for `check_centre_height`: what puts the converted point at the
+    shell centre in the options of `format` (ROS bag: the pose topic's frame; an exporter's
+    rigid-body pose: its pivot point or `--body-offset`; markers: `--body-markers` or
+    `--body-offset`), the `--body-offset` that raises the centre by `dz` where the body frame is
+    upright (markers: estimated at the first full frame, or given in the platform frame), and
+    where height 0 is."""
+    offset = "--body-offset X Y Z (body_offset=)"
+    if format == "rosbag":
+        fix = (
+            "the pose topic's frame is not at the shell centre: publish the shell centre's pose (a motion-capture "
+            f"rigid body with its pivot point there), or give {offset}, the shell centre in the poses' frame [m]"
+        )
+        return fix, None, "the floor at height 0 of the poses' world frame: an origin off the floor shifts it too"
+    floor = "the floor at height 0, where the capture's ground plane is set"
+    if exporter_pose:
+        tool = {"motive": "Motive", "qualisys": "QTM"}.get(format, "the capture software")
+        fix = (
+            f"the rigid body's pivot point is not the shell centre: move it there in {tool} before exporting, or give "
+            f"{offset}, the shell centre in the rigid body's frame [m]"
+        )
+        return fix, None, floor
+    if body_given:
+        fix = (
+            "the body markers are not measured from the shell centre: give them from it (--body-markers FILE, "
+            f"platform frame), or give {offset}, the shell centre in their frame [m]"
+        )
+    else:
+        fix = (
+            "the markers' centroid was taken for the shell centre: give --body-markers FILE (the markers measured "
+            f"from the shell centre, platform frame) or {offset}, the shell centre from the markers' centroid in the "
+            "platform frame [m]"
+        )
+    x, y, z = (float(v) for v in body_offset)
+
+    def example(dz: float) -> str:
+        side = "below" if dz < 0 else "above"
+        return f"if the shell centre lies straight {side} it: --body-offset {x:.4g} {y:.4g} {z + dz:.4f}"
+
+    return fix, example, floor
 
 
 #: the formats whose files name bodies: `rigid_body` (a Vicon subject too) and `subject`

@@ -10,6 +10,8 @@ from pathlib import Path
 NAME = "convert"
 EXAMPLES = """
   jsphere convert capture.csv --format motive --inputs inputs.csv --out trial.csv
+  jsphere convert take_1.csv --format motive --inputs design_1.csv --body-markers body.csv --params robot.toml \\
+      --out trials/t1.csv
   jsphere convert session.c3d --format c3d --inputs inputs.csv --units mm --out trial.csv
   jsphere convert capture.csv --format motive --inputs plan.csv --input-kind chi_dot --time-offset auto --out trial.csv
   jsphere convert run.bag --format rosbag --pose-topic /mocap/robot/pose --inputs-topic /joint_states \\
@@ -50,7 +52,12 @@ def add_parser(sub) -> None:
         "holding both, its columns (default for a JointState: chi_dot)",
     )
     cv.add_argument("--joints", help="ROS bag: the wheels' joint names in wheel order, comma-separated (default: all)")
-    cv.add_argument("--params", help="the robot (.toml or .json): the inputs must have one column per wheel")
+    cv.add_argument(
+        "--params",
+        help="the robot (.toml or .json): the inputs must have one column per wheel, and the shell centre's height "
+        "must be its R0 (a warning names the options that put the centre there: a take converted without "
+        "--body-markers or --body-offset tracks the markers' centroid)",
+    )
     cv.add_argument(
         "--body-markers",
         help="CSV name,x,y,z: the markers in the platform frame [m] (default: from the first full frame)",
@@ -110,7 +117,8 @@ def run(args) -> int:
         "the robot": args.params,
     }
     check_output(out, inputs=inputs, example=str(out / "trial.csv"))
-    n_wheels = RobotParams.load(args.params).n_wheels if args.params else None
+    robot = RobotParams.load(args.params) if args.params else None
+    n_wheels = robot.n_wheels if robot is not None else None
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", CaptureWarning)
         try:
@@ -133,6 +141,7 @@ def run(args) -> int:
                 input_kind=args.input_kind,
                 joints=args.joints,
                 n_wheels=n_wheels,
+                shell_radius=float(robot.R0) if robot is not None else None,
             )
             if time_offset is None:
                 time_offset = _estimate_offset(convert, args)
@@ -150,7 +159,23 @@ def run(args) -> int:
                     warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     write_trial(out, trial)
     print(f"{trial!r} -> {out}")
+    print(_centre_summary(trial, robot, args.params))
     return 0
+
+
+def _centre_summary(trial, robot, params) -> str:
+    """The summary's line on the shell centre's height (`centre_height`), and what it was
+    checked against: the robot's R0, or nothing without `--params`."""
+    from ..capture.centre import centre_height
+
+    h = centre_height(trial)
+    height = "no heights" if h is None else h.summary()
+    if robot is None:
+        return (
+            f"jsphere convert: shell centre height {height}; not checked against the shell radius: give --params "
+            "ROBOT to check it"
+        )
+    return f"jsphere convert: shell centre height {height}; the robot's R0 ({params}) is {float(robot.R0):.4f} m"
 
 
 def _time_offset(value: str) -> float | None:
