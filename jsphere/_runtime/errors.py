@@ -26,7 +26,8 @@ class ExitCode(enum.IntEnum):
     SOLVER_FAILURE = 4
     #: `jsphere fit`: the optimiser did not converge (fit.json is written, with its status)
     NOT_CONVERGED = 5
-    #: `jsphere fit`: a misfit, residuals far above the capture's noise floor (fit.json is written)
+    #: `jsphere fit`, `jsphere compare`: the model does not explain the trials (residuals far above the
+    #: capture's noise floor or correlated in time); the result file is written
     MISFIT = 6
     #: interrupted (Ctrl-C, SIGTERM) after saving what was finished; rerun to resume
     INTERRUPTED = 130
@@ -39,7 +40,8 @@ EXIT_CODES_HELP = """exit codes:
   3    plan: the request cannot be met within the limits (the best plan is still written)
   4    solver failure: an ODE solve or a fit failed (the message says where and what to try)
   5    fit: the optimiser did not converge (fit.json is written; its status says why)
-  6    fit: a misfit, residuals far above the capture's noise floor (fit.json is written)
+  6    fit, compare: the model does not explain the trials: a misfit or a model error (fit.json is written),
+       or a compare verdict other than consistent (compare.json is written)
   130  interrupted (Ctrl-C or SIGTERM) after saving what was finished; rerun to resume"""
 
 

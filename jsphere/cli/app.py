@@ -68,7 +68,13 @@ def parser() -> argparse.ArgumentParser:
 def _exit_codes(text: str, command: str) -> str:
     """The exit codes of `command`: those of `text` that are not another command's own."""
     names = {c.NAME for c in COMMANDS} - {command}
-    keep = [line for line in text.splitlines() if line.split("    ", 1)[-1].split(":", 1)[0].strip() not in names]
+    keep, mine = [], True
+    for line in text.splitlines():
+        if line.startswith("  ") and line[2:3].strip():  # a code's first line: "  6    fit, compare: ..."
+            who = {w.strip() for w in line.split("    ", 1)[-1].split(":", 1)[0].split(",")}
+            mine = command in who or not who & names
+        if mine or not line.startswith("  "):
+            keep.append(line)
     if command not in _RESUMES:  # only fit and montecarlo resume; the others write their files at the end
         keep = [line.replace(_RESUME, ", nothing written (files are written at the end)") for line in keep]
     return "\n".join(keep)

@@ -18,8 +18,11 @@ def add_parser(sub) -> None:
         description="Simulate each trial with the given parameters from its own initial pose (its initial "
         "velocities estimated as the fit estimates them) and score it: the normalised fit "
         "100 (1 - |y - y_hat| / |y - mean(y)|) of x, y and the orientation, the residuals' autocorrelation (the "
-        "fraction of lags outside the 99 % band) and their cross-correlation with the inputs, per trial and "
-        "overall. Writes compare.json and a figure per trial.",
+        "fraction of lags outside the 99 % band, and the Ljung-Box test) and their cross-correlation with the "
+        "inputs, per trial and overall, and a verdict: 'consistent' (exit 0) when the residuals of every trial "
+        "and channel are white, 'model error' (exit 6) when they are correlated in time, 'capture defects' "
+        "(exit 6) when they are white but more than 5 %% of a trial's frames were set aside. Writes compare.json "
+        "(with the top-level 'verdict') and a figure per trial.",
     )
     cp.add_argument("trials", nargs="+", metavar="TRIAL", help="trial CSV files or folders of them (docs/capture.md)")
     cp.add_argument(
@@ -42,14 +45,16 @@ def add_parser(sub) -> None:
         choices=("l2", "huber", "cauchy", "soft_l1"),
         default="cauchy",
         help="the loss of the initial-velocity estimate, as jsphere fit's (default cauchy): frames it sets aside "
-        "(ghost frames, marker swaps) are left out of the scores and listed per trial under 'outliers'",
+        "(ghost frames, marker swaps) are counted and listed per trial under 'outliers' and left out of the "
+        "whiteness test; the fit scores are on every frame",
     )
     cp.add_argument("--no-plots", action="store_true", help="skip the figures")
     cp.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
 
 
 def run(args) -> int:
-    """`jsphere compare`: exit 0 once the scores are written, whatever they are."""
+    """`jsphere compare`: exit 0 when the model explains the trials (verdict "consistent"), 6 when
+    it does not ("model error", "capture defects"); the scores are written either way."""
     from .._runtime.errors import ExitCode, InputError
     from .._runtime.files import check_output
     from ..capture.trial import read_trials
@@ -81,7 +86,9 @@ def run(args) -> int:
     for t in res.trials:
         if t["outliers"]["count"]:
             print(
-                f"{t['name']}: {t['outliers']['count']} frame(s) set aside by the {args.loss} loss (ghost frames, swaps)"
+                f"{t['name']}: {t['outliers']['count']} of {t['measured']} frames set aside by the {args.loss} loss "
+                "(left out of the whiteness test; the fit scores include them)"
             )
     print(f"wrote {', '.join(str(p) for p in written)}")
-    return ExitCode.OK
+    print(res.headline())
+    return ExitCode.OK if res.consistent else ExitCode.MISFIT

@@ -21,7 +21,7 @@ from .shooting import MU_LEVELS
 
 #: version of the checkpoint's contents (part of its fingerprint: a checkpoint written by
 #: another version is not resumed)
-_CHECKPOINT_FORMAT = 3
+_CHECKPOINT_FORMAT = 4
 
 #: A test's hook into every checkpoint write: called as `hook(event, path)` with `"written"`
 #: when the temporary file is complete but not yet renamed into place, and `"saved"` after the

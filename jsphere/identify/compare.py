@@ -7,16 +7,23 @@ by Levenberg-Marquardt on the trial's whitened residuals with the parameters hel
 
 - the normalised fit `100 (1 - |y - y_hat| / |y - mean(y)|)` [%] of `x`, `y` and the platform's
   orientation (`rot`: `y` the rotation vector from the first measured orientation, `y - y_hat`
-  the rotation vector of `q_sim^-1 q_meas`, norms over all samples and components);
-- the residuals' autocorrelation at lags `1..lags` per channel (`x`, `y`, `rot_x..z`) and the
-  fraction outside the 99 % band `+- 2.576 / sqrt(N)` of white noise (`whiteness`);
-- their cross-correlation with each input at lags `-lags..lags`, with the same band.
+  the rotation vector of `q_sim^-1 q_meas`, norms over all samples and components), on every
+  measured frame;
+- the whiteness of the residuals per channel (`x`, `y`, `rot_x..z`; `jsphere.identify.whiteness`):
+  their autocorrelation at lags `1..lags`, the fraction outside the 99 % band `+- 2.576 / sqrt(N)`
+  of white noise and the Ljung-Box test, on the frames not set aside;
+- their cross-correlation with each input at lags `-lags..lags`, with the same band;
+- the verdict (`VERDICTS`): `"consistent"` when every trial's residuals are white and at most
+  `REJECTED` of its frames are set aside; `"model error"` when the residuals of some trial and
+  channel are correlated in time (the Ljung-Box test at `ALPHA` over all trials and channels
+  together) or more than `ABANDONED` of a trial's frames are set aside (a trial the model does
+  not follow); `"capture defects"` when they are white but more than `REJECTED` of a trial's
+  frames are set aside (ghost frames, marker swaps).
 
-The nuisance values are estimated with the fit's robust loss (`loss`, `jsphere.identify.robust`):
-frames it sets aside (ghost frames, marker swaps) are each trial's `outliers`, and are left out of
-its scores.
-
-A right model leaves white residuals (about 1 % of the lags outside the band) and a fit near
+The nuisance values are estimated with the fit's robust loss (`loss`, `jsphere.identify.robust`;
+a redescending loss from the point its convex `WARM_LOSS` reaches, as in `fit`): the frames it
+sets aside are each trial's `outliers`, counted and listed, and left out of the whiteness test
+only. A right model leaves white residuals (about 1 % of the lags outside the band) and a fit near
 100 % where the motion is large against the noise; a wrong one scores lower and leaves
 correlated residuals.
 """
@@ -24,6 +31,7 @@ correlated residuals.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -43,13 +51,15 @@ from ..model.rotations import quat_conj, quat_log, quat_mul
 from ..numerics.lm import Dense, LevenbergMarquardt, host_candidate, host_update
 from .data import TIME_OFFSET, FitData, offset_from_nuisance, pack_trials
 from .residuals import trial_model
-from .robust import DEFAULT_LOSS, REJECT, check_loss, frame_weights, reweigh, robust_cost
+from .robust import DEFAULT_LOSS, REDESCENDING, REJECT, WARM_LOSS, check_loss, frame_weights, reweigh, robust_cost
 from .starts import nuisance_guess
+from .verdict import ABANDONED, REJECTED
+from .whiteness import ALPHA, Z99, channel, rejects
 
-#: the 99 % two-sided quantile of the standard normal distribution
-Z99 = 2.5758293035489004
 #: the residual channels, in the order of `series["residuals"]`'s columns
 CHANNELS = ("x", "y", "rot_x", "rot_y", "rot_z")
+#: what `compare` can conclude (`CompareResult.verdict`)
+VERDICTS = ("consistent", "model error", "capture defects")
 
 
 @dataclasses.dataclass
@@ -67,11 +77,20 @@ class CompareResult:
     overall: dict[str, Any]
     predicted: list[Trial]
     params: RobotParams
+    verdict: str = "consistent"
+    reason: str = ""
+
+    @property
+    def consistent(self) -> bool:
+        """Whether the model explains the trials (`verdict == "consistent"`)."""
+        return self.verdict == "consistent"
 
     def to_json(self) -> dict[str, Any]:
-        """The JSON document: `trials` (each with `name`, `fit_percent`, `whiteness`, ...),
-        `overall` and the `params` compared."""
+        """The JSON document: `verdict` (one of `VERDICTS`) and its `reason`, `trials` (each with
+        `name`, `fit_percent`, `whiteness`, `outliers`, ...), `overall` and the `params` compared."""
         return {
+            "verdict": self.verdict,
+            "reason": self.reason,
             "trials": [{k: v for k, v in t.items() if k != "series"} for t in self.trials],
             "overall": self.overall,
             "params": self.params.to_dict(),
@@ -92,14 +111,22 @@ class CompareResult:
 
     def table(self) -> str:
         """A plain-text summary: fits [%] and the whiteness per trial, then overall."""
-        lines = [f"{'trial':<20} {'fit x %':>8} {'fit y %':>8} {'fit rot %':>9} {'acf out 99':>10} {'ccf out 99':>10}"]
+        lines = [
+            f"{'trial':<20} {'fit x %':>8} {'fit y %':>8} {'fit rot %':>9} {'acf out 99':>10} {'ccf out 99':>10} "
+            f"{'set aside':>9}"
+        ]
         for t in [*self.trials, self.overall]:
             f = t["fit_percent"]
             lines.append(
                 f"{t['name'][:20]:<20} {f['x']:>8.2f} {f['y']:>8.2f} {f['rot']:>9.2f} "
-                f"{t['whiteness']['acf_outside_99']:>10.3f} {t['cross_correlation']['ccf_outside_99']:>10.3f}"
+                f"{t['whiteness']['acf_outside_99']:>10.3f} {t['cross_correlation']['ccf_outside_99']:>10.3f} "
+                f"{t['outliers']['count']:>9d}"
             )
         return "\n".join(lines)
+
+    def headline(self) -> str:
+        """The verdict in one line: `verdict: <verdict> (<reason>)`."""
+        return f"verdict: {self.verdict} ({self.reason})"
 
 
 def figure_name(name: str) -> str:
@@ -147,9 +174,14 @@ def compare(
     trials = list(trials)
     data = pack_trials(trials, params, max_offset=float(max_time_offset) if fit_time_offset else 0.0)
     sig = np.array([float(sigma_pos), float(sigma_rot)])
-    nu, pose, ok, res = _estimate_nuisance(
-        params, data, sig, int(max_iter), float(rtol), float(atol), int(max_steps), loss
+    est = functools.partial(
+        _estimate_nuisance, params, data, sig, int(max_iter), float(rtol), float(atol), int(max_steps)
     )
+    if loss in REDESCENDING:  # from the point of the convex loss, as `fit` does
+        nu, pose, ok, res = est(WARM_LOSS)
+        nu, pose, ok, res = est(loss, nu)
+    else:
+        nu, pose, ok, res = est(loss)
     aside = (frame_weights(loss, res) < REJECT) & ((data.wpos > 0) | (data.wrot > 0))
     bad = np.flatnonzero(~ok)
     if bad.size:
@@ -159,7 +191,7 @@ def compare(
         )
     reports, predicted = [], []
     for i, tr in enumerate(trials):
-        rep = _trial_report(data, i, pose, nu[i], np.asarray(tr.inputs, float), lags, aside[i])
+        rep = _trial_report(data, i, pose, nu[i], np.asarray(tr.inputs, float), lags, aside[i], loss)
         reports.append(rep)
         s = rep["series"]
         m = data.lengths[i]
@@ -174,7 +206,61 @@ def compare(
                 name=f"{data.names[i]}_predicted",
             )
         )
-    return CompareResult(trials=reports, overall=_overall(reports, lags), predicted=predicted, params=params)
+    verdict, reason = judge(reports)
+    return CompareResult(
+        trials=reports,
+        overall=_overall(reports, lags),
+        predicted=predicted,
+        params=params,
+        verdict=verdict,
+        reason=reason,
+    )
+
+
+def judge(reports: Sequence[dict[str, Any]], alpha: float = ALPHA) -> tuple[str, str]:
+    """The verdict (one of `VERDICTS`) and its one-sentence reason from the trials' reports
+    (module docstring): the Ljung-Box p-values of every trial and channel tested together at
+    `alpha`, then the share of each trial's frames set aside against `REJECTED`. Marks each
+    report's channels: `whiteness["correlated"]`, the channels whose residuals are not white."""
+    p = [r["whiteness"]["ljung_box"][c]["p"] for r in reports for c in CHANNELS]
+    bad, cut = rejects(p, alpha)
+    bad = bad.reshape(len(reports), len(CHANNELS))
+    for r, row in zip(reports, bad):
+        r["whiteness"]["correlated"] = [c for c, b in zip(CHANNELS, row) if b]
+        r["whiteness"]["p_threshold"] = cut
+    correlated = [(r, r["whiteness"]["correlated"]) for r in reports if r["whiteness"]["correlated"]]
+    heavy = [r for r in reports if r["outliers"]["count"] > REJECTED * max(r["measured"], 1)]
+    left_out = [r for r in heavy if r["outliers"]["count"] > ABANDONED * max(r["measured"], 1)]
+    if left_out and not correlated:
+        where = ", ".join(f"{r['name']!r} ({r['outliers']['count']} of {r['measured']} frames)" for r in left_out)
+        return "model error", (
+            f"more than {ABANDONED:.0%} of the frames of {where} were set aside: no capture's glitches, but a trial "
+            "the model does not follow; a parameter is off or the model misses an effect (dissipation, a torque "
+            "gain, a clock offset): fit again on these trials with those parameters free, or check the robot file"
+        )
+    if correlated:
+        worst = min(correlated, key=lambda rc: min(rc[0]["whiteness"]["ljung_box"][c]["p"] for c in rc[1]))[0]
+        where = "; ".join(f"trial {r['name']!r}: {', '.join(cs)}" for r, cs in correlated)
+        return "model error", (
+            f"the residuals are correlated in time ({where}; worst {worst['name']!r}, "
+            f"{worst['whiteness']['acf_outside_99']:.0%} of its autocorrelation lags outside the 99 % band, "
+            f"Ljung-Box p < {cut:.1e}): the model does not explain these trials; a parameter is off or the model "
+            "misses an effect (dissipation, a torque gain, a clock offset): fit again on these trials with those "
+            "parameters free, or check the robot file"
+        )
+    if heavy:
+        where = ", ".join(f"{r['name']!r} ({r['outliers']['count']} of {r['measured']} frames)" for r in heavy)
+        return "capture defects", (
+            f"the residuals are white, but more than {REJECTED:.0%} of the frames of {where} were set aside as "
+            "ghost frames or marker swaps: those trials do not test the model; convert the takes again or use "
+            "other trials"
+        )
+    n = sum(r["outliers"]["count"] for r in reports)
+    aside = f"; {n} frame(s) set aside as capture glitches" if n else ""
+    return "consistent", (
+        f"the residuals of every trial and channel are white (Ljung-Box at {alpha:g} over "
+        f"{len(reports) * len(CHANNELS)} series){aside}"
+    )
 
 
 # ----------------------------------------------------------------------------- the nuisance values
@@ -210,11 +296,11 @@ NUISANCE_LM = LevenbergMarquardt(
 _nuisance_step = eqx.filter_jit(NUISANCE_LM.solve)
 
 
-def _estimate_nuisance(params, data: FitData, sig, max_iter: int, rtol, atol, max_steps, loss: str = "l2"):
+def _estimate_nuisance(params, data: FitData, sig, max_iter: int, rtol, atol, max_steps, loss: str = "l2", nu=None):
     """Each trial's nuisance values by Levenberg-Marquardt (`NUISANCE_LM`) with `params` held
     (trials are then independent: one small damped Gauss-Newton step per trial, all in one
     vmapped call), on the cost of `loss` (`jsphere.identify.robust`: the reweighted residuals
-    and Jacobian are the linearisation). Returns the values `(T, n)`, the simulated poses there,
+    and Jacobian are the linearisation), from `nu (T, n)` (default: `nuisance_guess`). Returns the values `(T, n)`, the simulated poses there,
     whether each trial's solve succeeded and the whitened residuals `(T, K)`."""
     fn = _model(data.kind, rtol, atol, max_steps, data.max_offset)
     arrays, sig_j = data.arrays(), jnp.asarray(sig)
@@ -229,7 +315,7 @@ def _estimate_nuisance(params, data: FitData, sig, max_iter: int, rtol, atol, ma
             linear = (rw[:, 0], Jw[:, 0])
         return jnp.where(ok, cost, jnp.inf), (linear, pose, res)
 
-    nu = jnp.asarray(nuisance_guess(data, params))
+    nu = jnp.asarray(nuisance_guess(data, params) if nu is None else nu)
     state = NUISANCE_LM.init(*evaluate(nu))
     state = eqx.tree_at(lambda s: s.converged, state, ~jnp.isfinite(state.cost))
     for _ in range(max_iter):
@@ -259,18 +345,6 @@ def _fit_percent(norms: tuple[float, float]) -> float:
     return 100.0 * (1.0 - math.sqrt(num / den)) if den > 0 else -math.inf
 
 
-def _acf(e: np.ndarray, w: np.ndarray, lags: int) -> np.ndarray:
-    """Autocorrelation `(lags + 1,)` of a series `e` measured where `w` (gaps left out of each
-    lag's products, each lag's mean scaled to all measured pairs)."""
-    e = np.where(w, e - e[w].mean(), 0.0)
-    c0 = (e * e).sum() / max(w.sum(), 1)
-    out = np.ones(lags + 1)
-    for k in range(1, lags + 1):
-        pairs = (w[k:] & w[:-k]).sum()
-        out[k] = ((e[k:] * e[:-k]).sum() / max(pairs, 1)) / c0 if pairs and c0 > 0 else 0.0
-    return out
-
-
 def _ccf(e: np.ndarray, w: np.ndarray, u: np.ndarray, lags: int) -> np.ndarray:
     """Cross-correlation `(2 lags + 1,)` of a residual series `e` (measured where `w`) with an
     input `u`, at lags `-lags..lags` (`e(t)` against `u(t - k)`)."""
@@ -289,11 +363,13 @@ def _ccf(e: np.ndarray, w: np.ndarray, u: np.ndarray, lags: int) -> np.ndarray:
 
 
 def _trial_report(
-    data: FitData, i: int, pose, nu_i: np.ndarray, inputs: np.ndarray, lags: int, aside=None
+    data: FitData, i: int, pose, nu_i: np.ndarray, inputs: np.ndarray, lags: int, aside=None, loss: str = "l2"
 ) -> dict[str, Any]:
+    """One trial's scores: fits on every measured frame, whiteness and cross-correlations on
+    those not set aside (`aside (M,)`)."""
     m = data.lengths[i]
     out = np.zeros(m, bool) if aside is None else np.asarray(aside[:m], bool)
-    wp, wr = (data.wpos[i, :m] > 0) & ~out, (data.wrot[i, :m] > 0) & ~out
+    wp, wr = data.wpos[i, :m] > 0, data.wrot[i, :m] > 0
     xs, ys, qs = (np.asarray(a[i, :m]) for a in pose)
     q_meas = data.q[i, :m]
     rot_err = np.asarray(quat_log(quat_mul(quat_conj(jnp.asarray(qs)), jnp.asarray(q_meas))))
@@ -306,10 +382,10 @@ def _trial_report(
     }
     fit = {k: _fit_percent(v) for k, v in norms.items()}
     resid = np.stack([ex, ey, *rot_err.T], 1)
-    masks = [wp, wp, wr, wr, wr]
-    n_eff = int(wp.sum())
-    band = Z99 / math.sqrt(max(n_eff, 1))
-    acfs = np.stack([_acf(resid[:, c], masks[c], lags) for c in range(len(CHANNELS))])
+    masks = [wp & ~out, wp & ~out, wr & ~out, wr & ~out, wr & ~out]
+    white = [channel(resid[:, c], masks[c], lags) for c in range(len(CHANNELS))]
+    band = Z99 / math.sqrt(max(int(masks[0].sum()), 1))
+    acfs = np.stack([w["acf"] for w in white])
     outside = np.abs(acfs[:, 1:]) > band
     u = np.asarray(inputs, float)[:m]
     ccfs = np.stack(
@@ -329,6 +405,7 @@ def _trial_report(
             "band": band,
             "lags": lags,
             "channels": {c: float(outside[k].mean()) for k, c in enumerate(CHANNELS)},
+            "ljung_box": {c: {"q": w["q"], "p": w["p"], "frames": w["frames"]} for c, w in zip(CHANNELS, white)},
         },
         "cross_correlation": {
             "ccf_outside_99": float(c_out.mean()),
@@ -337,7 +414,8 @@ def _trial_report(
             "lags": lags,
             "inputs": {f"input_{j + 1}": float(c_out[:, j].mean()) for j in range(u.shape[1])},
         },
-        "outliers": {"frames": np.flatnonzero(out).tolist(), "count": int(out.sum())},
+        "outliers": {"frames": np.flatnonzero(out).tolist(), "count": int(out.sum()), "loss": loss},
+        "measured": int((wp | wr).sum()),
         "rms_pos_m": float(np.sqrt((ex[wp] ** 2 + ey[wp] ** 2).mean())),
         "rms_rot_deg": float(np.degrees(np.sqrt((rot_err[wr] ** 2).sum(1).mean()))),
         "nuisance": {
@@ -350,7 +428,8 @@ def _trial_report(
             "y": np.where(wp, data.y[i, :m], np.nan),
             "x_sim": xs,
             "y_sim": ys,
-            "residuals": np.where(np.stack(masks, 1), resid, np.nan),
+            "residuals": np.where(np.stack([wp, wp, wr, wr, wr], 1), resid, np.nan),
+            "set_aside": out,
             "acf": acfs,
             "channels": CHANNELS,
             "band": band,
@@ -386,4 +465,6 @@ def _overall(reports: list[dict[str, Any]], lags: int) -> dict[str, Any]:
         },
         "rms_pos_m": math.sqrt(wavg([r["rms_pos_m"] ** 2 for r in reports])),
         "rms_rot_deg": math.sqrt(wavg([r["rms_rot_deg"] ** 2 for r in reports])),
+        "outliers": {"count": sum(r["outliers"]["count"] for r in reports)},
+        "measured": sum(r["measured"] for r in reports),
     }

@@ -67,7 +67,7 @@ from .data import FitData, pack_trials
 from .free import FreeParams, _overlaps, _split_names, apply_fixes
 from .report import FitResult, fit_result
 from .residuals import _Functions, _functions
-from .robust import DEFAULT_LOSS, check_loss, reweigh, reweigh_with_excess, robust_cost
+from .robust import DEFAULT_LOSS, REDESCENDING, WARM_LOSS, check_loss, reweigh, reweigh_with_excess, robust_cost
 from .shooting import CONTINUATION_RTOL, DEFECT_CLOSED, MU_LEVELS, Segments
 from .starts import _NU_SCALE, nuisance_guess, start_design
 from .verdict import robust_sd
@@ -338,6 +338,17 @@ class _Options:
     @property
     def estimate_sigma(self) -> bool:
         return self.sigma_pos is None or self.sigma_rot is None
+
+    def stage_loss(self, stage: int) -> str:
+        """The loss of a stage: a redescending loss (`REDESCENDING`) only in the last stage
+        (2), from the point the convex `WARM_LOSS` reached; every other loss in every stage."""
+        return WARM_LOSS if self.loss in REDESCENDING and stage != 2 else self.loss
+
+    @property
+    def refines(self) -> bool:
+        """Whether stage 1 is followed by stage 2: to estimate the noise levels, or to finish
+        with a redescending loss."""
+        return self.estimate_sigma or self.loss in REDESCENDING
 
     def config(self, sig: np.ndarray, multiple: bool) -> dict[str, Any]:
         """What the checkpoint's fingerprint holds besides the data and the free parameters (the
@@ -672,25 +683,26 @@ def _evaluate_single(run: _Run, st: _State, th, n):
             run.programs, "jacobian", run.base, to_jax(th), to_jax(n), run.arrays, to_jax(st.sig)
         )
         res, ok = np.asarray(res), np.asarray(ok)
-    if run.options.loss == "l2":
+    loss = run.options.stage_loss(st.stage)
+    if loss == "l2":
         cost = np.where(ok.all(1), 0.5 * (res * res).sum((1, 2)), np.inf)
     else:
-        cost = np.where(ok.all(1), np.asarray(robust_cost(run.options.loss, to_jax(res))), np.inf)
+        cost = np.where(ok.all(1), np.asarray(robust_cost(loss, to_jax(res))), np.inf)
     st.last.update(pose=pose, ok=ok, data=run.data)
     return cost, {"res": res, "J": J, "pose": pose}
 
 
-def _weighted(run: _Run, res, J):
+def _weighted(run: _Run, loss: str, res, J):
     """The residuals and Jacobian as Levenberg-Marquardt sees them: reweighted for a robust
-    loss (`jsphere.identify.robust.reweigh`), as they are for `l2`. An evaluation holds them
+    `loss` (`jsphere.identify.robust.reweigh`), as they are for `l2`. An evaluation holds them
     unweighted, so that the checkpoint does too and the weights follow from what it holds."""
-    if run.options.loss == "l2":
+    if loss == "l2":
         return res, J
-    return reweigh(run.options.loss, to_jax(res), J)
+    return reweigh(loss, to_jax(res), J)
 
 
-def _solve_single(run: _Run, out, lam):
-    res, J = _weighted(run, out["res"], out["J"])
+def _solve_single(run: _Run, st: _State, out, lam):
+    res, J = _weighted(run, run.options.stage_loss(st.stage), out["res"], out["J"])
     dg, dn, pred = run.fns.run(run.programs, "step", to_jax(res), J, to_jax(lam))
     return (np.asarray(dg), np.asarray(dn)), np.asarray(pred)
 
@@ -707,9 +719,9 @@ def _evaluate_multiple(run: _Run, st: _State, mu: float, th, n):
             except Exception:  # noqa: BLE001 - the call below compiles it again and says what fails
                 pass
         res, ok, J, pose, e, Je = run.fns.run(run.programs, "segments", *args)
-        excess = 0.0
-        if run.options.loss != "l2":  # the weighted squares replaced by the robust cost
-            res, J, excess = reweigh_with_excess(run.options.loss, res, J)
+        excess, loss = 0.0, run.options.stage_loss(st.stage)
+        if loss != "l2":  # the weighted squares replaced by the robust cost
+            res, J, excess = reweigh_with_excess(loss, res, J)
             excess = np.asarray(excess)
         # (`mu` an array: one program for every level)
         blocks, cost, dfc = run.fns.run(
@@ -860,7 +872,7 @@ def _adam_steps(run: _Run, st: _State, w, ost, bar) -> None:
     for k in range(st.adam_k, run.options.adam_steps):
         zz = jax.tree_util.tree_map(lambda a, s: a * s, w, scale)
         cost_k, out_k = _evaluate_single(run, st, zz["theta"], zz["nu"])
-        res_k, J_k = _weighted(run, out_k["res"], out_k["J"])
+        res_k, J_k = _weighted(run, run.options.stage_loss(st.stage), out_k["res"], out_k["J"])
         if st.adam_best is None:
             st.adam_best = (cost_k.copy(), np.asarray(zz["theta"]).copy(), np.asarray(zz["nu"]).copy())
         else:
@@ -889,29 +901,35 @@ def _adam_steps(run: _Run, st: _State, w, ost, bar) -> None:
 def _single_shooting(run: _Run, st: _State) -> None:
     """Stages 1 and 2: Levenberg-Marquardt, the noise levels estimated in between (unless given)."""
     while st.stage in (1, 2):
-        evaluate, solve = functools.partial(_evaluate_single, run, st), functools.partial(_solve_single, run)
+        evaluate, solve = functools.partial(_evaluate_single, run, st), functools.partial(_solve_single, run, st)
         st.theta, st.nu, cost, out = _lm_stage(
             run, st, evaluate, solve, st.theta, st.nu, f"stage {st.stage}", rel_done=run.options.ftol
         )
         cost = np.asarray(cost)
         st.stage_converged = bool(np.asarray(st.lm.converged)[int(np.argmin(cost))])
         st.lm = None
-        if st.stage == 1 and run.options.estimate_sigma:
-            est = _estimate_sigma(
-                np.asarray(out["res"])[int(np.argmin(cost))],
-                run.data,
-                st.sig,
-                run.P + run.T * run.n_nu,
-                run.options.loss,
-            )
-            # residuals of exactly 0 (noise-free data) give no estimate: keep the level used
-            usable = np.isfinite(est) & (est > 0)
-            st.sig = np.where(usable, est, st.sig)
+        if st.stage == 1 and run.options.refines:
+            then = "refitting"
+            if run.options.stage_loss(2) != run.options.stage_loss(1):
+                then = f"refitting with the {run.options.loss} loss"
+            if run.options.estimate_sigma:
+                est = _estimate_sigma(
+                    np.asarray(out["res"])[int(np.argmin(cost))],
+                    run.data,
+                    st.sig,
+                    run.P + run.T * run.n_nu,
+                    run.options.stage_loss(1),
+                )
+                # residuals of exactly 0 (noise-free data) give no estimate: keep the level used
+                usable = np.isfinite(est) & (est > 0)
+                st.sig = np.where(usable, est, st.sig)
+                kept = "" if usable.all() else " (residuals of 0 give no estimate: the level used is kept)"
+                run.say(
+                    f"fit: noise estimated: sigma_pos {st.sig[0] * 1e3:.4f} mm, sigma_rot {math.degrees(st.sig[1]):.4f} deg{kept}; {then}"
+                )
+            else:
+                run.say(f"fit: {then}")
             st.stage = 2
-            kept = "" if usable.all() else " (residuals of 0 give no estimate: the level used is kept)"
-            run.say(
-                f"fit: noise estimated: sigma_pos {st.sig[0] * 1e3:.4f} mm, sigma_rot {math.degrees(st.sig[1]):.4f} deg{kept}; refitting"
-            )
         else:
             st.stage = 3
             _save(run, st)

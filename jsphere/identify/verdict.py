@@ -8,8 +8,11 @@ the capture's own noise floor, estimated from the data alone, and looks at their
   differences), independent of any model.
 - `lag1(errors, valid)`: the lag-1 autocorrelation of residuals (white noise: ~0; a model that
   misses a smooth motion: ~1).
+- the whiteness of each trial's residuals per channel (`jsphere.identify.whiteness`: the
+  Ljung-Box test at `ALPHA` over every trial and channel together);
 - `judge(...)`: `"converged"`, `"not_converged"` or `"misfit"`, a one-sentence reason a user
-  can act on, and the numbers behind it.
+  can act on, the `diagnosis` (`"model error"`, `"capture defects"`, `"wrong valley"` or None)
+  and the numbers behind it.
 
 The rules (thresholds are the module constants below):
 
@@ -19,13 +22,23 @@ The rules (thresholds are the module constants below):
 2. otherwise `misfit` when the residual sigma of a channel (position or orientation), over
    all trials or of the worst trial, is more than `FAR` times the noise floor, or more than
    `MODERATE` times with a lag-1 autocorrelation above `CORRELATED` (far from white);
-3. otherwise `converged`.
+3. otherwise `misfit` with the diagnosis "model error" when the residuals of some trial and
+   channel are not white (a model error leaves a smooth part in them, correlated over many
+   frames, even where it is small against the noise: unmodelled dissipation 1.3x the floor
+   moves the estimates by tens of standard errors); the reason names the effects the fit could
+   be missing (`missing_effects`). Channels whose floor is at `FLOOR_RESOLUTION` (a noise-free
+   capture: residuals of the ODE solver's own error) are not tested;
+4. otherwise `converged`.
+
+A misfit whose residuals are correlated in time is put down to the model, never to the
+capture: its reason advises no cleaning or converting.
 
 Frames a robust loss set aside (`jsphere.identify.robust`: ghost frames, marker swaps) are left
-out of the residual sigmas and counted per trial. Where more than `REJECTED` of a trial's
-measured frames are set aside, the reason names the trial ("trial 'X': 12 % of frames rejected:
-check the capture"): a misfit is then put down to the capture, not to the model, and a fit
-whose other frames sit at the noise floor stays `converged` with that warning in its reason.
+out of the residual sigmas and of the whiteness test, and counted per trial. Where more than
+`REJECTED` of a trial's measured frames are set aside and the residuals of the frames kept are
+white, the reason names the trial ("trial 'X': 12 % of frames rejected: check the capture"):
+a misfit is then put down to the capture, and a fit whose other frames sit at the noise floor
+stays `converged` with that warning in its reason.
 More than `ABANDONED` of a trial's frames set aside is no capture's glitches but a fit that has
 left the trial out (a wrong valley, where the redescending Cauchy loss lets a whole trial go, or a
 trial the model does not describe): a `misfit` naming the trial.
@@ -40,6 +53,7 @@ from typing import Any
 import numpy as np
 
 from ..model.rotations import quat_conj_np, quat_log_np, quat_mul_np
+from . import whiteness
 
 #: residual sigma / noise floor above which a fit is a misfit
 FAR = 3.0
@@ -70,6 +84,26 @@ ABANDONED = 0.5
 _MAD = 1.4826
 
 CHANNELS = ("position", "orientation")
+#: the residual series tested for whiteness, per trial: position x, y and orientation about 3 axes
+SERIES = ("x", "y", "rot_x", "rot_y", "rot_z")
+#: what the verdict can put a misfit down to
+DIAGNOSES = ("model error", "capture defects", "wrong valley")
+
+
+def missing_effects(free: Sequence[str], kind: str, time_offset: bool, known: Sequence[str] = ()) -> list[str]:
+    """What a fit of the free names `free` on trials of input `kind` could be missing, in words
+    and the options that add it: dissipation (unless `c_roll` and `c_axle` are free), a torque
+    gain (torque trials, unless `k_tau` is free; only where the model has one: `known` holds the
+    parameter names), a clock offset (unless fitted), and a parameter held at a wrong value."""
+    out = []
+    if not {"c_roll", "c_axle"} <= set(free):
+        out.append("dissipation (--free c_roll,c_axle)")
+    if kind == "torques" and "k_tau" in known and "k_tau" not in free:
+        out.append("a torque gain (--free k_tau, with one mass fixed at its known value)")
+    if not time_offset:
+        out.append("a clock offset between the capture and the inputs (--fit-time-offset)")
+    out.append("a parameter held at a wrong value (--free it, or check the robot file)")
+    return out
 
 
 # ----------------------------------------------------------------------------- the noise floor
@@ -213,6 +247,8 @@ def judge(
     n_params: int = 0,
     set_aside: Sequence[int] | None = None,
     measured: Sequence[int] | None = None,
+    missing: Sequence[str] = (),
+    lags: int = whiteness.LAGS,
 ) -> dict[str, Any]:
     """The verdict on a fit from its residuals.
 
@@ -228,6 +264,8 @@ def judge(
     - `set_aside`, `measured`: per trial the frames a robust loss set aside (already NaN in
       `pos_err`, `rot_err`) and the frames measured; more than `REJECTED` of them names the
       trial in the reason (module docstring).
+    - `missing`: what the fit could be missing, in words (`missing_effects`), named by a model
+      error's reason; `lags`: the largest lag of the whiteness test.
 
     Returns a dict: `status` (`"converged"`, `"not_converged"` or `"misfit"`, see the module's
     rules), `reason` (one sentence), and the numbers in JSON units: `noise_floor_pos_m`,
@@ -235,7 +273,9 @@ def judge(
     `ratio_pos`, `ratio_rot` (sigma / floor), `autocorr_pos`, `autocorr_rot` (lag-1),
     `worst_trial` (the name of the trial with the highest ratio), `trials` (per trial
     `name`, `sigma_pos_m`, `sigma_rot_deg`, `ratio_pos`, `ratio_rot`, `autocorr_pos`,
-    `autocorr_rot`, `set_aside`), `optimiser_converged`, `set_aside` (all trials) and `thresholds`.
+    `autocorr_rot`, `set_aside`, `whiteness`: per series (`SERIES`) the Ljung-Box `p`),
+    `optimiser_converged`, `set_aside` (all trials), `diagnosis` (one of `DIAGNOSES` or None),
+    `correlated` (per trial name, the series that are not white) and `thresholds`.
     """
     T = len(pos_err)
     names = list(names) if names is not None else [f"trial{i}" for i in range(T)]
@@ -256,7 +296,13 @@ def judge(
         if held[i] and aside[i] > REJECTED * held[i]
     ]
     left_out = [names[i] for i in range(T) if held[i] and aside[i] > ABANDONED * held[i]]
+    white = _whiteness(pos_err, rot_err, floor, lags)
+    bad, cut = whiteness.rejects([w["p"] for ws in white for w in ws])
+    bad = bad.reshape(T, len(SERIES)) if T else bad
+    correlated = {names[i]: [c for c, b in zip(SERIES, bad[i]) if b] for i in range(T) if bad[i].any()}
+    diagnosis = None
     if left_out and converged:
+        diagnosis = "wrong valley"
         status, reason = (
             "misfit",
             (
@@ -266,14 +312,60 @@ def judge(
                 "trial's inputs and capture."
             ),
         )
+    elif correlated and converged:
+        status, diagnosis = "misfit", "model error"
+        reason = _model_error(correlated, white, names, overall, cut, missing, lags)
+        if any(h[4] == "far" for h in _hits(scopes)):
+            reason += (
+                " Residuals this far above the floor can also mean a wrong valley: try more starts (--n-starts) or "
+                "other start values (--params)."
+            )
     else:
         status, reason = _status(_hits(scopes), overall, per_trial, names, worst, fl, converged, why_not, rejected)
+        if status == "misfit":
+            diagnosis = "capture defects" if rejected else "wrong valley"
     out = _numbers(status, reason, converged, floor, overall, per_trial, names, worst)
-    for t, n in zip(out["trials"], aside):
+    for t, n, ws in zip(out["trials"], aside, white):
         t["set_aside"] = int(n)
+        t["whiteness"] = {c: w["p"] for c, w in zip(SERIES, ws)}
     out["set_aside"] = int(sum(aside))
-    out["thresholds"]["rejected"] = REJECTED
+    out["diagnosis"] = diagnosis
+    out["correlated"] = correlated
+    out["thresholds"] |= {"rejected": REJECTED, "whiteness_alpha": whiteness.ALPHA, "whiteness_lags": lags}
     return out
+
+
+def _whiteness(pos_err, rot_err, floor, lags: int) -> list[list[dict[str, Any]]]:
+    """Per trial and series (`SERIES`) the whiteness of the residuals (`whiteness.channel`); a
+    channel whose floor is not above `FLOOR_RESOLUTION` (a noise-free capture) gets `p = NaN`,
+    not tested."""
+    judged = [math.isfinite(f) and f > r for f, r in zip(floor, FLOOR_RESOLUTION)]
+    out = []
+    for pe, re in zip(pos_err, rot_err):
+        cols = [(np.asarray(pe, float)[:, k], 0) for k in range(2)] + [
+            (np.asarray(re, float)[:, k], 1) for k in range(3)
+        ]
+        ws = []
+        for e, c in cols:
+            w = whiteness.channel(e, np.isfinite(e), lags)
+            ws.append(w if judged[c] else w | {"p": math.nan, "q": math.nan})
+        out.append(ws)
+    return out
+
+
+def _model_error(correlated, white, names, overall, cut: float, missing: Sequence[str], lags: int) -> str:
+    """The reason of a misfit whose residuals are correlated in time."""
+    where = "; ".join(f"trial {n!r}: {', '.join(cs)}" for n, cs in correlated.items())
+    i = names.index(next(iter(correlated)))
+    share = float(np.mean([w["outside_99"] for w in white[i]]))
+    ratios = f"{_x(overall[0][0])} (position) and {_x(overall[1][0])} (orientation) the capture's noise floor"
+    effects = "; ".join(missing) if missing else "a parameter held at a wrong value"
+    return (
+        f"model error: the residuals are correlated in time ({where}; in trial {names[i]!r} {share:.0%} of the "
+        f"autocorrelation lags 1-{lags} are outside the 99 % band of white noise, Ljung-Box p < {cut:.1e}), at "
+        f"{ratios}: the model does not describe these trials, and the values and standard errors are biased. "
+        f"What it could be missing: {effects}."
+    )
 
 
 def _scope(errs, frac: float, fl) -> list[tuple[float, float, float]]:

@@ -18,7 +18,9 @@ import jsphere
 from jsphere._runtime.errors import ExitCode, InputError
 from jsphere.capture.synthetic import default_marker_set
 from jsphere.cli.app import main
-from jsphere.identify.compare import Z99, _acf, _ccf, _fit_percent, _norms
+from jsphere.identify.compare import _ccf, _fit_percent, _norms
+from jsphere.identify.whiteness import Z99
+from jsphere.identify.whiteness import autocorrelation as _acf
 
 ROOT = Path(__file__).resolve().parents[2]
 RAW = ROOT / "examples" / "data" / "raw"
