@@ -20,7 +20,7 @@ from .information import Grid, Noise, problem
 from .inputs import KINDS, Spec, match_rms, programmes, random_multisine, random_start, rms, sample_times, table
 from .optimise import evaluate, limit_values, limits_report, maximise
 from .prediction import d_criterion, fit_information
-from .result import DesignResult
+from .result import CRITERION, DesignResult
 
 #: the RMS of the starts' `s_i(t)` in units of the limit: well inside the limits the penalty watches
 START_SCALE = 0.03
@@ -123,7 +123,10 @@ def design_excitation(
         limits_baseline=limits_report(_accurate(kind, base_limits, ext_b)),
         limits_model=limits_report(design_limits),
         baseline_equal_rms=None if equal is None else _equal_rms(fp, values, info, equal, design_rms),
-        restarts=[{"start": float(s), "final": float(f), "penalty": float(p)} for s, f, p in zip(start_obj, obj, pen)],
+        restarts=[
+            {"start": float(s), "final": float(f), "penalty": float(p), "criterion": float(c)}
+            for s, f, p, c in zip(start_obj, obj, pen, phi)
+        ],
         settings={
             "trials": trials,
             "n_freqs": n_freqs,
@@ -154,9 +157,14 @@ def _optimise(prog: Progress, pr, lim: Limits, fp: FreeParams, restarts: int, st
     key = repr((spec, fp.names, grid.rate, grid.substeps, restarts))
     with prog.bar(steps + 1, "design: Adam", "step") as bar:
 
-        def on_step(k, obj):
-            bar.update(1, f"log det {np.nanmax(np.where(np.isfinite(obj), obj, np.nan)):.3f}")
-            prog.step(f"design: step {k:3d}/{steps}  best objective {np.nanmax(obj):.4f}")
+        def on_step(k, obj, phi, pen):
+            if not np.isfinite(obj).any():
+                bar.update(1, "no finite criterion yet")
+                prog.step(f"design: step {k:3d}/{steps}  the model of every restart failed so far")
+                return
+            b = int(np.argmax(np.where(np.isfinite(obj), obj, -np.inf)))
+            bar.update(1, f"log det {phi[b]:.3f}")
+            prog.step(f"design: step {k:3d}/{steps}  best so far: {CRITERION} {phi[b]:.4f}, limit penalty {pen[b]:.3g}")
 
         with prog.compiling("design", key, "design: the criterion's gradient"):
             zb, obj, phi, pen = maximise(z0s, pr, lim, steps=0)

@@ -90,12 +90,13 @@ def maximise(
     *,
     steps: int,
     learning_rate: float = 0.05,
-    on_step: Callable[[int, np.ndarray], None] | None = None,
+    on_step: Callable[[int, np.ndarray, np.ndarray, np.ndarray], None] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Adam ascent of every start `z0s (R, V)` at once (`steps` steps). Returns the best point
-    of each start (by objective), its objective, `Phi` and penalty; `on_step(k, objective)` is
-    called after every step. Non-finite objectives (a programme whose model fails) are never
-    kept, and their gradients are zeroed."""
+    of each start (by objective), its objective, `Phi` and penalty; `on_step(k, objective, Phi,
+    penalty)` is called after every step with those of each start's best point so far.
+    Non-finite objectives (a programme whose model fails) are never kept, and their gradients
+    are zeroed."""
     opt = optax.adam(learning_rate)
     z = jnp.asarray(z0s)
     state = opt.init(z)
@@ -112,7 +113,7 @@ def maximise(
         best_z[better] = np.asarray(z)[better]
         best[better], best_phi[better], best_pen[better] = obj[better], phi[better], pen[better]
         if on_step is not None:
-            on_step(k, obj)
+            on_step(k, best, best_phi, best_pen)
         if k == steps:
             break
         g = jnp.where(jnp.isfinite(g) & jnp.asarray(ok)[:, None], g, 0.0)

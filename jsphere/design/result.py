@@ -19,6 +19,9 @@ from .._runtime.files import atomic_write_json
 from ..capture.inputs import write_inputs_csv
 from .inputs import KINDS
 
+#: what the printed criterion is (`criterion`, `Phi` of `jsphere.design.information`)
+CRITERION = "log det of the information matrix (D-optimal criterion, larger is better)"
+
 
 def table_paths(out, trials: int) -> list[Path]:
     """The inputs tables of a design written to `out` (module docstring)."""
@@ -52,9 +55,11 @@ class DesignResult:
       tables at the capture rate; `limits_model`: the design's on the search's RK4 model;
       `baseline_equal_rms`: where the baseline had to be scaled below the
       design's RMS amplitude to keep a limit, the multisine at the design's RMS for reference
-      (its criterion, predicted standard errors and limits), else None; `restarts`: per restart its
-      start and final criterion; `settings`: the sizes, noise levels, rates and seed;
-      `elapsed_s`.
+      (its criterion, predicted standard errors and limits), else None; `restarts`: per restart
+      the search's objective (`Phi - 1000 x penalty` on the model grid, maximised:
+      `jsphere.design.optimise`) at its start (`start`) and at its best point (`final`), that
+      point's limit penalty (`penalty`, without the weight) and its criterion `Phi`
+      (`criterion`); `settings`: the sizes, noise levels, rates and seed; `elapsed_s`.
     """
 
     kind: str
@@ -136,7 +141,7 @@ class DesignResult:
             lines.append(f"{n:<10} {self.values[n]:>12.6g} {s:>12.3g} {b:>12.3g} {self.factor[n]:>8.2f}")
         c = self.criterion
         lines.append(
-            f"criterion log det: design {c['design']:.3f}, baseline {c['baseline']:.3f} "
+            f"{CRITERION}: design {c['design']:.3f}, baseline {c['baseline']:.3f} "
             f"(RMS amplitude {self.rms['design']:.4g} / {self.rms['baseline']:.4g}); {self.elapsed_s:.1f} s"
         )
         bad = [k for k, v in self.limits.items() if not v["ok"]]

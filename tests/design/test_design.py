@@ -111,6 +111,13 @@ def test_cli_writes_one_table_per_trial_and_the_json(tmp_path, capsys):
     assert 0 < doc["rms"]["baseline"] <= doc["rms"]["design"] * (1 + 1e-4)
     printed = capsys.readouterr().out
     assert "SE design" in printed and "I[2,2]" in printed
+    # the criterion is printed in its natural sign and named as such, as design.json holds it
+    line = next(x for x in printed.splitlines() if x.startswith("log det of the information matrix"))
+    head = "log det of the information matrix (D-optimal criterion, larger is better): design "
+    assert line.startswith(head)
+    assert float(line[len(head) :].split(",")[0]) == pytest.approx(doc["criterion"]["design"], abs=5e-4)
+    for r in doc["restarts"]:  # the search's objective is the criterion less the weighted penalty
+        assert r["final"] == pytest.approx(r["criterion"] - 1e3 * r["penalty"])
 
 
 @pytest.mark.parametrize(
