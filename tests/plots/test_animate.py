@@ -128,6 +128,30 @@ def test_animate_a_plan_object(paper, straight, tmp_path, suffix):
         assert not re.search(r"<(script|link)[^>]+(src|href)=", html)  # plotly's bundle inline, nothing loaded
 
 
+def test_viewer_opens_on_the_first_frame_and_labels_each_slider_step_with_its_frames_time(paper, straight, tmp_path):
+    """The viewer's figure read from the HTML file: slider step `k` shows frame `k` and is
+    labelled with that frame's run time (`frame_times`), as the frame's own status line says;
+    the page opens paused on the first frame, `t = 0.00 s` (no auto-play)."""
+    from viewer_html import frame_time, viewer_figure
+
+    from jsphere.plots.animation import animate
+    from jsphere.plots.animation.scene import frame_times
+
+    out = animate(_plan_of(paper, straight), tmp_path / "plan.html", fps=15, speed=1.0, size=(160, 120))
+    data, layout, frames = viewer_figure(out)
+    slider = layout["sliders"][0]
+    steps = slider["steps"]
+    times = frame_times(float(straight.ts[-1] - straight.ts[0]), 15.0, 1.0)
+    assert len(steps) == len(frames) == len(times) > 2
+    assert [s["args"][0] for s in steps] == [[f["name"]] for f in frames]
+    assert [s["label"] for s in steps] == [f"{t:.2f} s" for t in times]
+    assert [f"{float(frame_time(f)):.2f} s" for f in frames] == [s["label"] for s in steps]
+    assert (slider["active"], slider["currentvalue"]["prefix"] + steps[0]["label"]) == (0, "t = 0.00 s")
+    assert data[0]["x"] == frames[0]["data"][0]["x"] and data[0]["x"] != frames[1]["data"][0]["x"]
+    assert layout["annotations"][1]["text"] == frames[0]["layout"]["annotations"][1]["text"]
+    assert "Plotly.animate(" not in out.read_text()  # paused until play is pressed
+
+
 def test_a_video_shows_the_robot_move(paper, straight, tmp_path):
     """Frames of the MP4 differ where the robot moves and the first frame is not blank."""
     import imageio_ffmpeg

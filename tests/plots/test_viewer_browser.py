@@ -1,6 +1,7 @@
 """The HTML viewer in a real browser: headless Chromium, driven through its DevTools protocol,
 loads the file from disk with no console error and no network request, draws the scene (a
-screenshot that is not blank), and a click on the time slider moves the robot.
+screenshot that is not blank), opens paused on the first frame with the slider at t = 0.00 s,
+and a click on the time slider moves the robot, its label the time of the frame drawn.
 
 Skipped where Chromium is missing, unless JSPHERE_BROWSER_TEST=required (`.ci/run` installs
 Chromium and sets it)."""
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from viewer_html import frame_time, viewer_figure
 
 DATA = Path(__file__).resolve().parents[2] / "examples" / "data"
 
@@ -104,6 +106,15 @@ class Page:
         self.proc.wait(10)
 
 
+#: what the page shows: the slider's label and step, and the time in the frame's status line
+SHOWN = """(() => {
+  const g = window.jsphereViewer;
+  const label = [...document.querySelectorAll(".slider-container text")].find(t => t.textContent.startsWith("t = "));
+  const status = g._fullLayout.annotations[1].text.match(/t =\\s*(\\S+) s/)[1];
+  return {label: label && label.textContent, active: g._fullLayout.sliders[0].active, status: status};
+})()"""
+
+
 @pytest.fixture(scope="module")
 def viewer(tmp_path_factory):
     from jsphere.plots.animation import animate
@@ -122,8 +133,9 @@ def test_viewer_loads_offline_draws_and_its_slider_moves_the_robot(viewer, tmp_p
         page.wait_for(
             "!!(window.jsphereViewer && window.jsphereViewer._fullLayout && document.readyState == 'complete')"
         )
-        time.sleep(1.0)  # the WebGL scene's first draw
+        time.sleep(1.0)  # the WebGL scene's first draw (and time for an auto-play to move on)
         shot = base64.b64decode(page.call("Page.captureScreenshot", format="png")["data"])
+        opened = page.evaluate(SHOWN)
         centre = "window.jsphereViewer.data[0].x.reduce((a, b) => a + b, 0) / window.jsphereViewer.data[0].x.length"
         before = page.evaluate(centre)
         rail = page.evaluate(
@@ -136,6 +148,7 @@ def test_viewer_loads_offline_draws_and_its_slider_moves_the_robot(viewer, tmp_p
         page.wait_for(f"Math.abs(({centre}) - {before}) > 1e-3", seconds=30)
         after = page.evaluate(centre)
         active = page.evaluate("window.jsphereViewer._fullLayout.sliders[0].active")
+        clicked = page.evaluate(SHOWN)
         page.call("Runtime.evaluate", expression="1")  # collect the events so far
         events = page.events
     finally:
@@ -160,3 +173,9 @@ def test_viewer_loads_offline_draws_and_its_slider_moves_the_robot(viewer, tmp_p
     assert requests and all(u.startswith(("file:", "data:", "blob:")) for u in requests), requests
     assert active > 0
     assert abs(after - before) > 1e-3  # the robot moved [m]
+    # the slider's label is the time of the frame drawn: on opening (paused) the first, t = 0
+    _, layout, frames = viewer_figure(viewer)
+    labels = [s["label"] for s in layout["sliders"][0]["steps"]]
+    assert opened == {"label": "t = 0.00 s", "active": 0, "status": frame_time(frames[0])} and labels[0] == "0.00 s"
+    assert clicked["label"] == f"t = {labels[active]}" and clicked["active"] == active
+    assert f"{float(clicked['status']):.2f} s" == labels[active]

@@ -4,8 +4,9 @@ zoom, play/pause, a time slider, and the overlays of the video (time, speed, whe
 fit's residual, a plan's target, a study's stop points and ellipse).
 
 Each frame of the slider holds the geometry that `jsphere.plots.animation.scene.body_frames` computed
-for the video, rounded to 0.1 mm. The page sets `window.jsphereViewer` to the plot's element
-(for scripts and the browser test)."""
+for the video, rounded to 0.1 mm, and the slider's step `k` is labelled with frame `k`'s run
+time. The page opens on the first frame, paused (`t = 0.00 s`). It sets `window.jsphereViewer`
+to the plot's element (for scripts and the browser test)."""
 
 from __future__ import annotations
 
@@ -221,7 +222,11 @@ def write_html(scenes: list[Scene], path, *, fps: float, speed: float, size=(900
         **_controls(fps, frames, run_times),
     )
     post = "window.jsphereViewer = document.getElementById('{plot_id}');"
-    html = fig.to_html(include_plotlyjs=True, full_html=True, post_script=post, config=dict(displaylogo=False))
+    # opens on the first frame, paused: plotly's auto-play would start at its own default pace
+    # (500 ms a frame), the slider already past the first frame once the page is drawn
+    html = fig.to_html(
+        include_plotlyjs=True, full_html=True, post_script=post, config=dict(displaylogo=False), auto_play=False
+    )
     atomic_write_text(path, html)
     return len(frames)
 
