@@ -64,7 +64,12 @@ def add_parser(sub) -> None:
         action="store_true",
         help="compute the batches of OUT that no other worker holds, then exit (no waiting); OUT shared by all",
     )
-    how.add_argument("--gather", action="store_true", help="join the batches of OUT: statistics and figure")
+    how.add_argument(
+        "--gather",
+        action="store_true",
+        help="join the batches of OUT: statistics and figure; reports the workers' compute time recorded in OUT "
+        "(time_*.json) and, apart, the gather's own",
+    )
     many.add_argument("--coordinator", metavar="HOST:PORT", help="with --distributed: process 0's address and a port")
     many.add_argument("--num-processes", type=int, metavar="N", help="with --distributed: the number of processes")
     many.add_argument("--process-id", type=int, metavar="I", help="with --distributed: this process's id, 0 .. N-1")
@@ -149,7 +154,7 @@ def run(args) -> int:
 
         montecarlo_figure(res, out / "stop_points.png", planned=st["planned_stop_m"], frame=args.frame)
         written.append(out / "stop_points.png")
-    print(summary(st, n, res.elapsed_s, written))
+    print(summary(st, n, res.elapsed_s, written, gathered=res.compute_time if args.gather else None))
     if not st["n_ok"]:
         if st["n_rejected"] == n:
             raise InputError(f"every draw was rejected ({why}); no statistics. Check the [vary] distributions.")
@@ -182,13 +187,16 @@ def _claim_timeout(value: float) -> float:
     return real(NAME, "--claim-timeout", value, unit="s")
 
 
-def summary(st: dict, n: int, elapsed_s: float, written) -> str:
+def summary(st: dict, n: int, elapsed_s: float, written, gathered=None) -> str:
     """A few lines for the terminal: the counts, the stop point's mean and sd [mm] in jsphere's
-    frame, and the files."""
-    lines = [
-        f"jsphere montecarlo: {n} trials in {elapsed_s:.1f} s: {st['n_ok']} ok, {st['n_rejected']} rejected, "
-        f"{st['n_failed']} failed"
-    ]
+    frame, and the files. `elapsed_s`: this command's wall time. `gathered`: for `--gather`,
+    the `ComputeTime` of the batches the workers recorded; the study's time is then theirs,
+    and `elapsed_s` the gather's own."""
+    counts = f"{st['n_ok']} ok, {st['n_rejected']} rejected, {st['n_failed']} failed"
+    if gathered is None:
+        lines = [f"jsphere montecarlo: {n} trials in {elapsed_s:.1f} s: {counts}"]
+    else:
+        lines = _gathered(gathered, n, counts) + [f"  gathered in {elapsed_s:.1f} s (joining the batch files)"]
     if st["n_ok"]:
         (mx, my), (sx, sy) = st["mean_xy_m"], st["sd_xy_m"]
         px, py = st["planned_stop_m"]
@@ -199,6 +207,18 @@ def summary(st: dict, n: int, elapsed_s: float, written) -> str:
         ]
     lines.append(f"  wrote {', '.join(str(p) for p in written)}")
     return "\n".join(lines)
+
+
+def _gathered(ct, n: int, counts: str) -> list[str]:
+    """The lines of `summary` on the workers' computation (`ct`, a `ComputeTime`)."""
+    if ct.recorded == 0:
+        return [f"jsphere montecarlo: {n} trials (the batches' compute time is not recorded in the folder): {counts}"]
+    some = "" if ct.recorded == ct.batches else f" ({ct.recorded} of {ct.batches} batches recorded)"
+    return [
+        f"jsphere montecarlo: {n} trials in {ct.sum_s:.1f} s of the workers' compute{some}: {counts}",
+        f"  {ct.recorded} batch(es) by {ct.processes} process(es), {ct.span_s:.1f} s from the first batch's start "
+        "to the last one's end",
+    ]
 
 
 def _report(st: dict, n: int) -> str:

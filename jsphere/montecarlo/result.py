@@ -27,6 +27,35 @@ def outcome_masks(status) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return ok, ~ok & ~rejected, rejected
 
 
+@dataclasses.dataclass(frozen=True)
+class ComputeTime:
+    """The computation of a study's batches as their time records in its folder tell it
+    (`jsphere.montecarlo.store.TIME_KEYS`): `batches` of the study, `recorded` of them with a
+    record, `sum_s`: the sum of the recorded batches' compute times [s] (what the processes
+    spent on them together; a process's first batch includes its compilation), `span_s`: from
+    the first recorded batch's start to the last one's end [s] (wall clock, the processes'
+    clocks taken as one), `processes`: how many processes (host and pid) computed them."""
+
+    batches: int
+    recorded: int
+    sum_s: float
+    span_s: float
+    processes: int
+
+    @classmethod
+    def of(cls, records) -> "ComputeTime":
+        """The `ComputeTime` of the time records of a study's batches (None for a batch with
+        none)."""
+        got = [r for r in records if r is not None]
+        return cls(
+            batches=len(records),
+            recorded=len(got),
+            sum_s=float(sum(r["compute_s"] for r in got)),
+            span_s=float(max(r["end_unix_s"] for r in got) - min(r["start_unix_s"] for r in got)) if got else 0.0,
+            processes=len({(r["host"], r["pid"]) for r in got}),
+        )
+
+
 @dataclasses.dataclass
 class MonteCarloResult:
     """Per-trial outcomes of `monte_carlo` (NumPy arrays of length `n`).
@@ -40,6 +69,9 @@ class MonteCarloResult:
     deviation of `gamma_3` over the settling time after the commands end (replay modes; the
     paper's sigma of Fig. 2; 0 in gait mode, where the gaits end on exact stationary motions);
     `reject_code`: 0 for a valid draw, else the index in `REASONS` of the rule it breaks.
+    `elapsed_s`: the wall time of the call that returned the result (for `workers.gather`, the
+    gather's own: it computes nothing); `compute_time`: with a study folder, the batches'
+    computation as recorded there (`ComputeTime`), else None.
     """
 
     REJECTED: ClassVar[int] = REJECTED
@@ -55,6 +87,7 @@ class MonteCarloResult:
     gamma3_sd_after: np.ndarray
     elapsed_s: float = 0.0
     reject_code: np.ndarray | None = None
+    compute_time: ComputeTime | None = None
 
     @property
     def results(self) -> np.ndarray:

@@ -21,6 +21,7 @@ import dataclasses
 import hashlib
 import math
 import os
+import socket
 import time
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -45,7 +46,7 @@ from .batch import CHUNK as CHUNK
 from .batch import ClosedLoop, Replay, Trials, run_batch
 from .distributed import batch_template, gather_batch, global_indices, share_from_process_0, start_distributed
 from .result import REJECTED as REJECTED
-from .result import MonteCarloResult
+from .result import ComputeTime, MonteCarloResult
 from .sampling import MAX_REDRAWS as MAX_REDRAWS
 from .sampling import REASONS as REASONS
 from .sampling import Actuators, Uncertainty
@@ -510,12 +511,17 @@ class _Run:
         """Batch `k`, written to the folder (if any, by the writer). In a distributed run every
         process computes its shard of the batch and gets the whole batch back."""
         lo, hi = k * self.batch_size, k * self.batch_size + self.padded  # the trials after the batch's are dropped
+        start, t0 = time.time(), time.perf_counter()
         if self.distributed:
             out = gather_batch(run_batch(self.trials, global_indices(self.trials.mesh, lo, hi)))
         else:
             out = jax.device_get(run_batch(self.trials, jnp.arange(lo, hi, dtype=jnp.int32)))
         part = dict(zip(BATCH_KEYS, (np.asarray(a)[: self.batch_size] for a in out)))
-        if self.folder is not None and self.writer:
+        seconds = time.perf_counter() - t0
+        if self.folder is not None and self.writer:  # the time record first: a batch file always has one
+            record = {"batch": k, "trials": self.trials_of(k), "compute_s": seconds, "start_unix_s": start}
+            record |= {"end_unix_s": start + seconds, "host": socket.gethostname(), "pid": os.getpid()}
+            self.folder.save_time(k, record)
             self.folder.save_batch(k, part)
         return part
 
@@ -588,9 +594,13 @@ def _compute(run: _Run, parts: list, progress: Progress, todo: Sequence[int] | N
 
 
 def _result(run: _Run, parts: list[dict], elapsed_s: float) -> MonteCarloResult:
-    """The study's outcome: the batches joined, cut to `n` trials."""
+    """The study's outcome: the batches joined, cut to `n` trials; with a folder (read by the
+    writer), the batches' compute time as recorded there."""
     cat = {key: np.concatenate([p[key] for p in parts])[: run.n] for key in parts[0]}
     samples = {name: cat["vals"][:, j] for j, name in enumerate(run.trials.draws.names)}
+    timed = None
+    if run.folder is not None and run.writer:
+        timed = ComputeTime.of(run.folder.load_times(range(run.n_batches)))
     return MonteCarloResult(
         n=run.n,
         seed=run.seed,
@@ -602,4 +612,5 @@ def _result(run: _Run, parts: list[dict], elapsed_s: float) -> MonteCarloResult:
         gamma3_sd_after=cat["gamma3_sd"],
         elapsed_s=elapsed_s,
         reject_code=cat["reject"],
+        compute_time=timed,
     )

@@ -3,6 +3,7 @@ whatever the run that wrote them), its statistics, and what a killed run leaves 
 
     out/manifest.json          the study's fingerprint, n, seed, batch size and vary
     out/batch_000000.npz ...   the outcomes of each finished batch (`BATCH_KEYS`)
+    out/time_000000.json ...   how long each batch took to compute, where and when (`TIME_KEYS`)
     out/stats.json             `MonteCarloResult.stats()` of the whole study
     out/claim_000042.json      a worker's claim of a batch it computes (`claims`)
 """
@@ -28,8 +29,12 @@ from .sampling import MAX_REDRAWS, REASONS
 
 #: the arrays of a batch file
 BATCH_KEYS = ("vals", "x", "y", "speed", "status", "gamma3_sd", "reject")
+#: the fields of a batch's time record: its trials, the seconds its computation took (the first
+#: batch a process computes includes the compilation), when it started and ended (Unix time [s]),
+#: and the process that computed it
+TIME_KEYS = ("batch", "trials", "compute_s", "start_unix_s", "end_unix_s", "host", "pid")
 #: the hidden temporary files of `jsphere._runtime.files.atomic_write` in a study folder, by the file they become
-_TEMPORARY = temporary_pattern(r"(batch_(\d{6})|manifest|stats|stop_points)", r"\.(npz|tmp|png)")
+_TEMPORARY = temporary_pattern(r"((?:batch|time)_(\d{6})|manifest|stats|stop_points)", r"\.(npz|tmp|png)")
 
 
 class MonteCarloWarning(UserWarning):
@@ -206,6 +211,28 @@ class StudyFolder:
                         np.lib.format.write_array(f, np.ascontiguousarray(part[key]), allow_pickle=False)
 
         atomic_write(self.batch_path(k), write)
+
+    def time_path(self, k: int) -> Path:
+        return self.path / f"time_{k:06d}.json"
+
+    def save_time(self, k: int, record: dict) -> None:
+        """Write the time record of batch `k` (`TIME_KEYS`) atomically beside its batch file. A
+        record of its own, so that the batch files stay the same bytes whatever run wrote them."""
+        atomic_write_json(self.time_path(k), {key: record[key] for key in TIME_KEYS})
+
+    def load_times(self, batches) -> list[dict | None]:
+        """The time records of `batches` (`save_time`), None for each that is missing or cannot
+        be read (a record is a report, not part of the study: nothing is recomputed)."""
+        out = []
+        for k in batches:
+            try:
+                record = json.loads(self.time_path(k).read_text())
+                ok = isinstance(record, dict) and set(TIME_KEYS) <= set(record)
+                ok = ok and all(isinstance(record[key], (int, float)) for key in TIME_KEYS[:5])
+            except (OSError, ValueError):
+                ok = False
+            out.append(record if ok else None)
+        return out
 
     def write_stats(self, stats: dict) -> None:
         atomic_write_json(self.path / "stats.json", stats)

@@ -96,9 +96,50 @@ def test_workers_skip_fresh_claims_take_over_stale_ones_and_gather_names_what_is
         "batch_000001.npz",
         "manifest.json",
         "stats.json",
+        "time_000000.json",
+        "time_000001.json",
     ]
+    assert res.compute_time.recorded == 2 and res.compute_time.processes == 1 and res.compute_time.sum_s > 0
     with pytest.raises(InputError, match="no manifest.json"):
         gather(paper, GAITS, vary=VARY, n=256, seed=7, out=tmp_path / "empty")
+
+
+def test_gather_reports_the_workers_recorded_compute_time_and_its_own_apart(tmp_path, capsys):
+    """`--worker` records each batch's compute time beside it (time_*.json); `--gather` reports
+    their sum as the study's time (here records as two workers on other hosts would leave them:
+    300 s and 150 s, over 400 s of wall clock) and its own time on a line of its own. Without
+    records it says so."""
+    from jsphere.cli.app import main
+
+    cfg = tmp_path / "study.toml"
+    cfg.write_text(STUDY_TOML)
+    out = tmp_path / "study"
+    assert main(["montecarlo", str(cfg), "--out", str(out), "--worker", "-q"]) == 0
+    capsys.readouterr()
+    records = [json.loads((out / f"time_{k:06d}.json").read_text()) for k in range(2)]
+    for k, r in enumerate(records):
+        assert (r["batch"], r["trials"], r["pid"], r["host"]) == (k, 128, os.getpid(), socket.gethostname())
+        assert 0 < r["compute_s"] == pytest.approx(r["end_unix_s"] - r["start_unix_s"], abs=1e-5)
+        assert abs(r["end_unix_s"] - time.time()) < 600
+    t0 = 1.7e9
+    for k, (host, start, seconds) in enumerate([("node1", t0, 300.0), ("node2", t0 + 250.0, 150.0)]):
+        rec = dict(records[k], host=host, pid=100 + k, start_unix_s=start, end_unix_s=start + seconds)
+        (out / f"time_{k:06d}.json").write_text(json.dumps(rec | {"compute_s": seconds}))
+    begin = time.perf_counter()
+    assert main(["montecarlo", str(cfg), "--out", str(out), "--gather", "--no-plots", "-q"]) == 0
+    took = time.perf_counter() - begin
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "jsphere montecarlo: 256 trials in 450.0 s of the workers' compute: 256 ok, 0 rejected, 0 failed"
+    assert lines[1] == "  2 batch(es) by 2 process(es), 400.0 s from the first batch's start to the last one's end"
+    assert lines[2].startswith("  gathered in ") and float(lines[2].split()[2]) <= took
+    (out / "time_000001.json").unlink()
+    (out / "time_000000.json").write_text("{")  # unreadable: not counted
+    assert main(["montecarlo", str(cfg), "--out", str(out), "--gather", "--no-plots", "-q"]) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first == (
+        "jsphere montecarlo: 256 trials (the batches' compute time is not recorded in the folder): "
+        "256 ok, 0 rejected, 0 failed"
+    )
 
 
 def test_distributed_settings_are_checked(paper, tmp_path, capsys):
