@@ -33,7 +33,10 @@ def add_parser(sub) -> None:
     )
     an.add_argument("--out", required=True, metavar="FILE", help="the animation: FILE.mp4, FILE.gif or FILE.html")
     an.add_argument(
-        "--params", metavar="FILE", help="the robot drawn (.toml or .json); default the input's own or the paper's"
+        "--params",
+        metavar="FILE",
+        help="the robot drawn (.toml or .json); default the input's own (a plan's: the robot its JSON records) or the "
+        "paper's; for a plan, a robot other than the one it was made for is refused",
     )
     an.add_argument("--fps", type=float, help="frames per second (default 30; 20 for .gif, 15 for .html)")
     an.add_argument(
@@ -71,7 +74,11 @@ def run(args) -> int:
             f"--out {out}: inside the study folder {folder}, which is input; write the animation elsewhere."
         )
     params = None
-    if args.params:
+    if Path(args.input).suffix.lower() == ".csv" and Path(args.input).is_file():
+        from .track import plan_robot
+
+        params = plan_robot(args.input, args.params)  # a plan's robot, checked against --params
+    elif args.params:
         from ..model.params import RobotParams
 
         params = RobotParams.load(args.params)

@@ -13,6 +13,7 @@ EXAMPLES = """
   jsphere plan --to 0.8 -0.5 --heading 1.0 --out plan.csv
   jsphere plan --to 0.5 0 --max-torque 0.05 --max-time 8 --restarts 32 --no-plots --out plan.csv
   jsphere plan --to 0.8 0 --rate 100 --commands commands.csv --command-kind chi_dot --out plan.csv
+  jsphere plan --to 0.8 0 --params fit.json --out plan.csv && jsphere track plan.csv --out track.csv
   jsphere plan --to 0.6 0.3 --robust fit.json --samples 64 --quantile 0.95 --out robust.csv
 """
 
@@ -23,8 +24,9 @@ def add_parser(sub) -> None:
         help="plan a rest-to-rest manoeuvre to (X, Y) within motor limits; CSV of wheel commands",
         description="Plan a rest-to-rest manoeuvre from rest at the origin to (X, Y) [m], optionally with a final "
         "heading, within motor limits, by gradients through the gait dynamics (docs/planning.md). Writes the "
-        "wheel commands as CSV, a JSON report and a figure; a plan that cannot meet the request is still "
-        "written (exit 3).",
+        "wheel commands as CSV, a JSON report (with the robot planned for, which jsphere track and animate use) "
+        "and a figure. When the request cannot be met within the limits, the best plan found is still written "
+        "but the --commands table is not (unless --write-infeasible), and the exit code is 3.",
     )
     pp.add_argument(
         "--to",
@@ -45,7 +47,10 @@ def add_parser(sub) -> None:
     pp.add_argument("--rate", type=float, default=1000.0, help="rows per second of the CSV (default 1000)")
     pp.add_argument("--restarts", type=int, default=16, help="random restarts, the best is kept (default 16)")
     pp.add_argument("--seed", type=int, default=0, help="seed of the restarts (default 0)")
-    pp.add_argument("--params", help="a parameter file (.toml or .json) instead of the paper's robot")
+    pp.add_argument(
+        "--params",
+        help="a parameter file (.toml or .json) instead of the paper's robot; recorded in the plan's JSON",
+    )
     pp.add_argument(
         "--out",
         default="plan.csv",
@@ -55,7 +60,14 @@ def add_parser(sub) -> None:
         "--commands",
         metavar="FILE",
         help="also write the commands for the robot as an inputs table at --rate: t, chi_dot_1..N or t, K_1..N "
-        "(docs/lab.md), the table that `jsphere convert --inputs` reads",
+        "(docs/lab.md), the table that `jsphere convert --inputs` reads, and its record FILE.json beside it (the "
+        "robot, feasibility); only for a feasible plan unless --write-infeasible",
+    )
+    pp.add_argument(
+        "--write-infeasible",
+        action="store_true",
+        help="write the --commands table even when the plan cannot meet the request; its first line is then a "
+        "comment '# NOT FEASIBLE: ...' naming what the plan misses",
     )
     pp.add_argument(
         "--command-kind",
@@ -88,8 +100,6 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    import math
-
     from .._runtime.errors import ExitCode
     from .._runtime.files import atomic_write_json, check_output
     from ..model.params import RobotParams
@@ -99,13 +109,8 @@ def run(args) -> int:
     out = Path(args.out)
     writes = [out.with_suffix(".json"), *([] if args.no_plots else [out.with_suffix(".png")])]
     if args.commands:
-        if Path(args.commands).resolve() in {p.resolve() for p in [out, *writes]}:
-            from .._runtime.errors import InputError
-
-            raise InputError(
-                f"--commands {args.commands}: the plan writes that file itself; give the commands another name."
-            )
-        writes.append(Path(args.commands))
+        _check_commands_path(args.commands, [out, *writes])
+        writes += [Path(args.commands), Path(args.commands).with_suffix(".json")]
     check_output(
         out,
         writes=writes,
@@ -114,8 +119,13 @@ def run(args) -> int:
     )
     limits = _limits(args)
     params = RobotParams.load(args.params) if args.params else RobotParams.paper()
+    source = str(args.params) if args.params else "the paper's robot (RobotParams.paper())"
     obj = Objective(energy=args.energy_weight, time=args.time_weight)
     uncertainty, params = _uncertainty(args) if args.robust else (None, params)
+    if args.robust:
+        source = (
+            f"{args.params} with the means of {args.robust}" if args.params else f"the nominal robot of {args.robust}"
+        )
     options = SolverOptions(programs=args.programs)  # the verifications' program kept for the next run
     pl = plan(
         params,
@@ -134,26 +144,20 @@ def run(args) -> int:
     pl = robust.plan if robust else pl
     print(pl.summary())
     pl.to_csv(out)
-    info = {
-        "feasible": pl.feasible,
-        "shortfall": pl.shortfall,
-        "target": [None if math.isnan(v) else v for v in pl.target.tolist()],
-        "duration_s": pl.duration,
-        "errors": pl.errors,
-        "limits": pl.limits_report,
-        "iterations": pl.iterations,
-        "elapsed_s": pl.elapsed_s,
-        "restarts": pl.restarts,
-        "rate_hz": pl.rate,
-    }
+    info = pl.record(source)
     if robust:
         info["miss_mc"] = robust.miss_mc
         info["robust"] = robust.to_json()
     atomic_write_json(out.with_suffix(".json"), info)
     written = [out, out.with_suffix(".json")]
-    if args.commands:
-        pl.write_commands(args.commands, args.command_kind, args.rate)
-        written.append(Path(args.commands))
+    commands_note = ""
+    if args.commands and (pl.feasible or args.write_infeasible):
+        written += _write_commands(args, pl, out, info)
+        commands_note = (
+            "" if pl.feasible else f". {args.commands} is written, its first line '# {INFEASIBLE_MARK}: ...'"
+        )
+    elif args.commands:
+        commands_note = _withhold_commands(Path(args.commands))
     if not args.no_plots:
         from ..plots import plan_figure
 
@@ -162,12 +166,78 @@ def run(args) -> int:
     print(f"wrote {', '.join(str(p) for p in written)}")
     if not pl.feasible:
         print(
-            "jsphere plan: WARNING: the request cannot be met within the limits; the files hold the best plan "
-            "found: " + "; ".join(pl.shortfall),
+            "jsphere plan: WARNING: the request cannot be met within the limits; "
+            f"{out} and {out.with_suffix('.json')} hold the best plan found: "
+            + "; ".join(pl.shortfall)
+            + commands_note,
             file=sys.stderr,
         )
         return ExitCode.INFEASIBLE
     return ExitCode.OK
+
+
+#: the first line of a commands table written for a plan that cannot meet its request
+INFEASIBLE_MARK = "NOT FEASIBLE"
+
+
+def _check_commands_path(commands, others) -> None:
+    """`InputError` for a `--commands` file that is one of the plan's own files, or whose record
+    (the `.json` beside it) would be."""
+    from .._runtime.errors import InputError
+
+    path = Path(commands)
+    if path.suffix.lower() == ".json":
+        raise InputError(
+            f"--commands {commands}: the commands table is a CSV (its record {path.name} is written beside it); "
+            "give a name ending in .csv."
+        )
+    own = {p.resolve() for p in others}
+    if path.resolve() in own or path.with_suffix(".json").resolve() in own:
+        raise InputError(
+            f"--commands {commands}: the plan writes that file (or its record {path.with_suffix('.json').name}) "
+            "itself; give the commands another name."
+        )
+
+
+def _write_commands(args, pl, out: Path, info: dict) -> list[Path]:
+    """Write the `--commands` table (its first line a `# NOT FEASIBLE: ...` comment for a plan
+    that cannot meet the request) and its record beside it: the plan it comes from, its kind
+    and rate, feasibility and the robot (`planned_robot` reads it). Returns the files written."""
+    from .._runtime.files import atomic_write_json
+
+    path = Path(args.commands)
+    comment = ""
+    if not pl.feasible:
+        comment = (
+            f"{INFEASIBLE_MARK}: this plan does not meet its request ({'; '.join(pl.shortfall)}); written by "
+            "jsphere plan --write-infeasible, not a plan to run on the robot as it is"
+        )
+    pl.write_commands(path, args.command_kind, args.rate, comment=comment)
+    record = {
+        "commands": path.name,
+        "kind": args.command_kind,
+        "rate_hz": args.rate,
+        "plan": str(out),
+        **{k: info[k] for k in ("feasible", "shortfall", "target", "duration_s", "params", "params_source")},
+    }
+    atomic_write_json(path.with_suffix(".json"), record)
+    return [path, path.with_suffix(".json")]
+
+
+def _withhold_commands(path: Path) -> str:
+    """For a plan that cannot meet the request: no commands table. A table (and its record)
+    left at `path` by an earlier run is removed, so that no file there holds commands this run
+    did not give. Returns the sentence for the warning."""
+    removed = []
+    for p in (path, path.with_suffix(".json")):
+        if p.is_file():
+            p.unlink()
+            removed.append(str(p))
+    gone = f" (removed {' and '.join(removed)}, left there by an earlier run)" if removed else ""
+    return (
+        f". No commands were written to {path}{gone}: plan again with other limits or target, or add "
+        "--write-infeasible to write them marked NOT FEASIBLE."
+    )
 
 
 def _limits(args):
@@ -214,10 +284,10 @@ def _robust(args, params, uncertainty, limits, obj, nominal, options):
     return robust
 
 
-def _uncertainty(args):
+def _uncertainty(args, params=None):
     """The `Uncertainty` of `--robust` and the nominal parameters: a fit result's estimate and
-    covariance (its `params` unless `--params` is given), or a study's `vary` table (its
-    parameters unless `--params` is given)."""
+    covariance (around its `params`), or a study's `vary` table (around its parameters). The
+    nominal is around `params` (`RobotParams`) when given, else around `--params` when given."""
     from .._runtime.errors import InputError
     from .._runtime.files import read_mapping
     from ..model.params import RobotParams
@@ -228,7 +298,8 @@ def _uncertainty(args):
         from ..montecarlo.study import check_vary, load_study
 
         study = load_study(path)
-        params = RobotParams.load(args.params) if args.params else study["params"]
+        if params is None:
+            params = RobotParams.load(args.params) if args.params else study["params"]
         try:
             entries = check_vary(params, study["kwargs"]["vary"])
         except ValueError as e:
@@ -238,6 +309,7 @@ def _uncertainty(args):
     if path.suffix.lower() != ".json":
         raise InputError(f"--robust {path}: expected a fit result (.json) or a Monte-Carlo study (.toml).")
     fit = read_mapping(path)
-    params = RobotParams.load(args.params) if args.params else RobotParams.load(path)
+    if params is None:
+        params = RobotParams.load(args.params) if args.params else RobotParams.load(path)
     unc = Uncertainty.from_fit(fit, source=str(path))
     return unc, unc.nominal(params)

@@ -28,7 +28,11 @@ def add_parser(sub) -> None:
     )
     pp.add_argument("plan", metavar="PLAN", help="a plan CSV or plan.json written by jsphere plan")
     pp.add_argument("--out", default="track.csv", help="the gain table (default track.csv); track.json beside it")
-    pp.add_argument("--params", help="the robot the plan was made for (.toml or .json; default the paper's robot)")
+    pp.add_argument(
+        "--params",
+        help="the robot the plan was made for (.toml or .json); default the robot the plan's JSON records (else "
+        "the paper's); a different robot is refused",
+    )
     pp.add_argument("--rate", type=float, default=100.0, help="control rate, rows per second (default 100)")
     w = pp.add_argument_group("weights (docs/tracking.md)")
     w.add_argument("--q-pos", type=float, help="weight of the position error [1/m^2] (default 2.5e5)")
@@ -77,7 +81,6 @@ def run(args) -> int:
     from .._runtime.errors import ExitCode, InputError
     from .._runtime.files import atomic_write_json, check_output
     from ..model.limits import Limits
-    from ..model.params import RobotParams
     from ..planning.tracking import track
     from .plan import _uncertainty
 
@@ -101,12 +104,12 @@ def run(args) -> int:
     weights = _weights(args)
     limits = Limits(max_torque=args.max_torque)
     unc = None
-    params = RobotParams.load(args.params) if args.params else None
+    params = plan_robot(args.plan, args.params)
     if args.robust or args.vary:
         ns = argparse.Namespace(robust=args.robust or args.vary, params=args.params)
         if args.vary and Path(args.vary).suffix.lower() != ".toml":
             raise InputError(f"--vary {args.vary}: expected a Monte-Carlo study (.toml) with a [vary] table.")
-        unc, params = _uncertainty(ns)
+        unc, params = _uncertainty(ns, params)
     tr = track(
         args.plan,
         params,
@@ -122,3 +125,24 @@ def run(args) -> int:
     atomic_write_json(out.with_suffix(".json"), tr.to_json())
     print(f"wrote {out}, {out.with_suffix('.json')}")
     return ExitCode.OK
+
+
+def plan_robot(plan, params_file):
+    """The robot for a plan file and a `--params` file (or None): the robot the plan's JSON
+    records, checked against `--params` when both are given (`InputError` naming both when they
+    differ), else `--params`, else None (the paper's robot)."""
+    from .._runtime.errors import InputError
+    from ..model.params import RobotParams
+    from ..planning.result import planned_robot, robot_difference
+
+    recorded = planned_robot(plan)
+    given = RobotParams.load(params_file) if params_file else None
+    if recorded is None or given is None:
+        return given if given is not None else (recorded.params if recorded else None)
+    diff = robot_difference(recorded.params, given)
+    if diff is not None:
+        raise InputError(
+            f"--params {params_file}: the plan {plan} was made for another robot, {recorded.describe()} (plan vs --params: {diff}); "
+            f"leave --params out to use the plan's robot, or plan again with --params {params_file}."
+        )
+    return given

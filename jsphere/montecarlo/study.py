@@ -180,7 +180,7 @@ def load_study(path) -> dict:
         seed = 0                  # a whole number in [0, 2**32)
         batch_size = 4096
         mode = "gait"             # "gait" | "torques" | "wheel_speeds"
-        params = "robot.toml"     # default: the paper's robot (path relative to this file)
+        params = "robot.toml"     # default: the paper's robot, or the plan's (path relative to this file)
         Omega0_sd = 0.0           # [1/s], >= 0
         settle = 1.0              # [s] (replay modes), >= 0
         reset = false
@@ -207,7 +207,10 @@ def load_study(path) -> dict:
     or `jsphere design` write it: with `mode = "torques"` its columns `t, K_1..K_N` [N m], with
     `mode = "wheel_speeds"` its columns `t, chi_dot_1..N` [rad/s] (other columns are ignored).
     Each trial replays it through `[actuators]` instead of the gaits' plan; the gaits are then
-    only the record. The table starts at `t = 0` and has one column per wheel.
+    only the record. The table starts at `t = 0` and has one column per wheel. A table of
+    `jsphere plan` (its `--out` CSV, or its `--commands` table) has a record beside it (the
+    `.json` of the same name) that names the robot the plan was made for: without `params`
+    the study runs that robot; a `params` that names another robot is an `InputError`.
 
     `track` names a feedback table (`track.csv` of `jsphere track`, a path relative to this
     file) that every trial runs closed loop (`monte_carlo`'s `track`), through `[actuators]`
@@ -233,6 +236,8 @@ def load_study(path) -> dict:
     if not isinstance(reset, (bool, list)):
         raise InputError(f"{path}: reset must be true, false or a list (one entry per gait boundary); got {reset!r}.")
     params = _study_params(path, cfg)
+    if "commands" in cfg and "track" not in cfg:
+        params = _commands_robot(path, cfg, params)
     gaits = _study_gaits(path, cfg.get("gaits", [{"kind": "acceleration"}, {"kind": "braking"}]))
     kwargs = dict(vary=dict(cfg["vary"]), mode=mode, reset=reset, **{k: v for k, v in settings.items() if k != "n"})
     kwargs.setdefault("batch_size", 4096)
@@ -283,6 +288,34 @@ def _study_params(path: Path, cfg: dict) -> RobotParams:
             f"{path}: params must be the path of a parameter file (.toml or .json); got {cfg['params']!r}."
         )
     return RobotParams.load((path.parent / cfg["params"]).resolve())
+
+
+def _commands_robot(path: Path, cfg: dict, params: RobotParams) -> RobotParams:
+    """The robot of a study that replays a plan's command table: the robot the plan records
+    beside the table (`planned_robot`) when the study names no `params`; `params` when it names
+    the same robot; an `InputError` naming both when it names another. `params` as it is for a
+    table without such a record."""
+    from ..planning.result import planned_robot, robot_difference
+
+    name = cfg["commands"]
+    if not isinstance(name, str):
+        return params  # study_commands names the bad value
+    try:
+        recorded = planned_robot((path.parent / name).resolve())
+    except InputError as e:
+        raise InputError(f"{path}: commands = {name!r}: {e}") from None
+    if recorded is None:
+        return params
+    if "params" not in cfg:
+        return recorded.params
+    diff = robot_difference(recorded.params, params)
+    if diff is not None:
+        raise InputError(
+            f"{path}: params = {cfg['params']!r} is not the robot the commands {name!r} were planned for, "
+            f"{recorded.describe()} (plan vs params: {diff}); leave params out to use the plan's robot, or plan "
+            f"again with --params {cfg['params']}."
+        )
+    return params
 
 
 def _study_gaits(path: Path, gait_list) -> list:

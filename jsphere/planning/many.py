@@ -22,6 +22,10 @@ from .rollout import heading, rollout
 from .search import _initial_guesses, _search
 from .verify import _accurate, _correct_bias, _limit_report, _terminal_errors, verification_options
 
+#: the default terminal speed tolerance of a plan [m/s] (`R0 |Omega x gamma|` at the end): a plan
+#: whose end is within it ends at rest (`Plan.at_rest`)
+TOL_SPEED = 5e-4
+
 
 @dataclasses.dataclass
 class _Batch:
@@ -143,6 +147,7 @@ def _plan_for(b: _Batch, k: int, z, J, loss, verify: bool) -> Plan:
         elapsed_s=time.perf_counter() - b.t0,
         loss=float(np.min(loss)),
         restarts=b.restarts,
+        at_rest=verify and err["speed_m_s"] <= b.tol_speed,
     )
 
 
@@ -157,7 +162,7 @@ def plan_many(
     rate: float = 1000.0,
     seed: int = 0,
     tol_position: float = 5e-4,
-    tol_speed: float = 5e-4,
+    tol_speed: float = TOL_SPEED,
     tol_heading: float = 1e-3,
     verify: bool = True,
     progress: bool | None = None,

@@ -177,6 +177,7 @@ def plan_route(
         elapsed_s=max(lg.elapsed_s for lg in legs),
         loss=sum(lg.loss for lg in legs),
         restarts=int(restarts),
+        at_rest=all(lg.at_rest for lg in legs),
     )
     if not pl.feasible and not allow_infeasible:
         raise PlanInfeasibleError("jsphere.plan_route: " + "; ".join(shortfall), plan=pl)

@@ -43,7 +43,7 @@ from ..solve.batched.field_args import FieldArgs
 from ..solve.fixed_grid import integrate
 from ..solve.internal import torque_field, wheel_field
 from ..solve.options import SolverOptions
-from .many import plan_many
+from .many import TOL_SPEED, plan_many
 from .problem import Limits, Objective, PlanSettings, _duration_inv, _vec_targets, gait_from_vector
 from .residuals import _residuals
 from .result import Plan
@@ -446,4 +446,5 @@ def _verified_plan(p, z, target, lim: Limits, s: PlanSettings, rate, options, no
         elapsed_s=time.perf_counter() - t0,
         loss=float("nan"),
         restarts=nominal.restarts,
+        at_rest=err["speed_m_s"] <= TOL_SPEED,
     )

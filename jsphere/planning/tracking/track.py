@@ -102,21 +102,23 @@ class Tracker:
         return "\n".join(lines)
 
 
-def _plan_input(plan) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, RobotParams | None]:
-    """`(t, K (T, N), target or None, params or None)` of a `Plan` or a plan file: the CSV of
-    `jsphere plan` (its `K_1..N` columns; the target from the `.json` beside it when there is
-    one) or that `.json` (the CSV beside it)."""
+def _plan_input(plan) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, RobotParams | None, str]:
+    """`(t, K (T, N), target or None, params or None, where the params come from)` of a `Plan`
+    or a plan file: the CSV of `jsphere plan` (its `K_1..N` columns; the target and the robot
+    from the `.json` beside it when there is one) or that `.json` (the CSV beside it)."""
     if isinstance(plan, Plan):
-        tr = plan.trajectory
-        ts, K = np.asarray(tr.ts), np.asarray(tr.K)
+        cols = plan.table()  # the torques of the plan's CSV
+        ts = cols["t"]
+        K = np.stack([cols[f"K_{i + 1}"] for i in range(plan.params.n_wheels)], axis=1)
         keep = np.concatenate([np.diff(ts) > 0, [True]])
-        return ts[keep], K[keep], np.asarray(plan.target[:2], float), plan.params
+        return ts[keep], K[keep], np.asarray(plan.target[:2], float), plan.params, "the Plan's params"
     if not isinstance(plan, (str, Path)):
         raise InputError(
             f"track: plan must be a jsphere.Plan or the path of a plan CSV or JSON; got {type(plan).__name__}."
         )
     from ..._runtime.files import read_mapping
     from ...capture.inputs import read_inputs_csv
+    from ..result import planned_robot
 
     path = Path(plan)
     csv, js = (path.with_suffix(".csv"), path) if path.suffix.lower() == ".json" else (path, path.with_suffix(".json"))
@@ -132,7 +134,8 @@ def _plan_input(plan) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, RobotP
         tg = info.get("target") if isinstance(info, dict) else None
         if isinstance(tg, list) and len(tg) >= 2 and all(isinstance(v, (int, float)) for v in tg[:2]):
             target = np.asarray(tg[:2], float)
-    return t, K, target, None
+    robot = planned_robot(js)
+    return t, K, target, robot.params if robot else None, robot.describe() if robot else ""
 
 
 def _heading(p: RobotParams, q) -> jax.Array:
@@ -292,7 +295,9 @@ def track(
     - `plan`: a `Plan`, or the path of a plan CSV (`jsphere plan --out`, its `K_1..N` columns)
       or of its `plan.json` (the CSV beside it). The target is the plan's; for a CSV without
       its JSON, the end of the reference motion.
-    - `params`: the robot the plan was made for (default: the `Plan`'s, else the paper's).
+    - `params`: the robot the plan was made for (default: the `Plan`'s, or the robot its
+      `plan.json` records, else the paper's). A `params` other than the robot the plan
+      records is an `InputError`: gains for one robot along a plan made for another.
     - `rate` [Hz]: the control rate, one table row per period.
     - `weights`: `Weights` (defaults there); `limits`: the torque limit `max_torque` of
       `Limits` (default 0.1 N m) bounds the gains and saturates the evaluation's commands.
@@ -319,7 +324,16 @@ def track(
     if conditions is not None and not isinstance(conditions, Conditions):
         raise InputError(f"track: conditions must be a jsphere.TrackConditions; got {type(conditions).__name__}.")
     lim = limits or Limits()
-    t_plan, K_plan, target, p_plan = _plan_input(plan)
+    t_plan, K_plan, target, p_plan, p_from = _plan_input(plan)
+    if params is not None and p_plan is not None:
+        from ..result import robot_difference
+
+        diff = robot_difference(p_plan, params)
+        if diff is not None:
+            raise InputError(
+                f"track: params are not the robot the plan was made for, {p_from} (plan vs params: {diff}); leave params out to "
+                "use the plan's robot, or plan again for this robot."
+            )
     params = params or p_plan or RobotParams.paper()
     if t_plan[-1] * rate > 1e6:
         raise InputError(f"track: rate = {rate:g} Hz makes {t_plan[-1] * rate:.3g} rows; lower the rate.")
