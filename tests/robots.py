@@ -37,3 +37,24 @@ def random_robot(key, n_wheels=3):
         j=3e-4,
         g=9.81,
     )
+
+
+def unseen_robot():
+    """A robot 5-20 % away from the paper's in the seven usual free parameters
+    (`r_m[2], j, I[0,0], I[1,1], I[2,2], m0, I0`): the user-contract tests fit and score it
+    from the paper's values."""
+    import numpy as np
+
+    return jsphere.RobotParams.paper().replace(
+        m0=0.85, I0=0.0105, j=3.2e-4, r_m=np.array([0.0, 0.0, -0.031]), I=np.diag([0.018, 0.0145, 0.026])
+    )
+
+
+def torque_trials(robot, durations, rate=100.0, seed=0, **kw):
+    """Capture-like trials of `robot` driven by three sinusoidal torques per wheel at 0.3-0.7 Hz,
+    1 mm and 0.5 deg noise, one per duration [s], named `t0`, `t1`, ..."""
+    out = []
+    for i, t1 in enumerate(durations):
+        u = jsphere.random_inputs(robot, t1, kind="torques", f_min=0.3, f_max=0.7, seed=seed * 100 + i)
+        out.append(jsphere.synthetic_trial(robot, u, t1, rate=rate, seed=seed * 100 + i, name=f"t{i}", **kw))
+    return out

@@ -16,6 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from robots import torque_trials
+from robots import unseen_robot as truth_robot
 
 import jsphere
 from jsphere.controls import Sampled
@@ -27,22 +29,6 @@ from jsphere.identify.starts import latin_hypercube, nuisance_guess, start_desig
 from jsphere.numerics.lm import solve_arrow
 
 FREE7 = "r_m[2],j,I[0,0],I[1,1],I[2,2],m0,I0"
-
-
-def truth_robot():
-    """A robot 5-20 % away from the paper's in the seven free parameters."""
-    return jsphere.RobotParams.paper().replace(
-        m0=0.85, I0=0.0105, j=3.2e-4, r_m=np.array([0.0, 0.0, -0.031]), I=np.diag([0.018, 0.0145, 0.026])
-    )
-
-
-def torque_trials(robot, durations, rate=100.0, seed=0, **kw):
-    """Trials of three sinusoidal torques per wheel at 0.3-0.7 Hz, 1 mm and 0.5 deg noise."""
-    out = []
-    for i, t1 in enumerate(durations):
-        u = jsphere.random_inputs(robot, t1, kind="torques", f_min=0.3, f_max=0.7, seed=seed * 100 + i)
-        out.append(jsphere.synthetic_trial(robot, u, t1, rate=rate, seed=seed * 100 + i, name=f"t{i}", **kw))
-    return out
 
 
 @pytest.fixture(scope="module")
