@@ -29,7 +29,7 @@ def add_parser(sub) -> None:
     ft.add_argument(
         "--free",
         required=True,
-        help="comma-separated names to fit: fields (j, m0, I0, I, r_m) or components (I[0,0], r_m[2]), or R_m",
+        help="comma-separated names to fit: fields (j, m0, I0, I, r_m, k_tau) or components (I[0,0], r_m[2]), or R_m",
     )
     ft.add_argument(
         "--fix",

@@ -35,7 +35,7 @@ from ..model.names import get_value, parse_name, set_value
 from ..model.params import RobotParams, number_array
 
 #: fields that must stay > 0 (log transform by default)
-POSITIVE = ("R0", "m0", "I0", "Rw", "m", "R_m")
+POSITIVE = ("R0", "m0", "I0", "Rw", "m", "R_m", "k_tau")
 #: fields that must stay >= 0 (log transform by default if the start is > 0, else unbounded)
 NONNEGATIVE = ("j", "g", "c_roll", "c_axle")
 #: fields whose values scale with mass: with wheel-speed inputs, scaling all of them together
@@ -232,7 +232,7 @@ class FreeParams:
       `"r_m"`: all 3), components (`"I[0,0]"`, `"r_m[2]"`), or the derived `"R_m"`.
     - `bounds`: `{name: (lo, hi)}` with `None` for an open end, for scalar free names (as
       expanded: `"I[0,0]"`); the start must lie strictly inside. Defaults: `> 0` for masses,
-      inertias, radii, `R_m` and the diagonal of `I`; `>= 0` (open at 0) for `j`, `g`,
+      inertias, radii, `R_m`, the torque gain `k_tau` and the diagonal of `I`; `>= 0` (open at 0) for `j`, `g`,
       `c_roll`, `c_axle` when they start above 0; none otherwise.
 
     `names` lists the expanded physical names in `theta` order; `given` the names as given

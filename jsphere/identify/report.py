@@ -27,9 +27,9 @@ from ..model.rotations import quat_conj_np, quat_log_np, quat_mul_np
 from ..numerics.lm import blocks, marginal_information
 from .data import TIME_OFFSET, FitData, offset_from_nuisance
 from .free import FreeParams
-from .identifiability import identifiability
+from .identifiability import exact_symmetries, identifiability, project_out, symmetry_directions, units_note
 from .robust import REJECT, frame_weights, reweigh, variance_factor
-from .verdict import judge, noise_floor
+from .verdict import judge, missing_effects, noise_floor
 
 
 @dataclasses.dataclass
@@ -51,7 +51,9 @@ class FitResult:
     `predict` uses; `loss`: the fit's loss (`jsphere.identify.robust`); `outliers`: per trial
     (by the name of the file it was read from, `Trial.source`, else by its name; in trial
     order) the frames the loss set aside (weight below one half), as
-    `{"frames": [0-based row numbers of the trial's data rows], "count": n}`."""
+    `{"frames": [0-based row numbers of the trial's data rows], "count": n}`; `units_note`: what
+    the fitted masses and inertias are relative to (the torque constant when torque trials are
+    fitted with `k_tau` fixed; `jsphere.identify.identifiability.units_note`)."""
 
     params: RobotParams
     free: list[str]
@@ -80,6 +82,7 @@ class FitResult:
     solve_options: dict[str, Any] = dataclasses.field(default_factory=dict, repr=False)
     loss: str = "l2"
     outliers: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
+    units_note: str = ""
 
     def predict(self, trials, **kwargs):
         """The fitted model on `trials` (held out from the fit, or the fit's own): each trial
@@ -119,6 +122,7 @@ class FitResult:
             "shooting": fin(self.shooting),
             "loss": self.loss,
             "outliers": self.outliers,
+            "units_note": self.units_note,
         } | (
             {}
             if self.time_offset is None
@@ -149,6 +153,8 @@ class FitResult:
             f"cost {self.cost:.6g} over {self.n_residuals} residuals, {self.iterations} iterations, "
             f"converged: {self.converged}; sigma_pos {self.sigma_pos * 1e3:.3f} mm, sigma_rot {math.degrees(self.sigma_rot):.3f} deg"
         )
+        if self.units_note:
+            lines.append(f"units: {self.units_note}")
         for w in self.identifiability.get("warnings", []):
             lines.append(f"warning: {w}")
         if self.time_offset is not None:
@@ -230,10 +236,10 @@ def fit_result(
         s2 = variance_factor(loss, res_b, counts, P + T * n_nu)
         res_b, J_b = reweigh(loss, to_jax(res_b[None]), to_jax(J_b[None]))
         res_b, J_b = np.asarray(res_b[0]), J_b[0]
-    values, F_phys, cov, se, corr = _covariance(free, th_b, res_b, J_b, s2)
     params = free.compiled()[1](to_jax(th_b), base)
     params = RobotParams(**{f: getattr(params, f) for f in FIELDS}, dtype=base.R0.dtype)
-    ident = identifiability(free, values, F_phys, s2, params)
+    values, F_phys, cov, se, corr = _covariance(free, th_b, res_b, J_b, s2, params=params, kind=data.kind)
+    ident = identifiability(free, values, F_phys, s2, params, kind=data.kind)
     ident["sigma_note"] = "relative sd of each direction; warnings list directions with relative sd > 10%"
     trials = _trial_reports(data, pose, nu[b], b, set_aside)
     offsets = _time_offsets(data, np.asarray(nu[b]), res_b, J_b, P, s2)
@@ -248,6 +254,7 @@ def fit_result(
         converged=bool(converged),
         n_params=P + T * n_nu,
         why_not=f"Levenberg-Marquardt reached max_iter in its last stage, {int(iterations)} iterations in all",
+        missing=missing_effects(free.names, data.kind, data.max_offset > 0, known=FIELDS),
     )
     status, status_reason = verdict.pop("status"), verdict.pop("reason")
     per_val = {n: float(v) for n, v in zip(free.names, values)}
@@ -277,6 +284,7 @@ def fit_result(
         time_offset=None if offsets is None else offsets[0],
         time_offset_stderr=None if offsets is None else offsets[1],
         loss=loss,
+        units_note=units_note(free.names, params, data.kind),
         outliers={
             k: {"frames": np.flatnonzero(t["series"]["set_aside"]).tolist(), "count": t["set_aside"]}
             for k, t in zip(data.names if keys is None else keys, trials)
@@ -306,11 +314,23 @@ def _time_offsets(data: FitData, nu_b: np.ndarray, res_b: np.ndarray, J_b, P: in
     return values, errors
 
 
-def _covariance(free: FreeParams, th_b, res_b: np.ndarray, J_b, s2: float):
+def _covariance(
+    free: FreeParams,
+    th_b,
+    res_b: np.ndarray,
+    J_b,
+    s2: float,
+    *,
+    params: RobotParams | None = None,
+    kind: str | None = None,
+):
     """`(values, F_phys, cov, stderr, corr)` in physical units: the values of the free names, the
     information of theta with the nuisance parameters eliminated, the covariance `s2 F^-1`
     (pseudo-inverse on the scaled names; stderr `inf` along directions the data do not
-    determine) and the correlations."""
+    determine) and the correlations. Given the fitted `params` and the trials' input `kind`,
+    the exact invariances of the free set (`exact_symmetries`) are removed from the information
+    before it is inverted: their names get an infinite stderr, not one rounding left finite
+    (`F_phys` is returned as computed)."""
     P = free.size
     F = marginal_information(to_jax(res_b), to_jax(J_b), P)  # information of theta (whitened)
     values, A = (np.asarray(a) for a in free.compiled()[0](to_jax(th_b)))
@@ -320,6 +340,9 @@ def _covariance(free: FreeParams, th_b, res_b: np.ndarray, J_b, s2: float):
     F_phys = Ainv.T @ F @ Ainv
     sc = np.maximum(np.abs(values), 0.1 * free.scales())
     Fs = sc[:, None] * F_phys * sc[None, :]
+    if kind is not None and params is not None:
+        dirs = symmetry_directions(free.names, values, params)
+        Fs = project_out(Fs, [dirs[k] / sc for k in exact_symmetries(free.names, params, kind)])
     lam, V = np.linalg.eigh(Fs)
     keep = lam > 1e-14 * max(lam[-1], 1e-300)
     cov_s = (V[:, keep] / lam[keep]) @ V[:, keep].T * s2

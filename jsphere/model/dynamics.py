@@ -13,9 +13,12 @@ with `w = omega` (platform), `W = Omega` (shell), both in platform components, a
     r1 = -w x I w + (Jns (W - w)) x w - m R0 r_m x (gamma x (W x w)) - m g r_m x gamma
     r2 = -(m + m0) R0^2 gamma x (gamma x (W x w)) - m R0 gamma x (w x (w x r_m)) - I0 w x W
          - c_roll W_h                                            (optional rolling resistance)
-    Sk^T K = sum_i k_i s_i K_i,   K -> K - c_axle chi_dot     (optional axle friction)
+    Sk^T K = sum_i k_i s_i K_i,   K -> k_tau K - c_axle chi_dot  (torque gain, axle friction)
 
 `W_h = W - (W, gamma) gamma`. The two damping terms are not in the paper (both 0 by default).
+`K` is the commanded axle torque; the wheels get `k_tau K` (`RobotParams.k_tau`, 1 by default,
+`applied_torques`), and torques the model returns (`required_torques`, wheel-speed mode) are
+commanded ones, `K = K_axle / k_tau`.
 
 The 6x6 matrix `[[A, B], [B^T, D]]` is the Hessian of the kinetic energy (3.2) with `v` and
 `chi_dot` eliminated by the constraints, hence symmetric positive definite. The *sum* of the
@@ -80,6 +83,18 @@ def free_forces(p: RobotParams, d: Derived, gamma, omega, Omega) -> Float[Array,
     )
 
 
+def applied_torques(p: RobotParams, K, Sk_dw):
+    """The axle torques acting on the wheels, `k_tau K_i - c_axle chi_dot_i`, for the commanded
+    torques `K` and `Sk_dw = Sk (omega - Omega) = -chi_dot` (arrays of `N`, or one wheel's
+    scalars): the one place where the torque gain and the axle friction enter (3.4)."""
+    return p.k_tau * K + p.c_axle * Sk_dw
+
+
+def commanded_torques(p: RobotParams, K_axle):
+    """The commanded torques `K_axle / k_tau` that give the axle torques `K_axle`."""
+    return K_axle / p.k_tau
+
+
 def solve_accelerations(
     p: RobotParams, d: Derived, gamma, omega, Omega, K
 ) -> tuple[Float[Array, "3"], Float[Array, "3"]]:
@@ -87,7 +102,7 @@ def solve_accelerations(
     `omega` block (`A^-1` precomputed in `derive`)."""
     B, D = mass_blocks(p, d, gamma)
     r1, r2 = forces(p, d, gamma, omega, Omega)
-    K = K + p.c_axle * matvec(d.Sk, omega - Omega)  # axle friction: K - c_axle chi_dot
+    K = applied_torques(p, K, matvec(d.Sk, omega - Omega))  # k_tau K - c_axle chi_dot
     tau = K @ d.Sk  # sum_i k_i s_i K_i
     r1 = r1 - tau
     r2 = r2 + tau
@@ -109,8 +124,8 @@ def accelerations(
     """Angular accelerations `(omega_dot, Omega_dot)` of platform and shell from (3.4).
 
     **Arguments:** the platform-frame vertical `gamma`, platform and shell angular velocities
-    `omega`, `Omega` [1/s] (platform components) and the axle torques `K` [N m] (`+K_i n_i`
-    acts on wheel i, `-K_i n_i` on the platform).
+    `omega`, `Omega` [1/s] (platform components) and the commanded axle torques `K` [N m]
+    (`+k_tau K_i n_i` acts on wheel i, `-k_tau K_i n_i` on the platform).
 
     Pure JAX: works under `jit`, `vmap` and `grad`.
     """
@@ -134,7 +149,8 @@ def required_torques(
 
     `equation=2` uses `Sk^T K = B^T omega_dot + D Omega_dot - r2`; `equation=1` uses
     `Sk^T K = r1 - A omega_dot - B Omega_dot`. On a motion that satisfies the control-free
-    sum, both give the same `K`. With `N > 3` wheels, `K` is the least-norm solution.
+    sum, both give the same `K`. With `N > 3` wheels, `K` is the least-norm solution. `K`
+    is commanded (`commanded_torques`: the axle torques over `k_tau`).
     """
     B, D = mass_blocks(p, d, gamma)
     r1, r2 = forces(p, d, gamma, omega, Omega)
@@ -143,7 +159,7 @@ def required_torques(
     else:
         tau = r1 - matvec(d.A, omega_dot) - matvec(B, Omega_dot)
     # the motors also overcome the axle friction -c_axle chi_dot
-    return matvec(d.Sk_T_pinv, tau) - p.c_axle * matvec(d.Sk, omega - Omega)
+    return commanded_torques(p, matvec(d.Sk_T_pinv, tau) - p.c_axle * matvec(d.Sk, omega - Omega))
 
 
 def servo_accelerations(p: RobotParams, d: Derived, gamma, Omega, w, w_dot):
@@ -151,7 +167,7 @@ def servo_accelerations(p: RobotParams, d: Derived, gamma, Omega, w, w_dot):
 
     The control-free sum of (3.4) with `omega = Omega + w` gives
     `(A + B + B^T + D) Omega_dot = r1 + r2 - (A + B^T) w_dot`; the torques follow from the
-    second equation. Returns `(omega, omega_dot, Omega_dot, K)`.
+    second equation. Returns `(omega, omega_dot, Omega_dot, K)`, `K` commanded (over `k_tau`).
     """
     omega = Omega + w
     B, D = mass_blocks(p, d, gamma)
@@ -160,7 +176,7 @@ def servo_accelerations(p: RobotParams, d: Derived, gamma, Omega, w, w_dot):
     Omega_dot = solve3(AB + B + D, (r1 + r2) - matvec(AB, w_dot))
     omega_dot = Omega_dot + w_dot
     tau = matvec(B.T, omega_dot) + matvec(D, Omega_dot) - r2
-    return omega, omega_dot, Omega_dot, matvec(d.Sk_T_pinv, tau) - p.c_axle * matvec(d.Sk, w)
+    return omega, omega_dot, Omega_dot, commanded_torques(p, matvec(d.Sk_T_pinv, tau) - p.c_axle * matvec(d.Sk, w))
 
 
 def servo_jump(p: RobotParams, d: Derived, gamma, omega, Omega, w_new):
@@ -211,7 +227,7 @@ def potential_energy(params: RobotParams, gamma) -> Float[Array, ""]:
 
 def energy(params: RobotParams, gamma, omega, Omega) -> Float[Array, ""]:
     """Total energy `T + U` of (3.2), (3.3) [J]. Conserved when `K = 0`; otherwise
-    `d(T + U)/dt = sum_i K_i chi_dot_i` (see `power`)."""
+    `d(T + U)/dt = k_tau sum_i K_i chi_dot_i` (see `power`)."""
     gamma, omega, Omega = (jnp.asarray(x, dtype=params.R0.dtype) for x in (gamma, omega, Omega))
     return kinetic_energy(params, gamma, omega, Omega) + potential_energy(params, gamma)
 
@@ -227,6 +243,6 @@ def dissipation(params: RobotParams, gamma, omega, Omega) -> Float[Array, ""]:
 
 
 def power(params: RobotParams, omega, Omega, K) -> Float[Array, ""]:
-    """Power of the wheel motors, `sum_i K_i chi_dot_i` [W]."""
+    """Power of the wheel motors, `k_tau sum_i K_i chi_dot_i` [W] (`K` commanded)."""
     d = derive(params)
-    return jnp.sum(jnp.asarray(K) * -matvec(d.Sk, jnp.asarray(omega) - jnp.asarray(Omega)))
+    return jnp.sum(params.k_tau * jnp.asarray(K) * -matvec(d.Sk, jnp.asarray(omega) - jnp.asarray(Omega)))

@@ -27,9 +27,33 @@ from .linalg import cross, dot, inv3, outer
 PAPER_R_M = 27.014555994314536e-3
 PAPER_J = 2.739471996359074e-4
 
-_FIELDS = ("R0", "m0", "I0", "Rw", "wheel_r", "wheel_n", "wheel_alpha", "m", "I", "r_m", "j", "g", "c_roll", "c_axle")
-#: fields with defaults (may be left out of a parameter file)
-_OPTIONAL = ("j", "g", "c_roll", "c_axle")
+_FIELDS = (
+    "R0",
+    "m0",
+    "I0",
+    "Rw",
+    "wheel_r",
+    "wheel_n",
+    "wheel_alpha",
+    "m",
+    "I",
+    "r_m",
+    "j",
+    "g",
+    "c_roll",
+    "c_axle",
+    "k_tau",
+)
+#: The fields a parameter file may leave out, with the default used and how `load` names it.
+#: The others (the geometry, the masses and inertias) are required: a robot has no default mass.
+OPTIONAL: dict[str, tuple[float, str]] = {
+    "j": (0.0, "j = 0 kg m^2 (massless wheels)"),
+    "g": (9.81, "g = 9.81 m/s^2"),
+    "c_roll": (0.0, "c_roll = 0 N m s (no rolling resistance)"),
+    "c_axle": (0.0, "c_axle = 0 N m s (no axle friction)"),
+    "k_tau": (1.0, "k_tau = 1 (torques applied as commanded)"),
+}
+_OPTIONAL = tuple(OPTIONAL)
 
 
 def _is_concrete(x: Any) -> bool:
@@ -59,6 +83,11 @@ class RobotParams(eqx.Module):
       shell, `Omega_h` the part of `Omega` perpendicular to the vertical (0 in the paper).
     - `c_axle`: optional viscous friction in each wheel axle [N m s]: a torque `-c_axle chi_dot_i`
       between wheel i and the platform (0 in the paper).
+    - `k_tau`: torque gain (dimensionless, default 1): the axle torque applied to wheel i is
+      `k_tau K_i` for a commanded `K_i`, so a motor constant that is off by a common factor
+      can be fitted (`jsphere fit --free ...,k_tau` with one mass fixed). With torque inputs
+      the masses and inertias are identified relative to it: scaling `k_tau` and every mass
+      and inertia together changes no motion. Wheel-speed inputs do not involve it.
 
     Construction validates every field (positive masses and radii, a symmetric positive
     definite `I` whose principal moments meet the triangle inequality, `r_m` off the centre and
@@ -86,6 +115,7 @@ class RobotParams(eqx.Module):
     g: Float[Array, ""]
     c_roll: Float[Array, ""]
     c_axle: Float[Array, ""]
+    k_tau: Float[Array, ""]
 
     def __init__(
         self,
@@ -103,6 +133,7 @@ class RobotParams(eqx.Module):
         g=9.81,
         c_roll=0.0,
         c_axle=0.0,
+        k_tau=1.0,
         *,
         dtype=None,
     ):
@@ -112,7 +143,7 @@ class RobotParams(eqx.Module):
         self.R0, self.m0, self.I0, self.Rw = as_(R0), as_(m0), as_(I0), as_(Rw)
         self.wheel_r, self.wheel_n, self.wheel_alpha = as_(wheel_r), as_(wheel_n), as_(wheel_alpha)
         self.m, self.I, self.r_m, self.j, self.g = as_(m), as_(I), as_(r_m), as_(j), as_(g)
-        self.c_roll, self.c_axle = as_(c_roll), as_(c_axle)
+        self.c_roll, self.c_axle, self.k_tau = as_(c_roll), as_(c_axle), as_(k_tau)
 
     def __check_init__(self):
         if all(_is_concrete(getattr(self, f)) for f in _FIELDS):
@@ -185,20 +216,11 @@ class RobotParams(eqx.Module):
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], *, dtype=None) -> "RobotParams":
-        """Inverse of `to_dict`. Accepts `r`, `n`, `alpha` as aliases of the wheel fields."""
-        if not isinstance(d, dict):
-            raise ValueError(f"a parameter set must be a table of fields {list(_FIELDS)}; got {type(d).__name__}.")
-        d = dict(d)
-        for alias, field in (("r", "wheel_r"), ("n", "wheel_n"), ("alpha", "wheel_alpha")):
-            if alias in d and field not in d:
-                d[field] = d.pop(alias)
-        missing = [f for f in _FIELDS if f not in d and f not in _OPTIONAL]
-        if missing:
-            raise ValueError(f"parameter set is missing field(s) {missing}; expected {list(_FIELDS)}.")
-        unknown = sorted(set(d) - set(_FIELDS))
-        if unknown:
-            raise ValueError(f"parameter set has unknown field(s) {unknown}; expected {list(_FIELDS)}.")
-        return cls(**_checked_fields(d), dtype=dtype)
+        """Inverse of `to_dict`. Accepts `r`, `n`, `alpha` as aliases of the wheel fields.
+
+        Every field but those of `OPTIONAL` is required; a missing or unknown key is an
+        `InputError` naming it."""
+        return cls(**_checked_fields(_keys_checked(d, "parameter set")), dtype=dtype)
 
     def save(self, path) -> None:
         """Write the parameters as TOML or JSON (chosen by the file suffix), atomically."""
@@ -207,14 +229,127 @@ class RobotParams(eqx.Module):
 
     @classmethod
     def load(cls, path, *, dtype=None) -> "RobotParams":
-        """Read parameters from a `.toml` or `.json` file (see `save`)."""
-        d = read_mapping(path)
-        if "params" in d and isinstance(d["params"], dict):  # a fit result (`jsphere fit --out`)
-            d = d["params"]
+        """Read parameters from a `.toml` or `.json` file (see `save`), or the `params` of a fit
+        result (`jsphere fit --out fit.json`).
+
+        A missing required key, an unknown key (a misspelt field) or a bad value is an
+        `InputError` naming the file and the key. The optional keys a file leaves out
+        (`OPTIONAL`: `j`, `g`, `c_roll`, `c_axle`, `k_tau`) take their defaults, and one warning
+        line on the `jsphere` logger names them with the values used (once per file and
+        process). In a fit result, the free parameters' `values` must agree with `params` (the
+        copy the robot is read from) to a relative 1e-9, or the file is refused naming the
+        parameter and both values: an edit of one copy alone is not taken silently.
+        """
+        doc = read_mapping(path)
+        fit = "params" in doc and isinstance(doc["params"], dict)  # a fit result (`jsphere fit --out`)
+        d = doc["params"] if fit else doc
+        where = f"{path}: params" if fit else str(path)
+        d = _keys_checked(d, where)
         try:
-            return cls.from_dict(d, dtype=dtype)
+            p = cls(**_checked_fields(d), dtype=dtype)
         except ValueError as e:
-            raise ValueError(f"{path}: {e}") from None
+            raise InputError(f"{path}: {e}") from None
+        if fit and isinstance(doc.get("values"), dict):
+            _check_fit_copies(path, doc["values"], p)
+        _note_defaults(path, [f for f in OPTIONAL if f not in d])
+        return p
+
+
+#: what each required field is, for the message that names a missing one
+_MEANING = {
+    "R0": "the shell radius [m]",
+    "m0": "the shell mass [kg]",
+    "I0": "the shell's moment of inertia [kg m^2]",
+    "Rw": "the omniwheel radius [m]",
+    "wheel_r": "the wheel centres, one row per wheel [m]",
+    "wheel_n": "the unit axle directions, one row per wheel",
+    "wheel_alpha": "the unit roller axes, one row per wheel",
+    "m": "the platform mass with wheels [kg]",
+    "I": "the platform's inertia tensor about the shell centre [kg m^2]",
+    "r_m": "the platform's centre of mass [m]",
+}
+#: the files whose left-out keys have been named, with those keys (`_note_defaults`)
+_NOTED: set[tuple[str, tuple[str, ...]]] = set()
+
+
+def _keys_checked(d: Any, where: str) -> dict[str, Any]:
+    """`d` with the wheel aliases resolved, after checking that it holds every required field
+    and nothing else (`InputError` starting with `where`, naming the key)."""
+    import difflib
+
+    if not isinstance(d, dict):
+        raise InputError(f"{where}: a parameter set must be a table of fields {list(_FIELDS)}; got {type(d).__name__}.")
+    d = dict(d)
+    for alias, field in (("r", "wheel_r"), ("n", "wheel_n"), ("alpha", "wheel_alpha")):
+        if alias in d and field not in d:
+            d[field] = d.pop(alias)
+    unknown = sorted(set(d) - set(_FIELDS), key=str)
+    if unknown:
+        k = unknown[0]
+        close = difflib.get_close_matches(str(k), _FIELDS, n=1)
+        hint = f" (did you mean {close[0]!r}?)" if close else ""
+        raise InputError(
+            f"{where}: unknown key {k!r}{hint}; the keys of a robot are {', '.join(_FIELDS)} "
+            "(examples/robot.toml lists them)."
+        )
+    missing = [f for f in _FIELDS if f not in d and f not in OPTIONAL]
+    if missing:
+        which = ", ".join(f"{f!r} ({_MEANING[f]})" for f in missing)
+        raise InputError(
+            f"{where}: missing required key{'s' if len(missing) > 1 else ''} {which}; add "
+            f"{'them' if len(missing) > 1 else 'it'} (examples/robot.toml shows every key, docs/robot.md how to measure it)."
+        )
+    return d
+
+
+def _note_defaults(path, left_out: list[str]) -> None:
+    """One warning line on the `jsphere` logger naming the optional keys a file leaves out and
+    the defaults used, once per file and set of keys in a process."""
+    import logging
+    import os
+
+    key = (os.path.abspath(os.fspath(path)), tuple(left_out))
+    if not left_out or key in _NOTED:
+        return
+    _NOTED.add(key)
+    logging.getLogger("jsphere").warning(
+        f"warning: {path} leaves out {', '.join(left_out)}; using {', '.join(OPTIONAL[f][1] for f in left_out)}. "
+        "Write the key(s) in the file to use your robot's value (docs/robot.md)."
+    )
+
+
+def _check_fit_copies(path, values: dict[str, Any], p: "RobotParams") -> None:
+    """Refuse a fit result whose `values` (the free parameters) disagree with its `params`
+    beyond a relative 1e-9 (`InputError` naming the parameter and both values)."""
+    from .names import get_value
+
+    for name, v in values.items():
+        try:
+            have = np.asarray(get_value(p, str(name)), np.float64)
+        except ValueError:
+            raise InputError(
+                f"{path}: values has an unknown parameter {name!r}; it names no field of params."
+            ) from None
+        try:
+            want = np.asarray(
+                np.vectorize(lambda x: np.nan if x is None else x, otypes=[np.float64])(np.asarray(v, dtype=object)),
+                np.float64,
+            )
+        except (TypeError, ValueError):
+            raise InputError(f"{path}: values[{name!r}] must be a number (or lists of numbers); got {v!r}.") from None
+        if want.shape != have.shape:
+            raise InputError(f"{path}: values[{name!r}] has shape {want.shape}, params has {have.shape} for it.")
+        scale = float(np.max(np.abs(have))) if have.size else 0.0
+        tol = 1e-9 * np.maximum(np.abs(want), np.abs(have)) + 1e-12 * scale
+        bad = np.flatnonzero(np.isfinite(want) & ~(np.abs(want - have) <= tol))
+        if bad.size:
+            i = int(bad[0])
+            a, b = float(want.flat[i]), float(have.flat[i])
+            sub = "" if want.ndim == 0 else f"[{','.join(map(str, np.unravel_index(i, want.shape)))}]"
+            raise InputError(
+                f"{path}: values[{name!r}]{sub} = {a!r} disagrees with params ({name}{sub} = {b!r}), the copy the "
+                "robot is read from; edit params (and values to match), or delete values."
+            )
 
 
 # ------------------------------------------------------------------------- validation
@@ -369,6 +504,12 @@ RULES: tuple[Rule, ...] = (
         "c_axle < 0",
         lambda xp, a: a["c_axle"] < 0,
         lambda a: f"damping must be >= 0 N m s; got {a['c_axle']}.",
+    ),
+    Rule(
+        "k_tau",
+        "k_tau <= 0",
+        lambda xp, a: a["k_tau"] <= 0,
+        lambda a: f"torque gain (applied over commanded axle torque) must be > 0 (1: as commanded); got {a['k_tau']}.",
     ),
     Rule("g", "g < 0", lambda xp, a: a["g"] < 0, lambda a: f"must be >= 0 m/s^2 (use 9.81); got {a['g']}."),
     Rule(

@@ -12,8 +12,25 @@ import pytest
 
 import jsphere._runtime.files as jio
 from jsphere import RobotParams
+from jsphere._runtime.errors import InputError
 
-FIELDS = ("R0", "m0", "I0", "Rw", "wheel_r", "wheel_n", "wheel_alpha", "m", "I", "r_m", "j", "g", "c_roll", "c_axle")
+FIELDS = (
+    "R0",
+    "m0",
+    "I0",
+    "Rw",
+    "wheel_r",
+    "wheel_n",
+    "wheel_alpha",
+    "m",
+    "I",
+    "r_m",
+    "j",
+    "g",
+    "c_roll",
+    "c_axle",
+    "k_tau",
+)
 REFERENCE = Path(
     os.environ.get(
         "JSPHERE_REFERENCE", Path(__file__).resolve().parents[3] / "shared" / "reference" / "reference_cases.json"
@@ -138,19 +155,67 @@ def test_load_missing_field(tmp_path, paper, suffix, field):
     del d[field]
     path = tmp_path / f"params{suffix}"
     path.write_text(json.dumps(d) if suffix == ".json" else jio.dumps_toml(d))
-    with pytest.raises(ValueError, match="missing") as ei:
+    with pytest.raises(InputError, match="missing required key") as ei:
         RobotParams.load(path)
     msg = str(ei.value)
     assert str(path) in msg
-    assert f"['{field}']" in msg  # names exactly the missing field
+    assert f"'{field}'" in msg  # names exactly the missing field
 
 
-def test_load_without_j_and_g_uses_defaults(tmp_path, paper):
+def test_load_without_j_and_g_uses_defaults_and_says_so_once(tmp_path, paper, caplog):
     d = paper.to_dict()
     del d["j"], d["g"]
-    q = RobotParams.load(_write_json(tmp_path / "p.json", d))
+    path = _write_json(tmp_path / "p.json", d)
+    with caplog.at_level("WARNING", logger="jsphere"):
+        q = RobotParams.load(path)
+        RobotParams.load(path)  # the same file again: no second line
     assert float(q.j) == 0.0
     assert float(q.g) == 9.81
+    assert float(q.k_tau) == 1.0
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 1
+    assert str(path) in lines[0] and "leaves out j, g" in lines[0]
+    assert "j = 0 kg m^2" in lines[0] and "g = 9.81" in lines[0]
+
+
+def test_load_complete_file_says_nothing(tmp_path, paper, caplog):
+    with caplog.at_level("WARNING", logger="jsphere"):
+        RobotParams.load(_write_json(tmp_path / "p.json", paper.to_dict()))
+    assert caplog.records == []
+
+
+def test_example_robot_loads_cleanly(caplog):
+    path = Path(__file__).resolve().parents[2] / "examples" / "robot.toml"
+    with caplog.at_level("WARNING", logger="jsphere"):
+        p = RobotParams.load(path)
+    assert caplog.records == []
+    for f in FIELDS:  # the paper's robot, to the digits written
+        np.testing.assert_allclose(
+            np.asarray(getattr(p, f)), np.asarray(getattr(RobotParams.paper(), f)), rtol=1e-12, atol=1e-15
+        )
+
+
+def _fit_doc(p, values):
+    return {"params": p.to_dict(), "free": list(values), "values": values}
+
+
+def test_fit_result_copies_agree_within_rounding(tmp_path, paper):
+    vals = {"j": float(paper.j) * (1 + 1e-12), "I": np.asarray(paper.I).tolist(), "R_m": float(paper.R_m)}
+    vals["I"][0][1] = None  # an entry a whole free field does not hold (NaN in the fit, null in JSON)
+    _assert_same(paper, RobotParams.load(_write_json(tmp_path / "fit.json", _fit_doc(paper, vals))))
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "shown"), [("j", 3e-4, "values['j'] = 0.0003"), ("I", "edit", "values['I'][2,2] = 0.03")]
+)
+def test_fit_result_copies_that_disagree_are_refused(tmp_path, paper, name, value, shown):
+    if value == "edit":
+        value = np.asarray(paper.I).tolist()
+        value[2][2] = 0.03
+    path = _write_json(tmp_path / "fit.json", _fit_doc(paper, {name: value}))
+    with pytest.raises(InputError, match=re.escape(shown)) as ei:
+        RobotParams.load(path)
+    assert str(path) in str(ei.value) and "params" in str(ei.value)
 
 
 @pytest.mark.parametrize("suffix", [".json", ".toml"])
@@ -208,7 +273,7 @@ def test_load_fit_result_with_invalid_params_names_field(tmp_path, paper):
     d = paper.to_dict()
     del d["I"]
     path = _write_json(tmp_path / "fit.json", {"params": d, "loss": 0.0})
-    with pytest.raises(ValueError, match=r"\['I'\]") as ei:
+    with pytest.raises(InputError, match=r"missing required key 'I'") as ei:
         RobotParams.load(path)
     assert str(path) in str(ei.value)
 
@@ -287,7 +352,7 @@ def test_from_dict_aliases(paper):
 def test_from_dict_alias_and_field_together_is_rejected(paper):
     d = paper.to_dict()
     d["r"] = d["wheel_r"]
-    with pytest.raises(ValueError, match=r"unknown field\(s\) \['r'\]"):
+    with pytest.raises(InputError, match=r"unknown key 'r'"):
         RobotParams.from_dict(d)
 
 

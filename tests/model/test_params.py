@@ -149,6 +149,8 @@ INVALID = [
     ("I0=0", lambda b: {"I0": 0.0}, "I0", None),
     ("j<0", lambda b: {"j": -1e-5}, "j", None),
     ("g<0", lambda b: {"g": -9.81}, "g", None),
+    ("k_tau=0", lambda b: {"k_tau": 0.0}, "k_tau", "torque gain"),
+    ("k_tau<0", lambda b: {"k_tau": -1.0}, "k_tau", None),
     ("I-not-symmetric", lambda b: {"I": [[0.016, 0.002, 0.0], [0.0, 0.016, 0.0], [0.0, 0.0, 0.023]]}, "I", "symmetric"),
     ("I-not-posdef", lambda b: {"I": np.diag([0.016, -0.016, 0.023])}, "I", "positive definite"),
     ("I-singular", lambda b: {"I": np.diag([0.016, 0.0, 0.023])}, "I", "positive definite"),
@@ -331,7 +333,7 @@ def test_replace_R_m_on_stacked_params(paper):
 
 def test_is_pytree_with_array_leaves(paper):
     leaves = jax.tree_util.tree_leaves(paper)
-    assert len(leaves) == 14  # the 12 fields of the paper + the optional c_roll, c_axle
+    assert len(leaves) == 15  # the 12 fields of the paper + the optional c_roll, c_axle, k_tau
     assert all(isinstance(x, jax.Array) for x in leaves)
 
 

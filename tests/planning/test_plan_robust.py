@@ -229,7 +229,7 @@ def test_cli_reads_a_fit_result_or_a_study_as_uncertainty(paper, tmp_path):
     fit = tmp_path / "fit.json"
     fj = _fit_json(paper)
     fj["values"]["j"] = 3e-4
-    fit.write_text(json.dumps(fj | {"params": paper.to_dict()}))
+    fit.write_text(json.dumps(fj | {"params": paper.replace(j=3e-4).to_dict()}))
     u, p = _uncertainty(argparse.Namespace(robust=str(fit), params=None))
     assert u.names == NAMES and u.kinds == ("normal",) * 4
     assert float(p.j) == 3e-4  # the nominal robot is the fit's estimate

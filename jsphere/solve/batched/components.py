@@ -19,6 +19,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from ...model.dynamics import applied_torques
 from ...model.params import Derived, RobotParams
 from ...model.state import Flat
 
@@ -122,9 +123,9 @@ def torque_field_components(p: RobotParams, d: Derived, K, z, one=None, *, adjoi
     g = R[2]
     B, D, r1, r2 = _blocks_and_forces(p, d, g, w, W, one, adjoint)
     Ainv, Sk = _rows(d.A_inv), _rows(d.Sk)
-    # axle torques (with the optional axle friction) and their moment Sk^T K
+    # axle torques (torque gain, optional axle friction: `applied_torques`) and their moment Sk^T K
     dw = _sub(w, W)
-    Ke = tuple(K[i] + p.c_axle * _dot(Sk[i], dw) for i in range(n))
+    Ke = tuple(applied_torques(p, K[i], _dot(Sk[i], dw)) for i in range(n))
     tau = tuple(sum(Ke[i] * Sk[i][j] for i in range(n)) for j in range(3))
     r1, r2 = kept(_sub(r1, tau), one), _add(r2, tau)
     # Schur complement S = D - B^T A^-1 B (symmetric: its upper triangle), then
