@@ -48,6 +48,7 @@ STEPS = (
     ("fit_length", ["fit_length.py"], "results-fit-length.json"),
     ("fit_solver", ["fit_solver.py"], "results-fit-solver.json"),
     ("robust_fit", ["robust_fit.py"], "results-robust-fit.json"),
+    ("robust_fit_long", ["robust_fit.py", "--long"], "results-robust-fit-long.json"),
     ("traced_gradient", ["traced_gradient.py"], "results-traced-gradient.json"),
     ("montecarlo", ["montecarlo.py"], "results-montecarlo.json"),
     (

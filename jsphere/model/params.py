@@ -6,6 +6,7 @@ All quantities are SI (m, kg, kg m^2, s). All vectors are components in the plat
 
 from __future__ import annotations
 
+import re
 from typing import Any, Callable, NamedTuple
 
 import equinox as eqx
@@ -321,8 +322,6 @@ def _note_defaults(path, left_out: list[str]) -> None:
 def _check_fit_copies(path, values: dict[str, Any], p: "RobotParams") -> None:
     """Refuse a fit result whose `values` (the free parameters) disagree with its `params`
     beyond a relative 1e-9 (`InputError` naming the parameter and both values)."""
-    from .names import get_value
-
     for name, v in values.items():
         try:
             have = np.asarray(get_value(p, str(name)), np.float64)
@@ -734,3 +733,45 @@ def derive(p: RobotParams) -> Derived:
         MR2=(p.m + p.m0) * p.R0**2,
         mg=p.m * p.g,
     )
+
+
+# ----------------------------------------------------------------------------- names of parameters
+
+_NAME = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*(?:\[\s*([0-9\s,]+)\s*\])?\s*$")
+#: derived names: `R_m = |r_m|` (scales r_m along its direction)
+DERIVED = ("R_m",)
+
+
+def parse_name(name: str) -> tuple[str, tuple[int, ...]]:
+    """`"I[0,1]"` -> `("I", (0, 1))`; `"j"` -> `("j", ())`. Raises `ValueError` naming the
+    fields when the name is unknown or the index does not fit the field's shape."""
+    if not isinstance(name, str):
+        raise ValueError(f"a parameter name must be a string such as 'j' or 'I[0,0]'; got {name!r}.")
+    m = _NAME.match(name)
+    if not m:
+        raise ValueError(
+            f"cannot parse parameter name {name!r}; use a field ({', '.join(_FIELDS)}), a component such as 'I[0,0]' or 'r_m[2]', or 'R_m'."
+        )
+    field, idx = m.group(1), m.group(2)
+    index = tuple(int(i) for i in idx.split(",") if i.strip()) if idx else ()
+    if field not in _FIELDS and field not in DERIVED:
+        raise ValueError(f"unknown parameter {field!r} in {name!r}; fields are {', '.join(_FIELDS)} (and 'R_m').")
+    if field in DERIVED and index:
+        raise ValueError(f"{field} is a scalar; got {name!r}.")
+    return field, index
+
+
+def check_index(params: "RobotParams", field: str, index: tuple[int, ...], name: str):
+    shape = getattr(params, field).shape
+    if len(index) not in (0, len(shape)) or any(i >= s for i, s in zip(index, shape)):
+        raise ValueError(f"{name!r}: index {list(index)} does not fit {field} of shape {shape}.")
+
+
+def get_value(params: "RobotParams", name: str):
+    """The value a name refers to (an array for a whole field)."""
+    field, index = parse_name(name)
+    if field == "R_m":
+        return params.R_m
+    check_index(params, field, index, name)
+    v = getattr(params, field)
+    return v[index] if index else v
