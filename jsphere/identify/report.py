@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from .._runtime.arrays import to_jax
+from .._runtime.errors import InputError
 from .._runtime.files import atomic_write_json
 from ..model.internal import FIELDS
 from ..model.names import parse_name
@@ -237,7 +238,11 @@ def fit_result(
         res_b, J_b = reweigh(loss, to_jax(res_b[None]), to_jax(J_b[None]))
         res_b, J_b = np.asarray(res_b[0]), J_b[0]
     params = free.compiled()[1](to_jax(th_b), base)
-    params = RobotParams(**{f: getattr(params, f) for f in FIELDS}, dtype=base.R0.dtype)
+    unphysical = ""
+    try:  # validated: a fit may end at values no body has (a wrong valley); the verdict says so
+        params = RobotParams(**{f: getattr(params, f) for f in FIELDS}, dtype=base.R0.dtype)
+    except InputError as e:
+        unphysical = str(e)
     values, F_phys, cov, se, corr = _covariance(free, th_b, res_b, J_b, s2, params=params, kind=data.kind)
     ident = identifiability(free, values, F_phys, s2, params, kind=data.kind)
     ident["sigma_note"] = "relative sd of each direction; warnings list directions with relative sd > 10%"
@@ -255,6 +260,7 @@ def fit_result(
         n_params=P + T * n_nu,
         why_not=f"Levenberg-Marquardt reached max_iter in its last stage, {int(iterations)} iterations in all",
         missing=missing_effects(free.names, data.kind, data.max_offset > 0, known=FIELDS),
+        unphysical=unphysical,
     )
     status, status_reason = verdict.pop("status"), verdict.pop("reason")
     per_val = {n: float(v) for n, v in zip(free.names, values)}

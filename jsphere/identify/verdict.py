@@ -249,6 +249,7 @@ def judge(
     measured: Sequence[int] | None = None,
     missing: Sequence[str] = (),
     lags: int = whiteness.LAGS,
+    unphysical: str = "",
 ) -> dict[str, Any]:
     """The verdict on a fit from its residuals.
 
@@ -266,6 +267,8 @@ def judge(
       trial in the reason (module docstring).
     - `missing`: what the fit could be missing, in words (`missing_effects`), named by a model
       error's reason; `lags`: the largest lag of the whiteness test.
+    - `unphysical`: why the fitted values are no physical robot (a broken rule of
+      `RobotParams`), or "": such a fit is a `misfit` (a wrong valley), whatever its residuals.
 
     Returns a dict: `status` (`"converged"`, `"not_converged"` or `"misfit"`, see the module's
     rules), `reason` (one sentence), and the numbers in JSON units: `noise_floor_pos_m`,
@@ -301,7 +304,13 @@ def judge(
     bad = bad.reshape(T, len(SERIES)) if T else bad
     correlated = {names[i]: [c for c, b in zip(SERIES, bad[i]) if b] for i in range(T) if bad[i].any()}
     diagnosis = None
-    if left_out and converged:
+    if unphysical:
+        status, diagnosis = "misfit", "wrong valley"
+        reason = (
+            f"the fitted values are no physical robot ({unphysical}): the fit is in a wrong valley, or a value held "
+            "fixed is wrong; try more starts (--n-starts), other start values (--params, --fix) or bounds (--bound)."
+        )
+    elif left_out and converged:
         diagnosis = "wrong valley"
         status, reason = (
             "misfit",

@@ -13,6 +13,9 @@ from robots import torque_trials, unseen_robot
 import jsphere
 from jsphere.cli.app import main
 
+#: a few fits or plans each, tens of seconds on 2 cores: the slow lane, which CI runs
+pytestmark = pytest.mark.slow
+
 ROBOT = unseen_robot()
 
 

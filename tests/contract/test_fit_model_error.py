@@ -13,6 +13,9 @@ from robots import torque_trials, unseen_robot
 import jsphere
 from jsphere.cli.app import main
 
+#: a few fits or plans each, tens of seconds on 2 cores: the slow lane, which CI runs
+pytestmark = pytest.mark.slow
+
 FREE7 = "r_m[2],j,I[0,0],I[1,1],I[2,2],m0,I0"
 ROBOT = unseen_robot()
 

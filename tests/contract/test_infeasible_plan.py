@@ -6,11 +6,15 @@ tables (`read_inputs_csv`, `jsphere convert --inputs`, a study's `commands =`) s
 import json
 
 import numpy as np
+import pytest
 
 import jsphere
 from jsphere._runtime.errors import ExitCode
 from jsphere.cli.app import main
 from jsphere.montecarlo.study import load_study
+
+#: a few fits or plans each, tens of seconds on 2 cores: the slow lane, which CI runs
+pytestmark = pytest.mark.slow
 
 #: a wheel-speed limit that 0.3 m in at most 12 s cannot respect (the best plan needs ~1.4 rad/s)
 LIMIT = 0.5

@@ -16,6 +16,9 @@ from jsphere._runtime.errors import InputError
 from jsphere.cli.app import main
 from jsphere.montecarlo.study import load_study
 
+#: a few fits or plans each, tens of seconds on 2 cores: the slow lane, which CI runs
+pytestmark = pytest.mark.slow
+
 #: a robot that is not the paper's: heavier platform, heavier wheels
 ROBOT = jsphere.RobotParams.paper().replace(m=3.5, j=4.0e-4)
 TARGET = ("0.3", "0.1")

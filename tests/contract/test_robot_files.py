@@ -14,6 +14,9 @@ import jsphere
 from jsphere._runtime.errors import ExitCode
 from jsphere.cli.app import main
 
+#: a few fits or plans each, tens of seconds on 2 cores: the slow lane, which CI runs
+pytestmark = pytest.mark.slow
+
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "robot.toml"
 
 

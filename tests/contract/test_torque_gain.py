@@ -21,6 +21,9 @@ import jsphere
 from jsphere._runtime.errors import ExitCode
 from jsphere.cli.app import main
 
+#: a few fits or plans each, tens of seconds on 2 cores: the slow lane, which CI runs
+pytestmark = pytest.mark.slow
+
 GAIN = 0.9
 #: every inertial parameter of the robot that scales with the torque gain (m free: R_m stays)
 INERTIAL = "m0,m,I0,I[0,0],I[1,1],I[2,2],j"
