@@ -6,13 +6,16 @@ loads the programs an earlier one compiled instead of compiling them again. Expo
 which also skip tracing, are kept beside them by `jsphere.FastStart(path)` where a caller asks
 for it (`SolverOptions(programs=...)`; the command line does).
 
-JAX never writes an executable that contains a host callback, and equinox's run-time checks
-(`eqx.error_if`, used by diffrax, e.g. on `SaveAt(ts=...)`) are host callbacks in equinox's
-default `"raise"` mode. `callbacks_as_nan()` traces with equinox's `"nan"` mode instead: a
-failed check then returns NaN in place of raising, with no host callback in the program.
-jsphere validates its inputs on the host before a solve and reports solver failures through
-`Trajectory.status` (1: the solver failed, 2: non-finite values), so a program traced this
-way reports a failure there rather than by an exception from inside the compiled code.
+JAX never writes an executable that contains a host callback. jsphere's programs hold none:
+equinox's run-time checks inside them (`eqx.error_if`, used by diffrax, e.g. on
+`SaveAt(ts=...)`) are traced in equinox's `"nan"` mode (`callbacks_as_nan()`, applied by
+`jsphere._runtime.quick_compile.eager_jit` to every program jsphere compiles or traces into a
+caller's `jit`), and a solver failure is the solve's `Trajectory.status` (1: the solver
+failed, 2: non-finite values, which a failed check inside the program gives), which
+`simulate` and `simulate_gaits` raise after the program returns. So the cache keeps a script's
+eager solves and gradients, and a caller's own `jit` around solves with `throw=False`. With
+`throw=True` (the default) inside a caller's `jit`, the failure is raised by an equinox check
+in the caller's program, a host callback: that program is compiled again by each process.
 """
 
 from __future__ import annotations
@@ -44,9 +47,10 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     again. Returns the directory used (created if missing); `jsphere.FastStart(path)` keeps
     exported solves in the same directory.
 
-    Programs with host callbacks are not written by JAX; trace the solves inside
-    `callbacks_as_nan()` for them to be kept. The cache is trusted code: do not point it at a
-    directory that others can write to.
+    Programs with host callbacks are not written by JAX: jsphere's own programs have none
+    (module docstring); inside your own `jax.jit`, pass `throw=False` and read
+    `Trajectory.ok` for the whole program to be kept. The cache is trusted code: do not point
+    it at a directory that others can write to.
     """
     import jax
 

@@ -6,9 +6,9 @@ keep nothing else. Where a process's first calls matter (the command line, a scr
 and again), the caller passes a `FastStart(path)` as `SolverOptions(programs=...)`; it runs
 each program of a call with concrete inputs (`_simulate`, `_simulate_gaits`, an eager
 gradient's programs) in its place, exported once with `jax.export` (traced with equinox's
-run-time checks in their `nan` mode, `jsphere._runtime.private.callbacks_as_nan`, as host
-callbacks cannot be serialised: a failed solve is then reported by its status, not raised from
-inside the program) to `<path>/aot/<key>.jaxexport`. Later calls, in this process or the next,
+run-time checks in their `nan` mode, `jsphere._runtime.private.callbacks_as_nan`, as jsphere's
+programs always are: host callbacks cannot be serialised; a failed solve is reported by its
+status, and raised by `simulate` outside the program) to `<path>/aot/<key>.jaxexport`. Later calls, in this process or the next,
 run the deserialised program, compiled with the eager options of
 `jsphere._runtime.quick_compile`, whose executable comes from JAX's persistent compilation
 cache when that is on (`jsphere.enable_compilation_cache`): a second process skips tracing and
@@ -54,11 +54,10 @@ class FastStart:
     `jsphere.enable_compilation_cache`. The folder is trusted code: do not point it at a
     directory that others can write to.
 
-    A solve this process traced before with equinox's run-time checks in their default
-    `raise` mode keeps that trace (diffrax's `jit` holds it), whose host callbacks cannot be
-    exported: it then runs as usual, with a note on stderr. Pass the `FastStart` from the
-    first solve on, or set `EQX_ON_ERROR=nan` (the command line traces every solve in `nan`
-    mode).
+    jsphere traces its programs with equinox's run-time checks in their `nan` mode (no host
+    callbacks: `jsphere._runtime.quick_compile`), unless `EQX_ON_ERROR` is set in the
+    environment; a program with host callbacks (e.g. `EQX_ON_ERROR=raise`) cannot be
+    exported and runs as usual, with a note on stderr.
     """
 
     def __init__(self, path: str | os.PathLike):

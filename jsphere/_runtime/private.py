@@ -7,7 +7,9 @@ which library changed when one of them moves:
   `a_lower`, `c`, `b_sol`, `b_error`, `fsal`, `ssal`), read by the shared-step loop
   (`jsphere.solve.batched.method`);
 - equinox: the module-level switch of its run-time checks (`equinox._errors.EQX_ON_ERROR`),
-  which the environment variable `EQX_ON_ERROR` sets only at import;
+  which the environment variable `EQX_ON_ERROR` sets only at import, and the jitted check that
+  `eqx.error_if` calls (`equinox._errors.branched_error_if_impl_jit`), which
+  `callbacks_as_nan` passes its mode;
 - jax: whether its backends (the CPU client) exist yet (`jax._src.xla_bridge`), since an XLA
   flag set after that changes nothing; the distributed runtime's barrier
   (`jax._src.distributed`), which waits longer than the CPU collectives do.
@@ -100,59 +102,64 @@ def reset_jax_compilation_cache() -> None:
 
 
 def _errors_module():
-    """equinox's module of run-time checks, if it has the two names `callbacks_as_nan` sets
-    (`None` otherwise: then the block changes nothing)."""
+    """equinox's module of run-time checks, if it has the name `callbacks_as_nan` wraps
+    (`branched_error_if_impl_jit`, which `eqx.error_if` calls for array predicates; `None`
+    otherwise: then the block changes nothing)."""
     try:
         import equinox._errors as errors
     except ImportError:  # pragma: no cover - a future equinox without this module
         return None
-    ok = hasattr(errors, "EQX_ON_ERROR") and hasattr(errors, "branched_error_if_impl_jit")
-    return errors if ok else None
+    return errors if hasattr(errors, "branched_error_if_impl_jit") else None
 
 
 _LOCK = threading.Lock()
-_NAN_IMPL = None
+_NAN_DEPTH = threading.local()  # per thread: how many `callbacks_as_nan()` blocks are open
 
 
-def _nan_impl(errors):
-    """equinox's jitted check with the `"default"` mode read as `"nan"`: a jit of its own, so
-    its traces are kept apart from those of the `"raise"` mode (equinox keys its cache of
-    traced checks on the arguments, not on the mode)."""
-    global _NAN_IMPL
-    if _NAN_IMPL is None:
-        import equinox as eqx
+def _nan_here() -> bool:
+    return getattr(_NAN_DEPTH, "n", 0) > 0
+
+
+def _install(errors) -> None:
+    """Put a pass-through in front of equinox's jitted check (once per process): a check in the
+    `"default"` mode traced inside a `callbacks_as_nan()` block of this thread is traced in
+    `"nan"` mode (a static argument of equinox's jit, so its traces are kept apart from the
+    other modes'); every other check goes through unchanged."""
+    with _LOCK:
+        current = errors.branched_error_if_impl_jit
+        if getattr(current, "__jsphere_nan__", False):
+            return
 
         def impl(x, pred, index, msgs, *, on_error):
-            mode = "nan" if on_error == "default" else on_error
-            return errors.branched_error_if_impl(x, pred, index, msgs, on_error=mode)
+            if on_error == "default" and _nan_here():
+                on_error = "nan"
+            return current(x, pred, index, msgs, on_error=on_error)
 
-        _NAN_IMPL = eqx.filter_jit(impl)
-    return _NAN_IMPL
+        impl.__jsphere_nan__ = True
+        errors.branched_error_if_impl_jit = impl
 
 
 @contextlib.contextmanager
 def callbacks_as_nan() -> Iterator[None]:
     """Trace equinox's run-time checks in `"nan"` mode (no host callbacks) inside the block.
 
-    The mode is read when a check is *traced*: wrap the first call of a solve (the one that
-    traces and compiles it); a program compiled before, or outside the block, keeps the mode
-    it was traced with. An explicit `EQX_ON_ERROR` in the environment wins (e.g.
-    `EQX_ON_ERROR=breakpoint` for debugging), and the previous mode is restored on exit.
-    Failures inside such programs are reported through `Trajectory.status`, not raised.
-    Not thread-safe against checks traced in other threads meanwhile (they see `"nan"` too).
+    The mode is read when a check is *traced*: a program compiled before, or outside the
+    block, keeps the mode it was traced with. Only this thread's checks in equinox's default
+    mode change (`eqx.error_if(..., on_error="raise")` stays as written); blocks nest, and an
+    explicit `EQX_ON_ERROR` in the environment wins (e.g. `EQX_ON_ERROR=breakpoint` for
+    debugging). A failed check then returns NaN: jsphere's solves trace diffrax's checks
+    this way and report a failure through `Trajectory.status`.
     """
     errors = _errors_module()
     if errors is None or "EQX_ON_ERROR" in os.environ:
         yield
         return
-    with _LOCK:
-        previous = errors.EQX_ON_ERROR, errors.branched_error_if_impl_jit
-        errors.EQX_ON_ERROR, errors.branched_error_if_impl_jit = "nan", _nan_impl(errors)
+    _install(errors)
+    _NAN_DEPTH.n = getattr(_NAN_DEPTH, "n", 0) + 1
     try:
         yield
     finally:
-        with _LOCK:
-            errors.EQX_ON_ERROR, errors.branched_error_if_impl_jit = previous
+        _NAN_DEPTH.n -= 1
 
 
 def distributed_barrier(name: str, timeout_s: float) -> None:

@@ -12,6 +12,13 @@ does not know the options, nothing changes.
 
 `JSPHERE_XLA_DEFAULTS=1` in the environment keeps XLA's own defaults for every program, and an
 option named in `XLA_FLAGS` keeps the value given there.
+
+The programs of `eager_jit` hold no host callback, wherever they are traced (eagerly or inside a
+user's `jit`): equinox's run-time checks in them (diffrax's, on `SaveAt(ts=...)`, and any in a
+user's controls) are traced in their `nan` mode (`jsphere._runtime.private.callbacks_as_nan`),
+as JAX never writes a program with a host callback to its persistent compilation cache. A
+solve reports a failure through its status instead (a failed check makes values NaN, which
+`RESULTS.nonfinite` reports); `simulate` and `simulate_gaits` raise it outside the program.
 """
 
 from __future__ import annotations
@@ -25,6 +32,7 @@ import jax
 import numpy as np
 
 from .arrays import traced, transformed, under_jit
+from .private import callbacks_as_nan
 
 #: XLA options of the programs of eager calls on the CPU
 CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_level": 1}
@@ -63,7 +71,9 @@ def eager_jit(fn: Callable) -> Callable:
     """`equinox.filter_jit(fn)`, compiled with `options()` when called eagerly with concrete
     arrays; traced calls use the plain `filter_jit` (one compiled function per shape each),
     and calls under `jvp` or `vmap` (`transformed`) inside a `jit` call `fn` itself.
-    `eager_jit(fn).lower(*args)` lowers the eager call's program without running it.
+    `eager_jit(fn).lower(*args)` lowers the eager call's program without running it. Traced
+    in either way, equinox's run-time checks in `fn` are in their `nan` mode (no host
+    callback: see above).
 
     (Measured with `benchmarks/first_result.py`: inlined under `jvp` and `vmap`, a fit's
     residual-Jacobian program traces and compiles in 0.7x the time; inlined in every traced
@@ -80,17 +90,19 @@ def eager_jit(fn: Callable) -> Callable:
 
     @functools.wraps(fn)
     def call(*args, **kwargs):
-        if traced((args, kwargs)):
-            # under `jvp` or `vmap` inside a `jit`, the function is traced into the caller's
-            # program: a nested program would be processed again by each transformation around it
-            inline = transformed((args, kwargs)) and under_jit()
-            return fn(*args, **kwargs) if inline else plain(*args, **kwargs)
-        return eager()(*args, **kwargs)
+        with callbacks_as_nan():  # read where the call is traced: no host callback in the program
+            if traced((args, kwargs)):
+                # under `jvp` or `vmap` inside a `jit`, the function is traced into the caller's
+                # program: a nested program would be processed again by each transformation around it
+                inline = transformed((args, kwargs)) and under_jit()
+                return fn(*args, **kwargs) if inline else plain(*args, **kwargs)
+            return eager()(*args, **kwargs)
 
     def lower(*args, **kwargs):
         """The eager call's program for these arguments, lowered (`.compile()` compiles it: an
         eager call with arguments of the same shapes then runs that executable)."""
-        return eager().lower(*args, **kwargs)
+        with callbacks_as_nan():
+            return eager().lower(*args, **kwargs)
 
     call.lower = lower
     return call

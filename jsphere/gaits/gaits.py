@@ -391,9 +391,15 @@ def simulate_gaits(
 
 def _output_times(gaits, ts, rate, dt):
     """`ts` as an array of `dt`, or by default each gait sampled at `rate` Hz on its own
-    `[start, end]`."""
+    `[start, end]`. Given times are checked here when concrete (finite, non-decreasing),
+    as the solve's own check of them makes values NaN rather than raising."""
     if ts is not None:
-        return as_array(ts, dt)
+        out = as_array(ts, dt)
+        if not isinstance(out, jax.core.Tracer):
+            tsn = np.asarray(out)
+            if tsn.ndim != 1 or np.any(np.diff(tsn) < 0) or not np.all(np.isfinite(tsn)):
+                raise ValueError("simulate_gaits: ts must be a finite, non-decreasing 1-D array of times.")
+        return out
     if any(isinstance(g.T, jax.core.Tracer) for g in gaits):
         raise ValueError("simulate_gaits: pass `ts` when gait durations are traced (under jit/grad).")
     starts = np.cumsum([0.0] + [float(g.T) for g in gaits])[:-1]

@@ -15,7 +15,8 @@ class RESULTS(enum.IntEnum):
     - `max_steps_reached` (1): the solver stopped before the final time: it took `max_steps`
       steps, or its step size collapsed;
     - `nonfinite` (2): the state, the rates or the inputs became NaN or inf (including
-      inputs that are non-finite from the start);
+      inputs that are non-finite from the start, and a check of diffrax or of the controls
+      that failed inside the compiled solve, which makes values NaN there);
     - `rejected` (-1): not solved: a Monte-Carlo trial whose drawn parameters break a rule
       of `RobotParams` (`MonteCarloResult.status` only; `Trajectory.status` is never
       negative).
@@ -50,8 +51,9 @@ _MESSAGES = {
         "`Trajectory.ok` per trial instead of this error."
     ),
     RESULTS.nonfinite: (
-        "jsphere: the simulation produced NaN or inf. Check the controls (they must be finite) and "
-        "the initial state. Pass throw=False to get `Trajectory.ok` per trial instead of this error."
+        "jsphere: the simulation produced NaN or inf. Check the controls (they must be finite), "
+        "the initial state and the output times `ts` (finite, non-decreasing). Pass throw=False to get "
+        "`Trajectory.ok` per trial instead of this error."
     ),
     RESULTS.rejected: (
         "jsphere: the trial was not simulated: its drawn parameters break a rule of RobotParams "

@@ -109,9 +109,10 @@ def raise_on_failure(traj: Trajectory, throw: bool) -> Trajectory:
     """Turn a failed solve into an error (`RESULTS.message` of its code).
 
     Called outside the compiled solve, so that the compiled function holds no host callback
-    and can be kept in JAX's persistent compilation cache. With concrete results the error
-    is a Python `RuntimeError`; under a user's `jit`/`vmap` it is raised by equinox at run
-    time.
+    and can be kept in JAX's persistent compilation cache. With concrete results (an eager
+    call, an eager `jax.grad`) the error is a Python `RuntimeError`; under a user's
+    `jit`/`vmap` it is raised by an equinox check at run time, a host callback in the user's
+    program, which JAX's persistent cache does not keep (`throw=False` adds none).
     """
     if not throw:
         return traj

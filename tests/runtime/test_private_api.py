@@ -50,6 +50,26 @@ def test_equinox_nan_mode_takes_effect():
     assert np.isnan(float(out)), "equinox ignores equinox._errors.EQX_ON_ERROR now; update jsphere/_runtime/private.py."
 
 
+def test_equinox_jitted_check():
+    """`callbacks_as_nan` passes its mode to the jitted check `eqx.error_if` calls for array
+    predicates (`equinox._errors.branched_error_if_impl_jit`)."""
+    import equinox as eqx
+    import equinox._errors as errors
+    import jax.numpy as jnp
+
+    assert callable(getattr(errors, "branched_error_if_impl_jit", None)), (
+        f"equinox {eqx.__version__} no longer has `equinox._errors.branched_error_if_impl_jit` (the jitted check "
+        "`eqx.error_if` calls, which jsphere traces in `nan` mode so that JAX's cache keeps its programs); update "
+        "jsphere/_runtime/private.py."
+    )
+    with private.callbacks_as_nan():
+        out = jax.jit(lambda x: eqx.error_if(x, x > 0, "positive"))(jnp.array(1.0))
+    assert np.isnan(float(out)), (
+        f"equinox {eqx.__version__}: `eqx.error_if` no longer goes through `equinox._errors.branched_error_if_impl_jit` "
+        "(a check inside `callbacks_as_nan()` was not traced in `nan` mode); update jsphere/_runtime/private.py."
+    )
+
+
 def test_jax_backends_initialized():
     try:
         from jax._src import xla_bridge
