@@ -22,14 +22,18 @@ _C3D_PROCESSORS = {84: "<", 85: "<", 86: ">"}
 def c3d_layout(path) -> dict:
     """Check the structure of a C3D file before `ezc3d` reads it, and return what its header
     declares: `{"frames": declared frame count or None (a header that saturates at 65535),
-    "frames_in_file": whole frames the file holds, "points": ..., "data_start": byte offset}`.
+    "frames_in_file": whole frames the file holds, "points": ..., "data_start": byte offset,
+    "used": {"GROUP:NAME": value} of the section's scalar integer parameters (`ANALOG:USED`,
+    `FORCE_PLATFORM:USED`, ...)}`.
 
     ezc3d reads a truncated or corrupt file without a word (it shortens the frame count to what
     it finds, even in `POINT:FRAMES`), raises assorted errors, and on some corrupt parameter
     sections crashes the process or never returns. So the header (512 bytes: key byte 0x50,
     the parameter block, points, analog samples, first and last frame, scale, data start) and
     every record of the parameter section (names, types, dimensions, offsets inside the
-    section) are checked here; any problem is an `InputError` naming the file.
+    section) are checked here; any problem is an `InputError` naming the file. Names are
+    printable ASCII and may hold spaces and lower case, as writers use them (Qualisys Track
+    Manager writes `PROCESSING:Uncropped Measurement Length`).
     """
     path = Path(path)
     source = str(path)
@@ -70,21 +74,27 @@ def c3d_layout(path) -> dict:
     with open(path, "rb") as f:
         f.seek(p0)
         params = f.read(p_end - p0)
-    _check_c3d_parameters(params, endian, source)
+    used = _check_c3d_parameters(params, endian, source)
     frame_bytes = (4 * n_points + n_analog) * (4 if float_data else 2)
     start = 512 * (data_start - 1)
     if size < start:
         raise InputError(f"{source}: the C3D file is cut short before its data (byte {start}; the file has {size}).")
     frames = last - first + 1 if (last >= first and last < 65535) else None
     in_file = (size - start) // frame_bytes if frame_bytes else (frames or 0)
-    return {"frames": frames, "frames_in_file": int(in_file), "points": n_points, "data_start": start}
+    return {"frames": frames, "frames_in_file": int(in_file), "points": n_points, "data_start": start, "used": used}
 
 
-def _check_c3d_parameters(params: bytes, endian: str, source: str) -> None:
+def _check_c3d_parameters(params: bytes, endian: str, source: str) -> dict[str, int]:
     """Walk the records of a C3D parameter section (`params`: the whole section, from its 4-byte
-    head); raise `InputError` at the first that runs out of the section or makes no sense."""
+    head); raise `InputError` at the first that runs out of the section or makes no sense.
+    Returns `{"GROUP:NAME": value}` of its scalar integer parameters."""
     pos, n_records = 4, 0
     end = len(params)
+    groups: dict[int, str] = {}
+    scalars: dict[tuple[int, str], int] = {}
+
+    def found() -> dict[str, int]:
+        return {f"{groups.get(g, '?')}:{name}": v for (g, name), v in scalars.items()}
 
     def bad(why: str):
         return InputError(
@@ -94,11 +104,15 @@ def _check_c3d_parameters(params: bytes, endian: str, source: str) -> None:
     while pos + 2 <= end:
         n_name = abs(struct.unpack("b", params[pos : pos + 1])[0])
         if n_name == 0:
-            return  # the end of the records
+            return found()  # the end of the records
         name = params[pos + 2 : pos + 2 + n_name]
-        if len(name) < n_name or not all(32 < c < 127 for c in name):
+        # printable ASCII; spaces inside a name (QTM: "Uncropped Measurement Length"), not before it
+        if len(name) < n_name or not all(32 <= c < 127 for c in name) or name[0] == 32:
             raise bad("its name is not printable")
-        group = struct.unpack("b", params[pos + 1 : pos + 2])[0] < 0
+        gid = struct.unpack("b", params[pos + 1 : pos + 2])[0]
+        group = gid < 0
+        if group:
+            groups[-gid] = name.decode("ascii").upper()
         at = pos + 2 + n_name  # the offset to the next record counts from here
         if at + 2 > end:
             raise bad("it runs past the section")
@@ -111,17 +125,35 @@ def _check_c3d_parameters(params: bytes, endian: str, source: str) -> None:
             if typ not in (-1, 1, 2, 4) or ndim > 7:
                 raise bad(f"type {typ}, {ndim} dimensions")
             dims = params[q + 2 : q + 2 + ndim]
+            if typ == 2 and ndim == 0 and q + 4 <= end:
+                scalars[(gid, name.decode("ascii").upper())] = struct.unpack(endian + "h", params[q + 2 : q + 4])[0]
             q += 2 + ndim + abs(typ) * int(np.prod(list(dims), dtype=np.int64))
         if q + 1 > end or q + 1 + params[q] > end:
             raise bad("it runs past the section")
         if nxt == 0:
-            return  # the last record
+            return found()  # the last record
         if nxt < 0 or at + nxt <= pos or at + nxt > end:
             raise bad(f"its link to the next record ({nxt}) leaves the section")
         pos = at + nxt
         n_records += 1
         if n_records > 100_000:
             raise bad("too many records")
+    return found()
+
+
+def _other_data(layout: dict) -> str:
+    """What a C3D file without points holds instead, in words, from its `*:USED` parameters."""
+    used = layout["used"]
+    what = [
+        f"{n} {word}{'s' if n != 1 else ''}"
+        for key, word in (
+            ("ANALOG:USED", "analog channel"),
+            ("FORCE_PLATFORM:USED", "force plate"),
+            ("ROTATION:USED", "rotation"),
+        )
+        if (n := used.get(key, 0)) > 0
+    ]
+    return f"only {', '.join(what)}" if what else "no other data"
 
 
 def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: bool = False) -> MarkerData:
@@ -131,7 +163,8 @@ def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: 
     residual (`data.meta_points.residuals`) is negative is a gap. Times are frame / rate from 0.
 
     The file's structure is checked first (`c3d_layout`): an empty, random or corrupt file is
-    an `InputError` naming it. A file with fewer frames than its header declares (a copy or an
+    an `InputError` naming it; so is a file with no points (force plates or other analog data
+    only), saying what it holds. A file with fewer frames than its header declares (a copy or an
     export that broke off) is an `InputError` naming both counts; with `allow_truncated=True`
     it is a `CaptureWarning` and the frames present are used.
     """
@@ -140,13 +173,18 @@ def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: 
         raise FileNotFoundError(f"capture file {path} does not exist.")
     source = str(path)
     layout = c3d_layout(path)
+    if layout["points"] == 0:
+        raise InputError(
+            f"{source}: the C3D file holds no marker trajectories (its header declares 0 points; {_other_data(layout)}); "
+            "jsphere converts marker trajectories: export the take's markers (3D point data) to C3D."
+        )
     declared, present = layout["frames"], layout["frames_in_file"]
     if declared is not None and present < declared:
         what = f"the header declares {declared} frames but the file holds {present}"
         if not allow_truncated or present == 0:
             raise InputError(
                 f"{source}: the file is cut short: {what} (the copy or the export broke off). Export or copy it again"
-                + (", or pass --allow-truncated (allow_truncated=True) to use the frames present." if present else ".")
+                + (", or pass --allow-truncated to use the frames present." if present else ".")
             )
         warnings.warn(
             f"{source}: the file is cut short: {what}; using the {present} frames present.",
@@ -164,7 +202,7 @@ def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: 
         point = c["parameters"]["POINT"]
         labels = tuple(str(s).strip() for s in point["LABELS"]["value"])
         rate = float(point["RATE"]["value"][0])
-        file_units = str(point["UNITS"]["value"][0]).strip() if "UNITS" in point else None
+        file_units = str(point["UNITS"]["value"][0]).strip() if len(point.get("UNITS", {}).get("value", ())) else None
         pts = np.asarray(c["data"]["points"], float)
         res = np.asarray(c["data"]["meta_points"]["residuals"], float)
     except (RuntimeError, OSError, ValueError, KeyError, IndexError, TypeError) as e:
