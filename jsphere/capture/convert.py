@@ -38,6 +38,7 @@ def convert_raw(
     allow_truncated: bool = False,
     subject: str | None = None,
     pose_topic: str | None = None,
+    child_frame: str | None = None,
     inputs_topic: str | None = None,
     input_kind: str | None = None,
     joints=None,
@@ -51,7 +52,8 @@ def convert_raw(
     asset or a QTM 6DOF body, `subject` a Vicon subject (`rigid_body` too, when `subject` is None).
 
     **ROS bags.** `format="rosbag"` reads the poses on `pose_topic` of the bag `path`
-    (`read_rosbag_poses`). With `inputs_topic`, the inputs come from that
+    (`read_rosbag_poses`; on a `tf2_msgs/TFMessage` topic such as `/tf`, the transforms of
+    `child_frame`, by default the topic's one moving child frame). With `inputs_topic`, the inputs come from that
     `sensor_msgs/JointState` topic (`read_rosbag_inputs`: `input_kind` `"chi_dot"`, the
     default, or `"K"`; `joints`; `n_wheels`) of the bag `inputs`, or of `path` itself when
     `inputs` is None; the markers may then come from any format. An inputs table holding both
@@ -76,6 +78,8 @@ def convert_raw(
         raise ValueError(f"convert_raw: format must be one of {RAW_FORMATS}; got {format!r}.")
     _check_bag_options(format, inputs, units, up_axis, pose_topic, inputs_topic, joints)
     _check_body_options(format, rigid_body, subject)
+    if child_frame is not None and format != "rosbag":
+        raise InputError(f"--child-frame picks a frame of a ROS bag's /tf topic; --format {format} has none: drop it.")
     kw = {"units": units, "allow_truncated": allow_truncated}
     if format == "motive":
         data = read_motive_csv(path, rigid_body=rigid_body, up_axis=up_axis or "y", **kw)
@@ -84,7 +88,7 @@ def convert_raw(
     elif format == "qualisys":
         data = read_qualisys_tsv(path, rigid_body=rigid_body, up_axis=up_axis or "z", **kw)
     elif format == "rosbag":
-        data = read_rosbag_poses(path, pose_topic)
+        data = read_rosbag_poses(path, pose_topic, child_frame=child_frame)
     else:
         data = read_c3d(path, up_axis=up_axis or "z", **kw)
     if inputs_topic is not None:

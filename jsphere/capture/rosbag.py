@@ -1,5 +1,6 @@
 """Robot logs in ROS bags, read through `rosbags` (pure Python, no ROS install): poses
-(`read_rosbag_poses`) and the wheel inputs from `sensor_msgs/JointState` (`read_rosbag_inputs`).
+(`read_rosbag_poses`: a pose topic, or one frame of the transforms on `/tf`) and the wheel inputs
+from `sensor_msgs/JointState` (`read_rosbag_inputs`).
 
 ROS 1 bags (`*.bag`) and ROS 2 bags (a folder with `metadata.yaml` and its sqlite3 `*.db3` or
 MCAP `*.mcap` storage; the storage file itself is accepted too) are read alike. Each message's
@@ -18,8 +19,15 @@ from .._runtime.errors import InputError
 from .markers import MarkerData
 from .validation import CaptureWarning, sign_continuous
 
-#: message types that carry a pose (REP 103: metres, X forward, Y left, Z up)
-POSE_TYPES = ("geometry_msgs/msg/PoseStamped", "geometry_msgs/msg/TransformStamped", "nav_msgs/msg/Odometry")
+#: message types that carry one pose (REP 103: metres, X forward, Y left, Z up)
+POSE_TYPES = (
+    "geometry_msgs/msg/PoseStamped",
+    "geometry_msgs/msg/PoseWithCovarianceStamped",
+    "geometry_msgs/msg/TransformStamped",
+    "nav_msgs/msg/Odometry",
+)
+#: message types that carry the transforms of several frames (`/tf`; `tf/tfMessage` of ROS 1's tf)
+TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
 JOINT_STATE = "sensor_msgs/msg/JointState"
 #: `--input-kind`: the JointState field it reads and the trial's kind of inputs
 INPUT_FIELDS = {"chi_dot": ("velocity", "wheel_speeds"), "K": ("effort", "torques")}
@@ -100,20 +108,37 @@ def _increasing(t: np.ndarray, source: str, topic: str) -> None:
         )
 
 
-def read_rosbag_poses(path, topic: str) -> MarkerData:
-    """The poses on `topic` of a ROS bag: `geometry_msgs/PoseStamped`, `TransformStamped` or
-    `nav_msgs/Odometry` (e.g. from vrpn_client_ros or mocap4r2), in metres in a Z-up frame
-    (REP 103). Returns `MarkerData` without markers, the pose in `rb_q` (scalar first, body ->
-    fixed) and `rb_p`; a quaternion of zeros or a non-finite value is a gap. Times: header
-    stamps [s since the epoch], else the bag's times with a `CaptureWarning`."""
+def read_rosbag_poses(path, topic: str, *, child_frame: str | None = None) -> MarkerData:
+    """The poses on `topic` of a ROS bag, in metres in a Z-up frame (REP 103).
+
+    `topic` holds `geometry_msgs/PoseStamped` (vrpn_client_ros, mocap4r2),
+    `PoseWithCovarianceStamped` (an estimator such as amcl or robot_localization),
+    `TransformStamped` or `nav_msgs/Odometry`: its pose in its header's frame. Or it holds
+    `tf2_msgs/TFMessage` (`/tf`, as motion-capture bridges publish): the transforms of
+    `child_frame` from its parent frame (the parent's own motion is not composed in). Without
+    `child_frame`, the topic's one moving child frame; several moving child frames are an
+    `InputError` listing them.
+
+    Returns `MarkerData` without markers, the pose in `rb_q` (scalar first, body -> fixed) and
+    `rb_p`; a quaternion of zeros or a non-finite value is a gap. Times: header stamps [s since
+    the epoch, or since the simulation's start], else the bag's times with a `CaptureWarning`.
+    """
     source = str(path)
-    msgs, bag_t, msgtype = _messages(path, topic, POSE_TYPES, "poses")
-    if msgtype.endswith("TransformStamped"):
-        poses = [(m.transform.translation, m.transform.rotation) for m in msgs]
-    elif msgtype.endswith("Odometry"):
+    msgs, bag_t, msgtype = _messages(path, topic, POSE_TYPES + TF_TYPES, "poses")
+    if child_frame is not None and msgtype not in TF_TYPES:
+        raise InputError(
+            f"{source}: --child-frame picks a frame of a tf2_msgs/msg/TFMessage topic such as /tf; {topic} holds "
+            f"{msgtype}, one pose per message: drop --child-frame."
+        )
+    if msgtype in TF_TYPES:
+        msgs, bag_t = _frame_transforms(msgs, bag_t, source, topic, child_frame)
+        topic = f"{topic} ({msgs[0].child_frame_id})"
+    if msgtype.endswith("Odometry") or msgtype.endswith("WithCovarianceStamped"):
         poses = [(m.pose.pose.position, m.pose.pose.orientation) for m in msgs]
-    else:
+    elif msgtype.endswith("PoseStamped"):
         poses = [(m.pose.position, m.pose.orientation) for m in msgs]
+    else:
+        poses = [(m.transform.translation, m.transform.rotation) for m in msgs]
     t = _clock([m.header for m in msgs], bag_t, source, topic)
     _increasing(t, source, topic)
     p = np.array([[v.x, v.y, v.z] for v, _ in poses], float)
@@ -123,6 +148,60 @@ def read_rosbag_poses(path, topic: str) -> MarkerData:
     q[gap], p[gap] = np.nan, np.nan
     q[~gap] /= norm[~gap, None]
     return MarkerData(t, np.zeros((len(t), 0, 3)), (), source, None, sign_continuous(q), p)
+
+
+def _frame_transforms(msgs: list, bag_t: np.ndarray, source: str, topic: str, child_frame: str | None):
+    """The `TransformStamped`s of one child frame in the `TFMessage`s `msgs`, and the bag's times
+    of the messages that hold them: `child_frame` (a leading '/' ignored), else the one child
+    frame whose transform changes. `InputError` naming the child frames where there is none,
+    several moving ones, or one with several parents."""
+    frames: dict[str, list] = {}
+    for m, tb in zip(msgs, bag_t):
+        for tf in m.transforms:
+            frames.setdefault(tf.child_frame_id.lstrip("/"), []).append((tf, tb))
+    if not frames:
+        raise InputError(f"{source}: the messages of {topic} hold no transforms.")
+
+    def parents(name):
+        return sorted({tf.header.frame_id for tf, _ in frames[name]})
+
+    def listing(names, most=12):
+        shown = ", ".join(f"{n} (from {' and '.join(parents(n))})" for n in names[:most])
+        return shown + (f" and {len(names) - most} more" if len(names) > most else "")
+
+    if child_frame is not None:
+        name = child_frame.strip().lstrip("/")
+        if name not in frames:
+            raise InputError(
+                f"{source}: no child frame {child_frame!r} in {topic}; its child frames: {listing(sorted(frames))}."
+            )
+    else:
+        moving = sorted(n for n in frames if _moves([tf.transform for tf, _ in frames[n]]))
+        if len(moving) > 1:
+            raise InputError(
+                f"{source}: {topic} holds {len(moving)} moving child frames: {listing(moving)}; name the robot's frame "
+                "with --child-frame NAME."
+            )
+        if not moving and len(frames) > 1:
+            raise InputError(
+                f"{source}: no child frame of {topic} moves ({len(frames)} fixed ones: {listing(sorted(frames))}); "
+                "give the topic where the robot's frame moves (such as /tf) with --pose-topic."
+            )
+        [name] = moving or list(frames)
+    if len(parents(name)) > 1:
+        raise InputError(
+            f"{source}: the transforms of child frame {name!r} on {topic} come from {len(parents(name))} parent "
+            f"frames ({', '.join(parents(name))}); a pose needs one: record the robot's frame from one parent."
+        )
+    return [tf for tf, _ in frames[name]], np.array([tb for _, tb in frames[name]])
+
+
+def _moves(transforms: list) -> bool:
+    """Whether the `geometry_msgs/Transform`s `transforms` are not all the same."""
+    v = np.array(
+        [[*(getattr(t.translation, a) for a in "xyz"), *(getattr(t.rotation, a) for a in "wxyz")] for t in transforms]
+    )
+    return bool(np.any(v != v[0]))
 
 
 def read_rosbag_inputs(
@@ -159,12 +238,16 @@ def read_rosbag_inputs(
             raise InputError(
                 f"{source}: message {i + 1} of {topic} has {len(vals)} {field} values for its {len(have)} joints "
                 f"{have} (it fills {', '.join(filled) or 'none of position, velocity, effort'}); "
-                + (f"--input-kind {other} reads {'effort' if other == 'K' else 'velocity'}." if filled else "")
+                + (
+                    f"--input-kind {other} reads {INPUT_FIELDS[other][0]}."
+                    if INPUT_FIELDS[other][0] in filled
+                    else f"record the joint states with {field} filled."
+                )
             )
         if not joints and have != first:
             raise InputError(
                 f"{source}: the joints of {topic} change at message {i + 1} ({have}, first {first}); name the wheels "
-                "with --joints (joints=)."
+                f"in wheel order with --joints, e.g. --joints {','.join(first)}."
             )
         missing = [j for j in names if j not in have]
         if missing:
@@ -173,7 +256,7 @@ def read_rosbag_inputs(
     if n_wheels is not None and len(names) != n_wheels:
         raise InputError(
             f"{source}: {topic} gives {len(names)} joints {names} but the robot has {n_wheels} wheels; name its wheels in "
-            "wheel order with --joints (joints=)."
+            f"wheel order with --joints, e.g. --joints {','.join(names[:n_wheels])}."
         )
     bad = np.argwhere(~np.isfinite(values))
     if bad.size:

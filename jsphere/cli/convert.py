@@ -16,6 +16,8 @@ EXAMPLES = """
   jsphere convert capture.csv --format motive --inputs plan.csv --input-kind chi_dot --time-offset auto --out trial.csv
   jsphere convert run.bag --format rosbag --pose-topic /mocap/robot/pose --inputs-topic /joint_states \\
       --input-kind chi_dot --joints wheel_1,wheel_2,wheel_3 --out trial.csv
+  jsphere convert run_bag/ --format rosbag --pose-topic /tf --child-frame robot --inputs-topic /joint_states \\
+      --out trial.csv
   jsphere convert take.tsv --format qualisys --inputs run_bag/ --inputs-topic /joint_states --out trial.csv
 """
 
@@ -43,7 +45,17 @@ def add_parser(sub) -> None:
     cv.add_argument("--up-axis", choices=("y", "z"), help="the export's up axis (default: y for Motive, z otherwise)")
     cv.add_argument("--rigid-body", help="Motive rigid body / Qualisys 6DOF body (or Vicon subject) to use")
     cv.add_argument("--subject", help="Vicon Nexus subject whose trajectories to use (needed when there are several)")
-    cv.add_argument("--pose-topic", help="ROS bag: the PoseStamped, TransformStamped or Odometry topic of the poses")
+    cv.add_argument(
+        "--pose-topic",
+        help="ROS bag: the topic of the poses: PoseStamped, PoseWithCovarianceStamped, TransformStamped, Odometry, or "
+        "a TFMessage topic such as /tf",
+    )
+    cv.add_argument(
+        "--child-frame",
+        metavar="NAME",
+        help="ROS bag with a TFMessage --pose-topic (/tf): the child frame whose transforms are the poses (default: "
+        "the topic's one moving child frame)",
+    )
     cv.add_argument("--inputs-topic", help="ROS bag: the sensor_msgs/JointState topic of the wheel inputs")
     cv.add_argument(
         "--input-kind",
@@ -137,6 +149,7 @@ def run(args) -> int:
                 keep_suspect=args.keep_suspect,
                 subject=args.subject,
                 pose_topic=args.pose_topic,
+                child_frame=args.child_frame,
                 inputs_topic=args.inputs_topic,
                 input_kind=args.input_kind,
                 joints=args.joints,

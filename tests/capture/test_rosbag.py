@@ -12,7 +12,7 @@ pytest.importorskip("rosbags")
 from rosbags.rosbag1 import Writer as Writer1  # noqa: E402
 from rosbags.rosbag2 import StoragePlugin  # noqa: E402
 from rosbags.rosbag2 import Writer as Writer2  # noqa: E402
-from rosbags.typesys import Stores, get_typestore  # noqa: E402
+from rosbags.typesys import Stores, get_types_from_msg, get_typestore  # noqa: E402
 
 EPOCH_NS = 1_741_946_000_000_000_000  # the robot's clock: seconds since 1970
 N = 120  # frames at 100 Hz
@@ -33,14 +33,33 @@ def run():
 
 
 def _typestore(ros1):
-    return get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
+    if ros1:  # (noetic's store lacks tf2_msgs)
+        ts.register(get_types_from_msg("geometry_msgs/TransformStamped[] transforms", "tf2_msgs/msg/TFMessage"))
+    return ts
 
 
-def write_bag(path, run, *, ros1=False, storage="mcap", pose_type="PoseStamped", stamps=True, names=None, effort=True):
+TOPICS = {"TFMessage": "/tf"}  # the pose topic of each `pose_type`; the others: /mocap/robot/pose
+
+
+def write_bag(
+    path,
+    run,
+    *,
+    ros1=False,
+    storage="mcap",
+    pose_type="PoseStamped",
+    stamps=True,
+    names=None,
+    effort=True,
+    wand=False,
+):
     """A bag with a pose topic `/mocap/robot/pose` (`pose_type`: PoseStamped as vrpn_client_ros and
-    mocap4r2 publish, TransformStamped, or Odometry) and `/joint_states` (JointState: name,
-    position, velocity, effort). The bag's receive times trail the header stamps by 3 ms; with
-    `stamps=False` the header stamps are zero."""
+    mocap4r2 publish, PoseWithCovarianceStamped as estimators do, TransformStamped, or Odometry)
+    or `/tf` (`pose_type="TFMessage"`, as motion-capture bridges publish: the frame `robot` from
+    `world`, and `camera` fixed on it; with `wand`, a second moving frame `wand`), and
+    `/joint_states` (JointState: name, position, velocity, effort). The bag's receive times trail
+    the header stamps by 3 ms; with `stamps=False` the header stamps are zero."""
     t, q, p, chi, K = run
     ts = _typestore(ros1)
     T = ts.types
@@ -53,8 +72,10 @@ def write_bag(path, run, *, ros1=False, storage="mcap", pose_type="PoseStamped",
     Pose = T["geometry_msgs/msg/Pose"]
     msgtype = {
         "PoseStamped": "geometry_msgs/msg/PoseStamped",
+        "PoseWithCovarianceStamped": "geometry_msgs/msg/PoseWithCovarianceStamped",
         "TransformStamped": "geometry_msgs/msg/TransformStamped",
         "Odometry": "nav_msgs/msg/Odometry",
+        "TFMessage": "tf2_msgs/msg/TFMessage",
     }[pose_type]
     serialize = ts.serialize_ros1 if ros1 else ts.serialize_cdr
     names = JOINTS if names is None else names
@@ -63,16 +84,28 @@ def write_bag(path, run, *, ros1=False, storage="mcap", pose_type="PoseStamped",
         stamp = Time(sec=ns // 10**9, nanosec=ns % 10**9) if stamps else Time(sec=0, nanosec=0)
         return Header(seq=i, stamp=stamp, frame_id="world") if ros1 else Header(stamp=stamp, frame_id="world")
 
+    def transform(h, child, qi, pi):
+        (w, x, y, z), (px, py, pz) = qi, pi
+        tf = T["geometry_msgs/msg/Transform"](translation=Vector3(x=px, y=py, z=pz), rotation=Quat(x=x, y=y, z=z, w=w))
+        return T["geometry_msgs/msg/TransformStamped"](header=h, child_frame_id=child, transform=tf)
+
     def pose_msg(i, h):
         (w, x, y, z), (px, py, pz) = q[i], p[i]
         rot = Quat(x=x, y=y, z=z, w=w)
         if pose_type == "TransformStamped":
-            tf = T["geometry_msgs/msg/Transform"](translation=Vector3(x=px, y=py, z=pz), rotation=rot)
-            return T[msgtype](header=h, child_frame_id="robot", transform=tf)
+            return transform(h, "robot", q[i], p[i])
+        if pose_type == "TFMessage":
+            camera = Header(seq=i, stamp=h.stamp, frame_id="robot") if ros1 else Header(stamp=h.stamp, frame_id="robot")
+            tfs = [transform(h, "robot", q[i], p[i]), transform(camera, "camera", (1.0, 0, 0, 0), (0.05, 0, 0.1))]
+            if wand:
+                tfs.insert(0, transform(h, "wand", q[-1 - i], p[-1 - i]))
+            return T[msgtype](transforms=tfs)
         pose = Pose(position=Point(x=px, y=py, z=pz), orientation=rot)
         if pose_type == "PoseStamped":
             return T[msgtype](header=h, pose=pose)
         cov = np.zeros(36)
+        if pose_type == "PoseWithCovarianceStamped":
+            return T[msgtype](header=h, pose=T["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=cov))
         twist = T["geometry_msgs/msg/TwistWithCovariance"](
             twist=T["geometry_msgs/msg/Twist"](
                 linear=Vector3(x=0.0, y=0.0, z=0.0), angular=Vector3(x=0.0, y=0.0, z=0.0)
@@ -92,7 +125,7 @@ def write_bag(path, run, *, ros1=False, storage="mcap", pose_type="PoseStamped",
         plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
         writer = Writer2(path, version=9, storage_plugin=plugin)
     with writer:
-        c_pose = writer.add_connection("/mocap/robot/pose", msgtype, typestore=ts)
+        c_pose = writer.add_connection(TOPICS.get(pose_type, "/mocap/robot/pose"), msgtype, typestore=ts)
         c_js = writer.add_connection("/joint_states", "sensor_msgs/msg/JointState", typestore=ts)
         c_other = writer.add_connection("/battery", "std_msgs/msg/Float32", typestore=ts)
         for i in range(N):
@@ -139,15 +172,22 @@ def _same(a, b, tol=2e-6):
         (True, None, "PoseStamped"),
         (False, "sqlite3", "TransformStamped"),
         (True, None, "Odometry"),
+        (True, None, "TFMessage"),
+        (False, "sqlite3", "TFMessage"),
+        (False, "mcap", "TFMessage"),
+        (True, None, "PoseWithCovarianceStamped"),
+        (False, "sqlite3", "PoseWithCovarianceStamped"),
+        (False, "mcap", "PoseWithCovarianceStamped"),
     ],
 )
 def test_bag_converts_into_the_trial_of_the_csv_files(tmp_path, run, ros1, storage, pose_type):
+    """Each pose message type, in ROS 1, ROS 2 sqlite3 and MCAP bags; `/tf` with its one moving
+    child frame (`robot`; `camera` is fixed on it) needs no `--child-frame`."""
     bag = write_bag(tmp_path / ("run.bag" if ros1 else "run"), run, ros1=ros1, storage=storage, pose_type=pose_type)
     take, inputs = csv_files(tmp_path, run)
     want = jsphere.convert_raw(take, inputs, format="motive")
-    got = jsphere.convert_raw(
-        bag, None, format="rosbag", pose_topic="/mocap/robot/pose", inputs_topic="/joint_states", name="take"
-    )
+    topic = TOPICS.get(pose_type, "/mocap/robot/pose")
+    got = jsphere.convert_raw(bag, None, format="rosbag", pose_topic=topic, inputs_topic="/joint_states", name="take")
     _same(got, want)
     # the clock starts at the first message, the pose at 0; that pose precedes the first wheel state (2 ms)
     assert got.t[0] == pytest.approx(0.01, abs=1e-6)
@@ -257,3 +297,44 @@ def test_bag_errors(tmp_path, run, capsys):
     (tmp_path / "junk.bag").write_bytes(b"not a bag at all")
     with pytest.raises(jsphere.InputError, match="not a readable ROS bag"):
         jsphere.read_rosbag_poses(tmp_path / "junk.bag", "/pose")
+
+
+def test_tf_child_frame(tmp_path, run, capsys):
+    """`/tf` with two moving child frames: refused without `--child-frame`, listing them;
+    `--child-frame` picks one (a leading '/' as ROS 1 writes it reads the same); a frame that
+    is not there, or `--child-frame` where it does not apply, is refused."""
+    one = jsphere.read_rosbag_poses(write_bag(tmp_path / "one.bag", run, ros1=True, pose_type="TFMessage"), "/tf")
+    bag = write_bag(tmp_path / "two", run, storage="sqlite3", pose_type="TFMessage", wand=True)
+    with pytest.raises(
+        jsphere.InputError,
+        match=r"/tf holds 2 moving child frames: robot \(from world\), wand \(from world\); name the robot's frame "
+        r"with --child-frame NAME\.$",
+    ):
+        jsphere.read_rosbag_poses(bag, "/tf")
+    for name in ("robot", "/robot"):
+        got = jsphere.read_rosbag_poses(bag, "/tf", child_frame=name)
+        np.testing.assert_array_equal(got.t, one.t)
+        np.testing.assert_allclose(got.rb_p, run[2], atol=1e-12)
+        np.testing.assert_allclose(got.rb_q, run[1], atol=1e-12)
+    wand = jsphere.read_rosbag_poses(bag, "/tf", child_frame="wand")
+    np.testing.assert_allclose(wand.rb_p, run[2][::-1], atol=1e-12)
+    with pytest.raises(
+        jsphere.InputError,
+        match=r"no child frame 'base_link' in /tf; its child frames: camera \(from robot\), robot \(from world\), "
+        r"wand \(from world\)\.",
+    ):
+        jsphere.read_rosbag_poses(bag, "/tf", child_frame="base_link")
+    out = tmp_path / "t.csv"
+    args = ["convert", str(bag), "--format", "rosbag", "--pose-topic", "/tf", "--inputs-topic", "/joint_states"]
+    assert main([*args, "--child-frame", "robot", "--out", str(out)]) == 0
+    assert jsphere.read_trial(out).n_frames == N - 1  # (the first pose precedes the first wheel state)
+    assert main([*args, "--out", str(out)]) == 2
+    assert "--child-frame NAME" in capsys.readouterr().err
+    pose_bag = write_bag(tmp_path / "pose", run)
+    args = ["convert", str(pose_bag), "--format", "rosbag", "--pose-topic", "/mocap/robot/pose"]
+    assert main([*args, "--inputs-topic", "/joint_states", "--child-frame", "robot", "--out", str(out)]) == 2
+    assert "holds geometry_msgs/msg/PoseStamped, one pose per message: drop --child-frame" in capsys.readouterr().err
+    take, inputs = csv_files(tmp_path, run)
+    args = ["convert", str(take), "--format", "motive", "--inputs", str(inputs), "--child-frame", "robot"]
+    assert main([*args, "--out", str(out)]) == 2
+    assert "--child-frame picks a frame of a ROS bag's /tf topic; --format motive has none" in capsys.readouterr().err
