@@ -20,7 +20,11 @@ class MarkerData:
       missing; `names`: the K marker names; `source`: the file; `lines`: `(M,)` 1-based line of
       each frame in the file (None for binary files);
     - `rb_q`, `rb_p`: the exporter's own rigid-body pose, if the file has one (`(M, 4)` scalar-
-      first quaternion body -> fixed, `(M, 3)` [m]), else None.
+      first quaternion body -> fixed, `(M, 3)` [m]), else None;
+    - `marker_error`: `(M,)` the exporter's own marker error of each frame [m] (Motive's `Mean
+      Marker Error` / `Error Per Marker`: the mean distance of the rigid body's markers from
+      where its solved pose puts them), NaN where it reports none; None if the file has none.
+      It floors the threshold of `suspect_frames`.
     """
 
     t: np.ndarray
@@ -30,6 +34,7 @@ class MarkerData:
     lines: np.ndarray | None = None
     rb_q: np.ndarray | None = None
     rb_p: np.ndarray | None = None
+    marker_error: np.ndarray | None = None
 
 
 # --------------------------------------------------------------------------- units

@@ -23,19 +23,25 @@ def read_motive_csv(
     up_axis: str = "y",
     allow_truncated: bool = False,
 ) -> MarkerData:
-    """Read an OptiTrack Motive CSV export (Motive 2 and 3, format version 1.2x and later).
+    """Read an OptiTrack Motive CSV export (Motive 2 and 3: CSV format version 1.21 and later).
 
     Layout (https://docs.optitrack.com/motive/data-export/data-export-csv): line 1 `Format
     Version,...,Rotation Type,...,Length Units,Meters|Centimeters|Millimeters,...`; a blank
     line; rows `,Type,...` (`Rigid Body`, `Rigid Body Marker`, `Marker`, `Bone`, `Bone Marker`),
     `,Name,...`, `,ID,...`, in Motive 3 a `,Parent,...` row, a row naming each column's kind
     (`Rotation`, `Position`, `Mean Marker Error`, `Marker Quality`), then `Frame,Time
-    (Seconds),X,Y,Z,...`, the columns in any order. Rigid-body rotations are quaternions in the
-    order **X, Y, Z, W** (`Rotation Type,Quaternion`); Euler rotation types are read only where
-    the rigid body's own pose is not needed (an `InputError` names the setting otherwise).
-    Occluded markers are blank cells (gaps). The markers read are the labelled `Marker` columns
-    (not the solved `Rigid Body Marker` / `Bone Marker` ones, nor `Unlabeled ...` markers); with
-    a rigid body, those named `"<rigid body>:..."` if there are any.
+    (Seconds),X,Y,Z,...`, the columns in any order. Format 1.21 (Motive 1.9-2.0) leaves the
+    first two cells of the type and name rows blank, names the time column `Time` and the rigid
+    body's error `Error Per Marker`. Older layouts (format 1.2 and before, `info,version,...`
+    exports of Motive 1.x) are an `InputError` naming the version. Rigid-body rotations are
+    quaternions in the order **X, Y, Z, W** (`Rotation Type,Quaternion`); Euler rotation types
+    are read only where the rigid body's own pose is not needed (an `InputError` names the
+    setting otherwise). Occluded markers are blank cells (gaps). The markers read are the
+    labelled `Marker` columns (not the solved `Rigid Body Marker` / `Bone Marker` ones, nor
+    `Unlabeled ...` markers); with a rigid body, those named `"<rigid body>:..."` if there are
+    any. A take with neither labelled markers nor a rigid body is an `InputError` saying so.
+    The rigid body's `Mean Marker Error` (`Error Per Marker`) is kept in
+    `MarkerData.marker_error`.
 
     **Arguments:**
     - `rigid_body`: the asset name; selects that rigid body and the markers named `"<name>:..."`.
@@ -60,11 +66,15 @@ def read_motive_csv(
     head = _Header.find(rows, source)
     body = _rigid_body(head, rigid_body, source)
     mnames, cols, colnames = _marker_columns(head, body)
+    _check_has_data(head, body, mnames, source)
     want_rb = use == "rigid_body" or (use == "auto" and len(mnames) < 3)
     if want_rb:
         _check_rotation_type(meta, source)
-        need, rb_cols = _rigid_body_columns(head, body, source)
+        need, rb_cols = _rigid_body_columns(head, body, len(mnames), source)
         cols, colnames = cols + rb_cols, colnames + [f"{body} {k[0]} {k[1]}" for k in need]
+    err_col = _error_column(head, body)
+    if err_col is not None:
+        cols, colnames = cols + [err_col], colnames + [f"{body} {head.cell('kinds', err_col)}"]
     declared = int(meta["Total Exported Frames"]) if meta.get("Total Exported Frames", "").isdigit() else None
     end = _cut_short(
         rows,
@@ -78,7 +88,7 @@ def read_motive_csv(
     )
     data, lines = _numbers(rows[:end], head.row + 1, cols, source, colnames)
     if data.shape[0] == 0:
-        raise InputError(f"{source}: no data rows after the header 'Frame,Time (Seconds),...' (line {head.row + 1}).")
+        raise InputError(f"{source}: no data rows after the header 'Frame,{head.time},...' (line {head.row + 1}).")
     t = data[:, 1]
     _check_times(t, lines, source)
     K = len(mnames)
@@ -89,17 +99,36 @@ def read_motive_csv(
     )
     markers = np.einsum("ij,mkj->mki", C, raw) * scale
     rb_q, rb_p = _rigid_body_pose(data[:, 2 + 3 * K :], C, scale) if want_rb else (None, None)
-    return MarkerData(t, markers, tuple(mnames), source, lines, rb_q, rb_p)
+    error = data[:, -1] * scale if err_col is not None else None
+    return MarkerData(t, markers, tuple(mnames), source, lines, rb_q, rb_p, error)
 
 
 def _line_one(rows: list[list[str]], source: str) -> tuple[dict[str, str], str | None]:
     """The key-value pairs of line 1 (`Format Version,1.23,...`) and the length units it declares."""
+    if rows and rows[0] and rows[0][0].strip().lower() in ("comment", "info"):
+        version = next(
+            (r[2].strip() for r in rows[:20] if len(r) > 2 and [c.strip() for c in r[:2]] == ["info", "version"]), ""
+        )
+        raise InputError(
+            f"{source}: a Motive CSV export of format version {version or '1.1 or older'} (Motive 1.x), an older layout "
+            "that jsphere does not read; export the take again from Motive 2 or later (CSV format 1.21 or later)."
+        )
     if not rows or not rows[0] or rows[0][0].strip() != "Format Version":
         raise ValueError(
             f"{source}, line 1: not a Motive CSV export (expected 'Format Version,...'); export with the header on"
             f"{separator_hint(rows[0][:1]) if rows and rows[0] else ''}."
         )
     meta = {rows[0][i].strip(): rows[0][i + 1].strip() for i in range(0, len(rows[0]) - 1, 2)}
+    version = meta.get("Format Version", "")
+    try:
+        old = float(version) < MIN_FORMAT_VERSION
+    except ValueError:
+        old = False
+    if old:
+        raise InputError(
+            f"{source}, line 1: Motive CSV format version {version}, an older layout that jsphere does not read "
+            f"(it reads {MIN_FORMAT_VERSION:g} and later); export the take again from Motive 2 or later."
+        )
     file_units = _LENGTH_UNITS.get(meta.get("Length Units", ""), None)
     if meta.get("Length Units") and file_units is None:
         raise InputError(
@@ -109,6 +138,8 @@ def _line_one(rows: list[list[str]], source: str) -> tuple[dict[str, str], str |
     return meta, file_units
 
 
+#: the oldest Motive CSV format version read (Motive 1.9 / 2.0); older layouts are refused
+MIN_FORMAT_VERSION = 1.21
 #: Motive's `Length Units` and jsphere's names for them
 _LENGTH_UNITS = {"Meters": "m", "Centimeters": "cm", "Millimeters": "mm"}
 
@@ -127,27 +158,44 @@ def _check_rotation_type(meta: dict[str, str], source: str) -> None:
 @dataclass(frozen=True)
 class _Header:
     """The header rows of a Motive export: per column its `Type`, `Name`, kind (`Rotation`,
-    `Position`, ...) and axis; `row`: the index of the row `Frame,Time (Seconds),...`."""
+    `Position`, ...) and axis; `row`: the index of the row `Frame,Time (Seconds),...`; `time`:
+    the time column's name (`Time (Seconds)`, or `Time` in format 1.21)."""
 
     types: list[str]
     names: list[str]
     kinds: list[str]
     axes: list[str]
     row: int
+    time: str
 
     @classmethod
     def find(cls, rows: list[list[str]], source: str) -> _Header:
-        def find(label: str, col: int = 1) -> int:
-            for i, r in enumerate(rows):
-                if len(r) > col and r[col].strip() == label:
-                    return i
-            raise ValueError(f"{source}: no '{label}' header row; is this a Motive CSV export with the header on?")
+        i_hdr = next((i for i, r in enumerate(rows) if r and r[0].strip() == "Frame"), None)
+        if i_hdr is None:
+            raise InputError(
+                f"{source}: no 'Frame,Time (Seconds),...' header row; export the take from Motive as CSV with the "
+                "header on."
+            )
+        time = rows[i_hdr][1].strip() if len(rows[i_hdr]) > 1 else ""
+        if time not in ("Time (Seconds)", "Time"):
+            raise InputError(
+                f"{source}, line {i_hdr + 1}: expected 'Frame,Time (Seconds),...'; got {rows[i_hdr][:2]}; export the "
+                "take from Motive as CSV with the header on."
+            )
 
-        i_type, i_name = find("Type"), find("Name")
-        i_hdr = find("Frame", 0)
-        if rows[i_hdr][1].strip() != "Time (Seconds)":
-            raise ValueError(f"{source}, line {i_hdr + 1}: expected 'Frame,Time (Seconds),...'; got {rows[i_hdr][:2]}.")
-        return cls(rows[i_type], rows[i_name], rows[i_hdr - 1], rows[i_hdr], i_hdr)
+        def labelled(label: str) -> int | None:
+            return next((i for i, r in enumerate(rows[:i_hdr]) if len(r) > 1 and r[1].strip() == label), None)
+
+        i_type, i_name = labelled("Type"), labelled("Name")
+        if i_type is None:  # format 1.21: the rows after line 1's blank line, their first two cells blank
+            head = [i for i in range(1, i_hdr) if any(c.strip() for c in rows[i])]
+            if len(head) < 4:
+                raise InputError(
+                    f"{source}: {len(head)} header row(s) between line 1 and the 'Frame' row (line {i_hdr + 1}); a "
+                    "Motive export has its type, name, ID and kind rows there: export the take again with the header on."
+                )
+            i_type, i_name = head[0], head[1]
+        return cls(rows[i_type], rows[i_name] if i_name is not None else [], rows[i_hdr - 1], rows[i_hdr], i_hdr, time)
 
     @property
     def ncol(self) -> int:
@@ -162,9 +210,12 @@ def _rigid_body(head: _Header, rigid_body: str | None, source: str) -> str | Non
     """The rigid body to read: `rigid_body`, or the file's only one (None where it has none)."""
     bodies = sorted({head.cell("names", j) for j in range(2, head.ncol) if head.cell("types", j) == "Rigid Body"})
     if rigid_body is not None and bodies and rigid_body not in bodies:
-        raise ValueError(f"{source}: no rigid body named {rigid_body!r}; the file has {bodies}.")
+        raise InputError(f"{source}: no rigid body named {rigid_body!r}; the file has {bodies}.")
     if rigid_body is None and len(bodies) > 1:
-        raise ValueError(f"{source}: the file has several rigid bodies {bodies}; pass rigid_body=<name>.")
+        raise InputError(
+            f"{source}: the file has several rigid bodies {bodies}; choose one with --rigid-body NAME "
+            "(rigid_body=NAME)."
+        )
     return rigid_body if rigid_body is not None else (bodies[0] if bodies else None)
 
 
@@ -185,11 +236,26 @@ def _marker_columns(head: _Header, body: str | None) -> tuple[list[str], list[in
         mk = {n: c for n, c in mk.items() if n.startswith(f"{body}:")}
     mnames = list(mk)
     cols = [0, 1] + [mk[n][a] for n in mnames for a in "XYZ"]
-    colnames = ["Frame", "Time (Seconds)"] + [f"{n} {a}" for n in mnames for a in "XYZ"]
+    colnames = ["Frame", head.time] + [f"{n} {a}" for n in mnames for a in "XYZ"]
     return mnames, cols, colnames
 
 
-def _rigid_body_columns(head: _Header, body: str | None, source: str) -> tuple[list[tuple[str, str]], list[int]]:
+def _check_has_data(head: _Header, body: str | None, mnames: list[str], source: str) -> None:
+    """`InputError` for a take with neither labelled markers nor a rigid body (only `Unlabeled`
+    markers, or no columns at all): nothing in it follows the robot."""
+    if mnames or body is not None:
+        return
+    unlabelled = {head.cell("names", j) for j in range(2, head.ncol) if head.cell("names", j).startswith("Unlabeled")}
+    what = f"only {len(unlabelled)} unlabelled marker(s)" if unlabelled else "no marker or rigid-body columns"
+    raise InputError(
+        f"{source}: the take holds no labelled markers or rigid body ({what}); in Motive, define a rigid body on "
+        "the robot's markers (or label them), then export the take again with its markers or rigid body."
+    )
+
+
+def _rigid_body_columns(
+    head: _Header, body: str | None, n_markers: int, source: str
+) -> tuple[list[tuple[str, str]], list[int]]:
     """The columns of the rigid body's Rotation X, Y, Z, W and Position X, Y, Z."""
     rb_cols = {}
     if body is not None:
@@ -198,11 +264,28 @@ def _rigid_body_columns(head: _Header, body: str | None, source: str) -> tuple[l
                 rb_cols[(head.cell("kinds", j), head.cell("axes", j))] = j
     need = [("Rotation", a) for a in "XYZW"] + [("Position", a) for a in "XYZ"]
     if not all(k in rb_cols for k in need):
-        raise ValueError(
-            f"{source}: no complete rigid-body columns (Rotation X,Y,Z,W and Position X,Y,Z) and fewer than 3 "
-            "marker columns; export the rigid body or its markers."
+        where = f"rigid body {body!r} lacks its Rotation or Position columns" if body else "the take has no rigid body"
+        raise InputError(
+            f"{source}: no complete rigid-body columns ({where}) and fewer than 3 marker columns ({n_markers} labelled "
+            "marker(s) of the body); a pose needs the rigid body's Rotation X, Y, Z, W and Position X, Y, Z, or 3 "
+            "labelled markers: export them from Motive."
         )
     return need, [rb_cols[k] for k in need]
+
+
+def _error_column(head: _Header, body: str | None) -> int | None:
+    """The column of the rigid body's own marker error (`Mean Marker Error`, or `Error Per
+    Marker` in format 1.21), if the export has one."""
+    if body is None:
+        return None
+    for j in range(2, head.ncol):
+        if (
+            head.cell("types", j) == "Rigid Body"
+            and head.cell("names", j) == body
+            and head.cell("kinds", j) in ("Mean Marker Error", "Error Per Marker")
+        ):
+            return j
+    return None
 
 
 def _rigid_body_pose(rb: np.ndarray, C: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:

@@ -116,19 +116,24 @@ def markers_to_trial(
     - `data`: from `read_motive_csv`, `read_vicon_csv` or `read_c3d`.
     - `inputs`: the path of an inputs table (`read_inputs_csv`) or a tuple `(t, values, kind)`.
       The inputs are interpolated linearly to the capture times; capture frames outside the
-      table's time range are dropped (the two must share a clock: `t_trial = t_capture +
-      time_offset`).
+      table's time range are dropped, with a `CaptureWarning` saying how many (the two must
+      share a clock: `t_trial = t_capture + time_offset`).
     - `body_markers`, `alignment`, `body_offset`: see the module docstring. `body_markers` may
       be a `(K, 3)` array in the order of `data.names`, or a dict `{name: (x, y, z)}` (e.g. from
       `read_body_markers`), matched by full name or by the part after `Subject:`; markers of
       the export not in the dict are ignored. If the data carry
       the exporter's rigid-body pose (`rb_q`), it is used instead of the markers, as the body
       frame.
-    - `max_rms`: frames whose marker fit has an RMS residual above this [m] are gaps.
+    - `max_rms`: frames whose marker fit has an RMS residual above this [m] are gaps, with a
+      `CaptureWarning` saying how many.
     - `allow_truncated`: passed to `read_inputs_csv`.
-    - `keep_suspect`: keep the frames whose marker fit residual is more than `SUSPECT` times the
-      take's median (and above `SUSPECT_FLOOR`): a swapped or ghost marker, which would otherwise
-      spoil the pose. By default they are gaps, with a `CaptureWarning` saying how many.
+    - `keep_suspect`: keep the frames whose marker fit residual stands out of the take's own
+      noise (`suspect_frames`): a swapped or ghost marker, which would otherwise spoil the pose.
+      By default they are gaps, with a `CaptureWarning` saying how many and the threshold.
+
+    Where more than half of the frames with a marker fit would be left out (residual above
+    `max_rms`, or suspect), the markers do not move as one rigid body (a subject that is a
+    person, markers of several bodies): an `InputError` saying so.
 
     Given body markers whose distances from each other disagree with the export's (by more than
     10%: markers in millimetres, or of another robot) are an `InputError`. The trial is checked
@@ -159,6 +164,7 @@ def markers_to_trial(
     q, centre = _platform_pose(q_body, p_body, A, off.reshape(3))
     t = data.t + time_offset
     keep = _overlap(t, t_in, source)
+    _warn_outside(t, keep, t_in, source)
     u = interpolate_inputs(t_in, u_in, t[keep])
     lines = None if data.lines is None else data.lines[keep]
     tt, x, y, qq, uu, z = _checked(
@@ -207,39 +213,107 @@ def _body_pose(
         )
     known = np.all(np.isfinite(body_markers), axis=1)  # markers left out of a body_markers dict
     _check_body_scale(data.markers[:, known], body_markers[known], source)
-    q_body, p_body, rms = rigid_body_pose(data.markers[:, known], body_markers[known], max_rms=max_rms)
-    suspect = suspect_frames(rms)
-    if suspect.any() and not keep_suspect:
+    q_body, p_body, rms = rigid_body_pose(data.markers[:, known], body_markers[known])
+    fitted = np.isfinite(rms)
+    over = fitted & (np.where(fitted, rms, 0.0) > max_rms)
+    rms_in = np.where(over, np.nan, rms)
+    error = data.marker_error
+    suspect = suspect_frames(rms_in, error)
+    out = over | (suspect & (not keep_suspect))
+    n_fit = int(fitted.sum())
+    if n_fit and out.sum() > 0.5 * n_fit:
+        raise InputError(
+            f"{source}: the markers do not move as one rigid body: {int(out.sum())} of the {n_fit} frames with a "
+            f"marker fit would be left out ({int(over.sum())} with a residual above {max_rms * 1e3:g} mm, "
+            f"{int((suspect & ~over).sum()) if not keep_suspect else 0} far above the take's noise; median residual "
+            f"{np.nanmedian(rms) * 1e3:.3g} mm): the markers belong to a person or to several bodies, not one robot; "
+            "give --body-markers FILE listing only the robot's markers (the others are then left out of the fit)."
+        )
+    if out.any():
         q_body, p_body = q_body.copy(), p_body.copy()
-        q_body[suspect], p_body[suspect] = np.nan, np.nan
+        q_body[out], p_body[out] = np.nan, np.nan
+    if over.any():
         warnings.warn(
-            f"{source}: {int(suspect.sum())} frame(s) whose marker fit residual is more than {SUSPECT:g}x the take's "
-            f"median ({np.nanmedian(rms) * 1e3:.3g} mm) are left out as missing (a swapped or ghost marker); "
-            "--keep-suspect (keep_suspect=True) keeps them.",
+            f"{source}: {int(over.sum())} of {len(rms)} frame(s) are left out as missing: their marker fit residual is "
+            f"above {max_rms * 1e3:g} mm (up to {np.nanmax(rms[over]) * 1e3:.3g} mm; the take's median is "
+            f"{np.nanmedian(rms) * 1e3:.3g} mm): a marker far from where the others put it (a swapped, merged or ghost "
+            f"marker), first at t = {data.t[np.flatnonzero(over)[0]]:.6g} s.",
+            CaptureWarning,
+            stacklevel=3,
+        )
+    if suspect.any():
+        limit = suspect_limit(rms_in)
+        first = float(data.t[np.flatnonzero(suspect)[0]])
+        what = "kept, as --keep-suspect asks" if keep_suspect else "left out as missing (--keep-suspect keeps them)"
+        warnings.warn(
+            f"{source}: {int(suspect.sum())} of {len(rms)} frame(s) whose marker fit residual stands out of the take's "
+            f"noise (above {limit * 1e3:.3g} mm: {limit / np.nanmedian(rms_in):.3g}x the median "
+            f"{np.nanmedian(rms_in) * 1e3:.3g} mm, from the residuals' spread, at least {SUSPECT:g}x"
+            + (f", and above {SUSPECT_ERROR:g}x the export's own marker error" if error is not None else "")
+            + f"; up to {np.nanmax(rms_in[suspect]) * 1e3:.3g} mm, first at t = {first:.6g} s) are {what}: a swapped or "
+            "ghost marker.",
             CaptureWarning,
             stacklevel=3,
         )
     return q_body, p_body
 
 
-#: a frame whose marker fit residual is more than this many times the take's median is suspect
+#: a frame is suspect where the logarithm of its marker fit residual is above the take's median
+#: by more than this many robust standard deviations (1.4826 x the median absolute deviation of
+#: the logarithms: a residual's spread grows with its size) ...
+SUSPECT_SPREAD = 3.0
+#: ... and more than this many times the take's median ...
 SUSPECT = 5.0
 #: ... and above this [m]: a capture resolves about 0.1 mm, so a take of residuals near 0 does
-#: not make every frame suspect
+#: not make every frame suspect ...
 SUSPECT_FLOOR = 2e-4
+#: ... and, where the export reports its own marker error for the frame (Motive's `Mean Marker
+#: Error`, a mean distance over the markers), more than this many times it
+SUSPECT_ERROR = 2.0
 
 
-def suspect_frames(rms: np.ndarray) -> np.ndarray:
-    """Frames whose RMS marker fit residual `rms (M,)` [m] (NaN at gaps) is more than `SUSPECT`
-    times the take's median and above `SUSPECT_FLOOR`: a marker swapped with another or a
-    ghost marker taken for one. White marker noise gives squared residuals of chi^2 with
+def suspect_limit(rms: np.ndarray) -> float:
+    """The take's threshold of `suspect_frames` [m] (before the per-frame floor of the export's
+    marker error): `max(median * exp(SUSPECT_SPREAD * s), SUSPECT * median, SUSPECT_FLOOR)`
+    over the finite positive residuals `rms`, with `s` = 1.4826 x the median absolute deviation
+    of their logarithms; inf where there are none."""
+    r = np.asarray(rms, float)
+    r = r[np.isfinite(r) & (r > 0)]
+    if r.size == 0:
+        return math.inf
+    log = np.log(r)
+    centre = float(np.median(log))
+    s = 1.4826 * float(np.median(np.abs(log - centre)))
+    return max(math.exp(centre + SUSPECT_SPREAD * s), SUSPECT * math.exp(centre), SUSPECT_FLOOR)
+
+
+def suspect_frames(rms: np.ndarray, marker_error: np.ndarray | None = None) -> np.ndarray:
+    """Frames whose RMS marker fit residual `rms (M,)` [m] (NaN at gaps) stands out of the take's
+    own noise (`suspect_limit`): a marker swapped with another or a ghost marker taken for one.
+
+    The threshold comes from the take: its median residual times `exp(SUSPECT_SPREAD * s)`, `s`
+    the robust standard deviation of the residuals' logarithms (1.4826 x their median absolute
+    deviation, which the suspect frames themselves hardly move), and at least `SUSPECT` times
+    the median and `SUSPECT_FLOOR`. White marker noise gives squared residuals of chi^2 with
     `3 K - 6` degrees of freedom (`K` markers): their 99.99 % point is 2.3x the median residual
-    for 4 markers, 3x for 3, so a take of clean frames has none."""
-    ok = np.isfinite(rms)
+    for 4 markers, 3x for 3, so a clean take has none, and its threshold is `SUSPECT` times the
+    median. A real take's noise varies from frame to frame (markers near the edge of the volume,
+    seen by fewer cameras): residuals spread log-normally by `s` = 1 keep 0.3 % of the frames
+    above the threshold (19x the median), by `s` = 1.5 0.2 % (90x); such a take cannot tell a
+    ghost marker from its own noise unless the ghost stands that far out. Where the export reports its
+    own marker error per frame (`marker_error (M,)` [m], NaN where not reported), a frame whose
+    residual is within `SUSPECT_ERROR` times it is not suspect: the exporter saw the markers as
+    far apart on that frame, so they are noisy, not swapped (an RMS over `K` markers is at most
+    `sqrt(K)` times their mean distance, twice for 4)."""
+    r = np.asarray(rms, float)
+    ok = np.isfinite(r)
     if not ok.any():
-        return np.zeros(rms.shape, bool)
-    limit = max(SUSPECT * float(np.median(rms[ok])), SUSPECT_FLOOR)
-    return ok & (np.where(ok, rms, 0.0) > limit)
+        return np.zeros(r.shape, bool)
+    out = ok & (np.where(ok, r, 0.0) > suspect_limit(r))
+    if marker_error is not None:
+        e = np.asarray(marker_error, float)
+        out &= ~(np.isfinite(e) & (np.where(ok, r, 0.0) <= SUSPECT_ERROR * np.where(np.isfinite(e), e, 0.0)))
+    return out
 
 
 def _platform_pose(
@@ -274,6 +348,21 @@ def _overlap(t: np.ndarray, t_in: np.ndarray, source: str) -> np.ndarray:
             stacklevel=3,
         )
     return keep
+
+
+def _warn_outside(t: np.ndarray, keep: np.ndarray, t_in: np.ndarray, source: str) -> None:
+    """A `CaptureWarning` counting the capture frames left out because they lie outside the
+    inputs table's time range, before its start and after its end."""
+    before, after = int(np.sum(~keep & (t < t_in[0]))), int(np.sum(~keep & (t > t_in[-1])))
+    if before or after:
+        parts = [f"{n} before its start" for n in (before,) if n] + [f"{n} after its end" for n in (after,) if n]
+        warnings.warn(
+            f"{source}: {before + after} of {t.size} capture frame(s) are left out: they lie outside the inputs "
+            f"table's time range [{t_in[0]:.6g}, {t_in[-1]:.6g}] s ({' and '.join(parts)}; the capture runs "
+            f"[{t[0]:.6g}, {t[-1]:.6g}] s after the time offset).",
+            CaptureWarning,
+            stacklevel=3,
+        )
 
 
 def _check_body_scale(markers: np.ndarray, body: np.ndarray, source: str) -> None:
