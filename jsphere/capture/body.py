@@ -36,7 +36,9 @@ def read_body_markers(path, *, units: str = "auto") -> dict[str, np.ndarray]:
                 if file_units not in ("m", "mm"):
                     raise InputError(f"{source}: the '# units:' line says {file_units!r}; it must be 'm' or 'mm'.")
     if file_units is not None and units != "auto" and units != file_units:
-        raise InputError(f"{source}: units={units!r} was declared but the file's '# units:' line says {file_units!r}.")
+        raise InputError(
+            f"{source}: the units {units!r} were declared but the file's '# units:' line says {file_units!r}."
+        )
     rows = [
         (i + 1, r) for i, r in enumerate(rows) if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")
     ]
@@ -99,7 +101,7 @@ def _match_body_markers(body: dict, names: tuple[str, ...], source: str) -> np.n
                 break
     if np.sum(np.all(np.isfinite(out), axis=1)) < 3:
         raise ValueError(
-            f"{source}: fewer than 3 of the export's markers {list(names)} are in body_markers {sorted(body)}; "
+            f"{source}: fewer than 3 of the export's markers {list(names)} are among the body markers {sorted(body)}; "
             "name them as in the export (with or without the 'Subject:' prefix)."
         )
     return out
@@ -112,7 +114,7 @@ def estimate_body_markers(markers: np.ndarray, source: str = "markers") -> tuple
     if full.size == 0:
         raise ValueError(
             f"{source}: no frame shows all {markers.shape[1]} markers, so the body cannot be estimated; "
-            "pass body_markers (their coordinates in the platform frame) or drop a marker that is never seen."
+            "give --body-markers FILE (their coordinates in the platform frame) or drop a marker that is never seen."
         )
     k = int(full[0])
     return markers[k] - markers[k].mean(0), k

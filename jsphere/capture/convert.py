@@ -78,6 +78,11 @@ def convert_raw(
         raise ValueError(f"convert_raw: format must be one of {RAW_FORMATS}; got {format!r}.")
     _check_bag_options(format, inputs, units, up_axis, pose_topic, inputs_topic, joints)
     _check_body_options(format, rigid_body, subject)
+    if format == "rosbag" and body_markers is not None:
+        raise InputError(
+            "--body-markers gives the markers of a marker export; a ROS bag's poses are those of the pose topic's "
+            "frame: drop --body-markers (--body-offset X Y Z puts the shell centre in that frame)."
+        )
     if child_frame is not None and format != "rosbag":
         raise InputError(f"--child-frame picks a frame of a ROS bag's /tf topic; --format {format} has none: drop it.")
     kw = {"units": units, "allow_truncated": allow_truncated}
@@ -132,7 +137,7 @@ def _centre_fix(format: str, exporter_pose: bool, body_given: bool, body_offset)
     `--body-offset`), the `--body-offset` that raises the centre by `dz` where the body frame is
     upright (markers: estimated at the first full frame, or given in the platform frame), and
     where height 0 is."""
-    offset = "--body-offset X Y Z (body_offset=)"
+    offset = "--body-offset X Y Z"
     if format == "rosbag":
         fix = (
             "the pose topic's frame is not at the shell centre: publish the shell centre's pose (a motion-capture "
@@ -177,12 +182,12 @@ def _check_body_options(format, rigid_body, subject) -> None:
     a ROS bag a pose topic)."""
     if rigid_body is not None and format not in RIGID_BODY_FORMATS:
         raise InputError(
-            f"--rigid-body (rigid_body=) selects a body of a Motive, Qualisys or Vicon export; --format {format} has "
+            f"--rigid-body selects a body of a Motive, Qualisys or Vicon export; --format {format} has "
             "none: drop it (C3D: the markers are the points; ROS bag: --pose-topic)."
         )
     if subject is not None and format not in SUBJECT_FORMATS:
         raise InputError(
-            f"--subject (subject=) selects a Vicon Nexus subject; --format {format} has none: drop it"
+            f"--subject selects a Vicon Nexus subject; --format {format} has none: drop it"
             + (" (use --rigid-body)." if format in RIGID_BODY_FORMATS else ".")
         )
 
@@ -192,7 +197,7 @@ def _check_bag_options(format, inputs, units, up_axis, pose_topic, inputs_topic,
     without a bag, lengths or axes declared for a bag (REP 103: metres, Z up)."""
     if format == "rosbag":
         if pose_topic is None:
-            raise InputError("--format rosbag needs --pose-topic TOPIC (pose_topic=): the topic of the poses.")
+            raise InputError("--format rosbag needs --pose-topic TOPIC: the topic of the poses.")
         if units not in ("auto", "m") or up_axis not in (None, "z"):
             raise InputError("a ROS bag's poses are in metres with Z up (REP 103); drop --units and --up-axis.")
         if inputs is None and inputs_topic is None:
@@ -208,6 +213,4 @@ def _check_bag_options(format, inputs, units, up_axis, pose_topic, inputs_topic,
     if inputs is not None and inputs_topic is None and not isinstance(inputs, tuple):
         where = Path(inputs)
         if where.suffix in (".bag", ".db3", ".mcap") or (where / "metadata.yaml").exists():
-            raise InputError(
-                f"{where}: a ROS bag; name its JointState topic with --inputs-topic TOPIC (inputs_topic=)."
-            )
+            raise InputError(f"{where}: a ROS bag; name its JointState topic with --inputs-topic TOPIC.")

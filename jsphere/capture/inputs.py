@@ -90,7 +90,7 @@ def _one_family(header: list[str], want: str | None, where: str) -> list[str]:
         if len(families) == 2:
             raise ValueError(
                 f"{where}: both chi_dot_* and K_* columns are present (a plan's CSV holds both); choose one family with "
-                "kind='chi_dot' or kind='K' (jsphere convert --input-kind chi_dot|K)."
+                "jsphere convert --input-kind chi_dot or --input-kind K."
             )
         return header
     if want not in families:

@@ -66,11 +66,11 @@ def _scale(declared: str, file_units: str | None, detected: str | None, source: 
     that contradicts the units, is an error. Centimetres come from the file or the declaration
     only: the spread of a marker set in centimetres (0.5-100) looks like metres or millimetres."""
     if declared not in ("auto", *UNIT_SCALE):
-        raise ValueError(f"{source}: units must be 'auto', 'm', 'cm' or 'mm'; got {declared!r}.")
+        raise ValueError(f"{source}: the units (--units) must be auto, m, cm or mm; got {declared!r}.")
     if file_units is not None and declared != "auto" and declared != file_units:
         raise ValueError(
-            f"{source}: units={declared!r} was declared but the file says its lengths are in {file_units!r}; "
-            "drop the argument (the file's units are used) or re-export the file."
+            f"{source}: --units {declared} was given but the file says its lengths are in {file_units}; "
+            "drop --units (the file's units are used) or re-export the file."
         )
     units = file_units if file_units is not None else declared
     if units == "cm":
@@ -78,17 +78,17 @@ def _scale(declared: str, file_units: str | None, detected: str | None, source: 
     if detected is not None and units != "auto" and detected != units:
         raise ValueError(
             f"{source}: the lengths are declared in {units!r} but the marker spread looks like "
-            f"{_UNIT_WORDS[detected]}; pass units={detected!r} if the file is wrong, "
+            f"{_UNIT_WORDS[detected]}; pass --units {detected} if the file is wrong, "
             "or check the export scale."
         )
     if units == "auto":
         if detected is None:
-            raise ValueError(f"{source}: cannot tell whether lengths are in m or mm; pass units='m' or units='mm'.")
+            raise ValueError(f"{source}: cannot tell whether lengths are in m or mm; pass --units m or --units mm.")
         units = detected
     return UNIT_SCALE[units]
 
 
 def _scale_rb(units: str, file_units: str | None, source: str) -> float:
     if units == "auto" and file_units is None:
-        raise ValueError(f"{source}: cannot tell whether lengths are in m or mm; pass units='m' or units='mm'.")
+        raise ValueError(f"{source}: cannot tell whether lengths are in m or mm; pass --units m or --units mm.")
     return _scale(units, file_units, None, source)

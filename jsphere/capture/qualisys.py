@@ -20,6 +20,8 @@ from .validation import sign_continuous
 _KEY = re.compile(r"^[A-Z][A-Z0-9_]*$")
 #: the fields of a 6DOF body's columns (`Rot[0]`..`Rot[8]`: its rotation matrix column by column)
 _FIELDS_6D = ("X", "Y", "Z", "Roll", "Pitch", "Yaw", "Residual", *(f"Rot[{i}]" for i in range(9)))
+#: the axis of each angle of a 6DOF body (QTM manual, "Rotation angles in QTM")
+_AXIS = {"Roll": "X", "Pitch": "Y", "Yaw": "Z"}
 
 
 def read_qualisys_tsv(
@@ -66,7 +68,7 @@ def read_qualisys_tsv(
     text = read_text(path)
     source = str(path)
     if up_axis not in UP_TO_Z:
-        raise ValueError(f"{source}: up_axis must be 'y' or 'z'; got {up_axis!r}.")
+        raise ValueError(f"{source}: the up axis (--up-axis) must be y or z; got {up_axis!r}.")
     rows = list(csv.reader(io.StringIO(text, newline=""), delimiter="\t"))
     meta, k = _header(rows, source)
     kind = meta.get("DATA_INCLUDED", ["3D"])[0].strip().upper()
@@ -79,13 +81,14 @@ def read_qualisys_tsv(
     except (KeyError, IndexError, ValueError):
         rate = float("nan")
     columns = None
-    if k < len(rows) and rows[k] and rows[k][0].strip() == "Frame":
-        columns = [c.strip() for c in rows[k]]
+    if k < len(rows) and _is_column_row(rows[k]):
+        columns = [c.strip() for c in rows[k]]  # QTM 2.x starts its 6DOF column names with a space
         while columns and not columns[-1]:  # QTM ends the column row with a tab
             columns.pop()
         k += 1
     declared = meta.get("NO_OF_FRAMES", [""])[0].strip()
-    ncol = len(columns) if columns is not None else len(rows[k]) if k < len(rows) else 0
+    first = _width(rows[k]) if k < len(rows) else 0
+    ncol = first if columns is None else max(len(columns), first if kind == "6D" else 0)
     end = _cut_short(
         rows,
         k,
@@ -101,18 +104,49 @@ def read_qualisys_tsv(
     if kind == "3D":
         names = [n.strip() for n in meta.get("MARKER_NAMES", []) if n.strip()]
         if not names:
-            raise InputError(f"{source}: no MARKER_NAMES line in the header; export with the TSV header included.")
+            count = meta.get("NO_OF_MARKERS", [""])[0].strip()
+            raise InputError(
+                f"{source}: the take holds no labelled markers (NO_OF_MARKERS {count}, no names in MARKER_NAMES): "
+                "label the robot's trajectories in QTM, or define its 6DOF body, and export again."
+                if "MARKER_NAMES" in meta or count == "0"
+                else f"{source}: no MARKER_NAMES line in the header; export with the TSV header included."
+            )
         return _read_3d(rows[:end], k, columns, names, rate, units, up_axis, source)
     bodies = [n.strip() for n in meta.get("BODY_NAMES", []) if n.strip()]
+    if not bodies and ("BODY_NAMES" in meta or meta.get("NO_OF_BODIES", [""])[0].strip() == "0"):
+        raise InputError(
+            f"{source}: the 6DOF export holds no rigid body (no names in BODY_NAMES): define the robot's 6DOF body in "
+            "QTM and export again, or export its labelled markers as 3D data."
+        )
     return _read_6d(rows[:end], k, columns, bodies, rigid_body, rate, units, up_axis, source)
+
+
+def _is_column_row(row: list[str]) -> bool:
+    """Whether `row` names the columns (`Frame`, `Time`, `<marker> X`, ...; QTM 2.x's 6DOF
+    export: ` X`, ` Y`, ...) rather than holding a frame's numbers."""
+    for cell in row:
+        if cell.strip():
+            try:
+                float(cell)
+            except ValueError:
+                return True
+    return False
+
+
+def _width(row: list[str]) -> int:
+    """The number of cells of `row` without the empty ones at its end."""
+    n = len(row)
+    while n and not row[n - 1].strip():
+        n -= 1
+    return n
 
 
 def _header(rows: list[list[str]], source: str) -> tuple[dict[str, list[str]], int]:
     """The header variables `{NAME: values}` and the index of the first row after them."""
     meta: dict[str, list[str]] = {}
     k = 0
-    while k < len(rows) and rows[k] and _KEY.match(rows[k][0].strip()):
-        meta.setdefault(rows[k][0].strip(), rows[k][1:])
+    while k < len(rows) and rows[k] and _KEY.match(rows[k][0].rstrip()):  # QTM 2.x's 6DOF columns: ' X', ...
+        meta.setdefault(rows[k][0].rstrip(), rows[k][1:])
         k += 1
     if not meta:
         raise InputError(
@@ -188,6 +222,8 @@ def _read_6d(rows, k, columns, bodies, rigid_body, rate, units, up_axis, source)
             raise InputError(f"{source}: 6DOF data without a column row; export again with Include TSV header checked.")
         columns = ["Frame", "Time", *_FIELDS_6D]
     groups = _body_columns(columns, bodies or ["body"], source, k)
+    if columns is not None and len(groups) < len(bodies) and not any(" " in c for c in columns):
+        groups = _repeated_groups(groups, bodies, rows[k])
     names = sorted(groups)
     if rigid_body is None and len(names) > 1:
         raise InputError(f"{source}: the file holds several 6DOF bodies {names}; choose one with --rigid-body NAME.")
@@ -201,14 +237,17 @@ def _read_6d(rows, k, columns, bodies, rigid_body, rate, units, up_axis, source)
         raise InputError(
             f"{source}, line {k}: the columns of body {body!r} lack X, Y, Z and Rot[0..8] or Roll, Pitch, Yaw."
         )
-    fields = ["X", "Y", "Z", *(rot if all(f in g for f in rot) else euler)]
+    angles = sorted(euler, key=g.get) if all(f in g for f in euler) else []  # in the file's order
+    fields = ["X", "Y", "Z", *(rot if all(f in g for f in rot) else angles), *(["Residual"] if "Residual" in g else [])]
     lead = [c for c in ("Frame", "Time") if c in columns]
     data, lines = _numbers(rows, k, [columns.index(c) for c in lead] + [g[f] for f in fields], source, lead + fields)
     t = _times(data, lead, rate, lines, source)
     val = {f: data[:, len(lead) + i] for i, f in enumerate(fields)}
     p = np.stack([val[a] for a in "XYZ"], axis=1)
-    R = _rotations(val, rot, euler)
+    R = _rotations(val, rot, angles)
     gap = ~np.all(np.isfinite(p), axis=1) | ~np.all(np.isfinite(R), axis=(1, 2)) | np.all(R == 0.0, axis=(1, 2))
+    if "Residual" in val:  # QTM writes a body it does not see as zeros with residual -1
+        gap |= val["Residual"] < 0
     R[gap] = np.eye(3)
     scale = _scale(units, None, None if units != "auto" else "mm", source)
     C = UP_TO_Z[up_axis]
@@ -220,15 +259,34 @@ def _read_6d(rows, k, columns, bodies, rigid_body, rate, units, up_axis, source)
     return MarkerData(t, empty, (), source, lines, sign_continuous(q), pp)
 
 
-def _rotations(val: dict[str, np.ndarray], rot: list[str], euler: tuple[str, ...]) -> np.ndarray:
+def _rotations(val: dict[str, np.ndarray], rot: list[str], angles: list[str]) -> np.ndarray:
     """The `(M, 3, 3)` body -> global rotations of a 6DOF body from its `Rot[0..8]` (column by
-    column), else from its angles in QTM's standard definition."""
+    column), else from its angles `angles` (`Roll`, `Pitch`, `Yaw` in the file's column order),
+    applied in that order about the rotated axes: `R_x(roll) R_y(pitch) R_z(yaw)` in QTM's
+    standard order, `R_z(yaw) R_y(pitch) R_x(roll)` in QTM 2.x's Yaw, Pitch, Roll columns."""
     if all(f in val for f in rot):
         flat = np.stack([val[f] for f in rot], axis=1)
         return np.swapaxes(flat.reshape(-1, 3, 3), 1, 2)  # Rot[0..2] is the first column
-    ang = np.stack([val[f] for f in euler], axis=1)
+    ang = np.stack([val[f] for f in angles], axis=1)
     ok = np.all(np.isfinite(ang), axis=1)
     R = np.full((ang.shape[0], 3, 3), np.nan)
     if np.any(ok):
-        R[ok] = Rotation.from_euler("XYZ", ang[ok], degrees=True).as_matrix()  # intrinsic: R_x R_y R_z
+        seq = "".join(_AXIS[f] for f in angles)  # upper case: intrinsic, about the rotated axes
+        R[ok] = Rotation.from_euler(seq, ang[ok], degrees=True).as_matrix()
     return R
+
+
+def _repeated_groups(
+    groups: dict[str, dict[str, int]], bodies: list[str], first_row: list[str]
+) -> dict[str, dict[str, int]]:
+    """QTM 2.x's 6DOF export names the fields of one body (` X`, ` Y`, ..., ` Rot[8]`, no body
+    name); each body of `BODY_NAMES` has those fields in turn, followed by one blank cell. The
+    columns of every body, where the first data row `first_row` is wide enough for them."""
+    if len(groups) != 1:
+        return groups
+    (g,) = groups.values()
+    lo, span = min(g.values()), max(g.values()) - min(g.values()) + 1
+    stride = span + 1 if lo + span < len(first_row) and not first_row[lo + span].strip() else span
+    if _width(first_row) < lo + stride * (len(bodies) - 1) + span:
+        return groups
+    return {b: {f: j + i * stride for f, j in g.items()} for i, b in enumerate(bodies)}

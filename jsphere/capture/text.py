@@ -45,7 +45,7 @@ def read_text(path) -> str:
         raise InputError(
             f"{path}, line {line}: a binary file, not CSV text (it holds a NUL byte)"
             + (
-                "; it looks like a C3D file: read it with jsphere convert --format c3d (read_c3d)."
+                "; it looks like a C3D file: read it with jsphere convert --format c3d."
                 if c3d
                 else "; give the CSV export of the data."
             )
@@ -176,7 +176,7 @@ def _cut_short(
     if not allow:
         raise InputError(
             f"{source}: the file is cut short: {what} (the copy or the export broke off). Export or copy it again, or "
-            f"pass --allow-truncated (allow_truncated=True) to use the {n} complete {noun}."
+            f"pass --allow-truncated to use the {n} complete {noun}."
         )
     warnings.warn(
         f"{source}: the file is cut short: {what}; using the {n} complete {noun}.", CaptureWarning, stacklevel=3

@@ -163,8 +163,9 @@ def _checked(
         frac = 1.0 - n_valid / M
         if frac > max_gap_fraction:
             raise ValueError(
-                f"{source}: too many gaps: {frac:.0%} of the {M} frames have no pose (limit {max_gap_fraction:.0%}); "
-                "check the marker set / rigid-body definition, or raise max_gap_fraction."
+                f"{source}: too many gaps: {frac:.0%} of the {M} frames have no pose (limit {max_gap_fraction:.0%}): "
+                "the rigid body is lost in most frames, or the markers do not move as one rigid body; "
+                "check the robot's marker set and its rigid-body definition in the capture software."
             )
     return t, x, y, q, inputs, z
 
@@ -303,11 +304,15 @@ def _height(zv, xv, yv) -> list[tuple[str, str]]:
             return [
                 (
                     "height",
-                    f"the shell centre's height z varies by {100 * dz:.3g} cm while it moves "
-                    f"{100 * dh:.3g} cm horizontally",
+                    f"the shell centre's height z varies by {_length(dz)} while it moves {_length(dh)} horizontally",
                 )
             ]
     return []
+
+
+def _length(v: float) -> str:
+    """A length [m] for a message: centimetres below a metre, else metres (no exponent)."""
+    return f"{100 * v:.3g} cm" if v < 1.0 else f"{v:.2f} m"
 
 
 def _quaternion_order(t, x, y, q, v, step: float, tilt: float) -> list[tuple[str, str]]:
@@ -357,8 +362,7 @@ _CAUSES = {
     "of order",
     "xyzw": "the quaternion columns look like x, y, z, w order; reorder them to qw, qx, qy, qz (scalar first)",
     "height": "a ball rolling on a floor keeps it within millimetres: {up}",
-    "lying": "a platform hanging in a ball stays near upright: {up}, or the body markers are not in the platform frame "
-    "(give alignment)",
+    "lying": "a platform hanging in a ball stays near upright: {up}, or the body frame is not the platform's",
 }
 
 

@@ -35,7 +35,7 @@ def read_vicon_csv(
     path, rows = _read_lines(path)
     source = str(path)
     if up_axis not in UP_TO_Z:
-        raise ValueError(f"{source}: up_axis must be 'y' or 'z'; got {up_axis!r}.")
+        raise ValueError(f"{source}: the up axis (--up-axis) must be y or z; got {up_axis!r}.")
     i0 = next((i for i, r in enumerate(rows) if r and r[0].strip() == "Trajectories"), None)
     if i0 is None:
         hint = next((separator_hint(r[:1]) for r in rows if r and r[0].strip().startswith("Trajectories")), "")
@@ -64,8 +64,7 @@ def read_vicon_csv(
     subjects = sorted({nm.split(":")[0] for nm, _ in named if ":" in nm})
     if subject is None and len(subjects) > 1:
         raise InputError(
-            f"{source}, line {i0 + 3}: the trajectories hold several subjects {subjects}; choose one with --subject NAME "
-            "(subject=NAME)."
+            f"{source}, line {i0 + 3}: the trajectories hold several subjects {subjects}; choose one with --subject NAME."
         )
     if subject is not None and subject not in subjects:
         raise InputError(
@@ -76,7 +75,12 @@ def read_vicon_csv(
         subject = subjects[0]
     mk = [(nm, j) for nm, j in named if subject is None or nm.split(":")[0] == subject]
     if not mk:
-        raise ValueError(f"{source}, line {i0 + 3}: no marker trajectories.")
+        unlabelled = sum(1 for j in range(2, len(hdr) - 2) if hdr[j].strip() == "X") - len(named)
+        raise InputError(
+            f"{source}, line {i0 + 3}: the trajectories hold no labelled markers"
+            + (f" (only {unlabelled} unlabelled ones, '*N')" if unlabelled else "")
+            + ": label the robot's markers in Nexus (or give them a subject) and export the trajectories again."
+        )
     cols = [0, 1] + [j + a for _, j in mk for a in range(3)]
     colnames = ["Frame", "Sub Frame"] + [f"{n} {a}" for n, _ in mk for a in "XYZ"]
     end = next((i for i in range(i0 + 5, len(rows)) if not any(c.strip() for c in rows[i])), len(rows))

@@ -661,7 +661,7 @@ def test_raw_error_units_mismatch(tmp_path, markers_truth):
     raw = tmp_path / "take.csv"
     jsphere.write_motive_csv(raw, truth.t, m, NAMES, units="mm")
     with pytest.raises(
-        ValueError, match=r"take\.csv: units='m' was declared but the file says its lengths are in 'mm'"
+        ValueError, match=r"take\.csv: --units m was given but the file says its lengths are in mm"
     ):
         jsphere.read_motive_csv(raw, units="m")
     # a file whose header lies: says Meters, holds millimetres
@@ -823,7 +823,7 @@ def test_body_markers_by_name(tmp_path, markers_truth):
     tr3 = jsphere.convert_raw(raw, _inputs_file(tmp_path, truth), format="vicon", body_markers=three)
     _check_recovery(tr3, truth, pos=1e-3, ang=1.5)
     with pytest.raises(
-        ValueError, match=r"fewer than 3 of the export's markers .* are in body_markers \['a', 'x', 'y'\]"
+        ValueError, match=r"fewer than 3 of the export's markers .* are among the body markers \['a', 'x', 'y'\]"
     ):
         jsphere.convert_raw(
             raw, _inputs_file(tmp_path, truth), format="vicon", body_markers={"a": BODY[0], "x": BODY[1], "y": BODY[2]}

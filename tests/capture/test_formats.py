@@ -188,7 +188,7 @@ def test_motive_centimetres_declared_and_contradicted(tmp_path, truth):
     jsphere.write_motive_csv(raw, tr.t, m, NAMES, units="cm")
     assert "Length Units,Centimeters" in raw.read_text()
     np.testing.assert_allclose(jsphere.read_motive_csv(raw, units="cm").markers, m, atol=1e-6, equal_nan=True)
-    with pytest.raises(ValueError, match="units='mm' was declared but the file says its lengths are in 'cm'"):
+    with pytest.raises(ValueError, match="--units mm was given but the file says its lengths are in cm"):
         jsphere.read_motive_csv(raw, units="mm")
     raw.write_text(raw.read_text().replace("Length Units,Centimeters", "Length Units,Inches"))
     with pytest.raises(jsphere.InputError, match="Length Units 'Inches' not understood; export in Meters, Centimeters"):
