@@ -123,6 +123,7 @@ def convert_raw(
         name=name,
         allow_truncated=allow_truncated,
         keep_suspect=keep_suspect,
+        format=format,
     )
     if shell_radius is not None:
         fix, example, floor = _centre_fix(format, data.rb_q is not None, body_markers is not None, body_offset)

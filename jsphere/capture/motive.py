@@ -59,9 +59,11 @@ def read_motive_csv(
     path, rows = _read_lines(path)
     source = str(path)
     if up_axis not in UP_TO_Z:
-        raise ValueError(f"{source}: up_axis must be 'y' or 'z'; got {up_axis!r}.")
+        raise ValueError(f"{source}: the up axis (--up-axis) must be 'y' or 'z'; got {up_axis!r}.")
     if use not in ("auto", "markers", "rigid_body"):
-        raise ValueError(f"{source}: use must be 'auto', 'markers' or 'rigid_body'; got {use!r}.")
+        raise ValueError(
+            f"read_motive_csv: use must be 'auto', 'markers' or 'rigid_body' (what to read of {source}); got {use!r}."
+        )
     meta, file_units = _line_one(rows, source)
     head = _Header.find(rows, source)
     body = _rigid_body(head, rigid_body, source)
@@ -212,10 +214,7 @@ def _rigid_body(head: _Header, rigid_body: str | None, source: str) -> str | Non
     if rigid_body is not None and bodies and rigid_body not in bodies:
         raise InputError(f"{source}: no rigid body named {rigid_body!r}; the file has {bodies}.")
     if rigid_body is None and len(bodies) > 1:
-        raise InputError(
-            f"{source}: the file has several rigid bodies {bodies}; choose one with --rigid-body NAME "
-            "(rigid_body=NAME)."
-        )
+        raise InputError(f"{source}: the file has several rigid bodies {bodies}; choose one with --rigid-body NAME.")
     return rigid_body if rigid_body is not None else (bodies[0] if bodies else None)
 
 

@@ -109,6 +109,7 @@ def markers_to_trial(
     max_gap_fraction: float = 0.5,
     allow_truncated: bool = False,
     keep_suspect: bool = False,
+    format: str | None = None,
 ) -> Trial:
     """A `Trial` from raw marker data and an inputs table.
 
@@ -144,12 +145,17 @@ def markers_to_trial(
     off = np.asarray(body_offset, float)
     if off.size != 3 or not np.all(np.isfinite(off)):
         raise InputError(
-            f"{source}: body_offset must be 3 finite numbers (x, y, z in the platform frame, m); got {body_offset!r}."
+            f"{source}: the body offset (--body-offset X Y Z) must be 3 finite numbers, x, y, z in the platform frame "
+            f"in metres; got {body_offset!r}."
         )
     if not math.isfinite(time_offset):
-        raise InputError(f"{source}: time_offset must be a finite number of seconds; got {time_offset!r}.")
+        raise InputError(
+            f"{source}: the time offset (--time-offset) must be a finite number of seconds; got {time_offset!r}."
+        )
     if not max_rms > 0:  # NaN too
-        raise InputError(f"{source}: max_rms must be positive (metres); got {max_rms!r}.")
+        raise InputError(
+            f"{source}: the largest marker fit residual kept must be a positive number of metres; got {max_rms!r}."
+        )
     if isinstance(inputs, (str, Path)):
         t_in, u_in, kind, _ = read_inputs_csv(inputs, allow_truncated=allow_truncated)
     else:
@@ -187,10 +193,23 @@ def markers_to_trial(
         source,
         z,
         from_markers=True,
-        units_hint="pass units='mm' (--units mm)",
-        up_hint="is the export's up axis right? (up_axis / --up-axis: 'y' is Motive's default, 'z' Vicon's and C3D's)",
+        **_hints(format),
     )
     return Trial(tt, x, y, qq, uu, kind, z, name=name or Path(source).stem)
+
+
+def _hints(format: str | None) -> dict[str, str]:
+    """What the plausibility warnings advise for poses of `format` (`convert_raw`'s): options
+    that apply to it, or, for a ROS bag, whose frames are its publisher's, plain words."""
+    if format == "rosbag":
+        return {
+            "units_hint": "the publisher may send millimetres (ROS's REP 103 says metres)",
+            "up_hint": "is the pose topic's world frame Z-up (REP 103), and its child frame the platform?",
+        }
+    return {
+        "units_hint": "give the export's units (--units mm)",
+        "up_hint": "is the export's up axis right? (--up-axis: 'y' is Motive's default, 'z' that of Vicon, QTM and C3D)",
+    }
 
 
 def _body_pose(
@@ -209,7 +228,7 @@ def _body_pose(
     body_markers = np.asarray(body_markers, float)
     if body_markers.shape != (len(data.names), 3):
         raise ValueError(
-            f"{source}: body_markers must be ({len(data.names)}, 3), one row per marker {list(data.names)}."
+            f"{source}: the body markers must be {len(data.names)} rows of x, y, z, one per marker {list(data.names)}."
         )
     known = np.all(np.isfinite(body_markers), axis=1)  # markers left out of a body_markers dict
     _check_body_scale(data.markers[:, known], body_markers[known], source)
@@ -336,7 +355,7 @@ def _overlap(t: np.ndarray, t_in: np.ndarray, source: str) -> np.ndarray:
     if not np.any(keep):
         raise ValueError(
             f"{source}: the capture times [{t[0]:g}, {t[-1]:g}] s do not overlap the inputs' [{t_in[0]:g}, {t_in[-1]:g}] s; "
-            "the two must share a clock (use time_offset)."
+            "the two must share a clock (--time-offset SECONDS shifts the capture's)."
         )
     span_in, span = float(t_in[-1] - t_in[0]), float(t[keep][-1] - t[keep][0])
     if span_in >= 100.0 * max(span, 1e-9) and float(np.median(np.diff(t_in))) >= 100.0 * float(np.median(np.diff(t))):

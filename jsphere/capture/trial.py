@@ -167,13 +167,14 @@ def detect_position_units(values: np.ndarray, z: np.ndarray | None = None) -> st
 def _resolve_units(declared: str, detected: str | None, source: str, evidence: str) -> float:
     """Scale factor to metres from the declared units (`"auto"`, `"m"`, `"mm"`) and the detected ones."""
     if declared not in ("auto", "m", "mm"):
-        raise ValueError(f"{source}: units must be 'auto', 'm' or 'mm'; got {declared!r}.")
+        raise ValueError(f"{source}: the units given must be 'auto', 'm' or 'mm'; got {declared!r}.")
     if declared == "auto":
         return _UNITS_SCALE[detected or "m"]
     if detected is not None and detected != declared:
         raise ValueError(
-            f"{source}: units={declared!r} was declared but the data look like {'millimetres' if detected == 'mm' else 'metres'} "
-            f"({evidence}); pass units={detected!r} (or units='auto') if that is right, or fix the file."
+            f"{source}: the units given ({declared!r}) disagree with the data, which look like "
+            f"{'millimetres' if detected == 'mm' else 'metres'} ({evidence}); give {detected!r} (or 'auto') if that is "
+            "right, or fix the file."
         )
     return _UNITS_SCALE[declared]
 
@@ -231,7 +232,7 @@ def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> T
         max_gap_fraction=max_gap_fraction,
     )
     name = meta.get("name", path.stem)
-    warn_implausible(t, x, y, q, source, z, units_hint="declare '# units: mm' in the file (or pass units='mm')")
+    warn_implausible(t, x, y, q, source, z, units_hint="declare '# units: mm' in the file")
     return Trial(t, x, y, q, inputs, kind, z, name=name, source=source)
 
 
@@ -294,8 +295,8 @@ def _position_scale(units: str, file_units: str | None, detected: str | None, so
         return _resolve_units(units, detected, source, "magnitude of the positions/height")
     if units != "auto" and units != file_units:
         raise ValueError(
-            f"{source}: units={units!r} was declared but the file's '# units:' line says {file_units!r}; "
-            "drop the argument or fix the file."
+            f"{source}: the units given ({units!r}) disagree with the file's '# units:' line ({file_units!r}); "
+            "give none (the file's are used) or fix the file."
         )
     return _resolve_units(file_units, detected, source, "positions/height")
 

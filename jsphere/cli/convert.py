@@ -97,8 +97,9 @@ def add_parser(sub) -> None:
     cv.add_argument(
         "--keep-suspect",
         action="store_true",
-        help="keep the frames whose marker fit residual is far above the take's median (more than 5x: a swapped or "
-        "ghost marker); by default they are written as missing, with a warning saying how many",
+        help="keep the frames whose marker fit residual stands out of the take's own noise (at least 5x its median "
+        "and beyond its spread, and above twice the marker error the export reports: a swapped or ghost marker); by "
+        "default they are written as missing, with a warning saying how many",
     )
     cv.add_argument("--no-cache", action="store_true", help=argparse.SUPPRESS)
 

@@ -135,7 +135,9 @@ def test_synth_and_convert_check_their_options_first(tmp_path, capsys):
     assert code == 2 and f"{tmp_path / 'file'} is a file, not a folder" in err, err
     code, err = _cli(["synth", "--out", tmp_path / "file" / "trials"], capsys)
     assert code == 2 and f"{tmp_path / 'file'} is a file, not a folder" in err, err
-    with pytest.raises(InputError, match=r"body_offset must be 3 finite numbers .* got \(0\.0, nan, 0\.0\)"):
+    with pytest.raises(
+        InputError, match=r"body offset \(--body-offset X Y Z\) must be 3 finite numbers.* got \(0\.0, nan, 0\.0\)"
+    ):
         jsphere.convert_raw(RAW / "motive.csv", RAW / "inputs.csv", format="motive", body_offset=(0.0, np.nan, 0.0))
 
 

@@ -339,16 +339,16 @@ def test_error_too_many_gaps(tmp_path):
 def test_error_units(tmp_path):
     tr = _small_trial().replace(z=np.full(30, 0.15))
     p = _csv(tmp_path, tr)
-    with pytest.raises(ValueError, match=r"units='mm' was declared but the file's '# units:' line says 'm'"):
+    with pytest.raises(ValueError, match=r"the units given \('mm'\) disagree with the file's '# units:' line \('m'\)"):
         jsphere.read_trial(p, units="mm")
     p2 = _write(
         tmp_path,
         "\n".join(ln for ln in p.read_text().splitlines() if not ln.startswith("# units")) + "\n",
         "nounits.csv",
     )
-    with pytest.raises(ValueError, match=r"units='mm' was declared but the data look like metres"):
+    with pytest.raises(ValueError, match=r"the units given \('mm'\) disagree with the data, which look like metres"):
         jsphere.read_trial(p2, units="mm")
-    with pytest.raises(ValueError, match=r"units must be 'auto', 'm' or 'mm'; got 'cm'"):
+    with pytest.raises(ValueError, match=r"the units given must be 'auto', 'm' or 'mm'; got 'cm'"):
         jsphere.read_trial(p2, units="cm")
     p3 = _write(tmp_path, p.read_text().replace("# units: m", "# units: inch"), "inch.csv")
     with pytest.raises(ValueError, match=r"inch\.csv: the '# units:' line says 'inch'"):
@@ -660,9 +660,7 @@ def test_raw_error_units_mismatch(tmp_path, markers_truth):
     m, truth = markers_truth
     raw = tmp_path / "take.csv"
     jsphere.write_motive_csv(raw, truth.t, m, NAMES, units="mm")
-    with pytest.raises(
-        ValueError, match=r"take\.csv: --units m was given but the file says its lengths are in mm"
-    ):
+    with pytest.raises(ValueError, match=r"take\.csv: --units m was given but the file says its lengths are in mm"):
         jsphere.read_motive_csv(raw, units="m")
     # a file whose header lies: says Meters, holds millimetres
     bad = tmp_path / "bad.csv"
@@ -751,7 +749,7 @@ def test_inputs_table_errors(tmp_path, markers_truth):
     raw = tmp_path / "take.csv"
     jsphere.write_motive_csv(raw, truth.t, m, NAMES)
     late = (truth.t + 100.0, truth.inputs, "wheel_speeds")
-    with pytest.raises(ValueError, match=r"do not overlap the inputs' .* share a clock \(use time_offset\)"):
+    with pytest.raises(ValueError, match=r"do not overlap the inputs' .* share a clock \(--time-offset SECONDS"):
         jsphere.markers_to_trial(jsphere.read_motive_csv(raw), late, body_markers=BODY)
     tr = jsphere.markers_to_trial(jsphere.read_motive_csv(raw), late, body_markers=BODY, time_offset=100.0)
     assert tr.t[0] == pytest.approx(100.0)
@@ -779,7 +777,7 @@ def test_cli_synth_and_convert(tmp_path, markers_truth, capsys):
     assert main([*args, "--body-markers", str(body)]) == 0
     _check_recovery(jsphere.read_trial(out), truth, pos=5e-4, ang=0.5)
     assert main([*args, "--units", "m"]) == 2
-    assert "units='m' was declared but the file says its lengths are in 'mm'" in capsys.readouterr().err
+    assert "--units m was given but the file says its lengths are in mm" in capsys.readouterr().err
 
 
 # --------------------------------------------------------------------------- the shipped example dataset

@@ -91,11 +91,7 @@ def test_advised_options_exist(path):
 
 #: files whose messages still name Python parameters to the command's user (kept apart so that
 #: the others stay checked): the text and line of each is in the failure this mark expects
-OUTSTANDING = {
-    "motive.py": "messages 'up_axis must be ...', 'pass rigid_body=<name>' / '(rigid_body=NAME)'",
-    "pose.py": "the hints 'pass units='mm' (--units mm)' and '(up_axis / --up-axis ...)', 'use time_offset'",
-    "trial.py": "read_trial's '(or pass units='mm')' hint and 'units=...' messages",
-}
+OUTSTANDING: dict[str, str] = {}
 PARAMS = [
     pytest.param(p, marks=pytest.mark.xfail(reason=OUTSTANDING[p.name])) if p.name in OUTSTANDING else p for p in FILES
 ]
@@ -188,7 +184,6 @@ def test_rosbag_options_that_do_not_apply(tmp_path, capsys):
         assert "alignment" not in err and "--body-markers FILE" not in err and "--up-axis y" not in err, err
 
 
-@pytest.mark.xfail(reason="pose.py's markers_to_trial gives warn_implausible an up-axis hint for every format")
 def test_rosbag_warnings_advise_no_marker_options(tmp_path, capsys):
     """The plausibility warnings on a ROS bag's poses (a platform lying on its side) advise
     neither `--up-axis` nor `--body-markers` nor an alignment: the bag's frames are its own."""
