@@ -17,8 +17,8 @@ clean capture with `l2`, against which the robust fit of the clean capture is co
 in standard errors, standard errors as ratios). Writes JSON (`--out`).
 
 `--long`: three 15 s trials and one 30 s trial of the same robot (clean), fitted with the
-default loss as the fit runs it (Huber's loss in every stage but the last, Cauchy's in the last:
-`jsphere.identify.robust.WARM_LOSS`) and with Cauchy's in every stage, in the same process
+default loss as the fit runs it (Huber's loss in the warm-up stages, multiple shooting and the
+Adam steps, Cauchy's in the Levenberg-Marquardt stages: `jsphere.identify.robust.WARM_LOSS`) and with Cauchy's in every stage, in the same process
 (`results-robust-fit-long.json`).
 """
 

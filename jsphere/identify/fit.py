@@ -340,15 +340,10 @@ class _Options:
         return self.sigma_pos is None or self.sigma_rot is None
 
     def stage_loss(self, stage: int) -> str:
-        """The loss of a stage: a redescending loss (`REDESCENDING`) only in the last stage
-        (2), from the point the convex `WARM_LOSS` reached; every other loss in every stage."""
-        return WARM_LOSS if self.loss in REDESCENDING and stage != 2 else self.loss
-
-    @property
-    def refines(self) -> bool:
-        """Whether stage 1 is followed by stage 2: to estimate the noise levels, or to finish
-        with a redescending loss."""
-        return self.estimate_sigma or self.loss in REDESCENDING
+        """The loss of a stage: in the warm-up stages, far from the answer (multiple shooting,
+        `4 + k`, and the Adam steps, 0), the convex `WARM_LOSS` where the fit's loss is
+        redescending (`REDESCENDING`); the fit's loss in the Levenberg-Marquardt stages 1 and 2."""
+        return WARM_LOSS if self.loss in REDESCENDING and (stage == 0 or stage >= 4) else self.loss
 
     def config(self, sig: np.ndarray, multiple: bool) -> dict[str, Any]:
         """What the checkpoint's fingerprint holds besides the data and the free parameters (the
@@ -908,28 +903,22 @@ def _single_shooting(run: _Run, st: _State) -> None:
         cost = np.asarray(cost)
         st.stage_converged = bool(np.asarray(st.lm.converged)[int(np.argmin(cost))])
         st.lm = None
-        if st.stage == 1 and run.options.refines:
-            then = "refitting"
-            if run.options.stage_loss(2) != run.options.stage_loss(1):
-                then = f"refitting with the {run.options.loss} loss"
-            if run.options.estimate_sigma:
-                est = _estimate_sigma(
-                    np.asarray(out["res"])[int(np.argmin(cost))],
-                    run.data,
-                    st.sig,
-                    run.P + run.T * run.n_nu,
-                    run.options.stage_loss(1),
-                )
-                # residuals of exactly 0 (noise-free data) give no estimate: keep the level used
-                usable = np.isfinite(est) & (est > 0)
-                st.sig = np.where(usable, est, st.sig)
-                kept = "" if usable.all() else " (residuals of 0 give no estimate: the level used is kept)"
-                run.say(
-                    f"fit: noise estimated: sigma_pos {st.sig[0] * 1e3:.4f} mm, sigma_rot {math.degrees(st.sig[1]):.4f} deg{kept}; {then}"
-                )
-            else:
-                run.say(f"fit: {then}")
+        if st.stage == 1 and run.options.estimate_sigma:
+            est = _estimate_sigma(
+                np.asarray(out["res"])[int(np.argmin(cost))],
+                run.data,
+                st.sig,
+                run.P + run.T * run.n_nu,
+                run.options.loss,
+            )
+            # residuals of exactly 0 (noise-free data) give no estimate: keep the level used
+            usable = np.isfinite(est) & (est > 0)
+            st.sig = np.where(usable, est, st.sig)
             st.stage = 2
+            kept = "" if usable.all() else " (residuals of 0 give no estimate: the level used is kept)"
+            run.say(
+                f"fit: noise estimated: sigma_pos {st.sig[0] * 1e3:.4f} mm, sigma_rot {math.degrees(st.sig[1]):.4f} deg{kept}; refitting"
+            )
         else:
             st.stage = 3
             _save(run, st)

@@ -60,11 +60,11 @@ SCALE = math.sqrt(20.5)
 #: a frame whose weight is below this is reported as set aside
 REJECT = 0.5
 #: losses whose influence falls back to a constant for a frame far off: from a point far from the
-#: answer they can let whole stretches of a trial go, so a fit reaches them from `WARM_LOSS`'s
-#: point (its last stage only)
+#: answer they can let whole stretches of a trial go, so a fit's warm-up stages (multiple
+#: shooting, the Adam steps) run with `WARM_LOSS` instead
 REDESCENDING = ("cauchy",)
-#: the loss of a fit's stages before its last where its loss is redescending: convex in the
-#: residuals, every frame keeps a pull of at least `c` noise levels, so no trial can be left out
+#: the loss of a fit's warm-up stages where its loss is redescending: convex in the residuals,
+#: every frame keeps a pull of at least `c` noise levels, so no trial can be left out
 WARM_LOSS = "huber"
 
 

@@ -264,8 +264,12 @@ def test_compare_sets_aside_the_bad_frames_with_the_fits_loss(small_files):
         frames = set(t["outliers"]["frames"])
         assert len(bad[name] & frames) >= 0.8 * len(bad[name]) and len(frames - bad[name]) <= 1
     assert all(t["outliers"]["count"] == 0 for t in l2.trials)
-    # the frames set aside are out of the scores: the robust residuals are at the noise
-    assert max(t["rms_pos_m"] for t in rob.trials) < 2e-3 < max(t["rms_pos_m"] for t in l2.trials)
+    # the scores are on every frame, the glitches included; on the frames kept the robust
+    # residuals are at the noise, and the verdict on the frames kept is white
+    kept = [np.where(t["series"]["set_aside"][:, None], np.nan, t["series"]["residuals"][:, :2]) for t in rob.trials]
+    assert max(float(np.sqrt(np.nanmean(np.nansum(k**2, 1)))) for k in kept) < 2e-3
+    assert max(t["rms_pos_m"] for t in l2.trials) > 2e-3
+    assert all(not t["whiteness"]["correlated"] for t in rob.trials), rob.reason
 
 
 # ------------------------------------------------------------------ slow: the acceptance case, coverage

@@ -341,7 +341,14 @@ def test_distributed_two_processes_with_cpu_collectives_match_one_process(study,
     done = run()
     assert "256 trials in" in done[0].stdout and "trials in" not in done[1].stdout  # process 0 reports
     assert _stats_file(out) == json.loads(json.dumps(study.stats()))
-    files = ["batch_000000.npz", "batch_000001.npz", "manifest.json", "stats.json"]
+    files = [
+        "batch_000000.npz",
+        "batch_000001.npz",
+        "manifest.json",
+        "stats.json",
+        "time_000000.json",
+        "time_000001.json",
+    ]
     assert sorted(f.name for f in out.iterdir()) == files
     assert json.loads((out / "manifest.json").read_text())["batch_size"] == 192
     first = (out / "batch_000000.npz").read_bytes()
