@@ -1,7 +1,7 @@
 """A Python user's persistent cache: with `jsphere.enable_compilation_cache()` (the folder of
 `JSPHERE_CACHE_DIR`), a second process loads every program of the README's first gait solve,
 first gradient and a user's own `jax.jit` around a solve with `throw=False`, compiling none of
-them again, and takes a fraction of the first process's time for each; a solver failure is
+them again, and spends a fraction of the first process's CPU time on each; a solver failure is
 still reported there, raised by an eager call and in `Trajectory.status` under the user's
 `jit`."""
 
@@ -39,9 +39,10 @@ out = {"path": str(path)}
 
 def timed(name, f):
     before = dict(events)
-    t = time.perf_counter()
+    t, cpu = time.perf_counter(), time.process_time()
     value = jax.block_until_ready(f())
-    out[name] = {"s": time.perf_counter() - t, **{k: events[k] - before[k] for k in events}}
+    out[name] = {"s": time.perf_counter() - t, "cpu": time.process_time() - cpu,
+                 **{k: events[k] - before[k] for k in events}}
     return value
 
 def gaits(th):
@@ -97,9 +98,11 @@ def test_second_process_loads_the_solve_the_gradient_and_a_users_jit(tmp_path):
     # the same numbers (the quickstart's stop point and gradient)
     assert abs(second["x"] - 0.259198971850683) < 1e-9 and second["x"] == first["x"]
     assert abs(second["gradient"] - 2.5847084951773) < 1e-9 and second["gradient"] == first["gradient"]
-    # a fraction of the first process's time (what is left: tracing, lowering, loading)
-    for call in ("solve", "grad"):
-        assert second[call]["s"] <= 1.5 or second[call]["s"] <= 0.6 * first[call]["s"], (call, first, second)
+    # a fraction of the first process's work (what is left: tracing, lowering, loading). Counted
+    # in CPU seconds, which a busy machine leaves as they are (wall-clock ratios moved from 0.45
+    # to 0.66 with another test process on the same two cores; CPU ratios stay at 0.40-0.42)
+    for call in ("solve", "grad", "user"):
+        assert second[call]["cpu"] <= 0.6 * first[call]["cpu"], (call, first, second)
 
     # a solver failure in a loaded program is reported, never a bare NaN
     for run in (first, second):
