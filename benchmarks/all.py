@@ -28,36 +28,22 @@ import time
 from datetime import datetime, timezone
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-ROOT = HERE.parent
-sys.path.insert(0, str(HERE))
-
-from run import _source_digest as source_digest  # noqa: E402  (the digest the result files record)
-from run import write_json_atomic as write_json  # noqa: E402
+from common import HERE, ROOT, source_digest, write_json  # the digest the result files record
 
 #: (name, script and arguments, result file): the commands `docs/performance.md` gives
 STEPS = (
     ("run", ["run.py"], "results.json"),
     ("work_precision", ["work_precision.py"], "results-work-precision.json"),
-    ("ensemble", ["ensemble.py"], "results-ensemble.json"),
-    ("layouts", ["layouts.py"], "results-layouts.json"),
-    ("startup", ["startup.py"], "results-startup.json"),
-    ("first_result", ["first_result.py"], "results-first-result.json"),
-    ("fit_startup", ["fit_startup.py"], "results-fit-startup.json"),
-    ("fit_long", ["fit_long.py"], "results-fit-long.json"),
-    ("fit_length", ["fit_length.py"], "results-fit-length.json"),
-    ("fit_solver", ["fit_solver.py"], "results-fit-solver.json"),
-    ("robust_fit", ["robust_fit.py"], "results-robust-fit.json"),
-    ("robust_fit_long", ["robust_fit.py", "--long"], "results-robust-fit-long.json"),
-    ("traced_gradient", ["traced_gradient.py"], "results-traced-gradient.json"),
-    ("montecarlo", ["montecarlo.py"], "results-montecarlo.json"),
-    (
-        "montecarlo_workers",
-        ["montecarlo.py", "--workers", "2", "--trials", "1000000"],
-        "results-montecarlo-workers.json",
-    ),
-    ("track", ["track.py"], "results-track.json"),
-    ("animate", ["animate.py"], "results-animate.json"),
+    ("startup", ["startup.py", "reproduce"], "results-startup.json"),
+    ("first_result", ["startup.py", "first-result"], "results-first-result.json"),
+    ("fit_startup", ["startup.py", "fit"], "results-fit-startup.json"),
+    ("fit_long", ["tasks.py", "fit-long"], "results-fit-long.json"),
+    ("robust_fit", ["tasks.py", "robust-fit"], "results-robust-fit.json"),
+    ("robust_fit_long", ["tasks.py", "robust-fit", "--long"], "results-robust-fit-long.json"),
+    ("montecarlo", ["studies.py"], "results-montecarlo.json"),
+    ("montecarlo_workers", ["studies.py", "--workers", "2", "--trials", "1000000"], "results-montecarlo-workers.json"),
+    ("track", ["tasks.py", "track"], "results-track.json"),
+    ("animate", ["tasks.py", "animate"], "results-animate.json"),
 )
 
 
@@ -95,8 +81,10 @@ def run_steps(steps, state_path: Path, out: Path, *, fresh: bool = False, folder
             "wall_s": wall,
             "finished_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         }
-        write_json(state_path, {"source_sha256": digest, "done": done})
-    write_json(out, {"source_sha256": digest, "steps": [done[n] | {"name": n} for n, _, _ in steps if n in done]})
+        write_json(state_path, {"source_sha256": digest, "done": done}, say=False)
+    write_json(
+        out, {"source_sha256": digest, "steps": [done[n] | {"name": n} for n, _, _ in steps if n in done]}, say=False
+    )
     return 1 if failed else 0
 
 

@@ -1,28 +1,28 @@
-"""CasADi baselines for problem 1 of `run.py`: the strongest alternative a control engineer
-would write by hand.
+"""The other tools' anchors for problem 1 of `run.py`, on the numbers of jsphere's parameter set
+(nothing here imports jsphere).
 
-Two variants, both on the numbers of the same parameter set as `numpy_model.NumpyRobot`
-(nothing is imported from jsphere):
+- `NumpyRobot`: the equations of motion (3.4) in plain numpy, written from the paper's formulas
+  (as documented at the top of `jsphere/model/dynamics.py`), every derived quantity recomputed
+  here; the scipy baseline. State (12 components): `[q (w,x,y,z), omega (3), Omega (3), x, y]`,
+  `q` the platform quaternion (rotation matrix `R`, rows `alpha, beta, gamma`), `omega`,
+  `Omega` the platform and shell angular velocities in platform components:
 
-- `rk4`: the right-hand side built symbolically (CasADi SX), a fixed-step classical RK4 step,
-  400 steps over [0, 4] s folded with `mapaccum`, the trial mapped over the batch with
-  `map(..., "thread", n_threads)`, everything compiled to C with the system compiler (`-O3`)
-  through CasADi's `jit` option.
-- `cvodes`: the same right-hand side in CasADi's CVODES integrator (rtol 1e-8, atol 1e-10,
-  the tolerances of problem 1), mapped over threads.
+      gamma      = R[2]
+      M [w'; W'] = [r1 - Sk^T K; r2 + Sk^T K],   M = [[A, B], [B^T, D]]   (numpy.linalg.solve, 6x6)
+      x', y'     = (R v)[:2],  v = R0 Omega x gamma                        (2.2), (2.3)
+      q'         = q (x) (0, omega) / 2
 
-The 12-component state is that of `numpy_model` (`[q, omega, Omega, x, y]`); the 6x6 system of
-(3.4) is solved symbolically (CasADi's `solve` on SX expands a QR factorisation into the
-generated code).
-
-    python benchmarks/casadi_baseline.py [--batch 1024] [--threads 2]
-
-`run.py` imports `casadi_rows` from here when CasADi is installed (`pip install jsphere[bench]`).
+- CasADi, the strongest alternative a control engineer would write by hand, on the same
+  right-hand side built symbolically (SX; the 6x6 system solved by CasADi's `solve`, a QR
+  factorisation expanded into the generated code): `rk4`, a fixed-step classical RK4 (400
+  steps over [0, 4] s folded with `mapaccum`, trials mapped over threads, compiled to C with
+  `-O3` through CasADi's `jit` option), and `cvodes`, CasADi's CVODES at problem 1's
+  tolerances, mapped over threads. `run.py` and `work_precision.py` use them when CasADi is
+  installed (`pip install jsphere[bench]`).
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 import tempfile
 import time
@@ -34,12 +34,124 @@ try:
 except ImportError:  # pragma: no cover - optional benchmark dependency
     ca = None
 
+
+def _cross(a, b):
+    # np.cross is slow for single 3-vectors; this is the same product written out.
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+class NumpyRobot:
+    """Parameter-only quantities of (2.4), (3.4), recomputed in numpy."""
+
+    def __init__(self, R0, m0, I0, Rw, wheel_r, wheel_n, wheel_alpha, m, I, r_m, j, g):
+        f = lambda x: np.asarray(x, dtype=np.float64)  # noqa: E731
+        self.R0, self.m0, self.I0, self.Rw = float(R0), float(m0), float(I0), float(Rw)
+        self.m, self.j, self.g = float(m), float(j), float(g)
+        self.I, self.r_m = f(I), f(r_m)
+        r, n, al = f(wheel_r), f(wheel_n), f(wheel_alpha)
+        s = np.cross(r, al)  # s_i = r_i x alpha_i
+        k = self.R0 / (self.Rw * np.einsum("ij,ij->i", s, n))  # k_i = R0 / (Rw (s_i, n_i))
+        self.n = n
+        self.Sk = k[:, None] * s  # rows k_i s_i
+        jk = self.j * k
+        self.Jss = np.einsum("i,ia,ib->ab", jk * k, s, s)
+        self.Jsn = np.einsum("i,ia,ib->ab", jk, s, n)
+        self.Jns = self.Jsn.T.copy()
+        self.A = self.I + self.Jss - self.Jns - self.Jsn
+        self.E = np.eye(3)
+
+    @classmethod
+    def from_params(cls, p) -> "NumpyRobot":
+        """From any object with the `RobotParams` field names (values converted to numpy)."""
+        names = ("R0", "m0", "I0", "Rw", "wheel_r", "wheel_n", "wheel_alpha", "m", "I", "r_m", "j", "g")
+        return cls(**{k: np.asarray(getattr(p, k)) for k in names})
+
+    # ------------------------------------------------------------------ model pieces
+    @staticmethod
+    def rotmat(q):
+        """Rotation matrix (platform -> fixed) of the normalised quaternion `q = (w, x, y, z)`."""
+        w, x, y, z = q / np.sqrt(q @ q)
+        return np.array(
+            [
+                [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+            ]
+        )
+
+    def mass_matrix(self, gamma):
+        B = self.Jns - self.Jss + self.m * self.R0 * ((gamma @ self.r_m) * self.E - np.outer(gamma, self.r_m))
+        D = (
+            self.I0 * self.E
+            + self.Jss
+            + (self.m + self.m0) * self.R0**2 * ((gamma @ gamma) * self.E - np.outer(gamma, gamma))
+        )
+        return np.block([[self.A, B], [B.T, D]])
+
+    def forces(self, gamma, w, W):
+        p = self
+        Wxw = _cross(W, w)
+        r1 = (
+            -_cross(w, p.I @ w)
+            + _cross(p.Jns @ (W - w), w)
+            - p.m * p.R0 * _cross(p.r_m, _cross(gamma, Wxw))
+            - p.m * p.g * _cross(p.r_m, gamma)
+        )
+        r2 = (
+            -(p.m + p.m0) * p.R0**2 * _cross(gamma, _cross(gamma, Wxw))
+            - p.m * p.R0 * _cross(gamma, _cross(w, _cross(w, p.r_m)))
+            - p.I0 * _cross(w, W)
+        )
+        return r1, r2
+
+    def rhs(self, t, y, torque_fn):
+        """`dy/dt` of the 12-component state for torques `K = torque_fn(t)`."""
+        q, w, W = y[0:4], y[4:7], y[7:10]
+        R = self.rotmat(q)
+        gamma = R[2]
+        r1, r2 = self.forces(gamma, w, W)
+        tau = torque_fn(t) @ self.Sk  # Sk^T K = sum_i k_i s_i K_i
+        acc = np.linalg.solve(self.mass_matrix(gamma), np.concatenate([r1 - tau, r2 + tau]))
+        v = self.R0 * _cross(W, gamma)
+        xy_dot = (R @ v)[:2]
+        # q (x) (0, omega) / 2
+        qw, qv = q[0], q[1:]
+        q_dot = 0.5 * np.concatenate([[-(qv @ w)], qw * w + _cross(qv, w)])
+        return np.concatenate([q_dot, acc, xy_dot])
+
+    # ------------------------------------------------------------------ checks
+    def energy(self, y):
+        """Total energy (3.2) + (3.3), written from the kinetic energy term by term."""
+        q, w, W = y[0:4], y[4:7], y[7:10]
+        gamma = self.rotmat(q)[2]
+        v = self.R0 * _cross(W, gamma)
+        chi_dot = -self.Sk @ (w - W)
+        T = (
+            0.5 * (self.m + self.m0) * (v @ v)
+            + 0.5 * self.I0 * (W @ W)
+            + 0.5 * w @ self.I @ w
+            + self.m * v @ _cross(w, self.r_m)
+            + self.j * np.sum(chi_dot * (self.n @ w))
+            + 0.5 * self.j * np.sum(chi_dot**2)
+        )
+        return T + self.m * self.g * (self.r_m @ gamma)
+
+    def power(self, y, K):
+        """Motor power `sum_i K_i chi_dot_i`, `chi_dot = -Sk (omega - Omega)` (2.4)."""
+        return K @ (-self.Sk @ (y[4:7] - y[7:10]))
+
+
+def initial_state(q0, x0=0.0, y0=0.0):
+    """At rest with platform quaternion `q0`."""
+    return np.concatenate([np.asarray(q0, float), np.zeros(6), [x0, y0]])
+
+
 T1 = 4.0
 PHASES = np.array([0.0, 2.1, 4.2])
 RK4_STEPS = 400
 
 
-def _cross(a, b):
+def _sx_cross(a, b):
     return ca.vertcat(a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
@@ -62,25 +174,25 @@ def symbolic_rhs(robot):
     I, Jns, Jss, A, Sk, r_m, E = DM(p.I), DM(p.Jns), DM(p.Jss), DM(p.A), DM(p.Sk), DM(p.r_m), DM(np.eye(3))
     B = Jns - Jss + p.m * p.R0 * (ca.dot(gamma, r_m) * E - ca.mtimes(gamma, r_m.T))
     D = p.I0 * E + Jss + (p.m + p.m0) * p.R0**2 * (ca.dot(gamma, gamma) * E - ca.mtimes(gamma, gamma.T))
-    Wxw = _cross(W, w)
+    Wxw = _sx_cross(W, w)
     r1 = (
-        -_cross(w, ca.mtimes(I, w))
-        + _cross(ca.mtimes(Jns, W - w), w)
-        - p.m * p.R0 * _cross(r_m, _cross(gamma, Wxw))
-        - p.m * p.g * _cross(r_m, gamma)
+        -_sx_cross(w, ca.mtimes(I, w))
+        + _sx_cross(ca.mtimes(Jns, W - w), w)
+        - p.m * p.R0 * _sx_cross(r_m, _sx_cross(gamma, Wxw))
+        - p.m * p.g * _sx_cross(r_m, gamma)
     )
     r2 = (
-        -(p.m + p.m0) * p.R0**2 * _cross(gamma, _cross(gamma, Wxw))
-        - p.m * p.R0 * _cross(gamma, _cross(w, _cross(w, r_m)))
-        - p.I0 * _cross(w, W)
+        -(p.m + p.m0) * p.R0**2 * _sx_cross(gamma, _sx_cross(gamma, Wxw))
+        - p.m * p.R0 * _sx_cross(gamma, _sx_cross(w, _sx_cross(w, r_m)))
+        - p.I0 * _sx_cross(w, W)
     )
     K = a * ca.sin(np.pi * t + DM(PHASES))
     tau = ca.mtimes(Sk.T, K)
     M = ca.vertcat(ca.horzcat(A, B), ca.horzcat(B.T, D))
     acc = ca.solve(M, ca.vertcat(r1 - tau, r2 + tau))
-    v = p.R0 * _cross(W, gamma)
+    v = p.R0 * _sx_cross(W, gamma)
     xy_dot = ca.mtimes(R, v)[0:2]
-    q_dot = 0.5 * ca.vertcat(-ca.dot(q[1:4], w), q[0] * w + _cross(q[1:4], w))
+    q_dot = 0.5 * ca.vertcat(-ca.dot(q[1:4], w), q[0] * w + _sx_cross(q[1:4], w))
     return ca.Function("rhs", [y, t, a], [ca.vertcat(q_dot, acc, xy_dot)])
 
 
@@ -190,36 +302,3 @@ def casadi_rows(robot, q0, A: np.ndarray, *, threads: int = 2, repeats: int = 3,
         finally:
             os.chdir(here)
     return rows, finals
-
-
-def main(argv=None) -> int:
-    import sys
-    from pathlib import Path
-
-    sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from numpy_model import NumpyRobot
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    import jsphere
-
-    jsphere.enable_x64()  # the parameters in float64, as the CasADi model computes
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--batch", type=int, default=1024)
-    ap.add_argument("--threads", type=int, default=os.cpu_count() or 2)
-    args = ap.parse_args(argv)
-    p = jsphere.RobotParams.paper()
-    robot = NumpyRobot.from_params(p)
-    q0 = np.asarray(jsphere.State.at_rest(p).q)
-    Z = np.random.default_rng(0).standard_normal((args.batch, 3))
-    A = 0.05 * (1.0 + 0.1 * Z)
-    rows, finals = casadi_rows(robot, q0, A, threads=args.threads)
-    for r in rows:
-        print(
-            f"{r['name']:<45} batch {r['batch']:>6}  {r['trials_per_s']:>10.1f} trials/s  (build {r['build_s']:.1f} s)"
-        )
-    print("trial 0 final (x, y):", {k: v[0].tolist() for k, v in finals.items()})
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

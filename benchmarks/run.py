@@ -1,58 +1,41 @@
-"""Throughput benchmark of jsphere against a scipy baseline, in one run.
+"""Throughput of problem 1 (and problems 2, 3) against scipy's DOP853 and CasADi, in one run.
 
     python benchmarks/run.py [--quick] [--out benchmarks/results.json]
     python benchmarks/run.py --device gpu --batches 1024,100000,1000000 --problems 1,3 --no-casadi --no-startup
 
-Problem 1: paper robot from rest, torques K_i(t) = a_i sin(pi t + 2.1 (i-1)), a_i = 0.05 (1 + 0.1 z_i),
-           z ~ N(0, 1) per trial (numpy default_rng(0)), [0, 4] s, rtol 1e-8, atol 1e-10, final x, y.
-           jsphere (jit + vmap of the public `simulate`) vs scipy `solve_ivp(DOP853)` on an
-           independent numpy right-hand side (benchmarks/numpy_model.py), one trial at a time.
-Devices:   on a CPU, one device per core (`--cores`, `jsphere.use_cpu_cores`); every batch that
-           divides among the devices is split over them (`jsphere.shard_trials`), and problem 1's
-           batch of 1024 runs on one device too, in the same run (the ratio of the two).
-Problem 2: acceleration + braking gaits, theta_max ~ U(0.05, 0.15) per trial (default_rng(1)), final x.
-Problem 3: cost of jax.grad of sum(x_f^2 + y_f^2) over a batch of problem 1 with respect to
-           (r_m[2] = -R_m, j, diag I, m0, I0), relative to the forward pass of the same batch.
-Start-up:  `jsphere reproduce` in new processes, with an empty compilation cache, then with the
-           cache the first one filled (benchmarks/startup.py; 3 cached runs, 1 in --quick).
-
-See benchmarks/README.md for the meaning of every column and JSON field.
+Problem 1: the paper's robot in torque mode, `jax.jit(jax.vmap(simulate))` of the public API,
+against `solve_ivp(DOP853)` on `casadi_baseline.NumpyRobot` one trial at a time and CasADi's
+compiled RK4 and CVODES; problem 2: the paper's gaits with `theta_max` per trial; problem 3:
+`jax.grad` of problem 1 with respect to 7 parameters over its forward pass; start-up:
+`jsphere reproduce` in new processes (`startup.py`). On a CPU, one device per core, every batch
+that divides among them split over them, and problem 1's 1024 trials on one device too.
+benchmarks/README.md defines the problems and every column and JSON field.
 """
 
 from __future__ import annotations
 
 import argparse
-import datetime
-import json
 import os
-import platform
 import statistics
 import sys
 import tempfile
 import time
-from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
-HERE = Path(__file__).resolve().parent
-ROOT = HERE.parent
-sys.path.insert(0, str(ROOT))  # the jsphere of this checkout
-sys.path.insert(0, str(HERE))
+import common  # noqa: F401  (this checkout's jsphere first on the path)
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from casadi_baseline import NumpyRobot, initial_state
+from common import HERE, environment, finish, log, public, source_digest, time_call, write_json
+from scipy.integrate import solve_ivp
+from startup import measure as startup_measure
 
-import equinox as eqx  # noqa: E402
-import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
-import scipy  # noqa: E402
-from numpy_model import NumpyRobot, initial_state  # noqa: E402
-from scipy.integrate import solve_ivp  # noqa: E402
-from startup import measure as startup_measure  # noqa: E402
-
-import jsphere  # noqa: E402
-from jsphere._runtime.files import atomic_write_text  # noqa: E402
+import jsphere
 
 jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
 
-_SOURCE_AT_IMPORT = None  # set in main(), right after jsphere was imported
 T1 = 4.0
 RTOL, ATOL = 1e-8, 1e-10
 PHASES = np.array([0.0, 2.1, 4.2])  # 2.1 (i - 1), i = 1..3
@@ -60,43 +43,8 @@ ACCURACY_TOL = 1e-6  # m, scipy vs jsphere final x, y
 GRAD_FD_TOL = 1e-3  # relative, jax.grad vs central finite differences
 
 
-def log(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
-
-
 def amplitudes(z: np.ndarray) -> np.ndarray:
     return 0.05 * (1.0 + 0.1 * z)
-
-
-# ------------------------------------------------------------------------ timing
-
-
-def time_call(fn, *args, repeats: int, min_total_s: float = 1.0, max_repeats: int = 25) -> dict:
-    """First call (trace + compile + run), then `repeats` steady-state calls (more, up to
-    `max_repeats`, while their total is under `min_total_s`). Returns the timings and the
-    output of the last call."""
-    t = time.perf_counter()
-    out = jax.block_until_ready(fn(*args))
-    first = time.perf_counter() - t
-    times = []
-    while len(times) < repeats or (sum(times) < min_total_s and len(times) < max_repeats):
-        t = time.perf_counter()
-        out = jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t)
-    med = statistics.median(times)
-    return {
-        "first_call_s": first,
-        "median_s": med,
-        "compile_s": max(first - med, 0.0),
-        "compile_s_raw": first - med,
-        "repeats": len(times),
-        "times_s": times,
-        "_out": out,
-    }
-
-
-def public(d: dict) -> dict:
-    return {k: v for k, v in d.items() if not k.startswith("_")}
 
 
 def rate_row(r: dict, B: int, steps, **extra) -> dict:
@@ -113,81 +61,6 @@ def rate_row(r: dict, B: int, steps, **extra) -> dict:
         }
         | extra
     )
-
-
-# ------------------------------------------------------------------------ environment
-
-
-def _source_digest() -> str:
-    """sha256 over jsphere/**/*.py of this checkout (to tell whether the package changed mid-run)."""
-    import hashlib
-
-    h = hashlib.sha256()
-    package = ROOT / "jsphere"
-    for f in sorted(package.rglob("*.py")):
-        h.update(f.relative_to(package).as_posix().encode() + b"\0" + f.read_bytes())
-    return h.hexdigest()[:16]
-
-
-def _git(*args):
-    import subprocess
-
-    try:
-        return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, text=True, timeout=10).stdout.strip()
-    except Exception:  # noqa: BLE001
-        return None
-
-
-def _checkout_version():
-    try:
-        import tomllib
-
-        return tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
-    except Exception:  # noqa: BLE001
-        return getattr(jsphere, "__version__", None)
-
-
-def environment() -> dict:
-    def ver(name):
-        try:
-            return version(name)
-        except PackageNotFoundError:
-            return None
-
-    dev = jax.config.jax_default_device or jax.devices()[0]
-    return {
-        "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "machine": {
-            "platform": platform.platform(),
-            "processor": platform.processor() or platform.machine(),
-            "python": platform.python_version(),
-            "cpu_count": os.cpu_count(),
-            "loadavg_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
-        },
-        "jax": {
-            "backend": jax.default_backend(),
-            "device_kind": dev.device_kind,
-            "device": str(dev),
-            "device_count": jax.device_count(),
-            "platform": dev.platform,
-            "x64": bool(jax.config.jax_enable_x64),
-        },
-        "versions": {
-            "jax": jax.__version__,
-            "jaxlib": ver("jaxlib"),
-            "diffrax": ver("diffrax"),
-            "equinox": ver("equinox"),
-            "numpy": np.__version__,
-            "scipy": scipy.__version__,
-            "jsphere": _checkout_version(),
-        },
-        "jsphere_path": str(Path(jsphere.__file__).resolve().parent),
-        "jsphere_git": {
-            "commit": _git("rev-parse", "HEAD"),
-            "uncommitted_changes_in_jsphere": _git("status", "--porcelain", "--", "jsphere"),
-            "source_sha256_start": _SOURCE_AT_IMPORT,
-        },
-    }
 
 
 # ------------------------------------------------------------------------ problem 1
@@ -518,46 +391,16 @@ def fmt_table(res) -> str:
     return "\n".join(L)
 
 
-def write_json_atomic(path: Path, obj) -> None:
-    atomic_write_text(path, json.dumps(obj, indent=2) + "\n")
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="smaller run (about 2 minutes on 2 CPU cores)")
-    ap.add_argument(
-        "--out",
-        type=Path,
-        default=None,
-        help="JSON output, written atomically (default results.json, or results-quick.json with --quick)",
-    )
-    ap.add_argument("--no-casadi", action="store_true", help="skip the CasADi baselines (run when casadi is installed)")
-    ap.add_argument(
-        "--no-startup",
-        action="store_true",
-        help="skip the start-up measurement (benchmarks/startup.py's default configuration)",
-    )
-    ap.add_argument(
-        "--device",
-        default=None,
-        help="the JAX platform to run on (cpu, gpu, tpu; default JAX's default backend)",
-    )
-    ap.add_argument(
-        "--batches",
-        default=None,
-        help="problem 1's batch sizes, comma separated (default 1,64,1024 and 16384 unless --quick, and 10^6 on a GPU)",
-    )
-    ap.add_argument(
-        "--problems",
-        default="1,2,3",
-        help="which problems to run, comma separated (1 is always run: its checks anchor the others)",
-    )
-    ap.add_argument(
-        "--cores",
-        type=int,
-        default=None,
-        help="CPU devices, one per core (default: every core of this process; 1: JAX's single CPU device)",
-    )
+    ap.add_argument("--out", type=Path, help="JSON output (default results.json; results-quick.json with --quick)")
+    ap.add_argument("--no-casadi", action="store_true", help="skip the CasADi baselines (run when CasADi is installed)")
+    ap.add_argument("--no-startup", action="store_true", help="skip the start-up measurement (startup.py reproduce)")
+    ap.add_argument("--device", help="the JAX platform to run on (cpu, gpu, tpu; default JAX's default backend)")
+    ap.add_argument("--batches", help="problem 1's batch sizes, comma separated (default 1,64,1024[,16384][,10^6])")
+    ap.add_argument("--problems", default="1,2,3", help="problems to run, comma separated (1 always runs)")
+    ap.add_argument("--cores", type=int, help="CPU devices, one per core (default every core; 1: one device)")
     args = ap.parse_args(argv)
     jsphere.use_cpu_cores(args.cores)  # before JAX's first operation
     if args.device is not None:
@@ -569,10 +412,7 @@ def main(argv=None) -> int:
     if args.out is None:
         args.out = HERE / ("results-quick.json" if args.quick else "results.json")
     t_start = time.perf_counter()
-    global _SOURCE_AT_IMPORT
-    _SOURCE_AT_IMPORT = _source_digest()
-
-    env = environment()
+    env = environment(source_digest())
     gpu = env["jax"]["platform"] in ("gpu", "cuda", "rocm")
     repeats = 2 if args.quick else 3
     b1 = [1, 64, 1024] + ([] if args.quick else [16384]) + ([10**6] if gpu else [])
@@ -613,14 +453,8 @@ def run_all(args, env, gpu, repeats, b1, b2, b3, n_scipy, t_start) -> int:
         if match:
             r["problem1_forward_median_s"] = match[0]["median_s"]
 
-    end_digest = _source_digest()
-    env["jsphere_git"]["source_sha256_end"] = end_digest
-    env["jsphere_git"]["changed_during_run"] = end_digest != _SOURCE_AT_IMPORT
-    if end_digest != _SOURCE_AT_IMPORT:
-        log("WARNING: jsphere/*.py changed on disk during the run; the numbers are for the code imported at the start.")
-    env["machine"]["loadavg_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
     res = {
-        **env,
+        **finish(env),
         "mode": "quick" if args.quick else "full",
         "settings": {
             "repeats": repeats,
@@ -651,9 +485,9 @@ def run_all(args, env, gpu, repeats, b1, b2, b3, n_scipy, t_start) -> int:
     }
     table = fmt_table(res)
     res["table"] = table.splitlines()
-    write_json_atomic(args.out, res)
     print(table)
-    print(f"\nwall time {res['wall_time_s']:.0f} s; JSON written to {args.out}")
+    print(f"\nwall time {res['wall_time_s']:.0f} s")
+    write_json(args.out, res)
     ok = checks["pass"] and (fd is None or fd["pass"]) and all("error" not in r for r in p2)
     return 0 if ok else 1
 

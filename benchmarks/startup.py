@@ -1,18 +1,21 @@
-"""Start-up cost of the CLI: `jsphere reproduce` in fresh processes, first with an empty
-persistent compilation cache, then three times with the cache the first run filled (the
-median is reported: single runs vary by ~1 s on a 2-core machine).
+"""Start-up: what a new process pays before its first result, each entry in new processes.
 
-    python benchmarks/startup.py [--out benchmarks/results-startup.json]
+    python benchmarks/startup.py [reproduce] [--out benchmarks/results-startup.json]
+    python benchmarks/startup.py fit [--cached-runs 2] [--out benchmarks/results-fit-startup.json]
+    python benchmarks/startup.py first-result [--quick] [--repeat N] [--xla-defaults] [--tasks TASK ...]
 
-Each run is a new Python process (`python -m jsphere.cli.app reproduce ...`), timed from the
-outside (interpreter start, imports, tracing, compilation or cache loads, the solves, the
-figures). Measured in the same run, each with its own empty cache:
-- `default`: the README's command (figures included);
-- `optimize`: the same with `--optimize` (XLA's backend optimisation left on: the baseline
-  for the quick compilation `reproduce` uses by default);
-- `no-plots`: without the figures;
-and a last run with `--no-cache` (what the cache saves). The numbers and the bounds they are
-held to are in docs/performance.md.
+`reproduce`: `jsphere reproduce` with an empty persistent compilation cache, then three
+processes reusing it (their median), for the README's command, `--optimize` (the same-run
+baseline of the quick compilation) and `--no-plots`, each with its own cache, and once with
+`--no-cache`. `fit`: `jsphere fit` of five 6 s torque trials (seven free parameters, 2 starts)
+with an empty cache, twice with the cache filled, and with `--no-cache` (the same-run
+baseline); the fitted values must agree to the last digit (exit status 1 otherwise).
+`first-result`: a new process's first `simulate_gaits`, `simulate`, `jax.grad`, `jax.jacfwd`,
+fit iteration and plan, cold and with the persistent cache, against plain diffrax on a field
+of the same size (`_baseline_problem`), and the quickstart as a whole; each child process
+(`startup.py first-result --child TASK`) times its imports, its first call (with the tracing,
+lowering and XLA time of JAX's monitoring events) and a second call. benchmarks/README.md
+says what each entry records.
 """
 
 from __future__ import annotations
@@ -20,7 +23,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -28,22 +31,11 @@ import time
 from pathlib import Path
 from typing import Callable
 
-HERE = Path(__file__).resolve().parent
-ROOT = HERE.parent
+from common import HERE, ROOT, cli_env, dispatch, environment_in_child, log, run_cli, write_json
+
+# ---------------------------------------------------------------------- reproduce
+
 CONFIGS = {"default": [], "optimize": ["--optimize"], "no-plots": ["--no-plots"]}
-
-
-def run_once(cache_dir: str, argv: list[str]) -> float:
-    """Seconds of one `jsphere` process (`python -m jsphere.cli.app *argv`) with the cache in
-    `cache_dir`, timed from the outside."""
-    env = dict(
-        os.environ, JSPHERE_CACHE_DIR=cache_dir, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")
-    )
-    env.pop("XLA_FLAGS", None)
-    cmd = [sys.executable, "-m", "jsphere.cli.app", *argv]
-    t = time.perf_counter()
-    subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    return time.perf_counter() - t
 
 
 def reproduce_argv(tmp: str, name: str, extra: list[str]) -> list[str]:
@@ -55,8 +47,8 @@ def measure(tmp: str, name: str, extra: list[str], cached_runs: int = 3, command
     """A first process of `command(tmp, name, extra)` (its arguments) with an empty cache in
     `tmp`, then `cached_runs` processes reusing it (their median is `second_process_s`)."""
     cache, argv = os.path.join(tmp, f"cache-{name}"), command(tmp, name, extra)
-    first = run_once(cache, argv)
-    seconds = [run_once(cache, argv) for _ in range(cached_runs)]
+    first = run_cli(argv, cache)
+    seconds = [run_cli(argv, cache) for _ in range(cached_runs)]
     size = sum(f.stat().st_size for f in Path(cache).rglob("*") if f.is_file())
     return {
         "args": extra,
@@ -67,8 +59,8 @@ def measure(tmp: str, name: str, extra: list[str], cached_runs: int = 3, command
     }
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def reproduce(argv) -> int:
+    ap = argparse.ArgumentParser(prog="startup.py reproduce", description="`jsphere reproduce` in new processes")
     ap.add_argument("--out", type=Path, default=HERE / "results-startup.json")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
@@ -77,18 +69,15 @@ def main(argv=None) -> int:
             runs[name] = measure(tmp, name, extra)
             r = runs[name]
             print(f"  {name:<9} first {r['first_process_s']:5.1f} s, second {r['second_process_s']:4.1f} s", flush=True)
-        no_cache = run_once(os.path.join(tmp, "unused"), reproduce_argv(tmp, "no-cache", ["--no-cache"]))
+        no_cache = run_cli(reproduce_argv(tmp, "no-cache", ["--no-cache"]), os.path.join(tmp, "unused"))
     d, b = runs["default"], runs["optimize"]
     res = {
+        **environment_in_child(),
         "command": "python -m jsphere.cli.app reproduce",
         "runs": runs,
         "no_cache_process_s": no_cache,
         "first_default_over_optimize": d["first_process_s"] / b["first_process_s"],
         "second_default_over_optimize": d["second_process_s"] / b["second_process_s"],
-        "cpu_count": os.cpu_count(),
-        "machine": platform.machine(),
-        "python": platform.python_version(),
-        "loadavg": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
         "targets": {"first_s": 20.0, "second_s": 5.0},
     }
     print(
@@ -97,10 +86,505 @@ def main(argv=None) -> int:
         f"(ratios {res['first_default_over_optimize']:.2f} / {res['second_default_over_optimize']:.2f}); "
         f"without cache {no_cache:.1f} s"
     )
-    tmpf = args.out.with_suffix(".tmp")
-    tmpf.write_text(json.dumps(res, indent=2) + "\n")
-    tmpf.replace(args.out)
+    write_json(args.out, res)
     return 0
+
+
+# ---------------------------------------------------------------------- fit
+
+FIT_FREE = "R_m,j,I[0,0],I[1,1],I[2,2],m0,I0"
+FIT_TARGET_SECOND_S = 15.0
+
+
+def fit_argv(tmp: str, name: str, extra: list[str]) -> list[str]:
+    """`jsphere fit` of the trials in `tmp/trials`, its result in `tmp/fit-<name>.json`."""
+    out = os.path.join(tmp, f"fit-{name}.json")
+    return ["fit", os.path.join(tmp, "trials"), "--free", FIT_FREE, "--out", out, "--no-plots", "--quiet", *extra]
+
+
+def make_trials(tmp: str) -> None:
+    """Five synthetic 6 s torque trials of the truth in `tmp/trials` (`jsphere synth`)."""
+    from tasks import truth_params
+
+    truth_params().save(os.path.join(tmp, "truth.toml"))
+    synth = ["synth", "--out", os.path.join(tmp, "trials"), "--trials", "5", "--kind", "torques"]
+    synth += ["--duration", "6", "--params", os.path.join(tmp, "truth.toml"), "--no-cache", "--quiet"]
+    run_cli(synth)
+
+
+def fit(argv) -> int:
+    ap = argparse.ArgumentParser(prog="startup.py fit", description="`jsphere fit` in new processes")
+    ap.add_argument("--out", type=Path, default=HERE / "results-fit-startup.json")
+    ap.add_argument("--cached-runs", type=int, default=2, help="processes reusing the cache")
+    args = ap.parse_args(argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        make_trials(tmp)
+        cached = measure(tmp, "cached", [], cached_runs=args.cached_runs, command=fit_argv)
+        values = {"cached": json.loads(Path(tmp, "fit-cached.json").read_text())["values"]}
+        no_cache = run_cli(fit_argv(tmp, "no-cache", ["--no-cache"]), os.path.join(tmp, "unused"))
+        values["no_cache"] = json.loads(Path(tmp, "fit-no-cache.json").read_text())["values"]
+    same = values["cached"] == values["no_cache"]
+    res = {
+        **environment_in_child(),
+        "command": "python -m jsphere.cli.app " + " ".join(fit_argv("TMP", "cached", [])),
+        "cached": cached,
+        "first_process_s": cached["first_process_s"],
+        "second_process_s": cached["second_process_s"],
+        "no_cache_process_s": no_cache,
+        "second_over_no_cache": cached["second_process_s"] / no_cache,
+        "values": values["cached"],
+        "same_values": same,
+        "targets": {"second_process_s": FIT_TARGET_SECOND_S},
+    }
+    print(f"{'jsphere fit, 5 x 6 s torque trials':<36} {'seconds':>8}")
+    print(f"{'first process, empty cache':<36} {cached['first_process_s']:8.1f}")
+    print(f"{'next processes, cache filled':<36} {cached['second_process_s']:8.1f}")
+    print(f"{'a process without cache':<36} {no_cache:8.1f}")
+    print(f"next / without cache: {res['second_over_no_cache']:.2f}; the same values in every run: {same}")
+    write_json(args.out, res)
+    return 0 if same else 1
+
+
+# ---------------------------------------------------------------------- first result
+
+JSPHERE_TASKS = ("gaits", "simulate", "grad", "jacfwd", "fit", "plan")
+DFX_TASKS = ("dfx_solve", "dfx_grad", "dfx_jacfwd")
+RATIOS = {"gaits": "dfx_solve", "simulate": "dfx_solve", "grad": "dfx_grad", "jacfwd": "dfx_jacfwd"}
+QUICK_TASKS = ("gaits", "grad", "dfx_solve", "dfx_grad")
+#: the environment of the comparison runs with XLA's default options (`--xla-defaults`)
+XLA_DEFAULTS_ENV = {"JSPHERE_XLA_DEFAULTS": "1"}
+#: targets: first simulate_gaits and first gradient at most this many times the baseline's
+TARGET_RATIO = 2.5
+#: target: a second process's first gradient with the cache on, and the quickstart cold [s]
+TARGET_CACHED_GRAD_S, TARGET_QUICKSTART_S = 3.0, 15.0
+
+
+# ------------------------------------------------------------------------------ children
+
+
+def _enable_cache(cache_dir: str, jsphere=None) -> str:
+    """Switch on a persistent compilation cache in `cache_dir`; returns how."""
+    if jsphere is not None:
+        jsphere.enable_compilation_cache(cache_dir)
+        return "jsphere.enable_compilation_cache"
+    import jax
+
+    jax.config.update("jax_compilation_cache_dir", cache_dir)
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)  # -1: no size threshold
+    return "jax.config"
+
+
+def _checks_as_nan(jsphere):
+    """jsphere's `callbacks_as_nan()` (equinox's checks traced without host callbacks, so JAX
+    can write the solves to its cache), or a block that does nothing where jsphere has none."""
+    import contextlib
+
+    try:
+        from jsphere._runtime.compilation_cache import callbacks_as_nan
+    except ImportError:
+        return contextlib.nullcontext()
+    return callbacks_as_nan()
+
+
+def _timed(f, *args):
+    import jax
+
+    t, c = time.perf_counter(), time.process_time()
+    out = jax.block_until_ready(f(*args))
+    return out, time.perf_counter() - t, time.process_time() - c
+
+
+#: JAX's duration events of a program's way to the device, by the name kept in the JSON
+_PHASE_EVENTS = {
+    "/jax/core/compile/jaxpr_trace_duration": "trace_s",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower_s",
+    "/jax/core/compile/backend_compile_duration": "compile_s",
+}
+
+
+def _phases(jax) -> dict:
+    """Totals, from now on, of the time JAX spends tracing, lowering and compiling programs
+    (its monitoring events; nested traces overlap, so `trace_s` may exceed the wall time),
+    and the number of programs compiled."""
+    totals = {"trace_s": 0.0, "lower_s": 0.0, "compile_s": 0.0, "programs": 0}
+
+    def listen(event, duration, **_):
+        key = _PHASE_EVENTS.get(event)
+        if key is not None:
+            totals[key] += float(duration)
+            totals["programs"] += key == "compile_s"
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    return totals
+
+
+def _jsphere_child(task: str, cache_dir: str | None) -> dict:
+    t = time.perf_counter()
+    import diffrax as dfx
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import jsphere
+
+    jax.config.update("jax_enable_x64", True)  # float64, as in the diffrax child
+    rec = {"import_s": time.perf_counter() - t}
+    if cache_dir:
+        rec["cache"] = _enable_cache(cache_dir, jsphere)
+    p = jsphere.RobotParams.paper()
+    options = None  # with the cache on: the solves exported beside it, as the command line's are
+    if cache_dir and hasattr(jsphere, "FastStart"):
+        options = jsphere.SolverOptions(programs=jsphere.FastStart(cache_dir))
+
+    if task == "gaits":
+
+        def f():
+            return jsphere.simulate_gaits(p, [jsphere.acceleration(), jsphere.braking()], options=options).x
+
+    elif task == "simulate":
+        ts = np.concatenate([np.linspace(0.0, 2.0, 201), np.linspace(2.0, 4.0, 201)])
+        sign = np.where(np.arange(ts.size) < 201, 1.0, -1.0)
+        K = 0.02 * (sign * np.sin(np.pi * ts) ** 2)[:, None] * np.array([1.0, -0.5, -0.5])
+        state0 = jsphere.State.at_rest(p)
+
+        def f():
+            return jsphere.simulate(p, state0, jsphere.Torques.from_samples(ts, K), 4.0, ts=ts, options=options).x
+
+    elif task == "fit":
+        ts = np.linspace(0.0, 3.0, 301)
+        K = 0.02 * (np.sin(np.pi * ts / 3.0) ** 2 * np.sin(2.0 * ts))[:, None] * np.array([1.0, -0.5, -0.5])
+        truth = p.replace(R_m=1.02 * float(p.R_m))
+        trial = jsphere.synthetic_trial(truth, jsphere.Torques.from_samples(ts, K), 3.0, rate=50.0, seed=1)
+
+        def f():
+            r = jsphere.fit([trial], p, "R_m,j", n_starts=1, adam_steps=0, max_iter=1, progress=False, options=options)
+            return np.asarray(r.params.R_m)
+
+    elif task == "plan":
+        settings = jsphere.PlanSettings(adam_steps=1, lm_steps=1)
+
+        def f():
+            pl = jsphere.plan(p, (0.3, 0.1), settings=settings, restarts=2, allow_infeasible=True, progress=False)
+            return np.asarray(pl.trajectory.x)
+
+    else:
+        adjoint = dfx.ForwardMode() if task == "jacfwd" else None
+
+        def stop(theta_max):
+            gaits = [jsphere.acceleration(theta_max=theta_max), jsphere.braking(theta_max=theta_max)]
+            return jsphere.simulate_gaits(p, gaits, ts=jnp.array([4.0]), adjoint=adjoint, options=options).x[-1]
+
+        d = jax.grad(stop) if task == "grad" else jax.jacfwd(stop)
+
+        def f():
+            return d(0.1)
+
+    import contextlib
+
+    phases = _phases(jax)
+    with _checks_as_nan(jsphere) if cache_dir else contextlib.nullcontext():
+        out, rec["first_s"], rec["first_cpu_s"] = _timed(f)
+    rec["phases"] = dict(phases)
+    _, rec["second_s"], _ = _timed(f)
+    rec["value"] = float(np.ravel(np.asarray(out))[-1])
+    return rec
+
+
+def _baseline_problem():
+    """A 13-state ODE of about the cost of jsphere's gait field: a quaternion, two angular
+    velocities whose rates come from a 6x6 linear system with a state-dependent matrix,
+    a planar position and one more angle; forcing `theta sin^2(pi t)` through trigonometric
+    terms. Returns `(solve(theta, ts), y0)`, `solve` giving the states at `ts`."""
+    import diffrax as dfx
+    import jax.numpy as jnp
+
+    A0 = jnp.array([[2.0, 0.3, 0.1], [0.3, 1.5, 0.2], [0.1, 0.2, 1.8]])
+    C = jnp.array([[0.2, 0.05, 0.0], [0.0, 0.15, 0.05], [0.05, 0.0, 0.25]])
+
+    def field(t, y, theta):
+        q, w, W, _xy, phi = y[0:4], y[4:7], y[7:10], y[10:12], y[12]
+        g = jnp.stack(
+            [2 * (q[1] * q[3] - q[0] * q[2]), 2 * (q[2] * q[3] + q[0] * q[1]), 1 - 2 * (q[1] ** 2 + q[2] ** 2)]
+        )
+        cp, sp = jnp.cos(phi), jnp.sin(phi)
+        B = C * (1.0 + 0.1 * cp) + 0.05 * jnp.outer(g, g)
+        M = jnp.block([[A0 + 0.1 * jnp.outer(g, g), B], [B.T, A0.T + 0.2 * jnp.eye(3) * (1.0 + 0.05 * sp)]])
+        s = theta * jnp.sin(jnp.pi * t) ** 2
+        force = s * jnp.stack([jnp.cos(2.0 * t), jnp.sin(3.0 * t), jnp.cos(t) * sp])
+        rhs = jnp.concatenate(
+            [force - jnp.cross(w, A0 @ w) - 0.1 * w, -jnp.cross(W, A0 @ W) + 0.3 * jnp.cross(g, W) - 0.05 * W]
+        )
+        acc = jnp.linalg.solve(M, rhs)
+        qdot = 0.5 * jnp.stack(
+            [
+                -q[1] * w[0] - q[2] * w[1] - q[3] * w[2],
+                q[0] * w[0] + q[2] * w[2] - q[3] * w[1],
+                q[0] * w[1] - q[1] * w[2] + q[3] * w[0],
+                q[0] * w[2] + q[1] * w[1] - q[2] * w[0],
+            ]
+        )
+        xydot = 0.15 * jnp.stack([W[1] * cp + W[0] * sp, -W[0] * cp + W[1] * sp])
+        return jnp.concatenate([qdot, acc, xydot, (w[2] - W[2])[None]])
+
+    y0 = jnp.zeros(13).at[0].set(1.0)
+
+    def solve(theta, ts, adjoint=None):
+        sol = dfx.diffeqsolve(
+            dfx.ODETerm(field),
+            dfx.Dopri8(),
+            0.0,
+            4.0,
+            None,
+            y0,
+            theta,
+            saveat=dfx.SaveAt(ts=ts),
+            stepsize_controller=dfx.PIDController(rtol=1e-10, atol=1e-12),
+            max_steps=16384,
+            adjoint=adjoint or dfx.RecursiveCheckpointAdjoint(),
+        )
+        return sol.ys
+
+    solve.field, solve.y0 = field, y0
+    return solve
+
+
+def _dfx_child(task: str, cache_dir: str | None) -> dict:
+    t = time.perf_counter()
+    import diffrax as dfx
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    jax.config.update("jax_enable_x64", True)  # float64, as in the jsphere child
+    rec = {"import_s": time.perf_counter() - t}
+    if cache_dir:
+        rec["cache"] = _enable_cache(cache_dir)
+    solve = _baseline_problem()
+    if task == "dfx_solve":
+        ts = jnp.linspace(0.0, 4.0, 5)
+
+        def f():
+            return solve(jnp.asarray(0.1), ts)[:, 10]
+
+    else:
+        adjoint = dfx.ForwardMode() if task == "dfx_jacfwd" else None
+
+        def stop(theta):
+            return solve(theta, jnp.array([4.0]), adjoint)[-1, 10]
+
+        d = jax.grad(stop) if task == "dfx_grad" else jax.jacfwd(stop)
+
+        def f():
+            return d(0.1)
+
+    phases = _phases(jax)
+    out, rec["first_s"], rec["first_cpu_s"] = _timed(f)
+    rec["phases"] = dict(phases)
+    _, rec["second_s"], _ = _timed(f)
+    rec["value"] = float(np.ravel(np.asarray(out))[-1])
+    return rec
+
+
+def child(task: str, cache_dir: str | None) -> None:
+    rec = _dfx_child(task, cache_dir) if task.startswith("dfx_") else _jsphere_child(task, cache_dir)
+    print("FIRST_RESULT " + json.dumps(rec), flush=True)
+
+
+# ------------------------------------------------------------------------------- parent
+
+
+def run_child(task: str, cache_dir: str | None = None, extra_env: dict | None = None) -> dict:
+    cmd = [sys.executable, str(Path(__file__).resolve()), "first-result", "--child", task] + (
+        ["--cache-dir", cache_dir] if cache_dir else []
+    )
+    load = os.getloadavg()[0]
+    t = time.perf_counter()
+    r = subprocess.run(cmd, env={**cli_env(), **(extra_env or {})}, capture_output=True, text=True, cwd=ROOT)
+    wall = time.perf_counter() - t
+    if r.returncode != 0:
+        raise RuntimeError(f"{task} failed ({r.returncode}):\n{r.stderr[-3000:]}")
+    line = next(ln for ln in r.stdout.splitlines() if ln.startswith("FIRST_RESULT "))
+    return {**json.loads(line[len("FIRST_RESULT ") :]), "wall_s": wall, "loadavg_1min_before": load}
+
+
+def run_quickstart() -> dict:
+    load = os.getloadavg()[0]
+    t = time.perf_counter()
+    subprocess.run(
+        [sys.executable, str(ROOT / "examples" / "quickstart.py")],
+        env=cli_env(),
+        check=True,
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    return {"wall_s": time.perf_counter() - t, "loadavg_1min_before": load}
+
+
+def _cache_files(path: str) -> dict:
+    files = [f for f in Path(path).rglob("*") if f.is_file()]
+    return {"cache_files": len(files), "cache_bytes": sum(f.stat().st_size for f in files)}
+
+
+def run_cached(task: str) -> dict:
+    """The task in a process with an empty cache, then in a second process with that cache."""
+    with tempfile.TemporaryDirectory(prefix="first-result-cache-") as cache:
+        first = run_child(task, cache)
+        files = _cache_files(cache)
+        second = run_child(task, cache)
+    return {**second, **files, "filling_process": first}
+
+
+def _median(runs: list[dict]) -> dict:
+    """Per numeric key, the median over the processes; the runs themselves are kept."""
+    keys = [k for k, v in runs[0].items() if isinstance(v, (int, float)) and not isinstance(v, bool)]
+    out = {k: statistics.median(r[k] for r in runs) for k in keys}
+    out.update({k: v for k, v in runs[0].items() if isinstance(v, str)})
+    if "phases" in runs[0]:
+        out["phases"] = {k: statistics.median(r["phases"][k] for r in runs) for k in runs[0]["phases"]}
+    out["runs"] = runs
+    return out
+
+
+def _ratios(res: dict, key: str = "first_s") -> dict:
+    return {f"{a}/{b}": res[a][key] / res[b][key] for a, b in RATIOS.items() if a in res and b in res}
+
+
+def first_result(argv) -> int:
+    ap = argparse.ArgumentParser(prog="startup.py first-result", description="a new process's first calls")
+    ap.add_argument("--repeat", type=int, default=1, help="processes per entry (the median is reported)")
+    ap.add_argument("--quick", action="store_true", help=f"only {', '.join(QUICK_TASKS)}; no quickstart")
+    ap.add_argument("--no-cache", action="store_true", help="skip the cached part")
+    ap.add_argument("--tasks", nargs="+", choices=JSPHERE_TASKS + DFX_TASKS, help="only these tasks; no quickstart")
+    ap.add_argument(
+        "--xla-defaults",
+        action="store_true",
+        help="also run the jsphere tasks cold with XLA's default options (JSPHERE_XLA_DEFAULTS=1), alternating",
+    )
+    ap.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="JSON record (default: benchmarks/results-first-result.json for a full run; "
+        "a run of some tasks, --tasks or --quick, writes one only where --out is given)",
+    )
+    ap.add_argument("--child", help=argparse.SUPPRESS)
+    ap.add_argument("--cache-dir", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.child:
+        child(args.child, args.cache_dir)
+        return 0
+
+    meta = environment_in_child()
+    tasks = tuple(args.tasks) if args.tasks else QUICK_TASKS if args.quick else JSPHERE_TASKS + DFX_TASKS
+    cold, cached = {}, {}
+    defaults = {}
+    for task in tasks:
+        cold[task] = _median([run_child(task) for _ in range(args.repeat)])
+        r = cold[task]
+        log(
+            f"  cold   {task:<11} import {r['import_s']:4.1f} s, first {r['first_s']:5.1f} s, "
+            f"second {r['second_s']:6.3f} s, process {r['wall_s']:5.1f} s",
+        )
+        if args.xla_defaults and not task.startswith("dfx_"):
+            defaults[task] = _median([run_child(task, extra_env=XLA_DEFAULTS_ENV) for _ in range(args.repeat)])
+            r = defaults[task]
+            log(
+                f"  cold   {task:<11} with XLA's defaults: first {r['first_s']:5.1f} s, second {r['second_s']:6.3f} s",
+            )
+    quickstart = None
+    if not args.quick and not args.tasks:
+        quickstart = _median([run_quickstart() for _ in range(args.repeat)])
+        log(f"  cold   quickstart  process {quickstart['wall_s']:5.1f} s")
+    if not args.no_cache:
+        for task in tasks:
+            cached[task] = _median([run_cached(task) for _ in range(args.repeat)])
+            r = cached[task]
+            log(
+                f"  cached {task:<11} import {r['import_s']:4.1f} s, first {r['first_s']:5.1f} s, "
+                f"process {r['wall_s']:5.1f} s, {r['cache_files']} cache files",
+            )
+
+    ratios = {
+        "cold": _ratios(cold),
+        "cold_cpu": _ratios(cold, "first_cpu_s"),
+        "cached": _ratios(cached) if cached else {},
+        "options_over_xla_defaults": {
+            t: {k: cold[t][k] / defaults[t][k] for k in ("first_s", "first_cpu_s", "second_s")} for t in defaults
+        },
+    }
+    doc = {
+        **meta,
+        "config": {
+            "repeat": args.repeat,
+            "quick": args.quick,
+            "tasks": list(tasks),
+            "baseline": "13-state field, 6x6 jnp.linalg.solve, Dopri8, PIDController(1e-10, 1e-12), t in [0, 4]",
+        },
+        "cold": cold,
+        "cold_xla_defaults": defaults,
+        "cached_second_process": cached,
+        "quickstart_cold": quickstart,
+        "ratios": ratios,
+        "targets": {
+            "first_over_baseline_max": TARGET_RATIO,
+            "cached_grad_first_s_max": TARGET_CACHED_GRAD_S,
+            "quickstart_cold_s_max": TARGET_QUICKSTART_S,
+        },
+    }
+
+    print(
+        f"\n{'task':<11} {'import':>7} {'first':>7} {'cpu':>7} {'second':>8} {'process':>8} {'ratio':>6} | "
+        f"{'cached first':>12} {'process':>8} {'ratio':>6}"
+    )
+    for task in tasks:
+        c, k = cold[task], cached.get(task)
+        rc = ratios["cold"].get(f"{task}/{RATIOS.get(task)}")
+        rk = ratios["cached"].get(f"{task}/{RATIOS.get(task)}")
+        line = f"{task:<11} {c['import_s']:7.2f} {c['first_s']:7.2f} {c['first_cpu_s']:7.2f} {c['second_s']:8.3f} {c['wall_s']:8.2f} "
+        line += f"{rc:6.2f}" if rc is not None else f"{'':>6}"
+        if k:
+            line += f" | {k['first_s']:12.2f} {k['wall_s']:8.2f} " + (f"{rk:6.2f}" if rk is not None else "")
+        print(line)
+    if quickstart:
+        print(f"{'quickstart':<11} {'':>7} {'':>7} {'':>7} {'':>8} {quickstart['wall_s']:8.2f}")
+    print(f"\n{'cold, first call':<17} {'trace':>7} {'lower':>7} {'compile':>8} {'programs':>9}")
+    for task in tasks:
+        ph = cold[task].get("phases")
+        if ph:
+            print(f"{task:<17} {ph['trace_s']:7.2f} {ph['lower_s']:7.2f} {ph['compile_s']:8.2f} {ph['programs']:9.0f}")
+    print(
+        "ratio: first_s over the baseline's (cpu: "
+        + ", ".join(f"{k} {v:.2f}" for k, v in ratios["cold_cpu"].items())
+        + ")"
+    )
+    for t, r in ratios["options_over_xla_defaults"].items():
+        print(
+            f"{t}: jsphere's compiler options over XLA's defaults: first {r['first_s']:.2f}x "
+            f"(cpu {r['first_cpu_s']:.2f}x), second call {r['second_s']:.2f}x"
+        )
+    print(
+        f"targets: first gaits / grad at most {TARGET_RATIO}x the baseline; cached first grad <= {TARGET_CACHED_GRAD_S} s; "
+        f"quickstart cold < {TARGET_QUICKSTART_S} s"
+    )
+
+    out = args.out or (None if args.tasks or args.quick else HERE / "results-first-result.json")
+    if out is None:  # the record of the full run stays whole
+        print("not written: a run of some tasks writes its record only to --out")
+        return 0
+    write_json(out, doc)
+    return 0
+
+
+COMMANDS = {"reproduce": reproduce, "fit": fit, "first-result": first_result}
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0].startswith("--") and argv[0] not in ("-h", "--help"):
+        argv = ["reproduce", *argv]
+    return dispatch(COMMANDS, argv, __doc__)
 
 
 if __name__ == "__main__":

@@ -3,47 +3,16 @@ compiled fixed-step RK4 and scipy's DOP853, all measured in one run.
 
     python benchmarks/work_precision.py                  # full run (about 5 min on 2 CPU cores)
     python benchmarks/work_precision.py --quick          # fewer settings, batch 256 (about 1.5 min)
-    python benchmarks/work_precision.py --batch 1024 --repeats 3 --out benchmarks/results-work-precision.json \
-        --figure docs/images/work-precision.png
 
-The problem is problem 1 of `run.py` (its definitions are imported from there): the paper's robot
-from rest, torques `K_i = a_i sin(pi t + 2.1 (i - 1))`, `a_i = 0.05 (1 + 0.1 z_i)`, `z` the rows
-of `default_rng(0).standard_normal`, over [0, 4] s; the output is the final `(x, y)`.
-
-For every method and setting the script measures:
-
-- the error: the largest distance `|(x, y) - (x_ref, y_ref)|` of the final position [m] over
-  the first `--error-trials` trials (16; 4 with `--quick`), against scipy DOP853 at rtol 1e-13,
-  atol 1e-14 on the numpy model of `numpy_model.py`. jsphere (Dopri8) at rtol 1e-13, atol 1e-15
-  solves the same trials as a second reference; the largest distance between the two
-  references is reported (it is the floor of the error axis);
-- the throughput: trials/s = trials per call / the median wall time of the steady-state calls
-  (`run.time_call`'s rule for jsphere: at least `--repeats` calls, more while they total under
-  1 s); compilation (first call minus the median for jsphere, construction with the C compiler
-  plus the first call's excess for CasADi) is reported separately and not counted.
-
-Methods and settings:
-
-- jsphere: `jax.jit(jax.vmap(lambda a: jsphere.simulate(p, State.at_rest(p), Torques(...), 4.0,
-  rtol=rtol, atol=rtol / 100, solver=S)))` on a batch of `--batch` trials (1024), the public API
-  with its defaults (steps shared by the batch), the batch split over one CPU device per core
-  (`jsphere.use_cpu_cores`, `jsphere.shard_trials`; `--cores`), as CasADi's map is over the CPU's
-  threads; S = Dopri8, Tsit5 and Verner's 7(6) pair (`verner.Vern7`, run by jsphere's batch
-  loop as a user-defined tableau) at rtol 1e-3 ... 1e-11, and Dopri5 at every other decade; the
-  error is that of the batch's first trials.
-- CasADi: `casadi_baseline.rk4_batch` (the right-hand side in SX, RK4 folded with `mapaccum`,
-  C `-O3`, mapped over the CPU's threads) at 25 ... 6400 steps over 4 s, same batch.
-- scipy: `run.scipy_trial` (`solve_ivp(method="DOP853")` on `numpy_model.NumpyRobot.rhs`, one
-  trial at a time) at rtol 1e-3 ... 1e-11, atol = rtol / 100, on the error trials only; its
-  trials/s is that of those trials run one after another.
-
-Then, for each accuracy decade from 1e-3 m to 1e-9 m, the fastest *measured* setting of each
-method whose error is at most that decade (no interpolation between settings), and the ratios
-jsphere / CasADi and jsphere / scipy of their trials/s (jsphere: the fastest of its solvers).
-
-Prints a table to stdout (progress to stderr), writes the JSON atomically (default
-`benchmarks/results-work-precision.json`) and a log-log figure (default
-`docs/images/work-precision.png`; with `--quick` both default to `...-quick` names beside the JSON).
+jsphere (`jax.jit(jax.vmap(simulate(..., rtol, atol=rtol / 100, solver=S)))`, the batch split
+over one CPU device per core) with Dopri8, Tsit5, Verner's 7(6) pair (`Vern7` below) and
+Dopri5; CasADi's `rk4_batch` at 25 ... 6400 steps; scipy's DOP853 on `NumpyRobot` one trial
+at a time. Per setting: the largest final-position error over the first trials against DOP853
+at rtol 1e-13 (jsphere at rtol 1e-13 a second reference, their distance the floor of the error
+axis), and trials/s from the steady-state median (`common.time_call`), compilation reported
+apart. Then per accuracy decade the fastest *measured* setting of each method (no
+interpolation) and their ratios, and Vern7 against Dopri8 at equal error. Writes the JSON and
+a log-log figure (`docs/images/work-precision.png`); benchmarks/README.md has the details.
 """
 
 from __future__ import annotations
@@ -57,11 +26,9 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import ClassVar
 
-HERE = Path(__file__).resolve().parent
-ROOT = HERE.parent
-sys.path.insert(0, str(ROOT))  # the jsphere of this checkout
-sys.path.insert(0, str(HERE))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # this folder's modules (the checkout's jsphere first)
 
 import jax  # noqa: E402
 
@@ -70,13 +37,12 @@ jax.config.update("jax_enable_x64", True)
 import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-import run  # noqa: E402  (problem 1: amplitudes, phases, the scipy trial, timing, environment)
-from numpy_model import NumpyRobot  # noqa: E402
-from verner import Vern7  # noqa: E402
+import run  # noqa: E402  (problem 1: amplitudes, phases, the scipy trial, the devices)
+from casadi_baseline import NumpyRobot  # noqa: E402
+from common import HERE, ROOT, environment, finish, log, public, source_digest, time_call, write_json  # noqa: E402
+from diffrax import ButcherTableau  # noqa: E402
 
 import jsphere  # noqa: E402
-from jsphere._runtime.files import atomic_savefig  # noqa: E402
-from jsphere.solve.batched.method import tableau  # noqa: E402
 
 try:
     import casadi as ca
@@ -84,6 +50,79 @@ try:
     from casadi_baseline import rk4_batch
 except ImportError:  # pragma: no cover - optional benchmark dependency
     ca = None
+
+# fmt: off
+_c = np.array([0.0, 0.005, 0.1088888888888888888888888888888888888889, 0.1633333333333333333333333333333333333333,
+    0.4555, 0.6095094489978381317087004421486024949638, 0.884, 0.925, 1.0, 1.0])
+_a = np.zeros((10, 10))
+_a[1, :1] = [0.005]
+_a[2, :2] = [-1.076790123456790123456790123456790123457, 1.185679012345679012345679012345679012346]
+_a[3, :3] = [0.04083333333333333333333333333333333333333, 0.0, 0.1225]
+_a[4, :4] = [0.6389139236255726780508121615993336109954, 0.0, -2.455672638223656809662640566430653894211,
+    2.272258714598084131611828404831320283215]
+_a[5, :5] = [-2.661577375018757131119259297861818119279, 0.0, 10.80451388645613769565396655365532838482,
+    -8.353914657396199411968048547819291691541, 0.8204875949566569791420417341743839209619]
+_a[6, :6] = [6.067741434696770992718360183877276714679, 0.0, -24.71127363591108579734203485290746001803,
+    20.42751793078889394045773111748346612697, -1.906157978816647150624096784352757010879,
+    1.006172249242068014790040335899474187268]
+_a[7, :7] = [12.05467007625320299509109452892778311648, 0.0, -49.75478495046898932807257615331444758322,
+    41.14288863860467663259698416710157354209, -4.461760149974004185641911603484815375051,
+    2.042334822239174959821717077708608543738, -0.09834843665406107379530801693870224403537]
+_a[8, :8] = [10.13814652288180787641845141981689030769, 0.0, -42.64113603171750214622846006736635730625,
+    35.76384003992257007135021178023160054034, -4.348022840392907653340370296908245943710,
+    2.009862268377035895441943593011827554771, 0.3487490460338272405953822853053145879140,
+    -0.2714390051048312842371587140910297407572]
+_a[9, :9] = [-45.03007203429867712435322405073769635151, 0.0, 187.3272437654588840752418206154201997384,
+    -154.0288236935018690596728621034510402582, 18.56465306347536233859492332958439136765,
+    -7.141809679295078854925420496823551192821, 1.308808578161378625114762706007696696508, 0.0, 0.0]
+_b = np.array([0.04715561848627222170431765108838175679569, 0.0, 0.0, 0.2575056429843415189596436101037687580986,
+    0.2621665397741262047713863095764527711129, 0.1521609265673855740323133199165117535523,
+    0.4939969170032484246907175893227876844296, -0.2943031171403250441557244744092703429139,
+    0.08131747232495109999734599440136761892478, 0.0])
+_bh = np.array([0.04460860660634117628731817597479197781432, 0.0, 0.0, 0.2671640378571372680509102260943837899738,
+    0.2201018300177293019979715776650753096323, 0.2188431703143156830983120833512893824578,
+    0.2289871705411202883378173889763552365362, 0.0, 0.0, 0.02029518466335628222767054793810430358554])
+# fmt: on
+
+
+def _fsal_tableau() -> ButcherTableau:
+    """The pair's tableau with the 11th stage appended (module docstring)."""
+    s = 11
+    a = np.zeros((s, s))
+    a[:10, :10] = _a
+    a[10, :10] = _b
+    b_sol = np.concatenate([_b, [0.0]])
+    b_error = np.concatenate([_b - _bh, [0.0]])
+    c = np.concatenate([_c, [1.0]])
+    return ButcherTableau(c=c[1:], b_sol=b_sol, b_error=b_error, a_lower=tuple(a[i, :i] for i in range(1, s)))
+
+
+class Vern7(diffrax.AbstractERK):
+    """Verner's "most efficient" 7(6) Runge-Kutta pair as a diffrax solver; jsphere's batch
+    loop runs it as any user-defined first-same-as-last explicit method.
+
+    The coefficients are Verner's (J. H. Verner, "Numerically optimal Runge-Kutta pairs with
+    interpolants", Numer. Algorithms 53 (2010) 383-396; the pair RKV76.IIa "Efficient",
+    published at https://www.sfu.ca/~jverner/ as RKV76.IIa.Efficient.00001675585.081206), to the
+    digits published there. The pair has 10 stages, the solution of order 7 from stages 1-9 and
+    the embedded one of order 6 from stages 1-7 and 10. Here an 11th stage at `c = 1` with the
+    solution's weights is appended, the rates at the step's end, so that the tableau is first
+    same as last: each step then costs 10 evaluations of the field, the first stage of the next
+    step included, as Verner's pair does when its rates at the end are reused.
+
+    Dense output: Verner's interpolant of order 7 needs six more stages, which diffrax's
+    interpolation classes cannot evaluate, so save times inside a step use a cubic Hermite
+    interpolant (diffrax's `ThirdOrderHermitePolynomialInterpolation`). The benchmark reads the
+    state at the end time only, which is the step's solution itself, not an interpolated value.
+    This solver is for measurement, not for use.
+    """
+
+    tableau: ClassVar[ButcherTableau] = _fsal_tableau()
+    interpolation_cls: ClassVar = diffrax.ThirdOrderHermitePolynomialInterpolation.from_k
+
+    def order(self, terms):
+        return 7
+
 
 REF_RTOL, REF_ATOL = 1e-13, 1e-14  # scipy DOP853 reference
 JS_REF_RTOL, JS_REF_ATOL = 1e-13, 1e-15  # jsphere Dopri8, the second reference
@@ -111,8 +150,6 @@ QUICK = {
     "casadi_steps": [50, 200, 800],
     "scipy_rtols": [1e-3, 1e-6, 1e-9],
 }
-
-log = run.log
 
 
 def final_error(xy: np.ndarray, ref: np.ndarray) -> float:
@@ -152,7 +189,7 @@ def jsphere_rows(p, A, ref, grid, repeats):
         for rtol in rtols:
             log(f"[jsphere] {name} rtol {rtol:.0e}, batch {A.shape[0]} ...")
             f = jsphere_batch_fn(p, SOLVERS[name](), rtol, rtol / 100)
-            r = run.time_call(f, A, repeats=repeats)
+            r = time_call(f, A, repeats=repeats)
             tr = r["_out"]
             row = {
                 "method": f"jsphere {name}",
@@ -164,9 +201,9 @@ def jsphere_rows(p, A, ref, grid, repeats):
                 "trials_per_s": A.shape[0] / r["median_s"],
                 "steps_mean": float(np.mean(np.asarray(tr.num_steps))),
                 # field evaluations per accepted step: the stages after the first (first same as last)
-                "evaluations_per_step": int(tableau(SOLVERS[name]()).a.shape[0] - 1),
+                "evaluations_per_step": int(len(SOLVERS[name].tableau.c) + 1 - SOLVERS[name].tableau.fsal),
                 "all_ok": bool(np.all(np.asarray(tr.ok))),
-                **run.public(r),
+                **public(r),
             }
             log(
                 f"      error {row['error_m']:.1e} m, {row['trials_per_s']:.0f} trials/s, compile {r['compile_s']:.1f} s"
@@ -437,7 +474,9 @@ def figure(rows, path: Path, floor_m: float, title: str) -> None:
     ax.grid(True, which="minor", alpha=0.1)
     ax.legend(fontsize=8, loc="lower left")
     fig.tight_layout()
-    atomic_savefig(fig, path)
+    tmp = path.with_name(f".{path.stem}.tmp{path.suffix}")
+    fig.savefig(tmp)
+    os.replace(tmp, path)
     plt.close(fig)
 
 
@@ -447,20 +486,13 @@ def figure(rows, path: Path, floor_m: float, title: str) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--batch", type=int, default=None, help="trials per jsphere and CasADi call (1024; 256 in --quick)")
-    ap.add_argument(
-        "--repeats", type=int, default=None, help="steady-state calls per setting, at least (3; 2 in --quick)"
-    )
+    ap.add_argument("--repeats", type=int, help="steady-state calls per setting, at least (3; 2 in --quick)")
     ap.add_argument("--error-trials", type=int, default=None, help="trials the error is taken over (16; 4 in --quick)")
     ap.add_argument("--quick", action="store_true", help="fewer settings, smaller batch: a smoke run")
     ap.add_argument("--out", type=Path, default=None, help="JSON output, written atomically")
     ap.add_argument("--figure", type=Path, default=None, help="the PNG (log-log, error against trials/s)")
     ap.add_argument("--threads", type=int, default=os.cpu_count() or 2, help="CasADi's map threads (CPU count)")
-    ap.add_argument(
-        "--cores",
-        type=int,
-        default=None,
-        help="CPU devices jsphere's batch is split over, one per core (default: every core of this process)",
-    )
+    ap.add_argument("--cores", type=int, help="CPU devices jsphere's batch is split over (default one per core)")
     args = ap.parse_args(argv)
     jsphere.use_cpu_cores(args.cores)  # before JAX's first operation
     cfg = dict(QUICK if args.quick else FULL)
@@ -476,8 +508,7 @@ def main(argv=None) -> int:
         ap.error("--error-trials must not exceed --batch")
 
     t_start = time.perf_counter()
-    run._SOURCE_AT_IMPORT = run._source_digest()
-    env = run.environment()
+    env = environment(source_digest())
     env["versions"]["casadi"] = ca.__version__ if ca is not None else None
     log(
         f"work-precision ({'quick' if args.quick else 'full'}): batch {B}, error over {n_err} trials, "
@@ -500,7 +531,7 @@ def main(argv=None) -> int:
     agree = final_error(ref_js, ref)
     log(f"      references agree to {agree:.1e} m")
     reference = {
-        "used": f"scipy DOP853 rtol {REF_RTOL:.0e} atol {REF_ATOL:.0e} on numpy_model.NumpyRobot",
+        "used": f"scipy DOP853 rtol {REF_RTOL:.0e} atol {REF_ATOL:.0e} on casadi_baseline.NumpyRobot",
         "trials": n_err,
         "wall_s": ref_s,
         "steps_mean": float(np.mean([len(s.t) - 1 for s in ref_sols])),
@@ -518,12 +549,7 @@ def main(argv=None) -> int:
     cross = crossover(rows)
     compared = [c for m in COMPARED_ONLY for c in equal_error(rows, m)]
 
-    end_digest = run._source_digest()
-    env["jsphere_git"]["source_sha256_end"] = end_digest
-    env["jsphere_git"]["changed_during_run"] = end_digest != run._SOURCE_AT_IMPORT
-    if env["jsphere_git"]["changed_during_run"]:
-        log("WARNING: jsphere/*.py changed on disk during the run; the numbers are for the code imported at the start.")
-    env["machine"]["loadavg_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None
+    finish(env)
     wall = time.perf_counter() - t_start
     table = fmt_rows(rows) + [""] + fmt_crossover(cross) + [""] + fmt_equal_error(compared)
     table += [
@@ -562,7 +588,7 @@ def main(argv=None) -> int:
         "wall_time_s": wall,
         "table": table,
     }
-    run.write_json_atomic(args.out, res)
+    write_json(args.out, res)
     title = (
         f"problem 1 (4 s, batch {B}; scipy one trial at a time): {env['machine']['cpu_count']} CPUs, "
         f"JAX {jax.default_backend()}, load {env['machine']['loadavg_start'][0]:.1f}-"

@@ -1,4 +1,4 @@
-"""`benchmarks/verner.py`'s pair, which the work-precision benchmark measures against Dopri8:
+"""`benchmarks/work_precision.py`'s `Vern7`, the pair it measures against Dopri8:
 its transcribed coefficients make a method of order 7 with an embedded one of order 6."""
 
 import importlib.util
@@ -14,7 +14,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def _vern7():
-    spec = importlib.util.spec_from_file_location("benchmarks_verner", ROOT / "benchmarks" / "verner.py")
+    spec = importlib.util.spec_from_file_location("benchmarks_work_precision", ROOT / "benchmarks" / "work_precision.py")
     mod = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = mod  # equinox's dataclass reads the module of the class it makes
     spec.loader.exec_module(mod)

@@ -1,0 +1,795 @@
+"""User tasks end to end, each against a same-run baseline.
+
+    python benchmarks/tasks.py TASK [options]          # TASK --help lists its options
+
+- `fit`: system identification on synthetic captures of `TRUTH` (default 20 wheel-speed
+  trials x 601 samples): time, and the recovery of each free parameter in standard errors;
+- `fit-long`: three 15 s and one 30 s torque trials, seven free parameters, in new processes
+  with one CPU device per core and with one device, alternately;
+- `robust-fit [--long]`: five glitchy 6 s torque trials (ghost frames, marker swaps) against
+  the clean ones, robust losses and `l2`; `--long`: Huber's loss in the warm-up stages then
+  Cauchy's, against Cauchy's in every stage;
+- `plan`: the planner's search, restarts x targets in one vmapped, compiled call, with the
+  time per (problem x iteration) extrapolated to 256 x 16;
+- `robust-plan`: `plan_robust` against the nominal `plan`, and its vmapped RK4 replay of drawn
+  robots against a loop of the adaptive `simulate`;
+- `track`: `jsphere track`'s gains and its open- and closed-loop evaluation on drawn robots
+  against the open-loop wheel-speed replay of the same draws;
+- `design`: `jsphere design` end to end, then its trials and the baseline's fitted on a robot
+  6-8 % away: the factor baseline / design standard error, predicted and fitted;
+- `animate`: a 10 s clip as MP4 (blitted, and every frame drawn in full: the baseline), GIF
+  and HTML viewer.
+
+Each prints a table and writes its JSON (`--out`; benchmarks/README.md names the files).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from common import HERE, cli_env, dispatch, environment, log, print_pairs, result_path, run_child, write_json
+
+import jsphere
+
+jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
+
+# ---------------------------------------------------------------------- fits
+
+#: the parameter set the fit does not know
+TRUTH = {"R_m": 0.029, "j": 3.2e-4, "m0": 0.9, "I0": 0.011, "I": np.diag([0.018, 0.015, 0.025])}
+
+
+def truth_params() -> jsphere.RobotParams:
+    return jsphere.RobotParams.paper().replace(**TRUTH)
+
+
+def make_trials(truth, n, durations, kind, seed, rate=100.0):
+    """`n` synthetic trials; durations drawn uniformly from `durations = (lo, hi)` [s], or
+    `durations` itself when it is a list of `n` lengths [s]."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n):
+        t1 = durations[i] if isinstance(durations, list) else float(np.round(rng.uniform(*durations) * rate) / rate)
+        u = jsphere.random_inputs(truth, t1, kind=kind, seed=seed * 1000 + i)
+        out.append(jsphere.synthetic_trial(truth, u, t1, rate=rate, seed=seed * 1000 + i, name=f"trial{i:02d}"))
+    return out
+
+
+def run(kind, n, durations, free, fix_names, seed=0, n_starts=2, progress=True, **kw):
+    truth = truth_params()
+    trials = make_trials(truth, n, durations, kind, seed)
+    fix = {name: np.asarray(jsphere.get_value(truth, name)).tolist() for name in fix_names}
+    t = time.perf_counter()
+    res = jsphere.fit(
+        trials, jsphere.RobotParams.paper(), free, fix=fix, n_starts=n_starts, seed=seed, progress=progress, **kw
+    )
+    elapsed = time.perf_counter() - t
+    rows = []
+    for name in res.free:
+        tv = float(jsphere.get_value(truth, name))
+        v, se = res.values[name], res.stderr[name]
+        rows.append(
+            {"name": name, "truth": tv, "fit": v, "stderr": se, "error_se": (v - tv) / se if se > 0 else float("nan")}
+        )
+    return res, rows, elapsed, trials
+
+
+def other_robot() -> jsphere.RobotParams:
+    """A robot 5-20 % away from the paper's: the truth of `robust-fit`."""
+    return jsphere.RobotParams.paper().replace(
+        m0=0.85, I0=0.0105, j=3.2e-4, r_m=np.array([0.0, 0.0, -0.031]), I=np.diag([0.018, 0.0145, 0.026])
+    )
+
+
+def torque_trials(robot, lengths, seed: int = 0):
+    """Torque trials of `lengths` [s] at 100 Hz (random inputs of 0.3-0.7 Hz)."""
+    out = []
+    for i, length in enumerate(lengths):
+        u = jsphere.random_inputs(robot, length, kind="torques", f_min=0.3, f_max=0.7, seed=seed * 100 + i)
+        out.append(jsphere.synthetic_trial(robot, u, length, rate=100.0, seed=seed * 100 + i, name=f"t{i}"))
+    return out
+
+
+def fit(argv) -> int:
+    """`fit` (module docstring)."""
+    ap = argparse.ArgumentParser(prog="tasks.py fit")
+    ap.add_argument("--kind", default="wheel_speeds", choices=["wheel_speeds", "torques"])
+    ap.add_argument("--trials", type=int, default=20)
+    ap.add_argument("--duration", default="6", help="seconds, or lo:hi for a uniform draw per trial")
+    ap.add_argument("--free", default="R_m,j,I[0,0],I[1,1],I[2,2],I0")
+    ap.add_argument("--fix", default="m,m0", help="names set to the truth (comma-separated)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--n-starts", type=int, default=2)
+    ap.add_argument("--solver", help="a diffrax solver's name (e.g. Dopri8); default: the fit's own (FIT_SOLVER)")
+    ap.add_argument("--out", default=str(HERE / "results-fit.json"))
+    args = ap.parse_args(argv)
+    lo, _, hi = args.duration.partition(":")
+    durations = (float(lo), float(hi or lo))
+    fix_names = [n for n in args.fix.split(",") if n]
+    kw = {}
+    if args.solver:
+        import diffrax
+
+        kw["options"] = jsphere.SolverOptions(solver=getattr(diffrax, args.solver)())
+    res, rows, elapsed, trials = run(
+        args.kind, args.trials, durations, args.free, fix_names, args.seed, args.n_starts, **kw
+    )
+    print(
+        f"\n{args.trials} trials ({args.kind}), {sum(len(t.t) for t in trials)} samples; fit {elapsed:.1f} s "
+        f"({res.iterations} LM iterations, {args.n_starts} starts, converged {res.converged})"
+    )
+    print(f"{'name':<8} {'truth':>12} {'fit':>12} {'stderr':>10} {'err/SE':>7}")
+    for r in rows:
+        print(f"{r['name']:<8} {r['truth']:>12.6g} {r['fit']:>12.6g} {r['stderr']:>10.3g} {r['error_se']:>7.2f}")
+    print(f"sigma_pos {res.sigma_pos * 1e3:.3f} mm, sigma_rot {np.degrees(res.sigma_rot):.3f} deg")
+    for w in res.identifiability["warnings"]:
+        print("warning:", w)
+    doc = {
+        **environment(),
+        "config": {
+            "kind": args.kind,
+            "trials": args.trials,
+            "duration_s": durations,
+            "samples": sum(len(t.t) for t in trials),
+            "free": args.free,
+            "fix": fix_names,
+            "n_starts": args.n_starts,
+            "seed": args.seed,
+            "solver": args.solver or "the fit's default (Tsit5)",
+        },
+        "fit_s_including_compile": elapsed,
+        "iterations": res.iterations,
+        "converged": res.converged,
+        "sigma_pos_mm": res.sigma_pos * 1e3,
+        "sigma_rot_deg": float(np.degrees(res.sigma_rot)),
+        "rows": rows,
+    }
+    write_json(args.out, doc)
+    return 0
+
+
+LONG_FREE = "R_m,j,I[0,0],I[1,1],I[2,2],m0,I0"
+LONG_DURATIONS = [15.0, 15.0, 15.0, 30.0]
+LONG_TARGET_S = 60.0
+
+
+def long_fit_child(devices: int) -> dict:
+    """One fit in this process, with `devices` CPU devices (0: one per core; set before JAX's
+    first operation, which `main` leaves to this)."""
+    jsphere.use_cpu_cores(devices or None)
+    truth = truth_params()
+    trials = make_trials(truth, len(LONG_DURATIONS), LONG_DURATIONS, "torques", seed=7)
+    t0 = time.perf_counter()
+    res = jsphere.fit(trials, jsphere.RobotParams.paper(), LONG_FREE, progress=False)
+    elapsed = time.perf_counter() - t0
+    z = {n: (res.values[n] - float(jsphere.get_value(truth, n))) / res.stderr[n] for n in res.free}
+    return {
+        **environment(),
+        "fit_s": elapsed,
+        "iterations": res.iterations,
+        "converged": bool(res.converged),
+        "shooting": res.shooting,
+        "values": res.values,
+        "z": z,
+    }
+
+
+def fit_long(argv) -> int:
+    """`fit-long` (module docstring)."""
+    ap = argparse.ArgumentParser(prog="tasks.py fit-long")
+    ap.add_argument("--repeat", type=int, default=1, help="pairs of processes (per core, one device)")
+    ap.add_argument("--out", type=Path, default=HERE / "results-fit-long.json")
+    ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.child is not None:
+        print(json.dumps(long_fit_child(args.child)))
+        return 0
+    env = cli_env()
+    env.pop("JAX_NUM_CPU_DEVICES", None)
+    runs = {"per_core": [], "one_device": []}
+    for _ in range(args.repeat):
+        runs["per_core"].append(run_child("tasks.py", ["fit-long", "--child", "0"], env))
+        runs["one_device"].append(run_child("tasks.py", ["fit-long", "--child", "1"], env))
+    med = {k: statistics.median(r["fit_s"] for r in v) for k, v in runs.items()}
+    last = runs["per_core"][-1]
+    res = {
+        **{k: last[k] for k in ("date_utc", "machine", "jax", "versions", "jsphere_git")},
+        "trials_s": LONG_DURATIONS,
+        "free": LONG_FREE,
+        "devices": last["jax"]["device_count"],
+        "fit_s": med["per_core"],
+        "fit_s_one_device": med["one_device"],
+        "one_device_over_per_core": med["one_device"] / med["per_core"],
+        "runs": runs,
+        "targets": {"fit_s": LONG_TARGET_S},
+    }
+    print(f"{'long-capture fit (3 x 15 s + 30 s, 7 free)':<44} {'fit s':>7} {'|z| max':>8} {'iterations':>11}")
+    for k, v in runs.items():
+        r = v[-1]
+        label = f"{r['jax']['device_count']} device(s)"
+        print(f"{label:<44} {med[k]:7.1f} {max(abs(x) for x in r['z'].values()):8.2f} {r['iterations']:11d}")
+    print(f"one device / one per core: {res['one_device_over_per_core']:.2f}; target {LONG_TARGET_S:.0f} s")
+    write_json(args.out, res)
+    return 0
+
+
+ROBUST_FREE = "r_m[2],j,I[0,0],I[1,1],I[2,2],m0,I0"
+
+
+def glitchy(clean, seed: int):
+    from jsphere.capture.synthetic import add_glitches
+
+    out, bad = [], {}
+    for i, t in enumerate(clean):
+        g, rows = add_glitches(t, seed=seed * 100 + i)
+        out.append(g)
+        bad[g.name] = set(rows.tolist())
+    return out, bad
+
+
+def robust_one(robot, tr, bad, loss):
+    t = time.perf_counter()
+    res = jsphere.fit(tr, jsphere.RobotParams.paper(), ROBUST_FREE, loss=loss, progress=False)
+    wall = time.perf_counter() - t
+    z = [abs((res.values[k] - float(jsphere.get_value(robot, k))) / res.stderr[k]) for k in res.free]
+    named = {k: set(v["frames"]) for k, v in res.outliers.items()}
+    injected = sum(len(b) for b in bad.values())
+    return {
+        "loss": loss,
+        "wall_s": wall,
+        "iterations": res.iterations,
+        "max_error_se": float(max(z)),
+        "status": res.status,
+        "sigma_pos_mm": res.sigma_pos * 1e3,
+        "sigma_rot_deg": math.degrees(res.sigma_rot),
+        "injected": injected,
+        "named_share": sum(len(bad.get(k, set()) & v) for k, v in named.items()) / injected if injected else None,
+        "clean_frames_set_aside": sum(len(v - bad.get(k, set())) for k, v in named.items()),
+        "values": {k: res.values[k] for k in res.free},
+        "stderr": {k: res.stderr[k] for k in res.free},
+    }
+
+
+def long_capture(out: str) -> None:
+    """`--long` (module docstring)."""
+    from jsphere.identify import fit as fit_module
+
+    robot = other_robot()
+    tr = torque_trials(robot, (15.0, 15.0, 15.0, 30.0))
+    rows = []
+    for how, redescending in (("huber, then cauchy", fit_module.REDESCENDING), ("cauchy in every stage", ())):
+        log(f"long capture, {how} ...")
+        fit_module.REDESCENDING = redescending  # () : no warm stage, the fit's loss in every stage
+        try:
+            rows.append({"stages": how} | robust_one(robot, tr, {}, "cauchy"))
+        finally:
+            fit_module.REDESCENDING = ("cauchy",)
+    head = f"{'stages':<22} {'wall s':>7} {'iters':>6} {'max|z|':>7} {'sigma mm':>8} {'set aside':>9}  status"
+    print(head)
+    print("-" * len(head))
+    for r in rows:
+        print(
+            f"{r['stages']:<22} {r['wall_s']:>7.1f} {r['iterations']:>6d} {r['max_error_se']:>7.2f} "
+            f"{r['sigma_pos_mm']:>8.3f} {r['clean_frames_set_aside']:>9d}  {r['status']}"
+        )
+    doc = {
+        **environment(),
+        "config": {"free": ROBUST_FREE, "lengths_s": [15, 15, 15, 30], "rate_hz": 100.0},
+        "rows": rows,
+    }
+    write_json(out, doc)
+
+
+def robust_fit(argv) -> int:
+    """`robust-fit` (module docstring)."""
+    ap = argparse.ArgumentParser(prog="tasks.py robust-fit")
+    ap.add_argument(
+        "--losses", nargs="+", default=["cauchy", "huber", "l2"], help="losses fitted to the glitchy capture"
+    )
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--long", action="store_true", help="the long capture: Cauchy from Huber's point or in every stage")
+    ap.add_argument(
+        "--out", help="result JSON (default results-robust-fit.json, with --long results-robust-fit-long.json)"
+    )
+    args = ap.parse_args(argv)
+    if args.long:
+        long_capture(result_path(args, "results-robust-fit-long.json"))
+        return 0
+    args.out = result_path(args, "results-robust-fit.json")
+    robot = other_robot()
+    clean = torque_trials(robot, [6.0] * 5, args.seed)
+    dirty, bad = glitchy(clean, args.seed)
+    log("clean capture, cauchy (compiles) ...")
+    first = robust_one(robot, clean, {}, "cauchy")
+    rows = []
+    log("clean capture, cauchy, compiled ...")
+    rows.append({"capture": "clean"} | robust_one(robot, clean, {}, "cauchy"))
+    for loss in args.losses:
+        log(f"glitchy capture, {loss} ...")
+        rows.append({"capture": "glitchy"} | robust_one(robot, dirty, bad, loss))
+    log("clean capture, l2 ...")
+    l2 = robust_one(robot, clean, {}, "l2")
+    rows.append({"capture": "clean"} | l2)
+    rob = rows[0]
+    # no cost on clean data: the robust fit against least squares, in the latter's standard errors
+    clean_vs_l2 = {
+        "max_value_difference_se": max(abs(rob["values"][k] - l2["values"][k]) / l2["stderr"][k] for k in l2["values"]),
+        "stderr_ratio_range": [
+            min(rob["stderr"][k] / l2["stderr"][k] for k in l2["values"]),
+            max(rob["stderr"][k] / l2["stderr"][k] for k in l2["values"]),
+        ],
+    }
+    base = rows[0]["wall_s"]
+    head = f"{'capture':<8} {'loss':<8} {'wall s':>7} {'x clean':>8} {'iters':>6} {'max|z|':>7} {'sigma mm':>8} {'sigma deg':>9} {'named':>6} {'clean out':>9}  status"
+    print(head)
+    print("-" * len(head))
+    for r in rows:
+        named = "" if r["named_share"] is None else f"{r['named_share']:.0%}"
+        print(
+            f"{r['capture']:<8} {r['loss']:<8} {r['wall_s']:>7.1f} {r['wall_s'] / base:>8.2f} {r['iterations']:>6d} "
+            f"{r['max_error_se']:>7.2f} {r['sigma_pos_mm']:>8.3f} {r['sigma_rot_deg']:>9.3f} {named:>6} "
+            f"{r['clean_frames_set_aside']:>9d}  {r['status']}"
+        )
+    print(
+        f"clean capture, cauchy against l2: values within {clean_vs_l2['max_value_difference_se']:.3f} SE, standard errors "
+        f"x{clean_vs_l2['stderr_ratio_range'][0]:.3f} to x{clean_vs_l2['stderr_ratio_range'][1]:.3f}"
+    )
+    doc = {
+        **environment(),
+        "config": {"free": ROBUST_FREE, "trials": 5, "length_s": 6.0, "rate_hz": 100.0, "seed": args.seed},
+        "first_fit_with_compilation": first,
+        "rows": rows,
+        "ratio_glitchy_to_clean": {r["loss"]: r["wall_s"] / base for r in rows[1:] if r["capture"] == "glitchy"},
+        "clean_cauchy_against_l2": clean_vs_l2,
+    }
+    write_json(args.out, doc)
+    return 0
+
+
+# ---------------------------------------------------------------------- planning
+
+PLAN_DEFAULT_ITERATIONS = jsphere.PlanSettings().adam_steps + jsphere.PlanSettings().lm_steps + 1
+
+
+def plan(argv) -> int:
+    """`plan` (module docstring)."""
+    from jsphere.planning.problem import _vec_targets, gait_from_vector
+    from jsphere.planning.rollout import rollout
+    from jsphere.planning.search import _initial_guesses, _search
+
+    ap = argparse.ArgumentParser(prog="tasks.py plan")
+    ap.add_argument("--restarts", type=int, default=16)
+    ap.add_argument("--targets", type=int, default=16, help="targets on a grid over the 2 m x 2 m square")
+    ap.add_argument("--adam", type=int, default=None, help="Adam steps (default: PlanSettings' 150)")
+    ap.add_argument("--lm", type=int, default=None, help="LM steps (default: PlanSettings' 40)")
+    ap.add_argument("--out", default=str(HERE / "results-plan.json"))
+    args = ap.parse_args(argv)
+    p = jsphere.RobotParams.paper()
+    s = jsphere.PlanSettings()
+    if args.adam is not None or args.lm is not None:
+        s = jsphere.PlanSettings(
+            adam_steps=s.adam_steps if args.adam is None else args.adam,
+            lm_steps=s.lm_steps if args.lm is None else args.lm,
+        )
+    lim, obj = jsphere.Limits(), jsphere.Objective()
+    lim_a, obj_a = (jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64), m) for m in (lim, obj))
+    k = round(np.sqrt(args.targets))
+    xs = np.linspace(-1.0, 1.0, k)
+    tg = _vec_targets([(x, y) for x in xs for y in xs][: args.targets])
+    B, R = len(tg), args.restarts
+    z0 = _initial_guesses(p, tg, R, lim, s, 0)
+    t0 = time.perf_counter()
+    lowered = _search.lower(p, jnp.asarray(tg), z0, lim_a, obj_a, s)
+    compiled = lowered.compile()
+    t_compile = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    zf, loss, _, _, _ = jax.block_until_ready(compiled(p, jnp.asarray(tg), z0, lim_a, obj_a, s))
+    t_run = time.perf_counter() - t0
+    iters = s.adam_steps + s.lm_steps + 1
+    per = t_run / (B * R * iters)
+    full = 256 * 16 * (PLAN_DEFAULT_ITERATIONS) * per
+    best_loss = np.asarray(jnp.min(loss, axis=1))
+    # search-model terminal errors of the best restart per target
+    errs = []
+    for b in range(B):
+        ro = rollout(p, gait_from_vector(jnp.asarray(zf[b]), lim, s), s.n_steps)
+        errs.append(float(np.hypot(ro.x[-1] - tg[b, 0], ro.y[-1] - tg[b, 1])))
+    rows = [
+        ("problems (targets x restarts)", f"{B} x {R} = {B * R}"),
+        ("iterations per problem (Adam + LM)", f"{s.adam_steps} + {s.lm_steps + 1}"),
+        ("RK4 steps per simulation", f"{s.n_steps}"),
+        ("compile [s]", f"{t_compile:.1f}"),
+        ("search [s]", f"{t_run:.1f}"),
+        ("per problem x iteration [ms]", f"{1e3 * per:.3f}"),
+        (f"256 x 16 x {PLAN_DEFAULT_ITERATIONS} default iterations, extrapolated [s]", f"{full:.0f}"),
+        ("best restarts: max search-model position error [mm]", f"{1e3 * max(errs):.4f}"),
+        ("best restarts: max loss", f"{float(np.max(best_loss)):.3g}"),
+    ]
+    print_pairs(rows)
+    info = {
+        **environment(),
+        "targets": B,
+        "restarts": R,
+        "iterations": iters,
+        "n_steps": s.n_steps,
+        "compile_s": t_compile,
+        "search_s": t_run,
+        "per_problem_iteration_s": per,
+        "extrapolated_256x16_s": full,
+        "max_position_error_m": max(errs),
+        "best_loss": best_loss.tolist(),
+    }
+    write_json(args.out, info)
+    return 0
+
+
+ROBUST_NAMES = ("r_m[2]", "j", "I[2,2]", "I0")
+ROBUST_REL_SD = (0.03, 0.2, 0.1, 0.05)
+
+
+def robust_plan(argv) -> int:
+    """`robust-plan` (module docstring)."""
+    from jsphere.planning.uncertainty import Uncertainty
+
+    ap = argparse.ArgumentParser(prog="tasks.py robust-plan")
+    ap.add_argument("--to", nargs=2, type=float, default=(0.6, 0.3))
+    ap.add_argument("--samples", type=int, default=64)
+    ap.add_argument("--quantile", type=float, default=0.95)
+    ap.add_argument("--check-samples", type=int, default=1000)
+    ap.add_argument("--loop", type=int, default=3, help="simulate calls timed for the loop baseline")
+    ap.add_argument("--out", default=str(HERE / "results-robust-plan.json"))
+    args = ap.parse_args(argv)
+    p = jsphere.RobotParams.paper()
+    vals = np.array([float(jsphere.get_value(p, n)) for n in ROBUST_NAMES])
+    unc = Uncertainty(
+        ROBUST_NAMES, ("normal",) * 4, vals, np.abs(vals) * np.array(ROBUST_REL_SD), np.eye(4), "benchmark"
+    )
+    to = tuple(args.to)
+
+    t0 = time.perf_counter()
+    nominal = jsphere.plan(p, to, restarts=4, progress=False, allow_infeasible=True)
+    t_nominal = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    rp = jsphere.plan_robust(
+        p,
+        to,
+        unc,
+        samples=args.samples,
+        quantile=args.quantile,
+        check_samples=args.check_samples,
+        nominal=nominal,
+        progress=False,
+    )
+    t_robust = time.perf_counter() - t0
+
+    _, fresh = unc.draw(p, args.check_samples, seed=7)
+    jsphere.miss_distribution(rp.plan, jax.tree_util.tree_map(lambda v: v[:2], fresh))  # compile
+    t0 = time.perf_counter()
+    jsphere.miss_distribution(rp.plan, fresh)
+    t_vmap = time.perf_counter() - t0
+    cols = rp.plan.table()
+    ctrl = jsphere.WheelSpeeds.from_samples(cols["t"], np.stack([cols[f"chi_dot_{i}"] for i in (1, 2, 3)], 1))
+    T = float(cols["t"][-1])
+    one = jax.tree_util.tree_map(lambda v: v[0], fresh)
+    jsphere.simulate(one, jsphere.State.at_rest(one), ctrl, T, max_steps=65536)  # compile
+    t0 = time.perf_counter()
+    for k in range(args.loop):
+        pk = jax.tree_util.tree_map(lambda v, k=k: v[k], fresh)
+        jax.block_until_ready(jsphere.simulate(pk, jsphere.State.at_rest(pk), ctrl, T, max_steps=65536).x)
+    t_loop = (time.perf_counter() - t0) / args.loop * args.check_samples
+
+    mc = rp.miss_mc
+    rows = [
+        ("uncertain parameters", ", ".join(ROBUST_NAMES)),
+        ("nominal plan (4 restarts) [s]", f"{t_nominal:.1f}"),
+        (f"robust plan ({args.samples} draws, quantile {args.quantile}, 4 starts) [s]", f"{t_robust:.1f}"),
+        ("  ratio robust / nominal", f"{t_robust / t_nominal:.2f}"),
+        ("duration nominal / robust [s]", f"{nominal.duration:.2f} / {rp.plan.duration:.2f}"),
+        ("miss mean nominal / robust [mm]", f"{1e3 * mc['nominal']['mean']:.3f} / {1e3 * mc['robust']['mean']:.3f}"),
+        ("miss p95 nominal / robust [mm]", f"{1e3 * mc['nominal']['p95']:.3f} / {1e3 * mc['robust']['p95']:.3f}"),
+        (f"replay of {args.check_samples} draws, vmapped RK4 [s]", f"{t_vmap:.2f}"),
+        (f"replay of {args.check_samples} draws, simulate loop (extrapolated from {args.loop}) [s]", f"{t_loop:.1f}"),
+        ("  ratio loop / vmapped", f"{t_loop / t_vmap:.1f}"),
+    ]
+    print_pairs(rows)
+    info = {
+        **environment(),
+        "target": list(to),
+        "names": list(ROBUST_NAMES),
+        "relative_sd": list(ROBUST_REL_SD),
+        "samples": args.samples,
+        "quantile": args.quantile,
+        "check_samples": args.check_samples,
+        "nominal_s": t_nominal,
+        "robust_s": t_robust,
+        "duration_s": {"nominal": nominal.duration, "robust": rp.plan.duration},
+        "miss_mc": mc,
+        "replay_vmapped_s": t_vmap,
+        "replay_loop_extrapolated_s": t_loop,
+    }
+    write_json(args.out, info)
+    return 0
+
+
+def track(argv) -> int:
+    """`track` (module docstring)."""
+    from jsphere.planning.tracking.track import default_uncertainty, evaluate, gains
+
+    ap = argparse.ArgumentParser(prog="tasks.py track")
+    ap.add_argument("--to", nargs=2, type=float, default=(0.4, 0.2))
+    ap.add_argument("--samples", type=int, default=1000)
+    ap.add_argument("--rate", type=float, default=100.0)
+    ap.add_argument("--restarts", type=int, default=16, help="as `jsphere plan`")
+    ap.add_argument("--out", default=str(HERE / "results-track.json"))
+    args = ap.parse_args(argv)
+    p = jsphere.RobotParams.paper()
+    t0 = time.perf_counter()
+    pl = jsphere.plan(p, tuple(args.to), restarts=args.restarts)
+    t_plan = time.perf_counter() - t0
+    tr = pl.trajectory
+    ts, K = np.asarray(tr.ts), np.asarray(tr.K)
+    keep = np.concatenate([np.diff(ts) > 0, [True]])
+    times = {}
+    for run in ("first", "second"):
+        t0 = time.perf_counter()
+        fields = gains(ts[keep], K[keep], p, rate=args.rate, weights=jsphere.TrackWeights(), target=pl.target[:2])
+        times[f"gains_{run}_s"] = time.perf_counter() - t0
+    tracker = jsphere.Tracker(**fields)
+    unc = default_uncertainty(p)
+    _, drawn = unc.draw(p, args.samples, 0)
+    for run, seed in (("first", 0), ("second", 1)):
+        t0 = time.perf_counter()
+        mc = evaluate(tracker, drawn, seed=seed, source=unc.source)
+        times[f"evaluation_{run}_s"] = time.perf_counter() - t0
+        if run == "first":
+            miss_mc = mc
+    for run in ("first", "second"):
+        t0 = time.perf_counter()
+        ws = jsphere.miss_distribution(pl, drawn)
+        times[f"wheel_speed_replay_{run}_s"] = time.perf_counter() - t0
+    o, c = miss_mc["open_loop"], miss_mc["closed_loop"]
+    rows = [
+        ("open loop (torques)", o["mean"], o["p95"], o["speed_p95"], o["max_torque_N_m"]),
+        ("closed loop", c["mean"], c["p95"], c["speed_p95"], c["max_torque_N_m"]),
+        (
+            "open loop (wheel speeds, exact)",
+            float(np.mean(ws["miss_m"])),
+            float(np.percentile(ws["miss_m"], 95)),
+            float(np.percentile(ws["speed_m_s"], 95)),
+            float("nan"),
+        ),
+    ]
+    print(
+        f"plan to {tuple(args.to)} m: T = {pl.duration:.3f} s, planned in {t_plan:.1f} s; {args.samples} draws "
+        f"({unc.source}); rate {args.rate:g} Hz"
+    )
+    print(f"{'loop':<34}{'miss mean [mm]':>16}{'p95 [mm]':>10}{'speed p95 [mm/s]':>18}{'max |K| [N m]':>15}")
+    for name, m, p95, v, u in rows:
+        print(f"{name:<34}{1e3 * m:>16.3f}{1e3 * p95:>10.3f}{1e3 * v:>18.3f}{u:>15.4f}")
+    ratio = {"mean": o["mean"] / c["mean"], "p95": o["p95"] / c["p95"]}
+    print(f"open / closed loop miss: mean {ratio['mean']:.1f}x, p95 {ratio['p95']:.1f}x")
+    for k, v in times.items():
+        print(f"  {k:<30}{v:>8.2f} s")
+    per_draw = times["evaluation_second_s"] / (2 * args.samples)
+    print(f"  one draw, one loop ({len(tracker.ts)} rows + settling): {1e3 * per_draw:.3f} ms")
+    out = {
+        **environment(),
+        "to": list(args.to),
+        "samples": args.samples,
+        "rate_hz": args.rate,
+        "duration_s": pl.duration,
+        "plan_s": t_plan,
+        "miss_mc": miss_mc,
+        "wheel_speed_open_loop": {"mean": rows[2][1], "p95": rows[2][2], "speed_p95": rows[2][3]},
+        "ratio_open_over_closed": ratio,
+        "times_s": times,
+    }
+    write_json(args.out, out)
+    return 0
+
+
+# ---------------------------------------------------------------------- design
+
+DESIGN_FREE = "r_m[2],j,I[2,2]"
+#: the "true" robot of the synthetic trials: the design's values times these factors
+DESIGN_TRUTH = {"r_m[2]": 1.06, "j": 0.93, "I[2,2]": 1.08}
+
+
+def design(argv) -> int:
+    """`design` (module docstring)."""
+    from jsphere.controls import Sampled, Torques
+
+    ap = argparse.ArgumentParser(prog="tasks.py design")
+    ap.add_argument("--duration", type=float, default=8.0)
+    ap.add_argument("--trials", type=int, default=2)
+    ap.add_argument("--restarts", type=int, default=4)
+    ap.add_argument("--steps", type=int, default=60)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default=str(HERE / "results-design.json"))
+    args = ap.parse_args(argv)
+    work = Path(tempfile.mkdtemp(prefix="jsphere-design-"))
+    out = work / "design.csv"
+    cmd = [sys.executable, "-m", "jsphere.cli", "design", "--free", DESIGN_FREE, "--duration", str(args.duration)]
+    cmd += f"--kind K --trials {args.trials} --restarts {args.restarts} --steps {args.steps} --seed {args.seed}".split()
+    cmd += ["--out", str(out), "--baseline-out", str(work / "baseline.csv"), "--no-cache", "-q"]
+    t0 = time.perf_counter()
+    subprocess.run(cmd, check=True, env=cli_env())
+    t_design = time.perf_counter() - t0
+    doc = json.loads(out.with_suffix(".json").read_text())
+
+    # the design's and the baseline's tables as written
+    p = jsphere.RobotParams.paper()
+    names = lambda stem: (
+        [work / f"{stem}.csv"] if args.trials == 1 else [work / f"{stem}_{k + 1}.csv" for k in range(args.trials)]
+    )
+    design_tables = [jsphere.read_inputs_csv(q)[:2] for q in names("design")]
+    baseline_tables = [jsphere.read_inputs_csv(q)[:2] for q in names("baseline")]
+    truth = p
+    for name, f in DESIGN_TRUTH.items():
+        truth = jsphere.set_value(truth, name, jsphere.get_value(p, name) * f)
+    fitted, t_fit = {}, {}
+    for which, tables in (("design", design_tables), ("baseline", baseline_tables)):
+        trials = [
+            jsphere.synthetic_trial(
+                truth,
+                Torques(Sampled(jnp.asarray(t), jnp.asarray(u), "cubic")),
+                args.duration,
+                rate=100.0,
+                pos_sd=1e-3,
+                rot_sd_deg=0.5,
+                seed=100 + k,
+                name=f"{which}_{k + 1}",
+            )
+            for k, (t, u) in enumerate(tables)
+        ]
+        t0 = time.perf_counter()
+        fr = jsphere.fit(trials, p, DESIGN_FREE, progress=False)
+        t_fit[which] = time.perf_counter() - t0
+        fitted[which] = {
+            n: {"value": fr.values[n], "truth": float(jsphere.get_value(truth, n)), "stderr": fr.stderr[n]}
+            for n in doc["free"]
+        }
+        fitted[which]["status"] = fr.status
+
+    rows = [
+        ("command", " ".join(["jsphere", *cmd[3:-6]])),
+        ("design, end to end (cold) [s]", f"{t_design:.1f}"),
+        ("fit of the design's trials [s]", f"{t_fit['design']:.1f}"),
+        ("criterion design / baseline", f"{doc['criterion']['design']:.3f} / {doc['criterion']['baseline']:.3f}"),
+    ]
+    factors = {}
+    for n in doc["free"]:
+        pred = doc["stderr_predicted_baseline"][n] / doc["stderr_predicted"][n]
+        fit = fitted["baseline"][n]["stderr"] / fitted["design"][n]["stderr"]
+        factors[n] = {
+            "predicted": pred,
+            "fitted": fit,
+            "se_design_predicted": doc["stderr_predicted"][n],
+            "se_design_fitted": fitted["design"][n]["stderr"],
+            "se_baseline_predicted": doc["stderr_predicted_baseline"][n],
+            "se_baseline_fitted": fitted["baseline"][n]["stderr"],
+        }
+        rows.append(
+            (
+                f"{n}: SE design pred/fit, baseline pred/fit",
+                f"{pred:.2f}x predicted, {fit:.2f}x fitted  ({doc['stderr_predicted'][n]:.3g} / "
+                f"{fitted['design'][n]['stderr']:.3g}, {doc['stderr_predicted_baseline'][n]:.3g} / "
+                f"{fitted['baseline'][n]['stderr']:.3g})",
+            )
+        )
+    print_pairs(rows)
+    info = {
+        **environment(),
+        "command": cmd[3:],
+        "design_end_to_end_s": t_design,
+        "fit_s": t_fit,
+        **{
+            k: doc[k]
+            for k in ("criterion", "criterion_model", "rms", "baseline_equal_rms", "limits", "limits_baseline")
+        },
+        "truth_factors": DESIGN_TRUTH,
+        "factor_baseline_over_design": factors,
+        "fitted": fitted,
+        "geometric_mean_factor": {
+            k: math.exp(sum(math.log(v[k]) for v in factors.values()) / len(factors)) for k in ("predicted", "fitted")
+        },
+    }
+    write_json(args.out, info)
+    return 0
+
+
+# ---------------------------------------------------------------------- animations
+
+
+def _cpu() -> float:
+    me, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
+
+
+def animate(argv) -> int:
+    """`animate` (module docstring)."""
+    ap = argparse.ArgumentParser(prog="tasks.py animate")
+    ap.add_argument("--out", default=str(HERE / "results-animate.json"))
+    args = ap.parse_args(argv)
+
+    from jsphere.plots.animation.scene import Scene, body_from_trajectory
+    from jsphere.plots.animation.video import render
+    from jsphere.plots.animation.viewer import write_html
+
+    params = jsphere.RobotParams.paper()
+    traj = jsphere.simulate_gaits(params, [jsphere.acceleration(), jsphere.braking()])
+    run_s = float(traj.ts[-1])
+    speed, fps, size = run_s / 10.0, 30.0, (640, 480)
+    scene = Scene([body_from_trajectory(traj, label="gaits")], params, title="the paper's straight line")
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        render([scene], Path(tmp) / "warm.gif", fps=2, speed=1.0, size=(160, 120), progress=False)  # imports
+        cases = [
+            ("mp4", "blitted (jsphere)", lambda p: render([scene], p, fps=fps, speed=speed, size=size, progress=False)),
+            (
+                "mp4",
+                "full redraw (matplotlib's way)",
+                lambda p: render([scene], p, fps=fps, speed=speed, size=size, progress=False, blit=False),
+            ),
+            ("gif", "blitted (jsphere)", lambda p: render([scene], p, fps=fps, speed=speed, size=size, progress=False)),
+            ("html", "plotly, bundle embedded, 30 fps", lambda p: write_html([scene], p, fps=fps, speed=speed)),
+            ("html", "plotly, bundle embedded, 15 fps", lambda p: write_html([scene], p, fps=15.0, speed=speed)),
+        ]
+        for k, (suffix, how, make) in enumerate(cases):
+            path = Path(tmp) / f"clip{k}.{suffix}"
+            c0, w0 = _cpu(), time.perf_counter()
+            make(path)
+            wall, cpu = time.perf_counter() - w0, _cpu() - c0
+            rows.append({"output": suffix, "how": how, "wall_s": wall, "cpu_s": cpu, "bytes": path.stat().st_size})
+            log(f"  {suffix} {how}: {wall:.1f} s")
+
+    base = next(r for r in rows if r["how"].startswith("full"))
+    blit = rows[0]
+    ratio = base["wall_s"] / blit["wall_s"]
+    print(
+        f"10 s clip at {fps:.0f} fps ({int(round(10 * fps))} frames, {size[0]} x {size[1]}), load {os.getloadavg()[0]:.2f}"
+    )
+    print(f"{'output':<6} {'how':<34} {'wall [s]':>9} {'CPU [s]':>8} {'size [MB]':>10}")
+    for r in rows:
+        print(f"{r['output']:<6} {r['how']:<34} {r['wall_s']:>9.1f} {r['cpu_s']:>8.1f} {r['bytes'] / 1e6:>10.2f}")
+    print(f"blitted frames against full redraws (MP4, same run): {ratio:.1f}x faster")
+    write_json(
+        args.out,
+        {
+            **environment(),
+            "clip": {"seconds": 10.0, "fps": fps, "frames": int(round(10 * fps)), "size": list(size), "run_s": run_s},
+            "rows": rows,
+            "blit_speedup_mp4": ratio,
+            "load_average_end": os.getloadavg()[0],
+        },
+    )
+    return 0
+
+
+COMMANDS = {
+    "fit": fit,
+    "fit-long": fit_long,
+    "robust-fit": robust_fit,
+    "plan": plan,
+    "robust-plan": robust_plan,
+    "track": track,
+    "design": design,
+    "animate": animate,
+}
+
+if __name__ == "__main__":
+    raise SystemExit(dispatch(COMMANDS, None, __doc__))
