@@ -28,7 +28,9 @@ import time
 from datetime import datetime, timezone
 from pathlib import Path
 
-from common import HERE, ROOT, source_digest, write_json  # the digest the result files record
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from common import HERE, ROOT, source_digest, write_json  # noqa: E402  (the digest the result files record)
 
 #: (name, script and arguments, result file): the commands `docs/performance.md` gives
 STEPS = (
