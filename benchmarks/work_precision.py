@@ -596,7 +596,7 @@ def main(argv=None) -> int:
     )
     figure(rows, args.figure, agree, title)
     print("\n".join(table))
-    print(f"\nwall time {wall:.0f} s; JSON written to {args.out}, figure to {args.figure}")
+    print(f"\nwall time {wall:.0f} s; figure written to {args.figure}")
     ok = all(r.get("all_ok", True) for r in rows) and reference["check_all_ok"]
     return 0 if ok else 1
 
