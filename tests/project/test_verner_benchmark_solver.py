@@ -14,7 +14,9 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def _vern7():
-    spec = importlib.util.spec_from_file_location("benchmarks_work_precision", ROOT / "benchmarks" / "work_precision.py")
+    spec = importlib.util.spec_from_file_location(
+        "benchmarks_work_precision", ROOT / "benchmarks" / "work_precision.py"
+    )
     mod = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = mod  # equinox's dataclass reads the module of the class it makes
     spec.loader.exec_module(mod)
