@@ -9,8 +9,9 @@ import numpy as np
 from .._runtime.errors import InputError
 from .._runtime.files import atomic_write_text
 from ..model.rotations import quat_from_rotmat_np, quat_mul_np
-from .markers import UNIT_SCALE, UP_TO_Z, MarkerData, _scale, _scale_rb, detect_marker_units
+from .markers import UP_TO_Z, MarkerData, to_fixed_frame
 from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, separator_hint
+from .units import EXPORT_UNITS, UNIT_SCALE, detect_marker_units, resolve_units
 from .validation import sign_continuous
 
 
@@ -96,10 +97,9 @@ def read_motive_csv(
     K = len(mnames)
     C = UP_TO_Z[up_axis]
     raw = data[:, 2 : 2 + 3 * K].reshape(len(t), K, 3)
-    scale = (
-        _scale(units, file_units, detect_marker_units(raw), source) if K >= 2 else _scale_rb(units, file_units, source)
-    )
-    markers = np.einsum("ij,mkj->mki", C, raw) * scale
+    detected = detect_marker_units(raw) if K >= 2 else None
+    scale = resolve_units(units, file_units, detected, source, EXPORT_UNITS)
+    markers = to_fixed_frame(raw, up_axis, scale)
     rb_q, rb_p = _rigid_body_pose(data[:, 2 + 3 * K :], C, scale) if want_rb else (None, None)
     error = data[:, -1] * scale if err_col is not None else None
     return MarkerData(t, markers, tuple(mnames), source, lines, rb_q, rb_p, error)

@@ -12,8 +12,9 @@ from scipy.spatial.transform import Rotation
 
 from .._runtime.errors import InputError
 from ..model.rotations import quat_from_rotmat_np
-from .markers import UP_TO_Z, MarkerData, _scale, detect_marker_units
+from .markers import UP_TO_Z, MarkerData, to_fixed_frame
 from .text import _check_times, _cut_short, _data_end, _numbers, read_text
+from .units import EXPORT_UNITS, detect_marker_units, resolve_units
 from .validation import sign_continuous
 
 #: a header line of a QTM TSV file: an upper-case variable name, a tab, its values
@@ -186,8 +187,8 @@ def _read_3d(rows, k, columns, names, rate, units, up_axis, source) -> MarkerDat
     raw = data[:, len(lead) :].reshape(-1, K, 3)
     raw[np.all(raw == 0.0, axis=2)] = np.nan  # QTM writes a marker that is not seen as zeros
     detected = detect_marker_units(raw)
-    scale = _scale(units, None, detected if (detected or units != "auto") else "mm", source)
-    markers = np.einsum("ij,mkj->mki", UP_TO_Z[up_axis], raw) * scale
+    scale = resolve_units(units, None, detected if (detected or units != "auto") else "mm", source, EXPORT_UNITS)
+    markers = to_fixed_frame(raw, up_axis, scale)
     return MarkerData(t, markers, tuple(names), source, lines)
 
 
@@ -249,7 +250,7 @@ def _read_6d(rows, k, columns, bodies, rigid_body, rate, units, up_axis, source)
     if "Residual" in val:  # QTM writes a body it does not see as zeros with residual -1
         gap |= val["Residual"] < 0
     R[gap] = np.eye(3)
-    scale = _scale(units, None, None if units != "auto" else "mm", source)
+    scale = resolve_units(units, None, None if units != "auto" else "mm", source, EXPORT_UNITS)
     C = UP_TO_Z[up_axis]
     q = quat_from_rotmat_np(C @ R)
     q[gap] = np.nan

@@ -7,8 +7,9 @@ import numpy as np
 
 from .._runtime.errors import InputError
 from .._runtime.files import atomic_write_text
-from .markers import UP_TO_Z, MarkerData, _scale, detect_marker_units
+from .markers import UP_TO_Z, MarkerData, to_fixed_frame
 from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, separator_hint
+from .units import EXPORT_UNITS, detect_marker_units, resolve_units
 
 
 def read_vicon_csv(
@@ -97,8 +98,8 @@ def read_vicon_csv(
     t = (data[:, 0] - data[0, 0]) / rate
     _check_times(t, lines, source)
     raw = data[:, 2:].reshape(len(t), len(mk), 3)
-    scale = _scale(units, file_units, detect_marker_units(raw), source)
-    markers = np.einsum("ij,mkj->mki", UP_TO_Z[up_axis], raw) * scale
+    scale = resolve_units(units, file_units, detect_marker_units(raw), source, EXPORT_UNITS)
+    markers = to_fixed_frame(raw, up_axis, scale)
     return MarkerData(t, markers, tuple(n for n, _ in mk), source, lines)
 
 
