@@ -3,8 +3,6 @@
 
 from __future__ import annotations
 
-import csv
-import io
 import re
 
 import numpy as np
@@ -13,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from .._runtime.errors import InputError
 from ..model.rotations import quat_from_rotmat_np
 from .markers import UP_TO_Z, MarkerData, to_fixed_frame
-from .text import _check_times, _cut_short, _data_end, _numbers, read_text
+from .text import _check_times, _cut_short, _data_end, _numbers, csv_rows, read_text
 from .units import EXPORT_UNITS, detect_marker_units, resolve_units
 from .validation import sign_continuous
 
@@ -70,7 +68,7 @@ def read_qualisys_tsv(
     source = str(path)
     if up_axis not in UP_TO_Z:
         raise ValueError(f"{source}: the up axis (--up-axis) must be y or z; got {up_axis!r}.")
-    rows = list(csv.reader(io.StringIO(text, newline=""), delimiter="\t"))
+    rows = csv_rows(text, source, delimiter="\t")
     meta, k = _header(rows, source)
     kind = meta.get("DATA_INCLUDED", ["3D"])[0].strip().upper()
     if kind not in ("3D", "6D"):

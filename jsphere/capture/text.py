@@ -82,10 +82,11 @@ def check_unique_columns(header: Sequence[str], source: str, wanted: Iterable[st
             raise InputError(f"{source}: column {name!r} appears {len(where)} times (columns {where}); keep one.")
 
 
-def csv_rows(text: str, source: str) -> list[list[str]]:
-    """`text` split into CSV rows (`csv.reader`); a malformed file is an `InputError` naming it."""
+def csv_rows(text: str, source: str, delimiter: str = ",") -> list[list[str]]:
+    """`text` split into CSV rows (`csv.reader`; `delimiter`: a tab for TSV); a malformed file
+    is an `InputError` naming it."""
     try:
-        return list(csv.reader(io.StringIO(text, newline="")))
+        return list(csv.reader(io.StringIO(text, newline=""), delimiter=delimiter))
     except csv.Error as e:
         raise InputError(f"{source}: not a readable CSV file ({e}).") from None
 
@@ -184,13 +185,22 @@ def _cut_short(
     return end - int(cut_row)
 
 
-def _numbers(rows, start: int, cols: list[int], source: str, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
+def _numbers(
+    rows, start: int, cols: list[int], source: str, names: list[str], *, width: int | None = None, line0: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
     """Parse `rows[start:]` at `cols` into floats (blank -> NaN); trailing empty rows dropped.
-    Returns `(data, lines)` with 1-based file lines."""
+    Returns `(data, lines)` with 1-based file lines (`line0`: the file's lines before
+    `rows[0]`). With `width`, a row with another number of cells is an error naming its line
+    (a last row with fewer: a file cut off)."""
     body = rows[start : _data_end(rows, start)]
     data = np.full((len(body), len(cols)), np.nan)
-    lines = np.arange(len(body)) + start + 1
+    lines = np.arange(len(body)) + start + 1 + line0
     for i, row in enumerate(body):
+        if width is not None and len(row) != width:
+            cut = (
+                " (the file looks cut off: copy or export it again)" if i == len(body) - 1 and len(row) < width else ""
+            )
+            raise ValueError(f"{source}, line {lines[i]}: {len(row)} cells but the header has {width} columns{cut}.")
         for jj, j in enumerate(cols):
             if j < len(row):
                 data[i, jj] = _parse_cell(row[j], source, int(lines[i]), names[jj])

@@ -26,7 +26,7 @@ from .._runtime.files import atomic_write_text
 from ..controls import Torques, WheelSpeeds
 from ..model.params import RobotParams
 from ..model.state import State
-from .text import _input_columns, _parse_cell, check_unique_columns, csv_rows, read_text, separator_hint
+from .text import _input_columns, _numbers, check_unique_columns, csv_rows, read_text, separator_hint
 from .units import TRIAL_UNITS, detect_position_units, resolve_units
 from .validation import INPUT_PREFIX, POSE_COLUMNS, _checked, warn_implausible
 from .validation import CaptureWarning as CaptureWarning  # (the warning of every trial reader)
@@ -176,7 +176,7 @@ def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> T
     kind, in_cols = _input_columns(header, f"{source}, line {header_line}")
     check_unique_columns(header, f"{source}, line {header_line}", [*POSE_COLUMNS, "z", *(header[j] for j in in_cols)])
     has_z = "z" in header
-    data, line_no = _numbers(rows, header, in_cols, header_line, source)
+    data, line_no = _table(rows, header, in_cols, header_line, source)
     zcol = data[:, 7] if has_z else None
     evidence = "positions/height" if "units" in meta else "magnitude of the positions/height"
     detected = detect_position_units(data[:, 1:3], zcol)
@@ -219,33 +219,14 @@ def _comments_and_rows(text: str, source: str) -> tuple[dict[str, str], int, lis
     return meta, k + 1, csv_rows("\n".join(lines_iter[k:]), source)
 
 
-def _numbers(
-    rows, header: list[str], in_cols: list[int], header_line: int, source: str
-) -> tuple[np.ndarray, np.ndarray]:
+def _table(rows, header: list[str], in_cols: list[int], header_line: int, source: str):
     """The pose columns, `z` where present, and the inputs of every data row as floats (blank:
     NaN), and the rows' 1-based lines."""
     col = {h: j for j, h in enumerate(header)}
-    has_z = "z" in col
-    use = [col[c] for c in POSE_COLUMNS] + ([col["z"]] if has_z else []) + in_cols
-    names = list(POSE_COLUMNS) + (["z"] if has_z else []) + [header[j] for j in in_cols]
-    # drop trailing empty lines
-    body = rows[1:]
-    while body and not any(c.strip() for c in body[-1]):
-        body.pop()
-    data = np.empty((len(body), len(use)))
-    line_no = np.arange(len(body)) + header_line + 1
-    for i, row in enumerate(body):
-        if len(row) != len(header):
-            cut = (
-                " (the file looks cut off: copy or export it again)"
-                if i == len(body) - 1 and len(row) < len(header)
-                else ""
-            )
-            raise ValueError(
-                f"{source}, line {line_no[i]}: {len(row)} cells but the header has {len(header)} columns{cut}."
-            )
-        for jj, j in enumerate(use):
-            data[i, jj] = _parse_cell(row[j], source, int(line_no[i]), names[jj])
+    extra = ["z"] if "z" in col else []
+    names = [*POSE_COLUMNS, *extra, *(header[j] for j in in_cols)]
+    use = [col[c] for c in POSE_COLUMNS + tuple(extra)] + in_cols
+    data, line_no = _numbers(rows, 1, use, source, names, width=len(header), line0=header_line - 1)
     if data.shape[0] == 0:
         raise ValueError(f"{source}: the trial is too short: no data rows after the header.")
     return data, line_no
