@@ -91,19 +91,28 @@ def csv_rows(text: str, source: str, delimiter: str = ",") -> list[list[str]]:
         raise InputError(f"{source}: not a readable CSV file ({e}).") from None
 
 
-def _input_columns(header: list[str], source: str) -> tuple[str, list[int]]:
-    """The kind and the column indices of `chi_dot_1..N` or `K_1..N`, in wheel order."""
+#: the end of the error for a trial with both input families
+_BOTH = "; a trial holds one kind of input (wheel speeds or torques): keep one set of columns."
+
+
+def _input_columns(header: list[str], source: str, want: str | None = None, both: str = _BOTH) -> tuple[str, list[int]]:
+    """The kind and the column indices of `chi_dot_1..N` or `K_1..N`, in wheel order: those of
+    the kind `want` where given (the other family's columns ignored), else of the one family
+    of `header` (a header with both is an error ending in `both`)."""
     found = {}
     for kind, prefix in INPUT_PREFIX.items():
         pat = re.compile(rf"^{re.escape(prefix)}(\d+)$")
         cols = {int(m.group(1)): j for j, h in enumerate(header) if (m := pat.match(h))}
         if cols:
             found[kind] = cols
+    if want is not None:
+        if want not in found:
+            raise ValueError(
+                f"{source}: no {INPUT_PREFIX[want]}1..N columns for input kind {want!r}; the table has {', '.join(header)}."
+            )
+        found = {want: found[want]}
     if len(found) == 2:
-        raise ValueError(
-            f"{source}: both chi_dot_* and K_* columns are present; a trial holds one kind of input "
-            "(wheel speeds or torques): keep one set of columns."
-        )
+        raise ValueError(f"{source}: both chi_dot_* and K_* columns are present{both}")
     if not found:
         raise ValueError(
             f"{source}: no input columns; add chi_dot_1..chi_dot_N (wheel speeds, rad/s) or K_1..K_N (torques, N m). "
