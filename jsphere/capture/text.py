@@ -60,6 +60,11 @@ def read_text(path) -> str:
         ) from None
 
 
+def cell(v: float, spec: str) -> str:
+    """A number as a written cell: blank where it is not finite (a gap), never `-0`."""
+    return "" if not np.isfinite(v) else format(v + 0.0, spec)
+
+
 def separator_hint(header: Sequence[str]) -> str:
     """`"; ..."` advice when a header row read as CSV is one cell holding `;` or a tab (a
     spreadsheet that saved with another separator), else `""`."""

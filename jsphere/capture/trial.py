@@ -26,7 +26,7 @@ from .._runtime.files import atomic_write_text
 from ..controls import Torques, WheelSpeeds
 from ..model.params import RobotParams
 from ..model.state import State
-from .text import _input_columns, _numbers, check_unique_columns, csv_rows, read_text, separator_hint
+from .text import _input_columns, _numbers, cell, check_unique_columns, csv_rows, read_text, separator_hint
 from .units import TRIAL_UNITS, detect_position_units, resolve_units
 from .validation import INPUT_PREFIX, POSE_COLUMNS, _checked, warn_implausible
 from .validation import CaptureWarning as CaptureWarning  # (the warning of every trial reader)
@@ -251,10 +251,6 @@ def read_trials(paths: Iterable, **kwargs) -> list[Trial]:
     return out
 
 
-def _fmt(v: float, spec: str) -> str:
-    return "" if not np.isfinite(v) else format(v + 0.0, spec)  # + 0.0: no "-0"
-
-
 def trial_to_csv(trial: Trial) -> str:
     """The text of `write_trial`: times to 1 µs, positions to 1 µm, quaternions to 1e-9,
     inputs to 10 significant digits; gaps as blank cells."""
@@ -267,11 +263,11 @@ def trial_to_csv(trial: Trial) -> str:
         ",".join(cols),
     ]
     for k in range(trial.n_frames):
-        cells = [_fmt(trial.t[k], ".6f"), _fmt(trial.x[k], ".6f"), _fmt(trial.y[k], ".6f")]
-        cells += [_fmt(v, ".9f") for v in trial.q[k]]
+        cells = [cell(trial.t[k], ".6f"), cell(trial.x[k], ".6f"), cell(trial.y[k], ".6f")]
+        cells += [cell(v, ".9f") for v in trial.q[k]]
         if trial.z is not None:
-            cells.append(_fmt(trial.z[k], ".6f"))
-        cells += [_fmt(v, ".10g") for v in trial.inputs[k]]
+            cells.append(cell(trial.z[k], ".6f"))
+        cells += [cell(v, ".10g") for v in trial.inputs[k]]
         out.append(",".join(cells))
     return "\n".join(out) + "\n"
 

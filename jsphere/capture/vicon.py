@@ -8,7 +8,7 @@ import numpy as np
 from .._runtime.errors import InputError
 from .._runtime.files import atomic_write_text
 from .markers import UP_TO_Z, MarkerData, to_fixed_frame
-from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, separator_hint
+from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, cell, separator_hint
 from .units import EXPORT_UNITS, detect_marker_units, resolve_units
 
 
@@ -103,10 +103,6 @@ def read_vicon_csv(
     return MarkerData(t, markers, tuple(n for n, _ in mk), source, lines)
 
 
-def _cells(v: np.ndarray, fmt: str) -> list[str]:
-    return ["" if not np.isfinite(x) else format(x + 0.0, fmt) for x in v]
-
-
 def write_vicon_csv(path, t, markers, names, *, subject: str = "robot", units: str = "mm") -> None:
     """Write markers `(M, K, 3)` [m] as a Vicon Nexus-style Trajectories CSV (frame numbers from
     1 at the rate `1 / median(diff(t))`; blank cells for gaps), for tests and examples."""
@@ -124,5 +120,5 @@ def write_vicon_csv(path, t, markers, names, *, subject: str = "robot", units: s
     fmt = ".6f" if units == "m" else ".3f"
     for i in range(raw.shape[0]):
         frame = round(float(t[i] - t[0]) * rate) + 1
-        lines.append(",".join([str(frame), "0"] + _cells(raw[i].reshape(-1), fmt)))
+        lines.append(",".join([str(frame), "0"] + [cell(x, fmt) for x in raw[i].reshape(-1)]))
     atomic_write_text(path, "\n".join(lines) + "\n")
