@@ -40,16 +40,19 @@ class ConvertOptions:
       default: every joint of the messages, in their order.
     - `n_wheels`: the robot's number of wheels, checked against the joints.
 
-    **Markers to poses** (conventions in `jsphere.capture.pose`):
-    - `body_markers`: the markers' coordinates in the body frame [m], a `(K, 3)` array in the
+    **Markers to poses** (`jsphere.capture.pose`; `docs/capture.md` explains every convention):
+    - `body_markers`: the markers' coordinates in the *body frame* [m], a `(K, 3)` array in the
       order of the export's markers or a dict `{name: (x, y, z)}` (`read_body_markers`),
       matched by full name or by the part after `Subject:` (markers of the export not in the
-      dict are left out of the fit). Default: the first frame in which every marker is seen,
-      centred on their centroid. An exporter's own rigid-body pose, where the data carry one,
-      is used instead of the markers.
-    - `alignment`: `(3, 3)` platform -> body-frame rotation (default identity).
-    - `body_offset`: the shell centre in the platform frame relative to the body-frame origin
-      [m].
+      dict are left out of the fit). Default: taken from the first frame in which every marker
+      is seen, centred on their centroid, with the body frame's axes equal to the fixed axes
+      at that frame. An exporter's own rigid-body pose, where the data carry one, is used
+      instead of the markers.
+    - `alignment`: `(3, 3)` platform -> body-frame rotation (default identity), so the
+      platform's rotation is `R_platform = R_body @ alignment`. With body markers given in the
+      platform frame, leave it at the identity.
+    - `body_offset`: `(3,)` the shell centre in the platform frame relative to the body-frame
+      origin [m]: `r_centre = p_body + R_platform @ body_offset`.
     - `max_rms`: frames whose marker fit has an RMS residual above this [m] are gaps, with a
       `CaptureWarning` saying how many.
     - `keep_suspect`: keep the frames whose marker fit residual stands out of the take's own

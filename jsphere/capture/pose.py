@@ -4,16 +4,9 @@ Pipeline: a reader (`read_motive_csv`, `read_vicon_csv`, `read_c3d`) parses a ra
 `MarkerData` (times, marker trajectories in metres in jsphere's Z-up fixed frame, gaps as NaN),
 `rigid_body_pose` turns the markers of each frame into the platform pose (Kabsch/Umeyama
 without scale, with the reflection fix), and `markers_to_trial` adds the inputs (a separate
-table, `read_inputs_csv`) to make a `Trial`. `docs/capture.md` explains every convention:
-
-- `body_markers` `(K, 3)`: the markers' coordinates in the *body frame* [m]. Default: taken
-  from the first frame in which every marker is seen, centred on their centroid, with the body
-  frame's axes equal to the fixed axes at that frame.
-- `alignment` `(3, 3)`: platform -> body-frame rotation (default identity), so the platform's
-  rotation is `R_platform = R_body @ alignment`. With body markers given in the platform frame,
-  leave it at the identity.
-- `body_offset` `(3,)`: the shell centre in the platform frame relative to the body-frame
-  origin [m] (default 0): `r_centre = p_body + R_platform @ body_offset`.
+table, `read_inputs_csv`) to make a `Trial`. The body frame's markers (`body_markers`), its
+alignment with the platform (`alignment`) and the shell centre in it (`body_offset`) are
+options of the conversion: `ConvertOptions` gives their conventions.
 """
 
 from __future__ import annotations
@@ -111,10 +104,10 @@ def markers_to_trial(
       The inputs are interpolated linearly to the capture times; capture frames outside the
       table's time range are dropped, with a `CaptureWarning` saying how many (the two must
       share a clock: `t_trial = t_capture + time_offset`).
-    - `options`: a `ConvertOptions`; its fields `body_markers`, `alignment`, `body_offset` (see
-      the module docstring), `max_rms`, `keep_suspect`, `time_offset`, `name`,
-      `max_gap_fraction` and `allow_truncated` (for `read_inputs_csv`) apply here. Those fields
-      given as keywords still work, with a `DeprecationWarning`.
+    - `options`: a `ConvertOptions`; its fields `body_markers`, `alignment`, `body_offset`,
+      `max_rms`, `keep_suspect`, `time_offset`, `name`, `max_gap_fraction` and
+      `allow_truncated` (for `read_inputs_csv`) apply here. Those fields given as keywords
+      still work, with a `DeprecationWarning`.
     - `format`: the format of `convert_raw` that `data` came from; it words the advice of the
       plausibility warnings.
 
