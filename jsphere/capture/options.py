@@ -94,7 +94,7 @@ def with_keywords(options: ConvertOptions, keywords: dict, func: str, known: Ite
     """`options` with the keywords `keywords` that `func` took before its options object (the
     names `known`), each with a `DeprecationWarning` naming its spelling in `ConvertOptions`;
     another keyword is a `TypeError`, as Python raises it."""
-    known = set(known)
+    known, options = set(known), ConvertOptions() if options is None else options
     for key in keywords:
         if key not in known:
             raise TypeError(f"{func}() got an unexpected keyword argument {key!r}")
