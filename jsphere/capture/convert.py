@@ -18,7 +18,7 @@ from .trial import Trial
 from .vicon import read_vicon_csv
 
 RAW_FORMATS = ("motive", "vicon", "c3d", "qualisys", "rosbag")
-#: the keywords `convert_raw` took before `ConvertOptions` (kept, deprecated)
+#: the fields of `ConvertOptions` that `convert_raw` accepts as keywords (deprecated)
 _KEYWORDS = tuple(f.name for f in dataclasses.fields(ConvertOptions) if f.name != "max_gap_fraction")
 
 

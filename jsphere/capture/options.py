@@ -91,9 +91,9 @@ class ConvertOptions:
 
 
 def with_keywords(options: ConvertOptions, keywords: dict, func: str, known: Iterable[str]) -> ConvertOptions:
-    """`options` with the keywords `keywords` that `func` took before its options object (the
-    names `known`), each with a `DeprecationWarning` naming its spelling in `ConvertOptions`;
-    another keyword is a `TypeError`, as Python raises it."""
+    """`options` with the fields `keywords` given to `func` as keywords (those it accepts:
+    `known`), each with a `DeprecationWarning` naming its spelling in `ConvertOptions`; another
+    keyword is a `TypeError`, as Python raises it."""
     known, options = set(known), ConvertOptions() if options is None else options
     for key in keywords:
         if key not in known:

@@ -26,7 +26,7 @@ from .options import ConvertOptions, with_keywords
 from .trial import Trial
 from .validation import CaptureWarning, _checked, sign_continuous, warn_implausible
 
-#: the keywords `markers_to_trial` took before `ConvertOptions` (kept, deprecated)
+#: the fields of `ConvertOptions` that `markers_to_trial` accepts as keywords (deprecated)
 _KEYWORDS = ("body_markers", "alignment", "body_offset", "max_rms", "time_offset", "name", "max_gap_fraction")
 _KEYWORDS += ("allow_truncated", "keep_suspect")
 #: smallest second singular value of the centred present markers [m] for a pose (not collinear)
