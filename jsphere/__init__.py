@@ -32,6 +32,7 @@ _EXPORTS = {
     "capture.convert": ("convert_raw",),
     "capture.inputs": ("read_inputs_csv", "write_inputs_csv"),
     "capture.markers": ("MarkerData",),
+    "capture.options": ("ConvertOptions",),
     "capture.motive": ("read_motive_csv", "write_motive_csv"),
     "capture.pose": ("markers_to_trial", "rigid_body_pose"),
     "capture.qualisys": ("read_qualisys_tsv",),

@@ -8,8 +8,8 @@ import warnings
 import numpy as np
 
 from .._runtime.errors import InputError
-from .markers import detect_marker_units
 from .text import _parse_cell, _read_lines, separator_hint
+from .units import BODY_UNITS, detect_marker_units, resolve_units, units_in_force
 from .validation import CaptureWarning
 
 
@@ -23,8 +23,8 @@ def read_body_markers(path, *, units: str = "auto") -> dict[str, np.ndarray]:
     5-1000 means millimetres (converted, with a `CaptureWarning` saying so); anything else, or
     a declaration that contradicts the numbers, is an `InputError`.
     """
-    if units not in ("auto", "m", "mm"):
-        raise InputError(f"read_body_markers: units must be 'auto', 'm' or 'mm'; got {units!r}.")
+    if units not in BODY_UNITS.choices:
+        raise InputError(BODY_UNITS.bad_declared.format(declared=units))
     path, rows = _read_lines(path)
     source = str(path)
     file_units = None
@@ -32,13 +32,8 @@ def read_body_markers(path, *, units: str = "auto") -> dict[str, np.ndarray]:
         if r and r[0].lstrip().startswith("#"):
             key, _, value = ",".join(r).lstrip("# ").partition(":")
             if key.strip().lower() == "units":
-                file_units = value.strip().strip(",").strip()
-                if file_units not in ("m", "mm"):
-                    raise InputError(f"{source}: the '# units:' line says {file_units!r}; it must be 'm' or 'mm'.")
-    if file_units is not None and units != "auto" and units != file_units:
-        raise InputError(
-            f"{source}: the units {units!r} were declared but the file's '# units:' line says {file_units!r}."
-        )
+                file_units = units_in_force("auto", value.strip().strip(",").strip(), source, BODY_UNITS)
+    units = units_in_force(units, file_units, source, BODY_UNITS)
     rows = [
         (i + 1, r) for i, r in enumerate(rows) if r and any(c.strip() for c in r) and not r[0].lstrip().startswith("#")
     ]
@@ -64,29 +59,15 @@ def read_body_markers(path, *, units: str = "auto") -> dict[str, np.ndarray]:
     b = np.stack(list(out.values()))
     spread = float(np.max(np.linalg.norm(b - b.mean(0), axis=1)))
     detected = detect_marker_units(b[None])
-    declared = file_units or (units if units != "auto" else None)
-    if declared is not None:
-        if detected is not None and detected != declared:
-            raise InputError(
-                f"{source}: the coordinates are declared in {declared!r} but the markers lie up to {spread:.4g} from their "
-                f"centroid, which looks like {'millimetres' if detected == 'mm' else 'metres'}; fix the numbers or the units."
-            )
-        scale = 1.0 if declared == "m" else 1e-3
-    elif detected is None:
-        raise InputError(
-            f"{source}: the markers lie up to {spread:.4g} from their centroid: neither metres (5 mm-1 m on a robot of this "
-            "kind) nor millimetres (5-1000); check the coordinates (platform frame, metres)."
+    scale = resolve_units(units, None, detected, source, BODY_UNITS, f"{spread:.4g}")
+    if units == "auto" and detected == "mm":
+        warnings.warn(
+            f"{source}: the marker coordinates look like millimetres (the markers lie up to {spread:.4g} from their "
+            "centroid; metres would make the robot metres wide): read as mm. Add a line '# units: mm' to the file "
+            "to say so, or give metres.",
+            CaptureWarning,
+            stacklevel=2,
         )
-    else:
-        scale = 1.0 if detected == "m" else 1e-3
-        if detected == "mm":
-            warnings.warn(
-                f"{source}: the marker coordinates look like millimetres (the markers lie up to {spread:.4g} from their "
-                "centroid; metres would make the robot metres wide): read as mm. Add a line '# units: mm' to the file "
-                "to say so, or give metres.",
-                CaptureWarning,
-                stacklevel=2,
-            )
     return {k: v * scale for k, v in out.items()}
 
 

@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 
 from .._runtime.errors import InputError
-from .markers import UP_TO_Z, MarkerData, _scale, detect_marker_units
+from .markers import MarkerData, to_fixed_frame
+from .units import EXPORT_UNITS, detect_marker_units, resolve_units
 from .validation import CaptureWarning
 
 #: C3D processor types (byte 4 of the parameter section): 84 Intel, 85 DEC (both little-endian
@@ -226,6 +227,6 @@ def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: 
     raw = np.transpose(pts[:3], (2, 1, 0)).copy()  # (M, K, 3)
     raw[res[0].T < 0] = np.nan
     t = np.arange(raw.shape[0]) / rate
-    scale = _scale(units, file_units, detect_marker_units(raw), source)
-    markers = np.einsum("ij,mkj->mki", UP_TO_Z[up_axis], raw) * scale
+    scale = resolve_units(units, file_units, detect_marker_units(raw), source, EXPORT_UNITS)
+    markers = to_fixed_frame(raw, up_axis, scale)
     return MarkerData(t, markers, labels, source, None)

@@ -5,13 +5,12 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-import numpy as np
-
 from .._runtime.errors import InputError
 from .c3d import read_c3d
 from .centre import check_centre_height
 from .inputs import read_inputs_csv
 from .motive import read_motive_csv
+from .options import ConvertOptions, with_keywords
 from .pose import markers_to_trial
 from .qualisys import read_qualisys_tsv
 from .rosbag import read_rosbag_inputs, read_rosbag_poses
@@ -19,54 +18,28 @@ from .trial import Trial
 from .vicon import read_vicon_csv
 
 RAW_FORMATS = ("motive", "vicon", "c3d", "qualisys", "rosbag")
+#: the fields of `ConvertOptions` that `convert_raw` accepts as keywords (deprecated)
+_KEYWORDS = tuple(f.name for f in dataclasses.fields(ConvertOptions) if f.name != "max_gap_fraction")
 
 
-def convert_raw(
-    path,
-    inputs,
-    *,
-    format: str,
-    units: str = "auto",
-    up_axis: str | None = None,
-    body_markers: np.ndarray | None = None,
-    alignment: np.ndarray | None = None,
-    body_offset=(0.0, 0.0, 0.0),
-    rigid_body: str | None = None,
-    max_rms: float = 0.005,
-    time_offset: float = 0.0,
-    name: str | None = None,
-    allow_truncated: bool = False,
-    subject: str | None = None,
-    pose_topic: str | None = None,
-    child_frame: str | None = None,
-    inputs_topic: str | None = None,
-    input_kind: str | None = None,
-    joints=None,
-    n_wheels: int | None = None,
-    keep_suspect: bool = False,
-    shell_radius: float | None = None,
-) -> Trial:
+def convert_raw(path, inputs, *, format: str, options: ConvertOptions = ConvertOptions(), **kwargs) -> Trial:
     """Read a raw export (`format`: `"motive"`, `"vicon"`, `"c3d"`, `"qualisys"` or `"rosbag"`)
-    and make a `Trial` with the inputs table `inputs` (`markers_to_trial`). `up_axis` defaults
-    to the exporter's default (`"y"` for Motive, `"z"` otherwise); `rigid_body` selects a Motive
-    asset or a QTM 6DOF body, `subject` a Vicon subject (`rigid_body` too, when `subject` is None).
+    and make a `Trial` with the inputs `inputs` (`markers_to_trial`): an inputs table, a tuple
+    `(t, values, kind)`, a ROS bag read with `options.inputs_topic`, or None for the inputs of
+    the bag `path` itself. `options` (`ConvertOptions`) says how; its fields given as keywords
+    (`convert_raw(path, inputs, format="motive", units="mm")`) still work, with a
+    `DeprecationWarning`.
 
-    **ROS bags.** `format="rosbag"` reads the poses on `pose_topic` of the bag `path`
-    (`read_rosbag_poses`; on a `tf2_msgs/TFMessage` topic such as `/tf`, the transforms of
-    `child_frame`, by default the topic's one moving child frame). With `inputs_topic`, the inputs come from that
-    `sensor_msgs/JointState` topic (`read_rosbag_inputs`: `input_kind` `"chi_dot"`, the
-    default, or `"K"`; `joints`; `n_wheels`) of the bag `inputs`, or of `path` itself when
-    `inputs` is None; the markers may then come from any format. An inputs table holding both
-    input families (a plan's CSV) is read with `input_kind` choosing its columns. Times from two bags share
-    the bag clock and start at the earlier first message; a bag beside another file starts at
-    its own first message (align the clocks with `time_offset`).
+    **ROS bags.** `format="rosbag"` reads the poses on `options.pose_topic` of the bag `path`
+    (`read_rosbag_poses`). With `inputs_topic`, the inputs come from that JointState topic
+    (`read_rosbag_inputs`) of the bag `inputs`, or of `path` itself when `inputs` is None. Times
+    from two bags share the bag clock and start at the earlier first message; a bag beside
+    another file starts at its own first message (align the clocks with `time_offset`).
 
-    A file cut short (an export with fewer frames than its header declares, a last row cut off
-    mid-row) is an `InputError` naming both counts; `allow_truncated=True` makes it a
-    `CaptureWarning` and uses the complete frames. Implausible speeds, turn rates or time units
-    in the result are `CaptureWarning`s naming the likely cause. Frames of a suspect marker fit (a
-    swapped or ghost marker) are gaps, with a warning saying how many, unless `keep_suspect`
-    (`markers_to_trial`).
+    A file cut short is an `InputError` naming both counts (`allow_truncated`). Implausible
+    speeds, turn rates or time units in the result are `CaptureWarning`s naming the likely
+    cause. Frames of a suspect marker fit (a swapped or ghost marker) are gaps, with a warning
+    saying how many, unless `keep_suspect` (`markers_to_trial`).
 
     **The shell centre.** With `shell_radius` (the robot's `R0` [m]), the converted centre's
     height is compared with it (`check_centre_height`): a `CaptureWarning` where its median is
@@ -74,61 +47,54 @@ def convert_raw(
     `format` that put the centre where it belongs (`body_markers`/`body_offset` for markers,
     `body_offset` or the rigid body's pivot point for an exporter's pose, the pose topic's frame
     for a ROS bag)."""
+    o = with_keywords(options, kwargs, "convert_raw", _KEYWORDS)
     if format not in RAW_FORMATS:
         raise ValueError(f"convert_raw: format must be one of {RAW_FORMATS}; got {format!r}.")
-    _check_bag_options(format, inputs, units, up_axis, pose_topic, inputs_topic, joints)
-    _check_body_options(format, rigid_body, subject)
-    if format == "rosbag" and body_markers is not None:
+    _check_bag_options(format, inputs, o)
+    _check_body_options(format, o.rigid_body, o.subject)
+    if format == "rosbag" and o.body_markers is not None:
         raise InputError(
             "--body-markers gives the markers of a marker export; a ROS bag's poses are those of the pose topic's "
             "frame: drop --body-markers (--body-offset X Y Z puts the shell centre in that frame)."
         )
-    if child_frame is not None and format != "rosbag":
+    if o.child_frame is not None and format != "rosbag":
         raise InputError(f"--child-frame picks a frame of a ROS bag's /tf topic; --format {format} has none: drop it.")
-    kw = {"units": units, "allow_truncated": allow_truncated}
-    if format == "motive":
-        data = read_motive_csv(path, rigid_body=rigid_body, up_axis=up_axis or "y", **kw)
-    elif format == "vicon":
-        data = read_vicon_csv(path, subject=subject or rigid_body, up_axis=up_axis or "z", **kw)
-    elif format == "qualisys":
-        data = read_qualisys_tsv(path, rigid_body=rigid_body, up_axis=up_axis or "z", **kw)
-    elif format == "rosbag":
-        data = read_rosbag_poses(path, pose_topic, child_frame=child_frame)
-    else:
-        data = read_c3d(path, up_axis=up_axis or "z", **kw)
-    if inputs_topic is not None:
+    data = _read_poses(path, format, o)
+    if o.inputs_topic is not None:
         t_in, u_in, kind, _ = read_rosbag_inputs(
             path if inputs is None else inputs,
-            inputs_topic,
-            input_kind=input_kind or "chi_dot",
-            joints=joints,
-            n_wheels=n_wheels,
+            o.inputs_topic,
+            input_kind=o.input_kind or "chi_dot",
+            joints=o.joints,
+            n_wheels=o.n_wheels,
         )
         t0 = min(float(data.t[0]), float(t_in[0])) if format == "rosbag" else float(t_in[0])
         inputs = (t_in - t0, u_in, kind)
     else:
         t0 = float(data.t[0])
         if not isinstance(inputs, tuple):  # an inputs table, or a plan's with both families (`input_kind`)
-            inputs = read_inputs_csv(inputs, kind=input_kind, allow_truncated=allow_truncated)[:3]
+            inputs = read_inputs_csv(inputs, kind=o.input_kind, allow_truncated=o.allow_truncated)[:3]
     if format == "rosbag":
         data = dataclasses.replace(data, t=data.t - t0)
-    trial = markers_to_trial(
-        data,
-        inputs,
-        body_markers=body_markers,
-        alignment=alignment,
-        body_offset=body_offset,
-        max_rms=max_rms,
-        time_offset=time_offset,
-        name=name,
-        allow_truncated=allow_truncated,
-        keep_suspect=keep_suspect,
-        format=format,
-    )
-    if shell_radius is not None:
-        fix, example, floor = _centre_fix(format, data.rb_q is not None, body_markers is not None, body_offset)
-        check_centre_height(trial, shell_radius, source=data.source, fix=fix, example=example, floor=floor)
+    trial = markers_to_trial(data, inputs, o, format=format)
+    if o.shell_radius is not None:
+        fix, example, floor = _centre_fix(format, data.rb_q is not None, o.body_markers is not None, o.body_offset)
+        check_centre_height(trial, o.shell_radius, source=data.source, fix=fix, example=example, floor=floor)
     return trial
+
+
+def _read_poses(path, format: str, o: ConvertOptions):
+    """The `MarkerData` of the export `path` in `format`, read with the options `o`."""
+    kw = {"units": o.units, "allow_truncated": o.allow_truncated}
+    if format == "motive":
+        return read_motive_csv(path, rigid_body=o.rigid_body, up_axis=o.up_axis or "y", **kw)
+    if format == "vicon":
+        return read_vicon_csv(path, subject=o.subject or o.rigid_body, up_axis=o.up_axis or "z", **kw)
+    if format == "qualisys":
+        return read_qualisys_tsv(path, rigid_body=o.rigid_body, up_axis=o.up_axis or "z", **kw)
+    if format == "rosbag":
+        return read_rosbag_poses(path, o.pose_topic, child_frame=o.child_frame)
+    return read_c3d(path, up_axis=o.up_axis or "z", **kw)
 
 
 def _centre_fix(format: str, exporter_pose: bool, body_given: bool, body_offset):
@@ -193,9 +159,10 @@ def _check_body_options(format, rigid_body, subject) -> None:
         )
 
 
-def _check_bag_options(format, inputs, units, up_axis, pose_topic, inputs_topic, joints) -> None:
+def _check_bag_options(format, inputs, o: ConvertOptions) -> None:
     """`InputError` for options that do not fit the format: a ROS bag without its topics, topics
     without a bag, lengths or axes declared for a bag (REP 103: metres, Z up)."""
+    units, up_axis, pose_topic, inputs_topic = o.units, o.up_axis, o.pose_topic, o.inputs_topic
     if format == "rosbag":
         if pose_topic is None:
             raise InputError("--format rosbag needs --pose-topic TOPIC: the topic of the poses.")
@@ -209,7 +176,7 @@ def _check_bag_options(format, inputs, units, up_axis, pose_topic, inputs_topic,
         raise InputError(f"--pose-topic is for --format rosbag; the poses of --format {format} come from its file.")
     elif inputs is None:
         raise InputError("--inputs is needed: the inputs table, or a ROS bag with --inputs-topic TOPIC.")
-    if joints is not None and inputs_topic is None:
+    if o.joints is not None and inputs_topic is None:
         raise InputError("--joints names the wheels of a JointState topic; give --inputs-topic TOPIC too.")
     if inputs is not None and inputs_topic is None and not isinstance(inputs, tuple):
         where = Path(inputs)

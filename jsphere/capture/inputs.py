@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import re
-
 import numpy as np
 
 from .._runtime.errors import InputError
@@ -43,7 +41,7 @@ def read_inputs_csv(
     header = [h.strip() for h in rows[k]]
     if "t" not in header:
         raise ValueError(f"{source}, line {k + 1}: missing required column t (time [s]){separator_hint(rows[k])}.")
-    kind, in_cols = _input_columns(_one_family(header, want, f"{source}, line {k + 1}"), f"{source}, line {k + 1}")
+    kind, in_cols = _input_columns(header, f"{source}, line {k + 1}", want, _BOTH)
     names = [header[j] for j in in_cols]
     check_unique_columns(header, f"{source}, line {k + 1}", ["t", *names])
     end = _cut_short(rows, k + 1, _data_end(rows, k + 1), len(header), source, allow_truncated, noun="rows")
@@ -60,6 +58,8 @@ def read_inputs_csv(
     return data[:, 0], data[:, 1:], kind, names
 
 
+#: the end of the error for an inputs table with both input families
+_BOTH = " (a plan's CSV holds both); choose one family with jsphere convert --input-kind chi_dot or --input-kind K."
 #: the names of the input families: the CLI's `chi_dot` / `K` and the trial's kinds
 KIND_NAMES = {"chi_dot": "wheel_speeds", "K": "torques", "wheel_speeds": "wheel_speeds", "torques": "torques"}
 
@@ -72,32 +72,6 @@ def input_kind(kind: str | None) -> str | None:
     if kind not in KIND_NAMES:
         raise InputError(f"input kind {kind!r}: choose 'chi_dot' (wheel speeds) or 'K' (torques).")
     return KIND_NAMES[kind]
-
-
-def _family(h: str) -> str | None:
-    """The input family of a column name, or None."""
-    for kind, prefix in INPUT_PREFIX.items():
-        if re.fullmatch(rf"{re.escape(prefix)}\d+", h):
-            return kind
-    return None
-
-
-def _one_family(header: list[str], want: str | None, where: str) -> list[str]:
-    """The header with the columns of the other input family blanked (`want`), or as it is when
-    it holds one family; a header with both and no `want` is an error that says how to choose."""
-    families = {_family(h) for h in header} - {None}
-    if want is None:
-        if len(families) == 2:
-            raise ValueError(
-                f"{where}: both chi_dot_* and K_* columns are present (a plan's CSV holds both); choose one family with "
-                "jsphere convert --input-kind chi_dot or --input-kind K."
-            )
-        return header
-    if want not in families:
-        raise ValueError(
-            f"{where}: no {INPUT_PREFIX[want]}1..N columns for input kind {want!r}; the table has {', '.join(header)}."
-        )
-    return [h if _family(h) in (None, want) else "" for h in header]
 
 
 def write_inputs_csv(path, t: np.ndarray, values: np.ndarray, kind: str) -> None:

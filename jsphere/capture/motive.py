@@ -9,8 +9,9 @@ import numpy as np
 from .._runtime.errors import InputError
 from .._runtime.files import atomic_write_text
 from ..model.rotations import quat_from_rotmat_np, quat_mul_np
-from .markers import UNIT_SCALE, UP_TO_Z, MarkerData, _scale, _scale_rb, detect_marker_units
-from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, separator_hint
+from .markers import UP_TO_Z, MarkerData, to_fixed_frame
+from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, cell, separator_hint
+from .units import EXPORT_UNITS, UNIT_SCALE, detect_marker_units, resolve_units
 from .validation import sign_continuous
 
 
@@ -96,10 +97,9 @@ def read_motive_csv(
     K = len(mnames)
     C = UP_TO_Z[up_axis]
     raw = data[:, 2 : 2 + 3 * K].reshape(len(t), K, 3)
-    scale = (
-        _scale(units, file_units, detect_marker_units(raw), source) if K >= 2 else _scale_rb(units, file_units, source)
-    )
-    markers = np.einsum("ij,mkj->mki", C, raw) * scale
+    detected = detect_marker_units(raw) if K >= 2 else None
+    scale = resolve_units(units, file_units, detected, source, EXPORT_UNITS)
+    markers = to_fixed_frame(raw, up_axis, scale)
     rb_q, rb_p = _rigid_body_pose(data[:, 2 + 3 * K :], C, scale) if want_rb else (None, None)
     error = data[:, -1] * scale if err_col is not None else None
     return MarkerData(t, markers, tuple(mnames), source, lines, rb_q, rb_p, error)
@@ -203,6 +203,14 @@ class _Header:
     def ncol(self) -> int:
         return len(self.axes)
 
+    def columns(self, kind: str, name: str | None = None) -> list[int]:
+        """The data columns of the `Type` `kind` (`Marker`, `Rigid Body`, ...), of `name` where given."""
+        return [
+            j
+            for j in range(2, self.ncol)
+            if self.cell("types", j) == kind and (name is None or self.cell("names", j) == name)
+        ]
+
     def cell(self, row: str, j: int) -> str:
         r = getattr(self, row)
         return r[j].strip() if j < len(r) else ""
@@ -210,7 +218,7 @@ class _Header:
 
 def _rigid_body(head: _Header, rigid_body: str | None, source: str) -> str | None:
     """The rigid body to read: `rigid_body`, or the file's only one (None where it has none)."""
-    bodies = sorted({head.cell("names", j) for j in range(2, head.ncol) if head.cell("types", j) == "Rigid Body"})
+    bodies = sorted({head.cell("names", j) for j in head.columns("Rigid Body")})
     if rigid_body is not None and bodies and rigid_body not in bodies:
         raise InputError(f"{source}: no rigid body named {rigid_body!r}; the file has {bodies}.")
     if rigid_body is None and len(bodies) > 1:
@@ -223,9 +231,9 @@ def _marker_columns(head: _Header, body: str | None) -> tuple[list[str], list[in
     with X, Y and Z columns: their names, and the columns to read (frame, time, then X, Y, Z of
     each marker) with their names."""
     mk: dict[str, dict[str, int]] = {}
-    for j in range(2, head.ncol):
+    for j in head.columns("Marker"):
         nm = head.cell("names", j)
-        if head.cell("types", j) != "Marker" or head.cell("kinds", j) != "Position" or nm.startswith("Unlabeled"):
+        if head.cell("kinds", j) != "Position" or nm.startswith("Unlabeled"):
             continue
         if body is not None and ":" in nm and nm.split(":")[0] != body:
             continue
@@ -258,9 +266,7 @@ def _rigid_body_columns(
     """The columns of the rigid body's Rotation X, Y, Z, W and Position X, Y, Z."""
     rb_cols = {}
     if body is not None:
-        for j in range(2, head.ncol):
-            if head.cell("types", j) == "Rigid Body" and head.cell("names", j) == body:
-                rb_cols[(head.cell("kinds", j), head.cell("axes", j))] = j
+        rb_cols = {(head.cell("kinds", j), head.cell("axes", j)): j for j in head.columns("Rigid Body", body)}
     need = [("Rotation", a) for a in "XYZW"] + [("Position", a) for a in "XYZ"]
     if not all(k in rb_cols for k in need):
         where = f"rigid body {body!r} lacks its Rotation or Position columns" if body else "the take has no rigid body"
@@ -277,14 +283,8 @@ def _error_column(head: _Header, body: str | None) -> int | None:
     Marker` in format 1.21), if the export has one."""
     if body is None:
         return None
-    for j in range(2, head.ncol):
-        if (
-            head.cell("types", j) == "Rigid Body"
-            and head.cell("names", j) == body
-            and head.cell("kinds", j) in ("Mean Marker Error", "Error Per Marker")
-        ):
-            return j
-    return None
+    errors = ("Mean Marker Error", "Error Per Marker")
+    return next((j for j in head.columns("Rigid Body", body) if head.cell("kinds", j) in errors), None)
 
 
 def _rigid_body_pose(rb: np.ndarray, C: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
@@ -351,6 +351,6 @@ def write_motive_csv(
     fmts = [".6f" if k in ("Rotation", "Mean Marker Error") else length_fmt for k in kinds]
     data = np.concatenate(blocks, axis=1)
     for i in range(M):
-        cells = ["" if not np.isfinite(v) else format(v + 0.0, f) for v, f in zip(data[i], fmts)]
+        cells = [cell(v, f) for v, f in zip(data[i], fmts)]
         lines.append(",".join([str(i), f"{t[i]:.6f}", *cells]))
     atomic_write_text(path, "\n".join(lines) + "\n")

@@ -4,16 +4,9 @@ Pipeline: a reader (`read_motive_csv`, `read_vicon_csv`, `read_c3d`) parses a ra
 `MarkerData` (times, marker trajectories in metres in jsphere's Z-up fixed frame, gaps as NaN),
 `rigid_body_pose` turns the markers of each frame into the platform pose (Kabsch/Umeyama
 without scale, with the reflection fix), and `markers_to_trial` adds the inputs (a separate
-table, `read_inputs_csv`) to make a `Trial`. `docs/capture.md` explains every convention:
-
-- `body_markers` `(K, 3)`: the markers' coordinates in the *body frame* [m]. Default: taken
-  from the first frame in which every marker is seen, centred on their centroid, with the body
-  frame's axes equal to the fixed axes at that frame.
-- `alignment` `(3, 3)`: platform -> body-frame rotation (default identity), so the platform's
-  rotation is `R_platform = R_body @ alignment`. With body markers given in the platform frame,
-  leave it at the identity.
-- `body_offset` `(3,)`: the shell centre in the platform frame relative to the body-frame
-  origin [m] (default 0): `r_centre = p_body + R_platform @ body_offset`.
+table, `read_inputs_csv`) to make a `Trial`. The body frame's markers (`body_markers`), its
+alignment with the platform (`alignment`) and the shell centre in it (`body_offset`) are
+options of the conversion: `ConvertOptions` gives their conventions.
 """
 
 from __future__ import annotations
@@ -29,9 +22,13 @@ from ..model.rotations import quat_from_rotmat_np, rotmat_np
 from .body import _match_body_markers, estimate_body_markers
 from .inputs import interpolate_inputs, read_inputs_csv
 from .markers import MarkerData
+from .options import ConvertOptions, with_keywords
 from .trial import Trial
 from .validation import CaptureWarning, _checked, sign_continuous, warn_implausible
 
+#: the fields of `ConvertOptions` that `markers_to_trial` accepts as keywords (deprecated)
+_KEYWORDS = ("body_markers", "alignment", "body_offset", "max_rms", "time_offset", "name", "max_gap_fraction")
+_KEYWORDS += ("allow_truncated", "keep_suspect")
 #: smallest second singular value of the centred present markers [m] for a pose (not collinear)
 MIN_SPREAD = 1e-3
 
@@ -97,19 +94,7 @@ def rigid_body_pose(
 
 
 def markers_to_trial(
-    data: MarkerData,
-    inputs,
-    *,
-    body_markers: np.ndarray | dict[str, np.ndarray] | None = None,
-    alignment: np.ndarray | None = None,
-    body_offset=(0.0, 0.0, 0.0),
-    max_rms: float = 0.005,
-    time_offset: float = 0.0,
-    name: str | None = None,
-    max_gap_fraction: float = 0.5,
-    allow_truncated: bool = False,
-    keep_suspect: bool = False,
-    format: str | None = None,
+    data: MarkerData, inputs, options: ConvertOptions = ConvertOptions(), *, format: str | None = None, **kwargs
 ) -> Trial:
     """A `Trial` from raw marker data and an inputs table.
 
@@ -119,28 +104,25 @@ def markers_to_trial(
       The inputs are interpolated linearly to the capture times; capture frames outside the
       table's time range are dropped, with a `CaptureWarning` saying how many (the two must
       share a clock: `t_trial = t_capture + time_offset`).
-    - `body_markers`, `alignment`, `body_offset`: see the module docstring. `body_markers` may
-      be a `(K, 3)` array in the order of `data.names`, or a dict `{name: (x, y, z)}` (e.g. from
-      `read_body_markers`), matched by full name or by the part after `Subject:`; markers of
-      the export not in the dict are ignored. If the data carry
-      the exporter's rigid-body pose (`rb_q`), it is used instead of the markers, as the body
-      frame.
-    - `max_rms`: frames whose marker fit has an RMS residual above this [m] are gaps, with a
-      `CaptureWarning` saying how many.
-    - `allow_truncated`: passed to `read_inputs_csv`.
-    - `keep_suspect`: keep the frames whose marker fit residual stands out of the take's own
-      noise (`suspect_frames`): a swapped or ghost marker, which would otherwise spoil the pose.
-      By default they are gaps, with a `CaptureWarning` saying how many and the threshold.
+    - `options`: a `ConvertOptions`; its fields `body_markers`, `alignment`, `body_offset`,
+      `max_rms`, `keep_suspect`, `time_offset`, `name`, `max_gap_fraction` and
+      `allow_truncated` (for `read_inputs_csv`) apply here. Those fields given as keywords
+      still work, with a `DeprecationWarning`.
+    - `format`: the format of `convert_raw` that `data` came from; it words the advice of the
+      plausibility warnings.
 
-    Where more than half of the frames with a marker fit would be left out (residual above
-    `max_rms`, or suspect), the markers do not move as one rigid body (a subject that is a
-    person, markers of several bodies): an `InputError` saying so.
+    If the data carry the exporter's rigid-body pose (`rb_q`), it is used instead of the
+    markers, as the body frame. Where more than half of the frames with a marker fit would be
+    left out (residual above `max_rms`, or suspect), the markers do not move as one rigid body
+    (a subject that is a person, markers of several bodies): an `InputError` saying so.
 
     Given body markers whose distances from each other disagree with the export's (by more than
     10%: markers in millimetres, or of another robot) are an `InputError`. The trial is checked
     for plausibility (`jsphere.capture.trial.implausible`: speeds, turn rates, time units), each
     finding a `CaptureWarning`.
     """
+    o = with_keywords(options, kwargs, "markers_to_trial", _KEYWORDS)
+    body_offset, time_offset, max_rms = o.body_offset, o.time_offset, o.max_rms
     source = data.source
     off = np.asarray(body_offset, float)
     if off.size != 3 or not np.all(np.isfinite(off)):
@@ -157,15 +139,15 @@ def markers_to_trial(
             f"{source}: the largest marker fit residual kept must be a positive number of metres; got {max_rms!r}."
         )
     if isinstance(inputs, (str, Path)):
-        t_in, u_in, kind, _ = read_inputs_csv(inputs, allow_truncated=allow_truncated)
+        t_in, u_in, kind, _ = read_inputs_csv(inputs, allow_truncated=o.allow_truncated)
     else:
         t_in, u_in, kind = inputs
         t_in, u_in = np.asarray(t_in, float), np.asarray(u_in, float).reshape(len(t_in), -1)
-    A = np.eye(3) if alignment is None else np.asarray(alignment, float)
+    A = np.eye(3) if o.alignment is None else np.asarray(o.alignment, float)
     if A.shape != (3, 3) or not np.allclose(A @ A.T, np.eye(3), atol=1e-6) or np.linalg.det(A) < 0:
         raise ValueError(f"{source}: alignment must be a 3x3 rotation matrix (platform -> body frame).")
     q_body, p_body = (
-        (data.rb_q, data.rb_p) if data.rb_q is not None else _body_pose(data, body_markers, max_rms, keep_suspect)
+        (data.rb_q, data.rb_p) if data.rb_q is not None else _body_pose(data, o.body_markers, max_rms, o.keep_suspect)
     )
     q, centre = _platform_pose(q_body, p_body, A, off.reshape(3))
     t = data.t + time_offset
@@ -183,19 +165,10 @@ def markers_to_trial(
         centre[keep, 2],
         source=source,
         lines=lines,
-        max_gap_fraction=max_gap_fraction,
+        max_gap_fraction=o.max_gap_fraction,
     )
-    warn_implausible(
-        tt,
-        x,
-        y,
-        qq,
-        source,
-        z,
-        from_markers=True,
-        **_hints(format),
-    )
-    return Trial(tt, x, y, qq, uu, kind, z, name=name or Path(source).stem)
+    warn_implausible(tt, x, y, qq, source, z, from_markers=True, **_hints(format))
+    return Trial(tt, x, y, qq, uu, kind, z, name=o.name or Path(source).stem)
 
 
 def _hints(format: str | None) -> dict[str, str]:

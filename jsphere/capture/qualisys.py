@@ -3,8 +3,6 @@
 
 from __future__ import annotations
 
-import csv
-import io
 import re
 
 import numpy as np
@@ -12,8 +10,9 @@ from scipy.spatial.transform import Rotation
 
 from .._runtime.errors import InputError
 from ..model.rotations import quat_from_rotmat_np
-from .markers import UP_TO_Z, MarkerData, _scale, detect_marker_units
-from .text import _check_times, _cut_short, _data_end, _numbers, read_text
+from .markers import UP_TO_Z, MarkerData, to_fixed_frame
+from .text import _check_times, _cut_short, _data_end, _numbers, csv_rows, read_text
+from .units import EXPORT_UNITS, detect_marker_units, resolve_units
 from .validation import sign_continuous
 
 #: a header line of a QTM TSV file: an upper-case variable name, a tab, its values
@@ -69,7 +68,7 @@ def read_qualisys_tsv(
     source = str(path)
     if up_axis not in UP_TO_Z:
         raise ValueError(f"{source}: the up axis (--up-axis) must be y or z; got {up_axis!r}.")
-    rows = list(csv.reader(io.StringIO(text, newline=""), delimiter="\t"))
+    rows = csv_rows(text, source, delimiter="\t")
     meta, k = _header(rows, source)
     kind = meta.get("DATA_INCLUDED", ["3D"])[0].strip().upper()
     if kind not in ("3D", "6D"):
@@ -186,8 +185,8 @@ def _read_3d(rows, k, columns, names, rate, units, up_axis, source) -> MarkerDat
     raw = data[:, len(lead) :].reshape(-1, K, 3)
     raw[np.all(raw == 0.0, axis=2)] = np.nan  # QTM writes a marker that is not seen as zeros
     detected = detect_marker_units(raw)
-    scale = _scale(units, None, detected if (detected or units != "auto") else "mm", source)
-    markers = np.einsum("ij,mkj->mki", UP_TO_Z[up_axis], raw) * scale
+    scale = resolve_units(units, None, detected if (detected or units != "auto") else "mm", source, EXPORT_UNITS)
+    markers = to_fixed_frame(raw, up_axis, scale)
     return MarkerData(t, markers, tuple(names), source, lines)
 
 
@@ -249,7 +248,7 @@ def _read_6d(rows, k, columns, bodies, rigid_body, rate, units, up_axis, source)
     if "Residual" in val:  # QTM writes a body it does not see as zeros with residual -1
         gap |= val["Residual"] < 0
     R[gap] = np.eye(3)
-    scale = _scale(units, None, None if units != "auto" else "mm", source)
+    scale = resolve_units(units, None, None if units != "auto" else "mm", source, EXPORT_UNITS)
     C = UP_TO_Z[up_axis]
     q = quat_from_rotmat_np(C @ R)
     q[gap] = np.nan

@@ -84,21 +84,18 @@ def _messages(path, topic: str, types: tuple[str, ...], what: str) -> tuple[list
 
 def _clock(headers: list, bag_times: np.ndarray, source: str, topic: str) -> np.ndarray:
     """The message times [s]: their header stamps, or the bag's receive times (with a
-    `CaptureWarning`) where any stamp is zero; sorted order is the caller's check."""
-    stamps = np.array([h.stamp.sec + 1e-9 * h.stamp.nanosec for h in headers])
-    zero = stamps == 0.0
-    if not np.any(zero):
-        return stamps
-    warnings.warn(
-        f"{source}: {int(zero.sum())} of the {len(stamps)} messages of {topic} have no header stamp; using the times "
-        "the bag recorded them (they include the transport delay).",
-        CaptureWarning,
-        stacklevel=3,
-    )
-    return bag_times
-
-
-def _increasing(t: np.ndarray, source: str, topic: str) -> None:
+    `CaptureWarning`) where any stamp is zero; times that do not increase strictly are an
+    `InputError`."""
+    t = np.array([h.stamp.sec + 1e-9 * h.stamp.nanosec for h in headers])
+    zero = t == 0.0
+    if np.any(zero):
+        warnings.warn(
+            f"{source}: {int(zero.sum())} of the {len(t)} messages of {topic} have no header stamp; using the times "
+            "the bag recorded them (they include the transport delay).",
+            CaptureWarning,
+            stacklevel=3,
+        )
+        t = bag_times
     bad = np.nonzero(np.diff(t) <= 0)[0]
     if bad.size:
         i = int(bad[0]) + 1
@@ -106,6 +103,7 @@ def _increasing(t: np.ndarray, source: str, topic: str) -> None:
             f"{source}: the stamps of {topic} are not strictly increasing (message {i + 1} at {t[i]:.9f} s follows "
             f"{t[i - 1]:.9f} s); record the topic with distinct stamps, in order."
         )
+    return t
 
 
 def read_rosbag_poses(path, topic: str, *, child_frame: str | None = None) -> MarkerData:
@@ -140,7 +138,6 @@ def read_rosbag_poses(path, topic: str, *, child_frame: str | None = None) -> Ma
     else:
         poses = [(m.transform.translation, m.transform.rotation) for m in msgs]
     t = _clock([m.header for m in msgs], bag_t, source, topic)
-    _increasing(t, source, topic)
     p = np.array([[v.x, v.y, v.z] for v, _ in poses], float)
     q = np.array([[r.w, r.x, r.y, r.z] for _, r in poses], float)
     norm = np.linalg.norm(q, axis=1)
@@ -263,7 +260,6 @@ def read_rosbag_inputs(
         i, j = int(bad[0, 0]), int(bad[0, 1])
         raise InputError(f"{source}: message {i + 1} of {topic}: {field} of joint {names[j]!r} is not finite.")
     t = _clock([m.header for m in msgs], bag_t, source, topic)
-    _increasing(t, source, topic)
     if len(t) < 2:
         raise InputError(f"{source}: {topic} holds {len(t)} message; the inputs need at least 2.")
     return t, values, kind, names

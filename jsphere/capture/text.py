@@ -60,6 +60,11 @@ def read_text(path) -> str:
         ) from None
 
 
+def cell(v: float, spec: str) -> str:
+    """A number as a written cell: blank where it is not finite (a gap), never `-0`."""
+    return "" if not np.isfinite(v) else format(v + 0.0, spec)
+
+
 def separator_hint(header: Sequence[str]) -> str:
     """`"; ..."` advice when a header row read as CSV is one cell holding `;` or a tab (a
     spreadsheet that saved with another separator), else `""`."""
@@ -82,27 +87,37 @@ def check_unique_columns(header: Sequence[str], source: str, wanted: Iterable[st
             raise InputError(f"{source}: column {name!r} appears {len(where)} times (columns {where}); keep one.")
 
 
-def csv_rows(text: str, source: str) -> list[list[str]]:
-    """`text` split into CSV rows (`csv.reader`); a malformed file is an `InputError` naming it."""
+def csv_rows(text: str, source: str, delimiter: str = ",") -> list[list[str]]:
+    """`text` split into CSV rows (`csv.reader`; `delimiter`: a tab for TSV); a malformed file
+    is an `InputError` naming it."""
     try:
-        return list(csv.reader(io.StringIO(text, newline="")))
+        return list(csv.reader(io.StringIO(text, newline=""), delimiter=delimiter))
     except csv.Error as e:
         raise InputError(f"{source}: not a readable CSV file ({e}).") from None
 
 
-def _input_columns(header: list[str], source: str) -> tuple[str, list[int]]:
-    """The kind and the column indices of `chi_dot_1..N` or `K_1..N`, in wheel order."""
+#: the end of the error for a trial with both input families
+_BOTH = "; a trial holds one kind of input (wheel speeds or torques): keep one set of columns."
+
+
+def _input_columns(header: list[str], source: str, want: str | None = None, both: str = _BOTH) -> tuple[str, list[int]]:
+    """The kind and the column indices of `chi_dot_1..N` or `K_1..N`, in wheel order: those of
+    the kind `want` where given (the other family's columns ignored), else of the one family
+    of `header` (a header with both is an error ending in `both`)."""
     found = {}
     for kind, prefix in INPUT_PREFIX.items():
         pat = re.compile(rf"^{re.escape(prefix)}(\d+)$")
         cols = {int(m.group(1)): j for j, h in enumerate(header) if (m := pat.match(h))}
         if cols:
             found[kind] = cols
+    if want is not None:
+        if want not in found:
+            raise ValueError(
+                f"{source}: no {INPUT_PREFIX[want]}1..N columns for input kind {want!r}; the table has {', '.join(header)}."
+            )
+        found = {want: found[want]}
     if len(found) == 2:
-        raise ValueError(
-            f"{source}: both chi_dot_* and K_* columns are present; a trial holds one kind of input "
-            "(wheel speeds or torques): keep one set of columns."
-        )
+        raise ValueError(f"{source}: both chi_dot_* and K_* columns are present{both}")
     if not found:
         raise ValueError(
             f"{source}: no input columns; add chi_dot_1..chi_dot_N (wheel speeds, rad/s) or K_1..K_N (torques, N m). "
@@ -184,13 +199,22 @@ def _cut_short(
     return end - int(cut_row)
 
 
-def _numbers(rows, start: int, cols: list[int], source: str, names: list[str]) -> tuple[np.ndarray, np.ndarray]:
+def _numbers(
+    rows, start: int, cols: list[int], source: str, names: list[str], *, width: int | None = None, line0: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
     """Parse `rows[start:]` at `cols` into floats (blank -> NaN); trailing empty rows dropped.
-    Returns `(data, lines)` with 1-based file lines."""
+    Returns `(data, lines)` with 1-based file lines (`line0`: the file's lines before
+    `rows[0]`). With `width`, a row with another number of cells is an error naming its line
+    (a last row with fewer: a file cut off)."""
     body = rows[start : _data_end(rows, start)]
     data = np.full((len(body), len(cols)), np.nan)
-    lines = np.arange(len(body)) + start + 1
+    lines = np.arange(len(body)) + start + 1 + line0
     for i, row in enumerate(body):
+        if width is not None and len(row) != width:
+            cut = (
+                " (the file looks cut off: copy or export it again)" if i == len(body) - 1 and len(row) < width else ""
+            )
+            raise ValueError(f"{source}, line {lines[i]}: {len(row)} cells but the header has {width} columns{cut}.")
         for jj, j in enumerate(cols):
             if j < len(row):
                 data[i, jj] = _parse_cell(row[j], source, int(lines[i]), names[jj])

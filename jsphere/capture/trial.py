@@ -26,7 +26,8 @@ from .._runtime.files import atomic_write_text
 from ..controls import Torques, WheelSpeeds
 from ..model.params import RobotParams
 from ..model.state import State
-from .text import _input_columns, _parse_cell, check_unique_columns, csv_rows, read_text, separator_hint
+from .text import _input_columns, _numbers, cell, check_unique_columns, csv_rows, read_text, separator_hint
+from .units import TRIAL_UNITS, detect_position_units, resolve_units
 from .validation import INPUT_PREFIX, POSE_COLUMNS, _checked, warn_implausible
 from .validation import CaptureWarning as CaptureWarning  # (the warning of every trial reader)
 
@@ -138,45 +139,7 @@ class Trial(eqx.Module):
 
 # --------------------------------------------------------------------------- CSV format
 
-_UNITS_SCALE = {"m": 1.0, "mm": 1e-3}
 _META = re.compile(r"^#\s*(\w+)\s*[:=]\s*(.*?)\s*$")
-
-
-def detect_position_units(values: np.ndarray, z: np.ndarray | None = None) -> str | None:
-    """Guess whether positions are in metres or millimetres: `"m"`, `"mm"` or `None` (cannot tell).
-
-    A height `z` of the shell centre (its radius, 0.03-1 m) decides if given; otherwise any
-    coordinate beyond 20 (a 20 m lab is implausible) means millimetres. Small numbers alone do
-    not prove metres (a robot that moved a few mm), so they give `None`.
-    """
-    if z is not None:
-        zz = np.abs(z[np.isfinite(z)])
-        if zz.size:
-            med = float(np.median(zz))
-            if 0.03 <= med <= 1.0:
-                return "m"
-            if 30.0 <= med <= 1000.0:
-                return "mm"
-    v = np.abs(np.asarray(values, float))
-    v = v[np.isfinite(v)]
-    if v.size and float(v.max()) > 20.0:
-        return "mm"
-    return None
-
-
-def _resolve_units(declared: str, detected: str | None, source: str, evidence: str) -> float:
-    """Scale factor to metres from the declared units (`"auto"`, `"m"`, `"mm"`) and the detected ones."""
-    if declared not in ("auto", "m", "mm"):
-        raise ValueError(f"{source}: the units given must be 'auto', 'm' or 'mm'; got {declared!r}.")
-    if declared == "auto":
-        return _UNITS_SCALE[detected or "m"]
-    if detected is not None and detected != declared:
-        raise ValueError(
-            f"{source}: the units given ({declared!r}) disagree with the data, which look like "
-            f"{'millimetres' if detected == 'mm' else 'metres'} ({evidence}); give {detected!r} (or 'auto') if that is "
-            "right, or fix the file."
-        )
-    return _UNITS_SCALE[declared]
 
 
 def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> Trial:
@@ -213,9 +176,11 @@ def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> T
     kind, in_cols = _input_columns(header, f"{source}, line {header_line}")
     check_unique_columns(header, f"{source}, line {header_line}", [*POSE_COLUMNS, "z", *(header[j] for j in in_cols)])
     has_z = "z" in header
-    data, line_no = _numbers(rows, header, in_cols, header_line, source)
+    data, line_no = _table(rows, header, in_cols, header_line, source)
     zcol = data[:, 7] if has_z else None
-    scale = _position_scale(units, meta.get("units"), detect_position_units(data[:, 1:3], zcol), source)
+    evidence = "positions/height" if "units" in meta else "magnitude of the positions/height"
+    detected = detect_position_units(data[:, 1:3], zcol)
+    scale = resolve_units(units, meta.get("units"), detected, source, TRIAL_UNITS, evidence)
     x, y = data[:, 1] * scale, data[:, 2] * scale
     z = zcol * scale if has_z else None
     t, x, y, q, inputs, z = _checked(
@@ -254,51 +219,17 @@ def _comments_and_rows(text: str, source: str) -> tuple[dict[str, str], int, lis
     return meta, k + 1, csv_rows("\n".join(lines_iter[k:]), source)
 
 
-def _numbers(
-    rows, header: list[str], in_cols: list[int], header_line: int, source: str
-) -> tuple[np.ndarray, np.ndarray]:
+def _table(rows, header: list[str], in_cols: list[int], header_line: int, source: str):
     """The pose columns, `z` where present, and the inputs of every data row as floats (blank:
     NaN), and the rows' 1-based lines."""
     col = {h: j for j, h in enumerate(header)}
-    has_z = "z" in col
-    use = [col[c] for c in POSE_COLUMNS] + ([col["z"]] if has_z else []) + in_cols
-    names = list(POSE_COLUMNS) + (["z"] if has_z else []) + [header[j] for j in in_cols]
-    # drop trailing empty lines
-    body = rows[1:]
-    while body and not any(c.strip() for c in body[-1]):
-        body.pop()
-    data = np.empty((len(body), len(use)))
-    line_no = np.arange(len(body)) + header_line + 1
-    for i, row in enumerate(body):
-        if len(row) != len(header):
-            cut = (
-                " (the file looks cut off: copy or export it again)"
-                if i == len(body) - 1 and len(row) < len(header)
-                else ""
-            )
-            raise ValueError(
-                f"{source}, line {line_no[i]}: {len(row)} cells but the header has {len(header)} columns{cut}."
-            )
-        for jj, j in enumerate(use):
-            data[i, jj] = _parse_cell(row[j], source, int(line_no[i]), names[jj])
+    extra = ["z"] if "z" in col else []
+    names = [*POSE_COLUMNS, *extra, *(header[j] for j in in_cols)]
+    use = [col[c] for c in POSE_COLUMNS + tuple(extra)] + in_cols
+    data, line_no = _numbers(rows, 1, use, source, names, width=len(header), line0=header_line - 1)
     if data.shape[0] == 0:
         raise ValueError(f"{source}: the trial is too short: no data rows after the header.")
     return data, line_no
-
-
-def _position_scale(units: str, file_units: str | None, detected: str | None, source: str) -> float:
-    """Metres per unit of the positions, from `units`, the file's `# units:` line and the units
-    detected from the numbers."""
-    if file_units is not None and file_units not in ("m", "mm"):
-        raise ValueError(f"{source}: the '# units:' line says {file_units!r}; it must be 'm' or 'mm'.")
-    if file_units is None:
-        return _resolve_units(units, detected, source, "magnitude of the positions/height")
-    if units != "auto" and units != file_units:
-        raise ValueError(
-            f"{source}: the units given ({units!r}) disagree with the file's '# units:' line ({file_units!r}); "
-            "give none (the file's are used) or fix the file."
-        )
-    return _resolve_units(file_units, detected, source, "positions/height")
 
 
 def read_trials(paths: Iterable, **kwargs) -> list[Trial]:
@@ -320,10 +251,6 @@ def read_trials(paths: Iterable, **kwargs) -> list[Trial]:
     return out
 
 
-def _fmt(v: float, spec: str) -> str:
-    return "" if not np.isfinite(v) else format(v + 0.0, spec)  # + 0.0: no "-0"
-
-
 def trial_to_csv(trial: Trial) -> str:
     """The text of `write_trial`: times to 1 µs, positions to 1 µm, quaternions to 1e-9,
     inputs to 10 significant digits; gaps as blank cells."""
@@ -336,11 +263,11 @@ def trial_to_csv(trial: Trial) -> str:
         ",".join(cols),
     ]
     for k in range(trial.n_frames):
-        cells = [_fmt(trial.t[k], ".6f"), _fmt(trial.x[k], ".6f"), _fmt(trial.y[k], ".6f")]
-        cells += [_fmt(v, ".9f") for v in trial.q[k]]
+        cells = [cell(trial.t[k], ".6f"), cell(trial.x[k], ".6f"), cell(trial.y[k], ".6f")]
+        cells += [cell(v, ".9f") for v in trial.q[k]]
         if trial.z is not None:
-            cells.append(_fmt(trial.z[k], ".6f"))
-        cells += [_fmt(v, ".10g") for v in trial.inputs[k]]
+            cells.append(cell(trial.z[k], ".6f"))
+        cells += [cell(v, ".10g") for v in trial.inputs[k]]
         out.append(",".join(cells))
     return "\n".join(out) + "\n"
 

@@ -7,8 +7,9 @@ import numpy as np
 
 from .._runtime.errors import InputError
 from .._runtime.files import atomic_write_text
-from .markers import UP_TO_Z, MarkerData, _scale, detect_marker_units
-from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, separator_hint
+from .markers import UP_TO_Z, MarkerData, to_fixed_frame
+from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, cell, separator_hint
+from .units import EXPORT_UNITS, detect_marker_units, resolve_units
 
 
 def read_vicon_csv(
@@ -97,13 +98,9 @@ def read_vicon_csv(
     t = (data[:, 0] - data[0, 0]) / rate
     _check_times(t, lines, source)
     raw = data[:, 2:].reshape(len(t), len(mk), 3)
-    scale = _scale(units, file_units, detect_marker_units(raw), source)
-    markers = np.einsum("ij,mkj->mki", UP_TO_Z[up_axis], raw) * scale
+    scale = resolve_units(units, file_units, detect_marker_units(raw), source, EXPORT_UNITS)
+    markers = to_fixed_frame(raw, up_axis, scale)
     return MarkerData(t, markers, tuple(n for n, _ in mk), source, lines)
-
-
-def _cells(v: np.ndarray, fmt: str) -> list[str]:
-    return ["" if not np.isfinite(x) else format(x + 0.0, fmt) for x in v]
 
 
 def write_vicon_csv(path, t, markers, names, *, subject: str = "robot", units: str = "mm") -> None:
@@ -123,5 +120,5 @@ def write_vicon_csv(path, t, markers, names, *, subject: str = "robot", units: s
     fmt = ".6f" if units == "m" else ".3f"
     for i in range(raw.shape[0]):
         frame = round(float(t[i] - t[0]) * rate) + 1
-        lines.append(",".join([str(frame), "0"] + _cells(raw[i].reshape(-1), fmt)))
+        lines.append(",".join([str(frame), "0"] + [cell(x, fmt) for x in raw[i].reshape(-1)]))
     atomic_write_text(path, "\n".join(lines) + "\n")

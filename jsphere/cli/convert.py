@@ -105,7 +105,7 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    import functools
+    import dataclasses
     import math
     import warnings
 
@@ -131,39 +131,18 @@ def run(args) -> int:
     }
     check_output(out, inputs=inputs, example=str(out / "trial.csv"))
     robot = RobotParams.load(args.params) if args.params else None
-    n_wheels = robot.n_wheels if robot is not None else None
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", CaptureWarning)
         try:
             body = read_body_markers(args.body_markers) if args.body_markers else None
-            convert = functools.partial(
-                convert_raw,
-                args.raw,
-                args.inputs,
-                format=args.format,
-                units=args.units,
-                up_axis=args.up_axis,
-                rigid_body=args.rigid_body,
-                body_markers=body,
-                body_offset=tuple(args.body_offset),
-                allow_truncated=args.allow_truncated,
-                keep_suspect=args.keep_suspect,
-                subject=args.subject,
-                pose_topic=args.pose_topic,
-                child_frame=args.child_frame,
-                inputs_topic=args.inputs_topic,
-                input_kind=args.input_kind,
-                joints=args.joints,
-                n_wheels=n_wheels,
-                shell_radius=float(robot.R0) if robot is not None else None,
-            )
+            options = _options(args, body, robot, time_offset or 0.0)
             if time_offset is None:
-                time_offset = _estimate_offset(convert, args)
-            trial = convert(time_offset=time_offset)
-            if n_wheels is not None and trial.n_wheels != n_wheels:
+                options = dataclasses.replace(options, time_offset=_estimate_offset(args, options))
+            trial = convert_raw(args.raw, args.inputs, format=args.format, options=options)
+            if options.n_wheels is not None and trial.n_wheels != options.n_wheels:
                 raise InputError(
                     f"{args.inputs or args.raw}: the inputs hold {trial.n_wheels} wheels but the robot ({args.params}) has "
-                    f"{n_wheels}; give one column per wheel."
+                    f"{options.n_wheels}; give one column per wheel."
                 )
         finally:  # the warnings of a conversion that then fails say what went before
             for w in caught:
@@ -175,6 +154,32 @@ def run(args) -> int:
     print(f"{trial!r} -> {out}")
     print(_centre_summary(trial, robot, args.params))
     return 0
+
+
+def _options(args, body, robot, time_offset: float):
+    """The `ConvertOptions` of the command's flags (the one place where flags become options):
+    `body` the markers read from `--body-markers`, `robot` the `--params` (its wheels and `R0`
+    are checked)."""
+    from ..capture.options import ConvertOptions
+
+    return ConvertOptions(
+        units=args.units,
+        up_axis=args.up_axis,
+        rigid_body=args.rigid_body,
+        subject=args.subject,
+        allow_truncated=args.allow_truncated,
+        pose_topic=args.pose_topic,
+        child_frame=args.child_frame,
+        inputs_topic=args.inputs_topic,
+        input_kind=args.input_kind,
+        joints=args.joints,
+        n_wheels=robot.n_wheels if robot is not None else None,
+        body_markers=body,
+        body_offset=tuple(args.body_offset),
+        keep_suspect=args.keep_suspect,
+        time_offset=time_offset,
+        shell_radius=float(robot.R0) if robot is not None else None,
+    )
 
 
 def _centre_summary(trial, robot, params) -> str:
@@ -209,22 +214,26 @@ def _time_offset(value: str) -> float | None:
     return v
 
 
-def _estimate_offset(convert, args) -> float:
+def _estimate_offset(args, options) -> float:
     """`--time-offset auto`: the capture converted once without an offset (its warnings held
     back), the offset estimated from its poses and the inputs (`estimate_time_offset`: the
     inputs table as written, or the inputs of a ROS bag as the conversion resampled them),
     printed."""
+    import dataclasses
     import warnings
 
     from ..capture.clock import estimate_time_offset
+    from ..capture.convert import convert_raw
     from ..capture.inputs import read_inputs_csv
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        first = convert(time_offset=0.0)
-        if args.inputs is not None and args.inputs_topic is None:
+        first = convert_raw(
+            args.raw, args.inputs, format=args.format, options=dataclasses.replace(options, time_offset=0.0)
+        )
+        if args.inputs is not None and options.inputs_topic is None:
             t_in, u_in, kind, _ = read_inputs_csv(
-                args.inputs, kind=args.input_kind, allow_truncated=args.allow_truncated
+                args.inputs, kind=options.input_kind, allow_truncated=options.allow_truncated
             )
         else:
             t_in, u_in, kind = first.t, first.inputs, first.kind

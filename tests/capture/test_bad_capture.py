@@ -138,7 +138,12 @@ def test_synth_and_convert_check_their_options_first(tmp_path, capsys):
     with pytest.raises(
         InputError, match=r"body offset \(--body-offset X Y Z\) must be 3 finite numbers.* got \(0\.0, nan, 0\.0\)"
     ):
-        jsphere.convert_raw(RAW / "motive.csv", RAW / "inputs.csv", format="motive", body_offset=(0.0, np.nan, 0.0))
+        jsphere.convert_raw(
+            RAW / "motive.csv",
+            RAW / "inputs.csv",
+            format="motive",
+            options=jsphere.ConvertOptions(body_offset=(0.0, np.nan, 0.0)),
+        )
 
 
 # --------------------------------------------------------------------------- files cut short
@@ -173,7 +178,9 @@ def test_motive_cut_mid_row_and_short_of_its_declared_frames(tmp_path):
     with pytest.raises(InputError, match=r"declares 151 frames \(Total Exported Frames\) but the file holds 64"):
         jsphere.read_motive_csv(raw)
     with pytest.warns(CaptureWarning, match=r"declares 151 frames .* holds 64; using the 64 complete frames"):
-        tr = jsphere.convert_raw(raw, RAW / "inputs.csv", format="motive", allow_truncated=True)
+        tr = jsphere.convert_raw(
+            raw, RAW / "inputs.csv", format="motive", options=jsphere.ConvertOptions(allow_truncated=True)
+        )
     assert tr.n_frames == 64
 
 
@@ -448,7 +455,12 @@ def test_body_markers_in_millimetres(tmp_path):
     with pytest.raises(
         InputError, match=r"1000 times as far apart as the markers in the export .* look like millimetres"
     ):
-        jsphere.convert_raw(RAW / "motive.csv", RAW / "inputs.csv", format="motive", body_markers=body_mm)
+        jsphere.convert_raw(
+            RAW / "motive.csv",
+            RAW / "inputs.csv",
+            format="motive",
+            options=jsphere.ConvertOptions(body_markers=body_mm),
+        )
 
 
 def test_empty_trial_folder_says_so(tmp_path, capsys):
@@ -467,7 +479,9 @@ def test_example_data_raise_no_warning():
         jsphere.read_trials([DATA])
         body = jsphere.read_body_markers(RAW / "body_markers.csv")
         for fmt in ("motive", "vicon"):
-            jsphere.convert_raw(RAW / f"{fmt}.csv", RAW / "inputs.csv", format=fmt, body_markers=body)
+            jsphere.convert_raw(
+                RAW / f"{fmt}.csv", RAW / "inputs.csv", format=fmt, options=jsphere.ConvertOptions(body_markers=body)
+            )
 
 
 def _rewrite(tmp_path, trial, name="trial.csv", *, units=True):
@@ -548,11 +562,18 @@ def test_wrong_up_axis_warns(capsys, tmp_path):
     with pytest.warns(
         CaptureWarning, match=r"motive\.csv: the platform tilts 9\d deg from upright .*is the export's up axis right"
     ):
-        jsphere.convert_raw(RAW / "motive.csv", RAW / "inputs.csv", format="motive", up_axis="z", body_markers=body)
+        jsphere.convert_raw(
+            RAW / "motive.csv",
+            RAW / "inputs.csv",
+            format="motive",
+            options=jsphere.ConvertOptions(up_axis="z", body_markers=body),
+        )
     with pytest.warns(
         CaptureWarning, match=r"the shell centre's height z varies by 3\.\d+ cm while it moves 7\.\d+ cm horizontally"
     ):
-        jsphere.convert_raw(RAW / "motive.csv", RAW / "inputs.csv", format="motive", up_axis="z")
+        jsphere.convert_raw(
+            RAW / "motive.csv", RAW / "inputs.csv", format="motive", options=jsphere.ConvertOptions(up_axis="z")
+        )
     code, err = _cli(
         _convert_args(RAW / "motive.csv", tmp_path / "t.csv", "motive", RAW / "inputs.csv", "--up-axis", "z"), capsys
     )

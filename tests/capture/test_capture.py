@@ -552,7 +552,9 @@ def test_motive_round_trip_mm_y_up(tmp_path, markers_truth):
     # blank cells are gaps, not zeros
     np.testing.assert_array_equal(np.isnan(data.markers), np.isnan(m))
     np.testing.assert_allclose(data.markers, m, atol=1e-6, equal_nan=True)
-    tr = jsphere.markers_to_trial(data, _inputs_file(tmp_path, truth), body_markers=BODY)
+    tr = jsphere.markers_to_trial(
+        data, _inputs_file(tmp_path, truth), options=jsphere.ConvertOptions(body_markers=BODY)
+    )
     _check_recovery(tr, truth, pos=5e-4, ang=0.5)
     assert tr.name == "take"
 
@@ -563,7 +565,9 @@ def test_motive_estimated_body_and_offset(tmp_path, markers_truth):
     m, truth = markers_truth
     raw = tmp_path / "take.csv"
     jsphere.write_motive_csv(raw, truth.t, m, NAMES, units="m")
-    tr = jsphere.convert_raw(raw, _inputs_file(tmp_path, truth), format="motive", body_offset=-BODY.mean(0))
+    tr = jsphere.convert_raw(
+        raw, _inputs_file(tmp_path, truth), format="motive", options=jsphere.ConvertOptions(body_offset=-BODY.mean(0))
+    )
     _check_recovery(tr, truth, pos=1e-3, ang=1.0)
 
 
@@ -595,7 +599,9 @@ def test_vicon_round_trip(tmp_path, markers_truth):
     data = jsphere.read_vicon_csv(raw)
     np.testing.assert_allclose(data.t, truth.t, atol=1e-12)
     np.testing.assert_array_equal(np.isnan(data.markers), np.isnan(m))
-    tr = jsphere.markers_to_trial(data, _inputs_file(tmp_path, truth), body_markers=BODY)
+    tr = jsphere.markers_to_trial(
+        data, _inputs_file(tmp_path, truth), options=jsphere.ConvertOptions(body_markers=BODY)
+    )
     _check_recovery(tr, truth, pos=5e-4, ang=0.5)
 
 
@@ -640,7 +646,9 @@ def test_c3d_through_ezc3d(tmp_path, monkeypatch, markers_truth):
     raw.write_bytes(c3d_shell(K, M))  # a header the structure check accepts; the fake reads nothing
     data = jsphere.read_c3d(raw)
     np.testing.assert_array_equal(np.isnan(data.markers), np.isnan(m))
-    tr = jsphere.markers_to_trial(data, _inputs_file(tmp_path, truth), body_markers=BODY)
+    tr = jsphere.markers_to_trial(
+        data, _inputs_file(tmp_path, truth), options=jsphere.ConvertOptions(body_markers=BODY)
+    )
     _check_recovery(tr, truth, pos=5e-4, ang=0.5)
 
 
@@ -727,7 +735,9 @@ def test_raw_error_too_few_markers_and_too_many_gaps(tmp_path, markers_truth):
     jsphere.write_motive_csv(raw2, truth.t, mm, NAMES)
     with pytest.raises(ValueError, match=r"gappy\.csv: too many gaps: 50% .*|gappy\.csv: too many gaps"):
         jsphere.markers_to_trial(
-            jsphere.read_motive_csv(raw2), _inputs_file(tmp_path, truth), body_markers=BODY, max_gap_fraction=0.4
+            jsphere.read_motive_csv(raw2),
+            _inputs_file(tmp_path, truth),
+            options=jsphere.ConvertOptions(body_markers=BODY, max_gap_fraction=0.4),
         )
 
 
@@ -750,8 +760,10 @@ def test_inputs_table_errors(tmp_path, markers_truth):
     jsphere.write_motive_csv(raw, truth.t, m, NAMES)
     late = (truth.t + 100.0, truth.inputs, "wheel_speeds")
     with pytest.raises(ValueError, match=r"do not overlap the inputs' .* share a clock \(--time-offset SECONDS"):
-        jsphere.markers_to_trial(jsphere.read_motive_csv(raw), late, body_markers=BODY)
-    tr = jsphere.markers_to_trial(jsphere.read_motive_csv(raw), late, body_markers=BODY, time_offset=100.0)
+        jsphere.markers_to_trial(jsphere.read_motive_csv(raw), late, options=jsphere.ConvertOptions(body_markers=BODY))
+    tr = jsphere.markers_to_trial(
+        jsphere.read_motive_csv(raw), late, options=jsphere.ConvertOptions(body_markers=BODY, time_offset=100.0)
+    )
     assert tr.t[0] == pytest.approx(100.0)
 
 
@@ -795,12 +807,37 @@ def test_example_dataset_reads_and_converts():
     body = jsphere.read_body_markers(DATA / "raw" / "body_markers.csv")
     assert sorted(body) == ["m1", "m2", "m3", "m4"]
     inputs = DATA / "raw" / "inputs.csv"
-    a = jsphere.convert_raw(DATA / "raw" / "motive.csv", inputs, format="motive", body_markers=body)
-    b = jsphere.convert_raw(DATA / "raw" / "vicon.csv", inputs, format="vicon", body_markers=body)
+    a = jsphere.convert_raw(
+        DATA / "raw" / "motive.csv", inputs, format="motive", options=jsphere.ConvertOptions(body_markers=body)
+    )
+    b = jsphere.convert_raw(
+        DATA / "raw" / "vicon.csv", inputs, format="vicon", options=jsphere.ConvertOptions(body_markers=body)
+    )
     v = a.valid & b.valid
     assert v.mean() > 0.95
     np.testing.assert_allclose(a.x[v], b.x[v], atol=2e-6)  # one motion, two exporters
     np.testing.assert_allclose(a.z[v], float(truth.R0), atol=1e-3)
+
+
+def test_convert_keywords_of_the_options_still_work():
+    """`convert_raw` and `markers_to_trial` take their options as a `ConvertOptions`; the same
+    options given as keywords make the same trial, each with a `DeprecationWarning` naming its
+    spelling in `ConvertOptions`; a keyword that never was an option is a `TypeError`."""
+    body = jsphere.read_body_markers(DATA / "raw" / "body_markers.csv")
+    raw, inputs = DATA / "raw" / "motive.csv", DATA / "raw" / "inputs.csv"
+    options = jsphere.ConvertOptions(body_markers=body, time_offset=0.01, name="t")
+    want = jsphere.convert_raw(raw, inputs, format="motive", options=options)
+    with pytest.warns(DeprecationWarning, match=r"convert_raw: the keyword body_markers is deprecated; give "):
+        got = jsphere.convert_raw(raw, inputs, format="motive", body_markers=body, time_offset=0.01, name="t")
+    assert got.name == want.name == "t"
+    np.testing.assert_array_equal(got.t, want.t)
+    np.testing.assert_array_equal(got.q, want.q)
+    data = jsphere.read_motive_csv(raw)
+    with pytest.warns(DeprecationWarning, match=r"ConvertOptions\(max_gap_fraction=\.\.\.\)"):
+        got = jsphere.markers_to_trial(data, inputs, body_markers=body, time_offset=0.01, max_gap_fraction=0.5)
+    np.testing.assert_array_equal(got.x, want.x)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'units'"):
+        jsphere.markers_to_trial(data, inputs, units="mm")
 
 
 def test_body_markers_by_name(tmp_path, markers_truth):
@@ -815,16 +852,23 @@ def test_body_markers_by_name(tmp_path, markers_truth):
         + "".join(f"{n},{b[0]},{b[1]},{b[2]}\n" for n, b in zip(NAMES[::-1], BODY[::-1]))
     )
     body = jsphere.read_body_markers(f)
-    tr = jsphere.convert_raw(raw, _inputs_file(tmp_path, truth), format="vicon", body_markers=body)
+    tr = jsphere.convert_raw(
+        raw, _inputs_file(tmp_path, truth), format="vicon", options=jsphere.ConvertOptions(body_markers=body)
+    )
     _check_recovery(tr, truth, pos=5e-4, ang=0.5)
     three = {k: body[k] for k in ("a", "b", "d")}
-    tr3 = jsphere.convert_raw(raw, _inputs_file(tmp_path, truth), format="vicon", body_markers=three)
+    tr3 = jsphere.convert_raw(
+        raw, _inputs_file(tmp_path, truth), format="vicon", options=jsphere.ConvertOptions(body_markers=three)
+    )
     _check_recovery(tr3, truth, pos=1e-3, ang=1.5)
     with pytest.raises(
         ValueError, match=r"fewer than 3 of the export's markers .* are among the body markers \['a', 'x', 'y'\]"
     ):
         jsphere.convert_raw(
-            raw, _inputs_file(tmp_path, truth), format="vicon", body_markers={"a": BODY[0], "x": BODY[1], "y": BODY[2]}
+            raw,
+            _inputs_file(tmp_path, truth),
+            format="vicon",
+            options=jsphere.ConvertOptions(body_markers={"a": BODY[0], "x": BODY[1], "y": BODY[2]}),
         )
     f.write_text("marker,x,y,z\na,0,0,0\n")
     with pytest.raises(ValueError, match=r"body\.csv: the first line must be the header 'name,x,y,z'"):

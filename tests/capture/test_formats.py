@@ -174,7 +174,12 @@ def test_motive3_every_unit_and_column_family(tmp_path, truth, units):
     mine = data.markers[:, [data.names.index(f"robot:{n}") for n in NAMES]]
     np.testing.assert_array_equal(np.isnan(mine), np.isnan(m))
     np.testing.assert_allclose(mine, m, atol=2e-6, equal_nan=True)
-    _check(jsphere.convert_raw(raw, _inputs(tmp_path, tr), format="motive", body_markers=BODY_BY_NAME), tr)
+    _check(
+        jsphere.convert_raw(
+            raw, _inputs(tmp_path, tr), format="motive", options=jsphere.ConvertOptions(body_markers=BODY_BY_NAME)
+        ),
+        tr,
+    )
     # Motive's own rigid-body pose, in the same units
     rb = jsphere.read_motive_csv(raw, use="rigid_body")
     tr_rb = jsphere.markers_to_trial(rb, _inputs(tmp_path, tr))
@@ -305,7 +310,12 @@ def test_qualisys_3d(tmp_path, truth, columns, time, gaps):
     np.testing.assert_allclose(data.t, tr.t, atol=1e-9)
     np.testing.assert_array_equal(np.isnan(data.markers), np.isnan(m))
     np.testing.assert_allclose(data.markers, m, atol=1e-6, equal_nan=True)
-    _check(jsphere.convert_raw(raw, _inputs(tmp_path, tr), format="qualisys", body_markers=BODY), tr)
+    _check(
+        jsphere.convert_raw(
+            raw, _inputs(tmp_path, tr), format="qualisys", options=jsphere.ConvertOptions(body_markers=BODY)
+        ),
+        tr,
+    )
 
 
 @pytest.mark.parametrize(("names", "gaps"), [("first", "NaN"), ("all", "0.00000"), ("none", "")])
@@ -325,7 +335,9 @@ def test_qualisys_6dof(tmp_path, truth, names, gaps):
     gap = np.zeros(tr.n_frames, bool)
     gap[40:43] = True
     np.testing.assert_array_equal(np.isnan(data.rb_q[:, 0]), gap)
-    trial = jsphere.convert_raw(raw, _inputs(tmp_path, tr), format="qualisys", rigid_body="robot")
+    trial = jsphere.convert_raw(
+        raw, _inputs(tmp_path, tr), format="qualisys", options=jsphere.ConvertOptions(rigid_body="robot")
+    )
     v = trial.valid
     np.testing.assert_allclose(trial.x[v], tr.x[v], atol=2e-6)
     assert _angle_deg(trial.q[v], tr.q[v]).max() < 2e-3  # Rot[] written to 5 decimals, as QTM does
@@ -458,7 +470,12 @@ def test_nexus_devices_subjects_and_model_outputs(tmp_path, truth):
     np.testing.assert_allclose(data.t, tr.t, atol=1e-12)
     np.testing.assert_allclose(data.markers, m, atol=1e-6, equal_nan=True)
     inputs = _inputs(tmp_path, tr)
-    _check(jsphere.convert_raw(raw, inputs, format="vicon", subject="robot", body_markers=BODY), tr)
+    _check(
+        jsphere.convert_raw(
+            raw, inputs, format="vicon", options=jsphere.ConvertOptions(subject="robot", body_markers=BODY)
+        ),
+        tr,
+    )
     out = tmp_path / "trial.csv"
     args = ["convert", str(raw), "--format", "vicon", "--inputs", str(inputs), "--out", str(out)]
     assert main(args) == 2
@@ -483,7 +500,11 @@ def test_fit_from_a_centimetre_motive3_take(tmp_path):
         m = jsphere.synthetic_markers(tr, BODY, marker_sd=1e-3, dropout=0.02, seed=10 + i)
         q, p = _pose(tr)
         raw = write_motive3(tmp_path / f"take{i}.csv", tr.t, m, q, p)
-        trials.append(jsphere.convert_raw(raw, _inputs(tmp_path, tr), format="motive", body_markers=BODY))
+        trials.append(
+            jsphere.convert_raw(
+                raw, _inputs(tmp_path, tr), format="motive", options=jsphere.ConvertOptions(body_markers=BODY)
+            )
+        )
     res = jsphere.fit(trials, jsphere.RobotParams.paper(), "R_m,j", fix={"m": 2.5}, n_starts=1, max_iter=30)
     assert res.converged
     for name in ("R_m", "j"):

@@ -187,7 +187,12 @@ def test_bag_converts_into_the_trial_of_the_csv_files(tmp_path, run, ros1, stora
     take, inputs = csv_files(tmp_path, run)
     want = jsphere.convert_raw(take, inputs, format="motive")
     topic = TOPICS.get(pose_type, "/mocap/robot/pose")
-    got = jsphere.convert_raw(bag, None, format="rosbag", pose_topic=topic, inputs_topic="/joint_states", name="take")
+    got = jsphere.convert_raw(
+        bag,
+        None,
+        format="rosbag",
+        options=jsphere.ConvertOptions(pose_topic=topic, inputs_topic="/joint_states", name="take"),
+    )
     _same(got, want)
     # the clock starts at the first message, the pose at 0; that pose precedes the first wheel state (2 ms)
     assert got.t[0] == pytest.approx(0.01, abs=1e-6)
@@ -222,7 +227,9 @@ def test_markers_from_a_capture_file_inputs_from_a_bag(tmp_path, run):
     bag = write_bag(tmp_path / "run.bag", run, ros1=True)
     take, inputs = csv_files(tmp_path, run)
     want = jsphere.convert_raw(take, inputs, format="motive")
-    got = jsphere.convert_raw(take, bag, format="motive", inputs_topic="/joint_states", time_offset=-0.002)
+    got = jsphere.convert_raw(
+        take, bag, format="motive", options=jsphere.ConvertOptions(inputs_topic="/joint_states", time_offset=-0.002)
+    )
     np.testing.assert_allclose(got.inputs, want.inputs[: got.n_frames], atol=1e-6)
     out = tmp_path / "trial.csv"
     args = ["convert", str(take), "--format", "motive", "--inputs", str(bag), "--inputs-topic", "/joint_states"]

@@ -59,10 +59,12 @@ def test_convert_leaves_suspect_frames_out_with_a_warning(take):
         match=rf"{len(GHOSTS)} of 151 frame\(s\) whose marker fit residual stands out of the take's noise .* "
         r"left out as missing \(--keep-suspect keeps them\)",
     ):
-        tr = jsphere.convert_raw(raw, inputs, format="motive", body_markers=BODY)
+        tr = jsphere.convert_raw(raw, inputs, format="motive", options=jsphere.ConvertOptions(body_markers=BODY))
     assert np.flatnonzero(~tr.valid).tolist() == GHOSTS
     with pytest.warns(CaptureWarning, match=r"are kept, as --keep-suspect asks"):
-        kept = jsphere.convert_raw(raw, inputs, format="motive", body_markers=BODY, keep_suspect=True)
+        kept = jsphere.convert_raw(
+            raw, inputs, format="motive", options=jsphere.ConvertOptions(body_markers=BODY, keep_suspect=True)
+        )
     assert kept.valid.all()
     assert np.hypot(kept.x[GHOSTS] - truth.x[GHOSTS], kept.y[GHOSTS] - truth.y[GHOSTS]).max() > 5e-4
 
@@ -124,11 +126,11 @@ def test_motive_mean_marker_error_is_read_and_keeps_noisy_frames(take, tmp_path)
     raw.write_text("\n".join(lines) + "\n")
     data = jsphere.read_motive_csv(raw, use="markers")
     assert data.marker_error is not None and data.marker_error[noisy] == pytest.approx(2e-3)
-    tr = markers_to_trial(data, inputs, body_markers=BODY)
+    tr = markers_to_trial(data, inputs, options=jsphere.ConvertOptions(body_markers=BODY))
     assert tr.valid.all()
     bare = MarkerData(data.t, data.markers, data.names, data.source, data.lines)
     with pytest.warns(CaptureWarning, match=r"stands out of the take's noise"):
-        tr = markers_to_trial(bare, inputs, body_markers=BODY)
+        tr = markers_to_trial(bare, inputs, options=jsphere.ConvertOptions(body_markers=BODY))
     assert set(np.flatnonzero(~tr.valid)) == set(noisy)
 
 
@@ -141,7 +143,11 @@ def test_frames_above_max_rms_and_outside_the_inputs_are_counted_and_said(take, 
     m[[40, 41], 1] += 0.03  # a marker 3 cm off: a residual far above 5 mm
     t_in, u = truth.t[:120], truth.inputs[:120]
     with pytest.warns(CaptureWarning) as caught:
-        tr = markers_to_trial(MarkerData(data.t, m, data.names, data.source), (t_in, u, truth.kind), body_markers=BODY)
+        tr = markers_to_trial(
+            MarkerData(data.t, m, data.names, data.source),
+            (t_in, u, truth.kind),
+            options=jsphere.ConvertOptions(body_markers=BODY),
+        )
     said = [str(w.message) for w in caught]
     assert any("2 of 151 frame(s) are left out as missing: their marker fit residual is above 5 mm" in s for s in said)
     assert any(
