@@ -420,3 +420,47 @@ def test_cli_killed_anywhere_resumes_to_the_same_files(tmp_path):
     for name in expected:
         if not name.startswith("time_"):  # when each batch was computed differs from run to run
             assert got[name] == expected[name], name
+
+
+def test_options_object_and_moved_keywords_give_the_same_study(paper, study):
+    """`options=StudyOptions(...)` is the study of the keywords it replaces; each moved keyword
+    warns with its new spelling, and `options=SolverOptions(...)` means `solver=`."""
+    new = jsphere.monte_carlo(
+        paper, GAITS, vary=VARY, n=256, options=jsphere.StudyOptions(seed=7, batch_size=128), progress=False
+    )
+    np.testing.assert_array_equal(new.x_final, study.x_final)
+    with pytest.warns(DeprecationWarning, match=r"seed= is deprecated; pass options=StudyOptions\(seed=\.\.\.\)"):
+        jsphere.monte_carlo(paper, GAITS, vary=VARY, n=64, seed=1, progress=False)
+    with pytest.warns(DeprecationWarning, match=r"rtol= is deprecated; pass solver=SolverOptions\(rtol=\.\.\.\)"):
+        jsphere.monte_carlo(paper, GAITS, vary=VARY, n=64, rtol=1e-8, progress=False)
+    with pytest.warns(DeprecationWarning, match=r"options=SolverOptions\(\.\.\.\) is deprecated; pass solver="):
+        jsphere.monte_carlo(paper, GAITS, vary=VARY, n=64, options=jsphere.SolverOptions(), progress=False)
+    with pytest.raises(TypeError, match=r"unexpected keyword argument\(s\) \['sed'\]"):
+        jsphere.monte_carlo(paper, GAITS, vary=VARY, n=64, sed=1)
+    with pytest.raises(InputError, match=r"monte_carlo: seed must be a whole number"):
+        jsphere.monte_carlo(paper, GAITS, vary=VARY, n=64, options=jsphere.StudyOptions(seed=-1))
+
+
+def test_a_study_folder_reads_back_as_its_result(paper, study, tmp_path):
+    """`read_result` of a finished study's folder is the study, bitwise; of a folder with a batch
+    missing, the trials of the others with their indices; a folder without a study is refused."""
+    from jsphere.montecarlo import read_result
+
+    out = tmp_path / "study"
+    options = jsphere.StudyOptions(seed=7, batch_size=128)
+    jsphere.monte_carlo(paper, GAITS, vary=VARY, n=256, options=options, out=out, progress=False)
+    back = read_result(out)
+    assert back.n == 256 and back.seed == 7 and back.trials is None and back.compute_time.recorded == 2
+    for name in ("x_final", "y_final", "speed_final", "status", "gamma3_sd_after", "reject_code"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(study, name))
+    np.testing.assert_array_equal(back.samples["r_m[2]"], study.samples["r_m[2]"])
+    assert back.stats() == json.loads((out / "stats.json").read_text())
+    (out / "batch_000000.npz").unlink()
+    part = read_result(out)
+    np.testing.assert_array_equal(part.trials, np.arange(128, 256))
+    np.testing.assert_array_equal(part.x_final, study.x_final[128:])
+    (out / "batch_000001.npz").write_bytes(b"")
+    with pytest.raises(InputError, match=r"batch_000001.npz is corrupt or incomplete"):
+        read_result(out)
+    with pytest.raises(InputError, match=r"not a Monte-Carlo study \(no manifest.json\)"):
+        read_result(tmp_path)
