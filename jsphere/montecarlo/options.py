@@ -8,6 +8,7 @@ a field whose metadata names a `file` form is a key of the file, under the field
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import warnings
 from typing import Any, Callable, Mapping
 
@@ -43,10 +44,8 @@ def _option(default, doc: str, check: Callable | None = None, file: str | None =
 @dataclasses.dataclass(frozen=True)
 class StudyOptions:
     """How a Monte-Carlo study runs its trials (`monte_carlo(..., options=StudyOptions(...))`).
-
-    Every field is documented in `StudyOptions.docs()` and below; the study file of
-    `jsphere montecarlo` takes the fields marked "file" as keys of the same name.
-    """
+    Every value is checked by `monte_carlo` before any work. The study file of
+    `jsphere montecarlo` takes the fields marked "(file)" as keys of the same name."""
 
     seed: int = _option(
         0,
@@ -142,6 +141,19 @@ class StudyOptions:
     def docs(cls) -> dict[str, str]:
         """`{field: its documentation}`."""
         return {f.name: f.metadata["doc"] for f in dataclasses.fields(cls)}
+
+
+def _document(cls):
+    """Append the fields' documentation (their metadata) to `cls`'s docstring."""
+    lines = []
+    for f in dataclasses.fields(cls):
+        mark = " (file)" if f.metadata["file"] is not None else ""
+        lines.append(f"- `{f.name}` (default `{f.default!r}`){mark}: {f.metadata['doc']}.")
+    cls.__doc__ = f"{inspect.cleandoc(cls.__doc__)}\n\n**Fields:**\n\n" + "\n".join(lines)
+    return cls
+
+
+_document(StudyOptions)
 
 
 @dataclasses.dataclass(frozen=True)

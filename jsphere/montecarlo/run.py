@@ -303,6 +303,15 @@ def _closed_loop(params, o: StudyOptions, actuators: Actuators) -> ClosedLoop:
     )
 
 
+def _draws(spec: Sequence[tuple], dtype) -> Uncertainty:
+    """A study's distributions from the `[(name, kind, a, b, truncate)]` of `check_vary`, as
+    arrays of `dtype` (no name varied: an empty distribution)."""
+    ab = np.array([[a, b] for _, _, a, b, _ in spec], dtype=np.float64).reshape(len(spec), 2)
+    names, kinds = tuple(e[0] for e in spec), tuple(e[1] for e in spec)
+    truncate = jnp.asarray(np.array([e[4] for e in spec], dtype=bool))
+    return Uncertainty(names, kinds, jnp.asarray(ab[:, 0], dtype), jnp.asarray(ab[:, 1], dtype), None, "vary", truncate)
+
+
 def _replay_record(replay: Replay | ClosedLoop, plan_rate: float, commands: bool) -> tuple:
     """What of a replay changes a study's results, for its fingerprint: the actuators, the plan's
     rate, the settling time, a hash of the given `commands` (None for the gaits' own plan) and
@@ -394,7 +403,7 @@ class _Run:
         trials = Trials(
             params,
             gaits,
-            Uncertainty.from_spec(spec, params.R0.dtype),
+            _draws(spec, params.R0.dtype),
             jnp.asarray(seed, jnp.uint32),
             reset,
             rtol,
