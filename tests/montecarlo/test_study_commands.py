@@ -43,6 +43,20 @@ def test_commands_key_reads_the_family_of_the_mode(tmp_path, nominal, mode, colu
     ts, values = load_study(study).options.commands
     np.testing.assert_allclose(ts, nominal["ts"], rtol=1e-11)
     np.testing.assert_allclose(values, nominal[column], rtol=1e-11, atol=1e-14)
+    with pytest.warns(DeprecationWarning, match=r'load_study\(\.\.\.\)\["kwargs"\] is deprecated'):
+        kwargs = load_study(study)["kwargs"]
+    assert kwargs["mode"] == mode and kwargs["commands"][0] is not None and list(kwargs["vary"]) == ["r_m[2]"]
+
+
+def test_the_study_files_keys_are_the_study_and_its_options():
+    """A study file's keys: `trials`, `params`, `gaits`, `vary` and the fields of `StudyOptions`
+    that a file gives (not the step limit and plan rate, which have no key)."""
+    import dataclasses
+
+    from jsphere.montecarlo.study import STUDY_KEYS
+
+    fields = {f.name for f in dataclasses.fields(jsphere.StudyOptions)}
+    assert STUDY_KEYS == {"trials", "params", "gaits", "vary"} | fields - {"max_steps", "plan_rate"}
 
 
 @pytest.mark.parametrize(
