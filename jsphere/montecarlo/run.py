@@ -9,8 +9,8 @@ atomically to `out/` and a killed study resumes there (a corrupt batch file is r
 `monte_carlo` checks its arguments and lays the study out in batches (`prepare`, a `_Run`),
 then computes the batches that are not in its folder yet (`_compute`), on this process's
 devices or, with JAX's distributed runtime, on every process's (`distributed`), and joins them
-into a `MonteCarloResult`. The modules beside this one hold the steps' parts: `study` (the
-checks and the study file), `sampling` (the draws), `batch` (the compiled batch), `store` (the
+into a `MonteCarloResult`. The modules beside this one hold the steps' parts: `options` (the
+study's options, `StudyOptions`), `study` (the checks and the study file), `sampling` (the draws), `batch` (the compiled batch), `store` (the
 study folder), `result` (the outcome and its statistics), `distributed` (several processes in
 one job) and `workers` (independent jobs sharing a folder through `claims`).
 """
