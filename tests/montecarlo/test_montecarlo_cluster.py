@@ -156,6 +156,12 @@ def test_distributed_settings_are_checked(paper, tmp_path, capsys):
         InputError, match=r"starts only before JAX makes any array; call jax.distributed.initialize\(\)"
     ):
         jsphere.monte_carlo(paper, GAITS, vary=VARY, n=64, distributed=True)
+    from jsphere.montecarlo import Distributed
+
+    with pytest.raises(InputError, match=r"coordinator must be HOST:PORT \(of process 0\); got 'node7'"):
+        jsphere.monte_carlo(paper, GAITS, vary=VARY, n=64, distributed=Distributed(coordinator="node7"))
+    with pytest.raises(InputError, match=r"process_id must be below num_processes; got 2 of 2"):
+        jsphere.monte_carlo(paper, GAITS, vary=VARY, n=64, distributed=Distributed(None, 2, 2))
     cfg = tmp_path / "study.toml"
     cfg.write_text(STUDY_TOML)
     assert main(["montecarlo", str(cfg), "--out", str(tmp_path / "o"), "--process-id", "1"]) == 2
