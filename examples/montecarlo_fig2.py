@@ -14,6 +14,7 @@ resumes where it stopped if interrupted.
 """
 
 import argparse
+import dataclasses
 
 import numpy as np
 
@@ -37,9 +38,10 @@ vary = {
 motors = jsphere.Actuators(gain_sd=0.02)
 u = np.asarray(jsphere.kinematic_wheel_speeds(p, np.array([float(p.R0) * 0.864, 0.0])))  # (5.5), 4 s
 kinematic = (np.array([0.0, 4.0]), np.stack([u, u]))
-common = dict(vary=vary, n=args.trials, seed=0, batch_size=4096, mode="wheel_speeds", actuators=motors, settle=4.0)
-kin = jsphere.monte_carlo(p, gaits, commands=kinematic, out=f"{args.out}/kinematic", **common)
-gait = jsphere.monte_carlo(p, gaits, out=f"{args.out}/gaits", **common)
+options = jsphere.StudyOptions(seed=0, batch_size=4096, mode="wheel_speeds", actuators=motors, settle=4.0)
+replayed = dataclasses.replace(options, commands=kinematic)
+kin = jsphere.monte_carlo(p, gaits, vary=vary, n=args.trials, options=replayed, out=f"{args.out}/kinematic")
+gait = jsphere.monte_carlo(p, gaits, vary=vary, n=args.trials, options=options, out=f"{args.out}/gaits")
 for name, res in (("kinematic", kin), ("gaits", gait)):
     st = res.stats()
     print(

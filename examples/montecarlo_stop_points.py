@@ -32,9 +32,8 @@ vary = {
     "m0": ("normal", 0.8, 0.02),
 }
 actuators = jsphere.Actuators(gain_sd=0.02, white_sd=1e-4) if args.mode != "gait" else None
-res = jsphere.monte_carlo(
-    p, gaits, vary=vary, n=args.trials, seed=0, batch_size=8192, mode=args.mode, actuators=actuators, out=args.out
-)
+options = jsphere.StudyOptions(seed=0, batch_size=8192, mode=args.mode, actuators=actuators)
+res = jsphere.monte_carlo(p, gaits, vary=vary, n=args.trials, options=options, out=args.out)
 st = res.stats()
 plan = jsphere.simulate_gaits(p, gaits)
 print(json.dumps(st, indent=2))

@@ -73,6 +73,7 @@ _EXPORTS = {
     "model.params": ("RobotParams",),
     "model.state": ("State",),
     "model.uncertainty": ("Uncertainty",),
+    "montecarlo.options": ("StudyOptions",),
     "montecarlo.result": ("MonteCarloResult",),
     "montecarlo.run": ("monte_carlo",),
     "montecarlo.sampling": ("Actuators",),

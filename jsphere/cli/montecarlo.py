@@ -86,15 +86,12 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     import warnings
 
-    from .._runtime.checks import whole
-    from .._runtime.errors import InputError, SolverFailure
-    from .._runtime.files import atomic_write_json, check_output
-    from ..gaits.gaits import simulate_gaits
+    from .._runtime.errors import InputError
+    from .._runtime.files import check_output
     from ..montecarlo.distributed import start_distributed
+    from ..montecarlo.options import Distributed
     from ..montecarlo.run import monte_carlo
-    from ..montecarlo.study import check_settings, load_study
     from ..montecarlo.workers import gather, work
-    from ..solve.options import SolverOptions
 
     def one_line(message, category, filename, lineno, file=None, line=None):
         print(f"jsphere montecarlo: warning: {message}", file=sys.stderr, flush=True)
@@ -103,49 +100,71 @@ def run(args) -> int:
     given = [name for name, v in setup.items() if v is not None]
     if given and not args.distributed:
         raise InputError(f"{NAME}: {', '.join(given)} set up a distributed run; add --distributed.")
-    if args.distributed:  # before the study file makes any JAX array
-        start_distributed(True, args.coordinator, args.num_processes, args.process_id)
+    distributed = Distributed(args.coordinator, args.num_processes, args.process_id) if args.distributed else False
+    if distributed:  # before the study file makes any JAX array
+        start_distributed(distributed)
     out = Path(args.out)
     writes = [out / name for name in ("stats.json", "manifest.json", *(() if args.no_plots else ("stop_points.png",)))]
     check_output(out, folder=True, writes=writes, inputs={"the study file": args.config})
-    study = load_study(args.config)
-    n = whole(NAME, "--trials", args.trials, 1) if args.trials is not None else study["n"]
-    given = {k: getattr(args, k) for k in ("seed", "batch_size") if getattr(args, k) is not None}
-    kwargs = study["kwargs"] | check_settings(NAME, given, names={"seed": "--seed", "batch_size": "--batch-size"})
+    params, gaits, study = study_of(args)
     with warnings.catch_warnings():
         warnings.showwarning = one_line
         if args.worker:
             timeout = _claim_timeout(args.claim_timeout)
-            report = work(
-                study["params"], study["gaits"], n=n, out=out, claim_timeout=timeout, progress=progress(args), **kwargs
-            )
+            report = work(params, gaits, **study, out=out, claim_timeout=timeout, progress=progress(args))
             print(report.summary())
             return 0
         if args.gather:
-            res = gather(study["params"], study["gaits"], n=n, out=out, **kwargs)
+            res = gather(params, gaits, **study, out=out)
         else:
-            res = monte_carlo(
-                study["params"],
-                study["gaits"],
-                n=n,
-                out=out,
-                progress=progress(args),
-                distributed=args.distributed,
-                **kwargs,
-            )
+            res = monte_carlo(params, gaits, **study, out=out, progress=progress(args), distributed=distributed)
+    return _finish(args, params, gaits, study, res, out)
+
+
+def study_of(args) -> tuple:
+    """`(params, gaits, {"vary", "n", "options"})`: the study of the study file `args.config` with
+    the flags that override its keys (`--trials`, `--seed`, `--batch-size`), checked under the
+    flags' names."""
+    import dataclasses
+
+    from .._runtime.checks import whole
+    from ..montecarlo.options import StudyOptions
+    from ..montecarlo.study import load_study
+
+    study = load_study(args.config)
+    n = whole(NAME, "--trials", args.trials, 1) if args.trials is not None else study.n
+    flags = {"seed": "--seed", "batch_size": "--batch-size"}
+    fields = {f.name: f for f in dataclasses.fields(StudyOptions)}
+    given = {
+        k: fields[k].metadata["check"](NAME, f, getattr(args, k))
+        for k, f in flags.items()
+        if getattr(args, k) is not None
+    }
+    options = dataclasses.replace(study.options, **given)
+    return study.params, study.gaits, {"vary": study.vary, "n": n, "options": options}
+
+
+def _finish(args, params, gaits, study: dict, res, out: Path) -> int:
+    """Write `stats.json` (with the planned stop) and the figure of a study's result `res`, print
+    its summary; `InputError` or `SolverFailure` when no trial succeeded."""
     import jax
+
+    from .._runtime.errors import InputError, SolverFailure
+    from .._runtime.files import atomic_write_json
+    from ..gaits.gaits import simulate_gaits
+    from ..solve.options import SolverOptions
 
     if args.distributed and jax.process_index() != 0:
         return 0  # process 0 writes the files and the summary
-    st = res.stats()
-    if kwargs.get("track") is not None:  # the table's last reference: where the controller holds the robot
-        st["planned_stop_m"] = [float(kwargs["track"]["x"][-1]), float(kwargs["track"]["y"][-1])]
-    elif kwargs.get("commands") is None:
+    st, o, n = res.stats(), study["options"], study["n"]
+    if o.track is not None:  # the table's last reference: where the controller holds the robot
+        st["planned_stop_m"] = [float(o.track["x"][-1]), float(o.track["y"][-1])]
+    elif o.commands is None:
         fast = SolverOptions(programs=args.programs)
-        planned = simulate_gaits(study["params"], study["gaits"], reset=kwargs["reset"], options=fast)
+        planned = simulate_gaits(params, gaits, reset=o.reset, options=fast)
         st["planned_stop_m"] = [float(planned.x[-1]), float(planned.y[-1])]
     else:
-        st["planned_stop_m"] = replayed_stop(study["params"], kwargs)
+        st["planned_stop_m"] = replayed_stop(params, o)
     atomic_write_json(out / "stats.json", st)
     why = _report(st, n)
     written = [out / "stats.json"]
@@ -164,7 +183,7 @@ def run(args) -> int:
     return 0
 
 
-def replayed_stop(params, kwargs) -> list[float]:
+def replayed_stop(params, options) -> list[float]:
     """Where the nominal robot stops under a study's command table: the table as it is (no
     actuator errors), the motors stopped at its last time, then the study's settling time."""
     import numpy as np
@@ -173,11 +192,11 @@ def replayed_stop(params, kwargs) -> list[float]:
     from ..model.state import State
     from ..solve.simulate import simulate
 
-    ts, u = kwargs["commands"]
+    ts, u = options.commands
     ts, u = np.concatenate([ts, ts[-1:]]), np.concatenate([u, np.zeros_like(u[:1])])
-    control = (Torques if kwargs["mode"] == "torques" else WheelSpeeds).from_samples(ts, u)
-    t1 = float(ts[-1]) + kwargs.get("settle", 1.0)
-    tr = simulate(params, State.at_rest(params), control, t1, max_steps=kwargs.get("max_steps", 65536))
+    control = (Torques if options.mode == "torques" else WheelSpeeds).from_samples(ts, u)
+    t1 = float(ts[-1]) + options.settle
+    tr = simulate(params, State.at_rest(params), control, t1, max_steps=options.max_steps or 65536)
     return [float(tr.x[-1]), float(tr.y[-1])]
 
 

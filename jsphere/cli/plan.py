@@ -295,16 +295,21 @@ def _uncertainty(args, params=None):
 
     path = Path(args.robust)
     if path.suffix.lower() == ".toml":
+        import numpy as np
+
         from ..montecarlo.study import check_vary, load_study
 
         study = load_study(path)
         if params is None:
-            params = RobotParams.load(args.params) if args.params else study["params"]
+            params = RobotParams.load(args.params) if args.params else study.params
         try:
-            entries = check_vary(params, study["kwargs"]["vary"])
+            entries = check_vary(params, study.vary)
         except ValueError as e:
             raise InputError(f"{path}: {e}") from None
-        unc = Uncertainty.from_vary(entries, source=str(path))
+        if not entries:
+            raise InputError(f"{path}: no parameter is uncertain; give at least one name.")
+        names, kinds, a, b, _ = zip(*entries)
+        unc = Uncertainty(names, kinds, np.asarray(a, float), np.asarray(b, float), source=str(path))
         return unc, unc.nominal(params)
     if path.suffix.lower() != ".json":
         raise InputError(f"--robust {path}: expected a fit result (.json) or a Monte-Carlo study (.toml).")

@@ -1,9 +1,9 @@
 """How uncertain a robot's parameters are, and robots drawn from it (`Uncertainty`).
 
-Sources: a fit's estimate with its covariance (`Uncertainty.from_fit`: the `values`, `stderr`
-and `correlation` of a fit.json, a joint normal distribution), or a table of independent
-normal and uniform entries (`Uncertainty.from_vary`, `Uncertainty.from_spec`: a Monte-Carlo
-study's `vary`). Every draw is checked against the rules of `RobotParams` (`rule_code`, and a
+One type, built from its fields (`Uncertainty(names, kinds, a, b, correlation, source,
+truncate)`: a Monte-Carlo study's `vary` table, independent normal and uniform entries), or read
+from a fit's estimate with its covariance (`Uncertainty.from_fit`: the `values`, `stderr` and
+`correlation` of a fit.json, a joint normal distribution). Every draw is checked against the rules of `RobotParams` (`rule_code`, and a
 drawn `R_m` must be a positive distance); a "truncated" name is drawn again while its set is
 no robot, which truncates its distribution to the valid robots.
 
@@ -15,6 +15,7 @@ Random numbers are JAX's, from one key per draw and name: draw `i` with seed `s`
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -145,28 +146,19 @@ class Uncertainty(eqx.Module):
 
     @classmethod
     def from_vary(cls, entries: Sequence[tuple], source: str = "vary") -> Uncertainty:
-        """Independent distributions, every name truncated to the valid robots: `(name, kind, a,
-        b, ...)` per entry (a checked `vary` table, `jsphere.montecarlo.study.check_vary`)."""
+        """Independent distributions, every name truncated to the valid robots, from `(name,
+        kind, a, b, ...)` entries: `Uncertainty(names, kinds, a, b, source=source)`. Kept for
+        one release, with a `DeprecationWarning`."""
+        warnings.warn(
+            "Uncertainty.from_vary(entries) is deprecated; pass Uncertainty(names, kinds, a, b, source=...).",
+            DeprecationWarning,
+            stacklevel=2,
+        )
         if not entries:
             raise InputError(f"{source}: no parameter is uncertain; give at least one name.")
-        names = tuple(str(e[0]) for e in entries)
-        kinds = tuple(str(e[1]) for e in entries)
         ab = np.array([[float(e[2]), float(e[3])] for e in entries])
-        return cls(names, kinds, ab[:, 0], ab[:, 1], None, source)
-
-    @classmethod
-    def from_spec(cls, spec: Sequence[tuple[str, str, float, float, bool]], dtype, source: str = "vary") -> Uncertainty:
-        """A Monte-Carlo study's distributions from the `[(name, kind, a, b, truncate)]` of
-        `check_vary`, as arrays of `dtype` (no name varied: an empty distribution)."""
-        ab = np.array([[a, b] for _, _, a, b, _ in spec], dtype=np.float64).reshape(len(spec), 2)
         return cls(
-            tuple(e[0] for e in spec),
-            tuple(e[1] for e in spec),
-            jnp.asarray(ab[:, 0], dtype=dtype),
-            jnp.asarray(ab[:, 1], dtype=dtype),
-            None,
-            source,
-            jnp.asarray(np.array([e[4] for e in spec], dtype=bool)),
+            tuple(str(e[0]) for e in entries), tuple(str(e[1]) for e in entries), ab[:, 0], ab[:, 1], None, source
         )
 
     # ------------------------------------------------------------------ draws

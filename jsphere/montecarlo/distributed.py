@@ -22,20 +22,21 @@ from .._runtime.errors import InputError
 from .._runtime.private import distributed_barrier
 
 
-def start_distributed(distributed: bool | None, coordinator, num_processes, process_id) -> bool:
-    """Whether the study runs distributed; with `distributed=True`, start JAX's distributed
-    runtime unless it is running (`jax.distributed.initialize`, with the cluster's settings or
-    the given `coordinator` "host:port", `num_processes` and `process_id`)."""
-    explicit = {"coordinator": coordinator, "num_processes": num_processes, "process_id": process_id}
-    given = [name for name, v in explicit.items() if v is not None]
-    if given and distributed is not True:
-        raise InputError(f"monte_carlo: {', '.join(given)} set up a distributed run; pass distributed=True too.")
+def start_distributed(distributed) -> bool:
+    """Whether the study runs distributed (`monte_carlo`'s `distributed`: True, False, None or a
+    `Distributed`); with True or a `Distributed`, start JAX's distributed runtime unless it is
+    running (`jax.distributed.initialize`, with the cluster's settings or the `Distributed`'s
+    coordinator "host:port", number of processes and process id)."""
+    from .options import Distributed
+
     if distributed is None:
         return jax.distributed.is_initialized() and jax.process_count() > 1
-    if distributed is not True and distributed is not False:
-        raise InputError(f"monte_carlo: distributed must be True, False or None; got {distributed!r}.")
-    if not distributed or jax.distributed.is_initialized():
-        return bool(distributed)
+    if distributed is not True and distributed is not False and not isinstance(distributed, Distributed):
+        raise InputError(f"monte_carlo: distributed must be True, False, None or a Distributed; got {distributed!r}.")
+    if distributed is False or jax.distributed.is_initialized():
+        return distributed is not False
+    setup = distributed if isinstance(distributed, Distributed) else Distributed()
+    coordinator, num_processes, process_id = setup.coordinator, setup.num_processes, setup.process_id
     if coordinator is not None:
         host, _, port = str(coordinator).rpartition(":")
         if not host or not port.isdigit():

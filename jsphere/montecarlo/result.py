@@ -70,8 +70,10 @@ class MonteCarloResult:
     paper's sigma of Fig. 2; 0 in gait mode, where the gaits end on exact stationary motions);
     `reject_code`: 0 for a valid draw, else the index in `REASONS` of the rule it breaks.
     `elapsed_s`: the wall time of the call that returned the result (for `workers.gather`, the
-    gather's own: it computes nothing); `compute_time`: with a study folder, the batches'
-    computation as recorded there (`ComputeTime`), else None.
+    gather's own: it computes nothing; 0 for `store.read_result`); `compute_time`: with a study
+    folder, the batches' computation as recorded there (`ComputeTime`), else None; `trials`:
+    the index of each trial in its study where they are not all of `0 .. n - 1` in order (a
+    study folder read before every batch is there, `store.read_result`), else None.
     """
 
     REJECTED: ClassVar[int] = REJECTED
@@ -88,6 +90,7 @@ class MonteCarloResult:
     elapsed_s: float = 0.0
     reject_code: np.ndarray | None = None
     compute_time: ComputeTime | None = None
+    trials: np.ndarray | None = None
 
     @property
     def results(self) -> np.ndarray:

@@ -9,8 +9,8 @@ atomically to `out/` and a killed study resumes there (a corrupt batch file is r
 `monte_carlo` checks its arguments and lays the study out in batches (`prepare`, a `_Run`),
 then computes the batches that are not in its folder yet (`_compute`), on this process's
 devices or, with JAX's distributed runtime, on every process's (`distributed`), and joins them
-into a `MonteCarloResult`. The modules beside this one hold the steps' parts: `study` (the
-checks and the study file), `sampling` (the draws), `batch` (the compiled batch), `store` (the
+into a `MonteCarloResult`. The modules beside this one hold the steps' parts: `options` (the
+study's options, `StudyOptions`), `study` (the checks and the study file), `sampling` (the draws), `batch` (the compiled batch), `store` (the
 study folder), `result` (the outcome and its statistics), `distributed` (several processes in
 one job) and `workers` (independent jobs sharing a folder through `claims`).
 """
@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._runtime.checks import real
+from .._runtime.checks import real, whole
 from .._runtime.cores import split_devices, trial_mesh
 from .._runtime.errors import InputError
 from .._runtime.progress import Progress
@@ -45,20 +45,20 @@ from ..solve.simulate import tolerances
 from .batch import CHUNK as CHUNK
 from .batch import ClosedLoop, Replay, Trials, run_batch
 from .distributed import batch_template, gather_batch, global_indices, share_from_process_0, start_distributed
+from .options import MAX_STEPS as MAX_STEPS
+from .options import MODES, Distributed, StudyOptions, study_arguments
 from .result import REJECTED as REJECTED
 from .result import ComputeTime, MonteCarloResult
 from .sampling import MAX_REDRAWS as MAX_REDRAWS
 from .sampling import REASONS as REASONS
 from .sampling import Actuators, Uncertainty
 from .store import BATCH_KEYS, StudyFolder, fingerprint
-from .study import MODES, check_feedback, check_settings, check_vary
+from .study import check_feedback, check_vary
 
 #: the progress lines' prefix
 _PROGRESS = "jsphere montecarlo:"
 #: seconds between two progress lines where no bar is drawn
 _LINE_S = 10.0
-#: `monte_carlo`'s default step limit of the replay modes
-MAX_STEPS = 65536
 
 
 def monte_carlo(
@@ -67,27 +67,12 @@ def monte_carlo(
     *,
     vary: Mapping[str, Sequence],
     n: int,
-    seed: int = 0,
-    batch_size: int = 1024,
-    reset=False,
-    rtol: float | None = None,
-    atol: float | None = None,
-    mode: str = "gait",
-    actuators: Actuators | None = None,
-    Omega0_sd: float = 0.0,
-    plan_rate: float = 200.0,
-    settle: float = 1.0,
-    commands: tuple | None = None,
-    track: Mapping | None = None,
-    feedback: Mapping | None = None,
-    max_steps: int | None = None,
+    options: StudyOptions | None = None,
+    solver: SolverOptions | None = None,
     out: str | os.PathLike | None = None,
     progress: bool | None = None,
-    distributed: bool | None = None,
-    coordinator: str | None = None,
-    num_processes: int | None = None,
-    process_id: int | None = None,
-    options: SolverOptions | None = None,
+    distributed: bool | Distributed | None = None,
+    **deprecated,
 ) -> MonteCarloResult:
     """Run the gaits `n` times with parameters drawn from `vary`; return the stop points.
 
@@ -102,47 +87,21 @@ def monte_carlo(
       followed by `"truncate"` (`("normal", 0.8, 0.3, "truncate")`) is truncated to the valid
       range instead: while a draw is invalid, every "truncate" distribution is drawn again
       (at most `MAX_REDRAWS` times), which samples it conditioned on a valid robot.
-    - `n`, `seed`: number of trials and the seed (`0 <= seed < 2**32`). Trial `i` uses the key
-      `fold_in(PRNGKey(seed), i)`: the same study whatever `batch_size` or device count.
-    - `batch_size`: trials per batch (memory stays bounded for any `n`); rounded up to a
-      multiple of 64. Each batch is sharded over as many local devices as divide it into whole
-      chunks of 64 (a distributed batch over every device, the next trials' draws filling its
-      last chunks and dropped). A study folder `out` that exists keeps the batch size of its
-      manifest.
-      Inside, trials run in vmapped chunks of 64 (`CHUNK`), so results are bitwise identical
-      for any batch size and device count.
-    - `mode`: `"gait"` (default): each trial executes the gaits exactly (the paper's
-      model: `gamma(t)` prescribed, the motors supply whatever torque it takes). `"torques"` or
-      `"wheel_speeds"`: the commands planned once with the nominal `params` (sampled at
-      `plan_rate` Hz) are replayed open loop on each perturbed robot, through `actuators`
-      (gain, delay, white and band-limited noise; `Actuators`), for the gaits' duration plus
-      `settle` seconds: "where does the real robot stop?".
-    - `commands`: `(ts, values)`, a command table to replay instead of the gaits' plan (e.g.
-      the kinematic control (2.9) for the paper's Fig. 2 comparison); starts at `t = 0`, repeat
-      a time stamp to encode a jump (wheel-speed jumps are impulses, see `simulate`); the motors
-      stop at its last time. `gaits` is then not replayed (pass the gaits the commands belong
-      to, for the record).
-    - `track`: a feedback table as `jsphere.planning.tracking.read_track_csv` returns it (a
-      `track.csv` of `jsphere track`), run closed loop instead of the gaits' plan (`mode` must
-      be "torques"): every `1/rate` seconds the command `K = K_ff - G e` from the measured
-      state, clipped to the torque limit, held over the period, through `actuators` (gain,
-      `delay_s` rounded to whole periods, white noise); after the last row that row is held
-      for `settle` seconds. The step is the tracking evaluation's (`evaluate.run_one`).
-      `feedback`: the measured state's noise and delay, the start pose's spread and the torque
-      limit (`FEEDBACK` of `jsphere.montecarlo.study`, whose defaults are `jsphere track`'s
-      evaluation's). `Omega0_sd`, `actuators.delay_sd` and `actuators.band_sd` must be 0.
-    - `rtol`, `atol`: the solver's tolerances; default 1e-8, 1e-10 (float32 parameters: 1e-5,
-      1e-7, as `simulate`).
-    - `max_steps`: solver step limit per trial in the replay modes, default 65536 (noisy commands need many
-      steps: the noise is interpolated smoothly and the solver follows it). Gait mode solves
-      with `simulate_gaits`' limit (16384) unless `options.max_steps` sets it.
-    - `Omega0_sd`: sd of a perturbation of the initial shell angular velocity [1/s].
+    - `n`: the number of trials.
+    - `options`: a `StudyOptions` (seed, batch size, mode, actuators, replayed commands or
+      feedback table, ...; each field documented there).
+    - `solver`: a `SolverOptions`; its `rtol`, `atol`, `max_steps` and `solver` are used
+      (tolerances by default 1e-8, 1e-10; float32 parameters: 1e-5, 1e-7, as `simulate`).
+      `throw` and `batch_steps` are monte_carlo's own: a failed trial is reported in `status`,
+      and every trial takes its own steps, so that its result does not depend on the other
+      trials of its chunk. `adjoint` and `programs` set are errors (nothing is differentiated;
+      the solves are batched). A solver other than `Dopri8` is part of the study's fingerprint.
     - `out`: a folder. Each finished batch is written there atomically, with a manifest; run
       the same call again after an interruption and it resumes (a folder holding a different
       study is refused). A finished study run again with a larger `n` computes only the new
-      batches: its first trials are those of the smaller study, bit for bit. A batch file that cannot be read (cut short, overwritten) is
-      recomputed, with a `MonteCarloWarning` naming it; the hidden temporary files a killed
-      run leaves are removed.
+      batches: its first trials are those of the smaller study, bit for bit. A batch file that
+      cannot be read (cut short, overwritten) is recomputed, with a `MonteCarloWarning` naming
+      it; the hidden temporary files a killed run leaves are removed.
     - `progress`: `None` (default): a progress bar on stderr when it is a terminal; `True`: the
       bar, or a line every few seconds where stderr is not a terminal; `False`: none.
       The first batch, which compiles, is shown apart and left out of the rate.
@@ -152,48 +111,25 @@ def monte_carlo(
       runs its own shard, the results are gathered on every process
       (`jax.experimental.multihost_utils`) and process 0 writes the batches and statistics to
       `out` (a folder that only process 0 needs to see). Every process returns the whole study,
-      bitwise that of a single process. `True` starts JAX's distributed runtime
-      (`jax.distributed.initialize`) unless it is running: from the cluster's environment
-      (SLURM, Open MPI, ...) or from `coordinator` (`"host:port"` of process 0),
-      `num_processes` and `process_id`. JAX starts it only before it has made any array, so
-      call `jax.distributed.initialize()` at the top of the script when in doubt. `None`
-      (default): distributed when the runtime is running with several processes.
-    - `options`: a `SolverOptions`; its `rtol`, `atol`, `max_steps` and `solver` are used
-      (`max_steps` 65536 where it is at `SolverOptions`' default); a keyword given wins over
-      its field. `throw` and `batch_steps` are
-      monte_carlo's own: a failed trial is reported in `status`, and every trial takes its own
-      steps, so that its result does not depend on the other trials of its chunk. `adjoint`
-      and `programs` set are errors (nothing is differentiated; the solves are batched). A
-      solver other than `Dopri8` is part of the study's fingerprint.
+      bitwise that of a single process. `True` (or a `Distributed` naming the coordinator,
+      the number of processes and this process's id) starts JAX's distributed runtime
+      (`jax.distributed.initialize`) unless it is running, from the cluster's environment
+      (SLURM, Open MPI, ...) where the `Distributed` leaves them out. JAX starts it only
+      before it has made any array, so call `jax.distributed.initialize()` at the top of the
+      script when in doubt. `None` (default): distributed when the runtime is running with
+      several processes.
+    - `**deprecated`: the keywords that moved into `options` (`seed=`, `batch_size=`, `mode=`,
+      ...), `solver` (`rtol=`, `atol=`; `options=SolverOptions(...)`) and `distributed`
+      (`coordinator=`, `num_processes=`, `process_id=`) keep working for one release, with a
+      `DeprecationWarning` naming the new spelling.
 
     Every argument is checked before any work; a bad one raises `InputError` naming it.
 
     Returns a `MonteCarloResult` (`x_final`, `y_final`, ... arrays of length `n`; `.stats()`).
     """
-    distributed = start_distributed(distributed, coordinator, num_processes, process_id)
-    run = prepare(
-        params,
-        gaits,
-        vary=vary,
-        n=n,
-        seed=seed,
-        batch_size=batch_size,
-        reset=reset,
-        rtol=rtol,
-        atol=atol,
-        mode=mode,
-        actuators=actuators,
-        Omega0_sd=Omega0_sd,
-        plan_rate=plan_rate,
-        settle=settle,
-        commands=commands,
-        track=track,
-        feedback=feedback,
-        max_steps=max_steps,
-        options=options,
-        out=out,
-        distributed=distributed,
-    )
+    options, solver, distributed = study_arguments("monte_carlo", options, solver, distributed, deprecated)
+    distributed = start_distributed(distributed)
+    run = prepare(params, gaits, vary=vary, n=n, options=options, solver=solver, out=out, distributed=distributed)
     t_start = time.perf_counter()
     if run.distributed:
         parts = run_distributed(run, Progress(progress if run.writer else False))
@@ -212,84 +148,61 @@ def prepare(
     *,
     vary: Mapping[str, Sequence],
     n: int,
-    seed: int = 0,
-    batch_size: int = 1024,
-    reset=False,
-    rtol: float | None = None,
-    atol: float | None = None,
-    mode: str = "gait",
-    actuators: Actuators | None = None,
-    Omega0_sd: float = 0.0,
-    plan_rate: float = 200.0,
-    settle: float = 1.0,
-    commands: tuple | None = None,
-    track: Mapping | None = None,
-    feedback: Mapping | None = None,
-    max_steps: int | None = None,
-    options: SolverOptions | None = None,
+    options: StudyOptions,
+    solver: SolverOptions | None = None,
     out: str | os.PathLike | None = None,
     distributed: bool = False,
 ) -> "_Run":
-    """Check the arguments of a study (those of `monte_carlo`) and lay it out in batches, over
-    this process's devices or (`distributed`) every process's. A study folder `out` that
-    exists keeps its batch size where these devices can share it (a study extended to more
-    trials, workers on nodes with other device counts, `--gather`, which computes nothing)."""
-    settings = check_settings(
-        "monte_carlo",
-        {
-            "n": n,
-            "seed": seed,
-            "batch_size": batch_size,
-            "settle": settle,
-            "Omega0_sd": Omega0_sd,
-            "plan_rate": plan_rate,
-            "max_steps": MAX_STEPS if max_steps is None else max_steps,
-        },
-    )
-    opts = _solver_options(options, rtol, atol, max_steps, settings)
-    actuators = _check_mode(mode, actuators, opts.rtol, opts.atol)
+    """Check the arguments of a study (those of `monte_carlo`, `options` a `StudyOptions`) and
+    lay it out in batches, over this process's devices or (`distributed`) every process's. A
+    study folder `out` that exists keeps its batch size where these devices can share it (a
+    study extended to more trials, workers on nodes with other device counts, `--gather`,
+    which computes nothing)."""
+    n = whole("monte_carlo", "n", n, 1)
+    o = options.checked("monte_carlo")
+    opts = _solver_options(solver, o.max_steps)
+    o = dataclasses.replace(o, max_steps=opts.max_steps)
+    actuators = _check_mode(o.mode, o.actuators, opts.rtol, opts.atol)
     spec = check_vary(params, vary)
     rtol, atol = tolerances(params.R0.dtype, opts.rtol, opts.atol, where="monte_carlo")
     gaits = _check_gaits(gaits)
-    if commands is not None and mode == "gait":
+    if o.commands is not None and o.mode == "gait":
         raise ValueError("monte_carlo: `commands` are replayed; use mode='torques' or 'wheel_speeds'.")
-    if track is not None:
-        replay = _closed_loop(params, track, feedback, mode, commands, actuators, settings)
-    elif feedback is not None:
+    if o.track is not None:
+        replay = _closed_loop(params, o, actuators)
+    elif o.feedback is not None:
         raise InputError("monte_carlo: `feedback` sets up the closed loop of a `track` table; give `track`.")
     else:
-        replay = None if mode == "gait" else _replay(params, gaits, mode, commands, reset, actuators, settings)
+        replay = None if o.mode == "gait" else _replay(params, gaits, o, actuators)
     return _Run.create(
         params,
         gaits,
         spec,
-        settings,
-        reset=reset,
+        {"n": n, "seed": o.seed, "batch_size": o.batch_size, "plan_rate": o.plan_rate, "Omega0_sd": o.Omega0_sd},
+        reset=o.reset,
         rtol=rtol,
         atol=atol,
         solver=opts.solver,
-        gait_max_steps=SolverOptions().max_steps if options is None else options.max_steps,
+        gait_max_steps=SolverOptions().max_steps if solver is None else solver.max_steps,
         replay=replay,
-        commands=commands is not None,
+        commands=o.commands is not None,
         out=out,
         distributed=distributed,
         vary=vary,
     )
 
 
-def _solver_options(options: SolverOptions | None, rtol, atol, max_steps, settings: dict) -> SolverOptions:
-    """The solver settings of a study: `options` with the keywords given (`max_steps`
-    defaults to `MAX_STEPS`); `settings["max_steps"]` becomes the replay modes' step limit."""
+def _solver_options(solver: SolverOptions | None, max_steps: int | None) -> SolverOptions:
+    """The solver settings of a study: `solver` with the replay modes' step limit `max_steps`
+    where given (else `solver.max_steps`, else `MAX_STEPS`)."""
     unused(
-        options,
+        solver,
         where="monte_carlo",
         adjoint="monte_carlo does not differentiate its solves",
         programs="monte_carlo's solves are batched (traced), never eager",
     )
-    opts = solver_options(options, where="monte_carlo", rtol=rtol, atol=atol, max_steps=max_steps)
-    opts = opts.or_defaults(max_steps=MAX_STEPS)
-    settings["max_steps"] = opts.max_steps
-    return opts
+    opts = solver_options(solver, where="monte_carlo", max_steps=max_steps)
+    return opts.or_defaults(max_steps=MAX_STEPS)
 
 
 def _check_mode(mode: str, actuators: Actuators | None, rtol, atol) -> Actuators:
@@ -318,11 +231,12 @@ def _check_gaits(gaits) -> list[Gait]:
     return gaits
 
 
-def _replay(params, gaits, mode, commands, reset, actuators, settings) -> Replay:
-    """The commands a replay mode replays: `commands`, or the gaits' plan on the nominal robot
-    sampled at `plan_rate`; the motors stop at its last time stamp."""
+def _replay(params, gaits, o: StudyOptions, actuators: Actuators) -> Replay:
+    """The commands a replay mode replays: `o.commands`, or the gaits' plan on the nominal robot
+    sampled at `o.plan_rate`; the motors stop at its last time stamp."""
+    mode, commands = o.mode, o.commands
     if commands is None:
-        nominal = simulate_gaits(params, gaits, reset=reset, rate=settings["plan_rate"])
+        nominal = simulate_gaits(params, gaits, reset=o.reset, rate=o.plan_rate)
         tsn = np.asarray(nominal.ts)
         u = np.asarray(nominal.K if mode == "torques" else nominal.chi_dot)
     else:
@@ -338,21 +252,22 @@ def _replay(params, gaits, mode, commands, reset, actuators, settings) -> Replay
     if actuators.delay_s == 0 and actuators.delay_sd == 0:  # jumps stay where the plan has them
         jump_ts = tuple(float(t) for t in tsn[1:][np.diff(tsn) == 0] if t > 0)
     plan = (jnp.asarray(tsn, params.R0.dtype), jnp.asarray(u, params.R0.dtype))
-    return Replay(mode, plan, actuators, settings["settle"], settings["max_steps"], jump_ts)
+    return Replay(mode, plan, actuators, o.settle, o.max_steps, jump_ts)
 
 
-def _closed_loop(params, track, feedback, mode, commands, actuators, settings) -> ClosedLoop:
-    """The closed loop of a feedback table `track` (`read_track_csv`'s dict) on a study's
+def _closed_loop(params, o: StudyOptions, actuators: Actuators) -> ClosedLoop:
+    """The closed loop of a feedback table `o.track` (`read_track_csv`'s dict) on a study's
     robots: its rows at their rate, the reference as flat states, the conditions of the
-    evaluation from `feedback` (`check_feedback`), the actuators and the settling time."""
-    if mode != "torques" or commands is not None:
+    evaluation from `o.feedback` (`check_feedback`), the actuators and the settling time."""
+    track = o.track
+    if o.mode != "torques" or o.commands is not None:
         raise InputError("monte_carlo: a `track` table commands torques; use mode='torques' and no `commands`.")
-    if settings["Omega0_sd"] != 0 or actuators.delay_sd != 0 or actuators.band_sd != 0:
+    if o.Omega0_sd != 0 or actuators.delay_sd != 0 or actuators.band_sd != 0:
         raise InputError(
             "monte_carlo: the closed loop of a `track` table starts from `feedback.start_sd` and `heading_sd` and "
             "takes the actuators' gain_sd, delay_s and white_sd; set Omega0_sd, delay_sd and band_sd to 0."
         )
-    fb = check_feedback("monte_carlo: feedback", feedback or {})
+    fb = check_feedback("monte_carlo: feedback", o.feedback or {})
     t, K_ff, G = (np.asarray(track[k], np.float64) for k in ("t", "K_ff", "G"))
     N = params.n_wheels
     if K_ff.ndim != 2 or K_ff.shape[1] != N or G.shape != (len(t), N, 11) or len(t) < 2:
@@ -374,7 +289,7 @@ def _closed_loop(params, track, feedback, mode, commands, actuators, settings) -
         gain_sd=actuators.gain_sd,
         motor_delay_s=actuators.delay_s,
         white_sd=actuators.white_sd,
-        settle=settings["settle"],
+        settle=o.settle,
     )
     return ClosedLoop(
         h,
@@ -384,8 +299,17 @@ def _closed_loop(params, track, feedback, mode, commands, actuators, settings) -
         jnp.asarray([ref[-1, Flat.x], ref[-1, Flat.y]], dt),
         conditions,
         fb["max_torque"],
-        int(math.ceil(settings["settle"] / h - 1e-9)),
+        int(math.ceil(o.settle / h - 1e-9)),
     )
+
+
+def _draws(spec: Sequence[tuple], dtype) -> Uncertainty:
+    """A study's distributions from the `[(name, kind, a, b, truncate)]` of `check_vary`, as
+    arrays of `dtype` (no name varied: an empty distribution)."""
+    ab = np.array([[a, b] for _, _, a, b, _ in spec], dtype=np.float64).reshape(len(spec), 2)
+    names, kinds = tuple(e[0] for e in spec), tuple(e[1] for e in spec)
+    truncate = jnp.asarray(np.array([e[4] for e in spec], dtype=bool))
+    return Uncertainty(names, kinds, jnp.asarray(ab[:, 0], dtype), jnp.asarray(ab[:, 1], dtype), None, "vary", truncate)
 
 
 def _replay_record(replay: Replay | ClosedLoop, plan_rate: float, commands: bool) -> tuple:
@@ -479,7 +403,7 @@ class _Run:
         trials = Trials(
             params,
             gaits,
-            Uncertainty.from_spec(spec, params.R0.dtype),
+            _draws(spec, params.R0.dtype),
             jnp.asarray(seed, jnp.uint32),
             reset,
             rtol,

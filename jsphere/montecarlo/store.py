@@ -25,6 +25,7 @@ import numpy as np
 from .._runtime.errors import InputError
 from .._runtime.files import atomic_write, atomic_write_json, dumps_json, temporary_pattern
 from .batch import CHUNK
+from .result import ComputeTime, MonteCarloResult
 from .sampling import MAX_REDRAWS, REASONS
 
 #: the arrays of a batch file
@@ -236,3 +237,49 @@ class StudyFolder:
 
     def write_stats(self, stats: dict) -> None:
         atomic_write_json(self.path / "stats.json", stats)
+
+
+def read_result(folder) -> MonteCarloResult:
+    """The trials of a study folder (`monte_carlo(out=...)`, `jsphere montecarlo --out`) that its
+    batch files hold, as a `MonteCarloResult` whose `samples` are named by the manifest's
+    `vary`. A folder whose batches are all there gives the study's result, bitwise; one still
+    being computed gives the trials of the batches written so far (`n` of them, their indices
+    in `trials`). `InputError` naming the file when the folder has no manifest, no batch file,
+    or a batch file that cannot be read."""
+    path = Path(folder)
+    try:
+        manifest = json.loads((path / "manifest.json").read_text())
+        n, seed, B, names = int(manifest["n"]), int(manifest["seed"]), int(manifest["batch_size"]), manifest["vary"]
+    except FileNotFoundError:
+        raise InputError(
+            f"{path}: not a Monte-Carlo study (no manifest.json); give a folder that jsphere montecarlo wrote."
+        ) from None
+    except (ValueError, KeyError, TypeError, UnicodeDecodeError) as e:
+        raise InputError(f"{path / 'manifest.json'}: not a valid study manifest ({e}).") from None
+    study = StudyFolder(path, B, len(names))
+    ks = [k for k in range(-(-n // B)) if study.has_batch(k)]
+    if not ks:
+        raise InputError(f"{path}: no batch files (batch_*.npz); run the study there first (jsphere montecarlo).")
+    parts = []
+    for k in ks:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", MonteCarloWarning)
+            part = study.load_batch(k)
+        if part is None:
+            raise InputError(f"{caught[0].message}".replace("recomputing that batch", "run the study again"))
+        parts.append({key: a[: min(B, n - k * B)] for key, a in part.items()})
+    cat = {key: np.concatenate([p[key] for p in parts]) for key in BATCH_KEYS}
+    trials = np.concatenate([k * B + np.arange(len(p["x"])) for k, p in zip(ks, parts)])
+    return MonteCarloResult(
+        n=len(trials),
+        seed=seed,
+        samples={name: cat["vals"][:, j] for j, name in enumerate(names)},
+        x_final=cat["x"],
+        y_final=cat["y"],
+        speed_final=cat["speed"],
+        status=cat["status"],
+        gamma3_sd_after=cat["gamma3_sd"],
+        reject_code=cat["reject"],
+        compute_time=ComputeTime.of(study.load_times(ks)),
+        trials=None if len(trials) == n else trials,
+    )

@@ -1,11 +1,13 @@
-"""A study's description: its numeric settings (`check_settings`), its distributions
-(`check_vary`) and the study file of `jsphere montecarlo` (`load_study`), each checked before any
-work, with an `InputError` that names the value."""
+"""A study's description: its distributions (`check_vary`), the feedback of a closed loop
+(`check_feedback`) and the study file of `jsphere montecarlo` (`load_study`, whose keys are
+`StudyOptions`' fields), each checked before any work, with an `InputError` that names the
+value."""
 
 from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 from pathlib import Path
 from typing import Mapping, Sequence
 
@@ -19,28 +21,13 @@ from ..model.limits import Limits
 from ..model.names import get_value, parse_name
 from ..model.params import RobotParams
 from ..planning.tracking.evaluate import Conditions
+from .options import StudyOptions
 from .sampling import Actuators
 
 #: the distributions of `vary` and the names of their two numbers
 DISTRIBUTIONS = {"normal": ("mean", "sd"), "uniform": ("low", "high")}
 #: the optional last entry of a distribution: redraw until the parameter set is valid
 TRUNCATE = "truncate"
-#: the ways a trial runs (see `monte_carlo`)
-MODES = ("gait", "torques", "wheel_speeds")
-
-#: the numeric settings of a study: name -> checker (`load_study` checks a study file's keys
-#: with the same table, under the file's names)
-SETTINGS = {
-    "n": lambda w, k, v: whole(w, k, v, 1),
-    "seed": lambda w, k, v: whole(w, k, v, 0, 2**32 - 1),
-    "batch_size": lambda w, k, v: whole(w, k, v, 1),
-    "settle": lambda w, k, v: real(w, k, v, unit="s"),
-    "Omega0_sd": lambda w, k, v: real(w, k, v, unit="1/s"),
-    "plan_rate": lambda w, k, v: real(w, k, v, strict=True, unit="Hz"),
-    "max_steps": lambda w, k, v: whole(w, k, v, 1),
-}
-
-
 #: the keys of a study's `[feedback]` table (the closed loop of a `track` table) and their
 #: defaults: the start pose's spread and the fed-back state's delay and noise of `jsphere
 #: track`'s evaluation (`jsphere.planning.tracking.Conditions`), the torque limit of `Limits`
@@ -76,13 +63,6 @@ def check_feedback(where: str, values: Mapping) -> dict:
     for k, v in values.items():
         out[k] = real(where, k, v, strict=k == "max_torque", unit=_FEEDBACK_UNITS[k])
     return out
-
-
-def check_settings(where: str, values: Mapping, names: Mapping[str, str] | None = None) -> dict:
-    """Check the numeric settings `values` (keys of `SETTINGS`) and return them converted;
-    an error names the value as `names` maps it (e.g. `{"n": "trials"}`)."""
-    names = names or {}
-    return {k: SETTINGS[k](where, names.get(k, k), v) for k, v in values.items()}
 
 
 def _target(params: RobotParams, name: str) -> tuple:
@@ -146,116 +126,97 @@ def check_vary(params: RobotParams, vary: Mapping[str, Sequence]) -> list[tuple[
 #: the gaits a study file names, by their `kind`
 GAITS = {"acceleration": acceleration, "braking": braking, "turn": turn}
 GAIT_KINDS = tuple(GAITS)
-#: the keys of a study file
-STUDY_KEYS = {
-    "trials",
-    "seed",
-    "batch_size",
-    "mode",
-    "params",
-    "Omega0_sd",
-    "settle",
-    "reset",
-    "gaits",
-    "vary",
-    "actuators",
-    "commands",
-    "track",
-    "feedback",
-}
-#: a study file's numeric keys and the `SETTINGS` they set
-_FILE_SETTINGS = {
-    "trials": "n",
-    "seed": "seed",
-    "batch_size": "batch_size",
-    "settle": "settle",
-    "Omega0_sd": "Omega0_sd",
+#: the keys of a study file: the study's own (`trials`, the robot, the gaits, the
+#: distributions) and every field of `StudyOptions` that a file gives
+STUDY_KEYS = {"trials", "params", "gaits", "vary"} | {
+    f.name for f in dataclasses.fields(StudyOptions) if f.metadata["file"] is not None
 }
 
 
-def load_study(path) -> dict:
-    """Read a Monte-Carlo study description (TOML). Schema (every key optional but `vary`):
+@dataclasses.dataclass(frozen=True)
+class Study:
+    """A study file read and checked (`load_study`): the robot `params`, the `gaits`, the number
+    of trials `n`, the distributions `vary` and the `options` (`StudyOptions`): the arguments
+    of `monte_carlo(params, gaits, vary=vary, n=n, options=options)`."""
 
-        trials = 10000            # overridden by --trials (a whole number >= 1)
-        seed = 0                  # a whole number in [0, 2**32)
-        batch_size = 4096
-        mode = "gait"             # "gait" | "torques" | "wheel_speeds"
-        params = "robot.toml"     # default: the paper's robot, or the plan's (path relative to this file)
-        Omega0_sd = 0.0           # [1/s], >= 0
-        settle = 1.0              # [s] (replay modes), >= 0
-        reset = false
-        gaits = [{kind = "acceleration", theta_max = 0.1, phi = 0.0, T = 2.0}, {kind = "braking"}]
-        commands = "plan-commands.csv"  # replay modes: a command table instead of the gaits' plan
-        track = "track.csv"       # or: a feedback table of `jsphere track`, run closed loop
+    params: RobotParams
+    gaits: list
+    n: int
+    vary: dict
+    options: StudyOptions
+
+    def __getitem__(self, key: str):
+        """`study["params"]`, `["gaits"]`, `["n"]` and `["kwargs"]` (the keywords of the study:
+        `vary` and the options set) of a study read as a dict; kept for one release."""
+        warnings.warn(
+            f'load_study(...)["{key}"] is deprecated; use the attributes of the Study (params, gaits, n, vary, '
+            "options).",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        if key != "kwargs":
+            return getattr(self, key)
+        return {"vary": self.vary} | {f.name: getattr(self.options, f.name) for f in dataclasses.fields(StudyOptions)}
+
+
+def load_study(path) -> Study:
+    """Read a Monte-Carlo study description (TOML) into a `Study`. Its keys (every one optional
+    but `vary`) are `trials` (1000 unless given; `--trials` overrides it), `params` (the path
+    of a parameter file relative to this file; default: the paper's robot, or the robot of a
+    plan's command table), `gaits` (a list of tables `{kind = "acceleration", theta_max = 0.1,
+    T = 2.0}`, default acceleration and braking), `[vary]`, and the fields of `StudyOptions`
+    that a file gives, under their names (`seed`, `batch_size` (4096 unless given), `mode`,
+    `reset`, `Omega0_sd`, `settle`, `[actuators]`, `commands`, `track`, `[feedback]`); e.g.
+
+        trials = 10000
+        seed = 0
+        mode = "torques"
+        commands = "plan-commands.csv"
         [vary]                    # names as in `jsphere fit --free`
         "r_m[2]" = ["normal", -0.0270146, 1e-4]
-        j = ["uniform", 2.0e-4, 3.5e-4]
         m0 = ["normal", 0.8, 0.3, "truncate"]   # truncated to valid robots (m0 > 0)
         [actuators]               # replay modes only; see jsphere.Actuators
         gain_sd = 0.02
-        delay_s = 0.01
-        [feedback]                # with track only; defaults: FEEDBACK
-        delay_s = 0.01
 
     A distribution is `["normal", mean, sd]` or `["uniform", low, high]` with finite numbers
-    (`sd >= 0`, `low <= high`). Draws that break a rule of `RobotParams` (a negative mass, an
-    inertia tensor no body has, the centre of mass outside the shell, ...) are not simulated
-    and are counted apart; with a last entry `"truncate"` such draws are redrawn instead (the
-    distribution truncated to valid robots; docs/montecarlo.md).
-
-    `commands` names a command table (a path relative to this file), as `jsphere plan --commands`
-    or `jsphere design` write it: with `mode = "torques"` its columns `t, K_1..K_N` [N m], with
-    `mode = "wheel_speeds"` its columns `t, chi_dot_1..N` [rad/s] (other columns are ignored).
-    Each trial replays it through `[actuators]` instead of the gaits' plan; the gaits are then
-    only the record. The table starts at `t = 0` and has one column per wheel. A table of
-    `jsphere plan` (its `--out` CSV, or its `--commands` table) has a record beside it (the
-    `.json` of the same name) that names the robot the plan was made for: without `params`
-    the study runs that robot; a `params` that names another robot is an `InputError`.
-
-    `track` names a feedback table (`track.csv` of `jsphere track`, a path relative to this
-    file) that every trial runs closed loop (`monte_carlo`'s `track`), through `[actuators]`
-    (`gain_sd`, `delay_s`, `white_sd`), with the measurement model of `[feedback]` (`FEEDBACK`:
-    the start pose's spread, the fed-back state's delay and noise, the torque limit; defaults
-    those of `jsphere track`'s evaluation). It takes the place of `gaits` and `commands`
-    (neither may be given); `mode` is "torques" (the default here).
+    (`sd >= 0`, `low <= high`), optionally followed by `"truncate"` (docs/montecarlo.md).
+    `commands` names a command table, as `jsphere plan --commands` or `jsphere design` write it
+    (`study_commands`): a plan's table has a record beside it (the `.json` of the same name)
+    that names the robot the plan was made for: without `params` the study runs that robot; a
+    `params` that names another robot is an `InputError`. `track` names a feedback table
+    (`study_track`), with the measurement model of `[feedback]` (`FEEDBACK`); it takes the
+    place of `gaits` and `commands`.
 
     Every value is checked here, before any work: a bad one raises `InputError` naming the file
-    and the key. Returns `{"params", "gaits", "n", "kwargs"}`: the arguments of `monte_carlo`.
+    and the key.
     """
     path = Path(path)
     cfg = _read_toml(path)
-    settings = check_settings(
-        str(path),
-        {_FILE_SETTINGS[k]: cfg[k] for k in _FILE_SETTINGS if k in cfg},
-        names={v: k for k, v in _FILE_SETTINGS.items()},
-    )
-    mode = cfg.get("mode", "torques" if "track" in cfg else "gait")
-    if mode not in MODES:
-        raise InputError(f'{path}: mode must be "gait", "torques" or "wheel_speeds"; got {mode!r}.')
-    reset = cfg.get("reset", False)
-    if not isinstance(reset, (bool, list)):
-        raise InputError(f"{path}: reset must be true, false or a list (one entry per gait boundary); got {reset!r}.")
+    n = whole(str(path), "trials", cfg["trials"], 1) if "trials" in cfg else 1000
+    given = {"batch_size": 4096, "mode": "torques" if "track" in cfg else "gait"}
+    for f in dataclasses.fields(StudyOptions):
+        if f.metadata["file"] == "value" and f.name in cfg:
+            given[f.name] = f.metadata["check"](str(path), f.name, cfg[f.name])
     params = _study_params(path, cfg)
     if "commands" in cfg and "track" not in cfg:
         params = _commands_robot(path, cfg, params)
     gaits = _study_gaits(path, cfg.get("gaits", [{"kind": "acceleration"}, {"kind": "braking"}]))
-    kwargs = dict(vary=dict(cfg["vary"]), mode=mode, reset=reset, **{k: v for k, v in settings.items() if k != "n"})
-    kwargs.setdefault("batch_size", 4096)
     if "actuators" in cfg:
-        kwargs["actuators"] = _study_actuators(path, cfg["actuators"])
+        given["actuators"] = _study_actuators(path, cfg["actuators"])
     if "commands" in cfg and "track" not in cfg:
-        kwargs["commands"] = study_commands(path, cfg["commands"], mode, params.n_wheels)
+        given["commands"] = study_commands(path, cfg["commands"], given["mode"], params.n_wheels)
     if "track" in cfg:
-        kwargs["track"] = study_track(path, cfg, mode, params.n_wheels)
-        kwargs["feedback"] = check_feedback(f"{path}: [feedback]", cfg.get("feedback", {}))
-        _check_track_actuators(path, kwargs)
+        given["track"] = study_track(path, cfg, given["mode"], params.n_wheels)
+        given["feedback"] = check_feedback(f"{path}: [feedback]", cfg.get("feedback", {}))
+        _check_track_actuators(path, given)
     elif "feedback" in cfg:
         raise InputError(f'{path}: [feedback] sets up the closed loop of a feedback table; add track = "track.csv".')
+    vary = dict(cfg["vary"])
     try:  # the checks monte_carlo makes before any work, with this file's name
-        check_vary(params, kwargs["vary"])
+        check_vary(params, vary)
     except ValueError as e:
         raise InputError(f"{path}: {e}") from None
-    return {"params": params, "gaits": gaits, "n": settings.get("n", 1000), "kwargs": kwargs}
+    return Study(params, gaits, n, vary, StudyOptions(**given))
 
 
 def _read_toml(path: Path) -> dict:

@@ -17,7 +17,9 @@ from typing import Sequence
 from .._runtime.checks import real
 from .._runtime.errors import InputError
 from .._runtime.progress import Progress
+from ..solve.options import SolverOptions
 from . import claims
+from .options import StudyOptions, study_arguments
 from .result import MonteCarloResult
 from .run import _PROGRESS, _result, _Run, prepare
 
@@ -48,16 +50,28 @@ class WorkReport:
 
 
 def work(
-    params, gaits, *, out, claim_timeout: float = CLAIM_TIMEOUT, progress: bool | None = None, **study
+    params,
+    gaits,
+    *,
+    vary,
+    n: int,
+    out,
+    options: StudyOptions | None = None,
+    solver: SolverOptions | None = None,
+    claim_timeout: float = CLAIM_TIMEOUT,
+    progress: bool | None = None,
+    **deprecated,
 ) -> WorkReport:
     """Compute the batches of the study in `out` that are missing and not claimed by another
     worker (claims older than `claim_timeout` seconds are taken over), then return; no
-    waiting. `study`: the study's arguments, as `monte_carlo` takes them. The first worker
-    creates the folder; the others check that it holds the same study. Batches follow the
-    folder's batch size where this node's devices can share it."""
+    waiting. `vary`, `n`, `options`, `solver` (and the keywords that moved into them): the
+    study, as `monte_carlo` takes it. The first worker creates the folder; the others check
+    that it holds the same study. Batches follow the folder's batch size where this node's
+    devices can share it."""
+    options, solver, _ = study_arguments("work", options, solver, False, deprecated)
     claim_timeout = real("monte_carlo", "claim_timeout", claim_timeout, unit="s")
     _check_out(out)
-    run = prepare(params, gaits, out=out, **study)
+    run = prepare(params, gaits, vary=vary, n=n, options=options, solver=solver, out=out)
     run.open_folder()
     progress = Progress(progress)
     computed, claimed = [], {}
@@ -100,14 +114,26 @@ def _finished(run: _Run, k: int) -> bool:
     return run.folder.has_batch(k) and run.folder.load_batch(k, stacklevel=4) is not None
 
 
-def gather(params, gaits, *, out, **study) -> MonteCarloResult:
+def gather(
+    params,
+    gaits,
+    *,
+    vary,
+    n: int,
+    out,
+    options: StudyOptions | None = None,
+    solver: SolverOptions | None = None,
+    **deprecated,
+) -> MonteCarloResult:
     """The study in `out` joined from its batch files, its statistics written to
     `out/stats.json`; `InputError` naming the missing batches (and who claims them) if any are.
-    `study`: the study's arguments, as `monte_carlo` takes them. Removes what workers leave
-    behind (temporary files, claims) once every batch is there."""
+    `vary`, `n`, `options`, `solver` (and the keywords that moved into them): the study, as
+    `monte_carlo` takes it. Removes what workers leave behind (temporary files, claims) once
+    every batch is there."""
     t0 = time.perf_counter()
+    options, solver, _ = study_arguments("gather", options, solver, False, deprecated)
     _check_out(out)
-    run = prepare(params, gaits, out=out, **study)
+    run = prepare(params, gaits, vary=vary, n=n, options=options, solver=solver, out=out)
     path = run.folder.path
     if not (path / "manifest.json").exists():
         raise InputError(f"monte_carlo: {path} holds no study (no manifest.json); run the workers first.")

@@ -22,13 +22,17 @@ GAITS = [jsphere.acceleration(), jsphere.braking()]
 
 @pytest.fixture(scope="module")
 def study(paper):
-    return jsphere.monte_carlo(paper, GAITS, vary=VARY, n=256, seed=7, batch_size=128, progress=False)
+    return jsphere.monte_carlo(
+        paper, GAITS, vary=VARY, n=256, options=jsphere.StudyOptions(seed=7, batch_size=128), progress=False
+    )
 
 
 @pytest.mark.slow
 def test_stop_spread_equals_linear_sensitivity(paper):
     """R_m ~ N(27.0146 mm, 0.1 mm): the stop-distance sd is the linear sensitivity (~1.09 mm)."""
-    res = jsphere.monte_carlo(paper, GAITS, vary=VARY, n=2048, seed=0, batch_size=1024, progress=False)
+    res = jsphere.monte_carlo(
+        paper, GAITS, vary=VARY, n=2048, options=jsphere.StudyOptions(seed=0, batch_size=1024), progress=False
+    )
     sd = res.stats()["distance_m"]["sd"]
 
     def dist(Rm):
@@ -50,10 +54,9 @@ def test_options_at_the_default_tolerance_are_the_study_without_options(paper, s
         GAITS,
         vary=VARY,
         n=256,
-        seed=7,
-        batch_size=128,
+        options=jsphere.StudyOptions(seed=7, batch_size=128),
         progress=False,
-        options=jsphere.SolverOptions(rtol=1e-8, atol=1e-10),
+        solver=jsphere.SolverOptions(rtol=1e-8, atol=1e-10),
     )
     np.testing.assert_array_equal(again.x_final, study.x_final)
     np.testing.assert_array_equal(again.status, study.status)
@@ -61,25 +64,41 @@ def test_options_at_the_default_tolerance_are_the_study_without_options(paper, s
 
 @pytest.mark.slow
 def test_same_seed_same_study_whatever_the_batch_size(paper, study):
-    other = jsphere.monte_carlo(paper, GAITS, vary=VARY, n=256, seed=7, batch_size=256, progress=False)
+    other = jsphere.monte_carlo(
+        paper, GAITS, vary=VARY, n=256, options=jsphere.StudyOptions(seed=7, batch_size=256), progress=False
+    )
     assert np.array_equal(study.x_final, other.x_final) and np.array_equal(study.y_final, other.y_final)
     assert study.stats() == other.stats()
-    third = jsphere.monte_carlo(paper, GAITS, vary=VARY, n=256, seed=8, batch_size=128, progress=False)
+    third = jsphere.monte_carlo(
+        paper, GAITS, vary=VARY, n=256, options=jsphere.StudyOptions(seed=8, batch_size=128), progress=False
+    )
     assert not np.array_equal(study.x_final, third.x_final)
 
 
 def test_resume_after_interruption(paper, study, tmp_path):
     out = tmp_path / "study"
-    first = jsphere.monte_carlo(paper, GAITS, vary=VARY, n=256, seed=7, batch_size=128, out=out, progress=False)
+    first = jsphere.monte_carlo(
+        paper, GAITS, vary=VARY, n=256, options=jsphere.StudyOptions(seed=7, batch_size=128), out=out, progress=False
+    )
     assert np.array_equal(first.x_final, study.x_final)
     (out / "batch_000001.npz").unlink()  # as if killed before the second batch was written
     mtime = (out / "batch_000000.npz").stat().st_mtime_ns
-    again = jsphere.monte_carlo(paper, GAITS, vary=VARY, n=256, seed=7, batch_size=128, out=out, progress=False)
+    again = jsphere.monte_carlo(
+        paper, GAITS, vary=VARY, n=256, options=jsphere.StudyOptions(seed=7, batch_size=128), out=out, progress=False
+    )
     assert np.array_equal(again.x_final, study.x_final)
     assert (out / "batch_000000.npz").stat().st_mtime_ns == mtime  # not recomputed
     assert (out / "stats.json").exists() and not list(out.glob(".*"))
     with pytest.raises(ValueError, match="different study"):
-        jsphere.monte_carlo(paper, GAITS, vary=VARY, n=256, seed=99, batch_size=128, out=out, progress=False)
+        jsphere.monte_carlo(
+            paper,
+            GAITS,
+            vary=VARY,
+            n=256,
+            options=jsphere.StudyOptions(seed=99, batch_size=128),
+            out=out,
+            progress=False,
+        )
 
 
 @pytest.mark.slow
@@ -91,7 +110,7 @@ def test_four_host_devices_give_identical_results(study):
         assert len(jax.local_devices()) == 4
         p = jsphere.RobotParams.paper()
         r = jsphere.monte_carlo(p, [jsphere.acceleration(), jsphere.braking()],
-                                vary={"r_m[2]": ("normal", -0.0270146, 1e-4)}, n=256, seed=7, batch_size=128, progress=False)
+                                vary={"r_m[2]": ("normal", -0.0270146, 1e-4)}, n=256, options=jsphere.StudyOptions(seed=7, batch_size=128), progress=False)
         np.save("OUT", np.stack([r.x_final, r.y_final]))
         """
     )
@@ -124,7 +143,14 @@ def test_names_round_trip(paper):
 @pytest.mark.slow
 def test_torque_replay_without_errors_reproduces_the_plan(paper):
     """The planned torques replayed open loop on the nominal robot stop where the gaits stop."""
-    res = jsphere.monte_carlo(paper, GAITS, vary={}, n=64, batch_size=64, mode="torques", settle=0.5, progress=False)
+    res = jsphere.monte_carlo(
+        paper,
+        GAITS,
+        vary={},
+        n=64,
+        options=jsphere.StudyOptions(batch_size=64, mode="torques", settle=0.5),
+        progress=False,
+    )
     plan = jsphere.simulate_gaits(paper, GAITS)
     assert np.all(res.status == 0)
     assert np.max(np.abs(res.x_final - float(plan.x[-1]))) < 2e-5
@@ -156,7 +182,7 @@ def test_a_finished_study_extends_to_more_trials(paper, study, tmp_path):
     """Run again with a larger n, a finished study computes only its new batches; its first trials
     are the smaller study's, bit for bit. A smaller n or any other change is refused."""
     out = tmp_path / "study"
-    kw = dict(vary=VARY, seed=7, batch_size=128, out=out, progress=False)
+    kw = dict(vary=VARY, options=jsphere.StudyOptions(seed=7, batch_size=128), out=out, progress=False)
     small = jsphere.monte_carlo(paper, GAITS, n=100, **kw)
     np.testing.assert_array_equal(small.x_final, study.x_final[:100])
     mtime = (out / "batch_000000.npz").stat().st_mtime_ns
@@ -168,7 +194,7 @@ def test_a_finished_study_extends_to_more_trials(paper, study, tmp_path):
     with pytest.raises(InputError, match="with 256 trials; a study is extended to more trials but not cut to fewer"):
         jsphere.monte_carlo(paper, GAITS, n=100, **kw)
     with pytest.raises(InputError, match="different study"):
-        jsphere.monte_carlo(paper, GAITS, n=512, **(kw | {"seed": 8}))
+        jsphere.monte_carlo(paper, GAITS, n=512, **(kw | {"options": jsphere.StudyOptions(seed=8, batch_size=128)}))
     with pytest.raises(InputError, match="different study"):
         jsphere.monte_carlo(paper, GAITS, n=512, **(kw | {"vary": {"r_m[2]": ("normal", -0.0270146, 2e-4)}}))
 
@@ -180,7 +206,12 @@ def test_kinematic_command_replay_matches_fig2(paper):
     u = np.asarray(jsphere.kinematic_wheel_speeds(paper, np.array([0.15 * 0.864, 0.0])))
     cmd = (np.array([0.0, 4.0]), np.stack([u, u]))
     res = jsphere.monte_carlo(
-        paper, GAITS, vary={}, n=64, batch_size=64, mode="wheel_speeds", commands=cmd, settle=4.0, progress=False
+        paper,
+        GAITS,
+        vary={},
+        n=64,
+        options=jsphere.StudyOptions(batch_size=64, mode="wheel_speeds", commands=cmd, settle=4.0),
+        progress=False,
     )
     assert np.all(res.status == 0)
     assert res.gamma3_sd_after[0] == pytest.approx(0.0201, abs=5e-4)
@@ -195,7 +226,9 @@ WIDE = {"r_m[2]": ("normal", -0.0270146, 0.1)}  # |r_m| >= R0 = 0.15 for about 1
 
 @pytest.fixture(scope="module")
 def wide(paper, study):
-    return jsphere.monte_carlo(paper, GAITS, vary=WIDE, n=256, seed=7, batch_size=128, progress=False)
+    return jsphere.monte_carlo(
+        paper, GAITS, vary=WIDE, n=256, options=jsphere.StudyOptions(seed=7, batch_size=128), progress=False
+    )
 
 
 def test_invalid_draws_are_rejected_not_simulated(wide):
@@ -219,7 +252,12 @@ def test_truncate_draws_again_until_valid(paper, wide):
     from scipy import stats
 
     r = jsphere.monte_carlo(
-        paper, GAITS, vary={"r_m[2]": (*WIDE["r_m[2]"], "truncate")}, n=256, seed=7, batch_size=128, progress=False
+        paper,
+        GAITS,
+        vary={"r_m[2]": (*WIDE["r_m[2]"], "truncate")},
+        n=256,
+        options=jsphere.StudyOptions(seed=7, batch_size=128),
+        progress=False,
     )
     assert r.stats()["n_rejected"] == 0 and np.all(r.reject_code == 0)
     v = r.samples["r_m[2]"]
@@ -307,7 +345,7 @@ def test_corrupt_batches_are_recomputed_and_temporary_files_removed(paper, tmp_p
     naming it; the temporary files of a killed run are removed; every file ends up byte-identical
     to an uninterrupted run's."""
     out = tmp_path / "study"
-    kw = dict(vary=VARY, n=384, seed=7, batch_size=128, out=out, progress=False)
+    kw = dict(vary=VARY, n=384, options=jsphere.StudyOptions(seed=7, batch_size=128), out=out, progress=False)
     first = jsphere.monte_carlo(paper, GAITS, **kw)
     times = [f"time_{k:06d}.json" for k in range(3)]  # when each batch was computed: not compared
     files = {f.name: f.read_bytes() for f in out.iterdir() if f.name not in times}
@@ -420,3 +458,47 @@ def test_cli_killed_anywhere_resumes_to_the_same_files(tmp_path):
     for name in expected:
         if not name.startswith("time_"):  # when each batch was computed differs from run to run
             assert got[name] == expected[name], name
+
+
+def test_options_object_and_moved_keywords_give_the_same_study(paper, study):
+    """`options=StudyOptions(...)` is the study of the keywords it replaces; each moved keyword
+    warns with its new spelling, and `options=SolverOptions(...)` means `solver=`."""
+    new = jsphere.monte_carlo(
+        paper, GAITS, vary=VARY, n=256, options=jsphere.StudyOptions(seed=7, batch_size=128), progress=False
+    )
+    np.testing.assert_array_equal(new.x_final, study.x_final)
+    with pytest.warns(DeprecationWarning, match=r"seed= is deprecated; pass options=StudyOptions\(seed=\.\.\.\)"):
+        jsphere.monte_carlo(paper, GAITS, vary=VARY, n=64, seed=1, progress=False)
+    with pytest.warns(DeprecationWarning, match=r"rtol= is deprecated; pass solver=SolverOptions\(rtol=\.\.\.\)"):
+        jsphere.monte_carlo(paper, GAITS, vary=VARY, n=64, rtol=1e-8, progress=False)
+    with pytest.warns(DeprecationWarning, match=r"options=SolverOptions\(\.\.\.\) is deprecated; pass solver="):
+        jsphere.monte_carlo(paper, GAITS, vary=VARY, n=64, options=jsphere.SolverOptions(), progress=False)
+    with pytest.raises(TypeError, match=r"unexpected keyword argument\(s\) \['sed'\]"):
+        jsphere.monte_carlo(paper, GAITS, vary=VARY, n=64, sed=1)
+    with pytest.raises(InputError, match=r"monte_carlo: seed must be a whole number"):
+        jsphere.monte_carlo(paper, GAITS, vary=VARY, n=64, options=jsphere.StudyOptions(seed=-1))
+
+
+def test_a_study_folder_reads_back_as_its_result(paper, study, tmp_path):
+    """`read_result` of a finished study's folder is the study, bitwise; of a folder with a batch
+    missing, the trials of the others with their indices; a folder without a study is refused."""
+    from jsphere.montecarlo import read_result
+
+    out = tmp_path / "study"
+    options = jsphere.StudyOptions(seed=7, batch_size=128)
+    jsphere.monte_carlo(paper, GAITS, vary=VARY, n=256, options=options, out=out, progress=False)
+    back = read_result(out)
+    assert back.n == 256 and back.seed == 7 and back.trials is None and back.compute_time.recorded == 2
+    for name in ("x_final", "y_final", "speed_final", "status", "gamma3_sd_after", "reject_code"):
+        np.testing.assert_array_equal(getattr(back, name), getattr(study, name))
+    np.testing.assert_array_equal(back.samples["r_m[2]"], study.samples["r_m[2]"])
+    assert back.stats() == json.loads((out / "stats.json").read_text())
+    (out / "batch_000000.npz").unlink()
+    part = read_result(out)
+    np.testing.assert_array_equal(part.trials, np.arange(128, 256))
+    np.testing.assert_array_equal(part.x_final, study.x_final[128:])
+    (out / "batch_000001.npz").write_bytes(b"")
+    with pytest.raises(InputError, match=r"batch_000001.npz is corrupt or incomplete"):
+        read_result(out)
+    with pytest.raises(InputError, match=r"not a Monte-Carlo study \(no manifest.json\)"):
+        read_result(tmp_path)

@@ -32,7 +32,9 @@ STUDY_TOML = (
 
 @pytest.fixture(scope="module")
 def study(paper):
-    return jsphere.monte_carlo(paper, GAITS, vary=VARY, n=256, seed=7, batch_size=128, progress=False)
+    return jsphere.monte_carlo(
+        paper, GAITS, vary=VARY, n=256, options=jsphere.StudyOptions(seed=7, batch_size=128), progress=False
+    )
 
 
 def _stats_file(out: Path) -> dict:
@@ -73,7 +75,7 @@ def test_workers_skip_fresh_claims_take_over_stale_ones_and_gather_names_what_is
     batch 0 and leaves batch 1; the gather names batch 1 and its claim; a later worker (a claim
     timeout of 0) takes batch 1 over; the gather's statistics are bitwise the one-process study's."""
     out = tmp_path / "study"
-    kw = dict(vary=VARY, n=256, seed=7, batch_size=128, out=out, progress=False)
+    kw = dict(vary=VARY, n=256, options=jsphere.StudyOptions(seed=7, batch_size=128), out=out, progress=False)
     out.mkdir()
     claims.claim_path(out, 0).write_text(json.dumps({"host": "dead", "pid": 1, "time": time.time() - 7200}))
     claims.claim_path(out, 1).write_text(json.dumps({"host": "busy", "pid": 2, "time": time.time()}))
@@ -154,6 +156,12 @@ def test_distributed_settings_are_checked(paper, tmp_path, capsys):
         InputError, match=r"starts only before JAX makes any array; call jax.distributed.initialize\(\)"
     ):
         jsphere.monte_carlo(paper, GAITS, vary=VARY, n=64, distributed=True)
+    from jsphere.montecarlo import Distributed
+
+    with pytest.raises(InputError, match=r"coordinator must be HOST:PORT \(of process 0\); got 'node7'"):
+        jsphere.monte_carlo(paper, GAITS, vary=VARY, n=64, distributed=Distributed(coordinator="node7"))
+    with pytest.raises(InputError, match=r"process_id must be below num_processes; got 2 of 2"):
+        jsphere.monte_carlo(paper, GAITS, vary=VARY, n=64, distributed=Distributed(None, 2, 2))
     cfg = tmp_path / "study.toml"
     cfg.write_text(STUDY_TOML)
     assert main(["montecarlo", str(cfg), "--out", str(tmp_path / "o"), "--process-id", "1"]) == 2

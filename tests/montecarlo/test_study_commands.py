@@ -40,9 +40,23 @@ def test_commands_key_reads_the_family_of_the_mode(tmp_path, nominal, mode, colu
     (tmp_path / "sub").mkdir()
     study = tmp_path / "sub" / "study.toml"
     study.write_text(f'mode = "{mode}"\ncommands = "../plan.csv"\n{VARY}')
-    ts, values = load_study(study)["kwargs"]["commands"]
+    ts, values = load_study(study).options.commands
     np.testing.assert_allclose(ts, nominal["ts"], rtol=1e-11)
     np.testing.assert_allclose(values, nominal[column], rtol=1e-11, atol=1e-14)
+    with pytest.warns(DeprecationWarning, match=r'load_study\(\.\.\.\)\["kwargs"\] is deprecated'):
+        kwargs = load_study(study)["kwargs"]
+    assert kwargs["mode"] == mode and kwargs["commands"][0] is not None and list(kwargs["vary"]) == ["r_m[2]"]
+
+
+def test_the_study_files_keys_are_the_study_and_its_options():
+    """A study file's keys: `trials`, `params`, `gaits`, `vary` and the fields of `StudyOptions`
+    that a file gives (not the step limit and plan rate, which have no key)."""
+    import dataclasses
+
+    from jsphere.montecarlo.study import STUDY_KEYS
+
+    fields = {f.name for f in dataclasses.fields(jsphere.StudyOptions)}
+    assert STUDY_KEYS == {"trials", "params", "gaits", "vary"} | fields - {"max_steps", "plan_rate"}
 
 
 @pytest.mark.parametrize(
@@ -81,17 +95,13 @@ def test_jsphere_montecarlo_replays_the_table(tmp_path, paper, nominal, capsys):
     assert main(["montecarlo", str(study), "--out", str(out), "--no-cache", "--no-plots"]) == 0
     stats = json.loads((out / "stats.json").read_text())
     assert stats["n_ok"] == 64
-    ts, K = load_study(study)["kwargs"]["commands"]
+    ts, K = load_study(study).options.commands
     res = jsphere.monte_carlo(
         paper,
         GAITS,
         vary={"r_m[2]": ("normal", -0.0270146, 0.0)},
         n=64,
-        seed=3,
-        batch_size=64,
-        mode="torques",
-        commands=(ts, K),
-        settle=0.5,
+        options=jsphere.StudyOptions(seed=3, batch_size=64, mode="torques", commands=(ts, K), settle=0.5),
         progress=False,
     )
     assert stats["mean_xy_m"] == pytest.approx(res.stats()["mean_xy_m"], abs=1e-15)
@@ -103,6 +113,6 @@ def test_jsphere_montecarlo_replays_the_table(tmp_path, paper, nominal, capsys):
 def test_the_example_study_of_a_command_table_loads():
     root = Path(__file__).resolve().parents[2] / "examples"
     study = load_study(root / "study_commands.toml")
-    ts, K = study["kwargs"]["commands"]
-    assert study["kwargs"]["mode"] == "torques" and K.shape == (len(ts), 3) and ts[0] == 0.0
+    ts, K = study.options.commands
+    assert study.options.mode == "torques" and K.shape == (len(ts), 3) and ts[0] == 0.0
     assert np.abs(K).max() > 1e-3  # the gaits' torques, not an empty table

@@ -50,18 +50,18 @@ def test_track_key_loads_the_table_and_the_feedback_defaults(tables):
     study = _study(
         folder / "sub", f'track = "../track_straight_line.csv"\n[vary]\n"r_m[2]" = ["normal", {RM2}, 1e-4]\n'
     )
-    kw = load_study(study)["kwargs"]
-    assert kw["mode"] == "torques" and "commands" not in kw
+    o = load_study(study).options
+    assert o.mode == "torques" and o.commands is None
     want = read_track_csv(folder / "track_straight_line.csv")
     for k in ("t", "K_ff", "x", "y", "q", "omega", "Omega", "G"):
-        np.testing.assert_array_equal(kw["track"][k], want[k])
-    assert kw["track"]["G"].shape == (81, 3, 11) and np.abs(kw["track"]["G"]).max() > 0
-    assert kw["feedback"] == FEEDBACK
+        np.testing.assert_array_equal(o.track[k], want[k])
+    assert o.track["G"].shape == (81, 3, 11) and np.abs(o.track["G"]).max() > 0
+    assert o.feedback == FEEDBACK
     assert FEEDBACK["delay_s"] == Conditions().delay_s and FEEDBACK["max_torque"] == jsphere.Limits().max_torque
     study = _study(
         folder, 'track = "track_straight_line.csv"\n[feedback]\ndelay_s = 0.02\n[vary]\nj = ["normal", 2e-4, 0.0]\n'
     )
-    assert load_study(study)["kwargs"]["feedback"]["delay_s"] == 0.02
+    assert load_study(study).options.feedback["delay_s"] == 0.02
 
 
 def _two_wheel_table(path: Path) -> None:
@@ -144,11 +144,7 @@ def test_monte_carlo_with_a_track_table_is_the_tracking_closed_loop(tables):
         [jsphere.acceleration()],
         vary={"j": ("normal", float(P.j), 0.0)},
         n=64,
-        batch_size=64,
-        mode="torques",
-        track=small,
-        feedback=exact,
-        settle=0.1,
+        options=jsphere.StudyOptions(batch_size=64, mode="torques", track=small, feedback=exact, settle=0.1),
         progress=False,
     )
     c = Conditions(**{**{k: 0.0 for k in FIELDS}, "settle": 0.1})
@@ -165,7 +161,7 @@ def test_monte_carlo_with_a_track_table_is_the_tracking_closed_loop(tables):
 
 def _misses(study: Path, target) -> np.ndarray:
     s = load_study(study)
-    res = jsphere.monte_carlo(s["params"], s["gaits"], n=s["n"], progress=False, **s["kwargs"])
+    res = jsphere.monte_carlo(s.params, s.gaits, vary=s.vary, n=s.n, options=s.options, progress=False)
     assert np.all(res.status == 0)
     return np.hypot(res.x_final - target[0], res.y_final - target[1])
 
@@ -193,7 +189,7 @@ def test_the_closed_loop_lands_much_closer_than_the_open_loop_replay(tables):
 def test_the_example_study_of_a_track_table_loads():
     root = Path(__file__).resolve().parents[2] / "examples"
     study = load_study(root / "study_track.toml")
-    tab = study["kwargs"]["track"]
-    assert study["kwargs"]["mode"] == "torques" and tab["G"].shape == (len(tab["t"]), 3, 11)
+    tab = study.options.track
+    assert study.options.mode == "torques" and tab["G"].shape == (len(tab["t"]), 3, 11)
     assert np.abs(tab["G"]).max() > 0 and np.hypot(tab["x"][-1], tab["y"][-1]) > 0.1
-    State.at_rest(study["params"])  # the example's robot is valid
+    State.at_rest(study.params)  # the example's robot is valid

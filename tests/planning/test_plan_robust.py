@@ -54,7 +54,10 @@ def test_draws_follow_the_fit_covariance(paper):
 
 def test_draws_that_are_no_robot_are_drawn_again(paper):
     # j normal about 0 with a large sd: half the draws would be negative
-    u = Uncertainty.from_vary([("j", "normal", 0.0, 1e-4), ("I0", "uniform", 0.001, 0.002)])
+    u = Uncertainty(("j", "I0"), ("normal", "uniform"), np.array([0.0, 0.001]), np.array([1e-4, 0.002]))
+    with pytest.warns(DeprecationWarning, match=r"from_vary\(entries\) is deprecated; pass Uncertainty\(names"):
+        old = Uncertainty.from_vary([("j", "normal", 0.0, 1e-4), ("I0", "uniform", 0.001, 0.002)])
+    assert old.names == u.names and np.array_equal(old.a, u.a) and np.array_equal(old.b, u.b)
     vals, _ = u.draw(paper, 500, seed=0)
     assert np.all(vals[:, 0] >= 0) and np.all((vals[:, 1] >= 0.001) & (vals[:, 1] <= 0.002))
 
@@ -84,7 +87,7 @@ def test_bad_robust_requests_are_refused_before_any_work(paper):
     with pytest.raises(InputError, match=r"uncertainty must be a jsphere.Uncertainty"):
         jsphere.plan_robust(paper, (0.5, 0.0), {"j": 1})
     with pytest.raises(InputError, match=r"kind must be 'normal' or 'uniform'"):
-        Uncertainty.from_vary([("j", "lognormal", 0.0, 1.0)])
+        Uncertainty(("j",), ("lognormal",), np.array([0.0]), np.array([1.0]))
 
 
 @pytest.mark.parametrize("mode", ["wheel_speeds", pytest.param("torques", marks=pytest.mark.slow)])
