@@ -9,8 +9,6 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import numpy as np
-
 from .._runtime.errors import InputError
 from .options import progress
 
@@ -174,6 +172,8 @@ def _read_json(path: Path) -> dict:
 def read_study_folder(folder):
     """The `MonteCarloResult` of the batches in a study folder (`jsphere montecarlo --out`) and
     its `stats.json`. A trial of a batch missing from the folder counts as rejected (not drawn)."""
+    import numpy as np
+
     from ..montecarlo.result import MonteCarloResult
 
     folder = Path(folder)
@@ -208,6 +208,8 @@ def read_study_folder(folder):
 def montecarlo_scene(folder, study, params: RobotParams | None = None) -> Scene:
     """A Monte-Carlo study folder with its study file (`.toml`): `sources.montecarlo_scene` of
     the folder's trials and `stats.json`. `params`: the nominal robot (default: the study's)."""
+    import numpy as np
+
     from ..montecarlo.study import load_study
     from ..plots.animation.sources import montecarlo_scene as scene
 
@@ -234,6 +236,8 @@ def plan_table_scene(path, params: RobotParams | None = None) -> Scene:
     """A plan table (`jsphere plan --out plan.csv`): the platform's attitude from its `gamma_1..3`
     and `heading`, the wheel rates `chi_dot_i`, the target from `plan.json` beside it (else the
     last row). `params`: the robot planned for (default: the paper's)."""
+    import numpy as np
+
     from ..model.params import RobotParams
     from ..plots.animation.scene import Scene, body_from_poses, platform_from_table
 
