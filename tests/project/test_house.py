@@ -2,8 +2,8 @@
 parameters, no function body over 80 lines, drawing on top (nothing below `plots/` imports it)
 and the start-up machinery named only in `cli/` and `_runtime/`.
 
-A package that breaks a rule while its work is under way is marked `xfail(strict=True)` below:
-the mark makes its case fail as soon as the package keeps the rule, so that the mark goes."""
+A package known to break a rule is marked `xfail(strict=True)` below: the mark makes its case
+fail as soon as the package keeps the rule, so that the mark goes."""
 
 from __future__ import annotations
 

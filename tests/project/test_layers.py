@@ -90,7 +90,7 @@ def test_every_module_has_a_layer():
     assert not unplaced, f"modules outside every layer (add them to LAYERS): {unplaced}"
 
 
-#: modules whose drawing moves into `plots/` on another branch: upward imports, until it lands
+#: modules below `plots/` known to draw their results (upward imports: the mark goes when they stop)
 DRAWING_MOVES = {"jsphere.identify.report", "jsphere.identify.compare"}
 
 
