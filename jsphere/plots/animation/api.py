@@ -21,7 +21,6 @@ DEFAULT_SIZE = {".mp4": (640, 480), ".gif": (480, 360), ".html": (900, 700)}
 def scenes_of(source, *, params=None, captures=None, trials=None) -> list[Scene]:
     """The `Scene`s of `source` (see `animate`)."""
     from ...capture.trial import Trial
-    from ...identify.report import FitResult
     from ...model.params import RobotParams
     from ...planning.result import Plan
     from ...solve.trajectory import Trajectory
@@ -38,6 +37,8 @@ def scenes_of(source, *, params=None, captures=None, trials=None) -> list[Scene]
         return [sources.trajectory_scene(source, robot)]
     if isinstance(source, Trial):
         return [sources.trial_scene(source, robot)]
+    from ...identify.report import FitResult
+
     if isinstance(source, FitResult):
         if not captures:
             raise InputError("animate: a fit result is shown with its trials; give them as captures=[Trial, ...].")
