@@ -37,9 +37,7 @@ def scenes_of(source, *, params=None, captures=None, trials=None) -> list[Scene]
         return [sources.trajectory_scene(source, robot)]
     if isinstance(source, Trial):
         return [sources.trial_scene(source, robot)]
-    from ...identify.report import FitResult
-
-    if isinstance(source, FitResult):
+    if hasattr(source, "verdict") and hasattr(source, "params") and hasattr(source, "trials"):  # a FitResult
         if not captures:
             raise InputError("animate: a fit result is shown with its trials; give them as captures=[Trial, ...].")
         found = [t for t in captures if not trials or t.name in trials]
