@@ -41,6 +41,7 @@ _EXPORTS = {
     "capture.trial": ("Trial", "read_trial", "read_trials", "write_trial"),
     "capture.validation": ("CaptureWarning",),
     "capture.vicon": ("read_vicon_csv", "write_vicon_csv"),
+    "cli.animate": ("animate",),
     "controls": (
         "Constant",
         "Sampled",
@@ -92,7 +93,6 @@ _EXPORTS = {
     "planning.robust": ("RobustPlan", "miss_distribution", "plan_robust"),
     "planning.tracking": ("TrackConditions", "TrackWeights", "Tracker", "read_track_csv", "track"),
     "planning.verify": ("replay_errors",),
-    "plots.animation": ("animate",),
     "solve.options": ("SolverOptions",),
     "solve.simulate": ("simulate",),
     "solve.status": ("RESULTS",),

@@ -6,13 +6,18 @@ which library changed when one of them moves:
 - diffrax: the Butcher tableau of an explicit Runge-Kutta solver (`solver.tableau`, with its
   `a_lower`, `c`, `b_sol`, `b_error`, `fsal`, `ssal`), read by the shared-step loop
   (`jsphere.solve.batched.method`);
-- equinox: the module-level switch of its run-time checks (`equinox._errors.EQX_ON_ERROR`),
-  which the environment variable `EQX_ON_ERROR` sets only at import, and the jitted check that
-  `eqx.error_if` calls (`equinox._errors.branched_error_if_impl_jit`), which
-  `callbacks_as_nan` passes its mode;
+- equinox: the mode of its run-time checks (`equinox._errors.EQX_ON_ERROR`, which the
+  environment variable `EQX_ON_ERROR` sets only at import) and the two functions `eqx.error_if`
+  calls (`equinox._errors.branched_error_if_impl_jit` and `branched_error_if_impl`), in front of
+  which one pass-through traces each check in the mode `equinox_errors_as` or
+  `callbacks_as_nan` asks for (equinox's own switch is never changed);
 - jax: whether its backends (the CPU client) exist yet (`jax._src.xla_bridge`), since an XLA
   flag set after that changes nothing; the distributed runtime's barrier
-  (`jax._src.distributed`), which waits longer than the CPU collectives do.
+  (`jax._src.distributed`), which waits longer than the CPU collectives do; its persistent
+  cache's reset (`jax._src.compilation_cache.reset_cache`), after the cache's folder changed.
+
+A moved name fails loudly where it is used (an `ImportError` or `AttributeError` naming it),
+never silently.
 """
 
 from __future__ import annotations
@@ -41,42 +46,78 @@ def rk_tableau(solver) -> ButcherTableau:
 
 
 def _equinox_errors():
+    """equinox's module of run-time checks, with the names jsphere reads or wraps; an
+    `ImportError` naming the missing name where an upgrade moved one."""
+    import equinox
     import equinox._errors as errors
 
+    for name in _EQUINOX_NAMES:
+        if not hasattr(errors, name):
+            raise ImportError(
+                f"equinox {equinox.__version__} has no `equinox._errors.{name}`, which jsphere's switch of "
+                "equinox's run-time checks uses; update jsphere/_runtime/private.py."
+            )
     return errors
 
 
-def equinox_on_error() -> str | None:
-    """The mode of equinox's run-time checks (`"raise"`, `"nan"`, `"breakpoint"`, `"off"`), or
-    `None` where this equinox has no such switch."""
-    try:
-        return getattr(_equinox_errors(), "EQX_ON_ERROR", None)
-    except ImportError:  # pragma: no cover - an equinox without this module
-        return None
+#: equinox's private names: the mode its checks read when traced with `on_error="default"` (set
+#: from the environment variable `EQX_ON_ERROR` at import) and the two functions that
+#: `eqx.error_if` calls (jitted for array predicates, directly for Python booleans)
+_EQUINOX_NAMES = ("EQX_ON_ERROR", "branched_error_if_impl_jit", "branched_error_if_impl")
+
+_LOCK = threading.Lock()
+_MODE: list[str] = []  # the mode `equinox_errors_as` sets for every thread (innermost last)
+_NAN_DEPTH = threading.local()  # per thread: how many `callbacks_as_nan()` blocks are open
 
 
-def set_equinox_on_error(mode: str) -> str | None:
-    """Switch equinox's run-time checks to `mode` for the checks traced from now on; returns the
-    previous mode (`None`, and nothing changed, where this equinox has no such switch)."""
-    try:
-        errors = _equinox_errors()
-    except ImportError:  # pragma: no cover
-        return None
-    old = getattr(errors, "EQX_ON_ERROR", None)
-    if old is not None:
-        errors.EQX_ON_ERROR = mode
-    return old
+def _mode(on_error: str) -> str:
+    """The mode a check traced now runs in: an explicit mode as written; for equinox's default,
+    `"nan"` inside this thread's `callbacks_as_nan()`, else `equinox_errors_as`'s mode, else
+    equinox's own."""
+    if on_error != "default":
+        return on_error
+    if getattr(_NAN_DEPTH, "n", 0) > 0:
+        return "nan"
+    return _MODE[-1] if _MODE else on_error
+
+
+def _install() -> None:
+    """Put a pass-through in front of equinox's two checks (once per process) that traces each
+    check in `_mode(on_error)`. The mode is a static argument of equinox's jit, so the traces of
+    each mode are kept apart; with nothing switched every check goes through unchanged."""
+    errors = _equinox_errors()
+    with _LOCK:
+        for name in _EQUINOX_NAMES[1:]:
+            current = getattr(errors, name)
+            if getattr(current, "__jsphere_mode__", False):
+                continue
+
+            def impl(x, pred, index, msgs, *, on_error, _current=current):
+                return _current(x, pred, index, msgs, on_error=_mode(on_error))
+
+            impl.__jsphere_mode__ = True
+            setattr(errors, name, impl)
+
+
+def equinox_on_error() -> str:
+    """The mode of equinox's run-time checks (`"raise"`, `"nan"`, `"breakpoint"`, `"off"`) for a
+    check traced now outside `callbacks_as_nan()`: `equinox_errors_as`'s, else equinox's own."""
+    return _MODE[-1] if _MODE else _equinox_errors().EQX_ON_ERROR
 
 
 @contextlib.contextmanager
 def equinox_errors_as(mode: str) -> Iterator[None]:
-    """`set_equinox_on_error(mode)` inside the `with` block, the previous mode after it."""
-    old = set_equinox_on_error(mode)
+    """Trace equinox's run-time checks in `mode` inside the `with` block, in every thread (a
+    check with an explicit `on_error` stays as written); blocks nest. equinox's own switch is
+    never changed."""
+    _install()
+    with _LOCK:
+        _MODE.append(mode)
     try:
         yield
     finally:
-        if old is not None:
-            set_equinox_on_error(old)
+        with _LOCK:
+            _MODE.pop()
 
 
 def jax_backends_initialized() -> bool:
@@ -93,50 +134,9 @@ def jax_backends_initialized() -> bool:
 
 def reset_jax_compilation_cache() -> None:
     """Make JAX open its persistent cache again (after its directory changed): `jax._src`."""
-    try:
-        from jax._src import compilation_cache as _cc
+    from jax._src import compilation_cache
 
-        _cc.reset_cache()
-    except (ImportError, AttributeError):  # pragma: no cover - another JAX layout
-        pass
-
-
-def _errors_module():
-    """equinox's module of run-time checks, if it has the name `callbacks_as_nan` wraps
-    (`branched_error_if_impl_jit`, which `eqx.error_if` calls for array predicates; `None`
-    otherwise: then the block changes nothing)."""
-    try:
-        import equinox._errors as errors
-    except ImportError:  # pragma: no cover - a future equinox without this module
-        return None
-    return errors if hasattr(errors, "branched_error_if_impl_jit") else None
-
-
-_LOCK = threading.Lock()
-_NAN_DEPTH = threading.local()  # per thread: how many `callbacks_as_nan()` blocks are open
-
-
-def _nan_here() -> bool:
-    return getattr(_NAN_DEPTH, "n", 0) > 0
-
-
-def _install(errors) -> None:
-    """Put a pass-through in front of equinox's jitted check (once per process): a check in the
-    `"default"` mode traced inside a `callbacks_as_nan()` block of this thread is traced in
-    `"nan"` mode (a static argument of equinox's jit, so its traces are kept apart from the
-    other modes'); every other check goes through unchanged."""
-    with _LOCK:
-        current = errors.branched_error_if_impl_jit
-        if getattr(current, "__jsphere_nan__", False):
-            return
-
-        def impl(x, pred, index, msgs, *, on_error):
-            if on_error == "default" and _nan_here():
-                on_error = "nan"
-            return current(x, pred, index, msgs, on_error=on_error)
-
-        impl.__jsphere_nan__ = True
-        errors.branched_error_if_impl_jit = impl
+    compilation_cache.reset_cache()
 
 
 @contextlib.contextmanager
@@ -150,11 +150,10 @@ def callbacks_as_nan() -> Iterator[None]:
     debugging). A failed check then returns NaN: jsphere's solves trace diffrax's checks
     this way and report a failure through `Trajectory.status`.
     """
-    errors = _errors_module()
-    if errors is None or "EQX_ON_ERROR" in os.environ:
+    if "EQX_ON_ERROR" in os.environ:
         yield
         return
-    _install(errors)
+    _install()
     _NAN_DEPTH.n = getattr(_NAN_DEPTH, "n", 0) + 1
     try:
         yield

@@ -1,7 +1,7 @@
 """What the other packages of jsphere share of the model's machinery (not public API): the
 parameter fields in their order and the flat state's unflattening."""
 
-from .params import _FIELDS as FIELDS
+from .fields import FIELDS as FIELDS
 from .state import _unflatten as unflatten
 
 __all__ = ["FIELDS", "unflatten"]

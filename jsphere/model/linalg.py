@@ -38,10 +38,6 @@ def matvec(M: Float[Array, "... m n"], v: Float[Array, "... n"]) -> Float[Array,
     return jnp.sum(M * v[..., None, :], axis=-1)
 
 
-def det3(M: Float[Array, "... 3 3"]) -> Float[Array, "..."]:
-    return dot(M[..., 0, :], cross(M[..., 1, :], M[..., 2, :]))
-
-
 def inv3(M: Float[Array, "... 3 3"]) -> Float[Array, "... 3 3"]:
     """Inverse of a 3x3 matrix by its adjugate."""
     r0, r1, r2 = M[..., 0, :], M[..., 1, :], M[..., 2, :]

@@ -1,7 +1,8 @@
 """Figures (matplotlib, imported lazily), one module per family: the paper's figures, fits,
-models compared with trials, plans and Monte-Carlo studies. Each function takes a result object and writes a PNG
-atomically; this layer imports nothing from the layers whose results it draws. The animations
-(`jsphere.plots.animation`), which read and replay runs, sit above those layers."""
+models compared with trials, plans and Monte-Carlo studies. Each function takes a result object
+and writes a PNG atomically. `plots/` sits above the packages whose results it draws, and
+nothing below it imports it (docs/architecture.md); the animations (`jsphere.plots.animation`)
+replay runs where a result asks for it."""
 
 from .compare import compare_figure as compare_figure
 from .fit import fit_figures as fit_figures

@@ -128,7 +128,7 @@ def test_animate_a_montecarlo_folder(paper, straight, tmp_path):
 
 
 def test_montecarlo_scene_draws_the_studys_trials(paper, tmp_path):
-    from jsphere.plots.animation.sources import montecarlo_scene
+    from jsphere.cli.animate import montecarlo_scene
 
     folder = _study(tmp_path, paper)
     scene = montecarlo_scene(folder, tmp_path / "study.toml")
@@ -163,7 +163,7 @@ def test_animate_a_fit_with_its_trials(paper, tmp_path):
     assert abs(_frames(out) / FPS - durations[0] / SPEED) <= 1.0 / FPS
     assert _snapshot(trials) == before
 
-    from jsphere.plots.animation.sources import scenes_from_path
+    from jsphere.cli.animate import scenes_from_path
 
     scenes = scenes_from_path(trials / "fit.json")
     assert [s.bodies[0].label for s in scenes] == [f"{names[1]} (capture)", f"{names[0]} (capture)"]

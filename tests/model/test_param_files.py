@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import re
@@ -14,23 +15,7 @@ import jsphere._runtime.files as jio
 from jsphere import RobotParams
 from jsphere._runtime.errors import InputError
 
-FIELDS = (
-    "R0",
-    "m0",
-    "I0",
-    "Rw",
-    "wheel_r",
-    "wheel_n",
-    "wheel_alpha",
-    "m",
-    "I",
-    "r_m",
-    "j",
-    "g",
-    "c_roll",
-    "c_axle",
-    "k_tau",
-)
+FIELDS = tuple(f.name for f in dataclasses.fields(RobotParams))  # the class's own, in order
 REFERENCE = Path(
     os.environ.get(
         "JSPHERE_REFERENCE", Path(__file__).resolve().parents[3] / "shared" / "reference" / "reference_cases.json"

@@ -89,7 +89,7 @@ def _plan_of(paper, straight) -> Plan:
 def test_plan_table_gives_back_the_plans_attitudes(paper, straight, tmp_path):
     """A plan CSV holds `gamma` and the heading: the platform's attitude read from it is the
     plan's, and the shell's attitude integrated from its path and wheel rates is the state's."""
-    from jsphere.plots.animation.sources import plan_table_scene
+    from jsphere.cli.animate import plan_table_scene
 
     plan = _plan_of(paper, straight)
     plan.to_csv(tmp_path / "plan.csv")

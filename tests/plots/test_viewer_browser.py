@@ -117,7 +117,7 @@ SHOWN = """(() => {
 
 @pytest.fixture(scope="module")
 def viewer(tmp_path_factory):
-    from jsphere.plots.animation import animate
+    from jsphere import animate
 
     out = tmp_path_factory.mktemp("viewer") / "ws_01.html"
     animate(str(DATA / "ws_01.csv"), out, fps=6, speed=2.0, size=(800, 600))

@@ -1,10 +1,10 @@
 """Animations of runs: videos (MP4, GIF) and a self-contained HTML viewer (docs/animation.md).
 
-Unlike the figures of `jsphere.plots`, which draw the result objects they are given, the
-animations read runs from files and replay models (a fit's trials through `compare`, a study's
-gaits through `simulate_gaits`), so they sit above the packages that make those runs:
-`scene` (the geometry of every frame), `sources` (the runs of each kind of input), `video`,
-`viewer`, and `animate`, the entry point of `jsphere animate` (also `jsphere.animate`)."""
+Like the figures of `jsphere.plots`, the animations draw the result objects they are given, and
+replay models where a result asks for it (a fit's trials through `compare`, a study's gaits
+through `simulate_gaits`): `scene` (the geometry of every frame), `sources` (the scenes of each
+kind of result), `video`, `viewer`, and `animate`. `jsphere.animate` (`jsphere.cli.animate`)
+reads files into those results first."""
 
 from .api import animate as animate
 from .api import scenes_of as scenes_of

@@ -1,5 +1,6 @@
-"""`animate`: a run as a video (MP4, GIF) or an interactive HTML viewer, the one entry point of
-`jsphere animate` and of notebooks."""
+"""`animate`: a run as a video (MP4, GIF) or an interactive HTML viewer, drawn from the result
+objects jsphere computes (`jsphere.animate`, which `jsphere animate` calls, reads files into them
+first)."""
 
 from __future__ import annotations
 
@@ -29,8 +30,6 @@ def scenes_of(source, *, params=None, captures=None, trials=None) -> list[Scene]
         return [source]
     if isinstance(source, (list, tuple)) and source and all(isinstance(s, Scene) for s in source):
         return list(source)
-    if isinstance(source, (str, Path)):
-        return sources.scenes_from_path(source, captures or (), params=params, trials=trials)
     if isinstance(source, Plan):
         return [sources.plan_scene(source)]
     robot = params if params is not None else RobotParams.paper()
@@ -47,48 +46,14 @@ def scenes_of(source, *, params=None, captures=None, trials=None) -> list[Scene]
         return sources.fit_scenes(params if params is not None else source.params, found, worst=worst, status=status)
     raise InputError(
         f"animate: cannot show a {type(source).__name__}; give a Trajectory, Trial, Plan, FitResult (with its "
-        "captures), Scene, or the path of a trial or plan CSV, a fit.json or a Monte-Carlo study folder."
+        "captures) or Scene (`jsphere.animate` also reads the path of a trial or plan CSV, a fit.json or a "
+        "Monte-Carlo study folder)."
     )
 
 
-def animate(
-    source,
-    out,
-    *,
-    params=None,
-    captures=None,
-    trials=None,
-    fps: float | None = None,
-    speed: float = 1.0,
-    size: tuple[int, int] | None = None,
-    view: str = "3d",
-    progress=None,
-) -> Path:
-    """Show a run: write `out` (`.mp4`, `.gif` or `.html`, atomically) and return its path.
-
-    **The picture**: the shell as a translucent sphere with meridians that turn with its own
-    attitude, the platform (the polygon through the wheel centres) and each omniwheel at their
-    geometry (`wheel_r`, `wheel_n`, `wheel_alpha`, `Rw`; the spokes turn with `chi_i`, the roller
-    axis `alpha_i` at the contact), the centre of mass `r_m`, the path on the floor and the
-    target; the time, speed and wheel rates `chi_dot_i` on screen. Axes: jsphere's fixed frame
-    [m], Z up. `jsphere.plots.animation.scene` says where each piece comes from.
-
-    **Arguments:**
-    - `source`: a `Trajectory`; a `Trial`; a `Plan`; a `FitResult` with `captures` (its trials:
-      each capture with the fitted model's replay ghosted over it, the residual on screen, the
-      worst-fitting trial first); a `Scene` or a list of them; or the path of a trial CSV, a
-      plan CSV (`jsphere plan`), a fit's JSON (its trials beside it, or their files in
-      `captures`) or a Monte-Carlo study folder (its study file in `captures`, else the one
-      beside the folder with the folder's `[vary]`).
-    - `params`: the robot drawn (default: the source's own, else the paper's).
-    - `trials`: the names of a fit's trials to show (default all).
-    - `fps`: frames per second (default 30; 20 for GIF, 15 for HTML); `speed`: playback factor (a run of `T`
-      s plays in `T / speed` s, within one frame); `size`: `(width, height)` [pixels];
-      `view`: `"3d"` or `"top"` (from above).
-    - `progress`: as elsewhere in jsphere (`None`: a bar on a terminal).
-
-    A 10 s run at 30 frames per second renders in well under 30 s on 2 cores
-    (docs/performance.md)."""
+def check_options(out, *, fps=None, speed=1.0, size=None, view="3d") -> tuple[Path, float, float, tuple[int, int]]:
+    """`out`, `fps`, `speed` and `size` of `animate` checked, with the defaults of `out`'s suffix;
+    an `InputError` names the first that is out of range."""
     out = Path(out)
     suffix = out.suffix.lower()
     if suffix not in SUFFIXES:
@@ -104,8 +69,28 @@ def animate(
         raise InputError(f"--size must be a width and a height in pixels, 16 to 4096; got {size}.")
     if view not in ("3d", "top"):
         raise InputError(f"--view must be 3d or top; got {view!r}.")
+    return out, fps, speed, size
+
+
+def animate(
+    source,
+    out,
+    *,
+    params=None,
+    captures=None,
+    trials=None,
+    fps: float | None = None,
+    speed: float = 1.0,
+    size: tuple[int, int] | None = None,
+    view: str = "3d",
+    progress=None,
+) -> Path:
+    """Show the run `source`, a result object (a `Trajectory`, `Trial`, `Plan`, `FitResult`
+    with its `captures`, or `Scene`s), in `out` (`.mp4`, `.gif` or `.html`, written atomically);
+    return its path. The arguments are those of `jsphere.animate`, which also reads files."""
+    out, fps, speed, size = check_options(out, fps=fps, speed=speed, size=size, view=view)
     scenes = scenes_of(source, params=params, captures=captures, trials=trials)
-    if suffix == ".html":
+    if out.suffix.lower() == ".html":
         from .viewer import write_html
 
         write_html(scenes, out, fps=fps, speed=speed, size=size, view=view)
