@@ -103,7 +103,7 @@ def run(args) -> int:
     from .._runtime.errors import ExitCode
     from .._runtime.files import atomic_write_json, check_output
     from ..model.params import RobotParams
-    from ..planning.plan import Objective, plan
+    from ..planning.plan import Objective, PlanOptions, plan
     from ..solve.options import SolverOptions
 
     out = Path(args.out)
@@ -127,20 +127,10 @@ def run(args) -> int:
             f"{args.params} with the means of {args.robust}" if args.params else f"the nominal robot of {args.robust}"
         )
     options = SolverOptions(programs=args.programs)  # the verifications' program kept for the next run
-    pl = plan(
-        params,
-        tuple(args.to),
-        heading=args.heading,
-        limits=limits,
-        objective=obj,
-        restarts=args.restarts,
-        rate=args.rate,
-        seed=args.seed,
-        allow_infeasible=True,
-        progress=progress(args),
-        options=options,
-    )
-    robust = _robust(args, params, uncertainty, limits, obj, pl, options) if args.robust else None
+    request = {"heading": args.heading, "limits": limits, "objective": obj, "progress": progress(args)}
+    request |= {"plan_options": PlanOptions(restarts=args.restarts, rate=args.rate, seed=args.seed), "options": options}
+    pl = plan(params, tuple(args.to), allow_infeasible=True, **request)
+    robust = _robust(args, params, uncertainty, pl, request) if args.robust else None
     pl = robust.plan if robust else pl
     print(pl.summary())
     pl.to_csv(out)
@@ -259,27 +249,21 @@ def _limits(args):
     return Limits(**lim_kw)
 
 
-def _robust(args, params, uncertainty, limits, obj, nominal, options):
-    """`plan_robust` for `--robust FILE`, from the nominal plan; prints its summary."""
-    from ..planning.robust import plan_robust
+def _robust(args, params, uncertainty, nominal, request: dict):
+    """The robust plan of `--robust FILE` (`plan` with `RobustOptions`), from the nominal plan
+    and the nominal plan's request; prints its summary."""
+    from ..planning import plan as plan_module
+    from ..planning.robust import RobustOptions
 
-    robust = plan_robust(
-        params,
-        tuple(args.to),
+    robust = RobustOptions(
         uncertainty,
-        heading=args.heading,
-        limits=limits,
-        objective=obj,
         samples=args.samples,
         quantile=args.quantile,
-        check_samples=args.check_samples,
         restarts=min(args.restarts, 4),
-        rate=args.rate,
-        seed=args.seed,
-        progress=progress(args),
+        check_samples=args.check_samples,
         nominal=nominal,
-        options=options,
     )
+    robust = plan_module.plan(params, tuple(args.to), robust=robust, **request)
     print(robust.summary())
     return robust
 
