@@ -15,7 +15,6 @@ from .._runtime.moved_keywords import moved_into, no_other_keywords
 from .._runtime.precision import warn_if_float32_by_default
 from .._runtime.progress import Progress
 from ..model.params import RobotParams
-from ..model.state import State
 from ..solve.options import SolverOptions
 from .problem import Limits, Objective, PlanOptions, PlanSettings, _check_request, _vec_targets, gait_from_vector
 from .result import Plan, manoeuvre_plan
@@ -64,11 +63,9 @@ def _verified(b: _Batch, k: int, z, J):
     """The accurate trajectory of target `k`'s manoeuvre, its RK4 bias corrected: `(gait,
     trajectory, errors)`."""
     p, lim = b.params, b.lim
-    st0 = State.at_rest(p)
-    alpha0, beta0 = np.asarray(st0.alpha), np.asarray(st0.beta)
 
     def accurate(gait):
-        return _accurate(p, gait, b.o.rate, alpha0, beta0, lim.max_time, b.options)
+        return _accurate(p, gait, b.o.rate, lim.max_time, b.options)
 
     tr = accurate(gait_from_vector(jnp.asarray(z), lim, b.s))
     err = _terminal_errors(p, tr, b.targets[k])

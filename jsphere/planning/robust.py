@@ -447,9 +447,8 @@ def robust_plan(
 def _verified_plan(p, z, target, lim: Limits, s: PlanSettings, rate, options, nominal: Plan, t0: float) -> Plan:
     """The robust decision vector as a `Plan`: the accurate trajectory at the nominal
     parameters, its terminal errors there and its limits; feasible when the limits hold."""
-    st0 = State.at_rest(p)
     gait = gait_from_vector(jnp.asarray(z), lim, s)
-    tr = _accurate(p, gait, rate, np.asarray(st0.alpha), np.asarray(st0.beta), lim.max_time, options)
+    tr = _accurate(p, gait, rate, lim.max_time, options)
     tg = np.asarray(target)
     err = _terminal_errors(p, tr, tg)
     rep = _limit_report(p, tr, float(gait.T), lim)
