@@ -43,7 +43,8 @@ def main(out="plan-slalom"):
     out = Path(out)
     p = jsphere.RobotParams.paper()
     # at most 4.5 s per leg, to compare with the hand-made gaits' 4 s per leg
-    pl = jsphere.plan_route(p, WAYPOINTS, limits=jsphere.Limits(max_time=4.5), restarts=4, rate=1000.0, progress=True)
+    request = jsphere.PlanOptions(restarts=4, rate=1000.0)
+    pl = jsphere.plan_route(p, WAYPOINTS, limits=jsphere.Limits(max_time=4.5), plan_options=request, progress=True)
     print(pl.summary())
     pl.to_csv(out / "slalom.csv")
     tr_h, stops_h = hand_made(p)

@@ -102,6 +102,22 @@ def _checked(args) -> None:
             raise InputError(f"{option} must be {what}; got {value:g}.")
 
 
+def _options(args):
+    """The `DesignOptions` of the flags."""
+    from ..design.excitation import DesignOptions
+
+    return DesignOptions(
+        trials=args.trials,
+        sigma_pos=args.sigma_pos,
+        sigma_rot=math.radians(args.sigma_rot_deg),
+        restarts=args.restarts,
+        steps=args.steps,
+        seed=args.seed,
+        rate=args.rate,
+        capture_rate=args.capture_rate,
+    )
+
+
 def run(args) -> int:
     from .._runtime.errors import ExitCode
     from .._runtime.files import check_output
@@ -128,20 +144,7 @@ def run(args) -> int:
     limits = _limits(args)
     params = RobotParams.load(args.params) if args.params else RobotParams.paper()
     result = design_excitation(
-        params,
-        args.free,
-        args.duration,
-        args.kind,
-        trials=args.trials,
-        limits=limits,
-        sigma_pos=args.sigma_pos,
-        sigma_rot=math.radians(args.sigma_rot_deg),
-        restarts=args.restarts,
-        steps=args.steps,
-        seed=args.seed,
-        rate=args.rate,
-        capture_rate=args.capture_rate,
-        progress=progress(args),
+        params, args.free, args.duration, args.kind, limits=limits, options=_options(args), progress=progress(args)
     )
     print(result.table())
     written = result.save(out, baseline=args.baseline_out)

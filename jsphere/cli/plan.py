@@ -103,7 +103,7 @@ def run(args) -> int:
     from .._runtime.errors import ExitCode
     from .._runtime.files import atomic_write_json, check_output
     from ..model.params import RobotParams
-    from ..planning.plan import Objective, plan
+    from ..planning.plan import plan
     from ..solve.options import SolverOptions
 
     out = Path(args.out)
@@ -117,30 +117,18 @@ def run(args) -> int:
         inputs={"the parameter file (--params)": args.params, "the uncertainty file (--robust)": args.robust},
         example=str(Path(args.out) / "plan.csv"),
     )
-    limits = _limits(args)
+    request = _request(args)
     params = RobotParams.load(args.params) if args.params else RobotParams.paper()
     source = str(args.params) if args.params else "the paper's robot (RobotParams.paper())"
-    obj = Objective(energy=args.energy_weight, time=args.time_weight)
     uncertainty, params = _uncertainty(args) if args.robust else (None, params)
     if args.robust:
         source = (
             f"{args.params} with the means of {args.robust}" if args.params else f"the nominal robot of {args.robust}"
         )
     options = SolverOptions(programs=args.programs)  # the verifications' program kept for the next run
-    pl = plan(
-        params,
-        tuple(args.to),
-        heading=args.heading,
-        limits=limits,
-        objective=obj,
-        restarts=args.restarts,
-        rate=args.rate,
-        seed=args.seed,
-        allow_infeasible=True,
-        progress=progress(args),
-        options=options,
-    )
-    robust = _robust(args, params, uncertainty, limits, obj, pl, options) if args.robust else None
+    request["options"] = options
+    pl = plan(params, tuple(args.to), allow_infeasible=True, **request)
+    robust = _robust(args, params, uncertainty, pl, request) if args.robust else None
     pl = robust.plan if robust else pl
     print(pl.summary())
     pl.to_csv(out)
@@ -259,27 +247,41 @@ def _limits(args):
     return Limits(**lim_kw)
 
 
-def _robust(args, params, uncertainty, limits, obj, nominal, options):
-    """`plan_robust` for `--robust FILE`, from the nominal plan; prints its summary."""
-    from ..planning.robust import plan_robust
+def _request(args) -> dict:
+    """The keywords of `plan` that the flags give: the one place where flags become options
+    (`--robust`'s in `_robust_options`)."""
+    from ..planning.plan import Objective, PlanOptions
 
-    robust = plan_robust(
-        params,
-        tuple(args.to),
+    return {
+        "heading": args.heading,
+        "limits": _limits(args),
+        "objective": Objective(energy=args.energy_weight, time=args.time_weight),
+        "plan_options": PlanOptions(restarts=args.restarts, rate=args.rate, seed=args.seed),
+        "progress": progress(args),
+    }
+
+
+def _robust_options(args, uncertainty, nominal):
+    """The `RobustOptions` of `--robust FILE` and its flags, from the nominal plan."""
+    from ..planning.robust import RobustOptions
+
+    return RobustOptions(
         uncertainty,
-        heading=args.heading,
-        limits=limits,
-        objective=obj,
         samples=args.samples,
         quantile=args.quantile,
-        check_samples=args.check_samples,
         restarts=min(args.restarts, 4),
-        rate=args.rate,
-        seed=args.seed,
-        progress=progress(args),
+        check_samples=args.check_samples,
         nominal=nominal,
-        options=options,
     )
+
+
+def _robust(args, params, uncertainty, nominal, request: dict):
+    """The robust plan of `--robust FILE` (`plan` with `RobustOptions`), from the nominal plan
+    and the nominal plan's request; prints its summary."""
+    from ..planning import plan as plan_module
+
+    robust = _robust_options(args, uncertainty, nominal)
+    robust = plan_module.plan(params, tuple(args.to), robust=robust, **request)
     print(robust.summary())
     return robust
 

@@ -3,6 +3,7 @@ possible (D-optimal), with their predicted standard errors and those of a random
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -12,6 +13,7 @@ import numpy as np
 
 from .._runtime.checks import real, whole
 from .._runtime.errors import InputError, SolverFailure
+from .._runtime.moved_keywords import moved_into, no_other_keywords
 from .._runtime.progress import Progress
 from ..identify.free import FreeParams
 from ..model.limits import Limits
@@ -26,31 +28,52 @@ from .result import CRITERION, DesignResult
 START_SCALE = 0.03
 
 
+@dataclasses.dataclass(frozen=True)
+class DesignOptions:
+    """The options of `design_excitation` (`jsphere design`'s flags).
+
+    - `trials`: identification trials, one programme each.
+    - `sigma_pos` [m], `sigma_rot` [rad]: the capture's noise levels.
+    - `restarts`, `steps`, `seed`, `learning_rate`: random starts, all vmapped, and Adam steps;
+      the result is deterministic for a given `seed`.
+    - `n_freqs`, `f_max` [Hz], `ramp` [s]: the programmes' frequencies `j f_max / n_freqs` and
+      ramp time (`jsphere.design.inputs`).
+    - `model_rate` [Hz], `substeps`: the optimisation's model grid (RK4 steps per sample).
+    - `rate`: rows per second of the tables; `capture_rate` [Hz]: the capture rate of the
+      predicted standard errors.
+
+    The values are checked by `design_excitation`, before any work.
+    """
+
+    trials: int = 1
+    sigma_pos: float = 1e-3
+    sigma_rot: float = math.radians(0.5)
+    restarts: int = 4
+    steps: int = 60
+    seed: int = 0
+    n_freqs: int = 6
+    f_max: float = 1.5
+    ramp: float = 0.5
+    learning_rate: float = 0.02
+    model_rate: float = 20.0
+    substeps: int = 2
+    rate: float = 100.0
+    capture_rate: float = 100.0
+
+
 def design_excitation(
     params: RobotParams,
     free: str | Sequence[str],
     duration: float,
     kind: str = "K",
     *,
-    trials: int = 1,
     limits: Limits | None = None,
-    sigma_pos: float = 1e-3,
-    sigma_rot: float = math.radians(0.5),
-    restarts: int = 4,
-    steps: int = 60,
-    seed: int = 0,
-    n_freqs: int = 6,
-    f_max: float = 1.5,
-    ramp: float = 0.5,
-    learning_rate: float = 0.02,
-    model_rate: float = 20.0,
-    substeps: int = 2,
-    rate: float = 100.0,
-    capture_rate: float = 100.0,
+    options: DesignOptions | None = None,
     progress: bool | None | Callable[[str], None] = None,
+    **kwargs,
 ) -> DesignResult:
-    """Input programmes for `trials` identification trials of `duration` [s] that maximise the
-    D-optimal criterion of the free parameters (`jsphere.design.information`).
+    """Input programmes for `options.trials` identification trials of `duration` [s] that
+    maximise the D-optimal criterion of the free parameters (`jsphere.design.information`).
 
     **Arguments:**
     - `params`: the robot (the parameters at which the information is evaluated).
@@ -61,35 +84,33 @@ def design_excitation(
     - `limits`: a `jsphere.Limits` (defaults as for `plan`): the programmes keep the input
       limit by construction; torque rate, wheel rate (torques) and platform tilt are kept by a
       penalty on the optimisation's model (`jsphere.design.optimise`).
-    - `sigma_pos` [m], `sigma_rot` [rad]: the capture's noise levels.
-    - `restarts`, `steps`, `seed`, `learning_rate`: random starts, all vmapped, and Adam steps;
-      the result is deterministic for a given `seed`.
-    - `n_freqs`, `f_max` [Hz], `ramp` [s]: the programmes' frequencies `j f_max / n_freqs` and
-      ramp time (`jsphere.design.inputs`).
-    - `model_rate` [Hz], `substeps`: the optimisation's model grid (RK4 steps per sample).
-    - `rate`: rows per second of the tables; `capture_rate` [Hz]: the capture rate of the
-      predicted standard errors.
+    - `options`: a `DesignOptions` (trials, noise levels, the search, the programmes' band,
+      the rates); its fields given as keywords (`trials=2`) still work, with a
+      `DeprecationWarning`.
     - `progress`: as for `jsphere.fit`.
 
     The baseline is random multisines (equal amplitudes, random phases, the same frequencies,
     window and saturation) of the same RMS amplitude as the design, scaled down where that breaks
     a limit the design keeps (`docs/design.md`). Returns a `DesignResult`; raises `InputError`
     for a bad value, `SolverFailure` where the model of every start fails.
+
+    Example:
+
+        res = jsphere.design_excitation(p, "j", 4.0, "K", options=jsphere.DesignOptions(trials=2))
     """
+    o = moved_into("design_excitation", kwargs, options, DesignOptions, "options")
+    no_other_keywords("design_excitation", kwargs)
     t_begin = time.perf_counter()
     prog = Progress(progress)
-    spec, lim, noise, grid = _checked(
-        params, duration, kind, trials, limits, sigma_pos, sigma_rot, n_freqs, f_max, ramp, model_rate, substeps
-    )
-    fp, restarts, steps, seed = _checked_run(
-        params, free, duration, restarts, steps, seed, learning_rate, rate, capture_rate
-    )
+    spec, lim, noise, grid = _checked(params, duration, kind, limits, o)
+    fp, restarts, steps, seed = _checked_run(params, free, duration, o)
+    rate, capture_rate = o.rate, o.capture_rate
     pr = problem(params, fp, spec, noise, grid)
     prog.say(
-        f"design: {trials} trial(s) of {duration:g} s ({spec.trial_kind}), {fp.size} free parameters, "
+        f"design: {o.trials} trial(s) of {duration:g} s ({spec.trial_kind}), {fp.size} free parameters, "
         f"{spec.size} coefficients, {restarts} restart(s) x {steps} Adam steps"
     )
-    start_obj, zb, obj, phi, pen = _optimise(prog, pr, lim, fp, restarts, steps, seed, learning_rate)
+    start_obj, zb, obj, phi, pen = _optimise(prog, pr, lim, fp, restarts, steps, seed, o.learning_rate)
     b = int(np.nanargmax(np.where(np.isfinite(obj), obj, -np.inf)))
     z = zb[b]
     tables = _tables(z, spec, rate)
@@ -102,7 +123,7 @@ def design_excitation(
     prog.say("design: standard errors of the design and the baseline (the fit's Jacobian) ...")
     t_cap = sample_times(duration, capture_rate)
     cap = lambda zz: [table_at(p, t_cap) for p in programmes(jnp.asarray(zz), spec)]
-    info = lambda zz: fit_information(params, fp, spec.trial_kind, t_cap, cap(zz), sigma_pos, sigma_rot)
+    info = lambda zz: fit_information(params, fp, spec.trial_kind, t_cap, cap(zz), o.sigma_pos, o.sigma_rot)
     named = lambda v: {n: float(x) for n, x in zip(fp.names, v)}
     values, F_d, _, se_d, ext_d = info(z)
     _, F_b, _, se_b, ext_b = info(z_base)
@@ -128,17 +149,17 @@ def design_excitation(
             for s, f, p, c in zip(start_obj, obj, pen, phi)
         ],
         settings={
-            "trials": trials,
-            "n_freqs": n_freqs,
-            "f_max_hz": f_max,
-            "ramp_s": ramp,
+            "trials": o.trials,
+            "n_freqs": o.n_freqs,
+            "f_max_hz": o.f_max,
+            "ramp_s": o.ramp,
             "limit": spec.limit,
-            "sigma_pos_m": sigma_pos,
-            "sigma_rot_deg": math.degrees(sigma_rot),
+            "sigma_pos_m": o.sigma_pos,
+            "sigma_rot_deg": math.degrees(o.sigma_rot),
             "restarts": restarts,
             "steps": steps,
             "seed": seed,
-            "learning_rate": learning_rate,
+            "learning_rate": o.learning_rate,
             "model_rate_hz": grid.rate,
             "substeps": grid.substeps,
             "capture_rate_hz": capture_rate,
@@ -175,18 +196,19 @@ def _optimise(prog: Progress, pr, lim: Limits, fp: FreeParams, restarts: int, st
     return start_obj, zb, obj, phi, pen
 
 
-def _checked_run(params, free, duration, restarts, steps, seed, learning_rate, rate, capture_rate):
+def _checked_run(params, free, duration, o: DesignOptions):
     """The `FreeParams` and the checked `restarts`, `steps` and `seed` of a request (its learning
     rate and rates checked too); `InputError` naming a bad value."""
-    restarts = whole("design_excitation", "restarts", restarts, 1)
-    steps = whole("design_excitation", "steps", steps, 0)
-    seed = whole("design_excitation", "seed", seed, 0)
-    real("design_excitation", "learning_rate", learning_rate, strict=True)
-    real("design_excitation", "rate", rate, strict=True, unit="Hz")
-    real("design_excitation", "capture_rate", capture_rate, strict=True, unit="Hz")
-    if capture_rate * duration < 4:
+    restarts = whole("design_excitation", "restarts", o.restarts, 1)
+    steps = whole("design_excitation", "steps", o.steps, 0)
+    seed = whole("design_excitation", "seed", o.seed, 0)
+    real("design_excitation", "learning_rate", o.learning_rate, strict=True)
+    real("design_excitation", "rate", o.rate, strict=True, unit="Hz")
+    real("design_excitation", "capture_rate", o.capture_rate, strict=True, unit="Hz")
+    if o.capture_rate * duration < 4:
         raise InputError(
-            f"design_excitation: capture_rate x duration must give at least 4 samples; got {capture_rate * duration:g}."
+            "design_excitation: capture_rate x duration must give at least 4 samples; "
+            f"got {o.capture_rate * duration:g}."
         )
     try:
         return FreeParams(params, free), restarts, steps, seed
@@ -263,7 +285,7 @@ def table_at(prog, t: np.ndarray) -> np.ndarray:
     return np.asarray(_values(prog, jnp.asarray(t, prog.coef.dtype)))
 
 
-def _checked(params, duration, kind, trials, limits, sigma_pos, sigma_rot, n_freqs, f_max, ramp, model_rate, substeps):
+def _checked(params, duration, kind, limits, o: DesignOptions):
     """The `Spec`, `Limits`, `Noise` and `Grid` of a request; `InputError` naming a bad value."""
     where = "design_excitation"
     if not isinstance(params, RobotParams):
@@ -271,7 +293,7 @@ def _checked(params, duration, kind, trials, limits, sigma_pos, sigma_rot, n_fre
     if kind not in KINDS:
         raise InputError(f"{where}: kind must be 'K' (torques) or 'chi_dot' (wheel speeds); got {kind!r}.")
     duration = real(where, "duration", duration, strict=True, unit="s")
-    trials = whole(where, "trials", trials, 1)
+    trials = whole(where, "trials", o.trials, 1)
     if limits is not None and not isinstance(limits, Limits):
         raise InputError(f"{where}: limits must be a jsphere.Limits; got {type(limits).__name__}.")
     lim = limits or Limits()
@@ -279,15 +301,15 @@ def _checked(params, duration, kind, trials, limits, sigma_pos, sigma_rot, n_fre
     if limit is None:
         which = "max_torque (--max-torque)" if kind == "K" else "max_wheel_speed (--max-wheel-speed)"
         raise InputError(f"{where}: the programmes need a finite {which}: they are scaled to it.")
-    sigma_pos = real(where, "sigma_pos", sigma_pos, strict=True, unit="m")
-    sigma_rot = real(where, "sigma_rot", sigma_rot, strict=True, unit="rad")
-    n_freqs = whole(where, "n_freqs", n_freqs, 1)
-    f_max = real(where, "f_max", f_max, strict=True, unit="Hz")
-    ramp = real(where, "ramp", ramp, strict=True, unit="s")
+    sigma_pos = real(where, "sigma_pos", o.sigma_pos, strict=True, unit="m")
+    sigma_rot = real(where, "sigma_rot", o.sigma_rot, strict=True, unit="rad")
+    n_freqs = whole(where, "n_freqs", o.n_freqs, 1)
+    f_max = real(where, "f_max", o.f_max, strict=True, unit="Hz")
+    ramp = real(where, "ramp", o.ramp, strict=True, unit="s")
     if 2 * ramp > duration:
         raise InputError(f"{where}: ramp = {ramp:g} s needs a duration of at least {2 * ramp:g} s; got {duration:g} s.")
-    model_rate = real(where, "model_rate", model_rate, strict=True, unit="Hz")
-    substeps = whole(where, "substeps", substeps, 1)
+    model_rate = real(where, "model_rate", o.model_rate, strict=True, unit="Hz")
+    substeps = whole(where, "substeps", o.substeps, 1)
     if model_rate < 2 * f_max:
         raise InputError(f"{where}: model_rate = {model_rate:g} Hz must be at least 2 f_max = {2 * f_max:g} Hz.")
     spec = Spec(

@@ -11,20 +11,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._runtime.moved_keywords import moved_into, no_other_keywords
 from .._runtime.precision import warn_if_float32_by_default
 from .._runtime.progress import Progress
 from ..model.params import RobotParams
-from ..model.state import State
 from ..solve.options import SolverOptions
-from .problem import Limits, Objective, PlanSettings, _check_request, _vec_targets, gait_from_vector
-from .result import Plan
+from .problem import Limits, Objective, PlanOptions, PlanSettings, _check_request, _vec_targets, gait_from_vector
+from .result import Plan, manoeuvre_plan
 from .rollout import heading, rollout
 from .search import _initial_guesses, _search
-from .verify import _accurate, _correct_bias, _limit_report, _terminal_errors, verification_options
-
-#: the default terminal speed tolerance of a plan [m/s] (`R0 |Omega x gamma|` at the end): a plan
-#: whose end is within it ends at rest (`Plan.at_rest`)
-TOL_SPEED = 5e-4
+from .verify import _accurate, _correct_bias, _limit_report, _terminal_errors, exceeded, verification_options
 
 
 @dataclasses.dataclass
@@ -36,26 +32,22 @@ class _Batch:
     lim: Limits
     obj: Objective
     s: PlanSettings
-    restarts: int
-    rate: float
-    tol_position: float
-    tol_speed: float
-    tol_heading: float
+    o: PlanOptions
     t0: float
     iterations: dict
     options: SolverOptions | None = None  # of the accurate re-simulation
 
 
-def _search_batch(b: _Batch, seed: int, progress: Progress):
+def _search_batch(b: _Batch, progress: Progress):
     """The vmapped search; returns the best decision vector per target `(B, V)`, its residual
     Jacobian `(B, M, V)` and the loss of every restart `(B, R)`. One compiled call: the
     progress shows its time, not its iterations."""
     p, s = b.params, b.s
     # numbers as arrays: other limits and weights reuse the compiled search (None stays static)
     lim_a, obj_a = (jax.tree_util.tree_map(lambda v: jnp.asarray(v, p.R0.dtype), m) for m in (b.lim, b.obj))
-    z0 = _initial_guesses(p, b.targets, b.restarts, b.lim, s, seed)
+    z0 = _initial_guesses(p, b.targets, b.o.restarts, b.lim, s, b.o.seed)
     progress.say(
-        f"jsphere plan: {len(b.targets)} target(s) x {b.restarts} restarts, Adam {s.adam_steps} + L-BFGS "
+        f"jsphere plan: {len(b.targets)} target(s) x {b.o.restarts} restarts, Adam {s.adam_steps} + L-BFGS "
         f"{s.lbfgs_steps} + LM {s.lm_steps} iterations"
     )
     limits_off = tuple(v is None for v in jax.tree_util.tree_leaves(b.lim, is_leaf=lambda v: v is None))
@@ -71,16 +63,14 @@ def _verified(b: _Batch, k: int, z, J):
     """The accurate trajectory of target `k`'s manoeuvre, its RK4 bias corrected: `(gait,
     trajectory, errors)`."""
     p, lim = b.params, b.lim
-    st0 = State.at_rest(p)
-    alpha0, beta0 = np.asarray(st0.alpha), np.asarray(st0.beta)
 
     def accurate(gait):
-        return _accurate(p, gait, b.rate, alpha0, beta0, lim.max_time, b.options)
+        return _accurate(p, gait, b.o.rate, lim.max_time, b.options)
 
     tr = accurate(gait_from_vector(jnp.asarray(z), lim, b.s))
     err = _terminal_errors(p, tr, b.targets[k])
     _, gait, tr, err, steps = _correct_bias(
-        p, z, J, b.targets[k], tr, err, accurate, lim, b.obj, b.s, b.tol_position, b.tol_speed
+        p, z, J, b.targets[k], tr, err, accurate, lim, b.obj, b.s, b.o.tol_position, b.o.tol_speed
     )
     b.iterations["newton"] += steps
     return gait, tr, err
@@ -102,53 +92,73 @@ def _search_model_errors(b: _Batch, k: int, gait) -> dict:
 def _shortfall(b: _Batch, k: int, err: dict, rep: dict) -> list[str]:
     """What keeps a plan from being feasible: missed tolerances, exceeded limits, and (if any)
     the limits that bind."""
-    out = []
-    if err["position_m"] > b.tol_position:
+    o, out = b.o, []
+    if err["position_m"] > o.tol_position:
         out.append(
-            f"final position misses by {1e3 * err['position_m']:.3f} mm (tolerance {1e3 * b.tol_position:.3f} mm)"
+            f"final position misses by {1e3 * err['position_m']:.3f} mm (tolerance {1e3 * o.tol_position:.3f} mm)"
         )
-    if err["speed_m_s"] > b.tol_speed:
-        out.append(f"final speed {1e3 * err['speed_m_s']:.3f} mm/s (tolerance {1e3 * b.tol_speed:.3f} mm/s)")
-    if b.targets[k, 3] and err["heading_rad"] > b.tol_heading:
-        out.append(f"final heading misses by {err['heading_rad']:.4f} rad (tolerance {b.tol_heading} rad)")
-    for name, r in rep.items():
-        if not r["ok"]:
-            out.append(
-                f"limit {name} exceeded: {r['max']:.5g} > {r['limit']:.5g} (by {100 * (r['max'] / r['limit'] - 1):.1f}%)"
-            )
+    if err["speed_m_s"] > o.tol_speed:
+        out.append(f"final speed {1e3 * err['speed_m_s']:.3f} mm/s (tolerance {1e3 * o.tol_speed:.3f} mm/s)")
+    if b.targets[k, 3] and err["heading_rad"] > o.tol_heading:
+        out.append(f"final heading misses by {err['heading_rad']:.4f} rad (tolerance {o.tol_heading} rad)")
+    out += exceeded(rep)
     binding = [n for n, r in rep.items() if r["ok"] and r["max"] > 0.95 * r["limit"]]
     if out and binding:
         out.append(f"binding limit(s): {', '.join(binding)}")
     return out
 
 
-def _plan_for(b: _Batch, k: int, z, J, loss, verify: bool) -> Plan:
+def _plan_for(b: _Batch, k: int, z, J, loss) -> Plan:
     """Target `k`'s plan from its best decision vector `z` (verified if `verify`)."""
-    if verify:
+    if b.o.verify:
         gait, tr, err = _verified(b, k, z, J)
         rep = _limit_report(b.params, tr, float(gait.T), b.lim)
     else:
         gait = gait_from_vector(jnp.asarray(z), b.lim, b.s)
         tr, err, rep = None, _search_model_errors(b, k, gait), {}
     shortfall = _shortfall(b, k, err, rep)
-    tg = b.targets[k]
-    return Plan(
-        params=b.params,
-        gaits=[gait],
-        legs=np.zeros((1, 3)),
-        trajectory=tr,
-        rate=b.rate,
-        target=np.array([tg[0], tg[1], tg[2] if tg[3] else np.nan]),
-        errors=err,
-        limits_report=rep,
-        feasible=not shortfall,
-        shortfall=shortfall,
+    return manoeuvre_plan(
+        b.params,
+        gait,
+        tr,
+        b.o.rate,
+        b.targets[k],
+        err,
+        rep,
+        shortfall,
         iterations=dict(b.iterations),
         elapsed_s=time.perf_counter() - b.t0,
         loss=float(np.min(loss)),
-        restarts=b.restarts,
-        at_rest=verify and err["speed_m_s"] <= b.tol_speed,
+        restarts=b.o.restarts,
+        at_rest=b.o.verify and err["speed_m_s"] <= b.o.tol_speed,
     )
+
+
+def plan_batch(where: str, params: RobotParams, targets, lim, obj, s, o: PlanOptions, progress, options) -> list[Plan]:
+    """The plans to checked `targets` (`_check_request`) from one vmapped search; `where` names
+    the caller in messages."""
+    options = verification_options(where, options)
+    warn_if_float32_by_default(params.R0.dtype, where)
+    s = s or PlanSettings()
+    b = _Batch(
+        params=params,
+        targets=_vec_targets(targets),
+        lim=lim or Limits(),
+        obj=obj or Objective(),
+        s=s,
+        o=dataclasses.replace(o, restarts=int(o.restarts)),
+        t0=time.perf_counter(),
+        iterations={"adam": s.adam_steps, "lbfgs": s.lbfgs_steps, "lm": s.lm_steps, "newton": 0},
+        options=options,
+    )
+    prog = Progress(progress)
+    zf, Jf, loss = _search_batch(b, prog)
+    plans = []
+    with prog.bar(len(b.targets), "jsphere plan: verifying", "target") as bar:
+        for k in range(len(b.targets)):
+            plans.append(_plan_for(b, k, zf[k], Jf[k], loss[k]))
+            bar.update(1)
+    return plans
 
 
 def plan_many(
@@ -158,29 +168,25 @@ def plan_many(
     limits: Limits | None = None,
     objective: Objective | None = None,
     settings: PlanSettings | None = None,
-    restarts: int = 16,
-    rate: float = 1000.0,
-    seed: int = 0,
-    tol_position: float = 5e-4,
-    tol_speed: float = TOL_SPEED,
-    tol_heading: float = 1e-3,
-    verify: bool = True,
+    plan_options: PlanOptions | None = None,
     progress: bool | None = None,
     options: SolverOptions | None = None,
+    **kwargs,
 ) -> list[Plan]:
     """Plan rest-to-rest manoeuvres from rest at the origin (heading 0) to each target, all in
     one compiled, vmapped search (`restarts x len(targets)` problems).
 
+    What `plan` cannot do: independent manoeuvres to many targets from one search, one `Plan`
+    per target, never raising for an infeasible one (`Plan.feasible` says).
+
     **Arguments:**
     - `targets`: `(x, y)` [m] or `(x, y, psi)` (final platform heading [rad]; `None`/nan: free).
-    - `limits`, `objective`, `settings`: see `Limits`, `Objective`, `PlanSettings`.
-    - `restarts`: random restarts per target (the best is kept); `rate`: output rate [Hz].
-    - `tol_*`: terminal tolerances for `Plan.feasible` [m, m/s, rad].
-    - `verify`: re-simulate with the accurate solver (needed for the table; `False` returns
-      the search model's result only, for benchmarks).
-    - `options`: a `SolverOptions` for that re-simulation (`simulate_gaits`; default Dopri8,
-      rtol 1e-10, atol 1e-12, max_steps 16384): its `rtol`, `atol`, `solver` and `max_steps`
-      are used; `throw`, `adjoint` and `batch_steps` set are errors.
+    - `limits`, `objective`, `settings`, `plan_options`: see `Limits`, `Objective`,
+      `PlanSettings`, `PlanOptions` (restarts, rate, seed, tolerances, verification); the fields
+      of `PlanOptions` given as keywords (`restarts=4`) still work, with a `DeprecationWarning`.
+    - `options`: a `SolverOptions` for the accurate re-simulation (`simulate_gaits`; default
+      Dopri8, rtol 1e-10, atol 1e-12, max_steps 16384): its `rtol`, `atol`, `solver` and
+      `max_steps` are used; `throw`, `adjoint` and `batch_steps` set are errors.
     - `progress`: `None` (default): progress bars on stderr when it is a terminal; `True`:
       bars, or lines where stderr is not a terminal; `False`: none
       (`jsphere._runtime.progress`).
@@ -189,40 +195,7 @@ def plan_many(
 
     Returns one `Plan` per target (infeasible ones have `feasible = False`; `plan` raises).
     """
-    targets = _check_request(
-        "plan_many",
-        targets,
-        limits,
-        objective,
-        settings,
-        restarts,
-        rate,
-        seed,
-        (("tol_position", tol_position), ("tol_speed", tol_speed), ("tol_heading", tol_heading)),
-    )
-    options = verification_options("plan_many", options)
-    warn_if_float32_by_default(params.R0.dtype, "plan_many")
-    s = settings or PlanSettings()
-    b = _Batch(
-        params=params,
-        targets=_vec_targets(targets),
-        lim=limits or Limits(),
-        obj=objective or Objective(),
-        s=s,
-        restarts=int(restarts),
-        rate=rate,
-        tol_position=tol_position,
-        tol_speed=tol_speed,
-        tol_heading=tol_heading,
-        t0=time.perf_counter(),
-        iterations={"adam": s.adam_steps, "lbfgs": s.lbfgs_steps, "lm": s.lm_steps, "newton": 0},
-        options=options,
-    )
-    prog = Progress(progress)
-    zf, Jf, loss = _search_batch(b, seed, prog)
-    plans = []
-    with prog.bar(len(b.targets), "jsphere plan: verifying", "target") as bar:
-        for k in range(len(b.targets)):
-            plans.append(_plan_for(b, k, zf[k], Jf[k], loss[k], verify))
-            bar.update(1)
-    return plans
+    o = moved_into("plan_many", kwargs, plan_options, PlanOptions, "plan_options")
+    no_other_keywords("plan_many", kwargs)
+    targets = _check_request("plan_many", targets, limits, objective, settings, o)
+    return plan_batch("plan_many", params, targets, limits, objective, settings, o, progress, options)

@@ -1,11 +1,13 @@
 """Rest-to-rest manoeuvres to a goal pose within motor limits (`plan`), and routes through
 waypoints stopping at each (`plan_route`), found by gradients through the gait dynamics of
-Section 4.
+Section 4. `plan` is the one entry point: a target, a route, or a robust plan
+(`RobustOptions`); `plan_many` plans many independent targets at once.
 
 The pieces: `problem` (limits, objective, settings, decision vector), `rollout` (the RK4
 search model), `residuals`, `search` (Adam then Levenberg-Marquardt over restarts x targets
 under one `jit`), `verify` (the accurate re-simulation and limit checks), `many`
-(`plan_many`), `result` (`Plan`). See `docs/planning.md`.
+(`plan_many`), `robust` (`RobustOptions`, `RobustPlan`), `result`
+(`Plan`). See `docs/planning.md`.
 """
 
 from __future__ import annotations
@@ -20,41 +22,62 @@ import numpy as np
 
 from .._runtime.checks import real
 from .._runtime.errors import InputError
+from .._runtime.moved_keywords import moved_into, no_other_keywords
 from ..model.params import RobotParams
 from ..solve.options import SolverOptions
 from ..solve.simulate import Trajectory
-from .many import plan_many
-from .problem import Limits, Objective, PlanSettings, _check_request
+from .many import plan_batch, plan_many
+from .problem import Limits, Objective, PlanOptions, PlanSettings, _check_request
 from .result import Plan, PlanInfeasibleError
-from .verify import verification_options
+from .robust import RobustOptions, robust_plan
 
-__all__ = ["Limits", "Objective", "Plan", "PlanInfeasibleError", "PlanSettings", "plan", "plan_many", "plan_route"]
+__all__ = [
+    "Limits",
+    "Objective",
+    "Plan",
+    "PlanInfeasibleError",
+    "PlanOptions",
+    "PlanSettings",
+    "plan",
+    "plan_many",
+    "plan_route",
+]
 
 
 def plan(
     params: RobotParams,
-    to: Sequence[float],
+    to: Sequence,
     *,
     heading: float | None = None,
     limits: Limits | None = None,
     objective: Objective | None = None,
     settings: PlanSettings | None = None,
-    restarts: int = 16,
-    rate: float = 1000.0,
-    seed: int = 0,
+    plan_options: PlanOptions | None = None,
+    robust: RobustOptions | None = None,
     allow_infeasible: bool = False,
     progress: bool | None = None,
     options: SolverOptions | None = None,
-) -> Plan:
+    **kwargs,
+):
     """Plan a rest-to-rest manoeuvre from rest at the origin (platform axes = fixed axes) to
-    `to = (x, y)` [m], optionally ending with platform heading `heading` [rad], within `limits`.
+    `to = (x, y)` [m], optionally ending with platform heading `heading` [rad], within `limits`;
+    or a route through the waypoints `to = [(x, y), (x, y, heading), ...]`, stopping at each
+    (as `plan_route`).
+
+    **Arguments:**
+    - `limits`, `objective`, `settings`: see `Limits`, `Objective`, `PlanSettings`.
+    - `plan_options`: a `PlanOptions` (restarts, rate, seed, tolerances); its fields given as
+      keywords (`restarts=32`) still work, with a `DeprecationWarning`.
+    - `robust`: a `RobustOptions` (the parameter distribution and the robust search): plan a
+      manoeuvre that still lands on the robots it allows, and return a `RobustPlan`
+      (`jsphere.planning.robust`; one target only).
+    - `options`: a `SolverOptions` for the accurate re-simulation that verifies the plan (as in
+      `plan_many`). `progress`: as for `plan_many`.
 
     Raises `PlanInfeasibleError` (holding the best plan in `.plan`, and saying how far it falls
     short and which limit binds) if the tolerances or limits are not met, unless
-    `allow_infeasible=True` (then check `Plan.feasible`). `progress`: as for `plan_many`.
-
-    `options`: a `SolverOptions` for the accurate re-simulation that verifies the plan (as in
-    `plan_many`).
+    `allow_infeasible=True` (then check `Plan.feasible`). A robust plan never raises: its
+    `RobustPlan.plan.feasible` says whether it keeps the limits.
 
     Example:
 
@@ -65,24 +88,23 @@ def plan(
     Every argument is checked before any work; a bad one (a target or heading that is not a
     finite number, `restarts < 1`, `rate <= 0`, ...) raises `InputError` naming it.
     """
+    o = moved_into("plan", kwargs, plan_options, PlanOptions, "plan_options")
+    no_other_keywords("plan", kwargs)
+    if _is_route(to):
+        if heading is not None or robust is not None:
+            raise InputError("plan: a route gives each waypoint's heading as (x, y, heading), and is not robust.")
+        return _route("plan", params, to, limits, objective, settings, o, allow_infeasible, progress, options)
     if isinstance(to, (str, bytes)) or not isinstance(to, (Sequence, np.ndarray)) or len(to) != 2:
         raise InputError(f"plan: to must be the target (x, y) in m; got {to!r}.")
     if heading is not None:
         real("plan", "heading", heading, low=None, unit="rad; None for a free final heading")
-    _check_request("plan", [(to[0], to[1], heading)], limits, objective, settings, restarts, rate, seed)
-    verification_options("plan", options)
-    pl = plan_many(
-        params,
-        [(to[0], to[1], heading)],
-        limits=limits,
-        objective=objective,
-        settings=settings,
-        restarts=restarts,
-        rate=rate,
-        seed=seed,
-        progress=progress,
-        options=options,
-    )[0]
+    if robust is not None:
+        to3 = (to[0], to[1], heading)
+        return robust_plan(
+            "plan", params, to3, limits, objective, settings, o=o, r=robust, progress=progress, options=options
+        )
+    targets = _check_request("plan", [(to[0], to[1], heading)], limits, objective, settings, o)
+    pl = plan_batch("plan", params, targets, limits, objective, settings, o, progress, options)[0]
     if not pl.feasible and not allow_infeasible:
         raise PlanInfeasibleError(
             "jsphere.plan: the request cannot be met: "
@@ -91,6 +113,17 @@ def plan(
             plan=pl,
         )
     return pl
+
+
+def _is_route(to) -> bool:
+    """Whether `to` is a list of waypoints (its first item a sequence) rather than one target."""
+    return (
+        isinstance(to, Sequence)
+        and not isinstance(to, (str, bytes))
+        and len(to) > 0
+        and isinstance(to[0], (Sequence, np.ndarray))
+        and not isinstance(to[0], (str, bytes))
+    )
 
 
 def _move(tr: Trajectory, pose, t_offset) -> Trajectory:
@@ -114,51 +147,38 @@ def plan_route(
     limits: Limits | None = None,
     objective: Objective | None = None,
     settings: PlanSettings | None = None,
-    restarts: int = 16,
-    rate: float = 1000.0,
-    seed: int = 0,
+    plan_options: PlanOptions | None = None,
     allow_infeasible: bool = False,
     progress: bool | None = None,
     options: SolverOptions | None = None,
+    **kwargs,
 ) -> Plan:
     """A route from rest at the origin through `waypoints` `(x, y)` or `(x, y, psi)` [m, rad],
-    stopping at each: one rest-to-rest manoeuvre per leg. Every leg is planned in its start
-    frame, all legs in one vmapped search (the dynamics are invariant under horizontal shifts
-    and turns about the vertical). A waypoint without a heading keeps the previous heading.
+    stopping at each: one rest-to-rest manoeuvre per leg; the same as `plan(params, waypoints,
+    ...)`. Every leg is planned in its start frame, all legs in one vmapped search (the dynamics
+    are invariant under horizontal shifts and turns about the vertical). A waypoint without a
+    heading keeps the previous heading.
 
     Returns one `Plan` whose gaits are the legs and whose trajectory joins them (the duplicate
-    rest sample at each stop dropped). `options`: a `SolverOptions` for the accurate
-    re-simulation of each leg (as in `plan_many`). `progress`: as for `plan_many`.
+    rest sample at each stop dropped). `plan_options`: a `PlanOptions` (its fields given as
+    keywords still work, with a `DeprecationWarning`). `options`: a `SolverOptions` for the
+    accurate re-simulation of each leg (as in `plan_many`). `progress`: as for `plan_many`.
     """
+    o = moved_into("plan_route", kwargs, plan_options, PlanOptions, "plan_options")
+    no_other_keywords("plan_route", kwargs)
+    return _route("plan_route", params, waypoints, limits, objective, settings, o, allow_infeasible, progress, options)
+
+
+def _route(where, params, waypoints, limits, objective, settings, o: PlanOptions, allow_infeasible, progress, options):
+    """`plan_route`'s work; `where` names the caller in messages."""
     if isinstance(waypoints, (str, bytes)) or not isinstance(waypoints, Sequence) or not len(waypoints):
         raise InputError(
-            f"plan_route: waypoints must be a non-empty list of (x, y) or (x, y, heading); got {waypoints!r}."
+            f"{where}: waypoints must be a non-empty list of (x, y) or (x, y, heading); got {waypoints!r}."
         )
-    _check_request(
-        "plan_route",
-        [tuple(w) if isinstance(w, (Sequence, np.ndarray)) else w for w in waypoints],
-        limits,
-        objective,
-        settings,
-        restarts,
-        rate,
-        seed,
-        nan_free=False,
-    )
-    verification_options("plan_route", options)
+    wps = [tuple(w) if isinstance(w, (Sequence, np.ndarray)) else w for w in waypoints]
+    _check_request(where, wps, limits, objective, settings, o, nan_free=False)
     poses, local, pose = _legs(waypoints)
-    legs = plan_many(
-        params,
-        local,
-        limits=limits,
-        objective=objective,
-        settings=settings,
-        restarts=restarts,
-        rate=rate,
-        seed=seed,
-        progress=progress,
-        options=options,
-    )
+    legs = plan_batch(where, params, local, limits, objective, settings, o, progress, options)
     tr, t_off, shortfall = _joined(legs, poses)
     err, rep = _route_errors(legs, poses, tr, t_off, limits or Limits())
     tx, ty, tpsi = pose
@@ -167,7 +187,7 @@ def plan_route(
         gaits=[lg.gaits[0] for lg in legs],
         legs=np.asarray(poses),
         trajectory=tr,
-        rate=rate,
+        rate=o.rate,
         target=np.array([tx, ty, tpsi]),
         errors=err,
         limits_report=rep,
@@ -176,11 +196,11 @@ def plan_route(
         iterations=legs[0].iterations,
         elapsed_s=max(lg.elapsed_s for lg in legs),
         loss=sum(lg.loss for lg in legs),
-        restarts=int(restarts),
+        restarts=int(o.restarts),
         at_rest=all(lg.at_rest for lg in legs),
     )
     if not pl.feasible and not allow_infeasible:
-        raise PlanInfeasibleError("jsphere.plan_route: " + "; ".join(shortfall), plan=pl)
+        raise PlanInfeasibleError(f"jsphere.{where}: " + "; ".join(shortfall), plan=pl)
     return pl
 
 

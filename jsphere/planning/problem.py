@@ -10,6 +10,7 @@ also start and end at 0). See `docs/planning.md`.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 
@@ -80,13 +81,41 @@ class PlanSettings(eqx.Module):
         real("PlanSettings", "learning_rate", self.learning_rate, strict=True)
 
 
+#: the default terminal speed tolerance of a plan [m/s] (`R0 |Omega x gamma|` at the end): a plan
+#: whose end is within it ends at rest (`Plan.at_rest`)
+TOL_SPEED = 5e-4
+
+
+@dataclasses.dataclass(frozen=True)
+class PlanOptions:
+    """The request's options of `plan`, `plan_route` and `plan_many` besides the limits, the
+    objective and the search's sizes.
+
+    - `restarts`: random restarts per target (the best is kept).
+    - `rate`: rows per second [Hz] of the plan's table (the accurate re-simulation's grid).
+    - `seed`: of the restarts.
+    - `tol_position` [m], `tol_speed` [m/s], `tol_heading` [rad]: terminal tolerances for
+      `Plan.feasible`.
+    - `verify`: re-simulate with the accurate solver (needed for the table; `False` returns the
+      search model's result only, for benchmarks).
+
+    The values are checked by the planner, before any work.
+    """
+
+    restarts: int = 16
+    rate: float = 1000.0
+    seed: int = 0
+    tol_position: float = 5e-4
+    tol_speed: float = TOL_SPEED
+    tol_heading: float = 1e-3
+    verify: bool = True
+
+
 #: the most rows a plan's table may have (`max_time * rate`): about 1 GB of trajectory
 MAX_ROWS = 10_000_000
 
 
-def _check_request(
-    where: str, targets, limits, objective, settings, restarts, rate, seed, tols=(), nan_free=True
-) -> list:
+def _check_request(where: str, targets, limits, objective, settings, o: PlanOptions, nan_free=True) -> list:
     """Check a planning request before any work; return the targets as lists.
     Raises `InputError` naming the value: targets `(x, y)` or `(x, y, psi)` with finite
     numbers (`psi` None, or NaN with `nan_free`, for a free heading), `restarts >= 1`,
@@ -99,11 +128,11 @@ def _check_request(
     ):
         if v is not None and not isinstance(v, cls):
             raise InputError(f"{where}: {name} must be a jsphere.{cls.__name__}; got {type(v).__name__}.")
-    whole(where, "restarts", restarts, 1)
-    whole(where, "seed", seed, 0)
-    rate = real(where, "rate", rate, strict=True, unit="Hz")
-    for name, v in tols:
-        real(where, name, v, strict=True)
+    whole(where, "restarts", o.restarts, 1)
+    whole(where, "seed", o.seed, 0)
+    rate = real(where, "rate", o.rate, strict=True, unit="Hz")
+    for name in ("tol_position", "tol_speed", "tol_heading"):
+        real(where, name, getattr(o, name), strict=True)
     lim = limits or Limits()
     if lim.max_time * rate > MAX_ROWS:
         raise InputError(

@@ -206,6 +206,26 @@ class Plan:
         return "\n".join(out)
 
 
+def manoeuvre_plan(params, gait, tr, rate, tg, err: dict, rep: dict, shortfall: list, **stats) -> Plan:
+    """The `Plan` of one manoeuvre from rest at the origin: its gait, trajectory and sampling
+    rate, the target `tg = (x, y, heading, has_heading)`, its terminal errors, limit report and
+    shortfall (feasible when empty); `stats`: `iterations`, `elapsed_s`, `loss`, `restarts`,
+    `at_rest`."""
+    return Plan(
+        params=params,
+        gaits=[gait],
+        legs=np.zeros((1, 3)),
+        trajectory=tr,
+        rate=rate,
+        target=np.array([tg[0], tg[1], tg[2] if tg[3] else np.nan]),
+        errors=err,
+        limits_report=rep,
+        feasible=not shortfall,
+        shortfall=shortfall,
+        **stats,
+    )
+
+
 # ----------------------------------------------------------------------------- the robot of a plan file
 
 

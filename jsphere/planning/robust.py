@@ -1,4 +1,4 @@
-"""Plans that still land when the robot is not the model (`plan_robust`), and the spread of a
+"""Plans that still land when the robot is not the model (`plan(..., robust=RobustOptions(...))`), and the spread of a
 plan's miss over the robots an `Uncertainty` allows (`miss_distribution`).
 
 The robot executes a plan's wheel-speed table (servo constraints, `WheelSpeeds`). With the
@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+import warnings
 from collections.abc import Sequence
 from typing import Any
 
@@ -34,6 +35,7 @@ import numpy as np
 
 from .._runtime.checks import real, whole
 from .._runtime.errors import InputError
+from .._runtime.moved_keywords import no_other_keywords
 from .._runtime.progress import Progress
 from ..controls import Sampled, Torques, WheelSpeeds
 from ..model.params import RobotParams, derive
@@ -42,15 +44,24 @@ from ..model.state import Flat, State
 from ..solve.batched.field_args import FieldArgs
 from ..solve.fixed_grid import integrate
 from ..solve.internal import torque_field, wheel_field
-from ..solve.options import SolverOptions
-from .many import TOL_SPEED, plan_many
-from .problem import Limits, Objective, PlanSettings, _duration_inv, _vec_targets, gait_from_vector
+from .many import plan_batch
+from .problem import (
+    TOL_SPEED,
+    Limits,
+    Objective,
+    PlanOptions,
+    PlanSettings,
+    _check_request,
+    _duration_inv,
+    _vec_targets,
+    gait_from_vector,
+)
 from .residuals import _residuals
-from .result import Plan
+from .result import Plan, manoeuvre_plan
 from .rollout import rollout
-from .search import SEARCH_LM
+from .search import lm_search
 from .uncertainty import Uncertainty
-from .verify import _accurate, _limit_report, _terminal_errors
+from .verify import _accurate, _limit_report, _terminal_errors, exceeded
 
 #: the relative gain in the p95 miss on a validation draw that the robust search's plan needs
 #: over the nominal plan to be kept
@@ -177,36 +188,20 @@ def _robust_residuals(z, target, params, samples, lim, obj, s, k: int):
     return jnp.concatenate([(r * w[:, None]).ravel(), rest])
 
 
-def _robust_one(z0, target, params, samples, lim, obj, s, k: int, steps: int):
-    """Levenberg-Marquardt with delayed acceptance (`jsphere.planning.search.SEARCH_LM`, the
-    damping changing from the second iteration on) on `_robust_residuals`; returns the best
-    point and its objective."""
-
-    def f(z):
-        out = _robust_residuals(z, target, params, samples, lim, obj, s, k)
-        return out, out
-
-    def body(c, it):
-        z, pred, zb, lm = c
-        J, r = jax.jacfwd(f, has_aux=True)(z)
-        cost = jnp.sum(r**2)
-        cost = jnp.where(jnp.isfinite(cost) & jnp.all(jnp.isfinite(J)), cost, jnp.inf)
-        zb, new = SEARCH_LM.update(zb, z, lm, cost, (r, J), pred)
-        lm = eqx.tree_at(lambda m: m.lam, new, jnp.where(it > 0, new.lam, lm.lam))
-        z_next, pred = SEARCH_LM.propose(zb, lm)
-        return (z_next, pred, zb, lm), None
-
-    r0 = _robust_residuals(z0, target, params, samples, lim, obj, s, k)
-    inf = jnp.asarray(jnp.inf, z0.dtype)
-    lm0 = SEARCH_LM.init(inf, (r0, jnp.zeros((r0.shape[0], z0.shape[0]), z0.dtype)))
-    (_, _, zb, lm), _ = jax.lax.scan(body, (z0, inf, z0, lm0), jnp.arange(steps + 1))
-    return zb, lm.cost
-
-
 @eqx.filter_jit
 def _robust_search(z0s, target, params, samples, lim, obj, s, k: int, steps: int):
     """Every start of `z0s (R, V)` under one `vmap`; returns `(z (R, V), objective (R,))`."""
-    zb, fb = jax.vmap(lambda z: _robust_one(z, target, params, samples, lim, obj, s, k, steps))(z0s)
+
+    def rj(z):
+        def f(z):
+            out = _robust_residuals(z, target, params, samples, lim, obj, s, k)
+            return out, out
+
+        J, r = jax.jacfwd(f, has_aux=True)(z)
+        return r, J
+
+    # Levenberg-Marquardt alone (no Adam steps): the search's loop, `SEARCH_LM`
+    zb, fb, _, _ = jax.vmap(lambda z: lm_search(z, rj, 0, steps, s.learning_rate))(z0s)
     return zb, jnp.where(jnp.isfinite(fb), fb, jnp.inf)
 
 
@@ -245,9 +240,41 @@ def _starts(z: np.ndarray, restarts: int, lim: Limits, seed: int) -> np.ndarray:
 # ----------------------------------------------------------------------------- the request
 
 
+@dataclasses.dataclass(frozen=True)
+class RobustOptions:
+    """The robust plan of `plan(..., robust=RobustOptions(uncertainty, ...))` (see the module's
+    description): a manoeuvre whose miss stays small over the robots that `uncertainty` allows,
+    executed as wheel speeds.
+
+    - `uncertainty`: the parameter distribution (`Uncertainty.from_fit`, `.from_vary`); its
+      normal names are set to their means in `params` for the nominal plan.
+    - `samples`: parameter sets drawn for the search; `quantile` in `[0, 1)`: the search
+      minimises the mean loss of the worst `ceil((1 - quantile) samples)` of them (0: all).
+    - `restarts`: starts of the robust search, vmapped: the nominal plan and slower versions.
+    - `steps`: its Levenberg-Marquardt iterations.
+    - `check_samples` (>= 1000 for the reports): the fresh draw on which `miss_mc` compares
+      the nominal and the robust plan. The search's plan is kept only if its p95 miss on a
+      third, independent draw of that size is at least `KEEP_MARGIN` (5 %) below the nominal
+      plan's; otherwise the robust plan is the nominal plan (`RobustPlan.kept` False).
+    - `nominal`: the nominal plan, if planned already (`plan` with the nominal parameters and
+      the same request); else it is planned with the request's `PlanOptions`.
+
+    The request's `PlanOptions.seed` seeds the restarts and both draws (the check draw uses its
+    own stream), and its `rate` is the robust plan's. Checked by `plan`, before any work.
+    """
+
+    uncertainty: Uncertainty
+    samples: int = 64
+    quantile: float = 0.95
+    restarts: int = 4
+    steps: int = 40
+    check_samples: int = 1000
+    nominal: Plan | None = None
+
+
 @dataclasses.dataclass
 class RobustPlan:
-    """What `plan_robust` returns. `plan`: the robust plan (verified at the nominal parameters
+    """What `plan` returns with `robust`. `plan`: the robust plan (verified at the nominal parameters
     with the accurate solver; `feasible` judges its limits, as its terminal errors at the
     nominal parameters are traded for the spread); `nominal`: the plan for the nominal
     parameters; `miss_mc`: `{"nominal": ..., "robust": ...}` (`miss_summary`, metres) over a
@@ -300,116 +327,116 @@ class RobustPlan:
         )
 
 
-def plan_robust(
-    params: RobotParams,
-    to: Sequence[float],
-    uncertainty: Uncertainty,
-    *,
-    heading: float | None = None,
-    limits: Limits | None = None,
-    objective: Objective | None = None,
-    settings: PlanSettings | None = None,
-    samples: int = 64,
-    quantile: float = 0.95,
-    restarts: int = 4,
-    robust_steps: int = 40,
-    check_samples: int = 1000,
-    rate: float = 1000.0,
-    seed: int = 0,
-    progress: bool | None = None,
-    options: SolverOptions | None = None,
-    nominal: Plan | None = None,
-) -> RobustPlan:
-    """A rest-to-rest manoeuvre to `to = (x, y)` [m] whose miss stays small over the robots
-    that `uncertainty` allows, executed as wheel speeds (see the module's description).
+def plan_robust(params: RobotParams, to: Sequence[float], uncertainty: Uncertainty, **kwargs) -> RobustPlan:
+    """Deprecated: `plan(params, to, robust=RobustOptions(uncertainty, ...))`.
 
-    **Arguments:** as `plan`, and
-    - `uncertainty`: the parameter distribution (`Uncertainty.from_fit`, `.from_vary`); its
-      normal names are set to their means in `params` for the nominal plan.
-    - `samples`: parameter sets drawn for the search; `quantile` in `[0, 1)`: the search
-      minimises the mean loss of the worst `ceil((1 - quantile) samples)` of them (0: all).
-    - `restarts`: starts of the robust search, vmapped: the nominal plan and slower versions.
-    - `robust_steps`: its Levenberg-Marquardt iterations.
-    - `check_samples` (>= 1000 for the reports): the fresh draw on which `miss_mc` compares
-      the nominal and the robust plan. The search's plan is kept only if its p95 miss on a
-      third, independent draw of that size is at least `KEEP_MARGIN` (5 %) below the nominal
-      plan's; otherwise the robust plan is the nominal plan (`RobustPlan.kept` False).
-    - `seed`: of the restarts and of both draws (the check draw uses its own stream).
-    - `nominal`: the nominal plan, if planned already (`plan` with the nominal parameters and
-      the same request); else it is planned here.
-
-    Returns a `RobustPlan`. Raises `InputError` for a bad argument, before any work.
-    """
-    whole("plan_robust", "samples", samples, 2)
-    whole("plan_robust", "restarts", restarts, 1)
-    whole("plan_robust", "robust_steps", robust_steps, 1)
-    whole("plan_robust", "check_samples", check_samples, 2)
-    whole("plan_robust", "seed", seed, 0)
-    quantile = real("plan_robust", "quantile", quantile)
-    if not 0.0 <= quantile < 1.0:
-        raise InputError(f"plan_robust: quantile must be in [0, 1); got {quantile}.")
-    if not isinstance(uncertainty, Uncertainty):
-        raise InputError(f"plan_robust: uncertainty must be a jsphere.Uncertainty; got {type(uncertainty).__name__}.")
+    The keywords of `plan` pass through; `samples`, `quantile`, `restarts`, `robust_steps`
+    (`RobustOptions.steps`), `check_samples` and `nominal` go into `RobustOptions`; `rate` and
+    `seed` into `PlanOptions`, whose `restarts` for the nominal plan is `max(restarts, 2)`.
+    Never raises for an infeasible plan (`RobustPlan.plan.feasible` says)."""
+    warnings.warn(
+        "plan_robust is deprecated; call jsphere.plan(params, to, robust=jsphere.RobustOptions(uncertainty, ...))",
+        DeprecationWarning,
+        stacklevel=2,
+    )
+    r = RobustOptions(uncertainty, **{k: kwargs.pop(k) for k in _ROBUST_KEYWORDS if k in kwargs})
+    if "robust_steps" in kwargs:
+        r = dataclasses.replace(r, steps=kwargs.pop("robust_steps"))
+    o = PlanOptions(restarts=max(r.restarts, 2) if isinstance(r.restarts, int) else r.restarts)
+    o = dataclasses.replace(o, **{k: kwargs.pop(k) for k in ("rate", "seed") if k in kwargs})
+    heading = kwargs.pop("heading", None)
     if isinstance(to, (str, bytes)) or not isinstance(to, (Sequence, np.ndarray)) or len(to) != 2:
         raise InputError(f"plan_robust: to must be the target (x, y) in m; got {to!r}.")
+    keep = {k: kwargs.pop(k, None) for k in ("limits", "objective", "settings", "progress", "options")}
+    no_other_keywords("plan_robust", kwargs)
+    return robust_plan("plan_robust", params, (to[0], to[1], heading), o=o, r=r, **keep)
+
+
+#: the keywords of `plan_robust` that are fields of `RobustOptions` under the same name
+_ROBUST_KEYWORDS = ("samples", "quantile", "restarts", "check_samples", "nominal")
+
+
+def _check_robust(where: str, r: RobustOptions, o: PlanOptions) -> None:
+    """`InputError` naming a bad field of `r` (or the seed of `o`), before any work."""
+    whole(where, "samples", r.samples, 2)
+    whole(where, "restarts", r.restarts, 1)
+    whole(where, "robust_steps" if where == "plan_robust" else "steps", r.steps, 1)
+    whole(where, "check_samples", r.check_samples, 2)
+    whole(where, "seed", o.seed, 0)
+    quantile = real(where, "quantile", r.quantile)
+    if not 0.0 <= quantile < 1.0:
+        raise InputError(f"{where}: quantile must be in [0, 1); got {quantile}.")
+    if not isinstance(r.uncertainty, Uncertainty):
+        raise InputError(f"{where}: uncertainty must be a jsphere.Uncertainty; got {type(r.uncertainty).__name__}.")
+    if r.nominal is not None and not isinstance(r.nominal, Plan):
+        raise InputError(f"{where}: nominal must be a jsphere.Plan; got {type(r.nominal).__name__}.")
+
+
+def robust_plan(
+    where: str,
+    params,
+    to3,
+    limits=None,
+    objective=None,
+    settings=None,
+    *,
+    o: PlanOptions,
+    r: RobustOptions,
+    progress=None,
+    options=None,
+) -> RobustPlan:
+    """The robust plan to `to3 = (x, y, heading or None)` (`RobustOptions`); `where` names the
+    caller in messages."""
+    if not isinstance(r, RobustOptions):
+        raise InputError(f"{where}: robust must be a jsphere.RobustOptions; got {type(r).__name__}.")
+    _check_robust(where, r, o)
     t0 = time.perf_counter()
     prog = Progress(progress)
     lim, obj, s = limits or Limits(), objective or Objective(), settings or PlanSettings()
-    p_nom = uncertainty.nominal(params)
-    _, draw = uncertainty.draw(params, samples, seed)
-    _, check = uncertainty.draw(params, check_samples, seed + 1_000_003)
-    if nominal is not None and not isinstance(nominal, Plan):
-        raise InputError(f"plan_robust: nominal must be a jsphere.Plan; got {type(nominal).__name__}.")
-    nominal = (
-        nominal
-        or plan_many(
-            p_nom,
-            [(to[0], to[1], heading)],
-            limits=lim,
-            objective=obj,
-            settings=s,
-            restarts=max(restarts, 2),
-            rate=rate,
-            seed=seed,
-            progress=progress,
-            options=options,
-        )[0]
-    )
-    target = jnp.asarray(_vec_targets([(to[0], to[1], heading)])[0], p_nom.R0.dtype)
+    seed, samples = o.seed, r.samples
+    p_nom = r.uncertainty.nominal(params)
+    _, draw = r.uncertainty.draw(params, samples, seed)
+    _, check = r.uncertainty.draw(params, r.check_samples, seed + 1_000_003)
+    if r.nominal is None:
+        targets = _check_request(where, [to3], lim, obj, s, o)
+        nominal = plan_batch(where, p_nom, targets, lim, obj, s, o, progress, options)[0]
+    else:
+        nominal = r.nominal
+    target = jnp.asarray(_vec_targets([to3])[0], p_nom.R0.dtype)
     z_nom = decision_vector(nominal.gaits[0], lim)
-    z0s = jnp.asarray(_starts(z_nom, restarts, lim, seed), p_nom.R0.dtype)
-    k = _top_k(samples, quantile)
+    z0s = jnp.asarray(_starts(z_nom, r.restarts, lim, seed), p_nom.R0.dtype)
+    k = _top_k(samples, r.quantile)
     lim_a, obj_a = (jax.tree_util.tree_map(lambda v: jnp.asarray(v, p_nom.R0.dtype), m) for m in (lim, obj))
     prog.say(
-        f"jsphere plan: robust search over {samples} drawn robots (worst {k}), {restarts} starts x {robust_steps} LM steps"
+        f"jsphere plan: robust search over {samples} drawn robots (worst {k}), {r.restarts} starts x {r.steps} LM steps"
     )
     with prog.phase("jsphere plan: robust search"):
-        zs, fs = _robust_search(z0s, target, p_nom, draw, lim_a, obj_a, s, k, int(robust_steps))
+        zs, fs = _robust_search(z0s, target, p_nom, draw, lim_a, obj_a, s, k, int(r.steps))
         zs, fs = np.asarray(zs), np.asarray(fs)
     best = int(np.argmin(fs))
-    f_start = float(robust_objective(z_nom, target, p_nom, draw, lim_a, obj_a, s, quantile))
-    robust = _verified_plan(p_nom, zs[best], target, lim, s, rate, options, nominal, t0)
+    f_start = float(robust_objective(z_nom, target, p_nom, draw, lim_a, obj_a, s, r.quantile))
+    robust = _verified_plan(p_nom, zs[best], target, lim, s, o.rate, options, nominal, t0)
     # the search saw only `samples` robots: keep its plan only if it also lands better on
     # another independent draw (by KEEP_MARGIN), else the nominal plan is the robust one
-    _, valid = uncertainty.draw(params, check_samples, seed + 2_000_003)
+    _, valid = r.uncertainty.draw(params, r.check_samples, seed + 2_000_003)
     p95 = {k: miss_summary(miss_distribution(pl, valid))["p95"] for k, pl in (("n", nominal), ("r", robust))}
     kept = p95["r"] < (1.0 - KEEP_MARGIN) * p95["n"]
     robust = robust if kept else nominal
-    prog.say(f"jsphere plan: replaying both plans on {check_samples} fresh draws")
+    prog.say(f"jsphere plan: replaying both plans on {r.check_samples} fresh draws")
     miss_mc = {
         "nominal": miss_summary(miss_distribution(nominal, check)),
         "robust": miss_summary(miss_distribution(robust, check)),
-        "samples": int(check_samples),
+        "samples": int(r.check_samples),
         "mode": "wheel_speeds",
     }
     return RobustPlan(
         plan=robust,
         nominal=nominal,
         miss_mc=miss_mc,
-        uncertainty=uncertainty,
+        uncertainty=r.uncertainty,
         samples=int(samples),
-        quantile=float(quantile),
-        check_samples=int(check_samples),
+        quantile=float(r.quantile),
+        check_samples=int(r.check_samples),
         seed=int(seed),
         objective={"nominal": f_start, "robust": float(fs[best]) if kept else f_start},
         kept=bool(kept),
@@ -420,28 +447,20 @@ def plan_robust(
 def _verified_plan(p, z, target, lim: Limits, s: PlanSettings, rate, options, nominal: Plan, t0: float) -> Plan:
     """The robust decision vector as a `Plan`: the accurate trajectory at the nominal
     parameters, its terminal errors there and its limits; feasible when the limits hold."""
-    st0 = State.at_rest(p)
     gait = gait_from_vector(jnp.asarray(z), lim, s)
-    tr = _accurate(p, gait, rate, np.asarray(st0.alpha), np.asarray(st0.beta), lim.max_time, options)
+    tr = _accurate(p, gait, rate, lim.max_time, options)
     tg = np.asarray(target)
     err = _terminal_errors(p, tr, tg)
     rep = _limit_report(p, tr, float(gait.T), lim)
-    shortfall = [
-        f"limit {name} exceeded: {r['max']:.5g} > {r['limit']:.5g} (by {100 * (r['max'] / r['limit'] - 1):.1f}%)"
-        for name, r in rep.items()
-        if not r["ok"]
-    ]
-    return Plan(
-        params=p,
-        gaits=[gait],
-        legs=np.zeros((1, 3)),
-        trajectory=tr,
-        rate=rate,
-        target=np.array([tg[0], tg[1], tg[2] if tg[3] else np.nan]),
-        errors=err,
-        limits_report=rep,
-        feasible=not shortfall,
-        shortfall=shortfall,
+    return manoeuvre_plan(
+        p,
+        gait,
+        tr,
+        rate,
+        tg,
+        err,
+        rep,
+        exceeded(rep),
         iterations=dict(nominal.iterations),
         elapsed_s=time.perf_counter() - t0,
         loss=float("nan"),

@@ -28,11 +28,16 @@ def _rest_frame(p: RobotParams):
     return rotation_between(jnp.array([0.0, 0.0, 1.0], p.R0.dtype), rest_attitude(p))
 
 
-def heading(params: RobotParams, ro: Rollout) -> Float[Array, ""]:
-    """Platform yaw `psi` [rad] at the end of a rollout: `R Q_m = Q_psi^T` with `R = Q^T` (rows
-    `alpha, beta, gamma`)."""
-    M = rotmat(ro.q[-1]) @ _rest_frame(params)
+def yaw(params: RobotParams, q) -> Float[Array, ""]:
+    """Platform yaw `psi` [rad] of the attitude quaternion `q`, relative to the rest attitude:
+    `R Q_m = Q_psi^T` with `R = Q^T` (rows `alpha, beta, gamma`)."""
+    M = rotmat(q) @ _rest_frame(params)
     return jnp.arctan2(M[1, 0], M[0, 0])
+
+
+def heading(params: RobotParams, ro: Rollout) -> Float[Array, ""]:
+    """Platform yaw `psi` [rad] at the end of a rollout (`yaw`)."""
+    return yaw(params, ro.q[-1])
 
 
 def tilt2(gait: TiltGait, ro: Rollout) -> Float[Array, " S"]:

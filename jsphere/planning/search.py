@@ -22,7 +22,7 @@ from ..model.params import RobotParams, derive
 from ..model.rotations import rotation_between
 from ..numerics.lm import Dense, LevenbergMarquardt
 from .problem import _duration_inv, _n_vars
-from .residuals import _loss, _residuals, _residuals_and_jacobian
+from .residuals import _loss, _residuals_and_jacobian
 
 
 def _lbfgs(z0, target, params, lim, obj, s):
@@ -50,42 +50,50 @@ def _lbfgs(z0, target, params, lim, obj, s):
 SEARCH_LM = LevenbergMarquardt(Dense(floor=1e-9), decrease=3.0, increase=4.0, lam_max=1e12)
 
 
-def _search_one(z0, target, params, lim, obj, s):
-    """Adam (`adam_steps`) then Levenberg-Marquardt (`lm_steps`, `SEARCH_LM`) in one `lax.scan`
-    whose body evaluates the residuals and their Jacobian once, so the model is compiled once
-    (an `optimistix.LevenbergMarquardt` after an Adam scan compiles it three times: see
-    `benchmarks/solvers.py`).
+def lm_search(z0, rj, adam_steps: int, lm_steps: int, learning_rate: float):
+    """Adam (`adam_steps`) then Levenberg-Marquardt (`lm_steps`, `SEARCH_LM`) on the residual
+    vector whose value and Jacobian `rj(z) -> (r, J)` gives, in one `lax.scan` whose body
+    evaluates it once, so the model is compiled once (an `optimistix.LevenbergMarquardt` after
+    an Adam scan compiles it three times: see `benchmarks/solvers.py`).
 
     LM with delayed acceptance: each iteration evaluates the candidate of the previous one (an
     Adam step or an LM step from the best point) and keeps it if it lowers `sum r^2`; the
     damping changes from the second LM iteration on. Returns the best point, its loss, its
     Jacobian and the loss history."""
-    opt = optax.adam(s.learning_rate)
+    opt = optax.adam(learning_rate)
 
     def body(c, k):
         z, pred, zb, lm, st = c
-        r, J = _residuals_and_jacobian(z, target, params, lim, obj, s)
+        r, J = rj(z)
         f = jnp.sum(r**2)
         ok = jnp.isfinite(f) & jnp.all(jnp.isfinite(J))
         zb, new = SEARCH_LM.update(zb, z, lm, jnp.where(ok, f, jnp.inf), (r, J), pred)
-        lm = eqx.tree_at(lambda m: m.lam, new, jnp.where(k > s.adam_steps, new.lam, lm.lam))
+        lm = eqx.tree_at(lambda m: m.lam, new, jnp.where(k > adam_steps, new.lam, lm.lam))
         # Adam step from the current point
         g = jnp.where(ok, 2.0 * J.T @ r, 0.0)
         up, st_new = opt.update(g, st, z)
         z_adam = jnp.where(ok, optax.apply_updates(z, up), zb)
         # LM step from the best point
         z_lm, pred_lm = SEARCH_LM.propose(zb, lm)
-        lm_phase = k >= s.adam_steps
+        lm_phase = k >= adam_steps
         z_next = jnp.where(lm_phase, z_lm, z_adam)
         return (z_next, jnp.where(lm_phase, pred_lm, jnp.inf), zb, lm, st_new), f
 
-    r0 = _residuals(z0, target, params, lim, obj, s)
+    r0 = jax.eval_shape(lambda z: rj(z)[0], z0)
     V = z0.shape[0]
-    lm0 = SEARCH_LM.init(jnp.asarray(jnp.inf, z0.dtype), (jnp.zeros_like(r0), jnp.zeros((r0.shape[0], V), z0.dtype)))
+    lm0 = SEARCH_LM.init(
+        jnp.asarray(jnp.inf, z0.dtype), (jnp.zeros(r0.shape, z0.dtype), jnp.zeros((r0.shape[0], V), z0.dtype))
+    )
     c0 = (z0, jnp.asarray(jnp.inf, z0.dtype), z0, lm0, opt.init(z0))
-    c, hist = jax.lax.scan(body, c0, jnp.arange(s.adam_steps + s.lm_steps + 1))
+    c, hist = jax.lax.scan(body, c0, jnp.arange(adam_steps + lm_steps + 1))
     _, _, zb, lm, _ = c
     return zb, lm.cost, lm.current[1], hist
+
+
+def _search_one(z0, target, params, lim, obj, s):
+    """`lm_search` on the residuals of one (target, restart) pair (`_residuals_and_jacobian`)."""
+    rj = lambda z: _residuals_and_jacobian(z, target, params, lim, obj, s)
+    return lm_search(z0, rj, s.adam_steps, s.lm_steps, s.learning_rate)
 
 
 @eqx.filter_jit

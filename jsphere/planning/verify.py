@@ -60,8 +60,18 @@ def _limit_report(params, tr: Trajectory, T_total, lim: Limits) -> dict:
     return {k: {"max": v, "limit": float(L), "ok": bool(v <= float(L) * (1 + 1e-9))} for k, (v, L) in rep.items()}
 
 
-def _accurate(params, gait, rate, alpha0, beta0, max_time, options: SolverOptions | None = None):
-    """`simulate_gaits` (Dopri8, rtol 1e-10, or as `options` say) sampled at `k / rate` for
+def exceeded(rep: dict) -> list[str]:
+    """The sentences of the limits of a `_limit_report` that are exceeded, and by how much."""
+    return [
+        f"limit {name} exceeded: {r['max']:.5g} > {r['limit']:.5g} (by {100 * (r['max'] / r['limit'] - 1):.1f}%)"
+        for name, r in rep.items()
+        if not r["ok"]
+    ]
+
+
+def _accurate(params, gait, rate, max_time, options: SolverOptions | None = None):
+    """`simulate_gaits` (Dopri8, rtol 1e-10, or as `options` say) from rest (`State.at_rest`),
+    sampled at `k / rate` for
     `k / rate < T`, plus the end `T`. The grid is padded to a fixed length (`max_time * rate`)
     so that plans of every duration share one compiled function; the padding is cut off
     afterwards."""
@@ -71,6 +81,8 @@ def _accurate(params, gait, rate, alpha0, beta0, max_time, options: SolverOption
     n = int(np.sum(grid < T - 1e-9)) + 1
     ts = np.minimum(grid, T)
     ts[n - 1 :] = T
+    st0 = State.at_rest(params)
+    alpha0, beta0 = np.asarray(st0.alpha), np.asarray(st0.beta)
     tr = simulate_gaits(params, [gait], ts=ts, alpha0=alpha0, beta0=beta0, options=options)
     return jax.tree_util.tree_map(lambda v: v[:n] if jnp.ndim(v) >= 1 else v, tr)
 

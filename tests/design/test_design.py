@@ -156,7 +156,9 @@ def test_predicted_standard_errors_match_fits_of_another_robot(paper):
     from jsphere.controls import Sampled, Torques
 
     free = "r_m[2],j,I[2,2]"
-    res = design_excitation(paper, free, 4.0, "K", trials=2, restarts=2, steps=40, progress=False)
+    res = design_excitation(
+        paper, free, 4.0, "K", options=jsphere.DesignOptions(trials=2, restarts=2, steps=40), progress=False
+    )
     truth = paper
     for name, f in (("r_m[2]", 1.06), ("j", 0.93), ("I[2,2]", 1.08)):
         truth = jsphere.set_value(truth, name, jsphere.get_value(paper, name) * f)
@@ -190,3 +192,20 @@ def test_file_names_one_table_or_one_per_trial(tmp_path):
     assert table_paths(tmp_path / "design.csv", 1) == [tmp_path / "design.csv"]
     assert table_paths(tmp_path / "d.csv", 3) == [tmp_path / f"d_{k}.csv" for k in (1, 2, 3)]
     assert json_path(tmp_path / "design.csv") == tmp_path / "design.json"
+
+
+def test_options_are_checked_and_moved_keywords_warn(paper):
+    """`design_excitation` takes its options as a `DesignOptions`; a field given as a keyword
+    still reaches it, with a warning naming the new spelling. Bad values are refused before any
+    work."""
+    from jsphere._runtime.errors import InputError
+
+    with pytest.raises(InputError, match=r"^design_excitation: restarts must be a whole number >= 1"):
+        design_excitation(paper, "j", 4.0, "K", options=jsphere.DesignOptions(restarts=0))
+    with pytest.warns(DeprecationWarning, match=r"design_excitation: ramp= is deprecated; pass options=DesignOptions"):
+        with pytest.raises(InputError, match=r"ramp = 3 s needs a duration of at least 6 s"):
+            design_excitation(paper, "j", 4.0, "K", ramp=3.0)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'step'"):
+        design_excitation(paper, "j", 4.0, "K", step=3)
+    with pytest.raises(InputError, match=r"options must be a jsphere.DesignOptions"):
+        design_excitation(paper, "j", 4.0, "K", options={"steps": 3})

@@ -16,12 +16,13 @@ from jsphere.planning.rollout import rollout
 
 # small search: 4 Fourier terms per tilt axis, 2 spin terms, 32 RK4 steps
 SMALL = jsphere.PlanSettings(n_tilt=4, n_spin=2, n_steps=32, adam_steps=60, lm_steps=30)
+FEW = jsphere.PlanOptions(restarts=2, rate=200.0)
 
 
 @pytest.fixture(scope="module")
 def planned(paper):
     """Behind and to the right of the robot, with a final heading: one target, 2 restarts."""
-    return jsphere.plan(paper, (-0.5, -0.4), heading=0.8, restarts=2, settings=SMALL, rate=200.0)
+    return jsphere.plan(paper, (-0.5, -0.4), heading=0.8, settings=SMALL, plan_options=FEW)
 
 
 def test_smooth_profile_vanishes_with_derivatives_at_the_ends():
@@ -116,7 +117,7 @@ def test_csv_table_and_torque_replay(paper, planned, tmp_path):
 def test_infeasible_request_says_how_far_and_which_limit(paper):
     lim = jsphere.Limits(max_time=3.0, max_tilt=0.05)
     with pytest.raises(jsphere.PlanInfeasibleError) as e:
-        jsphere.plan(paper, (-0.5, -0.4), heading=0.8, restarts=2, settings=SMALL, rate=200.0, limits=lim)
+        jsphere.plan(paper, (-0.5, -0.4), heading=0.8, settings=SMALL, plan_options=FEW, limits=lim)
     msg = str(e.value)
     assert "mm" in msg and "tilt" in msg
     best = e.value.plan
@@ -150,7 +151,7 @@ def test_target_sweep_2m_square_and_replays(paper, half):
     settings, 1 kHz tables: < 1 mm, < 1 mm/s, limits respected; K and chi_dot replays < 2 mm."""
     xs = [-1.0, -0.35, 0.35, 1.0]
     targets = [(x, y) for x in xs for y in xs][8 * half : 8 * half + 8]
-    plans = jsphere.plan_many(paper, targets, restarts=4, rate=1000.0)
+    plans = jsphere.plan_many(paper, targets, plan_options=jsphere.PlanOptions(restarts=4, rate=1000.0))
     for pl in plans:
         rep = {m: jsphere.replay_errors(pl, mode=m) for m in ("torques", "wheel_speeds")}
         print(
@@ -206,13 +207,25 @@ NAN, INF = float("nan"), float("inf")
         ((0.5,), {}, r"plan: to must be the target \(x, y\)"),
         ((0.5, 0.0), {"heading": NAN}, r"plan: heading must be a finite number"),
         ((0.5, 0.0), {"heading": INF}, r"plan: heading must be a finite number"),
-        ((0.5, 0.0), {"rate": 0.0}, r"plan: rate must be a finite number > 0 \[Hz\]; got 0.0"),
-        ((0.5, 0.0), {"rate": -5.0}, r"plan: rate must be a finite number > 0"),
-        ((0.5, 0.0), {"rate": 1e9}, r"rows over max_time"),
-        ((0.5, 0.0), {"restarts": 0}, r"plan: restarts must be a whole number >= 1; got 0"),
-        ((0.5, 0.0), {"restarts": 2.5}, r"plan: restarts must be a whole number >= 1; got 2.5"),
-        ((0.5, 0.0), {"restarts": True}, r"plan: restarts must be a whole number"),
-        ((0.5, 0.0), {"seed": -1}, r"plan: seed must be a whole number >= 0"),
+        (
+            (0.5, 0.0),
+            {"plan_options": jsphere.PlanOptions(rate=0.0)},
+            r"plan: rate must be a finite number > 0 \[Hz\]; got 0.0",
+        ),
+        ((0.5, 0.0), {"plan_options": jsphere.PlanOptions(rate=-5.0)}, r"plan: rate must be a finite number > 0"),
+        ((0.5, 0.0), {"plan_options": jsphere.PlanOptions(rate=1e9)}, r"rows over max_time"),
+        (
+            (0.5, 0.0),
+            {"plan_options": jsphere.PlanOptions(restarts=0)},
+            r"plan: restarts must be a whole number >= 1; got 0",
+        ),
+        (
+            (0.5, 0.0),
+            {"plan_options": jsphere.PlanOptions(restarts=2.5)},
+            r"plan: restarts must be a whole number >= 1; got 2.5",
+        ),
+        ((0.5, 0.0), {"plan_options": jsphere.PlanOptions(restarts=True)}, r"plan: restarts must be a whole number"),
+        ((0.5, 0.0), {"plan_options": jsphere.PlanOptions(seed=-1)}, r"plan: seed must be a whole number >= 0"),
         ((0.5, 0.0), {"limits": "fast"}, r"plan: limits must be a jsphere.Limits"),
     ],
 )
@@ -221,15 +234,40 @@ def test_plan_request_is_checked_before_any_work(paper, to, kwargs, match):
         jsphere.plan(paper, to, **kwargs)
 
 
+def test_moved_keywords_warn_and_keep_working(paper):
+    """`restarts=`, `rate=`, ... moved into `PlanOptions`: they still reach it, with a warning
+    naming the new spelling (the request is checked with their values)."""
+    with pytest.warns(
+        DeprecationWarning, match=r"plan: rate= is deprecated; pass plan_options=PlanOptions\(rate=...\)"
+    ):
+        with pytest.raises(InputError, match=r"plan: rate must be a finite number > 0"):
+            jsphere.plan(paper, (0.5, 0.0), rate=0.0)
+    with pytest.warns(DeprecationWarning, match=r"plan_route: restarts= is deprecated"):
+        with pytest.raises(InputError, match=r"plan_route: restarts must be a whole number >= 1"):
+            jsphere.plan_route(paper, [(0.5, 0.0)], restarts=0)
+    with pytest.warns(DeprecationWarning, match=r"plan_many: tol_speed= is deprecated"):
+        with pytest.raises(InputError, match=r"plan_many: tol_speed must be a finite number > 0"):
+            jsphere.plan_many(paper, [(0.5, 0.0)], tol_speed=-1.0)
+    with pytest.raises(TypeError, match="unexpected keyword argument 'restart'"):
+        jsphere.plan(paper, (0.5, 0.0), restart=2)
+    with pytest.raises(InputError, match=r"plan: plan_options must be a jsphere.PlanOptions"):
+        jsphere.plan(paper, (0.5, 0.0), plan_options={"restarts": 2})
+
+
 def test_plan_many_and_route_requests_are_checked(paper):
     with pytest.raises(InputError, match=r"plan_many: target 1 x must be a finite number"):
         jsphere.plan_many(paper, [(0.5, 0.0), (NAN, 0.0)])
     with pytest.raises(InputError, match=r"plan_many: tol_position must be a finite number > 0"):
-        jsphere.plan_many(paper, [(0.5, 0.0)], tol_position=0.0)
+        jsphere.plan_many(paper, [(0.5, 0.0)], plan_options=jsphere.PlanOptions(tol_position=0.0))
     with pytest.raises(InputError, match=r"plan_many: targets must be a non-empty list"):
         jsphere.plan_many(paper, [])
     with pytest.raises(InputError, match=r"plan_route: target 0 heading must be a finite number"):
         jsphere.plan_route(paper, [(0.5, 0.0, NAN), (1.0, 0.0)])
+    # `plan` with waypoints is a route
+    with pytest.raises(InputError, match=r"^plan: target 0 heading must be a finite number"):
+        jsphere.plan(paper, [(0.5, 0.0, NAN), (1.0, 0.0)])
+    with pytest.raises(InputError, match=r"^plan: a route gives each waypoint's heading"):
+        jsphere.plan(paper, [(0.5, 0.0), (1.0, 0.0)], heading=1.0)
 
 
 @pytest.mark.parametrize(

@@ -80,12 +80,23 @@ def test_bad_fit_results_are_refused(paper, change, match):
 
 def test_bad_robust_requests_are_refused_before_any_work(paper):
     u = Uncertainty.from_fit(_fit_json(paper))
-    with pytest.raises(InputError, match=r"quantile must be in \[0, 1\)"):
-        jsphere.plan_robust(paper, (0.5, 0.0), u, quantile=1.0)
-    with pytest.raises(InputError, match=r"samples must be a whole number >= 2"):
-        jsphere.plan_robust(paper, (0.5, 0.0), u, samples=1)
-    with pytest.raises(InputError, match=r"uncertainty must be a jsphere.Uncertainty"):
-        jsphere.plan_robust(paper, (0.5, 0.0), {"j": 1})
+    R = jsphere.RobustOptions
+    with pytest.raises(InputError, match=r"^plan: quantile must be in \[0, 1\)"):
+        jsphere.plan(paper, (0.5, 0.0), robust=R(u, quantile=1.0))
+    with pytest.raises(InputError, match=r"^plan: samples must be a whole number >= 2"):
+        jsphere.plan(paper, (0.5, 0.0), robust=R(u, samples=1))
+    with pytest.raises(InputError, match=r"^plan: uncertainty must be a jsphere.Uncertainty"):
+        jsphere.plan(paper, (0.5, 0.0), robust=R({"j": 1}))
+    with pytest.raises(InputError, match=r"^plan: robust must be a jsphere.RobustOptions"):
+        jsphere.plan(paper, (0.5, 0.0), robust=u)
+    with pytest.raises(InputError, match=r"^plan: a route .* is not robust"):
+        jsphere.plan(paper, [(0.5, 0.0)], robust=R(u))
+    # the deprecated spelling maps its keywords and says the new one
+    with pytest.warns(DeprecationWarning, match=r"robust=jsphere.RobustOptions"):
+        with pytest.raises(InputError, match=r"^plan_robust: robust_steps must be a whole number >= 1"):
+            jsphere.plan_robust(paper, (0.5, 0.0), u, robust_steps=0)
+    with pytest.warns(DeprecationWarning), pytest.raises(TypeError, match="unexpected keyword argument 'sample'"):
+        jsphere.plan_robust(paper, (0.5, 0.0), u, sample=3)
     with pytest.raises(InputError, match=r"kind must be 'normal' or 'uniform'"):
         Uncertainty(("j",), ("lognormal",), np.array([0.0]), np.array([1.0]))
 
@@ -165,17 +176,12 @@ def test_robust_jacobian_matches_finite_differences(paper):
 def robust(paper):
     u = Uncertainty.from_fit(_fit_json(paper), source="fit.json")
     s = jsphere.PlanSettings(n_tilt=4, n_spin=2, n_steps=32, adam_steps=60, lm_steps=30)
-    return jsphere.plan_robust(
+    return jsphere.plan(
         paper,
         (0.5, 0.3),
-        u,
         settings=s,
-        samples=32,
-        quantile=0.9,
-        restarts=3,
-        robust_steps=20,
-        check_samples=1000,
-        rate=200.0,
+        plan_options=jsphere.PlanOptions(restarts=3, rate=200.0),
+        robust=jsphere.RobustOptions(u, samples=32, quantile=0.9, restarts=3, steps=20, check_samples=1000),
         progress=False,
     )
 

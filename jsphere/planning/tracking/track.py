@@ -15,13 +15,12 @@ import numpy as np
 
 from ..._runtime.checks import real, whole
 from ..._runtime.errors import InputError, SolverFailure
-from ...model.kinematics import rest_attitude
 from ...model.limits import Limits
 from ...model.params import RobotParams
-from ...model.rotations import rotation_between, rotmat
 from ...model.state import Flat, State
 from ...model.uncertainty import Uncertainty
 from ..result import Plan
+from ..rollout import yaw
 from .evaluate import Conditions, run_batch
 from .flow import linearise, reference
 from .lqr import Weights, riccati, terminal_regulator
@@ -138,13 +137,6 @@ def _plan_input(plan) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, RobotP
     return t, K, target, robot.params if robot else None, robot.describe() if robot else ""
 
 
-def _heading(p: RobotParams, q) -> jax.Array:
-    """The platform's yaw [rad] of the attitude quaternion `q`, relative to the rest attitude."""
-    Qm = rotation_between(jnp.array([0.0, 0.0, 1.0], p.R0.dtype), rest_attitude(p))
-    M = rotmat(q) @ Qm
-    return jnp.arctan2(M[1, 0], M[0, 0])
-
-
 def gains(
     t_plan, K_plan, params: RobotParams, *, rate: float, weights: Weights, target=None, max_torque: float | None = 0.1
 ):
@@ -167,7 +159,7 @@ def gains(
     zs.block_until_ready()
     if not bool(jnp.all(jnp.isfinite(zs))):
         raise SolverFailure("track: the reference motion of the plan's torques is not finite on this robot.")
-    psi = _heading(params, zs[-1, Flat.q])
+    psi = yaw(params, zs[-1, Flat.q])
     tg = np.asarray(zs[-1, Flat.xy]) if target is None else np.asarray(target, float)
     z_end = State.at_rest(params, x=float(tg[0]), y=float(tg[1]), psi=float(psi)).flatten().astype(dt)
     A, B = linearise(params, zs[:-1], jnp.asarray(K_mid, dt), zs[1:], h)
