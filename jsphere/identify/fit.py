@@ -61,7 +61,7 @@ from .checkpoint import (
 from .data import FitData, pack_trials
 from .free import FreeParams, _overlaps, _split_names, apply_fixes
 from .options import FIT_SOLVER, FIT_TOLERANCES, FitOptions, fit_options
-from .report import FitResult, fit_result
+from .report import FitEnd, FitResult, fit_result
 from .residuals import _Functions, _functions
 from .robust import reweigh, reweigh_with_excess, robust_cost
 from .shooting import CONTINUATION_RTOL, DEFECT_CLOSED, MU_LEVELS, Segments
@@ -701,7 +701,6 @@ def _estimate_sigma(res_b, data: FitData, sig, n_par: int, loss: str = "l2") -> 
 def _result(run: _Run, st: _State, keys: Sequence[str]) -> FitResult:
     """The `FitResult` of the best start, evaluated once more at the final points."""
     cost, out = _evaluate_single(run, st, st.theta, st.nu)
-    b = int(np.argmin(cost))
     shooting_info: dict[str, Any] = {"method": "multiple" if run.shooting is not None else "single"}
     if run.shooting is not None:
         shooting_info |= {
@@ -710,23 +709,7 @@ def _result(run: _Run, st: _State, keys: Sequence[str]) -> FitResult:
             "largest_defect": st.max_defect,
             "closed": st.max_defect <= DEFECT_CLOSED,
         }
-    result = fit_result(
-        run.free,
-        run.data,
-        run.base,
-        out["pose"],
-        st.theta,
-        st.nu,
-        out["res"],
-        out["J"],
-        cost,
-        st.sig,
-        b,
-        st.stage_converged,
-        st.total_it,
-        run.t_begin,
-        loss=run.options.loss,
-        keys=keys,
-    )
+    end = FitEnd(st.theta, st.nu, st.sig, out["pose"], out["res"], out["J"], cost, st.stage_converged, st.total_it)
+    result = fit_result(run.free, run.data, run.base, end, run.t_begin, loss=run.options.loss, keys=keys)
     solve_options = {"rtol": run.options.rtol, "atol": run.options.atol, "max_steps": run.options.max_steps}
     return dataclasses.replace(result, shooting=shooting_info, solve_options=solve_options, options=run.options)

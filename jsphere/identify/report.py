@@ -204,29 +204,39 @@ def _assemble_named(free: FreeParams, per_name: dict[str, float], params: RobotP
     return out
 
 
+@dataclasses.dataclass(frozen=True)
+class FitEnd:
+    """Where a fit ended, for every start: the final point (`theta (S, P)`, `nu (S, T, n)`, the
+    noise levels `sig`), its evaluation (`pose`: simulated `x, y, q`; `res`, `J` unweighted, and
+    `cost (S,)`, as `jsphere.identify.residuals` gives them), whether the last stage converged
+    and the Levenberg-Marquardt iterations in all."""
+
+    theta: Any
+    nu: Any
+    sig: Any
+    pose: Any
+    res: Any
+    J: Any
+    cost: Any
+    converged: bool
+    iterations: int
+
+
 def fit_result(
     free: FreeParams,
     data: FitData,
     base: RobotParams,
-    pose,
-    theta,
-    nu,
-    res,
-    J,
-    cost,
-    sig,
-    b: int,
-    converged: bool,
-    iterations: int,
+    end: FitEnd,
     t_begin: float,
     *,
     loss: str = "l2",
     keys: Sequence[str] | None = None,
 ) -> FitResult:
-    """The `FitResult` of start `b` (the best) from the final evaluation of every start: `pose`
-    (simulated `x, y, q`), `res`, `J` (unweighted) and `cost` as `jsphere.identify.residuals`
-    gives them; `loss`: the fit's (`jsphere.identify.robust`); `keys`: each trial's key in
-    `outliers` (None: the trials' names)."""
+    """The `FitResult` of the best start (the lowest cost) from where every start ended (`end`);
+    `loss`: the fit's (`jsphere.identify.robust`); `keys`: each trial's key in `outliers` (None:
+    the trials' names)."""
+    theta, nu, sig, pose, res, J, cost = end.theta, end.nu, end.sig, end.pose, end.res, end.J, end.cost
+    converged, iterations, b = end.converged, end.iterations, int(np.argmin(end.cost))
     P = free.size
     T = data.ts.shape[0]
     n_nu = nu.shape[-1]
