@@ -43,7 +43,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._runtime.errors import InputError, SolverFailure
+from .._runtime.checks import real, whole
+from .._runtime.errors import SolverFailure
 from .._runtime.files import atomic_write_json
 from ..capture.trial import Trial
 from ..model.params import RobotParams
@@ -157,11 +158,13 @@ def compare(
 
     Returns a `CompareResult`. Raises `InputError` for trials that do not fit `params` or bad
     options, `SolverFailure` when a trial cannot be simulated (named)."""
-    if isinstance(lags, bool) or not isinstance(lags, (int, np.integer)) or lags < 1:
-        raise InputError(f"compare: lags must be an integer >= 1; got {lags!r}.")
-    for name, v in (("sigma_pos", sigma_pos), ("sigma_rot", sigma_rot), ("max_time_offset", max_time_offset)):
-        if isinstance(v, bool) or not isinstance(v, (int, float, np.number)) or not 0 < v < math.inf:
-            raise InputError(f"compare: {name} must be a positive number; got {v!r}.")
+    lags = whole("compare", "lags", lags, 1)
+    for name, v, unit in (
+        ("sigma_pos", sigma_pos, "m"),
+        ("sigma_rot", sigma_rot, "rad"),
+        ("max_time_offset", max_time_offset, "s"),
+    ):
+        real("compare", name, v, strict=True, unit=unit)
     check_loss(loss, "compare")
     trials = list(trials)
     data = pack_trials(trials, params, max_offset=float(max_time_offset) if fit_time_offset else 0.0)
