@@ -391,6 +391,9 @@ def test_cli_fit_writes_json_plots_and_loadable_params(small_trials, small_fit, 
     assert not (out.parent / "fit.json.ckpt.npz").exists()
     assert jsphere.RobotParams.load(out).n_wheels == 3
     assert "R_m" in capsys.readouterr().out
+    # the flags as the fit's options, recorded to replay it
+    options = jsphere.FitOptions.from_json(doc["options"])
+    assert (options.n_starts, options.loss, options.solver.rtol) == (1, "cauchy", 1e-6)
 
 
 @pytest.mark.slow
