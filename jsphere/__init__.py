@@ -57,6 +57,7 @@ _EXPORTS = {
     "gaits.families": ("Smooth", "TiltGait", "paper_gait", "smooth_gait", "tilt_to_gamma"),
     "gaits.gaits": ("Gait", "SinSquared", "acceleration", "braking", "simulate_gaits", "turn"),
     "identify.compare": ("CompareResult", "compare"),
+    "identify.options": ("FitOptions",),
     "identify.fit": ("fit",),
     "identify.free": ("FreeParams",),
     "numerics.least_squares": ("LeastSquaresResult", "least_squares"),

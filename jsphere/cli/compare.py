@@ -58,7 +58,7 @@ def run(args) -> int:
     from .._runtime.errors import ExitCode, InputError
     from .._runtime.files import check_output
     from ..capture.trial import read_trials
-    from ..identify.compare import compare, figure_name
+    from ..identify.compare import compare
     from ..model.params import RobotParams
 
     out = Path(args.out)
@@ -81,7 +81,11 @@ def run(args) -> int:
         max_time_offset=args.max_time_offset,
         loss=args.loss,
     )
-    written = res.save(out, plots=not args.no_plots)
+    written = res.save(out)
+    if not args.no_plots:
+        from ..plots import compare_figure
+
+        written += [compare_figure(t, f) for t, f in zip(res.trials, figures)]
     print(res.table())
     for t in res.trials:
         if t["outliers"]["count"]:
@@ -92,3 +96,8 @@ def run(args) -> int:
     print(f"wrote {', '.join(str(p) for p in written)}")
     print(res.headline())
     return ExitCode.OK if res.consistent else ExitCode.MISFIT
+
+
+def figure_name(name: str) -> str:
+    """A trial's name as part of a file name (letters, digits, `-`, `_`, `.`; others `_`)."""
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "trial"

@@ -113,7 +113,6 @@ def run(args) -> int:
     from ..identify.fit import fit
     from ..identify.verdict import headline
     from ..model.params import RobotParams
-    from ..solve.options import SolverOptions
 
     _gather_trials(args)
     out = Path(args.out)
@@ -127,7 +126,6 @@ def run(args) -> int:
     trials = read_trials(files)
     for f in [(out, ".tmp"), *((g, None) for g in figures)]:  # what a killed writer left
         remove_stale_temporaries(*f)
-    sigma_rot = None if args.sigma_rot_deg is None else args.sigma_rot_deg * 3.141592653589793 / 180.0
     with warnings.catch_warnings():  # one line per warning (a checkpoint that cannot be used)
         warnings.showwarning = lambda message, *a, **k: print(f"jsphere fit: warning: {message}", file=sys.stderr)
         res = fit(
@@ -136,22 +134,16 @@ def run(args) -> int:
             args.free,
             fix=fix,
             bounds=bounds,
-            n_starts=args.n_starts,
-            seed=args.seed,
-            max_iter=args.max_iter,
-            shooting=args.shooting,
-            segment=args.segment,
-            sigma_pos=args.sigma_pos,
-            sigma_rot=sigma_rot,
+            options=fit_options(args),
             checkpoint=ckpt,
             restart=args.restart,
             progress=progress(args),
-            fit_time_offset=args.fit_time_offset,
-            max_time_offset=args.max_time_offset,
-            loss=args.loss,
-            options=SolverOptions(programs=args.programs),
         )
-    written = res.save(out, plots=not args.no_plots)
+    written = res.save(out)
+    if not args.no_plots:
+        from ..plots import fit_figures
+
+        written += fit_figures(res, out.parent, stem=out.stem)
     ckpt.unlink(missing_ok=True)
     print(res.table())
     for w in res.identifiability["warnings"]:
@@ -159,6 +151,27 @@ def run(args) -> int:
     print(f"wrote {', '.join(str(p) for p in written)}  ({res.elapsed_s:.1f} s)")
     print(f"jsphere fit: {headline(res.status, res.status_reason, res.verdict)}")  # the last line: the verdict
     return {"converged": ExitCode.OK, "not_converged": ExitCode.NOT_CONVERGED, "misfit": ExitCode.MISFIT}[res.status]
+
+
+def fit_options(args):
+    """The `FitOptions` of the command's flags (the one place that maps them)."""
+    from ..identify.options import FitOptions
+    from ..solve.options import SolverOptions
+
+    sigma_rot = None if args.sigma_rot_deg is None else args.sigma_rot_deg * 3.141592653589793 / 180.0
+    return FitOptions(
+        n_starts=args.n_starts,
+        seed=args.seed,
+        max_iter=args.max_iter,
+        shooting=args.shooting,
+        segment=args.segment,
+        sigma_pos=args.sigma_pos,
+        sigma_rot=sigma_rot,
+        fit_time_offset=args.fit_time_offset,
+        max_time_offset=args.max_time_offset,
+        loss=args.loss,
+        solver=SolverOptions(programs=args.programs),
+    )
 
 
 def _gather_trials(args) -> None:

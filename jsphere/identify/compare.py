@@ -43,13 +43,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._runtime.errors import InputError, SolverFailure
+from .._runtime.checks import real, whole
+from .._runtime.errors import SolverFailure
 from .._runtime.files import atomic_write_json
 from ..capture.trial import Trial
 from ..model.params import RobotParams
 from ..model.rotations import quat_conj, quat_log, quat_mul
-from ..numerics.lm import Dense, LevenbergMarquardt, host_candidate, host_update
+from ..numerics.lm import Dense, LevenbergMarquardt, iterate
 from .data import TIME_OFFSET, FitData, offset_from_nuisance, pack_trials
+from .options import no_drawing
 from .residuals import trial_model
 from .robust import DEFAULT_LOSS, REDESCENDING, REJECT, WARM_LOSS, check_loss, frame_weights, reweigh, robust_cost
 from .starts import nuisance_guess
@@ -96,18 +98,14 @@ class CompareResult:
             "params": self.params.to_dict(),
         }
 
-    def save(self, path, *, plots: bool = True) -> list[Path]:
-        """Write the JSON atomically and, unless `plots=False`, one figure per trial beside it,
-        `<stem>_<trial>.png` (`jsphere.plots.compare_figure`). Returns the paths written."""
+    def save(self, path, **deprecated) -> list[Path]:
+        """Write the JSON atomically; returns `[path]`. The figures are drawn by
+        `jsphere.plots.compare_figure` (one per trial; `jsphere compare` writes them beside the
+        JSON). `plots=` is deprecated and draws nothing."""
+        no_drawing(deprecated, "CompareResult.save", "jsphere.plots.compare_figure(result.trials[i], path)")
         path = Path(path)
         atomic_write_json(path, self.to_json())  # non-finite values as null
-        written = [path]
-        if plots:
-            from ..plots import compare_figure
-
-            for t in self.trials:
-                written.append(compare_figure(t, path.with_name(f"{path.stem}_{figure_name(t['name'])}.png")))
-        return written
+        return [path]
 
     def table(self) -> str:
         """A plain-text summary: fits [%] and the whiteness per trial, then overall."""
@@ -127,11 +125,6 @@ class CompareResult:
     def headline(self) -> str:
         """The verdict in one line: `verdict: <verdict> (<reason>)`."""
         return f"verdict: {self.verdict} ({self.reason})"
-
-
-def figure_name(name: str) -> str:
-    """A trial's name as part of a file name (letters, digits, `-`, `_`, `.`; others `_`)."""
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "trial"
 
 
 def compare(
@@ -165,11 +158,13 @@ def compare(
 
     Returns a `CompareResult`. Raises `InputError` for trials that do not fit `params` or bad
     options, `SolverFailure` when a trial cannot be simulated (named)."""
-    if isinstance(lags, bool) or not isinstance(lags, (int, np.integer)) or lags < 1:
-        raise InputError(f"compare: lags must be an integer >= 1; got {lags!r}.")
-    for name, v in (("sigma_pos", sigma_pos), ("sigma_rot", sigma_rot), ("max_time_offset", max_time_offset)):
-        if isinstance(v, bool) or not isinstance(v, (int, float, np.number)) or not 0 < v < math.inf:
-            raise InputError(f"compare: {name} must be a positive number; got {v!r}.")
+    lags = whole("compare", "lags", lags, 1)
+    for name, v, unit in (
+        ("sigma_pos", sigma_pos, "m"),
+        ("sigma_rot", sigma_rot, "rad"),
+        ("max_time_offset", max_time_offset, "s"),
+    ):
+        real("compare", name, v, strict=True, unit=unit)
     check_loss(loss, "compare")
     trials = list(trials)
     data = pack_trials(trials, params, max_offset=float(max_time_offset) if fit_time_offset else 0.0)
@@ -265,27 +260,23 @@ def judge(reports: Sequence[dict[str, Any]], alpha: float = ALPHA) -> tuple[str,
 
 # ----------------------------------------------------------------------------- the nuisance values
 
-_COMPILED: dict[Any, Any] = {}
 
+@functools.partial(jax.jit, static_argnames=("kind", "rtol", "atol", "max_steps", "max_offset"))
+def _model(params, nu, arrays, sig, *, kind: str, rtol: float, atol: float, max_steps: int, max_offset: float):
+    """The residuals and their Jacobian with respect to each trial's nuisance values, vmapped
+    over trials: `(params, nu (T, n), data, sig) -> (res, ok, J, pose)`."""
 
-def _model(kind: str, rtol: float, atol: float, max_steps: int, max_offset: float):
-    """The compiled residuals and their Jacobian with respect to each trial's nuisance values,
-    vmapped over trials: `(params, nu (T, n), data, sig) -> (res, ok, J, pose)`."""
-    key = (kind, rtol, atol, max_steps, max_offset)
-    if key not in _COMPILED:
+    def one(p, nu, d, sig):
+        def f(z):
+            res, ok, pose, _ = trial_model(
+                p, kind, rtol, atol, max_steps, dfx.ForwardMode(), z, d, sig, None, max_offset
+            )
+            return res, (res, ok, pose)
 
-        def one(p, nu, d, sig):
-            def f(z):
-                res, ok, pose, _ = trial_model(
-                    p, kind, rtol, atol, max_steps, dfx.ForwardMode(), z, d, sig, None, max_offset
-                )
-                return res, (res, ok, pose)
+        J, (res, ok, pose) = jax.jacfwd(f, has_aux=True)(nu)
+        return res, ok, J, pose
 
-            J, (res, ok, pose) = jax.jacfwd(f, has_aux=True)(nu)
-            return res, ok, J, pose
-
-        _COMPILED[key] = jax.jit(jax.vmap(one, in_axes=(None, 0, 0, None)))
-    return _COMPILED[key]
+    return jax.vmap(one, in_axes=(None, 0, 0, None))(params, nu, arrays, sig)
 
 
 #: the nuisance estimate's iteration: one dense problem per trial, damped as the fit's
@@ -302,11 +293,11 @@ def _estimate_nuisance(params, data: FitData, sig, max_iter: int, rtol, atol, ma
     vmapped call), on the cost of `loss` (`jsphere.identify.robust`: the reweighted residuals
     and Jacobian are the linearisation), from `nu (T, n)` (default: `nuisance_guess`). Returns the values `(T, n)`, the simulated poses there,
     whether each trial's solve succeeded and the whitened residuals `(T, K)`."""
-    fn = _model(data.kind, rtol, atol, max_steps, data.max_offset)
+    config = {"kind": data.kind, "rtol": rtol, "atol": atol, "max_steps": max_steps, "max_offset": data.max_offset}
     arrays, sig_j = data.arrays(), jnp.asarray(sig)
 
     def evaluate(nu):
-        res, ok, J, pose = fn(params, jnp.asarray(nu), arrays, sig_j)
+        res, ok, J, pose = _model(params, jnp.asarray(nu), arrays, sig_j, **config)
         if loss == "l2":
             cost, linear = 0.5 * (res * res).sum(1), (res, J)
         else:
@@ -318,11 +309,9 @@ def _estimate_nuisance(params, data: FitData, sig, max_iter: int, rtol, atol, ma
     nu = jnp.asarray(nuisance_guess(data, params) if nu is None else nu)
     state = NUISANCE_LM.init(*evaluate(nu))
     state = eqx.tree_at(lambda s: s.converged, state, ~jnp.isfinite(state.cost))
-    for _ in range(max_iter):
-        if bool(np.all(state.converged)):
-            break
-        nu_new, predicted = host_candidate(NUISANCE_LM, nu, *_nuisance_step(state.current[0], state.lam))
-        nu, state = host_update(NUISANCE_LM, nu, nu_new, state, *evaluate(nu_new), predicted)
+    solve = lambda current, lam: _nuisance_step(current[0], lam)
+    for nu, state, _ in iterate(NUISANCE_LM, evaluate, solve, nu, state, max_iter, every=True):
+        pass
     return (
         np.asarray(nu),
         tuple(np.asarray(a) for a in state.current[1]),

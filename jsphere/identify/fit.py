@@ -30,15 +30,12 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import threading
 import time
 import warnings
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-import diffrax as dfx
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -52,10 +49,8 @@ from .._runtime.progress import Progress
 from ..model.names import parse_name
 from ..model.params import RobotParams
 from ..numerics.lm import LM_KEYS, LevenbergMarquardt, LMState, iterate
-from ..solve.options import SolverOptions, default_solver, solver_options, unused
 from . import shooting as _shooting
 from .checkpoint import (
-    _CHECKPOINT_FORMAT,
     _checkpoint_layout,
     _config_fingerprint,
     _flat_evaluation,
@@ -65,20 +60,15 @@ from .checkpoint import (
 )
 from .data import FitData, pack_trials
 from .free import FreeParams, _overlaps, _split_names, apply_fixes
-from .report import FitResult, fit_result
+from .options import FIT_SOLVER, FIT_TOLERANCES, FitOptions, fit_options
+from .report import FitEnd, FitResult, fit_result
 from .residuals import _Functions, _functions
-from .robust import DEFAULT_LOSS, REDESCENDING, WARM_LOSS, check_loss, reweigh, reweigh_with_excess, robust_cost
+from .robust import reweigh, reweigh_with_excess, robust_cost
 from .shooting import CONTINUATION_RTOL, DEFECT_CLOSED, MU_LEVELS, Segments
 from .starts import _NU_SCALE, nuisance_guess, start_design
 from .verdict import robust_sd
 
-#: fit's solver settings where neither a keyword nor `options` sets them: positions within ~2 um
-#: of a 1e-11 solution over a few seconds of exciting input
-FIT_TOLERANCES = {"rtol": 1e-6, "atol": 1e-8}
-#: fit's Runge-Kutta method where `options` sets none: at `FIT_TOLERANCES` a compiled fit with
-#: `Tsit5` takes 0.28x the time of one with `simulate`'s `Dopri8`, with the same answers
-#: (docs/decisions/the-fit-integrates-with-tsit5.md)
-FIT_SOLVER = dfx.Tsit5()
+__all__ = ["FIT_SOLVER", "FIT_TOLERANCES", "FitOptions", "fit", "outlier_keys"]
 
 
 def fit(
@@ -88,29 +78,11 @@ def fit(
     *,
     fix: Mapping[str, Any] | None = None,
     bounds: Mapping[str, Sequence] | None = None,
-    n_starts: int = 2,
-    spread: float = 0.2,
-    seed: int = 0,
-    shooting: str = "auto",
-    segment: float = 2.0,
-    adam_steps: int = 3,
-    adam_lr: float = 0.1,
-    max_iter: int = 40,
-    ftol: float = 1e-10,
-    gtol: float = 1e-2,
-    noise: float = 1.0,
-    sigma_pos: float | None = None,
-    sigma_rot: float | None = None,
-    rtol: float | None = None,
-    atol: float | None = None,
-    max_steps: int | None = None,
+    options: FitOptions | None = None,
     checkpoint: str | Path | None = None,
     restart: bool = False,
     progress: bool | None | Callable[[str], None] = None,
-    options: SolverOptions | None = None,
-    fit_time_offset: bool = False,
-    max_time_offset: float = 0.5,
-    loss: str = DEFAULT_LOSS,
+    **deprecated,
 ) -> FitResult:
     """Fit the free parameters of `params` to captured trials (position and orientation).
 
@@ -120,41 +92,8 @@ def fit(
     - `free`: names to fit, `"r_m[2],j,I"` or a list (see `FreeParams`): whole fields free all
       their independent entries (`I`: 6, kept positive definite).
     - `bounds`: `{name: (lo, hi)}` (None for an open end) by reparameterisation.
-    - `n_starts`, `spread`, `seed`: starts vmapped together: the first at `params`, the others
-      a Latin hypercube over the bounds, or over `+- 2 spread` (relative, for positive values)
-      about `params` (`start_design`). The best start is kept.
-    - `shooting`, `segment`: `"multiple"` cuts each trial into segments of about `segment`
-      seconds with their own initial states, started from the capture, and closes the
-      continuity defects between them by raising their weight (`MU_LEVELS`); single shooting
-      then polishes the result. `"single"` simulates each trial whole from its start.
-      `"auto"` (default): multiple shooting when a trial is longer than two segments.
-    - `adam_steps`, `adam_lr`: optax Adam warm-start steps of single shooting (per-coordinate
-      scaled units); multiple shooting needs none (its segments start from the capture).
-    - `max_iter`, `ftol`, `gtol`, `noise`: Levenberg-Marquardt iterations per stage; a stage
-      ends when the predicted decrease of the cost is below `gtol` (in units of chi^2/2: 0.01
-      is a step of ~0.14 standard errors along the worst direction), when an accepted step
-      changes the cost by less than `ftol` (relative), after 3 accepted steps that do not
-      lower the best cost by `gtol`, or after 8 rejected steps in a row. The adaptive ODE
-      solver makes the cost piecewise smooth with jumps (~0.1 at `rtol=1e-6` for a few
-      thousand samples) while its Jacobian stays accurate, so steps predicted to gain less
-      than `noise` are accepted unless the cost rises by more than `noise`.
-    - `sigma_pos` [m], `sigma_rot` [rad]: noise levels. If not given they start at 1 mm and
-      0.5 deg and are estimated from the residuals after the first stage, and the fit is
-      finished with the estimates.
-    - `rtol`, `atol`, `max_steps`: the ODE solver's (see `simulate`); default 1e-6, 1e-8,
-      16384 (`FIT_TOLERANCES`). The defaults keep the
-      simulated positions within ~2 um of a 1e-11 solution over a few seconds of exciting
-      input, far below capture noise (100 Hz tables: the cubic command has a kink in its rate
-      at every sample, which makes tighter tolerances costly: `docs/performance.md`).
-    - `options`: a `SolverOptions`; its `rtol`, `atol`, `max_steps` and `solver` are used,
-      with fit's own defaults above where it leaves them at `SolverOptions`' defaults (the
-      solver: `diffrax.Tsit5()`, `FIT_SOLVER`); a
-      keyword given wins over its field. `throw` and `batch_steps` are fit's own: a failed solve is a
-      start of infinite cost, and forward-mode derivatives give every trial its own steps.
-      `adjoint` set is an error (fit differentiates in forward mode, `diffrax.ForwardMode`).
-      `programs` runs the fit's residual, Jacobian and step programs: a `jsphere.FastStart`
-      keeps them, exported, so that the next process's fit of the same shapes skips tracing them
-      (`jsphere fit` passes its cache's).
+    - `options`: a `FitOptions`: the starts, shooting, iterations, noise levels, the ODE
+      solver's settings, the clock offsets and the loss (each documented there).
     - `checkpoint`: a file (`.npz`) written atomically after every Adam and Levenberg-Marquardt
       step with the optimiser's whole state; a fit with the same data and configuration resumes
       from it to the same result, bit for bit, wherever it was stopped (`restart=True` ignores
@@ -162,19 +101,11 @@ def fit(
     - `progress`: `None` (default): progress bars on stderr when it is a terminal; `True`:
       bars, or one line per iteration where stderr is not a terminal; `False`: none; a
       callable gets every line instead (`jsphere._runtime.progress`).
-    - `fit_time_offset`, `max_time_offset` [s]: estimate each trial's clock offset as one more
-      nuisance value: the trial's inputs drive the model at `t + offset` (a capture clock that
-      runs 0.15 s behind the inputs' gives +0.15 s), bounded smoothly to `+- max_time_offset`
-      (`offset = max tanh(v / max)`), started at the quick estimate of
-      `jsphere.estimate_time_offset`. Beyond the ends of a trial's table its inputs are
-      held. The offsets and their standard errors are `FitResult.time_offset` and
-      `time_offset_stderr`.
-    - `loss`: how a frame's residuals (position and orientation together) enter the cost:
-      `"cauchy"` (default), `"huber"`, `"soft_l1"` or `"l2"` (plain least squares), at a scale of
-      `SCALE` noise levels (`jsphere.identify.robust`). Frames the loss sets aside (weight below
-      one half: ghost frames, marker swaps) are `FitResult.outliers`, by the file name of each
-      trial read from a file (`Trial.source`), else by its name; the noise levels are then
-      estimated from the residuals without them.
+
+    The fields of `FitOptions` are also taken as keywords (`fit(..., loss="l2")`), as are
+    `rtol`, `atol` and `max_steps` (`FitOptions.solver`), and a `SolverOptions` as `options`:
+    each is deprecated with a `DeprecationWarning` naming its spelling in `FitOptions`, and a
+    keyword given wins over the same field of `options`.
 
     Returns a `FitResult`. Raises `InputError` (a `ValueError`) for unknown or overlapping
     names, a name both free and fixed, bounds that exclude the start, trials that do not fit
@@ -183,51 +114,23 @@ def fit(
     """
     t_begin = time.perf_counter()
     prog = Progress(progress)
-    check_loss(loss, "fit")
+    o = fit_options(options, deprecated).checked()
     _check_free_and_fixed(free, fix)
     params = apply_fixes(params, fix)
     fp_ = FreeParams(params, free, bounds)
-    max_offset = _check_time_offset(fit_time_offset, max_time_offset)
-    data = pack_trials(trials, params, max_offset=max_offset)
-    _check_options(n_starts, max_iter, adam_steps, seed, sigma_pos, sigma_rot)
-    _check_shooting(shooting, segment)
+    data = pack_trials(trials, params, max_offset=o.max_offset)
     _check_unknowns(data, fp_)
     warn_if_float32_by_default(params.R0.dtype, "fit")
-    solve = _solver_options(options, rtol, atol, max_steps)
-    options = _Options(
-        n_starts=int(n_starts),
-        spread=spread,
-        seed=seed,
-        shooting=shooting,
-        segment=float(segment),
-        adam_steps=adam_steps,
-        adam_lr=adam_lr,
-        max_iter=max_iter,
-        ftol=ftol,
-        gtol=gtol,
-        noise=noise,
-        sigma_pos=sigma_pos,
-        sigma_rot=sigma_rot,
-        rtol=solve.rtol,
-        atol=solve.atol,
-        max_steps=solve.max_steps,
-        solver=None if eqx.tree_equal(solve.solver_or_default(), default_solver()) else solve.solver,
-        max_time_offset=max_offset,
-        loss=loss,
-    )
-    run, st = _setup(data, fp_, params, options, checkpoint, prog, t_begin, solve.programs)
+    run, st = _setup(data, fp_, params, o, checkpoint, prog, t_begin, o.solver.programs)
     _resume(run, st, restart)
     run.say(
         f"fit: {run.T} trials ({data.kind}), {sum(data.lengths)} samples, {run.P} free parameters + {run.n_nu} nuisance per "
         f"trial, {run.S} start(s)"
     )
-    try:
-        _multiple_shooting(run, st)
-        _adam(run, st)
-        _single_shooting(run, st)
-        return _result(run, st, outlier_keys(trials))
-    finally:
-        _wait_ahead(st)
+    _multiple_shooting(run, st)
+    _adam(run, st)
+    _single_shooting(run, st)
+    return _result(run, st, outlier_keys(trials))
 
 
 def outlier_keys(trials: Sequence) -> list[str]:
@@ -251,48 +154,6 @@ def _check_free_and_fixed(free, fix) -> None:
                     raise InputError(f"{fname!r} is both free ({fr!r}) and fixed; choose one.")
 
 
-def _check_time_offset(fit_time_offset, max_time_offset) -> float:
-    """The bound of the fitted clock offsets [s], 0 when they are not fitted."""
-    if not isinstance(fit_time_offset, (bool, np.bool_)):
-        raise InputError(f"fit: fit_time_offset must be True or False; got {fit_time_offset!r}.")
-    if isinstance(max_time_offset, bool) or not (
-        isinstance(max_time_offset, (int, float, np.number)) and 0 < max_time_offset < math.inf
-    ):
-        raise InputError(f"fit: max_time_offset must be a positive number of seconds; got {max_time_offset!r}.")
-    return float(max_time_offset) if fit_time_offset else 0.0
-
-
-def _solver_options(options: SolverOptions | None, rtol, atol, max_steps) -> SolverOptions:
-    """`options` with fit's solver keywords (a keyword given wins) and fit's defaults."""
-    unused(
-        options,
-        where="fit",
-        adjoint="fit differentiates its solves in forward mode (diffrax.ForwardMode), which it chooses itself",
-    )
-    opts = solver_options(options, where="fit", rtol=rtol, atol=atol, max_steps=max_steps)
-    return opts.or_defaults(solver=FIT_SOLVER, **FIT_TOLERANCES)
-
-
-def _check_options(n_starts, max_iter, adam_steps, seed, sigma_pos, sigma_rot) -> None:
-    for name, val, least in (("n_starts", n_starts, 1), ("max_iter", max_iter, 1), ("adam_steps", adam_steps, 0)):
-        if isinstance(val, bool) or not isinstance(val, (int, np.integer)) or val < least:
-            raise InputError(f"fit: {name} must be >= {least} (an integer); got {val!r}.")
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise InputError(f"fit: seed must be an integer >= 0; got {seed!r}.")
-    for name, val in (("sigma_pos", sigma_pos), ("sigma_rot", sigma_rot)):
-        if val is not None and not (
-            isinstance(val, (int, float, np.number)) and not isinstance(val, bool) and 0 < val < math.inf
-        ):
-            raise InputError(f"fit: {name} must be a finite number > 0 (or left out to estimate it); got {val!r}.")
-
-
-def _check_shooting(shooting, segment) -> None:
-    if shooting not in ("auto", "single", "multiple"):
-        raise InputError(f"fit: shooting must be 'auto', 'single' or 'multiple'; got {shooting!r}.")
-    if isinstance(segment, bool) or not isinstance(segment, (int, float, np.number)) or not 0.05 <= segment < math.inf:
-        raise InputError(f"fit: segment must be a length in seconds >= 0.05; got {segment!r}.")
-
-
 def _check_unknowns(data: FitData, free: FreeParams) -> None:
     P, T, n_nu = free.size, data.ts.shape[0], len(data.nuisance)
     n_res = int(2 * data.wpos.sum() + 3 * data.wrot.sum())
@@ -309,71 +170,6 @@ def _use_multiple(shooting: str, data: FitData, segment: float) -> bool:
 
 
 # ----------------------------------------------------------------------------- the run
-
-
-@dataclasses.dataclass(frozen=True)
-class _Options:
-    """The options of `fit` that shape the optimisation (see its docstring)."""
-
-    n_starts: int
-    spread: float
-    seed: int
-    shooting: str
-    segment: float
-    adam_steps: int
-    adam_lr: float
-    max_iter: int
-    ftol: float
-    gtol: float
-    noise: float
-    sigma_pos: float | None
-    sigma_rot: float | None
-    rtol: float
-    atol: float
-    max_steps: int
-    solver: dfx.AbstractSolver | None = None  # None: simulate's default
-    max_time_offset: float = 0.0  # 0: the clock offsets are not fitted
-    loss: str = "l2"  # `jsphere.identify.robust`
-
-    @property
-    def estimate_sigma(self) -> bool:
-        return self.sigma_pos is None or self.sigma_rot is None
-
-    def stage_loss(self, stage: int) -> str:
-        """The loss of a stage: in the warm-up stages, far from the answer (multiple shooting,
-        `4 + k`, and the Adam steps, 0), the convex `WARM_LOSS` where the fit's loss is
-        redescending (`REDESCENDING`); the fit's loss in the Levenberg-Marquardt stages 1 and 2."""
-        return WARM_LOSS if self.loss in REDESCENDING and (stage == 0 or stage >= 4) else self.loss
-
-    def config(self, sig: np.ndarray, multiple: bool) -> dict[str, Any]:
-        """What the checkpoint's fingerprint holds besides the data and the free parameters (the
-        solver only when it is not the default, so that a default fit's fingerprint does not
-        depend on whether it was given)."""
-        solver = {} if self.solver is None else {"solver": repr(self.solver)}
-        if self.max_time_offset:
-            solver = solver | {"max_time_offset": self.max_time_offset}
-        if self.loss != "l2":
-            solver = solver | {"loss": self.loss}
-        return solver | {
-            "n_starts": self.n_starts,
-            "spread": self.spread,
-            "seed": self.seed,
-            "adam_steps": self.adam_steps,
-            "adam_lr": self.adam_lr,
-            "max_iter": self.max_iter,
-            "ftol": self.ftol,
-            "gtol": self.gtol,
-            "noise": self.noise,
-            "sig": sig.tolist(),
-            "estimate_sigma": self.estimate_sigma,
-            "rtol": self.rtol,
-            "atol": self.atol,
-            "max_steps": self.max_steps,
-            "format": _CHECKPOINT_FORMAT,
-            "multiple": multiple,
-            "segment": self.segment,
-            "mu": list(MU_LEVELS),
-        }
 
 
 @dataclasses.dataclass(frozen=True)
@@ -404,7 +200,7 @@ class _Run:
     data: FitData
     free: FreeParams
     base: RobotParams
-    options: _Options
+    options: FitOptions
     fns: _Functions
     arrays: dict[str, jax.Array]
     shooting: _Shooting | None
@@ -446,7 +242,7 @@ class _State:
     state, `adam_k` its steps, `adam_best`: (cost, theta, nu) of each start's best point;
     `lm`: Levenberg-Marquardt's state within a stage, `it`: the steps of the last stage;
     `last`: the poses, solver status and data of the last evaluation (for the failure message,
-    not saved); `ahead`: the thread compiling single shooting's program, if one runs (not saved)."""
+    not saved)."""
 
     stage: int
     sig: np.ndarray
@@ -462,7 +258,6 @@ class _State:
     max_defect: float = math.nan
     lm: LMState | None = None
     last: dict[str, Any] = dataclasses.field(default_factory=dict)
-    ahead: threading.Thread | None = None  # compiling single shooting's program (`_compile_ahead`)
 
 
 def adam_start(opt: optax.GradientTransformation, w):
@@ -476,7 +271,7 @@ def _setup(
     data: FitData,
     free: FreeParams,
     params: RobotParams,
-    o: _Options,
+    o: FitOptions,
     checkpoint,
     progress: Progress,
     t_begin,
@@ -487,9 +282,7 @@ def _setup(
     kind, S, P, T = data.kind, o.n_starts, free.size, data.ts.shape[0]
     multiple = _use_multiple(o.shooting, data, o.segment)
     seg = _shooting.segment_trials(data, o.segment) if multiple else None
-    fns = _functions(
-        free, kind, float(o.rtol), float(o.atol), int(o.max_steps), o.solver, o.max_time_offset, split=True
-    )
+    fns = _functions(free, kind, o.rtol, o.atol, o.max_steps, o.ode_solver, o.max_offset, split=True)
     sig = np.array([o.sigma_pos or 1e-3, o.sigma_rot or math.radians(0.5)])
     rng = np.random.default_rng(o.seed)
     theta = start_design(free, S, o.spread, rng)
@@ -497,7 +290,7 @@ def _setup(
     ms, nu_ms = None, None
     if multiple:
         position = np.concatenate([np.arange(len(c) - 1) for c in seg.boundaries])
-        offset = o.max_time_offset > 0
+        offset = o.max_offset > 0
         dscale = to_jax(_shooting.defect_scale(kind, sig, float(params.R0), o.segment, offset))
         ms = _Shooting(seg, o.segment, position, seg.data.arrays(), seg.arrays(), dscale)
         nu_ms = nuisance_guess(seg.data, params, time_offset=False)
@@ -633,47 +426,15 @@ def _program(run: _Run, shooting: str) -> str:
     return repr((shooting, d.kind, d.ts.shape, run.free.names, o.n_starts, o.rtol, o.atol, o.max_steps, segments))
 
 
-def _compile_ahead(run: _Run, st: _State) -> None:
-    """Start compiling single shooting's program in a thread of its own, once multiple
-    shooting's program is traced: it is traced while XLA compiles multiple shooting's (which
-    releases Python's lock) and compiled while multiple shooting's steps run (on one core), so
-    that single shooting starts without compiling
-    (docs/decisions/single-shooting-compiled-during-multiple.md). A failure in the thread is
-    left to the program's first call to report."""
-    if st.ahead is not None or st.nu_ms is None:
-        return
-    args = (run.base, to_jax(st.theta), to_jax(_trial_nu(run, st.nu_ms)), run.arrays, to_jax(st.sig))
-    key = _program(run, "single")
-
-    def work():
-        t0 = time.perf_counter()
-        try:
-            run.fns.compile(run.programs, "jacobian", *args)
-        except Exception:  # noqa: BLE001 - the first call compiles it again and says what fails
-            return
-        run.progress.compiled("fit", key, time.perf_counter() - t0)
-
-    st.ahead = threading.Thread(target=work, name="jsphere-fit-compile", daemon=True)
-    st.ahead.start()
-
-
 def _trial_nu(run: _Run, nu_ms):
     """Each trial's nuisance parameters `(S, T, n)`: its first segment's, of multiple shooting's
     `(S, G, n)`."""
     return nu_ms[:, run.shooting.seg.first]
 
 
-def _wait_ahead(st: _State) -> None:
-    """Wait for the thread of `_compile_ahead`, if one runs."""
-    if st.ahead is not None:
-        st.ahead.join()
-        st.ahead = None
-
-
 def _evaluate_single(run: _Run, st: _State, th, n):
     """Cost `(S,)` (inf for a failed start), residuals, Jacobian and poses of single shooting."""
     with run.progress.compiling("fit", _program(run, "single"), "fit: single shooting"):
-        _wait_ahead(st)
         res, ok, J, pose = run.fns.run(
             run.programs, "jacobian", run.base, to_jax(th), to_jax(n), run.arrays, to_jax(st.sig)
         )
@@ -708,11 +469,6 @@ def _evaluate_multiple(run: _Run, st: _State, mu: float, th, n):
     ms = run.shooting
     with run.progress.compiling("fit", _program(run, "multiple"), "fit: multiple shooting"):
         args = (run.base, to_jax(th), to_jax(n), ms.arrays, to_jax(st.sig))
-        if st.ahead is None:  # single shooting's program compiles meanwhile (`_compile_ahead`)
-            try:
-                run.fns.compile(run.programs, "segments", *args, traced=lambda: _compile_ahead(run, st))
-            except Exception:  # noqa: BLE001 - the call below compiles it again and says what fails
-                pass
         res, ok, J, pose, e, Je = run.fns.run(run.programs, "segments", *args)
         excess, loss = 0.0, run.options.stage_loss(st.stage)
         if loss != "l2":  # the weighted squares replaced by the robust cost
@@ -945,7 +701,6 @@ def _estimate_sigma(res_b, data: FitData, sig, n_par: int, loss: str = "l2") -> 
 def _result(run: _Run, st: _State, keys: Sequence[str]) -> FitResult:
     """The `FitResult` of the best start, evaluated once more at the final points."""
     cost, out = _evaluate_single(run, st, st.theta, st.nu)
-    b = int(np.argmin(cost))
     shooting_info: dict[str, Any] = {"method": "multiple" if run.shooting is not None else "single"}
     if run.shooting is not None:
         shooting_info |= {
@@ -954,23 +709,7 @@ def _result(run: _Run, st: _State, keys: Sequence[str]) -> FitResult:
             "largest_defect": st.max_defect,
             "closed": st.max_defect <= DEFECT_CLOSED,
         }
-    result = fit_result(
-        run.free,
-        run.data,
-        run.base,
-        out["pose"],
-        st.theta,
-        st.nu,
-        out["res"],
-        out["J"],
-        cost,
-        st.sig,
-        b,
-        st.stage_converged,
-        st.total_it,
-        run.t_begin,
-        loss=run.options.loss,
-        keys=keys,
-    )
+    end = FitEnd(st.theta, st.nu, st.sig, out["pose"], out["res"], out["J"], cost, st.stage_converged, st.total_it)
+    result = fit_result(run.free, run.data, run.base, end, run.t_begin, loss=run.options.loss, keys=keys)
     solve_options = {"rtol": run.options.rtol, "atol": run.options.atol, "max_steps": run.options.max_steps}
-    return dataclasses.replace(result, shooting=shooting_info, solve_options=solve_options)
+    return dataclasses.replace(result, shooting=shooting_info, solve_options=solve_options, options=run.options)

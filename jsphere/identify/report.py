@@ -29,6 +29,7 @@ from ..numerics.lm import blocks, marginal_information
 from .data import TIME_OFFSET, FitData, offset_from_nuisance
 from .free import FreeParams
 from .identifiability import exact_symmetries, identifiability, project_out, symmetry_directions, units_note
+from .options import no_drawing
 from .robust import REJECT, frame_weights, reweigh, variance_factor
 from .verdict import judge, missing_effects, noise_floor
 
@@ -54,7 +55,8 @@ class FitResult:
     order) the frames the loss set aside (weight below one half), as
     `{"frames": [0-based row numbers of the trial's data rows], "count": n}`; `units_note`: what
     the fitted masses and inertias are relative to (the torque constant when torque trials are
-    fitted with `k_tau` fixed; `jsphere.identify.identifiability.units_note`)."""
+    fitted with `k_tau` fixed; `jsphere.identify.identifiability.units_note`); `options`: the
+    `FitOptions` of the fit (in `fit.json` as `FitOptions.to_json` writes them)."""
 
     params: RobotParams
     free: list[str]
@@ -84,6 +86,7 @@ class FitResult:
     loss: str = "l2"
     outliers: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
     units_note: str = ""
+    options: Any = dataclasses.field(default=None, repr=False)
 
     def predict(self, trials, **kwargs):
         """The fitted model on `trials` (held out from the fit, or the fit's own): each trial
@@ -98,49 +101,51 @@ class FitResult:
     def to_json(self) -> dict[str, Any]:
         """The JSON document (`RobotParams.load` reads its `params`)."""
         fin = lambda v: _finite(v)
-        return {
-            "params": self.params.to_dict(),
-            "free": list(self.free),
-            "values": fin(self.values),
-            "stderr": fin(self.stderr),
-            "correlation": fin(np.asarray(self.correlation).tolist()),
-            "cost": self.cost,
-            "iterations": self.iterations,
-            "converged": self.converged,
-            "status": self.status,
-            "status_reason": self.status_reason,
-            "sigma_pos_m": self.sigma_pos,
-            "sigma_rot_deg": math.degrees(self.sigma_rot),
-            "n_residuals": self.n_residuals,
-            "kind": self.kind,
-            "identifiability": fin(self.identifiability),
-            "verdict": fin(self.verdict),
-            "trials": [{k: fin(v) for k, v in t.items() if k != "series"} for t in self.trials],
-            "rms_pos_m": [t["rms_pos_m"] for t in self.trials],
-            "rms_rot_deg": [t["rms_rot_deg"] for t in self.trials],
-            "starts_cost": fin(self.starts),
-            "elapsed_s": self.elapsed_s,
-            "shooting": fin(self.shooting),
-            "loss": self.loss,
-            "outliers": self.outliers,
-            "units_note": self.units_note,
-        } | (
-            {}
-            if self.time_offset is None
-            else {"time_offset": fin(self.time_offset), "time_offset_stderr": fin(self.time_offset_stderr)}
+        return (
+            {
+                "params": self.params.to_dict(),
+                "free": list(self.free),
+                "values": fin(self.values),
+                "stderr": fin(self.stderr),
+                "correlation": fin(np.asarray(self.correlation).tolist()),
+                "cost": self.cost,
+                "iterations": self.iterations,
+                "converged": self.converged,
+                "status": self.status,
+                "status_reason": self.status_reason,
+                "sigma_pos_m": self.sigma_pos,
+                "sigma_rot_deg": math.degrees(self.sigma_rot),
+                "n_residuals": self.n_residuals,
+                "kind": self.kind,
+                "identifiability": fin(self.identifiability),
+                "verdict": fin(self.verdict),
+                "trials": [{k: fin(v) for k, v in t.items() if k != "series"} for t in self.trials],
+                "rms_pos_m": [t["rms_pos_m"] for t in self.trials],
+                "rms_rot_deg": [t["rms_rot_deg"] for t in self.trials],
+                "starts_cost": fin(self.starts),
+                "elapsed_s": self.elapsed_s,
+                "shooting": fin(self.shooting),
+                "loss": self.loss,
+                "outliers": self.outliers,
+                "units_note": self.units_note,
+            }
+            | (
+                {}
+                if self.time_offset is None
+                else {"time_offset": fin(self.time_offset), "time_offset_stderr": fin(self.time_offset_stderr)}
+            )
+            | ({} if self.options is None else {"options": fin(self.options.to_json())})
         )
 
-    def save(self, path, *, plots: bool = True) -> list[Path]:
-        """Write the JSON atomically and, unless `plots=False`, `<stem>_overlay.png` and
-        `<stem>_residuals.png` beside it. Returns the paths written."""
+    def save(self, path, **deprecated) -> list[Path]:
+        """Write the JSON atomically; returns `[path]`. The figures are drawn by
+        `jsphere.plots.fit_figures(result, folder, stem=...)` (`jsphere fit` writes
+        `<stem>_overlay.png` and `<stem>_residuals.png` beside the JSON). `plots=` is deprecated
+        and draws nothing."""
+        no_drawing(deprecated, "FitResult.save", "jsphere.plots.fit_figures(result, folder, stem=...)")
         path = Path(path)
         atomic_write_json(path, self.to_json())
-        written = [path]
-        if plots:
-            from ..plots import fit_figures
-
-            written += fit_figures(self, path.parent, stem=path.stem)
-        return written
+        return [path]
 
     def table(self) -> str:
         """A plain-text summary: value +- stderr per free name, noise levels, warnings, and last
@@ -199,29 +204,39 @@ def _assemble_named(free: FreeParams, per_name: dict[str, float], params: RobotP
     return out
 
 
+@dataclasses.dataclass(frozen=True)
+class FitEnd:
+    """Where a fit ended, for every start: the final point (`theta (S, P)`, `nu (S, T, n)`, the
+    noise levels `sig`), its evaluation (`pose`: simulated `x, y, q`; `res`, `J` unweighted, and
+    `cost (S,)`, as `jsphere.identify.residuals` gives them), whether the last stage converged
+    and the Levenberg-Marquardt iterations in all."""
+
+    theta: Any
+    nu: Any
+    sig: Any
+    pose: Any
+    res: Any
+    J: Any
+    cost: Any
+    converged: bool
+    iterations: int
+
+
 def fit_result(
     free: FreeParams,
     data: FitData,
     base: RobotParams,
-    pose,
-    theta,
-    nu,
-    res,
-    J,
-    cost,
-    sig,
-    b: int,
-    converged: bool,
-    iterations: int,
+    end: FitEnd,
     t_begin: float,
     *,
     loss: str = "l2",
     keys: Sequence[str] | None = None,
 ) -> FitResult:
-    """The `FitResult` of start `b` (the best) from the final evaluation of every start: `pose`
-    (simulated `x, y, q`), `res`, `J` (unweighted) and `cost` as `jsphere.identify.residuals`
-    gives them; `loss`: the fit's (`jsphere.identify.robust`); `keys`: each trial's key in
-    `outliers` (None: the trials' names)."""
+    """The `FitResult` of the best start (the lowest cost) from where every start ended (`end`);
+    `loss`: the fit's (`jsphere.identify.robust`); `keys`: each trial's key in `outliers` (None:
+    the trials' names)."""
+    theta, nu, sig, pose, res, J, cost = end.theta, end.nu, end.sig, end.pose, end.res, end.J, end.cost
+    converged, iterations, b = end.converged, end.iterations, int(np.argmin(end.cost))
     P = free.size
     T = data.ts.shape[0]
     n_nu = nu.shape[-1]

@@ -35,7 +35,7 @@ from ..model.kinematics import relative_rate_from_wheel_speeds
 from ..model.rotations import quat_conj, quat_exp, quat_log, quat_mul
 from ..model.state import State
 from ..numerics.lm import arrow_step, solve_arrow
-from ..solve.batched.dispatch import compile_program, run_program
+from ..solve.batched.dispatch import run_program
 from ..solve.simulate import simulate
 from . import shooting as _shooting
 from .data import offset_from_nuisance
@@ -123,7 +123,7 @@ class _Functions:
     segment's end state and its Jacobian; `assemble(...)`: their normal-equation blocks, cost and
     defects (`jsphere.identify.shooting.assemble`); `solve(blocks, lam)`: the LM step from blocks.
 
-    `split`: `run` and `compile` split the starts x trials of `jacobian` and `segments` over
+    `split`: `run` splits the starts x trials of `jacobian` and `segments` over
     as many devices as divide them (`jsphere.use_cpu_cores`: one per CPU core), each device
     solving its share (`jax.shard_map`); their inputs are copied to those devices and their
     outputs come back to the default device, where the other programs run. A call of
@@ -218,13 +218,6 @@ class _Functions:
         # on the default device, uncommitted as every other program's inputs are (a committed
         # array would compile each later program again)
         return jax.tree_util.tree_map(lambda a: to_jax(np.asarray(a)), out)
-
-    def compile(self, programs, name: str, *args, traced: Callable = lambda: None) -> None:
-        """Compile the program `run(programs, name, *args)` runs, without running it;
-        `traced()` is called once it is traced, before XLA compiles it."""
-        fn, args, split = self._program(name, args)
-        name = f"fit.{name}:{self.key}:{split}"
-        compile_program(None if self.key is None else programs, name, fn, *args, traced=traced)
 
 
 def _devices(nu) -> list:

@@ -313,14 +313,23 @@ def host_update(lm: LevenbergMarquardt, x, x_new, state: LMState, cost, evaluati
 
 
 def iterate(
-    lm: LevenbergMarquardt, evaluate: Callable, solve: Callable, x, state: LMState, max_iter: int
+    lm: LevenbergMarquardt,
+    evaluate: Callable,
+    solve: Callable,
+    x,
+    state: LMState,
+    max_iter: int,
+    *,
+    every: bool = False,
 ) -> Iterator[tuple[Any, LMState, Any]]:
     """Levenberg-Marquardt driven from the host, one step at a time, until the problem of the
-    lowest cost has converged or `max_iter` steps: `evaluate(x) -> (cost, evaluation)` (a batch
-    of problems, `inf` for a failed one), `solve(evaluation, lam) -> (step, predicted)`. Yields
-    after every step the point, the state and the candidate evaluated, so that the caller can
-    save and report (a problem's step was accepted where `state.rejected == 0`)."""
-    while state.it < max_iter and not state.best_converged:
+    lowest cost has converged (with `every`: every problem, for a batch of independent ones) or
+    `max_iter` steps: `evaluate(x) -> (cost, evaluation)` (a batch of problems, `inf` for a
+    failed one), `solve(evaluation, lam) -> (step, predicted)`. Yields after every step the
+    point, the state and the candidate evaluated, so that the caller can save and report (a
+    problem's step was accepted where `state.rejected == 0`)."""
+    done = (lambda s: bool(np.all(np.asarray(s.converged)))) if every else (lambda s: s.best_converged)
+    while state.it < max_iter and not done(state):
         x_new, predicted = host_candidate(lm, x, *solve(state.current, state.lam))
         cost, evaluation = evaluate(x_new)
         x, state = host_update(lm, x, x_new, state, cost, evaluation, predicted)

@@ -28,6 +28,7 @@ from jsphere.identify.identifiability import identifiability, symmetry_direction
 from jsphere.identify.residuals import _functions
 from jsphere.identify.starts import nuisance_guess
 from jsphere.model.rotations import quat_exp, quat_log
+from jsphere.plots import fit_figures
 
 TRUTH = {"R_m": 0.029, "j": 3.2e-4, "m0": 0.9, "I0": 0.011, "I": np.diag([0.018, 0.015, 0.025])}
 FREE = "R_m,j"
@@ -161,7 +162,7 @@ def test_a_fit_split_over_two_cpu_devices_finds_the_one_device_values(small_fit)
 @pytest.mark.slow
 def test_result_json_loads_as_params_and_plots_are_written(small_fit, tmp_path):
     res, _ = small_fit
-    written = res.save(tmp_path / "fit.json")
+    written = res.save(tmp_path / "fit.json") + fit_figures(res, tmp_path, stem="fit")
     doc = json.loads((tmp_path / "fit.json").read_text())
     for key in (
         "params",
@@ -344,7 +345,7 @@ def test_trials_that_do_not_fit_the_robot_are_reported(small_trials):
         jsphere.fit([t, torq], p, "R_m")
     with pytest.raises(ValueError, match="no trials"):
         jsphere.fit([], p, "R_m")
-    with pytest.raises(ValueError, match="n_starts must be >= 1"):
+    with pytest.raises(ValueError, match="n_starts must be a whole number >= 1"):
         jsphere.fit([t], p, "R_m", n_starts=0)
 
 
@@ -390,6 +391,9 @@ def test_cli_fit_writes_json_plots_and_loadable_params(small_trials, small_fit, 
     assert not (out.parent / "fit.json.ckpt.npz").exists()
     assert jsphere.RobotParams.load(out).n_wheels == 3
     assert "R_m" in capsys.readouterr().out
+    # the flags as the fit's options, recorded to replay it
+    options = jsphere.FitOptions.from_json(doc["options"])
+    assert (options.n_starts, options.loss, options.solver.rtol) == (1, "cauchy", 1e-6)
 
 
 @pytest.mark.slow

@@ -47,8 +47,12 @@ def tiny_trials():
     return [jsphere.synthetic_trial(truth, u, 1.0, rate=25.0, seed=0, name="t0", dropout=0.05)]
 
 
-def run_fit(trials, ckpt, **kw):
-    return jsphere.fit(trials, jsphere.RobotParams.paper(), FREE, fix={"m": 2.5}, checkpoint=ckpt, **{**OPTS, **kw})
+def run_fit(trials, ckpt, progress=None, max_steps=None, **kw):
+    solver = None if max_steps is None else jsphere.SolverOptions(max_steps=max_steps)
+    options = jsphere.FitOptions(**{**OPTS, **kw}, solver=solver)
+    return jsphere.fit(
+        trials, jsphere.RobotParams.paper(), FREE, fix={"m": 2.5}, checkpoint=ckpt, options=options, progress=progress
+    )
 
 
 def document(res) -> str:

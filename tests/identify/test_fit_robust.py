@@ -204,7 +204,7 @@ def test_a_fit_of_trials_read_from_files_names_their_bad_frames_by_file(small_fi
     paths, bad = small_files
     trials = [jsphere.read_trial(p) for p in paths]
     res = jsphere.fit(trials, jsphere.RobotParams.paper(), "R_m,j", fix={"m": 2.5}, n_starts=1, progress=False)
-    res.save(tmp_path / "fit.json", plots=False)
+    res.save(tmp_path / "fit.json")
     doc = json.loads((tmp_path / "fit.json").read_text())
     assert list(doc["outliers"]) == list(res.outliers) == [p.name for p in paths]
     check_named_outliers(doc, paths, bad)

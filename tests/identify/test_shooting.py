@@ -9,7 +9,6 @@ the robot that cannot fit are `slow`.
 from __future__ import annotations
 
 import math
-import threading
 
 import diffrax as dfx
 import jax
@@ -24,7 +23,7 @@ from jsphere.controls import Sampled
 from jsphere.identify import shooting as _shooting
 from jsphere.identify.data import pack_trials
 from jsphere.identify.free import FreeParams
-from jsphere.identify.residuals import _Functions, _functions, _trial_outputs
+from jsphere.identify.residuals import _functions, _trial_outputs
 from jsphere.identify.starts import latin_hypercube, nuisance_guess, start_design
 from jsphere.numerics.lm import solve_arrow
 
@@ -198,47 +197,6 @@ def test_assembled_normal_equations_and_step_match_a_dense_solve():
 
 
 # ------------------------------------------------------------------ starts
-
-
-def test_single_shootings_program_compiles_in_a_thread_while_multiple_shooting_runs(monkeypatch):
-    """Multiple shooting's program is compiled before it runs; once it is traced, single
-    shooting's program compiles in a thread of its own, and single shooting's first call then
-    compiles nothing."""
-    trials = torque_trials(truth_robot(), (1.2,), rate=20.0, seed=3)
-    calls, compiles, first_call = [], [], []
-    original_compile, original_run = _Functions.compile, _Functions.run
-
-    def compile_(self, programs, name, *args, traced=lambda: None):
-        calls.append((name, threading.current_thread().name))
-        original_compile(self, programs, name, *args, traced=traced)
-        calls.append((name, "done"))
-
-    def run(self, programs, name, *args):
-        if name == "jacobian" and not any(c[0] == "run jacobian" for c in calls):
-            calls.append(("run jacobian", threading.current_thread().name))
-            before = len(compiles)
-            out = original_run(self, programs, name, *args)
-            first_call.append(len(compiles) - before)  # programs XLA compiled meanwhile
-            return out
-        return original_run(self, programs, name, *args)
-
-    def listen(event, duration, **_):
-        if event.endswith("backend_compile_duration") and threading.current_thread().name == "MainThread":
-            compiles.append(duration)
-
-    monkeypatch.setattr(_Functions, "compile", compile_)
-    monkeypatch.setattr(_Functions, "run", run)
-    jax.monitoring.register_event_duration_secs_listener(listen)
-    try:
-        res = jsphere.fit(
-            trials, jsphere.RobotParams.paper(), "j", shooting="multiple", segment=0.5, max_iter=3, progress=False
-        )
-    finally:
-        jax.monitoring.unregister_event_duration_listener(listen)
-    assert res.shooting["method"] == "multiple"
-    assert calls[:2] == [("segments", "MainThread"), ("jacobian", "jsphere-fit-compile")]
-    assert calls.index(("jacobian", "done")) < calls.index(("run jacobian", "MainThread"))
-    assert first_call == [0]
 
 
 @pytest.mark.parametrize("n, d, seed", [(1, 7, 0), (8, 3, 1), (13, 5, 2)])

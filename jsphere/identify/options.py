@@ -1,0 +1,258 @@
+"""The options of a fit in one place: `FitOptions`, its defaults and their validation."""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from typing import Any
+
+import diffrax as dfx
+import equinox as eqx
+import numpy as np
+
+from .._runtime.checks import real, whole
+from .._runtime.errors import InputError
+from ..solve.options import SolverOptions, default_solver, solver_options, unused
+from .checkpoint import _CHECKPOINT_FORMAT
+from .robust import DEFAULT_LOSS, REDESCENDING, WARM_LOSS, check_loss
+from .shooting import MU_LEVELS
+
+#: fit's solver settings where `FitOptions.solver` sets none: positions within ~2 um of a 1e-11
+#: solution over a few seconds of exciting input
+FIT_TOLERANCES = {"rtol": 1e-6, "atol": 1e-8}
+#: fit's Runge-Kutta method where `FitOptions.solver` sets none: at `FIT_TOLERANCES` a compiled
+#: fit with `Tsit5` takes 0.28x the time of one with `simulate`'s `Dopri8`, with the same
+#: answers (docs/decisions/the-fit-integrates-with-tsit5.md)
+FIT_SOLVER = dfx.Tsit5()
+
+
+@dataclasses.dataclass(frozen=True)
+class FitOptions:
+    """How `fit` optimises (`fit(trials, params, free, options=FitOptions(loss="l2", n_starts=8))`).
+
+    Each field below is one option, with its default. `fit.json` records them
+    (`FitResult.options`, `to_json`/`from_json`), so that a fit can be replayed.
+    """
+
+    n_starts: int = 2
+    """Starts vmapped together: the first at `params`, the others a Latin hypercube over the
+    bounds, or over `+- 2 spread` (relative, for positive values) about `params`
+    (`jsphere.identify.starts.start_design`). The best start is kept."""
+    spread: float = 0.2
+    """The relative spread of the starts about `params` (see `n_starts`)."""
+    seed: int = 0
+    """The seed of the start design (the only random numbers of a fit)."""
+    shooting: str = "auto"
+    """`"multiple"` cuts each trial into segments of about `segment` seconds with their own
+    initial states, started from the capture, and closes the continuity defects between them by
+    raising their weight (`MU_LEVELS`); single shooting then polishes the result. `"single"`
+    simulates each trial whole from its start. `"auto"`: multiple shooting when a trial is
+    longer than two segments."""
+    segment: float = 2.0
+    """The segment length of multiple shooting [s] (>= 0.05)."""
+    adam_steps: int = 3
+    """optax Adam warm-start steps of single shooting (per-coordinate scaled units); multiple
+    shooting needs none (its segments start from the capture)."""
+    adam_lr: float = 0.1
+    """The learning rate of the Adam steps."""
+    max_iter: int = 40
+    """Levenberg-Marquardt iterations per stage. A stage ends when the predicted decrease of
+    the cost is below `gtol`, when an accepted step changes the cost by less than `ftol`
+    (relative), after 3 accepted steps that do not lower the best cost by `gtol`, or after 8
+    rejected steps in a row."""
+    ftol: float = 1e-10
+    """The relative change of the cost below which an accepted step ends a stage."""
+    gtol: float = 1e-2
+    """The predicted decrease of the cost that ends a stage, in units of chi^2/2: 0.01 is a step
+    of ~0.14 standard errors along the worst direction."""
+    noise: float = 1.0
+    """The ODE solver's noise floor in the cost: the adaptive solver makes the cost piecewise
+    smooth with jumps (~0.1 at `rtol=1e-6` for a few thousand samples) while its Jacobian stays
+    accurate, so steps predicted to gain less than `noise` are accepted unless the cost rises by
+    more than `noise`."""
+    sigma_pos: float | None = None
+    """The position noise level [m]. If not given (nor `sigma_rot`) the levels start at 1 mm and
+    0.5 deg, are estimated from the residuals after the first stage, and the fit is finished
+    with the estimates."""
+    sigma_rot: float | None = None
+    """The orientation noise level [rad] (see `sigma_pos`)."""
+    solver: SolverOptions | None = None
+    """A `SolverOptions`: its `rtol`, `atol`, `max_steps` and `solver` are used, with fit's own
+    defaults where it leaves them at `SolverOptions`' defaults (`FIT_TOLERANCES`: 1e-6, 1e-8,
+    16384 steps; the solver `diffrax.Tsit5()`, `FIT_SOLVER`). The defaults keep the simulated
+    positions within ~2 um of a 1e-11 solution over a few seconds of exciting input, far below
+    capture noise (100 Hz tables: the cubic command has a kink in its rate at every sample,
+    which makes tighter tolerances costly: `docs/performance.md`). `throw` and `batch_steps`
+    are fit's own: a failed solve is a start of infinite cost, and forward-mode derivatives give
+    every trial its own steps. `adjoint` set is an error (fit differentiates in forward mode,
+    `diffrax.ForwardMode`). `programs` runs the fit's residual, Jacobian and step programs: a
+    `jsphere.FastStart` keeps them, exported, so that the next process's fit of the same shapes
+    skips tracing them (`jsphere fit` passes its cache's)."""
+    fit_time_offset: bool = False
+    """Estimate each trial's clock offset as one more nuisance value: the trial's inputs drive
+    the model at `t + offset` (a capture clock that runs 0.15 s behind the inputs' gives +0.15
+    s), bounded smoothly to `+- max_time_offset` (`offset = max tanh(v / max)`), started at the
+    quick estimate of `jsphere.estimate_time_offset`. Beyond the ends of a trial's table its
+    inputs are held. The offsets and their standard errors are `FitResult.time_offset` and
+    `time_offset_stderr`."""
+    max_time_offset: float = 0.5
+    """The largest clock offset, either way [s] (see `fit_time_offset`)."""
+    loss: str = DEFAULT_LOSS
+    """How a frame's residuals (position and orientation together) enter the cost: `"cauchy"`
+    (default), `"huber"`, `"soft_l1"` or `"l2"` (plain least squares), at a scale of `SCALE`
+    noise levels (`jsphere.identify.robust`). Frames the loss sets aside (weight below one half:
+    ghost frames, marker swaps) are `FitResult.outliers`, by the file name of each trial read
+    from a file (`Trial.source`), else by its name; the noise levels are then estimated from the
+    residuals without them."""
+
+    # ------------------------------------------------------------------ validation
+
+    def checked(self) -> FitOptions:
+        """These options validated (`InputError` naming the first bad one), with the counts as
+        ints and `solver` filled with fit's defaults."""
+        check_loss(self.loss, "fit")
+        if not isinstance(self.fit_time_offset, (bool, np.bool_)):
+            raise InputError(f"fit: fit_time_offset must be True or False; got {self.fit_time_offset!r}.")
+        real("fit", "max_time_offset", self.max_time_offset, strict=True, unit="s")
+        counts = {k: whole("fit", k, getattr(self, k), low) for k, low in (("n_starts", 1), ("max_iter", 1))}
+        counts |= {k: whole("fit", k, getattr(self, k), 0) for k in ("adam_steps", "seed")}
+        for name, unit in (("sigma_pos", "m"), ("sigma_rot", "rad")):
+            if getattr(self, name) is not None:
+                real("fit", name, getattr(self, name), strict=True, unit=unit)
+        if self.shooting not in ("auto", "single", "multiple"):
+            raise InputError(f"fit: shooting must be 'auto', 'single' or 'multiple'; got {self.shooting!r}.")
+        segment = real("fit", "segment", self.segment, low=0.05, unit="s")
+        return dataclasses.replace(self, **counts, segment=segment, solver=_fit_solver(self.solver))
+
+    # ------------------------------------------------------------------ what the fit reads
+
+    @property
+    def rtol(self) -> float:
+        return float(self.solver.rtol)
+
+    @property
+    def atol(self) -> float:
+        return float(self.solver.atol)
+
+    @property
+    def max_steps(self) -> int:
+        return int(self.solver.max_steps)
+
+    @property
+    def ode_solver(self) -> dfx.AbstractSolver | None:
+        """The Runge-Kutta method, `None` where it is `simulate`'s default."""
+        return None if eqx.tree_equal(self.solver.solver_or_default(), default_solver()) else self.solver.solver
+
+    @property
+    def max_offset(self) -> float:
+        """The bound of the fitted clock offsets [s], 0 when they are not fitted."""
+        return float(self.max_time_offset) if self.fit_time_offset else 0.0
+
+    @property
+    def estimate_sigma(self) -> bool:
+        return self.sigma_pos is None or self.sigma_rot is None
+
+    def stage_loss(self, stage: int) -> str:
+        """The loss of a stage: in the warm-up stages, far from the answer (multiple shooting,
+        `4 + k`, and the Adam steps, 0), the convex `WARM_LOSS` where the fit's loss is
+        redescending (`REDESCENDING`); the fit's loss in the Levenberg-Marquardt stages 1 and 2."""
+        return WARM_LOSS if self.loss in REDESCENDING and (stage == 0 or stage >= 4) else self.loss
+
+    def config(self, sig: np.ndarray, multiple: bool) -> dict[str, Any]:
+        """What the checkpoint's fingerprint holds besides the data and the free parameters (the
+        solver only when it is not the default, so that a default fit's fingerprint does not
+        depend on whether it was given)."""
+        solver = {} if self.ode_solver is None else {"solver": repr(self.ode_solver)}
+        if self.max_offset:
+            solver = solver | {"max_time_offset": self.max_offset}
+        if self.loss != "l2":
+            solver = solver | {"loss": self.loss}
+        plain = ("n_starts", "spread", "seed", "adam_steps", "adam_lr", "max_iter", "ftol", "gtol", "noise")
+        return (
+            solver
+            | {k: getattr(self, k) for k in plain}
+            | {
+                "sig": sig.tolist(),
+                "estimate_sigma": self.estimate_sigma,
+                "rtol": self.rtol,
+                "atol": self.atol,
+                "max_steps": self.max_steps,
+                "format": _CHECKPOINT_FORMAT,
+                "multiple": multiple,
+                "segment": self.segment,
+                "mu": list(MU_LEVELS),
+            }
+        )
+
+    # ------------------------------------------------------------------ JSON
+
+    def to_json(self) -> dict[str, Any]:
+        """The options as `fit.json` records them: every field, the solver's as `rtol`, `atol`,
+        `max_steps` and the Runge-Kutta method's class name (`None`: `simulate`'s default)."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "solver"}
+        s = self.solver or SolverOptions()
+        method = None if s.solver is None else type(s.solver).__name__
+        return out | {"solver": {"rtol": s.rtol, "atol": s.atol, "max_steps": s.max_steps, "solver": method}}
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> FitOptions:
+        """The options `to_json` wrote (the Runge-Kutta method by its diffrax class name)."""
+        d = dict(d)
+        s = dict(d.pop("solver", None) or {})
+        method = s.pop("solver", None)
+        solver = SolverOptions(**s, solver=None if method is None else getattr(dfx, method)())
+        return cls(**d, solver=solver)
+
+
+def _fit_solver(options: SolverOptions | None) -> SolverOptions:
+    """`options` with fit's defaults where it leaves `SolverOptions`' (`FIT_SOLVER`,
+    `FIT_TOLERANCES`); refuses an `adjoint`."""
+    unused(
+        options,
+        where="fit",
+        adjoint="fit differentiates its solves in forward mode (diffrax.ForwardMode), which it chooses itself",
+    )
+    return solver_options(options, where="fit").or_defaults(solver=FIT_SOLVER, **FIT_TOLERANCES)
+
+
+#: the keywords of `fit` that are `FitOptions` fields (and the solver's, `FitOptions.solver`)
+_FIELDS = tuple(f.name for f in dataclasses.fields(FitOptions) if f.name != "solver")
+_SOLVER_KEYWORDS = ("rtol", "atol", "max_steps")
+
+
+def fit_options(options: FitOptions | SolverOptions | None, deprecated: dict[str, Any]) -> FitOptions:
+    """`fit`'s `options` with the keywords it took before `FitOptions` (`deprecated`: each warns
+    with its spelling in `FitOptions`, and wins over the same field of `options`); a
+    `SolverOptions` as `options` is `FitOptions(solver=...)`, with a warning too."""
+    unknown = sorted(set(deprecated) - set(_FIELDS) - set(_SOLVER_KEYWORDS))
+    if unknown:
+        raise TypeError(f"fit() got an unexpected keyword argument {unknown[0]!r}.")
+    if options is not None and not isinstance(options, FitOptions):
+        warnings.warn(
+            "fit(options=SolverOptions(...)) is deprecated; write options=FitOptions(solver=SolverOptions(...)).",
+            DeprecationWarning,
+            stacklevel=3,
+        )
+        options = FitOptions(solver=solver_options(options, where="fit"))
+    options = FitOptions() if options is None else options
+    for k, v in deprecated.items():
+        spelling = f"FitOptions(solver=SolverOptions({k}=...))" if k in _SOLVER_KEYWORDS else f"FitOptions({k}=...)"
+        warnings.warn(f"fit({k}=...) is deprecated; write options={spelling}.", DeprecationWarning, stacklevel=3)
+    solver = options.solver
+    shortcuts = {k: deprecated.pop(k) for k in _SOLVER_KEYWORDS if k in deprecated}
+    if shortcuts:
+        solver = solver_options(solver, where="fit", **shortcuts)
+    return dataclasses.replace(options, **deprecated, solver=solver)
+
+
+def no_drawing(deprecated: dict[str, Any], where: str, instead: str) -> None:
+    """The `plots=` keyword of a result's `save`, which draws nothing: results are data, and
+    `jsphere.plots` draws them (`instead`). Warns; any other keyword is a `TypeError`."""
+    for k in deprecated:
+        if k != "plots":
+            raise TypeError(f"{where}() got an unexpected keyword argument {k!r}.")
+        warnings.warn(
+            f"{where}(plots=...) is deprecated: save writes the JSON only; draw the figures with {instead}.",
+            DeprecationWarning,
+            stacklevel=3,
+        )
