@@ -113,7 +113,6 @@ def run(args) -> int:
     from ..identify.fit import fit
     from ..identify.verdict import headline
     from ..model.params import RobotParams
-    from ..solve.options import SolverOptions
 
     _gather_trials(args)
     out = Path(args.out)
@@ -149,7 +148,6 @@ def run(args) -> int:
             fit_time_offset=args.fit_time_offset,
             max_time_offset=args.max_time_offset,
             loss=args.loss,
-            options=SolverOptions(programs=args.programs),
         )
     written = res.save(out, plots=not args.no_plots)
     ckpt.unlink(missing_ok=True)

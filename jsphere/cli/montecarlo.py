@@ -94,7 +94,6 @@ def run(args) -> int:
     from ..montecarlo.run import monte_carlo
     from ..montecarlo.study import check_settings, load_study
     from ..montecarlo.workers import gather, work
-    from ..solve.options import SolverOptions
 
     def one_line(message, category, filename, lineno, file=None, line=None):
         print(f"jsphere montecarlo: warning: {message}", file=sys.stderr, flush=True)
@@ -141,8 +140,7 @@ def run(args) -> int:
     if kwargs.get("track") is not None:  # the table's last reference: where the controller holds the robot
         st["planned_stop_m"] = [float(kwargs["track"]["x"][-1]), float(kwargs["track"]["y"][-1])]
     elif kwargs.get("commands") is None:
-        fast = SolverOptions(programs=args.programs)
-        planned = simulate_gaits(study["params"], study["gaits"], reset=kwargs["reset"], options=fast)
+        planned = simulate_gaits(study["params"], study["gaits"], reset=kwargs["reset"])
         st["planned_stop_m"] = [float(planned.x[-1]), float(planned.y[-1])]
     else:
         st["planned_stop_m"] = replayed_stop(study["params"], kwargs)

@@ -19,7 +19,7 @@ from .._runtime.arrays import as_array, under_jit
 from .._runtime.arrays import traced as _traced
 from .._runtime.checks import finite
 from .._runtime.errors import InputError
-from .._runtime.quick_compile import eager_jit
+from .._runtime.quick_compile import eager_jit, run_program
 from ..controls import Constant
 from ..model.dynamics import free_Omega_dot, required_torques
 from ..model.kinematics import rest_attitude
@@ -333,7 +333,7 @@ def simulate_gaits(
       diffrax's own `vmap` of the flat state, as `simulate` does.
     - `solver`, `max_steps`, `throw`, `adjoint`: as in `simulate`.
     - `options`: a `SolverOptions` (any of `rtol`, `atol`, `solver`, `max_steps`, `throw`,
-      `adjoint`, `batch_steps`, `programs`); a keyword given wins over its field, as in
+      `adjoint`, `batch_steps`); a keyword given wins over its field, as in
       `simulate`.
 
     Returns a `Trajectory`; `segment` tells which gait each sample belongs to.
@@ -434,10 +434,8 @@ def _solve_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, max
     flat = (solver, rtol, atol, max_steps, adjoint)
     args = (params, gaits, initial, ts_out, resets)
     if not batch_engine_applies(True, adjoint, opts.batch_steps) or not _traced(args):
-        return _dispatch.run_program(opts.programs, "simulate_gaits", _simulate_gaits, _rebuild, *args, *flat)
-    return _dispatch.solve(
-        _simulate_gaits, _rebuild, args, flat, steps_layout(opts.batch_steps, opts.throw), opts.programs
-    )
+        return run_program("simulate_gaits", _simulate_gaits, _rebuild, *args, *flat)
+    return _dispatch.solve(_simulate_gaits, _rebuild, args, flat, steps_layout(opts.batch_steps, opts.throw))
 
 
 @eqx.filter_jit  # one compiled program per kind of gait, not one per operation

@@ -152,9 +152,6 @@ def fit(
       keyword given wins over its field. `throw` and `batch_steps` are fit's own: a failed solve is a
       start of infinite cost, and forward-mode derivatives give every trial its own steps.
       `adjoint` set is an error (fit differentiates in forward mode, `diffrax.ForwardMode`).
-      `programs` runs the fit's residual, Jacobian and step programs: a `jsphere.FastStart`
-      keeps them, exported, so that the next process's fit of the same shapes skips tracing them
-      (`jsphere fit` passes its cache's).
     - `checkpoint`: a file (`.npz`) written atomically after every Adam and Levenberg-Marquardt
       step with the optimiser's whole state; a fit with the same data and configuration resumes
       from it to the same result, bit for bit, wherever it was stopped (`restart=True` ignores
@@ -215,7 +212,7 @@ def fit(
         max_time_offset=max_offset,
         loss=loss,
     )
-    run, st = _setup(data, fp_, params, options, checkpoint, prog, t_begin, solve.programs)
+    run, st = _setup(data, fp_, params, options, checkpoint, prog, t_begin)
     _resume(run, st, restart)
     run.say(
         f"fit: {run.T} trials ({data.kind}), {sum(data.lengths)} samples, {run.P} free parameters + {run.n_nu} nuisance per "
@@ -412,7 +409,6 @@ class _Run:
     adam: optax.GradientTransformation
     adam_shapes: tuple[tuple[int, ...], ...]
     checkpoint: Path | None
-    programs: Any  # `SolverOptions.programs`: how the programs of `fns` run (None: directly)
     fingerprint: str
     progress: Progress
     t_begin: float
@@ -480,7 +476,6 @@ def _setup(
     checkpoint,
     progress: Progress,
     t_begin,
-    programs=None,
 ) -> tuple[_Run, _State]:
     """The run and its first state: the starts (the only random numbers of a fit, drawn from
     `seed`, part of the fingerprint), the segments of multiple shooting, Adam."""
@@ -523,7 +518,6 @@ def _setup(
         adam=opt,
         adam_shapes=tuple(np.shape(a) for a in jax.tree_util.tree_leaves(adam)),
         checkpoint=Path(checkpoint) if checkpoint is not None else None,
-        programs=programs,
         fingerprint=_config_fingerprint(data, free, o.config(sig, multiple)),
         progress=progress,
         t_begin=t_begin,
@@ -648,7 +642,7 @@ def _compile_ahead(run: _Run, st: _State) -> None:
     def work():
         t0 = time.perf_counter()
         try:
-            run.fns.compile(run.programs, "jacobian", *args)
+            run.fns.compile("jacobian", *args)
         except Exception:  # noqa: BLE001 - the first call compiles it again and says what fails
             return
         run.progress.compiled("fit", key, time.perf_counter() - t0)
@@ -674,9 +668,7 @@ def _evaluate_single(run: _Run, st: _State, th, n):
     """Cost `(S,)` (inf for a failed start), residuals, Jacobian and poses of single shooting."""
     with run.progress.compiling("fit", _program(run, "single"), "fit: single shooting"):
         _wait_ahead(st)
-        res, ok, J, pose = run.fns.run(
-            run.programs, "jacobian", run.base, to_jax(th), to_jax(n), run.arrays, to_jax(st.sig)
-        )
+        res, ok, J, pose = run.fns.run("jacobian", run.base, to_jax(th), to_jax(n), run.arrays, to_jax(st.sig))
         res, ok = np.asarray(res), np.asarray(ok)
     loss = run.options.stage_loss(st.stage)
     if loss == "l2":
@@ -698,7 +690,7 @@ def _weighted(run: _Run, loss: str, res, J):
 
 def _solve_single(run: _Run, st: _State, out, lam):
     res, J = _weighted(run, run.options.stage_loss(st.stage), out["res"], out["J"])
-    dg, dn, pred = run.fns.run(run.programs, "step", to_jax(res), J, to_jax(lam))
+    dg, dn, pred = run.fns.run("step", to_jax(res), J, to_jax(lam))
     return (np.asarray(dg), np.asarray(dn)), np.asarray(pred)
 
 
@@ -710,18 +702,16 @@ def _evaluate_multiple(run: _Run, st: _State, mu: float, th, n):
         args = (run.base, to_jax(th), to_jax(n), ms.arrays, to_jax(st.sig))
         if st.ahead is None:  # single shooting's program compiles meanwhile (`_compile_ahead`)
             try:
-                run.fns.compile(run.programs, "segments", *args, traced=lambda: _compile_ahead(run, st))
+                run.fns.compile("segments", *args, traced=lambda: _compile_ahead(run, st))
             except Exception:  # noqa: BLE001 - the call below compiles it again and says what fails
                 pass
-        res, ok, J, pose, e, Je = run.fns.run(run.programs, "segments", *args)
+        res, ok, J, pose, e, Je = run.fns.run("segments", *args)
         excess, loss = 0.0, run.options.stage_loss(st.stage)
         if loss != "l2":  # the weighted squares replaced by the robust cost
             res, J, excess = reweigh_with_excess(loss, res, J)
             excess = np.asarray(excess)
         # (`mu` an array: one program for every level)
-        blocks, cost, dfc = run.fns.run(
-            run.programs, "assemble", res, J, e, Je, to_jax(n), to_jax(mu), ms.seg_arrays, ms.scale
-        )
+        blocks, cost, dfc = run.fns.run("assemble", res, J, e, Je, to_jax(n), to_jax(mu), ms.seg_arrays, ms.scale)
         ok = np.asarray(ok)
     cost = np.where(ok.all(1), np.asarray(cost) + excess, np.inf)
     st.last.update(pose=pose, ok=ok, data=ms.seg.data)
@@ -730,7 +720,7 @@ def _evaluate_multiple(run: _Run, st: _State, mu: float, th, n):
 
 def _solve_multiple(run: _Run, out, lam):
     ms = run.shooting
-    dg, dn, pred = run.fns.run(run.programs, "solve", out["blocks"], to_jax(lam))
+    dg, dn, pred = run.fns.run("solve", out["blocks"], to_jax(lam))
     dn = np.asarray(dn).reshape(run.S, run.T, ms.Gmax, run.n_nu)[:, ms.seg.trial, ms.position]
     return (np.asarray(dg), dn), np.asarray(pred)
 

@@ -29,13 +29,12 @@ from jax.sharding import NamedSharding, PartitionSpec
 
 from .._runtime.arrays import to_jax
 from .._runtime.cores import split_devices, trial_mesh
-from .._runtime.quick_compile import eager_jit
+from .._runtime.quick_compile import compile_program, eager_jit, run_program
 from ..controls import Sampled, Torques, WheelSpeeds
 from ..model.kinematics import relative_rate_from_wheel_speeds
 from ..model.rotations import quat_conj, quat_exp, quat_log, quat_mul
 from ..model.state import State
 from ..numerics.lm import arrow_step, solve_arrow
-from ..solve.batched.dispatch import compile_program, run_program
 from ..solve.simulate import simulate
 from . import shooting as _shooting
 from .data import offset_from_nuisance
@@ -203,28 +202,31 @@ class _Functions:
         )
         return self._split[name], placed, True
 
-    def run(self, programs, name: str, *args):
-        """`self.<name>(*args)` (split over devices with `split`), or `programs(...)` in its
-        place (`SolverOptions.programs`: a `jsphere.FastStart` keeps the program, exported, for
-        the next process)."""
+    def run(self, name: str, *args):
+        """`self.<name>(*args)` (split over devices with `split`), through `run_program` where
+        the program has a stable key (the command line keeps it, exported, for the next process)."""
         fn, args, split = self._program(name, args)
-        if programs is None or self.key is None:
+        if self.key is None:
             out = fn(*args)
         else:
             rebuild = functools.partial(jax.tree_util.tree_unflatten, _OUTPUTS[name])
-            out = run_program(programs, f"fit.{name}:{self.key}:{split}", fn, rebuild, *args)
+            out = run_program(f"fit.{name}:{self.key}:{split}", fn, rebuild, *args)
         if not split:
             return out
         # on the default device, uncommitted as every other program's inputs are (a committed
         # array would compile each later program again)
         return jax.tree_util.tree_map(lambda a: to_jax(np.asarray(a)), out)
 
-    def compile(self, programs, name: str, *args, traced: Callable = lambda: None) -> None:
-        """Compile the program `run(programs, name, *args)` runs, without running it;
-        `traced()` is called once it is traced, before XLA compiles it."""
+    def compile(self, name: str, *args, traced: Callable = lambda: None) -> None:
+        """Compile the program `run(name, *args)` runs, without running it; `traced()` is
+        called once it is traced, before XLA compiles it."""
         fn, args, split = self._program(name, args)
-        name = f"fit.{name}:{self.key}:{split}"
-        compile_program(None if self.key is None else programs, name, fn, *args, traced=traced)
+        if self.key is None:
+            lowered = fn.lower(*args)
+            traced()
+            lowered.compile()
+        else:
+            compile_program(f"fit.{name}:{self.key}:{split}", fn, *args, traced=traced)
 
 
 def _devices(nu) -> list:

@@ -163,7 +163,7 @@ def monte_carlo(
       its field. `throw` and `batch_steps` are
       monte_carlo's own: a failed trial is reported in `status`, and every trial takes its own
       steps, so that its result does not depend on the other trials of its chunk. `adjoint`
-      and `programs` set are errors (nothing is differentiated; the solves are batched). A
+      set is an error (nothing is differentiated). A
       solver other than `Dopri8` is part of the study's fingerprint.
 
     Every argument is checked before any work; a bad one raises `InputError` naming it.
@@ -284,7 +284,6 @@ def _solver_options(options: SolverOptions | None, rtol, atol, max_steps, settin
         options,
         where="monte_carlo",
         adjoint="monte_carlo does not differentiate its solves",
-        programs="monte_carlo's solves are batched (traced), never eager",
     )
     opts = solver_options(options, where="monte_carlo", rtol=rtol, atol=atol, max_steps=max_steps)
     opts = opts.or_defaults(max_steps=MAX_STEPS)

@@ -208,19 +208,19 @@ def test_single_shootings_program_compiles_in_a_thread_while_multiple_shooting_r
     calls, compiles, first_call = [], [], []
     original_compile, original_run = _Functions.compile, _Functions.run
 
-    def compile_(self, programs, name, *args, traced=lambda: None):
+    def compile_(self, name, *args, traced=lambda: None):
         calls.append((name, threading.current_thread().name))
-        original_compile(self, programs, name, *args, traced=traced)
+        original_compile(self, name, *args, traced=traced)
         calls.append((name, "done"))
 
-    def run(self, programs, name, *args):
+    def run(self, name, *args):
         if name == "jacobian" and not any(c[0] == "run jacobian" for c in calls):
             calls.append(("run jacobian", threading.current_thread().name))
             before = len(compiles)
-            out = original_run(self, programs, name, *args)
+            out = original_run(self, name, *args)
             first_call.append(len(compiles) - before)  # programs XLA compiled meanwhile
             return out
-        return original_run(self, programs, name, *args)
+        return original_run(self, name, *args)
 
     def listen(event, duration, **_):
         if event.endswith("backend_compile_duration") and threading.current_thread().name == "MainThread":
