@@ -8,7 +8,6 @@ import contextvars
 import math
 from typing import Callable, Sequence
 
-import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -30,8 +29,8 @@ from ..model.state import Flat, State
 from ..numerics import trig
 from ..solve.batched import dispatch as _dispatch
 from ..solve.batched.components import gait_field_components, unit
-from ..solve.batched.field_args import FieldArgs
 from ..solve.batched.layout import Layout, steps_layout
+from ..solve.field_args import FieldArgs
 from ..solve.internal import kin_rates as _kin_rates
 from ..solve.internal import rebuild as _rebuild
 from ..solve.options import DEFAULT_TOLERANCES, SolverOptions, solver_options
@@ -294,14 +293,8 @@ def simulate_gaits(
     ts: Float[ArrayLike, " T"] | None = None,
     reset: bool | Sequence = False,
     rate: float = 100.0,
-    rtol: float | None = None,
-    atol: float | None = None,
-    solver: dfx.AbstractSolver | None = None,
-    max_steps: int | None = None,
-    throw: bool | None = None,
-    adjoint: dfx.AbstractAdjoint | None = None,
-    batch_steps: str | None = None,
     options: SolverOptions | None = None,
+    **shortcuts,
 ) -> Trajectory:
     """Execute a sequence of gaits (Section 4) and return the motion, torques and wheel rates.
 
@@ -333,8 +326,8 @@ def simulate_gaits(
       diffrax's own `vmap` of the flat state, as `simulate` does.
     - `solver`, `max_steps`, `throw`, `adjoint`: as in `simulate`.
     - `options`: a `SolverOptions` (any of `rtol`, `atol`, `solver`, `max_steps`, `throw`,
-      `adjoint`, `batch_steps`); a keyword given wins over its field, as in
-      `simulate`.
+      `adjoint`, `batch_steps`); each is also a keyword, as above, which wins over its field,
+      as in `simulate`.
 
     Returns a `Trajectory`; `segment` tells which gait each sample belongs to.
     """
@@ -350,17 +343,7 @@ def simulate_gaits(
         resets = list(reset)
         if len(resets) != nb:
             raise ValueError(f"simulate_gaits: reset needs one entry per gait boundary ({nb}); got {len(resets)}.")
-    opts = solver_options(
-        options,
-        where="simulate_gaits",
-        rtol=rtol,
-        atol=atol,
-        solver=solver,
-        max_steps=max_steps,
-        throw=throw,
-        adjoint=adjoint,
-        batch_steps=batch_steps,
-    )
+    opts = solver_options(options, where="simulate_gaits", **shortcuts)
     dt = params.R0.dtype
     rtol, atol = opts.tolerances(dt, GAIT_TOLERANCES, where="simulate_gaits")
     initial = tuple(as_array(v, dt) for v in (alpha0, beta0, Omega0, x0, y0))

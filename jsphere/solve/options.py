@@ -125,9 +125,13 @@ def _at_default(options: SolverOptions, name: str) -> bool:
 
 
 def solver_options(options: SolverOptions | None, *, where: str, **shortcuts) -> SolverOptions:
-    """`options` (default `SolverOptions()`) with the keyword shortcuts given (`given`)."""
+    """`options` (default `SolverOptions()`) with the keyword shortcuts given (`given`); a
+    keyword that is no field of `SolverOptions` is a `TypeError` naming it."""
     if options is not None and not isinstance(options, SolverOptions):
         raise TypeError(f"{where}: options must be a jsphere.SolverOptions; got {type(options).__name__}.")
+    unknown = sorted(set(shortcuts) - {f.name for f in dataclasses.fields(SolverOptions)})
+    if unknown:
+        raise TypeError(f"{where}() got an unexpected keyword argument {unknown[0]!r}.")
     return (SolverOptions() if options is None else options).given(**shortcuts)
 
 

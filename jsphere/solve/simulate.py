@@ -3,7 +3,7 @@ commanded wheel speeds."""
 
 from __future__ import annotations
 
-from typing import Any, Callable, Literal
+from typing import Any, Callable
 
 import diffrax as dfx
 import equinox as eqx
@@ -60,14 +60,8 @@ def simulate(
     *,
     t0: float = 0.0,
     ts: Float[ArrayLike, " T"] | None = None,
-    rtol: float | None = None,
-    atol: float | None = None,
-    solver: dfx.AbstractSolver | None = None,
-    max_steps: int | None = None,
-    throw: bool | None = None,
-    adjoint: dfx.AbstractAdjoint | None = None,
-    batch_steps: Literal["shared", "per_trial", "diffrax"] | None = None,
     options: SolverOptions | None = None,
+    **shortcuts,
 ) -> Trajectory:
     """Integrate the equations of motion (3.4), (3.5) with (2.2)-(2.4) from `state0`.
 
@@ -106,8 +100,8 @@ def simulate(
       (Speed: `docs/performance.md`.)
     - `max_steps`: the most steps a segment may take (default 16384).
     - `options`: a `SolverOptions` holding any of `rtol`, `atol`, `solver`, `max_steps`,
-      `throw`, `adjoint`, `batch_steps` (each keyword above is a shortcut of its
-      field: a keyword given wins over `options`).
+      `throw`, `adjoint`, `batch_steps`. Each of these is also a keyword of `simulate`, as
+      above (a shortcut of its field: a keyword given wins over `options`).
 
     Pure JAX: jit, vmap (over parameters, states, controls) and grad work.
     """
@@ -127,17 +121,7 @@ def simulate(
         )
     if state0.chi.shape[-1] != params.n_wheels:
         raise ValueError(f"simulate: state0.chi has {state0.chi.shape[-1]} wheels but params has {params.n_wheels}.")
-    opts = solver_options(
-        options,
-        where="simulate",
-        rtol=rtol,
-        atol=atol,
-        solver=solver,
-        max_steps=max_steps,
-        throw=throw,
-        adjoint=adjoint,
-        batch_steps=batch_steps,
-    )
+    opts = solver_options(options, where="simulate", **shortcuts)
     dt = params.R0.dtype
     rtol, atol = opts.tolerances(dt)
     ts_out = None if ts is None else as_array(ts, dt)
