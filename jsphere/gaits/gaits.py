@@ -4,7 +4,7 @@ control-free equation; torques `K(t)` and wheel rates `chi_dot(t)` as outputs.
 
 from __future__ import annotations
 
-import contextvars
+import inspect
 import math
 from typing import Callable, Sequence
 
@@ -38,26 +38,37 @@ from ..solve.segments import solve_segments
 from ..solve.simulate import batch_engine_applies
 from ..solve.trajectory import Trajectory, assemble, raise_on_failure
 
-#: Whether the kinematics being traced are a batched solve's (`Gait.kinematics_components`).
-_BATCHED = contextvars.ContextVar("jsphere_gait_kinematics_batched", default=False)
+
+def sincos(x, elementwise: bool = False):
+    """`(sin x, cos x)` for the gaits: with `elementwise`, `jsphere.numerics.trig`'s
+    elementwise polynomials (a batched solve's kinematics, where each trial evaluates its own);
+    XLA's own functions otherwise (a single solve evaluates one of each per stage, and the
+    polynomials cost it compile time: docs/decisions/sine-and-cosine-in-elementwise-arithmetic.md)."""
+    return trig.sincos(x) if elementwise else (jnp.sin(x), jnp.cos(x))
 
 
-def sincos(x):
-    """`(sin x, cos x)` for the gaits: `jsphere.numerics.trig`'s elementwise polynomials while
-    a batched solve's kinematics are traced, where each trial evaluates its own; XLA's own
-    functions elsewhere (a single solve evaluates one of each per stage, and the polynomials
-    cost it compile time: docs/decisions/sine-and-cosine-in-elementwise-arithmetic.md)."""
-    return trig.sincos(x) if _BATCHED.get() else (jnp.sin(x), jnp.cos(x))
-
-
-def sin(x):
+def sin(x, elementwise: bool = False):
     """`sin x` as `sincos` chooses it."""
-    return trig.sin(x) if _BATCHED.get() else jnp.sin(x)
+    return trig.sin(x) if elementwise else jnp.sin(x)
 
 
-def cos(x):
+def cos(x, elementwise: bool = False):
     """`cos x` as `sincos` chooses it."""
-    return trig.cos(x) if _BATCHED.get() else jnp.cos(x)
+    return trig.cos(x) if elementwise else jnp.cos(x)
+
+
+class Profile(eqx.Module):
+    """A function of time of jsphere's (`SinSquared`, `Smooth`, ...) whose sines and cosines
+    may be evaluated elementwise: `profile(t, elementwise=True)` (`sincos`)."""
+
+    def __call__(self, t, *, elementwise: bool = False):
+        raise NotImplementedError
+
+
+def at(f: Callable, t, elementwise: bool = False):
+    """`f(t)`, with `elementwise` passed on where `f` is a `Profile` (a function of one's own
+    evaluates its sines and cosines its own way)."""
+    return f(t, elementwise=elementwise) if isinstance(f, Profile) else f(t)
 
 
 def _real(x):
@@ -71,7 +82,7 @@ def _real(x):
     return as_array(x, dtype)
 
 
-class SinSquared(eqx.Module):
+class SinSquared(Profile):
     """`amplitude * sin^2(pi t / period)`: the paper's tilt profile of (5.1), (5.3), (5.6).
 
     Starts and ends (at whole multiples of `period`) with zero value and zero rate, as the
@@ -81,8 +92,8 @@ class SinSquared(eqx.Module):
     amplitude: Float[Array, ""] = eqx.field(converter=_real)
     period: Float[Array, ""] = eqx.field(converter=_real, default=1.0)
 
-    def __call__(self, t):
-        return self.amplitude * sin(jnp.pi * t / self.period) ** 2
+    def __call__(self, t, *, elementwise: bool = False):
+        return self.amplitude * sin(jnp.pi * t / self.period, elementwise) ** 2
 
 
 def _zero(t):
@@ -120,9 +131,11 @@ class Gait(eqx.Module):
         if not isinstance(self.T, jax.core.Tracer) and not 0 < float(self.T) < math.inf:
             raise InputError(f"Gait.T must be a positive duration in seconds; got {float(self.T)}.")
 
-    def gamma(self, Qm, t):
-        """`gamma(t)` of (4.2), rotated to the robot's rest attitude by `Q_m`."""
-        (st, ct), (sp, cp) = sincos(self.theta(t)), sincos(self.phi(t))
+    def gamma(self, Qm, t, *, elementwise: bool = False):
+        """`gamma(t)` of (4.2), rotated to the robot's rest attitude by `Q_m` (`elementwise`:
+        as `sincos`; a subclass's `gamma` need not take it)."""
+        e = elementwise
+        (st, ct), (sp, cp) = sincos(at(self.theta, t, e), e), sincos(at(self.phi, t, e), e)
         return matvec(Qm, jnp.stack([st * cp, st * sp, ct]))
 
     def kinematics(self, Qm, t):
@@ -139,30 +152,24 @@ class Gait(eqx.Module):
         """`kinematics` as a 9-tuple of scalars `(gamma, omega, omega_dot)`, for batched solves:
         under `vmap` every component is one contiguous vector (faster than the stacked
         3-vectors, `docs/performance.md`). A subclass that overrides
-        `gamma` is differentiated through its own `gamma`. Its sines and cosines are
-        `jsphere.numerics.trig`'s (`sincos`)."""
-        token = _BATCHED.set(True)
-        try:
-            return self._kinematics_components(Qm, t)
-        finally:
-            _BATCHED.reset(token)
-
-    def _kinematics_components(self, Qm, t) -> tuple:
+        `gamma` is differentiated through its own `gamma`. Its sines and cosines, and those of
+        its `Profile`s, are `jsphere.numerics.trig`'s (`sincos(..., elementwise=True)`)."""
         if type(self).gamma is Gait.gamma:
 
             def gamma(u):
-                (st, ct), (sp, cp) = sincos(self.theta(u)), sincos(self.phi(u))
+                (st, ct), (sp, cp) = sincos(at(self.theta, u, True), True), sincos(at(self.phi, u, True), True)
                 v = (st * cp, st * sp, ct)
                 return tuple(Qm[i, 0] * v[0] + Qm[i, 1] * v[1] + Qm[i, 2] * v[2] for i in range(3))
         else:
+            takes = "elementwise" in inspect.signature(type(self).gamma).parameters
 
             def gamma(u):
-                g = self.gamma(Qm, u)
+                g = self.gamma(Qm, u, elementwise=True) if takes else self.gamma(Qm, u)
                 return (g[0], g[1], g[2])
 
         def omega_fn(s):
             g, g_dot = jax.jvp(gamma, (s,), (jnp.ones_like(s),))
-            og = self.omega_gamma(s)
+            og = at(self.omega_gamma, s, True)
             c = (
                 g_dot[1] * g[2] - g_dot[2] * g[1],
                 g_dot[2] * g[0] - g_dot[0] * g[2],
