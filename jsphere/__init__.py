@@ -23,7 +23,6 @@ __version__ = "0.1.0"
 _EXPORTS = {
     "_runtime.compilation_cache": ("enable_compilation_cache",),
     "_runtime.cores": ("shard_trials", "use_cpu_cores"),
-    "_runtime.fast_start": ("FastStart",),
     "_runtime.errors": ("ExitCode", "InputError", "SolverFailure"),
     "_runtime.precision": ("PrecisionWarning", "enable_x64"),
     "capture.body": ("read_body_markers",),

@@ -2,9 +2,9 @@
 
 `enable_compilation_cache(path)` switches on JAX's persistent compilation cache (every
 executable kept, however quick its compilation or small its size), so that a new process
-loads the programs an earlier one compiled instead of compiling them again. Exported solves,
-which also skip tracing, are kept beside them by `jsphere.FastStart(path)` where a caller asks
-for it (`SolverOptions(programs=...)`; the command line does).
+loads the programs an earlier one compiled instead of compiling them again. The command line
+also keeps its solves exported beside them, which skips tracing too
+(`jsphere.cli.compilation.fast_start`).
 
 JAX never writes an executable that contains a host callback. jsphere's programs hold none:
 equinox's run-time checks inside them (`eqx.error_if`, used by diffrax, e.g. on
@@ -44,8 +44,8 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     Switches on JAX's persistent compilation cache (a setting of JAX for the whole process)
     with no thresholds: every program is written, as the eager operations around a solve
     compile in milliseconds each, and reloading them is still cheaper than compiling them
-    again. Returns the directory used (created if missing); `jsphere.FastStart(path)` keeps
-    exported solves in the same directory.
+    again. Returns the directory used (created if missing); the command line keeps exported
+    solves in the same directory.
 
     Programs with host callbacks are not written by JAX: jsphere's own programs have none
     (module docstring); inside your own `jax.jit`, pass `throw=False` and read

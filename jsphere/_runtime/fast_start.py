@@ -2,9 +2,9 @@
 process skips tracing them.
 
 A solve is pure: `simulate` and `simulate_gaits` compile their program in this process and
-keep nothing else. Where a process's first calls matter (the command line, a script run again
-and again), the caller passes a `FastStart(path)` as `SolverOptions(programs=...)`; it runs
-each program of a call with concrete inputs (`_simulate`, `_simulate_gaits`, an eager
+keep nothing else. Where a process's first calls matter (the command line), the application
+runs its solves' programs through a `FastStart(path)`
+(`jsphere._runtime.quick_compile.programs_run_by`); it runs each program of a call with concrete inputs (`_simulate`, `_simulate_gaits`, an eager
 gradient's programs) in its place, exported once with `jax.export` (traced with equinox's
 run-time checks in their `nan` mode, `jsphere._runtime.private.callbacks_as_nan`, as jsphere's
 programs always are: host callbacks cannot be serialised; a failed solve is reported by its
@@ -48,9 +48,9 @@ _FUNCTION_MODULES = ("jsphere.", "jax.", "jax", "numpy")
 
 class FastStart:
     """Runs the programs of solves with concrete inputs as programs exported to `path/aot`,
-    kept for later processes (`SolverOptions(programs=FastStart(path))`).
+    kept for later processes (`jsphere._runtime.quick_compile.programs_run_by(FastStart(path))`).
 
-    `jsphere reproduce` and the other commands pass `FastStart(<cache>)`, the cache of
+    `jsphere reproduce`, `fit`, `plan` and `montecarlo` run through `FastStart(<cache>)`, the cache of
     `jsphere.enable_compilation_cache`. The folder is trusted code: do not point it at a
     directory that others can write to.
 

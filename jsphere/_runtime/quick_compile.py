@@ -23,9 +23,10 @@ solve reports a failure through its status instead (a failed check makes values 
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
-from typing import Callable
+from typing import Callable, Iterator
 
 import equinox as eqx
 import jax
@@ -113,3 +114,46 @@ def jit_concrete(fn: Callable) -> Callable:
     (an exported program's `call`)."""
     opts = options()
     return jax.jit(fn, compiler_options=opts) if opts else jax.jit(fn)
+
+
+#: how the named programs of calls with concrete inputs run in this process (`run_program`):
+#: `[None]`, directly; the command line sets a `jsphere._runtime.fast_start.FastStart` (for
+#: the whole process, so that a thread compiling ahead runs the same programs)
+_RUNNER: list = [None]
+
+
+@contextlib.contextmanager
+def programs_run_by(runner: Callable | None) -> Iterator[None]:
+    """While the block runs (in any thread), `run_program(name, fn, rebuild, *args)` is `runner(name, fn,
+    rebuild, *args)` (the application's choice: the command line keeps its programs exported
+    for the next process, `jsphere.cli.compilation.fast_start`)."""
+    previous, _RUNNER[0] = _RUNNER[0], runner
+    try:
+        yield
+    finally:
+        _RUNNER[0] = previous
+
+
+def run_program(name: str, fn: Callable, rebuild: Callable, *args):
+    """`fn(*args)`, or the runner's `runner(name, fn, rebuild, *args)` in its place where the
+    application set one (`programs_run_by`). `fn` returns a pytree of arrays and
+    `rebuild(leaves)` makes it again from its leaves; `name` names the program."""
+    runner = _RUNNER[0]
+    return fn(*args) if runner is None else runner(name, fn, rebuild, *args)
+
+
+def compile_program(name: str, fn: Callable, *args, traced: Callable = lambda: None) -> None:
+    """Compile what `run_program(name, fn, rebuild, *args)` runs, without running it:
+    `fn.lower(*args).compile()` (`fn` an `eager_jit` function), or `runner.compile(name, fn,
+    *args, traced=traced)` where the runner has that method; for other runners nothing is
+    compiled. `traced()` is called once the program is traced and lowered, before XLA compiles
+    it (which releases Python's lock)."""
+    runner = _RUNNER[0]
+    if runner is None:
+        lowered = fn.lower(*args)
+        traced()
+        lowered.compile()
+    elif hasattr(runner, "compile"):
+        runner.compile(name, fn, *args, traced=traced)
+    else:
+        traced()

@@ -84,6 +84,10 @@ def _exit_codes(text: str, command: str) -> str:
 _RESUME = " after saving what was finished; rerun to resume"
 
 
+#: the commands whose solves run their programs exported, kept for the next run (`fast_start`)
+_EXPORTING = (fit.NAME, plan.NAME, reproduce.NAME, montecarlo.NAME)
+
+
 def main(argv=None) -> int:
     """Run `jsphere` with the arguments `argv` (default: the process's); return its exit code."""
     args = parser().parse_args(argv)
@@ -92,8 +96,7 @@ def main(argv=None) -> int:
     with _messages(args):
         _float64()
         _cores()
-        with fast_start(cache=not args.no_cache) as programs:
-            args.programs = programs  # the commands' solves run their programs through it
+        with fast_start(cache=not args.no_cache, export=args.command in _EXPORTING):
             return _run(args)
 
 

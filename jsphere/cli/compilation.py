@@ -18,10 +18,11 @@ _FAST_STARTS: dict = {}
 
 
 @contextlib.contextmanager
-def fast_start(cache: bool = True) -> Iterator:
-    """While a command runs, with `cache`: its solves' programs kept for the next run. Yields
-    the `jsphere.FastStart` the command passes to its solves (`SolverOptions(programs=...)`),
-    or `None` without `cache`.
+def fast_start(cache: bool = True, export: bool = True) -> Iterator:
+    """While a command runs, with `cache`: its programs kept for the next run, and with
+    `export` too, its solves' programs run through a `FastStart` of that cache
+    (`jsphere._runtime.quick_compile.programs_run_by`), exported for the next process. Yields
+    that `FastStart`, or `None`.
 
     With `cache`: XLA executables persist between processes in the library's one cache
     (`jsphere.enable_compilation_cache`: `$JSPHERE_CACHE_DIR`, else
@@ -37,6 +38,7 @@ def fast_start(cache: bool = True) -> Iterator:
     from .._runtime.compilation_cache import default_cache_dir, enable_compilation_cache
     from .._runtime.fast_start import FastStart
     from .._runtime.private import equinox_errors_as, equinox_on_error
+    from .._runtime.quick_compile import programs_run_by
 
     if not cache:
         yield None
@@ -48,8 +50,9 @@ def fast_start(cache: bool = True) -> Iterator:
         yield None
         return
     quiet = "EQX_ON_ERROR" in os.environ or equinox_on_error() != "raise"
-    with contextlib.nullcontext() if quiet else equinox_errors_as("nan"):
-        yield _FAST_STARTS.setdefault(folder, FastStart(folder))
+    runner = _FAST_STARTS.setdefault(folder, FastStart(folder)) if export else None
+    with contextlib.nullcontext() if quiet else equinox_errors_as("nan"), programs_run_by(runner):
+        yield runner
 
 
 def compile_for_one_run() -> bool:

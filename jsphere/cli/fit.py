@@ -156,7 +156,6 @@ def run(args) -> int:
 def fit_options(args):
     """The `FitOptions` of the command's flags (the one place that maps them)."""
     from ..identify.options import FitOptions
-    from ..solve.options import SolverOptions
 
     sigma_rot = None if args.sigma_rot_deg is None else args.sigma_rot_deg * 3.141592653589793 / 180.0
     return FitOptions(
@@ -170,7 +169,6 @@ def fit_options(args):
         fit_time_offset=args.fit_time_offset,
         max_time_offset=args.max_time_offset,
         loss=args.loss,
-        solver=SolverOptions(programs=args.programs),
     )
 
 

@@ -152,7 +152,6 @@ def _finish(args, params, gaits, study: dict, res, out: Path) -> int:
     from .._runtime.errors import InputError, SolverFailure
     from .._runtime.files import atomic_write_json
     from ..gaits.gaits import simulate_gaits
-    from ..solve.options import SolverOptions
 
     if args.distributed and jax.process_index() != 0:
         return 0  # process 0 writes the files and the summary
@@ -160,8 +159,7 @@ def _finish(args, params, gaits, study: dict, res, out: Path) -> int:
     if o.track is not None:  # the table's last reference: where the controller holds the robot
         st["planned_stop_m"] = [float(o.track["x"][-1]), float(o.track["y"][-1])]
     elif o.commands is None:
-        fast = SolverOptions(programs=args.programs)
-        planned = simulate_gaits(params, gaits, reset=o.reset, options=fast)
+        planned = simulate_gaits(params, gaits, reset=o.reset)
         st["planned_stop_m"] = [float(planned.x[-1]), float(planned.y[-1])]
     else:
         st["planned_stop_m"] = replayed_stop(params, o)

@@ -104,7 +104,6 @@ def run(args) -> int:
     from .._runtime.files import atomic_write_json, check_output
     from ..model.params import RobotParams
     from ..planning.plan import plan
-    from ..solve.options import SolverOptions
 
     out = Path(args.out)
     writes = [out.with_suffix(".json"), *([] if args.no_plots else [out.with_suffix(".png")])]
@@ -125,8 +124,7 @@ def run(args) -> int:
         source = (
             f"{args.params} with the means of {args.robust}" if args.params else f"the nominal robot of {args.robust}"
         )
-    options = SolverOptions(programs=args.programs)  # the verifications' program kept for the next run
-    request["options"] = options
+    request["options"] = None  # the verifications' program is kept for the next run (`fast_start`)
     pl = plan(params, tuple(args.to), allow_infeasible=True, **request)
     robust = _robust(args, params, uncertainty, pl, request) if args.robust else None
     pl = robust.plan if robust else pl

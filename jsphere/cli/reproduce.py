@@ -58,7 +58,6 @@ def run(args) -> int:
     from ..model.params import RobotParams
     from ..paper.reproduce import reproduce
     from ..plots import REPRODUCTION_FIGURES as figures
-    from ..solve.options import SolverOptions
 
     out = Path(args.out)
     writes = [out / "reproduce.json", *([] if args.no_plots else [out / f for f in figures])]
@@ -69,7 +68,10 @@ def run(args) -> int:
     loader = None if args.no_plots else _preload_matplotlib()
     program = repr((sorted(params.to_dict().items()), not args.no_full_stop))
     with Progress(progress(args)).compiling("reproduce", program, "jsphere reproduce"):
-        rep = reproduce(params, full_stop=not args.no_full_stop, options=SolverOptions(programs=args.programs))
+        rep = reproduce(
+            params,
+            full_stop=not args.no_full_stop,
+        )
     print(rep.table())
     atomic_write_json(out / "reproduce.json", {"rows": [r.__dict__ for r in rep.rows], "values": rep.values})
     written = [out / "reproduce.json"]

@@ -46,7 +46,7 @@ from ..model.kinematics import relative_rate_from_wheel_speeds
 from ..model.params import RobotParams, derive
 from ..model.rotations import quat_conj, quat_exp, quat_log, quat_mul, rotmat
 from ..model.state import Flat, State
-from ..solve.batched.field_args import FieldArgs
+from ..solve.field_args import FieldArgs
 from ..solve.fixed_grid import Rollout, integrate
 from ..solve.internal import torque_field, wheel_field
 from .inputs import Programme, Spec, coefficients, programme
@@ -99,7 +99,7 @@ def rk4_rollout(p: RobotParams, kind: str, prog: Programme, nu, q_rest, grid: Gr
     ts = jnp.asarray(grid.times(T), dt)
     control = Torques(prog) if kind == "torques" else WheelSpeeds(prog)
     field = torque_field if kind == "torques" else wheel_field
-    args = FieldArgs(p, d, control, jnp.zeros((), dt), jnp.asarray(T + 1.0, dt))
+    args = FieldArgs(params=p, derived=d, control=control)
     z0 = initial_state(p, kind, nu, q_rest, prog(jnp.zeros((), dt))).flatten().astype(dt)
     gm = -p.r_m / jnp.linalg.norm(p.r_m)
 

@@ -31,10 +31,10 @@ from jaxtyping import Array, Float
 from .._runtime.checks import finite
 from .._runtime.errors import InputError
 from ..model.linalg import matvec
-from .gaits import Gait, _real, _zero, cos, sin, sincos
+from .gaits import Gait, Profile, _real, _zero, at, cos, sin, sincos
 
 
-class Smooth(eqx.Module):
+class Smooth(Profile):
     """`sin^p(pi t/T) sum_k c_k cos(k pi t/T)` on `[0, T]` (zero outside the sum's support is
     not needed: gaits are evaluated on `[0, T]` only).
 
@@ -47,45 +47,46 @@ class Smooth(eqx.Module):
     T: Float[Array, ""] = eqx.field(converter=_real)
     power: int = eqx.field(static=True, default=3)
 
-    def __call__(self, t):
+    def __call__(self, t, *, elementwise: bool = False):
         s = t / self.T
         k = jnp.arange(self.coeffs.shape[-1], dtype=self.coeffs.dtype)
-        basis = cos(jnp.pi * k * s) * sin(jnp.pi * s) ** self.power
+        basis = cos(jnp.pi * k * s, elementwise) * sin(jnp.pi * s, elementwise) ** self.power
         return self.coeffs @ basis
 
 
-def _sinc_cos(s):
+def _sinc_cos(s, elementwise: bool = False):
     """`(sin r / r, cos r)` as smooth functions of `s = r^2` (Taylor series below `s = 1e-3`,
-    so that derivatives of every order are finite at `r = 0`)."""
+    so that derivatives of every order are finite at `r = 0`; `elementwise`: as `sincos`)."""
     small = s < 1e-3
     ss = jnp.where(small, 1.0, s)
     r = jnp.sqrt(ss)
-    sin_r, cos_r = sincos(r)
+    sin_r, cos_r = sincos(r, elementwise)
     sinc = jnp.where(small, 1.0 - s / 6 + s**2 / 120 - s**3 / 5040, sin_r / r)
     return sinc, jnp.where(small, 1.0 - s / 2 + s**2 / 24 - s**3 / 720, cos_r)
 
 
-def tilt_to_gamma(u: Float[Array, " 2"]) -> Float[Array, " 3"]:
+def tilt_to_gamma(u: Float[Array, " 2"], elementwise: bool = False) -> Float[Array, " 3"]:
     """`gamma` (before the rest-attitude rotation `Q_m`) for the tilt vector `u` [rad]:
-    `(sin|u| u/|u|, cos|u|)`, i.e. (4.2) with `theta = |u|`, `phi = atan2(u_2, u_1)`."""
-    sinc, cos_u = _sinc_cos(u[0] ** 2 + u[1] ** 2)
+    `(sin|u| u/|u|, cos|u|)`, i.e. (4.2) with `theta = |u|`, `phi = atan2(u_2, u_1)`
+    (`elementwise`: as `jsphere.gaits.gaits.sincos`)."""
+    sinc, cos_u = _sinc_cos(u[0] ** 2 + u[1] ** 2, elementwise)
     return jnp.stack([sinc * u[0], sinc * u[1], cos_u])
 
 
-class _TiltAngle(eqx.Module):
+class _TiltAngle(Profile):
     tilt: Callable
 
-    def __call__(self, t):
-        u = self.tilt(t)
-        sinc, cos_u = _sinc_cos(u[0] ** 2 + u[1] ** 2)
+    def __call__(self, t, *, elementwise: bool = False):
+        u = at(self.tilt, t, elementwise)
+        sinc, cos_u = _sinc_cos(u[0] ** 2 + u[1] ** 2, elementwise)
         return jnp.arctan2(sinc * jnp.sqrt(u[0] ** 2 + u[1] ** 2), cos_u)
 
 
-class _TiltDirection(eqx.Module):
+class _TiltDirection(Profile):
     tilt: Callable
 
-    def __call__(self, t):
-        u = self.tilt(t)
+    def __call__(self, t, *, elementwise: bool = False):
+        u = at(self.tilt, t, elementwise)
         return jnp.arctan2(u[1], u[0])
 
 
@@ -110,9 +111,9 @@ class TiltGait(Gait):
         if not isinstance(self.T, jax.core.Tracer) and not 0 < float(self.T) < math.inf:
             raise InputError(f"TiltGait.T must be a positive duration in seconds; got {float(self.T)}.")
 
-    def gamma(self, Qm, t):
+    def gamma(self, Qm, t, *, elementwise: bool = False):
         """`gamma(t) = Q_m tilt_to_gamma(u(t))`."""
-        return matvec(Qm, tilt_to_gamma(self.tilt(t)))
+        return matvec(Qm, tilt_to_gamma(at(self.tilt, t, elementwise), elementwise))
 
 
 def smooth_gait(

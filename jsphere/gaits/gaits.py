@@ -4,11 +4,10 @@ control-free equation; torques `K(t)` and wheel rates `chi_dot(t)` as outputs.
 
 from __future__ import annotations
 
-import contextvars
+import inspect
 import math
 from typing import Callable, Sequence
 
-import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -19,7 +18,7 @@ from .._runtime.arrays import as_array, under_jit
 from .._runtime.arrays import traced as _traced
 from .._runtime.checks import finite
 from .._runtime.errors import InputError
-from .._runtime.quick_compile import eager_jit
+from .._runtime.quick_compile import eager_jit, run_program
 from ..controls import Constant
 from ..model.dynamics import free_Omega_dot, required_torques
 from ..model.kinematics import rest_attitude
@@ -30,8 +29,8 @@ from ..model.state import Flat, State
 from ..numerics import trig
 from ..solve.batched import dispatch as _dispatch
 from ..solve.batched.components import gait_field_components, unit
-from ..solve.batched.field_args import FieldArgs
 from ..solve.batched.layout import Layout, steps_layout
+from ..solve.field_args import FieldArgs
 from ..solve.internal import kin_rates as _kin_rates
 from ..solve.internal import rebuild as _rebuild
 from ..solve.options import DEFAULT_TOLERANCES, SolverOptions, solver_options
@@ -39,26 +38,37 @@ from ..solve.segments import solve_segments
 from ..solve.simulate import batch_engine_applies
 from ..solve.trajectory import Trajectory, assemble, raise_on_failure
 
-#: Whether the kinematics being traced are a batched solve's (`Gait.kinematics_components`).
-_BATCHED = contextvars.ContextVar("jsphere_gait_kinematics_batched", default=False)
+
+def sincos(x, elementwise: bool = False):
+    """`(sin x, cos x)` for the gaits: with `elementwise`, `jsphere.numerics.trig`'s
+    elementwise polynomials (a batched solve's kinematics, where each trial evaluates its own);
+    XLA's own functions otherwise (a single solve evaluates one of each per stage, and the
+    polynomials cost it compile time: docs/decisions/sine-and-cosine-in-elementwise-arithmetic.md)."""
+    return trig.sincos(x) if elementwise else (jnp.sin(x), jnp.cos(x))
 
 
-def sincos(x):
-    """`(sin x, cos x)` for the gaits: `jsphere.numerics.trig`'s elementwise polynomials while
-    a batched solve's kinematics are traced, where each trial evaluates its own; XLA's own
-    functions elsewhere (a single solve evaluates one of each per stage, and the polynomials
-    cost it compile time: docs/decisions/sine-and-cosine-in-elementwise-arithmetic.md)."""
-    return trig.sincos(x) if _BATCHED.get() else (jnp.sin(x), jnp.cos(x))
-
-
-def sin(x):
+def sin(x, elementwise: bool = False):
     """`sin x` as `sincos` chooses it."""
-    return trig.sin(x) if _BATCHED.get() else jnp.sin(x)
+    return trig.sin(x) if elementwise else jnp.sin(x)
 
 
-def cos(x):
+def cos(x, elementwise: bool = False):
     """`cos x` as `sincos` chooses it."""
-    return trig.cos(x) if _BATCHED.get() else jnp.cos(x)
+    return trig.cos(x) if elementwise else jnp.cos(x)
+
+
+class Profile(eqx.Module):
+    """A function of time of jsphere's (`SinSquared`, `Smooth`, ...) whose sines and cosines
+    may be evaluated elementwise: `profile(t, elementwise=True)` (`sincos`)."""
+
+    def __call__(self, t, *, elementwise: bool = False):
+        raise NotImplementedError
+
+
+def at(f: Callable, t, elementwise: bool = False):
+    """`f(t)`, with `elementwise` passed on where `f` is a `Profile` (a function of one's own
+    evaluates its sines and cosines its own way)."""
+    return f(t, elementwise=elementwise) if isinstance(f, Profile) else f(t)
 
 
 def _real(x):
@@ -72,7 +82,7 @@ def _real(x):
     return as_array(x, dtype)
 
 
-class SinSquared(eqx.Module):
+class SinSquared(Profile):
     """`amplitude * sin^2(pi t / period)`: the paper's tilt profile of (5.1), (5.3), (5.6).
 
     Starts and ends (at whole multiples of `period`) with zero value and zero rate, as the
@@ -82,8 +92,8 @@ class SinSquared(eqx.Module):
     amplitude: Float[Array, ""] = eqx.field(converter=_real)
     period: Float[Array, ""] = eqx.field(converter=_real, default=1.0)
 
-    def __call__(self, t):
-        return self.amplitude * sin(jnp.pi * t / self.period) ** 2
+    def __call__(self, t, *, elementwise: bool = False):
+        return self.amplitude * sin(jnp.pi * t / self.period, elementwise) ** 2
 
 
 def _zero(t):
@@ -121,9 +131,11 @@ class Gait(eqx.Module):
         if not isinstance(self.T, jax.core.Tracer) and not 0 < float(self.T) < math.inf:
             raise InputError(f"Gait.T must be a positive duration in seconds; got {float(self.T)}.")
 
-    def gamma(self, Qm, t):
-        """`gamma(t)` of (4.2), rotated to the robot's rest attitude by `Q_m`."""
-        (st, ct), (sp, cp) = sincos(self.theta(t)), sincos(self.phi(t))
+    def gamma(self, Qm, t, *, elementwise: bool = False):
+        """`gamma(t)` of (4.2), rotated to the robot's rest attitude by `Q_m` (`elementwise`:
+        as `sincos`; a subclass's `gamma` need not take it)."""
+        e = elementwise
+        (st, ct), (sp, cp) = sincos(at(self.theta, t, e), e), sincos(at(self.phi, t, e), e)
         return matvec(Qm, jnp.stack([st * cp, st * sp, ct]))
 
     def kinematics(self, Qm, t):
@@ -140,30 +152,24 @@ class Gait(eqx.Module):
         """`kinematics` as a 9-tuple of scalars `(gamma, omega, omega_dot)`, for batched solves:
         under `vmap` every component is one contiguous vector (faster than the stacked
         3-vectors, `docs/performance.md`). A subclass that overrides
-        `gamma` is differentiated through its own `gamma`. Its sines and cosines are
-        `jsphere.numerics.trig`'s (`sincos`)."""
-        token = _BATCHED.set(True)
-        try:
-            return self._kinematics_components(Qm, t)
-        finally:
-            _BATCHED.reset(token)
-
-    def _kinematics_components(self, Qm, t) -> tuple:
+        `gamma` is differentiated through its own `gamma`. Its sines and cosines, and those of
+        its `Profile`s, are `jsphere.numerics.trig`'s (`sincos(..., elementwise=True)`)."""
         if type(self).gamma is Gait.gamma:
 
             def gamma(u):
-                (st, ct), (sp, cp) = sincos(self.theta(u)), sincos(self.phi(u))
+                (st, ct), (sp, cp) = sincos(at(self.theta, u, True), True), sincos(at(self.phi, u, True), True)
                 v = (st * cp, st * sp, ct)
                 return tuple(Qm[i, 0] * v[0] + Qm[i, 1] * v[1] + Qm[i, 2] * v[2] for i in range(3))
         else:
+            takes = "elementwise" in inspect.signature(type(self).gamma).parameters
 
             def gamma(u):
-                g = self.gamma(Qm, u)
+                g = self.gamma(Qm, u, elementwise=True) if takes else self.gamma(Qm, u)
                 return (g[0], g[1], g[2])
 
         def omega_fn(s):
             g, g_dot = jax.jvp(gamma, (s,), (jnp.ones_like(s),))
-            og = self.omega_gamma(s)
+            og = at(self.omega_gamma, s, True)
             c = (
                 g_dot[1] * g[2] - g_dot[2] * g[1],
                 g_dot[2] * g[0] - g_dot[0] * g[2],
@@ -294,14 +300,8 @@ def simulate_gaits(
     ts: Float[ArrayLike, " T"] | None = None,
     reset: bool | Sequence = False,
     rate: float = 100.0,
-    rtol: float | None = None,
-    atol: float | None = None,
-    solver: dfx.AbstractSolver | None = None,
-    max_steps: int | None = None,
-    throw: bool | None = None,
-    adjoint: dfx.AbstractAdjoint | None = None,
-    batch_steps: str | None = None,
     options: SolverOptions | None = None,
+    **shortcuts,
 ) -> Trajectory:
     """Execute a sequence of gaits (Section 4) and return the motion, torques and wheel rates.
 
@@ -333,8 +333,8 @@ def simulate_gaits(
       diffrax's own `vmap` of the flat state, as `simulate` does.
     - `solver`, `max_steps`, `throw`, `adjoint`: as in `simulate`.
     - `options`: a `SolverOptions` (any of `rtol`, `atol`, `solver`, `max_steps`, `throw`,
-      `adjoint`, `batch_steps`, `programs`); a keyword given wins over its field, as in
-      `simulate`.
+      `adjoint`, `batch_steps`); each is also a keyword, as above, which wins over its field,
+      as in `simulate`.
 
     Returns a `Trajectory`; `segment` tells which gait each sample belongs to.
     """
@@ -350,17 +350,7 @@ def simulate_gaits(
         resets = list(reset)
         if len(resets) != nb:
             raise ValueError(f"simulate_gaits: reset needs one entry per gait boundary ({nb}); got {len(resets)}.")
-    opts = solver_options(
-        options,
-        where="simulate_gaits",
-        rtol=rtol,
-        atol=atol,
-        solver=solver,
-        max_steps=max_steps,
-        throw=throw,
-        adjoint=adjoint,
-        batch_steps=batch_steps,
-    )
+    opts = solver_options(options, where="simulate_gaits", **shortcuts)
     dt = params.R0.dtype
     rtol, atol = opts.tolerances(dt, GAIT_TOLERANCES, where="simulate_gaits")
     initial = tuple(as_array(v, dt) for v in (alpha0, beta0, Omega0, x0, y0))
@@ -434,10 +424,8 @@ def _solve_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, max
     flat = (solver, rtol, atol, max_steps, adjoint)
     args = (params, gaits, initial, ts_out, resets)
     if not batch_engine_applies(True, adjoint, opts.batch_steps) or not _traced(args):
-        return _dispatch.run_program(opts.programs, "simulate_gaits", _simulate_gaits, _rebuild, *args, *flat)
-    return _dispatch.solve(
-        _simulate_gaits, _rebuild, args, flat, steps_layout(opts.batch_steps, opts.throw), opts.programs
-    )
+        return run_program("simulate_gaits", _simulate_gaits, _rebuild, *args, *flat)
+    return _dispatch.solve(_simulate_gaits, _rebuild, args, flat, steps_layout(opts.batch_steps, opts.throw))
 
 
 @eqx.filter_jit  # one compiled program per kind of gait, not one per operation

@@ -121,7 +121,7 @@ def fit(
     data = pack_trials(trials, params, max_offset=o.max_offset)
     _check_unknowns(data, fp_)
     warn_if_float32_by_default(params.R0.dtype, "fit")
-    run, st = _setup(data, fp_, params, o, checkpoint, prog, t_begin, o.solver.programs)
+    run, st = _setup(data, fp_, params, o, checkpoint, prog, t_begin)
     _resume(run, st, restart)
     run.say(
         f"fit: {run.T} trials ({data.kind}), {sum(data.lengths)} samples, {run.P} free parameters + {run.n_nu} nuisance per "
@@ -208,7 +208,6 @@ class _Run:
     adam: optax.GradientTransformation
     adam_shapes: tuple[tuple[int, ...], ...]
     checkpoint: Path | None
-    programs: Any  # `SolverOptions.programs`: how the programs of `fns` run (None: directly)
     fingerprint: str
     progress: Progress
     t_begin: float
@@ -275,7 +274,6 @@ def _setup(
     checkpoint,
     progress: Progress,
     t_begin,
-    programs=None,
 ) -> tuple[_Run, _State]:
     """The run and its first state: the starts (the only random numbers of a fit, drawn from
     `seed`, part of the fingerprint), the segments of multiple shooting, Adam."""
@@ -316,7 +314,6 @@ def _setup(
         adam=opt,
         adam_shapes=tuple(np.shape(a) for a in jax.tree_util.tree_leaves(adam)),
         checkpoint=Path(checkpoint) if checkpoint is not None else None,
-        programs=programs,
         fingerprint=_config_fingerprint(data, free, o.config(sig, multiple)),
         progress=progress,
         t_begin=t_begin,
@@ -435,9 +432,7 @@ def _trial_nu(run: _Run, nu_ms):
 def _evaluate_single(run: _Run, st: _State, th, n):
     """Cost `(S,)` (inf for a failed start), residuals, Jacobian and poses of single shooting."""
     with run.progress.compiling("fit", _program(run, "single"), "fit: single shooting"):
-        res, ok, J, pose = run.fns.run(
-            run.programs, "jacobian", run.base, to_jax(th), to_jax(n), run.arrays, to_jax(st.sig)
-        )
+        res, ok, J, pose = run.fns.run("jacobian", run.base, to_jax(th), to_jax(n), run.arrays, to_jax(st.sig))
         res, ok = np.asarray(res), np.asarray(ok)
     loss = run.options.stage_loss(st.stage)
     if loss == "l2":
@@ -459,7 +454,7 @@ def _weighted(run: _Run, loss: str, res, J):
 
 def _solve_single(run: _Run, st: _State, out, lam):
     res, J = _weighted(run, run.options.stage_loss(st.stage), out["res"], out["J"])
-    dg, dn, pred = run.fns.run(run.programs, "step", to_jax(res), J, to_jax(lam))
+    dg, dn, pred = run.fns.run("step", to_jax(res), J, to_jax(lam))
     return (np.asarray(dg), np.asarray(dn)), np.asarray(pred)
 
 
@@ -469,15 +464,13 @@ def _evaluate_multiple(run: _Run, st: _State, mu: float, th, n):
     ms = run.shooting
     with run.progress.compiling("fit", _program(run, "multiple"), "fit: multiple shooting"):
         args = (run.base, to_jax(th), to_jax(n), ms.arrays, to_jax(st.sig))
-        res, ok, J, pose, e, Je = run.fns.run(run.programs, "segments", *args)
+        res, ok, J, pose, e, Je = run.fns.run("segments", *args)
         excess, loss = 0.0, run.options.stage_loss(st.stage)
         if loss != "l2":  # the weighted squares replaced by the robust cost
             res, J, excess = reweigh_with_excess(loss, res, J)
             excess = np.asarray(excess)
         # (`mu` an array: one program for every level)
-        blocks, cost, dfc = run.fns.run(
-            run.programs, "assemble", res, J, e, Je, to_jax(n), to_jax(mu), ms.seg_arrays, ms.scale
-        )
+        blocks, cost, dfc = run.fns.run("assemble", res, J, e, Je, to_jax(n), to_jax(mu), ms.seg_arrays, ms.scale)
         ok = np.asarray(ok)
     cost = np.where(ok.all(1), np.asarray(cost) + excess, np.inf)
     st.last.update(pose=pose, ok=ok, data=ms.seg.data)
@@ -486,7 +479,7 @@ def _evaluate_multiple(run: _Run, st: _State, mu: float, th, n):
 
 def _solve_multiple(run: _Run, out, lam):
     ms = run.shooting
-    dg, dn, pred = run.fns.run(run.programs, "solve", out["blocks"], to_jax(lam))
+    dg, dn, pred = run.fns.run("solve", out["blocks"], to_jax(lam))
     dn = np.asarray(dn).reshape(run.S, run.T, ms.Gmax, run.n_nu)[:, ms.seg.trial, ms.position]
     return (np.asarray(dg), dn), np.asarray(pred)
 

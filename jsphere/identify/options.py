@@ -85,9 +85,7 @@ class FitOptions:
     which makes tighter tolerances costly: `docs/performance.md`). `throw` and `batch_steps`
     are fit's own: a failed solve is a start of infinite cost, and forward-mode derivatives give
     every trial its own steps. `adjoint` set is an error (fit differentiates in forward mode,
-    `diffrax.ForwardMode`). `programs` runs the fit's residual, Jacobian and step programs: a
-    `jsphere.FastStart` keeps them, exported, so that the next process's fit of the same shapes
-    skips tracing them (`jsphere fit` passes its cache's)."""
+    `diffrax.ForwardMode`)."""
     fit_time_offset: bool = False
     """Estimate each trial's clock offset as one more nuisance value: the trial's inputs drive
     the model at `t + offset` (a capture clock that runs 0.15 s behind the inputs' gives +0.15

@@ -29,13 +29,12 @@ from jax.sharding import NamedSharding, PartitionSpec
 
 from .._runtime.arrays import to_jax
 from .._runtime.cores import split_devices, trial_mesh
-from .._runtime.quick_compile import eager_jit
+from .._runtime.quick_compile import eager_jit, run_program
 from ..controls import Sampled, Torques, WheelSpeeds
 from ..model.kinematics import relative_rate_from_wheel_speeds
 from ..model.rotations import quat_conj, quat_exp, quat_log, quat_mul
 from ..model.state import State
 from ..numerics.lm import arrow_step, solve_arrow
-from ..solve.batched.dispatch import run_program
 from ..solve.simulate import simulate
 from . import shooting as _shooting
 from .data import offset_from_nuisance
@@ -203,16 +202,15 @@ class _Functions:
         )
         return self._split[name], placed, True
 
-    def run(self, programs, name: str, *args):
-        """`self.<name>(*args)` (split over devices with `split`), or `programs(...)` in its
-        place (`SolverOptions.programs`: a `jsphere.FastStart` keeps the program, exported, for
-        the next process)."""
+    def run(self, name: str, *args):
+        """`self.<name>(*args)` (split over devices with `split`), through `run_program` where
+        the program has a stable key (the command line keeps it, exported, for the next process)."""
         fn, args, split = self._program(name, args)
-        if programs is None or self.key is None:
+        if self.key is None:
             out = fn(*args)
         else:
             rebuild = functools.partial(jax.tree_util.tree_unflatten, _OUTPUTS[name])
-            out = run_program(programs, f"fit.{name}:{self.key}:{split}", fn, rebuild, *args)
+            out = run_program(f"fit.{name}:{self.key}:{split}", fn, rebuild, *args)
         if not split:
             return out
         # on the default device, uncommitted as every other program's inputs are (a committed

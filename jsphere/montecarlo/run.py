@@ -94,8 +94,7 @@ def monte_carlo(
       (tolerances by default 1e-8, 1e-10; float32 parameters: 1e-5, 1e-7, as `simulate`).
       `throw` and `batch_steps` are monte_carlo's own: a failed trial is reported in `status`,
       and every trial takes its own steps, so that its result does not depend on the other
-      trials of its chunk. `adjoint` and `programs` set are errors (nothing is differentiated;
-      the solves are batched). A solver other than `Dopri8` is part of the study's fingerprint.
+      trials of its chunk. `adjoint` set is an error (nothing is differentiated). A solver other than `Dopri8` is part of the study's fingerprint.
     - `out`: a folder. Each finished batch is written there atomically, with a manifest; run
       the same call again after an interruption and it resumes (a folder holding a different
       study is refused). A finished study run again with a larger `n` computes only the new
@@ -199,7 +198,6 @@ def _solver_options(solver: SolverOptions | None, max_steps: int | None) -> Solv
         solver,
         where="monte_carlo",
         adjoint="monte_carlo does not differentiate its solves",
-        programs="monte_carlo's solves are batched (traced), never eager",
     )
     opts = solver_options(solver, where="monte_carlo", max_steps=max_steps)
     return opts.or_defaults(max_steps=MAX_STEPS)

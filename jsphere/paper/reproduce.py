@@ -142,7 +142,7 @@ def reproduce(
     options: SolverOptions | None = None,
 ) -> Reproduction:
     """Recompute every number of Section 5 (see `docs/model.md` for the conventions).
-    `options` go to every solve (`jsphere reproduce` passes the command line's there)."""
+    `options` go to every solve."""
     p = RobotParams.paper() if params is None else params
     out, run = _Tables(), _Run(rate, options)
     straight, straight_reset, v_kin = _acceleration(p, run, out)

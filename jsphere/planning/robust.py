@@ -41,7 +41,7 @@ from ..controls import Sampled, Torques, WheelSpeeds
 from ..model.params import RobotParams, derive
 from ..model.rotations import rotmat
 from ..model.state import Flat, State
-from ..solve.batched.field_args import FieldArgs
+from ..solve.field_args import FieldArgs
 from ..solve.fixed_grid import integrate
 from ..solve.internal import torque_field, wheel_field
 from .many import plan_batch
@@ -87,7 +87,7 @@ def replay_end(params: RobotParams, ts, table, mode: str = "wheel_speeds", grid=
     control, field = (WheelSpeeds(tab, ()), wheel_field) if mode == "wheel_speeds" else (Torques(tab, ()), torque_field)
     # the end of the control lies past the table: the last stage of each step is evaluated just
     # inside its interval instead (the table's left limit, differentiable in the knot times)
-    args = FieldArgs(params, d, control, jnp.zeros((), dt), ts[-1] + 1.0)
+    args = FieldArgs(params=params, derived=d, control=control)
     grid = ts if grid is None else jnp.asarray(grid, dt)
     z0 = State.at_rest(params).flatten().astype(dt)
     zT = integrate(lambda t, z: field(t, z, args), z0, grid, last=1.0 - 1e-12, save=False)

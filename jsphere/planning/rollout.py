@@ -19,7 +19,7 @@ from ..model.kinematics import rest_attitude
 from ..model.params import RobotParams, derive
 from ..model.rotations import rotation_between, rotmat
 from ..model.state import State
-from ..solve.batched.field_args import FieldArgs
+from ..solve.field_args import FieldArgs
 from ..solve.fixed_grid import Rollout, integrate, uniform_grid
 
 
@@ -50,7 +50,7 @@ def _states(p: RobotParams, gait: TiltGait, n_steps: int) -> Float[Array, "S 16"
     `simulate_gaits`' own vector field (control-free sum of (3.4) for `Omega`, (2.2)-(2.4))."""
     dt = p.R0.dtype
     T = jnp.asarray(gait.T, dt)
-    args = FieldArgs(p, derive(p), (gait, _rest_frame(p)), jnp.zeros((), dt), T)
+    args = FieldArgs(params=p, derived=derive(p), control=(gait, _rest_frame(p)))
     z0 = State.at_rest(p).flatten().astype(dt)
     return integrate(lambda t, z: gait_field(t, z, args), z0, uniform_grid(T, n_steps, dt))
 
@@ -68,6 +68,6 @@ def rollout(params: RobotParams, gait: TiltGait, n_steps: int) -> Rollout:
     T = jnp.asarray(gait.T, dt)
     zs = _states(p, gait, n_steps)
     ts = uniform_grid(T, n_steps, dt)
-    args = FieldArgs(p, d, (gait, _rest_frame(p)), jnp.zeros((), dt), T)
+    args = FieldArgs(params=p, derived=d, control=(gait, _rest_frame(p)))
     _, chi_dot, K = jax.vmap(lambda t, z: gait_outputs(t, z, args))(ts, zs)
     return Rollout(ts=ts, zs=zs, chi_dot=chi_dot, K=K)

@@ -13,7 +13,7 @@ from ..model.params import Derived, RobotParams
 from ..model.rotations import quat_rate_body, quat_rate_fixed, rotmat
 from ..model.state import Flat
 from .batched.components import torque_field_components, unit
-from .batched.field_args import FieldArgs
+from .field_args import FieldArgs
 
 
 def _left_limit(b):
@@ -22,6 +22,9 @@ def _left_limit(b):
 
 
 def _control_time(t, t_end):
+    """The time at which a control is evaluated: `t`, or the left limit at `t_end` from it on."""
+    if t_end is None:
+        return t
     return jnp.where(t >= t_end, _left_limit(jax.lax.stop_gradient(t_end)), t)
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import numbers
 import warnings
-from typing import Any, Callable, Literal
+from typing import Any, Literal
 
 import diffrax as dfx
 import equinox as eqx
@@ -76,11 +76,7 @@ class SolverOptions(eqx.Module):
       (`diffrax.ForwardMode()` for `jax.jacfwd`);
     - `batch_steps`: under `vmap`, `"shared"` (one step sequence for a batch), `"per_trial"`
       (each trial its own steps, in the same vectorised loop) or `"diffrax"` (diffrax's own
-      `vmap` of the flat state, bypassing the batch engine: the engine's reference);
-    - `programs`: how the programs of a call with concrete inputs are compiled and run,
-      `programs(name, fn, rebuild, *args)` in place of `fn(*args)`; `None`: `fn(*args)` (jitted
-      in this process). `jsphere.FastStart(path)` keeps them on disk, exported, for the next
-      process (what the command line does).
+      `vmap` of the flat state, bypassing the batch engine: the engine's reference).
 
     Each field is also a keyword argument of `simulate` and `simulate_gaits` (a shortcut): a
     keyword given wins over the same field of `options` (`given`).
@@ -98,7 +94,6 @@ class SolverOptions(eqx.Module):
     throw: bool = eqx.field(static=True, default=True)
     adjoint: dfx.AbstractAdjoint | None = None
     batch_steps: Literal["shared", "per_trial", "diffrax"] = eqx.field(static=True, default="shared")
-    programs: Callable | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         _check("SolverOptions", self.max_steps, self.batch_steps)
@@ -130,9 +125,13 @@ def _at_default(options: SolverOptions, name: str) -> bool:
 
 
 def solver_options(options: SolverOptions | None, *, where: str, **shortcuts) -> SolverOptions:
-    """`options` (default `SolverOptions()`) with the keyword shortcuts given (`given`)."""
+    """`options` (default `SolverOptions()`) with the keyword shortcuts given (`given`); a
+    keyword that is no field of `SolverOptions` is a `TypeError` naming it."""
     if options is not None and not isinstance(options, SolverOptions):
         raise TypeError(f"{where}: options must be a jsphere.SolverOptions; got {type(options).__name__}.")
+    unknown = sorted(set(shortcuts) - {f.name for f in dataclasses.fields(SolverOptions)})
+    if unknown:
+        raise TypeError(f"{where}() got an unexpected keyword argument {unknown[0]!r}.")
     return (SolverOptions() if options is None else options).given(**shortcuts)
 
 

@@ -11,8 +11,8 @@ import jax.numpy as jnp
 from ..model.params import Derived, RobotParams
 from .batched import segment as _segment
 from .batched.components import from_components, to_components
-from .batched.field_args import FieldArgs
 from .batched.layout import Layout
+from .field_args import FieldArgs
 from .fields import _torque_control
 from .status import RESULTS
 
@@ -77,7 +77,7 @@ def solve_segments(
     component_field=None,
     component_control=None,
 ):
-    """Integrate `field(t, z, FieldArgs(p, d, control, a, b))` over consecutive segments
+    """Integrate `field(t, z, FieldArgs(params=p, derived=d, control=control, t_start=a, t_end=b))` over consecutive segments
     `(control, a, b)`, restarting at each (after `z = jump_fn(k, a, z, control)` if given),
     and sample the flat state and `outputs(t, z, args)` at `ts_out`.
 
@@ -112,7 +112,7 @@ def solve_segments(
                 max_steps,
                 adjoint,
                 to_components(z),
-                FieldArgs(p, d, control, a, b),
+                FieldArgs(params=p, derived=d, control=control, t_start=a, t_end=b),
                 t_save,
                 layout,
             )
@@ -125,7 +125,7 @@ def solve_segments(
             b,
             None,
             y0,
-            FieldArgs(p, d, control, a, b),
+            FieldArgs(params=p, derived=d, control=control, t_start=a, t_end=b),
             saveat=dfx.SaveAt(ts=t_save, t1=True),
             stepsize_controller=controller,
             max_steps=max_steps,
@@ -142,7 +142,7 @@ def solve_segments(
         t_save = jnp.clip(ts_out, a, b)
         z, ys, failed, n_acc = solve_one(k, z, code, control, a, b, t_save)
         mask = _sample_masks(ts_out, a, b, k == n_seg - 1)
-        args = FieldArgs(p, d, control, a, b)
+        args = FieldArgs(params=p, derived=d, control=control, t_start=a, t_end=b)
         out = jax.vmap(lambda t, zz: outputs(t, zz, args))(t_save, ys[:-1])
         zs = jnp.where(mask[:, None], ys[:-1], zs)
         om = jnp.where(mask[:, None], out[0], om)

@@ -3,7 +3,7 @@ commanded wheel speeds."""
 
 from __future__ import annotations
 
-from typing import Any, Callable, Literal
+from typing import Any, Callable
 
 import diffrax as dfx
 import equinox as eqx
@@ -14,7 +14,7 @@ from jaxtyping import ArrayLike, Float
 
 from .._runtime.arrays import as_array
 from .._runtime.arrays import traced as _traced
-from .._runtime.quick_compile import eager_jit
+from .._runtime.quick_compile import eager_jit, run_program
 from ..controls import Torques, WheelSpeeds
 from ..model.dynamics import servo_jump
 from ..model.params import RobotParams, derive
@@ -60,14 +60,8 @@ def simulate(
     *,
     t0: float = 0.0,
     ts: Float[ArrayLike, " T"] | None = None,
-    rtol: float | None = None,
-    atol: float | None = None,
-    solver: dfx.AbstractSolver | None = None,
-    max_steps: int | None = None,
-    throw: bool | None = None,
-    adjoint: dfx.AbstractAdjoint | None = None,
-    batch_steps: Literal["shared", "per_trial", "diffrax"] | None = None,
     options: SolverOptions | None = None,
+    **shortcuts,
 ) -> Trajectory:
     """Integrate the equations of motion (3.4), (3.5) with (2.2)-(2.4) from `state0`.
 
@@ -106,8 +100,8 @@ def simulate(
       (Speed: `docs/performance.md`.)
     - `max_steps`: the most steps a segment may take (default 16384).
     - `options`: a `SolverOptions` holding any of `rtol`, `atol`, `solver`, `max_steps`,
-      `throw`, `adjoint`, `batch_steps`, `programs` (each keyword above is a shortcut of its
-      field: a keyword given wins over `options`).
+      `throw`, `adjoint`, `batch_steps`. Each of these is also a keyword of `simulate`, as
+      above (a shortcut of its field: a keyword given wins over `options`).
 
     Pure JAX: jit, vmap (over parameters, states, controls) and grad work.
     """
@@ -127,17 +121,7 @@ def simulate(
         )
     if state0.chi.shape[-1] != params.n_wheels:
         raise ValueError(f"simulate: state0.chi has {state0.chi.shape[-1]} wheels but params has {params.n_wheels}.")
-    opts = solver_options(
-        options,
-        where="simulate",
-        rtol=rtol,
-        atol=atol,
-        solver=solver,
-        max_steps=max_steps,
-        throw=throw,
-        adjoint=adjoint,
-        batch_steps=batch_steps,
-    )
+    opts = solver_options(options, where="simulate", **shortcuts)
     dt = params.R0.dtype
     rtol, atol = opts.tolerances(dt)
     ts_out = None if ts is None else as_array(ts, dt)
@@ -194,20 +178,17 @@ def batch_engine_applies(controls_ok: bool, adjoint, batch_steps: str) -> bool:
 
 def _solve(params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_steps, adjoint, opts) -> Trajectory:
     """`_simulate` with the state layout chosen by batching: concrete calls (which no `vmap`
-    can be around) and calls the batch engine does not take run `_simulate` directly (through
-    `opts.programs` when given); traced torque-mode calls go through the engine's batching
-    rule (`jsphere.solve.batched.dispatch`)."""
+    can be around) and calls the batch engine does not take run `_simulate` directly
+    (`run_program`); traced torque-mode calls go through the engine's batching rule
+    (`jsphere.solve.batched.dispatch`)."""
     flat = (solver, rtol, atol, max_steps, adjoint)
-    run = opts.programs
     if not batch_engine_applies(isinstance(controls, Torques), adjoint, opts.batch_steps):
-        return _dispatch.run_program(
-            run, "simulate", _simulate, _rebuild, params, state0, controls, t0, t1, ts_out, *flat
-        )
+        return run_program("simulate", _simulate, _rebuild, params, state0, controls, t0, t1, ts_out, *flat)
     controls = _explicit_closure(controls, t0)
     args = (params, state0, controls, t0, t1, ts_out)
     if not _traced(args):
-        return _dispatch.run_program(run, "simulate", _simulate, _rebuild, *args, *flat)
-    return _dispatch.solve(_simulate, _rebuild, args, flat, steps_layout(opts.batch_steps, opts.throw), run)
+        return run_program("simulate", _simulate, _rebuild, *args, *flat)
+    return _dispatch.solve(_simulate, _rebuild, args, flat, steps_layout(opts.batch_steps, opts.throw))
 
 
 @eager_jit

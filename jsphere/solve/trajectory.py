@@ -77,7 +77,7 @@ def _state_at(traj: Trajectory, i) -> State:
 
 
 def _rebuild(leaves) -> Trajectory:
-    """A `Trajectory` from its leaves (in field order; for `SolverOptions.programs`)."""
+    """A `Trajectory` from its leaves (in field order; for a program's runner, `jsphere._runtime.quick_compile.run_program`)."""
     return Trajectory(*leaves)
 
 

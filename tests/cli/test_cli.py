@@ -273,17 +273,19 @@ def test_stop_points_figure_is_in_jsphere_frame_unless_asked(monkeypatch, tmp_pa
 
 @pytest.mark.parametrize("robust", [False, True])
 def test_plan_passes_its_fast_start_to_the_verifications(robust, tmp_path, monkeypatch, capsys):
-    """`jsphere plan` gives `plan` (and `plan_robust` with `--robust`) its cache's `FastStart`, as
-    `fit` and `reproduce` do, so that the verification's program is kept for the next run."""
-    import jsphere
+    """`jsphere plan` runs `plan` (and `plan_robust` with `--robust`) with its cache's `FastStart`
+    running their programs, as `fit` and `reproduce` do, so that the verification's program is
+    kept for the next run."""
+    from jsphere._runtime import quick_compile
     from jsphere._runtime.errors import InputError
+    from jsphere._runtime.fast_start import FastStart
     from jsphere.planning import plan as plan_module
     from jsphere.planning import robust as robust_module
 
     seen = []
 
     def record(*args, options=None, **kw):
-        seen.append(options)
+        seen.append(quick_compile._RUNNER[0])
         if robust and len(seen) == 1:
             return "nominal"
         raise InputError("recorded")
@@ -298,4 +300,4 @@ def test_plan_passes_its_fast_start_to_the_verifications(robust, tmp_path, monke
     rc = main(["plan", "--to", "0.3", "0.1", "--out", str(tmp_path / "plan.csv"), "--no-plots", "--quiet", *extra])
     assert rc == ExitCode.BAD_INPUT and "recorded" in capsys.readouterr().err
     assert len(seen) == 1 + robust
-    assert all(isinstance(o.programs, jsphere.FastStart) for o in seen), seen
+    assert all(isinstance(o, FastStart) for o in seen), seen

@@ -19,7 +19,9 @@ import optax
 import pytest
 
 import jsphere
+from jsphere._runtime.fast_start import FastStart
 from jsphere._runtime.private import equinox_errors_as
+from jsphere._runtime.quick_compile import programs_run_by
 from jsphere.cli.app import main
 from jsphere.identify.data import pack_trials
 from jsphere.identify.fit import adam_start
@@ -398,25 +400,26 @@ def test_cli_fit_writes_json_plots_and_loadable_params(small_trials, small_fit, 
 
 @pytest.mark.slow
 def test_fit_through_fast_start_is_the_fit_and_its_programs_are_kept(small_truth, tmp_path, capsys):
-    """`SolverOptions(programs=FastStart(...))`, as `jsphere fit` passes its cache's: the same
+    """Programs run by a `FastStart`, as `jsphere fit` runs them through its cache's: the same
     fit; the residual and step programs exported once, and a new `FastStart` (the next
     process) runs them from the files without exporting again. (Trials of their own length: a
     program this process traced before with equinox's checks raising cannot be exported.)"""
     trials = make_trials(small_truth, 2, 1.2, seed=3)
     paper = jsphere.RobotParams.paper()
     with equinox_errors_as("nan"):  # as the command line traces (host callbacks cannot be exported)
-        opts = jsphere.SolverOptions(programs=jsphere.FastStart(tmp_path))
-        a = jsphere.fit(trials, paper, FREE, fix={"m": 2.5}, options=opts, **OPTS)
+        with programs_run_by(FastStart(tmp_path)):
+            a = jsphere.fit(trials, paper, FREE, fix={"m": 2.5}, **OPTS)
         files = sorted((tmp_path / "aot").glob("*.jaxexport"))
-        again = jsphere.SolverOptions(programs=jsphere.FastStart(tmp_path))
-        b = jsphere.fit(trials, paper, FREE, fix={"m": 2.5}, options=again, **OPTS)
+        again = FastStart(tmp_path)
+        with programs_run_by(again):
+            b = jsphere.fit(trials, paper, FREE, fix={"m": 2.5}, **OPTS)
     direct = jsphere.fit(trials, paper, FREE, fix={"m": 2.5}, **OPTS)
     assert a.values == pytest.approx(direct.values, rel=1e-12) and a.cost == pytest.approx(direct.cost, rel=1e-12)
     assert b.values == a.values and b.cost == a.cost
     assert len(files) == 2  # the residuals with their Jacobian, and the Levenberg-Marquardt step
     assert sorted((tmp_path / "aot").glob("*.jaxexport")) == files
     assert "not exporting" not in capsys.readouterr().err
-    assert len(again.programs._loaded) == 2
+    assert len(again._loaded) == 2
 
 
 @pytest.mark.parametrize(

@@ -275,7 +275,7 @@ class _Failing:
         self.fns, self.k0, self.left = fns, k0, finite_calls
         self.step = fns.step
 
-    def run(self, programs, name: str, *args):
+    def run(self, name: str, *args):
         """As `_Functions.run`, without exported programs."""
         return getattr(self, name)(*args)
 

@@ -206,7 +206,7 @@ def _reachable(name: str) -> set[str]:
 @pytest.mark.parametrize("name", sorted(n for n in GRAPH if _layer(n)[0] in PURE))
 def test_the_core_imports_no_start_up_machinery(name):
     """`simulate`, `simulate_gaits` and the batch engine read and switch no process-global
-    state: what makes a first call quick is passed in (`SolverOptions.programs`)."""
+    state: what makes a first call quick is the application's (`jsphere.cli.compilation`)."""
     assert not (_reachable(name) & START_UP), f"{name} reaches {sorted(_reachable(name) & START_UP)}"
     private = PACKAGE / "_runtime" / "private.py"
     for node in ast.walk(ast.parse(Path(GRAPH and _modules()[name]).read_text())):

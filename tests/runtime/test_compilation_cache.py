@@ -167,25 +167,27 @@ import jax, jax.numpy as jnp
 from jax import monitoring
 jax.config.update("jax_enable_x64", True)
 import jsphere
+from jsphere._runtime.fast_start import FastStart
+from jsphere._runtime.quick_compile import programs_run_by
 
 events = {"misses": 0}
 def listen(name, **kw):
     if name == "/jax/compilation_cache/cache_misses": events["misses"] += 1
 path = jsphere.enable_compilation_cache(sys.argv[1])
-options = jsphere.SolverOptions(programs=jsphere.FastStart(path))
 p = jsphere.RobotParams.paper()
 def stop(theta_max):
     gaits = [jsphere.acceleration(theta_max=theta_max), jsphere.braking(theta_max=theta_max)]
-    return jsphere.simulate_gaits(p, gaits, ts=jnp.array([4.0]), options=options).x[-1]
+    return jsphere.simulate_gaits(p, gaits, ts=jnp.array([4.0])).x[-1]
 monitoring.register_event_listener(listen)
-g = float(jax.grad(stop)(0.1))
+with programs_run_by(FastStart(path)):  # as the command line runs its solves
+    g = float(jax.grad(stop)(0.1))
 print(json.dumps({**events, "grad": g, "exported": sorted(f.name for f in (path / "aot").iterdir())}))
 """
 
 
 @pytest.mark.slow
 def test_second_process_gradient_is_loaded(tmp_path):
-    """An eager `jax.grad` through `simulate_gaits` with a `FastStart` exports its programs; a
+    """An eager `jax.grad` through `simulate_gaits` run by a `FastStart` exports its programs; a
     second process loads them and compiles nothing, with the same gradient."""
     cache = tmp_path / "cache"
     env = {k: v for k, v in os.environ.items() if k not in ("EQX_ON_ERROR", "JSPHERE_CACHE_DIR")}

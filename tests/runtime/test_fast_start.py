@@ -1,5 +1,5 @@
-"""`FastStart`, the programs of eager solves exported to disk (what the command line passes to
-its solves): same results as the ordinary call, from memory and from
+"""`FastStart`, the programs of eager solves exported to disk (what the command line runs its
+solves' programs through): same results as the ordinary call, from memory and from
 the file; no export for calls without a stable key; a damaged file is replaced."""
 
 import equinox as eqx
@@ -10,9 +10,9 @@ import pytest
 
 import jsphere
 from jsphere._runtime import fast_start
+from jsphere._runtime.fast_start import FastStart
 from jsphere._runtime.private import equinox_errors_as
-from jsphere._runtime.quick_compile import eager_jit
-from jsphere.solve.batched.dispatch import compile_program
+from jsphere._runtime.quick_compile import compile_program, eager_jit, programs_run_by
 
 
 @pytest.fixture
@@ -25,10 +25,8 @@ def nan_mode():
 
 def _free_roll(p, programs=None):
     state = eqx.tree_at(lambda s: s.Omega, jsphere.State.at_rest(p), jnp.array([0.0, 0.5, 0.1]))
-    options = jsphere.SolverOptions(programs=programs)
-    return jsphere.simulate(
-        p, state, jsphere.Torques(jsphere.Zero(3)), 0.5, ts=jnp.linspace(0.0, 0.5, 6), options=options
-    )
+    with programs_run_by(programs):
+        return jsphere.simulate(p, state, jsphere.Torques(jsphere.Zero(3)), 0.5, ts=jnp.linspace(0.0, 0.5, 6))
 
 
 @pytest.mark.slow
@@ -36,10 +34,10 @@ def test_exported_solve_matches_the_direct_call_and_is_reused(tmp_path, nan_mode
     p = jsphere.RobotParams.paper()
     aot_dir = tmp_path / "aot"
     want = _free_roll(p)
-    first = _free_roll(p, jsphere.FastStart(tmp_path))  # exports, writes the file, runs the exported program
+    first = _free_roll(p, FastStart(tmp_path))  # exports, writes the file, runs the exported program
     files = list(aot_dir.glob("*.jaxexport"))
     assert len(files) == 1
-    again = _free_roll(p.replace(R0=0.16), jsphere.FastStart(tmp_path))  # as a new process: from the file
+    again = _free_roll(p.replace(R0=0.16), FastStart(tmp_path))  # as a new process: from the file
     assert list(aot_dir.glob("*.jaxexport")) == files
     for a, b in zip(jax.tree_util.tree_leaves(first), jax.tree_util.tree_leaves(want)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-15)
@@ -49,7 +47,7 @@ def test_exported_solve_matches_the_direct_call_and_is_reused(tmp_path, nan_mode
 
     # a damaged file is exported again
     files[0].write_bytes(b"not an export")
-    repaired = _free_roll(p, jsphere.FastStart(tmp_path))
+    repaired = _free_roll(p, FastStart(tmp_path))
     np.testing.assert_array_equal(np.asarray(repaired.y), np.asarray(first.y))
     assert files[0].stat().st_size > 1000
 
@@ -57,7 +55,7 @@ def test_exported_solve_matches_the_direct_call_and_is_reused(tmp_path, nan_mode
 def test_an_exported_program_compiles_once_for_committed_and_uncommitted_arguments(tmp_path):
     """A loop feeding one call's results (committed arrays) to the next, mixed with arrays made
     from NumPy (uncommitted), runs one compiled program."""
-    fs = jsphere.FastStart(tmp_path)
+    fs = FastStart(tmp_path)
     f = jax.jit(lambda a, b: (a * b, a + b))
     x = np.arange(3.0)
     first = fs("test.pair", f, tuple, x, x)
@@ -89,8 +87,8 @@ def test_a_program_compiled_ahead_runs_without_compiling(tmp_path):
     """`FastStart.compile` exports and compiles what a call runs, without running it (and calls
     `traced` in between); the call then compiles nothing. A program that cannot be exported is
     compiled as the call runs it. The same for an `eager_jit` function and its `lower`, through
-    `compile_program` without `programs`."""
-    fs, order = jsphere.FastStart(tmp_path), []
+    `compile_program` without a runner."""
+    fs, order = FastStart(tmp_path), []
     f = jax.jit(lambda a, b: (jnp.sin(a) * b, a - b))
     x = np.linspace(0.0, 1.0, 7)
     assert _compiles(lambda: fs.compile("test.ahead", f, x, x, traced=lambda: order.append("traced"))) >= 1
@@ -107,7 +105,7 @@ def test_a_program_compiled_ahead_runs_without_compiling(tmp_path):
     np.testing.assert_array_equal(np.asarray(out[-1]), 3.0 * x)
 
     g = eager_jit(lambda a: jnp.cos(a) + a)
-    compile_program(None, "unused", g, x, traced=lambda: order.append("lowered"))
+    compile_program("unused", g, x, traced=lambda: order.append("lowered"))
     assert order[-1] == "lowered"
     assert _compiles(lambda: out.append(g(x))) == 0
     np.testing.assert_allclose(np.asarray(out[-1]), np.cos(x) + x, rtol=1e-15)
@@ -117,12 +115,12 @@ def test_a_program_compiled_ahead_runs_without_compiling(tmp_path):
 def test_calls_without_a_stable_key_are_not_exported(tmp_path, nan_mode):
     p = jsphere.RobotParams.paper()
     K = jnp.array([0.01, 0.0, -0.01])
-    options = jsphere.SolverOptions(programs=jsphere.FastStart(tmp_path))
-    tr = jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(lambda t: K * t), 0.2, options=options)
-    assert bool(tr.ok)  # a lambda: no stable key
-    jax.jit(
-        lambda a: jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(jsphere.Zero(3)), a, options=options).x
-    )(0.2)  # traced
+    with programs_run_by(FastStart(tmp_path)):
+        tr = jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(lambda t: K * t), 0.2)
+        assert bool(tr.ok)  # a lambda: no stable key
+        jax.jit(lambda a: jsphere.simulate(p, jsphere.State.at_rest(p), jsphere.Torques(jsphere.Zero(3)), a).x)(
+            0.2
+        )  # traced
     assert not (tmp_path / "aot").exists() or not list((tmp_path / "aot").glob("*.jaxexport"))
     assert fast_start._stable(lambda t: t) is None and fast_start._stable(object()) is None
     assert fast_start._stable(1.5) == "float:1.5" and fast_start._stable(jnp.sin) is not None

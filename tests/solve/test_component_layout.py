@@ -18,7 +18,7 @@ import jsphere
 import jsphere.solve.batched.layout as L
 from jsphere.model.params import derive
 from jsphere.solve.batched.components import from_components, to_components
-from jsphere.solve.batched.field_args import FieldArgs
+from jsphere.solve.field_args import FieldArgs
 from jsphere.solve.fields import _torque_field, _torque_field_soa
 
 PH = jnp.array([0.0, 2.1, 4.2])
@@ -61,7 +61,7 @@ def test_component_field_equals_flat_field(n_wheels, damping):
         )
         K = jnp.asarray(rng.normal(size=n_wheels) * 0.05)
         ctrl = jsphere.Torques(lambda t, K=K: K)
-        args = FieldArgs(p, d, ctrl, 0.0, 10.0)
+        args = FieldArgs(params=p, derived=d, control=ctrl, t_start=0.0, t_end=10.0)
         flat = _torque_field(0.3, z, args)
         comp = from_components(_torque_field_soa(0.3, to_components(z), args))
         np.testing.assert_allclose(comp, flat, rtol=1e-11, atol=1e-13 * float(jnp.max(jnp.abs(flat))))
@@ -86,7 +86,7 @@ def test_gait_component_field_equals_flat_field(n_wheels, damping):
                 [q / np.linalg.norm(q), qs / np.linalg.norm(qs), rng.normal(size=6) * 3, rng.normal(size=2 + n_wheels)]
             )
         )
-        args = FieldArgs(p, d, (gait, Qm), 0.5, 2.5)
+        args = FieldArgs(params=p, derived=d, control=(gait, Qm), t_start=0.5, t_end=2.5)
         flat = _gait_field(t, z, args)
         comp = from_components(_gait_field_soa(t, to_components(z), args))
         np.testing.assert_allclose(comp, flat, rtol=1e-11, atol=1e-13 * float(jnp.max(jnp.abs(flat))))

@@ -13,8 +13,8 @@ from jsphere.solve.options import solver_options
 
 def test_defaults_and_validation():
     o = SolverOptions()
-    got = (o.rtol, o.atol, o.solver, o.max_steps, o.throw, o.adjoint, o.batch_steps, o.programs)
-    assert got == (None, None, None, 16384, True, None, "shared", None)
+    got = (o.rtol, o.atol, o.solver, o.max_steps, o.throw, o.adjoint, o.batch_steps)
+    assert got == (None, None, None, 16384, True, None, "shared")
     assert isinstance(o.solver_or_default(), dfx.Dopri8)
     assert isinstance(o.adjoint_or_default(), dfx.RecursiveCheckpointAdjoint)
     assert o.tolerances(jnp.float64) == (1e-8, 1e-10)

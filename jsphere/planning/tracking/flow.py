@@ -16,7 +16,7 @@ from jaxtyping import Array, Float
 
 from ...model.params import Derived, RobotParams, derive
 from ...model.state import ERROR_SIZE, state_error, state_plus
-from ...solve.batched.field_args import FieldArgs
+from ...solve.field_args import FieldArgs
 from ...solve.fixed_grid import rk4_step
 from ...solve.internal import torque_field
 
@@ -24,7 +24,7 @@ from ...solve.internal import torque_field
 def interval(p: RobotParams, d: Derived, z: Float[Array, " S"], K: Float[Array, " N"], h, substeps: int = 1):
     """The flat state after `h` seconds of the torques `K` held from the state `z`: `substeps`
     classical RK4 steps of the torque-mode field (pure JAX)."""
-    args = FieldArgs(p, d, lambda t: K, jnp.zeros((), z.dtype), jnp.asarray(jnp.inf, z.dtype))
+    args = FieldArgs(params=p, derived=d, control=lambda t: K)
 
     def f(z):
         return torque_field(jnp.zeros((), z.dtype), z, args)

@@ -16,7 +16,7 @@ zero: unbatched and in small batches the flat layout with diffrax's own VJP, in 
 program; batches in the batch loop through its discrete adjoint (`_loop_vjp`,
 `jsphere.solve.batched.adjoint`); other large batches the flat VJP per trial, in chunks of
 `GRAD_CHUNK` trials. An eager `jax.grad` (no `jit` or `vmap` around) thus compiles two
-programs, the solve and its VJP (both run by `SolverOptions.programs` when given); with
+programs, the solve and its VJP (both through `jsphere._runtime.quick_compile.run_program`); with
 at most `FORWARD_MAX_INPUTS` perturbed input scalars (a gradient with respect to a gait's
 amplitude, say) it compiles one, the solve with its Jacobian in forward mode (`_flat_jacfwd`).
 `diffrax.ForwardMode` uses the `custom_vmap` directly (its `jvp` is supported).
@@ -39,7 +39,7 @@ import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
 from ..._runtime.arrays import transformed, under_jit
-from ..._runtime.quick_compile import eager_jit
+from ..._runtime.quick_compile import eager_jit, run_program
 from ...model.params import Derived, derive
 from . import layout as _layout
 from .layout import Layout
@@ -52,29 +52,6 @@ FORWARD_MAX_INPUTS = 8
 #: compilation is saved, and forward mode is faster than the reverse pass only for few
 #: tangents (`docs/decisions/an-eager-gradient-of-few-inputs.md`).
 TRACED_FORWARD_MAX_INPUTS = 4
-
-
-def run_program(programs: Callable | None, name: str, fn: Callable, rebuild: Callable, *args):
-    """`fn(*args)`, or `programs(name, fn, rebuild, *args)` where the caller gave a way to run
-    it (`SolverOptions.programs`). `fn` returns an `equinox.Module` of arrays and
-    `rebuild(leaves)` makes it again from its leaves."""
-    return fn(*args) if programs is None else programs(name, fn, rebuild, *args)
-
-
-def compile_program(programs: Callable | None, name: str, fn: Callable, *args, traced: Callable = lambda: None) -> None:
-    """Compile what `run_program(programs, name, fn, rebuild, *args)` runs, without running
-    it: `fn.lower(*args).compile()` (`fn` an `eager_jit` function), or `programs.compile(name,
-    fn, *args, traced=traced)` where the caller's `programs` has that method
-    (`jsphere.FastStart`); for other `programs` nothing is compiled. `traced()` is called once
-    the program is traced and lowered, before XLA compiles it (which releases Python's lock)."""
-    if programs is None:
-        lowered = fn.lower(*args)
-        traced()
-        lowered.compile()
-    elif hasattr(programs, "compile"):
-        programs.compile(name, fn, *args, traced=traced)
-    else:
-        traced()
 
 
 def has_tracer(tree) -> bool:
@@ -91,8 +68,7 @@ class BatchedSolve(eqx.Module):
     - `steps`: the layout a batch of at least `SHARED_MIN_BATCH` trials asks for
       (`jsphere.solve.batched.layout.steps_layout`);
     - `loop`: whether the batch loop (`jsphere.solve.batched.loop`) integrates this solver in
-      reverse mode, so that batches take it and their gradient is its discrete adjoint;
-    - `programs`: how an eager gradient's programs are run (`SolverOptions.programs`).
+      reverse mode, so that batches take it and their gradient is its discrete adjoint.
     """
 
     fn: Callable
@@ -103,7 +79,6 @@ class BatchedSolve(eqx.Module):
     derived: Derived | None
     steps: Layout = eqx.field(static=True)
     loop: bool = eqx.field(static=True)
-    programs: Callable | None = eqx.field(static=True, default=None)
 
     def __call__(self, leaves, layout: Layout):
         args = eqx.combine(jax.tree_util.tree_unflatten(self.treedef, leaves), self.static)
@@ -111,12 +86,12 @@ class BatchedSolve(eqx.Module):
 
     @property
     def name(self) -> str:
-        """The solve's name (its function's), naming its programs (`SolverOptions.programs`)."""
+        """The solve's name (its function's), naming its programs (`run_program`)."""
         return getattr(self.fn, "__qualname__", "solve")
 
     def unnamed(self) -> "BatchedSolve":
-        """This solve without its functions (`fn`, `rebuild`, `programs`)."""
-        return dataclasses.replace(self, fn=None, rebuild=None, programs=None)
+        """This solve without its functions (`fn`, `rebuild`)."""
+        return dataclasses.replace(self, fn=None, rebuild=None)
 
     @property
     def shared(self) -> bool:
@@ -139,13 +114,12 @@ class BatchedSolve(eqx.Module):
         )
 
 
-def solve(fn, rebuild, args, flat, steps: Layout, programs: Callable | None = None):
+def solve(fn, rebuild, args, flat, steps: Layout):
     """`fn(*args, *flat, layout=..., derived=...)` with the layout chosen by batching: the flat
     state for a single call, components under `vmap` (with shared steps or per-trial steps in
     the batch loop from `SHARED_MIN_BATCH` trials, as `steps` asks); reverse mode through
     `_reverse`, forward mode (`flat[-1]` a `diffrax.ForwardMode`) through `_dispatched`.
-    `args[0]` are the `RobotParams`; `flat` ends with the adjoint; `programs` runs an eager
-    gradient's programs (`SolverOptions.programs`)."""
+    `args[0]` are the `RobotParams`; `flat` ends with the adjoint."""
     adjoint = flat[-1]
     # only traced leaves are inputs of the dispatched solve; concrete ones stay constants (folded by XLA)
     dyn, static = eqx.partition(args, lambda x: isinstance(x, jax.core.Tracer))
@@ -156,7 +130,7 @@ def solve(fn, rebuild, args, flat, steps: Layout, programs: Callable | None = No
             derived = _derive(args[0])
     forward_mode = isinstance(adjoint, dfx.ForwardMode)
     loop = tableau(flat[0]) is not None and not forward_mode
-    engine = BatchedSolve(fn, rebuild, treedef, static, flat, derived, steps, loop, programs)
+    engine = BatchedSolve(fn, rebuild, treedef, static, flat, derived, steps, loop)
     if forward_mode:
         return _dispatched(engine)(leaves)
     return _reverse(engine, leaves)
@@ -266,7 +240,6 @@ def _reverse_fwd(engine: BatchedSolve, leaves):
     if 0 < n <= FORWARD_MAX_INPUTS and eager:
         program = _exportable(_flat_jacfwd, engine)
         out, jac = run_program(
-            engine.programs,
             f"jacfwd:{engine.name}",
             program,
             _with_jacobian(engine.rebuild),
@@ -291,11 +264,11 @@ class _Inputs(eqx.Module):
 
 def _primal(engine: BatchedSolve, leaves):
     """The solve of `_reverse`'s forward pass. With concrete inputs (an eager `jax.grad`: no
-    `vmap` or `jit` around) one compiled program, `_flat_primal` (run by `engine.programs`
-    when given); otherwise the `custom_vmap` of `_dispatched`."""
+    `vmap` or `jit` around) one compiled program, `_flat_primal` (`run_program`); otherwise
+    the `custom_vmap` of `_dispatched`."""
     if not has_tracer(leaves) and not under_jit():
         primal = _exportable(_flat_primal, engine)
-        return run_program(engine.programs, f"primal:{engine.name}", primal, engine.rebuild, engine.unnamed(), leaves)
+        return run_program(f"primal:{engine.name}", primal, engine.rebuild, engine.unnamed(), leaves)
     return _dispatched(engine)(leaves)
 
 
@@ -319,7 +292,7 @@ def _reverse_bwd(engine: BatchedSolve, res, ct):
     if not has_tracer((leaves, cts)) and not under_jit():
         vjp = _exportable(_flat_vjp, engine)
         args = (engine.unnamed(), keep, perturbed, leaves, cts)
-        return (run_program(engine.programs, f"vjp:{engine.name}", vjp, _keep, *args),)
+        return (run_program(f"vjp:{engine.name}", vjp, _keep, *args),)
 
     @jax.custom_batching.custom_vmap
     def f(lv, cs):
@@ -348,7 +321,7 @@ def _keep(x):
 
 def _exportable(program, engine: BatchedSolve):
     """`program(engine, ...)` as a function of `engine.unnamed()`: a cache of programs
-    (`SolverOptions.programs`) keys a call by its arguments' structure, in which a function
+    (`run_program`'s runner) keys a call by its arguments' structure, in which a function
     has no stable name; the solve's function is in the program's name instead
     (`BatchedSolve.name`)."""
     return lambda unnamed, *args: program(dataclasses.replace(unnamed, fn=engine.fn, rebuild=engine.rebuild), *args)

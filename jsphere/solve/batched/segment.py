@@ -32,6 +32,7 @@ batched: then there is no shared time axis.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, Callable
 
 import diffrax as dfx
@@ -40,7 +41,6 @@ import jax
 import jax.numpy as jnp
 
 from . import loop
-from .field_args import FieldArgs
 from .layout import Layout
 from .method import in_branch, tableau
 
@@ -121,8 +121,9 @@ class _Segment(eqx.Module):
     p_def: Any
     elementwise: list
 
-    def rebuild(self, lv, a, b) -> FieldArgs:  # `static` first: a leaf of `lv` may be a tuple of scalars
-        return FieldArgs(*eqx.combine(self.static, jax.tree_util.tree_unflatten(self.p_def, lv)), a, b)
+    def rebuild(self, lv, a, b):  # `static` first: a leaf of `lv` may be a tuple of scalars
+        args = eqx.combine(self.static, jax.tree_util.tree_unflatten(self.p_def, lv))
+        return dataclasses.replace(args, t_start=a, t_end=b)
 
     def one(self, times, y0, lv):
         """One trial's solve with diffrax: `(ys, failed, num_accepted_steps)`."""
@@ -248,10 +249,11 @@ class _Segment(eqx.Module):
         return out, failed, accepted, True
 
 
-def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args: FieldArgs, t_save, layout: Layout):
+def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_save, layout: Layout):
     """One segment of `jsphere.solve.simulate.solve_segments` in a batch layout
     (`layout.batch_solve`): `diffeqsolve(field)` of the component tuple `y0` from
-    `args.t_start` to `args.t_end` (`args` a `FieldArgs`), saving at `t_save` and `t1`.
+    `args.t_start` to `args.t_end` (`args` a `jsphere.solve.field_args.FieldArgs`), saving at
+    `t_save` and `t1`.
     `field(t, y, args, K=None, adjoint=False)` may be given the inputs `K = control(t, args)`
     (a `(N,)` array or an `N`-tuple of scalars per trial) as a tuple of scalars.
 
@@ -265,10 +267,10 @@ def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args: Fiel
     diverges) is solved again with per-trial steps, so that the failing trial fails alone and
     the others keep their solutions; `failed` and the step counts are then per trial as well.
     """
-    dyn, static = eqx.partition((args.params, args.derived, args.control), eqx.is_array)
+    dyn, static = eqx.partition(dataclasses.replace(args, t_start=None, t_end=None), eqx.is_array)
     p_leaves, p_def = jax.tree_util.tree_flatten(dyn)
     times = [args.t_start, args.t_end, t_save]
-    n_pd = len(jax.tree_util.tree_leaves(dyn[:2]))
+    n_pd = len(jax.tree_util.tree_leaves((dyn.params, dyn.derived)))
     elementwise = [i for i in range(n_pd) if jnp.ndim(p_leaves[i]) >= 1]
     seg = _Segment(field, control, solver, rtol, atol, max_steps, adjoint, layout, static, p_def, elementwise)
 
