@@ -90,19 +90,7 @@ def test_every_module_has_a_layer():
     assert not unplaced, f"modules outside every layer (add them to LAYERS): {unplaced}"
 
 
-#: modules below `plots/` known to draw their results (upward imports: the mark goes when they stop)
-DRAWING_MOVES = {"jsphere.identify.report", "jsphere.identify.compare"}
-
-
-@pytest.mark.parametrize(
-    "name",
-    [
-        pytest.param(n, marks=pytest.mark.xfail(strict=True, reason="identify/ still draws its results (plots)"))
-        if n in DRAWING_MOVES
-        else n
-        for n in sorted(GRAPH)
-    ],
-)
+@pytest.mark.parametrize("name", sorted(GRAPH))
 def test_imports_flow_down(name):
     group, rank = _layer(name)
     upward = []
