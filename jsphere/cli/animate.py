@@ -218,9 +218,9 @@ def montecarlo_scene(folder, study, params: RobotParams | None = None) -> Scene:
     st = load_study(study)
     if not np.any(result.status == 0):
         raise InputError(f"{folder}: no successful trial; nothing to animate.")
-    base = params if params is not None else st["params"]
-    reset = st["kwargs"].get("reset", False)
-    return scene(result, base, st["gaits"], reset=reset, stats=stats, title=f"Monte-Carlo study {folder.name}")
+    base = params if params is not None else st.params
+    reset = st.options.reset
+    return scene(result, base, st.gaits, reset=reset, stats=stats, title=f"Monte-Carlo study {folder.name}")
 
 
 def _csv_header(path: Path) -> list[str]:
