@@ -12,6 +12,8 @@ import numpy as np
 
 from .._runtime.checks import real, whole
 from .._runtime.errors import InputError
+from .._runtime.moved_keywords import moved_into, no_other_keywords
+from .._runtime.precision import _caller_stacklevel
 from ..solve.options import SolverOptions, default_solver, solver_options, unused
 from .checkpoint import _CHECKPOINT_FORMAT
 from .robust import DEFAULT_LOSS, REDESCENDING, WARM_LOSS, check_loss
@@ -213,34 +215,34 @@ def _fit_solver(options: SolverOptions | None) -> SolverOptions:
     return solver_options(options, where="fit").or_defaults(solver=FIT_SOLVER, **FIT_TOLERANCES)
 
 
-#: the keywords of `fit` that are `FitOptions` fields (and the solver's, `FitOptions.solver`)
-_FIELDS = tuple(f.name for f in dataclasses.fields(FitOptions) if f.name != "solver")
+#: `fit`'s keywords of the solver's settings (`FitOptions.solver`)
 _SOLVER_KEYWORDS = ("rtol", "atol", "max_steps")
 
 
 def fit_options(options: FitOptions | SolverOptions | None, deprecated: dict[str, Any]) -> FitOptions:
     """`fit`'s `options` with the keywords it took before `FitOptions` (`deprecated`: each warns
-    with its spelling in `FitOptions`, and wins over the same field of `options`); a
-    `SolverOptions` as `options` is `FitOptions(solver=...)`, with a warning too."""
-    unknown = sorted(set(deprecated) - set(_FIELDS) - set(_SOLVER_KEYWORDS))
-    if unknown:
-        raise TypeError(f"fit() got an unexpected keyword argument {unknown[0]!r}.")
+    with its spelling in `FitOptions`, `jsphere._runtime.moved_keywords`, and wins over the same
+    field of `options`); a `SolverOptions` as `options` is `FitOptions(solver=...)`, with a
+    warning too."""
     if options is not None and not isinstance(options, FitOptions):
         warnings.warn(
             "fit(options=SolverOptions(...)) is deprecated; write options=FitOptions(solver=SolverOptions(...)).",
             DeprecationWarning,
-            stacklevel=3,
+            stacklevel=_caller_stacklevel(),
         )
         options = FitOptions(solver=solver_options(options, where="fit"))
-    options = FitOptions() if options is None else options
-    for k, v in deprecated.items():
-        spelling = f"FitOptions(solver=SolverOptions({k}=...))" if k in _SOLVER_KEYWORDS else f"FitOptions({k}=...)"
-        warnings.warn(f"fit({k}=...) is deprecated; write options={spelling}.", DeprecationWarning, stacklevel=3)
-    solver = options.solver
     shortcuts = {k: deprecated.pop(k) for k in _SOLVER_KEYWORDS if k in deprecated}
-    if shortcuts:
-        solver = solver_options(solver, where="fit", **shortcuts)
-    return dataclasses.replace(options, **deprecated, solver=solver)
+    options = moved_into("fit", deprecated, options, FitOptions, "options")
+    no_other_keywords("fit", deprecated)
+    if not shortcuts:
+        return options
+    for k in shortcuts:
+        warnings.warn(
+            f"fit: {k}= is deprecated; pass options=FitOptions(solver=SolverOptions({k}=...))",
+            DeprecationWarning,
+            stacklevel=_caller_stacklevel(),
+        )
+    return dataclasses.replace(options, solver=solver_options(options.solver, where="fit", **shortcuts))
 
 
 def no_drawing(deprecated: dict[str, Any], where: str, instead: str) -> None:
@@ -252,5 +254,5 @@ def no_drawing(deprecated: dict[str, Any], where: str, instead: str) -> None:
         warnings.warn(
             f"{where}(plots=...) is deprecated: save writes the JSON only; draw the figures with {instead}.",
             DeprecationWarning,
-            stacklevel=3,
+            stacklevel=_caller_stacklevel(),
         )

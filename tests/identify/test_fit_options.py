@@ -22,9 +22,7 @@ def test_the_defaults_are_the_fits():
 
 
 def test_a_keyword_warns_with_its_spelling_and_wins_over_the_options():
-    with pytest.warns(
-        DeprecationWarning, match=r"fit\(loss=\.\.\.\) is deprecated; write options=FitOptions\(loss=\.\.\.\)"
-    ):
+    with pytest.warns(DeprecationWarning, match=r"fit: loss= is deprecated; pass options=FitOptions\(loss=\.\.\.\)"):
         o = fit_options(FitOptions(loss="huber", n_starts=3), {"loss": "l2"})
     assert o == FitOptions(loss="l2", n_starts=3)
     with pytest.warns(DeprecationWarning, match=r"FitOptions\(solver=SolverOptions\(rtol=\.\.\.\)\)"):
