@@ -46,6 +46,7 @@ trial the model does not describe): a `misfit` naming the trial.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from typing import Any
@@ -282,17 +283,9 @@ def judge(
     """
     T = len(pos_err)
     names = list(names) if names is not None else [f"trial{i}" for i in range(T)]
-    n_total = sum(np.isfinite(np.asarray(e, float)).all(-1).sum() * 2 for e in pos_err)
-    n_total += sum(np.isfinite(np.asarray(e, float)).all(-1).sum() * 3 for e in rot_err)
-    frac = max(1.0 - n_params / n_total, 1e-3) if n_total else 1.0
-    fl = [max(f, r) if math.isfinite(f) else math.nan for f, r in zip(floor, FLOOR_RESOLUTION)]
-    overall = _scope((pos_err, rot_err), frac, fl)
-    per_trial = [_scope(([pos_err[i]], [rot_err[i]]), frac, fl) for i in range(T)]
-    key = lambda i: max((r for r, _, _ in per_trial[i] if math.isfinite(r)), default=-math.inf)
-    worst = max(range(T), key=key) if T else None
-    scopes = [("", overall)] + ([(names[worst], per_trial[worst])] if worst is not None else [])
     aside = list(set_aside) if set_aside is not None else [0] * T
     held = list(measured) if measured is not None else [0] * T
+    sc = _scores(pos_err, rot_err, floor, n_params, names)
     rejected = [
         f"trial {names[i]!r}: {100.0 * aside[i] / held[i]:.0f} % of frames rejected: check the capture"
         for i in range(T)
@@ -303,7 +296,6 @@ def judge(
     bad, cut = whiteness.rejects([w["p"] for ws in white for w in ws])
     bad = bad.reshape(T, len(SERIES)) if T else bad
     correlated = {names[i]: [c for c, b in zip(SERIES, bad[i]) if b] for i in range(T) if bad[i].any()}
-    diagnosis = None
     if unphysical:
         status, diagnosis = "misfit", "wrong valley"
         reason = (
@@ -311,37 +303,62 @@ def judge(
             "fixed is wrong; try more starts (--n-starts), other start values (--params, --fix) or bounds (--bound)."
         )
     elif left_out and converged:
-        diagnosis = "wrong valley"
-        status, reason = (
-            "misfit",
-            (
-                f"the fit has set aside more than {ABANDONED:.0%} of the frames of {', '.join(map(repr, left_out))}: it "
-                "has left the trial out (a wrong valley, or a trial the model does not describe), not a capture's "
-                "glitches; try more starts (--n-starts) or other start values (--params, --fix), and check that "
-                "trial's inputs and capture."
-            ),
+        status, diagnosis = "misfit", "wrong valley"
+        reason = (
+            f"the fit has set aside more than {ABANDONED:.0%} of the frames of {', '.join(map(repr, left_out))}: it "
+            "has left the trial out (a wrong valley, or a trial the model does not describe), not a capture's "
+            "glitches; try more starts (--n-starts) or other start values (--params, --fix), and check that "
+            "trial's inputs and capture."
         )
     elif correlated and converged:
         status, diagnosis = "misfit", "model error"
-        reason = _model_error(correlated, white, names, overall, cut, missing, lags)
-        if any(h[4] == "far" for h in _hits(scopes)):
-            reason += (
-                " Residuals this far above the floor can also mean a wrong valley: try more starts (--n-starts) or "
-                "other start values (--params)."
-            )
+        reason = _model_error(correlated, white, sc, cut, missing, lags)
     else:
-        status, reason = _status(_hits(scopes), overall, per_trial, names, worst, fl, converged, why_not, rejected)
-        if status == "misfit":
-            diagnosis = "capture defects" if rejected else "wrong valley"
-    out = _numbers(status, reason, converged, floor, overall, per_trial, names, worst)
+        status, reason = _status(sc, converged, why_not, rejected)
+        diagnosis = ("capture defects" if rejected else "wrong valley") if status == "misfit" else None
+    out = _numbers(status, reason, converged, floor, sc)
     for t, n, ws in zip(out["trials"], aside, white):
         t["set_aside"] = int(n)
         t["whiteness"] = {c: w["p"] for c, w in zip(SERIES, ws)}
-    out["set_aside"] = int(sum(aside))
-    out["diagnosis"] = diagnosis
-    out["correlated"] = correlated
+    out |= {"set_aside": int(sum(aside)), "diagnosis": diagnosis, "correlated": correlated}
     out["thresholds"] |= {"rejected": REJECTED, "whiteness_alpha": whiteness.ALPHA, "whiteness_lags": lags}
     return out
+
+
+@dataclasses.dataclass(frozen=True)
+class _Scores:
+    """The residual sigmas of a fit against the noise floor: per channel `(ratio to the floor,
+    lag-1 autocorrelation, sigma)` over all trials (`overall`) and per trial, the worst trial,
+    the floors compared with (`fl`) and the rules that fire (`hits`, `_hits`)."""
+
+    names: list[str]
+    overall: list[tuple[float, float, float]]
+    per_trial: list[list[tuple[float, float, float]]]
+    worst: int | None
+    fl: list[float]
+    hits: list[tuple[str, int, float, float, str]]
+
+    @property
+    def ratios(self) -> str:
+        return (
+            f"{_x(self.overall[0][0])} (position) and {_x(self.overall[1][0])} (orientation) the capture's noise floor"
+        )
+
+
+def _scores(pos_err, rot_err, floor, n_params: int, names: list[str]) -> _Scores:
+    """The `_Scores` of the residuals, their sigmas dof-corrected for `n_params` fitted values
+    and the floors raised to `FLOOR_RESOLUTION`."""
+    T = len(pos_err)
+    n_total = sum(np.isfinite(np.asarray(e, float)).all(-1).sum() * 2 for e in pos_err)
+    n_total += sum(np.isfinite(np.asarray(e, float)).all(-1).sum() * 3 for e in rot_err)
+    frac = max(1.0 - n_params / n_total, 1e-3) if n_total else 1.0
+    fl = [max(f, r) if math.isfinite(f) else math.nan for f, r in zip(floor, FLOOR_RESOLUTION)]
+    overall = _scope((pos_err, rot_err), frac, fl)
+    per_trial = [_scope(([pos_err[i]], [rot_err[i]]), frac, fl) for i in range(T)]
+    key = lambda i: max((r for r, _, _ in per_trial[i] if math.isfinite(r)), default=-math.inf)
+    worst = max(range(T), key=key) if T else None
+    scopes = [("", overall)] + ([(names[worst], per_trial[worst])] if worst is not None else [])
+    return _Scores(names, overall, per_trial, worst, fl, _hits(scopes))
 
 
 def _whiteness(pos_err, rot_err, floor, lags: int) -> list[list[dict[str, Any]]]:
@@ -362,19 +379,24 @@ def _whiteness(pos_err, rot_err, floor, lags: int) -> list[list[dict[str, Any]]]
     return out
 
 
-def _model_error(correlated, white, names, overall, cut: float, missing: Sequence[str], lags: int) -> str:
+def _model_error(correlated, white, sc: _Scores, cut: float, missing: Sequence[str], lags: int) -> str:
     """The reason of a misfit whose residuals are correlated in time."""
     where = "; ".join(f"trial {n!r}: {', '.join(cs)}" for n, cs in correlated.items())
-    i = names.index(next(iter(correlated)))
+    i = sc.names.index(next(iter(correlated)))
     share = float(np.mean([w["outside_99"] for w in white[i]]))
-    ratios = f"{_x(overall[0][0])} (position) and {_x(overall[1][0])} (orientation) the capture's noise floor"
     effects = "; ".join(missing) if missing else "a parameter held at a wrong value"
-    return (
-        f"model error: the residuals are correlated in time ({where}; in trial {names[i]!r} {share:.0%} of the "
+    reason = (
+        f"model error: the residuals are correlated in time ({where}; in trial {sc.names[i]!r} {share:.0%} of the "
         f"autocorrelation lags 1-{lags} are outside the 99 % band of white noise, Ljung-Box p < {cut:.1e}), at "
-        f"{ratios}: the model does not describe these trials, and the values and standard errors are biased. "
+        f"{sc.ratios}: the model does not describe these trials, and the values and standard errors are biased. "
         f"What it could be missing: {effects}."
     )
+    if any(h[4] == "far" for h in sc.hits):
+        reason += (
+            " Residuals this far above the floor can also mean a wrong valley: try more starts (--n-starts) or "
+            "other start values (--params)."
+        )
+    return reason
 
 
 def _scope(errs, frac: float, fl) -> list[tuple[float, float, float]]:
@@ -400,11 +422,11 @@ def _hits(scopes) -> list[tuple[str, int, float, float, str]]:
     return hits
 
 
-def _status(hits, overall, per_trial, names, worst, fl, converged: bool, why_not: str, rejected=()) -> tuple[str, str]:
+def _status(sc: _Scores, converged: bool, why_not: str, rejected=()) -> tuple[str, str]:
     """The status and its one-sentence reason (the module's rules); `rejected`: per trial with
     too many frames set aside, its sentence."""
-    T = len(per_trial)
-    ratios = f"{_x(overall[0][0])} (position) and {_x(overall[1][0])} (orientation) the capture's noise floor"
+    hits, overall, per_trial, names, worst, fl = sc.hits, sc.overall, sc.per_trial, sc.names, sc.worst, sc.fl
+    T, ratios = len(per_trial), sc.ratios
     worst_text = ""
     if worst is not None and T > 1:
         wr = per_trial[worst]
@@ -453,9 +475,9 @@ def _status(hits, overall, per_trial, names, worst, fl, converged: bool, why_not
     return "converged", f"the optimiser converged and the residual sigmas are {ratios}, {acs}{no_floor}{capture}."
 
 
-def _numbers(status, reason, converged, floor, overall, per_trial, names, worst) -> dict[str, Any]:
+def _numbers(status, reason, converged, floor, sc: _Scores) -> dict[str, Any]:
     """The verdict's dict (see `judge`)."""
-    deg = math.degrees
+    deg, overall, per_trial, names, worst = math.degrees, sc.overall, sc.per_trial, sc.names, sc.worst
     trials = [
         {
             "name": names[i],
