@@ -16,23 +16,9 @@ from .._runtime.errors import InputError
 from ..capture.validation import KINDS
 from ..model.params import RobotParams
 
+_START = ("Omega0_x", "Omega0_y", "Omega0_z", "rot0_x", "rot0_y", "rot0_z", "x0", "y0")
 #: nuisance parameters per trial, in order
-NUISANCE = {
-    "wheel_speeds": ("Omega0_x", "Omega0_y", "Omega0_z", "rot0_x", "rot0_y", "rot0_z", "x0", "y0"),
-    "torques": (
-        "Omega0_x",
-        "Omega0_y",
-        "Omega0_z",
-        "rot0_x",
-        "rot0_y",
-        "rot0_z",
-        "x0",
-        "y0",
-        "omega0_x",
-        "omega0_y",
-        "omega0_z",
-    ),
-}
+NUISANCE = {"wheel_speeds": _START, "torques": _START + ("omega0_x", "omega0_y", "omega0_z")}
 #: the nuisance parameter of a trial's clock offset (`fit(..., fit_time_offset=True)`), last in order
 TIME_OFFSET = "time_offset"
 
@@ -52,6 +38,10 @@ def offset_from_nuisance(v, max_offset: float):
 def nuisance_from_offset(offset, max_offset: float):
     """The inverse of `offset_from_nuisance` (offsets clipped to 0.999 `max_offset`)."""
     return max_offset * np.arctanh(np.clip(np.asarray(offset, float) / max_offset, -0.999, 0.999))
+
+
+#: the arrays of a `FitData`, one row per trial
+ARRAYS = ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,9 +79,17 @@ class FitData:
         return nuisance_names(self.kind, self.max_offset > 0)
 
     def arrays(self) -> dict[str, jax.Array]:
-        return {
-            k: to_jax(getattr(self, k)) for k in ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0")
+        return {k: to_jax(getattr(self, k)) for k in ARRAYS}
+
+    @classmethod
+    def stacked(cls, rows: Sequence[dict], kind: str, max_offset: float = 0.0) -> FitData:
+        """The trials `rows` (each its `ARRAYS`, `name`, `length` and `start`) packed."""
+        arrays = {k: np.stack([r[k] for r in rows]) for k in ARRAYS}
+        info = {
+            k: tuple(r[key] for r in rows)
+            for k, key in (("names", "name"), ("lengths", "length"), ("t_start", "start"))
         }
+        return cls(**arrays, **info, kind=kind, max_offset=float(max_offset))
 
     def fingerprint(self) -> str:
         h = hashlib.sha256(self.kind.encode())
@@ -118,44 +116,37 @@ def pack_trials(trials: Sequence, params: RobotParams, *, max_offset: float = 0.
     kind = next(iter(kinds))
     N = params.n_wheels
     M = max(len(np.asarray(t.t)) for t in trials)
-    out = {k: [] for k in ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0")}
-    names, lengths, starts = [], [], []
+    rows = []
     for k, tr in enumerate(trials):
         name, t, u, x, y, q, vp, vr = _checked_arrays(tr, k, N)
         m = len(t)
         qn = np.where(vr[:, None], q, [1.0, 0.0, 0.0, 0.0])
         qn = qn / np.linalg.norm(qn, axis=1, keepdims=True)
         t0 = t[0]
-        ts = np.concatenate([t - t0, np.full(M - m, t[-1] - t0)])
         dt = (t[-1] - t[0]) / (m - 1)
-        tc = np.concatenate([t - t0, t[-1] - t0 + dt * np.arange(1, M - m + 1)])
 
         def pad(a, v, m=m):
             return np.concatenate([a, np.broadcast_to(v, (M - m,) + a.shape[1:])])
 
-        out["ts"].append(ts)
-        out["tc"].append(tc)
-        out["u"].append(pad(u, u[-1]))
-        out["t1"].append(t[-1] - t0)
-        out["x"].append(pad(np.where(vp, x, 0.0), 0.0))
-        out["y"].append(pad(np.where(vp, y, 0.0), 0.0))
-        out["q"].append(pad(qn, np.array([1.0, 0.0, 0.0, 0.0])))
-        out["wpos"].append(pad(vp.astype(np.float64), 0.0))
-        out["wrot"].append(pad(vr.astype(np.float64), 0.0))
-        out["xy0"].append(np.array([x[vp][0], y[vp][0]]))
-        out["q0"].append(qn[vr][0])
-        names.append(name)
-        lengths.append(m)
-        starts.append(float(t0))
-    arrs = {k: np.stack(v) for k, v in out.items()}
-    return FitData(
-        **arrs,
-        kind=kind,
-        names=tuple(names),
-        lengths=tuple(lengths),
-        t_start=tuple(starts),
-        max_offset=float(max_offset),
-    )
+        rows.append(
+            {
+                "ts": np.concatenate([t - t0, np.full(M - m, t[-1] - t0)]),
+                "tc": np.concatenate([t - t0, t[-1] - t0 + dt * np.arange(1, M - m + 1)]),
+                "u": pad(u, u[-1]),
+                "t1": t[-1] - t0,
+                "x": pad(np.where(vp, x, 0.0), 0.0),
+                "y": pad(np.where(vp, y, 0.0), 0.0),
+                "q": pad(qn, np.array([1.0, 0.0, 0.0, 0.0])),
+                "wpos": pad(vp.astype(np.float64), 0.0),
+                "wrot": pad(vr.astype(np.float64), 0.0),
+                "xy0": np.array([x[vp][0], y[vp][0]]),
+                "q0": qn[vr][0],
+                "name": name,
+                "length": m,
+                "start": float(t0),
+            }
+        )
+    return FitData.stacked(rows, kind, max_offset)
 
 
 def _checked_arrays(tr, k: int, N: int):

@@ -104,57 +104,33 @@ def boundaries(t: np.ndarray, both: np.ndarray, segment: float) -> list[int]:
 def segment_trials(data: FitData, segment: float) -> Segments:
     """Cut the trials of a `FitData` into segments of about `segment` seconds (`Segments`)."""
     T = data.ts.shape[0]
-    pieces, trial_of, cut_list = [], [], []
+    pieces, cut_list = [], []  # (trial, first sample, last sample, last segment of its trial)
     for i in range(T):
         m = data.lengths[i]
-        t = data.ts[i, :m]
-        both = (data.wpos[i, :m] > 0) & (data.wrot[i, :m] > 0)
-        cuts = boundaries(t, both, segment)
+        cuts = boundaries(data.ts[i, :m], (data.wpos[i, :m] > 0) & (data.wrot[i, :m] > 0), segment)
         cut_list.append(tuple(cuts))
-        for s in range(len(cuts) - 1):
-            a, b = cuts[s], cuts[s + 1]
-            last = s == len(cuts) - 2
-            pieces.append((i, a, b, last))
-            trial_of.append(i)
+        pieces += [(i, cuts[s], cuts[s + 1], s == len(cuts) - 2) for s in range(len(cuts) - 1)]
     L = max(b - a + 1 for _, a, b, _ in pieces)
-    out = {
-        k: []
-        for k in ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0", "name", "length", "start", "next")
-    }
     extra = 2
     if data.max_offset > 0:
         dt = float(np.median(np.diff(data.tc[0, : data.lengths[0]])))
         extra += int(math.ceil(data.max_offset / dt))
-    for i, a, b, last in pieces:
-        for k, v in _segment(data, i, a, b, last, L, extra).items():
-            out[k].append(v)
+    rows = [_segment(data, i, a, b, last, L, extra) for i, a, b, last in pieces]
     G = len(pieces)
-    trial_of = np.asarray(trial_of)
-    Gmax = max(len(c) - 1 for c in cut_list)
-    slot = np.full((T, Gmax), G, np.int32)
-    first = np.zeros(T, np.int32)
+    trial_of = np.asarray([p[0] for p in pieces])
+    slot = np.full((T, max(len(c) - 1 for c in cut_list)), G, np.int32)
     for i in range(T):
         idx = np.flatnonzero(trial_of == i)
         slot[i, : idx.size] = idx
-        first[i] = idx[0]
-    arrays = {k: np.stack(out[k]) for k in ("ts", "tc", "u", "t1", "x", "y", "q", "wpos", "wrot", "xy0", "q0")}
-    seg_data = FitData(
-        **arrays,
-        kind=data.kind,
-        names=tuple(out["name"]),
-        lengths=tuple(out["length"]),
-        t_start=tuple(out["start"]),
-        max_offset=data.max_offset,
-    )
-    has_next, nxt_xy0, nxt_q0 = zip(*out["next"])
+    has_next, nxt_xy0, nxt_q0 = zip(*(r["next"] for r in rows))
     return Segments(
-        data=seg_data,
+        data=FitData.stacked(rows, data.kind, data.max_offset),
         trial=trial_of,
         slot=slot,
         has_next=np.asarray(has_next),
         next_xy0=np.stack(nxt_xy0),
         next_q0=np.stack(nxt_q0),
-        first=first,
+        first=slot[:, 0].copy(),
         boundaries=tuple(cut_list),
     )
 
