@@ -48,10 +48,11 @@ from .._runtime.errors import SolverFailure
 from .._runtime.files import atomic_write_json
 from ..capture.trial import Trial
 from ..model.params import RobotParams
-from ..model.rotations import quat_conj, quat_log, quat_mul
+from ..model.rotations import quat_conj_np, quat_log_np, quat_mul_np
 from ..numerics.lm import Dense, LevenbergMarquardt, iterate
-from .data import TIME_OFFSET, FitData, offset_from_nuisance, pack_trials
+from .data import FitData, pack_trials
 from .options import no_drawing
+from .report import nuisance_values, trial_errors
 from .residuals import trial_model
 from .robust import DEFAULT_LOSS, REDESCENDING, REJECT, WARM_LOSS, check_loss, frame_weights, reweigh, robust_cost
 from .starts import nuisance_guess
@@ -185,20 +186,21 @@ def compare(
             "(or gave non-finite values); check the parameters and that trial's inputs."
         )
     reports, predicted = [], []
-    for i, tr in enumerate(trials):
-        rep = _trial_report(data, i, pose, nu[i], np.asarray(tr.inputs, float), lags, aside[i], loss)
+    for i, (tr, e) in enumerate(zip(trials, trial_errors(data, pose))):
+        rep = _trial_report(data, i, e, nu[i], np.asarray(tr.inputs, float), lags, aside[i], loss)
         reports.append(rep)
         s = rep["series"]
-        m = data.lengths[i]
+        q_sim = np.asarray(pose[2][i, : data.lengths[i]])
+        name = f"{data.names[i]}_predicted"
         predicted.append(
             Trial(
                 np.asarray(tr.t, float),
                 s["x_sim"],
                 s["y_sim"],
-                np.asarray(pose[2][i, :m]),
+                q_sim,
                 np.asarray(tr.inputs, float),
                 data.kind,
-                name=f"{data.names[i]}_predicted",
+                name=name,
             )
         )
     verdict, reason = judge(reports)
@@ -352,18 +354,14 @@ def _ccf(e: np.ndarray, w: np.ndarray, u: np.ndarray, lags: int) -> np.ndarray:
 
 
 def _trial_report(
-    data: FitData, i: int, pose, nu_i: np.ndarray, inputs: np.ndarray, lags: int, aside=None, loss: str = "l2"
+    data: FitData, i: int, errors: dict[str, Any], nu_i, inputs: np.ndarray, lags: int, aside, loss: str
 ) -> dict[str, Any]:
-    """One trial's scores: fits on every measured frame, whiteness and cross-correlations on
-    those not set aside (`aside (M,)`)."""
-    m = data.lengths[i]
-    out = np.zeros(m, bool) if aside is None else np.asarray(aside[:m], bool)
-    wp, wr = data.wpos[i, :m] > 0, data.wrot[i, :m] > 0
-    xs, ys, qs = (np.asarray(a[i, :m]) for a in pose)
-    q_meas = data.q[i, :m]
-    rot_err = np.asarray(quat_log(quat_mul(quat_conj(jnp.asarray(qs)), jnp.asarray(q_meas))))
-    rot_meas = np.asarray(quat_log(quat_mul(quat_conj(jnp.asarray(data.q0[i])), jnp.asarray(q_meas))))
-    ex, ey = xs - data.x[i, :m], ys - data.y[i, :m]
+    """One trial's scores from its errors (`trial_errors`): fits on every measured frame,
+    whiteness and cross-correlations on those not set aside (`aside (M,)`)."""
+    m, wp, wr, ep, rot_err = data.lengths[i], errors["wp"], errors["wr"], errors["ep"], errors["er"]
+    out = np.asarray(aside[:m], bool)
+    rot_meas = quat_log_np(quat_mul_np(quat_conj_np(data.q0[i]), data.q[i, :m]))
+    ex, ey = ep[:, 0], ep[:, 1]
     norms = {
         "x": _norms(ex[wp], data.x[i, :m][wp]),
         "y": _norms(ey[wp], data.y[i, :m][wp]),
@@ -377,14 +375,9 @@ def _trial_report(
     acfs = np.stack([w["acf"] for w in white])
     outside = np.abs(acfs[:, 1:]) > band
     u = np.asarray(inputs, float)[:m]
-    ccfs = np.stack(
-        [
-            np.stack([_ccf(resid[:, c], masks[c], u[:, j], lags) for j in range(u.shape[1])])
-            for c in range(len(CHANNELS))
-        ]
-    )  # (channel, input, lag)
+    # (channel, input, lag)
+    ccfs = np.array([[_ccf(resid[:, c], masks[c], u[:, j], lags) for j in range(u.shape[1])] for c in range(5)])
     c_out = np.abs(ccfs) > band
-    names_nu = data.nuisance
     return {
         "name": data.names[i],
         "samples": m,
@@ -407,16 +400,9 @@ def _trial_report(
         "measured": int((wp | wr).sum()),
         "rms_pos_m": float(np.sqrt((ex[wp] ** 2 + ey[wp] ** 2).mean())),
         "rms_rot_deg": float(np.degrees(np.sqrt((rot_err[wr] ** 2).sum(1).mean()))),
-        "nuisance": {
-            k: float(offset_from_nuisance(v, data.max_offset)) if k == TIME_OFFSET else float(v)
-            for k, v in zip(names_nu, nu_i)
-        },
-        "series": {
-            "t": data.ts[i, :m] + data.t_start[i],
-            "x": np.where(wp, data.x[i, :m], np.nan),
-            "y": np.where(wp, data.y[i, :m], np.nan),
-            "x_sim": xs,
-            "y_sim": ys,
+        "nuisance": nuisance_values(data, nu_i),
+        "series": errors["series"]
+        | {
             "residuals": np.where(np.stack([wp, wp, wr, wr, wr], 1), resid, np.nan),
             "set_aside": out,
             "acf": acfs,
@@ -431,11 +417,8 @@ def _trial_report(
 def _overall(reports: list[dict[str, Any]], lags: int) -> dict[str, Any]:
     """The scores of all trials together: fits from the pooled norms (each trial about its own
     mean), fractions over all trials' lags (weighted by their counts), RMS over all samples."""
-    fit = {}
-    for key in ("x", "y", "rot"):
-        num = sum(r["series"]["norms"][key][0] for r in reports)
-        den = sum(r["series"]["norms"][key][1] for r in reports)
-        fit[key] = 100.0 * (1.0 - math.sqrt(num / den)) if den > 0 else -math.inf
+    pooled = lambda key: [sum(r["series"]["norms"][key][j] for r in reports) for j in (0, 1)]
+    fit = {key: _fit_percent(pooled(key)) for key in ("x", "y", "rot")}
     n = np.array([r["samples"] for r in reports], float)
     wavg = lambda vals: float((np.asarray(vals) * n).sum() / n.sum())
     return {

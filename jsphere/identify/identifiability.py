@@ -132,11 +132,7 @@ def identifiability(
     with a relative sd above `rel_tol` are reported with their components.
     """
     names = free.names
-    sc = np.maximum(np.abs(values), 0.1 * free.scales())
-    exact = exact_symmetries(names, params, kind) if kind is not None else ()
-    Fs = project_out(
-        sc[:, None] * F_phys * sc[None, :], [symmetry_directions(names, values, params)[k] / sc for k in exact]
-    )
+    sc, Fs = scaled_information(free, values, F_phys, params, kind)
     lam, V = np.linalg.eigh(Fs)
     lam_max = max(float(lam[-1]), 1e-300)
     rel_sd = lambda info: math.sqrt(s2 / info) if info > 1e-14 * lam_max else math.inf
@@ -176,6 +172,18 @@ def identifiability(
             f"fix one of {', '.join(n for n, _ in terms)} or add more exciting trials."
         )
     return out
+
+
+def scaled_information(free: FreeParams, values, F_phys, params: RobotParams | None, kind: str | None):
+    """`(sc, Fs)`: the size of each free name (`|value|`, or a tenth of its field's size for
+    values near 0) and the information in those units, the invariances exact for the trials'
+    input `kind` removed (`exact_symmetries`, `project_out`; none without `params` and `kind`)."""
+    sc = np.maximum(np.abs(values), 0.1 * free.scales())
+    Fs = sc[:, None] * F_phys * sc[None, :]
+    if kind is None or params is None:
+        return sc, Fs
+    dirs = symmetry_directions(free.names, values, params)
+    return sc, project_out(Fs, [dirs[k] / sc for k in exact_symmetries(free.names, params, kind)])
 
 
 def project_out(Fs: np.ndarray, directions: Sequence[np.ndarray]) -> np.ndarray:

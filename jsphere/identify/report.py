@@ -20,7 +20,7 @@ import numpy as np
 
 from .._runtime.arrays import to_jax
 from .._runtime.errors import InputError
-from .._runtime.files import atomic_write_json
+from .._runtime.files import _strict, atomic_write_json
 from ..model.internal import FIELDS
 from ..model.names import parse_name
 from ..model.params import RobotParams
@@ -28,7 +28,7 @@ from ..model.rotations import quat_conj_np, quat_log_np, quat_mul_np
 from ..numerics.lm import blocks, marginal_information
 from .data import TIME_OFFSET, FitData, offset_from_nuisance
 from .free import FreeParams
-from .identifiability import exact_symmetries, identifiability, project_out, symmetry_directions, units_note
+from .identifiability import identifiability, scaled_information, units_note
 from .options import no_drawing
 from .robust import REJECT, frame_weights, reweigh, variance_factor
 from .verdict import judge, missing_effects, noise_floor
@@ -99,43 +99,24 @@ class FitResult:
         return compare(self.params, trials, **(self.solve_options | kwargs))
 
     def to_json(self) -> dict[str, Any]:
-        """The JSON document (`RobotParams.load` reads its `params`)."""
-        fin = lambda v: _finite(v)
-        return (
-            {
-                "params": self.params.to_dict(),
-                "free": list(self.free),
-                "values": fin(self.values),
-                "stderr": fin(self.stderr),
-                "correlation": fin(np.asarray(self.correlation).tolist()),
-                "cost": self.cost,
-                "iterations": self.iterations,
-                "converged": self.converged,
-                "status": self.status,
-                "status_reason": self.status_reason,
-                "sigma_pos_m": self.sigma_pos,
-                "sigma_rot_deg": math.degrees(self.sigma_rot),
-                "n_residuals": self.n_residuals,
-                "kind": self.kind,
-                "identifiability": fin(self.identifiability),
-                "verdict": fin(self.verdict),
-                "trials": [{k: fin(v) for k, v in t.items() if k != "series"} for t in self.trials],
-                "rms_pos_m": [t["rms_pos_m"] for t in self.trials],
-                "rms_rot_deg": [t["rms_rot_deg"] for t in self.trials],
-                "starts_cost": fin(self.starts),
-                "elapsed_s": self.elapsed_s,
-                "shooting": fin(self.shooting),
-                "loss": self.loss,
-                "outliers": self.outliers,
-                "units_note": self.units_note,
-            }
-            | (
-                {}
-                if self.time_offset is None
-                else {"time_offset": fin(self.time_offset), "time_offset_stderr": fin(self.time_offset_stderr)}
-            )
-            | ({} if self.options is None else {"options": fin(self.options.to_json())})
-        )
+        """The JSON document (`RobotParams.load` reads its `params`; non-finite numbers as None)."""
+        same = ("free", "values", "stderr", "correlation", "cost", "iterations", "converged", "status")
+        same += ("status_reason", "n_residuals", "kind", "identifiability", "verdict")
+        doc = {"params": self.params.to_dict()} | {k: getattr(self, k) for k in same}
+        doc |= {
+            "sigma_pos_m": self.sigma_pos,
+            "sigma_rot_deg": math.degrees(self.sigma_rot),
+            "trials": [{k: v for k, v in t.items() if k != "series"} for t in self.trials],
+            "rms_pos_m": [t["rms_pos_m"] for t in self.trials],
+            "rms_rot_deg": [t["rms_rot_deg"] for t in self.trials],
+            "starts_cost": self.starts,
+        }
+        doc |= {k: getattr(self, k) for k in ("elapsed_s", "shooting", "loss", "outliers", "units_note")}
+        if self.time_offset is not None:
+            doc |= {"time_offset": self.time_offset, "time_offset_stderr": self.time_offset_stderr}
+        if self.options is not None:
+            doc["options"] = self.options.to_json()
+        return _strict(doc)
 
     def save(self, path, **deprecated) -> list[Path]:
         """Write the JSON atomically; returns `[path]`. The figures are drawn by
@@ -169,19 +150,6 @@ class FitResult:
         if self.status:
             lines.append(f"status: {self.status}: {self.status_reason}")
         return "\n".join(lines)
-
-
-def _finite(v):
-    """Replace non-finite floats by None (JSON has no inf/NaN)."""
-    if isinstance(v, dict):
-        return {k: _finite(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_finite(x) for x in v]
-    if isinstance(v, (float, np.floating)):
-        return float(v) if math.isfinite(v) else None
-    if isinstance(v, np.ndarray):
-        return _finite(v.tolist())
-    return v
 
 
 def _assemble_named(free: FreeParams, per_name: dict[str, float], params: RobotParams, fill: float) -> dict[str, Any]:
@@ -359,11 +327,7 @@ def _covariance(
     # name then gets no information, and an infinite standard error)
     Ainv = np.linalg.pinv(A)
     F_phys = Ainv.T @ F @ Ainv
-    sc = np.maximum(np.abs(values), 0.1 * free.scales())
-    Fs = sc[:, None] * F_phys * sc[None, :]
-    if kind is not None and params is not None:
-        dirs = symmetry_directions(free.names, values, params)
-        Fs = project_out(Fs, [dirs[k] / sc for k in exact_symmetries(free.names, params, kind)])
+    sc, Fs = scaled_information(free, values, F_phys, params, kind)
     lam, V = np.linalg.eigh(Fs)
     keep = lam > 1e-14 * max(lam[-1], 1e-300)
     cov_s = (V[:, keep] / lam[keep]) @ V[:, keep].T * s2
@@ -383,20 +347,47 @@ def _rms(e: np.ndarray) -> float:
     return float(np.sqrt((e**2).sum(1).mean())) if len(e) else math.nan
 
 
+def nuisance_values(data: FitData, nu_i) -> dict[str, float]:
+    """A trial's nuisance values by name, its clock offset in seconds (`offset_from_nuisance`)."""
+    m = data.max_offset
+    return {k: float(offset_from_nuisance(v, m)) if k == TIME_OFFSET else float(v) for k, v in zip(data.nuisance, nu_i)}
+
+
+def trial_errors(data: FitData, pose) -> list[dict[str, Any]]:
+    """Per trial, from the simulated poses `pose = (x, y, q)` `(T, M, ...)`: where its position and
+    orientation were measured (`wp`, `wr`), the position errors `ep (m, 2)` [m] and orientation
+    errors `er (m, 3)` [rad] (rotation vectors of `q_sim^-1 q_meas`), and the `series` of its
+    figures (`t`, the measured `x`, `y`, NaN at gaps, and the simulated `x_sim`, `y_sim`)."""
+    xs, ys, qs = (np.asarray(a) for a in pose)
+    with np.errstate(divide="ignore", invalid="ignore"):  # (padding: zero quaternions)
+        rot_err = quat_log_np(quat_mul_np(quat_conj_np(qs), data.q))
+    out = []
+    for i, m in enumerate(data.lengths):
+        wp, wr = data.wpos[i, :m] > 0, data.wrot[i, :m] > 0
+        series = {
+            "t": data.ts[i, :m] + data.t_start[i],
+            "x": np.where(wp, data.x[i, :m], np.nan),
+            "y": np.where(wp, data.y[i, :m], np.nan),
+            "x_sim": xs[i, :m],
+            "y_sim": ys[i, :m],
+        }
+        ep = np.stack([xs[i, :m] - data.x[i, :m], ys[i, :m] - data.y[i, :m]], 1)
+        out.append({"wp": wp, "wr": wr, "ep": ep, "er": rot_err[i, :m], "series": series})
+    return out
+
+
 def _trial_reports(data: FitData, pose, nu_b: np.ndarray, b: int, set_aside: np.ndarray) -> list[dict[str, Any]]:
     """Per trial: RMS residuals (of the frames not set aside: `set_aside (T, M)`), the number
     set aside, nuisance values and the measured and fitted series (for the plots) of start `b`."""
-    xs, ys, qs = (np.asarray(a)[b] for a in pose)
-    with np.errstate(divide="ignore", invalid="ignore"):  # (padding: zero quaternions)
-        rot_err = quat_log_np(quat_mul_np(quat_conj_np(qs), data.q))
-    names_nu = data.nuisance
     trials = []
-    for i in range(data.ts.shape[0]):
-        m = data.lengths[i]
+    for i, e in enumerate(trial_errors(data, [np.asarray(a)[b] for a in pose])):
+        m, wp, wr, ep, er = data.lengths[i], e["wp"], e["wr"], e["ep"], e["er"]
         out = set_aside[i, :m]
-        wp, wr = data.wpos[i, :m] > 0, data.wrot[i, :m] > 0
-        ep = np.stack([xs[i, :m] - data.x[i, :m], ys[i, :m] - data.y[i, :m]], 1)
-        er = rot_err[i, :m]
+        series = e["series"] | {
+            "pos_err": np.where(wp[:, None], ep, np.nan),
+            "rot_err_deg": np.where(wr[:, None], np.degrees(er), np.nan),
+            "set_aside": out,
+        }
         trials.append(
             {
                 "name": data.names[i],
@@ -404,20 +395,8 @@ def _trial_reports(data: FitData, pose, nu_b: np.ndarray, b: int, set_aside: np.
                 "rms_pos_m": _rms(ep[wp & ~out]),
                 "rms_rot_deg": float(np.degrees(_rms(er[wr & ~out]))),
                 "set_aside": int(out.sum()),
-                "nuisance": {
-                    k: float(offset_from_nuisance(v, data.max_offset)) if k == TIME_OFFSET else float(v)
-                    for k, v in zip(names_nu, nu_b[i])
-                },
-                "series": {
-                    "t": data.ts[i, :m] + data.t_start[i],
-                    "x": np.where(wp, data.x[i, :m], np.nan),
-                    "y": np.where(wp, data.y[i, :m], np.nan),
-                    "x_sim": xs[i, :m],
-                    "y_sim": ys[i, :m],
-                    "pos_err": np.where(wp[:, None], ep, np.nan),
-                    "rot_err_deg": np.where(wr[:, None], np.degrees(er), np.nan),
-                    "set_aside": out,
-                },
+                "nuisance": nuisance_values(data, nu_b[i]),
+                "series": series,
             }
         )
     return trials
