@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import re
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
@@ -53,7 +54,7 @@ def expand(params: RobotParams, names: str | Sequence[str]) -> list[tuple[str, l
     and names given twice or overlapping (`I` and `I[0,0]`, `R_m` and `r_m[2]`).
     """
     if isinstance(names, str):
-        names = [n for n in _split_names(names)]
+        names = _split_names(names)
     out: list[tuple[str, list[str]]] = []
     seen: dict[str, str] = {}
     for given in names:
@@ -89,17 +90,7 @@ def expand(params: RobotParams, names: str | Sequence[str]) -> list[tuple[str, l
 
 def _split_names(s: str) -> list[str]:
     """Split `"I[0,1],j"` at commas outside brackets."""
-    parts, depth, cur = [], 0, ""
-    for ch in s:
-        depth += ch == "["
-        depth -= ch == "]"
-        if ch == "," and depth == 0:
-            parts.append(cur)
-            cur = ""
-        else:
-            cur += ch
-    parts.append(cur)
-    return [p.strip() for p in parts if p.strip()]
+    return [p.strip() for p in re.split(r",(?![^\[]*\])", s) if p.strip()]
 
 
 def _canonical(field: str, index: tuple[int, ...]) -> str:
@@ -150,13 +141,12 @@ def apply_fixes(params: RobotParams, fix: Mapping[str, Any] | None) -> RobotPara
     for name, value in fix.items():
         field, _ = parse_name(name)
         shape = () if field == "R_m" else tuple(get_value(params, name).shape)
-        arr = parse_fix_value(name, value, "a number" if not shape else f"a value of shape {shape}")
-        if field != "R_m":
-            if arr.shape not in ((), shape):
-                want = "a number" if not shape else f"a value of shape {shape}"
-                raise InputError(f"--fix {name}: expected {want}; got shape {arr.shape}.")
-        elif arr.shape != ():
+        want = "a number" if not shape else f"a value of shape {shape}"
+        arr = parse_fix_value(name, value, want)
+        if field == "R_m" and arr.shape != ():
             raise InputError(f"--fix {name}: R_m is a scalar; got shape {arr.shape}.")
+        if arr.shape not in ((), shape):
+            raise InputError(f"--fix {name}: expected {want}; got shape {arr.shape}.")
         p = set_value(p, name, arr)
     try:
         return RobotParams(**{f: getattr(p, f) for f in FIELDS}, dtype=params.R0.dtype)

@@ -42,18 +42,11 @@ from .free import FreeParams
 from .shooting import end_vector
 
 
-def _trial_outputs(
-    free: FreeParams, kind, rtol, atol, max_steps, adjoint, base, theta, nu, d, sig, solver=None, max_offset=0.0
-):
-    """Whitened residuals `(5 M,)` of one trial, its solver status, the simulated pose and the
-    state at its last sample (`jsphere.identify.shooting.end_vector`, and the clock offset's
-    nuisance value when it is fitted); `solver`: None for `simulate`'s default."""
-    p = free.to_params(theta, base)
-    return trial_model(p, kind, rtol, atol, max_steps, adjoint, nu, d, sig, solver, max_offset)
-
-
 def trial_model(p, kind, rtol, atol, max_steps, adjoint, nu, d, sig, solver=None, max_offset=0.0):
-    """The model of one trial with parameters `p` (a `RobotParams`): see `_trial_outputs`.
+    """The model of one trial with parameters `p` (a `RobotParams`): its whitened residuals
+    `(5 M,)`, its solver status, the simulated pose and the state at its last sample
+    (`jsphere.identify.shooting.end_vector`, and the clock offset's nuisance value when it is
+    fitted); `solver`: None for `simulate`'s default.
 
     `nu`: the trial's nuisance values (`jsphere.identify.data.nuisance_names`); with
     `max_offset > 0` the last is its clock offset (`offset_from_nuisance`), and the inputs drive
@@ -148,8 +141,9 @@ class _Functions:
 
         def jac_one(base, th, nu, d, sig, ends):
             def f(z):
-                res, ok, pose, end = _trial_outputs(
-                    free, kind, rtol, atol, max_steps, dfx.ForwardMode(), base, z[:P], z[P:], d, sig, solver, max_offset
+                p = free.to_params(z[:P], base)
+                res, ok, pose, end = trial_model(
+                    p, kind, rtol, atol, max_steps, dfx.ForwardMode(), z[P:], d, sig, solver, max_offset
                 )
                 return ((res, end) if ends else res), (res, ok, pose, end)
 

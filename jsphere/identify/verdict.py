@@ -153,14 +153,11 @@ def third_differences(data) -> tuple[np.ndarray, np.ndarray]:
         t = data.ts[i, :m]
         k = _runs(t, data.wpos[i, :m] > 0)
         if k.size:
-            idx = k[:, None] + np.arange(4)
-            c = _coefficients(t[idx])
-            for a in (data.x[i, :m], data.y[i, :m]):
-                pos.append((c * a[idx]).sum(1))
+            c = _coefficients(t[k[:, None] + np.arange(4)])
+            pos += [(c * a[k[:, None] + np.arange(4)]).sum(1) for a in (data.x[i, :m], data.y[i, :m])]
         k = _runs(t, data.wrot[i, :m] > 0)
         if k.size:
-            idx = k[:, None] + np.arange(4)
-            c = _coefficients(t[idx])
+            c = _coefficients(t[k[:, None] + np.arange(4)])
             q = data.q[i, :m]
             q0_inv = quat_conj_np(q[k])
             v = np.stack([quat_log_np(quat_mul_np(q0_inv, q[k + j])) for j in range(1, 4)], 1)  # (n, 3 steps, 3 axes)
@@ -475,35 +472,30 @@ def _status(sc: _Scores, converged: bool, why_not: str, rejected=()) -> tuple[st
     return "converged", f"the optimiser converged and the residual sigmas are {ratios}, {acs}{no_floor}{capture}."
 
 
+def _row(scope) -> dict[str, float]:
+    """The numbers of one scope (`_scope`: all trials, or one) in JSON units."""
+    (rp, ap, sp), (rr, ar, sr) = scope
+    return {
+        "sigma_pos_m": sp,
+        "sigma_rot_deg": math.degrees(sr),
+        "ratio_pos": rp,
+        "ratio_rot": rr,
+        "autocorr_pos": ap,
+        "autocorr_rot": ar,
+    }
+
+
 def _numbers(status, reason, converged, floor, sc: _Scores) -> dict[str, Any]:
     """The verdict's dict (see `judge`)."""
-    deg, overall, per_trial, names, worst = math.degrees, sc.overall, sc.per_trial, sc.names, sc.worst
-    trials = [
-        {
-            "name": names[i],
-            "sigma_pos_m": per_trial[i][0][2],
-            "sigma_rot_deg": deg(per_trial[i][1][2]),
-            "ratio_pos": per_trial[i][0][0],
-            "ratio_rot": per_trial[i][1][0],
-            "autocorr_pos": per_trial[i][0][1],
-            "autocorr_rot": per_trial[i][1][1],
-        }
-        for i in range(len(per_trial))
-    ]
     return {
         "status": status,
         "reason": reason,
         "optimiser_converged": bool(converged),
         "noise_floor_pos_m": float(floor[0]),
-        "noise_floor_rot_deg": deg(floor[1]),
-        "sigma_pos_m": overall[0][2],
-        "sigma_rot_deg": deg(overall[1][2]),
-        "ratio_pos": overall[0][0],
-        "ratio_rot": overall[1][0],
-        "autocorr_pos": overall[0][1],
-        "autocorr_rot": overall[1][1],
-        "worst_trial": names[worst] if worst is not None else None,
-        "trials": trials,
+        "noise_floor_rot_deg": math.degrees(floor[1]),
+        **_row(sc.overall),
+        "worst_trial": sc.names[sc.worst] if sc.worst is not None else None,
+        "trials": [{"name": n, **_row(scope)} for n, scope in zip(sc.names, sc.per_trial)],
         "thresholds": {"far": FAR, "moderate": MODERATE, "correlated": CORRELATED},
     }
 

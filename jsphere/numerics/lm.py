@@ -274,19 +274,10 @@ def _arrays(tree):
     return jax.tree_util.tree_map(to_jax, tree)
 
 
-@eager_jit
-def _propose(lm: LevenbergMarquardt, x, state: LMState):
-    return lm.propose(x, state)
-
-
-@eager_jit
-def _candidate(lm: LevenbergMarquardt, x, step, predicted):
-    return lm.candidate(x, step, predicted)
-
-
-@eager_jit
-def _update(lm: LevenbergMarquardt, x, x_new, state: LMState, cost, evaluation, predicted):
-    return lm.update(x, x_new, state, cost, evaluation, predicted)
+#: `propose`, `candidate` and `update` as compiled programs (per `lm` and shapes)
+_propose, _candidate, _update = (
+    eager_jit(f) for f in (LevenbergMarquardt.propose, LevenbergMarquardt.candidate, LevenbergMarquardt.update)
+)
 
 
 def _counted(state: LMState) -> LMState:

@@ -23,7 +23,7 @@ from jsphere.controls import Sampled
 from jsphere.identify import shooting as _shooting
 from jsphere.identify.data import pack_trials
 from jsphere.identify.free import FreeParams
-from jsphere.identify.residuals import _functions, _trial_outputs
+from jsphere.identify.residuals import _functions, trial_model
 from jsphere.identify.starts import latin_hypercube, nuisance_guess, start_design
 from jsphere.numerics.lm import solve_arrow
 
@@ -176,7 +176,9 @@ def test_assembled_normal_equations_and_step_match_a_dense_solve():
     def residuals(z):
         th, nus = z[:P], z[P:].reshape(seg.n_segments, n)
         r, _, _, ends = jax.vmap(
-            lambda nn, dd: _trial_outputs(free, "torques", 1e-10, 1e-12, 4096, dfx.ForwardMode(), base, th, nn, dd, sig)
+            lambda nn, dd: trial_model(
+                free.to_params(th, base), "torques", 1e-10, 1e-12, 4096, dfx.ForwardMode(), nn, dd, sig
+            )
         )(nus, sd)
         d = [
             math.sqrt(mu) * _shooting.defect("torques", ends[g], nus[g + 1], sd_next_xy0, sd_next_q0, scale)
