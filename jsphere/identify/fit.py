@@ -61,7 +61,7 @@ from .checkpoint import (
 from .data import FitData, pack_trials
 from .free import FreeParams, _overlaps, _split_names, apply_fixes
 from .options import FIT_SOLVER, FIT_TOLERANCES, FitOptions, fit_options
-from .report import FitEnd, FitResult, fit_result
+from .report import FitResult, fit_result
 from .residuals import _Functions, _functions
 from .robust import reweigh, reweigh_with_excess, robust_cost
 from .shooting import CONTINUATION_RTOL, DEFECT_CLOSED, MU_LEVELS, Segments
@@ -423,12 +423,6 @@ def _program(run: _Run, shooting: str) -> str:
     return repr((shooting, d.kind, d.ts.shape, run.free.names, o.n_starts, o.rtol, o.atol, o.max_steps, segments))
 
 
-def _trial_nu(run: _Run, nu_ms):
-    """Each trial's nuisance parameters `(S, T, n)`: its first segment's, of multiple shooting's
-    `(S, G, n)`."""
-    return nu_ms[:, run.shooting.seg.first]
-
-
 def _evaluate_single(run: _Run, st: _State, th, n):
     """Cost `(S,)` (inf for a failed start), residuals, Jacobian and poses of single shooting."""
     with run.progress.compiling("fit", _program(run, "single"), "fit: single shooting"):
@@ -591,7 +585,7 @@ def _multiple_shooting(run: _Run, st: _State) -> None:
             run.say(
                 f"fit: multiple shooting: largest defect {st.max_defect:.3g} noise levels; single shooting from here"
             )
-            st.nu = _trial_nu(run, st.nu_ms)
+            st.nu = st.nu_ms[:, ms.seg.first]  # each trial's first segment's
             st.stage = 1
         else:
             run.say(f"fit: multiple shooting: largest defect {st.max_defect:.3g} noise levels; raising the weight")
@@ -694,15 +688,4 @@ def _estimate_sigma(res_b, data: FitData, sig, n_par: int, loss: str = "l2") -> 
 def _result(run: _Run, st: _State, keys: Sequence[str]) -> FitResult:
     """The `FitResult` of the best start, evaluated once more at the final points."""
     cost, out = _evaluate_single(run, st, st.theta, st.nu)
-    shooting_info: dict[str, Any] = {"method": "multiple" if run.shooting is not None else "single"}
-    if run.shooting is not None:
-        shooting_info |= {
-            "segment_s": run.shooting.segment,
-            "segments": run.shooting.G,
-            "largest_defect": st.max_defect,
-            "closed": st.max_defect <= DEFECT_CLOSED,
-        }
-    end = FitEnd(st.theta, st.nu, st.sig, out["pose"], out["res"], out["J"], cost, st.stage_converged, st.total_it)
-    result = fit_result(run.free, run.data, run.base, end, run.t_begin, loss=run.options.loss, keys=keys)
-    solve_options = {"rtol": run.options.rtol, "atol": run.options.atol, "max_steps": run.options.max_steps}
-    return dataclasses.replace(result, shooting=shooting_info, solve_options=solve_options, options=run.options)
+    return fit_result(run, st, cost, out, keys)

@@ -31,6 +31,7 @@ from .free import FreeParams
 from .identifiability import identifiability, scaled_information, units_note
 from .options import no_drawing
 from .robust import REJECT, frame_weights, reweigh, variance_factor
+from .shooting import DEFECT_CLOSED
 from .verdict import judge, missing_effects, noise_floor
 
 
@@ -172,112 +173,92 @@ def _assemble_named(free: FreeParams, per_name: dict[str, float], params: RobotP
     return out
 
 
-@dataclasses.dataclass(frozen=True)
-class FitEnd:
-    """Where a fit ended, for every start: the final point (`theta (S, P)`, `nu (S, T, n)`, the
-    noise levels `sig`), its evaluation (`pose`: simulated `x, y, q`; `res`, `J` unweighted, and
-    `cost (S,)`, as `jsphere.identify.residuals` gives them), whether the last stage converged
-    and the Levenberg-Marquardt iterations in all."""
-
-    theta: Any
-    nu: Any
-    sig: Any
-    pose: Any
-    res: Any
-    J: Any
-    cost: Any
-    converged: bool
-    iterations: int
-
-
-def fit_result(
-    free: FreeParams,
-    data: FitData,
-    base: RobotParams,
-    end: FitEnd,
-    t_begin: float,
-    *,
-    loss: str = "l2",
-    keys: Sequence[str] | None = None,
-) -> FitResult:
-    """The `FitResult` of the best start (the lowest cost) from where every start ended (`end`);
-    `loss`: the fit's (`jsphere.identify.robust`); `keys`: each trial's key in `outliers` (None:
-    the trials' names)."""
-    theta, nu, sig, pose, res, J, cost = end.theta, end.nu, end.sig, end.pose, end.res, end.J, end.cost
-    converged, iterations, b = end.converged, end.iterations, int(np.argmin(end.cost))
-    P = free.size
-    T = data.ts.shape[0]
-    n_nu = nu.shape[-1]
-    th_b = theta[b]
+def fit_result(run, st, cost, out, keys: Sequence[str]) -> FitResult:
+    """The `FitResult` of the best start (the lowest `cost`) of a fit that has ended: `run` and
+    `st` are `jsphere.identify.fit`'s run and state, `out` the evaluation at the final points
+    (`pose`: simulated `x, y, q`; `res`, `J` unweighted, as `jsphere.identify.residuals` gives
+    them); `keys`: each trial's key in `outliers`."""
+    free, data, o = run.free, run.data, run.options
+    b, loss, P, T, n_nu = int(np.argmin(cost)), o.loss, free.size, data.ts.shape[0], len(data.nuisance)
     n_res = int(2 * data.wpos.sum() + 3 * data.wrot.sum())
-    dof = max(n_res - P - T * n_nu, 1)
     counts = 2 * data.wpos + 3 * data.wrot
-    res_b, J_b = np.asarray(res)[b], np.asarray(J)[b]
+    res_b, J_b = np.asarray(out["res"])[b], np.asarray(out["J"])[b]
     set_aside = (frame_weights(loss, res_b) < REJECT) & (counts > 0)
     if loss == "l2":
-        s2 = float(2.0 * cost[b] / dof)
+        s2 = float(2.0 * cost[b] / max(n_res - P - T * n_nu, 1))
     else:
         s2 = variance_factor(loss, res_b, counts, P + T * n_nu)
         res_b, J_b = reweigh(loss, to_jax(res_b[None]), to_jax(J_b[None]))
         res_b, J_b = np.asarray(res_b[0]), J_b[0]
-    params = free.compiled()[1](to_jax(th_b), base)
+    params = free.compiled()[1](to_jax(st.theta[b]), run.base)
     unphysical = ""
     try:  # validated: a fit may end at values no body has (a wrong valley); the verdict says so
-        params = RobotParams(**{f: getattr(params, f) for f in FIELDS}, dtype=base.R0.dtype)
+        params = RobotParams(**{f: getattr(params, f) for f in FIELDS}, dtype=run.base.R0.dtype)
     except InputError as e:
         unphysical = str(e)
-    values, F_phys, cov, se, corr = _covariance(free, th_b, res_b, J_b, s2, params=params, kind=data.kind)
+    values, F_phys, cov, se, corr = _covariance(free, st.theta[b], res_b, J_b, s2, params=params, kind=data.kind)
     ident = identifiability(free, values, F_phys, s2, params, kind=data.kind)
     ident["sigma_note"] = "relative sd of each direction; warnings list directions with relative sd > 10%"
-    trials = _trial_reports(data, pose, nu[b], b, set_aside)
-    offsets = _time_offsets(data, np.asarray(nu[b]), res_b, J_b, P, s2)
-    kept = [~t["series"]["set_aside"][:, None] for t in trials]
-    verdict = judge(
-        [np.where(k, t["series"]["pos_err"], np.nan) for t, k in zip(trials, kept)],
-        [np.where(k, np.radians(t["series"]["rot_err_deg"]), np.nan) for t, k in zip(trials, kept)],
-        noise_floor(data),
-        names=data.names,
-        set_aside=[int(t["set_aside"]) for t in trials],
-        measured=[int((counts[i, : data.lengths[i]] > 0).sum()) for i in range(T)],
-        converged=bool(converged),
-        n_params=P + T * n_nu,
-        why_not=f"Levenberg-Marquardt reached max_iter in its last stage, {int(iterations)} iterations in all",
-        missing=missing_effects(free.names, data.kind, data.max_offset > 0, known=FIELDS),
-        unphysical=unphysical,
-    )
-    status, status_reason = verdict.pop("status"), verdict.pop("reason")
-    per_val = {n: float(v) for n, v in zip(free.names, values)}
-    per_se = {n: float(s) for n, s in zip(free.names, se)}
+    trials = _trial_reports(data, out["pose"], st.nu[b], b, set_aside)
+    offsets = _time_offsets(data, np.asarray(st.nu[b]), res_b, J_b, P, s2) or (None, None)
+    verdict = _verdict(run, st, trials, counts, unphysical)
+    shooting = {"method": "single"}
+    if run.shooting is not None:
+        ms, closed = run.shooting, st.max_defect <= DEFECT_CLOSED
+        shooting = {"method": "multiple", "segment_s": ms.segment, "segments": ms.G, "largest_defect": st.max_defect}
+        shooting["closed"] = closed
     return FitResult(
         params=params,
         free=list(free.names),
         given=free.given,
-        values=_assemble_named(free, per_val, params, np.nan),
-        stderr=_assemble_named(free, per_se, params, 0.0),
+        values=_assemble_named(free, dict(zip(free.names, map(float, values))), params, np.nan),
+        stderr=_assemble_named(free, dict(zip(free.names, map(float, se))), params, 0.0),
         covariance=cov,
         correlation=corr,
         cost=float(cost[b]),
-        iterations=int(iterations),
-        converged=bool(converged),
-        sigma_pos=float(sig[0]),
-        sigma_rot=float(sig[1]),
+        iterations=int(st.total_it),
+        converged=bool(st.stage_converged),
+        sigma_pos=float(st.sig[0]),
+        sigma_rot=float(st.sig[1]),
         n_residuals=n_res,
         identifiability=ident,
         trials=trials,
         starts=[float(c) for c in cost],
         kind=data.kind,
-        elapsed_s=time.perf_counter() - t_begin,
-        status=status,
-        status_reason=status_reason,
+        elapsed_s=time.perf_counter() - run.t_begin,
+        status=verdict.pop("status"),
+        status_reason=verdict.pop("reason"),
         verdict=verdict,
-        time_offset=None if offsets is None else offsets[0],
-        time_offset_stderr=None if offsets is None else offsets[1],
+        shooting=shooting,
+        time_offset=offsets[0],
+        time_offset_stderr=offsets[1],
+        solve_options={"rtol": o.rtol, "atol": o.atol, "max_steps": o.max_steps},
         loss=loss,
-        units_note=units_note(free.names, params, data.kind),
         outliers={
             k: {"frames": np.flatnonzero(t["series"]["set_aside"]).tolist(), "count": t["set_aside"]}
-            for k, t in zip(data.names if keys is None else keys, trials)
+            for k, t in zip(keys, trials)
         },
+        units_note=units_note(free.names, params, data.kind),
+        options=o,
+    )
+
+
+def _verdict(run, st, trials: list[dict[str, Any]], counts: np.ndarray, unphysical: str) -> dict[str, Any]:
+    """`judge` on the residuals of the frames a fit kept (`trials`: `_trial_reports`)."""
+    data, free = run.data, run.free
+    kept = [~t["series"]["set_aside"][:, None] for t in trials]
+    return judge(
+        [np.where(k, t["series"]["pos_err"], np.nan) for t, k in zip(trials, kept)],
+        [np.where(k, np.radians(t["series"]["rot_err_deg"]), np.nan) for t, k in zip(trials, kept)],
+        noise_floor(data),
+        names=data.names,
+        set_aside=[int(t["set_aside"]) for t in trials],
+        measured=[int((counts[i, :m] > 0).sum()) for i, m in enumerate(data.lengths)],
+        converged=bool(st.stage_converged),
+        n_params=free.size + data.ts.shape[0] * len(data.nuisance),
+        why_not=f"Levenberg-Marquardt reached max_iter in its last stage, {int(st.total_it)} iterations in all",
+        missing=missing_effects(free.names, data.kind, data.max_offset > 0, known=FIELDS),
+        unphysical=unphysical,
     )
 
 
