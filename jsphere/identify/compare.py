@@ -45,13 +45,12 @@ import numpy as np
 
 from .._runtime.checks import real, whole
 from .._runtime.errors import SolverFailure
-from .._runtime.files import atomic_write_json
 from ..capture.trial import Trial
 from ..model.params import RobotParams
 from ..model.rotations import quat_conj_np, quat_log_np, quat_mul_np
 from ..numerics.lm import Dense, LevenbergMarquardt, iterate
 from .data import FitData, pack_trials
-from .options import no_drawing
+from .options import save_json
 from .report import nuisance_values, trial_errors
 from .residuals import trial_model
 from .robust import DEFAULT_LOSS, REDESCENDING, REJECT, WARM_LOSS, check_loss, frame_weights, reweigh, robust_cost
@@ -103,10 +102,13 @@ class CompareResult:
         """Write the JSON atomically; returns `[path]`. The figures are drawn by
         `jsphere.plots.compare_figure` (one per trial; `jsphere compare` writes them beside the
         JSON). `plots=` is deprecated and draws nothing."""
-        no_drawing(deprecated, "CompareResult.save", "jsphere.plots.compare_figure(result.trials[i], path)")
-        path = Path(path)
-        atomic_write_json(path, self.to_json())  # non-finite values as null
-        return [path]
+        return save_json(
+            self.to_json(),
+            path,
+            deprecated,
+            "CompareResult.save",
+            "jsphere.plots.compare_figure(result.trials[i], path)",
+        )
 
     def table(self) -> str:
         """A plain-text summary: fits [%] and the whiteness per trial, then overall."""

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+from pathlib import Path
 from typing import Any
 
 import diffrax as dfx
@@ -12,6 +13,7 @@ import numpy as np
 
 from .._runtime.checks import real, whole
 from .._runtime.errors import InputError
+from .._runtime.files import atomic_write_json
 from .._runtime.moved_keywords import moved_into, no_other_keywords
 from .._runtime.precision import _caller_stacklevel
 from ..solve.options import SolverOptions, default_solver, solver_options, unused
@@ -245,9 +247,10 @@ def fit_options(options: FitOptions | SolverOptions | None, deprecated: dict[str
     return dataclasses.replace(options, solver=solver_options(options.solver, where="fit", **shortcuts))
 
 
-def no_drawing(deprecated: dict[str, Any], where: str, instead: str) -> None:
-    """The `plots=` keyword of a result's `save`, which draws nothing: results are data, and
-    `jsphere.plots` draws them (`instead`). Warns; any other keyword is a `TypeError`."""
+def save_json(doc: dict[str, Any], path, deprecated: dict[str, Any], where: str, instead: str) -> list[Path]:
+    """A result's `save`: its JSON `doc` written atomically to `path`; returns `[path]`. The
+    `plots=` keyword draws nothing: results are data, and `jsphere.plots` draws them (`instead`).
+    It warns; any other keyword is a `TypeError`."""
     for k in deprecated:
         if k != "plots":
             raise TypeError(f"{where}() got an unexpected keyword argument {k!r}.")
@@ -256,3 +259,5 @@ def no_drawing(deprecated: dict[str, Any], where: str, instead: str) -> None:
             DeprecationWarning,
             stacklevel=_caller_stacklevel(),
         )
+    atomic_write_json(Path(path), doc)
+    return [Path(path)]

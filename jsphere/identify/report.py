@@ -20,7 +20,7 @@ import numpy as np
 
 from .._runtime.arrays import to_jax
 from .._runtime.errors import InputError
-from .._runtime.files import _strict, atomic_write_json
+from .._runtime.files import _strict
 from ..model.internal import FIELDS
 from ..model.names import parse_name
 from ..model.params import RobotParams
@@ -29,7 +29,7 @@ from ..numerics.lm import blocks, marginal_information
 from .data import TIME_OFFSET, FitData, offset_from_nuisance
 from .free import FreeParams
 from .identifiability import identifiability, scaled_information, units_note
-from .options import no_drawing
+from .options import save_json
 from .robust import REJECT, frame_weights, reweigh, variance_factor
 from .shooting import DEFECT_CLOSED
 from .verdict import judge, missing_effects, noise_floor
@@ -124,10 +124,9 @@ class FitResult:
         `jsphere.plots.fit_figures(result, folder, stem=...)` (`jsphere fit` writes
         `<stem>_overlay.png` and `<stem>_residuals.png` beside the JSON). `plots=` is deprecated
         and draws nothing."""
-        no_drawing(deprecated, "FitResult.save", "jsphere.plots.fit_figures(result, folder, stem=...)")
-        path = Path(path)
-        atomic_write_json(path, self.to_json())
-        return [path]
+        return save_json(
+            self.to_json(), path, deprecated, "FitResult.save", "jsphere.plots.fit_figures(result, folder, stem=...)"
+        )
 
     def table(self) -> str:
         """A plain-text summary: value +- stderr per free name, noise levels, warnings, and last

@@ -365,14 +365,9 @@ def _whiteness(pos_err, rot_err, floor, lags: int) -> list[list[dict[str, Any]]]
     judged = [math.isfinite(f) and f > r for f, r in zip(floor, FLOOR_RESOLUTION)]
     out = []
     for pe, re in zip(pos_err, rot_err):
-        cols = [(np.asarray(pe, float)[:, k], 0) for k in range(2)] + [
-            (np.asarray(re, float)[:, k], 1) for k in range(3)
-        ]
-        ws = []
-        for e, c in cols:
-            w = whiteness.channel(e, np.isfinite(e), lags)
-            ws.append(w if judged[c] else w | {"p": math.nan, "q": math.nan})
-        out.append(ws)
+        e = np.concatenate([np.asarray(pe, float), np.asarray(re, float)], 1)  # the columns of `SERIES`
+        ws = [whiteness.channel(e[:, k], np.isfinite(e[:, k]), lags) for k in range(len(SERIES))]
+        out.append([w if judged[k >= 2] else w | {"p": math.nan, "q": math.nan} for k, w in enumerate(ws)])
     return out
 
 
