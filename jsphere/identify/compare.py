@@ -49,9 +49,8 @@ from ..capture.trial import Trial
 from ..model.params import RobotParams
 from ..model.rotations import quat_conj_np, quat_log_np, quat_mul_np
 from ..numerics.lm import Dense, LevenbergMarquardt, iterate
-from .data import FitData, pack_trials
+from .data import FitData, nuisance_values, pack_trials, trial_errors
 from .options import save_json
-from .report import nuisance_values, trial_errors
 from .residuals import trial_model
 from .robust import DEFAULT_LOSS, REDESCENDING, REJECT, WARM_LOSS, check_loss, frame_weights, reweigh, robust_cost
 from .starts import nuisance_guess

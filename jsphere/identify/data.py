@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 from collections.abc import Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -15,6 +16,7 @@ from .._runtime.arrays import to_jax
 from .._runtime.errors import InputError
 from ..capture.validation import KINDS
 from ..model.params import RobotParams
+from ..model.rotations import quat_conj_np, quat_log_np, quat_mul_np
 
 _START = ("Omega0_x", "Omega0_y", "Omega0_z", "rot0_x", "rot0_y", "rot0_z", "x0", "y0")
 #: nuisance parameters per trial, in order
@@ -175,3 +177,32 @@ def _checked_arrays(tr, k: int, N: int):
     if vp.sum() < 2 or vr.sum() < 2:
         raise InputError(f"fit: trial {name!r} has fewer than 2 measured frames.")
     return name, t, u, x, y, q, vp, vr
+
+
+def nuisance_values(data: FitData, nu_i) -> dict[str, float]:
+    """A trial's nuisance values by name, its clock offset in seconds (`offset_from_nuisance`)."""
+    m = data.max_offset
+    return {k: float(offset_from_nuisance(v, m)) if k == TIME_OFFSET else float(v) for k, v in zip(data.nuisance, nu_i)}
+
+
+def trial_errors(data: FitData, pose) -> list[dict[str, Any]]:
+    """Per trial, from the simulated poses `pose = (x, y, q)` `(T, M, ...)`: where its position and
+    orientation were measured (`wp`, `wr`), the position errors `ep (m, 2)` [m] and orientation
+    errors `er (m, 3)` [rad] (rotation vectors of `q_sim^-1 q_meas`), and the `series` of its
+    figures (`t`, the measured `x`, `y`, NaN at gaps, and the simulated `x_sim`, `y_sim`)."""
+    xs, ys, qs = (np.asarray(a) for a in pose)
+    with np.errstate(divide="ignore", invalid="ignore"):  # (padding: zero quaternions)
+        rot_err = quat_log_np(quat_mul_np(quat_conj_np(qs), data.q))
+    out = []
+    for i, m in enumerate(data.lengths):
+        wp, wr = data.wpos[i, :m] > 0, data.wrot[i, :m] > 0
+        series = {
+            "t": data.ts[i, :m] + data.t_start[i],
+            "x": np.where(wp, data.x[i, :m], np.nan),
+            "y": np.where(wp, data.y[i, :m], np.nan),
+            "x_sim": xs[i, :m],
+            "y_sim": ys[i, :m],
+        }
+        ep = np.stack([xs[i, :m] - data.x[i, :m], ys[i, :m] - data.y[i, :m]], 1)
+        out.append({"wp": wp, "wr": wr, "ep": ep, "er": rot_err[i, :m], "series": series})
+    return out

@@ -15,7 +15,6 @@ from .._runtime.checks import real, whole
 from .._runtime.errors import InputError
 from .._runtime.files import atomic_write_json
 from .._runtime.moved_keywords import moved_into, no_other_keywords
-from .._runtime.precision import _caller_stacklevel
 from ..solve.options import SolverOptions, default_solver, solver_options, unused
 from .checkpoint import _CHECKPOINT_FORMAT
 from .robust import DEFAULT_LOSS, REDESCENDING, WARM_LOSS, check_loss
@@ -230,7 +229,7 @@ def fit_options(options: FitOptions | SolverOptions | None, deprecated: dict[str
         warnings.warn(
             "fit(options=SolverOptions(...)) is deprecated; write options=FitOptions(solver=SolverOptions(...)).",
             DeprecationWarning,
-            stacklevel=_caller_stacklevel(),
+            stacklevel=3,
         )
         options = FitOptions(solver=solver_options(options, where="fit"))
     shortcuts = {k: deprecated.pop(k) for k in _SOLVER_KEYWORDS if k in deprecated}
@@ -242,7 +241,7 @@ def fit_options(options: FitOptions | SolverOptions | None, deprecated: dict[str
         warnings.warn(
             f"fit: {k}= is deprecated; pass options=FitOptions(solver=SolverOptions({k}=...))",
             DeprecationWarning,
-            stacklevel=_caller_stacklevel(),
+            stacklevel=3,
         )
     return dataclasses.replace(options, solver=solver_options(options.solver, where="fit", **shortcuts))
 
@@ -257,7 +256,7 @@ def save_json(doc: dict[str, Any], path, deprecated: dict[str, Any], where: str,
         warnings.warn(
             f"{where}(plots=...) is deprecated: save writes the JSON only; draw the figures with {instead}.",
             DeprecationWarning,
-            stacklevel=_caller_stacklevel(),
+            stacklevel=3,
         )
     atomic_write_json(Path(path), doc)
     return [Path(path)]

@@ -10,6 +10,7 @@ robust loss `F` is that of the reweighted residuals and `s^2` the M-estimator's 
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import time
 from collections.abc import Sequence
@@ -20,13 +21,12 @@ import numpy as np
 
 from .._runtime.arrays import to_jax
 from .._runtime.errors import InputError
-from .._runtime.files import _strict
+from .._runtime.files import dumps_json
 from ..model.internal import FIELDS
 from ..model.names import parse_name
 from ..model.params import RobotParams
-from ..model.rotations import quat_conj_np, quat_log_np, quat_mul_np
 from ..numerics.lm import blocks, marginal_information
-from .data import TIME_OFFSET, FitData, offset_from_nuisance
+from .data import FitData, nuisance_values, offset_from_nuisance, trial_errors
 from .free import FreeParams
 from .identifiability import identifiability, scaled_information, units_note
 from .options import save_json
@@ -117,7 +117,7 @@ class FitResult:
             doc |= {"time_offset": self.time_offset, "time_offset_stderr": self.time_offset_stderr}
         if self.options is not None:
             doc["options"] = self.options.to_json()
-        return _strict(doc)
+        return json.loads(dumps_json(doc))
 
     def save(self, path, **deprecated) -> list[Path]:
         """Write the JSON atomically; returns `[path]`. The figures are drawn by
@@ -325,35 +325,6 @@ def _covariance(
 def _rms(e: np.ndarray) -> float:
     """The RMS norm of the rows of `e`; NaN for none (every frame of a trial set aside)."""
     return float(np.sqrt((e**2).sum(1).mean())) if len(e) else math.nan
-
-
-def nuisance_values(data: FitData, nu_i) -> dict[str, float]:
-    """A trial's nuisance values by name, its clock offset in seconds (`offset_from_nuisance`)."""
-    m = data.max_offset
-    return {k: float(offset_from_nuisance(v, m)) if k == TIME_OFFSET else float(v) for k, v in zip(data.nuisance, nu_i)}
-
-
-def trial_errors(data: FitData, pose) -> list[dict[str, Any]]:
-    """Per trial, from the simulated poses `pose = (x, y, q)` `(T, M, ...)`: where its position and
-    orientation were measured (`wp`, `wr`), the position errors `ep (m, 2)` [m] and orientation
-    errors `er (m, 3)` [rad] (rotation vectors of `q_sim^-1 q_meas`), and the `series` of its
-    figures (`t`, the measured `x`, `y`, NaN at gaps, and the simulated `x_sim`, `y_sim`)."""
-    xs, ys, qs = (np.asarray(a) for a in pose)
-    with np.errstate(divide="ignore", invalid="ignore"):  # (padding: zero quaternions)
-        rot_err = quat_log_np(quat_mul_np(quat_conj_np(qs), data.q))
-    out = []
-    for i, m in enumerate(data.lengths):
-        wp, wr = data.wpos[i, :m] > 0, data.wrot[i, :m] > 0
-        series = {
-            "t": data.ts[i, :m] + data.t_start[i],
-            "x": np.where(wp, data.x[i, :m], np.nan),
-            "y": np.where(wp, data.y[i, :m], np.nan),
-            "x_sim": xs[i, :m],
-            "y_sim": ys[i, :m],
-        }
-        ep = np.stack([xs[i, :m] - data.x[i, :m], ys[i, :m] - data.y[i, :m]], 1)
-        out.append({"wp": wp, "wr": wr, "ep": ep, "er": rot_err[i, :m], "series": series})
-    return out
 
 
 def _trial_reports(data: FitData, pose, nu_b: np.ndarray, b: int, set_aside: np.ndarray) -> list[dict[str, Any]]:
