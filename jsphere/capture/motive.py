@@ -8,11 +8,10 @@ import numpy as np
 
 from .._runtime.errors import InputError
 from .._runtime.files import atomic_write_text
-from ..model.rotations import quat_from_rotmat_np, quat_mul_np
-from .markers import UP_TO_Z, MarkerData, to_fixed_frame
+from ..model.rotations import quat_from_rotmat_np, quat_mul_np, rotmat_np
+from .markers import UP_TO_Z, MarkerData, check_up_axis, fixed_markers, fixed_pose
 from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, cell, separator_hint
-from .units import EXPORT_UNITS, UNIT_SCALE, detect_marker_units, resolve_units
-from .validation import sign_continuous
+from .units import UNIT_SCALE
 
 
 def read_motive_csv(
@@ -59,8 +58,7 @@ def read_motive_csv(
     """
     path, rows = _read_lines(path)
     source = str(path)
-    if up_axis not in UP_TO_Z:
-        raise ValueError(f"{source}: the up axis (--up-axis) must be 'y' or 'z'; got {up_axis!r}.")
+    check_up_axis(up_axis, source, quote="'")
     if use not in ("auto", "markers", "rigid_body"):
         raise ValueError(
             f"read_motive_csv: use must be 'auto', 'markers' or 'rigid_body' (what to read of {source}); got {use!r}."
@@ -95,12 +93,14 @@ def read_motive_csv(
     t = data[:, 1]
     _check_times(t, lines, source)
     K = len(mnames)
-    C = UP_TO_Z[up_axis]
-    raw = data[:, 2 : 2 + 3 * K].reshape(len(t), K, 3)
-    detected = detect_marker_units(raw) if K >= 2 else None
-    scale = resolve_units(units, file_units, detected, source, EXPORT_UNITS)
-    markers = to_fixed_frame(raw, up_axis, scale)
-    rb_q, rb_p = _rigid_body_pose(data[:, 2 + 3 * K :], C, scale) if want_rb else (None, None)
+    markers, scale = fixed_markers(data[:, 2 : 2 + 3 * K].reshape(len(t), K, 3), source, units, file_units, up_axis)
+    rb_q = rb_p = None
+    if want_rb:  # Motive's solved pose: Rotation X, Y, Z, W (scalar last), Position X, Y, Z
+        rb = data[:, 2 + 3 * K : 9 + 3 * K]
+        q = rb[:, [3, 0, 1, 2]]
+        gap = ~np.all(np.isfinite(rb), axis=1) | ~(np.linalg.norm(q, axis=1) > 0)
+        R = rotmat_np(np.where(gap[:, None], [1.0, 0.0, 0.0, 0.0], q))
+        rb_q, rb_p = fixed_pose(R, rb[:, 4:7], gap, up_axis, scale)
     error = data[:, -1] * scale if err_col is not None else None
     return MarkerData(t, markers, tuple(mnames), source, lines, rb_q, rb_p, error)
 
@@ -285,15 +285,6 @@ def _error_column(head: _Header, body: str | None) -> int | None:
         return None
     errors = ("Mean Marker Error", "Error Per Marker")
     return next((j for j in head.columns("Rigid Body", body) if head.cell("kinds", j) in errors), None)
-
-
-def _rigid_body_pose(rb: np.ndarray, C: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
-    """Motive's solved pose (columns Rotation X, Y, Z, W, Position X, Y, Z) in jsphere's frame:
-    `(q (M, 4), p (M, 3))`."""
-    q_m = rb[:, [3, 0, 1, 2]]  # (X, Y, Z, W) -> (w, x, y, z)
-    q_C = quat_from_rotmat_np(C)
-    q = sign_continuous(quat_mul_np(np.broadcast_to(q_C, q_m.shape), q_m))  # C R_m
-    return q, rb[:, 4:7] @ C.T * scale
 
 
 def write_motive_csv(
