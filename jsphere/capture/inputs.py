@@ -13,6 +13,7 @@ from .text import (
     _input_columns,
     _numbers,
     _read_lines,
+    cells,
     check_unique_columns,
     separator_hint,
 )
@@ -80,10 +81,8 @@ def write_inputs_csv(path, t: np.ndarray, values: np.ndarray, kind: str) -> None
         raise ValueError(f"write_inputs_csv: kind must be one of {KINDS}; got {kind!r}.")
     values = np.asarray(values, float).reshape(len(t), -1)
     cols = ["t"] + [f"{INPUT_PREFIX[kind]}{i + 1}" for i in range(values.shape[1])]
-    lines = [",".join(cols)] + [
-        ",".join([f"{tt:.6f}"] + [f"{v + 0.0:.10g}" for v in row]) for tt, row in zip(t, values)
-    ]
-    atomic_write_text(path, "\n".join(lines) + "\n")
+    lines = cells(np.column_stack([t, values]), [".6f"] + [".10g"] * values.shape[1])
+    atomic_write_text(path, "\n".join([",".join(cols), *lines]) + "\n")
 
 
 def interpolate_inputs(t_in: np.ndarray, values: np.ndarray, t: np.ndarray) -> np.ndarray:

@@ -10,7 +10,7 @@ from .._runtime.errors import InputError
 from .._runtime.files import atomic_write_text
 from ..model.rotations import quat_from_rotmat_np, quat_mul_np, rotmat_np
 from .markers import UP_TO_Z, MarkerData, check_up_axis, fixed_markers, fixed_pose
-from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, cell, separator_hint
+from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, cells, separator_hint
 from .units import UNIT_SCALE
 
 
@@ -306,26 +306,17 @@ def write_motive_csv(
     C = UP_TO_Z[up_axis]
     s = 1.0 / UNIT_SCALE[units]
     raw = np.einsum("ji,mkj->mki", C, np.asarray(markers, float)) * s  # C^T: jsphere -> Motive
-    M, K = raw.shape[:2]
-    full = [f"{rigid_body}:{n}" for n in names]
-    types, nms, ids, kinds, axes = [], [], [], [], []
-    blocks = []
+    M = raw.shape[0]
+    # each column's Type, Name, ID, kind and axis
+    cols = [("Marker", f"{rigid_body}:{n}", f"{k + 2}", "Position", a) for k, n in enumerate(names) for a in "XYZ"]
+    blocks = [raw.reshape(M, -1)]
     if rb_q is not None:
-        q_Ci = quat_from_rotmat_np(C.T)
-        q_m = quat_mul_np(np.broadcast_to(q_Ci, np.shape(rb_q)), np.asarray(rb_q, float))  # C^T R
+        q_m = quat_mul_np(np.broadcast_to(quat_from_rotmat_np(C.T), np.shape(rb_q)), np.asarray(rb_q, float))  # C^T R
         p_m = np.asarray(rb_p, float) @ C * s
-        blocks.append(np.concatenate([q_m[:, [1, 2, 3, 0]], p_m, np.zeros((M, 1))], axis=1))
-        types += ["Rigid Body"] * 8
-        nms += [rigid_body] * 8
-        ids += ["1"] * 8
-        kinds += ["Rotation"] * 4 + ["Position"] * 3 + ["Mean Marker Error"]
-        axes += ["X", "Y", "Z", "W", "X", "Y", "Z", ""]
-    blocks.append(raw.reshape(M, -1))
-    types += ["Marker"] * 3 * K
-    nms += [n for n in full for _ in range(3)]
-    ids += [f"{i + 2}" for i in range(K) for _ in range(3)]
-    kinds += ["Position"] * 3 * K
-    axes += ["X", "Y", "Z"] * K
+        blocks.insert(0, np.concatenate([q_m[:, [1, 2, 3, 0]], p_m, np.zeros((M, 1))], axis=1))
+        fields = [("Rotation", a) for a in "XYZW"] + [("Position", a) for a in "XYZ"] + [("Mean Marker Error", "")]
+        cols = [("Rigid Body", rigid_body, "1", kind, a) for kind, a in fields] + cols
+    types, nms, ids, kinds, axes = zip(*cols)
     lines = [
         "Format Version,1.23,Take Name,jsphere-synthetic,Capture Frame Rate,{r:.6f},Export Frame Rate,{r:.6f},"
         "Rotation Type,Quaternion,Length Units,{u},Coordinate Space,Global".format(
@@ -340,8 +331,6 @@ def write_motive_csv(
     ]
     length_fmt = {"m": ".6f", "cm": ".4f", "mm": ".3f"}[units]
     fmts = [".6f" if k in ("Rotation", "Mean Marker Error") else length_fmt for k in kinds]
-    data = np.concatenate(blocks, axis=1)
-    for i in range(M):
-        cells = [cell(v, f) for v, f in zip(data[i], fmts)]
-        lines.append(",".join([str(i), f"{t[i]:.6f}", *cells]))
+    data = np.column_stack([np.arange(M), t, *blocks])
+    lines += cells(data, [".0f", ".6f"] + fmts)
     atomic_write_text(path, "\n".join(lines) + "\n")

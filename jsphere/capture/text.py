@@ -65,6 +65,11 @@ def cell(v: float, spec: str) -> str:
     return "" if not np.isfinite(v) else format(v + 0.0, spec)
 
 
+def cells(data: np.ndarray, formats: Sequence[str]) -> list[str]:
+    """The rows of `data` as written lines: each column in its format of `formats` (`cell`)."""
+    return [",".join(cell(v, f) for v, f in zip(row, formats)) for row in np.asarray(data, float)]
+
+
 def separator_hint(header: Sequence[str]) -> str:
     """`"; ..."` advice when a header row read as CSV is one cell holding `;` or a tab (a
     spreadsheet that saved with another separator), else `""`."""

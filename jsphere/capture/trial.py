@@ -13,6 +13,7 @@ are NaN and `Trial.valid` is False there. Times and inputs are never missing.
 
 from __future__ import annotations
 
+import dataclasses
 import re
 from collections.abc import Iterable
 from pathlib import Path
@@ -26,7 +27,7 @@ from .._runtime.files import atomic_write_text
 from ..controls import Torques, WheelSpeeds
 from ..model.params import RobotParams
 from ..model.state import State
-from .text import _input_columns, _numbers, cell, check_unique_columns, csv_rows, read_text, separator_hint
+from .text import _input_columns, _numbers, cells, check_unique_columns, csv_rows, read_text, separator_hint
 from .units import TRIAL_UNITS, detect_position_units, resolve_units
 from .validation import INPUT_PREFIX, POSE_COLUMNS, _checked, warn_implausible
 from .validation import CaptureWarning as CaptureWarning  # (the warning of every trial reader)
@@ -125,10 +126,7 @@ class Trial(eqx.Module):
 
     def replace(self, **changes) -> Trial:
         """A copy with some fields changed (validated again)."""
-        d = {"t": self.t, "x": self.x, "y": self.y, "q": self.q, "inputs": self.inputs, "kind": self.kind}
-        d.update({"z": self.z, "name": self.name, "source": self.source})
-        d.update(changes)
-        return Trial(**d)
+        return dataclasses.replace(self, **changes)
 
     def __repr__(self) -> str:
         return (
@@ -262,13 +260,9 @@ def trial_to_csv(trial: Trial) -> str:
         "# units: m",
         ",".join(cols),
     ]
-    for k in range(trial.n_frames):
-        cells = [cell(trial.t[k], ".6f"), cell(trial.x[k], ".6f"), cell(trial.y[k], ".6f")]
-        cells += [cell(v, ".9f") for v in trial.q[k]]
-        if trial.z is not None:
-            cells.append(cell(trial.z[k], ".6f"))
-        cells += [cell(v, ".10g") for v in trial.inputs[k]]
-        out.append(",".join(cells))
+    z = [] if trial.z is None else [trial.z[:, None]]
+    data = np.concatenate([np.stack([trial.t, trial.x, trial.y], 1), trial.q, *z, trial.inputs], axis=1)
+    out += cells(data, [".6f"] * 3 + [".9f"] * 4 + [".6f"] * len(z) + [".10g"] * trial.n_wheels)
     return "\n".join(out) + "\n"
 
 

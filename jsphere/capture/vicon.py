@@ -8,7 +8,7 @@ import numpy as np
 from .._runtime.errors import InputError
 from .._runtime.files import atomic_write_text
 from .markers import MarkerData, check_up_axis, fixed_markers
-from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, cell, separator_hint
+from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, cells, separator_hint
 
 
 def read_vicon_csv(
@@ -125,8 +125,7 @@ def write_vicon_csv(path, t, markers, names, *, subject: str = "robot", units: s
         "Frame,Sub Frame," + ",".join(["X", "Y", "Z"] * K),
         ",," + ",".join([units] * 3 * K),
     ]
-    fmt = ".6f" if units == "m" else ".3f"
-    for i in range(raw.shape[0]):
-        frame = round(float(t[i] - t[0]) * rate) + 1
-        lines.append(",".join([str(frame), "0"] + [cell(x, fmt) for x in raw[i].reshape(-1)]))
+    frames = np.round((np.asarray(t, float) - t[0]) * rate) + 1
+    data = np.column_stack([frames, np.zeros(len(frames)), raw.reshape(len(frames), -1)])
+    lines += cells(data, [".0f", ".0f"] + [".6f" if units == "m" else ".3f"] * 3 * K)
     atomic_write_text(path, "\n".join(lines) + "\n")
