@@ -73,12 +73,9 @@ def rigid_body_pose(
     dm = w[..., None] * (mz - mc[:, None])
     H = np.einsum("mki,mkj->mij", db, dm)  # sum_k b_k m_k^T
     U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)))
-    d = np.where(d == 0, 1.0, d)
-    D = np.zeros((m.shape[0], 3, 3))
-    D[:, 0, 0] = D[:, 1, 1] = 1.0
-    D[:, 2, 2] = d
-    R = np.swapaxes(Vt, 1, 2) @ D @ np.swapaxes(U, 1, 2)
+    V, Ut = np.swapaxes(Vt, 1, 2), np.swapaxes(U, 1, 2)
+    d = np.where(np.linalg.det(V @ Ut) < 0, -1.0, 1.0)  # V diag(1, 1, d) U^T: never a reflection
+    R = (V * np.stack([np.ones_like(d), np.ones_like(d), d], axis=1)[:, None, :]) @ Ut
     p = mc - np.einsum("mij,mj->mi", R, bc)
     fit = np.einsum("mij,kj->mki", R, b) + p[:, None]
     res2 = np.where(w > 0, np.sum((fit - mz) ** 2, axis=2), 0.0)
@@ -152,7 +149,6 @@ def markers_to_trial(
     q, centre = _platform_pose(q_body, p_body, A, off.reshape(3))
     t = data.t + time_offset
     keep = _overlap(t, t_in, source)
-    _warn_outside(t, keep, t_in, source)
     u = interpolate_inputs(t_in, u_in, t[keep])
     lines = None if data.lines is None else data.lines[keep]
     tt, x, y, qq, uu, z = _checked(
@@ -323,7 +319,8 @@ def _platform_pose(
 
 def _overlap(t: np.ndarray, t_in: np.ndarray, source: str) -> np.ndarray:
     """The capture frames within the inputs table's time range (`(M,)` bool); a `CaptureWarning`
-    where the table's times look like milliseconds."""
+    where the table's times look like milliseconds, and one counting the frames left out, before
+    the table's start and after its end."""
     keep = (t >= t_in[0] - 1e-9) & (t <= t_in[-1] + 1e-9)
     if not np.any(keep):
         raise ValueError(
@@ -339,12 +336,6 @@ def _overlap(t: np.ndarray, t_in: np.ndarray, source: str) -> np.ndarray:
             CaptureWarning,
             stacklevel=3,
         )
-    return keep
-
-
-def _warn_outside(t: np.ndarray, keep: np.ndarray, t_in: np.ndarray, source: str) -> None:
-    """A `CaptureWarning` counting the capture frames left out because they lie outside the
-    inputs table's time range, before its start and after its end."""
     before, after = int(np.sum(~keep & (t < t_in[0]))), int(np.sum(~keep & (t > t_in[-1])))
     if before or after:
         parts = [f"{n} before its start" for n in (before,) if n] + [f"{n} after its end" for n in (after,) if n]
@@ -355,6 +346,7 @@ def _warn_outside(t: np.ndarray, keep: np.ndarray, t_in: np.ndarray, source: str
             CaptureWarning,
             stacklevel=3,
         )
+    return keep
 
 
 def _check_body_scale(markers: np.ndarray, body: np.ndarray, source: str) -> None:
