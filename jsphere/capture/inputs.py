@@ -15,6 +15,7 @@ from .text import (
     _read_lines,
     cells,
     check_unique_columns,
+    comments,
     separator_hint,
 )
 from .validation import INPUT_PREFIX, KINDS
@@ -34,9 +35,7 @@ def read_inputs_csv(
     want = input_kind(kind)
     path, rows = _read_lines(path)
     source = str(path)
-    k = 0
-    while k < len(rows) and (not rows[k] or rows[k][0].lstrip().startswith("#") or not any(c.strip() for c in rows[k])):
-        k += 1
+    _, k = comments(rows)
     if k == len(rows):
         raise ValueError(f"{source}: no header line; the inputs table needs columns t and chi_dot_1..N or K_1..N.")
     header = [h.strip() for h in rows[k]]

@@ -101,6 +101,22 @@ def csv_rows(text: str, source: str, delimiter: str = ",") -> list[list[str]]:
         raise InputError(f"{source}: not a readable CSV file ({e}).") from None
 
 
+#: a comment line `# key: value` (or `# key = value`)
+_META = re.compile(r"^#\s*(\w+)\s*[:=]\s*(.*?)\s*$")
+
+
+def comments(rows: list[list[str]]) -> tuple[dict[str, str], int]:
+    """The `# key: value` comments of the lines before the header row (lines starting with `#`,
+    and blank ones) as `{key: value}` (keys in lower case), and the index of the header row
+    (`len(rows)` where there is none)."""
+    meta, k = {}, 0
+    while k < len(rows) and (not any(c.strip() for c in rows[k]) or rows[k][0].lstrip().startswith("#")):
+        if m := _META.match(",".join(rows[k]).strip()):
+            meta[m.group(1).lower()] = m.group(2)
+        k += 1
+    return meta, k
+
+
 #: the end of the error for a trial with both input families
 _BOTH = "; a trial holds one kind of input (wheel speeds or torques): keep one set of columns."
 
