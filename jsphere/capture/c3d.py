@@ -38,9 +38,8 @@ def c3d_layout(path) -> dict:
     """
     path = Path(path)
     source = str(path)
-    size = path.stat().st_size
-    with open(path, "rb") as f:
-        raw = f.read(512)
+    raw = path.read_bytes()  # (the whole file: ezc3d reads it all too)
+    size = len(raw)
     if size == 0:
         raise InputError(f"{source}: the file is empty (0 bytes), not a C3D file; export or copy it again.")
     if size < 512 or raw[1] != 0x50:
@@ -56,9 +55,7 @@ def c3d_layout(path) -> dict:
             f"{source}: the C3D file is cut short or corrupt: its parameter section (block {raw[0]}) is not in the "
             f"file ({size} bytes); export or copy it again."
         )
-    with open(path, "rb") as f:
-        f.seek(p0)
-        head = f.read(4)
+    head = raw[p0 : p0 + 4]
     endian = _C3D_PROCESSORS.get(head[3])
     if endian is None:
         raise InputError(f"{source}: not a C3D file, or a corrupt one (processor type {head[3]}, not 84, 85 or 86).")
@@ -72,10 +69,7 @@ def c3d_layout(path) -> dict:
             f"{source}: the C3D file is cut short or corrupt: {size} bytes, but its parameters end at byte {p_end} and its "
             f"data start at byte {512 * (data_start - 1)}; export or copy it again."
         )
-    with open(path, "rb") as f:
-        f.seek(p0)
-        params = f.read(p_end - p0)
-    used = _check_c3d_parameters(params, endian, source)
+    used = _check_c3d_parameters(raw[p0:p_end], endian, source)
     frame_bytes = (4 * n_points + n_analog) * (4 if float_data else 2)
     start = 512 * (data_start - 1)
     if size < start:
@@ -165,9 +159,8 @@ def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: 
 
     The file's structure is checked first (`c3d_layout`): an empty, random or corrupt file is
     an `InputError` naming it; so is a file with no points (force plates or other analog data
-    only), saying what it holds. A file with fewer frames than its header declares (a copy or an
-    export that broke off) is an `InputError` naming both counts; with `allow_truncated=True`
-    it is a `CaptureWarning` and the frames present are used.
+    only), saying what it holds. `allow_truncated`: as in `ConvertOptions` (fewer frames than
+    the header declares).
     """
     path = Path(path)
     if not path.exists():

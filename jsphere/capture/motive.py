@@ -52,9 +52,8 @@ def read_motive_csv(
     - `units`: `"auto"` (the file's `Length Units`, else detected), `"m"`, `"cm"` or `"mm"`.
     - `up_axis`: `"y"` (Motive's default) or `"z"`; Y-up data are turned into jsphere's Z-up frame
       by `UP_TO_Z["y"]`: `(X, Y, Z) = (X_m, -Z_m, Y_m)`.
-    - `allow_truncated`: a file cut short (fewer data rows than line 1's `Total Exported
-      Frames`, or a last row with fewer cells than the header) is an `InputError` naming both
-      counts; with `True` it is a `CaptureWarning` and the complete rows are used.
+    - `allow_truncated`: as in `ConvertOptions` (fewer data rows than line 1's `Total
+      Exported Frames`, or a last row with fewer cells than the header).
     """
     path, rows = _read_lines(path)
     source = str(path)

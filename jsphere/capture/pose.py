@@ -279,10 +279,8 @@ def suspect_frames(rms: np.ndarray, marker_error: np.ndarray | None = None) -> n
     """Frames whose RMS marker fit residual `rms (M,)` [m] (NaN at gaps) stands out of the take's
     own noise (`suspect_limit`): a marker swapped with another or a ghost marker taken for one.
 
-    The threshold comes from the take: its median residual times `exp(SUSPECT_SPREAD * s)`, `s`
-    the robust standard deviation of the residuals' logarithms (1.4826 x their median absolute
-    deviation, which the suspect frames themselves hardly move), and at least `SUSPECT` times
-    the median and `SUSPECT_FLOOR`. White marker noise gives squared residuals of chi^2 with
+    The threshold comes from the take's own residuals, by statistics that the suspect frames
+    themselves hardly move (`suspect_limit`). White marker noise gives squared residuals of chi^2 with
     `3 K - 6` degrees of freedom (`K` markers): their 99.99 % point is 2.3x the median residual
     for 4 markers, 3x for 3, so a clean take has none, and its threshold is `SUSPECT` times the
     median. A real take's noise varies from frame to frame (markers near the edge of the volume,

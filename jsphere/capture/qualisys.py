@@ -58,9 +58,8 @@ def read_qualisys_tsv(
     (times `frame / FREQUENCY`). `units`: QTM writes millimetres; `"auto"` detects metres or
     millimetres from the marker spread (3D; millimetres where the spread cannot tell, and
     always for 6DOF), `"m"` / `"mm"` declare them. `up_axis`: QTM's global frame is Z-up unless
-    the calibration chose otherwise (`"y"` for a Y-up lab frame). A file with fewer rows than
-    `NO_OF_FRAMES`, or whose last row is cut off mid-row, is an `InputError` naming both
-    counts; `allow_truncated=True` makes it a `CaptureWarning` and uses the complete frames.
+    the calibration chose otherwise (`"y"` for a Y-up lab frame). `allow_truncated`: as in
+    `ConvertOptions` (fewer rows than `NO_OF_FRAMES`, or a last row cut off mid-row).
     """
     source = str(path)
     check_up_axis(up_axis, source)

@@ -212,32 +212,15 @@ def _lean_fit(t, x, y, q, valid) -> float:
 
 def implausible(t, x, y, q, z=None, *, from_markers: bool = False) -> list[tuple[str, str]]:
     """What looks physically wrong in a trial's arrays (gap frames NaN), as `(kind, detail)`
-    pairs; `kind` is `"step"`, `"speed"`, `"rate"`, `"height"`, `"lying"` or `"xyzw"`. Used by
+    pairs; `kind` is `"step"`, `"speed"`, `"rate"`, `"height"`, `"lying"` or `"xyzw"` (the
+    table "Plausibility warnings" of `docs/capture.md` gives each one's test and threshold:
+    `MAX_PLAUSIBLE_STEP`, `MAX_PLAUSIBLE_SPEED` over windows of 0.1 s and `MAX_PLAUSIBLE_RATE`
+    over 0.02 s, 95th percentiles, so that one swapped marker does not count). Used by
     `warn_implausible`. `from_markers`: the poses were computed from markers (`convert_raw`),
-    so their quaternions cannot be in the wrong order, but the up axis can be wrong.
-
-    - `"step"`: the median time step is `MAX_PLAUSIBLE_STEP` (1 s) or longer: times in
-      milliseconds or frame numbers.
-    - `"speed"`: the shell centre's speed over windows of 0.1 s exceeds `MAX_PLAUSIBLE_SPEED`
-      (5 m/s) in more than 5% of them (a window, not a frame: noise of 1 mm at 1 kHz alone
-      makes 1.4 m/s from frame to frame; a single swapped marker does not count).
-    - `"rate"`: the platform's rotation over windows of 0.02 s exceeds `MAX_PLAUSIBLE_RATE`
-      (50 rad/s) in more than 5% of them.
-    - `"height"`: the shell centre's height `z` (if given) spans more than 3 cm (5th to 95th
-      percentile) and more than a quarter of its horizontal excursion: a ball rolling on a
-      floor keeps it within millimetres, so the up axis is probably wrong.
-    - `"lying"` (`from_markers`): the platform tilts beyond 80 deg (95th percentile; random
-      inputs tilt the paper's robot up to 66 deg): the up axis is wrong, or the body markers are
-      not in the platform frame.
-    - `"xyzw"` (not `from_markers`): the quaternion columns look like `x, y, z, w` order. Read in the wrong order,
-      the platform's tilt is its heading instead (the angle between its axis 1 and the fixed X),
-      and its lean no longer follows the ball's acceleration. Reported when, read as
-      `x, y, z, w`, the platform leans with the acceleration (`_lean_fit`: R^2 >= 0.5) and read
-      as `w, x, y, z` much less (R^2 lower by 0.3); or when it is upside down (tilted beyond
-      90 deg, 95th percentile) read as `w, x, y, z` and 30 deg less read as `x, y, z, w`; or when
-      the first pose read as `w, x, y, z` is a half turn about the vertical that read as
-      `x, y, z, w` is the identity (the rest pose of a rigid body defined where the trial
-      starts) and the lean does not follow the acceleration better as `w, x, y, z`.
+    so their quaternions cannot be in the wrong order (no `"xyzw"`), but the up axis can be
+    wrong (`"lying"`: tilted beyond 80 deg; random inputs tilt the paper's robot up to 66 deg).
+    Quaternions read in the wrong order (`_quaternion_order`) tilt by the platform's heading
+    instead, and their lean no longer follows the ball's acceleration (`_lean_fit`).
     """
     t, x, y, q = (np.asarray(a, float) for a in (t, x, y, q))
     out = []

@@ -27,10 +27,8 @@ def read_vicon_csv(
 
     `subject` keeps the markers named `"<subject>:..."`; default: the only subject, and with
     several an `InputError` listing them. `units`: `"auto"` (the units row), `"m"` or `"mm"`.
-    `up_axis`: Vicon is Z-up by default. A file cut short (the
-    section runs to the end of the file and its last row has fewer cells than the header) is an
-    `InputError` naming both counts; `allow_truncated=True` makes it a `CaptureWarning` and
-    drops that row.
+    `up_axis`: Vicon is Z-up by default. `allow_truncated`: as in `ConvertOptions` (a section
+    that runs to the end of the file with a last row cut off mid-row).
     """
     path, rows = _read_lines(path)
     source = str(path)
