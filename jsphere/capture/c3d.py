@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import math
 import struct
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +12,7 @@ import numpy as np
 from .._runtime.errors import InputError
 from .markers import MarkerData, to_fixed_frame
 from .units import EXPORT_UNITS, detect_marker_units, resolve_units
-from .validation import CaptureWarning
+from .validation import warn
 
 #: C3D processor types (byte 4 of the parameter section): 84 Intel, 85 DEC (both little-endian
 #: integers), 86 MIPS/SGI (big-endian)
@@ -180,11 +179,7 @@ def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: 
                 f"{source}: the file is cut short: {what} (the copy or the export broke off). Export or copy it again"
                 + (", or pass --allow-truncated to use the frames present." if present else ".")
             )
-        warnings.warn(
-            f"{source}: the file is cut short: {what}; using the {present} frames present.",
-            CaptureWarning,
-            stacklevel=2,
-        )
+        warn(f"{source}: the file is cut short: {what}; using the {present} frames present.")
     try:  # after the checks of the file's structure, which need no ezc3d
         import ezc3d
     except ImportError:

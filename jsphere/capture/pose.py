@@ -12,7 +12,6 @@ options of the conversion: `ConvertOptions` gives their conventions.
 from __future__ import annotations
 
 import math
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +23,7 @@ from .inputs import interpolate_inputs, read_inputs_csv
 from .markers import MarkerData
 from .options import ConvertOptions, with_keywords
 from .trial import Trial
-from .validation import CaptureWarning, _checked, sign_continuous, warn_implausible
+from .validation import _checked, sign_continuous, warn, warn_implausible
 
 #: the fields of `ConvertOptions` that `markers_to_trial` accepts as keywords (deprecated)
 _KEYWORDS = ("body_markers", "alignment", "body_offset", "max_rms", "time_offset", "name", "max_gap_fraction")
@@ -221,27 +220,23 @@ def _body_pose(
         q_body, p_body = q_body.copy(), p_body.copy()
         q_body[out], p_body[out] = np.nan, np.nan
     if over.any():
-        warnings.warn(
+        warn(
             f"{source}: {int(over.sum())} of {len(rms)} frame(s) are left out as missing: their marker fit residual is "
             f"above {max_rms * 1e3:g} mm (up to {np.nanmax(rms[over]) * 1e3:.3g} mm; the take's median is "
             f"{np.nanmedian(rms) * 1e3:.3g} mm): a marker far from where the others put it (a swapped, merged or ghost "
-            f"marker), first at t = {data.t[np.flatnonzero(over)[0]]:.6g} s.",
-            CaptureWarning,
-            stacklevel=3,
+            f"marker), first at t = {data.t[np.flatnonzero(over)[0]]:.6g} s."
         )
     if suspect.any():
         limit = suspect_limit(rms_in)
         first = float(data.t[np.flatnonzero(suspect)[0]])
         what = "kept, as --keep-suspect asks" if keep_suspect else "left out as missing (--keep-suspect keeps them)"
-        warnings.warn(
+        warn(
             f"{source}: {int(suspect.sum())} of {len(rms)} frame(s) whose marker fit residual stands out of the take's "
             f"noise (above {limit * 1e3:.3g} mm: {limit / np.nanmedian(rms_in):.3g}x the median "
             f"{np.nanmedian(rms_in) * 1e3:.3g} mm, from the residuals' spread, at least {SUSPECT:g}x"
             + (f", and above {SUSPECT_ERROR:g}x the export's own marker error" if error is not None else "")
             + f"; up to {np.nanmax(rms_in[suspect]) * 1e3:.3g} mm, first at t = {first:.6g} s) are {what}: a swapped or "
-            "ghost marker.",
-            CaptureWarning,
-            stacklevel=3,
+            "ghost marker."
         )
     return q_body, p_body
 
@@ -327,22 +322,18 @@ def _overlap(t: np.ndarray, t_in: np.ndarray, source: str) -> np.ndarray:
         )
     span_in, span = float(t_in[-1] - t_in[0]), float(t[keep][-1] - t[keep][0])
     if span_in >= 100.0 * max(span, 1e-9) and float(np.median(np.diff(t_in))) >= 100.0 * float(np.median(np.diff(t))):
-        warnings.warn(
+        warn(
             f"{source}: the inputs table spans {span_in:g} s with steps of {float(np.median(np.diff(t_in))):g} s, the capture "
             f"{span:g} s with steps of {float(np.median(np.diff(t))):g} s: are the inputs' times in milliseconds? Give them in "
-            "seconds.",
-            CaptureWarning,
-            stacklevel=3,
+            "seconds."
         )
     before, after = int(np.sum(~keep & (t < t_in[0]))), int(np.sum(~keep & (t > t_in[-1])))
     if before or after:
         parts = [f"{n} before its start" for n in (before,) if n] + [f"{n} after its end" for n in (after,) if n]
-        warnings.warn(
+        warn(
             f"{source}: {before + after} of {t.size} capture frame(s) are left out: they lie outside the inputs "
             f"table's time range [{t_in[0]:.6g}, {t_in[-1]:.6g}] s ({' and '.join(parts)}; the capture runs "
-            f"[{t[0]:.6g}, {t[-1]:.6g}] s after the time offset).",
-            CaptureWarning,
-            stacklevel=3,
+            f"[{t[0]:.6g}, {t[-1]:.6g}] s after the time offset)."
         )
     return keep
 

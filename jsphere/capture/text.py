@@ -8,14 +8,13 @@ import csv
 import io
 import math
 import re
-import warnings
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from .._runtime.errors import InputError
-from .validation import INPUT_PREFIX, CaptureWarning, _check_increasing
+from .validation import INPUT_PREFIX, _check_increasing, warn
 
 
 def read_text(path) -> str:
@@ -214,9 +213,7 @@ def _cut_short(
             f"{source}: the file is cut short: {what} (the copy or the export broke off). Export or copy it again, or "
             f"pass --allow-truncated to use the {n} complete {noun}."
         )
-    warnings.warn(
-        f"{source}: the file is cut short: {what}; using the {n} complete {noun}.", CaptureWarning, stacklevel=3
-    )
+    warn(f"{source}: the file is cut short: {what}; using the {n} complete {noun}.")
     return end - int(cut_row)
 
 

@@ -9,6 +9,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from .._runtime.precision import _caller_stacklevel
+
 KINDS = ("wheel_speeds", "torques")
 #: column prefix of the inputs for each kind
 INPUT_PREFIX = {"wheel_speeds": "chi_dot_", "torques": "K_"}
@@ -32,6 +34,12 @@ class CaptureWarning(UserWarning):
     """A capture file that reads without error but looks wrong: positions or times in the wrong
     unit, quaternions in `x, y, z, w` order, a file cut short (read with `allow_truncated`), or
     body markers given in millimetres. The message names the file and the likely cause."""
+
+
+def warn(message: str) -> None:
+    """Issue `message` as a `CaptureWarning` pointing at the user's call (the first frame
+    outside jsphere)."""
+    warnings.warn(message, CaptureWarning, stacklevel=_caller_stacklevel())
 
 
 def sign_continuous(q: np.ndarray) -> np.ndarray:
@@ -345,5 +353,5 @@ def warn_implausible(
     for kind, detail in implausible(t, x, y, q, z, from_markers=from_markers):
         cause = _CAUSES[kind].format(speed=MAX_PLAUSIBLE_SPEED, rate=MAX_PLAUSIBLE_RATE, units=units_hint, up=up_hint)
         msgs.append(f"{source}: {detail}: {cause}.")
-        warnings.warn(msgs[-1], CaptureWarning, stacklevel=3)
+        warn(msgs[-1])
     return msgs
