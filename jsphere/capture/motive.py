@@ -25,23 +25,15 @@ def read_motive_csv(
 ) -> MarkerData:
     """Read an OptiTrack Motive CSV export (Motive 2 and 3: CSV format version 1.21 and later).
 
-    Layout (https://docs.optitrack.com/motive/data-export/data-export-csv): line 1 `Format
-    Version,...,Rotation Type,...,Length Units,Meters|Centimeters|Millimeters,...`; a blank
-    line; rows `,Type,...` (`Rigid Body`, `Rigid Body Marker`, `Marker`, `Bone`, `Bone Marker`),
-    `,Name,...`, `,ID,...`, in Motive 3 a `,Parent,...` row, a row naming each column's kind
-    (`Rotation`, `Position`, `Mean Marker Error`, `Marker Quality`), then `Frame,Time
-    (Seconds),X,Y,Z,...`, the columns in any order. Format 1.21 (Motive 1.9-2.0) leaves the
-    first two cells of the type and name rows blank, names the time column `Time` and the rigid
-    body's error `Error Per Marker`. Older layouts (format 1.2 and before, `info,version,...`
-    exports of Motive 1.x) are an `InputError` naming the version. Rigid-body rotations are
-    quaternions in the order **X, Y, Z, W** (`Rotation Type,Quaternion`); Euler rotation types
-    are read only where the rigid body's own pose is not needed (an `InputError` names the
-    setting otherwise). Occluded markers are blank cells (gaps). The markers read are the
-    labelled `Marker` columns (not the solved `Rigid Body Marker` / `Bone Marker` ones, nor
-    `Unlabeled ...` markers); with a rigid body, those named `"<rigid body>:..."` if there are
-    any. A take with neither labelled markers nor a rigid body is an `InputError` saying so.
-    The rigid body's `Mean Marker Error` (`Error Per Marker`) is kept in
-    `MarkerData.marker_error`.
+    Layout: `docs/capture.md` ("Layouts in detail"), after OptiTrack's
+    https://docs.optitrack.com/motive/data-export/data-export-csv; older layouts (format 1.2
+    and before, Motive 1.x) are an `InputError` naming the version. Rigid-body rotations are
+    quaternions (X, Y, Z, W); an Euler `Rotation Type` is read only where the rigid body's own
+    pose is not needed. The markers read are the labelled `Marker` columns (not the solved
+    `Rigid Body Marker` / `Bone Marker` ones, nor `Unlabeled ...` markers), blank cells gaps;
+    with a rigid body, those named `"<rigid body>:..."` if there are any. A take with neither
+    labelled markers nor a rigid body is an `InputError` saying so. The rigid body's `Mean
+    Marker Error` (`Error Per Marker`) is kept in `MarkerData.marker_error`.
 
     **Arguments:**
     - `rigid_body`: the asset name; selects that rigid body and the markers named `"<name>:..."`.

@@ -29,37 +29,24 @@ def read_qualisys_tsv(
     up_axis: str = "z",
     allow_truncated: bool = False,
 ) -> MarkerData:
-    """Read a Qualisys Track Manager TSV export: 3D marker data or 6DOF rigid-body data.
+    """Read a Qualisys Track Manager TSV export (with its TSV header; QTM manual, "Motion data
+    (.tsv)"): 3D marker data, or a 6DOF body's pose. `docs/capture.md` ("Layouts in detail")
+    gives the layouts read: QTM's 3D and 6DOF exports, with and without a column row, and QTM
+    2.x's.
 
-    Layout (QTM manual, "Motion data (.tsv)", and QTM's 3D and 6DOF exports): header lines of
-    a variable name, a tab and its values (`FILE_VERSION` where QTM writes it, `NO_OF_FRAMES`,
-    `NO_OF_CAMERAS`, `NO_OF_MARKERS` or `NO_OF_BODIES`, `FREQUENCY`, `TIME_STAMP`,
-    `DATA_INCLUDED` `3D` or `6D`, `MARKER_NAMES` or `BODY_NAMES`, `TRAJECTORY_TYPES`, `EVENT`,
-    ...; the TSV header must be included in the export), then a column row and one
-    tab-separated row per frame; lines may end in CRLF and rows in a tab.
+    - **3D**: the markers of `MARKER_NAMES`; a marker written as zeros (QTM's default) or
+      blank cells is a gap.
+    - **6DOF**: the pose of the body `rigid_body` (default: the only one; several are an
+      `InputError` listing them) as `rb_q, rb_p`, no markers: its rotation `R` (`P_global = R
+      P_local + P_origin`) from `Rot[0..8]` column by column, else from its angles (`_rotations`;
+      QTM manual, "Rotation angles in QTM"). A body not seen (NaN, blanks, an all-zero rotation,
+      a residual of -1) is a gap.
 
-    - **3D**: columns `Frame`, `Time`, then `<marker> X`, `<marker> Y`, `<marker> Z` per marker
-      of `MARKER_NAMES` (names may hold spaces). A marker that is not seen is written as zeros
-      (QTM's default) or blank cells: both are gaps.
-    - **6DOF**: columns `Frame`, `Time`, then per body `<body> X`, `Y`, `Z`, `Roll`, `Pitch`,
-      `Yaw`, `Residual`, `Rot[0]` .. `Rot[8]` (QTM names the body in its first column only; a
-      body name on every column, or on none, with the groups in `BODY_NAMES` order, reads the
-      same). Each body's pose is returned as `rb_q, rb_p` (no markers): the rotation matrix `R`
-      with `P_global = R P_local + P_origin` ("Rotation angle calculations in QTM"), read from
-      `Rot[0..8]` column by column (`Rot[0..2]` is R's first column). Without those columns it
-      is built from `Roll, Pitch, Yaw` [deg] in QTM's standard definition (QTM manual,
-      "Rotation angles in QTM": roll about X, then pitch about the new Y, then yaw about the new
-      Z: `R = R_x(roll) R_y(pitch) R_z(yaw)`); angles exported in a custom Euler definition are
-      not read. A body that is not seen (NaN, blanks, or an all-zero rotation) is a gap.
-      `rigid_body` names the body; default: the only one (several are an `InputError` listing
-      them).
-
-    Without the column row the data are `Frame, Time` and the values, or the values alone
-    (times `frame / FREQUENCY`). `units`: QTM writes millimetres; `"auto"` detects metres or
-    millimetres from the marker spread (3D; millimetres where the spread cannot tell, and
-    always for 6DOF), `"m"` / `"mm"` declare them. `up_axis`: QTM's global frame is Z-up unless
-    the calibration chose otherwise (`"y"` for a Y-up lab frame). `allow_truncated`: as in
-    `ConvertOptions` (fewer rows than `NO_OF_FRAMES`, or a last row cut off mid-row).
+    `units`: QTM writes millimetres; `"auto"` detects metres or millimetres from the marker
+    spread (3D; millimetres where the spread cannot tell, and always for 6DOF), `"m"` / `"mm"`
+    declare them. `up_axis`: QTM's global frame is Z-up unless the calibration chose otherwise
+    (`"y"` for a Y-up lab frame). `allow_truncated`: as in `ConvertOptions` (fewer rows than
+    `NO_OF_FRAMES`, or a last row cut off mid-row).
     """
     source = str(path)
     check_up_axis(up_axis, source)
