@@ -10,8 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .._runtime.errors import InputError
-from .markers import MarkerData, to_fixed_frame
-from .units import EXPORT_UNITS, detect_marker_units, resolve_units
+from .markers import MarkerData, check_up_axis, fixed_markers
 from .validation import warn
 
 #: C3D processor types (byte 4 of the parameter section): 84 Intel, 85 DEC (both little-endian
@@ -165,6 +164,7 @@ def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: 
     if not path.exists():
         raise FileNotFoundError(f"capture file {path} does not exist.")
     source = str(path)
+    check_up_axis(up_axis, source)
     layout = c3d_layout(path)
     if layout["points"] == 0:
         raise InputError(
@@ -215,6 +215,5 @@ def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: 
     raw = np.transpose(pts[:3], (2, 1, 0)).copy()  # (M, K, 3)
     raw[res[0].T < 0] = np.nan
     t = np.arange(raw.shape[0]) / rate
-    scale = resolve_units(units, file_units, detect_marker_units(raw), source, EXPORT_UNITS)
-    markers = to_fixed_frame(raw, up_axis, scale)
+    markers, _ = fixed_markers(raw, source, units, file_units, up_axis)
     return MarkerData(t, markers, labels, source, None)
