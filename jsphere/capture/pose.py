@@ -216,9 +216,7 @@ def _body_pose(
             f"{np.nanmedian(rms) * 1e3:.3g} mm): the markers belong to a person or to several bodies, not one robot; "
             "give --body-markers FILE listing only the robot's markers (the others are then left out of the fit)."
         )
-    if out.any():
-        q_body, p_body = q_body.copy(), p_body.copy()
-        q_body[out], p_body[out] = np.nan, np.nan
+    q_body[out], p_body[out] = np.nan, np.nan  # (fresh arrays of `rigid_body_pose`)
     if over.any():
         warn(
             f"{source}: {int(over.sum())} of {len(rms)} frame(s) are left out as missing: their marker fit residual is "

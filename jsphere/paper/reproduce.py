@@ -92,9 +92,9 @@ def full_stop_brake(
     rate: float = 100.0,
     options: SolverOptions | None = None,
 ):
-    """`(theta_max, phi)` of the braking gait that stops the robot after acceleration (5.1) and
-    turn (5.6), every gait starting from the previous end state (Newton on the horizontal
-    `Omega` at the end, finite-difference Jacobian; one compiled function throughout).
+    """`(theta_max, phi, residual)` of the braking gait that stops the robot after acceleration
+    (5.1) and turn (5.6), every gait starting from the previous end state (Newton on the
+    horizontal `Omega` at the end, finite-difference Jacobian; one compiled function throughout).
 
     The finite differences reuse the forward simulation compiled for the table; an autodiff
     Jacobian (`optimistix`, as in `jsphere.optimise_gaits`) would compile a reverse-mode program
