@@ -62,7 +62,8 @@ def read_body_markers(path, *, units: str = "auto") -> dict[str, np.ndarray]:
         warn(
             f"{source}: the marker coordinates look like millimetres (the markers lie up to {spread:.4g} from their "
             "centroid; metres would make the robot metres wide): read as mm. Add a line '# units: mm' to the file "
-            "to say so, or give metres."
+            "to say so, or give metres.",
+            stacklevel=2,
         )
     return {k: v * scale for k, v in out.items()}
 

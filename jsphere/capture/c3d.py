@@ -179,7 +179,7 @@ def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: 
                 f"{source}: the file is cut short: {what} (the copy or the export broke off). Export or copy it again"
                 + (", or pass --allow-truncated to use the frames present." if present else ".")
             )
-        warn(f"{source}: the file is cut short: {what}; using the {present} frames present.")
+        warn(f"{source}: the file is cut short: {what}; using the {present} frames present.", stacklevel=2)
     try:  # after the checks of the file's structure, which need no ezc3d
         import ezc3d
     except ImportError:

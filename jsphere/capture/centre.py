@@ -99,5 +99,5 @@ def check_centre_height(
             f"rolling on a level floor: the floor is not level, or {fix}."
         )
     for m in msgs:
-        warn(m)
+        warn(m, stacklevel=2)
     return msgs

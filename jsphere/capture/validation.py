@@ -9,8 +9,6 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .._runtime.precision import _caller_stacklevel
-
 KINDS = ("wheel_speeds", "torques")
 #: column prefix of the inputs for each kind
 INPUT_PREFIX = {"wheel_speeds": "chi_dot_", "torques": "K_"}
@@ -36,10 +34,10 @@ class CaptureWarning(UserWarning):
     body markers given in millimetres. The message names the file and the likely cause."""
 
 
-def warn(message: str) -> None:
-    """Issue `message` as a `CaptureWarning` pointing at the user's call (the first frame
-    outside jsphere)."""
-    warnings.warn(message, CaptureWarning, stacklevel=_caller_stacklevel())
+def warn(message: str, stacklevel: int = 3) -> None:
+    """Issue `message` as a `CaptureWarning`; `stacklevel` as `warnings.warn`'s, counted from
+    the function that calls this one."""
+    warnings.warn(message, CaptureWarning, stacklevel=stacklevel + 1)
 
 
 def sign_continuous(q: np.ndarray) -> np.ndarray:
