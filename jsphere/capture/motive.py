@@ -61,12 +61,11 @@ def read_motive_csv(
     _check_has_data(head, body, mnames, source)
     want_rb = use == "rigid_body" or (use == "auto" and len(mnames) < 3)
     if want_rb:
-        _check_rotation_type(meta, source)
-        need, rb_cols = _rigid_body_columns(head, body, len(mnames), source)
+        need, rb_cols = _rigid_body_columns(head, body, len(mnames), meta, source)
         cols, colnames = cols + rb_cols, colnames + [f"{body} {k[0]} {k[1]}" for k in need]
-    err_col = _error_column(head, body)
-    if err_col is not None:
-        cols, colnames = cols + [err_col], colnames + [f"{body} {head.cell('kinds', err_col)}"]
+    errors = ("Mean Marker Error", "Error Per Marker")  # the rigid body's own marker error (format 1.21: the second)
+    err = [j for j in head.columns("Rigid Body", body) if head.cell("kinds", j) in errors][:1] if body else []
+    cols, colnames = cols + err, colnames + [f"{body} {head.cell('kinds', j)}" for j in err]
     declared = int(meta["Total Exported Frames"]) if meta.get("Total Exported Frames", "").isdigit() else None
     end = _cut_short(
         rows,
@@ -92,7 +91,7 @@ def read_motive_csv(
         gap = ~np.all(np.isfinite(rb), axis=1) | ~(np.linalg.norm(q, axis=1) > 0)
         R = rotmat_np(np.where(gap[:, None], [1.0, 0.0, 0.0, 0.0], q))
         rb_q, rb_p = fixed_pose(R, rb[:, 4:7], gap, up_axis, scale)
-    error = data[:, -1] * scale if err_col is not None else None
+    error = data[:, -1] * scale if err else None
     return MarkerData(t, markers, tuple(mnames), source, lines, rb_q, rb_p, error)
 
 
@@ -135,17 +134,6 @@ def _line_one(rows: list[list[str]], source: str) -> tuple[dict[str, str], str |
 MIN_FORMAT_VERSION = 1.21
 #: Motive's `Length Units` and jsphere's names for them
 _LENGTH_UNITS = {"Meters": "m", "Centimeters": "cm", "Millimeters": "mm"}
-
-
-def _check_rotation_type(meta: dict[str, str], source: str) -> None:
-    """Raise `InputError` unless the rigid-body rotations are quaternions (Motive's Euler types
-    `XYZ`, `XZY`, ... leave the convention of their angles to the reader)."""
-    kind = meta.get("Rotation Type", "Quaternion")
-    if kind != "Quaternion":
-        raise InputError(
-            f"{source}, line 1: Rotation Type is {kind!r} (Euler angles), and the rigid body's own pose is needed; "
-            "export again with the CSV export option Rotation Type = Quaternion, or export at least 3 markers."
-        )
 
 
 @dataclass(frozen=True)
@@ -252,9 +240,17 @@ def _check_has_data(head: _Header, body: str | None, mnames: list[str], source: 
 
 
 def _rigid_body_columns(
-    head: _Header, body: str | None, n_markers: int, source: str
+    head: _Header, body: str | None, n_markers: int, meta: dict[str, str], source: str
 ) -> tuple[list[tuple[str, str]], list[int]]:
-    """The columns of the rigid body's Rotation X, Y, Z, W and Position X, Y, Z."""
+    """The columns of the rigid body's Rotation X, Y, Z, W and Position X, Y, Z; `InputError`
+    unless its rotations are quaternions (line 1's `Rotation Type`: Motive's Euler types `XYZ`,
+    `XZY`, ... leave the convention of their angles to the reader)."""
+    kind = meta.get("Rotation Type", "Quaternion")
+    if kind != "Quaternion":
+        raise InputError(
+            f"{source}, line 1: Rotation Type is {kind!r} (Euler angles), and the rigid body's own pose is needed; "
+            "export again with the CSV export option Rotation Type = Quaternion, or export at least 3 markers."
+        )
     rb_cols = {}
     if body is not None:
         rb_cols = {(head.cell("kinds", j), head.cell("axes", j)): j for j in head.columns("Rigid Body", body)}
@@ -267,15 +263,6 @@ def _rigid_body_columns(
             "labelled markers: export them from Motive."
         )
     return need, [rb_cols[k] for k in need]
-
-
-def _error_column(head: _Header, body: str | None) -> int | None:
-    """The column of the rigid body's own marker error (`Mean Marker Error`, or `Error Per
-    Marker` in format 1.21), if the export has one."""
-    if body is None:
-        return None
-    errors = ("Mean Marker Error", "Error Per Marker")
-    return next((j for j in head.columns("Rigid Body", body) if head.cell("kinds", j) in errors), None)
 
 
 def write_motive_csv(
