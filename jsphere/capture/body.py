@@ -3,14 +3,12 @@ matched to an export's marker names, or estimated from the first complete frame.
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 
 from .._runtime.errors import InputError
 from .text import _parse_cell, _read_lines, separator_hint
 from .units import BODY_UNITS, detect_marker_units, resolve_units, units_in_force
-from .validation import CaptureWarning
+from .validation import warn
 
 
 def read_body_markers(path, *, units: str = "auto") -> dict[str, np.ndarray]:
@@ -61,11 +59,10 @@ def read_body_markers(path, *, units: str = "auto") -> dict[str, np.ndarray]:
     detected = detect_marker_units(b[None])
     scale = resolve_units(units, None, detected, source, BODY_UNITS, f"{spread:.4g}")
     if units == "auto" and detected == "mm":
-        warnings.warn(
+        warn(
             f"{source}: the marker coordinates look like millimetres (the markers lie up to {spread:.4g} from their "
             "centroid; metres would make the robot metres wide): read as mm. Add a line '# units: mm' to the file "
             "to say so, or give metres.",
-            CaptureWarning,
             stacklevel=2,
         )
     return {k: v * scale for k, v in out.items()}

@@ -5,15 +5,13 @@ from __future__ import annotations
 
 import math
 import struct
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 from .._runtime.errors import InputError
-from .markers import MarkerData, to_fixed_frame
-from .units import EXPORT_UNITS, detect_marker_units, resolve_units
-from .validation import CaptureWarning
+from .markers import MarkerData, check_up_axis, fixed_markers
+from .validation import warn
 
 #: C3D processor types (byte 4 of the parameter section): 84 Intel, 85 DEC (both little-endian
 #: integers), 86 MIPS/SGI (big-endian)
@@ -38,9 +36,8 @@ def c3d_layout(path) -> dict:
     """
     path = Path(path)
     source = str(path)
-    size = path.stat().st_size
-    with open(path, "rb") as f:
-        raw = f.read(512)
+    raw = path.read_bytes()  # (the whole file: ezc3d reads it all too)
+    size = len(raw)
     if size == 0:
         raise InputError(f"{source}: the file is empty (0 bytes), not a C3D file; export or copy it again.")
     if size < 512 or raw[1] != 0x50:
@@ -56,9 +53,7 @@ def c3d_layout(path) -> dict:
             f"{source}: the C3D file is cut short or corrupt: its parameter section (block {raw[0]}) is not in the "
             f"file ({size} bytes); export or copy it again."
         )
-    with open(path, "rb") as f:
-        f.seek(p0)
-        head = f.read(4)
+    head = raw[p0 : p0 + 4]
     endian = _C3D_PROCESSORS.get(head[3])
     if endian is None:
         raise InputError(f"{source}: not a C3D file, or a corrupt one (processor type {head[3]}, not 84, 85 or 86).")
@@ -72,10 +67,7 @@ def c3d_layout(path) -> dict:
             f"{source}: the C3D file is cut short or corrupt: {size} bytes, but its parameters end at byte {p_end} and its "
             f"data start at byte {512 * (data_start - 1)}; export or copy it again."
         )
-    with open(path, "rb") as f:
-        f.seek(p0)
-        params = f.read(p_end - p0)
-    used = _check_c3d_parameters(params, endian, source)
+    used = _check_c3d_parameters(raw[p0:p_end], endian, source)
     frame_bytes = (4 * n_points + n_analog) * (4 if float_data else 2)
     start = 512 * (data_start - 1)
     if size < start:
@@ -165,14 +157,14 @@ def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: 
 
     The file's structure is checked first (`c3d_layout`): an empty, random or corrupt file is
     an `InputError` naming it; so is a file with no points (force plates or other analog data
-    only), saying what it holds. A file with fewer frames than its header declares (a copy or an
-    export that broke off) is an `InputError` naming both counts; with `allow_truncated=True`
-    it is a `CaptureWarning` and the frames present are used.
+    only), saying what it holds. `allow_truncated`: as in `ConvertOptions` (fewer frames than
+    the header declares).
     """
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"capture file {path} does not exist.")
     source = str(path)
+    check_up_axis(up_axis, source)
     layout = c3d_layout(path)
     if layout["points"] == 0:
         raise InputError(
@@ -187,11 +179,7 @@ def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: 
                 f"{source}: the file is cut short: {what} (the copy or the export broke off). Export or copy it again"
                 + (", or pass --allow-truncated to use the frames present." if present else ".")
             )
-        warnings.warn(
-            f"{source}: the file is cut short: {what}; using the {present} frames present.",
-            CaptureWarning,
-            stacklevel=2,
-        )
+        warn(f"{source}: the file is cut short: {what}; using the {present} frames present.", stacklevel=2)
     try:  # after the checks of the file's structure, which need no ezc3d
         import ezc3d
     except ImportError:
@@ -227,6 +215,5 @@ def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: 
     raw = np.transpose(pts[:3], (2, 1, 0)).copy()  # (M, K, 3)
     raw[res[0].T < 0] = np.nan
     t = np.arange(raw.shape[0]) / rate
-    scale = resolve_units(units, file_units, detect_marker_units(raw), source, EXPORT_UNITS)
-    markers = to_fixed_frame(raw, up_axis, scale)
+    markers, _ = fixed_markers(raw, source, units, file_units, up_axis)
     return MarkerData(t, markers, labels, source, None)

@@ -14,14 +14,13 @@ A floor elsewhere shifts the median height but not its variation, which is check
 
 from __future__ import annotations
 
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from .trial import Trial
-from .validation import CaptureWarning, implausible
+from .validation import implausible, warn
 
 #: the converted centre's median height may differ from the shell radius `R0` by this much [m]:
 #: the markers' centroid of a platform sits centimetres from the centre, while a shell deforms,
@@ -100,5 +99,5 @@ def check_centre_height(
             f"rolling on a level floor: the floor is not level, or {fix}."
         )
     for m in msgs:
-        warnings.warn(m, CaptureWarning, stacklevel=2)
+        warn(m, stacklevel=2)
     return msgs

@@ -67,12 +67,13 @@ def estimate_time_offset(
     win = min(max(5, int(round(0.2 / dt)) | 1), len(t) if len(t) % 2 else len(t) - 1)
     from scipy.signal import savgol_filter  # (imported here: `import scipy.signal` takes ~0.8 s)
 
-    smooth = lambda a, deriv=0: savgol_filter(np.interp(t, t[ok], a[ok]), win, 3, deriv=deriv, delta=dt)
+    # (the measured values, at the frames `ok`, smoothed over every frame)
+    smooth = lambda a, deriv=0: savgol_filter(np.interp(t, t[ok], a), win, 3, deriv=deriv, delta=dt)
     lags = np.arange(-max_offset, max_offset + 0.5e-3, 1e-3)
-    v = np.stack([smooth(x, 1), smooth(y, 1)], 1)
+    v = np.stack([smooth(x[ok], 1), smooth(y[ok], 1)], 1)
     R = rotmat_np(q[ok])
-    Rf = np.stack([[smooth(_full(R[:, i, j], ok, len(t))) for j in range(3)] for i in range(3)]).transpose(2, 0, 1)
-    Rd = np.stack([[smooth(_full(R[:, i, j], ok, len(t)), 1) for j in range(3)] for i in range(3)]).transpose(2, 0, 1)
+    Rf = np.stack([[smooth(R[:, i, j]) for j in range(3)] for i in range(3)]).transpose(2, 0, 1)
+    Rd = np.stack([[smooth(R[:, i, j], 1) for j in range(3)] for i in range(3)]).transpose(2, 0, 1)
     S = Rd @ np.swapaxes(Rf, 1, 2)  # the hat matrix of omega in the fixed frame (its skew part)
     om = 0.5 * np.stack([S[:, 2, 1] - S[:, 1, 2], S[:, 0, 2] - S[:, 2, 0], S[:, 1, 0] - S[:, 0, 1]], 1)
     w = _relative_rate(params, u_in)  # (K, 3) platform frame
@@ -97,13 +98,6 @@ def estimate_time_offset(
         if d < 0:
             lag += 1e-3 * 0.5 * (c0 - c2) / d
     return float(np.clip(lag, -max_offset, max_offset)), float(corr[k])
-
-
-def _full(values: np.ndarray, ok: np.ndarray, m: int) -> np.ndarray:
-    """Values given at the frames `ok` as a series of `m` frames (NaN elsewhere)."""
-    out = np.full(m, np.nan)
-    out[ok] = values
-    return out
 
 
 def _relative_rate(params: RobotParams, u_in: np.ndarray) -> np.ndarray:

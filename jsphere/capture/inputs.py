@@ -13,7 +13,9 @@ from .text import (
     _input_columns,
     _numbers,
     _read_lines,
+    cells,
     check_unique_columns,
+    comments,
     separator_hint,
 )
 from .validation import INPUT_PREFIX, KINDS
@@ -33,9 +35,7 @@ def read_inputs_csv(
     want = input_kind(kind)
     path, rows = _read_lines(path)
     source = str(path)
-    k = 0
-    while k < len(rows) and (not rows[k] or rows[k][0].lstrip().startswith("#") or not any(c.strip() for c in rows[k])):
-        k += 1
+    _, k = comments(rows)
     if k == len(rows):
         raise ValueError(f"{source}: no header line; the inputs table needs columns t and chi_dot_1..N or K_1..N.")
     header = [h.strip() for h in rows[k]]
@@ -80,10 +80,8 @@ def write_inputs_csv(path, t: np.ndarray, values: np.ndarray, kind: str) -> None
         raise ValueError(f"write_inputs_csv: kind must be one of {KINDS}; got {kind!r}.")
     values = np.asarray(values, float).reshape(len(t), -1)
     cols = ["t"] + [f"{INPUT_PREFIX[kind]}{i + 1}" for i in range(values.shape[1])]
-    lines = [",".join(cols)] + [
-        ",".join([f"{tt:.6f}"] + [f"{v + 0.0:.10g}" for v in row]) for tt, row in zip(t, values)
-    ]
-    atomic_write_text(path, "\n".join(lines) + "\n")
+    lines = cells(np.column_stack([t, values]), [".6f"] + [".10g"] * values.shape[1])
+    atomic_write_text(path, "\n".join([",".join(cols), *lines]) + "\n")
 
 
 def interpolate_inputs(t_in: np.ndarray, values: np.ndarray, t: np.ndarray) -> np.ndarray:

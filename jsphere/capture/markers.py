@@ -1,10 +1,17 @@
-"""Marker data: what the raw-export readers return, and their up-axis conventions."""
+"""Marker data: what the raw-export readers return, their up-axis conventions, and the steps
+every reader ends with (`check_up_axis`, `fixed_markers`, `fixed_pose`): the vendor's header and
+columns parsed by its own reader, the lengths resolved (`jsphere.capture.units`) and turned into
+jsphere's fixed frame here."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
+
+from ..model.rotations import quat_from_rotmat_np
+from .units import EXPORT_UNITS, detect_marker_units, resolve_units
+from .validation import sign_continuous
 
 #: Motive's default frame is Y-up; jsphere's fixed frame is Z-up. `UP_TO_Z["y"]` maps Motive
 #: components to jsphere's: (X, Y, Z)_jsphere = (X, -Z, Y)_Motive (a +90 deg turn about X).
@@ -36,7 +43,34 @@ class MarkerData:
     marker_error: np.ndarray | None = None
 
 
-def to_fixed_frame(raw: np.ndarray, up_axis: str, scale: float) -> np.ndarray:
-    """Marker positions `raw (M, K, 3)` of an export with the up axis `up_axis` in jsphere's
-    Z-up fixed frame (`UP_TO_Z`), times `scale` [m per unit]."""
-    return np.einsum("ij,mkj->mki", UP_TO_Z[up_axis], raw) * scale
+def check_up_axis(up_axis: str, source: str, quote: str = "") -> None:
+    """`ValueError` unless `up_axis` is one of `UP_TO_Z` (`quote` around the choices in the message)."""
+    if up_axis not in UP_TO_Z:
+        raise ValueError(
+            f"{source}: the up axis (--up-axis) must be {quote}y{quote} or {quote}z{quote}; got {up_axis!r}."
+        )
+
+
+def fixed_markers(
+    raw: np.ndarray, source: str, units: str, file_units: str | None, up_axis: str, fallback: str | None = None
+) -> tuple[np.ndarray, float]:
+    """The last step of every raw-export reader: markers `raw (M, K, 3)` in the file's units and
+    axes turned into metres in jsphere's Z-up fixed frame (`UP_TO_Z`), with the units
+    resolved (`resolve_units`) from the caller's `units`, the file's own `file_units` and those
+    detected from the marker spread (`fallback` where the spread cannot tell and `units` is
+    `"auto"`). Returns `(markers, scale)`, `scale` [m per unit] for the export's other lengths."""
+    detected = detect_marker_units(raw) or (fallback if units == "auto" else None)
+    scale = resolve_units(units, file_units, detected, source, EXPORT_UNITS)
+    return np.einsum("ij,mkj->mki", UP_TO_Z[up_axis], raw) * scale, scale
+
+
+def fixed_pose(R: np.ndarray, p: np.ndarray, gap: np.ndarray, up_axis: str, scale: float):
+    """An exporter's rigid-body pose in jsphere's fixed frame: `(q (M, 4), p (M, 3))` [m] from the
+    rotations `R (M, 3, 3)` (body -> the export's frame) and positions `p (M, 3)` of an export
+    with the up axis `up_axis`, times `scale` [m per unit]; NaN at the frames `gap` (`(M,)`
+    bool), quaternions scalar first and sign-continuous."""
+    C = UP_TO_Z[up_axis]
+    q = quat_from_rotmat_np(C @ np.where(gap[:, None, None], np.eye(3), R))
+    p = p @ C.T * scale
+    q[gap], p[gap] = np.nan, np.nan
+    return sign_continuous(q), p

@@ -8,11 +8,10 @@ import numpy as np
 
 from .._runtime.errors import InputError
 from .._runtime.files import atomic_write_text
-from ..model.rotations import quat_from_rotmat_np, quat_mul_np
-from .markers import UP_TO_Z, MarkerData, to_fixed_frame
-from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, cell, separator_hint
-from .units import EXPORT_UNITS, UNIT_SCALE, detect_marker_units, resolve_units
-from .validation import sign_continuous
+from ..model.rotations import quat_from_rotmat_np, quat_mul_np, rotmat_np
+from .markers import UP_TO_Z, MarkerData, check_up_axis, fixed_markers, fixed_pose
+from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, cells, separator_hint
+from .units import UNIT_SCALE
 
 
 def read_motive_csv(
@@ -26,23 +25,15 @@ def read_motive_csv(
 ) -> MarkerData:
     """Read an OptiTrack Motive CSV export (Motive 2 and 3: CSV format version 1.21 and later).
 
-    Layout (https://docs.optitrack.com/motive/data-export/data-export-csv): line 1 `Format
-    Version,...,Rotation Type,...,Length Units,Meters|Centimeters|Millimeters,...`; a blank
-    line; rows `,Type,...` (`Rigid Body`, `Rigid Body Marker`, `Marker`, `Bone`, `Bone Marker`),
-    `,Name,...`, `,ID,...`, in Motive 3 a `,Parent,...` row, a row naming each column's kind
-    (`Rotation`, `Position`, `Mean Marker Error`, `Marker Quality`), then `Frame,Time
-    (Seconds),X,Y,Z,...`, the columns in any order. Format 1.21 (Motive 1.9-2.0) leaves the
-    first two cells of the type and name rows blank, names the time column `Time` and the rigid
-    body's error `Error Per Marker`. Older layouts (format 1.2 and before, `info,version,...`
-    exports of Motive 1.x) are an `InputError` naming the version. Rigid-body rotations are
-    quaternions in the order **X, Y, Z, W** (`Rotation Type,Quaternion`); Euler rotation types
-    are read only where the rigid body's own pose is not needed (an `InputError` names the
-    setting otherwise). Occluded markers are blank cells (gaps). The markers read are the
-    labelled `Marker` columns (not the solved `Rigid Body Marker` / `Bone Marker` ones, nor
-    `Unlabeled ...` markers); with a rigid body, those named `"<rigid body>:..."` if there are
-    any. A take with neither labelled markers nor a rigid body is an `InputError` saying so.
-    The rigid body's `Mean Marker Error` (`Error Per Marker`) is kept in
-    `MarkerData.marker_error`.
+    Layout: `docs/capture.md` ("Layouts in detail"), after OptiTrack's
+    https://docs.optitrack.com/motive/data-export/data-export-csv; older layouts (format 1.2
+    and before, Motive 1.x) are an `InputError` naming the version. Rigid-body rotations are
+    quaternions (X, Y, Z, W); an Euler `Rotation Type` is read only where the rigid body's own
+    pose is not needed. The markers read are the labelled `Marker` columns (not the solved
+    `Rigid Body Marker` / `Bone Marker` ones, nor `Unlabeled ...` markers), blank cells gaps;
+    with a rigid body, those named `"<rigid body>:..."` if there are any. A take with neither
+    labelled markers nor a rigid body is an `InputError` saying so. The rigid body's `Mean
+    Marker Error` (`Error Per Marker`) is kept in `MarkerData.marker_error`.
 
     **Arguments:**
     - `rigid_body`: the asset name; selects that rigid body and the markers named `"<name>:..."`.
@@ -53,14 +44,12 @@ def read_motive_csv(
     - `units`: `"auto"` (the file's `Length Units`, else detected), `"m"`, `"cm"` or `"mm"`.
     - `up_axis`: `"y"` (Motive's default) or `"z"`; Y-up data are turned into jsphere's Z-up frame
       by `UP_TO_Z["y"]`: `(X, Y, Z) = (X_m, -Z_m, Y_m)`.
-    - `allow_truncated`: a file cut short (fewer data rows than line 1's `Total Exported
-      Frames`, or a last row with fewer cells than the header) is an `InputError` naming both
-      counts; with `True` it is a `CaptureWarning` and the complete rows are used.
+    - `allow_truncated`: as in `ConvertOptions` (fewer data rows than line 1's `Total
+      Exported Frames`, or a last row with fewer cells than the header).
     """
     path, rows = _read_lines(path)
     source = str(path)
-    if up_axis not in UP_TO_Z:
-        raise ValueError(f"{source}: the up axis (--up-axis) must be 'y' or 'z'; got {up_axis!r}.")
+    check_up_axis(up_axis, source, quote="'")
     if use not in ("auto", "markers", "rigid_body"):
         raise ValueError(
             f"read_motive_csv: use must be 'auto', 'markers' or 'rigid_body' (what to read of {source}); got {use!r}."
@@ -72,12 +61,11 @@ def read_motive_csv(
     _check_has_data(head, body, mnames, source)
     want_rb = use == "rigid_body" or (use == "auto" and len(mnames) < 3)
     if want_rb:
-        _check_rotation_type(meta, source)
-        need, rb_cols = _rigid_body_columns(head, body, len(mnames), source)
+        need, rb_cols = _rigid_body_columns(head, body, len(mnames), meta, source)
         cols, colnames = cols + rb_cols, colnames + [f"{body} {k[0]} {k[1]}" for k in need]
-    err_col = _error_column(head, body)
-    if err_col is not None:
-        cols, colnames = cols + [err_col], colnames + [f"{body} {head.cell('kinds', err_col)}"]
+    errors = ("Mean Marker Error", "Error Per Marker")  # the rigid body's own marker error (format 1.21: the second)
+    err = [j for j in head.columns("Rigid Body", body) if head.cell("kinds", j) in errors][:1] if body else []
+    cols, colnames = cols + err, colnames + [f"{body} {head.cell('kinds', j)}" for j in err]
     declared = int(meta["Total Exported Frames"]) if meta.get("Total Exported Frames", "").isdigit() else None
     end = _cut_short(
         rows,
@@ -95,13 +83,15 @@ def read_motive_csv(
     t = data[:, 1]
     _check_times(t, lines, source)
     K = len(mnames)
-    C = UP_TO_Z[up_axis]
-    raw = data[:, 2 : 2 + 3 * K].reshape(len(t), K, 3)
-    detected = detect_marker_units(raw) if K >= 2 else None
-    scale = resolve_units(units, file_units, detected, source, EXPORT_UNITS)
-    markers = to_fixed_frame(raw, up_axis, scale)
-    rb_q, rb_p = _rigid_body_pose(data[:, 2 + 3 * K :], C, scale) if want_rb else (None, None)
-    error = data[:, -1] * scale if err_col is not None else None
+    markers, scale = fixed_markers(data[:, 2 : 2 + 3 * K].reshape(len(t), K, 3), source, units, file_units, up_axis)
+    rb_q = rb_p = None
+    if want_rb:  # Motive's solved pose: Rotation X, Y, Z, W (scalar last), Position X, Y, Z
+        rb = data[:, 2 + 3 * K : 9 + 3 * K]
+        q = rb[:, [3, 0, 1, 2]]
+        gap = ~np.all(np.isfinite(rb), axis=1) | ~(np.linalg.norm(q, axis=1) > 0)
+        R = rotmat_np(np.where(gap[:, None], [1.0, 0.0, 0.0, 0.0], q))
+        rb_q, rb_p = fixed_pose(R, rb[:, 4:7], gap, up_axis, scale)
+    error = data[:, -1] * scale if err else None
     return MarkerData(t, markers, tuple(mnames), source, lines, rb_q, rb_p, error)
 
 
@@ -144,17 +134,6 @@ def _line_one(rows: list[list[str]], source: str) -> tuple[dict[str, str], str |
 MIN_FORMAT_VERSION = 1.21
 #: Motive's `Length Units` and jsphere's names for them
 _LENGTH_UNITS = {"Meters": "m", "Centimeters": "cm", "Millimeters": "mm"}
-
-
-def _check_rotation_type(meta: dict[str, str], source: str) -> None:
-    """Raise `InputError` unless the rigid-body rotations are quaternions (Motive's Euler types
-    `XYZ`, `XZY`, ... leave the convention of their angles to the reader)."""
-    kind = meta.get("Rotation Type", "Quaternion")
-    if kind != "Quaternion":
-        raise InputError(
-            f"{source}, line 1: Rotation Type is {kind!r} (Euler angles), and the rigid body's own pose is needed; "
-            "export again with the CSV export option Rotation Type = Quaternion, or export at least 3 markers."
-        )
 
 
 @dataclass(frozen=True)
@@ -261,9 +240,17 @@ def _check_has_data(head: _Header, body: str | None, mnames: list[str], source: 
 
 
 def _rigid_body_columns(
-    head: _Header, body: str | None, n_markers: int, source: str
+    head: _Header, body: str | None, n_markers: int, meta: dict[str, str], source: str
 ) -> tuple[list[tuple[str, str]], list[int]]:
-    """The columns of the rigid body's Rotation X, Y, Z, W and Position X, Y, Z."""
+    """The columns of the rigid body's Rotation X, Y, Z, W and Position X, Y, Z; `InputError`
+    unless its rotations are quaternions (line 1's `Rotation Type`: Motive's Euler types `XYZ`,
+    `XZY`, ... leave the convention of their angles to the reader)."""
+    kind = meta.get("Rotation Type", "Quaternion")
+    if kind != "Quaternion":
+        raise InputError(
+            f"{source}, line 1: Rotation Type is {kind!r} (Euler angles), and the rigid body's own pose is needed; "
+            "export again with the CSV export option Rotation Type = Quaternion, or export at least 3 markers."
+        )
     rb_cols = {}
     if body is not None:
         rb_cols = {(head.cell("kinds", j), head.cell("axes", j)): j for j in head.columns("Rigid Body", body)}
@@ -276,24 +263,6 @@ def _rigid_body_columns(
             "labelled markers: export them from Motive."
         )
     return need, [rb_cols[k] for k in need]
-
-
-def _error_column(head: _Header, body: str | None) -> int | None:
-    """The column of the rigid body's own marker error (`Mean Marker Error`, or `Error Per
-    Marker` in format 1.21), if the export has one."""
-    if body is None:
-        return None
-    errors = ("Mean Marker Error", "Error Per Marker")
-    return next((j for j in head.columns("Rigid Body", body) if head.cell("kinds", j) in errors), None)
-
-
-def _rigid_body_pose(rb: np.ndarray, C: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
-    """Motive's solved pose (columns Rotation X, Y, Z, W, Position X, Y, Z) in jsphere's frame:
-    `(q (M, 4), p (M, 3))`."""
-    q_m = rb[:, [3, 0, 1, 2]]  # (X, Y, Z, W) -> (w, x, y, z)
-    q_C = quat_from_rotmat_np(C)
-    q = sign_continuous(quat_mul_np(np.broadcast_to(q_C, q_m.shape), q_m))  # C R_m
-    return q, rb[:, 4:7] @ C.T * scale
 
 
 def write_motive_csv(
@@ -315,26 +284,17 @@ def write_motive_csv(
     C = UP_TO_Z[up_axis]
     s = 1.0 / UNIT_SCALE[units]
     raw = np.einsum("ji,mkj->mki", C, np.asarray(markers, float)) * s  # C^T: jsphere -> Motive
-    M, K = raw.shape[:2]
-    full = [f"{rigid_body}:{n}" for n in names]
-    types, nms, ids, kinds, axes = [], [], [], [], []
-    blocks = []
+    M = raw.shape[0]
+    # each column's Type, Name, ID, kind and axis
+    cols = [("Marker", f"{rigid_body}:{n}", f"{k + 2}", "Position", a) for k, n in enumerate(names) for a in "XYZ"]
+    blocks = [raw.reshape(M, -1)]
     if rb_q is not None:
-        q_Ci = quat_from_rotmat_np(C.T)
-        q_m = quat_mul_np(np.broadcast_to(q_Ci, np.shape(rb_q)), np.asarray(rb_q, float))  # C^T R
+        q_m = quat_mul_np(np.broadcast_to(quat_from_rotmat_np(C.T), np.shape(rb_q)), np.asarray(rb_q, float))  # C^T R
         p_m = np.asarray(rb_p, float) @ C * s
-        blocks.append(np.concatenate([q_m[:, [1, 2, 3, 0]], p_m, np.zeros((M, 1))], axis=1))
-        types += ["Rigid Body"] * 8
-        nms += [rigid_body] * 8
-        ids += ["1"] * 8
-        kinds += ["Rotation"] * 4 + ["Position"] * 3 + ["Mean Marker Error"]
-        axes += ["X", "Y", "Z", "W", "X", "Y", "Z", ""]
-    blocks.append(raw.reshape(M, -1))
-    types += ["Marker"] * 3 * K
-    nms += [n for n in full for _ in range(3)]
-    ids += [f"{i + 2}" for i in range(K) for _ in range(3)]
-    kinds += ["Position"] * 3 * K
-    axes += ["X", "Y", "Z"] * K
+        blocks.insert(0, np.concatenate([q_m[:, [1, 2, 3, 0]], p_m, np.zeros((M, 1))], axis=1))
+        fields = [("Rotation", a) for a in "XYZW"] + [("Position", a) for a in "XYZ"] + [("Mean Marker Error", "")]
+        cols = [("Rigid Body", rigid_body, "1", kind, a) for kind, a in fields] + cols
+    types, nms, ids, kinds, axes = zip(*cols)
     lines = [
         "Format Version,1.23,Take Name,jsphere-synthetic,Capture Frame Rate,{r:.6f},Export Frame Rate,{r:.6f},"
         "Rotation Type,Quaternion,Length Units,{u},Coordinate Space,Global".format(
@@ -349,8 +309,6 @@ def write_motive_csv(
     ]
     length_fmt = {"m": ".6f", "cm": ".4f", "mm": ".3f"}[units]
     fmts = [".6f" if k in ("Rotation", "Mean Marker Error") else length_fmt for k in kinds]
-    data = np.concatenate(blocks, axis=1)
-    for i in range(M):
-        cells = [cell(v, f) for v, f in zip(data[i], fmts)]
-        lines.append(",".join([str(i), f"{t[i]:.6f}", *cells]))
+    data = np.column_stack([np.arange(M), t, *blocks])
+    lines += cells(data, [".0f", ".6f"] + fmts)
     atomic_write_text(path, "\n".join(lines) + "\n")

@@ -4,10 +4,11 @@
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from collections.abc import Iterable
 
 import numpy as np
+
+from .._runtime.moved_keywords import moved_into, no_other_keywords
 
 
 @dataclasses.dataclass(frozen=True)
@@ -92,15 +93,7 @@ class ConvertOptions:
 
 def with_keywords(options: ConvertOptions, keywords: dict, func: str, known: Iterable[str]) -> ConvertOptions:
     """`options` with the fields `keywords` given to `func` as keywords (those it accepts:
-    `known`), each with a `DeprecationWarning` naming its spelling in `ConvertOptions`; another
-    keyword is a `TypeError`, as Python raises it."""
-    known, options = set(known), ConvertOptions() if options is None else options
-    for key in keywords:
-        if key not in known:
-            raise TypeError(f"{func}() got an unexpected keyword argument {key!r}")
-        warnings.warn(
-            f"{func}: the keyword {key} is deprecated; give ConvertOptions({key}=...) as its options argument.",
-            DeprecationWarning,
-            stacklevel=3,
-        )
-    return dataclasses.replace(options, **keywords) if keywords else options
+    `known`), each with a `DeprecationWarning` naming its spelling in `ConvertOptions`
+    (`moved_into`); another keyword is a `TypeError`, as Python raises it."""
+    no_other_keywords(func, {k: v for k, v in keywords.items() if k not in known})
+    return moved_into(func, keywords, options, ConvertOptions, "options")

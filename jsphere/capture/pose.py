@@ -12,7 +12,6 @@ options of the conversion: `ConvertOptions` gives their conventions.
 from __future__ import annotations
 
 import math
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +23,7 @@ from .inputs import interpolate_inputs, read_inputs_csv
 from .markers import MarkerData
 from .options import ConvertOptions, with_keywords
 from .trial import Trial
-from .validation import CaptureWarning, _checked, sign_continuous, warn_implausible
+from .validation import _checked, sign_continuous, warn, warn_implausible
 
 #: the fields of `ConvertOptions` that `markers_to_trial` accepts as keywords (deprecated)
 _KEYWORDS = ("body_markers", "alignment", "body_offset", "max_rms", "time_offset", "name", "max_gap_fraction")
@@ -73,12 +72,9 @@ def rigid_body_pose(
     dm = w[..., None] * (mz - mc[:, None])
     H = np.einsum("mki,mkj->mij", db, dm)  # sum_k b_k m_k^T
     U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(np.swapaxes(Vt, 1, 2) @ np.swapaxes(U, 1, 2)))
-    d = np.where(d == 0, 1.0, d)
-    D = np.zeros((m.shape[0], 3, 3))
-    D[:, 0, 0] = D[:, 1, 1] = 1.0
-    D[:, 2, 2] = d
-    R = np.swapaxes(Vt, 1, 2) @ D @ np.swapaxes(U, 1, 2)
+    V, Ut = np.swapaxes(Vt, 1, 2), np.swapaxes(U, 1, 2)
+    d = np.where(np.linalg.det(V @ Ut) < 0, -1.0, 1.0)  # V diag(1, 1, d) U^T: never a reflection
+    R = (V * np.stack([np.ones_like(d), np.ones_like(d), d], axis=1)[:, None, :]) @ Ut
     p = mc - np.einsum("mij,mj->mi", R, bc)
     fit = np.einsum("mij,kj->mki", R, b) + p[:, None]
     res2 = np.where(w > 0, np.sum((fit - mz) ** 2, axis=2), 0.0)
@@ -152,7 +148,6 @@ def markers_to_trial(
     q, centre = _platform_pose(q_body, p_body, A, off.reshape(3))
     t = data.t + time_offset
     keep = _overlap(t, t_in, source)
-    _warn_outside(t, keep, t_in, source)
     u = interpolate_inputs(t_in, u_in, t[keep])
     lines = None if data.lines is None else data.lines[keep]
     tt, x, y, qq, uu, z = _checked(
@@ -221,31 +216,25 @@ def _body_pose(
             f"{np.nanmedian(rms) * 1e3:.3g} mm): the markers belong to a person or to several bodies, not one robot; "
             "give --body-markers FILE listing only the robot's markers (the others are then left out of the fit)."
         )
-    if out.any():
-        q_body, p_body = q_body.copy(), p_body.copy()
-        q_body[out], p_body[out] = np.nan, np.nan
+    q_body[out], p_body[out] = np.nan, np.nan  # (fresh arrays of `rigid_body_pose`)
     if over.any():
-        warnings.warn(
+        warn(
             f"{source}: {int(over.sum())} of {len(rms)} frame(s) are left out as missing: their marker fit residual is "
             f"above {max_rms * 1e3:g} mm (up to {np.nanmax(rms[over]) * 1e3:.3g} mm; the take's median is "
             f"{np.nanmedian(rms) * 1e3:.3g} mm): a marker far from where the others put it (a swapped, merged or ghost "
-            f"marker), first at t = {data.t[np.flatnonzero(over)[0]]:.6g} s.",
-            CaptureWarning,
-            stacklevel=3,
+            f"marker), first at t = {data.t[np.flatnonzero(over)[0]]:.6g} s."
         )
     if suspect.any():
         limit = suspect_limit(rms_in)
         first = float(data.t[np.flatnonzero(suspect)[0]])
         what = "kept, as --keep-suspect asks" if keep_suspect else "left out as missing (--keep-suspect keeps them)"
-        warnings.warn(
+        warn(
             f"{source}: {int(suspect.sum())} of {len(rms)} frame(s) whose marker fit residual stands out of the take's "
             f"noise (above {limit * 1e3:.3g} mm: {limit / np.nanmedian(rms_in):.3g}x the median "
             f"{np.nanmedian(rms_in) * 1e3:.3g} mm, from the residuals' spread, at least {SUSPECT:g}x"
             + (f", and above {SUSPECT_ERROR:g}x the export's own marker error" if error is not None else "")
             + f"; up to {np.nanmax(rms_in[suspect]) * 1e3:.3g} mm, first at t = {first:.6g} s) are {what}: a swapped or "
-            "ghost marker.",
-            CaptureWarning,
-            stacklevel=3,
+            "ghost marker."
         )
     return q_body, p_body
 
@@ -283,10 +272,8 @@ def suspect_frames(rms: np.ndarray, marker_error: np.ndarray | None = None) -> n
     """Frames whose RMS marker fit residual `rms (M,)` [m] (NaN at gaps) stands out of the take's
     own noise (`suspect_limit`): a marker swapped with another or a ghost marker taken for one.
 
-    The threshold comes from the take: its median residual times `exp(SUSPECT_SPREAD * s)`, `s`
-    the robust standard deviation of the residuals' logarithms (1.4826 x their median absolute
-    deviation, which the suspect frames themselves hardly move), and at least `SUSPECT` times
-    the median and `SUSPECT_FLOOR`. White marker noise gives squared residuals of chi^2 with
+    The threshold comes from the take's own residuals, by statistics that the suspect frames
+    themselves hardly move (`suspect_limit`). White marker noise gives squared residuals of chi^2 with
     `3 K - 6` degrees of freedom (`K` markers): their 99.99 % point is 2.3x the median residual
     for 4 markers, 3x for 3, so a clean take has none, and its threshold is `SUSPECT` times the
     median. A real take's noise varies from frame to frame (markers near the edge of the volume,
@@ -323,7 +310,8 @@ def _platform_pose(
 
 def _overlap(t: np.ndarray, t_in: np.ndarray, source: str) -> np.ndarray:
     """The capture frames within the inputs table's time range (`(M,)` bool); a `CaptureWarning`
-    where the table's times look like milliseconds."""
+    where the table's times look like milliseconds, and one counting the frames left out, before
+    the table's start and after its end."""
     keep = (t >= t_in[0] - 1e-9) & (t <= t_in[-1] + 1e-9)
     if not np.any(keep):
         raise ValueError(
@@ -332,29 +320,20 @@ def _overlap(t: np.ndarray, t_in: np.ndarray, source: str) -> np.ndarray:
         )
     span_in, span = float(t_in[-1] - t_in[0]), float(t[keep][-1] - t[keep][0])
     if span_in >= 100.0 * max(span, 1e-9) and float(np.median(np.diff(t_in))) >= 100.0 * float(np.median(np.diff(t))):
-        warnings.warn(
+        warn(
             f"{source}: the inputs table spans {span_in:g} s with steps of {float(np.median(np.diff(t_in))):g} s, the capture "
             f"{span:g} s with steps of {float(np.median(np.diff(t))):g} s: are the inputs' times in milliseconds? Give them in "
-            "seconds.",
-            CaptureWarning,
-            stacklevel=3,
+            "seconds."
         )
-    return keep
-
-
-def _warn_outside(t: np.ndarray, keep: np.ndarray, t_in: np.ndarray, source: str) -> None:
-    """A `CaptureWarning` counting the capture frames left out because they lie outside the
-    inputs table's time range, before its start and after its end."""
     before, after = int(np.sum(~keep & (t < t_in[0]))), int(np.sum(~keep & (t > t_in[-1])))
     if before or after:
         parts = [f"{n} before its start" for n in (before,) if n] + [f"{n} after its end" for n in (after,) if n]
-        warnings.warn(
+        warn(
             f"{source}: {before + after} of {t.size} capture frame(s) are left out: they lie outside the inputs "
             f"table's time range [{t_in[0]:.6g}, {t_in[-1]:.6g}] s ({' and '.join(parts)}; the capture runs "
-            f"[{t[0]:.6g}, {t[-1]:.6g}] s after the time offset).",
-            CaptureWarning,
-            stacklevel=3,
+            f"[{t[0]:.6g}, {t[-1]:.6g}] s after the time offset)."
         )
+    return keep
 
 
 def _check_body_scale(markers: np.ndarray, body: np.ndarray, source: str) -> None:

@@ -9,11 +9,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .._runtime.errors import InputError
-from ..model.rotations import quat_from_rotmat_np
-from .markers import UP_TO_Z, MarkerData, to_fixed_frame
+from .markers import MarkerData, check_up_axis, fixed_markers, fixed_pose
 from .text import _check_times, _cut_short, _data_end, _numbers, csv_rows, read_text
-from .units import EXPORT_UNITS, detect_marker_units, resolve_units
-from .validation import sign_continuous
+from .units import EXPORT_UNITS, resolve_units
 
 #: a header line of a QTM TSV file: an upper-case variable name, a tab, its values
 _KEY = re.compile(r"^[A-Z][A-Z0-9_]*$")
@@ -31,54 +29,34 @@ def read_qualisys_tsv(
     up_axis: str = "z",
     allow_truncated: bool = False,
 ) -> MarkerData:
-    """Read a Qualisys Track Manager TSV export: 3D marker data or 6DOF rigid-body data.
+    """Read a Qualisys Track Manager TSV export (with its TSV header; QTM manual, "Motion data
+    (.tsv)"): 3D marker data, or a 6DOF body's pose. `docs/capture.md` ("Layouts in detail")
+    gives the layouts read: QTM's 3D and 6DOF exports, with and without a column row, and QTM
+    2.x's.
 
-    Layout (QTM manual, "Motion data (.tsv)", and QTM's 3D and 6DOF exports): header lines of
-    a variable name, a tab and its values (`FILE_VERSION` where QTM writes it, `NO_OF_FRAMES`,
-    `NO_OF_CAMERAS`, `NO_OF_MARKERS` or `NO_OF_BODIES`, `FREQUENCY`, `TIME_STAMP`,
-    `DATA_INCLUDED` `3D` or `6D`, `MARKER_NAMES` or `BODY_NAMES`, `TRAJECTORY_TYPES`, `EVENT`,
-    ...; the TSV header must be included in the export), then a column row and one
-    tab-separated row per frame; lines may end in CRLF and rows in a tab.
+    - **3D**: the markers of `MARKER_NAMES`; a marker written as zeros (QTM's default) or
+      blank cells is a gap.
+    - **6DOF**: the pose of the body `rigid_body` (default: the only one; several are an
+      `InputError` listing them) as `rb_q, rb_p`, no markers: its rotation `R` (`P_global = R
+      P_local + P_origin`) from `Rot[0..8]` column by column, else from its angles (`_rotations`;
+      QTM manual, "Rotation angles in QTM"). A body not seen (NaN, blanks, an all-zero rotation,
+      a residual of -1) is a gap.
 
-    - **3D**: columns `Frame`, `Time`, then `<marker> X`, `<marker> Y`, `<marker> Z` per marker
-      of `MARKER_NAMES` (names may hold spaces). A marker that is not seen is written as zeros
-      (QTM's default) or blank cells: both are gaps.
-    - **6DOF**: columns `Frame`, `Time`, then per body `<body> X`, `Y`, `Z`, `Roll`, `Pitch`,
-      `Yaw`, `Residual`, `Rot[0]` .. `Rot[8]` (QTM names the body in its first column only; a
-      body name on every column, or on none, with the groups in `BODY_NAMES` order, reads the
-      same). Each body's pose is returned as `rb_q, rb_p` (no markers): the rotation matrix `R`
-      with `P_global = R P_local + P_origin` ("Rotation angle calculations in QTM"), read from
-      `Rot[0..8]` column by column (`Rot[0..2]` is R's first column). Without those columns it
-      is built from `Roll, Pitch, Yaw` [deg] in QTM's standard definition (QTM manual,
-      "Rotation angles in QTM": roll about X, then pitch about the new Y, then yaw about the new
-      Z: `R = R_x(roll) R_y(pitch) R_z(yaw)`); angles exported in a custom Euler definition are
-      not read. A body that is not seen (NaN, blanks, or an all-zero rotation) is a gap.
-      `rigid_body` names the body; default: the only one (several are an `InputError` listing
-      them).
-
-    Without the column row the data are `Frame, Time` and the values, or the values alone
-    (times `frame / FREQUENCY`). `units`: QTM writes millimetres; `"auto"` detects metres or
-    millimetres from the marker spread (3D; millimetres where the spread cannot tell, and
-    always for 6DOF), `"m"` / `"mm"` declare them. `up_axis`: QTM's global frame is Z-up unless
-    the calibration chose otherwise (`"y"` for a Y-up lab frame). A file with fewer rows than
-    `NO_OF_FRAMES`, or whose last row is cut off mid-row, is an `InputError` naming both
-    counts; `allow_truncated=True` makes it a `CaptureWarning` and uses the complete frames.
+    `units`: QTM writes millimetres; `"auto"` detects metres or millimetres from the marker
+    spread (3D; millimetres where the spread cannot tell, and always for 6DOF), `"m"` / `"mm"`
+    declare them. `up_axis`: QTM's global frame is Z-up unless the calibration chose otherwise
+    (`"y"` for a Y-up lab frame). `allow_truncated`: as in `ConvertOptions` (fewer rows than
+    `NO_OF_FRAMES`, or a last row cut off mid-row).
     """
-    text = read_text(path)
     source = str(path)
-    if up_axis not in UP_TO_Z:
-        raise ValueError(f"{source}: the up axis (--up-axis) must be y or z; got {up_axis!r}.")
-    rows = csv_rows(text, source, delimiter="\t")
+    check_up_axis(up_axis, source)
+    rows = csv_rows(read_text(path), source, delimiter="\t")
     meta, k = _header(rows, source)
     kind = meta.get("DATA_INCLUDED", ["3D"])[0].strip().upper()
     if kind not in ("3D", "6D"):
         raise InputError(
             f"{source}: DATA_INCLUDED is {kind!r}; export 3D or 6DOF data to TSV (QTM: File > Export > To TSV)."
         )
-    try:
-        rate = float(meta["FREQUENCY"][0])
-    except (KeyError, IndexError, ValueError):
-        rate = float("nan")
     columns = None
     if k < len(rows) and _is_column_row(rows[k]):
         columns = [c.strip() for c in rows[k]]  # QTM 2.x starts its 6DOF column names with a space
@@ -88,36 +66,14 @@ def read_qualisys_tsv(
     declared = meta.get("NO_OF_FRAMES", [""])[0].strip()
     first = _width(rows[k]) if k < len(rows) else 0
     ncol = first if columns is None else max(len(columns), first if kind == "6D" else 0)
+    declared = int(declared) if declared.isdigit() else None
     end = _cut_short(
-        rows,
-        k,
-        _data_end(rows, k),
-        ncol,
-        source,
-        allow_truncated,
-        declared=int(declared) if declared.isdigit() else None,
-        field="NO_OF_FRAMES",
+        rows, k, _data_end(rows, k), ncol, source, allow_truncated, declared=declared, field="NO_OF_FRAMES"
     )
     if end <= k:
         raise InputError(f"{source}: no data rows after the header (line {k}).")
-    if kind == "3D":
-        names = [n.strip() for n in meta.get("MARKER_NAMES", []) if n.strip()]
-        if not names:
-            count = meta.get("NO_OF_MARKERS", [""])[0].strip()
-            raise InputError(
-                f"{source}: the take holds no labelled markers (NO_OF_MARKERS {count}, no names in MARKER_NAMES): "
-                "label the robot's trajectories in QTM, or define its 6DOF body, and export again."
-                if "MARKER_NAMES" in meta or count == "0"
-                else f"{source}: no MARKER_NAMES line in the header; export with the TSV header included."
-            )
-        return _read_3d(rows[:end], k, columns, names, rate, units, up_axis, source)
-    bodies = [n.strip() for n in meta.get("BODY_NAMES", []) if n.strip()]
-    if not bodies and ("BODY_NAMES" in meta or meta.get("NO_OF_BODIES", [""])[0].strip() == "0"):
-        raise InputError(
-            f"{source}: the 6DOF export holds no rigid body (no names in BODY_NAMES): define the robot's 6DOF body in "
-            "QTM and export again, or export its labelled markers as 3D data."
-        )
-    return _read_6d(rows[:end], k, columns, bodies, rigid_body, rate, units, up_axis, source)
+    read = _read_3d if kind == "3D" else _read_6d
+    return read(rows[:end], k, columns, meta, rigid_body, units, up_axis, source)
 
 
 def _is_column_row(row: list[str]) -> bool:
@@ -155,12 +111,16 @@ def _header(rows: list[list[str]], source: str) -> tuple[dict[str, list[str]], i
     return meta, k
 
 
-def _times(data: np.ndarray, lead: list[str], rate: float, lines, source: str) -> np.ndarray:
+def _times(data: np.ndarray, lead: list[str], meta: dict[str, list[str]], lines, source: str) -> np.ndarray:
     """The frame times [s] from the leading columns `lead` of `data` (`Frame`, `Time`): the
     `Time` column, else `(Frame - first Frame) / FREQUENCY`, else `row / FREQUENCY`."""
     if "Time" in lead:
         t = data[:, lead.index("Time")]
     else:
+        try:
+            rate = float(meta["FREQUENCY"][0])
+        except (KeyError, IndexError, ValueError):
+            rate = float("nan")
         if not rate > 0:
             raise InputError(f"{source}: no Time column and no positive FREQUENCY in the header; export the time data.")
         t = (data[:, 0] - data[0, 0]) / rate if "Frame" in lead else np.arange(data.shape[0]) / rate
@@ -168,7 +128,17 @@ def _times(data: np.ndarray, lead: list[str], rate: float, lines, source: str) -
     return t
 
 
-def _read_3d(rows, k, columns, names, rate, units, up_axis, source) -> MarkerData:
+def _read_3d(rows, k, columns, meta, rigid_body, units, up_axis, source) -> MarkerData:
+    """The markers of a 3D export (`rigid_body` unused: a 3D export holds no bodies)."""
+    names = [n.strip() for n in meta.get("MARKER_NAMES", []) if n.strip()]
+    if not names:
+        count = meta.get("NO_OF_MARKERS", [""])[0].strip()
+        raise InputError(
+            f"{source}: the take holds no labelled markers (NO_OF_MARKERS {count}, no names in MARKER_NAMES): "
+            "label the robot's trajectories in QTM, or define its 6DOF body, and export again."
+            if "MARKER_NAMES" in meta or count == "0"
+            else f"{source}: no MARKER_NAMES line in the header; export with the TSV header included."
+        )
     K = len(names)
     if columns is not None:
         where = {c: j for j, c in enumerate(columns)}
@@ -181,12 +151,10 @@ def _read_3d(rows, k, columns, names, rate, units, up_axis, source) -> MarkerDat
         lead = ["Frame", "Time"] if len(rows[k]) >= 3 * K + 2 else []
         cols = list(range(len(lead) + 3 * K))
     data, lines = _numbers(rows, k, cols, source, lead + [f"{n} {a}" for n in names for a in "XYZ"])
-    t = _times(data, lead, rate, lines, source)
+    t = _times(data, lead, meta, lines, source)
     raw = data[:, len(lead) :].reshape(-1, K, 3)
     raw[np.all(raw == 0.0, axis=2)] = np.nan  # QTM writes a marker that is not seen as zeros
-    detected = detect_marker_units(raw)
-    scale = resolve_units(units, None, detected if (detected or units != "auto") else "mm", source, EXPORT_UNITS)
-    markers = to_fixed_frame(raw, up_axis, scale)
+    markers, _ = fixed_markers(raw, source, units, None, up_axis, fallback="mm")
     return MarkerData(t, markers, tuple(names), source, lines)
 
 
@@ -215,7 +183,14 @@ def _body_columns(columns: list[str], bodies: list[str], source: str, line: int)
     return out
 
 
-def _read_6d(rows, k, columns, bodies, rigid_body, rate, units, up_axis, source) -> MarkerData:
+def _read_6d(rows, k, columns, meta, rigid_body, units, up_axis, source) -> MarkerData:
+    """The pose of the 6DOF body `rigid_body` (default: the only one)."""
+    bodies = [n.strip() for n in meta.get("BODY_NAMES", []) if n.strip()]
+    if not bodies and ("BODY_NAMES" in meta or meta.get("NO_OF_BODIES", [""])[0].strip() == "0"):
+        raise InputError(
+            f"{source}: the 6DOF export holds no rigid body (no names in BODY_NAMES): define the robot's 6DOF body in "
+            "QTM and export again, or export its labelled markers as 3D data."
+        )
     if columns is None:
         if len(bodies) != 1:
             raise InputError(f"{source}: 6DOF data without a column row; export again with Include TSV header checked.")
@@ -240,22 +215,16 @@ def _read_6d(rows, k, columns, bodies, rigid_body, rate, units, up_axis, source)
     fields = ["X", "Y", "Z", *(rot if all(f in g for f in rot) else angles), *(["Residual"] if "Residual" in g else [])]
     lead = [c for c in ("Frame", "Time") if c in columns]
     data, lines = _numbers(rows, k, [columns.index(c) for c in lead] + [g[f] for f in fields], source, lead + fields)
-    t = _times(data, lead, rate, lines, source)
+    t = _times(data, lead, meta, lines, source)
     val = {f: data[:, len(lead) + i] for i, f in enumerate(fields)}
     p = np.stack([val[a] for a in "XYZ"], axis=1)
     R = _rotations(val, rot, angles)
     gap = ~np.all(np.isfinite(p), axis=1) | ~np.all(np.isfinite(R), axis=(1, 2)) | np.all(R == 0.0, axis=(1, 2))
     if "Residual" in val:  # QTM writes a body it does not see as zeros with residual -1
         gap |= val["Residual"] < 0
-    R[gap] = np.eye(3)
     scale = resolve_units(units, None, None if units != "auto" else "mm", source, EXPORT_UNITS)
-    C = UP_TO_Z[up_axis]
-    q = quat_from_rotmat_np(C @ R)
-    q[gap] = np.nan
-    pp = p @ C.T * scale
-    pp[gap] = np.nan
-    empty = np.zeros((len(t), 0, 3))
-    return MarkerData(t, empty, (), source, lines, sign_continuous(q), pp)
+    q, p = fixed_pose(R, p, gap, up_axis, scale)
+    return MarkerData(t, np.zeros((len(t), 0, 3)), (), source, lines, q, p)
 
 
 def _rotations(val: dict[str, np.ndarray], rot: list[str], angles: list[str]) -> np.ndarray:

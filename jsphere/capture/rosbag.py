@@ -10,14 +10,13 @@ message is used, with a `CaptureWarning`. Times are seconds since the Unix epoch
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 from .._runtime.errors import InputError
 from .markers import MarkerData
-from .validation import CaptureWarning, sign_continuous
+from .validation import sign_continuous, warn
 
 #: message types that carry one pose (REP 103: metres, X forward, Y left, Z up)
 POSE_TYPES = (
@@ -89,11 +88,9 @@ def _clock(headers: list, bag_times: np.ndarray, source: str, topic: str) -> np.
     t = np.array([h.stamp.sec + 1e-9 * h.stamp.nanosec for h in headers])
     zero = t == 0.0
     if np.any(zero):
-        warnings.warn(
+        warn(
             f"{source}: {int(zero.sum())} of the {len(t)} messages of {topic} have no header stamp; using the times "
-            "the bag recorded them (they include the transport delay).",
-            CaptureWarning,
-            stacklevel=3,
+            "the bag recorded them (they include the transport delay)."
         )
         t = bag_times
     bad = np.nonzero(np.diff(t) <= 0)[0]

@@ -8,14 +8,13 @@ import csv
 import io
 import math
 import re
-import warnings
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from .._runtime.errors import InputError
-from .validation import INPUT_PREFIX, CaptureWarning, _check_increasing
+from .validation import INPUT_PREFIX, _check_increasing, warn
 
 
 def read_text(path) -> str:
@@ -65,6 +64,11 @@ def cell(v: float, spec: str) -> str:
     return "" if not np.isfinite(v) else format(v + 0.0, spec)
 
 
+def cells(data: np.ndarray, formats: Sequence[str]) -> list[str]:
+    """The rows of `data` as written lines: each column in its format of `formats` (`cell`)."""
+    return [",".join(cell(v, f) for v, f in zip(row, formats)) for row in np.asarray(data, float)]
+
+
 def separator_hint(header: Sequence[str]) -> str:
     """`"; ..."` advice when a header row read as CSV is one cell holding `;` or a tab (a
     spreadsheet that saved with another separator), else `""`."""
@@ -94,6 +98,22 @@ def csv_rows(text: str, source: str, delimiter: str = ",") -> list[list[str]]:
         return list(csv.reader(io.StringIO(text, newline=""), delimiter=delimiter))
     except csv.Error as e:
         raise InputError(f"{source}: not a readable CSV file ({e}).") from None
+
+
+#: a comment line `# key: value` (or `# key = value`)
+_META = re.compile(r"^#\s*(\w+)\s*[:=]\s*(.*?)\s*$")
+
+
+def comments(rows: list[list[str]]) -> tuple[dict[str, str], int]:
+    """The `# key: value` comments of the lines before the header row (lines starting with `#`,
+    and blank ones) as `{key: value}` (keys in lower case), and the index of the header row
+    (`len(rows)` where there is none)."""
+    meta, k = {}, 0
+    while k < len(rows) and (not any(c.strip() for c in rows[k]) or rows[k][0].lstrip().startswith("#")):
+        if m := _META.match(",".join(rows[k]).strip()):
+            meta[m.group(1).lower()] = m.group(2)
+        k += 1
+    return meta, k
 
 
 #: the end of the error for a trial with both input families
@@ -193,9 +213,7 @@ def _cut_short(
             f"{source}: the file is cut short: {what} (the copy or the export broke off). Export or copy it again, or "
             f"pass --allow-truncated to use the {n} complete {noun}."
         )
-    warnings.warn(
-        f"{source}: the file is cut short: {what}; using the {n} complete {noun}.", CaptureWarning, stacklevel=3
-    )
+    warn(f"{source}: the file is cut short: {what}; using the {n} complete {noun}.")
     return end - int(cut_row)
 
 

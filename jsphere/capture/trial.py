@@ -13,7 +13,7 @@ are NaN and `Trial.valid` is False there. Times and inputs are never missing.
 
 from __future__ import annotations
 
-import re
+import dataclasses
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -26,7 +26,7 @@ from .._runtime.files import atomic_write_text
 from ..controls import Torques, WheelSpeeds
 from ..model.params import RobotParams
 from ..model.state import State
-from .text import _input_columns, _numbers, cell, check_unique_columns, csv_rows, read_text, separator_hint
+from .text import _input_columns, _numbers, cells, check_unique_columns, comments, csv_rows, read_text, separator_hint
 from .units import TRIAL_UNITS, detect_position_units, resolve_units
 from .validation import INPUT_PREFIX, POSE_COLUMNS, _checked, warn_implausible
 from .validation import CaptureWarning as CaptureWarning  # (the warning of every trial reader)
@@ -125,10 +125,7 @@ class Trial(eqx.Module):
 
     def replace(self, **changes) -> Trial:
         """A copy with some fields changed (validated again)."""
-        d = {"t": self.t, "x": self.x, "y": self.y, "q": self.q, "inputs": self.inputs, "kind": self.kind}
-        d.update({"z": self.z, "name": self.name, "source": self.source})
-        d.update(changes)
-        return Trial(**d)
+        return dataclasses.replace(self, **changes)
 
     def __repr__(self) -> str:
         return (
@@ -138,8 +135,6 @@ class Trial(eqx.Module):
 
 
 # --------------------------------------------------------------------------- CSV format
-
-_META = re.compile(r"^#\s*(\w+)\s*[:=]\s*(.*?)\s*$")
 
 
 def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> Trial:
@@ -165,7 +160,13 @@ def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> T
     source = str(path)
     if not path.exists():
         raise FileNotFoundError(f"trial file {path} does not exist.")
-    meta, header_line, rows = _comments_and_rows(read_text(path), source)
+    rows = csv_rows(read_text(path), source)
+    meta, k = comments(rows)
+    if k == len(rows):
+        raise ValueError(
+            f"{source}: no header line; the first non-comment line must name the columns t, x, y, qw, qx, qy, qz, ..."
+        )
+    header_line, rows = k + 1, rows[k:]
     header = [h.strip() for h in rows[0]]
     missing = [c for c in POSE_COLUMNS if c not in header]
     if missing:
@@ -199,24 +200,6 @@ def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> T
     name = meta.get("name", path.stem)
     warn_implausible(t, x, y, q, source, z, units_hint="declare '# units: mm' in the file")
     return Trial(t, x, y, q, inputs, kind, z, name=name, source=source)
-
-
-def _comments_and_rows(text: str, source: str) -> tuple[dict[str, str], int, list[list[str]]]:
-    """The `# key: value` lines before the header, the header's line number and the CSV rows
-    from the header on."""
-    meta: dict[str, str] = {}
-    lines_iter = text.splitlines()
-    k = 0
-    while k < len(lines_iter) and (lines_iter[k].lstrip().startswith("#") or not lines_iter[k].strip()):
-        m = _META.match(lines_iter[k].strip())
-        if m:
-            meta[m.group(1).lower()] = m.group(2)
-        k += 1
-    if k == len(lines_iter):
-        raise ValueError(
-            f"{source}: no header line; the first non-comment line must name the columns t, x, y, qw, qx, qy, qz, ..."
-        )
-    return meta, k + 1, csv_rows("\n".join(lines_iter[k:]), source)
 
 
 def _table(rows, header: list[str], in_cols: list[int], header_line: int, source: str):
@@ -262,13 +245,9 @@ def trial_to_csv(trial: Trial) -> str:
         "# units: m",
         ",".join(cols),
     ]
-    for k in range(trial.n_frames):
-        cells = [cell(trial.t[k], ".6f"), cell(trial.x[k], ".6f"), cell(trial.y[k], ".6f")]
-        cells += [cell(v, ".9f") for v in trial.q[k]]
-        if trial.z is not None:
-            cells.append(cell(trial.z[k], ".6f"))
-        cells += [cell(v, ".10g") for v in trial.inputs[k]]
-        out.append(",".join(cells))
+    z = [] if trial.z is None else [trial.z[:, None]]
+    data = np.concatenate([np.stack([trial.t, trial.x, trial.y], 1), trial.q, *z, trial.inputs], axis=1)
+    out += cells(data, [".6f"] * 3 + [".9f"] * 4 + [".6f"] * len(z) + [".10g"] * trial.n_wheels)
     return "\n".join(out) + "\n"
 
 

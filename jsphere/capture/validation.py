@@ -34,6 +34,12 @@ class CaptureWarning(UserWarning):
     body markers given in millimetres. The message names the file and the likely cause."""
 
 
+def warn(message: str, stacklevel: int = 3) -> None:
+    """Issue `message` as a `CaptureWarning`; `stacklevel` as `warnings.warn`'s, counted from
+    the function that calls this one."""
+    warnings.warn(message, CaptureWarning, stacklevel=stacklevel + 1)
+
+
 def sign_continuous(q: np.ndarray) -> np.ndarray:
     """Flip quaternion signs so that consecutive valid rows have a non-negative dot product
     (`q` and `-q` are the same rotation); the first valid row gets `w >= 0`. NaN rows are kept."""
@@ -106,18 +112,12 @@ def _checked(
     if inputs.ndim == 1:
         inputs = inputs[:, None]
     z = None if z is None else np.array(z, float)
-    for nm, arr, shape in (("x", x, (M,)), ("y", y, (M,)), ("q", q, (M, 4))) + (
-        (("z", z, (M,)),) if z is not None else ()
-    ):
-        if arr.shape != shape:
+    for nm, arr, shape in (("x", x, (M,)), ("y", y, (M,)), ("q", q, (M, 4)), ("z", z, (M,))):
+        if arr is not None and arr.shape != shape:
             raise ValueError(f"{source}: {nm} must have shape {shape} (one row per time); got {arr.shape}.")
     if inputs.ndim != 2 or inputs.shape[0] != M or inputs.shape[1] < 1:
         raise ValueError(f"{source}: inputs must have shape ({M}, N) with N >= 1 wheels; got {inputs.shape}.")
-    names = (
-        list(input_names)
-        if input_names is not None
-        else [f"{INPUT_PREFIX[kind]}{i + 1}" for i in range(inputs.shape[1])]
-    )
+    names = input_names or [f"{INPUT_PREFIX[kind]}{i + 1}" for i in range(inputs.shape[1])]
 
     bad_t = np.nonzero(~np.isfinite(t))[0]
     if bad_t.size:
@@ -134,12 +134,9 @@ def _checked(
         )
     _check_increasing(t, source, lines, " (remove duplicated frames, sort by time)")
 
-    gap = ~np.isfinite(x) | ~np.isfinite(y) | ~np.all(np.isfinite(q), axis=1)
-    if z is not None:
-        gap |= ~np.isfinite(z)
-    x[gap], y[gap], q[gap] = np.nan, np.nan, np.nan
-    if z is not None:
-        z[gap] = np.nan
+    gap = ~np.isfinite(x) | ~np.isfinite(y) | ~np.all(np.isfinite(q), axis=1) | ~np.isfinite(1.0 if z is None else z)
+    for a in (x, y, q) if z is None else (x, y, q, z):
+        a[gap] = np.nan
     norms = np.linalg.norm(q, axis=1)
     off = np.nonzero(~gap & (np.abs(norms - 1.0) > QUAT_NORM_TOL))[0]
     if off.size:
@@ -221,40 +218,21 @@ def _lean_fit(t, x, y, q, valid) -> float:
 
 def implausible(t, x, y, q, z=None, *, from_markers: bool = False) -> list[tuple[str, str]]:
     """What looks physically wrong in a trial's arrays (gap frames NaN), as `(kind, detail)`
-    pairs; `kind` is `"step"`, `"speed"`, `"rate"`, `"height"`, `"lying"` or `"xyzw"`. Used by
+    pairs; `kind` is `"step"`, `"speed"`, `"rate"`, `"height"`, `"lying"` or `"xyzw"` (the
+    table "Plausibility warnings" of `docs/capture.md` gives each one's test and threshold:
+    `MAX_PLAUSIBLE_STEP`, `MAX_PLAUSIBLE_SPEED` over windows of 0.1 s and `MAX_PLAUSIBLE_RATE`
+    over 0.02 s, 95th percentiles, so that one swapped marker does not count). Used by
     `warn_implausible`. `from_markers`: the poses were computed from markers (`convert_raw`),
-    so their quaternions cannot be in the wrong order, but the up axis can be wrong.
-
-    - `"step"`: the median time step is `MAX_PLAUSIBLE_STEP` (1 s) or longer: times in
-      milliseconds or frame numbers.
-    - `"speed"`: the shell centre's speed over windows of 0.1 s exceeds `MAX_PLAUSIBLE_SPEED`
-      (5 m/s) in more than 5% of them (a window, not a frame: noise of 1 mm at 1 kHz alone
-      makes 1.4 m/s from frame to frame; a single swapped marker does not count).
-    - `"rate"`: the platform's rotation over windows of 0.02 s exceeds `MAX_PLAUSIBLE_RATE`
-      (50 rad/s) in more than 5% of them.
-    - `"height"`: the shell centre's height `z` (if given) spans more than 3 cm (5th to 95th
-      percentile) and more than a quarter of its horizontal excursion: a ball rolling on a
-      floor keeps it within millimetres, so the up axis is probably wrong.
-    - `"lying"` (`from_markers`): the platform tilts beyond 80 deg (95th percentile; random
-      inputs tilt the paper's robot up to 66 deg): the up axis is wrong, or the body markers are
-      not in the platform frame.
-    - `"xyzw"` (not `from_markers`): the quaternion columns look like `x, y, z, w` order. Read in the wrong order,
-      the platform's tilt is its heading instead (the angle between its axis 1 and the fixed X),
-      and its lean no longer follows the ball's acceleration. Reported when, read as
-      `x, y, z, w`, the platform leans with the acceleration (`_lean_fit`: R^2 >= 0.5) and read
-      as `w, x, y, z` much less (R^2 lower by 0.3); or when it is upside down (tilted beyond
-      90 deg, 95th percentile) read as `w, x, y, z` and 30 deg less read as `x, y, z, w`; or when
-      the first pose read as `w, x, y, z` is a half turn about the vertical that read as
-      `x, y, z, w` is the identity (the rest pose of a rigid body defined where the trial
-      starts) and the lean does not follow the acceleration better as `w, x, y, z`.
+    so their quaternions cannot be in the wrong order (no `"xyzw"`), but the up axis can be
+    wrong (`"lying"`: tilted beyond 80 deg; random inputs tilt the paper's robot up to 66 deg).
+    Quaternions read in the wrong order (`_quaternion_order`) tilt by the platform's heading
+    instead, and their lean no longer follows the ball's acceleration (`_lean_fit`).
     """
     t, x, y, q = (np.asarray(a, float) for a in (t, x, y, q))
     out = []
     step = float(np.median(np.diff(t))) if t.size >= 2 else math.inf
-    if t.size >= 2:
-        if step >= MAX_PLAUSIBLE_STEP:
-            out.append(("step", f"the median time step is {step:.6g} s ({1.0 / step:.3g} Hz)"))
-            return out  # the rates below would only repeat it
+    if t.size >= 2 and step >= MAX_PLAUSIBLE_STEP:  # (the rates below would only repeat it)
+        return [("step", f"the median time step is {step:.6g} s ({1.0 / step:.3g} Hz)")]
     v = np.isfinite(x) & np.isfinite(y) & np.all(np.isfinite(q), axis=1)
     tv, xv, yv, qv = t[v], x[v], y[v], q[v]
     if tv.size < 3 or not np.all(np.isfinite(t)):
@@ -278,12 +256,8 @@ def _speed_and_rate(tv, xv, yv, qv) -> list[tuple[str, str]]:
         speed = np.hypot(xv[j] - xv[i], yv[j] - yv[i]) / (tv[j] - tv[i])
         s95 = float(np.percentile(speed, 95))
         if s95 > MAX_PLAUSIBLE_SPEED:
-            out.append(
-                (
-                    "speed",
-                    f"the shell centre moves at {s95:.3g} m/s (95th percentile over 0.1 s; {float(speed.max()):.3g} m/s at most)",
-                )
-            )
+            most = f"95th percentile over 0.1 s; {float(speed.max()):.3g} m/s at most"
+            out.append(("speed", f"the shell centre moves at {s95:.3g} m/s ({most})"))
     i, j = _windowed(tv, 0.02)
     if i.size >= 3:
         dot = np.clip(np.abs(np.sum(qv[i] * qv[j], axis=1)), 0.0, 1.0)
@@ -327,31 +301,23 @@ def _quaternion_order(t, x, y, q, v, step: float, tilt: float) -> list[tuple[str
         math.radians(5.0)
     )  # the first pose: a half turn about Z, or x, y, z, w of q = 1
     if fit_swapped >= 0.5 and fit <= fit_swapped - 0.3:
-        return [
-            (
-                "xyzw",
-                f"read as x, y, z, w the platform leans with the ball's acceleration (R^2 {fit_swapped:.2f}); "
-                f"read as w, x, y, z it does not (R^2 {fit:.2f})",
-            )
-        ]
-    if tilt > 90.0 and tilt_swapped < tilt - 30.0:  # upside down, inside a ball
-        return [
-            (
-                "xyzw",
-                f"read as w, x, y, z the platform tilts up to {tilt:.0f} deg from upright; read as x, y, z, w it "
-                f"stays within {tilt_swapped:.0f} deg",
-            )
-        ]
-    if half_turn and not fit > fit_swapped:  # (NaN fits: too little acceleration to tell)
-        return [
-            (
-                "xyzw",
-                "the first pose read as w, x, y, z is a half turn about the vertical (qz = "
-                f"{qv[0, 3]:+.3f}); read as x, y, z, w it is the identity, the rest pose of a rigid body defined "
-                "where the trial starts",
-            )
-        ]
-    return []
+        why = (
+            f"read as x, y, z, w the platform leans with the ball's acceleration (R^2 {fit_swapped:.2f}); "
+            f"read as w, x, y, z it does not (R^2 {fit:.2f})"
+        )
+    elif tilt > 90.0 and tilt_swapped < tilt - 30.0:  # upside down, inside a ball
+        why = (
+            f"read as w, x, y, z the platform tilts up to {tilt:.0f} deg from upright; read as x, y, z, w it "
+            f"stays within {tilt_swapped:.0f} deg"
+        )
+    elif half_turn and not fit > fit_swapped:  # (NaN fits: too little acceleration to tell)
+        why = (
+            f"the first pose read as w, x, y, z is a half turn about the vertical (qz = {qv[0, 3]:+.3f}); read as "
+            "x, y, z, w it is the identity, the rest pose of a rigid body defined where the trial starts"
+        )
+    else:
+        return []
+    return [("xyzw", why)]
 
 
 _CAUSES = {
@@ -385,5 +351,5 @@ def warn_implausible(
     for kind, detail in implausible(t, x, y, q, z, from_markers=from_markers):
         cause = _CAUSES[kind].format(speed=MAX_PLAUSIBLE_SPEED, rate=MAX_PLAUSIBLE_RATE, units=units_hint, up=up_hint)
         msgs.append(f"{source}: {detail}: {cause}.")
-        warnings.warn(msgs[-1], CaptureWarning, stacklevel=3)
+        warn(msgs[-1])
     return msgs

@@ -7,9 +7,8 @@ import numpy as np
 
 from .._runtime.errors import InputError
 from .._runtime.files import atomic_write_text
-from .markers import UP_TO_Z, MarkerData, to_fixed_frame
-from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, cell, separator_hint
-from .units import EXPORT_UNITS, detect_marker_units, resolve_units
+from .markers import MarkerData, check_up_axis, fixed_markers
+from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, cells, separator_hint
 
 
 def read_vicon_csv(
@@ -28,15 +27,36 @@ def read_vicon_csv(
 
     `subject` keeps the markers named `"<subject>:..."`; default: the only subject, and with
     several an `InputError` listing them. `units`: `"auto"` (the units row), `"m"` or `"mm"`.
-    `up_axis`: Vicon is Z-up by default. A file cut short (the
-    section runs to the end of the file and its last row has fewer cells than the header) is an
-    `InputError` naming both counts; `allow_truncated=True` makes it a `CaptureWarning` and
-    drops that row.
+    `up_axis`: Vicon is Z-up by default. `allow_truncated`: as in `ConvertOptions` (a section
+    that runs to the end of the file with a last row cut off mid-row).
     """
     path, rows = _read_lines(path)
     source = str(path)
-    if up_axis not in UP_TO_Z:
-        raise ValueError(f"{source}: the up axis (--up-axis) must be y or z; got {up_axis!r}.")
+    check_up_axis(up_axis, source)
+    i0, rate, file_units = _section(rows, source)
+    mk = _markers(rows[i0 + 2], rows[i0 + 3], subject, source, i0 + 3)
+    cols = [0, 1] + [j + a for _, j in mk for a in range(3)]
+    colnames = ["Frame", "Sub Frame"] + [f"{n} {a}" for n, _ in mk for a in "XYZ"]
+    end = next((i for i in range(i0 + 5, len(rows)) if not any(c.strip() for c in rows[i])), len(rows))
+    if _data_end(rows, end) == end:  # the section runs to the end of the file: it may have been cut off
+        end = _cut_short(rows, i0 + 5, end, len(rows[i0 + 3]), source, allow_truncated)
+    data, lines = _numbers(rows[:end], i0 + 5, cols, source, colnames)  # the section ends at a blank line
+    if data.shape[0] == 0:
+        raise InputError(f"{source}: no data rows after the units row (line {i0 + 5}).")
+    sub = np.nonzero(np.nan_to_num(data[:, 1]) != 0)[0]
+    if sub.size:
+        raise ValueError(
+            f"{source}, line {lines[sub[0]]}: Sub Frame is not 0; export the trajectories at the camera rate."
+        )
+    t = (data[:, 0] - data[0, 0]) / rate
+    _check_times(t, lines, source)
+    markers, _ = fixed_markers(data[:, 2:].reshape(len(t), len(mk), 3), source, units, file_units, up_axis)
+    return MarkerData(t, markers, tuple(n for n, _ in mk), source, lines)
+
+
+def _section(rows: list[list[str]], source: str) -> tuple[int, float, str | None]:
+    """The `Trajectories` section: the index of its first row, its rate [Hz] and the units of
+    its units row (None where blank), its `Frame,Sub Frame,...` row checked."""
     i0 = next((i for i, r in enumerate(rows) if r and r[0].strip() == "Trajectories"), None)
     if i0 is None:
         hint = next((separator_hint(r[:1]) for r in rows if r and r[0].strip().startswith("Trajectories")), "")
@@ -49,14 +69,19 @@ def read_vicon_csv(
         raise ValueError(f"{source}, line {i0 + 2}: expected the frame rate [Hz] after 'Trajectories'.") from None
     if not rate > 0:
         raise ValueError(f"{source}, line {i0 + 2}: the frame rate must be positive; got {rate}.")
-    names, hdr = rows[i0 + 2], rows[i0 + 3]
+    hdr = rows[i0 + 3]
     if len(hdr) < 2 or hdr[0].strip() != "Frame" or hdr[1].strip() != "Sub Frame":
         raise ValueError(f"{source}, line {i0 + 4}: expected 'Frame,Sub Frame,X,Y,Z,...'{separator_hint(hdr[:1])}.")
     unit_row = rows[i0 + 4] if len(rows) > i0 + 4 else []
     found_units = {c.strip() for c in unit_row[2:] if c.strip()}
     if not found_units <= {"mm", "m"} or len(found_units) > 1:
         raise ValueError(f"{source}, line {i0 + 5}: units row {sorted(found_units)} not understood; expected mm or m.")
-    file_units = found_units.pop() if found_units else None
+    return i0, rate, found_units.pop() if found_units else None
+
+
+def _markers(names: list[str], hdr: list[str], subject: str | None, source: str, line: int) -> list[tuple[str, int]]:
+    """The labelled markers of `subject` (default: the only one) as `(name, column of its X)`,
+    from the names row `names` (line `line`) and the `Frame,Sub Frame,X,Y,Z,...` row `hdr`."""
     named = [
         (nm, j)
         for j in range(2, len(hdr) - 2)
@@ -65,42 +90,23 @@ def read_vicon_csv(
     subjects = sorted({nm.split(":")[0] for nm, _ in named if ":" in nm})
     if subject is None and len(subjects) > 1:
         raise InputError(
-            f"{source}, line {i0 + 3}: the trajectories hold several subjects {subjects}; choose one with --subject NAME."
+            f"{source}, line {line}: the trajectories hold several subjects {subjects}; choose one with --subject NAME."
         )
     if subject is not None and subject not in subjects:
         raise InputError(
-            f"{source}, line {i0 + 3}: no subject {subject!r} in the trajectories; "
+            f"{source}, line {line}: no subject {subject!r} in the trajectories; "
             + (f"the file has {subjects}." if subjects else "its markers have no 'Subject:' prefix: drop --subject.")
         )
-    if subject is None and subjects:
-        subject = subjects[0]
+    subject = subject or (subjects[0] if subjects else None)
     mk = [(nm, j) for nm, j in named if subject is None or nm.split(":")[0] == subject]
     if not mk:
         unlabelled = sum(1 for j in range(2, len(hdr) - 2) if hdr[j].strip() == "X") - len(named)
         raise InputError(
-            f"{source}, line {i0 + 3}: the trajectories hold no labelled markers"
+            f"{source}, line {line}: the trajectories hold no labelled markers"
             + (f" (only {unlabelled} unlabelled ones, '*N')" if unlabelled else "")
             + ": label the robot's markers in Nexus (or give them a subject) and export the trajectories again."
         )
-    cols = [0, 1] + [j + a for _, j in mk for a in range(3)]
-    colnames = ["Frame", "Sub Frame"] + [f"{n} {a}" for n, _ in mk for a in "XYZ"]
-    end = next((i for i in range(i0 + 5, len(rows)) if not any(c.strip() for c in rows[i])), len(rows))
-    if _data_end(rows, end) == end:  # the section runs to the end of the file: it may have been cut off
-        end = _cut_short(rows, i0 + 5, end, len(hdr), source, allow_truncated)
-    data, lines = _numbers(rows[:end], i0 + 5, cols, source, colnames)  # the section ends at a blank line
-    if data.shape[0] == 0:
-        raise InputError(f"{source}: no data rows after the units row (line {i0 + 5}).")
-    sub = np.nonzero(np.nan_to_num(data[:, 1]) != 0)[0]
-    if sub.size:
-        raise ValueError(
-            f"{source}, line {lines[sub[0]]}: Sub Frame is not 0; export the trajectories at the camera rate."
-        )
-    t = (data[:, 0] - data[0, 0]) / rate
-    _check_times(t, lines, source)
-    raw = data[:, 2:].reshape(len(t), len(mk), 3)
-    scale = resolve_units(units, file_units, detect_marker_units(raw), source, EXPORT_UNITS)
-    markers = to_fixed_frame(raw, up_axis, scale)
-    return MarkerData(t, markers, tuple(n for n, _ in mk), source, lines)
+    return mk
 
 
 def write_vicon_csv(path, t, markers, names, *, subject: str = "robot", units: str = "mm") -> None:
@@ -117,8 +123,7 @@ def write_vicon_csv(path, t, markers, names, *, subject: str = "robot", units: s
         "Frame,Sub Frame," + ",".join(["X", "Y", "Z"] * K),
         ",," + ",".join([units] * 3 * K),
     ]
-    fmt = ".6f" if units == "m" else ".3f"
-    for i in range(raw.shape[0]):
-        frame = round(float(t[i] - t[0]) * rate) + 1
-        lines.append(",".join([str(frame), "0"] + [cell(x, fmt) for x in raw[i].reshape(-1)]))
+    frames = np.round((np.asarray(t, float) - t[0]) * rate) + 1
+    data = np.column_stack([frames, np.zeros(len(frames)), raw.reshape(len(frames), -1)])
+    lines += cells(data, [".0f", ".0f"] + [".6f" if units == "m" else ".3f"] * 3 * K)
     atomic_write_text(path, "\n".join(lines) + "\n")

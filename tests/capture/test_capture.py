@@ -827,7 +827,10 @@ def test_convert_keywords_of_the_options_still_work():
     raw, inputs = DATA / "raw" / "motive.csv", DATA / "raw" / "inputs.csv"
     options = jsphere.ConvertOptions(body_markers=body, time_offset=0.01, name="t")
     want = jsphere.convert_raw(raw, inputs, format="motive", options=options)
-    with pytest.warns(DeprecationWarning, match=r"convert_raw: the keyword body_markers is deprecated; give "):
+    with pytest.warns(
+        DeprecationWarning,
+        match=r"convert_raw: body_markers= is deprecated; pass options=ConvertOptions\(body_markers=\.\.\.\)",
+    ):
         got = jsphere.convert_raw(raw, inputs, format="motive", body_markers=body, time_offset=0.01, name="t")
     assert got.name == want.name == "t"
     np.testing.assert_array_equal(got.t, want.t)
