@@ -39,7 +39,7 @@ from .options import (
     tolerances,
 )
 from .segments import solve_segments
-from .trajectory import Trajectory, _rebuild, assemble, raise_on_failure
+from .trajectory import Trajectory, _rebuild, raise_on_failure
 
 __all__ = [
     "simulate",
@@ -105,6 +105,19 @@ def simulate(
 
     Pure JAX: jit, vmap (over parameters, states, controls) and grad work.
     """
+    _check_inputs(params, state0, controls, t0)
+    opts = solver_options(options, where="simulate", **shortcuts)
+    dt = params.R0.dtype
+    t0, t1 = as_array(t0, dt), as_array(t1, dt)
+    engine = isinstance(controls, Torques) and batch_engine_applies(opts)
+    if engine:
+        controls = _explicit_closure(controls, t0)
+    args = (params, state0, controls, t0, t1, output_times(ts, dt, "simulate"))
+    return run_solve("simulate", _simulate, args, opts, opts.tolerances(dt), engine)
+
+
+def _check_inputs(params, state0, controls, t0) -> None:
+    """`simulate`'s arguments: a `State` and a control of as many wheels as the robot has."""
     if not isinstance(state0, State):
         raise TypeError(
             f"simulate: state0 must be a jsphere.State (e.g. State.at_rest(params)); got {type(state0).__name__}."
@@ -121,29 +134,20 @@ def simulate(
         )
     if state0.chi.shape[-1] != params.n_wheels:
         raise ValueError(f"simulate: state0.chi has {state0.chi.shape[-1]} wheels but params has {params.n_wheels}.")
-    opts = solver_options(options, where="simulate", **shortcuts)
-    dt = params.R0.dtype
-    rtol, atol = opts.tolerances(dt)
-    ts_out = None if ts is None else as_array(ts, dt)
-    if ts_out is not None and not isinstance(ts_out, jax.core.Tracer):
-        tsn = np.asarray(ts_out)
+
+
+def output_times(ts, dt, where: str):
+    """The output times `ts` as an array of `dt` (`None` stays `None`), checked when concrete
+    (finite, non-decreasing, 1-D): the solve's own check of them makes values NaN rather than
+    raising."""
+    if ts is None:
+        return None
+    out = as_array(ts, dt)
+    if not isinstance(out, jax.core.Tracer):
+        tsn = np.asarray(out)
         if tsn.ndim != 1 or np.any(np.diff(tsn) < 0) or not np.all(np.isfinite(tsn)):
-            raise ValueError("simulate: ts must be a finite, non-decreasing 1-D array of times.")
-    traj = _solve(
-        params,
-        state0,
-        controls,
-        as_array(t0, dt),
-        as_array(t1, dt),
-        ts_out,
-        opts.solver_or_default(),
-        rtol,
-        atol,
-        opts.max_steps,
-        opts.adjoint_or_default(),
-        opts,
-    )
-    return raise_on_failure(traj, opts.throw)
+            raise ValueError(f"{where}: ts must be a finite, non-decreasing 1-D array of times.")
+    return out
 
 
 class _ClosedControl(eqx.Module):
@@ -168,27 +172,26 @@ def _explicit_closure(controls, t0):
     return type(controls)(_ClosedControl(conv, dyn), controls.jump_ts)
 
 
-def batch_engine_applies(controls_ok: bool, adjoint, batch_steps: str) -> bool:
-    """Whether a traced solve goes through the batch engine (`jsphere.solve.batched.dispatch`):
-    a mode that has a component field, an adjoint the engine supports, and `batch_steps` other
-    than `"diffrax"`. Every other call takes diffrax's path directly."""
-    engine_adjoint = type(adjoint) in (dfx.RecursiveCheckpointAdjoint, dfx.ForwardMode)
-    return controls_ok and engine_adjoint and batch_steps != "diffrax"
+def batch_engine_applies(opts: SolverOptions) -> bool:
+    """Whether a traced solve (of a mode that has a component field) goes through the batch
+    engine (`jsphere.solve.batched.dispatch`): an adjoint the engine supports, and
+    `batch_steps` other than `"diffrax"`. Every other call takes diffrax's path directly."""
+    engine_adjoint = type(opts.adjoint_or_default()) in (dfx.RecursiveCheckpointAdjoint, dfx.ForwardMode)
+    return engine_adjoint and opts.batch_steps != "diffrax"
 
 
-def _solve(params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_steps, adjoint, opts) -> Trajectory:
-    """`_simulate` with the state layout chosen by batching: concrete calls (which no `vmap`
-    can be around) and calls the batch engine does not take run `_simulate` directly
-    (`run_program`); traced torque-mode calls go through the engine's batching rule
-    (`jsphere.solve.batched.dispatch`)."""
-    flat = (solver, rtol, atol, max_steps, adjoint)
-    if not batch_engine_applies(isinstance(controls, Torques), adjoint, opts.batch_steps):
-        return run_program("simulate", _simulate, _rebuild, params, state0, controls, t0, t1, ts_out, *flat)
-    controls = _explicit_closure(controls, t0)
-    args = (params, state0, controls, t0, t1, ts_out)
-    if not _traced(args):
-        return run_program("simulate", _simulate, _rebuild, *args, *flat)
-    return _dispatch.solve(_simulate, _rebuild, args, flat, steps_layout(opts.batch_steps, opts.throw))
+def run_solve(name: str, fn, args, opts: SolverOptions, tol, engine: bool) -> Trajectory:
+    """`fn(*args, solver, rtol, atol, max_steps, adjoint)` (a solve of `simulate` or
+    `simulate_gaits`) with the state layout chosen by batching, raising on failure as
+    `opts.throw` asks: concrete calls (which no `vmap` can be around) and calls the batch
+    engine does not take (`engine` false) run `fn` directly (`run_program`); traced ones go
+    through the engine's batching rule (`jsphere.solve.batched.dispatch`)."""
+    flat = (opts.solver_or_default(), *tol, opts.max_steps, opts.adjoint_or_default())
+    if not engine or not _traced(args):
+        traj = run_program(name, fn, _rebuild, *args, *flat)
+    else:
+        traj = _dispatch.solve(fn, _rebuild, args, flat, steps_layout(opts.batch_steps, opts.throw))
+    return raise_on_failure(traj, opts.throw)
 
 
 @eager_jit
@@ -214,7 +217,7 @@ def _simulate(
             omega, Omega = servo_jump(params, d, gamma, z[Flat.omega], z[Flat.Omega], w)
             return Flat.replace(z, omega=omega, Omega=Omega)
 
-    zs, om, cd, Ks, seg, ok, steps = solve_segments(
+    return solve_segments(
         field,
         outputs,
         params,
@@ -222,13 +225,8 @@ def _simulate(
         segments,
         z0,
         ts_out,
+        (solver, rtol, atol, max_steps, adjoint),
         jump_fn=jump_fn,
-        solver=solver,
-        rtol=rtol,
-        atol=atol,
-        max_steps=max_steps,
-        adjoint=adjoint,
         layout=layout,
         component_field=_torque_field_soa if layout.components else None,
     )
-    return assemble(params, d, ts_out, zs, om, cd, Ks, seg, ok, steps)
