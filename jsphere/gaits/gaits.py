@@ -322,18 +322,9 @@ def simulate_gaits(
       the vertical and the sideways drift caused by the wheels' inertia). A sequence (one
       entry per boundary) mixes `None`/`False` (continue), `True` (as above), or an explicit
       `Omega` 3-vector (with `alpha, beta` reset too), e.g. `(-0.868, 0.852, 0)` of (5.7).
-    - `rtol`, `atol`: tolerances. Default 1e-10, 1e-12 (tight enough for 1e-8 agreement of
-      `Omega, K`); with float32 parameters 1e-5, 1e-7 (`GAIT_TOLERANCES`; a float32 `rtol`
-      below 1e-5 warns, as in `simulate`).
-    - `batch_steps`: under `jax.vmap`, `"shared"` (default) integrates a batch of at least 32
-      trials with one step sequence on contiguous components (`jsphere.solve.batched.dispatch`; each
-      trial still meets its tolerance), `"per_trial"` gives every trial its own steps (in
-      lockstep, in the same loop: a trial's result does not depend on its batch), `"diffrax"`
-      diffrax's own `vmap` of the flat state, as `simulate` does.
-    - `solver`, `max_steps`, `throw`, `adjoint`: as in `simulate`.
-    - `options`: a `SolverOptions` (any of `rtol`, `atol`, `solver`, `max_steps`, `throw`,
-      `adjoint`, `batch_steps`); each is also a keyword, as above, which wins over its field,
-      as in `simulate`.
+    - `options`: a `SolverOptions`, its fields also keywords, as in `simulate`; default
+      tolerances 1e-10, 1e-12 (tight enough for 1e-8 agreement of `Omega, K`), with float32
+      parameters 1e-5, 1e-7 (`GAIT_TOLERANCES`).
 
     Returns a `Trajectory`; `segment` tells which gait each sample belongs to.
     """

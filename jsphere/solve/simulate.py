@@ -74,34 +74,11 @@ def simulate(
       control-free equation (`servo_jump`), and again at each of the control's `jump_ts`.
     - `t1`: final time [s].
     - `ts`: times at which to report the motion (default `[t0, t1]`).
-    - `rtol`, `atol`: tolerances of the adaptive step-size controller. Default 1e-8, 1e-10
-      (positions within 1e-3 mm over the paper's 4 s manoeuvres); with float32 parameters
-      1e-5, 1e-7 (`DEFAULT_TOLERANCES`; a float32 `rtol` below 1e-5 warns: its error
-      estimates would be rounding noise).
-    - `solver`: a diffrax solver (default `Dopri8`); `adjoint`: a diffrax adjoint (default
-      `RecursiveCheckpointAdjoint`; use `diffrax.ForwardMode()` for `jax.jacfwd`).
-    - `throw`: raise on solver failure (max steps, NaN; default). With `throw=False` the failure is
-      reported in `Trajectory.ok` instead (per trial under `vmap`): a trial that fails fails
-      alone, and the others get the results they get in a batch without it (a batch with
-      shared steps that fail is solved again with per-trial steps).
-    - `batch_steps`: under `vmap` (from 32 trials, `SHARED_MIN_BATCH`), in torque mode with the
-      default adjoint, `"shared"` (default) integrates the batch with shared steps: one step
-      sequence, accepted only when every trial meets its tolerance (results depend on the
-      batch within the tolerance; `max_steps` and `num_steps` count the shared steps;
-      `jsphere.solve.batched.segment`); its gradient is the discrete adjoint of the shared
-      steps (within the tolerance of the per-trial gradient). `"per_trial"` gives each trial
-      its own step-size control: with `Dopri8`, `Dopri5`, `Tsit5` or a method of one's own
-      (`jsphere.solve.batched.method.tableau`) the batch runs in the same
-      vectorised loop, every trial with its own times, steps, failures and `num_steps` (in
-      lockstep), so a trial's result is bitwise the same in any batch; its gradient is the
-      discrete adjoint of those per-trial steps. `"diffrax"` is diffrax's own `vmap` of the
-      flat state (per-trial steps; the reference the others are measured against). It changes
-      nothing for unbatched calls, nor when `t0`, `t1`, `ts` or `jump_ts` are batched.
-      (Speed: `docs/performance.md`.)
-    - `max_steps`: the most steps a segment may take (default 16384).
-    - `options`: a `SolverOptions` holding any of `rtol`, `atol`, `solver`, `max_steps`,
-      `throw`, `adjoint`, `batch_steps`. Each of these is also a keyword of `simulate`, as
-      above (a shortcut of its field: a keyword given wins over `options`).
+    - `options`: a `SolverOptions` (`rtol`, `atol`, `solver`, `max_steps`, `throw`, `adjoint`,
+      `batch_steps`: what each does is told there). Each field is also a keyword of
+      `simulate` (a shortcut: a keyword given wins over `options`). Default tolerances 1e-8,
+      1e-10 (positions within 1e-3 mm over the paper's 4 s manoeuvres); with float32
+      parameters 1e-5, 1e-7 (`DEFAULT_TOLERANCES`).
 
     Pure JAX: jit, vmap (over parameters, states, controls) and grad work.
     """
