@@ -29,7 +29,7 @@ from ..numerics import trig
 from ..solve.batched.components import gait_field_components, unit
 from ..solve.batched.layout import Layout
 from ..solve.field_args import FieldArgs
-from ..solve.internal import kin_rates as _kin_rates
+from ..solve.internal import rates as _rates
 from ..solve.options import DEFAULT_TOLERANCES, SolverOptions, solver_options
 from ..solve.segments import solve_segments
 from ..solve.simulate import batch_engine_applies, output_times, run_solve
@@ -239,9 +239,7 @@ def _gait_field(t, z, args: FieldArgs):
     Omega = z[Flat.Omega]
     Omega_dot = free_Omega_dot(p, d, gamma, omega, Omega, omega_dot)
     # positions use the prescribed gamma(t); q is integrated with the same omega(t)
-    dq, dqs, dxy = _kin_rates(p, z, rotmat(z[Flat.q]), gamma, omega, Omega)
-    chi_dot = -matvec(d.Sk, omega - Omega)
-    return jnp.concatenate([dq, dqs, omega_dot, Omega_dot, dxy, chi_dot])
+    return _rates(p, d, z, rotmat(z[Flat.q]), gamma, omega, Omega, omega_dot, Omega_dot, omega - Omega)
 
 
 def _gait_kinematics(t, args: FieldArgs):

@@ -144,7 +144,7 @@ def forward(m: Method, args, batched, t0, t1, y0, ts, *, rtol, atol, max_steps, 
 
     def step(c):
         t, h, y, k0, K, ys, j, at, steps, dead, acc, rec = c
-        h = jnp.where(dead, 0.0, jnp.minimum(h, t1 - t)).astype(dtype)
+        h = jnp.where(dead, 0.0, jnp.minimum(h, t1 - t)).astype(dtype) if per_trial else jnp.minimum(h, t1 - t)
         y1, K = m.stages(t, h, y, K.at[0].set(h * k0), args, batched)
         ok, factor = _control(m.tab, K, y, y1, rms, rtol=rtol, atol=atol, skip=dead if per_trial else None)
         t_next = jnp.where(ok, jnp.where(h >= t1 - t, t1, t + h), t)
@@ -158,7 +158,7 @@ def forward(m: Method, args, batched, t0, t1, y0, ts, *, rtol, atol, max_steps, 
         h_next = (h * factor).astype(dtype)
         collapsed = (t_next < t1) & ~(h_next > 10 * jnp.finfo(dtype).eps * jnp.maximum(jnp.abs(t_next), 1.0))
         y = jnp.where(ok, y1, y)
-        k0 = jnp.where(moved, K[-1] / jnp.where(h > 0, h, 1.0), k0)
+        k0 = jnp.where(moved, K[-1] / jnp.where(h > 0, h, 1.0), k0) if per_trial else jnp.where(ok, K[-1] / h, k0)
         return t_next, h_next, y, k0, K, ys, j, at, steps + 1, dead | collapsed, acc + moved, rec
 
     ys = jnp.where((ts <= t0)[:, None, None], y0[None], jnp.full((T, n, B), jnp.nan, dtype))
