@@ -111,7 +111,9 @@ def forward(m: Method, args, batched, t0, t1, y0, ts, *, rtol, atol, max_steps, 
     """The integration of `solve`: one step sequence for the batch, or with `per_trial` one of
     each trial's own, taken in lockstep (every trial has its own time, step size, error norm
     and acceptance, so its result does not depend on the other trials, while the batch still
-    runs as one vectorised loop; a trial that is done or failed takes steps of size zero).
+    runs as one vectorised loop; a trial that is done or failed takes steps of size zero). A
+    failure (`max_steps` iterations, or a step size that collapsed, e.g. a state turned
+    non-finite) is then per trial too: that trial is frozen, the others go on.
 
     Returns `(ys, failed, accepted)` (per trial with `per_trial`) and `(at, rec, n)`: with
     `record`, what the backward pass needs: the recorded steps' `(t_k, h_k)` (shared: the
