@@ -20,18 +20,15 @@ exactly `c = (2 theta_max, 0, 2 theta_max)` with `p = 2`.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._runtime.checks import finite
-from .._runtime.errors import InputError
 from ..model.linalg import matvec
-from .gaits import Gait, Profile, _real, _zero, at, cos, sin, sincos
+from .gaits import Gait, Profile, _duration, _real, _zero, at, cos, sin, sincos
 
 
 class Smooth(Profile):
@@ -107,9 +104,7 @@ class TiltGait(Gait):
         self.theta = _TiltAngle(tilt)
         self.phi = _TiltDirection(tilt)
         self.omega_gamma = omega_gamma if omega_gamma is not None else _zero
-        self.T = _real(T)
-        if not isinstance(self.T, jax.core.Tracer) and not 0 < float(self.T) < math.inf:
-            raise InputError(f"TiltGait.T must be a positive duration in seconds; got {float(self.T)}.")
+        self.T = _duration(T, "TiltGait")
 
     def gamma(self, Qm, t, *, elementwise: bool = False):
         """`gamma(t) = Q_m tilt_to_gamma(u(t))`."""

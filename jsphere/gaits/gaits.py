@@ -15,10 +15,9 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._runtime.arrays import as_array, under_jit
-from .._runtime.arrays import traced as _traced
 from .._runtime.checks import finite
 from .._runtime.errors import InputError
-from .._runtime.quick_compile import eager_jit, run_program
+from .._runtime.quick_compile import eager_jit
 from ..controls import Constant
 from ..model.dynamics import free_Omega_dot, required_torques
 from ..model.kinematics import rest_attitude
@@ -27,16 +26,14 @@ from ..model.params import RobotParams, derive
 from ..model.rotations import rotation_between, rotmat
 from ..model.state import Flat, State
 from ..numerics import trig
-from ..solve.batched import dispatch as _dispatch
 from ..solve.batched.components import gait_field_components, unit
-from ..solve.batched.layout import Layout, steps_layout
+from ..solve.batched.layout import Layout
 from ..solve.field_args import FieldArgs
-from ..solve.internal import kin_rates as _kin_rates
-from ..solve.internal import rebuild as _rebuild
+from ..solve.internal import rates as _rates
 from ..solve.options import DEFAULT_TOLERANCES, SolverOptions, solver_options
 from ..solve.segments import solve_segments
-from ..solve.simulate import batch_engine_applies
-from ..solve.trajectory import Trajectory, assemble, raise_on_failure
+from ..solve.simulate import batch_engine_applies, output_times, run_solve
+from ..solve.trajectory import Trajectory
 
 
 def sincos(x, elementwise: bool = False):
@@ -100,6 +97,14 @@ def _zero(t):
     return jnp.zeros_like(t)
 
 
+def _duration(T, name: str):
+    """A gait's duration `T` [s] (`_real`), checked positive and finite when concrete."""
+    T = _real(T)
+    if not isinstance(T, jax.core.Tracer) and not 0 < float(T) < math.inf:
+        raise InputError(f"{name}.T must be a positive duration in seconds; got {float(T)}.")
+    return T
+
+
 class Gait(eqx.Module):
     """A manoeuvre of Section 4 on `[0, T]`, given by the Euler angles of (4.2) and the spin
     of the platform about the vertical:
@@ -127,9 +132,7 @@ class Gait(eqx.Module):
         self.theta = theta
         self.phi = phi if callable(phi) else Constant(_real(phi))
         self.omega_gamma = omega_gamma if omega_gamma is not None else _zero
-        self.T = _real(T)
-        if not isinstance(self.T, jax.core.Tracer) and not 0 < float(self.T) < math.inf:
-            raise InputError(f"Gait.T must be a positive duration in seconds; got {float(self.T)}.")
+        self.T = _duration(T, "Gait")
 
     def gamma(self, Qm, t, *, elementwise: bool = False):
         """`gamma(t)` of (4.2), rotated to the robot's rest attitude by `Q_m` (`elementwise`:
@@ -192,10 +195,6 @@ def _check_sin2_gait(name, theta_max, phi, T, period):
     finite(name, "phi", phi, unit="rad")
     finite(name, "T", T, unit="s")
     finite(name, "period", period, positive=True, unit="s")
-    _check_period(T, period, name)
-
-
-def _check_period(T, period, name):
     if isinstance(T, jax.core.Tracer) or isinstance(period, jax.core.Tracer):
         return
     n = float(T) / float(period)
@@ -240,9 +239,7 @@ def _gait_field(t, z, args: FieldArgs):
     Omega = z[Flat.Omega]
     Omega_dot = free_Omega_dot(p, d, gamma, omega, Omega, omega_dot)
     # positions use the prescribed gamma(t); q is integrated with the same omega(t)
-    dq, dqs, dxy = _kin_rates(p, z, rotmat(z[Flat.q]), gamma, omega, Omega)
-    chi_dot = -matvec(d.Sk, omega - Omega)
-    return jnp.concatenate([dq, dqs, omega_dot, Omega_dot, dxy, chi_dot])
+    return _rates(p, d, z, rotmat(z[Flat.q]), gamma, omega, Omega, omega_dot, Omega_dot, omega - Omega)
 
 
 def _gait_kinematics(t, args: FieldArgs):
@@ -323,18 +320,9 @@ def simulate_gaits(
       the vertical and the sideways drift caused by the wheels' inertia). A sequence (one
       entry per boundary) mixes `None`/`False` (continue), `True` (as above), or an explicit
       `Omega` 3-vector (with `alpha, beta` reset too), e.g. `(-0.868, 0.852, 0)` of (5.7).
-    - `rtol`, `atol`: tolerances. Default 1e-10, 1e-12 (tight enough for 1e-8 agreement of
-      `Omega, K`); with float32 parameters 1e-5, 1e-7 (`GAIT_TOLERANCES`; a float32 `rtol`
-      below 1e-5 warns, as in `simulate`).
-    - `batch_steps`: under `jax.vmap`, `"shared"` (default) integrates a batch of at least 32
-      trials with one step sequence on contiguous components (`jsphere.solve.batched.dispatch`; each
-      trial still meets its tolerance), `"per_trial"` gives every trial its own steps (in
-      lockstep, in the same loop: a trial's result does not depend on its batch), `"diffrax"`
-      diffrax's own `vmap` of the flat state, as `simulate` does.
-    - `solver`, `max_steps`, `throw`, `adjoint`: as in `simulate`.
-    - `options`: a `SolverOptions` (any of `rtol`, `atol`, `solver`, `max_steps`, `throw`,
-      `adjoint`, `batch_steps`); each is also a keyword, as above, which wins over its field,
-      as in `simulate`.
+    - `options`: a `SolverOptions`, its fields also keywords, as in `simulate`; default
+      tolerances 1e-10, 1e-12 (tight enough for 1e-8 agreement of `Omega, K`), with float32
+      parameters 1e-5, 1e-7 (`GAIT_TOLERANCES`).
 
     Returns a `Trajectory`; `segment` tells which gait each sample belongs to.
     """
@@ -343,53 +331,25 @@ def simulate_gaits(
         raise TypeError(
             "simulate_gaits: gaits must be a non-empty list of jsphere.Gait (e.g. [acceleration(), braking()])."
         )
-    nb = len(gaits) - 1
-    if isinstance(reset, (bool, np.bool_)):
-        resets = [bool(reset)] * nb
-    else:
-        resets = list(reset)
-        if len(resets) != nb:
-            raise ValueError(f"simulate_gaits: reset needs one entry per gait boundary ({nb}); got {len(resets)}.")
+    resets = _reset_data(reset, len(gaits) - 1, params.R0.dtype)
     opts = solver_options(options, where="simulate_gaits", **shortcuts)
     dt = params.R0.dtype
-    rtol, atol = opts.tolerances(dt, GAIT_TOLERANCES, where="simulate_gaits")
+    tol = opts.tolerances(dt, GAIT_TOLERANCES, where="simulate_gaits")
     initial = tuple(as_array(v, dt) for v in (alpha0, beta0, Omega0, x0, y0))
     _check_start(params, gaits[0], initial[0], initial[1])
 
-    ts_out = _output_times(gaits, ts, rate, dt)
-    resets = _reset_data(resets, dt)
+    ts_out = output_times(ts, dt, "simulate_gaits") if ts is not None else _default_times(gaits, rate, dt)
     # gait coefficients in the parameters' precision (float32 robots stay float32)
     gaits = jax.tree_util.tree_map(
         lambda x: x.astype(dt) if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.floating) and x.dtype != dt else x,
         gaits,
     )
-    traj = _solve_gaits(
-        params,
-        gaits,
-        initial,
-        ts_out,
-        resets,
-        opts.solver_or_default(),
-        rtol,
-        atol,
-        opts.max_steps,
-        opts.adjoint_or_default(),
-        opts,
-    )
-    return raise_on_failure(traj, opts.throw)
+    args = (params, gaits, initial, ts_out, resets)
+    return run_solve("simulate_gaits", _simulate_gaits, args, opts, tol, batch_engine_applies(opts))
 
 
-def _output_times(gaits, ts, rate, dt):
-    """`ts` as an array of `dt`, or by default each gait sampled at `rate` Hz on its own
-    `[start, end]`. Given times are checked here when concrete (finite, non-decreasing),
-    as the solve's own check of them makes values NaN rather than raising."""
-    if ts is not None:
-        out = as_array(ts, dt)
-        if not isinstance(out, jax.core.Tracer):
-            tsn = np.asarray(out)
-            if tsn.ndim != 1 or np.any(np.diff(tsn) < 0) or not np.all(np.isfinite(tsn)):
-                raise ValueError("simulate_gaits: ts must be a finite, non-decreasing 1-D array of times.")
-        return out
+def _default_times(gaits, rate, dt):
+    """Each gait sampled at `rate` Hz on its own `[start, end]`."""
     if any(isinstance(g.T, jax.core.Tracer) for g in gaits):
         raise ValueError("simulate_gaits: pass `ts` when gait durations are traced (under jit/grad).")
     starts = np.cumsum([0.0] + [float(g.T) for g in gaits])[:-1]
@@ -397,11 +357,13 @@ def _output_times(gaits, ts, rate, dt):
     return as_array(np.concatenate(grids), dt)
 
 
-def _reset_data(resets, dt):
-    """The resets at the gait boundaries as data `(modes, values)`, so that there is one
-    compiled function per number of gaits: mode 0 continue, 1 project `Omega` (`reset=True`),
-    2 the explicit `Omega` of `values`."""
-    nb = len(resets)
+def _reset_data(reset, nb: int, dt):
+    """`simulate_gaits`' `reset` at its `nb` gait boundaries as data `(modes, values)`, so that
+    there is one compiled function per number of gaits: mode 0 continue, 1 project `Omega`
+    (`reset=True`), 2 the explicit `Omega` of `values`."""
+    resets = [bool(reset)] * nb if isinstance(reset, (bool, np.bool_)) else list(reset)
+    if len(resets) != nb:
+        raise ValueError(f"simulate_gaits: reset needs one entry per gait boundary ({nb}); got {len(resets)}.")
     for i, r in enumerate(resets):
         if not (r is None or isinstance(r, bool)) and np.shape(r) != (3,):
             raise ValueError(
@@ -414,18 +376,6 @@ def _reset_data(resets, dt):
     if values.shape != (nb, 3):
         raise ValueError(f"simulate_gaits: an explicit reset must be an Omega 3-vector; got shapes {values.shape}.")
     return modes, values
-
-
-def _solve_gaits(params, gaits, initial, ts_out, resets, solver, rtol, atol, max_steps, adjoint, opts):
-    """`_simulate_gaits` with the state layout chosen by batching, as `jsphere.solve.simulate._solve`
-    does for torques: the flat state for a single call (diffrax's path directly), components
-    (and shared steps, with `batch_steps="shared"`) under `vmap`
-    (`jsphere.solve.batched.dispatch`)."""
-    flat = (solver, rtol, atol, max_steps, adjoint)
-    args = (params, gaits, initial, ts_out, resets)
-    if not batch_engine_applies(True, adjoint, opts.batch_steps) or not _traced(args):
-        return run_program("simulate_gaits", _simulate_gaits, _rebuild, *args, *flat)
-    return _dispatch.solve(_simulate_gaits, _rebuild, args, flat, steps_layout(opts.batch_steps, opts.throw))
 
 
 @eqx.filter_jit  # one compiled program per kind of gait, not one per operation
@@ -477,17 +427,7 @@ def _simulate_gaits(
         t = t + jnp.asarray(g.T, dt)
     segments = [((g, Qm), a, a + jnp.asarray(g.T, dt)) for g, a in zip(gaits, starts)]
     q0 = state0.q
-    # per boundary: reset mode, explicit value, projector onto the rolling directions so far
-    P, projectors = jnp.zeros((3, 3), dt), []
-    for g in gaits[:-1]:
-        dvec = _rolling_direction(g, Qm)
-        u = dvec - matvec(P, dvec)
-        nu = jnp.sum(u * u)
-        P = P + jnp.where(nu > 1e-12, 1.0, 0.0) * jnp.outer(u, u) / jnp.where(nu > 1e-12, nu, 1.0)
-        projectors.append(P)
-    modes = jnp.concatenate([jnp.zeros((1,), jnp.int32), resets[0]])
-    values = jnp.concatenate([jnp.zeros((1, 3), dt), resets[1]])
-    projectors = jnp.stack([jnp.zeros((3, 3), dt)] + projectors)
+    modes, values, projectors = _boundary_resets(gaits, Qm, resets, dt)
 
     def jump_fn(k, a, z, control):
         gait, _ = control
@@ -498,7 +438,7 @@ def _simulate_gaits(
         reset_z = Flat.replace(z, q=q0, Omega=Omega)
         return jnp.where(mode == 0, z, reset_z)
 
-    zs, om, cd, Ks, seg, ok, steps = solve_segments(
+    traj = solve_segments(
         _gait_field,
         _gait_outputs,
         params,
@@ -506,20 +446,30 @@ def _simulate_gaits(
         segments,
         state0.flatten(),
         ts_out,
+        (solver, rtol, atol, max_steps, adjoint),
         jump_fn=jump_fn,
-        solver=solver,
-        rtol=rtol,
-        atol=atol,
-        max_steps=max_steps,
-        adjoint=adjoint,
         layout=layout,
         component_field=_gait_field_soa if layout.components else None,
         component_control=_gait_inputs,
     )
-    traj = assemble(params, d, ts_out, zs, om, cd, Ks, seg, ok, steps)
     # report the prescribed gamma(t) (the integrated one agrees to the solver tolerance)
-    gam = jax.vmap(lambda t, k: _prescribed_gamma(gaits, Qm, starts, t, k))(ts_out, seg)
+    gam = jax.vmap(lambda t, k: _prescribed_gamma(gaits, Qm, starts, t, k))(ts_out, traj.segment)
     return eqx.tree_at(lambda tr: tr.gamma, traj, gam)
+
+
+def _boundary_resets(gaits, Qm, resets, dt):
+    """Per gait (the first one's entries unused): the reset mode and explicit value at its start
+    (`_reset_data`), and the projector onto the rolling directions of the gaits before it."""
+    P, projectors = jnp.zeros((3, 3), dt), [jnp.zeros((3, 3), dt)]
+    for g in gaits[:-1]:
+        dvec = _rolling_direction(g, Qm)
+        u = dvec - matvec(P, dvec)
+        nu = jnp.sum(u * u)
+        P = P + jnp.where(nu > 1e-12, 1.0, 0.0) * jnp.outer(u, u) / jnp.where(nu > 1e-12, nu, 1.0)
+        projectors.append(P)
+    modes = jnp.concatenate([jnp.zeros((1,), jnp.int32), resets[0]])
+    values = jnp.concatenate([jnp.zeros((1, 3), dt), resets[1]])
+    return modes, values, jnp.stack(projectors)
 
 
 def _prescribed_gamma(gaits, Qm, starts, t, k):

@@ -28,12 +28,14 @@ def _control_time(t, t_end):
     return jnp.where(t >= t_end, _left_limit(jax.lax.stop_gradient(t_end)), t)
 
 
-def _kin_rates(p: RobotParams, z, R, gamma, omega, Omega):
-    """Rates of `[q, q_shell]` and `(x, y)` shared by every mode, with `R = Q^T` computed once
-    by the caller (`gamma` is its last row, or the prescribed `gamma(t)` of a gait)."""
+def _rates(p: RobotParams, d: Derived, z, R, gamma, omega, Omega, omega_dot, Omega_dot, w):
+    """The flat state's rates in every mode from the accelerations and the wheels' relative
+    rate `w = omega - Omega` (`chi_dot = -S_k w`, (2.4)), with `R = Q^T` computed once by the
+    caller (`gamma` is its last row, or the prescribed `gamma(t)` of a gait)."""
     v = p.R0 * cross(Omega, gamma)
     vf = matvec(R, v)  # fixed-frame velocity; (x_dot, y_dot) = ((alpha, v), (beta, v))
-    return quat_rate_body(z[Flat.q], omega), quat_rate_fixed(z[Flat.q_shell], matvec(R, Omega)), vf[:2]
+    dq, dqs = quat_rate_body(z[Flat.q], omega), quat_rate_fixed(z[Flat.q_shell], matvec(R, Omega))
+    return jnp.concatenate([dq, dqs, omega_dot, Omega_dot, vf[:2], -matvec(d.Sk, w)])
 
 
 def _torque_field(t, z, args: FieldArgs):
@@ -44,9 +46,7 @@ def _torque_field(t, z, args: FieldArgs):
     gamma = R[2]
     K = _torque_control(t, args)
     omega_dot, Omega_dot = solve_accelerations(p, d, gamma, omega, Omega, K)
-    dq, dqs, dxy = _kin_rates(p, z, R, gamma, omega, Omega)
-    chi_dot = -matvec(d.Sk, omega - Omega)
-    return jnp.concatenate([dq, dqs, omega_dot, Omega_dot, dxy, chi_dot])
+    return _rates(p, d, z, R, gamma, omega, Omega, omega_dot, Omega_dot, omega - Omega)
 
 
 def _torque_control(t, args: FieldArgs):
@@ -77,9 +77,7 @@ def _wheel_field(t, z, args: FieldArgs):
     gamma = R[2]
     w, w_dot = _servo_inputs(d, args.control, _control_time(t, args.t_end))
     omega, omega_dot, Omega_dot, _ = servo_accelerations(p, d, gamma, Omega, w, w_dot)
-    dq, dqs, dxy = _kin_rates(p, z, R, gamma, omega, Omega)
-    chi_dot = -matvec(d.Sk, w)
-    return jnp.concatenate([dq, dqs, omega_dot, Omega_dot, dxy, chi_dot])
+    return _rates(p, d, z, R, gamma, omega, Omega, omega_dot, Omega_dot, w)
 
 
 def _outputs_torque(t, z, args: FieldArgs):

@@ -68,15 +68,31 @@ class SolverOptions(eqx.Module):
     """How `simulate` and `simulate_gaits` integrate:
 
     - `rtol`, `atol`: tolerances of the adaptive step-size controller; `None`: the default for
-      the parameters' precision (`DEFAULT_TOLERANCES`, `jsphere.gaits.gaits.GAIT_TOLERANCES`);
+      the parameters' precision (`DEFAULT_TOLERANCES`, `jsphere.gaits.gaits.GAIT_TOLERANCES`;
+      a float32 `rtol` below `FLOAT32_MIN_RTOL` warns: its error estimates would be rounding
+      noise);
     - `solver`: a diffrax solver; `None`: `default_solver()` (`Dopri8`);
     - `max_steps`: the most steps a segment may take;
-    - `throw`: raise on a failed solve, or report it in `Trajectory.status`;
+    - `throw`: raise on solver failure (max steps, NaN), or report it in `Trajectory.ok` and
+      `Trajectory.status` (per trial under `vmap`): a trial that fails fails alone, and the
+      others get the results they get in a batch without it (a batch with shared steps that
+      fail is solved again with per-trial steps);
     - `adjoint`: a diffrax adjoint; `None`: `diffrax.RecursiveCheckpointAdjoint()`
       (`diffrax.ForwardMode()` for `jax.jacfwd`);
-    - `batch_steps`: under `vmap`, `"shared"` (one step sequence for a batch), `"per_trial"`
-      (each trial its own steps, in the same vectorised loop) or `"diffrax"` (diffrax's own
-      `vmap` of the flat state, bypassing the batch engine: the engine's reference).
+    - `batch_steps`: under `vmap` (from 32 trials, `SHARED_MIN_BATCH`) of torques or gaits,
+      with the default adjoint, `"shared"` (default) integrates the batch with shared steps:
+      one step sequence, accepted only when every trial meets its tolerance (results depend
+      on the batch within the tolerance; `max_steps` and `num_steps` count the shared steps;
+      `jsphere.solve.batched.segment`); its gradient is the discrete adjoint of the shared
+      steps (within the tolerance of the per-trial gradient). `"per_trial"` gives each trial
+      its own step-size control: with `Dopri8`, `Dopri5`, `Tsit5` or a method of one's own
+      (`jsphere.solve.batched.method.tableau`) the batch runs in the same vectorised loop,
+      every trial with its own times, steps, failures and `num_steps` (in lockstep), so a
+      trial's result is bitwise the same in any batch; its gradient is the discrete adjoint
+      of those per-trial steps. `"diffrax"` is diffrax's own `vmap` of the flat state
+      (per-trial steps; the reference the others are measured against). It changes nothing
+      for unbatched calls, nor when `t0`, `t1`, `ts` or `jump_ts` are batched. (Speed:
+      `docs/performance.md`.)
 
     Each field is also a keyword argument of `simulate` and `simulate_gaits` (a shortcut): a
     keyword given wins over the same field of `options` (`given`).

@@ -15,6 +15,7 @@ from .batched.layout import Layout
 from .field_args import FieldArgs
 from .fields import _torque_control
 from .status import RESULTS
+from .trajectory import assemble
 
 
 def _sample_masks(ts_out, a, b, last: bool):
@@ -66,20 +67,17 @@ def solve_segments(
     segments: list,
     z0,
     ts_out,
+    method: tuple,
     *,
     jump_fn=None,
-    solver,
-    rtol,
-    atol,
-    max_steps,
-    adjoint,
     layout: Layout = Layout.FLAT,
     component_field=None,
     component_control=None,
 ):
     """Integrate `field(t, z, FieldArgs(params=p, derived=d, control=control, t_start=a, t_end=b))` over consecutive segments
     `(control, a, b)`, restarting at each (after `z = jump_fn(k, a, z, control)` if given),
-    and sample the flat state and `outputs(t, z, args)` at `ts_out`.
+    and sample the flat state and `outputs(t, z, args)` at `ts_out`, with the adaptive
+    `method = (solver, rtol, atol, max_steps, adjoint)`.
 
     Segments whose controls share a structure (e.g. the paper's gaits) run in one
     `lax.scan`, so compile time does not grow with their number. `layout`
@@ -90,83 +88,64 @@ def solve_segments(
     `jsphere.solve.batched.segment.solve`. With `Layout.SHARED_STEPS_RETRY` a trial that failed
     in an earlier segment is left out of the later ones' step control.
 
-    Returns `(zs, omega, chi_dot, K, segment, status, num_steps)`.
+    Returns the `Trajectory` (`assemble`).
     """
-    n_seg = len(segments)
-    T = ts_out.shape[0]
-    N = d.k.shape[0]
-    dt = z0.dtype
-    controller = dfx.PIDController(rtol=rtol, atol=atol)
-
-    def solve_one(k, z, code, control, a, b, t_save):
-        """The segment's saved states `(T+1, 16+N)`, whether it failed, its accepted steps."""
-        if layout is Layout.SHARED_STEPS_RETRY:  # a trial failed in an earlier segment: out of the step control
-            z = jnp.where(code != 0, jnp.nan, z)
-        if layout.batch_solve:
-            ys, failed, n_acc = _segment.solve(
-                component_field,
-                component_control or _torque_control,
-                solver,
-                rtol,
-                atol,
-                max_steps,
-                adjoint,
-                to_components(z),
-                FieldArgs(params=p, derived=d, control=control, t_start=a, t_end=b),
-                t_save,
-                layout,
-            )
-            return z, from_components(ys), failed, n_acc
-        term, y0 = (dfx.ODETerm(component_field), to_components(z)) if layout.components else (dfx.ODETerm(field), z)
-        sol = dfx.diffeqsolve(
-            term,
-            solver,
-            a,
-            b,
-            None,
-            y0,
-            FieldArgs(params=p, derived=d, control=control, t_start=a, t_end=b),
-            saveat=dfx.SaveAt(ts=t_save, t1=True),
-            stepsize_controller=controller,
-            max_steps=max_steps,
-            throw=False,
-            adjoint=adjoint,
-        )
-        ys = from_components(sol.ys) if layout.components else sol.ys
-        return z, ys, sol.result != dfx.RESULTS.successful, sol.stats["num_accepted_steps"]
+    n_seg, T, dt = len(segments), ts_out.shape[0], z0.dtype
+    fields = (field, component_field, component_control or _torque_control)
 
     def one_segment(carry, k, control, a, b):
         z, zs, om, cd, Ks, seg, code, steps = carry
+        args = FieldArgs(params=p, derived=d, control=control, t_start=a, t_end=b)
         if jump_fn is not None:
             z = jump_fn(k, a, z, control)
+        if layout is Layout.SHARED_STEPS_RETRY:  # a trial failed in an earlier segment: out of the step control
+            z = jnp.where(code != 0, jnp.nan, z)
         t_save = jnp.clip(ts_out, a, b)
-        z, ys, failed, n_acc = solve_one(k, z, code, control, a, b, t_save)
+        ys, failed, n_acc = _solve_one(fields, method, layout, z, args, t_save)
         mask = _sample_masks(ts_out, a, b, k == n_seg - 1)
-        args = FieldArgs(params=p, derived=d, control=control, t_start=a, t_end=b)
         out = jax.vmap(lambda t, zz: outputs(t, zz, args))(t_save, ys[:-1])
-        zs = jnp.where(mask[:, None], ys[:-1], zs)
-        om = jnp.where(mask[:, None], out[0], om)
-        cd = jnp.where(mask[:, None], out[1], cd)
-        Ks = jnp.where(mask[:, None], out[2], Ks)
+        zs, om, cd, Ks = (jnp.where(mask[:, None], new, old) for new, old in zip((ys[:-1], *out), (zs, om, cd, Ks)))
         seg = jnp.where(mask, k, seg)
         bad_start = ~jnp.all(jnp.isfinite(field(a, *_primal((z, args)))))
         finite = jnp.all(jnp.isfinite(ys)) & jnp.all(jnp.isfinite(out[2]))
         code = jnp.where(code != 0, code, _status(failed, bad_start, finite))
-        steps = steps + n_acc
-        return (ys[-1], zs, om, cd, Ks, seg, code, steps)
+        return (ys[-1], zs, om, cd, Ks, seg, code, steps + n_acc)
 
-    carry = (
-        z0,
-        jnp.zeros((T, z0.shape[0]), dt),
-        jnp.zeros((T, 3), dt),
-        jnp.zeros((T, N), dt),
-        jnp.zeros((T, N), dt),
-        jnp.zeros((T,), jnp.int32),
-        jnp.array(0, jnp.int32),
-        jnp.array(0, jnp.int32),
+    N = d.k.shape[0]
+    zeros = (jnp.zeros((T, z0.shape[0]), dt), jnp.zeros((T, 3), dt), jnp.zeros((T, N), dt), jnp.zeros((T, N), dt))
+    carry = (z0, *zeros, jnp.zeros((T,), jnp.int32), jnp.array(0, jnp.int32), jnp.array(0, jnp.int32))
+    return assemble(p, d, ts_out, *_over_segments(one_segment, carry, segments)[1:])
+
+
+def _solve_one(fields, method, layout: Layout, z, args: FieldArgs, t_save):
+    """One segment's solve from `z` with the field's `args`, saved at `t_save` and at its end:
+    `(ys (T+1, 16+N), failed, accepted steps)`. `fields`: `(field, component_field,
+    component_control)` (`solve_segments`); `method`: `(solver, rtol, atol, max_steps,
+    adjoint)`."""
+    field, component_field, component_control = fields
+    solver, rtol, atol, max_steps, adjoint = method
+    if layout.batch_solve:
+        ys, failed, n_acc = _segment.solve(
+            component_field, component_control, *method, to_components(z), args, t_save, layout
+        )
+        return from_components(ys), failed, n_acc
+    term, y0 = (dfx.ODETerm(component_field), to_components(z)) if layout.components else (dfx.ODETerm(field), z)
+    sol = dfx.diffeqsolve(
+        term,
+        solver,
+        args.t_start,
+        args.t_end,
+        None,
+        y0,
+        args,
+        saveat=dfx.SaveAt(ts=t_save, t1=True),
+        stepsize_controller=dfx.PIDController(rtol=rtol, atol=atol),
+        max_steps=max_steps,
+        throw=False,
+        adjoint=adjoint,
     )
-    _, zs, om, cd, Ks, seg, code, steps = _over_segments(one_segment, carry, segments)
-    return zs, om, cd, Ks, seg, code, steps
+    ys = from_components(sol.ys) if layout.components else sol.ys
+    return ys, sol.result != dfx.RESULTS.successful, sol.stats["num_accepted_steps"]
 
 
 def _over_segments(one_segment, carry, segments):

@@ -39,7 +39,7 @@ from .options import (
     tolerances,
 )
 from .segments import solve_segments
-from .trajectory import Trajectory, _rebuild, assemble, raise_on_failure
+from .trajectory import Trajectory, _rebuild, raise_on_failure
 
 __all__ = [
     "simulate",
@@ -74,37 +74,27 @@ def simulate(
       control-free equation (`servo_jump`), and again at each of the control's `jump_ts`.
     - `t1`: final time [s].
     - `ts`: times at which to report the motion (default `[t0, t1]`).
-    - `rtol`, `atol`: tolerances of the adaptive step-size controller. Default 1e-8, 1e-10
-      (positions within 1e-3 mm over the paper's 4 s manoeuvres); with float32 parameters
-      1e-5, 1e-7 (`DEFAULT_TOLERANCES`; a float32 `rtol` below 1e-5 warns: its error
-      estimates would be rounding noise).
-    - `solver`: a diffrax solver (default `Dopri8`); `adjoint`: a diffrax adjoint (default
-      `RecursiveCheckpointAdjoint`; use `diffrax.ForwardMode()` for `jax.jacfwd`).
-    - `throw`: raise on solver failure (max steps, NaN; default). With `throw=False` the failure is
-      reported in `Trajectory.ok` instead (per trial under `vmap`): a trial that fails fails
-      alone, and the others get the results they get in a batch without it (a batch with
-      shared steps that fail is solved again with per-trial steps).
-    - `batch_steps`: under `vmap` (from 32 trials, `SHARED_MIN_BATCH`), in torque mode with the
-      default adjoint, `"shared"` (default) integrates the batch with shared steps: one step
-      sequence, accepted only when every trial meets its tolerance (results depend on the
-      batch within the tolerance; `max_steps` and `num_steps` count the shared steps;
-      `jsphere.solve.batched.segment`); its gradient is the discrete adjoint of the shared
-      steps (within the tolerance of the per-trial gradient). `"per_trial"` gives each trial
-      its own step-size control: with `Dopri8`, `Dopri5`, `Tsit5` or a method of one's own
-      (`jsphere.solve.batched.method.tableau`) the batch runs in the same
-      vectorised loop, every trial with its own times, steps, failures and `num_steps` (in
-      lockstep), so a trial's result is bitwise the same in any batch; its gradient is the
-      discrete adjoint of those per-trial steps. `"diffrax"` is diffrax's own `vmap` of the
-      flat state (per-trial steps; the reference the others are measured against). It changes
-      nothing for unbatched calls, nor when `t0`, `t1`, `ts` or `jump_ts` are batched.
-      (Speed: `docs/performance.md`.)
-    - `max_steps`: the most steps a segment may take (default 16384).
-    - `options`: a `SolverOptions` holding any of `rtol`, `atol`, `solver`, `max_steps`,
-      `throw`, `adjoint`, `batch_steps`. Each of these is also a keyword of `simulate`, as
-      above (a shortcut of its field: a keyword given wins over `options`).
+    - `options`: a `SolverOptions` (`rtol`, `atol`, `solver`, `max_steps`, `throw`, `adjoint`,
+      `batch_steps`: what each does is told there). Each field is also a keyword of
+      `simulate` (a shortcut: a keyword given wins over `options`). Default tolerances 1e-8,
+      1e-10 (positions within 1e-3 mm over the paper's 4 s manoeuvres); with float32
+      parameters 1e-5, 1e-7 (`DEFAULT_TOLERANCES`).
 
     Pure JAX: jit, vmap (over parameters, states, controls) and grad work.
     """
+    _check_inputs(params, state0, controls, t0)
+    opts = solver_options(options, where="simulate", **shortcuts)
+    dt = params.R0.dtype
+    t0, t1 = as_array(t0, dt), as_array(t1, dt)
+    engine = isinstance(controls, Torques) and batch_engine_applies(opts)
+    if engine:
+        controls = _explicit_closure(controls, t0)
+    args = (params, state0, controls, t0, t1, output_times(ts, dt, "simulate"))
+    return run_solve("simulate", _simulate, args, opts, opts.tolerances(dt), engine)
+
+
+def _check_inputs(params, state0, controls, t0) -> None:
+    """`simulate`'s arguments: a `State` and a control of as many wheels as the robot has."""
     if not isinstance(state0, State):
         raise TypeError(
             f"simulate: state0 must be a jsphere.State (e.g. State.at_rest(params)); got {type(state0).__name__}."
@@ -121,29 +111,20 @@ def simulate(
         )
     if state0.chi.shape[-1] != params.n_wheels:
         raise ValueError(f"simulate: state0.chi has {state0.chi.shape[-1]} wheels but params has {params.n_wheels}.")
-    opts = solver_options(options, where="simulate", **shortcuts)
-    dt = params.R0.dtype
-    rtol, atol = opts.tolerances(dt)
-    ts_out = None if ts is None else as_array(ts, dt)
-    if ts_out is not None and not isinstance(ts_out, jax.core.Tracer):
-        tsn = np.asarray(ts_out)
+
+
+def output_times(ts, dt, where: str):
+    """The output times `ts` as an array of `dt` (`None` stays `None`), checked when concrete
+    (finite, non-decreasing, 1-D): the solve's own check of them makes values NaN rather than
+    raising."""
+    if ts is None:
+        return None
+    out = as_array(ts, dt)
+    if not isinstance(out, jax.core.Tracer):
+        tsn = np.asarray(out)
         if tsn.ndim != 1 or np.any(np.diff(tsn) < 0) or not np.all(np.isfinite(tsn)):
-            raise ValueError("simulate: ts must be a finite, non-decreasing 1-D array of times.")
-    traj = _solve(
-        params,
-        state0,
-        controls,
-        as_array(t0, dt),
-        as_array(t1, dt),
-        ts_out,
-        opts.solver_or_default(),
-        rtol,
-        atol,
-        opts.max_steps,
-        opts.adjoint_or_default(),
-        opts,
-    )
-    return raise_on_failure(traj, opts.throw)
+            raise ValueError(f"{where}: ts must be a finite, non-decreasing 1-D array of times.")
+    return out
 
 
 class _ClosedControl(eqx.Module):
@@ -168,27 +149,26 @@ def _explicit_closure(controls, t0):
     return type(controls)(_ClosedControl(conv, dyn), controls.jump_ts)
 
 
-def batch_engine_applies(controls_ok: bool, adjoint, batch_steps: str) -> bool:
-    """Whether a traced solve goes through the batch engine (`jsphere.solve.batched.dispatch`):
-    a mode that has a component field, an adjoint the engine supports, and `batch_steps` other
-    than `"diffrax"`. Every other call takes diffrax's path directly."""
-    engine_adjoint = type(adjoint) in (dfx.RecursiveCheckpointAdjoint, dfx.ForwardMode)
-    return controls_ok and engine_adjoint and batch_steps != "diffrax"
+def batch_engine_applies(opts: SolverOptions) -> bool:
+    """Whether a traced solve (of a mode that has a component field) goes through the batch
+    engine (`jsphere.solve.batched.dispatch`): an adjoint the engine supports, and
+    `batch_steps` other than `"diffrax"`. Every other call takes diffrax's path directly."""
+    engine_adjoint = type(opts.adjoint_or_default()) in (dfx.RecursiveCheckpointAdjoint, dfx.ForwardMode)
+    return engine_adjoint and opts.batch_steps != "diffrax"
 
 
-def _solve(params, state0, controls, t0, t1, ts_out, solver, rtol, atol, max_steps, adjoint, opts) -> Trajectory:
-    """`_simulate` with the state layout chosen by batching: concrete calls (which no `vmap`
-    can be around) and calls the batch engine does not take run `_simulate` directly
-    (`run_program`); traced torque-mode calls go through the engine's batching rule
-    (`jsphere.solve.batched.dispatch`)."""
-    flat = (solver, rtol, atol, max_steps, adjoint)
-    if not batch_engine_applies(isinstance(controls, Torques), adjoint, opts.batch_steps):
-        return run_program("simulate", _simulate, _rebuild, params, state0, controls, t0, t1, ts_out, *flat)
-    controls = _explicit_closure(controls, t0)
-    args = (params, state0, controls, t0, t1, ts_out)
-    if not _traced(args):
-        return run_program("simulate", _simulate, _rebuild, *args, *flat)
-    return _dispatch.solve(_simulate, _rebuild, args, flat, steps_layout(opts.batch_steps, opts.throw))
+def run_solve(name: str, fn, args, opts: SolverOptions, tol, engine: bool) -> Trajectory:
+    """`fn(*args, solver, rtol, atol, max_steps, adjoint)` (a solve of `simulate` or
+    `simulate_gaits`) with the state layout chosen by batching, raising on failure as
+    `opts.throw` asks: concrete calls (which no `vmap` can be around) and calls the batch
+    engine does not take (`engine` false) run `fn` directly (`run_program`); traced ones go
+    through the engine's batching rule (`jsphere.solve.batched.dispatch`)."""
+    flat = (opts.solver_or_default(), *tol, opts.max_steps, opts.adjoint_or_default())
+    if not engine or not _traced(args):
+        traj = run_program(name, fn, _rebuild, *args, *flat)
+    else:
+        traj = _dispatch.solve(fn, _rebuild, args, flat, steps_layout(opts.batch_steps, opts.throw))
+    return raise_on_failure(traj, opts.throw)
 
 
 @eager_jit
@@ -214,7 +194,7 @@ def _simulate(
             omega, Omega = servo_jump(params, d, gamma, z[Flat.omega], z[Flat.Omega], w)
             return Flat.replace(z, omega=omega, Omega=Omega)
 
-    zs, om, cd, Ks, seg, ok, steps = solve_segments(
+    return solve_segments(
         field,
         outputs,
         params,
@@ -222,13 +202,8 @@ def _simulate(
         segments,
         z0,
         ts_out,
+        (solver, rtol, atol, max_steps, adjoint),
         jump_fn=jump_fn,
-        solver=solver,
-        rtol=rtol,
-        atol=atol,
-        max_steps=max_steps,
-        adjoint=adjoint,
         layout=layout,
         component_field=_torque_field_soa if layout.components else None,
     )
-    return assemble(params, d, ts_out, zs, om, cd, Ks, seg, ok, steps)

@@ -205,7 +205,7 @@ A7 = jnp.concatenate([A, 0.05 * (1 + 0.1 * jax.random.normal(jax.random.PRNGKey(
 @pytest.mark.slow
 def test_per_trial_steps_do_not_depend_on_the_batch():
     """`batch_steps="per_trial"` runs a batch in the same vectorised loop with each trial's own
-    step sequence, in lockstep (`jsphere.solve.batched.loop.forward_per_trial`): a trial's result is bitwise
+    step sequence, in lockstep (`jsphere.solve.batched.loop.forward`, `per_trial`): a trial's result is bitwise
     the same whatever the other trials of its batch, its step count is its own, and it is as
     close to a tight solve of itself as the shared steps get (interior save times included:
     each trial's own dense output)."""

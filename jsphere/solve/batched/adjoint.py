@@ -14,7 +14,7 @@ end. Arguments in `elementwise` (the robot's parameter arrays) reach the field's
 nested tuples of per-trial scalars (`_elements`), so that no slice of them is transposed into a
 pad inside the stage VJPs; their cotangents, and those of every other per-trial scalar, leave
 each stage VJP packed in one `(elements, batch)` buffer (`_Packed`) and accumulate there.
-With per-trial steps (`jsphere.solve.batched.loop.forward_per_trial`) the recorded iterations
+With per-trial steps (`jsphere.solve.batched.loop.forward`, `per_trial`) the recorded iterations
 run backwards with each trial's own step sizes.
 """
 
@@ -90,7 +90,7 @@ class _Adjoint:
         self.dtype = y0.dtype
         _, B = y0.shape
         self.T = ts.shape[0]
-        self.lockstep = rec.TK.ndim == 2  # each trial's own steps, in lockstep (`forward_per_trial`)
+        self.lockstep = rec.TK.ndim == 2  # each trial's own steps, in lockstep (`forward`, `per_trial`)
         self.trials = jnp.arange(B)
         self.per_trial = [  # the differentiated shared arguments, one copy per trial
             x if b or i not in diff else jnp.broadcast_to(x, (B,) + jnp.shape(x))
@@ -246,7 +246,7 @@ def backward(
     elementwise=(),
     f_adjoint: Callable | None = None,
 ):
-    """The discrete adjoint of `jsphere.solve.batched.loop.forward` (or of `forward_per_trial`:
+    """The discrete adjoint of `jsphere.solve.batched.loop.forward` (or with `per_trial`:
     its iterations, with each trial's own step sizes): the cotangents of
     `(y0, args[i] for i in diff)` for the cotangent `ct` of the saved states, with the accepted
     steps' sizes held fixed; if `times`, also those of `(t0, t1, ts)` (the exact solution's:

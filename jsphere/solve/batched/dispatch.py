@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
-from ..._runtime.arrays import transformed, under_jit
+from ..._runtime.arrays import traced, transformed
 from ..._runtime.quick_compile import eager_jit, run_program
 from ...model.params import Derived, derive
 from . import layout as _layout
@@ -236,7 +236,7 @@ def _reverse_fwd(engine: BatchedSolve, leaves):
         bool(x.perturbed) and jnp.issubdtype(jnp.result_type(v), jnp.inexact) for x, v in zip(leaves, values)
     )
     n = sum(int(np.size(v)) for v, p in zip(values, perturbed) if p)
-    eager = not has_tracer(values) and not under_jit()
+    eager = not traced(values)
     if 0 < n <= FORWARD_MAX_INPUTS and eager:
         program = _exportable(_flat_jacfwd, engine)
         out, jac = run_program(
@@ -266,7 +266,7 @@ def _primal(engine: BatchedSolve, leaves):
     """The solve of `_reverse`'s forward pass. With concrete inputs (an eager `jax.grad`: no
     `vmap` or `jit` around) one compiled program, `_flat_primal` (`run_program`); otherwise
     the `custom_vmap` of `_dispatched`."""
-    if not has_tracer(leaves) and not under_jit():
+    if not traced(leaves):
         primal = _exportable(_flat_primal, engine)
         return run_program(f"primal:{engine.name}", primal, engine.rebuild, engine.unnamed(), leaves)
     return _dispatched(engine)(leaves)
@@ -289,7 +289,7 @@ def _reverse_bwd(engine: BatchedSolve, res, ct):
     cts = [c for k, c in zip(keep, flat_ct) if k]
     if not any(keep) or not any(perturbed):
         return ([_zero_cotangent(x) for x in leaves],)
-    if not has_tracer((leaves, cts)) and not under_jit():
+    if not traced((leaves, cts)):
         vjp = _exportable(_flat_vjp, engine)
         args = (engine.unnamed(), keep, perturbed, leaves, cts)
         return (run_program(f"vjp:{engine.name}", vjp, _keep, *args),)
@@ -346,12 +346,17 @@ def _with(leaves, perturbed, xs):
 
 
 def _selected_vjp(engine: BatchedSolve, keep, perturbed, leaves, cts):
-    """The cotangents of `leaves` for the cotangents `cts` of the kept outputs (flat layout):
-    by the VJP with respect to the perturbed leaves; zeros for the others."""
+    """The cotangents of `leaves` for the cotangents `cts` of the kept outputs (flat layout)."""
+    return _vjp(lambda lv: _selected(engine, keep, Layout.FLAT, lv), leaves, perturbed, cts, _zero_cotangent)
+
+
+def _vjp(fn, leaves, perturbed, cts, missing):
+    """The cotangents of `leaves` for the cotangents `cts` of `fn(leaves)`: by the VJP with
+    respect to the perturbed leaves (`perturbed`, over `leaves`); `missing(x)` for the others."""
     xs = [x for x, p in zip(leaves, perturbed) if p]
-    _, pull = jax.vjp(lambda xs: _selected(engine, keep, Layout.FLAT, _with(leaves, perturbed, xs)), xs)
+    _, pull = jax.vjp(lambda xs: fn(_with(leaves, perturbed, xs)), xs)
     g = iter(pull(cts)[0])
-    return [next(g) if p else _zero_cotangent(x) for x, p in zip(leaves, perturbed)]
+    return [next(g) if p else missing(x) for x, p in zip(leaves, perturbed)]
 
 
 @eager_jit
@@ -471,10 +476,7 @@ def _loop_vjp(engine: BatchedSolve, keep, perturbed, axis_size, lv_batched, ct_b
         # the vmapped solve's outputs are all batched: a cotangent shared by the batch is each trial's
         cc = [c if b else jnp.broadcast_to(x, (chunk,) + jnp.shape(x)) for c, x, b in zip(c_ch, cts, ct_batched)]
         solve = jax.vmap(batched, in_axes=(in_axes,), axis_size=chunk)
-        xs = [x for x, p in zip(full, perturbed) if p]
-        _, pull = jax.vjp(lambda xs: solve(_with(full, perturbed, xs)), xs)
-        g = iter(pull(cc)[0])
-        return [next(g) if p else None for p in perturbed]  # no float0 through the map
+        return _vjp(solve, full, perturbed, cc, lambda x: None)  # no float0 through the map
 
     xs = ([x if b else None for x, b in zip(lv_b, lv_batched)], [c if b else None for c, b in zip(ct_b, ct_batched)])
     grads = (

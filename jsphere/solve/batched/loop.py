@@ -23,7 +23,7 @@ error sums as library reductions, a dynamic-update-slice per stage). Here:
 Reverse mode: `solve` has a discrete adjoint (`jsphere.solve.batched.adjoint`), which matches
 diffrax's autodiff of per-trial solves (tests/solve/test_batched_loop.py).
 
-The same loop also runs batches with per-trial steps (`forward_per_trial`): each trial has its
+The same loop also runs batches with per-trial steps (`forward` with `per_trial`): each trial has its
 own time and step size, in lockstep, so the batch is still one vectorised loop but no trial
 depends on another.
 """
@@ -107,108 +107,38 @@ def _keep(rec, t, h, y, k, ok, max_steps):
     return Record(Y, TK, HK, stride, used + (ok & due))
 
 
-def forward(m: Method, args, batched, t0, t1, y0, ts, *, rtol, atol, max_steps, record):
-    """The integration of `solve`; with `record`, also what its backward pass needs: the
-    accepted steps' `(t_k, h_k)`, the states at every `stride`-th of them (`checkpoints`),
-    and for each save time the index of the step that saved it (-1: none)."""
+def forward(m: Method, args, batched, t0, t1, y0, ts, *, rtol, atol, max_steps, record=False, per_trial=False):
+    """The integration of `solve`: one step sequence for the batch, or with `per_trial` one of
+    each trial's own, taken in lockstep (every trial has its own time, step size, error norm
+    and acceptance, so its result does not depend on the other trials, while the batch still
+    runs as one vectorised loop; a trial that is done or failed takes steps of size zero). A
+    failure (`max_steps` iterations, or a step size that collapsed, e.g. a state turned
+    non-finite) is then per trial too: that trial is frozen, the others go on.
+
+    Returns `(ys, failed, accepted)` (per trial with `per_trial`) and `(at, rec, n)`: with
+    `record`, what the backward pass needs: the recorded steps' `(t_k, h_k)` (shared: the
+    accepted steps; per trial: every iteration, with each trial's *effective* step size, zero
+    where it rejected its step, was done or had failed: its adjoint is then the identity), the
+    states at every `stride`-th of them (`checkpoints`), for each save time (and trial) the
+    index of the step that saved it (-1: none), and `n` the number of recorded steps."""
     dtype = y0.dtype
     n, B = y0.shape
     T = ts.shape[0]
-
-    f0 = m.rates(t0, y0, args, batched)
-    live = jnp.all(jnp.isfinite(y0), axis=0) & jnp.all(jnp.isfinite(f0), axis=0)  # controlled trials
-
-    def rms(x):  # the largest per-trial RMS norm over the controlled trials
-        return jnp.sqrt(jnp.max(jnp.where(live, mean_sq_rows(x), 0.0)))
-
-    h_init = _initial_step(m, args, batched, t0, y0, f0, rms, rtol=rtol, atol=atol)
-
-    def save(t, h, y, y1, K, ys, j, at, k):
-        """Dense output at the save times in `(t, t + h]` (step `k`)."""
-
-        def more(c):
-            return (c[1] < T) & (ts[jnp.minimum(c[1], T - 1)] <= t + h)
-
-        def one(c):
-            ys, j, at = c
-            return ys.at[j].set(m.dense(t, h, y, y1, K, ts[j])), j + 1, at.at[j].set(k)
-
-        return jax.lax.while_loop(more, one, (ys, j, at))
-
-    def running(carry):
-        t, _, _, _, _, _, _, _, _, steps, bad, _ = carry
-        return (t < t1) & (steps < max_steps) & ~bad
-
-    def step(carry):
-        t, h, y, k0, K, ys, j, at, accepted, steps, bad, rec = carry
-        h = jnp.minimum(h, t1 - t)
-        y1, K = m.stages(t, h, y, K.at[0].set(h * k0), args, batched)
-        ok, factor = _control(m.tab, K, y, y1, rms, rtol=rtol, atol=atol)
-        t_next = jnp.where(ok, jnp.where(h >= t1 - t, t1, t + h), t)
-        if T:
-            due = ok & (j < T) & (ts[jnp.minimum(j, T - 1)] <= t_next)
-            ys, j, at = jax.lax.cond(due, lambda: save(t, h, y, y1, K, ys, j, at, accepted), lambda: (ys, j, at))
-        if record:
-            rec = _keep(rec, t, h, y, accepted, ok, max_steps)
-        h_next = (h * factor).astype(dtype)
-        bad = (t_next < t1) & ~(h_next > 10 * jnp.finfo(dtype).eps * jnp.maximum(jnp.abs(t_next), 1.0))
-        y = jnp.where(ok, y1, y)
-        k0 = jnp.where(ok, K[-1] / h, k0)
-        return t_next, h_next, y, k0, K, ys, j, at, accepted + ok, steps + 1, bad, rec
-
-    ys = jnp.where((ts <= t0)[:, None, None], y0[None], jnp.full((T, n, B), jnp.nan, dtype))
-    j = jnp.sum(ts <= t0).astype(jnp.int32)
-    at = jnp.full((T,), -1, jnp.int32)
-    rec = _record_buffers(max_steps, n, B, dtype, ()) if record else ()
-    K = jnp.zeros((m.s, n, B), dtype)
-    init = (t0, h_init, y0, f0, K, ys, j, at, jnp.int32(0), jnp.int32(0), jnp.bool_(False), rec)
-    t, _, y, _, _, ys, _, at, accepted, _, bad, rec = jax.lax.while_loop(running, step, init)
-    failed = bad | (t < t1)
-    return (jnp.concatenate([ys, y[None]]), failed, accepted), (at, rec)
-
-
-def forward_per_trial(m: Method, args, batched, t0, t1, y0, ts, *, rtol, atol, max_steps, record=False):
-    """`forward` with a step sequence of each trial's own, taken in lockstep: every trial has
-    its own time, step size, error norm and acceptance, so its result does not depend on the
-    other trials of the batch (the arithmetic is elementwise over trials), while the whole batch
-    still runs as one vectorised loop. The loop ends when every trial has reached `t1` or
-    failed; a trial that is done takes steps of size zero (no change). A failure (`max_steps`
-    attempts, or a step size that collapsed, e.g. a state turned non-finite) is per trial too:
-    that trial is frozen, the others go on.
-
-    Returns `(ys, failed, accepted)` with `failed` and `accepted` per trial, and with `record`
-    what the backward pass needs: every iteration `k` is recorded with each trial's time and
-    *effective* step size (zero where the trial rejected its step, was done or had failed:
-    then the iteration leaves it unchanged, and its adjoint is the identity), the states at
-    every `stride`-th iteration, for each save time and trial the iteration that saved it, and
-    the number of iterations."""
-    dtype = y0.dtype
-    n, B = y0.shape
-    T = ts.shape[0]
-    tv0 = jnp.full((B,), t0, dtype)
-
-    def rms(x):  # each trial's RMS norm
-        return jnp.sqrt(mean_sq_rows(x))
-
+    per = (B,) if per_trial else ()
+    tv0 = jnp.full(per, t0, dtype)
     f0 = m.rates(tv0, y0, args, batched)
-    h_init = _initial_step(m, args, batched, tv0, y0, f0, rms, rtol=rtol, atol=atol, finite=True)
-    trials = jnp.arange(B)
+    if per_trial:
 
-    def save(t, h, y, y1, K, ys, j, at, ok, k):
-        """Dense output at each trial's save times in `(t, t + h]` (accepted steps only)."""
+        def rms(x):  # each trial's RMS norm
+            return jnp.sqrt(mean_sq_rows(x))
+    else:
+        live = jnp.all(jnp.isfinite(y0), axis=0) & jnp.all(jnp.isfinite(f0), axis=0)  # controlled trials
 
-        def due(j):
-            return ok & (j < T) & (ts[jnp.minimum(j, T - 1)] <= t + h)
+        def rms(x):  # the largest per-trial RMS norm over the controlled trials
+            return jnp.sqrt(jnp.max(jnp.where(live, mean_sq_rows(x), 0.0)))
 
-        def one(c):
-            ys, j, at = c
-            d = due(j)
-            jj = jnp.minimum(j, T - 1)
-            val = m.dense(t, h, y, y1, K, ts[jj])
-            ys = ys.at[jj, :, trials].set(jnp.where(d[:, None], val.T, ys[jj, :, trials]))
-            return ys, j + d, at.at[jj, trials].set(jnp.where(d, k, at[jj, trials]))
-
-        return jax.lax.while_loop(lambda c: jnp.any(due(c[1])), one, (ys, j, at))
+    h_init = _initial_step(m, args, batched, tv0, y0, f0, rms, rtol=rtol, atol=atol, finite=per_trial)
+    save = _save_per_trial if per_trial else _save_shared
 
     def running(c):
         t, steps, dead = c[0], c[8], c[9]
@@ -216,29 +146,65 @@ def forward_per_trial(m: Method, args, batched, t0, t1, y0, ts, *, rtol, atol, m
 
     def step(c):
         t, h, y, k0, K, ys, j, at, steps, dead, acc, rec = c
-        h = jnp.where(dead, 0.0, jnp.minimum(h, t1 - t)).astype(dtype)
+        h = jnp.where(dead, 0.0, jnp.minimum(h, t1 - t)).astype(dtype) if per_trial else jnp.minimum(h, t1 - t)
         y1, K = m.stages(t, h, y, K.at[0].set(h * k0), args, batched)
-        ok, factor = _control(m.tab, K, y, y1, rms, rtol=rtol, atol=atol, skip=dead)
+        ok, factor = _control(m.tab, K, y, y1, rms, rtol=rtol, atol=atol, skip=dead if per_trial else None)
         t_next = jnp.where(ok, jnp.where(h >= t1 - t, t1, t + h), t)
         moved = ok & (h > 0)
         if T:
-            ys, j, at = save(t, h, y, y1, K, ys, j, at, moved, steps)
-        if record:  # every iteration, with the step size that moved each trial
+            ys, j, at = save(m, ts, t, h, t_next, y, y1, K, ys, j, at, moved, steps if per_trial else acc)
+        if record and per_trial:  # every iteration, with the step size that moved each trial
             rec = _keep(rec, t, jnp.where(moved, h, 0.0), y, steps, True, max_steps)
+        elif record:
+            rec = _keep(rec, t, h, y, acc, ok, max_steps)
         h_next = (h * factor).astype(dtype)
         collapsed = (t_next < t1) & ~(h_next > 10 * jnp.finfo(dtype).eps * jnp.maximum(jnp.abs(t_next), 1.0))
         y = jnp.where(ok, y1, y)
-        k0 = jnp.where(moved, K[-1] / jnp.where(h > 0, h, 1.0), k0)
+        k0 = jnp.where(moved, K[-1] / jnp.where(h > 0, h, 1.0), k0) if per_trial else jnp.where(ok, K[-1] / h, k0)
         return t_next, h_next, y, k0, K, ys, j, at, steps + 1, dead | collapsed, acc + moved, rec
 
     ys = jnp.where((ts <= t0)[:, None, None], y0[None], jnp.full((T, n, B), jnp.nan, dtype))
-    j = jnp.full((B,), jnp.sum(ts <= t0), jnp.int32)
-    at = jnp.full((T, B), -1, jnp.int32)
-    rec = _record_buffers(max_steps, n, B, dtype, (B,)) if record else ()
+    j = jnp.full(per, jnp.sum(ts <= t0), jnp.int32)
+    at = jnp.full((T,) + per, -1, jnp.int32)
+    rec = _record_buffers(max_steps, n, B, dtype, per) if record else ()
     K = jnp.zeros((m.s, n, B), dtype)
-    init = (tv0, h_init, y0, f0, K, ys, j, at, jnp.int32(0), jnp.zeros((B,), bool), jnp.zeros((B,), jnp.int32), rec)
+    init = (tv0, h_init, y0, f0, K, ys, j, at, jnp.int32(0), jnp.zeros(per, bool), jnp.zeros(per, jnp.int32), rec)
     t, _, y, _, _, ys, _, at, steps, dead, acc, rec = jax.lax.while_loop(running, step, init)
-    return (jnp.concatenate([ys, y[None]]), dead | (t < t1), acc), (at, rec, steps)
+    return (jnp.concatenate([ys, y[None]]), dead | (t < t1), acc), (at, rec, steps if per_trial else acc)
+
+
+def _save_shared(m: Method, ts, t, h, t_next, y, y1, K, ys, j, at, ok, k):
+    """Dense output at the save times in `(t, t + h]` of the accepted shared step `k`."""
+    T = ts.shape[0]
+
+    def more(c):
+        return (c[1] < T) & (ts[jnp.minimum(c[1], T - 1)] <= t + h)
+
+    def one(c):
+        ys, j, at = c
+        return ys.at[j].set(m.dense(t, h, y, y1, K, ts[j])), j + 1, at.at[j].set(k)
+
+    due = ok & (j < T) & (ts[jnp.minimum(j, T - 1)] <= t_next)
+    return jax.lax.cond(due, lambda: jax.lax.while_loop(more, one, (ys, j, at)), lambda: (ys, j, at))
+
+
+def _save_per_trial(m: Method, ts, t, h, t_next, y, y1, K, ys, j, at, ok, k):
+    """Dense output at each trial's save times in `(t, t + h]` (its accepted steps only)."""
+    T = ts.shape[0]
+    trials = jnp.arange(y.shape[1])
+
+    def due(j):
+        return ok & (j < T) & (ts[jnp.minimum(j, T - 1)] <= t + h)
+
+    def one(c):
+        ys, j, at = c
+        d = due(j)
+        jj = jnp.minimum(j, T - 1)
+        val = m.dense(t, h, y, y1, K, ts[jj])
+        ys = ys.at[jj, :, trials].set(jnp.where(d[:, None], val.T, ys[jj, :, trials]))
+        return ys, j + d, at.at[jj, trials].set(jnp.where(d, k, at[jj, trials]))
+
+    return jax.lax.while_loop(lambda c: jnp.any(due(c[1])), one, (ys, j, at))
 
 
 class _Residuals(eqx.Module):
@@ -272,22 +238,18 @@ class _Passes:
         whether the shared solve failed and `out` is the per-trial solve's (its record is
         then recomputed by the backward pass)."""
         m, batched, opts = self.m, self.batched, self.opts
-        if self.per_trial:
-            out, (at, rec, n) = forward_per_trial(m, args, batched, t0, t1, y0, ts, record=record, **opts)
+        out, (at, rec, n) = forward(m, args, batched, t0, t1, y0, ts, record=record, per_trial=self.per_trial, **opts)
+        if self.per_trial or not self.fallback:
             return out, (at, rec, n, jnp.bool_(False))
-        out, (at, rec) = forward(m, args, batched, t0, t1, y0, ts, record=record, **opts)
-        if not self.fallback:
-            return out, (at, rec, out[2], jnp.bool_(False))
         B = y0.shape[1]
-        fell_back = out[1]
 
         def per_trial_solve():
-            return forward_per_trial(m, args, batched, t0, t1, y0, ts, **opts)[0]
+            return forward(m, args, batched, t0, t1, y0, ts, per_trial=True, **opts)[0]
 
         def shared_solve():
             return out[0], jnp.broadcast_to(out[1], (B,)), jnp.broadcast_to(out[2], (B,)).astype(jnp.int32)
 
-        return jax.lax.cond(fell_back, per_trial_solve, shared_solve), (at, rec, out[2], fell_back)
+        return jax.lax.cond(out[1], per_trial_solve, shared_solve), (at, rec, n, out[1])
 
     def fwd(self, t0, t1, ts, y0, args):
         times = any(x.perturbed for x in (t0, t1, ts))
@@ -311,8 +273,8 @@ class _Passes:
             return backward(*common, res.out, res.at, res.rec, ct, **kw)
 
         def per_trial_adjoint():  # the per-trial solve that `run` kept, with its record
-            out_p, (at_p, rec_p, n_p) = forward_per_trial(
-                m, res.args, batched, res.t0, res.t1, res.y0, res.ts, record=True, **self.opts
+            out_p, (at_p, rec_p, n_p) = forward(
+                m, res.args, batched, res.t0, res.t1, res.y0, res.ts, record=True, per_trial=True, **self.opts
             )
             return backward(*common, (out_p[0], out_p[1], n_p), at_p, rec_p, ct, **kw)
 
@@ -359,7 +321,7 @@ def solve(
     rows never reached are NaN.
 
     With `per_trial`, each trial (column) takes its own steps instead, in lockstep
-    (`forward_per_trial`): `failed` and the step counts are then per trial, and the discrete
+    (`forward` with `per_trial`): `failed` and the step counts are then per trial, and the discrete
     adjoint runs the recorded iterations backwards with each trial's own step sizes (a
     rejected, finished or failed trial's iteration is the identity).
 

@@ -250,7 +250,7 @@ class _Segment(eqx.Module):
 
 
 def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_save, layout: Layout):
-    """One segment of `jsphere.solve.simulate.solve_segments` in a batch layout
+    """One segment of `jsphere.solve.segments.solve_segments` in a batch layout
     (`layout.batch_solve`): `diffeqsolve(field)` of the component tuple `y0` from
     `args.t_start` to `args.t_end` (`args` a `jsphere.solve.field_args.FieldArgs`), saving at
     `t_save` and `t1`.
@@ -261,7 +261,7 @@ def solve(field, control, solver, rtol, atol, max_steps, adjoint, y0, args, t_sa
     Unbatched, this is diffrax's solve. Batched (under `vmap`): with `Layout.SHARED_STEPS` the
     trials share one step sequence (module docstring); with `Layout.PER_TRIAL_STEPS` (a
     solver of `jsphere.solve.batched.method.SUPPORTED`) each trial takes its own steps, in
-    lockstep (`jsphere.solve.batched.loop.forward_per_trial`, with its own discrete adjoint),
+    lockstep (`jsphere.solve.batched.loop.forward`, `per_trial`, with its own discrete adjoint),
     and `failed` and the step counts are per trial. With `Layout.SHARED_STEPS_RETRY`, a batch
     whose shared step sequence fails (one trial needs more than `max_steps` steps, or
     diverges) is solved again with per-trial steps, so that the failing trial fails alone and
