@@ -119,11 +119,16 @@ def sample_times(duration: float, rate: float) -> np.ndarray:
 _values = jax.jit(lambda prog, ts: jax.vmap(prog)(ts))
 
 
+def values_at(prog: Programme, t: np.ndarray) -> np.ndarray:
+    """A programme's values `(R, N)` at the times `t`."""
+    return np.asarray(_values(prog, jnp.asarray(t, prog.coef.dtype)))
+
+
 def table(prog: Programme, rate: float) -> tuple[np.ndarray, np.ndarray]:
     """`(t (R,), values (R, N))`: the programme at `rate` rows per second from 0 to its duration
     (an inputs table; the first and last rows are 0)."""
     t = sample_times(prog.duration, rate)
-    return t, np.asarray(_values(prog, jnp.asarray(t, prog.coef.dtype)))
+    return t, values_at(prog, t)
 
 
 def rms(values: np.ndarray) -> float:

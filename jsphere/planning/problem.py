@@ -115,6 +115,14 @@ class PlanOptions:
 MAX_ROWS = 10_000_000
 
 
+def check_target(where: str, to) -> tuple:
+    """`to` if it is one target `(x, y)`, else `InputError` (its numbers are checked by
+    `_check_request`)."""
+    if isinstance(to, (str, bytes)) or not isinstance(to, (Sequence, np.ndarray)) or len(to) != 2:
+        raise InputError(f"{where}: to must be the target (x, y) in m; got {to!r}.")
+    return to[0], to[1]
+
+
 def _check_request(where: str, targets, limits, objective, settings, o: PlanOptions, nan_free=True) -> list:
     """Check a planning request before any work; return the targets as lists.
     Raises `InputError` naming the value: targets `(x, y)` or `(x, y, psi)` with finite
