@@ -115,6 +115,18 @@ def _replay_batch(samples: RobotParams, ts, table, mode: str, grid):
     return jax.vmap(one)(samples)
 
 
+def in_batches(fn, batch: int, samples: RobotParams, *per_sample) -> list[np.ndarray]:
+    """`fn(part, *parts)` on consecutive slices of `batch` parameter sets of `samples` (stacked
+    `RobotParams`) and of the arrays `per_sample` (one row per set); its outputs (a tuple of
+    arrays, one row per set) joined as numpy arrays."""
+    n = int(np.shape(samples.R0)[0])
+    outs = []
+    for a in range(0, n, batch):
+        cut = lambda v, a=a: v[a : a + batch]
+        outs.append(fn(jax.tree_util.tree_map(cut, samples), *map(cut, per_sample)))
+    return [np.concatenate([np.asarray(o[i]) for o in outs]) for i in range(len(outs[0]))]
+
+
 def miss_distribution(
     plan_: Plan, samples: RobotParams, *, mode: str = "wheel_speeds", batch: int = 512
 ) -> dict[str, np.ndarray]:
@@ -125,21 +137,10 @@ def miss_distribution(
     (`R0 |Omega x gamma|` at the end) and `final_xy (n, 2)`."""
     if mode not in MODES:
         raise InputError(f"miss_distribution: mode must be one of {MODES}; got {mode!r}.")
-    cols = plan_.table()
-    N = plan_.params.n_wheels
-    key = "chi_dot" if mode == "wheel_speeds" else "K"
-    ts = cols["t"]
-    table = np.stack([cols[f"{key}_{i + 1}"] for i in range(N)], axis=1)
-    n = int(np.shape(samples.R0)[0])
+    ts = np.asarray(plan_.trajectory.ts)
+    table = plan_.commanded("chi_dot" if mode == "wheel_speeds" else "K")
     grid = _replay_grid(ts)
-    xs, ys, vs = [], [], []
-    for a in range(0, n, batch):
-        part = jax.tree_util.tree_map(lambda v, a=a: v[a : a + batch], samples)
-        x, y, v = _replay_batch(part, ts, table, mode, grid)
-        xs.append(np.asarray(x))
-        ys.append(np.asarray(y))
-        vs.append(np.asarray(v))
-    x, y, v = np.concatenate(xs), np.concatenate(ys), np.concatenate(vs)
+    x, y, v = in_batches(lambda part: _replay_batch(part, ts, table, mode, grid), batch, samples)
     tg = plan_.target
     return {"miss_m": np.hypot(x - tg[0], y - tg[1]), "speed_m_s": v, "final_xy": np.stack([x, y], axis=1)}
 
