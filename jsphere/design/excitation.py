@@ -209,7 +209,7 @@ class _Candidate:
 def _candidate(pr, lim: Limits, z, rate: float) -> _Candidate:
     """The `_Candidate` of the coefficients `z`."""
     tables = [table(p, rate) for p in programmes(jnp.asarray(z), pr.spec)]
-    _, phi, _, ext = evaluate(jnp.asarray(z), pr, lim)
+    _, (phi, _, ext) = evaluate(jnp.asarray(z), pr, lim)
     u = rms(np.concatenate([u for _, u in tables]))
     return _Candidate(z, tables, u, limit_values(pr, ext, tables, lim), float(phi))
 

@@ -98,9 +98,7 @@ def coefficients(z: Float[Array, " V"], spec: Spec) -> Float[Array, "M N F2"]:
 
 def programmes(z: Float[Array, " V"], spec: Spec) -> list[Programme]:
     """The M programmes of `z`."""
-    c = coefficients(z, spec)
-    f = jnp.asarray(spec.freqs, z.dtype)
-    return [Programme(c[k], f, spec.limit, spec.duration, spec.ramp) for k in range(spec.trials)]
+    return [programme(c, spec) for c in coefficients(z, spec)]
 
 
 def programme(c: Float[Array, "N F2"], spec: Spec) -> Programme:
