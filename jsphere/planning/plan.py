@@ -178,12 +178,7 @@ def plan_route(
 
 def _route(where, params, waypoints, limits, objective, settings, o: PlanOptions, allow_infeasible, progress, options):
     """`plan_route`'s work; `where` names the caller in messages."""
-    if isinstance(waypoints, (str, bytes)) or not isinstance(waypoints, Sequence) or not len(waypoints):
-        raise InputError(
-            f"{where}: waypoints must be a non-empty list of (x, y) or (x, y, heading); got {waypoints!r}."
-        )
-    wps = [tuple(w) if isinstance(w, (Sequence, np.ndarray)) else w for w in waypoints]
-    _check_request(where, wps, limits, objective, settings, o, nan_free=False)
+    _check_request(where, waypoints, limits, objective, settings, o, nan_free=False, noun="waypoints")
     poses, local, pose = _legs(waypoints)
     legs = plan_batch(where, params, local, limits, objective, settings, o, progress, options)
     tr, t_off, shortfall = _joined(legs, poses)
