@@ -141,12 +141,14 @@ def replay_errors(plan_: Plan, *, mode: str = "torques", options: SolverOptions 
     `throw`, `adjoint` and `batch_steps` set are errors."""
     opts = solver_options(verification_options("replay_errors", options), where="replay_errors")
     opts = opts.or_defaults(max_steps=REPLAY_MAX_STEPS)
-    p, ref = plan_.params, plan_.trajectory
-    ts = np.asarray(ref.ts)
+    cols = plan_.table()
+    p = plan_.params
+    N = p.n_wheels
+    ts = cols["t"]
     if mode == "torques":
-        ctrl = Torques.from_samples(ts, plan_.commanded("K"))
+        ctrl = Torques.from_samples(ts, np.stack([cols[f"K_{i + 1}"] for i in range(N)], 1))
     elif mode == "wheel_speeds":
-        ctrl = WheelSpeeds.from_samples(ts, plan_.commanded("chi_dot"))
+        ctrl = WheelSpeeds.from_samples(ts, np.stack([cols[f"chi_dot_{i + 1}"] for i in range(N)], 1))
     else:
         raise ValueError(f"replay_errors: mode must be 'torques' or 'wheel_speeds'; got {mode!r}.")
     tr = simulate(p, State.at_rest(p), ctrl, float(ts[-1]), ts=ts, options=opts)
@@ -154,7 +156,7 @@ def replay_errors(plan_: Plan, *, mode: str = "torques", options: SolverOptions 
     return {
         "final_xy": [x, y],
         "target_error_m": math.hypot(x - plan_.target[0], y - plan_.target[1]),
-        "path_deviation_m": float(np.max(np.hypot(np.asarray(tr.x - ref.x), np.asarray(tr.y - ref.y)))),
+        "path_deviation_m": float(np.max(np.hypot(np.asarray(tr.x) - cols["x"], np.asarray(tr.y) - cols["y"]))),
         "final_speed_m_s": float(p.R0)
         * float(np.linalg.norm(np.cross(np.asarray(tr.Omega[-1]), np.asarray(tr.gamma[-1])))),
         "trajectory": tr,
