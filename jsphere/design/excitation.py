@@ -19,7 +19,18 @@ from ..identify.free import FreeParams
 from ..model.limits import Limits
 from ..model.params import RobotParams
 from .information import Grid, Noise, problem
-from .inputs import KINDS, Spec, match_rms, programmes, random_multisine, random_start, rms, sample_times, table
+from .inputs import (
+    KINDS,
+    Spec,
+    match_rms,
+    programmes,
+    random_multisine,
+    random_start,
+    rms,
+    sample_times,
+    table,
+    values_at,
+)
 from .optimise import evaluate, limit_values, limits_report, maximise
 from .prediction import d_criterion, fit_information
 from .result import CRITERION, DesignResult
@@ -102,80 +113,115 @@ def design_excitation(
     no_other_keywords("design_excitation", kwargs)
     t_begin = time.perf_counter()
     prog = Progress(progress)
-    spec, lim, noise, grid = _checked(params, duration, kind, limits, o)
-    fp, restarts, steps, seed = _checked_run(params, free, duration, o)
-    rate, capture_rate = o.rate, o.capture_rate
-    pr = problem(params, fp, spec, noise, grid)
+    spec, lim, o = _checked(params, duration, kind, limits, o)
+    fp = _free(params, free)
+    pr = problem(params, fp, spec, Noise(o.sigma_pos, o.sigma_rot), Grid(o.model_rate, o.substeps))
     prog.say(
         f"design: {o.trials} trial(s) of {duration:g} s ({spec.trial_kind}), {fp.size} free parameters, "
-        f"{spec.size} coefficients, {restarts} restart(s) x {steps} Adam steps"
+        f"{spec.size} coefficients, {o.restarts} restart(s) x {o.steps} Adam steps"
     )
-    start_obj, zb, obj, phi, pen = _optimise(prog, pr, lim, fp, restarts, steps, seed, o.learning_rate)
+    start_obj, zb, obj, phi, pen = _optimise(prog, pr, lim, fp, o)
     b = int(np.nanargmax(np.where(np.isfinite(obj), obj, -np.inf)))
-    z = zb[b]
-    tables = _tables(z, spec, rate)
-    design_rms = rms(np.concatenate([u for _, u in tables]))
-    _, _, _, ext = evaluate(jnp.asarray(z), pr, lim)
-    design_limits = limit_values(pr, ext, tables, lim)
+    # the model criterion of the search's best point, as the search computed it
+    design = dataclasses.replace(_candidate(pr, lim, zb[b], o.rate), phi=float(phi[b]))
     prog.say("design: the baseline (random multisines of the same RMS amplitude within the same limits) ...")
-    z_base, base_limits, phi_base, equal = _baseline(pr, lim, design_rms, design_limits, rate, seed)
-    base_tables = _tables(z_base, spec, rate)
+    base, equal = _baseline(pr, lim, design, o.rate, o.seed)
     prog.say("design: standard errors of the design and the baseline (the fit's Jacobian) ...")
-    t_cap = sample_times(duration, capture_rate)
-    cap = lambda zz: [table_at(p, t_cap) for p in programmes(jnp.asarray(zz), spec)]
-    info = lambda zz: fit_information(params, fp, spec.trial_kind, t_cap, cap(zz), o.sigma_pos, o.sigma_rot)
+    result = _result(pr, o, design, base, equal, (start_obj, obj, phi, pen))
+    result.elapsed_s = time.perf_counter() - t_begin
+    return result
+
+
+def _result(pr, o: DesignOptions, design: _Candidate, base: _Candidate, equal, search) -> DesignResult:
+    """The `DesignResult` of the best start's `design` and the `base`line (`equal`: see
+    `_baseline`): their predicted standard errors from the fit's Jacobian at the capture rate
+    (`fit_information`), criteria and limits; `search`: the starts' objectives at the start and
+    the end, their model criteria and penalties (`maximise`)."""
+    fp, spec = pr.free, pr.spec
+    start_obj, obj, phi, pen = search
+    t_cap = sample_times(spec.duration, o.capture_rate)
+
+    def info(z):
+        tables = [values_at(p, t_cap) for p in programmes(jnp.asarray(z), spec)]
+        return fit_information(pr.base, fp, spec.trial_kind, t_cap, tables, o.sigma_pos, o.sigma_rot)
+
     named = lambda v: {n: float(x) for n, x in zip(fp.names, v)}
-    values, F_d, _, se_d, ext_d = info(z)
-    _, F_b, _, se_b, ext_b = info(z_base)
+    values, F_d, _, se_d, ext_d = info(design.z)
+    _, F_b, _, se_b, ext_b = info(base.z)
     return DesignResult(
-        kind=kind,
+        kind=spec.kind,
         free=list(fp.names),
         values=named(values),
-        duration=float(duration),
-        rate=float(rate),
-        tables=tables,
-        baseline_tables=base_tables,
+        duration=float(spec.duration),
+        rate=float(o.rate),
+        tables=design.tables,
+        baseline_tables=base.tables,
         criterion={"design": d_criterion(fp, values, F_d), "baseline": d_criterion(fp, values, F_b)},
-        criterion_model={"design": float(phi[b]), "baseline": phi_base},
+        criterion_model={"design": design.phi, "baseline": base.phi},
         stderr_predicted=named(se_d),
         stderr_predicted_baseline=named(se_b),
-        rms={"design": design_rms, "baseline": rms(np.concatenate([u for _, u in base_tables]))},
-        limits=limits_report(_accurate(kind, design_limits, ext_d)),
-        limits_baseline=limits_report(_accurate(kind, base_limits, ext_b)),
-        limits_model=limits_report(design_limits),
-        baseline_equal_rms=None if equal is None else _equal_rms(fp, values, info, equal, design_rms),
+        rms={"design": design.rms, "baseline": base.rms},
+        limits=limits_report(_accurate(spec.kind, design.limits, ext_d)),
+        limits_baseline=limits_report(_accurate(spec.kind, base.limits, ext_b)),
+        limits_model=limits_report(design.limits),
+        baseline_equal_rms=None if equal is None else _equal_rms(fp, values, info, equal, design.rms),
         restarts=[
             {"start": float(s), "final": float(f), "penalty": float(p), "criterion": float(c)}
             for s, f, p, c in zip(start_obj, obj, pen, phi)
         ],
-        settings={
-            "trials": o.trials,
-            "n_freqs": o.n_freqs,
-            "f_max_hz": o.f_max,
-            "ramp_s": o.ramp,
-            "limit": spec.limit,
-            "sigma_pos_m": o.sigma_pos,
-            "sigma_rot_deg": math.degrees(o.sigma_rot),
-            "restarts": restarts,
-            "steps": steps,
-            "seed": seed,
-            "learning_rate": o.learning_rate,
-            "model_rate_hz": grid.rate,
-            "substeps": grid.substeps,
-            "capture_rate_hz": capture_rate,
-        },
-        elapsed_s=time.perf_counter() - t_begin,
+        settings=_settings(o, spec),
+        elapsed_s=0.0,
     )
 
 
-def _optimise(prog: Progress, pr, lim: Limits, fp: FreeParams, restarts: int, steps: int, seed: int, learning_rate):
-    """Adam on the criterion from `restarts` random starts (vmapped; `seed`), with a progress bar
-    on `prog`. Returns the starts' objectives and each start's final coefficients, objective,
+def _settings(o: DesignOptions, spec: Spec) -> dict:
+    """The `settings` of a `DesignResult` (its JSON names)."""
+    return {
+        "trials": o.trials,
+        "n_freqs": o.n_freqs,
+        "f_max_hz": o.f_max,
+        "ramp_s": o.ramp,
+        "limit": spec.limit,
+        "sigma_pos_m": o.sigma_pos,
+        "sigma_rot_deg": math.degrees(o.sigma_rot),
+        "restarts": o.restarts,
+        "steps": o.steps,
+        "seed": o.seed,
+        "learning_rate": o.learning_rate,
+        "model_rate_hz": o.model_rate,
+        "substeps": o.substeps,
+        "capture_rate_hz": o.capture_rate,
+    }
+
+
+@dataclasses.dataclass(frozen=True)
+class _Candidate:
+    """Coefficients `z`, their tables at the row rate, RMS amplitude, `limit_values` and model
+    criterion `phi`."""
+
+    z: np.ndarray
+    tables: list
+    rms: float
+    limits: list
+    phi: float
+
+
+def _candidate(pr, lim: Limits, z, rate: float) -> _Candidate:
+    """The `_Candidate` of the coefficients `z`."""
+    tables = [table(p, rate) for p in programmes(jnp.asarray(z), pr.spec)]
+    _, (phi, _, ext) = evaluate(jnp.asarray(z), pr, lim)
+    u = rms(np.concatenate([u for _, u in tables]))
+    return _Candidate(z, tables, u, limit_values(pr, ext, tables, lim), float(phi))
+
+
+def _optimise(prog: Progress, pr, lim: Limits, fp: FreeParams, o: DesignOptions):
+    """Adam on the criterion from `o.restarts` random starts (vmapped; `o.seed`), with a progress
+    bar on `prog`. Returns the starts' objectives and each start's final coefficients, objective,
     model criterion and penalty; raises `SolverFailure` where the model of every start fails."""
-    spec, grid = pr.spec, pr.grid
-    rng = np.random.default_rng(seed)
-    z0s = np.stack([random_start(spec, rng, START_SCALE) for _ in range(restarts)])
-    key = repr((spec, fp.names, grid.rate, grid.substeps, restarts))
+    spec, grid, steps = pr.spec, pr.grid, o.steps
+    rng = np.random.default_rng(o.seed)
+    z0s = np.stack([random_start(spec, rng, START_SCALE) for _ in range(o.restarts)])
+    key = repr((spec, fp.names, grid.rate, grid.substeps, o.restarts))
     with prog.bar(steps + 1, "design: Adam", "step") as bar:
 
         def on_step(k, obj, phi, pen):
@@ -190,84 +236,49 @@ def _optimise(prog: Progress, pr, lim: Limits, fp: FreeParams, restarts: int, st
         with prog.compiling("design", key, "design: the criterion's gradient"):
             zb, obj, phi, pen = maximise(z0s, pr, lim, steps=0)
         start_obj = obj.copy()
-        zb, obj, phi, pen = maximise(zb, pr, lim, steps=steps, learning_rate=learning_rate, on_step=on_step)
+        zb, obj, phi, pen = maximise(zb, pr, lim, steps=steps, learning_rate=o.learning_rate, on_step=on_step)
     if not np.isfinite(obj).any():
         raise SolverFailure("design: the model of every restart failed (non-finite criterion); try smaller limits.")
     return start_obj, zb, obj, phi, pen
 
 
-def _checked_run(params, free, duration, o: DesignOptions):
-    """The `FreeParams` and the checked `restarts`, `steps` and `seed` of a request (its learning
-    rate and rates checked too); `InputError` naming a bad value."""
-    restarts = whole("design_excitation", "restarts", o.restarts, 1)
-    steps = whole("design_excitation", "steps", o.steps, 0)
-    seed = whole("design_excitation", "seed", o.seed, 0)
-    real("design_excitation", "learning_rate", o.learning_rate, strict=True)
-    real("design_excitation", "rate", o.rate, strict=True, unit="Hz")
-    real("design_excitation", "capture_rate", o.capture_rate, strict=True, unit="Hz")
-    if o.capture_rate * duration < 4:
-        raise InputError(
-            "design_excitation: capture_rate x duration must give at least 4 samples; "
-            f"got {o.capture_rate * duration:g}."
-        )
-    try:
-        return FreeParams(params, free), restarts, steps, seed
-    except ValueError as e:
-        raise InputError(f"--free {free}: {e}") from None
-
-
-def _equal_rms(fp: FreeParams, values, info: Callable, equal, design_rms: float) -> dict:
-    """The report of the multisine at the design's RMS amplitude, which breaks a limit (`equal`:
-    its coefficients, `limit_values` and model criterion; `info`: `fit_information` of
-    coefficients): for reference."""
-    _, F_e, _, se_e, _ = info(equal[0])
+def _equal_rms(fp: FreeParams, values, info: Callable, equal: _Candidate, design_rms: float) -> dict:
+    """The report of the multisine at the design's RMS amplitude, which breaks a limit (`equal`;
+    `info`: `fit_information` of coefficients): for reference."""
+    _, F_e, _, se_e, _ = info(equal.z)
     return {
         "rms": design_rms,
         "criterion": d_criterion(fp, values, F_e),
-        "criterion_model": equal[2],
+        "criterion_model": equal.phi,
         "stderr_predicted": {n: float(s) for n, s in zip(fp.names, se_e)},
-        "limits": limits_report(equal[1]),
+        "limits": limits_report(equal.limits),
     }
 
 
-def _tables(z, spec: Spec, rate: float) -> list:
-    """The tables `(t, u)`, `rate` rows per second, of the programmes of the coefficients `z`."""
-    return [table(p, rate) for p in programmes(jnp.asarray(z), spec)]
-
-
-def _baseline(pr, lim: Limits, design_rms: float, design_limits, rate: float, seed: int):
+def _baseline(pr, lim: Limits, design: _Candidate, rate: float, seed: int):
     """A random multisine (`random_multisine`, seed `(seed, 1)`) of the design's RMS amplitude,
     scaled down where that breaks a limit further than the design does (each limit's allowance:
     the larger of the limit and the design's own largest value), to the largest scale that keeps
-    them (bisection). Returns its coefficients, its `limit_values` and its model criterion, and
-    the same of the multisine at the design's RMS amplitude where that was scaled down (else
-    None)."""
-    spec = pr.spec
-    unit = random_multisine(spec, np.random.default_rng([seed, 1]))
-    z_rms, _ = match_rms(unit, spec, design_rms, rate)
-    allowance = [None if limit is None else max(limit, v) for _, v, limit in design_limits]
+    them (bisection). Returns its `_Candidate`, and that of the multisine at the design's RMS
+    amplitude where that was scaled down (else None)."""
+    unit = random_multisine(pr.spec, np.random.default_rng([seed, 1]))
+    z_rms, _ = match_rms(unit, pr.spec, design.rms, rate)
+    allowance = [None if limit is None else max(limit, v) for _, v, limit in design.limits]
 
-    def check(zz):
-        tables = _tables(zz, spec, rate)
-        _, phi, _, ext = evaluate(jnp.asarray(zz), pr, lim)
-        entries = limit_values(pr, ext, tables, lim)
-        ok = all(a is None or v <= a * (1 + 1e-9) for (_, v, _), a in zip(entries, allowance))
-        return ok, entries, float(phi)
+    def keeps(c: _Candidate) -> bool:
+        return all(a is None or v <= a * (1 + 1e-9) for (_, v, _), a in zip(c.limits, allowance))
 
-    ok, entries, phi = check(z_rms)
-    if ok:
-        return z_rms, entries, phi, None
-    equal = (z_rms, entries, phi)
+    full = _candidate(pr, lim, z_rms, rate)
+    if keeps(full):
+        return full, None
     lo, hi = 0.0, 1.0
     for _ in range(20):
         mid = 0.5 * (lo + hi)
-        if check(mid * z_rms)[0]:
+        if keeps(_candidate(pr, lim, mid * z_rms, rate)):
             lo = mid
         else:
             hi = mid
-    z = lo * z_rms
-    _, entries, phi = check(z)
-    return z, entries, phi, equal
+    return _candidate(pr, lim, lo * z_rms, rate), full
 
 
 def _accurate(kind: str, entries, extremes):
@@ -278,22 +289,38 @@ def _accurate(kind: str, entries, extremes):
     return [(name, swap.get(name, v), limit) for name, v, limit in entries]
 
 
-def table_at(prog, t: np.ndarray) -> np.ndarray:
-    """A programme's values `(R, N)` at the times `t`."""
-    from .inputs import _values
+def _free(params, free) -> FreeParams:
+    """The `FreeParams` of `free`; `InputError` for a bad name."""
+    try:
+        return FreeParams(params, free)
+    except ValueError as e:
+        raise InputError(f"--free {free}: {e}") from None
 
-    return np.asarray(_values(prog, jnp.asarray(t, prog.coef.dtype)))
+
+#: the fields of `DesignOptions` checked as positive numbers, with their units
+_POSITIVE = (
+    ("sigma_pos", "m"),
+    ("sigma_rot", "rad"),
+    ("f_max", "Hz"),
+    ("ramp", "s"),
+    ("model_rate", "Hz"),
+    ("learning_rate", ""),
+    ("rate", "Hz"),
+    ("capture_rate", "Hz"),
+)
+#: the whole-number fields of `DesignOptions` and their least values
+_WHOLE = (("trials", 1), ("n_freqs", 1), ("substeps", 1), ("restarts", 1), ("steps", 0), ("seed", 0))
 
 
 def _checked(params, duration, kind, limits, o: DesignOptions):
-    """The `Spec`, `Limits`, `Noise` and `Grid` of a request; `InputError` naming a bad value."""
+    """The `Spec`, `Limits` and checked `DesignOptions` of a request; `InputError` naming a bad
+    value."""
     where = "design_excitation"
     if not isinstance(params, RobotParams):
         raise InputError(f"{where}: params must be a jsphere.RobotParams; got {type(params).__name__}.")
     if kind not in KINDS:
         raise InputError(f"{where}: kind must be 'K' (torques) or 'chi_dot' (wheel speeds); got {kind!r}.")
     duration = real(where, "duration", duration, strict=True, unit="s")
-    trials = whole(where, "trials", o.trials, 1)
     if limits is not None and not isinstance(limits, Limits):
         raise InputError(f"{where}: limits must be a jsphere.Limits; got {type(limits).__name__}.")
     lim = limits or Limits()
@@ -301,25 +328,29 @@ def _checked(params, duration, kind, limits, o: DesignOptions):
     if limit is None:
         which = "max_torque (--max-torque)" if kind == "K" else "max_wheel_speed (--max-wheel-speed)"
         raise InputError(f"{where}: the programmes need a finite {which}: they are scaled to it.")
-    sigma_pos = real(where, "sigma_pos", o.sigma_pos, strict=True, unit="m")
-    sigma_rot = real(where, "sigma_rot", o.sigma_rot, strict=True, unit="rad")
-    n_freqs = whole(where, "n_freqs", o.n_freqs, 1)
-    f_max = real(where, "f_max", o.f_max, strict=True, unit="Hz")
-    ramp = real(where, "ramp", o.ramp, strict=True, unit="s")
-    if 2 * ramp > duration:
-        raise InputError(f"{where}: ramp = {ramp:g} s needs a duration of at least {2 * ramp:g} s; got {duration:g} s.")
-    model_rate = real(where, "model_rate", o.model_rate, strict=True, unit="Hz")
-    substeps = whole(where, "substeps", o.substeps, 1)
-    if model_rate < 2 * f_max:
-        raise InputError(f"{where}: model_rate = {model_rate:g} Hz must be at least 2 f_max = {2 * f_max:g} Hz.")
+    o = dataclasses.replace(
+        o,
+        **{n: whole(where, n, getattr(o, n), low) for n, low in _WHOLE},
+        **{n: real(where, n, getattr(o, n), strict=True, unit=u) for n, u in _POSITIVE},
+    )
+    if 2 * o.ramp > duration:
+        raise InputError(
+            f"{where}: ramp = {o.ramp:g} s needs a duration of at least {2 * o.ramp:g} s; got {duration:g} s."
+        )
+    if o.model_rate < 2 * o.f_max:
+        raise InputError(f"{where}: model_rate = {o.model_rate:g} Hz must be at least 2 f_max = {2 * o.f_max:g} Hz.")
+    if o.capture_rate * duration < 4:
+        raise InputError(
+            f"{where}: capture_rate x duration must give at least 4 samples; got {o.capture_rate * duration:g}."
+        )
     spec = Spec(
         kind=kind,
-        trials=trials,
+        trials=o.trials,
         wheels=params.n_wheels,
-        n_freqs=n_freqs,
+        n_freqs=o.n_freqs,
         duration=duration,
-        f_max=f_max,
-        ramp=ramp,
+        f_max=o.f_max,
+        ramp=o.ramp,
         limit=float(limit),
     )
-    return spec, lim, Noise(sigma_pos, sigma_rot), Grid(model_rate, substeps)
+    return spec, lim, o

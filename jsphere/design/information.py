@@ -28,7 +28,7 @@ Inside the optimisation each trial is integrated by classical RK4 on a fixed gri
 steps per sample) with the simulator's own vector fields (`jsphere.solve.fields`, (3.4), (3.5),
 (2.2)-(2.4)): a fixed amount of work, whose forward-mode Jacobian reverse mode differentiates
 again (`jax.grad` of `Phi`). The reported standard errors come from the fit's own Jacobian at the
-capture rate (`fit_stderr`).
+capture rate (`jsphere.design.prediction.fit_information`).
 """
 
 from __future__ import annotations
@@ -211,16 +211,6 @@ class Problem(eqx.Module):
         S = self.scale()
         Fv = Ainv.T @ F @ Ainv
         return S[:, None] * Fv * S[None, :], ro
-
-    def criterion(self, z: Float[Array, " V"]) -> Float[Array, ""]:
-        """`Phi = log det(S F_v S)` of the programmes `z` (the D-optimal criterion)."""
-        Fs, _ = self.information(z)
-        return jnp.linalg.slogdet(Fs)[1]
-
-    def stderr(self, z: Float[Array, " V"]) -> Float[Array, " P"]:
-        """Predicted standard errors of the physical values from the RK4 model at `grid.rate`."""
-        Fs, _ = self.information(z)
-        return jnp.sqrt(jnp.diag(jnp.linalg.inv(Fs))) * self.scale()
 
 
 def problem(params: RobotParams, free: FreeParams, spec: Spec, noise: Noise, grid: Grid) -> Problem:

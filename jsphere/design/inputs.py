@@ -98,9 +98,7 @@ def coefficients(z: Float[Array, " V"], spec: Spec) -> Float[Array, "M N F2"]:
 
 def programmes(z: Float[Array, " V"], spec: Spec) -> list[Programme]:
     """The M programmes of `z`."""
-    c = coefficients(z, spec)
-    f = jnp.asarray(spec.freqs, z.dtype)
-    return [Programme(c[k], f, spec.limit, spec.duration, spec.ramp) for k in range(spec.trials)]
+    return [programme(c, spec) for c in coefficients(z, spec)]
 
 
 def programme(c: Float[Array, "N F2"], spec: Spec) -> Programme:
@@ -119,11 +117,16 @@ def sample_times(duration: float, rate: float) -> np.ndarray:
 _values = jax.jit(lambda prog, ts: jax.vmap(prog)(ts))
 
 
+def values_at(prog: Programme, t: np.ndarray) -> np.ndarray:
+    """A programme's values `(R, N)` at the times `t`."""
+    return np.asarray(_values(prog, jnp.asarray(t, prog.coef.dtype)))
+
+
 def table(prog: Programme, rate: float) -> tuple[np.ndarray, np.ndarray]:
     """`(t (R,), values (R, N))`: the programme at `rate` rows per second from 0 to its duration
     (an inputs table; the first and last rows are 0)."""
     t = sample_times(prog.duration, rate)
-    return t, np.asarray(_values(prog, jnp.asarray(t, prog.coef.dtype)))
+    return t, values_at(prog, t)
 
 
 def rms(values: np.ndarray) -> float:

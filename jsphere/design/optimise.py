@@ -76,11 +76,8 @@ def _value_and_grad(zs, pr: Problem, lim: Limits):
     return jax.vmap(jax.value_and_grad(objective, has_aux=True), in_axes=(0, None, None))(zs, pr, lim)
 
 
-@eqx.filter_jit
-def evaluate(z, pr: Problem, lim: Limits):
-    """`(objective, Phi, penalty, extremes)` of one coefficient vector `z (V,)`."""
-    obj, (phi, pen, ext) = objective(z, pr, lim)
-    return obj, phi, pen, ext
+#: `objective` of one coefficient vector `z (V,)`, compiled
+evaluate = eqx.filter_jit(objective)
 
 
 def maximise(

@@ -95,42 +95,24 @@ class DesignResult:
         }
 
     def to_json(self) -> dict[str, Any]:
-        """The JSON document (`design.json`)."""
-        return {
-            "kind": self.kind,
-            "free": list(self.free),
-            "values": self.values,
-            "duration_s": self.duration,
-            "rate_hz": self.rate,
-            "criterion": self.criterion,
-            "criterion_model": self.criterion_model,
-            "stderr_predicted": self.stderr_predicted,
-            "stderr_predicted_baseline": self.stderr_predicted_baseline,
-            "factor": self.factor,
-            "rms": self.rms,
-            "limits": self.limits,
-            "limits_baseline": self.limits_baseline,
-            "limits_model": self.limits_model,
-            "baseline_equal_rms": self.baseline_equal_rms,
-            "restarts": self.restarts,
-            "settings": self.settings,
-            "elapsed_s": self.elapsed_s,
-        }
+        """The JSON document (`design.json`): every field but the tables, `duration` and `rate`
+        as `duration_s` and `rate_hz`, and `factor`."""
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if not f.name.endswith("tables")}
+        d["duration_s"], d["rate_hz"], d["factor"] = d.pop("duration"), d.pop("rate"), self.factor
+        return d
 
     def save(self, out, *, baseline=None) -> list[Path]:
         """Write the inputs tables and the JSON document (each atomically, names in the module
         docstring), and with `baseline` (a path named as `out`) the baseline's tables; returns
         the paths written."""
-        paths = table_paths(out, len(self.tables))
-        for p, (t, u) in zip(paths, self.tables):
-            write_inputs_csv(p, t, u, self.trial_kind)
-        extra = []
-        if baseline is not None:
-            extra = table_paths(baseline, len(self.baseline_tables))
-            for p, (t, u) in zip(extra, self.baseline_tables):
-                write_inputs_csv(p, t, u, self.trial_kind)
+        written = []
+        for where, tables in ((out, self.tables), (baseline, self.baseline_tables)):
+            if where is not None:
+                for p, (t, u) in zip(table_paths(where, len(tables)), tables):
+                    write_inputs_csv(p, t, u, self.trial_kind)
+                    written.append(p)
         atomic_write_json(json_path(out), self.to_json())
-        return [*paths, *extra, json_path(out)]
+        return [*written, json_path(out)]
 
     def table(self) -> str:
         """Per free name its predicted standard error for the design and the baseline, and their

@@ -27,7 +27,7 @@ from ..model.params import RobotParams
 from ..solve.options import SolverOptions
 from ..solve.simulate import Trajectory
 from .many import plan_batch, plan_many
-from .problem import Limits, Objective, PlanOptions, PlanSettings, _check_request
+from .problem import Limits, Objective, PlanOptions, PlanSettings, _check_request, check_target
 from .result import Plan, PlanInfeasibleError
 from .robust import RobustOptions, robust_plan
 
@@ -94,16 +94,23 @@ def plan(
         if heading is not None or robust is not None:
             raise InputError("plan: a route gives each waypoint's heading as (x, y, heading), and is not robust.")
         return _route("plan", params, to, limits, objective, settings, o, allow_infeasible, progress, options)
-    if isinstance(to, (str, bytes)) or not isinstance(to, (Sequence, np.ndarray)) or len(to) != 2:
-        raise InputError(f"plan: to must be the target (x, y) in m; got {to!r}.")
+    x, y = check_target("plan", to)
     if heading is not None:
         real("plan", "heading", heading, low=None, unit="rad; None for a free final heading")
     if robust is not None:
-        to3 = (to[0], to[1], heading)
         return robust_plan(
-            "plan", params, to3, limits, objective, settings, o=o, r=robust, progress=progress, options=options
+            "plan",
+            params,
+            (x, y, heading),
+            limits,
+            objective,
+            settings,
+            o=o,
+            r=robust,
+            progress=progress,
+            options=options,
         )
-    targets = _check_request("plan", [(to[0], to[1], heading)], limits, objective, settings, o)
+    targets = _check_request("plan", [(x, y, heading)], limits, objective, settings, o)
     pl = plan_batch("plan", params, targets, limits, objective, settings, o, progress, options)[0]
     if not pl.feasible and not allow_infeasible:
         raise PlanInfeasibleError(
@@ -171,12 +178,7 @@ def plan_route(
 
 def _route(where, params, waypoints, limits, objective, settings, o: PlanOptions, allow_infeasible, progress, options):
     """`plan_route`'s work; `where` names the caller in messages."""
-    if isinstance(waypoints, (str, bytes)) or not isinstance(waypoints, Sequence) or not len(waypoints):
-        raise InputError(
-            f"{where}: waypoints must be a non-empty list of (x, y) or (x, y, heading); got {waypoints!r}."
-        )
-    wps = [tuple(w) if isinstance(w, (Sequence, np.ndarray)) else w for w in waypoints]
-    _check_request(where, wps, limits, objective, settings, o, nan_free=False)
+    _check_request(where, waypoints, limits, objective, settings, o, nan_free=False, noun="waypoints")
     poses, local, pose = _legs(waypoints)
     legs = plan_batch(where, params, local, limits, objective, settings, o, progress, options)
     tr, t_off, shortfall = _joined(legs, poses)

@@ -115,8 +115,17 @@ class PlanOptions:
 MAX_ROWS = 10_000_000
 
 
-def _check_request(where: str, targets, limits, objective, settings, o: PlanOptions, nan_free=True) -> list:
-    """Check a planning request before any work; return the targets as lists.
+def check_target(where: str, to) -> tuple:
+    """`to` if it is one target `(x, y)`, else `InputError` (its numbers are checked by
+    `_check_request`)."""
+    if isinstance(to, (str, bytes)) or not isinstance(to, (Sequence, np.ndarray)) or len(to) != 2:
+        raise InputError(f"{where}: to must be the target (x, y) in m; got {to!r}.")
+    return to[0], to[1]
+
+
+def _check_request(where: str, targets, limits, objective, settings, o: PlanOptions, nan_free=True, noun="targets"):
+    """Check a planning request before any work; return the targets as lists (`noun`: what
+    messages call them).
     Raises `InputError` naming the value: targets `(x, y)` or `(x, y, psi)` with finite
     numbers (`psi` None, or NaN with `nan_free`, for a free heading), `restarts >= 1`,
     `rate > 0`, `seed >= 0`, positive tolerances, and `Limits`, `Objective`, `PlanSettings`
@@ -140,7 +149,7 @@ def _check_request(where: str, targets, limits, objective, settings, o: PlanOpti
             f"(at most {MAX_ROWS:.0e}); lower the rate."
         )
     if isinstance(targets, (str, bytes)) or not isinstance(targets, Sequence) or not len(targets):
-        raise InputError(f"{where}: targets must be a non-empty list of (x, y) or (x, y, heading); got {targets!r}.")
+        raise InputError(f"{where}: {noun} must be a non-empty list of (x, y) or (x, y, heading); got {targets!r}.")
     out = []
     for k, t in enumerate(targets):
         if isinstance(t, (str, bytes)) or not isinstance(t, (Sequence, np.ndarray)) or len(t) not in (2, 3):

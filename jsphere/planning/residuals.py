@@ -66,14 +66,13 @@ def _loss(z, target, params, lim, obj, s):
     return jnp.sum(r**2)
 
 
-def _residuals_and_jacobian(z, target, params, lim, obj, s):
-    """`(r, dr/dz)` by forward-mode autodiff (one JVP per decision variable): cheaper than
-    reverse mode through the RK4 scan (see `docs/performance.md`); Adam's gradient is
+def with_jacobian(f):
+    """`z -> (f(z), df/dz)` by forward-mode autodiff (one JVP per decision variable): cheaper
+    than reverse mode through the RK4 scan (see `docs/performance.md`); Adam's gradient is
     `2 J^T r`."""
 
-    def r(z):
-        out = _residuals(z, target, params, lim, obj, s)
-        return out, out
+    def rj(z):
+        J, r = jax.jacfwd(lambda z: (lambda v: (v, v))(f(z)), has_aux=True)(z)
+        return r, J
 
-    J, res = jax.jacfwd(r, has_aux=True)(z)
-    return res, J
+    return rj

@@ -16,6 +16,28 @@ from ..model.rotations import rotation_between
 from ..solve.simulate import Trajectory
 
 
+def platform_heading(params: RobotParams, alpha, beta, gamma) -> np.ndarray:
+    """The platform's yaw `psi` [rad] relative to the rest attitude of the frames `alpha, beta,
+    gamma (..., 3)` (the fixed axes seen from the platform): `R Q_m = Q_psi^T`."""
+    R = np.stack([np.asarray(alpha), np.asarray(beta), np.asarray(gamma)], axis=-2)
+    M = R @ np.asarray(rotation_between(jnp.array([0.0, 0.0, 1.0]), rest_attitude(params)))
+    return np.arctan2(M[..., 1, 0], M[..., 0, 0])
+
+
+def tilt(params: RobotParams, gamma) -> np.ndarray:
+    """The platform's tilt [rad] from its rest attitude at the vertical axes `gamma (..., 3)`."""
+    return np.arccos(np.clip(np.asarray(gamma) @ np.asarray(rest_attitude(params)), -1.0, 1.0))
+
+
+def write_columns(path, cols: dict[str, np.ndarray]) -> None:
+    """Write equal-length columns as CSV (a header line, full float64 precision), atomically."""
+    from .._runtime.files import atomic_write_text
+
+    data = np.stack(list(cols.values()), axis=1)
+    lines = [",".join(cols)] + [",".join(repr(float(v)) for v in row) for row in data]
+    atomic_write_text(path, "\n".join(lines) + "\n")
+
+
 class PlanInfeasibleError(RuntimeError):
     """A request that the planner could not meet within the limits. `.plan` holds the best plan
     found (or `.plans` for a batch); the message says how far it falls short and which limit binds."""
@@ -64,7 +86,7 @@ class Plan:
         """Total time [s]."""
         return float(np.asarray(self.trajectory.ts)[-1])
 
-    def _commanded(self, name: str) -> np.ndarray:
+    def commanded(self, name: str) -> np.ndarray:
         """The samples `(T, N)` of the trajectory's `K` or `chi_dot`; for a plan `at_rest`, 0 at
         the last sample of every leg, the rest each manoeuvre ends at. A manoeuvre ends on the
         stationary motion by construction (`u, u_dot, omega_gamma = 0`, so `K = 0` and the
@@ -87,34 +109,20 @@ class Plan:
         commands `K_i`, `chi_dot_i` are exactly 0 for a plan `at_rest` (as at each stop of a
         route)."""
         tr = self.trajectory
-        K, chi_dot = self._commanded("K"), self._commanded("chi_dot")
-        N = int(K.shape[-1])
         cols: dict[str, np.ndarray] = {"t": np.asarray(tr.ts)}
-        for i in range(N):
-            cols[f"K_{i + 1}"] = K[:, i]
-        for i in range(N):
-            cols[f"chi_dot_{i + 1}"] = chi_dot[:, i]
+        for name in ("K", "chi_dot"):
+            vals = self.commanded(name)
+            cols.update({f"{name}_{i + 1}": vals[:, i] for i in range(vals.shape[1])})
         cols["x"], cols["y"] = np.asarray(tr.x), np.asarray(tr.y)
         g = np.asarray(tr.gamma)
-        for i in range(3):
-            cols[f"gamma_{i + 1}"] = g[:, i]
-        R = np.stack([np.asarray(tr.alpha), np.asarray(tr.beta), g], axis=-2)
-        Qm = np.asarray(rotation_between(jnp.array([0.0, 0.0, 1.0]), rest_attitude(self.params)))
-        M = R @ Qm
-        cols["heading"] = np.unwrap(np.arctan2(M[:, 1, 0], M[:, 0, 0]))
-        gm = np.asarray(rest_attitude(self.params))
-        cols["tilt"] = np.arccos(np.clip(g @ gm, -1.0, 1.0))
+        cols.update({f"gamma_{i + 1}": g[:, i] for i in range(3)})
+        cols["heading"] = np.unwrap(platform_heading(self.params, tr.alpha, tr.beta, g))
+        cols["tilt"] = tilt(self.params, g)
         return cols
 
     def to_csv(self, path) -> None:
         """Write `table()` as CSV (header line, full float64 precision), atomically."""
-        from .._runtime.files import atomic_write_text
-
-        cols = self.table()
-        names = list(cols)
-        data = np.stack([cols[k] for k in names], axis=1)
-        lines = [",".join(names)] + [",".join(repr(float(v)) for v in row) for row in data]
-        atomic_write_text(path, "\n".join(lines) + "\n")
+        write_columns(path, self.table())
 
     def commands(self, kind: str = "chi_dot", rate: float | None = None) -> tuple[np.ndarray, np.ndarray]:
         """The commands for the robot: `(t (M,), values (M, N))`, the wheel speeds `chi_dot_i`
@@ -133,7 +141,7 @@ class Plan:
             raise ValueError(f"Plan.commands: rate must be a positive number of rows per second; got {rate!r}.")
         tr = self.trajectory
         ts = np.asarray(tr.ts)
-        vals = self._commanded("chi_dot" if want == "wheel_speeds" else "K")
+        vals = self.commanded("chi_dot" if want == "wheel_speeds" else "K")
         T = float(ts[-1])
         t = np.arange(int(np.floor(T * rate + 1e-9)) + 1) / rate
         if T - t[-1] > 1e-9:
@@ -244,22 +252,17 @@ class PlannedRobot:
         return f"{self.source} (recorded in {self.record})"
 
 
-def plan_record(path) -> Path:
-    """The JSON record of a plan file: `path` itself if it is a `.json`, else the `.json` beside
-    it (`plan.csv` -> `plan.json`, `commands.csv` -> `commands.json`)."""
-    path = Path(path)
-    return path if path.suffix.lower() == ".json" else path.with_suffix(".json")
-
-
 def planned_robot(path) -> PlannedRobot | None:
     """The robot recorded with a plan file (`path`: a plan CSV, its `plan.json`, or a commands
-    table of `jsphere plan --commands`, whose record lies beside it), or None when there is no
+    table of `jsphere plan --commands`, whose record is the `.json` beside it: `plan.csv` ->
+    `plan.json`, `commands.csv` -> `commands.json`), or None when there is no
     record or the record names no robot (a table written by other means). A record of
     `jsphere plan` has `feasible` and `params` (`Plan.record`). A `params` that is not a valid
     parameter set is an `InputError` naming the record."""
     import json
 
-    rec = plan_record(path)
+    path = Path(path)
+    rec = path if path.suffix.lower() == ".json" else path.with_suffix(".json")
     if not rec.is_file():
         return None
     try:

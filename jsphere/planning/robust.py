@@ -35,7 +35,6 @@ import numpy as np
 
 from .._runtime.checks import real, whole
 from .._runtime.errors import InputError
-from .._runtime.moved_keywords import no_other_keywords
 from .._runtime.progress import Progress
 from ..controls import Sampled, Torques, WheelSpeeds
 from ..model.params import RobotParams, derive
@@ -54,9 +53,10 @@ from .problem import (
     _check_request,
     _duration_inv,
     _vec_targets,
+    check_target,
     gait_from_vector,
 )
-from .residuals import _residuals
+from .residuals import _residuals, with_jacobian
 from .result import Plan, manoeuvre_plan
 from .rollout import rollout
 from .search import lm_search
@@ -115,6 +115,18 @@ def _replay_batch(samples: RobotParams, ts, table, mode: str, grid):
     return jax.vmap(one)(samples)
 
 
+def in_batches(fn, batch: int, samples: RobotParams, *per_sample) -> list[np.ndarray]:
+    """`fn(part, *parts)` on consecutive slices of `batch` parameter sets of `samples` (stacked
+    `RobotParams`) and of the arrays `per_sample` (one row per set); its outputs (a tuple of
+    arrays, one row per set) joined as numpy arrays."""
+    n = int(np.shape(samples.R0)[0])
+    outs = []
+    for a in range(0, n, batch):
+        cut = lambda v, a=a: v[a : a + batch]
+        outs.append(fn(jax.tree_util.tree_map(cut, samples), *map(cut, per_sample)))
+    return [np.concatenate([np.asarray(o[i]) for o in outs]) for i in range(len(outs[0]))]
+
+
 def miss_distribution(
     plan_: Plan, samples: RobotParams, *, mode: str = "wheel_speeds", batch: int = 512
 ) -> dict[str, np.ndarray]:
@@ -125,21 +137,10 @@ def miss_distribution(
     (`R0 |Omega x gamma|` at the end) and `final_xy (n, 2)`."""
     if mode not in MODES:
         raise InputError(f"miss_distribution: mode must be one of {MODES}; got {mode!r}.")
-    cols = plan_.table()
-    N = plan_.params.n_wheels
-    key = "chi_dot" if mode == "wheel_speeds" else "K"
-    ts = cols["t"]
-    table = np.stack([cols[f"{key}_{i + 1}"] for i in range(N)], axis=1)
-    n = int(np.shape(samples.R0)[0])
+    ts = np.asarray(plan_.trajectory.ts)
+    table = plan_.commanded("chi_dot" if mode == "wheel_speeds" else "K")
     grid = _replay_grid(ts)
-    xs, ys, vs = [], [], []
-    for a in range(0, n, batch):
-        part = jax.tree_util.tree_map(lambda v, a=a: v[a : a + batch], samples)
-        x, y, v = _replay_batch(part, ts, table, mode, grid)
-        xs.append(np.asarray(x))
-        ys.append(np.asarray(y))
-        vs.append(np.asarray(v))
-    x, y, v = np.concatenate(xs), np.concatenate(ys), np.concatenate(vs)
+    x, y, v = in_batches(lambda part: _replay_batch(part, ts, table, mode, grid), batch, samples)
     tg = plan_.target
     return {"miss_m": np.hypot(x - tg[0], y - tg[1]), "speed_m_s": v, "final_xy": np.stack([x, y], axis=1)}
 
@@ -192,25 +193,10 @@ def _robust_residuals(z, target, params, samples, lim, obj, s, k: int):
 def _robust_search(z0s, target, params, samples, lim, obj, s, k: int, steps: int):
     """Every start of `z0s (R, V)` under one `vmap`; returns `(z (R, V), objective (R,))`."""
 
-    def rj(z):
-        def f(z):
-            out = _robust_residuals(z, target, params, samples, lim, obj, s, k)
-            return out, out
-
-        J, r = jax.jacfwd(f, has_aux=True)(z)
-        return r, J
-
+    rj = with_jacobian(lambda z: _robust_residuals(z, target, params, samples, lim, obj, s, k))
     # Levenberg-Marquardt alone (no Adam steps): the search's loop, `SEARCH_LM`
     zb, fb, _, _ = jax.vmap(lambda z: lm_search(z, rj, 0, steps, s.learning_rate))(z0s)
     return zb, jnp.where(jnp.isfinite(fb), fb, jnp.inf)
-
-
-def robust_objective(z, target, params, samples, lim, obj, s, quantile: float) -> jax.Array:
-    """The robust search's objective at the decision vector `z` (sum of squares of
-    `_robust_residuals`), for tests and diagnostics."""
-    k = _top_k(int(np.shape(samples.R0)[0]), quantile)
-    r = _robust_residuals(jnp.asarray(z), jnp.asarray(target), params, samples, lim, obj, s, k)
-    return jnp.sum(r**2)
 
 
 def decision_vector(gait, lim: Limits) -> np.ndarray:
@@ -339,17 +325,12 @@ def plan_robust(params: RobotParams, to: Sequence[float], uncertainty: Uncertain
         DeprecationWarning,
         stacklevel=2,
     )
-    r = RobustOptions(uncertainty, **{k: kwargs.pop(k) for k in _ROBUST_KEYWORDS if k in kwargs})
-    if "robust_steps" in kwargs:
-        r = dataclasses.replace(r, steps=kwargs.pop("robust_steps"))
+    fields = {k: kwargs.pop(k) for k in _ROBUST_KEYWORDS if k in kwargs}
+    r = RobustOptions(uncertainty, steps=kwargs.pop("robust_steps", RobustOptions.steps), **fields)
     o = PlanOptions(restarts=max(r.restarts, 2) if isinstance(r.restarts, int) else r.restarts)
     o = dataclasses.replace(o, **{k: kwargs.pop(k) for k in ("rate", "seed") if k in kwargs})
-    heading = kwargs.pop("heading", None)
-    if isinstance(to, (str, bytes)) or not isinstance(to, (Sequence, np.ndarray)) or len(to) != 2:
-        raise InputError(f"plan_robust: to must be the target (x, y) in m; got {to!r}.")
-    keep = {k: kwargs.pop(k, None) for k in ("limits", "objective", "settings", "progress", "options")}
-    no_other_keywords("plan_robust", kwargs)
-    return robust_plan("plan_robust", params, (to[0], to[1], heading), o=o, r=r, **keep)
+    x, y = check_target("plan_robust", to)
+    return robust_plan("plan_robust", params, (x, y, kwargs.pop("heading", None)), o=o, r=r, **kwargs)
 
 
 #: the keywords of `plan_robust` that are fields of `RobustOptions` under the same name
@@ -414,7 +395,7 @@ def robust_plan(
         zs, fs = _robust_search(z0s, target, p_nom, draw, lim_a, obj_a, s, k, int(r.steps))
         zs, fs = np.asarray(zs), np.asarray(fs)
     best = int(np.argmin(fs))
-    f_start = float(robust_objective(z_nom, target, p_nom, draw, lim_a, obj_a, s, r.quantile))
+    f_start = float(jnp.sum(_robust_residuals(jnp.asarray(z0s[0]), target, p_nom, draw, lim_a, obj_a, s, k) ** 2))
     robust = _verified_plan(p_nom, zs[best], target, lim, s, o.rate, options, nominal, t0)
     # the search saw only `samples` robots: keep its plan only if it also lands better on
     # another independent draw (by KEEP_MARGIN), else the nominal plan is the robust one

@@ -22,7 +22,7 @@ from ..model.params import RobotParams, derive
 from ..model.rotations import rotation_between
 from ..numerics.lm import Dense, LevenbergMarquardt
 from .problem import _duration_inv, _n_vars
-from .residuals import _loss, _residuals_and_jacobian
+from .residuals import _loss, _residuals, with_jacobian
 
 
 def _lbfgs(z0, target, params, lim, obj, s):
@@ -91,8 +91,8 @@ def lm_search(z0, rj, adam_steps: int, lm_steps: int, learning_rate: float):
 
 
 def _search_one(z0, target, params, lim, obj, s):
-    """`lm_search` on the residuals of one (target, restart) pair (`_residuals_and_jacobian`)."""
-    rj = lambda z: _residuals_and_jacobian(z, target, params, lim, obj, s)
+    """`lm_search` on the residuals of one (target, restart) pair."""
+    rj = with_jacobian(lambda z: _residuals(z, target, params, lim, obj, s))
     return lm_search(z0, rj, s.adam_steps, s.lm_steps, s.learning_rate)
 
 

@@ -14,13 +14,11 @@ import numpy as np
 
 from ..controls import Torques, WheelSpeeds
 from ..gaits.gaits import simulate_gaits
-from ..model.kinematics import rest_attitude
-from ..model.rotations import rotation_between
 from ..model.state import State
 from ..solve.options import SolverOptions, solver_options, unused
 from ..solve.simulate import Trajectory, simulate
 from .problem import Limits, gait_from_vector
-from .result import Plan
+from .result import Plan, platform_heading, tilt
 
 #: `replay_errors`' step limit (a table sampled at the plan's rate has a kink at every sample)
 REPLAY_MAX_STEPS = 65536
@@ -41,16 +39,13 @@ def verification_options(where: str, options: SolverOptions | None) -> SolverOpt
 
 def _limit_report(params, tr: Trajectory, T_total, lim: Limits) -> dict:
     K, cd, ts = np.asarray(tr.K), np.asarray(tr.chi_dot), np.asarray(tr.ts)
-    g = np.asarray(tr.gamma)
-    gm = np.asarray(rest_attitude(params))
-    tilt = np.arccos(np.clip(g @ gm, -1.0, 1.0))
     rep = {}
     if lim.max_torque is not None:
         rep["torque_N_m"] = (float(np.max(np.abs(K))), lim.max_torque)
     if lim.max_wheel_speed is not None:
         rep["wheel_speed_rad_s"] = (float(np.max(np.abs(cd))), lim.max_wheel_speed)
     if lim.max_tilt is not None:
-        rep["tilt_rad"] = (float(np.max(tilt)), lim.max_tilt)
+        rep["tilt_rad"] = (float(np.max(tilt(params, tr.gamma))), lim.max_tilt)
     if lim.max_torque_rate is not None:
         dtt = np.diff(ts)
         ok = dtt > 0
@@ -90,10 +85,7 @@ def _accurate(params, gait, rate, max_time, options: SolverOptions | None = None
 def _terminal_errors(params, tr: Trajectory, target) -> dict:
     x, y = float(tr.x[-1]), float(tr.y[-1])
     O, g = np.asarray(tr.Omega[-1]), np.asarray(tr.gamma[-1])
-    R = np.stack([np.asarray(tr.alpha[-1]), np.asarray(tr.beta[-1]), g])
-    Qm = np.asarray(rotation_between(jnp.array([0.0, 0.0, 1.0]), rest_attitude(params)))
-    M = R @ Qm
-    psi = math.atan2(M[1, 0], M[0, 0])
+    psi = float(platform_heading(params, tr.alpha[-1], tr.beta[-1], g))
     head = float("nan") if target[3] == 0 else abs(math.remainder(psi - target[2], 2 * math.pi))
     return {
         "position_m": math.hypot(x - target[0], y - target[1]),

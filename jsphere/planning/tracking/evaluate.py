@@ -15,6 +15,8 @@ the same with `G = 0`. The miss is taken `settle` seconds after the plan's end.
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -26,21 +28,6 @@ from ...model.params import RobotParams, derive
 from ...model.rotations import quat_exp, quat_mul, rotmat
 from ...model.state import Flat, State, state_error
 from .flow import interval
-
-#: the fields of `Conditions`
-FIELDS = (
-    "start_sd",
-    "heading_sd",
-    "delay_s",
-    "pos_sd",
-    "att_sd",
-    "omega_sd",
-    "wheel_sd",
-    "gain_sd",
-    "motor_delay_s",
-    "white_sd",
-    "settle",
-)
 
 
 class Conditions(eqx.Module):
@@ -77,6 +64,10 @@ class Conditions(eqx.Module):
 
     def to_json(self) -> dict:
         return {k: getattr(self, k) for k in FIELDS}
+
+
+#: the fields of `Conditions`
+FIELDS = tuple(f.name for f in dataclasses.fields(Conditions))
 
 
 def _start(p: RobotParams, key, c: Conditions):

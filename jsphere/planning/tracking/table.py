@@ -1,4 +1,5 @@
-"""`track.csv`, the gains as a table a robot's controller runs, and `track.json` beside it.
+"""`track.csv`, the gains as a table a robot's controller runs (`Tracker.table`, `Tracker.to_csv`;
+`Tracker.to_json` writes `track.json` beside it), and its reader.
 
 Columns (binding; SI units): `t`; feed-forward torques `K_1..K_N` [N m]; the reference state
 `x, y` [m], `qw, qx, qy, qz` (the platform's attitude, platform -> fixed components, as a trial
@@ -14,23 +15,13 @@ from __future__ import annotations
 import numpy as np
 
 from ..._runtime.errors import InputError
-from ..._runtime.files import atomic_write_text
 from ...model.state import ERROR_SIZE, Flat
 
-#: the reference state's columns and where they are in the flat state
+#: the reference state's columns and where they are in the flat state (`Flat`)
 STATE_COLUMNS = (
-    ("x", Flat.x),
-    ("y", Flat.y),
-    ("qw", 0),
-    ("qx", 1),
-    ("qy", 2),
-    ("qz", 3),
-    ("omega_1", 8),
-    ("omega_2", 9),
-    ("omega_3", 10),
-    ("Omega_1", 11),
-    ("Omega_2", 12),
-    ("Omega_3", 13),
+    *zip(("x", "y", "qw", "qx", "qy", "qz"), (Flat.x, Flat.y, 0, 1, 2, 3)),
+    *((f"omega_{i + 1}", 8 + i) for i in range(3)),
+    *((f"Omega_{i + 1}", 11 + i) for i in range(3)),
 )
 
 
@@ -42,28 +33,6 @@ def column_names(n_wheels: int) -> list[str]:
         + [name for name, _ in STATE_COLUMNS]
         + [f"G_{i + 1}_{j + 1}" for i in range(n_wheels) for j in range(ERROR_SIZE)]
     )
-
-
-def columns(tr) -> dict[str, np.ndarray]:
-    """The columns of a `Tracker`'s table, by name."""
-    N = tr.K_ff.shape[1]
-    cols = {"t": np.asarray(tr.ts)}
-    for i in range(N):
-        cols[f"K_{i + 1}"] = tr.K_ff[:, i]
-    for name, k in STATE_COLUMNS:
-        cols[name] = tr.reference[:, k]
-    for i in range(N):
-        for j in range(ERROR_SIZE):
-            cols[f"G_{i + 1}_{j + 1}"] = tr.G[:, i, j]
-    return cols
-
-
-def write_track_csv(path, tr) -> None:
-    """Write a `Tracker`'s table as CSV (header line, full float64 precision), atomically."""
-    cols = columns(tr)
-    data = np.stack(list(cols.values()), axis=1)
-    lines = [",".join(cols)] + [",".join(repr(float(v)) for v in row) for row in data]
-    atomic_write_text(path, "\n".join(lines) + "\n")
 
 
 def read_track_csv(path) -> dict[str, np.ndarray]:
@@ -103,24 +72,4 @@ def read_track_csv(path) -> dict[str, np.ndarray]:
         "G": np.stack([[c[f"G_{i + 1}_{j + 1}"] for j in range(ERROR_SIZE)] for i in range(N)], axis=0).transpose(
             2, 0, 1
         ),
-    }
-
-
-def track_json(tr) -> dict:
-    """`track.json`: the weights, the rate, the robot, the terminal regulator and `miss_mc`."""
-    ev = [float(v) for v in tr.eigenvalues]
-    return {
-        "rate_hz": tr.rate,
-        "rows": int(len(tr.ts)),
-        "duration_s": float(tr.ts[-1]),
-        "target": [float(v) for v in tr.target],
-        "weights": tr.weights.to_json(),
-        "r_scale": tr.r_scale,
-        "max_torque_N_m": tr.max_torque,
-        "params": tr.params.to_dict(),
-        "error": ["x", "y", "a_1", "a_2", "a_3", "omega_1", "omega_2", "omega_3", "Omega_1", "Omega_2", "Omega_3"],
-        "control_law": "K = K_ff - G e, zero-order hold from a row's t to the next; the last row held",
-        "terminal": {"conserved_mode": [float(v) for v in tr.conserved], "eigenvalue_moduli": ev},
-        "miss_mc": tr.miss_mc,
-        "elapsed_s": dict(tr.elapsed_s),
     }

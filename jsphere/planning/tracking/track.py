@@ -17,13 +17,15 @@ from ..._runtime.checks import real, whole
 from ..._runtime.errors import InputError, SolverFailure
 from ...model.limits import Limits
 from ...model.params import RobotParams
-from ...model.state import Flat, State
+from ...model.state import ERROR_SIZE, Flat, State
 from ...model.uncertainty import Uncertainty
-from ..result import Plan
+from ..result import Plan, write_columns
+from ..robust import in_batches, miss_summary
 from ..rollout import yaw
 from .evaluate import Conditions, run_batch
 from .flow import linearise, reference
 from .lqr import Weights, riccati, terminal_regulator
+from .table import STATE_COLUMNS
 
 #: the default uncertainty of the evaluation when neither a fit nor a study is given: 3 % (sd)
 #: on the centre-of-mass offset, the wheels' inertia and the platform's principal inertias
@@ -68,21 +70,37 @@ class Tracker:
     elapsed_s: dict = dataclasses.field(default_factory=dict)
 
     def table(self) -> dict[str, np.ndarray]:
-        """The columns of `track.csv` (`docs/tracking.md`)."""
-        from .table import columns
-
-        return columns(self)
+        """The columns of `track.csv` (`docs/tracking.md`, `jsphere.planning.tracking.table`)."""
+        N = self.K_ff.shape[1]
+        cols = {"t": np.asarray(self.ts), **{f"K_{i + 1}": self.K_ff[:, i] for i in range(N)}}
+        cols.update({name: self.reference[:, k] for name, k in STATE_COLUMNS})
+        cols.update({f"G_{i + 1}_{j + 1}": self.G[:, i, j] for i in range(N) for j in range(ERROR_SIZE)})
+        return cols
 
     def to_csv(self, path) -> None:
-        from .table import write_track_csv
-
-        write_track_csv(path, self)
+        """Write `table()` as `track.csv`, atomically."""
+        write_columns(path, self.table())
 
     def to_json(self) -> dict[str, Any]:
         """What `track.json` records: weights, rate, robot, terminal regulator, evaluation."""
-        from .table import track_json
-
-        return track_json(self)
+        return {
+            "rate_hz": self.rate,
+            "rows": int(len(self.ts)),
+            "duration_s": float(self.ts[-1]),
+            "target": [float(v) for v in self.target],
+            "weights": self.weights.to_json(),
+            "r_scale": self.r_scale,
+            "max_torque_N_m": self.max_torque,
+            "params": self.params.to_dict(),
+            "error": ["x", "y", "a_1", "a_2", "a_3", *(f"{w}_{i}" for w in ("omega", "Omega") for i in (1, 2, 3))],
+            "control_law": "K = K_ff - G e, zero-order hold from a row's t to the next; the last row held",
+            "terminal": {
+                "conserved_mode": [float(v) for v in self.conserved],
+                "eigenvalue_moduli": [float(v) for v in self.eigenvalues],
+            },
+            "miss_mc": self.miss_mc,
+            "elapsed_s": dict(self.elapsed_s),
+        }
 
     def summary(self) -> str:
         lines = [
@@ -106,9 +124,7 @@ def _plan_input(plan) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, RobotP
     or a plan file: the CSV of `jsphere plan` (its `K_1..N` columns; the target and the robot
     from the `.json` beside it when there is one) or that `.json` (the CSV beside it)."""
     if isinstance(plan, Plan):
-        cols = plan.table()  # the torques of the plan's CSV
-        ts = cols["t"]
-        K = np.stack([cols[f"K_{i + 1}"] for i in range(plan.params.n_wheels)], axis=1)
+        ts, K = np.asarray(plan.trajectory.ts), plan.commanded("K")  # the torques of the plan's CSV
         keep = np.concatenate([np.diff(ts) > 0, [True]])
         return ts[keep], K[keep], np.asarray(plan.target[:2], float), plan.params, "the Plan's params"
     if not isinstance(plan, (str, Path)):
@@ -235,33 +251,16 @@ def evaluate(
     arrs = [jnp.asarray(v, dt) for v in (tracker.K_ff, tracker.reference, tracker.G, tracker.target)]
     out = {}
     for name, closed in (("open_loop", 0.0), ("closed_loop", 1.0)):
-        parts = []
-        for a in range(0, n, BATCH):
-            part = jax.tree_util.tree_map(lambda v, a=a: v[a : a + BATCH], samples)
-            parts.append(
-                [
-                    np.asarray(x)
-                    for x in run_batch(
-                        part, keys[a : a + BATCH], h, *arrs, c, tracker.max_torque, n_settle, jnp.asarray(closed, dt)
-                    )
-                ]
-            )
-        miss, speed, umax = (np.concatenate([p[i] for p in parts]) for i in range(3))
+        closed = jnp.asarray(closed, dt)
+        run = lambda part, k: run_batch(part, k, h, *arrs, c, tracker.max_torque, n_settle, closed)
+        miss, speed, umax = in_batches(run, BATCH, samples, keys)
         bad = ~(np.isfinite(miss) & np.isfinite(speed))
         if bad.any():
             raise SolverFailure(
                 f"track: {int(bad.sum())} of {n} {name.replace('_', ' ')} trials are not finite (first: draw "
                 f"{int(np.argmax(bad))}); the integration at {tracker.rate:g} Hz fails on those robots."
             )
-        out[name] = {
-            "mean": float(np.mean(miss)),
-            "p50": float(np.percentile(miss, 50)),
-            "p95": float(np.percentile(miss, 95)),
-            "max": float(np.max(miss)),
-            "speed_mean": float(np.mean(speed)),
-            "speed_p95": float(np.percentile(speed, 95)),
-            "max_torque_N_m": float(np.max(umax)),
-        }
+        out[name] = {**miss_summary({"miss_m": miss, "speed_m_s": speed}), "max_torque_N_m": float(np.max(umax))}
     out["samples"] = n
     out["source"] = source
     out["seed"] = int(seed)
