@@ -1,24 +1,11 @@
 """XLA options for the programs of single, eager calls: compiled for a short first call.
 
-A script's first `simulate_gaits`, `simulate` or `jax.grad` through them spends most of its
-time in XLA's compiler, not in the solve (`docs/performance.md`, "Time to first result"). On
-the CPU, XLA's older (non-MLIR) fusion emitters and LLVM's optimisation level 1 compile these
-programs about twice as fast, and the compiled solve runs as fast within the noise of a
-shared machine. `eager_jit` compiles a function with these options when it is called with
-concrete arrays and no transformation around it (the programs jsphere compiles itself); under
-`jax.jit`, `vmap` or `grad` the call is traced into the caller's program as usual (JAX takes
-compiler options from the outermost `jit` only), and on other backends, or with an XLA that
-does not know the options, nothing changes.
-
-`JSPHERE_XLA_DEFAULTS=1` in the environment keeps XLA's own defaults for every program, and an
-option named in `XLA_FLAGS` keeps the value given there.
-
-The programs of `eager_jit` hold no host callback, wherever they are traced (eagerly or inside a
-user's `jit`): equinox's run-time checks in them (diffrax's, on `SaveAt(ts=...)`, and any in a
-user's controls) are traced in their `nan` mode (`jsphere._runtime.private.callbacks_as_nan`),
-as JAX never writes a program with a host callback to its persistent compilation cache. A
-solve reports a failure through its status instead (a failed check makes values NaN, which
-`RESULTS.nonfinite` reports); `simulate` and `simulate_gaits` raise it outside the program.
+On the CPU, XLA's older (non-MLIR) fusion emitters and LLVM's optimisation level 1 compile a
+script's first solve or gradient about twice as fast, and the program runs as fast
+(docs/decisions/eager-solves-compile-with-xla-s.md). `JSPHERE_XLA_DEFAULTS=1` keeps XLA's own
+defaults, and an option named in `XLA_FLAGS` keeps the value given there. The programs hold no
+host callback, so that JAX's persistent cache keeps them
+(docs/decisions/jsphere-s-programs-hold-no-host.md).
 """
 
 from __future__ import annotations
@@ -140,20 +127,3 @@ def run_program(name: str, fn: Callable, rebuild: Callable, *args):
     `rebuild(leaves)` makes it again from its leaves; `name` names the program."""
     runner = _RUNNER[0]
     return fn(*args) if runner is None else runner(name, fn, rebuild, *args)
-
-
-def compile_program(name: str, fn: Callable, *args, traced: Callable = lambda: None) -> None:
-    """Compile what `run_program(name, fn, rebuild, *args)` runs, without running it:
-    `fn.lower(*args).compile()` (`fn` an `eager_jit` function), or `runner.compile(name, fn,
-    *args, traced=traced)` where the runner has that method; for other runners nothing is
-    compiled. `traced()` is called once the program is traced and lowered, before XLA compiles
-    it (which releases Python's lock)."""
-    runner = _RUNNER[0]
-    if runner is None:
-        lowered = fn.lower(*args)
-        traced()
-        lowered.compile()
-    elif hasattr(runner, "compile"):
-        runner.compile(name, fn, *args, traced=traced)
-    else:
-        traced()

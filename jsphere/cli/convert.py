@@ -3,9 +3,10 @@
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
+
+from .options import options_of
 
 NAME = "convert"
 EXAMPLES = """
@@ -101,7 +102,6 @@ def add_parser(sub) -> None:
         "and beyond its spread, and above twice the marker error the export reports: a swapped or ghost marker); by "
         "default they are written as missing, with a warning saying how many",
     )
-    cv.add_argument("--no-cache", action="store_true", help=argparse.SUPPRESS)
 
 
 def run(args) -> int:
@@ -157,26 +157,16 @@ def run(args) -> int:
 
 
 def _options(args, body, robot, time_offset: float):
-    """The `ConvertOptions` of the command's flags (the one place where flags become options):
-    `body` the markers read from `--body-markers`, `robot` the `--params` (its wheels and `R0`
-    are checked)."""
+    """The `ConvertOptions` of the command's flags: `body` the markers read from `--body-markers`,
+    `robot` the `--params` (its wheels and `R0` are checked)."""
     from ..capture.options import ConvertOptions
 
-    return ConvertOptions(
-        units=args.units,
-        up_axis=args.up_axis,
-        rigid_body=args.rigid_body,
-        subject=args.subject,
-        allow_truncated=args.allow_truncated,
-        pose_topic=args.pose_topic,
-        child_frame=args.child_frame,
-        inputs_topic=args.inputs_topic,
-        input_kind=args.input_kind,
-        joints=args.joints,
+    return options_of(
+        ConvertOptions,
+        args,
         n_wheels=robot.n_wheels if robot is not None else None,
         body_markers=body,
         body_offset=tuple(args.body_offset),
-        keep_suspect=args.keep_suspect,
         time_offset=time_offset,
         shell_radius=float(robot.R0) if robot is not None else None,
     )

@@ -6,7 +6,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from .options import progress
+from .options import options_of, progress, robot
 
 NAME = "plan"
 EXAMPLES = """
@@ -96,13 +96,11 @@ def add_parser(sub) -> None:
         default=1000,
         help="fresh parameter sets on which miss_mc compares the nominal and the robust plan (default 1000)",
     )
-    pp.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
 
 
 def run(args) -> int:
     from .._runtime.errors import ExitCode
     from .._runtime.files import atomic_write_json, check_output
-    from ..model.params import RobotParams
     from ..planning.plan import plan
 
     out = Path(args.out)
@@ -117,7 +115,7 @@ def run(args) -> int:
         example=str(Path(args.out) / "plan.csv"),
     )
     request = _request(args)
-    params = RobotParams.load(args.params) if args.params else RobotParams.paper()
+    params = robot(args)
     source = str(args.params) if args.params else "the paper's robot (RobotParams.paper())"
     uncertainty, params = _uncertainty(args) if args.robust else (None, params)
     if args.robust:
@@ -246,40 +244,26 @@ def _limits(args):
 
 
 def _request(args) -> dict:
-    """The keywords of `plan` that the flags give: the one place where flags become options
-    (`--robust`'s in `_robust_options`)."""
+    """The keywords of `plan` that the flags give (`--robust`'s in `_robust`)."""
     from ..planning.plan import Objective, PlanOptions
 
     return {
         "heading": args.heading,
         "limits": _limits(args),
         "objective": Objective(energy=args.energy_weight, time=args.time_weight),
-        "plan_options": PlanOptions(restarts=args.restarts, rate=args.rate, seed=args.seed),
+        "plan_options": options_of(PlanOptions, args),
         "progress": progress(args),
     }
 
 
-def _robust_options(args, uncertainty, nominal):
-    """The `RobustOptions` of `--robust FILE` and its flags, from the nominal plan."""
+def _robust(args, params, uncertainty, nominal, request: dict):
+    """The robust plan of `--robust FILE` (`plan` with the `RobustOptions` of its flags), from the
+    nominal plan and its request; prints its summary."""
+    from ..planning import plan as plan_module
     from ..planning.robust import RobustOptions
 
-    return RobustOptions(
-        uncertainty,
-        samples=args.samples,
-        quantile=args.quantile,
-        restarts=min(args.restarts, 4),
-        check_samples=args.check_samples,
-        nominal=nominal,
-    )
-
-
-def _robust(args, params, uncertainty, nominal, request: dict):
-    """The robust plan of `--robust FILE` (`plan` with `RobustOptions`), from the nominal plan
-    and the nominal plan's request; prints its summary."""
-    from ..planning import plan as plan_module
-
-    robust = _robust_options(args, uncertainty, nominal)
-    robust = plan_module.plan(params, tuple(args.to), robust=robust, **request)
+    options = options_of(RobustOptions, args, uncertainty=uncertainty, restarts=min(args.restarts, 4), nominal=nominal)
+    robust = plan_module.plan(params, tuple(args.to), robust=options, **request)
     print(robust.summary())
     return robust
 

@@ -47,7 +47,6 @@ def add_parser(sub) -> None:
     src.add_argument("--vary", metavar="FILE", help="draw the robots from a Monte-Carlo study's [vary] table (.toml)")
     ev.add_argument("--samples", type=int, default=1000, help="drawn robots (default 1000; 0: no evaluation)")
     ev.add_argument("--seed", type=int, default=0, help="seed of the draws (default 0)")
-    pp.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
 
 
 def _weights(args):
