@@ -27,40 +27,35 @@ CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_l
 #: the environment variable that keeps XLA's defaults
 DEFAULTS_VARIABLE = "JSPHERE_XLA_DEFAULTS"
 
-_SUPPORTED: bool | None = None
 
-
-def _probe(x):
-    return x + 1
+@functools.cache
+def _cpu_options_accepted() -> bool:
+    """Whether this is the CPU backend and its XLA accepts `CPU_OPTIONS` (checked once per
+    process by compiling a one-operation program)."""
+    try:
+        if jax.default_backend() != "cpu":
+            return False
+        jax.jit(lambda x: x + 1, compiler_options=CPU_OPTIONS).lower(np.float32(0.0)).compile()
+        return True
+    except Exception:  # noqa: BLE001 - an XLA without these options: its defaults
+        return False
 
 
 def options() -> dict | None:
     """The compiler options for an eager call's program here, or `None` for XLA's defaults:
-    `CPU_OPTIONS` on the CPU backend where this XLA accepts them (checked once per process
-    by compiling a one-operation program)."""
-    global _SUPPORTED
-    if os.environ.get(DEFAULTS_VARIABLE, "") not in ("", "0"):
+    `CPU_OPTIONS` where this XLA accepts them, less any option named in `XLA_FLAGS` (e.g. by
+    `jsphere reproduce`), which stays as set there."""
+    if os.environ.get(DEFAULTS_VARIABLE, "") not in ("", "0") or not _cpu_options_accepted():
         return None
-    if _SUPPORTED is None:
-        try:
-            _SUPPORTED = jax.default_backend() == "cpu"
-            if _SUPPORTED:
-                jax.jit(_probe, compiler_options=CPU_OPTIONS).lower(np.float32(0.0)).compile()
-        except Exception:  # noqa: BLE001 - an XLA without these options: its defaults
-            _SUPPORTED = False
-    if not _SUPPORTED:
-        return None
-    flags = os.environ.get("XLA_FLAGS", "")  # an option set there (e.g. by `jsphere reproduce`) stays as set
-    chosen = {k: v for k, v in CPU_OPTIONS.items() if k not in flags}
-    return chosen or None
+    flags = os.environ.get("XLA_FLAGS", "")
+    return {k: v for k, v in CPU_OPTIONS.items() if k not in flags} or None
 
 
 def eager_jit(fn: Callable) -> Callable:
     """`equinox.filter_jit(fn)`, compiled with `options()` when called eagerly with concrete
     arrays; traced calls use the plain `filter_jit` (one compiled function per shape each),
     and calls under `jvp` or `vmap` (`transformed`) inside a `jit` call `fn` itself.
-    `eager_jit(fn).lower(*args)` lowers the eager call's program without running it. Traced
-    in either way, equinox's run-time checks in `fn` are in their `nan` mode (no host
+    Traced in either way, equinox's run-time checks in `fn` are in their `nan` mode (no host
     callback: see above).
 
     (Measured with `benchmarks/first_result.py`: inlined under `jvp` and `vmap`, a fit's
@@ -86,13 +81,6 @@ def eager_jit(fn: Callable) -> Callable:
                 return fn(*args, **kwargs) if inline else plain(*args, **kwargs)
             return eager()(*args, **kwargs)
 
-    def lower(*args, **kwargs):
-        """The eager call's program for these arguments, lowered (`.compile()` compiles it: an
-        eager call with arguments of the same shapes then runs that executable)."""
-        with callbacks_as_nan():
-            return eager().lower(*args, **kwargs)
-
-    call.lower = lower
     return call
 
 
@@ -105,7 +93,7 @@ def jit_concrete(fn: Callable) -> Callable:
 
 #: how the named programs of calls with concrete inputs run in this process (`run_program`):
 #: `[None]`, directly; the command line sets a `jsphere._runtime.fast_start.FastStart` (for
-#: the whole process, so that a thread compiling ahead runs the same programs)
+#: the whole process, every thread)
 _RUNNER: list = [None]
 
 

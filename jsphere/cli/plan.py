@@ -117,8 +117,9 @@ def run(args) -> int:
     request = _request(args)
     params = robot(args)
     source = str(args.params) if args.params else "the paper's robot (RobotParams.paper())"
-    uncertainty, params = _uncertainty(args) if args.robust else (None, params)
+    uncertainty = None
     if args.robust:
+        uncertainty, params = uncertainty_of(args.robust, params if args.params else None)
         source = (
             f"{args.params} with the means of {args.robust}" if args.params else f"the nominal robot of {args.robust}"
         )
@@ -268,24 +269,23 @@ def _robust(args, params, uncertainty, nominal, request: dict):
     return robust
 
 
-def _uncertainty(args, params=None):
-    """The `Uncertainty` of `--robust` and the nominal parameters: a fit result's estimate and
-    covariance (around its `params`), or a study's `vary` table (around its parameters). The
-    nominal is around `params` (`RobotParams`) when given, else around `--params` when given."""
+def uncertainty_of(path, params=None):
+    """The `Uncertainty` of `--robust FILE` and the nominal robot: a fit result's estimate and
+    covariance, or a study's `vary` table, around `params` (`RobotParams`) when given, else
+    around the file's own robot (the fit's, or the study's)."""
     from .._runtime.errors import InputError
     from .._runtime.files import read_mapping
     from ..model.params import RobotParams
     from ..planning.uncertainty import Uncertainty
 
-    path = Path(args.robust)
+    path = Path(path)
     if path.suffix.lower() == ".toml":
         import numpy as np
 
         from ..montecarlo.study import check_vary, load_study
 
         study = load_study(path)
-        if params is None:
-            params = RobotParams.load(args.params) if args.params else study.params
+        params = study.params if params is None else params
         try:
             entries = check_vary(params, study.vary)
         except ValueError as e:
@@ -297,8 +297,5 @@ def _uncertainty(args, params=None):
         return unc, unc.nominal(params)
     if path.suffix.lower() != ".json":
         raise InputError(f"--robust {path}: expected a fit result (.json) or a Monte-Carlo study (.toml).")
-    fit = read_mapping(path)
-    if params is None:
-        params = RobotParams.load(args.params) if args.params else RobotParams.load(path)
-    unc = Uncertainty.from_fit(fit, source=str(path))
-    return unc, unc.nominal(params)
+    unc = Uncertainty.from_fit(read_mapping(path), source=str(path))
+    return unc, unc.nominal(RobotParams.load(path) if params is None else params)
