@@ -17,6 +17,7 @@ exported, and any failure of the exported path falls back to the ordinary call.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import sys
@@ -34,7 +35,6 @@ from .precision import x64_enabled
 from .private import callbacks_as_nan
 from .quick_compile import jit_concrete
 
-_ENVIRONMENT: str | None = None
 _PLAIN = (bool, int, float, complex, str, type(None))
 _FUNCTION_MODULES = ("jsphere.", "jax.", "jax", "numpy")
 
@@ -107,30 +107,22 @@ def _committed(leaves: list) -> list:
     return [x if isinstance(x, jax.Array) and x.committed else jax.device_put(x, device) for x in leaves]
 
 
+@functools.cache
 def environment() -> str:
     """What every exported program depends on besides its arguments (computed once): the
     source of every jsphere module, library versions, the backend and its device count (a
     program may split its work over the devices)."""
-    global _ENVIRONMENT
-    if _ENVIRONMENT is None:
-        import diffrax
-        import jaxlib
+    import diffrax
+    import jaxlib
 
-        h = hashlib.sha256()
-        package = Path(__file__).resolve().parent.parent
-        for f in sorted(package.rglob("*.py")):
-            h.update(f.relative_to(package).as_posix().encode() + b"\0" + f.read_bytes())
-        for item in (
-            jax.__version__,
-            jaxlib.__version__,
-            diffrax.__version__,
-            eqx.__version__,
-            jax.default_backend(),
-            jax.device_count(),
-        ):
-            h.update(str(item).encode() + b"\0")
-        _ENVIRONMENT = h.hexdigest()
-    return _ENVIRONMENT
+    h = hashlib.sha256()
+    package = Path(__file__).resolve().parent.parent
+    for f in sorted(package.rglob("*.py")):
+        h.update(f.relative_to(package).as_posix().encode() + b"\0" + f.read_bytes())
+    for item in (jax.__version__, jaxlib.__version__, diffrax.__version__, eqx.__version__):
+        h.update(item.encode() + b"\0")
+    h.update(f"{jax.default_backend()}\0{jax.device_count()}\0".encode())
+    return h.hexdigest()
 
 
 def _stable(x: Any) -> str | None:

@@ -310,7 +310,7 @@ def scenes_from_path(path, extra=(), *, params: RobotParams | None = None, trial
         return [montecarlo_scene(path, study[0], params)]
     suffix = path.suffix.lower()
     if suffix == ".csv":
-        if "heading" in _csv_header(path) and "gamma_1" in _csv_header(path):
+        if {"heading", "gamma_1"} <= set(_csv_header(path)):
             return [plan_table_scene(path, params)]
         trial = read_trial(path)
         return [trial_scene(trial, params if params is not None else RobotParams.paper())]
