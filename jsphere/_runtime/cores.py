@@ -1,15 +1,9 @@
 """Every CPU core for a batch of trials: JAX's CPU backend as one device per core, and a
-batch's arrays split over those devices.
-
-JAX runs a program on its CPU backend as one device, and a batched solve (`jax.vmap` of
-`simulate`) keeps about one core busy however many the machine has: its kernels are too small
-for XLA to split them across threads. With one device per core and the batch's inputs split
-along their trial axis over the devices, the same `jax.jit(jax.vmap(simulate))` runs each
-device's share of the trials on its own core (XLA's SPMD partitioner; the shared step sequence
-stays one for the whole batch, its error norm reduced across the devices). Measured in
-`docs/performance.md` ("Every core").
-
-jax is imported inside the functions, so that importing this module stays cheap."""
+batch's arrays split over those devices along their trial axis, so that one
+`jax.jit(jax.vmap(simulate))` runs each device's share on its own core (a batched solve's
+kernels are too small for XLA to split across threads: docs/decisions/one-cpu-device-per-core.md,
+measured in `docs/performance.md`, "Every core"). jax is imported inside the functions, so that
+importing this module stays cheap."""
 
 from __future__ import annotations
 

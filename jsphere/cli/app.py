@@ -173,9 +173,9 @@ def _run(args) -> int:
         resume = _RESUMES.get(args.command)
         print(f"\n{name}: interrupted" + (f"; {resume}" if resume else "; nothing was written") + ".", file=sys.stderr)
         return ExitCode.INTERRUPTED
-    except SolverFailure as e:
+    except (SolverFailure, ImportError) as e:  # ImportError: an optional dependency (ezc3d for C3D files)
         print(f"{name}: error: {e}", file=sys.stderr)
-        return ExitCode.SOLVER_FAILURE
+        return ExitCode.SOLVER_FAILURE if isinstance(e, SolverFailure) else ExitCode.BAD_INPUT
     except UnicodeDecodeError as e:  # a reader that did not name its file
         print(
             f"{name}: error: a file is not UTF-8 text ({e.reason} at byte {e.start}); save it as UTF-8 (CSV or TOML).",
@@ -184,9 +184,6 @@ def _run(args) -> int:
         return ExitCode.BAD_INPUT
     except _INPUT_ERRORS as e:
         print(f"{name}: error: {_one_line(e, args.command)}", file=sys.stderr)
-        return ExitCode.BAD_INPUT
-    except ImportError as e:  # an optional dependency (ezc3d for C3D files)
-        print(f"{name}: error: {e}", file=sys.stderr)
         return ExitCode.BAD_INPUT
     except Exception as e:  # noqa: BLE001
         solver = _solver_message(e)
