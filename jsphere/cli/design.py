@@ -74,7 +74,6 @@ def run(args) -> int:
     from ..design.result import json_path, table_paths
     from .plan import _limits
 
-    args.max_time = None
     whole = "a whole number >= "
     check_flags(
         args,

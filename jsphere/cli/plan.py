@@ -226,22 +226,20 @@ def _withhold_commands(path: Path) -> str:
 
 
 def _limits(args):
-    """The `Limits` of the options (a limit given as 'none', 'off' or 'inf' is switched off)."""
+    """The `Limits` of the flags (of `plan` and `design`; a limit given as 'none', 'off' or 'inf'
+    is switched off)."""
     from .._runtime.errors import InputError
     from ..planning.plan import Limits
 
-    none = {"none", "off", "inf"}
-    lim_kw = {}
+    limits = {} if getattr(args, "max_time", None) is None else {"max_time": args.max_time}  # (design has none)
     for name in ("max_torque", "max_wheel_speed", "max_tilt", "max_torque_rate"):
         v = getattr(args, name)
         if v is not None:
             try:
-                lim_kw[name] = None if str(v).lower() in none else float(v)
+                limits[name] = None if str(v).lower() in {"none", "off", "inf"} else float(v)
             except ValueError:
                 raise InputError(f"--{name.replace('_', '-')} {v}: expected a number or 'none' (no limit).") from None
-    if args.max_time is not None:
-        lim_kw["max_time"] = float(args.max_time)
-    return Limits(**lim_kw)
+    return Limits(**limits)
 
 
 def _request(args) -> dict:
