@@ -1,21 +1,13 @@
 """A persistent compilation cache for jsphere's programs, shared by the library and the CLI.
 
-`enable_compilation_cache(path)` switches on JAX's persistent compilation cache (every
-executable kept, however quick its compilation or small its size), so that a new process
-loads the programs an earlier one compiled instead of compiling them again. The command line
-also keeps its solves exported beside them, which skips tracing too
-(`jsphere.cli.compilation.fast_start`).
-
-JAX never writes an executable that contains a host callback. jsphere's programs hold none:
-equinox's run-time checks inside them (`eqx.error_if`, used by diffrax, e.g. on
-`SaveAt(ts=...)`) are traced in equinox's `"nan"` mode (`callbacks_as_nan()`, applied by
-`jsphere._runtime.quick_compile.eager_jit` to every program jsphere compiles or traces into a
-caller's `jit`), and a solver failure is the solve's `Trajectory.status` (1: the solver
-failed, 2: non-finite values, which a failed check inside the program gives), which
-`simulate` and `simulate_gaits` raise after the program returns. So the cache keeps a script's
-eager solves and gradients, and a caller's own `jit` around solves with `throw=False`. With
-`throw=True` (the default) inside a caller's `jit`, the failure is raised by an equinox check
-in the caller's program, a host callback: that program is compiled again by each process.
+`enable_compilation_cache(path)` switches on JAX's persistent compilation cache, so that a new
+process loads the programs an earlier one compiled instead of compiling them again; the command
+line also keeps its solves exported beside them (`jsphere.cli.compilation.fast_start`). JAX
+never writes an executable that holds a host callback, and jsphere's programs hold none
+(docs/decisions/jsphere-s-programs-hold-no-host.md): the cache keeps a script's eager solves
+and gradients, and a caller's own `jit` around solves with `throw=False`. With `throw=True`
+inside a caller's `jit`, the failure is raised by an equinox check in the caller's program, a
+host callback: that program is compiled again by each process.
 """
 
 from __future__ import annotations
@@ -44,13 +36,9 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
     Switches on JAX's persistent compilation cache (a setting of JAX for the whole process)
     with no thresholds: every program is written, as the eager operations around a solve
     compile in milliseconds each, and reloading them is still cheaper than compiling them
-    again. Returns the directory used (created if missing); the command line keeps exported
-    solves in the same directory.
-
-    Programs with host callbacks are not written by JAX: jsphere's own programs have none
-    (module docstring); inside your own `jax.jit`, pass `throw=False` and read
-    `Trajectory.ok` for the whole program to be kept. The cache is trusted code: do not point
-    it at a directory that others can write to.
+    again. Returns the directory used (created if missing). Inside your own `jax.jit`, pass
+    `throw=False` and read `Trajectory.ok` for the whole program to be kept (module docstring).
+    The cache is trusted code: do not point it at a directory that others can write to.
     """
     import jax
 

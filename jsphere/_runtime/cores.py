@@ -1,15 +1,9 @@
 """Every CPU core for a batch of trials: JAX's CPU backend as one device per core, and a
-batch's arrays split over those devices.
-
-JAX runs a program on its CPU backend as one device, and a batched solve (`jax.vmap` of
-`simulate`) keeps about one core busy however many the machine has: its kernels are too small
-for XLA to split them across threads. With one device per core and the batch's inputs split
-along their trial axis over the devices, the same `jax.jit(jax.vmap(simulate))` runs each
-device's share of the trials on its own core (XLA's SPMD partitioner; the shared step sequence
-stays one for the whole batch, its error norm reduced across the devices). Measured in
-`docs/performance.md` ("Every core").
-
-jax is imported inside the functions, so that importing this module stays cheap."""
+batch's arrays split over those devices along their trial axis, so that one
+`jax.jit(jax.vmap(simulate))` runs each device's share on its own core (a batched solve's
+kernels are too small for XLA to split across threads: docs/decisions/one-cpu-device-per-core.md,
+measured in `docs/performance.md`, "Every core"). jax is imported inside the functions, so that
+importing this module stays cheap."""
 
 from __future__ import annotations
 
@@ -19,27 +13,22 @@ import os
 WHEN = "call jsphere.use_cpu_cores() right after `import jax`, before any JAX operation runs"
 
 
-def available_cores() -> int:
-    """The CPU cores this process may run on (its affinity mask where the system has one)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # macOS, Windows
-        return os.cpu_count() or 1
-
-
 def use_cpu_cores(n: int | None = None) -> int:
-    """Make JAX's CPU backend `n` devices (default: `available_cores()`), so that a batch
+    """Make JAX's CPU backend `n` devices (default: the cores this process may run on), so that a batch
     split over them with `shard_trials` runs on `n` cores; returns `n`.
 
     This is JAX's `jax_num_cpu_devices`, which takes effect only before JAX runs its first
     operation: call it right after `import jax` (and `jsphere.enable_x64()`). `jax.devices()`
-    then lists `n` CPU devices; a computation whose inputs are not split runs on the first. On a machine whose default backend is a GPU this changes nothing there.
+    then lists `n` CPU devices; a computation whose inputs are not split runs on the first. On
+    a machine whose default backend is a GPU this changes nothing there.
     Raises `RuntimeError` (one line, what to do) when JAX has already started with another
     count; the same count again is allowed.
     """
     import jax
 
-    n = available_cores() if n is None else int(n)
+    if n is None:  # the cores this process may run on (its affinity mask where the system has one)
+        n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    n = int(n)
     if n < 1:
         raise ValueError(f"use_cpu_cores: n must be at least 1, got {n}")
     try:

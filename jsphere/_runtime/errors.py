@@ -13,26 +13,19 @@ import enum
 
 
 class ExitCode(enum.IntEnum):
-    """Exit codes of the `jsphere` command line."""
+    """Exit codes of the `jsphere` command line; what each means: `EXIT_CODES_HELP`."""
 
     OK = 0
-    #: an internal error (a bug): the traceback is printed
     INTERNAL = 1
-    #: bad input: a file, option or value that cannot be used; the message names it
     BAD_INPUT = 2
-    #: `jsphere plan`: the request cannot be met within the limits (the best plan is written)
     INFEASIBLE = 3
-    #: the ODE solver or an optimiser failed; the message says where and what to try
     SOLVER_FAILURE = 4
-    #: `jsphere fit`: the optimiser did not converge (fit.json is written, with its status)
     NOT_CONVERGED = 5
-    #: `jsphere fit`, `jsphere compare`: the model does not explain the trials (residuals far above the
-    #: capture's noise floor or correlated in time); the result file is written
     MISFIT = 6
-    #: interrupted (Ctrl-C, SIGTERM) after saving what was finished; rerun to resume
     INTERRUPTED = 130
 
 
+#: what each `ExitCode` means, as `jsphere --help` shows it
 EXIT_CODES_HELP = """exit codes:
   0    success
   1    internal error (a bug in jsphere: the traceback is printed; please report it)

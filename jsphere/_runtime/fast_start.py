@@ -1,29 +1,23 @@
-"""`FastStart`: the programs of a script's or command's solves kept on disk, so that the next
-process skips tracing them.
+"""`FastStart`: the programs of a command's solves kept on disk, so that the next process skips
+tracing them (docs/decisions/persistent-compilation-cache-and-exported-solves.md).
 
-A solve is pure: `simulate` and `simulate_gaits` compile their program in this process and
-keep nothing else. Where a process's first calls matter (the command line), the application
-runs its solves' programs through a `FastStart(path)`
-(`jsphere._runtime.quick_compile.programs_run_by`); it runs each program of a call with concrete inputs (`_simulate`, `_simulate_gaits`, an eager
-gradient's programs) in its place, exported once with `jax.export` (traced with equinox's
-run-time checks in their `nan` mode, `jsphere._runtime.private.callbacks_as_nan`, as jsphere's
-programs always are: host callbacks cannot be serialised; a failed solve is reported by its
-status, and raised by `simulate` outside the program) to `<path>/aot/<key>.jaxexport`. Later calls, in this process or the next,
-run the deserialised program, compiled with the eager options of
-`jsphere._runtime.quick_compile`, whose executable comes from JAX's persistent compilation
-cache when that is on (`jsphere.enable_compilation_cache`): a second process skips tracing and
-lowering (docs/decisions/persistent-compilation-cache-and-exported-solves.md).
+The command line runs its solves' programs through a `FastStart(path)`
+(`jsphere._runtime.quick_compile.programs_run_by`): each program of a call with concrete inputs
+is exported once with `jax.export` (traced with equinox's checks in their `nan` mode: host
+callbacks cannot be serialised) to `<path>/aot/<key>.jaxexport`; later calls, in this process or
+the next, run the deserialised program, whose executable comes from JAX's persistent cache.
 
 The key hashes everything the program depends on: its name, the source of every `jsphere`
 module, the versions of jax, jaxlib, diffrax and equinox, the backend, its device count and
 float precision, the tree structure of the arguments, the shapes and dtypes of their arrays,
-and the values of their non-array parts. A call whose non-array parts have no stable value (a `lambda`, a
-function defined outside jsphere, any object printed with its address) is not exported, and
-any failure of the exported path falls back to the ordinary call.
+and the values of their non-array parts. A call whose non-array parts have no stable value (a
+`lambda`, a function defined outside jsphere, any object printed with its address) is not
+exported, and any failure of the exported path falls back to the ordinary call.
 """
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import sys
@@ -41,24 +35,16 @@ from .precision import x64_enabled
 from .private import callbacks_as_nan
 from .quick_compile import jit_concrete
 
-_ENVIRONMENT: str | None = None
 _PLAIN = (bool, int, float, complex, str, type(None))
 _FUNCTION_MODULES = ("jsphere.", "jax.", "jax", "numpy")
 
 
 class FastStart:
-    """Runs the programs of solves with concrete inputs as programs exported to `path/aot`,
-    kept for later processes (`jsphere._runtime.quick_compile.programs_run_by(FastStart(path))`).
-
-    `jsphere reproduce`, `fit`, `plan` and `montecarlo` run through `FastStart(<cache>)`, the cache of
-    `jsphere.enable_compilation_cache`. The folder is trusted code: do not point it at a
-    directory that others can write to.
-
-    jsphere traces its programs with equinox's run-time checks in their `nan` mode (no host
-    callbacks: `jsphere._runtime.quick_compile`), unless `EQX_ON_ERROR` is set in the
-    environment; a program with host callbacks (e.g. `EQX_ON_ERROR=raise`) cannot be
-    exported and runs as usual, with a note on stderr.
-    """
+    """Runs the programs of solves with concrete inputs as programs exported to `path/aot`, kept
+    for later processes (module docstring). `jsphere reproduce`, `fit`, `plan` and `montecarlo`
+    run through `FastStart(<cache>)`. The folder is trusted code: do not point it at a directory
+    that others can write to. A program with host callbacks (`EQX_ON_ERROR=raise`) cannot be
+    exported and runs as usual, with a note on stderr."""
 
     def __init__(self, path: str | os.PathLike):
         self.path = Path(path).expanduser() / "aot"
@@ -82,37 +68,9 @@ class FastStart:
                 run = self._loaded.get(key) or self._load_or_export(key, fn, treedef, static, leaves)
                 return rebuild(run(*_committed(leaves)))
             except Exception as e:  # noqa: BLE001 - the exported path is an optimisation only
-                self._not_exported(key, name, e)
+                self._failed.add(key)  # `fn` runs itself for this key from now on; said once
+                print(f"jsphere: not exporting {name} ({type(e).__name__}: {e}); running it directly", file=sys.stderr)
         return fn(*args)
-
-    def _not_exported(self, key: str, name: str, e: Exception) -> None:
-        """`fn` runs itself for this key from now on; said once, on stderr."""
-        self._failed.add(key)
-        print(f"jsphere: not exporting {name} ({type(e).__name__}: {e}); running it directly", file=sys.stderr)
-
-    def compile(self, name: str, fn: Callable, *args, traced: Callable = lambda: None) -> None:
-        """Export (or load) and compile the program `self(name, fn, rebuild, *args)` runs,
-        without running it, so that a call with arguments of the same shapes runs at once;
-        `traced()` is called between tracing and compiling. Where the call would run `fn`
-        itself (no stable key, or an export that fails: noted as the call notes it), this
-        compiles `fn.lower(*args)`, where `fn` has one."""
-        dyn, static = eqx.partition(args, eqx.is_array)
-        leaves, treedef = jax.tree_util.tree_flatten(dyn)
-        key = _key(name, leaves, treedef, static)
-        lowered = None
-        try:
-            if key is not None and key not in self._failed:
-                try:
-                    run = self._loaded.get(key) or self._load_or_export(key, fn, treedef, static, leaves)
-                    lowered = run.lower(*_committed(leaves))
-                except Exception as e:  # noqa: BLE001 - as in `__call__`: the call runs `fn` itself
-                    self._not_exported(key, name, e)
-            if lowered is None and hasattr(fn, "lower"):
-                lowered = fn.lower(*args)
-        finally:
-            traced()
-        if lowered is not None:
-            lowered.compile()
 
     def _load_or_export(self, key, fn, treedef, static, leaves) -> Callable:
         path = self.path / f"{key}.jaxexport"
@@ -149,30 +107,22 @@ def _committed(leaves: list) -> list:
     return [x if isinstance(x, jax.Array) and x.committed else jax.device_put(x, device) for x in leaves]
 
 
+@functools.cache
 def environment() -> str:
     """What every exported program depends on besides its arguments (computed once): the
     source of every jsphere module, library versions, the backend and its device count (a
     program may split its work over the devices)."""
-    global _ENVIRONMENT
-    if _ENVIRONMENT is None:
-        import diffrax
-        import jaxlib
+    import diffrax
+    import jaxlib
 
-        h = hashlib.sha256()
-        package = Path(__file__).resolve().parent.parent
-        for f in sorted(package.rglob("*.py")):
-            h.update(f.relative_to(package).as_posix().encode() + b"\0" + f.read_bytes())
-        for item in (
-            jax.__version__,
-            jaxlib.__version__,
-            diffrax.__version__,
-            eqx.__version__,
-            jax.default_backend(),
-            jax.device_count(),
-        ):
-            h.update(str(item).encode() + b"\0")
-        _ENVIRONMENT = h.hexdigest()
-    return _ENVIRONMENT
+    h = hashlib.sha256()
+    package = Path(__file__).resolve().parent.parent
+    for f in sorted(package.rglob("*.py")):
+        h.update(f.relative_to(package).as_posix().encode() + b"\0" + f.read_bytes())
+    for item in (jax.__version__, jaxlib.__version__, diffrax.__version__, eqx.__version__):
+        h.update(item.encode() + b"\0")
+    h.update(f"{jax.default_backend()}\0{jax.device_count()}\0".encode())
+    return h.hexdigest()
 
 
 def _stable(x: Any) -> str | None:

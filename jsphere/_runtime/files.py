@@ -11,32 +11,9 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-
-def _umask() -> int:
-    """The process's file-creation mask (read once, at import, before any thread starts)."""
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-_NEW_FILE_MODE = 0o666 & ~_umask()
-
-
-def _publish(tmp: str, path: Path) -> None:
-    """Give the finished temporary file the mode a plain `open(path, "w")` would (the
-    existing file's, else `0o666` less the umask: `mkstemp` creates `0o600`), flush it to
-    disk and rename it over `path`."""
-    try:
-        mode = path.stat().st_mode & 0o7777
-    except FileNotFoundError:
-        mode = _NEW_FILE_MODE
-    os.chmod(tmp, mode)
-    fd = os.open(tmp, os.O_RDWR)  # (fsync needs write access on some platforms)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    os.replace(tmp, path)
+_UMASK = os.umask(0o022)  # the process's file-creation mask, read at import before any thread starts
+os.umask(_UMASK)
+_NEW_FILE_MODE = 0o666 & ~_UMASK
 
 
 def atomic_write(path, write, *, suffix: str | None = None) -> None:
@@ -53,7 +30,17 @@ def atomic_write(path, write, *, suffix: str | None = None) -> None:
     os.close(fd)
     try:
         write(tmp)
-        _publish(tmp, path)
+        try:  # the mode a plain `open(path, "w")` gives (`mkstemp` creates `0o600`)
+            mode = path.stat().st_mode & 0o7777
+        except FileNotFoundError:
+            mode = _NEW_FILE_MODE
+        os.chmod(tmp, mode)
+        fd = os.open(tmp, os.O_RDWR)  # flushed to disk before the rename (fsync needs write access)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -85,11 +72,7 @@ def atomic_write_text(path, text: str) -> None:
     """Write `text` to `path` atomically (`atomic_write`; the temporary file ends in `.tmp`, so
     a reader globbing `*.csv` never sees one a killed process left)."""
 
-    def write(tmp):
-        with open(tmp, "w") as f:
-            f.write(text)
-
-    atomic_write(path, write, suffix=".tmp")
+    atomic_write(path, lambda tmp: Path(tmp).write_text(text), suffix=".tmp")
 
 
 def atomic_savefig(fig, path, **kwargs) -> None:
@@ -190,26 +173,13 @@ def _same_file(a: Path, b: Path) -> bool:
 
 
 def refuse_overwrite(outputs, inputs, *, option: str = "--out") -> None:
-    """Raise `InputError` if a file that a command would write is one of the files it reads.
-
-    Call it with every file the command is about to write and every file it reads, before any
-    work: writing the result over an input destroys the user's data (a raw export, a table of
-    commands, a parameter file) without a word.
-
-    **Arguments:**
-    - `outputs`: a path, or an iterable of paths, the command would write (those that do not
-      exist yet are compared by their resolved path). `None` entries are skipped.
-    - `inputs`: the files read: a mapping `{description: path or list of paths}` (the
-      description names the input in the message, e.g. `"the raw export"` or `"--inputs"`) or
-      an iterable of paths.
-      `None` entries are skipped.
-    - `option`: the option or argument that names the outputs, for the message.
-
-    Paths are compared after resolving `~`, `.`/`..`, relative paths and symbolic links; two
-    existing paths are also compared with `os.path.samefile`, so a hard link to an input counts.
-    The message names both paths and says what to do, e.g. `--out take.csv would write over
-    the raw export take.csv (the same file): give --out another path.`
-    """
+    """Raise `InputError` if a file that a command would write is one of the files it reads
+    (writing the result over an input destroys the user's data without a word): call it before
+    any work. `outputs`: a path or an iterable of paths (`None` entries skipped); `inputs`: a
+    mapping `{description: path or list of paths}` (the description names the input in the
+    message, e.g. `"the raw export"`) or an iterable of paths; `option`: what names the outputs.
+    Paths are compared after resolving `~`, `.`/`..` and links, and existing ones with
+    `os.path.samefile` (a hard link counts); the message names both and says what to do."""
     from .errors import InputError
 
     outs = [outputs] if isinstance(outputs, (str, os.PathLike)) else list(outputs or ())

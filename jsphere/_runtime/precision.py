@@ -11,19 +11,7 @@ import warnings
 
 #: the top-level modules whose frames a warning skips to point at the caller's own line
 _LIBRARY_PACKAGES = frozenset(
-    {
-        "jsphere",
-        "jax",
-        "jaxlib",
-        "equinox",
-        "diffrax",
-        "optax",
-        "optimistix",
-        "lineax",
-        "jaxtyping",
-        "contextlib",
-        "functools",
-    }
+    "jsphere jax jaxlib equinox diffrax optax optimistix lineax jaxtyping contextlib functools".split()
 )
 
 #: the one sentence that says how to turn float64 on

@@ -76,9 +76,7 @@ def _mode(on_error: str) -> str:
     equinox's own."""
     if on_error != "default":
         return on_error
-    if getattr(_NAN_DEPTH, "n", 0) > 0:
-        return "nan"
-    return _MODE[-1] if _MODE else on_error
+    return "nan" if getattr(_NAN_DEPTH, "n", 0) > 0 else _MODE[-1] if _MODE else on_error
 
 
 def _install() -> None:
@@ -107,9 +105,9 @@ def equinox_on_error() -> str:
 
 @contextlib.contextmanager
 def equinox_errors_as(mode: str) -> Iterator[None]:
-    """Trace equinox's run-time checks in `mode` inside the `with` block, in every thread (a
-    check with an explicit `on_error` stays as written); blocks nest. equinox's own switch is
-    never changed."""
+    """Trace equinox's run-time checks in `mode` inside the `with` block, in every thread (the mode
+    is read when a check is traced; a check with an explicit `on_error` stays as written);
+    blocks nest. equinox's own switch is never changed."""
     _install()
     with _LOCK:
         _MODE.append(mode)
@@ -141,15 +139,10 @@ def reset_jax_compilation_cache() -> None:
 
 @contextlib.contextmanager
 def callbacks_as_nan() -> Iterator[None]:
-    """Trace equinox's run-time checks in `"nan"` mode (no host callbacks) inside the block.
-
-    The mode is read when a check is *traced*: a program compiled before, or outside the
-    block, keeps the mode it was traced with. Only this thread's checks in equinox's default
-    mode change (`eqx.error_if(..., on_error="raise")` stays as written); blocks nest, and an
-    explicit `EQX_ON_ERROR` in the environment wins (e.g. `EQX_ON_ERROR=breakpoint` for
-    debugging). A failed check then returns NaN: jsphere's solves trace diffrax's checks
-    this way and report a failure through `Trajectory.status`.
-    """
+    """Trace equinox's run-time checks in `"nan"` mode (no host callbacks) inside the block, in
+    this thread: as `equinox_errors_as("nan")`, read when a check is traced; an explicit
+    `EQX_ON_ERROR` in the environment wins (e.g. `EQX_ON_ERROR=breakpoint` for debugging). A
+    failed check then returns NaN, which a solve reports through `Trajectory.status`."""
     if "EQX_ON_ERROR" in os.environ:
         yield
         return

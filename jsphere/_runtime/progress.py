@@ -53,13 +53,6 @@ _COMPILED: set[tuple[str, str]] = set()
 _LOCK = threading.Lock()
 
 
-def stderr_is_terminal() -> bool:
-    try:
-        return bool(sys.stderr.isatty())
-    except (AttributeError, ValueError):  # no stderr, or a closed one
-        return False
-
-
 def _handled() -> bool:
     """Whether someone (the command line) put a handler on the `jsphere` logger."""
     return any(not isinstance(h, logging.NullHandler) for h in logger.handlers)
@@ -69,15 +62,17 @@ class Progress:
     """What a `progress` argument asks for (see the module), and the bars and lines of one call.
 
     `say(line)`: a stage (INFO); `step(line)`: a step that a bar also shows (DEBUG while a bar
-    is drawn, else INFO); `bar(...)`: a bar (a no-op object without bars); `phase(...)`: a
-    bar without a count, for one long call; `compiling(...)`: the first call of a program.
-    """
+    is drawn, else INFO); `bar(...)`, `phase(...)`, `compiling(...)`: below."""
 
     def __init__(self, progress: bool | None | Callable[[str], Any] = None):
         if not (progress is None or isinstance(progress, bool) or callable(progress)):
             raise TypeError(f"progress must be None, True, False or a callable; got {type(progress).__name__}.")
         self.callback = progress if callable(progress) and not isinstance(progress, bool) else None
-        self.bars = progress is not False and self.callback is None and stderr_is_terminal()
+        try:
+            terminal = bool(sys.stderr.isatty())
+        except (AttributeError, ValueError):  # no stderr, or a closed one
+            terminal = False
+        self.bars = progress is not False and self.callback is None and terminal
         self.lines = progress is True or self.bars
         self._open: list = []
 
@@ -94,8 +89,7 @@ class Progress:
         self._write(logging.INFO, line)
 
     def step(self, line: str) -> None:
-        drawn = any(b.bar is not None for b in self._open)
-        self._write(logging.DEBUG if drawn else logging.INFO, line)
+        self._write(logging.DEBUG if any(b.bar is not None for b in self._open) else logging.INFO, line)
 
     def bar(self, total: int | None, desc: str, unit: str = "it", initial: int = 0, **tqdm_kwargs) -> "_Bar":
         """A bar of `total` steps (`initial` done already), closed at the end of a `with`."""
@@ -140,16 +134,6 @@ class Progress:
             _record(kind, full, time.perf_counter() - t0)
             for b in self._open:
                 b.restart_clock()
-
-    def compiled(self, kind: str, key: str, seconds: float) -> None:
-        """Note that the program `compiling(kind, key, ...)` would introduce was compiled
-        meanwhile (in `seconds`, e.g. in a thread of its own): its first call says nothing."""
-        full = _full_key(kind, key)
-        fresh = expected_compile_s(kind, full) is not None
-        with _LOCK:
-            _COMPILED.add((kind, full))
-        if fresh:
-            _record(kind, full, seconds)
 
 
 class _Bar:
@@ -228,12 +212,10 @@ def _full_key(kind: str, key: str) -> str:
 
 
 def _read_record(folder: Path | None) -> dict:
-    if folder is None:
-        return {}
     try:
         data = json.loads((folder / RECORD).read_text())
         return data if isinstance(data, dict) else {}
-    except (OSError, ValueError):
+    except (OSError, TypeError, ValueError):  # no folder, no record, or a damaged one
         return {}
 
 

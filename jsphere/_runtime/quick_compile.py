@@ -1,24 +1,11 @@
 """XLA options for the programs of single, eager calls: compiled for a short first call.
 
-A script's first `simulate_gaits`, `simulate` or `jax.grad` through them spends most of its
-time in XLA's compiler, not in the solve (`docs/performance.md`, "Time to first result"). On
-the CPU, XLA's older (non-MLIR) fusion emitters and LLVM's optimisation level 1 compile these
-programs about twice as fast, and the compiled solve runs as fast within the noise of a
-shared machine. `eager_jit` compiles a function with these options when it is called with
-concrete arrays and no transformation around it (the programs jsphere compiles itself); under
-`jax.jit`, `vmap` or `grad` the call is traced into the caller's program as usual (JAX takes
-compiler options from the outermost `jit` only), and on other backends, or with an XLA that
-does not know the options, nothing changes.
-
-`JSPHERE_XLA_DEFAULTS=1` in the environment keeps XLA's own defaults for every program, and an
-option named in `XLA_FLAGS` keeps the value given there.
-
-The programs of `eager_jit` hold no host callback, wherever they are traced (eagerly or inside a
-user's `jit`): equinox's run-time checks in them (diffrax's, on `SaveAt(ts=...)`, and any in a
-user's controls) are traced in their `nan` mode (`jsphere._runtime.private.callbacks_as_nan`),
-as JAX never writes a program with a host callback to its persistent compilation cache. A
-solve reports a failure through its status instead (a failed check makes values NaN, which
-`RESULTS.nonfinite` reports); `simulate` and `simulate_gaits` raise it outside the program.
+On the CPU, XLA's older (non-MLIR) fusion emitters and LLVM's optimisation level 1 compile a
+script's first solve or gradient about twice as fast, and the program runs as fast
+(docs/decisions/eager-solves-compile-with-xla-s.md). `JSPHERE_XLA_DEFAULTS=1` keeps XLA's own
+defaults, and an option named in `XLA_FLAGS` keeps the value given there. The programs hold no
+host callback, so that JAX's persistent cache keeps them
+(docs/decisions/jsphere-s-programs-hold-no-host.md).
 """
 
 from __future__ import annotations
@@ -40,40 +27,35 @@ CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False, "xla_backend_optimization_l
 #: the environment variable that keeps XLA's defaults
 DEFAULTS_VARIABLE = "JSPHERE_XLA_DEFAULTS"
 
-_SUPPORTED: bool | None = None
 
-
-def _probe(x):
-    return x + 1
+@functools.cache
+def _cpu_options_accepted() -> bool:
+    """Whether this is the CPU backend and its XLA accepts `CPU_OPTIONS` (checked once per
+    process by compiling a one-operation program)."""
+    try:
+        if jax.default_backend() != "cpu":
+            return False
+        jax.jit(lambda x: x + 1, compiler_options=CPU_OPTIONS).lower(np.float32(0.0)).compile()
+        return True
+    except Exception:  # noqa: BLE001 - an XLA without these options: its defaults
+        return False
 
 
 def options() -> dict | None:
     """The compiler options for an eager call's program here, or `None` for XLA's defaults:
-    `CPU_OPTIONS` on the CPU backend where this XLA accepts them (checked once per process
-    by compiling a one-operation program)."""
-    global _SUPPORTED
-    if os.environ.get(DEFAULTS_VARIABLE, "") not in ("", "0"):
+    `CPU_OPTIONS` where this XLA accepts them, less any option named in `XLA_FLAGS` (e.g. by
+    `jsphere reproduce`), which stays as set there."""
+    if os.environ.get(DEFAULTS_VARIABLE, "") not in ("", "0") or not _cpu_options_accepted():
         return None
-    if _SUPPORTED is None:
-        try:
-            _SUPPORTED = jax.default_backend() == "cpu"
-            if _SUPPORTED:
-                jax.jit(_probe, compiler_options=CPU_OPTIONS).lower(np.float32(0.0)).compile()
-        except Exception:  # noqa: BLE001 - an XLA without these options: its defaults
-            _SUPPORTED = False
-    if not _SUPPORTED:
-        return None
-    flags = os.environ.get("XLA_FLAGS", "")  # an option set there (e.g. by `jsphere reproduce`) stays as set
-    chosen = {k: v for k, v in CPU_OPTIONS.items() if k not in flags}
-    return chosen or None
+    flags = os.environ.get("XLA_FLAGS", "")
+    return {k: v for k, v in CPU_OPTIONS.items() if k not in flags} or None
 
 
 def eager_jit(fn: Callable) -> Callable:
     """`equinox.filter_jit(fn)`, compiled with `options()` when called eagerly with concrete
     arrays; traced calls use the plain `filter_jit` (one compiled function per shape each),
     and calls under `jvp` or `vmap` (`transformed`) inside a `jit` call `fn` itself.
-    `eager_jit(fn).lower(*args)` lowers the eager call's program without running it. Traced
-    in either way, equinox's run-time checks in `fn` are in their `nan` mode (no host
+    Traced in either way, equinox's run-time checks in `fn` are in their `nan` mode (no host
     callback: see above).
 
     (Measured with `benchmarks/first_result.py`: inlined under `jvp` and `vmap`, a fit's
@@ -99,13 +81,6 @@ def eager_jit(fn: Callable) -> Callable:
                 return fn(*args, **kwargs) if inline else plain(*args, **kwargs)
             return eager()(*args, **kwargs)
 
-    def lower(*args, **kwargs):
-        """The eager call's program for these arguments, lowered (`.compile()` compiles it: an
-        eager call with arguments of the same shapes then runs that executable)."""
-        with callbacks_as_nan():
-            return eager().lower(*args, **kwargs)
-
-    call.lower = lower
     return call
 
 
@@ -118,7 +93,7 @@ def jit_concrete(fn: Callable) -> Callable:
 
 #: how the named programs of calls with concrete inputs run in this process (`run_program`):
 #: `[None]`, directly; the command line sets a `jsphere._runtime.fast_start.FastStart` (for
-#: the whole process, so that a thread compiling ahead runs the same programs)
+#: the whole process, every thread)
 _RUNNER: list = [None]
 
 
@@ -140,20 +115,3 @@ def run_program(name: str, fn: Callable, rebuild: Callable, *args):
     `rebuild(leaves)` makes it again from its leaves; `name` names the program."""
     runner = _RUNNER[0]
     return fn(*args) if runner is None else runner(name, fn, rebuild, *args)
-
-
-def compile_program(name: str, fn: Callable, *args, traced: Callable = lambda: None) -> None:
-    """Compile what `run_program(name, fn, rebuild, *args)` runs, without running it:
-    `fn.lower(*args).compile()` (`fn` an `eager_jit` function), or `runner.compile(name, fn,
-    *args, traced=traced)` where the runner has that method; for other runners nothing is
-    compiled. `traced()` is called once the program is traced and lowered, before XLA compiles
-    it (which releases Python's lock)."""
-    runner = _RUNNER[0]
-    if runner is None:
-        lowered = fn.lower(*args)
-        traced()
-        lowered.compile()
-    elif hasattr(runner, "compile"):
-        runner.compile(name, fn, *args, traced=traced)
-    else:
-        traced()

@@ -60,7 +60,6 @@ def add_parser(sub) -> None:
     )
     an.add_argument("--trial", action="append", metavar="NAME", help="a fit's trial to show (repeatable; default all)")
     an.add_argument("--view", choices=("3d", "top"), default="3d", help="camera: 3d (default) or top (from above)")
-    an.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
 
 
 def run(args) -> int:
@@ -169,58 +168,22 @@ def _read_json(path: Path) -> dict:
         raise InputError(f"{path}: not valid JSON ({e}).") from None
 
 
-def read_study_folder(folder):
-    """The `MonteCarloResult` of the batches in a study folder (`jsphere montecarlo --out`) and
-    its `stats.json`. A trial of a batch missing from the folder counts as rejected (not drawn)."""
-    import numpy as np
-
-    from ..montecarlo.result import MonteCarloResult
-
-    folder = Path(folder)
-    manifest, stats = _read_json(folder / "manifest.json"), _read_json(folder / "stats.json")
-    names = list(manifest.get("vary", {}))
-    batches = sorted(folder.glob("batch_*.npz"))
-    if not batches:
-        raise InputError(f"{folder}: no batch files (batch_*.npz); run the study there first (jsphere montecarlo).")
-    parts = []
-    for path in batches:
-        try:
-            with np.load(path, allow_pickle=False) as z:
-                part = {k: np.asarray(z[k]) for k in ("status", "vals", "x", "y")}
-        except Exception as e:  # noqa: BLE001 - any unreadable file is named
-            raise InputError(
-                f"{path}: not a batch of a study ({e}); run the study again (jsphere montecarlo)."
-            ) from None
-        first = int(path.stem.split("_")[-1]) * int(manifest.get("batch_size", part["status"].size))
-        parts.append((first, part))
-    n = max(first + part["status"].size for first, part in parts)
-    status = np.full(n, int(MonteCarloResult.REJECTED), np.int32)
-    vals, x, y = np.full((n, len(names)), np.nan), np.full(n, np.nan), np.full(n, np.nan)
-    for first, part in parts:
-        at = slice(first, first + part["status"].size)
-        status[at], vals[at], x[at], y[at] = part["status"], part["vals"], part["x"], part["y"]
-    samples = {name: vals[:, j] for j, name in enumerate(names)}
-    nan = np.full(n, np.nan)
-    result = MonteCarloResult(n, int(manifest.get("seed", 0)), samples, x, y, nan, status, nan)
-    return result, stats
-
-
 def montecarlo_scene(folder, study, params: RobotParams | None = None) -> Scene:
     """A Monte-Carlo study folder with its study file (`.toml`): `sources.montecarlo_scene` of
     the folder's trials and `stats.json`. `params`: the nominal robot (default: the study's)."""
     import numpy as np
 
+    from ..montecarlo.store import read_result
     from ..montecarlo.study import load_study
     from ..plots.animation.sources import montecarlo_scene as scene
 
     folder = Path(folder)
-    result, stats = read_study_folder(folder)
+    result, stats = read_result(folder), _read_json(folder / "stats.json")
     st = load_study(study)
     if not np.any(result.status == 0):
         raise InputError(f"{folder}: no successful trial; nothing to animate.")
     base = params if params is not None else st.params
-    reset = st.options.reset
-    return scene(result, base, st.gaits, reset=reset, stats=stats, title=f"Monte-Carlo study {folder.name}")
+    return scene(result, base, st.gaits, reset=st.options.reset, stats=stats, title=f"Monte-Carlo study {folder.name}")
 
 
 def _csv_header(path: Path) -> list[str]:
@@ -347,7 +310,7 @@ def scenes_from_path(path, extra=(), *, params: RobotParams | None = None, trial
         return [montecarlo_scene(path, study[0], params)]
     suffix = path.suffix.lower()
     if suffix == ".csv":
-        if "heading" in _csv_header(path) and "gamma_1" in _csv_header(path):
+        if {"heading", "gamma_1"} <= set(_csv_header(path)):
             return [plan_table_scene(path, params)]
         trial = read_trial(path)
         return [trial_scene(trial, params if params is not None else RobotParams.paper())]

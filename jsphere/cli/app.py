@@ -58,6 +58,8 @@ def parser() -> argparse.ArgumentParser:
         p.formatter_class = argparse.RawDescriptionHelpFormatter
         p.description = textwrap.fill(p.description or command.__doc__.strip().splitlines()[0], 88)
         p.epilog = "examples:\n" + command.EXAMPLES.strip("\n") + "\n\n" + _exit_codes(EXIT_CODES_HELP, command.NAME)
+        cache = "do not use the persistent compilation cache" if command is not convert else argparse.SUPPRESS
+        p.add_argument("--no-cache", action="store_true", help=cache)
         out = p.add_argument_group("messages on stderr")
         loud = out.add_mutually_exclusive_group()
         loud.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only: no progress")
@@ -94,28 +96,20 @@ def main(argv=None) -> int:
     if args.command == reproduce.NAME and not args.optimize:
         compile_for_one_run()
     with _messages(args):
-        _float64()
-        _cores()
+        _jax_setup()
         with fast_start(cache=not args.no_cache, export=args.command in _EXPORTING):
             return _run(args)
 
 
-def _float64() -> None:
-    """The commands compute in float64 (the paper's numbers are at the 0.1 mm level): switched
-    on before any JAX array is made."""
+def _jax_setup() -> None:
+    """Before any JAX array is made: float64 (the paper's numbers are at the 0.1 mm level), and
+    one CPU device per core (`jsphere.use_cpu_cores`), so that `montecarlo`'s batches run on
+    every core; not where the environment sets a count (`JAX_NUM_CPU_DEVICES`, or XLA's
+    `--xla_force_host_platform_device_count`) or JAX has started already (a call from Python)."""
+    from .._runtime.cores import use_cpu_cores
     from .._runtime.precision import enable_x64
 
     enable_x64()
-
-
-def _cores() -> None:
-    """One CPU device per core (`jsphere.use_cpu_cores`), so that `montecarlo`'s batches run on
-    every core; not where the environment sets a count (`JAX_NUM_CPU_DEVICES`, or XLA's
-    `--xla_force_host_platform_device_count`) or JAX has started already (a call from Python)."""
-    import os
-
-    from .._runtime.cores import use_cpu_cores
-
     if "JAX_NUM_CPU_DEVICES" in os.environ or "device_count" in os.environ.get("XLA_FLAGS", ""):
         return
     try:
@@ -179,9 +173,9 @@ def _run(args) -> int:
         resume = _RESUMES.get(args.command)
         print(f"\n{name}: interrupted" + (f"; {resume}" if resume else "; nothing was written") + ".", file=sys.stderr)
         return ExitCode.INTERRUPTED
-    except SolverFailure as e:
+    except (SolverFailure, ImportError) as e:  # ImportError: an optional dependency (ezc3d for C3D files)
         print(f"{name}: error: {e}", file=sys.stderr)
-        return ExitCode.SOLVER_FAILURE
+        return ExitCode.SOLVER_FAILURE if isinstance(e, SolverFailure) else ExitCode.BAD_INPUT
     except UnicodeDecodeError as e:  # a reader that did not name its file
         print(
             f"{name}: error: a file is not UTF-8 text ({e.reason} at byte {e.start}); save it as UTF-8 (CSV or TOML).",
@@ -190,9 +184,6 @@ def _run(args) -> int:
         return ExitCode.BAD_INPUT
     except _INPUT_ERRORS as e:
         print(f"{name}: error: {_one_line(e, args.command)}", file=sys.stderr)
-        return ExitCode.BAD_INPUT
-    except ImportError as e:  # an optional dependency (ezc3d for C3D files)
-        print(f"{name}: error: {e}", file=sys.stderr)
         return ExitCode.BAD_INPUT
     except Exception as e:  # noqa: BLE001
         solver = _solver_message(e)

@@ -49,7 +49,6 @@ def add_parser(sub) -> None:
         "whiteness test; the fit scores are on every frame",
     )
     cp.add_argument("--no-plots", action="store_true", help="skip the figures")
-    cp.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
 
 
 def run(args) -> int:

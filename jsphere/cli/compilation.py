@@ -19,21 +19,15 @@ _FAST_STARTS: dict = {}
 
 @contextlib.contextmanager
 def fast_start(cache: bool = True, export: bool = True) -> Iterator:
-    """While a command runs, with `cache`: its programs kept for the next run, and with
-    `export` too, its solves' programs run through a `FastStart` of that cache
-    (`jsphere._runtime.quick_compile.programs_run_by`), exported for the next process. Yields
-    that `FastStart`, or `None`.
+    """While a command runs, with `cache`: its programs kept for the next run in the library's one
+    cache (`jsphere.enable_compilation_cache`), every one however quick its compilation, and
+    with `export` too, its solves' programs run through a `FastStart` of that cache, exported for
+    the next process. Yields that `FastStart`, or `None`.
 
-    With `cache`: XLA executables persist between processes in the library's one cache
-    (`jsphere.enable_compilation_cache`: `$JSPHERE_CACHE_DIR`, else
-    `$XDG_CACHE_HOME/jsphere/jax`, else `~/.cache/jsphere/jax`), every one kept however quick
-    its compilation (`jsphere reproduce` compiles about a hundred small eager programs besides
-    its solves), and the solves are exported beside them. JAX does not persist executables
-    that contain host callbacks, and equinox's run-time checks inside diffrax are host
-    callbacks: for the command (whose inputs are validated before any solve, and whose solver
-    failures jsphere reports itself, outside the compiled code) those checks are traced in
-    equinox's `nan` mode unless `EQX_ON_ERROR` is set, and the previous mode is back when the
-    command ends.
+    JAX does not persist executables that hold host callbacks, as equinox's run-time checks are:
+    for the command (whose inputs are validated before any solve, and whose solver failures
+    jsphere reports itself) those checks are traced in their `nan` mode unless `EQX_ON_ERROR` is
+    set, until the command ends.
     """
     from .._runtime.compilation_cache import default_cache_dir, enable_compilation_cache
     from .._runtime.fast_start import FastStart

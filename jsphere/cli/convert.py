@@ -3,9 +3,10 @@
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
+
+from .options import options_of
 
 NAME = "convert"
 EXAMPLES = """
@@ -101,7 +102,6 @@ def add_parser(sub) -> None:
         "and beyond its spread, and above twice the marker error the export reports: a swapped or ghost marker); by "
         "default they are written as missing, with a warning saying how many",
     )
-    cv.add_argument("--no-cache", action="store_true", help=argparse.SUPPRESS)
 
 
 def run(args) -> int:
@@ -113,6 +113,7 @@ def run(args) -> int:
     from .._runtime.files import check_output
     from ..capture.body import read_body_markers
     from ..capture.convert import convert_raw
+    from ..capture.options import ConvertOptions
     from ..capture.trial import write_trial
     from ..capture.validation import CaptureWarning
     from ..model.params import RobotParams
@@ -135,7 +136,15 @@ def run(args) -> int:
         warnings.simplefilter("always", CaptureWarning)
         try:
             body = read_body_markers(args.body_markers) if args.body_markers else None
-            options = _options(args, body, robot, time_offset or 0.0)
+            options = options_of(  # `--params`: its wheels and R0 are checked
+                ConvertOptions,
+                args,
+                n_wheels=robot.n_wheels if robot is not None else None,
+                body_markers=body,
+                body_offset=tuple(args.body_offset),
+                time_offset=time_offset or 0.0,
+                shell_radius=float(robot.R0) if robot is not None else None,
+            )
             if time_offset is None:
                 options = dataclasses.replace(options, time_offset=_estimate_offset(args, options))
             trial = convert_raw(args.raw, args.inputs, format=args.format, options=options)
@@ -154,32 +163,6 @@ def run(args) -> int:
     print(f"{trial!r} -> {out}")
     print(_centre_summary(trial, robot, args.params))
     return 0
-
-
-def _options(args, body, robot, time_offset: float):
-    """The `ConvertOptions` of the command's flags (the one place where flags become options):
-    `body` the markers read from `--body-markers`, `robot` the `--params` (its wheels and `R0`
-    are checked)."""
-    from ..capture.options import ConvertOptions
-
-    return ConvertOptions(
-        units=args.units,
-        up_axis=args.up_axis,
-        rigid_body=args.rigid_body,
-        subject=args.subject,
-        allow_truncated=args.allow_truncated,
-        pose_topic=args.pose_topic,
-        child_frame=args.child_frame,
-        inputs_topic=args.inputs_topic,
-        input_kind=args.input_kind,
-        joints=args.joints,
-        n_wheels=robot.n_wheels if robot is not None else None,
-        body_markers=body,
-        body_offset=tuple(args.body_offset),
-        keep_suspect=args.keep_suspect,
-        time_offset=time_offset,
-        shell_radius=float(robot.R0) if robot is not None else None,
-    )
 
 
 def _centre_summary(trial, robot, params) -> str:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from .options import progress
+from .options import at_least, check_flags, options_of, positive, progress, robot
 
 NAME = "design"
 EXAMPLES = """
@@ -65,75 +65,34 @@ def add_parser(sub) -> None:
         metavar="FILE",
         help="also write the baseline's tables (random multisines), named as --out: to run them on the robot too",
     )
-    dp.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
-
-
-def _checked(args) -> None:
-    from .._runtime.errors import InputError
-
-    checks = (
-        (
-            "--duration",
-            args.duration,
-            math.isfinite(args.duration) and args.duration > 0,
-            "a positive number of seconds",
-        ),
-        ("--trials", args.trials, args.trials >= 1, "a whole number >= 1"),
-        ("--sigma-pos", args.sigma_pos, math.isfinite(args.sigma_pos) and args.sigma_pos > 0, "a number > 0 (metres)"),
-        (
-            "--sigma-rot-deg",
-            args.sigma_rot_deg,
-            math.isfinite(args.sigma_rot_deg) and args.sigma_rot_deg > 0,
-            "a number > 0 (degrees)",
-        ),
-        ("--restarts", args.restarts, args.restarts >= 1, "a whole number >= 1"),
-        ("--steps", args.steps, args.steps >= 0, "a whole number >= 0"),
-        ("--seed", args.seed, args.seed >= 0, "a whole number >= 0"),
-        ("--rate", args.rate, math.isfinite(args.rate) and args.rate > 0, "a positive number of rows per second"),
-        (
-            "--capture-rate",
-            args.capture_rate,
-            math.isfinite(args.capture_rate) and args.capture_rate > 0,
-            "a positive rate [Hz]",
-        ),
-    )
-    for option, value, ok, what in checks:
-        if not ok:
-            raise InputError(f"{option} must be {what}; got {value:g}.")
-
-
-def _options(args):
-    """The `DesignOptions` of the flags."""
-    from ..design.excitation import DesignOptions
-
-    return DesignOptions(
-        trials=args.trials,
-        sigma_pos=args.sigma_pos,
-        sigma_rot=math.radians(args.sigma_rot_deg),
-        restarts=args.restarts,
-        steps=args.steps,
-        seed=args.seed,
-        rate=args.rate,
-        capture_rate=args.capture_rate,
-    )
 
 
 def run(args) -> int:
-    from .._runtime.errors import ExitCode
+    from .._runtime.errors import ExitCode, InputError
     from .._runtime.files import check_output
-    from ..design.excitation import design_excitation
+    from ..design.excitation import DesignOptions, design_excitation
     from ..design.result import json_path, table_paths
-    from ..model.params import RobotParams
     from .plan import _limits
 
-    args.max_time = None
-    _checked(args)
+    whole = "a whole number >= "
+    check_flags(
+        args,
+        {
+            "--duration": (positive, "a positive number of seconds"),
+            "--trials": (at_least(1), whole + "1"),
+            "--sigma-pos": (positive, "a number > 0 (metres)"),
+            "--sigma-rot-deg": (positive, "a number > 0 (degrees)"),
+            "--restarts": (at_least(1), whole + "1"),
+            "--steps": (at_least(0), whole + "0"),
+            "--seed": (at_least(0), whole + "0"),
+            "--rate": (positive, "a positive number of rows per second"),
+            "--capture-rate": (positive, "a positive rate [Hz]"),
+        },
+    )
     out = Path(args.out)
     tables = table_paths(out, args.trials)
     baseline = [] if args.baseline_out is None else table_paths(args.baseline_out, args.trials)
     if {Path(p).resolve() for p in baseline} & {Path(p).resolve() for p in [*tables, json_path(out)]}:
-        from .._runtime.errors import InputError
-
         raise InputError(f"--baseline-out {args.baseline_out}: the design writes that file itself; give another name.")
     check_output(
         out,
@@ -141,10 +100,9 @@ def run(args) -> int:
         inputs={"the parameter file (--params)": args.params},
         example=str(out / "design.csv"),
     )
-    limits = _limits(args)
-    params = RobotParams.load(args.params) if args.params else RobotParams.paper()
+    options = options_of(DesignOptions, args, sigma_rot=math.radians(args.sigma_rot_deg))
     result = design_excitation(
-        params, args.free, args.duration, args.kind, limits=limits, options=_options(args), progress=progress(args)
+        robot(args), args.free, args.duration, args.kind, limits=_limits(args), options=options, progress=progress(args)
     )
     print(result.table())
     written = result.save(out, baseline=args.baseline_out)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from .options import Assignments, progress
+from .options import Assignments, options_of, progress, robot
 
 NAME = "fit"
 EXAMPLES = """
@@ -95,7 +95,6 @@ def add_parser(sub) -> None:
         help="ignore the checkpoint a killed fit left (by default the fit resumes from it)",
     )
     ft.add_argument("--no-plots", action="store_true", help="skip the figures")
-    ft.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
 
 
 def run(args) -> int:
@@ -105,25 +104,35 @@ def run(args) -> int:
     A finished fit writes its files whatever its verdict; the last line on stdout is the
     verdict, and the exit code says it: 0 converged, 5 not converged (`ExitCode.NOT_CONVERGED`),
     6 a misfit (`ExitCode.MISFIT`: residuals far above the capture's noise floor)."""
+    import math
     import warnings
 
-    from .._runtime.errors import ExitCode
-    from .._runtime.files import remove_stale_temporaries
+    from .._runtime.errors import ExitCode, InputError
+    from .._runtime.files import check_output, remove_stale_temporaries
     from ..capture.trial import read_trials
     from ..identify.fit import fit
+    from ..identify.options import FitOptions
     from ..identify.verdict import headline
-    from ..model.params import RobotParams
 
-    _gather_trials(args)
+    args.trials = [*args.trials, *(getattr(args, "trials_after_options", None) or [])]  # after --fix, --bound
+    if not args.trials:
+        raise InputError("give at least one trial file or folder (e.g. jsphere fit trials/*.csv --free j).")
     out = Path(args.out)
     ckpt = out.with_name(out.name + ".ckpt.npz")
     figures = [out.with_name(f"{out.stem}_{k}.png") for k in ("overlay", "residuals")]
-    _check_paths(args, out, [ckpt, *([] if args.no_plots else figures)])
+    if not out.is_dir() and out.suffix.lower() != ".json":
+        raise InputError(f"--out {out}: the result is JSON; give a path ending in .json.")
+    inputs = {
+        "the trial file": [t for t in args.trials if not Path(t).is_dir()],
+        "the parameter file (--params)": args.params,
+    }
+    check_output(out, writes=[ckpt, *([] if args.no_plots else figures)], inputs=inputs, example=str(out / "fit.json"))
     fix = _parse_assignments(args.fix, "--fix")
     bounds = _parse_bounds(args.bound)
-    params = RobotParams.load(args.params) if args.params else RobotParams.paper()
-    files = _trial_files(args.trials)
-    trials = read_trials(files)
+    params = robot(args)
+    trials = read_trials(args.trials)
+    sigma_rot = None if args.sigma_rot_deg is None else math.radians(args.sigma_rot_deg)
+    options = options_of(FitOptions, args, sigma_rot=sigma_rot)
     for f in [(out, ".tmp"), *((g, None) for g in figures)]:  # what a killed writer left
         remove_stale_temporaries(*f)
     with warnings.catch_warnings():  # one line per warning (a checkpoint that cannot be used)
@@ -134,7 +143,7 @@ def run(args) -> int:
             args.free,
             fix=fix,
             bounds=bounds,
-            options=fit_options(args),
+            options=options,
             checkpoint=ckpt,
             restart=args.restart,
             progress=progress(args),
@@ -151,62 +160,6 @@ def run(args) -> int:
     print(f"wrote {', '.join(str(p) for p in written)}  ({res.elapsed_s:.1f} s)")
     print(f"jsphere fit: {headline(res.status, res.status_reason, res.verdict)}")  # the last line: the verdict
     return {"converged": ExitCode.OK, "not_converged": ExitCode.NOT_CONVERGED, "misfit": ExitCode.MISFIT}[res.status]
-
-
-def fit_options(args):
-    """The `FitOptions` of the command's flags (the one place that maps them)."""
-    from ..identify.options import FitOptions
-
-    sigma_rot = None if args.sigma_rot_deg is None else args.sigma_rot_deg * 3.141592653589793 / 180.0
-    return FitOptions(
-        n_starts=args.n_starts,
-        seed=args.seed,
-        max_iter=args.max_iter,
-        shooting=args.shooting,
-        segment=args.segment,
-        sigma_pos=args.sigma_pos,
-        sigma_rot=sigma_rot,
-        fit_time_offset=args.fit_time_offset,
-        max_time_offset=args.max_time_offset,
-        loss=args.loss,
-    )
-
-
-def _gather_trials(args) -> None:
-    """The trial files given before the options and those after `--fix`/`--bound` values."""
-    from .._runtime.errors import InputError
-
-    args.trials = [*args.trials, *(getattr(args, "trials_after_options", None) or [])]
-    if not args.trials:
-        raise InputError("give at least one trial file or folder (e.g. jsphere fit trials/*.csv --free j).")
-
-
-def _trial_files(paths) -> list[Path]:
-    """The trial files of `paths`, as `read_trials` reads them (a folder: its `*.csv` files,
-    sorted, hidden ones skipped)."""
-    out = []
-    for p in map(Path, paths):
-        out += [f for f in sorted(p.glob("*.csv")) if not f.name.startswith(".")] if p.is_dir() else [p]
-    return out
-
-
-def _check_paths(args, out: Path, writes: list[Path]) -> None:
-    """Check the output path `out` (with the files `writes` beside it) and the trial paths."""
-    from .._runtime.errors import InputError
-    from .._runtime.files import check_output
-
-    if not out.is_dir() and out.suffix.lower() != ".json":
-        raise InputError(f"--out {out}: the result is JSON; give a path ending in .json.")
-    inputs = {
-        "the trial file": [t for t in args.trials if not Path(t).is_dir()],
-        "the parameter file (--params)": args.params,
-    }
-    check_output(out, writes=writes, inputs=inputs, example=str(out / "fit.json"))
-    for t in map(Path, args.trials):
-        if t.is_dir() and not any(f for f in t.glob("*.csv") if not f.name.startswith(".")):
-            raise InputError(
-                f"{t} holds no trial CSV files (*.csv); give the folder of the trials or the files themselves."
-            )
 
 
 def _parse_assignments(items, option: str) -> dict:

@@ -50,7 +50,6 @@ def add_parser(sub) -> None:
         default="jsphere",
         help="frame of the figure: jsphere's (default, as stats.json) or the paper's figure frame (x_fig = -y, y_fig = x)",
     )
-    mc.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
     many = mc.add_argument_group("several processes or jobs (docs/montecarlo.md, examples/cluster/)")
     how = many.add_mutually_exclusive_group()
     how.add_argument(
@@ -86,6 +85,7 @@ def add_parser(sub) -> None:
 def run(args) -> int:
     import warnings
 
+    from .._runtime.checks import real
     from .._runtime.errors import InputError
     from .._runtime.files import check_output
     from ..montecarlo.distributed import start_distributed
@@ -110,7 +110,7 @@ def run(args) -> int:
     with warnings.catch_warnings():
         warnings.showwarning = one_line
         if args.worker:
-            timeout = _claim_timeout(args.claim_timeout)
+            timeout = real(NAME, "--claim-timeout", args.claim_timeout, unit="s")
             report = work(params, gaits, **study, out=out, claim_timeout=timeout, progress=progress(args))
             print(report.summary())
             return 0
@@ -196,12 +196,6 @@ def replayed_stop(params, options) -> list[float]:
     t1 = float(ts[-1]) + options.settle
     tr = simulate(params, State.at_rest(params), control, t1, max_steps=options.max_steps or 65536)
     return [float(tr.x[-1]), float(tr.y[-1])]
-
-
-def _claim_timeout(value: float) -> float:
-    from .._runtime.checks import real
-
-    return real(NAME, "--claim-timeout", value, unit="s")
 
 
 def summary(st: dict, n: int, elapsed_s: float, written, gathered=None) -> str:

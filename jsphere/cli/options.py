@@ -1,10 +1,13 @@
 """What several commands share: `NAME=VALUE` options (`--fix`, `--bound`) that may be repeated or
-list several assignments without swallowing the positional files after them, and the library's
-`progress` argument from `-q/--quiet`."""
+list several assignments without swallowing the positional files after them, the one mapping of
+flags to the library's options objects (`options_of`), the checks of flags' numbers
+(`check_flags`), the robot of `--params`, and the library's `progress` argument from
+`-q/--quiet`."""
 
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 
@@ -57,3 +60,43 @@ def progress(args) -> bool | None:
     """The `progress` argument of the library for a command: bars where stderr is a terminal
     (lines through the `jsphere` logger elsewhere), none with `--quiet`."""
     return False if args.quiet else None
+
+
+def options_of(cls, args, **given):
+    """The options object `cls` (a dataclass) of a command's flags: each field that has a flag of
+    its name (`--max-iter` -> `max_iter`) set from it, and `given` (fields whose flag needs
+    converting) over them; the other fields keep their defaults."""
+    import dataclasses
+
+    names = {f.name for f in dataclasses.fields(cls)} - set(given)
+    return cls(**{name: getattr(args, name) for name in names if hasattr(args, name)}, **given)
+
+
+def positive(v) -> bool:
+    return 0 < v < math.inf
+
+
+def nonnegative(v) -> bool:
+    return 0 <= v < math.inf
+
+
+def at_least(low: int):
+    return lambda v: v >= low
+
+
+def check_flags(args, rules: dict) -> None:
+    """`InputError` `"--FLAG must be WHAT; got VALUE."` for the first flag whose value fails its
+    test; `rules` maps each flag to `(test, what)`."""
+    from .._runtime.errors import InputError
+
+    for flag, (test, what) in rules.items():
+        value = getattr(args, flag[2:].replace("-", "_"))
+        if not test(value):
+            raise InputError(f"{flag} must be {what}; got {value:g}.")
+
+
+def robot(args):
+    """The robot of `--params` (a parameter file), else the paper's."""
+    from ..model.params import RobotParams
+
+    return RobotParams.load(args.params) if args.params else RobotParams.paper()

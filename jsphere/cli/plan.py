@@ -6,7 +6,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from .options import progress
+from .options import options_of, progress, robot
 
 NAME = "plan"
 EXAMPLES = """
@@ -96,13 +96,11 @@ def add_parser(sub) -> None:
         default=1000,
         help="fresh parameter sets on which miss_mc compares the nominal and the robust plan (default 1000)",
     )
-    pp.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
 
 
 def run(args) -> int:
     from .._runtime.errors import ExitCode
     from .._runtime.files import atomic_write_json, check_output
-    from ..model.params import RobotParams
     from ..planning.plan import plan
 
     out = Path(args.out)
@@ -117,10 +115,11 @@ def run(args) -> int:
         example=str(Path(args.out) / "plan.csv"),
     )
     request = _request(args)
-    params = RobotParams.load(args.params) if args.params else RobotParams.paper()
+    params = robot(args)
     source = str(args.params) if args.params else "the paper's robot (RobotParams.paper())"
-    uncertainty, params = _uncertainty(args) if args.robust else (None, params)
+    uncertainty = None
     if args.robust:
+        uncertainty, params = uncertainty_of(args.robust, params if args.params else None)
         source = (
             f"{args.params} with the means of {args.robust}" if args.params else f"the nominal robot of {args.robust}"
         )
@@ -227,81 +226,64 @@ def _withhold_commands(path: Path) -> str:
 
 
 def _limits(args):
-    """The `Limits` of the options (a limit given as 'none', 'off' or 'inf' is switched off)."""
+    """The `Limits` of the flags (of `plan` and `design`; a limit given as 'none', 'off' or 'inf'
+    is switched off)."""
     from .._runtime.errors import InputError
     from ..planning.plan import Limits
 
-    none = {"none", "off", "inf"}
-    lim_kw = {}
+    limits = {} if getattr(args, "max_time", None) is None else {"max_time": args.max_time}  # (design has none)
     for name in ("max_torque", "max_wheel_speed", "max_tilt", "max_torque_rate"):
         v = getattr(args, name)
         if v is not None:
             try:
-                lim_kw[name] = None if str(v).lower() in none else float(v)
+                limits[name] = None if str(v).lower() in {"none", "off", "inf"} else float(v)
             except ValueError:
                 raise InputError(f"--{name.replace('_', '-')} {v}: expected a number or 'none' (no limit).") from None
-    if args.max_time is not None:
-        lim_kw["max_time"] = float(args.max_time)
-    return Limits(**lim_kw)
+    return Limits(**limits)
 
 
 def _request(args) -> dict:
-    """The keywords of `plan` that the flags give: the one place where flags become options
-    (`--robust`'s in `_robust_options`)."""
+    """The keywords of `plan` that the flags give (`--robust`'s in `_robust`)."""
     from ..planning.plan import Objective, PlanOptions
 
     return {
         "heading": args.heading,
         "limits": _limits(args),
         "objective": Objective(energy=args.energy_weight, time=args.time_weight),
-        "plan_options": PlanOptions(restarts=args.restarts, rate=args.rate, seed=args.seed),
+        "plan_options": options_of(PlanOptions, args),
         "progress": progress(args),
     }
 
 
-def _robust_options(args, uncertainty, nominal):
-    """The `RobustOptions` of `--robust FILE` and its flags, from the nominal plan."""
+def _robust(args, params, uncertainty, nominal, request: dict):
+    """The robust plan of `--robust FILE` (`plan` with the `RobustOptions` of its flags), from the
+    nominal plan and its request; prints its summary."""
+    from ..planning import plan as plan_module
     from ..planning.robust import RobustOptions
 
-    return RobustOptions(
-        uncertainty,
-        samples=args.samples,
-        quantile=args.quantile,
-        restarts=min(args.restarts, 4),
-        check_samples=args.check_samples,
-        nominal=nominal,
-    )
-
-
-def _robust(args, params, uncertainty, nominal, request: dict):
-    """The robust plan of `--robust FILE` (`plan` with `RobustOptions`), from the nominal plan
-    and the nominal plan's request; prints its summary."""
-    from ..planning import plan as plan_module
-
-    robust = _robust_options(args, uncertainty, nominal)
-    robust = plan_module.plan(params, tuple(args.to), robust=robust, **request)
+    options = options_of(RobustOptions, args, uncertainty=uncertainty, restarts=min(args.restarts, 4), nominal=nominal)
+    robust = plan_module.plan(params, tuple(args.to), robust=options, **request)
     print(robust.summary())
     return robust
 
 
-def _uncertainty(args, params=None):
-    """The `Uncertainty` of `--robust` and the nominal parameters: a fit result's estimate and
-    covariance (around its `params`), or a study's `vary` table (around its parameters). The
-    nominal is around `params` (`RobotParams`) when given, else around `--params` when given."""
+def uncertainty_of(path, params=None):
+    """The `Uncertainty` of `--robust FILE` and the nominal robot: a fit result's estimate and
+    covariance, or a study's `vary` table, around `params` (`RobotParams`) when given, else
+    around the file's own robot (the fit's, or the study's)."""
     from .._runtime.errors import InputError
     from .._runtime.files import read_mapping
     from ..model.params import RobotParams
     from ..planning.uncertainty import Uncertainty
 
-    path = Path(args.robust)
+    path = Path(path)
     if path.suffix.lower() == ".toml":
         import numpy as np
 
         from ..montecarlo.study import check_vary, load_study
 
         study = load_study(path)
-        if params is None:
-            params = RobotParams.load(args.params) if args.params else study.params
+        params = study.params if params is None else params
         try:
             entries = check_vary(params, study.vary)
         except ValueError as e:
@@ -313,8 +295,5 @@ def _uncertainty(args, params=None):
         return unc, unc.nominal(params)
     if path.suffix.lower() != ".json":
         raise InputError(f"--robust {path}: expected a fit result (.json) or a Monte-Carlo study (.toml).")
-    fit = read_mapping(path)
-    if params is None:
-        params = RobotParams.load(args.params) if args.params else RobotParams.load(path)
-    unc = Uncertainty.from_fit(fit, source=str(path))
-    return unc, unc.nominal(params)
+    unc = Uncertainty.from_fit(read_mapping(path), source=str(path))
+    return unc, unc.nominal(RobotParams.load(path) if params is None else params)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from .options import progress
+from .options import progress, robot
 
 NAME = "reproduce"
 EXAMPLES = """
@@ -27,7 +27,6 @@ def add_parser(sub) -> None:
     rp.add_argument("--params", help="a parameter file (.toml or .json) instead of the paper's robot")
     rp.add_argument("--no-plots", action="store_true", help="skip the figures")
     rp.add_argument("--no-full-stop", action="store_true", help="skip the search for the braking gait that stops")
-    rp.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
     rp.add_argument(
         "--optimize",
         action="store_true",
@@ -55,23 +54,19 @@ def _preload_matplotlib():
 def run(args) -> int:
     from .._runtime.files import atomic_write_json, check_output
     from .._runtime.progress import Progress, logger
-    from ..model.params import RobotParams
     from ..paper.reproduce import reproduce
     from ..plots import REPRODUCTION_FIGURES as figures
 
     out = Path(args.out)
     writes = [out / "reproduce.json", *([] if args.no_plots else [out / f for f in figures])]
     check_output(out, folder=True, writes=writes, inputs={"the parameter file (--params)": args.params})
-    params = RobotParams.load(args.params) if args.params else RobotParams.paper()
+    params = robot(args)
     t0 = time.perf_counter()
     logger.info("jsphere reproduce: Section 5 of Karavaev & Kilin (2016)")
     loader = None if args.no_plots else _preload_matplotlib()
     program = repr((sorted(params.to_dict().items()), not args.no_full_stop))
     with Progress(progress(args)).compiling("reproduce", program, "jsphere reproduce"):
-        rep = reproduce(
-            params,
-            full_stop=not args.no_full_stop,
-        )
+        rep = reproduce(params, full_stop=not args.no_full_stop)
     print(rep.table())
     atomic_write_json(out / "reproduce.json", {"rows": [r.__dict__ for r in rep.rows], "values": rep.values})
     written = [out / "reproduce.json"]

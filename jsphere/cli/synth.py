@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from .options import at_least, check_flags, nonnegative, positive, robot
+
 NAME = "synth"
 EXAMPLES = """
   jsphere synth --out trials --trials 5 --duration 8
@@ -36,48 +38,28 @@ def add_parser(sub) -> None:
         "and 2 marker-swap bursts per trial (5-15 frames, the orientation off by 30-90 deg); the rows spoiled are "
         "printed",
     )
-    sy.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
-
-
-def _check(args) -> None:
-    import math
-
-    from .._runtime.errors import InputError
-
-    checks = (
-        ("--trials", args.trials, args.trials >= 1, "at least 1"),
-        (
-            "--duration",
-            args.duration,
-            math.isfinite(args.duration) and args.duration > 0,
-            "a positive number of seconds",
-        ),
-        ("--pos-sd", args.pos_sd, math.isfinite(args.pos_sd) and args.pos_sd >= 0, "a finite number >= 0 (metres)"),
-        (
-            "--rot-sd-deg",
-            args.rot_sd_deg,
-            math.isfinite(args.rot_sd_deg) and args.rot_sd_deg >= 0,
-            "a finite number >= 0 (degrees)",
-        ),
-        ("--dropout", args.dropout, 0.0 <= args.dropout < 1.0, "a fraction in [0, 1)"),
-        ("--seed", args.seed, args.seed >= 0, "an integer >= 0"),
-    )
-    for option, value, ok, what in checks:
-        if not ok:
-            raise InputError(f"{option} must be {what}; got {value:g}.")
 
 
 def run(args) -> int:
     from .._runtime.files import check_output
     from ..capture.synthetic import add_glitches, random_inputs, synthetic_trial
     from ..capture.trial import write_trial
-    from ..model.params import RobotParams
 
-    _check(args)
+    check_flags(
+        args,
+        {
+            "--trials": (at_least(1), "at least 1"),
+            "--duration": (positive, "a positive number of seconds"),
+            "--pos-sd": (nonnegative, "a finite number >= 0 (metres)"),
+            "--rot-sd-deg": (nonnegative, "a finite number >= 0 (degrees)"),
+            "--dropout": (lambda v: 0.0 <= v < 1.0, "a fraction in [0, 1)"),
+            "--seed": (at_least(0), "an integer >= 0"),
+        },
+    )
     out = Path(args.out)
     names = [f"{args.kind}_{i:02d}" for i in range(args.trials)]
     check_output(out, folder=True, writes=[out / f"{n}.csv" for n in names], inputs={"the parameter file": args.params})
-    params = RobotParams.load(args.params) if args.params else RobotParams.paper()
+    params = robot(args)
     for i, name in enumerate(names):
         seed = args.seed + i
         controls = random_inputs(params, args.duration, kind=args.kind, seed=seed)

@@ -47,7 +47,6 @@ def add_parser(sub) -> None:
     src.add_argument("--vary", metavar="FILE", help="draw the robots from a Monte-Carlo study's [vary] table (.toml)")
     ev.add_argument("--samples", type=int, default=1000, help="drawn robots (default 1000; 0: no evaluation)")
     ev.add_argument("--seed", type=int, default=0, help="seed of the draws (default 0)")
-    pp.add_argument("--no-cache", action="store_true", help="do not use the persistent compilation cache")
 
 
 def _weights(args):
@@ -76,13 +75,11 @@ def _weights(args):
 
 
 def run(args) -> int:
-    import argparse
-
     from .._runtime.errors import ExitCode, InputError
     from .._runtime.files import atomic_write_json, check_output
     from ..model.limits import Limits
     from ..planning.tracking import track
-    from .plan import _uncertainty
+    from .plan import uncertainty_of
 
     out = Path(args.out)
     if not Path(args.plan).exists():
@@ -105,11 +102,10 @@ def run(args) -> int:
     limits = Limits(max_torque=args.max_torque)
     unc = None
     params = plan_robot(args.plan, args.params)
+    if args.vary and Path(args.vary).suffix.lower() != ".toml":
+        raise InputError(f"--vary {args.vary}: expected a Monte-Carlo study (.toml) with a [vary] table.")
     if args.robust or args.vary:
-        ns = argparse.Namespace(robust=args.robust or args.vary, params=args.params)
-        if args.vary and Path(args.vary).suffix.lower() != ".toml":
-            raise InputError(f"--vary {args.vary}: expected a Monte-Carlo study (.toml) with a [vary] table.")
-        unc, params = _uncertainty(ns, params)
+        unc, params = uncertainty_of(args.robust or args.vary, params)
     tr = track(
         args.plan,
         params,

@@ -231,21 +231,19 @@ def test_cli_plan_robust_writes_miss_mc(paper, tmp_path):
 
 
 def test_cli_reads_a_fit_result_or_a_study_as_uncertainty(paper, tmp_path):
-    import argparse
-
-    from jsphere.cli.plan import _uncertainty
+    from jsphere.cli.plan import uncertainty_of
 
     fit = tmp_path / "fit.json"
     fj = _fit_json(paper)
     fj["values"]["j"] = 3e-4
     fit.write_text(json.dumps(fj | {"params": paper.replace(j=3e-4).to_dict()}))
-    u, p = _uncertainty(argparse.Namespace(robust=str(fit), params=None))
+    u, p = uncertainty_of(fit)
     assert u.names == NAMES and u.kinds == ("normal",) * 4
     assert float(p.j) == 3e-4  # the nominal robot is the fit's estimate
     study = tmp_path / "study.toml"
     study.write_text('[vary]\nj = ["uniform", 2.0e-4, 3.5e-4]\n"r_m[2]" = ["normal", -0.0271, 1e-4]\n')
-    u, p = _uncertainty(argparse.Namespace(robust=str(study), params=None))
+    u, p = uncertainty_of(study)
     assert u.names == ("j", "r_m[2]") and u.kinds == ("uniform", "normal")
     assert float(p.r_m[2]) == -0.0271
     with pytest.raises(InputError, match=r"expected a fit result \(.json\) or a Monte-Carlo study \(.toml\)"):
-        _uncertainty(argparse.Namespace(robust=str(tmp_path / "x.csv"), params=None))
+        uncertainty_of(tmp_path / "x.csv")
