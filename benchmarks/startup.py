@@ -233,14 +233,11 @@ def _jsphere_child(task: str, cache_dir: str | None) -> dict:
     if cache_dir:
         rec["cache"] = _enable_cache(cache_dir, jsphere)
     p = jsphere.RobotParams.paper()
-    options = None  # with the cache on: the solves exported beside it, as the command line's are
-    if cache_dir and hasattr(jsphere, "FastStart"):
-        options = jsphere.SolverOptions(programs=jsphere.FastStart(cache_dir))
 
     if task == "gaits":
 
         def f():
-            return jsphere.simulate_gaits(p, [jsphere.acceleration(), jsphere.braking()], options=options).x
+            return jsphere.simulate_gaits(p, [jsphere.acceleration(), jsphere.braking()]).x
 
     elif task == "simulate":
         ts = np.concatenate([np.linspace(0.0, 2.0, 201), np.linspace(2.0, 4.0, 201)])
@@ -249,23 +246,24 @@ def _jsphere_child(task: str, cache_dir: str | None) -> dict:
         state0 = jsphere.State.at_rest(p)
 
         def f():
-            return jsphere.simulate(p, state0, jsphere.Torques.from_samples(ts, K), 4.0, ts=ts, options=options).x
+            return jsphere.simulate(p, state0, jsphere.Torques.from_samples(ts, K), 4.0, ts=ts).x
 
     elif task == "fit":
         ts = np.linspace(0.0, 3.0, 301)
         K = 0.02 * (np.sin(np.pi * ts / 3.0) ** 2 * np.sin(2.0 * ts))[:, None] * np.array([1.0, -0.5, -0.5])
         truth = p.replace(R_m=1.02 * float(p.R_m))
+        fit_options = jsphere.FitOptions(n_starts=1, adam_steps=0, max_iter=1)
         trial = jsphere.synthetic_trial(truth, jsphere.Torques.from_samples(ts, K), 3.0, rate=50.0, seed=1)
 
         def f():
-            r = jsphere.fit([trial], p, "R_m,j", n_starts=1, adam_steps=0, max_iter=1, progress=False, options=options)
+            r = jsphere.fit([trial], p, "R_m,j", options=fit_options, progress=False)
             return np.asarray(r.params.R_m)
 
     elif task == "plan":
-        settings = jsphere.PlanSettings(adam_steps=1, lm_steps=1)
+        settings, two = jsphere.PlanSettings(adam_steps=1, lm_steps=1), jsphere.PlanOptions(restarts=2)
 
         def f():
-            pl = jsphere.plan(p, (0.3, 0.1), settings=settings, restarts=2, allow_infeasible=True, progress=False)
+            pl = jsphere.plan(p, (0.3, 0.1), settings=settings, plan_options=two, allow_infeasible=True, progress=False)
             return np.asarray(pl.trajectory.x)
 
     else:
@@ -273,7 +271,7 @@ def _jsphere_child(task: str, cache_dir: str | None) -> dict:
 
         def stop(theta_max):
             gaits = [jsphere.acceleration(theta_max=theta_max), jsphere.braking(theta_max=theta_max)]
-            return jsphere.simulate_gaits(p, gaits, ts=jnp.array([4.0]), adjoint=adjoint, options=options).x[-1]
+            return jsphere.simulate_gaits(p, gaits, ts=jnp.array([4.0]), adjoint=adjoint).x[-1]
 
         d = jax.grad(stop) if task == "grad" else jax.jacfwd(stop)
 

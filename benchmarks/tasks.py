@@ -68,14 +68,13 @@ def make_trials(truth, n, durations, kind, seed, rate=100.0):
     return out
 
 
-def run(kind, n, durations, free, fix_names, seed=0, n_starts=2, progress=True, **kw):
+def run(kind, n, durations, free, fix_names, seed=0, n_starts=2, progress=True, solver=None):
     truth = truth_params()
     trials = make_trials(truth, n, durations, kind, seed)
     fix = {name: np.asarray(jsphere.get_value(truth, name)).tolist() for name in fix_names}
     t = time.perf_counter()
-    res = jsphere.fit(
-        trials, jsphere.RobotParams.paper(), free, fix=fix, n_starts=n_starts, seed=seed, progress=progress, **kw
-    )
+    options = jsphere.FitOptions(n_starts=n_starts, seed=seed, solver=solver)
+    res = jsphere.fit(trials, jsphere.RobotParams.paper(), free, fix=fix, options=options, progress=progress)
     elapsed = time.perf_counter() - t
     rows = []
     for name in res.free:
@@ -119,13 +118,13 @@ def fit(argv) -> int:
     lo, _, hi = args.duration.partition(":")
     durations = (float(lo), float(hi or lo))
     fix_names = [n for n in args.fix.split(",") if n]
-    kw = {}
+    solver = None
     if args.solver:
         import diffrax
 
-        kw["options"] = jsphere.SolverOptions(solver=getattr(diffrax, args.solver)())
+        solver = jsphere.SolverOptions(solver=getattr(diffrax, args.solver)())
     res, rows, elapsed, trials = run(
-        args.kind, args.trials, durations, args.free, fix_names, args.seed, args.n_starts, **kw
+        args.kind, args.trials, durations, args.free, fix_names, args.seed, args.n_starts, solver=solver
     )
     print(
         f"\n{args.trials} trials ({args.kind}), {sum(len(t.t) for t in trials)} samples; fit {elapsed:.1f} s "
@@ -242,7 +241,7 @@ def glitchy(clean, seed: int):
 
 def robust_one(robot, tr, bad, loss):
     t = time.perf_counter()
-    res = jsphere.fit(tr, jsphere.RobotParams.paper(), ROBUST_FREE, loss=loss, progress=False)
+    res = jsphere.fit(tr, jsphere.RobotParams.paper(), ROBUST_FREE, options=jsphere.FitOptions(loss=loss), progress=False)
     wall = time.perf_counter() - t
     z = [abs((res.values[k] - float(jsphere.get_value(robot, k))) / res.stderr[k]) for k in res.free]
     named = {k: set(v["frames"]) for k, v in res.outliers.items()}
@@ -460,19 +459,14 @@ def robust_plan(argv) -> int:
     to = tuple(args.to)
 
     t0 = time.perf_counter()
-    nominal = jsphere.plan(p, to, restarts=4, progress=False, allow_infeasible=True)
+    four = jsphere.PlanOptions(restarts=4)
+    nominal = jsphere.plan(p, to, plan_options=four, progress=False, allow_infeasible=True)
     t_nominal = time.perf_counter() - t0
     t0 = time.perf_counter()
-    rp = jsphere.plan_robust(
-        p,
-        to,
-        unc,
-        samples=args.samples,
-        quantile=args.quantile,
-        check_samples=args.check_samples,
-        nominal=nominal,
-        progress=False,
+    robust = jsphere.RobustOptions(
+        unc, samples=args.samples, quantile=args.quantile, check_samples=args.check_samples, nominal=nominal
     )
+    rp = jsphere.plan(p, to, plan_options=four, robust=robust, progress=False)
     t_robust = time.perf_counter() - t0
 
     _, fresh = unc.draw(p, args.check_samples, seed=7)
@@ -537,7 +531,7 @@ def track(argv) -> int:
     args = ap.parse_args(argv)
     p = jsphere.RobotParams.paper()
     t0 = time.perf_counter()
-    pl = jsphere.plan(p, tuple(args.to), restarts=args.restarts)
+    pl = jsphere.plan(p, tuple(args.to), plan_options=jsphere.PlanOptions(restarts=args.restarts))
     t_plan = time.perf_counter() - t0
     tr = pl.trajectory
     ts, K = np.asarray(tr.ts), np.asarray(tr.K)
