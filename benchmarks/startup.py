@@ -21,17 +21,18 @@ says what each entry records.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Callable
 
-from common import HERE, ROOT, cli_env, dispatch, environment_in_child, log, run_cli, write_json
+from common import HERE, ROOT, cli_env, dispatch, environment_in_child, log, run_cli, timed_run, write_json
+from common import run_child as common_run_child
 
 # ---------------------------------------------------------------------- reproduce
 
@@ -175,18 +176,6 @@ def _enable_cache(cache_dir: str, jsphere=None) -> str:
     return "jax.config"
 
 
-def _checks_as_nan(jsphere):
-    """jsphere's `callbacks_as_nan()` (equinox's checks traced without host callbacks, so JAX
-    can write the solves to its cache), or a block that does nothing where jsphere has none."""
-    import contextlib
-
-    try:
-        from jsphere._runtime.compilation_cache import callbacks_as_nan
-    except ImportError:
-        return contextlib.nullcontext()
-    return callbacks_as_nan()
-
-
 def _timed(f, *args):
     import jax
 
@@ -278,15 +267,10 @@ def _jsphere_child(task: str, cache_dir: str | None) -> dict:
         def f():
             return d(0.1)
 
-    import contextlib
+    from jsphere._runtime.compilation_cache import callbacks_as_nan
 
-    phases = _phases(jax)
-    with _checks_as_nan(jsphere) if cache_dir else contextlib.nullcontext():
-        out, rec["first_s"], rec["first_cpu_s"] = _timed(f)
-    rec["phases"] = dict(phases)
-    _, rec["second_s"], _ = _timed(f)
-    rec["value"] = float(np.ravel(np.asarray(out))[-1])
-    return rec
+    # equinox's checks traced without host callbacks, so that JAX can write the solves to its cache
+    return rec, f, callbacks_as_nan() if cache_dir else contextlib.nullcontext()
 
 
 def _baseline_problem():
@@ -352,7 +336,6 @@ def _dfx_child(task: str, cache_dir: str | None) -> dict:
     import diffrax as dfx
     import jax
     import jax.numpy as jnp
-    import numpy as np
 
     jax.config.update("jax_enable_x64", True)  # float64, as in the jsphere child
     rec = {"import_s": time.perf_counter() - t}
@@ -376,48 +359,37 @@ def _dfx_child(task: str, cache_dir: str | None) -> dict:
         def f():
             return d(0.1)
 
-    phases = _phases(jax)
-    out, rec["first_s"], rec["first_cpu_s"] = _timed(f)
-    rec["phases"] = dict(phases)
-    _, rec["second_s"], _ = _timed(f)
-    rec["value"] = float(np.ravel(np.asarray(out))[-1])
-    return rec
+    return rec, f, contextlib.nullcontext()
 
 
 def child(task: str, cache_dir: str | None) -> None:
-    rec = _dfx_child(task, cache_dir) if task.startswith("dfx_") else _jsphere_child(task, cache_dir)
-    print("FIRST_RESULT " + json.dumps(rec), flush=True)
+    """The record of a new process's task (`first-result --child`): its imports, its first
+    call with JAX's phases of it, and its second call; printed as JSON."""
+    import jax
+    import numpy as np
+
+    rec, f, context = (_dfx_child if task.startswith("dfx_") else _jsphere_child)(task, cache_dir)
+    phases = _phases(jax)
+    with context:
+        out, rec["first_s"], rec["first_cpu_s"] = _timed(f)
+    rec["phases"] = dict(phases)
+    _, rec["second_s"], _ = _timed(f)
+    rec["value"] = float(np.ravel(np.asarray(out))[-1])
+    print(json.dumps(rec), flush=True)
 
 
 # ------------------------------------------------------------------------------- parent
 
 
-def run_child(task: str, cache_dir: str | None = None, extra_env: dict | None = None) -> dict:
-    cmd = [sys.executable, str(Path(__file__).resolve()), "first-result", "--child", task] + (
-        ["--cache-dir", cache_dir] if cache_dir else []
-    )
-    load = os.getloadavg()[0]
-    t = time.perf_counter()
-    r = subprocess.run(cmd, env={**cli_env(), **(extra_env or {})}, capture_output=True, text=True, cwd=ROOT)
-    wall = time.perf_counter() - t
-    if r.returncode != 0:
-        raise RuntimeError(f"{task} failed ({r.returncode}):\n{r.stderr[-3000:]}")
-    line = next(ln for ln in r.stdout.splitlines() if ln.startswith("FIRST_RESULT "))
-    return {**json.loads(line[len("FIRST_RESULT ") :]), "wall_s": wall, "loadavg_1min_before": load}
+def first_result_child(task: str, cache_dir: str | None = None, extra_env: dict | None = None) -> dict:
+    argv = ["first-result", "--child", task] + (["--cache-dir", cache_dir] if cache_dir else [])
+    return common_run_child("startup.py", argv, {**cli_env(), **(extra_env or {})})
 
 
 def run_quickstart() -> dict:
     load = os.getloadavg()[0]
-    t = time.perf_counter()
-    subprocess.run(
-        [sys.executable, str(ROOT / "examples" / "quickstart.py")],
-        env=cli_env(),
-        check=True,
-        cwd=ROOT,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    return {"wall_s": time.perf_counter() - t, "loadavg_1min_before": load}
+    _, wall = timed_run([sys.executable, str(ROOT / "examples" / "quickstart.py")], quiet=True)
+    return {"wall_s": wall, "loadavg_1min_before": load}
 
 
 def _cache_files(path: str) -> dict:
@@ -428,9 +400,9 @@ def _cache_files(path: str) -> dict:
 def run_cached(task: str) -> dict:
     """The task in a process with an empty cache, then in a second process with that cache."""
     with tempfile.TemporaryDirectory(prefix="first-result-cache-") as cache:
-        first = run_child(task, cache)
+        first = first_result_child(task, cache)
         files = _cache_files(cache)
-        second = run_child(task, cache)
+        second = first_result_child(task, cache)
     return {**second, **files, "filling_process": first}
 
 
@@ -479,14 +451,14 @@ def first_result(argv) -> int:
     cold, cached = {}, {}
     defaults = {}
     for task in tasks:
-        cold[task] = _median([run_child(task) for _ in range(args.repeat)])
+        cold[task] = _median([first_result_child(task) for _ in range(args.repeat)])
         r = cold[task]
         log(
             f"  cold   {task:<11} import {r['import_s']:4.1f} s, first {r['first_s']:5.1f} s, "
             f"second {r['second_s']:6.3f} s, process {r['wall_s']:5.1f} s",
         )
         if args.xla_defaults and not task.startswith("dfx_"):
-            defaults[task] = _median([run_child(task, extra_env=XLA_DEFAULTS_ENV) for _ in range(args.repeat)])
+            defaults[task] = _median([first_result_child(task, extra_env=XLA_DEFAULTS_ENV) for _ in range(args.repeat)])
             r = defaults[task]
             log(
                 f"  cold   {task:<11} with XLA's defaults: first {r['first_s']:5.1f} s, second {r['second_s']:6.3f} s",
