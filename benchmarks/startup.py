@@ -31,8 +31,8 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from common import HERE, ROOT, cli_env, dispatch, environment_in_child, log, run_cli, timed_run, write_json
-from common import run_child as common_run_child
+import common
+from common import HERE, ROOT, cli_env, log, write_json
 
 # ---------------------------------------------------------------------- reproduce
 
@@ -48,8 +48,8 @@ def measure(tmp: str, name: str, extra: list[str], cached_runs: int = 3, command
     """A first process of `command(tmp, name, extra)` (its arguments) with an empty cache in
     `tmp`, then `cached_runs` processes reusing it (their median is `second_process_s`)."""
     cache, argv = os.path.join(tmp, f"cache-{name}"), command(tmp, name, extra)
-    first = run_cli(argv, cache)
-    seconds = [run_cli(argv, cache) for _ in range(cached_runs)]
+    first = common.run_cli(argv, cache)
+    seconds = [common.run_cli(argv, cache) for _ in range(cached_runs)]
     size = sum(f.stat().st_size for f in Path(cache).rglob("*") if f.is_file())
     return {
         "args": extra,
@@ -70,10 +70,10 @@ def reproduce(argv) -> int:
             runs[name] = measure(tmp, name, extra)
             r = runs[name]
             print(f"  {name:<9} first {r['first_process_s']:5.1f} s, second {r['second_process_s']:4.1f} s", flush=True)
-        no_cache = run_cli(reproduce_argv(tmp, "no-cache", ["--no-cache"]), os.path.join(tmp, "unused"))
+        no_cache = common.run_cli(reproduce_argv(tmp, "no-cache", ["--no-cache"]), os.path.join(tmp, "unused"))
     d, b = runs["default"], runs["optimize"]
     res = {
-        **environment_in_child(),
+        **common.environment_in_child(),
         "command": "python -m jsphere.cli.app reproduce",
         "runs": runs,
         "no_cache_process_s": no_cache,
@@ -110,7 +110,7 @@ def make_trials(tmp: str) -> None:
     truth_params().save(os.path.join(tmp, "truth.toml"))
     synth = ["synth", "--out", os.path.join(tmp, "trials"), "--trials", "5", "--kind", "torques"]
     synth += ["--duration", "6", "--params", os.path.join(tmp, "truth.toml"), "--no-cache", "--quiet"]
-    run_cli(synth)
+    common.run_cli(synth)
 
 
 def fit(argv) -> int:
@@ -122,11 +122,11 @@ def fit(argv) -> int:
         make_trials(tmp)
         cached = measure(tmp, "cached", [], cached_runs=args.cached_runs, command=fit_argv)
         values = {"cached": json.loads(Path(tmp, "fit-cached.json").read_text())["values"]}
-        no_cache = run_cli(fit_argv(tmp, "no-cache", ["--no-cache"]), os.path.join(tmp, "unused"))
+        no_cache = common.run_cli(fit_argv(tmp, "no-cache", ["--no-cache"]), os.path.join(tmp, "unused"))
         values["no_cache"] = json.loads(Path(tmp, "fit-no-cache.json").read_text())["values"]
     same = values["cached"] == values["no_cache"]
     res = {
-        **environment_in_child(),
+        **common.environment_in_child(),
         "command": "python -m jsphere.cli.app " + " ".join(fit_argv("TMP", "cached", [])),
         "cached": cached,
         "first_process_s": cached["first_process_s"],
@@ -383,12 +383,12 @@ def child(task: str, cache_dir: str | None) -> None:
 
 def first_result_child(task: str, cache_dir: str | None = None, extra_env: dict | None = None) -> dict:
     argv = ["first-result", "--child", task] + (["--cache-dir", cache_dir] if cache_dir else [])
-    return common_run_child("startup.py", argv, {**cli_env(), **(extra_env or {})})
+    return common.run_child("startup.py", argv, {**cli_env(), **(extra_env or {})})
 
 
 def run_quickstart() -> dict:
     load = os.getloadavg()[0]
-    _, wall = timed_run([sys.executable, str(ROOT / "examples" / "quickstart.py")], quiet=True)
+    _, wall = common.timed_run([sys.executable, str(ROOT / "examples" / "quickstart.py")], quiet=True)
     return {"wall_s": wall, "loadavg_1min_before": load}
 
 
@@ -446,7 +446,7 @@ def first_result(argv) -> int:
         child(args.child, args.cache_dir)
         return 0
 
-    meta = environment_in_child()
+    meta = common.environment_in_child()
     tasks = tuple(args.tasks) if args.tasks else QUICK_TASKS if args.quick else JSPHERE_TASKS + DFX_TASKS
     cold, cached = {}, {}
     defaults = {}
@@ -504,26 +504,21 @@ def first_result(argv) -> int:
         },
     }
 
-    print(
-        f"\n{'task':<11} {'import':>7} {'first':>7} {'cpu':>7} {'second':>8} {'process':>8} {'ratio':>6} | "
-        f"{'cached first':>12} {'process':>8} {'ratio':>6}"
-    )
-    for task in tasks:
-        c, k = cold[task], cached.get(task)
-        rc = ratios["cold"].get(f"{task}/{RATIOS.get(task)}")
-        rk = ratios["cached"].get(f"{task}/{RATIOS.get(task)}")
-        line = f"{task:<11} {c['import_s']:7.2f} {c['first_s']:7.2f} {c['first_cpu_s']:7.2f} {c['second_s']:8.3f} {c['wall_s']:8.2f} "
-        line += f"{rc:6.2f}" if rc is not None else f"{'':>6}"
-        if k:
-            line += f" | {k['first_s']:12.2f} {k['wall_s']:8.2f} " + (f"{rk:6.2f}" if rk is not None else "")
-        print(line)
-    if quickstart:
-        print(f"{'quickstart':<11} {'':>7} {'':>7} {'':>7} {'':>8} {quickstart['wall_s']:8.2f}")
-    print(f"\n{'cold, first call':<17} {'trace':>7} {'lower':>7} {'compile':>8} {'programs':>9}")
-    for task in tasks:
-        ph = cold[task].get("phases")
-        if ph:
-            print(f"{task:<17} {ph['trace_s']:7.2f} {ph['lower_s']:7.2f} {ph['compile_s']:8.2f} {ph['programs']:9.0f}")
+    rows = [
+        {"task": t, "ratio": ratios["cold"].get(f"{t}/{RATIOS.get(t)}")}
+        | cold[t]
+        | {f"cached_{k}": v for k, v in cached.get(t, {}).items()}
+        | {"cached_ratio": ratios["cached"].get(f"{t}/{RATIOS.get(t)}")}
+        for t in tasks
+    ] + ([{"task": "quickstart", "wall_s": quickstart["wall_s"]}] if quickstart else [])
+    cols = [("task", "task", ""), ("import", "import_s", ".2f"), ("first", "first_s", ".2f")]
+    cols += [("cpu", "first_cpu_s", ".2f"), ("second", "second_s", ".3f"), ("process", "wall_s", ".2f")]
+    cols += [("ratio", "ratio", ".2f"), ("cached first", "cached_first_s", ".2f")]
+    cols += [("process", "cached_wall_s", ".2f"), ("ratio", "cached_ratio", ".2f")]
+    print("", *common.table(cols, rows), "", sep="\n")
+    cols = [("cold, first call", "task", ""), ("trace", "trace_s", ".2f"), ("lower", "lower_s", ".2f")]
+    cols += [("compile", "compile_s", ".2f"), ("programs", "programs", ".0f")]
+    common.print_table(cols, [{"task": t} | cold[t]["phases"] for t in tasks if cold[t].get("phases")])
     print(
         "ratio: first_s over the baseline's (cpu: "
         + ", ".join(f"{k} {v:.2f}" for k, v in ratios["cold_cpu"].items())
@@ -554,7 +549,7 @@ def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0].startswith("--") and argv[0] not in ("-h", "--help"):
         argv = ["reproduce", *argv]
-    return dispatch(COMMANDS, argv, __doc__)
+    return common.dispatch(COMMANDS, argv, __doc__)
 
 
 if __name__ == "__main__":
