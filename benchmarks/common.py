@@ -206,11 +206,6 @@ def print_table(columns, rows) -> None:
     print("\n".join(table(columns, rows)))
 
 
-def ratio(a: float, b: float) -> float | None:
-    """`a / b`, a same-run ratio against a baseline; None where either is missing or `b` is 0."""
-    return a / b if a is not None and b else None
-
-
 def result_path(args, name: str) -> Path:
     """`--out` where given, else `benchmarks/<name>`."""
     return Path(args.out) if getattr(args, "out", None) else HERE / name

@@ -411,12 +411,6 @@ def main(argv=None) -> int:
         f"jsphere benchmark ({'quick' if args.quick else 'full'}): backend {env['jax']['backend']} "
         f"({env['jax']['device_kind']}), {env['machine']['cpu_count']} CPUs"
     )
-    with jax.default_device(jax.config.jax_default_device or jax.devices()[0]):
-        return run_all(args, env, gpu, repeats, b1, b2, b3, n_scipy, t_start)
-
-
-def run_all(args, env, gpu, repeats, b1, b2, b3, n_scipy, t_start) -> int:
-
     p = jsphere.RobotParams.paper()
     Z = np.random.default_rng(0).standard_normal((max(b1), 3))
 
