@@ -30,6 +30,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from .kinematics import rolling_velocity, wheel_speeds
 from .linalg import cross, dot, matvec, outer, solve3
 from .params import Derived, RobotParams, derive
 
@@ -208,9 +209,7 @@ def kinetic_energy(params: RobotParams, gamma, omega, Omega) -> Float[Array, ""]
     Written term by term from (3.2), independently of the mass matrix of (3.4), so the two
     can check each other.
     """
-    p, d = params, derive(params)
-    v = p.R0 * cross(Omega, gamma)
-    chi_dot = -matvec(d.Sk, omega - Omega)
+    p, v, chi_dot = params, rolling_velocity(params, gamma, Omega), wheel_speeds(params, omega, Omega)
     return (
         0.5 * (p.m + p.m0) * dot(v, v)
         + 0.5 * p.I0 * dot(Omega, Omega)
@@ -236,14 +235,12 @@ def energy(params: RobotParams, gamma, omega, Omega) -> Float[Array, ""]:
 def dissipation(params: RobotParams, gamma, omega, Omega) -> Float[Array, ""]:
     """Power lost to the optional damping terms, `c_axle sum chi_dot_i^2 + c_roll |Omega_h|^2` [W];
     `d(T + U)/dt = power - dissipation`."""
-    d = derive(params)
     gamma, omega, Omega = (jnp.asarray(x) for x in (gamma, omega, Omega))
-    chi_dot = -matvec(d.Sk, omega - Omega)
+    chi_dot = wheel_speeds(params, omega, Omega)
     Wh = Omega - dot(Omega, gamma) * gamma
     return params.c_axle * jnp.sum(chi_dot**2) + params.c_roll * dot(Wh, Wh)
 
 
 def power(params: RobotParams, omega, Omega, K) -> Float[Array, ""]:
     """Power of the wheel motors, `k_tau sum_i K_i chi_dot_i` [W] (`K` commanded)."""
-    d = derive(params)
-    return jnp.sum(params.k_tau * jnp.asarray(K) * -matvec(d.Sk, jnp.asarray(omega) - jnp.asarray(Omega)))
+    return jnp.sum(params.k_tau * jnp.asarray(K) * wheel_speeds(params, omega, Omega))
