@@ -23,6 +23,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 import time
@@ -239,16 +240,35 @@ def cvodes_batch(robot, batch: int, threads: int, rtol: float = 1e-8, atol: floa
     return trial.map(batch, "thread", threads)
 
 
-def _timed(fn, *args, repeats: int):
+@contextlib.contextmanager
+def in_temporary_folder():
+    """CasADi's shell compiler writes its sources to the current folder: keep them out of the checkout."""
+    here = os.getcwd()
+    with tempfile.TemporaryDirectory() as tmp:
+        os.chdir(tmp)
+        try:
+            yield
+        finally:
+            os.chdir(here)
+
+
+def built_and_timed(build, y0, A: np.ndarray, *, repeats: int) -> tuple[dict, np.ndarray]:
+    """`build()` (a compiled batch `Function`, timed as `build_s`), then its first call and
+    `repeats` more on `(y0, A.T)`: the timings, and the final `(x, y)` of every trial."""
     t = time.perf_counter()
-    out = fn(*args)
-    first = time.perf_counter() - t
+    F = build()
+    row = {"batch": A.shape[0], "build_s": time.perf_counter() - t}
+    t = time.perf_counter()
+    F(y0, A.T)
+    row["first_call_s"] = time.perf_counter() - t
     times = []
     for _ in range(repeats):
         t = time.perf_counter()
-        out = fn(*args)
+        out = F(y0, A.T)
         times.append(time.perf_counter() - t)
-    return np.asarray(out), first, float(np.median(times)), times
+    med = float(np.median(times))
+    row |= {"median_s": med, "repeats": repeats, "times_s": times, "trials_per_s": A.shape[0] / med}
+    return row, np.asarray(out)[10:12].T
 
 
 def casadi_rows(robot, q0, A: np.ndarray, *, threads: int = 2, repeats: int = 3, cvodes_trials: int = 64):
@@ -256,49 +276,13 @@ def casadi_rows(robot, q0, A: np.ndarray, *, threads: int = 2, repeats: int = 3,
     `finals[name]` the final `(x, y)` of the trials run (for the accuracy check)."""
     if ca is None:
         raise ImportError("CasADi is not installed: pip install 'jsphere[bench]' (or pip install casadi).")
-    B = A.shape[0]
+    B, n = A.shape[0], min(cvodes_trials, A.shape[0])
     y0 = np.tile(np.concatenate([np.asarray(q0, float), np.zeros(8)])[:, None], (1, B))
-    rows, finals = [], {}
-    # the shell compiler writes its sources to the current folder: keep them out of the checkout
-    here = os.getcwd()
-    with tempfile.TemporaryDirectory() as tmp:
-        os.chdir(tmp)
-        try:
-            t = time.perf_counter()
-            F = rk4_batch(robot, B, threads)
-            build = time.perf_counter() - t
-            out, first, med, times = _timed(F, y0, A.T, repeats=repeats)
-            finals["rk4"] = out[10:12].T
-            rows.append(
-                {
-                    "name": f"CasADi RK4 {RK4_STEPS} steps, C -O3, {threads} threads",
-                    "batch": B,
-                    "threads": threads,
-                    "build_s": build,
-                    "first_call_s": first,
-                    "median_s": med,
-                    "times_s": times,
-                    "trials_per_s": B / med,
-                }
-            )
-            n = min(cvodes_trials, B)
-            t = time.perf_counter()
-            G = cvodes_batch(robot, n, threads)
-            build = time.perf_counter() - t
-            out, first, med, times = _timed(G, y0[:, :n], A[:n].T, repeats=repeats)
-            finals["cvodes"] = out[10:12].T
-            rows.append(
-                {
-                    "name": f"CasADi CVODES rtol 1e-8, {threads} threads",
-                    "batch": n,
-                    "threads": threads,
-                    "build_s": build,
-                    "first_call_s": first,
-                    "median_s": med,
-                    "times_s": times,
-                    "trials_per_s": n / med,
-                }
-            )
-        finally:
-            os.chdir(here)
-    return rows, finals
+    with in_temporary_folder():
+        rk4, rk4_xy = built_and_timed(lambda: rk4_batch(robot, B, threads), y0, A, repeats=repeats)
+        cvodes, cvodes_xy = built_and_timed(lambda: cvodes_batch(robot, n, threads), y0[:, :n], A[:n], repeats=repeats)
+    rows = [
+        {"name": f"CasADi RK4 {RK4_STEPS} steps, C -O3, {threads} threads", "threads": threads} | rk4,
+        {"name": f"CasADi CVODES rtol 1e-8, {threads} threads", "threads": threads} | cvodes,
+    ]
+    return rows, {"rk4": rk4_xy, "cvodes": cvodes_xy}

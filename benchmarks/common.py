@@ -129,15 +129,10 @@ def environment(source_at_start: str | None = None) -> dict:
             "platform": dev.platform,
             "x64": bool(jax.config.jax_enable_x64),
         },
-        "versions": {
-            "jax": jax.__version__,
-            "jaxlib": ver("jaxlib"),
-            "diffrax": ver("diffrax"),
-            "equinox": ver("equinox"),
-            "numpy": np.__version__,
-            "scipy": ver("scipy"),
-            "jsphere": _checkout_version() or getattr(jsphere, "__version__", None),
-        },
+        "versions": {"jax": jax.__version__}
+        | {name: ver(name) for name in ("jaxlib", "diffrax", "equinox")}
+        | {"numpy": np.__version__, "scipy": ver("scipy")}
+        | {"jsphere": _checkout_version() or getattr(jsphere, "__version__", None)},
         "jsphere_path": str(Path(jsphere.__file__).resolve().parent),
         "jsphere_git": {
             "commit": _git("rev-parse", "HEAD"),
@@ -190,6 +185,27 @@ def print_pairs(rows) -> None:
         print(f"{a.ljust(w)}  {b}")
 
 
+def table(columns, rows) -> list[str]:
+    """The lines of a table of `rows` (dicts): `columns` are `(heading, key, format)`, `key` a
+    key of the row or a function of it, `format` a format spec (`".2f"`); a missing value is
+    blank. The first column is left-aligned, the others right-aligned, each as wide as its
+    heading or widest cell."""
+    cells = [
+        ["" if (v := k(r) if callable(k) else r.get(k)) is None else format(v, f) for _, k, f in columns] for r in rows
+    ]
+    widths = [max([len(h)] + [len(c[i]) for c in cells]) for i, (h, _, _) in enumerate(columns)]
+
+    def line(texts):
+        return "  ".join(t.ljust(w) if i == 0 else t.rjust(w) for i, (t, w) in enumerate(zip(texts, widths)))
+
+    head = line([h for h, _, _ in columns])
+    return [head, "-" * len(head), *map(line, cells)]
+
+
+def print_table(columns, rows) -> None:
+    print("\n".join(table(columns, rows)))
+
+
 def result_path(args, name: str) -> Path:
     """`--out` where given, else `benchmarks/<name>`."""
     return Path(args.out) if getattr(args, "out", None) else HERE / name
@@ -207,33 +223,32 @@ def cli_env(**extra) -> dict:
     return env | extra
 
 
+def timed_run(cmd: list[str], env: dict | None = None, quiet: bool = False) -> tuple[str, float]:
+    """Run `cmd` in a new process (this checkout's `jsphere`, `cli_env`, unless `env`) from the
+    checkout's root, timed from the outside: its standard output (none if `quiet`) and seconds.
+    A failure raises `RuntimeError` with the end of its standard error."""
+    pipe = subprocess.DEVNULL if quiet else subprocess.PIPE
+    t = time.perf_counter()
+    out = subprocess.run(cmd, env=env or cli_env(), stdout=pipe, stderr=pipe, text=True, cwd=ROOT)
+    wall = time.perf_counter() - t
+    if out.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed ({out.returncode}):\n{(out.stderr or '')[-3000:]}")
+    return out.stdout or "", wall
+
+
 def run_cli(argv: list[str], cache_dir: str | None = None) -> float:
     """Seconds of one `jsphere` process (`python -m jsphere.cli.app *argv`) with its cache in
     `cache_dir`, timed from the outside."""
     env = cli_env(**({"JSPHERE_CACHE_DIR": cache_dir} if cache_dir else {}))
-    t = time.perf_counter()
-    subprocess.run(
-        [sys.executable, "-m", "jsphere.cli.app", *argv],
-        env=env,
-        check=True,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    return time.perf_counter() - t
+    return timed_run([sys.executable, "-m", "jsphere.cli.app", *argv], env, quiet=True)[1]
 
 
 def run_child(script: str, argv: list[str], env: dict | None = None) -> dict:
-    """`python benchmarks/<script> *argv` in a new process; the JSON of its last line of output."""
-    out = subprocess.run(
-        [sys.executable, str(HERE / script), *argv],
-        env=env or cli_env(),
-        capture_output=True,
-        text=True,
-        cwd=ROOT,
-    )
-    if out.returncode != 0:
-        raise RuntimeError(f"{script} {' '.join(argv)} failed ({out.returncode}):\n{out.stderr[-3000:]}")
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    """`python benchmarks/<script> *argv` in a new process; the JSON of its last line of output,
+    with the process's seconds (`wall_s`) and the load average before it (`loadavg_1min_before`)."""
+    load = os.getloadavg()[0]
+    out, wall = timed_run([sys.executable, str(HERE / script), *argv], env)
+    return json.loads(out.strip().splitlines()[-1]) | {"wall_s": wall, "loadavg_1min_before": load}
 
 
 def dispatch(commands: dict, argv, doc: str) -> int:

@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from casadi_baseline import NumpyRobot, initial_state
-from common import HERE, environment, finish, log, public, source_digest, time_call, write_json
+from common import HERE, environment, finish, log, public, source_digest, table, time_call, write_json
 from scipy.integrate import solve_ivp
 from startup import measure as startup_measure
 
@@ -66,20 +66,28 @@ def rate_row(r: dict, B: int, steps, **extra) -> dict:
 # ------------------------------------------------------------------------ problem 1
 
 
-def problem1_jsphere(p, Z, batches, repeats):
-    # Exactly the public API, as a user writes it.
-    f = jax.jit(
-        jax.vmap(
-            lambda a: jsphere.simulate(
-                p,
-                jsphere.State.at_rest(p),
-                jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + jnp.array([0.0, 2.1, 4.2]))),
-                4.0,
-                rtol=1e-8,
-                atol=1e-10,
-            )
+def problem1(p, rtol=RTOL, atol=ATOL, solver=None):
+    """Problem 1 through the public API, exactly as a user writes it: `vmap` over the
+    amplitude rows (jit it)."""
+    options = jsphere.SolverOptions(rtol=rtol, atol=atol, solver=solver)
+    return jax.vmap(
+        lambda a: jsphere.simulate(
+            p,
+            jsphere.State.at_rest(p),
+            jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + jnp.asarray(PHASES))),
+            T1,
+            options=options,
         )
     )
+
+
+def final_xy(tr) -> np.ndarray:
+    """The final `(x, y)` of a batch of trajectories, `(B, 2)`."""
+    return np.stack([np.asarray(tr.x[:, -1]), np.asarray(tr.y[:, -1])], -1)
+
+
+def problem1_jsphere(p, Z, batches, repeats):
+    f = jax.jit(problem1(p))
     rows, finals = [], {}
     for B in batches:
         A = jnp.asarray(amplitudes(Z[:B]))
@@ -90,7 +98,7 @@ def problem1_jsphere(p, Z, batches, repeats):
             log(f"[P1] jsphere batch {B} on {k} device(s) ...")
             r = time_call(f, x, repeats=repeats)
             tr = r["_out"]
-            finals.setdefault(B, np.stack([np.asarray(tr.x[:, -1]), np.asarray(tr.y[:, -1])], -1))
+            finals.setdefault(B, final_xy(tr))
             ok = bool(np.all(np.asarray(tr.ok)))
             rows.append(rate_row(r, B, tr.num_steps, devices=k, all_ok=ok, **device_memory()))
     return rows, finals
@@ -133,18 +141,24 @@ def scipy_trial(model, q0, a, rtol=RTOL, atol=ATOL):
     return sol
 
 
+def scipy_batch(model, q0, A, repeats, rtol=RTOL, atol=ATOL):
+    """`repeats` serial runs of `scipy_trial` over the amplitude rows `A`: their times, the
+    last run's solutions, the median time."""
+    times, sols = [], None
+    for _ in range(repeats):
+        t = time.perf_counter()
+        sols = [scipy_trial(model, q0, a, rtol, atol) for a in A]
+        times.append(time.perf_counter() - t)
+    return times, sols, statistics.median(times)
+
+
 def problem1_scipy(p, Z, n_trials, repeats):
     model = NumpyRobot.from_params(p)
     q0 = np.asarray(jsphere.State.at_rest(p).q)  # the initial condition, as data
     A = amplitudes(Z[:n_trials])
     log(f"[P1] scipy DOP853, {n_trials} trials x {repeats} repeats ...")
     scipy_trial(model, q0, A[0])  # warm-up (imports, caches)
-    times, sols = [], None
-    for _ in range(repeats):
-        t = time.perf_counter()
-        sols = [scipy_trial(model, q0, a) for a in A]
-        times.append(time.perf_counter() - t)
-    med = statistics.median(times)
+    times, sols, med = scipy_batch(model, q0, A, repeats)
     finals = np.array([s.y[10:12, -1] for s in sols])
     row = {
         "trials": n_trials,
@@ -247,8 +261,6 @@ GRAD_NAMES = ["r_m[2] (= -R_m)", "j", "I[0,0]", "I[1,1]", "I[2,2]", "m0", "I0"]
 
 
 def problem3(p0, Z, batches, repeats):
-    PH = jnp.asarray(PHASES)
-
     def with_theta(theta):
         I = p0.I.at[jnp.diag_indices(3)].set(theta[2:5])
         return eqx.tree_at(
@@ -256,17 +268,7 @@ def problem3(p0, Z, batches, repeats):
         )
 
     def loss(theta, A):
-        p = with_theta(theta)
-        tr = jax.vmap(
-            lambda a: jsphere.simulate(
-                p,
-                jsphere.State.at_rest(p),
-                jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + PH)),
-                T1,
-                rtol=RTOL,
-                atol=ATOL,
-            )
-        )(A)
+        tr = problem1(with_theta(theta))(A)
         return jnp.sum(tr.x[:, -1] ** 2 + tr.y[:, -1] ** 2)
 
     theta0 = jnp.stack([p0.r_m[2], p0.j, p0.I[0, 0], p0.I[1, 1], p0.I[2, 2], p0.m0, p0.I0])
@@ -313,51 +315,35 @@ def problem3(p0, Z, batches, repeats):
 
 
 def fmt_table(res) -> str:
-    L = []
-    hdr = f"{'problem':<34}{'batch':>8}{'devices':>8}{'trials/s':>12}{'median s':>11}{'compile s':>11}{'reps':>6}{'steps mean/max':>16}{'vs scipy':>10}"
-    L.append(hdr)
-    L.append("-" * len(hdr))
     sc = res["problem1"]["scipy"]
-    for r in res["problem1"]["jsphere"]:
-        L.append(
-            f"{'P1 torques, jsphere jit+vmap':<34}{r['batch']:>8}{r.get('devices', 1):>8}{r['trials_per_s']:>12.1f}{r['median_s']:>11.4f}"
-            f"{r['compile_s']:>11.2f}{r['repeats']:>6}{r['steps_mean']:>9.0f}/{r['steps_max']:<6}{r['trials_per_s'] / sc['trials_per_s']:>9.1f}x"
+    rows = [{"problem": "P1 torques, jsphere jit+vmap"} | r for r in res["problem1"]["jsphere"]]
+    rows.append({"problem": "P1 torques, scipy DOP853 (serial)", "batch": sc["trials"]} | sc | {"ratio_vs_scipy": 1.0})
+    for r in res["problem1"].get("casadi", []):
+        rows.append(
+            {"problem": r["name"][:33], "devices": f"{r.get('threads', '-')} thr", "compile_s": r.get("build_s")} | r
         )
+    rows += [{"problem": "P2 gaits, jsphere jit+vmap"} | r for r in res["problem2"]]
+    steps = lambda r: f"{r['steps_mean']:.0f}/{r['steps_max']}" if "steps_max" in r else None  # noqa: E731
+    cols = [
+        ("problem", "problem", ""),
+        ("batch", "batch", ""),
+        ("devices", "devices", ""),
+        ("trials/s", "trials_per_s", ".1f"),
+    ]
+    cols += [("median s", "median_s", ".4f"), ("compile s", "compile_s", ".2f"), ("reps", "repeats", "")]
+    cols += [("steps mean/max", steps, ""), ("vs scipy", "ratio_vs_scipy", ".1f")]
+    L = table(cols, [r for r in rows if "error" not in r])
+    L += [f"{r['problem']}: {r['error'][:70]}" for r in rows if "error" in r]
     mem = [r for r in res["problem1"]["jsphere"] if r.get("device_peak_bytes")]
     if mem:
         L.append(
             "  device memory, peak in use after the batch: "
             + ", ".join(f"{r['batch']}: {r['device_peak_bytes'] / 2**30:.2f} GiB" for r in mem)
         )
-    L.append(
-        f"{'P1 torques, scipy DOP853 (serial)':<34}{sc['trials']:>8}{'-':>8}{sc['trials_per_s']:>12.2f}{sc['median_s']:>11.4f}"
-        f"{'-':>11}{sc['repeats']:>6}{sc['steps_mean']:>9.0f}{'':<7}{1.0:>9.1f}x"
-    )
-    for r in res["problem1"].get("casadi", []):
-        if "error" in r:
-            L.append(f"{'P1 CasADi':<34}{'':>16}  {r['error'][:70]}")
-            continue
-        L.append(
-            f"{r['name'][:33]:<34}{r['batch']:>8}{str(r.get('threads', '-')) + ' thr':>8}{r['trials_per_s']:>12.1f}{r['median_s']:>11.4f}"
-            f"{r['build_s']:>11.2f}{len(r['times_s']):>6}{'':>16}{r['ratio_vs_scipy']:>9.1f}x"
-        )
-    for r in res["problem2"]:
-        if "error" in r:
-            L.append(f"{'P2 gaits, jsphere jit+vmap':<34}{r['batch']:>8}{'':>8}  FAILED: {r['error'][:60]}")
-            continue
-        L.append(
-            f"{'P2 gaits, jsphere jit+vmap':<34}{r['batch']:>8}{r.get('devices', 1):>8}{r['trials_per_s']:>12.1f}{r['median_s']:>11.4f}"
-            f"{r['compile_s']:>11.2f}{r['repeats']:>6}{r['steps_mean']:>9.0f}/{r['steps_max']:<6}{'':>10}"
-        )
-    L.append("")
-    hdr3 = f"{'P3 gradient (7 params)':<34}{'batch':>8}{'devices':>8}{'grad s':>12}{'forward s':>11}{'grad/fwd':>10}{'grad compile s':>16}"
-    L.append(hdr3)
-    L.append("-" * len(hdr3))
-    for r in res["problem3"]["rows"]:
-        L.append(
-            f"{'jax.grad of sum(x^2 + y^2)':<34}{r['batch']:>8}{r.get('devices', 1):>8}{r['grad']['median_s']:>12.4f}{r['forward']['median_s']:>11.4f}"
-            f"{r['grad_over_forward']:>10.2f}{r['grad']['compile_s']:>16.2f}"
-        )
+    p3 = [("P3 gradient (7 params)", lambda r: "jax.grad of sum(x^2 + y^2)", ""), ("batch", "batch", "")]
+    p3 += [("devices", "devices", ""), ("grad s", lambda r: r["grad"]["median_s"], ".4f")]
+    p3 += [("forward s", lambda r: r["forward"]["median_s"], ".4f"), ("grad/fwd", "grad_over_forward", ".2f")]
+    L += ["", *table([*p3, ("grad compile s", lambda r: r["grad"]["compile_s"], ".2f")], res["problem3"]["rows"])]
     L.append("")
     c = res["problem1"]["checks"]
     L.append(
@@ -425,12 +411,6 @@ def main(argv=None) -> int:
         f"jsphere benchmark ({'quick' if args.quick else 'full'}): backend {env['jax']['backend']} "
         f"({env['jax']['device_kind']}), {env['machine']['cpu_count']} CPUs"
     )
-    with jax.default_device(jax.config.jax_default_device or jax.devices()[0]):
-        return run_all(args, env, gpu, repeats, b1, b2, b3, n_scipy, t_start)
-
-
-def run_all(args, env, gpu, repeats, b1, b2, b3, n_scipy, t_start) -> int:
-
     p = jsphere.RobotParams.paper()
     Z = np.random.default_rng(0).standard_normal((max(b1), 3))
 

@@ -21,17 +21,18 @@ says what each entry records.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Callable
 
-from common import HERE, ROOT, cli_env, dispatch, environment_in_child, log, run_cli, write_json
+import common
+from common import HERE, ROOT, cli_env, log, write_json
 
 # ---------------------------------------------------------------------- reproduce
 
@@ -47,8 +48,8 @@ def measure(tmp: str, name: str, extra: list[str], cached_runs: int = 3, command
     """A first process of `command(tmp, name, extra)` (its arguments) with an empty cache in
     `tmp`, then `cached_runs` processes reusing it (their median is `second_process_s`)."""
     cache, argv = os.path.join(tmp, f"cache-{name}"), command(tmp, name, extra)
-    first = run_cli(argv, cache)
-    seconds = [run_cli(argv, cache) for _ in range(cached_runs)]
+    first = common.run_cli(argv, cache)
+    seconds = [common.run_cli(argv, cache) for _ in range(cached_runs)]
     size = sum(f.stat().st_size for f in Path(cache).rglob("*") if f.is_file())
     return {
         "args": extra,
@@ -69,10 +70,10 @@ def reproduce(argv) -> int:
             runs[name] = measure(tmp, name, extra)
             r = runs[name]
             print(f"  {name:<9} first {r['first_process_s']:5.1f} s, second {r['second_process_s']:4.1f} s", flush=True)
-        no_cache = run_cli(reproduce_argv(tmp, "no-cache", ["--no-cache"]), os.path.join(tmp, "unused"))
+        no_cache = common.run_cli(reproduce_argv(tmp, "no-cache", ["--no-cache"]), os.path.join(tmp, "unused"))
     d, b = runs["default"], runs["optimize"]
     res = {
-        **environment_in_child(),
+        **common.environment_in_child(),
         "command": "python -m jsphere.cli.app reproduce",
         "runs": runs,
         "no_cache_process_s": no_cache,
@@ -109,7 +110,7 @@ def make_trials(tmp: str) -> None:
     truth_params().save(os.path.join(tmp, "truth.toml"))
     synth = ["synth", "--out", os.path.join(tmp, "trials"), "--trials", "5", "--kind", "torques"]
     synth += ["--duration", "6", "--params", os.path.join(tmp, "truth.toml"), "--no-cache", "--quiet"]
-    run_cli(synth)
+    common.run_cli(synth)
 
 
 def fit(argv) -> int:
@@ -121,11 +122,11 @@ def fit(argv) -> int:
         make_trials(tmp)
         cached = measure(tmp, "cached", [], cached_runs=args.cached_runs, command=fit_argv)
         values = {"cached": json.loads(Path(tmp, "fit-cached.json").read_text())["values"]}
-        no_cache = run_cli(fit_argv(tmp, "no-cache", ["--no-cache"]), os.path.join(tmp, "unused"))
+        no_cache = common.run_cli(fit_argv(tmp, "no-cache", ["--no-cache"]), os.path.join(tmp, "unused"))
         values["no_cache"] = json.loads(Path(tmp, "fit-no-cache.json").read_text())["values"]
     same = values["cached"] == values["no_cache"]
     res = {
-        **environment_in_child(),
+        **common.environment_in_child(),
         "command": "python -m jsphere.cli.app " + " ".join(fit_argv("TMP", "cached", [])),
         "cached": cached,
         "first_process_s": cached["first_process_s"],
@@ -175,18 +176,6 @@ def _enable_cache(cache_dir: str, jsphere=None) -> str:
     return "jax.config"
 
 
-def _checks_as_nan(jsphere):
-    """jsphere's `callbacks_as_nan()` (equinox's checks traced without host callbacks, so JAX
-    can write the solves to its cache), or a block that does nothing where jsphere has none."""
-    import contextlib
-
-    try:
-        from jsphere._runtime.compilation_cache import callbacks_as_nan
-    except ImportError:
-        return contextlib.nullcontext()
-    return callbacks_as_nan()
-
-
 def _timed(f, *args):
     import jax
 
@@ -233,14 +222,11 @@ def _jsphere_child(task: str, cache_dir: str | None) -> dict:
     if cache_dir:
         rec["cache"] = _enable_cache(cache_dir, jsphere)
     p = jsphere.RobotParams.paper()
-    options = None  # with the cache on: the solves exported beside it, as the command line's are
-    if cache_dir and hasattr(jsphere, "FastStart"):
-        options = jsphere.SolverOptions(programs=jsphere.FastStart(cache_dir))
 
     if task == "gaits":
 
         def f():
-            return jsphere.simulate_gaits(p, [jsphere.acceleration(), jsphere.braking()], options=options).x
+            return jsphere.simulate_gaits(p, [jsphere.acceleration(), jsphere.braking()]).x
 
     elif task == "simulate":
         ts = np.concatenate([np.linspace(0.0, 2.0, 201), np.linspace(2.0, 4.0, 201)])
@@ -249,23 +235,24 @@ def _jsphere_child(task: str, cache_dir: str | None) -> dict:
         state0 = jsphere.State.at_rest(p)
 
         def f():
-            return jsphere.simulate(p, state0, jsphere.Torques.from_samples(ts, K), 4.0, ts=ts, options=options).x
+            return jsphere.simulate(p, state0, jsphere.Torques.from_samples(ts, K), 4.0, ts=ts).x
 
     elif task == "fit":
         ts = np.linspace(0.0, 3.0, 301)
         K = 0.02 * (np.sin(np.pi * ts / 3.0) ** 2 * np.sin(2.0 * ts))[:, None] * np.array([1.0, -0.5, -0.5])
         truth = p.replace(R_m=1.02 * float(p.R_m))
+        fit_options = jsphere.FitOptions(n_starts=1, adam_steps=0, max_iter=1)
         trial = jsphere.synthetic_trial(truth, jsphere.Torques.from_samples(ts, K), 3.0, rate=50.0, seed=1)
 
         def f():
-            r = jsphere.fit([trial], p, "R_m,j", n_starts=1, adam_steps=0, max_iter=1, progress=False, options=options)
+            r = jsphere.fit([trial], p, "R_m,j", options=fit_options, progress=False)
             return np.asarray(r.params.R_m)
 
     elif task == "plan":
-        settings = jsphere.PlanSettings(adam_steps=1, lm_steps=1)
+        settings, two = jsphere.PlanSettings(adam_steps=1, lm_steps=1), jsphere.PlanOptions(restarts=2)
 
         def f():
-            pl = jsphere.plan(p, (0.3, 0.1), settings=settings, restarts=2, allow_infeasible=True, progress=False)
+            pl = jsphere.plan(p, (0.3, 0.1), settings=settings, plan_options=two, allow_infeasible=True, progress=False)
             return np.asarray(pl.trajectory.x)
 
     else:
@@ -273,22 +260,17 @@ def _jsphere_child(task: str, cache_dir: str | None) -> dict:
 
         def stop(theta_max):
             gaits = [jsphere.acceleration(theta_max=theta_max), jsphere.braking(theta_max=theta_max)]
-            return jsphere.simulate_gaits(p, gaits, ts=jnp.array([4.0]), adjoint=adjoint, options=options).x[-1]
+            return jsphere.simulate_gaits(p, gaits, ts=jnp.array([4.0]), adjoint=adjoint).x[-1]
 
         d = jax.grad(stop) if task == "grad" else jax.jacfwd(stop)
 
         def f():
             return d(0.1)
 
-    import contextlib
+    from jsphere._runtime.compilation_cache import callbacks_as_nan
 
-    phases = _phases(jax)
-    with _checks_as_nan(jsphere) if cache_dir else contextlib.nullcontext():
-        out, rec["first_s"], rec["first_cpu_s"] = _timed(f)
-    rec["phases"] = dict(phases)
-    _, rec["second_s"], _ = _timed(f)
-    rec["value"] = float(np.ravel(np.asarray(out))[-1])
-    return rec
+    # equinox's checks traced without host callbacks, so that JAX can write the solves to its cache
+    return rec, f, callbacks_as_nan() if cache_dir else contextlib.nullcontext()
 
 
 def _baseline_problem():
@@ -354,7 +336,6 @@ def _dfx_child(task: str, cache_dir: str | None) -> dict:
     import diffrax as dfx
     import jax
     import jax.numpy as jnp
-    import numpy as np
 
     jax.config.update("jax_enable_x64", True)  # float64, as in the jsphere child
     rec = {"import_s": time.perf_counter() - t}
@@ -378,48 +359,37 @@ def _dfx_child(task: str, cache_dir: str | None) -> dict:
         def f():
             return d(0.1)
 
-    phases = _phases(jax)
-    out, rec["first_s"], rec["first_cpu_s"] = _timed(f)
-    rec["phases"] = dict(phases)
-    _, rec["second_s"], _ = _timed(f)
-    rec["value"] = float(np.ravel(np.asarray(out))[-1])
-    return rec
+    return rec, f, contextlib.nullcontext()
 
 
 def child(task: str, cache_dir: str | None) -> None:
-    rec = _dfx_child(task, cache_dir) if task.startswith("dfx_") else _jsphere_child(task, cache_dir)
-    print("FIRST_RESULT " + json.dumps(rec), flush=True)
+    """The record of a new process's task (`first-result --child`): its imports, its first
+    call with JAX's phases of it, and its second call; printed as JSON."""
+    import jax
+    import numpy as np
+
+    rec, f, context = (_dfx_child if task.startswith("dfx_") else _jsphere_child)(task, cache_dir)
+    phases = _phases(jax)
+    with context:
+        out, rec["first_s"], rec["first_cpu_s"] = _timed(f)
+    rec["phases"] = dict(phases)
+    _, rec["second_s"], _ = _timed(f)
+    rec["value"] = float(np.ravel(np.asarray(out))[-1])
+    print(json.dumps(rec), flush=True)
 
 
 # ------------------------------------------------------------------------------- parent
 
 
-def run_child(task: str, cache_dir: str | None = None, extra_env: dict | None = None) -> dict:
-    cmd = [sys.executable, str(Path(__file__).resolve()), "first-result", "--child", task] + (
-        ["--cache-dir", cache_dir] if cache_dir else []
-    )
-    load = os.getloadavg()[0]
-    t = time.perf_counter()
-    r = subprocess.run(cmd, env={**cli_env(), **(extra_env or {})}, capture_output=True, text=True, cwd=ROOT)
-    wall = time.perf_counter() - t
-    if r.returncode != 0:
-        raise RuntimeError(f"{task} failed ({r.returncode}):\n{r.stderr[-3000:]}")
-    line = next(ln for ln in r.stdout.splitlines() if ln.startswith("FIRST_RESULT "))
-    return {**json.loads(line[len("FIRST_RESULT ") :]), "wall_s": wall, "loadavg_1min_before": load}
+def first_result_child(task: str, cache_dir: str | None = None, extra_env: dict | None = None) -> dict:
+    argv = ["first-result", "--child", task] + (["--cache-dir", cache_dir] if cache_dir else [])
+    return common.run_child("startup.py", argv, {**cli_env(), **(extra_env or {})})
 
 
 def run_quickstart() -> dict:
     load = os.getloadavg()[0]
-    t = time.perf_counter()
-    subprocess.run(
-        [sys.executable, str(ROOT / "examples" / "quickstart.py")],
-        env=cli_env(),
-        check=True,
-        cwd=ROOT,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    return {"wall_s": time.perf_counter() - t, "loadavg_1min_before": load}
+    _, wall = common.timed_run([sys.executable, str(ROOT / "examples" / "quickstart.py")], quiet=True)
+    return {"wall_s": wall, "loadavg_1min_before": load}
 
 
 def _cache_files(path: str) -> dict:
@@ -430,9 +400,9 @@ def _cache_files(path: str) -> dict:
 def run_cached(task: str) -> dict:
     """The task in a process with an empty cache, then in a second process with that cache."""
     with tempfile.TemporaryDirectory(prefix="first-result-cache-") as cache:
-        first = run_child(task, cache)
+        first = first_result_child(task, cache)
         files = _cache_files(cache)
-        second = run_child(task, cache)
+        second = first_result_child(task, cache)
     return {**second, **files, "filling_process": first}
 
 
@@ -476,19 +446,19 @@ def first_result(argv) -> int:
         child(args.child, args.cache_dir)
         return 0
 
-    meta = environment_in_child()
+    meta = common.environment_in_child()
     tasks = tuple(args.tasks) if args.tasks else QUICK_TASKS if args.quick else JSPHERE_TASKS + DFX_TASKS
     cold, cached = {}, {}
     defaults = {}
     for task in tasks:
-        cold[task] = _median([run_child(task) for _ in range(args.repeat)])
+        cold[task] = _median([first_result_child(task) for _ in range(args.repeat)])
         r = cold[task]
         log(
             f"  cold   {task:<11} import {r['import_s']:4.1f} s, first {r['first_s']:5.1f} s, "
             f"second {r['second_s']:6.3f} s, process {r['wall_s']:5.1f} s",
         )
         if args.xla_defaults and not task.startswith("dfx_"):
-            defaults[task] = _median([run_child(task, extra_env=XLA_DEFAULTS_ENV) for _ in range(args.repeat)])
+            defaults[task] = _median([first_result_child(task, extra_env=XLA_DEFAULTS_ENV) for _ in range(args.repeat)])
             r = defaults[task]
             log(
                 f"  cold   {task:<11} with XLA's defaults: first {r['first_s']:5.1f} s, second {r['second_s']:6.3f} s",
@@ -534,26 +504,21 @@ def first_result(argv) -> int:
         },
     }
 
-    print(
-        f"\n{'task':<11} {'import':>7} {'first':>7} {'cpu':>7} {'second':>8} {'process':>8} {'ratio':>6} | "
-        f"{'cached first':>12} {'process':>8} {'ratio':>6}"
-    )
-    for task in tasks:
-        c, k = cold[task], cached.get(task)
-        rc = ratios["cold"].get(f"{task}/{RATIOS.get(task)}")
-        rk = ratios["cached"].get(f"{task}/{RATIOS.get(task)}")
-        line = f"{task:<11} {c['import_s']:7.2f} {c['first_s']:7.2f} {c['first_cpu_s']:7.2f} {c['second_s']:8.3f} {c['wall_s']:8.2f} "
-        line += f"{rc:6.2f}" if rc is not None else f"{'':>6}"
-        if k:
-            line += f" | {k['first_s']:12.2f} {k['wall_s']:8.2f} " + (f"{rk:6.2f}" if rk is not None else "")
-        print(line)
-    if quickstart:
-        print(f"{'quickstart':<11} {'':>7} {'':>7} {'':>7} {'':>8} {quickstart['wall_s']:8.2f}")
-    print(f"\n{'cold, first call':<17} {'trace':>7} {'lower':>7} {'compile':>8} {'programs':>9}")
-    for task in tasks:
-        ph = cold[task].get("phases")
-        if ph:
-            print(f"{task:<17} {ph['trace_s']:7.2f} {ph['lower_s']:7.2f} {ph['compile_s']:8.2f} {ph['programs']:9.0f}")
+    rows = [
+        {"task": t, "ratio": ratios["cold"].get(f"{t}/{RATIOS.get(t)}")}
+        | cold[t]
+        | {f"cached_{k}": v for k, v in cached.get(t, {}).items()}
+        | {"cached_ratio": ratios["cached"].get(f"{t}/{RATIOS.get(t)}")}
+        for t in tasks
+    ] + ([{"task": "quickstart", "wall_s": quickstart["wall_s"]}] if quickstart else [])
+    cols = [("task", "task", ""), ("import", "import_s", ".2f"), ("first", "first_s", ".2f")]
+    cols += [("cpu", "first_cpu_s", ".2f"), ("second", "second_s", ".3f"), ("process", "wall_s", ".2f")]
+    cols += [("ratio", "ratio", ".2f"), ("cached first", "cached_first_s", ".2f")]
+    cols += [("process", "cached_wall_s", ".2f"), ("ratio", "cached_ratio", ".2f")]
+    print("", *common.table(cols, rows), "", sep="\n")
+    cols = [("cold, first call", "task", ""), ("trace", "trace_s", ".2f"), ("lower", "lower_s", ".2f")]
+    cols += [("compile", "compile_s", ".2f"), ("programs", "programs", ".0f")]
+    common.print_table(cols, [{"task": t} | cold[t]["phases"] for t in tasks if cold[t].get("phases")])
     print(
         "ratio: first_s over the baseline's (cpu: "
         + ", ".join(f"{k} {v:.2f}" for k, v in ratios["cold_cpu"].items())
@@ -584,7 +549,7 @@ def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0].startswith("--") and argv[0] not in ("-h", "--help"):
         argv = ["reproduce", *argv]
-    return dispatch(COMMANDS, argv, __doc__)
+    return common.dispatch(COMMANDS, argv, __doc__)
 
 
 if __name__ == "__main__":

@@ -120,10 +120,12 @@ def monte_carlo_against_a_loop(args) -> None:
     vary = {"r_m[2]": ("normal", float(p.r_m[2]), 1e-4)}
 
     t = time.perf_counter()
-    jsphere.monte_carlo(p, gaits, vary=vary, n=args.batch_size, seed=1, batch_size=args.batch_size, progress=False)
+    options = jsphere.StudyOptions(seed=1, batch_size=args.batch_size)
+    jsphere.monte_carlo(p, gaits, vary=vary, n=args.batch_size, options=options, progress=False)
     compile_and_one_batch = time.perf_counter() - t
     t = time.perf_counter()
-    res = jsphere.monte_carlo(p, gaits, vary=vary, n=args.trials, seed=0, batch_size=args.batch_size, progress=False)
+    options = jsphere.StudyOptions(seed=0, batch_size=args.batch_size)
+    res = jsphere.monte_carlo(p, gaits, vary=vary, n=args.trials, options=options, progress=False)
     mc_s = time.perf_counter() - t
 
     ts = jax.numpy.array([4.0])

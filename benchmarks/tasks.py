@@ -31,16 +31,16 @@ import math
 import os
 import resource
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+import common
 import jax
 import jax.numpy as jnp
 import numpy as np
-from common import HERE, cli_env, dispatch, environment, log, print_pairs, result_path, run_child, write_json
+from common import HERE, dispatch, environment, log, print_pairs, print_table, result_path, write_json
 
 import jsphere
 
@@ -68,14 +68,13 @@ def make_trials(truth, n, durations, kind, seed, rate=100.0):
     return out
 
 
-def run(kind, n, durations, free, fix_names, seed=0, n_starts=2, progress=True, **kw):
+def run(kind, n, durations, free, fix_names, seed=0, n_starts=2, progress=True, solver=None):
     truth = truth_params()
     trials = make_trials(truth, n, durations, kind, seed)
     fix = {name: np.asarray(jsphere.get_value(truth, name)).tolist() for name in fix_names}
     t = time.perf_counter()
-    res = jsphere.fit(
-        trials, jsphere.RobotParams.paper(), free, fix=fix, n_starts=n_starts, seed=seed, progress=progress, **kw
-    )
+    options = jsphere.FitOptions(n_starts=n_starts, seed=seed, solver=solver)
+    res = jsphere.fit(trials, jsphere.RobotParams.paper(), free, fix=fix, options=options, progress=progress)
     elapsed = time.perf_counter() - t
     rows = []
     for name in res.free:
@@ -119,21 +118,20 @@ def fit(argv) -> int:
     lo, _, hi = args.duration.partition(":")
     durations = (float(lo), float(hi or lo))
     fix_names = [n for n in args.fix.split(",") if n]
-    kw = {}
+    solver = None
     if args.solver:
         import diffrax
 
-        kw["options"] = jsphere.SolverOptions(solver=getattr(diffrax, args.solver)())
+        solver = jsphere.SolverOptions(solver=getattr(diffrax, args.solver)())
     res, rows, elapsed, trials = run(
-        args.kind, args.trials, durations, args.free, fix_names, args.seed, args.n_starts, **kw
+        args.kind, args.trials, durations, args.free, fix_names, args.seed, args.n_starts, solver=solver
     )
     print(
         f"\n{args.trials} trials ({args.kind}), {sum(len(t.t) for t in trials)} samples; fit {elapsed:.1f} s "
         f"({res.iterations} LM iterations, {args.n_starts} starts, converged {res.converged})"
     )
-    print(f"{'name':<8} {'truth':>12} {'fit':>12} {'stderr':>10} {'err/SE':>7}")
-    for r in rows:
-        print(f"{r['name']:<8} {r['truth']:>12.6g} {r['fit']:>12.6g} {r['stderr']:>10.3g} {r['error_se']:>7.2f}")
+    cols = [("name", "name", ""), ("truth", "truth", ".6g"), ("fit", "fit", ".6g"), ("stderr", "stderr", ".3g")]
+    print_table([*cols, ("err/SE", "error_se", ".2f")], rows)
     print(f"sigma_pos {res.sigma_pos * 1e3:.3f} mm, sigma_rot {np.degrees(res.sigma_rot):.3f} deg")
     for w in res.identifiability["warnings"]:
         print("warning:", w)
@@ -197,12 +195,12 @@ def fit_long(argv) -> int:
     if args.child is not None:
         print(json.dumps(long_fit_child(args.child)))
         return 0
-    env = cli_env()
+    env = common.cli_env()
     env.pop("JAX_NUM_CPU_DEVICES", None)
     runs = {"per_core": [], "one_device": []}
     for _ in range(args.repeat):
-        runs["per_core"].append(run_child("tasks.py", ["fit-long", "--child", "0"], env))
-        runs["one_device"].append(run_child("tasks.py", ["fit-long", "--child", "1"], env))
+        runs["per_core"].append(common.run_child("tasks.py", ["fit-long", "--child", "0"], env))
+        runs["one_device"].append(common.run_child("tasks.py", ["fit-long", "--child", "1"], env))
     med = {k: statistics.median(r["fit_s"] for r in v) for k, v in runs.items()}
     last = runs["per_core"][-1]
     res = {
@@ -240,9 +238,23 @@ def glitchy(clean, seed: int):
     return out, bad
 
 
+#: the columns of the robust fits' tables
+ROBUST_COLUMNS = [
+    ("wall s", "wall_s", ".1f"),
+    ("iters", "iterations", "d"),
+    ("max|z|", "max_error_se", ".2f"),
+    ("sigma mm", "sigma_pos_mm", ".3f"),
+    ("named", "named_share", ".0%"),
+    ("clean out", "clean_frames_set_aside", "d"),
+    ("status", "status", ""),
+]
+
+
 def robust_one(robot, tr, bad, loss):
     t = time.perf_counter()
-    res = jsphere.fit(tr, jsphere.RobotParams.paper(), ROBUST_FREE, loss=loss, progress=False)
+    res = jsphere.fit(
+        tr, jsphere.RobotParams.paper(), ROBUST_FREE, options=jsphere.FitOptions(loss=loss), progress=False
+    )
     wall = time.perf_counter() - t
     z = [abs((res.values[k] - float(jsphere.get_value(robot, k))) / res.stderr[k]) for k in res.free]
     named = {k: set(v["frames"]) for k, v in res.outliers.items()}
@@ -277,14 +289,7 @@ def long_capture(out: str) -> None:
             rows.append({"stages": how} | robust_one(robot, tr, {}, "cauchy"))
         finally:
             fit_module.REDESCENDING = ("cauchy",)
-    head = f"{'stages':<22} {'wall s':>7} {'iters':>6} {'max|z|':>7} {'sigma mm':>8} {'set aside':>9}  status"
-    print(head)
-    print("-" * len(head))
-    for r in rows:
-        print(
-            f"{r['stages']:<22} {r['wall_s']:>7.1f} {r['iterations']:>6d} {r['max_error_se']:>7.2f} "
-            f"{r['sigma_pos_mm']:>8.3f} {r['clean_frames_set_aside']:>9d}  {r['status']}"
-        )
+    print_table([("stages", "stages", ""), *ROBUST_COLUMNS], rows)
     doc = {
         **environment(),
         "config": {"free": ROBUST_FREE, "lengths_s": [15, 15, 15, 30], "rate_hz": 100.0},
@@ -333,16 +338,8 @@ def robust_fit(argv) -> int:
         ],
     }
     base = rows[0]["wall_s"]
-    head = f"{'capture':<8} {'loss':<8} {'wall s':>7} {'x clean':>8} {'iters':>6} {'max|z|':>7} {'sigma mm':>8} {'sigma deg':>9} {'named':>6} {'clean out':>9}  status"
-    print(head)
-    print("-" * len(head))
-    for r in rows:
-        named = "" if r["named_share"] is None else f"{r['named_share']:.0%}"
-        print(
-            f"{r['capture']:<8} {r['loss']:<8} {r['wall_s']:>7.1f} {r['wall_s'] / base:>8.2f} {r['iterations']:>6d} "
-            f"{r['max_error_se']:>7.2f} {r['sigma_pos_mm']:>8.3f} {r['sigma_rot_deg']:>9.3f} {named:>6} "
-            f"{r['clean_frames_set_aside']:>9d}  {r['status']}"
-        )
+    head = [("capture", "capture", ""), ("loss", "loss", ""), ("x clean", lambda r: r["wall_s"] / base, ".2f")]
+    print_table(head + ROBUST_COLUMNS[:-2] + [("sigma deg", "sigma_rot_deg", ".3f"), *ROBUST_COLUMNS[-2:]], rows)
     print(
         f"clean capture, cauchy against l2: values within {clean_vs_l2['max_value_difference_se']:.3f} SE, standard errors "
         f"x{clean_vs_l2['stderr_ratio_range'][0]:.3f} to x{clean_vs_l2['stderr_ratio_range'][1]:.3f}"
@@ -460,19 +457,14 @@ def robust_plan(argv) -> int:
     to = tuple(args.to)
 
     t0 = time.perf_counter()
-    nominal = jsphere.plan(p, to, restarts=4, progress=False, allow_infeasible=True)
+    four = jsphere.PlanOptions(restarts=4)
+    nominal = jsphere.plan(p, to, plan_options=four, progress=False, allow_infeasible=True)
     t_nominal = time.perf_counter() - t0
     t0 = time.perf_counter()
-    rp = jsphere.plan_robust(
-        p,
-        to,
-        unc,
-        samples=args.samples,
-        quantile=args.quantile,
-        check_samples=args.check_samples,
-        nominal=nominal,
-        progress=False,
+    robust = jsphere.RobustOptions(
+        unc, samples=args.samples, quantile=args.quantile, check_samples=args.check_samples, nominal=nominal
     )
+    rp = jsphere.plan(p, to, plan_options=four, robust=robust, progress=False)
     t_robust = time.perf_counter() - t0
 
     _, fresh = unc.draw(p, args.check_samples, seed=7)
@@ -537,7 +529,7 @@ def track(argv) -> int:
     args = ap.parse_args(argv)
     p = jsphere.RobotParams.paper()
     t0 = time.perf_counter()
-    pl = jsphere.plan(p, tuple(args.to), restarts=args.restarts)
+    pl = jsphere.plan(p, tuple(args.to), plan_options=jsphere.PlanOptions(restarts=args.restarts))
     t_plan = time.perf_counter() - t0
     tr = pl.trajectory
     ts, K = np.asarray(tr.ts), np.asarray(tr.K)
@@ -625,9 +617,7 @@ def design(argv) -> int:
     cmd = [sys.executable, "-m", "jsphere.cli", "design", "--free", DESIGN_FREE, "--duration", str(args.duration)]
     cmd += f"--kind K --trials {args.trials} --restarts {args.restarts} --steps {args.steps} --seed {args.seed}".split()
     cmd += ["--out", str(out), "--baseline-out", str(work / "baseline.csv"), "--no-cache", "-q"]
-    t0 = time.perf_counter()
-    subprocess.run(cmd, check=True, env=cli_env())
-    t_design = time.perf_counter() - t0
+    _, t_design = common.timed_run(cmd)
     doc = json.loads(out.with_suffix(".json").read_text())
 
     # the design's and the baseline's tables as written
@@ -763,9 +753,8 @@ def animate(argv) -> int:
     print(
         f"10 s clip at {fps:.0f} fps ({int(round(10 * fps))} frames, {size[0]} x {size[1]}), load {os.getloadavg()[0]:.2f}"
     )
-    print(f"{'output':<6} {'how':<34} {'wall [s]':>9} {'CPU [s]':>8} {'size [MB]':>10}")
-    for r in rows:
-        print(f"{r['output']:<6} {r['how']:<34} {r['wall_s']:>9.1f} {r['cpu_s']:>8.1f} {r['bytes'] / 1e6:>10.2f}")
+    cols = [("output", "output", ""), ("how", "how", ""), ("wall [s]", "wall_s", ".1f"), ("CPU [s]", "cpu_s", ".1f")]
+    print_table([*cols, ("size [MB]", lambda r: r["bytes"] / 1e6, ".2f")], rows)
     print(f"blitted frames against full redraws (MP4, same run): {ratio:.1f}x faster")
     write_json(
         args.out,

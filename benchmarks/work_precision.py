@@ -4,8 +4,8 @@ compiled fixed-step RK4 and scipy's DOP853, all measured in one run.
     python benchmarks/work_precision.py                  # full run (about 5 min on 2 CPU cores)
     python benchmarks/work_precision.py --quick          # fewer settings, batch 256 (about 1.5 min)
 
-jsphere (`jax.jit(jax.vmap(simulate(..., rtol, atol=rtol / 100, solver=S)))`, the batch split
-over one CPU device per core) with Dopri8, Tsit5, Verner's 7(6) pair (`Vern7` below) and
+jsphere (`jax.jit(jax.vmap(simulate(..., options=SolverOptions(rtol, atol=rtol / 100,
+solver=S))))`, the batch split over one CPU device per core) with Dopri8, Tsit5, Verner's 7(6) pair (`Vern7` below) and
 Dopri5; CasADi's `rk4_batch` at 25 ... 6400 steps; scipy's DOP853 on `NumpyRobot` one trial
 at a time. Per setting: the largest final-position error over the first trials against DOP853
 at rtol 1e-13 (jsphere at rtol 1e-13 a second reference, their distance the floor of the error
@@ -18,12 +18,9 @@ a log-log figure (`docs/images/work-precision.png`); benchmarks/README.md has th
 from __future__ import annotations
 
 import argparse
-import contextlib
 import math
 import os
-import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import ClassVar
@@ -39,15 +36,14 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import run  # noqa: E402  (problem 1: amplitudes, phases, the scipy trial, the devices)
 from casadi_baseline import NumpyRobot  # noqa: E402
-from common import HERE, ROOT, environment, finish, log, public, source_digest, time_call, write_json  # noqa: E402
+from common import HERE, ROOT, environment, finish, log, public, source_digest, table, time_call, write_json  # noqa: E402
 from diffrax import ButcherTableau  # noqa: E402
 
 import jsphere  # noqa: E402
 
 try:
     import casadi as ca
-    from casadi_baseline import _timed as casadi_timed
-    from casadi_baseline import rk4_batch
+    from casadi_baseline import built_and_timed, in_temporary_folder, rk4_batch
 except ImportError:  # pragma: no cover - optional benchmark dependency
     ca = None
 
@@ -160,35 +156,13 @@ def final_error(xy: np.ndarray, ref: np.ndarray) -> float:
 # ------------------------------------------------------------------------ jsphere
 
 
-def jsphere_batch_fn(p, solver, rtol: float, atol: float):
-    """Problem 1 through the public API, `jit(vmap)` over the amplitude rows."""
-    phases = jnp.asarray(run.PHASES)
-    return jax.jit(
-        jax.vmap(
-            lambda a: jsphere.simulate(
-                p,
-                jsphere.State.at_rest(p),
-                jsphere.Torques(lambda t: a * jnp.sin(jnp.pi * t + phases)),
-                run.T1,
-                rtol=rtol,
-                atol=atol,
-                solver=solver,
-            )
-        )
-    )
-
-
-def final_xy(tr) -> np.ndarray:
-    return np.stack([np.asarray(tr.x[:, -1]), np.asarray(tr.y[:, -1])], -1)
-
-
 def jsphere_rows(p, A, ref, grid, repeats):
     rows = []
     n = ref.shape[0]
     for name, rtols in grid.items():
         for rtol in rtols:
             log(f"[jsphere] {name} rtol {rtol:.0e}, batch {A.shape[0]} ...")
-            f = jsphere_batch_fn(p, SOLVERS[name](), rtol, rtol / 100)
+            f = jax.jit(run.problem1(p, rtol, rtol / 100, SOLVERS[name]()))
             r = time_call(f, A, repeats=repeats)
             tr = r["_out"]
             row = {
@@ -197,7 +171,7 @@ def jsphere_rows(p, A, ref, grid, repeats):
                 "rtol": rtol,
                 "atol": rtol / 100,
                 "batch": int(A.shape[0]),
-                "error_m": final_error(final_xy(tr)[:n], ref),
+                "error_m": final_error(run.final_xy(tr)[:n], ref),
                 "trials_per_s": A.shape[0] / r["median_s"],
                 "steps_mean": float(np.mean(np.asarray(tr.num_steps))),
                 # field evaluations per accepted step: the stages after the first (first same as last)
@@ -215,18 +189,6 @@ def jsphere_rows(p, A, ref, grid, repeats):
 # ------------------------------------------------------------------------ CasADi
 
 
-@contextlib.contextmanager
-def in_temporary_folder():
-    """CasADi's shell compiler writes its sources to the current folder: keep them out of the checkout."""
-    here = os.getcwd()
-    with tempfile.TemporaryDirectory() as tmp:
-        os.chdir(tmp)
-        try:
-            yield
-        finally:
-            os.chdir(here)
-
-
 def casadi_rows(model, q0, A, ref, steps_list, repeats, threads):
     if ca is None:
         return [{"method": "CasADi RK4", "error": "not run: CasADi is not installed (pip install casadi)"}]
@@ -236,29 +198,12 @@ def casadi_rows(model, q0, A, ref, steps_list, repeats, threads):
     with in_temporary_folder():
         for steps in steps_list:
             log(f"[CasADi] RK4 {steps} steps, batch {B}, {threads} threads ...")
-            t = time.perf_counter()
-            F = rk4_batch(model, B, threads, steps)
-            build = time.perf_counter() - t
-            out, first, med, times = casadi_timed(F, y0, A.T, repeats=repeats)
-            xy = out[10:12].T
+            r, xy = built_and_timed(lambda: rk4_batch(model, B, threads, steps), y0, A, repeats=repeats)
             err = final_error(xy[:n], ref) if np.all(np.isfinite(xy[:n])) else math.inf
-            row = {
-                "method": "CasADi RK4",
-                "setting": f"{steps} steps",
-                "steps": steps,
-                "batch": B,
-                "threads": threads,
-                "error_m": err,
-                "trials_per_s": B / med,
-                "build_s": build,
-                "first_call_s": first,
-                "median_s": med,
-                "compile_s": build + max(first - med, 0.0),
-                "repeats": len(times),
-                "times_s": times,
-            }
-            log(f"      error {err:.1e} m, {row['trials_per_s']:.0f} trials/s, build {build:.1f} s")
-            rows.append(row)
+            head = {"method": "CasADi RK4", "setting": f"{steps} steps", "steps": steps, "threads": threads}
+            compile_s = r["build_s"] + max(r["first_call_s"] - r["median_s"], 0.0)
+            rows.append(head | r | {"error_m": err, "compile_s": compile_s})
+            log(f"      error {err:.1e} m, {r['trials_per_s']:.0f} trials/s, build {r['build_s']:.1f} s")
     return rows
 
 
@@ -270,12 +215,7 @@ def scipy_rows(model, q0, A, ref, rtols, repeats):
     run.scipy_trial(model, q0, A[0])  # warm-up (imports, caches)
     for rtol in rtols:
         log(f"[scipy] DOP853 rtol {rtol:.0e}, {A.shape[0]} trials x {repeats} ...")
-        times, sols = [], None
-        for _ in range(repeats):
-            t = time.perf_counter()
-            sols = [run.scipy_trial(model, q0, a, rtol=rtol, atol=rtol / 100) for a in A]
-            times.append(time.perf_counter() - t)
-        med = statistics.median(times)
+        times, sols, med = run.scipy_batch(model, q0, A, repeats, rtol=rtol, atol=rtol / 100)
         row = {
             "method": "scipy DOP853",
             "setting": f"rtol {rtol:.0e}",
@@ -371,34 +311,19 @@ def fmt_equal_error(cmp) -> list[str]:
     if not cmp:
         return []
     a, b = cmp[0]["method"].replace("jsphere ", ""), cmp[0]["against"].replace("jsphere ", "")
-    L = [f"{a} against {b} at equal error ({b} interpolated in log-log between its settings):"]
-    hdr = (
-        f"{'setting':>12}{'error m':>11}{a + ' trials/s':>20}{b + ' trials/s':>20}{'ratio':>8}"
-        f"{a + ' evals':>16}{b + ' evals':>16}{'ratio':>8}"
-    )
-    L += [hdr, "-" * len(hdr)]
-    for c in cmp:
-        L.append(
-            f"{c['setting']:>12}{c['error_m']:>11.1e}{c['trials_per_s']:>20.1f}"
-            f"{c['against_trials_per_s']:>20.1f}{c['ratio']:>7.2f}x"
-            f"{c['evaluations']:>16.0f}{c['against_evaluations']:>16.0f}{c['evaluations_ratio']:>7.2f}x"
-        )
-    return L
+    cols = [("setting", "setting", ""), ("error m", "error_m", ".1e"), (f"{a} trials/s", "trials_per_s", ".1f")]
+    cols += [(f"{b} trials/s", "against_trials_per_s", ".1f"), ("ratio", "ratio", ".2f")]
+    cols += [(f"{a} evals", "evaluations", ".0f"), (f"{b} evals", "against_evaluations", ".0f")]
+    head = f"{a} against {b} at equal error ({b} interpolated in log-log between its settings):"
+    return [head, *table([*cols, ("ratio", "evaluations_ratio", ".2f")], cmp)]
 
 
 def fmt_rows(rows) -> list[str]:
-    hdr = f"{'method':<16}{'setting':>12}{'error m':>11}{'trials/s':>12}{'compile s':>11}{'steps':>8}{'batch':>7}"
-    L = [hdr, "-" * len(hdr)]
-    for r in rows:
-        if "error" in r:
-            L.append(f"{r['method']:<16}  {r['error']}")
-            continue
-        steps = r.get("steps_mean", r.get("steps"))
-        L.append(
-            f"{r['method']:<16}{r['setting']:>12}{r['error_m']:>11.1e}{r['trials_per_s']:>12.1f}"
-            f"{r['compile_s']:>11.2f}{steps:>8.0f}{r['batch']:>7}"
-        )
-    return L
+    cols = [("method", "method", ""), ("setting", "setting", ""), ("error m", "error_m", ".1e")]
+    cols += [("trials/s", "trials_per_s", ".1f"), ("compile s", "compile_s", ".2f")]
+    cols += [("steps", lambda r: r.get("steps_mean", r.get("steps")), ".0f"), ("batch", "batch", "")]
+    failed = [f"{r['method']}  {r['error']}" for r in rows if "error" in r]
+    return table(cols, [r for r in rows if "error" not in r]) + failed
 
 
 def fmt_crossover(cross) -> list[str]:
@@ -526,8 +451,10 @@ def main(argv=None) -> int:
     ref = np.array([s.y[10:12, -1] for s in ref_sols])
     ref_s = time.perf_counter() - t
     log(f"[reference] jsphere Dopri8 rtol {JS_REF_RTOL:.0e}, atol {JS_REF_ATOL:.0e}, {n_err} trials ...")
-    tr = jax.block_until_ready(jsphere_batch_fn(p, diffrax.Dopri8(), JS_REF_RTOL, JS_REF_ATOL)(jnp.asarray(A[:n_err])))
-    ref_js = final_xy(tr)
+    tr = jax.block_until_ready(
+        jax.jit(run.problem1(p, JS_REF_RTOL, JS_REF_ATOL, diffrax.Dopri8()))(jnp.asarray(A[:n_err]))
+    )
+    ref_js = run.final_xy(tr)
     agree = final_error(ref_js, ref)
     log(f"      references agree to {agree:.1e} m")
     reference = {
@@ -569,7 +496,8 @@ def main(argv=None) -> int:
             "error": "max over the first error_trials trials of the distance |(x, y) - reference| at t = 4 s [m]",
             "atol": "rtol / 100 (jsphere and scipy)",
             "jsphere": {k: v for k, v in cfg["jsphere"].items()},
-            "jsphere_call": "jax.jit(jax.vmap(simulate(..., rtol, atol, solver)))(amplitudes), default batch_steps",
+            "jsphere_call": "jax.jit(jax.vmap(simulate(..., options=SolverOptions(rtol, atol, solver))))(amplitudes), "
+            "default batch_steps",
             "casadi_steps": cfg["casadi_steps"],
             "casadi_threads": args.threads,
             "scipy_rtols": cfg["scipy_rtols"],

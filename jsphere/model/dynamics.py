@@ -30,19 +30,16 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
+from .kinematics import rolling_velocity, wheel_speeds
 from .linalg import cross, dot, matvec, outer, solve3
 from .params import Derived, RobotParams, derive
-
-
-def _eye(x):
-    return jnp.eye(3, dtype=x.dtype)
 
 
 def mass_blocks(
     p: RobotParams, d: Derived, gamma: Float[Array, "3"]
 ) -> tuple[Float[Array, "3 3"], Float[Array, "3 3"]]:
     """The `gamma`-dependent blocks `B` (omega-Omega coupling) and `D` (Omega-Omega) of (3.4)."""
-    E = _eye(gamma)
+    E = jnp.eye(3, dtype=gamma.dtype)
     B = d.B0 + d.mR0 * (dot(gamma, p.r_m) * E - outer(gamma, p.r_m))
     D = d.D0 + d.MR2 * (dot(gamma, gamma) * E - outer(gamma, gamma))
     return B, D
@@ -93,6 +90,12 @@ def applied_torques(p: RobotParams, K, Sk_dw):
 def commanded_torques(p: RobotParams, K_axle):
     """The commanded torques `K_axle / k_tau` that give the axle torques `K_axle`."""
     return K_axle / p.k_tau
+
+
+def _torques_for(p: RobotParams, d: Derived, tau, w):
+    """The least-norm commanded torques of a required `Sk^T K = tau` at `omega - Omega = w`:
+    the motors also overcome the axle friction `-c_axle chi_dot`."""
+    return commanded_torques(p, matvec(d.Sk_T_pinv, tau) - p.c_axle * matvec(d.Sk, w))
 
 
 def solve_accelerations(
@@ -158,8 +161,7 @@ def required_torques(
         tau = matvec(B.T, omega_dot) + matvec(D, Omega_dot) - r2
     else:
         tau = r1 - matvec(d.A, omega_dot) - matvec(B, Omega_dot)
-    # the motors also overcome the axle friction -c_axle chi_dot
-    return commanded_torques(p, matvec(d.Sk_T_pinv, tau) - p.c_axle * matvec(d.Sk, omega - Omega))
+    return _torques_for(p, d, tau, omega - Omega)
 
 
 def servo_accelerations(p: RobotParams, d: Derived, gamma, Omega, w, w_dot):
@@ -176,7 +178,7 @@ def servo_accelerations(p: RobotParams, d: Derived, gamma, Omega, w, w_dot):
     Omega_dot = solve3(AB + B + D, (r1 + r2) - matvec(AB, w_dot))
     omega_dot = Omega_dot + w_dot
     tau = matvec(B.T, omega_dot) + matvec(D, Omega_dot) - r2
-    return omega, omega_dot, Omega_dot, commanded_torques(p, matvec(d.Sk_T_pinv, tau) - p.c_axle * matvec(d.Sk, w))
+    return omega, omega_dot, Omega_dot, _torques_for(p, d, tau, w)
 
 
 def servo_jump(p: RobotParams, d: Derived, gamma, omega, Omega, w_new):
@@ -207,9 +209,7 @@ def kinetic_energy(params: RobotParams, gamma, omega, Omega) -> Float[Array, ""]
     Written term by term from (3.2), independently of the mass matrix of (3.4), so the two
     can check each other.
     """
-    p, d = params, derive(params)
-    v = p.R0 * cross(Omega, gamma)
-    chi_dot = -matvec(d.Sk, omega - Omega)
+    p, v, chi_dot = params, rolling_velocity(params, gamma, Omega), wheel_speeds(params, omega, Omega)
     return (
         0.5 * (p.m + p.m0) * dot(v, v)
         + 0.5 * p.I0 * dot(Omega, Omega)
@@ -235,14 +235,12 @@ def energy(params: RobotParams, gamma, omega, Omega) -> Float[Array, ""]:
 def dissipation(params: RobotParams, gamma, omega, Omega) -> Float[Array, ""]:
     """Power lost to the optional damping terms, `c_axle sum chi_dot_i^2 + c_roll |Omega_h|^2` [W];
     `d(T + U)/dt = power - dissipation`."""
-    d = derive(params)
     gamma, omega, Omega = (jnp.asarray(x) for x in (gamma, omega, Omega))
-    chi_dot = -matvec(d.Sk, omega - Omega)
+    chi_dot = wheel_speeds(params, omega, Omega)
     Wh = Omega - dot(Omega, gamma) * gamma
     return params.c_axle * jnp.sum(chi_dot**2) + params.c_roll * dot(Wh, Wh)
 
 
 def power(params: RobotParams, omega, Omega, K) -> Float[Array, ""]:
     """Power of the wheel motors, `k_tau sum_i K_i chi_dot_i` [W] (`K` commanded)."""
-    d = derive(params)
-    return jnp.sum(params.k_tau * jnp.asarray(K) * -matvec(d.Sk, jnp.asarray(omega) - jnp.asarray(Omega)))
+    return jnp.sum(params.k_tau * jnp.asarray(K) * wheel_speeds(params, omega, Omega))

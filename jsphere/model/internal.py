@@ -2,6 +2,8 @@
 parameter fields in their order and the flat state's unflattening."""
 
 from .fields import FIELDS as FIELDS
-from .state import _unflatten as unflatten
+from .state import State
+
+unflatten = State.unflatten
 
 __all__ = ["FIELDS", "unflatten"]

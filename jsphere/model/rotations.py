@@ -117,17 +117,15 @@ def quat_log(q: Float[Array, "... 4"]) -> Float[Array, "... 3"]:
 # stay here, since they must carry the NaN of a capture gap through element by element.
 
 
-def _rotation():
+def _stacked(a, tail: tuple[int, ...], out: tuple[int, ...], convert) -> np.ndarray:
+    """`convert` (a `scipy.spatial.transform.Rotation` conversion, imported when first used) of
+    the `(..., *tail)` array `a` as one stack, shaped back to `(..., *out)`."""
     from scipy.spatial.transform import Rotation
 
-    return Rotation
-
-
-def _stacked(a: np.ndarray, tail: tuple[int, ...]) -> tuple[np.ndarray, tuple[int, ...]]:
-    """`a` as one stack `(N, *tail)` for `Rotation`, and its leading shape."""
     a = np.asarray(a, float)
     lead = a.shape[: a.ndim - len(tail)]
-    return a.reshape((-1, *tail)), lead
+    a = a.reshape((-1, *tail))
+    return np.zeros((*lead, *out)) if a.shape[0] == 0 else convert(Rotation, a).reshape((*lead, *out))
 
 
 def quat_mul_np(p: np.ndarray, q: np.ndarray) -> np.ndarray:
@@ -153,10 +151,7 @@ def quat_conj_np(q: np.ndarray) -> np.ndarray:
 def quat_from_rotvec_np(r: np.ndarray) -> np.ndarray:
     """Unit quaternion of the rotation by `|r|` [rad] about `r/|r|` (`(..., 3)` -> `(..., 4)`;
     NumPy twin of `quat_exp`: `Rotation.from_rotvec`)."""
-    r, lead = _stacked(r, (3,))
-    if r.shape[0] == 0:
-        return np.zeros((*lead, 4))
-    return _rotation().from_rotvec(r).as_quat(scalar_first=True).reshape((*lead, 4))
+    return _stacked(r, (3,), (4,), lambda R, r: R.from_rotvec(r).as_quat(scalar_first=True))
 
 
 def quat_log_np(q: np.ndarray) -> np.ndarray:
@@ -173,17 +168,11 @@ def quat_log_np(q: np.ndarray) -> np.ndarray:
 def quat_from_rotmat_np(R: np.ndarray) -> np.ndarray:
     """Unit quaternions `(..., 4)` (w >= 0) of rotation matrices `(..., 3, 3)` (NumPy twin of
     `quat_from_rotmat`, for stacks of matrices: `Rotation.from_matrix`)."""
-    R, lead = _stacked(R, (3, 3))
-    if R.shape[0] == 0:
-        return np.zeros((*lead, 4))
-    q = _rotation().from_matrix(R).as_quat(scalar_first=True).reshape((*lead, 4))
+    q = _stacked(R, (3, 3), (4,), lambda R, m: R.from_matrix(m).as_quat(scalar_first=True))
     return np.where(q[..., :1] < 0, -q, q) + 0.0  # (+ 0.0: no negative zeros in written files)
 
 
 def rotmat_np(q: np.ndarray) -> np.ndarray:
     """Rotation matrices `(..., 3, 3)` of quaternions `(..., 4)` (w, x, y, z), body -> fixed
     (NumPy twin of `rotmat`: `Rotation.from_quat`)."""
-    q, lead = _stacked(q, (4,))
-    if q.shape[0] == 0:
-        return np.zeros((*lead, 3, 3))
-    return _rotation().from_quat(q, scalar_first=True).as_matrix().reshape((*lead, 3, 3))
+    return _stacked(q, (4,), (3, 3), lambda R, q: R.from_quat(q, scalar_first=True).as_matrix())

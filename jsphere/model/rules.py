@@ -45,8 +45,23 @@ def _finite_rule(f: str) -> Rule:
     )
 
 
-def _positive_rule(f: str, unit: str) -> Rule:
-    return Rule(f, f"{f} <= 0", lambda xp, a: a[f] <= 0, lambda a: f"must be > 0 {unit}; got {a[f]}.")
+def _sign_rule(f: str, strict: bool, what: str) -> Rule:
+    """`f` must be `> 0` (`strict`) or `>= 0`; `what` starts the message."""
+    return Rule(
+        f,
+        f"{f} {'<=' if strict else '<'} 0",
+        (lambda xp, a: a[f] <= 0) if strict else (lambda xp, a: a[f] < 0),
+        lambda a: f"{what}; got {a[f]}.",
+    )
+
+
+def _metres_rule(f: str) -> Rule:
+    return Rule(
+        f,
+        f"{f} > 10 m",
+        lambda xp, a: a[f] > 10.0,
+        lambda a: "is larger than 10 m: lengths are in metres, not millimetres.",
+    )
 
 
 def _eig(xp, a):
@@ -81,39 +96,16 @@ def _unit_error(xp, a, f):
 #: vmappable, for parameter sets made inside compiled code (the draws of `monte_carlo`).
 RULES: tuple[Rule, ...] = (
     *(_finite_rule(f) for f in FIELDS),
-    *(_positive_rule(f, unit) for f, unit in (("R0", "m"), ("Rw", "m"), ("m0", "kg"), ("m", "kg"), ("I0", "kg m^2"))),
-    Rule("j", "j < 0", lambda xp, a: a["j"] < 0, lambda a: f"wheel axial inertia must be >= 0 kg m^2; got {a['j']}."),
-    Rule(
-        "c_roll",
-        "c_roll < 0",
-        lambda xp, a: a["c_roll"] < 0,
-        lambda a: f"damping must be >= 0 N m s; got {a['c_roll']}.",
+    *(
+        _sign_rule(f, True, f"must be > 0 {u}")
+        for f, u in (("R0", "m"), ("Rw", "m"), ("m0", "kg"), ("m", "kg"), ("I0", "kg m^2"))
     ),
-    Rule(
-        "c_axle",
-        "c_axle < 0",
-        lambda xp, a: a["c_axle"] < 0,
-        lambda a: f"damping must be >= 0 N m s; got {a['c_axle']}.",
-    ),
-    Rule(
-        "k_tau",
-        "k_tau <= 0",
-        lambda xp, a: a["k_tau"] <= 0,
-        lambda a: f"torque gain (applied over commanded axle torque) must be > 0 (1: as commanded); got {a['k_tau']}.",
-    ),
-    Rule("g", "g < 0", lambda xp, a: a["g"] < 0, lambda a: f"must be >= 0 m/s^2 (use 9.81); got {a['g']}."),
-    Rule(
-        "R0",
-        "R0 > 10 m",
-        lambda xp, a: a["R0"] > 10.0,
-        lambda a: "is larger than 10 m: lengths are in metres, not millimetres.",
-    ),
-    Rule(
-        "Rw",
-        "Rw > 10 m",
-        lambda xp, a: a["Rw"] > 10.0,
-        lambda a: "is larger than 10 m: lengths are in metres, not millimetres.",
-    ),
+    _sign_rule("j", False, "wheel axial inertia must be >= 0 kg m^2"),
+    *(_sign_rule(f, False, "damping must be >= 0 N m s") for f in ("c_roll", "c_axle")),
+    _sign_rule("k_tau", True, "torque gain (applied over commanded axle torque) must be > 0 (1: as commanded)"),
+    _sign_rule("g", False, "must be >= 0 m/s^2 (use 9.81)"),
+    _metres_rule("R0"),
+    _metres_rule("Rw"),
     Rule(
         "Rw",
         "Rw >= R0",

@@ -143,7 +143,11 @@ class State(eqx.Module):
 
     @classmethod
     def unflatten(cls, z: Float[Array, "... 16+N"]) -> "State":
-        return _unflatten(z)
+        """The state of a flat vector (`flatten`), not validated: used on traced integrator output."""
+        s = object.__new__(cls)
+        for name in ("q", "q_shell", "omega", "Omega", "x", "y", "chi"):
+            object.__setattr__(s, name, z[..., getattr(Flat, name)])
+        return s
 
 
 @jax.jit  # one compiled program when called eagerly, not one per operation
@@ -160,13 +164,6 @@ def _rest_fields(params: RobotParams, x, y, psi) -> dict:
         y=jnp.asarray(y, dt),
         chi=jnp.zeros(params.n_wheels, dt),
     )
-
-
-def _unflatten(z) -> State:
-    s = object.__new__(State)  # no validation: used on traced integrator output
-    for name in ("q", "q_shell", "omega", "Omega", "x", "y", "chi"):
-        object.__setattr__(s, name, z[..., getattr(Flat, name)])
-    return s
 
 
 #: the size of `state_error`: position (2), attitude (3), `omega` (3), `Omega` (3)

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from .._runtime.checks import is_traced
+from .._runtime.checks import is_number, is_traced
 from .._runtime.errors import InputError
 from .names import get_value, parse_name, set_value
 from .params import RULES, RobotParams, rule_code
@@ -66,8 +66,8 @@ def draw_code(params: RobotParams, names: Sequence[str], vals) -> Int[Array, ""]
     return code
 
 
-def _finite_number(v) -> bool:
-    return isinstance(v, (int, float, np.number)) and not isinstance(v, bool) and math.isfinite(float(v))
+def _finite(v) -> bool:
+    return is_number(v) and math.isfinite(v)
 
 
 class Uncertainty(eqx.Module):
@@ -125,9 +125,9 @@ class Uncertainty(eqx.Module):
         a, b = [], []
         for n in names:
             v, s = fit["values"].get(n), fit["stderr"].get(n)
-            if not _finite_number(v):
+            if not _finite(v):
                 raise InputError(f"{source}: values[{n!r}] must be a finite number; got {v!r}.")
-            if not _finite_number(s) or s < 0:
+            if not _finite(s) or s < 0:
                 raise InputError(
                     f"{source}: stderr[{n!r}] is {s!r}: the fit did not determine {n}; fix it or refit before "
                     "planning against its uncertainty."
@@ -172,22 +172,16 @@ class Uncertainty(eqx.Module):
 
     def _sample(self, keys, dtype) -> Float[Array, " v"]:
         """One value per name, name `j` from `keys[j]`."""
-        if self.correlation is None:
-            vals = []
-            for j, kind in enumerate(self.kinds):
-                a, b = jnp.asarray(self.a[j], dtype), jnp.asarray(self.b[j], dtype)
-                if kind == "normal":
-                    vals.append(a + b * jax.random.normal(keys[j], dtype=dtype))
-                else:
-                    vals.append(a + (b - a) * jax.random.uniform(keys[j], dtype=dtype))
-            return jnp.stack(vals)
         normal = np.array([k == "normal" for k in self.kinds])
         s = jnp.stack([(jax.random.normal if n else jax.random.uniform)(k, dtype=dtype) for k, n in zip(keys, normal)])
-        # correlated normals: `L z` with `L L^T = C` on the normal names (eigen-decomposition,
-        # so a semi-definite `C` is accepted)
-        C = jnp.where(np.outer(normal, normal), jnp.asarray(self.correlation, dtype), jnp.eye(len(normal), dtype=dtype))
-        w, V = jnp.linalg.eigh(0.5 * (C + C.T))
-        s = jnp.where(normal, (V * jnp.sqrt(jnp.clip(w, 0.0, None))) @ jnp.where(normal, s, 0.0), s)
+        if self.correlation is not None:
+            # correlated normals: `L z` with `L L^T = C` on the normal names (eigen-decomposition,
+            # so a semi-definite `C` is accepted)
+            C = jnp.where(
+                np.outer(normal, normal), jnp.asarray(self.correlation, dtype), jnp.eye(len(normal), dtype=dtype)
+            )
+            w, V = jnp.linalg.eigh(0.5 * (C + C.T))
+            s = jnp.where(normal, (V * jnp.sqrt(jnp.clip(w, 0.0, None))) @ jnp.where(normal, s, 0.0), s)
         a, b = jnp.asarray(self.a, dtype), jnp.asarray(self.b, dtype)
         return jnp.where(normal, a + b * s, a + (b - a) * s)
 
