@@ -232,7 +232,7 @@ class RobustOptions:
     description): a manoeuvre whose miss stays small over the robots that `uncertainty` allows,
     executed as wheel speeds.
 
-    - `uncertainty`: the parameter distribution (`Uncertainty.from_fit`, `.from_vary`); its
+    - `uncertainty`: the parameter distribution (`Uncertainty(names, kinds, a, b)` or `Uncertainty.from_fit`); its
       normal names are set to their means in `params` for the nominal plan.
     - `samples`: parameter sets drawn for the search; `quantile` in `[0, 1)`: the search
       minimises the mean loss of the worst `ceil((1 - quantile) samples)` of them (0: all).

@@ -140,12 +140,7 @@ def long_bodies(source: str, where: str) -> list[str]:
     "package",
     _cases(
         "function bodies over 80 lines",
-        {
-            "capture": "read_qualisys_tsv, read_vicon_csv",
-            "design": "design_excitation",
-            "identify": "judge",
-            "solve": "simulate, solve_segments",
-        },
+        {},
     ),
 )
 def test_no_function_body_over_80_lines(package):

@@ -292,7 +292,7 @@ def track(
     - `rate` [Hz]: the control rate, one table row per period.
     - `weights`: `Weights` (defaults there); `limits`: the torque limit `max_torque` of
       `Limits` (default 0.1 N m) bounds the gains and saturates the evaluation's commands.
-    - `uncertainty`: the robots of the evaluation (`Uncertainty.from_fit`, `.from_vary`);
+    - `uncertainty`: the robots of the evaluation (`Uncertainty(names, kinds, a, b)` or `Uncertainty.from_fit`);
       default `default_uncertainty`. `samples` (0: no evaluation), `conditions`, `seed`: of
       the evaluation (`evaluate`).
 
