@@ -283,6 +283,18 @@ class BodyFrames:
     R: np.ndarray
 
 
+def sphere_grid(R0: float, n_lon: int, n_lat: int) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices `(V, 3)` of a sphere of radius `R0` about the origin on a longitude-latitude
+    grid (each stored once) and its quadrilaterals `(n_lon n_lat, 4)` as vertex indices."""
+    lon = np.linspace(0.0, 2 * np.pi, n_lon, endpoint=False)
+    lat = np.linspace(-np.pi / 2, np.pi / 2, n_lat + 1)
+    Lo, La = np.meshgrid(lon, lat, indexing="ij")
+    verts = R0 * np.stack([np.cos(La) * np.cos(Lo), np.cos(La) * np.sin(Lo), np.sin(La)], -1).reshape(-1, 3)
+    a, b = (g.ravel() for g in np.meshgrid(np.arange(n_lon), np.arange(n_lat), indexing="ij"))
+    idx = lambda a, b: (a % n_lon) * (n_lat + 1) + b
+    return verts, np.stack([idx(a, b), idx(a + 1, b), idx(a + 1, b + 1), idx(a, b + 1)], axis=-1)
+
+
 #: great circles through the shell's poles (meridians) and points per circle
 MERIDIANS, CIRCLE_POINTS = 6, 41
 
