@@ -15,7 +15,6 @@ from typing import Any, Callable, Mapping
 from .._runtime.checks import real, whole
 from .._runtime.errors import InputError
 from .._runtime.moved_keywords import moved_into
-from .._runtime.precision import _caller_stacklevel
 from ..solve.options import SolverOptions
 
 #: the ways a trial runs (see `StudyOptions.mode`)
@@ -179,7 +178,7 @@ def study_arguments(where: str, options, solver, distributed, moved: dict[str, A
         raise TypeError(f"{where}() got unexpected keyword argument(s) {unknown}.")
     if isinstance(options, SolverOptions):
         message = f"{where}: options=SolverOptions(...) is deprecated; pass solver=SolverOptions(...)."
-        warnings.warn(message, DeprecationWarning, stacklevel=_caller_stacklevel())
+        warnings.warn(message, DeprecationWarning, stacklevel=3)  # the call of monte_carlo, work or gather
         options, solver = None, options if solver is None else solver
     options = moved_into(where, moved, options, StudyOptions, "options")
     tolerances = {k: moved.pop(k) for k in ("rtol", "atol") if k in moved}

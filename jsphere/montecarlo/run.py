@@ -7,7 +7,7 @@ distributions, drawn again; batches are sharded over the devices; finished batch
 atomically to `out/` and a killed study resumes there (a corrupt batch file is recomputed).
 
 `monte_carlo` checks its arguments and lays the study out in batches (`prepare`, a `_Run`),
-then computes the batches that are not in its folder yet (`_compute`), on this process's
+then computes the batches that are not in its folder yet (`_batches`), on this process's
 devices or, with JAX's distributed runtime, on every process's (`distributed`), and joins them
 into a `MonteCarloResult` (the modules beside this one: `jsphere.montecarlo`).
 """
@@ -102,18 +102,13 @@ def monte_carlo(
       bar, or a line every few seconds where stderr is not a terminal; `False`: none.
       The first batch, which compiles, is shown apart and left out of the rate.
     - `distributed`: run the study on every device of every process of a JAX multi-process
-      job (one process per node or per GPU, all calling `monte_carlo` with the same arguments):
-      the trials of each batch are sharded over a global mesh of all the devices, each process
-      runs its own shard, the results are gathered on every process
-      (`jax.experimental.multihost_utils`) and process 0 writes the batches and statistics to
-      `out` (a folder that only process 0 needs to see). Every process returns the whole study,
-      bitwise that of a single process. `True` (or a `Distributed` naming the coordinator,
-      the number of processes and this process's id) starts JAX's distributed runtime
-      (`jax.distributed.initialize`) unless it is running, from the cluster's environment
-      (SLURM, Open MPI, ...) where the `Distributed` leaves them out. JAX starts it only
-      before it has made any array, so call `jax.distributed.initialize()` at the top of the
-      script when in doubt. `None` (default): distributed when the runtime is running with
-      several processes.
+      job (one process per node or per GPU, all calling `monte_carlo` with the same arguments;
+      `jsphere.montecarlo.distributed`): each process runs its shard of every batch, process 0
+      writes `out` (a folder that only it needs to see), and every process returns the whole
+      study, bitwise that of a single process. `True` or a `Distributed` starts JAX's
+      distributed runtime unless it is running (`start_distributed`: JAX starts it only before
+      it has made any array, so call `jax.distributed.initialize()` at the top of the script
+      when in doubt); `None` (default): distributed when it runs with several processes.
     - `**deprecated`: the keywords that moved into `options` (`seed=`, `batch_size=`, `mode=`,
       ...), `solver` (`rtol=`, `atol=`; `options=SolverOptions(...)`) and `distributed`
       (`coordinator=`, `num_processes=`, `process_id=`) keep working for one release, with a
@@ -127,11 +122,7 @@ def monte_carlo(
     distributed = start_distributed(distributed)
     run = prepare(params, gaits, vary=vary, n=n, options=options, solver=solver, out=out, distributed=distributed)
     t_start = time.perf_counter()
-    if run.distributed:
-        parts = run_distributed(run, Progress(progress if run.writer else False))
-    else:
-        parts = _read_folder(run)
-        _compute(run, parts, Progress(progress))
+    parts = _batches(run, Progress(progress if run.writer else False))
     res = _result(run, parts, time.perf_counter() - t_start)
     if run.folder is not None and run.writer:
         run.folder.write_stats(res.stats())
@@ -392,37 +383,30 @@ class _Run:
         return part
 
 
-def _read_folder(run: _Run) -> list[dict | None]:
-    """The batches of the study found in its folder (None for the others); opens the folder and
-    removes the temporary files a killed run left there."""
-    parts: list = [None] * run.n_batches
-    if run.folder is None:
-        return parts
-    run.open_folder()
-    run.folder.remove_temporary_files(range(run.n_batches), others=True)
-    for k in range(run.n_batches):
-        if run.folder.has_batch(k):
-            parts[k] = run.folder.load_batch(k, stacklevel=3)
-    return parts
-
-
-def run_distributed(run: _Run, progress: Progress) -> list[dict]:
-    """The batches of a distributed study: process 0 reads those in the folder and tells the
-    others, then every process computes its shard of each missing batch (`_compute`). A folder
-    that process 0 refuses ends every process, with process 0's message."""
+def _batches(run: _Run, progress: Progress) -> list[dict]:
+    """The batches of a study: those in its folder, read by the writer (which opens the folder
+    and removes the temporary files a killed run left there), then the others computed
+    (`_compute`). In a distributed run process 0 tells the others what it read, and a folder
+    that it refuses ends every process, with its message."""
     parts: list = [None] * run.n_batches
     refused = None
     if run.writer and run.folder is not None:
         try:
-            parts = _read_folder(run)
+            run.open_folder()
+            run.folder.remove_temporary_files(range(run.n_batches), others=True)
+            for k in range(run.n_batches):
+                if run.folder.has_batch(k):
+                    parts[k] = run.folder.load_batch(k, stacklevel=3)
         except InputError as e:
+            if not run.distributed:
+                raise
             refused = e
-    if share_from_process_0(np.int32(refused is not None)):
+    if run.distributed and share_from_process_0(np.int32(refused is not None)):
         if refused is not None:
             raise refused
         raise InputError(f"monte_carlo: process 0 could not use out = {run.folder.path}; its message says why.")
-    done = share_from_process_0(np.array([p is not None for p in parts], np.int32))
-    if done.any():
+    done = share_from_process_0(np.array([p is not None for p in parts], np.int32)) if run.distributed else ()
+    if np.any(done):
         template = batch_template(run.trials, run.padded, run.batch_size)
         for k in np.flatnonzero(done):
             got = parts[k] if run.writer else {key: np.zeros(a.shape, a.dtype) for key, a in template.items()}
@@ -431,11 +415,10 @@ def run_distributed(run: _Run, progress: Progress) -> list[dict]:
     return parts
 
 
-def _compute(run: _Run, parts: list, progress: Progress, todo: Sequence[int] | None = None) -> None:
-    """Compute the batches `todo` (default: those missing from `parts`) into `parts`. The first
-    batch computed (which compiles) comes first, then a bar over the others, whose rate starts
-    after it."""
-    todo = [k for k in range(run.n_batches) if parts[k] is None] if todo is None else list(todo)
+def _compute(run: _Run, parts: list, progress: Progress) -> None:
+    """Compute the batches missing from `parts` into them. The first batch computed (which
+    compiles) comes first, then a bar over the others, whose rate starts after it."""
+    todo = [k for k in range(run.n_batches) if parts[k] is None]
     if not todo:
         return
     trials = [run.trials_of(k) for k in todo]

@@ -336,6 +336,21 @@ def _study_gaits(path: Path, gait_list) -> list:
     return gaits
 
 
+def _read_table(path: Path, key: str, name, what: str, read):
+    """The file that a study file's `key` names (`name`, relative to the study file; `what`: what
+    it names), as `read` reads it; `InputError` naming the file and the key when `name` is no
+    path, or the file is missing or cannot be read."""
+    if not isinstance(name, str):
+        raise InputError(f"{path}: {key} must be the path of {what}; got {name!r}.")
+    table = (path.parent / name).resolve()
+    if not table.is_file():
+        raise InputError(f"{path}: {key} = {name!r}: no such file {table}.")
+    try:
+        return read(table)
+    except ValueError as e:
+        raise InputError(f"{path}: {key} = {name!r}: {e}") from None
+
+
 def study_commands(path: Path, name, mode: str, n_wheels: int) -> tuple[np.ndarray, np.ndarray]:
     """`(ts, values)` of the command table a study file's `commands` key names (relative to the
     study file): its `K_1..N` columns with `mode = "torques"`, its `chi_dot_1..N` columns with
@@ -349,15 +364,8 @@ def study_commands(path: Path, name, mode: str, n_wheels: int) -> tuple[np.ndarr
             f'{path}: commands are replayed through the actuators; set mode = "torques" (columns K_1..K_N) or '
             f'mode = "wheel_speeds" (columns chi_dot_1..N).'
         )
-    if not isinstance(name, str):
-        raise InputError(f"{path}: commands must be the path of a command table (.csv); got {name!r}.")
-    table = (path.parent / name).resolve()
-    if not table.is_file():
-        raise InputError(f"{path}: commands = {name!r}: no such file {table}.")
-    try:
-        ts, values, _, _ = read_inputs_csv(table, kind=mode)
-    except ValueError as e:
-        raise InputError(f"{path}: commands = {name!r}: {e}") from None
+    read = lambda table: read_inputs_csv(table, kind=mode)[:2]
+    ts, values = _read_table(path, "commands", name, "a command table (.csv)", read)
     check_commands(f"{path}: commands = {name!r}", ts, values, n_wheels)
     return ts, values
 
@@ -380,17 +388,7 @@ def study_track(path: Path, cfg: dict, mode: str, n_wheels: int) -> dict:
         raise InputError(
             f'{path}: track: a feedback table commands axle torques; set mode = "torques" or leave it out.'
         )
-    if not isinstance(name, str):
-        raise InputError(
-            f"{path}: track must be the path of a feedback table (track.csv of jsphere track); got {name!r}."
-        )
-    table = (path.parent / name).resolve()
-    if not table.is_file():
-        raise InputError(f"{path}: track = {name!r}: no such file {table}.")
-    try:
-        tab = read_track_csv(table)
-    except ValueError as e:
-        raise InputError(f"{path}: track = {name!r}: {e}") from None
+    tab = _read_table(path, "track", name, "a feedback table (track.csv of jsphere track)", read_track_csv)
     check_track(f"{path}: track = {name!r}", tab, n_wheels)
     return tab
 

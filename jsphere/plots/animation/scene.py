@@ -154,17 +154,8 @@ def body_from_trajectory(traj, *, label: str = "", ghost: bool = False) -> Body:
     ts = np.asarray(traj.ts, float)
     keep = np.concatenate([np.diff(ts) > 0, [True]])  # a repeated time (a jump): its last value
     R = np.stack([np.asarray(traj.alpha), np.asarray(traj.beta), np.asarray(traj.gamma)], axis=-2)
-    return Body(
-        ts[keep],
-        np.asarray(traj.x, float)[keep],
-        np.asarray(traj.y, float)[keep],
-        R[keep],
-        rotmat_np(np.asarray(traj.q_shell, float))[keep],
-        np.asarray(traj.chi, float)[keep],
-        np.asarray(traj.chi_dot, float)[keep],
-        label,
-        ghost,
-    )
+    arrays = (ts, traj.x, traj.y, R, rotmat_np(np.asarray(traj.q_shell, float)), traj.chi, traj.chi_dot)
+    return Body(*(np.asarray(a, float)[keep] for a in arrays), label, ghost)
 
 
 def body_from_trial(params: RobotParams, trial, *, label: str | None = None, ghost: bool = False) -> Body:
@@ -364,20 +355,9 @@ def body_frames(body: Body, params: RobotParams, times: np.ndarray) -> BodyFrame
     lo, hi = np.clip(at - h, t[0], t[-1]), np.clip(at + h, t[0], t[-1])
     span = np.maximum(hi - lo, 1e-12)
     speed = np.hypot(_lerp(t, body.x, hi) - _lerp(t, body.x, lo), _lerp(t, body.y, hi) - _lerp(t, body.y, lo)) / span
+    path = np.stack([x, y], -1)
     return BodyFrames(
-        centre,
-        meridians,
-        equator,
-        platform,
-        wheel_lines,
-        rollers,
-        com,
-        mast,
-        np.stack([x, y], -1),
-        speed,
-        chi_dot,
-        R_shell,
-        R,
+        centre, meridians, equator, platform, wheel_lines, rollers, com, mast, path, speed, chi_dot, R_shell, R
     )
 
 
