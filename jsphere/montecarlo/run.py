@@ -141,10 +141,8 @@ def prepare(
     distributed: bool = False,
 ) -> "_Run":
     """Check the arguments of a study (those of `monte_carlo`, `options` a `StudyOptions`) and
-    lay it out in batches, over this process's devices or (`distributed`) every process's. A
-    study folder `out` that exists keeps its batch size where these devices can share it (a
-    study extended to more trials, workers on nodes with other device counts, `--gather`,
-    which computes nothing)."""
+    lay it out in batches (`_batch_size`), over this process's devices or (`distributed`) every
+    process's."""
     n = whole("monte_carlo", "n", n, 1)
     o = options.checked("monte_carlo")
     opts = _solver_options(solver, o.max_steps)
@@ -200,7 +198,8 @@ def prepare(
 def _batch_size(batch_size: int, n: int, out, distributed: bool) -> int:
     """A study's batch size: `batch_size` (at most `n`) rounded up to whole chunks, or the one
     recorded in the manifest of a study folder `out` that exists (process 0's, in a distributed
-    run: the other processes need not see the folder)."""
+    run: the other processes need not see the folder): a study extended to more trials, workers
+    on nodes with other device counts and `--gather` (which computes nothing) keep it."""
     B = -(-max(1, min(batch_size, n)) // CHUNK) * CHUNK
     if out is None:
         return B
@@ -213,11 +212,7 @@ def _batch_size(batch_size: int, n: int, out, distributed: bool) -> int:
 def _solver_options(solver: SolverOptions | None, max_steps: int | None) -> SolverOptions:
     """The solver settings of a study: `solver` with the replay modes' step limit `max_steps`
     where given (else `solver.max_steps`, else `MAX_STEPS`)."""
-    unused(
-        solver,
-        where="monte_carlo",
-        adjoint="monte_carlo does not differentiate its solves",
-    )
+    unused(solver, where="monte_carlo", adjoint="monte_carlo does not differentiate its solves")
     opts = solver_options(solver, where="monte_carlo", max_steps=max_steps)
     return opts.or_defaults(max_steps=MAX_STEPS)
 
@@ -356,10 +351,6 @@ class _Run:
         unit = CHUNK * (1 if self.trials.mesh is None else self.trials.mesh.devices.size)
         return -(-self.batch_size // unit) * unit
 
-    def open_folder(self) -> None:
-        """Create the study's folder or check the study in it (`StudyFolder.open`)."""
-        self.folder.open(self.fingerprint, self.n, self.seed, self.vary)
-
     def trials_of(self, k: int) -> int:
         """The trials of batch `k` that belong to the study (the last batch may hold more)."""
         return min(self.batch_size, self.n - k * self.batch_size)
@@ -392,7 +383,7 @@ def _batches(run: _Run, progress: Progress) -> list[dict]:
     refused = None
     if run.writer and run.folder is not None:
         try:
-            run.open_folder()
+            run.folder.open(run.fingerprint, run.n, run.seed, run.vary)
             run.folder.remove_temporary_files(range(run.n_batches), others=True)
             for k in range(run.n_batches):
                 if run.folder.has_batch(k):

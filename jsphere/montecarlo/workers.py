@@ -70,7 +70,7 @@ def work(
     devices can share it."""
     claim_timeout = real("monte_carlo", "claim_timeout", claim_timeout, unit="s")
     run = _prepare("work", params, gaits, vary, n, out, options, solver, deprecated)
-    run.open_folder()
+    run.folder.open(run.fingerprint, run.n, run.seed, run.vary)
     progress = Progress(progress)
     computed, claimed = [], {}
     path = run.folder.path

@@ -38,18 +38,15 @@ def scene_frames(scene: Scene, fps: float, speed: float):
 def _limits(scene: Scene, frames: list[BodyFrames]) -> tuple[np.ndarray, np.ndarray]:
     """The floor box `(x0, y0), (x1, y1)` [m] that holds every path, the target and the cloud,
     with a shell radius and a margin around."""
-    pts = [f.path for f in frames]
+    pts = [f.path for f in frames] + [
+        np.asarray(a, float).reshape(-1, 2) for a in (scene.cloud, scene.ellipse) if a is not None
+    ]
     if scene.target is not None:
         pts.append(np.asarray(scene.target, float)[None, :2])
-    if scene.cloud is not None and len(scene.cloud):
-        pts.append(np.asarray(scene.cloud, float))
-    if scene.ellipse is not None:
-        pts.append(np.asarray(scene.ellipse, float))
     p = np.concatenate(pts)
     p = p[np.all(np.isfinite(p), axis=1)]
     pad = 1.25 * float(scene.params.R0)
-    lo, hi = p.min(0) - pad, p.max(0) + pad
-    return lo, hi
+    return p.min(0) - pad, p.max(0) + pad
 
 
 def _status(t: float, f: BodyFrames, k: int) -> str:
