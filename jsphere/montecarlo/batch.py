@@ -159,21 +159,17 @@ def _trial(trials: Trials, T, i: Int[Array, ""]) -> tuple:
     p = trials.draws.robot(params, vals, valid)
     k_omega, k_act = jax.random.split(jax.random.fold_in(trial_key(trials.seed, i), PERTURBATION_FOLD))
     dOmega = trials.Omega0_sd * jax.random.normal(k_omega, (3,), dt)
-    nan = jnp.asarray(jnp.nan, dt)
     if isinstance(trials.replay, ClosedLoop):
         x, y, speed, status, g3sd = _closed_loop(trials, p, k_act)
-        outcomes = tuple(jnp.where(valid, v, nan) for v in (x, y, speed, g3sd))
-        status = jnp.where(valid, status, int(RESULTS.rejected))
-        return vals, outcomes[0], outcomes[1], outcomes[2], status, outcomes[3], code
-    if trials.replay is None:
-        tr = _simulate_gaits(trials, p, jnp.reshape(T, (1,)), dOmega)
     else:
-        tr = _simulate_replay(trials, p, T, dOmega, k_act)
-    speed = p.R0 * jnp.linalg.norm(cross(tr.Omega[-1], tr.gamma[-1]))
-    g3 = tr.gamma[:, 2]
-    outcomes = tuple(jnp.where(valid, v, nan) for v in (tr.x[-1], tr.y[-1], speed, jnp.std(g3)))
-    status = jnp.where(valid, tr.status, int(RESULTS.rejected))
-    return vals, outcomes[0], outcomes[1], outcomes[2], status, outcomes[3], code
+        if trials.replay is None:
+            tr = _simulate_gaits(trials, p, jnp.reshape(T, (1,)), dOmega)
+        else:
+            tr = _simulate_replay(trials, p, T, dOmega, k_act)
+        x, y, status, g3sd = tr.x[-1], tr.y[-1], tr.status, jnp.std(tr.gamma[:, 2])
+        speed = p.R0 * jnp.linalg.norm(cross(tr.Omega[-1], tr.gamma[-1]))
+    x, y, speed, g3sd = (jnp.where(valid, v, jnp.asarray(jnp.nan, dt)) for v in (x, y, speed, g3sd))
+    return vals, x, y, speed, jnp.where(valid, status, int(RESULTS.rejected)), g3sd, code
 
 
 @eqx.filter_jit

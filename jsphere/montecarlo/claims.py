@@ -1,9 +1,8 @@
 """Claim files: how workers that share a study folder split its batches without waiting for
 each other (`jsphere montecarlo --worker`).
 
-A worker claims batch `k` by creating `claim_000042.json` exclusively (`O_CREAT | O_EXCL`,
-atomic on local file systems and on NFSv3 and later), writing its host, pid and the time into
-it; it removes the claim once the batch file is written. A claim older than the claim timeout
+A worker claims batch `k` by creating `claim_000042.json` exclusively (`create_exclusively`),
+writing its host, pid and the time into it; it removes the claim once the batch file is written. A claim older than the claim timeout
 whose batch file is still missing belongs to a worker that died or was cancelled: another
 worker takes it over. The takeover renames the stale claim away first, which only one worker
 can do; the worker that renamed a claim other than the stale one it read puts it back. Should
@@ -17,6 +16,7 @@ import dataclasses
 import json
 import os
 import socket
+import tempfile
 import time
 from pathlib import Path
 
@@ -55,16 +55,25 @@ def read_claim(path: Path) -> Claim | None:
         return Claim("?", 0, mtime)
 
 
+def create_exclusively(path: Path, record: dict) -> bool:
+    """Write the JSON `record` to `path` unless it exists (complete or not at all: a hidden
+    temporary file linked into place, atomic on local file systems and NFS); False if it exists."""
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
+    with os.fdopen(fd, "w") as f:
+        json.dump(record, f)
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        return False
+    finally:
+        os.unlink(tmp)
+    return True
+
+
 def _create(path: Path) -> bool:
     """Create the claim `path` exclusively with this process's host, pid and time; False if it
     exists."""
-    try:
-        fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o666)
-    except FileExistsError:
-        return False
-    with os.fdopen(fd, "w") as f:
-        json.dump({"host": socket.gethostname(), "pid": os.getpid(), "time": time.time()}, f)
-    return True
+    return create_exclusively(path, {"host": socket.gethostname(), "pid": os.getpid(), "time": time.time()})
 
 
 def try_claim(folder: Path, k: int, timeout: float) -> bool:

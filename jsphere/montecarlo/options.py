@@ -14,7 +14,8 @@ from typing import Any, Callable, Mapping
 
 from .._runtime.checks import real, whole
 from .._runtime.errors import InputError
-from ..solve.options import SolverOptions, solver_options
+from .._runtime.moved_keywords import moved_into
+from ..solve.options import SolverOptions
 
 #: the ways a trial runs (see `StudyOptions.mode`)
 MODES = ("gait", "torques", "wheel_speeds")
@@ -137,11 +138,6 @@ class StudyOptions:
             values[f.name] = getattr(self, f.name) if check is None else check(where, f.name, getattr(self, f.name))
         return StudyOptions(**values)
 
-    @classmethod
-    def docs(cls) -> dict[str, str]:
-        """`{field: its documentation}`."""
-        return {f.name: f.metadata["doc"] for f in dataclasses.fields(cls)}
-
 
 def _document(cls):
     """Append the fields' documentation (their metadata) to `cls`'s docstring."""
@@ -168,43 +164,28 @@ class Distributed:
     process_id: int | None = None
 
 
-#: `monte_carlo`'s keywords that moved into an object, by the object's field
-_MOVED = {f.name: "options" for f in dataclasses.fields(StudyOptions)}
-_MOVED |= {"rtol": "solver", "atol": "solver"}
-_MOVED |= {f.name: "distributed" for f in dataclasses.fields(Distributed)}
-_SPELLING = {
-    "options": "options=StudyOptions({k}=...)",
-    "solver": "solver=SolverOptions({k}=...)",
-    "distributed": "distributed=Distributed({k}=...)",
-}
+#: `monte_carlo`'s keywords that moved into `options`, `solver` (`rtol`, `atol`) or `distributed`
+_MOVED = {f.name for f in dataclasses.fields(StudyOptions) + dataclasses.fields(Distributed)} | {"rtol", "atol"}
 
 
-def study_arguments(where: str, options, solver, distributed, moved: Mapping[str, Any]) -> tuple:
+def study_arguments(where: str, options, solver, distributed, moved: dict[str, Any]) -> tuple:
     """`(StudyOptions, SolverOptions | None, distributed)` of a call of `monte_carlo` (or
     `work`, `gather`): `options` may still be a `SolverOptions` and `moved` the keywords that
-    moved into the objects, each with a `DeprecationWarning` naming its new spelling."""
-    unknown = sorted(set(moved) - set(_MOVED))
+    moved into the objects, each with a `DeprecationWarning` naming its new spelling
+    (`jsphere._runtime.moved_keywords.moved_into`)."""
+    unknown = sorted(set(moved) - _MOVED)
     if unknown:
         raise TypeError(f"{where}() got unexpected keyword argument(s) {unknown}.")
     if isinstance(options, SolverOptions):
-        _warn(where, "options=SolverOptions(...)", "solver=SolverOptions(...)")
+        message = f"{where}: options=SolverOptions(...) is deprecated; pass solver=SolverOptions(...)."
+        warnings.warn(message, DeprecationWarning, stacklevel=3)  # the call of monte_carlo, work or gather
         options, solver = None, options if solver is None else solver
-    if options is not None and not isinstance(options, StudyOptions):
-        raise InputError(f"{where}: options must be a jsphere.StudyOptions; got {type(options).__name__}.")
-    groups: dict[str, dict] = {"options": {}, "solver": {}, "distributed": {}}
-    for k, v in moved.items():
-        _warn(where, f"{k}=", _SPELLING[_MOVED[k]].format(k=k))
-        groups[_MOVED[k]][k] = v
-    options = dataclasses.replace(options or StudyOptions(), **groups["options"])
-    if groups["solver"]:
-        solver = solver_options(solver, where=where, **groups["solver"])
-    if groups["distributed"]:
+    options = moved_into(where, moved, options, StudyOptions, "options")
+    tolerances = {k: moved.pop(k) for k in ("rtol", "atol") if k in moved}
+    if tolerances:
+        solver = moved_into(where, tolerances, solver, SolverOptions, "solver")
+    if moved:  # the keywords of a distributed run
         if distributed is not True:
-            given = ", ".join(groups["distributed"])
-            raise InputError(f"{where}: {given} set up a distributed run; pass distributed=True too.")
-        distributed = Distributed(**groups["distributed"])
+            raise InputError(f"{where}: {', '.join(moved)} set up a distributed run; pass distributed=True too.")
+        distributed = moved_into(where, moved, None, Distributed, "distributed")
     return options, solver, distributed
-
-
-def _warn(where: str, old: str, new: str) -> None:
-    warnings.warn(f"{where}: {old} is deprecated; pass {new}.", DeprecationWarning, stacklevel=4)

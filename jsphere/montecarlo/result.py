@@ -92,6 +92,25 @@ class MonteCarloResult:
     compute_time: ComputeTime | None = None
     trials: np.ndarray | None = None
 
+    @classmethod
+    def of_batches(cls, parts: list[dict], names, n: int, seed: int, **more) -> "MonteCarloResult":
+        """The result of a study's batches `parts` (their arrays by `store.BATCH_KEYS`) joined and
+        cut to `n` trials, `names` the varied names of their `vals` columns; `more`: the other
+        fields."""
+        cat = {key: np.concatenate([p[key] for p in parts])[:n] for key in parts[0]}
+        return cls(
+            n=n,
+            seed=seed,
+            samples={name: cat["vals"][:, j] for j, name in enumerate(names)},
+            x_final=cat["x"],
+            y_final=cat["y"],
+            speed_final=cat["speed"],
+            status=cat["status"],
+            gamma3_sd_after=cat["gamma3_sd"],
+            reject_code=cat["reject"],
+            **more,
+        )
+
     @property
     def results(self) -> np.ndarray:
         """`status` as `RESULTS` members (an object array of length `n`)."""

@@ -7,12 +7,9 @@ distributions, drawn again; batches are sharded over the devices; finished batch
 atomically to `out/` and a killed study resumes there (a corrupt batch file is recomputed).
 
 `monte_carlo` checks its arguments and lays the study out in batches (`prepare`, a `_Run`),
-then computes the batches that are not in its folder yet (`_compute`), on this process's
+then computes the batches that are not in its folder yet (`_batches`), on this process's
 devices or, with JAX's distributed runtime, on every process's (`distributed`), and joins them
-into a `MonteCarloResult`. The modules beside this one hold the steps' parts: `options` (the
-study's options, `StudyOptions`), `study` (the checks and the study file), `sampling` (the draws), `batch` (the compiled batch), `store` (the
-study folder), `result` (the outcome and its statistics), `distributed` (several processes in
-one job) and `workers` (independent jobs sharing a folder through `claims`).
+into a `MonteCarloResult` (the modules beside this one: `jsphere.montecarlo`).
 """
 
 from __future__ import annotations
@@ -46,14 +43,14 @@ from .batch import CHUNK as CHUNK
 from .batch import ClosedLoop, Replay, Trials, run_batch
 from .distributed import batch_template, gather_batch, global_indices, share_from_process_0, start_distributed
 from .options import MAX_STEPS as MAX_STEPS
-from .options import MODES, Distributed, StudyOptions, study_arguments
+from .options import Distributed, StudyOptions, study_arguments
 from .result import REJECTED as REJECTED
 from .result import ComputeTime, MonteCarloResult
 from .sampling import MAX_REDRAWS as MAX_REDRAWS
 from .sampling import REASONS as REASONS
 from .sampling import Actuators, Uncertainty
 from .store import BATCH_KEYS, StudyFolder, fingerprint
-from .study import check_feedback, check_vary
+from .study import check_closed_loop, check_commands, check_feedback, check_track, check_vary
 
 #: the progress lines' prefix
 _PROGRESS = "jsphere montecarlo:"
@@ -105,18 +102,13 @@ def monte_carlo(
       bar, or a line every few seconds where stderr is not a terminal; `False`: none.
       The first batch, which compiles, is shown apart and left out of the rate.
     - `distributed`: run the study on every device of every process of a JAX multi-process
-      job (one process per node or per GPU, all calling `monte_carlo` with the same arguments):
-      the trials of each batch are sharded over a global mesh of all the devices, each process
-      runs its own shard, the results are gathered on every process
-      (`jax.experimental.multihost_utils`) and process 0 writes the batches and statistics to
-      `out` (a folder that only process 0 needs to see). Every process returns the whole study,
-      bitwise that of a single process. `True` (or a `Distributed` naming the coordinator,
-      the number of processes and this process's id) starts JAX's distributed runtime
-      (`jax.distributed.initialize`) unless it is running, from the cluster's environment
-      (SLURM, Open MPI, ...) where the `Distributed` leaves them out. JAX starts it only
-      before it has made any array, so call `jax.distributed.initialize()` at the top of the
-      script when in doubt. `None` (default): distributed when the runtime is running with
-      several processes.
+      job (one process per node or per GPU, all calling `monte_carlo` with the same arguments;
+      `jsphere.montecarlo.distributed`): each process runs its shard of every batch, process 0
+      writes `out` (a folder that only it needs to see), and every process returns the whole
+      study, bitwise that of a single process. `True` or a `Distributed` starts JAX's
+      distributed runtime unless it is running (`start_distributed`: JAX starts it only before
+      it has made any array, so call `jax.distributed.initialize()` at the top of the script
+      when in doubt); `None` (default): distributed when it runs with several processes.
     - `**deprecated`: the keywords that moved into `options` (`seed=`, `batch_size=`, `mode=`,
       ...), `solver` (`rtol=`, `atol=`; `options=SolverOptions(...)`) and `distributed`
       (`coordinator=`, `num_processes=`, `process_id=`) keep working for one release, with a
@@ -130,11 +122,7 @@ def monte_carlo(
     distributed = start_distributed(distributed)
     run = prepare(params, gaits, vary=vary, n=n, options=options, solver=solver, out=out, distributed=distributed)
     t_start = time.perf_counter()
-    if run.distributed:
-        parts = run_distributed(run, Progress(progress if run.writer else False))
-    else:
-        parts = _read_folder(run)
-        _compute(run, parts, Progress(progress))
+    parts = _batches(run, Progress(progress if run.writer else False))
     res = _result(run, parts, time.perf_counter() - t_start)
     if run.folder is not None and run.writer:
         run.folder.write_stats(res.stats())
@@ -153,10 +141,8 @@ def prepare(
     distributed: bool = False,
 ) -> "_Run":
     """Check the arguments of a study (those of `monte_carlo`, `options` a `StudyOptions`) and
-    lay it out in batches, over this process's devices or (`distributed`) every process's. A
-    study folder `out` that exists keeps its batch size where these devices can share it (a
-    study extended to more trials, workers on nodes with other device counts, `--gather`,
-    which computes nothing)."""
+    lay it out in batches (`_batch_size`), over this process's devices or (`distributed`) every
+    process's."""
     n = whole("monte_carlo", "n", n, 1)
     o = options.checked("monte_carlo")
     opts = _solver_options(solver, o.max_steps)
@@ -173,44 +159,70 @@ def prepare(
         raise InputError("monte_carlo: `feedback` sets up the closed loop of a `track` table; give `track`.")
     else:
         replay = None if o.mode == "gait" else _replay(params, gaits, o, actuators)
-    return _Run.create(
+    # gait mode's step limit: simulate_gaits' unless the solver sets one
+    gait_max_steps = SolverOptions().max_steps if solver is None or replay is not None else solver.max_steps
+    distributed = distributed and jax.process_count() > 1
+    B = _batch_size(o.batch_size, n, out, distributed)
+    # each device runs its share of every batch: locally, as many devices as divide it into whole chunks
+    devices = jax.devices() if distributed else split_devices(B // CHUNK, jax.local_devices())
+    mesh = trial_mesh(devices) if len(devices) > 1 else None
+    draws = _draws(spec, params.R0.dtype)
+    trials = Trials(
         params,
         gaits,
-        spec,
-        {"n": n, "seed": o.seed, "batch_size": o.batch_size, "plan_rate": o.plan_rate, "Omega0_sd": o.Omega0_sd},
-        reset=o.reset,
-        rtol=rtol,
-        atol=atol,
-        solver=opts.solver,
-        gait_max_steps=SolverOptions().max_steps if solver is None else solver.max_steps,
-        replay=replay,
-        commands=o.commands is not None,
-        out=out,
-        distributed=distributed,
-        vary=vary,
+        draws,
+        jnp.asarray(o.seed, jnp.uint32),
+        o.reset,
+        rtol,
+        atol,
+        o.Omega0_sd,
+        replay,
+        mesh,
+        opts.solver,
+        gait_max_steps,
     )
+    # the fingerprint: what of the options changes a study's results (the defaults leave it as it is)
+    record = () if replay is None else _replay_record(replay, o.plan_rate, o.commands is not None)
+    settings = (o.reset, o.mode if replay is None else replay.mode, repr(record), o.Omega0_sd)
+    if opts.solver is not None and not eqx.tree_equal(opts.solver, default_solver()):
+        settings += (("solver", repr(opts.solver)),)
+    if gait_max_steps != SolverOptions().max_steps:
+        settings += (("max_steps", gait_max_steps),)
+    fp = fingerprint(params, gaits, spec, o.seed, B, settings, rtol, atol)
+    program = f"{fingerprint(params, gaits, spec, 0, B, settings, rtol, atol)}|{len(devices)}"
+    folder = StudyFolder(Path(out), B, len(spec)) if out is not None else None
+    writer = not distributed or jax.process_index() == 0
+    return _Run(trials, dict(vary), n, o.seed, B, -(-n // B), folder, fp, program, distributed, writer)
+
+
+def _batch_size(batch_size: int, n: int, out, distributed: bool) -> int:
+    """A study's batch size: `batch_size` (at most `n`) rounded up to whole chunks, or the one
+    recorded in the manifest of a study folder `out` that exists (process 0's, in a distributed
+    run: the other processes need not see the folder): a study extended to more trials, workers
+    on nodes with other device counts and `--gather` (which computes nothing) keep it."""
+    B = -(-max(1, min(batch_size, n)) // CHUNK) * CHUNK
+    if out is None:
+        return B
+    recorded = StudyFolder.manifest_batch_size(out) if not distributed or jax.process_index() == 0 else None
+    if distributed:
+        recorded = int(share_from_process_0(np.int32(recorded or 0))) or None
+    return recorded if recorded is not None and recorded % CHUNK == 0 else B
 
 
 def _solver_options(solver: SolverOptions | None, max_steps: int | None) -> SolverOptions:
     """The solver settings of a study: `solver` with the replay modes' step limit `max_steps`
     where given (else `solver.max_steps`, else `MAX_STEPS`)."""
-    unused(
-        solver,
-        where="monte_carlo",
-        adjoint="monte_carlo does not differentiate its solves",
-    )
+    unused(solver, where="monte_carlo", adjoint="monte_carlo does not differentiate its solves")
     opts = solver_options(solver, where="monte_carlo", max_steps=max_steps)
     return opts.or_defaults(max_steps=MAX_STEPS)
 
 
 def _check_mode(mode: str, actuators: Actuators | None, rtol, atol) -> Actuators:
-    """Check the tolerances, `mode` and `actuators`; the actuators of the study (ideal ones by
+    """Check the tolerances and `actuators` (`mode` is checked); the actuators of the study (ideal ones by
     default)."""
     for name, tol in (("rtol", rtol), ("atol", atol)):
         if tol is not None:
             real("monte_carlo", name, tol, strict=True)
-    if mode not in MODES:
-        raise InputError(f"monte_carlo: mode must be 'gait', 'torques' or 'wheel_speeds'; got {mode!r}.")
     if actuators is not None and mode == "gait":
         raise InputError("monte_carlo: actuators apply to replayed commands; use mode='torques' or 'wheel_speeds'.")
     if actuators is not None and not isinstance(actuators, Actuators):
@@ -240,10 +252,7 @@ def _replay(params, gaits, o: StudyOptions, actuators: Actuators) -> Replay:
     else:
         tsn, u = np.asarray(commands[0], np.float64), np.asarray(commands[1], np.float64)
         Sampled(jnp.asarray(tsn), jnp.asarray(u))  # validates the table
-        if tsn[0] != 0.0 or u.shape[1:] != (params.n_wheels,):
-            raise ValueError(
-                f"monte_carlo: commands must start at t = 0 and have {params.n_wheels} columns; got t0 = {tsn[0]}, shape {u.shape}."
-            )
+        check_commands("monte_carlo: commands", tsn, u, params.n_wheels)
     # the motors stop when the plan ends: a jump to zero at its last time stamp
     tsn, u = np.concatenate([tsn, tsn[-1:]]), np.concatenate([u, np.zeros_like(u[:1])])
     jump_ts = ()
@@ -260,22 +269,11 @@ def _closed_loop(params, o: StudyOptions, actuators: Actuators) -> ClosedLoop:
     track = o.track
     if o.mode != "torques" or o.commands is not None:
         raise InputError("monte_carlo: a `track` table commands torques; use mode='torques' and no `commands`.")
-    if o.Omega0_sd != 0 or actuators.delay_sd != 0 or actuators.band_sd != 0:
-        raise InputError(
-            "monte_carlo: the closed loop of a `track` table starts from `feedback.start_sd` and `heading_sd` and "
-            "takes the actuators' gain_sd, delay_s and white_sd; set Omega0_sd, delay_sd and band_sd to 0."
-        )
+    check_closed_loop("monte_carlo", o.Omega0_sd, actuators)
     fb = check_feedback("monte_carlo: feedback", o.feedback or {})
+    h = check_track("monte_carlo: track", track, params.n_wheels)
     t, K_ff, G = (np.asarray(track[k], np.float64) for k in ("t", "K_ff", "G"))
     N = params.n_wheels
-    if K_ff.ndim != 2 or K_ff.shape[1] != N or G.shape != (len(t), N, 11) or len(t) < 2:
-        raise InputError(
-            f"monte_carlo: the track table has {K_ff.shape[-1]} torque columns and {len(t)} rows; the robot has {N} "
-            "wheels and the table needs at least 2 rows."
-        )
-    h = float(t[1] - t[0])
-    if not np.allclose(np.diff(t), h, rtol=1e-6, atol=0.0):
-        raise InputError("monte_carlo: the track table's times t must be equally spaced (one row per control period).")
     dt = params.R0.dtype
     ref = np.zeros((len(t), Flat.size + N))
     ref[:, Flat.q] = track["q"]
@@ -326,19 +324,6 @@ def _replay_record(replay: Replay | ClosedLoop, plan_rate: float, commands: bool
     return (replay.actuators, plan_rate, replay.settle, cmd_fp, replay.max_steps)
 
 
-def _solver_record(solver, gait_max_steps: int | None) -> tuple:
-    """The solver settings that change a study's results beyond its tolerances and the replay's
-    step limit, for its fingerprint: a solver other than the default and gait mode's step limit
-    where it is not `simulate_gaits`' default. Empty for the defaults, so that a study's
-    fingerprint does not depend on whether they were given."""
-    record = ()
-    if solver is not None and not eqx.tree_equal(solver, default_solver()):
-        record += (("solver", repr(solver)),)
-    if gait_max_steps is not None and gait_max_steps != SolverOptions().max_steps:
-        record += (("max_steps", gait_max_steps),)
-    return record
-
-
 @dataclasses.dataclass(frozen=True)
 class _Run:
     """A checked study laid out in batches: `n` trials with seed `seed` in `n_batches` batches of
@@ -366,65 +351,6 @@ class _Run:
         unit = CHUNK * (1 if self.trials.mesh is None else self.trials.mesh.devices.size)
         return -(-self.batch_size // unit) * unit
 
-    @classmethod
-    def create(
-        cls,
-        params,
-        gaits,
-        spec,
-        settings,
-        *,
-        reset,
-        rtol,
-        atol,
-        solver,
-        gait_max_steps,
-        replay,
-        commands,
-        out,
-        distributed=False,
-        vary=None,
-    ) -> "_Run":
-        n, seed = settings["n"], settings["seed"]
-        distributed = distributed and jax.process_count() > 1
-        devices = jax.devices() if distributed else jax.local_devices()
-        B = int(math.ceil(max(1, min(settings["batch_size"], n)) / CHUNK) * CHUNK)
-        if out is not None:  # a study's folder keeps its batches (results do not depend on them)
-            recorded = StudyFolder.manifest_batch_size(out) if not distributed or jax.process_index() == 0 else None
-            if distributed:  # process 0's folder, which the others need not see
-                recorded = int(share_from_process_0(np.int32(recorded or 0))) or None
-            B = recorded if recorded is not None and recorded % CHUNK == 0 else B
-        n_batches = int(math.ceil(n / B))
-        if not distributed:  # as many local devices as divide the batch into whole chunks
-            devices = split_devices(B // CHUNK, devices)
-        mesh = trial_mesh(devices) if len(devices) > 1 else None  # each device runs its share of every batch
-        trials = Trials(
-            params,
-            gaits,
-            _draws(spec, params.R0.dtype),
-            jnp.asarray(seed, jnp.uint32),
-            reset,
-            rtol,
-            atol,
-            settings["Omega0_sd"],
-            replay,
-            mesh,
-            solver,
-            gait_max_steps if replay is None else SolverOptions().max_steps,
-        )
-        record = () if replay is None else _replay_record(replay, settings["plan_rate"], commands)
-        options = (reset, "gait" if replay is None else replay.mode, repr(record), settings["Omega0_sd"])
-        options += _solver_record(solver, gait_max_steps if replay is None else None)
-        fp = fingerprint(params, gaits, spec, seed, B, options, rtol, atol)
-        program = f"{fingerprint(params, gaits, spec, 0, B, options, rtol, atol)}|{len(devices)}"
-        folder = StudyFolder(Path(out), B, len(spec)) if out is not None else None
-        writer = not distributed or jax.process_index() == 0
-        return cls(trials, dict(vary or {}), n, seed, B, n_batches, folder, fp, program, distributed, writer)
-
-    def open_folder(self) -> None:
-        """Create the study's folder or check the study in it (`StudyFolder.open`)."""
-        self.folder.open(self.fingerprint, self.n, self.seed, self.vary)
-
     def trials_of(self, k: int) -> int:
         """The trials of batch `k` that belong to the study (the last batch may hold more)."""
         return min(self.batch_size, self.n - k * self.batch_size)
@@ -448,37 +374,30 @@ class _Run:
         return part
 
 
-def _read_folder(run: _Run) -> list[dict | None]:
-    """The batches of the study found in its folder (None for the others); opens the folder and
-    removes the temporary files a killed run left there."""
-    parts: list = [None] * run.n_batches
-    if run.folder is None:
-        return parts
-    run.open_folder()
-    run.folder.remove_temporary_files(range(run.n_batches), others=True)
-    for k in range(run.n_batches):
-        if run.folder.has_batch(k):
-            parts[k] = run.folder.load_batch(k, stacklevel=3)
-    return parts
-
-
-def run_distributed(run: _Run, progress: Progress) -> list[dict]:
-    """The batches of a distributed study: process 0 reads those in the folder and tells the
-    others, then every process computes its shard of each missing batch (`_compute`). A folder
-    that process 0 refuses ends every process, with process 0's message."""
+def _batches(run: _Run, progress: Progress) -> list[dict]:
+    """The batches of a study: those in its folder, read by the writer (which opens the folder
+    and removes the temporary files a killed run left there), then the others computed
+    (`_compute`). In a distributed run process 0 tells the others what it read, and a folder
+    that it refuses ends every process, with its message."""
     parts: list = [None] * run.n_batches
     refused = None
     if run.writer and run.folder is not None:
         try:
-            parts = _read_folder(run)
+            run.folder.open(run.fingerprint, run.n, run.seed, run.vary)
+            run.folder.remove_temporary_files(range(run.n_batches), others=True)
+            for k in range(run.n_batches):
+                if run.folder.has_batch(k):
+                    parts[k] = run.folder.load_batch(k, stacklevel=3)
         except InputError as e:
+            if not run.distributed:
+                raise
             refused = e
-    if share_from_process_0(np.int32(refused is not None)):
+    if run.distributed and share_from_process_0(np.int32(refused is not None)):
         if refused is not None:
             raise refused
         raise InputError(f"monte_carlo: process 0 could not use out = {run.folder.path}; its message says why.")
-    done = share_from_process_0(np.array([p is not None for p in parts], np.int32))
-    if done.any():
+    done = share_from_process_0(np.array([p is not None for p in parts], np.int32)) if run.distributed else ()
+    if np.any(done):
         template = batch_template(run.trials, run.padded, run.batch_size)
         for k in np.flatnonzero(done):
             got = parts[k] if run.writer else {key: np.zeros(a.shape, a.dtype) for key, a in template.items()}
@@ -487,11 +406,10 @@ def run_distributed(run: _Run, progress: Progress) -> list[dict]:
     return parts
 
 
-def _compute(run: _Run, parts: list, progress: Progress, todo: Sequence[int] | None = None) -> None:
-    """Compute the batches `todo` (default: those missing from `parts`) into `parts`. The first
-    batch computed (which compiles) comes first, then a bar over the others, whose rate starts
-    after it."""
-    todo = [k for k in range(run.n_batches) if parts[k] is None] if todo is None else list(todo)
+def _compute(run: _Run, parts: list, progress: Progress) -> None:
+    """Compute the batches missing from `parts` into them. The first batch computed (which
+    compiles) comes first, then a bar over the others, whose rate starts after it."""
+    todo = [k for k in range(run.n_batches) if parts[k] is None]
     if not todo:
         return
     trials = [run.trials_of(k) for k in todo]
@@ -518,21 +436,8 @@ def _compute(run: _Run, parts: list, progress: Progress, todo: Sequence[int] | N
 def _result(run: _Run, parts: list[dict], elapsed_s: float) -> MonteCarloResult:
     """The study's outcome: the batches joined, cut to `n` trials; with a folder (read by the
     writer), the batches' compute time as recorded there."""
-    cat = {key: np.concatenate([p[key] for p in parts])[: run.n] for key in parts[0]}
-    samples = {name: cat["vals"][:, j] for j, name in enumerate(run.trials.draws.names)}
     timed = None
     if run.folder is not None and run.writer:
         timed = ComputeTime.of(run.folder.load_times(range(run.n_batches)))
-    return MonteCarloResult(
-        n=run.n,
-        seed=run.seed,
-        samples=samples,
-        x_final=cat["x"],
-        y_final=cat["y"],
-        speed_final=cat["speed"],
-        status=cat["status"],
-        gamma3_sd_after=cat["gamma3_sd"],
-        elapsed_s=elapsed_s,
-        reject_code=cat["reject"],
-        compute_time=timed,
-    )
+    names = run.trials.draws.names
+    return MonteCarloResult.of_batches(parts, names, run.n, run.seed, elapsed_s=elapsed_s, compute_time=timed)

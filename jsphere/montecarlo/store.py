@@ -13,8 +13,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import os
-import tempfile
 import warnings
 import zipfile
 from pathlib import Path
@@ -23,8 +21,9 @@ import jax
 import numpy as np
 
 from .._runtime.errors import InputError
-from .._runtime.files import atomic_write, atomic_write_json, dumps_json, temporary_pattern
+from .._runtime.files import atomic_write, atomic_write_json, temporary_pattern
 from .batch import CHUNK
+from .claims import create_exclusively
 from .result import ComputeTime, MonteCarloResult
 from .sampling import MAX_REDRAWS, REASONS
 
@@ -40,22 +39,6 @@ _TEMPORARY = temporary_pattern(r"((?:batch|time)_(\d{6})|manifest|stats|stop_poi
 
 class MonteCarloWarning(UserWarning):
     """Something `monte_carlo` repaired on its own (a corrupt batch file it recomputes)."""
-
-
-def _create_exclusively(path: Path, record: dict) -> bool:
-    """Write the JSON `record` to `path` unless it exists (complete or not at all: a hidden
-    temporary file linked into place); False if it exists."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.stem}.", suffix=".tmp")
-    tmp = Path(tmp)
-    with os.fdopen(fd, "w") as f:
-        f.write(dumps_json(record))
-    try:
-        os.link(tmp, path)
-    except FileExistsError:
-        return False
-    finally:
-        tmp.unlink(missing_ok=True)
-    return True
 
 
 def fingerprint(params, gaits, spec, seed, batch_size, options, rtol, atol) -> str:
@@ -118,7 +101,7 @@ class StudyFolder:
                     f"monte_carlo: {folder} holds batch files but no manifest.json, so it cannot tell which study they "
                     "belong to; delete them (or choose another `out` folder)."
                 )
-            if _create_exclusively(manifest, record):
+            if create_exclusively(manifest, record):
                 return
         old_n = self.check_manifest(fp, n)
         if old_n < n:
@@ -172,13 +155,12 @@ class StudyFolder:
     def has_batch(self, k: int) -> bool:
         return self.batch_path(k).exists()
 
-    def load_batch(self, k: int, *, stacklevel: int = 2) -> dict | None:
-        """The arrays of batch `k`, or `None` (with a `MonteCarloWarning` naming the file) if it
-        cannot be read or does not hold a batch of this study (a truncated copy, a full disk,
-        random bytes). The warning points `stacklevel` frames above this method."""
-        path, B = self.batch_path(k), self.batch_size
+    def read_batch(self, k: int) -> dict:
+        """The arrays of batch `k`; `ValueError` saying why if the file cannot be read or does not
+        hold a batch of this study (a truncated copy, a full disk, random bytes)."""
+        B = self.batch_size
         try:
-            with open(path, "rb") as fh:
+            with open(self.batch_path(k), "rb") as fh:
                 if not zipfile.is_zipfile(fh):
                     raise ValueError("not an .npz archive: empty, cut short or overwritten")
                 fh.seek(0)
@@ -191,13 +173,17 @@ class StudyFolder:
                 raise ValueError(f"shapes {shapes} do not match a batch of {B} trials")
         except Exception as e:  # noqa: BLE001 - any unreadable file is recomputed
             reason = str(e) if isinstance(e, ValueError) else f"{type(e).__name__}: {e}"
-            warnings.warn(
-                f"monte_carlo: {path} is corrupt or incomplete ({reason}); recomputing that batch.",
-                MonteCarloWarning,
-                stacklevel=stacklevel + 1,
-            )
-            return None
+            raise ValueError(f"{self.batch_path(k)} is corrupt or incomplete ({reason})") from None
         return part
+
+    def load_batch(self, k: int, *, stacklevel: int = 2) -> dict | None:
+        """The arrays of batch `k` (`read_batch`), or `None` with a `MonteCarloWarning` naming the
+        file, which is recomputed. The warning points `stacklevel` frames above this method."""
+        try:
+            return self.read_batch(k)
+        except ValueError as e:
+            warnings.warn(f"monte_carlo: {e}; recomputing that batch.", MonteCarloWarning, stacklevel=stacklevel + 1)
+            return None
 
     def save_batch(self, k: int, part: dict) -> None:
         """Write batch `k` atomically as an `.npz` file whose bytes depend on its arrays only
@@ -260,26 +246,10 @@ def read_result(folder) -> MonteCarloResult:
     ks = [k for k in range(-(-n // B)) if study.has_batch(k)]
     if not ks:
         raise InputError(f"{path}: no batch files (batch_*.npz); run the study there first (jsphere montecarlo).")
-    parts = []
-    for k in ks:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always", MonteCarloWarning)
-            part = study.load_batch(k)
-        if part is None:
-            raise InputError(f"{caught[0].message}".replace("recomputing that batch", "run the study again"))
-        parts.append({key: a[: min(B, n - k * B)] for key, a in part.items()})
-    cat = {key: np.concatenate([p[key] for p in parts]) for key in BATCH_KEYS}
+    try:
+        parts = [{key: a[: min(B, n - k * B)] for key, a in study.read_batch(k).items()} for k in ks]
+    except ValueError as e:
+        raise InputError(f"monte_carlo: {e}; run the study again.") from None
     trials = np.concatenate([k * B + np.arange(len(p["x"])) for k, p in zip(ks, parts)])
-    return MonteCarloResult(
-        n=len(trials),
-        seed=seed,
-        samples={name: cat["vals"][:, j] for j, name in enumerate(names)},
-        x_final=cat["x"],
-        y_final=cat["y"],
-        speed_final=cat["speed"],
-        status=cat["status"],
-        gamma3_sd_after=cat["gamma3_sd"],
-        reject_code=cat["reject"],
-        compute_time=ComputeTime.of(study.load_times(ks)),
-        trials=None if len(trials) == n else trials,
-    )
+    more = {"compute_time": ComputeTime.of(study.load_times(ks)), "trials": None if len(trials) == n else trials}
+    return MonteCarloResult.of_batches(parts, names, len(trials), seed, **more)

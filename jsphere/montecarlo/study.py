@@ -65,6 +65,39 @@ def check_feedback(where: str, values: Mapping) -> dict:
     return out
 
 
+def check_commands(where: str, ts: np.ndarray, values: np.ndarray, n_wheels: int) -> None:
+    """A command table to replay, `(ts, values)`: it starts at `t = 0` with one column per
+    wheel, else an `InputError` under `where`."""
+    if ts[0] != 0.0:
+        raise InputError(f"{where}: the table must start at t = 0; its first time is {ts[0]:g} s.")
+    if values.ndim != 2 or values.shape[1] != n_wheels:
+        raise InputError(f"{where}: the robot has {n_wheels} wheels; the table has {values.shape[1:]} columns.")
+
+
+def check_track(where: str, tab: Mapping, n_wheels: int) -> float:
+    """The control period [s] of a feedback table `tab` (`read_track_csv`'s dict): one torque
+    column per wheel, at least two rows, equally spaced; else an `InputError` under `where`."""
+    t, K_ff = np.asarray(tab["t"], np.float64), np.asarray(tab["K_ff"])
+    if K_ff.ndim != 2 or K_ff.shape[1] != n_wheels or np.shape(tab["G"]) != (len(t), n_wheels, 11):
+        raise InputError(f"{where}: the robot has {n_wheels} wheels; the table has gains for {K_ff.shape[-1]}.")
+    if len(t) < 2 or not np.allclose(np.diff(t), t[1] - t[0], rtol=1e-6, atol=0.0):
+        raise InputError(f"{where}: the table needs at least 2 rows, one per control period (equally spaced t).")
+    return float(t[1] - t[0])
+
+
+def check_closed_loop(where: str, Omega0_sd: float, actuators) -> None:
+    """The closed loop of a `track` table starts as `feedback` says (`start_sd`, `heading_sd`)
+    and takes the actuators' gain, fixed delay and white noise: an `InputError` under `where`
+    for a setting it does not model."""
+    act = actuators or Actuators()
+    if Omega0_sd != 0 or act.delay_sd != 0 or act.band_sd != 0:
+        raise InputError(
+            f"{where}: the closed loop of a track table starts from the feedback's start_sd and heading_sd and "
+            "takes the actuators' gain_sd, delay_s and white_sd; set Omega0_sd, delay_sd and band_sd to 0 "
+            f"(got {Omega0_sd}, {act.delay_sd}, {act.band_sd})."
+        )
+
+
 def _target(params: RobotParams, name: str) -> tuple:
     """What a name sets, for finding two names that set the same value."""
     field, index = parse_name(name)
@@ -208,7 +241,7 @@ def load_study(path) -> Study:
     if "track" in cfg:
         given["track"] = study_track(path, cfg, given["mode"], params.n_wheels)
         given["feedback"] = check_feedback(f"{path}: [feedback]", cfg.get("feedback", {}))
-        _check_track_actuators(path, given)
+        check_closed_loop(str(path), given.get("Omega0_sd", 0.0), given.get("actuators"))
     elif "feedback" in cfg:
         raise InputError(f'{path}: [feedback] sets up the closed loop of a feedback table; add track = "track.csv".')
     vary = dict(cfg["vary"])
@@ -303,6 +336,21 @@ def _study_gaits(path: Path, gait_list) -> list:
     return gaits
 
 
+def _read_table(path: Path, key: str, name, what: str, read):
+    """The file that a study file's `key` names (`name`, relative to the study file; `what`: what
+    it names), as `read` reads it; `InputError` naming the file and the key when `name` is no
+    path, or the file is missing or cannot be read."""
+    if not isinstance(name, str):
+        raise InputError(f"{path}: {key} must be the path of {what}; got {name!r}.")
+    table = (path.parent / name).resolve()
+    if not table.is_file():
+        raise InputError(f"{path}: {key} = {name!r}: no such file {table}.")
+    try:
+        return read(table)
+    except ValueError as e:
+        raise InputError(f"{path}: {key} = {name!r}: {e}") from None
+
+
 def study_commands(path: Path, name, mode: str, n_wheels: int) -> tuple[np.ndarray, np.ndarray]:
     """`(ts, values)` of the command table a study file's `commands` key names (relative to the
     study file): its `K_1..N` columns with `mode = "torques"`, its `chi_dot_1..N` columns with
@@ -316,22 +364,9 @@ def study_commands(path: Path, name, mode: str, n_wheels: int) -> tuple[np.ndarr
             f'{path}: commands are replayed through the actuators; set mode = "torques" (columns K_1..K_N) or '
             f'mode = "wheel_speeds" (columns chi_dot_1..N).'
         )
-    if not isinstance(name, str):
-        raise InputError(f"{path}: commands must be the path of a command table (.csv); got {name!r}.")
-    table = (path.parent / name).resolve()
-    if not table.is_file():
-        raise InputError(f"{path}: commands = {name!r}: no such file {table}.")
-    try:
-        ts, values, _, names = read_inputs_csv(table, kind=mode)
-    except ValueError as e:
-        raise InputError(f"{path}: commands = {name!r}: {e}") from None
-    if ts[0] != 0.0:
-        raise InputError(f"{path}: commands = {name!r}: the table must start at t = 0; its first time is {ts[0]:g} s.")
-    if values.shape[1] != n_wheels:
-        raise InputError(
-            f"{path}: commands = {name!r}: the robot has {n_wheels} wheels; the table has {len(names)} columns "
-            f"({', '.join(names)})."
-        )
+    read = lambda table: read_inputs_csv(table, kind=mode)[:2]
+    ts, values = _read_table(path, "commands", name, "a command table (.csv)", read)
+    check_commands(f"{path}: commands = {name!r}", ts, values, n_wheels)
     return ts, values
 
 
@@ -353,41 +388,9 @@ def study_track(path: Path, cfg: dict, mode: str, n_wheels: int) -> dict:
         raise InputError(
             f'{path}: track: a feedback table commands axle torques; set mode = "torques" or leave it out.'
         )
-    if not isinstance(name, str):
-        raise InputError(
-            f"{path}: track must be the path of a feedback table (track.csv of jsphere track); got {name!r}."
-        )
-    table = (path.parent / name).resolve()
-    if not table.is_file():
-        raise InputError(f"{path}: track = {name!r}: no such file {table}.")
-    try:
-        tab = read_track_csv(table)
-    except ValueError as e:
-        raise InputError(f"{path}: track = {name!r}: {e}") from None
-    N, M = tab["K_ff"].shape[1], len(tab["t"])
-    if N != n_wheels:
-        raise InputError(f"{path}: track = {name!r}: the robot has {n_wheels} wheels; the table has gains for {N}.")
-    if M < 2 or not np.allclose(np.diff(tab["t"]), tab["t"][1] - tab["t"][0], rtol=1e-6, atol=0.0):
-        raise InputError(
-            f"{path}: track = {name!r}: the table needs at least 2 rows, one per control period (equally spaced t)."
-        )
+    tab = _read_table(path, "track", name, "a feedback table (track.csv of jsphere track)", read_track_csv)
+    check_track(f"{path}: track = {name!r}", tab, n_wheels)
     return tab
-
-
-def _check_track_actuators(path: Path, kwargs: dict) -> None:
-    """The closed loop of a `track` table takes the actuators' gain, delay and white noise, and
-    starts as `[feedback]` says: `InputError` for the settings it does not model."""
-    act = kwargs.get("actuators") or Actuators()
-    for key, v in (("[actuators] delay_sd", act.delay_sd), ("[actuators] band_sd", act.band_sd)):
-        if v != 0:
-            raise InputError(
-                f"{path}: {key} = {v}: the closed loop of a track table takes a fixed delay and white noise; set it to 0."
-            )
-    if kwargs.get("Omega0_sd", 0.0) != 0:
-        raise InputError(
-            f"{path}: Omega0_sd: the closed loop of a track table starts as [feedback] start_sd and heading_sd say; "
-            "leave Omega0_sd out."
-        )
 
 
 def _study_actuators(path: Path, act) -> Actuators:

@@ -68,11 +68,9 @@ def work(
     study, as `monte_carlo` takes it. The first worker creates the folder; the others check
     that it holds the same study. Batches follow the folder's batch size where this node's
     devices can share it."""
-    options, solver, _ = study_arguments("work", options, solver, False, deprecated)
     claim_timeout = real("monte_carlo", "claim_timeout", claim_timeout, unit="s")
-    _check_out(out)
-    run = prepare(params, gaits, vary=vary, n=n, options=options, solver=solver, out=out)
-    run.open_folder()
+    run = _prepare("work", params, gaits, vary, n, out, options, solver, deprecated)
+    run.folder.open(run.fingerprint, run.n, run.seed, run.vary)
     progress = Progress(progress)
     computed, claimed = [], {}
     path = run.folder.path
@@ -104,9 +102,12 @@ def work(
     return WorkReport(tuple(computed), claimed, done, run.n_batches)
 
 
-def _check_out(out) -> None:
+def _prepare(where: str, params, gaits, vary, n: int, out, options, solver, deprecated: dict) -> _Run:
+    """The study of a worker or a gather (`run.prepare`), which share it through its folder `out`."""
+    options, solver, _ = study_arguments(where, options, solver, False, deprecated)
     if out is None:
         raise InputError("monte_carlo: workers and their gather share a study through its folder; pass `out`.")
+    return prepare(params, gaits, vary=vary, n=n, options=options, solver=solver, out=out)
 
 
 def _finished(run: _Run, k: int) -> bool:
@@ -131,9 +132,7 @@ def gather(
     `monte_carlo` takes it. Removes what workers leave behind (temporary files, claims) once
     every batch is there."""
     t0 = time.perf_counter()
-    options, solver, _ = study_arguments("gather", options, solver, False, deprecated)
-    _check_out(out)
-    run = prepare(params, gaits, vary=vary, n=n, options=options, solver=solver, out=out)
+    run = _prepare("gather", params, gaits, vary, n, out, options, solver, deprecated)
     path = run.folder.path
     if not (path / "manifest.json").exists():
         raise InputError(f"monte_carlo: {path} holds no study (no manifest.json); run the workers first.")

@@ -9,19 +9,9 @@ from .fit import fit_figures as fit_figures
 from .fit import worst_trial as worst_trial
 from .montecarlo import figure2_study as figure2_study
 from .montecarlo import montecarlo_figure as montecarlo_figure
-from .paper import (
-    REPRODUCTION_FIGURES as REPRODUCTION_FIGURES,
-)
-from .paper import (
-    controls_figure as controls_figure,
-)
-from .paper import (
-    figure2 as figure2,
-)
-from .paper import (
-    figure3 as figure3,
-)
-from .paper import (
-    write_reproduction_figures as write_reproduction_figures,
-)
+from .paper import REPRODUCTION_FIGURES as REPRODUCTION_FIGURES
+from .paper import controls_figure as controls_figure
+from .paper import figure2 as figure2
+from .paper import figure3 as figure3
+from .paper import write_reproduction_figures as write_reproduction_figures
 from .plan import plan_figure as plan_figure

@@ -1,7 +1,10 @@
 """What every figure shares: matplotlib imported lazily (Agg), the x-y axes of a path in jsphere's
-frame or the paper's figure frame, and the atomic save."""
+frame or the paper's figure frame, a study's confidence ellipse, the paper's measured stop, and
+the atomic save."""
 
 from __future__ import annotations
+
+import numpy as np
 
 from .._runtime.files import atomic_savefig
 
@@ -32,6 +35,23 @@ def check_frame(frame: str) -> str:
 def in_frame(x, y, frame: str):
     """Positions `(x, y)` in jsphere's frame, in `frame` (`"paper"`: `(-y, x)`)."""
     return (-y, x) if check_frame(frame) == "paper" else (x, y)
+
+
+def ellipse_points(stats: dict, n: int = 200) -> np.ndarray:
+    """The confidence ellipse of `MonteCarloResult.stats()` as `(n, 2)` points [m], jsphere's frame."""
+    minor, major = stats["ellipse"]["semi_axes_m"]
+    ang, (x0, y0) = stats["ellipse"]["angle_rad"], stats["mean_xy_m"]
+    t = np.linspace(0, 2 * np.pi, n)
+    e1, e2 = np.array([np.cos(ang), np.sin(ang)]), np.array([-np.sin(ang), np.cos(ang)])
+    return (np.array([x0, y0])[:, None] + major * np.outer(e1, np.cos(t)) + minor * np.outer(e2, np.sin(t))).T
+
+
+def paper_experiment(ax, frame: str = "paper", label: str = "paper, experiment (95%)") -> None:
+    """The paper's measured stop of the straight-line gaits with its 95 % interval [mm] in `frame`."""
+    (xf, yf), (dx, dy) = (-1.392, 369.2), (28.9, 37.7)  # the paper's figure frame
+    if frame == "jsphere":  # x = y_fig, y = -x_fig
+        (xf, yf), (dx, dy) = (yf, -xf), (dy, dx)
+    ax.errorbar([xf], [yf], xerr=[dx], yerr=[dy], fmt="ko", ms=3, label=label)
 
 
 def xy_axes(ax, frame: str = "paper") -> None:

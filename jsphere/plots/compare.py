@@ -23,8 +23,7 @@ def compare_figure(report: dict, path) -> Path:
     for key, colour in (("x", "C0"), ("y", "C1")):
         ax.plot(t, 1e3 * np.asarray(s[key]), ".", ms=2, color=colour, alpha=0.5, label=f"{key} measured")
         ax.plot(t, 1e3 * np.asarray(s[f"{key}_sim"]), "-", lw=1.2, color=colour, label=f"{key} simulated")
-    ax.set_xlabel("t [s]")
-    ax.set_ylabel("position [mm]")
+    ax.set(xlabel="t [s]", ylabel="position [mm]")
     ax.legend(fontsize=7, ncol=2)
     f = s["fit_percent"]
     ax.set_title(f"{report['name']}: fit x {f['x']:.1f} %, y {f['y']:.1f} %, rot {f['rot']:.1f} %", fontsize=9)
@@ -35,8 +34,7 @@ def compare_figure(report: dict, path) -> Path:
     for k in range(3):
         ax.plot(t, np.degrees(r[:, 2 + k]), lw=0.6, alpha=0.7, label=f"rot {'xyz'[k]} [deg]")
     ax.axhline(0.0, color="k", lw=0.5)
-    ax.set_xlabel("t [s]")
-    ax.set_ylabel("residual (simulated - measured)")
+    ax.set(xlabel="t [s]", ylabel="residual (simulated - measured)")
     ax.legend(fontsize=7, ncol=5)
     ax = axes[2]
     acf, band = np.asarray(s["acf"]), float(s["band"])
@@ -47,9 +45,7 @@ def compare_figure(report: dict, path) -> Path:
     ax.axhline(0.0, color="k", lw=0.5)
     out = report["whiteness"]["acf_outside_99"]
     ax.set_title(f"residual autocorrelation: {100 * out:.1f} % of the lags outside the 99 % band", fontsize=9)
-    ax.set_xlabel("lag [samples]")
-    ax.set_ylabel("autocorrelation")
+    ax.set(xlabel="lag [samples]", ylabel="autocorrelation")
     ax.legend(fontsize=7, ncol=6)
-    path = Path(path)
-    finish(plt, fig, path)
-    return path
+    finish(plt, fig, Path(path))
+    return Path(path)

@@ -57,8 +57,7 @@ def fit_figures(result, out_dir, *, stem: str = "fit") -> list[Path]:
         out = _set_aside(s)
         if out.any():
             ax.plot(1e3 * s["x"][out], 1e3 * s["y"][out], "x", ms=4, color="red")
-    ax.set_xlabel("x [mm]")
-    ax.set_ylabel("y [mm]")
+    ax.set(xlabel="x [mm]", ylabel="y [mm]")
     n_out = sum(int(_set_aside(tr["series"]).sum()) for tr in trials)
     title = "captured (dots) and fitted (lines) paths; RMS position residual"
     if n_out:
@@ -102,12 +101,12 @@ def fit_figures(result, out_dir, *, stem: str = "fit") -> list[Path]:
         if row == 0:
             a.set_title(f"position residual (sigma {1e3 * result.sigma_pos:.3f} mm{floor_pos})", fontsize=9)
             b.set_title(f"orientation residual (sigma {np.degrees(result.sigma_rot):.3f} deg{floor_rot})", fontsize=9)
-            a.legend(fontsize=6, loc="upper right")
-            b.legend(fontsize=6, loc="upper right")
+            for ax_ in (a, b):
+                ax_.legend(fontsize=6, loc="upper right")
     if worst_text:
         fig.suptitle(f"{status}worst-fitting trial first: {worst_text}", fontsize=9)
-    axes[-1, 0].set_xlabel("t [s]")
-    axes[-1, 1].set_xlabel("t [s]")
+    for ax_ in axes[-1]:
+        ax_.set_xlabel("t [s]")
     residuals = out_dir / f"{stem}_residuals.png"
     finish(plt, fig, residuals)
     return [overlay, residuals]

@@ -7,34 +7,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import check_frame, finish, in_frame, pyplot, xy_axes
-
-#: the paper's experiment, straight-line gaits: stop point and 95 % half-widths, its figure frame [mm]
-_PAPER_STOP_FIG = ((-1.392, 369.2), (28.9, 37.7))
+from .base import check_frame, ellipse_points, finish, in_frame, paper_experiment, pyplot, xy_axes
 
 
 def _ellipse(st, frame: str):
     """The confidence ellipse of `MonteCarloResult.stats()` as (x, y) [mm] in `frame`."""
-    minor, major = st["ellipse"]["semi_axes_m"]
-    ang, (x0, y0) = st["ellipse"]["angle_rad"], st["mean_xy_m"]
-    t = np.linspace(0, 2 * np.pi, 200)
-    e1, e2 = np.array([np.cos(ang), np.sin(ang)]), np.array([-np.sin(ang), np.cos(ang)])
-    ell = np.array([x0, y0])[:, None] + major * np.outer(e1, np.cos(t)) + minor * np.outer(e2, np.sin(t))
-    return in_frame(1e3 * ell[0], 1e3 * ell[1], frame)
+    e = 1e3 * ellipse_points(st)
+    return in_frame(e[:, 0], e[:, 1], frame)
 
 
 def _stops(res, frame: str):
     """The stop points of the successful trials [mm] in `frame`."""
     ok = np.asarray(res.status) == 0
     return in_frame(1e3 * np.asarray(res.x_final)[ok], 1e3 * np.asarray(res.y_final)[ok], frame)
-
-
-def _paper_experiment(ax, frame: str, label: str) -> None:
-    """The paper's measured stop point with its 95 % interval."""
-    (xf, yf), (dx, dy) = _PAPER_STOP_FIG
-    if frame == "jsphere":  # x = y_fig, y = -x_fig
-        (xf, yf), (dx, dy) = (yf, -xf), (dy, dx)
-    ax.errorbar([xf], [yf], xerr=[dx], yerr=[dy], fmt="ko", ms=3, label=label)
 
 
 def montecarlo_figure(res, path, *, planned=None, frame: str = "jsphere") -> None:
@@ -55,8 +40,7 @@ def montecarlo_figure(res, path, *, planned=None, frame: str = "jsphere") -> Non
     xy_axes(a, frame)
     d = np.hypot(xf - mx, yf - my)
     b.hist(d, bins=60)
-    b.set_xlabel("distance from the mean stop [mm]")
-    b.set_ylabel("trials")
+    b.set(xlabel="distance from the mean stop [mm]", ylabel="trials")
     finish(plt, fig, path)
 
 
@@ -75,9 +59,8 @@ def figure2_study(kin, gait, path, *, frame: str = "jsphere") -> None:
         b.plot(*_ellipse(res.stats(), frame), "-", lw=1)
     for v, lab in ((0.018, "paper, kinematic (measured)"), (0.001, "paper, gaits (measured)")):
         a.axvline(v, color="k", ls="--" if v > 0.01 else ":", lw=1, label=lab)
-    a.set_xlabel(r"sd of $\gamma_3$ after the stop")
-    a.set_ylabel("trials")
+    a.set(xlabel=r"sd of $\gamma_3$ after the stop", ylabel="trials")
     a.legend(fontsize=7)
-    _paper_experiment(b, frame, "paper, gaits, experiment (95%)")
+    paper_experiment(b, frame, "paper, gaits, experiment (95%)")
     xy_axes(b, frame)
     finish(plt, fig, path)

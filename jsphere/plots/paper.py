@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .base import FRAME_LABELS, finish, pyplot, xy_axes
+from .base import finish, paper_experiment, pyplot, xy_axes
 
 
 def _fig_xy(tr):
@@ -22,15 +22,11 @@ def figure2(rep, path) -> None:
     for tr, lab, st in ((kin, "kinematic model (2.9)", "-"), (gait, "dynamic model (gaits)", "--")):
         a.plot(*_fig_xy(tr), st, label=lab)
         b.plot(np.asarray(tr.ts), np.asarray(tr.gamma[:, 2]), st, label=lab)
-    a.set_xlabel(FRAME_LABELS["paper"][0])
-    a.set_ylabel(FRAME_LABELS["paper"][1])
     a.set_title("(a) trajectories, 0-8 s")
-    a.axis("equal")
-    a.legend()
+    xy_axes(a)
     s = rep.values["sigma_gamma3_t_gt_4"]
     b.axvline(4.0, color="0.6", lw=0.8)
-    b.set_xlabel("t [s]")
-    b.set_ylabel(r"$\gamma_3$")
+    b.set(xlabel="t [s]", ylabel=r"$\gamma_3$")
     b.set_title(
         f"(b) sigma(gamma_3, t>4): kin {s['kinematic']['std']:.4f} (paper 0.018), gaits {s['gait']['std']:.1e} (paper 0.001)",
         fontsize=8,
@@ -47,7 +43,7 @@ def figure3(rep, path) -> None:
     a.plot(*_fig_xy(T["straight"]), "--", label="jsphere (no reset)")
     a.plot(*_fig_xy(T["straight_reset"]), ":", label="jsphere (reset 5.4)")
     a.plot([-0.0695], [344.6], "rx", label="paper, simulation")
-    a.errorbar([-1.392], [369.2], xerr=[28.9], yerr=[37.7], fmt="ko", ms=3, label="paper, experiment (95%)")
+    paper_experiment(a)
     a.set_title("(a) rectilinear motion")
     b.plot(*_fig_xy(T["turn_reset"]), "--", label="jsphere (reset before turn)")
     b.plot(*_fig_xy(T["turn_signfixed"]), ":", label="jsphere ((5.7), sign fixed)")
@@ -66,12 +62,11 @@ def controls_figure(tr, path, *, title: str = "") -> None:
     plt = pyplot()
     fig, axs = plt.subplots(3, 1, figsize=(7, 7), sharex=True)
     t = np.asarray(tr.ts)
-    axs[0].plot(t, 1e3 * np.asarray(tr.K))
-    axs[0].set_ylabel("K [mN m]")
-    axs[1].plot(t, np.asarray(tr.chi_dot))
-    axs[1].set_ylabel(r"$\dot\chi$ [rad/s]")
-    axs[2].plot(t, np.asarray(tr.gamma[:, 2]))
-    axs[2].set_ylabel(r"$\gamma_3$")
+    for ax, v, label in zip(
+        axs, (1e3 * np.asarray(tr.K), tr.chi_dot, tr.gamma[:, 2]), ("K [mN m]", r"$\dot\chi$ [rad/s]", r"$\gamma_3$")
+    ):
+        ax.plot(t, np.asarray(v))
+        ax.set_ylabel(label)
     axs[2].set_xlabel("t [s]")
     axs[0].legend([f"wheel {i + 1}" for i in range(np.asarray(tr.K).shape[1])], fontsize=7)
     if title:

@@ -43,8 +43,7 @@ def plan_figure(plan, path, *, compare=None, title: str = "") -> None:
         color="0.4",
         label="platform heading",
     )
-    a.set_xlabel("x [m]")
-    a.set_ylabel("y [m]")
+    a.set(xlabel="x [m]", ylabel="y [m]")
     a.axis("equal")
     a.legend(fontsize=7)
     a.set_title(title or ("feasible plan" if plan.feasible else "NOT feasible: best plan found"), fontsize=9)
@@ -61,6 +60,5 @@ def plan_figure(plan, path, *, compare=None, title: str = "") -> None:
     b.set_ylabel("K [mN m]")
     b.legend(fontsize=7)
     c.set_ylabel(r"$\dot\chi$ [rad/s]")
-    d.set_ylabel("tilt [deg]")
-    d.set_xlabel("t [s]")
+    d.set(xlabel="t [s]", ylabel="tilt [deg]")
     finish(plt, fig, Path(path))

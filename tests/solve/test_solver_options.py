@@ -242,11 +242,10 @@ def test_monte_carlo_passes_the_options_to_its_batches(paper, monkeypatch):
 
 
 def _fingerprint(paper, name, n, seed, **solver):
-    spec = check_vary(paper, {name: VARY.get(name, ("normal", -0.0270146, 1e-4))})
-    settings = {"n": n, "seed": seed, "plan_rate": 200.0, "Omega0_sd": 0.0, "batch_size": n}
-    kw = {"reset": False, "rtol": 1e-8, "atol": 1e-10, "replay": None, "commands": False, "out": None}
-    solver = {"solver": None, "gait_max_steps": 16384, **solver}
-    return mc_run._Run.create(paper, GAITS, spec, settings, **kw, **solver).fingerprint
+    vary = {name: VARY.get(name, ("normal", -0.0270146, 1e-4))}
+    options = jsphere.StudyOptions(seed=seed, batch_size=n)
+    solver = SolverOptions(**{"max_steps" if k == "gait_max_steps" else k: v for k, v in solver.items()})
+    return mc_run.prepare(paper, GAITS, vary=vary, n=n, options=options, solver=solver).fingerprint
 
 
 def test_monte_carlo_fingerprint(paper):

@@ -154,17 +154,8 @@ def body_from_trajectory(traj, *, label: str = "", ghost: bool = False) -> Body:
     ts = np.asarray(traj.ts, float)
     keep = np.concatenate([np.diff(ts) > 0, [True]])  # a repeated time (a jump): its last value
     R = np.stack([np.asarray(traj.alpha), np.asarray(traj.beta), np.asarray(traj.gamma)], axis=-2)
-    return Body(
-        ts[keep],
-        np.asarray(traj.x, float)[keep],
-        np.asarray(traj.y, float)[keep],
-        R[keep],
-        rotmat_np(np.asarray(traj.q_shell, float))[keep],
-        np.asarray(traj.chi, float)[keep],
-        np.asarray(traj.chi_dot, float)[keep],
-        label,
-        ghost,
-    )
+    arrays = (ts, traj.x, traj.y, R, rotmat_np(np.asarray(traj.q_shell, float)), traj.chi, traj.chi_dot)
+    return Body(*(np.asarray(a, float)[keep] for a in arrays), label, ghost)
 
 
 def body_from_trial(params: RobotParams, trial, *, label: str | None = None, ghost: bool = False) -> Body:
@@ -283,6 +274,18 @@ class BodyFrames:
     R: np.ndarray
 
 
+def sphere_grid(R0: float, n_lon: int, n_lat: int) -> tuple[np.ndarray, np.ndarray]:
+    """The vertices `(V, 3)` of a sphere of radius `R0` about the origin on a longitude-latitude
+    grid (each stored once) and its quadrilaterals `(n_lon n_lat, 4)` as vertex indices."""
+    lon = np.linspace(0.0, 2 * np.pi, n_lon, endpoint=False)
+    lat = np.linspace(-np.pi / 2, np.pi / 2, n_lat + 1)
+    Lo, La = np.meshgrid(lon, lat, indexing="ij")
+    verts = R0 * np.stack([np.cos(La) * np.cos(Lo), np.cos(La) * np.sin(Lo), np.sin(La)], -1).reshape(-1, 3)
+    a, b = (g.ravel() for g in np.meshgrid(np.arange(n_lon), np.arange(n_lat), indexing="ij"))
+    idx = lambda a, b: (a % n_lon) * (n_lat + 1) + b
+    return verts, np.stack([idx(a, b), idx(a + 1, b), idx(a + 1, b + 1), idx(a, b + 1)], axis=-1)
+
+
 #: great circles through the shell's poles (meridians) and points per circle
 MERIDIANS, CIRCLE_POINTS = 6, 41
 
@@ -352,20 +355,9 @@ def body_frames(body: Body, params: RobotParams, times: np.ndarray) -> BodyFrame
     lo, hi = np.clip(at - h, t[0], t[-1]), np.clip(at + h, t[0], t[-1])
     span = np.maximum(hi - lo, 1e-12)
     speed = np.hypot(_lerp(t, body.x, hi) - _lerp(t, body.x, lo), _lerp(t, body.y, hi) - _lerp(t, body.y, lo)) / span
+    path = np.stack([x, y], -1)
     return BodyFrames(
-        centre,
-        meridians,
-        equator,
-        platform,
-        wheel_lines,
-        rollers,
-        com,
-        mast,
-        np.stack([x, y], -1),
-        speed,
-        chi_dot,
-        R_shell,
-        R,
+        centre, meridians, equator, platform, wheel_lines, rollers, com, mast, path, speed, chi_dot, R_shell, R
     )
 
 

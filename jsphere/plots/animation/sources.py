@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..._runtime.errors import InputError
+from ..base import ellipse_points
 from .scene import Scene, body_from_trajectory, body_from_trial
 
 if TYPE_CHECKING:
@@ -18,9 +19,6 @@ if TYPE_CHECKING:
 
 #: Monte-Carlo trials whose paths are drawn
 MONTECARLO_PATHS = 5
-
-
-# ------------------------------------------------------------------------------ from objects
 
 
 def trajectory_scene(traj, params: RobotParams, *, title: str = "", target=None) -> Scene:
@@ -89,16 +87,7 @@ def montecarlo_scene(result, params: RobotParams, gaits, *, reset: bool = False,
         tr = simulate_gaits(p, gaits, reset=reset)
         bodies.append(body_from_trajectory(tr, label=f"trial {i}"))
     stats = result.stats() if stats is None else stats
-    ellipse = _ellipse(stats) if stats.get("ellipse") else None
+    ellipse = ellipse_points(stats, 100) if stats.get("ellipse") else None
     head = title or "Monte-Carlo study"
     text = f"{head}: {len(bodies)} of {len(cloud)} trials; stop points and 95 % ellipse at the end"
     return Scene(bodies, params, title=text, cloud=cloud, ellipse=ellipse)
-
-
-def _ellipse(st: dict) -> np.ndarray:
-    """The confidence ellipse of `MonteCarloResult.stats()` as `(P, 2)` [m]."""
-    minor, major = st["ellipse"]["semi_axes_m"]
-    ang, (x0, y0) = st["ellipse"]["angle_rad"], st["mean_xy_m"]
-    t = np.linspace(0, 2 * np.pi, 100)
-    e1, e2 = np.array([np.cos(ang), np.sin(ang)]), np.array([-np.sin(ang), np.cos(ang)])
-    return (np.array([x0, y0])[:, None] + major * np.outer(e1, np.cos(t)) + minor * np.outer(e2, np.sin(t))).T

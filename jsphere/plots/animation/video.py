@@ -16,29 +16,14 @@ import numpy as np
 
 from ..._runtime.files import atomic_write
 from ..._runtime.progress import Progress
-from .scene import BodyFrames, Scene, body_frames, frame_times, residual_text
+from .scene import BodyFrames, Scene, body_frames, frame_times, residual_text, sphere_grid
 
-#: the writers by file suffix
-VIDEO_SUFFIXES = (".mp4", ".gif")
 #: the camera of each view: (elevation, azimuth) [deg]
 VIEWS = {"3d": (22.0, -60.0), "top": (90.0, -90.0)}
 #: the colours of the robots of a scene (a ghost, the model over a capture, is orange)
 COLOURS = ("C0", "C1", "C2", "C4", "C5", "C6", "C8", "C9")
 #: the resolution of the videos' figures [dots per inch]
 _DPI = 100
-
-
-def _sphere_template(R0: float, n_lon: int = 14, n_lat: int = 8) -> np.ndarray:
-    """The quadrilaterals `(n_lon n_lat, 4, 3)` of a sphere of radius `R0` about the origin."""
-    lon = np.linspace(0.0, 2 * np.pi, n_lon + 1)
-    lat = np.linspace(-np.pi / 2, np.pi / 2, n_lat + 1)
-    p = lambda a, b: R0 * np.array([np.cos(b) * np.cos(a), np.cos(b) * np.sin(a), np.sin(b)])
-    quads = [
-        [p(lon[i], lat[j]), p(lon[i + 1], lat[j]), p(lon[i + 1], lat[j + 1]), p(lon[i], lat[j + 1])]
-        for i in range(n_lon)
-        for j in range(n_lat)
-    ]
-    return np.asarray(quads)
 
 
 def scene_frames(scene: Scene, fps: float, speed: float):
@@ -53,23 +38,33 @@ def scene_frames(scene: Scene, fps: float, speed: float):
 def _limits(scene: Scene, frames: list[BodyFrames]) -> tuple[np.ndarray, np.ndarray]:
     """The floor box `(x0, y0), (x1, y1)` [m] that holds every path, the target and the cloud,
     with a shell radius and a margin around."""
-    pts = [f.path for f in frames]
+    pts = [f.path for f in frames] + [
+        np.asarray(a, float).reshape(-1, 2) for a in (scene.cloud, scene.ellipse) if a is not None
+    ]
     if scene.target is not None:
         pts.append(np.asarray(scene.target, float)[None, :2])
-    if scene.cloud is not None and len(scene.cloud):
-        pts.append(np.asarray(scene.cloud, float))
-    if scene.ellipse is not None:
-        pts.append(np.asarray(scene.ellipse, float))
     p = np.concatenate(pts)
     p = p[np.all(np.isfinite(p), axis=1)]
     pad = 1.25 * float(scene.params.R0)
-    lo, hi = p.min(0) - pad, p.max(0) + pad
-    return lo, hi
+    return p.min(0) - pad, p.max(0) + pad
 
 
 def _status(t: float, f: BodyFrames, k: int) -> str:
     rates = ", ".join(f"{v:+6.1f}" for v in f.chi_dot[k])
     return f"t = {t:5.2f} s   speed {1e3 * f.speed[k]:6.1f} mm/s\nwheel rates chi_dot = ({rates}) rad/s"
+
+
+#: the lines of a robot, by their `BodyFrames` field, and their style (the robot's colour unless named)
+_LINES = {
+    "meridians": dict(lw=0.8),
+    "equator": dict(color="k", lw=1.0),
+    "platform": dict(color="0.25", lw=2.0),
+    "wheels": dict(color="C3", lw=1.2),
+    "rollers": dict(color="C2", lw=1.5),
+    "mast": dict(color="0.4", lw=1.0),
+    "com": dict(color="k", marker="o", ls="none", ms=4),
+    "path": dict(lw=1.6),
+}
 
 
 class _Robot:
@@ -81,58 +76,35 @@ class _Robot:
         self.template = template
         self.shell = Poly3DCollection(template, facecolor=colour, edgecolor="none", alpha=0.10)
         ax.add_collection3d(self.shell)
-        nan = [np.nan]
-        self.meridians = ax.plot(nan, nan, nan, "-", color=colour, lw=0.8, alpha=0.8)[0]
-        self.equator = ax.plot(nan, nan, nan, "-", color="k", lw=1.0, alpha=0.7)[0]
-        self.platform = ax.plot(nan, nan, nan, "-", color="0.25", lw=2.0)[0]
-        self.wheels = ax.plot(nan, nan, nan, "-", color="C3", lw=1.2)[0]
-        self.rollers = ax.plot(nan, nan, nan, "-", color="C2", lw=1.5)[0]
-        self.mast = ax.plot(nan, nan, nan, "-", color="0.4", lw=1.0)[0]
-        self.com = ax.plot(nan, nan, nan, "o", color="k", ms=4)[0]
-        self.path = ax.plot(nan, nan, nan, "-", color=colour, lw=1.6)[0]
-        self.artists = [
-            self.shell,
-            self.meridians,
-            self.equator,
-            self.platform,
-            self.wheels,
-            self.rollers,
-            self.mast,
-            self.com,
-            self.path,
-        ]
+        self.lines = {
+            k: ax.plot([np.nan], [np.nan], [np.nan], **{"color": colour, **st})[0] for k, st in _LINES.items()
+        }
+        self.artists = [self.shell, *self.lines.values()]
 
     def style(self, ghost: bool, colour: str, label: str, crowd: int = 1) -> None:
         a = 0.35 if ghost else 1.0
-        ls = "--" if ghost else "-"
+        lines = self.lines
         for art in self.artists[1:]:
-            art.set_alpha(a * (0.8 if art is self.meridians else 1.0))
+            art.set_alpha(a * (0.8 if art is lines["meridians"] else 1.0))
         self.shell.set_facecolor(colour)
         self.shell.set_alpha((0.05 if ghost else 0.10) / max(1, crowd - 1))  # robots drawn over each other
-        self.meridians.set_color(colour)
-        self.path.set_color(colour)
-        self.path.set_linestyle(ls)
-        self.platform.set_linestyle(ls)
-        self.path.set_label(label)
+        lines["meridians"].set_color(colour)
+        lines["path"].set_color(colour)
+        for k in ("path", "platform"):
+            lines[k].set_linestyle("--" if ghost else "-")
+        lines["path"].set_label(label)
 
     def visible(self, on: bool) -> None:
         for art in self.artists:
             art.set_visible(on)
 
     def show(self, f: BodyFrames, k: int) -> None:
-        def put(line, pts):
-            line.set_data_3d(pts[..., 0], pts[..., 1], pts[..., 2])
-
         self.shell.set_verts(self.template + f.centre[k])
-        put(self.meridians, f.meridians[k])
-        put(self.equator, f.equator[k])
-        put(self.platform, f.platform[k])
-        put(self.wheels, f.wheels[k])
-        put(self.rollers, f.rollers[k])
-        put(self.mast, f.mast[k])
-        put(self.com, f.com[k][None])
-        p = f.path[: k + 1]
-        self.path.set_data_3d(p[:, 0], p[:, 1], np.zeros(len(p)))
+        path = f.path[: k + 1]
+        at = {name: getattr(f, name)[k] for name in _LINES if name != "path"}
+        at |= {"com": f.com[k][None], "path": np.c_[path, np.zeros(len(path))]}
+        for name, pts in at.items():
+            self.lines[name].set_data_3d(pts[..., 0], pts[..., 1], pts[..., 2])
 
 
 class _Video:
@@ -158,7 +130,8 @@ class _Video:
         self.title = fig.text(0.01, 0.985, "", fontsize=small + 0.5, va="top", ha="left")
         self.status = fig.text(0.01, 0.01, "", fontsize=small, va="bottom", ha="left", family="monospace")
         self.extra = fig.text(0.99, 0.93, "", fontsize=small, va="top", ha="right", family="monospace")
-        template = _sphere_template(R0)
+        verts, quads = sphere_grid(R0, 14, 8)
+        template = verts[quads]
         self.robots = [_Robot(ax, template, COLOURS[i % len(COLOURS)]) for i in range(bodies)]
         nan = [np.nan]
         self.target = ax.plot(nan, nan, nan, "x", color="C3", ms=9, mew=2, label="target")[0]
@@ -261,7 +234,7 @@ def render(
     blit: bool = True,
 ) -> int:
     """Write the `scenes`, one after the other, as a video to `path` (`.mp4` or `.gif`,
-    atomically): `fps` frames per second, `speed` the playback factor (a run of `T` s lasts
+    atomically; checked by `api.check_options`): `fps` frames per second, `speed` the playback factor (a run of `T` s lasts
     `T / speed` s), `size` `(width, height)` [pixels], `view` `"3d"` or `"top"`. `progress`: as
     the library's (`jsphere._runtime.progress`); a bar counts the frames. `blit=False` draws
     each frame in full and lets the writer grab it, as matplotlib's animations do (the
@@ -269,17 +242,12 @@ def render(
     from ..base import pyplot
 
     path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in VIDEO_SUFFIXES:
-        raise ValueError(f"{path}: a video ends in .mp4 or .gif; got {path.suffix or 'no suffix'!r}.")
-    if view not in VIEWS:
-        raise ValueError(f"view must be '3d' or 'top'; got {view!r}.")
     plt = pyplot()
     W, H = (int(v) + int(v) % 2 for v in size)  # H.264 wants even sizes
     prepared = [(s, *scene_frames(s, fps, speed)) for s in scenes]
     total = sum(len(p[1]) for p in prepared)
     R0 = float(prepared[0][0].params.R0)
-    video = _Video(plt, suffix, (W, H), fps, view, R0, max(len(s.bodies) for s in scenes), blit)
+    video = _Video(plt, path.suffix.lower(), (W, H), fps, view, R0, max(len(s.bodies) for s in scenes), blit)
 
     def write(tmp):
         with warnings.catch_warnings():

@@ -15,11 +15,9 @@ from pathlib import Path
 import numpy as np
 
 from ..._runtime.files import atomic_write_text
-from .scene import Scene
-from .video import _limits, _status, scene_frames
+from .scene import Scene, sphere_grid
+from .video import COLOURS, _limits, _status, scene_frames
 
-#: the trace colours of the robots of a scene (as the video's)
-_COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b", "#e377c2", "#bcbd22", "#17becf")
 #: the traces of one robot, in order
 _PARTS = ("shell", "meridians", "equator", "platform", "wheels", "rollers", "mast", "path")
 
@@ -32,22 +30,6 @@ def _xyz(pts: np.ndarray, kind: str = "scatter3d") -> dict:
         v = np.round(np.asarray(pts[..., i], float), 4)
         out[key] = [None if not np.isfinite(a) else float(a) for a in v]
     return out
-
-
-def _sphere_mesh(R0: float, n_lon: int = 16, n_lat: int = 10):
-    """Vertices `(V, 3)` and triangles `(i, j, k)` of a sphere of radius `R0` about the origin
-    (a longitude-latitude grid, each vertex stored once)."""
-    lon = np.linspace(0.0, 2 * np.pi, n_lon, endpoint=False)
-    lat = np.linspace(-np.pi / 2, np.pi / 2, n_lat + 1)
-    Lo, La = np.meshgrid(lon, lat, indexing="ij")
-    verts = R0 * np.stack([np.cos(La) * np.cos(Lo), np.cos(La) * np.sin(Lo), np.sin(La)], -1).reshape(-1, 3)
-    idx = lambda a, b: (a % n_lon) * (n_lat + 1) + b
-    a, b = np.meshgrid(np.arange(n_lon), np.arange(n_lat), indexing="ij")
-    a, b = a.ravel(), b.ravel()
-    i = np.concatenate([idx(a, b), idx(a, b)])
-    j = np.concatenate([idx(a + 1, b), idx(a + 1, b + 1)])
-    k = np.concatenate([idx(a + 1, b + 1), idx(a, b + 1)])
-    return verts, (i, j, k)
 
 
 #: the most points of a path in one frame (the path drawn so far, thinned evenly)
@@ -74,19 +56,28 @@ def _traces(go, n_bodies: int, triangles) -> list:
     """The figure's traces, styled and named (the frames hold their data): `_PARTS` of each of
     `n_bodies` robots (`triangles`: the shell mesh's), then the target, the stop points and the
     ellipse."""
+    from matplotlib.colors import to_hex
+
     ti, tj, tk = triangles
     traces = []
     for b in range(n_bodies):
-        c = _COLOURS[b % len(_COLOURS)]
-        traces += [
+        c = to_hex(COLOURS[b % len(COLOURS)])  # the video's
+        lines = (
+            (f"meridians {b + 1}", c, 3),
+            ("equator", "black", 3),
+            ("platform", "#444444", 6),
+            ("omniwheels", "#d62728", 4),
+            ("roller axes", "#2ca02c", 5),
+        )
+        traces.append(
             go.Mesh3d(
                 i=ti, j=tj, k=tk, color=c, opacity=0.12, hoverinfo="skip", name=f"shell {b + 1}", showlegend=False
-            ),
-            go.Scatter3d(mode="lines", line=dict(color=c, width=3), name=f"meridians {b + 1}", showlegend=False),
-            go.Scatter3d(mode="lines", line=dict(color="black", width=3), name="equator", showlegend=False),
-            go.Scatter3d(mode="lines", line=dict(color="#444444", width=6), name="platform", showlegend=False),
-            go.Scatter3d(mode="lines", line=dict(color="#d62728", width=4), name="omniwheels", showlegend=False),
-            go.Scatter3d(mode="lines", line=dict(color="#2ca02c", width=5), name="roller axes", showlegend=False),
+            )
+        )
+        traces += [
+            go.Scatter3d(mode="lines", line=dict(color=co, width=w), name=nm, showlegend=False) for nm, co, w in lines
+        ]
+        traces += [
             go.Scatter3d(
                 mode="lines+markers",
                 line=dict(color="#666666", width=3),
@@ -191,12 +182,11 @@ def write_html(scenes: list[Scene], path, *, fps: float, speed: float, size=(900
     import plotly.graph_objects as go
 
     path = Path(path)
-    if path.suffix.lower() != ".html":
-        raise ValueError(f"{path}: the viewer is an HTML file; give a path ending in .html.")
     prepared = [(s, *scene_frames(s, fps, speed)) for s in scenes]
     n_bodies = max(len(s.bodies) for s in scenes)
     R0 = float(scenes[0].params.R0)
-    verts, triangles = _sphere_mesh(R0)
+    verts, q = sphere_grid(R0, 16, 10)
+    triangles = (np.r_[q[:, 0], q[:, 0]], np.r_[q[:, 1], q[:, 2]], np.r_[q[:, 2], q[:, 3]])
     lo = np.min([_limits(s, f)[0] for s, _, f, _ in prepared], axis=0)
     hi = np.max([_limits(s, f)[1] for s, _, f, _ in prepared], axis=0)
     frames, run_times = _frames(go, prepared, n_bodies, verts)
