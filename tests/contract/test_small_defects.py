@@ -43,7 +43,8 @@ def test_design_prints_the_criterion_itself_not_the_penalised_objective(paper, m
     free = FreeParams(paper, "j")
     pr = problem(paper, free, spec, Noise(), Grid(rate=5.0, substeps=1))
     lines = []
-    excitation._optimise(Progress(lines.append), pr, jsphere.Limits(), free, 1, 2, 0, 0.02)
+    o = excitation.DesignOptions(restarts=1, steps=2, seed=0, learning_rate=0.02)
+    excitation._optimise(Progress(lines.append), pr, jsphere.Limits(), free, o)
     steps = [x for x in lines if "step" in x and "/2" in x]
     assert len(steps) == 3 and all(NAME in x for x in steps)
     printed = [float(re.search(re.escape(NAME) + r" (-?[0-9.]+)", x).group(1)) for x in steps]
