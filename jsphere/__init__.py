@@ -72,6 +72,7 @@ _EXPORTS = {
     "model.limits": ("Limits",),
     "model.names": ("get_value", "parse_name", "set_value"),
     "model.params": ("RobotParams",),
+    "model.sensors": ("Mounting", "imu_readings"),
     "model.state": ("State",),
     "model.uncertainty": ("Uncertainty",),
     "montecarlo.options": ("StudyOptions",),
