@@ -36,6 +36,13 @@ _EXPORTS = {
     "capture.pose": ("markers_to_trial", "rigid_body_pose"),
     "capture.qualisys": ("read_qualisys_tsv",),
     "capture.rosbag": ("read_rosbag_inputs", "read_rosbag_poses"),
+    "capture.onboard": (
+        "OnboardNoise",
+        "OnboardTrial",
+        "read_onboard_trial",
+        "synthetic_onboard_trial",
+        "write_onboard_trial",
+    ),
     "capture.synthetic": ("random_inputs", "synthetic_markers", "synthetic_trial"),
     "capture.trial": ("Trial", "read_trial", "read_trials", "write_trial"),
     "capture.validation": ("CaptureWarning",),
