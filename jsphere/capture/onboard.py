@@ -27,8 +27,8 @@ from ..controls import Torques, WheelSpeeds
 from ..model.params import RobotParams
 from ..model.sensors import Mounting, imu_readings
 from ..model.state import State
-from .text import _check_times, _input_columns, _numbers, cells, check_unique_columns, comments, csv_rows, read_text
-from .validation import INPUT_PREFIX, KINDS
+from .text import _input_columns, _numbers, cells, check_unique_columns, comments, csv_rows, read_text
+from .validation import INPUT_PREFIX, KINDS, _check_increasing, _where
 
 #: the sensor columns of an onboard-sensor trial, before `chi_1..N` and the inputs
 SENSOR_COLUMNS = ("t", "gyro_x", "gyro_y", "gyro_z", "acc_x", "acc_y", "acc_z")
@@ -36,20 +36,28 @@ SENSOR_COLUMNS = ("t", "gyro_x", "gyro_y", "gyro_z", "acc_x", "acc_y", "acc_z")
 HOLDS = ("zero-order", "none")
 
 
+def _array(x) -> np.ndarray:
+    return np.asarray(x, dtype=float)
+
+
 class OnboardTrial(eqx.Module):
     """One onboard-sensor trial, as numpy arrays (module docstring for the columns).
 
     **Fields:** `t` `(M,)` [s], strictly increasing; `gyro`, `acc` `(M, 3)` in the IMU's axes;
     `chi` `(M, N)` wheel angles [rad] from 0; `inputs` `(M, N)`: torques `K_i` or wheel speeds
-    `chi_dot_i`; `kind`: `"torques"` or `"wheel_speeds"`; `hold`: True where the inputs are held
-    between samples (zero-order); `name`, `source` as for `Trial`. Every value is finite.
+    `chi_dot_i`; `kind`: `"torques"` or `"wheel_speeds"`; `hold`: True where the torques are
+    held between samples (zero-order); `name`, `source` as for `Trial`.
+
+    Construction checks what the file reader checks (`InputError` naming the sample): finite
+    values, strictly increasing times, encoder angles from 0 and unwrapped (no step of more
+    than half a turn between samples).
     """
 
-    t: np.ndarray
-    gyro: np.ndarray
-    acc: np.ndarray
-    chi: np.ndarray
-    inputs: np.ndarray
+    t: np.ndarray = eqx.field(converter=_array)
+    gyro: np.ndarray = eqx.field(converter=_array)
+    acc: np.ndarray = eqx.field(converter=_array)
+    chi: np.ndarray = eqx.field(converter=_array)
+    inputs: np.ndarray = eqx.field(converter=_array)
     kind: str = eqx.field(static=True)
     hold: bool = eqx.field(static=True, default=False)
     name: str = eqx.field(static=True, default="trial")
@@ -70,6 +78,7 @@ class OnboardTrial(eqx.Module):
                 raise InputError(f"{where}: {name} must have shape ({M}, {cols or 'N'}); got {a.shape}.")
         if self.chi.shape != self.inputs.shape:
             raise InputError(f"{where}: chi must have the inputs' shape {self.inputs.shape}; got {self.chi.shape}.")
+        _check_values(self.t, np.concatenate([self.gyro, self.acc, self.chi, self.inputs], axis=1), self.kind, where)
 
     @property
     def n_wheels(self) -> int:
@@ -86,37 +95,37 @@ class OnboardTrial(eqx.Module):
         return cls.from_samples(jnp.asarray(self.t), jnp.asarray(self.inputs), kind="zoh" if self.hold else "cubic")
 
 
-def _array(x) -> np.ndarray:
-    return np.asarray(x, dtype=float)
+def _check_values(t, values, kind: str, where: str, lines: np.ndarray | None = None) -> None:
+    """Check the times and the columns `gyro_x..acc_z, chi_1..N, inputs` of `values` `(M, 6 +
+    2N)`; errors name the file's `lines` where given, else the samples."""
+    n = (values.shape[1] - 6) // 2
+    bad_t = np.nonzero(~np.isfinite(t))[0]
+    if bad_t.size:
+        raise InputError(
+            f"{_where(where, lines, int(bad_t[0]))}: the time is blank or not finite; every row needs one."
+        )
+    _check_increasing(t, where, lines)
 
+    def row(k):
+        return _where(where, lines, int(k))
 
-def onboard_trial(t, gyro, acc, chi, inputs, kind: str, *, hold=False, name="trial", source=None) -> OnboardTrial:
-    """An `OnboardTrial` from arrays, checked as the file reader checks them: finite values,
-    strictly increasing times, encoder angles from 0 and unwrapped (a step of more than half a
-    turn between samples)."""
-    t, gyro, acc, chi, inputs = map(_array, (t, gyro, acc, chi, inputs))
-    tr = OnboardTrial(t, gyro, acc, chi, inputs, kind, bool(hold), name, source)
-    _check_values(tr, None)
-    return tr
-
-
-def _check_values(tr: OnboardTrial, lines: np.ndarray | None) -> None:
-    where = tr.source or f"trial {tr.name!r}"
-    row = (lambda k: f"{where}, line {int(lines[k])}") if lines is not None else (lambda k: f"{where}, sample {k + 1}")
-    _check_times(tr.t, lines if lines is not None else np.arange(1, tr.t.size + 1), where)
-    columns = [*SENSOR_COLUMNS[1:], *(f"chi_{i + 1}" for i in range(tr.n_wheels)), *tr.input_names]
-    values = np.concatenate([tr.gyro, tr.acc, tr.chi, tr.inputs], axis=1)
+    columns = [
+        *SENSOR_COLUMNS[1:],
+        *(f"chi_{i + 1}" for i in range(n)),
+        *(f"{INPUT_PREFIX[kind]}{i + 1}" for i in range(n)),
+    ]
     bad = np.argwhere(~np.isfinite(values))
     if bad.size:
         k, j = bad[0]
         raise InputError(f"{row(k)}, column {columns[j]}: blank or not finite; onboard trials have no gaps.")
-    if np.any(np.abs(tr.chi[0]) > 1e-9):
-        i = int(np.argmax(np.abs(tr.chi[0]) > 1e-9))
+    chi = values[:, 6 : 6 + n]
+    if np.any(np.abs(chi[0]) > 1e-9):
+        i = int(np.argmax(np.abs(chi[0]) > 1e-9))
         raise InputError(
-            f"{row(0)}, column chi_{i + 1}: the encoder angle starts at {tr.chi[0, i]:.6g} rad; encoder angles start "
+            f"{row(0)}, column chi_{i + 1}: the encoder angle starts at {chi[0, i]:.6g} rad; encoder angles start "
             "at 0: subtract each wheel's first angle."
         )
-    jumps = np.argwhere(np.abs(np.diff(tr.chi, axis=0)) > math.pi)
+    jumps = np.argwhere(np.abs(np.diff(chi, axis=0)) > math.pi)
     if jumps.size:
         k, i = jumps[0]
         raise InputError(
@@ -160,12 +169,11 @@ def read_onboard_trial(path) -> OnboardTrial:
     data, lines = _numbers(rows[k:], 1, cols, source, names, width=len(header), line0=k)
     if data.shape[0] < 2:
         raise InputError(f"{source}: the trial is too short: fewer than two data rows after the header.")
-    tr = OnboardTrial(
+    _check_values(data[:, 0], data[:, 1:], kind, source, lines)
+    return OnboardTrial(
         data[:, 0], data[:, 1:4], data[:, 4:7], data[:, 7 : 7 + n], data[:, 7 + n :], kind,
         hold == "zero-order", meta.get("name", path.stem), source,
     )  # fmt: skip
-    _check_values(tr, lines)
-    return tr
 
 
 def onboard_trial_to_csv(trial: OnboardTrial) -> str:
@@ -233,4 +241,4 @@ def synthetic_onboard_trial(
         chi = np.round(chi / step) * step
     u = np.asarray(eval_controls(controls, jnp.asarray(ts, params.R0.dtype)))
     kind = "wheel_speeds" if isinstance(controls, WheelSpeeds) else "torques"
-    return onboard_trial(ts, gyro, acc, chi, u, kind, name=name)
+    return OnboardTrial(ts, gyro, acc, chi, u, kind, name=name)

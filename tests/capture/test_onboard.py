@@ -13,7 +13,7 @@ import jsphere
 from jsphere._runtime.errors import InputError
 from jsphere.capture.onboard import (
     OnboardNoise,
-    onboard_trial,
+    OnboardTrial,
     read_onboard_trial,
     synthetic_onboard_trial,
     write_onboard_trial,
@@ -115,4 +115,16 @@ def test_a_held_torque_trial_replays_its_samples_held(tmp_path):
     K = tr.controls().fn(jnp.asarray(0.25))
     assert float(K[0]) == pytest.approx(0.1)
     with pytest.raises(InputError, match="wheel-speed"):
-        onboard_trial(tr.t, tr.gyro, tr.acc, tr.chi, tr.inputs, "wheel_speeds", hold=True)
+        OnboardTrial(tr.t, tr.gyro, tr.acc, tr.chi, tr.inputs, "wheel_speeds", hold=True)
+
+
+def test_arrays_are_checked_as_a_file_is_naming_the_sample(exact):
+    tr, _ = exact
+    chi = tr.chi.copy()
+    chi[5:, 1] += 2 * np.pi
+    with pytest.raises(InputError, match=r"trial 'synthetic', sample 6, column chi_2: .*half a turn"):
+        OnboardTrial(tr.t, tr.gyro, tr.acc, chi, tr.inputs, tr.kind, name=tr.name)
+    acc = tr.acc.copy()
+    acc[3, 0] = np.nan
+    with pytest.raises(InputError, match=r"sample 4, column acc_x: blank or not finite"):
+        OnboardTrial(tr.t, tr.gyro, acc, tr.chi, tr.inputs, tr.kind, name=tr.name)
