@@ -27,7 +27,7 @@ from ..controls import Torques, WheelSpeeds
 from ..model.params import RobotParams
 from ..model.sensors import Mounting, imu_readings
 from ..model.state import State
-from .text import _input_columns, _numbers, cells, check_unique_columns, comments, csv_rows, read_text
+from .text import _input_columns, _numbers, cells, check_unique_columns, headed_rows
 from .validation import INPUT_PREFIX, KINDS, _check_increasing, _where
 
 #: the sensor columns of an onboard-sensor trial, before `chi_1..N` and the inputs
@@ -139,14 +139,8 @@ def read_onboard_trial(path) -> OnboardTrial:
     header are comments (`# name:`, `# hold: zero-order`). Raises `InputError` (a
     `ValueError`) naming the file, the line and the column of the first problem."""
     path = Path(path)
-    source = str(path)
-    if not path.exists():
-        raise FileNotFoundError(f"trial file {path} does not exist.")
-    rows = csv_rows(read_text(path), source)
-    meta, k = comments(rows)
-    if k == len(rows):
-        raise InputError(f"{source}: no header line; the first non-comment line must name the columns.")
-    header, at = [h.strip() for h in rows[k]], f"{source}, line {k + 1}"
+    source, meta, rows, header_line = headed_rows(path, ", ".join(SENSOR_COLUMNS) + ", chi_1, ...")
+    header, at = [h.strip() for h in rows[0]], f"{source}, line {header_line}"
     missing = [c for c in SENSOR_COLUMNS if c not in header]
     if missing:
         raise InputError(
@@ -166,7 +160,7 @@ def read_onboard_trial(path) -> OnboardTrial:
     names = [*SENSOR_COLUMNS, *(f"chi_{i}" for i in range(1, n + 1)), *(header[j] for j in in_cols)]
     check_unique_columns(header, at, names)
     cols = [header.index(c) for c in SENSOR_COLUMNS] + [chi[i] for i in range(1, n + 1)] + in_cols
-    data, lines = _numbers(rows[k:], 1, cols, source, names, width=len(header), line0=k)
+    data, lines = _numbers(rows, 1, cols, source, names, width=len(header), line0=header_line - 1)
     if data.shape[0] < 2:
         raise InputError(f"{source}: the trial is too short: fewer than two data rows after the header.")
     _check_values(data[:, 0], data[:, 1:], kind, source, lines)

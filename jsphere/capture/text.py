@@ -116,6 +116,21 @@ def comments(rows: list[list[str]]) -> tuple[dict[str, str], int]:
     return meta, k
 
 
+def headed_rows(path, columns: str) -> tuple[str, dict[str, str], list[list[str]], int]:
+    """A trial file read up to its header: `(source, comments, rows, header_line)`, the rows
+    from the header row on and its 1-based line. A missing file is a `FileNotFoundError`, a
+    file without a header row an `InputError` saying it must name the `columns`."""
+    path = Path(path)
+    source = str(path)
+    if not path.exists():
+        raise FileNotFoundError(f"trial file {path} does not exist.")
+    rows = csv_rows(read_text(path), source)
+    meta, k = comments(rows)
+    if k == len(rows):
+        raise InputError(f"{source}: no header line; the first non-comment line must name the columns {columns}.")
+    return source, meta, rows[k:], k + 1
+
+
 #: the end of the error for a trial with both input families
 _BOTH = "; a trial holds one kind of input (wheel speeds or torques): keep one set of columns."
 

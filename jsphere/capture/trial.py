@@ -26,7 +26,7 @@ from .._runtime.files import atomic_write_text
 from ..controls import Torques, WheelSpeeds
 from ..model.params import RobotParams
 from ..model.state import State
-from .text import _input_columns, _numbers, cells, check_unique_columns, comments, csv_rows, read_text, separator_hint
+from .text import _input_columns, _numbers, cells, check_unique_columns, headed_rows, separator_hint
 from .units import TRIAL_UNITS, detect_position_units, resolve_units
 from .validation import INPUT_PREFIX, POSE_COLUMNS, _checked, warn_implausible
 from .validation import CaptureWarning as CaptureWarning  # (the warning of every trial reader)
@@ -157,16 +157,7 @@ def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> T
     than 10 valid frames or under 0.2 s), too many gaps, wrong units.
     """
     path = Path(path)
-    source = str(path)
-    if not path.exists():
-        raise FileNotFoundError(f"trial file {path} does not exist.")
-    rows = csv_rows(read_text(path), source)
-    meta, k = comments(rows)
-    if k == len(rows):
-        raise ValueError(
-            f"{source}: no header line; the first non-comment line must name the columns t, x, y, qw, qx, qy, qz, ..."
-        )
-    header_line, rows = k + 1, rows[k:]
+    source, meta, rows, header_line = headed_rows(path, "t, x, y, qw, qx, qy, qz, ...")
     header = [h.strip() for h in rows[0]]
     missing = [c for c in POSE_COLUMNS if c not in header]
     if missing:
