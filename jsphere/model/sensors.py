@@ -24,6 +24,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .dynamics import accelerations
+from .kinematics import rolling_velocity
 from .linalg import cross, matvec
 from .params import RobotParams
 from .rotations import rotmat
@@ -61,7 +62,7 @@ def specific_force(
 ) -> Float[Array, "3"]:
     """The specific force at the platform point `r`, `a_r + g gamma` (module docstring),
     platform components [m/s^2]."""
-    v = params.R0 * cross(Omega, gamma)
+    v = rolling_velocity(params, gamma, Omega)
     a_C = params.R0 * (cross(Omega_dot, gamma) + cross(Omega, cross(gamma, omega))) + cross(omega, v)
     a_r = a_C + cross(omega_dot, r) + cross(omega, cross(omega, r))
     return a_r + params.g * gamma
