@@ -75,10 +75,25 @@ class FitData:
     t_start: tuple[float, ...]
     max_offset: float = 0.0
 
+    #: the model of a trial (`jsphere.identify.residuals._functions`)
+    measure = "pose"
+    #: the residuals of one frame: position (2) and orientation (3)
+    width = 5
+
     @property
     def nuisance(self) -> tuple[str, ...]:
         """The names of each trial's nuisance parameters (`nuisance_names`)."""
         return nuisance_names(self.kind, self.max_offset > 0)
+
+    @property
+    def n_measured(self) -> int:
+        """The measured values of all trials: 2 per measured position, 3 per orientation."""
+        return int(2 * self.wpos.sum() + 3 * self.wrot.sum())
+
+    def aux_shapes(self) -> tuple[tuple[int, ...], ...]:
+        """The shapes of a trial's simulated poses `(x, y, q)`."""
+        M = self.ts.shape[1]
+        return (M,), (M,), (M, 4)
 
     def arrays(self) -> dict[str, jax.Array]:
         return {k: to_jax(getattr(self, k)) for k in ARRAYS}

@@ -46,6 +46,7 @@ from .._runtime.errors import InputError, SolverFailure
 from .._runtime.files import remove_stale_temporaries
 from .._runtime.precision import warn_if_float32_by_default
 from .._runtime.progress import Progress
+from ..capture.onboard import OnboardTrial
 from ..model.names import parse_name
 from ..model.params import RobotParams
 from ..numerics.lm import LM_KEYS, LevenbergMarquardt, LMState, iterate
@@ -60,6 +61,7 @@ from .checkpoint import (
 )
 from .data import FitData, pack_trials
 from .free import FreeParams, _overlaps, _split_names, apply_fixes
+from .onboard import CHANNELS, START_SIGMA, UNITS, bias_guess, channel_sigmas, pack_onboard
 from .options import FIT_SOLVER, FIT_TOLERANCES, FitOptions, fit_options
 from .report import FitResult, fit_result
 from .residuals import _Functions, _functions
@@ -114,11 +116,12 @@ def fit(
     """
     t_begin = time.perf_counter()
     prog = Progress(progress)
-    o = fit_options(options, deprecated).checked()
+    onboard = _onboard(trials)
+    o = fit_options(options, deprecated).checked(onboard=onboard)
     _check_free_and_fixed(free, fix)
     params = apply_fixes(params, fix)
     fp_ = FreeParams(params, free, bounds)
-    data = pack_trials(trials, params, max_offset=o.max_offset)
+    data = _pack(trials, params, o, onboard)
     _check_unknowns(data, fp_)
     warn_if_float32_by_default(params.R0.dtype, "fit")
     run, st = _setup(data, fp_, params, o, checkpoint, prog, t_begin)
@@ -144,6 +147,35 @@ def outlier_keys(trials: Sequence) -> list[str]:
 # ----------------------------------------------------------------------------- checks
 
 
+def _onboard(trials: Sequence) -> bool:
+    """Whether the trials are onboard-sensor trials (`OnboardTrial`); trials of both kinds
+    together are an `InputError`."""
+    trials = list(trials)
+    n = sum(isinstance(t, OnboardTrial) for t in trials)
+    if 0 < n < len(trials):
+        raise InputError(
+            f"fit: {n} onboard-sensor trial(s) and {len(trials) - n} motion-capture trial(s) given together; a fit takes "
+            "trials of one kind: fit them separately (docs/onboard.md)."
+        )
+    return bool(trials) and n == len(trials)
+
+
+def _pack(trials: Sequence, params: RobotParams, o: FitOptions, onboard: bool):
+    """The trials packed: `FitData` (captured poses) or `OnboardData` (onboard sensors, which
+    need neither a clock offset, their sensors and inputs sharing one clock, nor multiple
+    shooting, their trials starting at rest)."""
+    if not onboard:
+        return pack_trials(trials, params, max_offset=o.max_offset)
+    if o.fit_time_offset:
+        raise InputError(
+            "fit: fit_time_offset (--fit-time-offset) is for motion-capture trials; an onboard trial's sensors and inputs "
+            "share one clock."
+        )
+    if o.shooting == "multiple":
+        raise InputError("fit: onboard-sensor trials are fitted by single shooting from rest; leave shooting at 'auto'.")
+    return pack_onboard(trials, params, o.mounting)
+
+
 def _check_free_and_fixed(free, fix) -> None:
     if fix:
         free_list = _split_names(free) if isinstance(free, str) else list(free)
@@ -156,7 +188,7 @@ def _check_free_and_fixed(free, fix) -> None:
 
 def _check_unknowns(data: FitData, free: FreeParams) -> None:
     P, T, n_nu = free.size, data.ts.shape[0], len(data.nuisance)
-    n_res = int(2 * data.wpos.sum() + 3 * data.wrot.sum())
+    n_res = data.n_measured
     if n_res <= P + T * n_nu:
         raise InputError(
             f"fit: the trials hold {n_res} measured values but the fit has {P + T * n_nu} unknowns ({P} free parameters and "
@@ -165,7 +197,10 @@ def _check_unknowns(data: FitData, free: FreeParams) -> None:
 
 
 def _use_multiple(shooting: str, data: FitData, segment: float) -> bool:
-    """`"auto"`: multiple shooting when a trial lasts more than two segments."""
+    """`"auto"`: multiple shooting when a trial lasts more than two segments (never for onboard
+    trials, which start at rest)."""
+    if data.measure != "pose":
+        return False
     return shooting == "multiple" or (shooting == "auto" and float(np.max(data.t1)) > 2.0 * segment)
 
 
@@ -280,11 +315,15 @@ def _setup(
     kind, S, P, T = data.kind, o.n_starts, free.size, data.ts.shape[0]
     multiple = _use_multiple(o.shooting, data, o.segment)
     seg = _shooting.segment_trials(data, o.segment) if multiple else None
-    fns = _functions(free, kind, o.rtol, o.atol, o.max_steps, o.ode_solver, o.max_offset, split=True)
-    sig = np.array([o.sigma_pos or 1e-3, o.sigma_rot or math.radians(0.5)])
+    fns = _functions(free, kind, o.rtol, o.atol, o.max_steps, o.ode_solver, o.max_offset, True, data.measure)
     rng = np.random.default_rng(o.seed)
     theta = start_design(free, S, o.spread, rng)
-    nu = np.repeat(nuisance_guess(data, params)[None], S, 0)
+    if data.measure == "pose":
+        sig = np.array([o.sigma_pos or 1e-3, o.sigma_rot or math.radians(0.5)])
+        nu = np.repeat(nuisance_guess(data, params)[None], S, 0)
+    else:
+        sig = np.array([s or s0 for s, s0 in zip(o.sigmas_onboard, START_SIGMA)])
+        nu = np.repeat(bias_guess(data, params)[None], S, 0)
     ms, nu_ms = None, None
     if multiple:
         position = np.concatenate([np.arange(len(c) - 1) for c in seg.boundaries])
@@ -340,14 +379,9 @@ def _layout(run: _Run, stage: int) -> dict[str, tuple]:
         }
         nu_shape = (G, n_nu)
     else:
-        K = 5 * run.data.ts.shape[1]
-        ev = {
-            "res": (S, T, K),
-            "J": (S, T, K, P + n_nu),
-            "pose_x": (S, T, K // 5),
-            "pose_y": (S, T, K // 5),
-            "pose_q": (S, T, K // 5, 4),
-        }
+        K = run.data.width * run.data.ts.shape[1]
+        ev = {"res": (S, T, K), "J": (S, T, K, P + n_nu)}
+        ev |= {f"pose_{c}": (S, T, *shape) for c, shape in zip("xyq", run.data.aux_shapes())}
         nu_shape = (T, n_nu)
     return _checkpoint_layout(stage, S, P, nu_shape, run.adam_shapes, ev)
 
@@ -478,17 +512,18 @@ def _solve_multiple(run: _Run, out, lam):
     return (np.asarray(dg), dn), np.asarray(pred)
 
 
-def _first_failure(data: FitData, pose, ok) -> str:
+def _first_failure(data, pose, ok) -> str:
     """Where the first start fails: its first non-finite residual (trial, time, channel), or
     the first trial whose solve did not finish."""
-    x, y, q = (np.asarray(a[0]) for a in pose)
+    channels = ("x", "y", "orientation") if data.measure == "pose" else CHANNELS
+    arrays = [np.asarray(a[0]) for a in pose]
     for i in range(data.ts.shape[0]):
         m = data.lengths[i]
-        bad = np.stack([~np.isfinite(x[i, :m]), ~np.isfinite(y[i, :m]), ~np.all(np.isfinite(q[i, :m]), -1)])
+        bad = np.stack([~np.isfinite(a[i, :m]).reshape(m, -1).all(-1) for a in arrays])
         hit = np.flatnonzero(bad.any(0))
         if hit.size:
             k = int(hit[0])
-            channel = ("x", "y", "orientation")[int(np.argmax(bad[:, k]))]
+            channel = channels[int(np.argmax(bad[:, k]))]
             t = data.ts[i, k] + data.t_start[i]
             return f"the first non-finite residual is in trial {data.names[i]!r} at t = {t:.6g} s (sample {k}), channel {channel}"
     failed = np.flatnonzero(~np.asarray(ok)[0])
@@ -646,22 +681,24 @@ def _single_shooting(run: _Run, st: _State) -> None:
         cost = np.asarray(cost)
         st.stage_converged = bool(np.asarray(st.lm.converged)[int(np.argmin(cost))])
         st.lm = None
-        if st.stage == 1 and run.options.estimate_sigma:
-            est = _estimate_sigma(
-                np.asarray(out["res"])[int(np.argmin(cost))],
-                run.data,
-                st.sig,
-                run.P + run.T * run.n_nu,
-                run.options.loss,
-            )
+        onboard = run.data.measure != "pose"
+        if st.stage == 1 and (run.options.estimate_sigma_onboard if onboard else run.options.estimate_sigma):
+            res_b, n_par = np.asarray(out["res"])[int(np.argmin(cost))], run.P + run.T * run.n_nu
+            if onboard:  # (the levels given are kept)
+                est = channel_sigmas(res_b, run.data, st.sig, n_par)
+                est = np.where([s is None for s in run.options.sigmas_onboard], est, st.sig)
+            else:
+                est = _estimate_sigma(res_b, run.data, st.sig, n_par, run.options.loss)
             # residuals of exactly 0 (noise-free data) give no estimate: keep the level used
             usable = np.isfinite(est) & (est > 0)
             st.sig = np.where(usable, est, st.sig)
             st.stage = 2
             kept = "" if usable.all() else " (residuals of 0 give no estimate: the level used is kept)"
-            run.say(
-                f"fit: noise estimated: sigma_pos {st.sig[0] * 1e3:.4f} mm, sigma_rot {math.degrees(st.sig[1]):.4f} deg{kept}; refitting"
-            )
+            if onboard:
+                levels = ", ".join(f"{c} {s:.4g} {u}" for c, s, u in zip(CHANNELS, st.sig, UNITS))
+            else:
+                levels = f"sigma_pos {st.sig[0] * 1e3:.4f} mm, sigma_rot {math.degrees(st.sig[1]):.4f} deg"
+            run.say(f"fit: noise estimated: {levels}{kept}; refitting")
         else:
             st.stage = 3
             _save(run, st)

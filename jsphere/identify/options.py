@@ -27,6 +27,11 @@ FIT_TOLERANCES = {"rtol": 1e-6, "atol": 1e-8}
 #: fit with `Tsit5` takes 0.28x the time of one with `simulate`'s `Dopri8`, with the same
 #: answers (docs/decisions/the-fit-integrates-with-tsit5.md)
 FIT_SOLVER = dfx.Tsit5()
+#: fit's solver settings for onboard-sensor trials where `FitOptions.solver` sets none: their
+#: encoders resolve the wheels to ~1e-4 rad, and at `FIT_TOLERANCES` the solver's error moves
+#: the estimates by standard errors; `simulate`'s `Dopri8` at these keeps it well under them
+#: (`docs/onboard.md`, "Tolerance")
+ONBOARD_TOLERANCES = {"rtol": 1e-8, "atol": 1e-10}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,14 +109,42 @@ class FitOptions:
     noise levels (`jsphere.identify.robust`). Frames the loss sets aside (weight below one half:
     ghost frames, marker swaps) are `FitResult.outliers`, by the file name of each trial read
     from a file (`Trial.source`), else by its name; the noise levels are then estimated from the
-    residuals without them."""
+    residuals without them. Onboard-sensor trials are fitted by least squares whatever is
+    given: an IMU and encoders have no ghost frames."""
+    imu_position: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Onboard-sensor trials: the IMU's position [m], platform components from the shell's
+    centre (the platform frame's origin; `jsphere.Mounting`)."""
+    imu_rotation: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+    """Onboard-sensor trials: the IMU's orientation, a scalar-first quaternion whose matrix maps
+    IMU components to platform components (`jsphere.Mounting`)."""
+    sigma_gyro: float | None = None
+    """Onboard-sensor trials: the gyro's noise level [rad/s]; if not given it starts at 0.01 and
+    is estimated from the residuals after the first stage (as `sigma_pos`)."""
+    sigma_acc: float | None = None
+    """Onboard-sensor trials: the accelerometer's noise level [m/s^2]; estimated if not given
+    (start 0.1)."""
+    sigma_encoder: float | None = None
+    """Onboard-sensor trials: the encoders' noise level [rad]; estimated if not given (start
+    1e-3). Giving a larger one down-weights encoders whose rollers slip (`docs/onboard.md`)."""
 
     # ------------------------------------------------------------------ validation
 
-    def checked(self) -> FitOptions:
+    def checked(self, onboard: bool = False) -> FitOptions:
         """These options validated (`InputError` naming the first bad one), with the counts as
-        ints and `solver` filled with fit's defaults."""
+        ints and `solver` filled with fit's defaults (for `onboard` trials, `ONBOARD_TOLERANCES`
+        with `simulate`'s solver, and least squares)."""
         check_loss(self.loss, "fit")
+        mount = {}
+        for name, n in (("imu_position", 3), ("imu_rotation", 4)):
+            v = np.asarray(getattr(self, name), dtype=float) if np.size(getattr(self, name)) == n else None
+            if v is None or not np.all(np.isfinite(v)):
+                raise InputError(f"fit: {name} must be {n} finite numbers; got {getattr(self, name)!r}.")
+            mount[name] = tuple(float(x) for x in v)
+        if np.linalg.norm(mount["imu_rotation"]) < 1e-6:
+            raise InputError("fit: imu_rotation is a zero quaternion; give the IMU's orientation, e.g. 1 0 0 0.")
+        for name, unit in (("sigma_gyro", "rad/s"), ("sigma_acc", "m/s^2"), ("sigma_encoder", "rad")):
+            if getattr(self, name) is not None:
+                real("fit", name, getattr(self, name), strict=True, unit=unit)
         if not isinstance(self.fit_time_offset, (bool, np.bool_)):
             raise InputError(f"fit: fit_time_offset must be True or False; got {self.fit_time_offset!r}.")
         real("fit", "max_time_offset", self.max_time_offset, strict=True, unit="s")
@@ -123,7 +156,9 @@ class FitOptions:
         if self.shooting not in ("auto", "single", "multiple"):
             raise InputError(f"fit: shooting must be 'auto', 'single' or 'multiple'; got {self.shooting!r}.")
         segment = real("fit", "segment", self.segment, low=0.05, unit="s")
-        return dataclasses.replace(self, **counts, segment=segment, solver=_fit_solver(self.solver))
+        solver = _fit_solver(self.solver, onboard)
+        loss = "l2" if onboard else self.loss
+        return dataclasses.replace(self, **counts, **mount, segment=segment, solver=solver, loss=loss)
 
     # ------------------------------------------------------------------ what the fit reads
 
@@ -152,6 +187,22 @@ class FitOptions:
     @property
     def estimate_sigma(self) -> bool:
         return self.sigma_pos is None or self.sigma_rot is None
+
+    @property
+    def mounting(self):
+        """The IMU's `jsphere.Mounting` of `imu_position` and `imu_rotation`."""
+        from ..model.sensors import Mounting
+
+        return Mounting(self.imu_position, self.imu_rotation)
+
+    @property
+    def sigmas_onboard(self) -> tuple[float | None, float | None, float | None]:
+        """The noise levels given for the gyro, the accelerometer and the encoders (None: estimated)."""
+        return self.sigma_gyro, self.sigma_acc, self.sigma_encoder
+
+    @property
+    def estimate_sigma_onboard(self) -> bool:
+        return any(s is None for s in self.sigmas_onboard)
 
     def stage_loss(self, stage: int) -> str:
         """The loss of a stage: in the warm-up stages, far from the answer (multiple shooting,
@@ -205,15 +256,19 @@ class FitOptions:
         return cls(**d, solver=solver)
 
 
-def _fit_solver(options: SolverOptions | None) -> SolverOptions:
+def _fit_solver(options: SolverOptions | None, onboard: bool = False) -> SolverOptions:
     """`options` with fit's defaults where it leaves `SolverOptions`' (`FIT_SOLVER`,
-    `FIT_TOLERANCES`); refuses an `adjoint`."""
+    `FIT_TOLERANCES`; for onboard trials `simulate`'s solver at `ONBOARD_TOLERANCES`); refuses
+    an `adjoint`."""
     unused(
         options,
         where="fit",
         adjoint="fit differentiates its solves in forward mode (diffrax.ForwardMode), which it chooses itself",
     )
-    return solver_options(options, where="fit").or_defaults(solver=FIT_SOLVER, **FIT_TOLERANCES)
+    options = solver_options(options, where="fit")
+    if onboard:
+        return options.or_defaults(solver=default_solver(), **ONBOARD_TOLERANCES)
+    return options.or_defaults(solver=FIT_SOLVER, **FIT_TOLERANCES)
 
 
 #: `fit`'s keywords of the solver's settings (`FitOptions.solver`)

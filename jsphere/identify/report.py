@@ -29,6 +29,8 @@ from ..numerics.lm import blocks, marginal_information
 from .data import FitData, nuisance_values, offset_from_nuisance, trial_errors
 from .free import FreeParams
 from .identifiability import identifiability, scaled_information, units_note
+from .onboard import CHANNELS, UNITS, OnboardData
+from .onboard_verdict import channel_floors, judge_onboard
 from .options import save_json
 from .robust import REJECT, frame_weights, reweigh, variance_factor
 from .shooting import DEFECT_CLOSED
@@ -57,7 +59,14 @@ class FitResult:
     `{"frames": [0-based row numbers of the trial's data rows], "count": n}`; `units_note`: what
     the fitted masses and inertias are relative to (the torque constant when torque trials are
     fitted with `k_tau` fixed; `jsphere.identify.identifiability.units_note`); `options`: the
-    `FitOptions` of the fit (in `fit.json` as `FitOptions.to_json` writes them)."""
+    `FitOptions` of the fit (in `fit.json` as `FitOptions.to_json` writes them).
+
+    Onboard-sensor trials (`kind` ends in `"onboard"`): `sigma_pos`, `sigma_rot` are NaN and
+    `sigmas` holds the noise level of each channel (`gyro` [rad/s], `acc` [m/s^2], `encoders`
+    [rad]); each trial's report its RMS residual per channel and its biases (`nuisance`);
+    `channel_share`: per free name, the share of its information (the diagonal of the
+    information with the biases eliminated) that each channel gives; `verdict` is per channel
+    (`jsphere.identify.onboard_verdict`)."""
 
     params: RobotParams
     free: list[str]
@@ -88,6 +97,8 @@ class FitResult:
     outliers: dict[str, dict[str, Any]] = dataclasses.field(default_factory=dict)
     units_note: str = ""
     options: Any = dataclasses.field(default=None, repr=False)
+    sigmas: dict[str, float] = dataclasses.field(default_factory=dict)
+    channel_share: dict[str, dict[str, float]] = dataclasses.field(default_factory=dict)
 
     def predict(self, trials, **kwargs):
         """The fitted model on `trials` (held out from the fit, or the fit's own): each trial
@@ -105,13 +116,18 @@ class FitResult:
         same += ("status_reason", "n_residuals", "kind", "identifiability", "verdict")
         doc = {"params": self.params.to_dict()} | {k: getattr(self, k) for k in same}
         doc |= {
-            "sigma_pos_m": self.sigma_pos,
-            "sigma_rot_deg": math.degrees(self.sigma_rot),
             "trials": [{k: v for k, v in t.items() if k != "series"} for t in self.trials],
-            "rms_pos_m": [t["rms_pos_m"] for t in self.trials],
-            "rms_rot_deg": [t["rms_rot_deg"] for t in self.trials],
             "starts_cost": self.starts,
         }
+        if self.sigmas:
+            doc |= {"sigmas": self.sigmas, "channel_share": self.channel_share}
+        else:
+            doc |= {
+                "sigma_pos_m": self.sigma_pos,
+                "sigma_rot_deg": math.degrees(self.sigma_rot),
+                "rms_pos_m": [t["rms_pos_m"] for t in self.trials],
+                "rms_rot_deg": [t["rms_rot_deg"] for t in self.trials],
+            }
         doc |= {k: getattr(self, k) for k in ("elapsed_s", "shooting", "loss", "outliers", "units_note")}
         if self.time_offset is not None:
             doc |= {"time_offset": self.time_offset, "time_offset_stderr": self.time_offset_stderr}
@@ -136,10 +152,16 @@ class FitResult:
             v, s = self.values[n], self.stderr[n]
             rel = abs(s / v) if v else float("inf")
             lines.append(f"{n:<10} {v:>14.6g} {s:>12.3g} {rel:>9.2%}")
+        if self.sigmas:
+            levels = ", ".join(f"sigma_{c} {v:.4g} {u}" for (c, v), u in zip(self.sigmas.items(), UNITS))
+        else:
+            levels = f"sigma_pos {self.sigma_pos * 1e3:.3f} mm, sigma_rot {math.degrees(self.sigma_rot):.3f} deg"
         lines.append(
             f"cost {self.cost:.6g} over {self.n_residuals} residuals, {self.iterations} iterations, "
-            f"converged: {self.converged}; sigma_pos {self.sigma_pos * 1e3:.3f} mm, sigma_rot {math.degrees(self.sigma_rot):.3f} deg"
+            f"converged: {self.converged}; {levels}"
         )
+        for c, share in self.channel_share.items():
+            lines.append(f"information from the {c}: " + ", ".join(f"{n} {v:.0%}" for n, v in share.items()))
         if self.units_note:
             lines.append(f"units: {self.units_note}")
         for w in self.identifiability.get("warnings", []):
@@ -179,10 +201,11 @@ def fit_result(run, st, cost, out, keys: Sequence[str]) -> FitResult:
     them); `keys`: each trial's key in `outliers`."""
     free, data, o = run.free, run.data, run.options
     b, loss, P, T, n_nu = int(np.argmin(cost)), o.loss, free.size, data.ts.shape[0], len(data.nuisance)
-    n_res = int(2 * data.wpos.sum() + 3 * data.wrot.sum())
-    counts = 2 * data.wpos + 3 * data.wrot
+    onboard = data.measure != "pose"
+    n_res = data.n_measured
+    counts = data.w * data.width if onboard else 2 * data.wpos + 3 * data.wrot
     res_b, J_b = np.asarray(out["res"])[b], np.asarray(out["J"])[b]
-    set_aside = (frame_weights(loss, res_b) < REJECT) & (counts > 0)
+    set_aside = np.zeros(counts.shape, bool) if loss == "l2" else (frame_weights(loss, res_b) < REJECT) & (counts > 0)
     if loss == "l2":
         s2 = float(2.0 * cost[b] / max(n_res - P - T * n_nu, 1))
     else:
@@ -198,9 +221,13 @@ def fit_result(run, st, cost, out, keys: Sequence[str]) -> FitResult:
     values, F_phys, cov, se, corr = _covariance(free, st.theta[b], res_b, J_b, s2, params=params, kind=data.kind)
     ident = identifiability(free, values, F_phys, s2, params, kind=data.kind)
     ident["sigma_note"] = "relative sd of each direction; warnings list directions with relative sd > 10%"
-    trials = _trial_reports(data, out["pose"], st.nu[b], b, set_aside)
+    if onboard:
+        trials = _onboard_reports(data, out["pose"], st.nu[b], b)
+        verdict = _onboard_verdict(run, st, trials, unphysical)
+    else:
+        trials = _trial_reports(data, out["pose"], st.nu[b], b, set_aside)
+        verdict = _verdict(run, st, trials, counts, unphysical)
     offsets = _time_offsets(data, np.asarray(st.nu[b]), res_b, J_b, P, s2) or (None, None)
-    verdict = _verdict(run, st, trials, counts, unphysical)
     shooting = {"method": "single"}
     if run.shooting is not None:
         ms, closed = run.shooting, st.max_defect <= DEFECT_CLOSED
@@ -217,8 +244,8 @@ def fit_result(run, st, cost, out, keys: Sequence[str]) -> FitResult:
         cost=float(cost[b]),
         iterations=int(st.total_it),
         converged=bool(st.stage_converged),
-        sigma_pos=float(st.sig[0]),
-        sigma_rot=float(st.sig[1]),
+        sigma_pos=math.nan if onboard else float(st.sig[0]),
+        sigma_rot=math.nan if onboard else float(st.sig[1]),
         n_residuals=n_res,
         identifiability=ident,
         trials=trials,
@@ -239,7 +266,57 @@ def fit_result(run, st, cost, out, keys: Sequence[str]) -> FitResult:
         },
         units_note=units_note(free.names, params, data.kind),
         options=o,
+        sigmas=dict(zip(CHANNELS, map(float, st.sig))) if onboard else {},
+        channel_share=_channel_share(data, free, res_b, J_b) if onboard else {},
     )
+
+
+def _onboard_reports(data: OnboardData, readings, nu_b: np.ndarray, b: int) -> list[dict[str, Any]]:
+    """Per onboard trial: the RMS residual of each channel, the biases and the residual series
+    (`t`, `gyro_err`, `acc_err`, `chi_err`) of start `b`."""
+    sim = [np.asarray(a)[b] for a in readings]
+    out = []
+    for i, m in enumerate(data.lengths):
+        errs = [s[i, :m] - meas[i, :m] for s, meas in zip(sim, (data.gyro, data.acc, data.chi))]
+        series = {"t": data.ts[i, :m] + data.t_start[i], "set_aside": np.zeros(m, bool)}
+        series |= {f"{k}_err": e for k, e in zip(("gyro", "acc", "chi"), errs)}
+        rms = {f"rms_{c}": _rms(e) for c, e in zip(CHANNELS, errs)}
+        nuisance = dict(zip(data.nuisance, map(float, nu_b[i])))
+        out.append({"name": data.names[i], "samples": m, **rms, "set_aside": 0, "nuisance": nuisance, "series": series})
+    return out
+
+
+def _onboard_verdict(run, st, trials: list[dict[str, Any]], unphysical: str) -> dict[str, Any]:
+    """`judge_onboard` on the residuals of an onboard fit."""
+    data, free = run.data, run.free
+    return judge_onboard(
+        [[t["series"][f"{k}_err"] for k in ("gyro", "acc", "chi")] for t in trials],
+        channel_floors(data),
+        names=data.names,
+        converged=bool(st.stage_converged),
+        why_not=f"Levenberg-Marquardt reached max_iter in its last stage, {int(st.total_it)} iterations in all",
+        n_params=free.size + data.ts.shape[0] * len(data.nuisance),
+        free=free.names,
+        kind=data.kind,
+        unphysical=unphysical,
+    )
+
+
+def _channel_share(data: OnboardData, free: FreeParams, res_b: np.ndarray, J_b) -> dict[str, dict[str, float]]:
+    """Per channel, the share of each free name's information it gives: the diagonal of the
+    channel's information over the whole's, the biases eliminated (each bias enters one
+    channel only, so the channels' informations add up to the whole's)."""
+    P, M, J_b = free.size, data.ts.shape[1], np.asarray(J_b)
+    F = np.diag(marginal_information(to_jax(res_b), to_jax(J_b), P))
+    out, at = {}, 0
+    for c, width in zip(CHANNELS, data.widths):
+        rows = slice(at, at + M * width)
+        at += M * width
+        Fc = np.diag(marginal_information(to_jax(res_b[:, rows]), to_jax(J_b[:, rows]), P))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            share = np.where(F > 0, Fc / F, np.nan)
+        out[c] = {n: float(v) for n, v in zip(free.names, share)}
+    return out
 
 
 def _verdict(run, st, trials: list[dict[str, Any]], counts: np.ndarray, unphysical: str) -> dict[str, Any]:

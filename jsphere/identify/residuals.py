@@ -39,6 +39,7 @@ from ..solve.simulate import simulate
 from . import shooting as _shooting
 from .data import offset_from_nuisance
 from .free import FreeParams
+from .onboard import MEASURES, onboard_model
 from .shooting import end_vector
 
 
@@ -132,19 +133,24 @@ class _Functions:
         solver: dfx.AbstractSolver | None,
         max_offset: float = 0.0,
         split: bool = False,
+        measure: str = "pose",
     ):
         P = free.size
         self.split = split
         # what the programs close over, as a stable text (an object shown by its address has none)
-        key = repr((free.slots, kind, rtol, atol, max_steps, solver, max_offset))
+        key = repr((free.slots, kind, rtol, atol, max_steps, solver, max_offset, measure))
         self.key = None if " at 0x" in key else key
+
+        def model(p, nu, d, sig):
+            if measure == "pose":
+                return trial_model(p, kind, rtol, atol, max_steps, dfx.ForwardMode(), nu, d, sig, solver, max_offset)
+            hold = measure == MEASURES[True]
+            return onboard_model(p, kind, rtol, atol, max_steps, dfx.ForwardMode(), nu, d, sig, solver, hold)
 
         def jac_one(base, th, nu, d, sig, ends):
             def f(z):
                 p = free.to_params(z[:P], base)
-                res, ok, pose, end = trial_model(
-                    p, kind, rtol, atol, max_steps, dfx.ForwardMode(), z[P:], d, sig, solver, max_offset
-                )
+                res, ok, pose, end = model(p, z[P:], d, sig)
                 return ((res, end) if ends else res), (res, ok, pose, end)
 
             J, (res, ok, pose, end) = jax.jacfwd(f, has_aux=True)(jnp.concatenate([th, nu]))
@@ -242,11 +248,13 @@ def _functions(
     solver: dfx.AbstractSolver | None = None,
     max_offset: float = 0.0,
     split: bool = False,
+    measure: str = "pose",
 ) -> _Functions:
     """The compiled functions of a configuration; `solver`: a diffrax solver (hashable, as
     diffrax's are), None for `simulate`'s default; `max_offset` > 0: the clock offsets are
-    fitted; `split`: see `_Functions`."""
-    key = (free.slots, kind, rtol, atol, max_steps, solver, max_offset, split)
+    fitted; `split`: see `_Functions`; `measure`: `"pose"` (captured poses, `trial_model`) or
+    one of `jsphere.identify.onboard.MEASURES` (onboard sensors, `onboard_model`)."""
+    key = (free.slots, kind, rtol, atol, max_steps, solver, max_offset, split, measure)
     if key not in _CACHE:
-        _CACHE[key] = _Functions(free, kind, rtol, atol, max_steps, solver, max_offset, split)
+        _CACHE[key] = _Functions(free, kind, rtol, atol, max_steps, solver, max_offset, split, measure)
     return _CACHE[key]

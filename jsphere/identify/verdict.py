@@ -498,6 +498,10 @@ def _numbers(status, reason, converged, floor, sc: _Scores) -> dict[str, Any]:
 def headline(status: str, reason: str, verdict: dict[str, Any]) -> str:
     """The verdict in one line (the last line of `jsphere fit`): for a converged fit its
     residual sigmas relative to the noise floor, otherwise the status and the reason."""
+    if status == "converged" and "channels" in verdict:
+        ch = verdict["channels"]
+        ratios = " / ".join(f"{ch[c]['ratio']:.2f}x" for c in ch)
+        return f"converged (residual sigma {ratios} the sensors' noise floors, {' / '.join(ch)})"
     if status == "converged":
         rp, rr = verdict.get("ratio_pos", math.nan), verdict.get("ratio_rot", math.nan)
         if rp is None or rr is None or not (math.isfinite(rp) and math.isfinite(rr)):

@@ -1,0 +1,245 @@
+"""Onboard-sensor trials as the fit sees them: packed into arrays (`OnboardData`), the model of
+one trial (`onboard_model`), the start of its nuisance parameters and the channels' noise levels.
+
+A trial starts at rest (`State.at_rest` of the parameters being fitted: upright for a robot whose
+mass centre lies on the platform's axis) and runs under its recorded inputs; the residuals are
+the simulated minus the recorded readings (`jsphere.imu_readings` at the IMU's mounting, plus the
+trial's constant biases, and the encoders' angles from 0), whitened by each channel's noise level:
+
+    r_gyro = (R^T omega + b_gyro - gyro) / sigma_gyro
+    r_acc  = (R^T (a_r + g gamma) + b_acc - acc) / sigma_acc
+    r_enc  = (chi - chi_meas) / sigma_encoder
+
+The nuisance parameters of a trial are its six biases (IMU axes). Heading and position do not
+enter the readings, nor do `m` and `m0` separately beyond `m + m0` and `m r_m`: one of them is
+held fixed (`docs/onboard.md`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import math
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._runtime.arrays import to_jax
+from .._runtime.errors import InputError
+from ..controls import Sampled, Torques, WheelSpeeds
+from ..model.params import RobotParams
+from ..model.sensors import Mounting, imu_readings
+from ..model.state import State
+from ..solve.simulate import simulate
+
+#: the channels of an onboard trial, in the order of the residuals and of the noise levels
+CHANNELS = ("gyro", "acc", "encoders")
+#: each channel's unit
+UNITS = ("rad/s", "m/s^2", "rad")
+#: the noise levels a fit starts from where none is given (then estimated from the residuals)
+START_SIGMA = (0.01, 0.1, 1e-3)
+#: nuisance parameters per trial, in order: the gyro's and the accelerometer's constant biases
+NUISANCE = ("gyro_bias_x", "gyro_bias_y", "gyro_bias_z", "acc_bias_x", "acc_bias_y", "acc_bias_z")
+#: the model of a trial, by whether its inputs are held between samples (`_Functions`' `measure`)
+MEASURES = {False: "onboard", True: "onboard-held"}
+
+ARRAYS = ("ts", "tc", "u", "t1", "gyro", "acc", "chi", "w", "imu_pos", "imu_rot")
+
+
+@dataclasses.dataclass(frozen=True)
+class OnboardData:
+    """Onboard trials packed into arrays of a common length `M` (padded samples are masked).
+
+    `ts (T, M)`: sample times from 0 (padded with the last); `tc (T, M)`: the inputs' knots
+    (padded beyond the end, values held); `u (T, M, N)`: inputs; `t1 (T,)`: durations; `gyro`,
+    `acc (T, M, 3)`, `chi (T, M, N)`: the readings; `w (T, M)`: 1.0 at a sample, 0.0 at padding;
+    `imu_pos (T, 3)`, `imu_rot (T, 4)`: the IMU's mounting (`Mounting`), the same for every trial.
+    """
+
+    ts: np.ndarray
+    tc: np.ndarray
+    u: np.ndarray
+    t1: np.ndarray
+    gyro: np.ndarray
+    acc: np.ndarray
+    chi: np.ndarray
+    w: np.ndarray
+    imu_pos: np.ndarray
+    imu_rot: np.ndarray
+    kind: str
+    hold: bool
+    names: tuple[str, ...]
+    lengths: tuple[int, ...]
+    t_start: tuple[float, ...]
+    max_offset: float = 0.0
+
+    channels = CHANNELS
+
+    @property
+    def measure(self) -> str:
+        return MEASURES[self.hold]
+
+    @property
+    def nuisance(self) -> tuple[str, ...]:
+        return NUISANCE
+
+    @property
+    def widths(self) -> tuple[int, int, int]:
+        """The columns of each channel: 3, 3 and one per wheel."""
+        return (3, 3, self.chi.shape[2])
+
+    @property
+    def width(self) -> int:
+        """The residuals of one sample."""
+        return sum(self.widths)
+
+    @property
+    def n_measured(self) -> int:
+        """The measured values of all trials."""
+        return int(self.w.sum()) * self.width
+
+    def aux_shapes(self) -> tuple[tuple[int, ...], ...]:
+        """The shapes of a trial's simulated readings `(gyro, acc, chi)`."""
+        M = self.ts.shape[1]
+        return (M, 3), (M, 3), (M, self.widths[2])
+
+    def arrays(self) -> dict[str, jax.Array]:
+        return {k: to_jax(getattr(self, k)) for k in ARRAYS}
+
+    def fingerprint(self) -> str:
+        h = hashlib.sha256(f"onboard:{self.kind}:{self.hold}".encode())
+        for k in ("ts", "u", "gyro", "acc", "chi", "imu_pos", "imu_rot"):
+            h.update(np.ascontiguousarray(getattr(self, k)).tobytes())
+        return h.hexdigest()
+
+    def blocks(self, res: np.ndarray) -> list[np.ndarray]:
+        """The residuals `res (..., M * width)` of a trial (the layout of `onboard_model`) cut
+        into its channels: `(..., M, 3)`, `(..., M, 3)`, `(..., M, N)`."""
+        M, out, at = self.ts.shape[1], [], 0
+        for c in self.widths:
+            out.append(res[..., at : at + M * c].reshape(res.shape[:-1] + (M, c)))
+            at += M * c
+        return out
+
+
+def pack_onboard(trials: Sequence, params: RobotParams, mounting: Mounting) -> OnboardData:
+    """Check onboard trials (`jsphere.capture.onboard.OnboardTrial`) against `params` and pack them."""
+    trials = list(trials)
+    kinds = {t.kind for t in trials}
+    holds = {bool(t.hold) for t in trials}
+    if len(kinds) != 1 or len(holds) != 1:
+        got = ", ".join(f"{t.name!r}: {t.kind}{' held' if t.hold else ''}" for t in trials)
+        raise InputError(
+            f"fit: onboard trials must share one input kind and hold (torques or wheel speeds, held or smooth); got {got}."
+        )
+    N = params.n_wheels
+    for t in trials:
+        if t.n_wheels != N:
+            raise InputError(
+                f"fit: trial {t.name!r} has {t.n_wheels} wheels' inputs and encoders but the robot has {N}; use "
+                "parameters with the same wheel count."
+            )
+        if len(t.t) < 4:
+            raise InputError(f"fit: trial {t.name!r} has {len(t.t)} samples; a fit needs at least 4.")
+    M = max(len(t.t) for t in trials)
+    rows = []
+    for t in trials:
+        m = len(t.t)
+        t0, dt = t.t[0], (t.t[-1] - t.t[0]) / (m - 1)
+
+        def pad(a, v, m=m):
+            return np.concatenate([a, np.broadcast_to(v, (M - m,) + a.shape[1:])])
+
+        rows.append(
+            {
+                "ts": np.concatenate([t.t - t0, np.full(M - m, t.t[-1] - t0)]),
+                "tc": np.concatenate([t.t - t0, t.t[-1] - t0 + dt * np.arange(1, M - m + 1)]),
+                "u": pad(t.inputs, t.inputs[-1]),
+                "t1": t.t[-1] - t0,
+                "gyro": pad(t.gyro, 0.0),
+                "acc": pad(t.acc, 0.0),
+                "chi": pad(t.chi, 0.0),
+                "w": pad(np.ones(m), 0.0),
+                "imu_pos": np.asarray(mounting.position, float),
+                "imu_rot": np.asarray(mounting.rotation, float),
+            }
+        )
+    return OnboardData(
+        **{k: np.stack([r[k] for r in rows]).astype(np.float64) for k in ARRAYS},
+        kind=next(iter(kinds)),
+        hold=next(iter(holds)),
+        names=tuple(t.name for t in trials),
+        lengths=tuple(len(t.t) for t in trials),
+        t_start=tuple(float(t.t[0]) for t in trials),
+    )
+
+
+def onboard_model(p, kind, rtol, atol, max_steps, adjoint, nu, d, sig, solver=None, hold=False):
+    """The model of one onboard trial with parameters `p` (a `RobotParams`): its whitened
+    residuals `(M (6 + N),)` (gyro, accelerometer, encoders, each sample-major), its solver
+    status, the simulated readings `(gyro (M, 3), acc (M, 3), chi (M, N))` with the biases `nu`
+    added, and an empty end state (onboard trials are single-shot). `sig`: the channels' noise
+    levels (`CHANNELS`); `hold`: the inputs are held between samples."""
+    dt = p.R0.dtype
+    table = Sampled(d["tc"], d["u"], "zoh" if hold else "cubic")
+    controls = WheelSpeeds(table, ()) if kind == "wheel_speeds" else Torques(table, ())
+    tr = simulate(
+        p,
+        State.at_rest(p),
+        controls,
+        d["t1"],
+        ts=d["ts"],
+        rtol=rtol,
+        atol=atol,
+        solver=solver,
+        max_steps=max_steps,
+        throw=False,
+        adjoint=adjoint,
+        batch_steps="diffrax",
+    )
+    gyro, acc = imu_readings(p, Mounting(d["imu_pos"], d["imu_rot"]), tr.gamma, tr.omega, tr.Omega, tr.K)
+    gyro, acc, chi = gyro + nu[0:3], acc + nu[3:6], tr.chi - tr.chi[:1]
+    w = d["w"][:, None]
+    res = jnp.concatenate(
+        [((a - d[k]) * w / s).reshape(-1) for a, k, s in ((gyro, "gyro", sig[0]), (acc, "acc", sig[1]), (chi, "chi", sig[2]))]
+    )
+    ok = tr.ok & jnp.all(jnp.isfinite(res))
+    return jnp.where(ok, res, 0.0), ok, (gyro, acc, chi), jnp.zeros(1, dt)
+
+
+def bias_guess(data: OnboardData, params: RobotParams, *, samples: int = 5) -> np.ndarray:
+    """Initial biases `(T, 6)`: the mean of each trial's first `samples` readings minus what the
+    model reads at its start (at rest, under its first input)."""
+    mounting = Mounting(data.imu_pos[0], data.imu_rot[0])
+    s0 = State.at_rest(params)
+    K0 = data.u[:, 0] if data.kind == "torques" else np.zeros_like(data.u[:, 0])
+    out = np.zeros((data.ts.shape[0], 6))
+    for i in range(data.ts.shape[0]):
+        g, a = (np.asarray(x) for x in imu_readings(params, mounting, s0.gamma, s0.omega, s0.Omega, K0[i]))
+        k = min(samples, data.lengths[i])
+        out[i] = np.concatenate([data.gyro[i, :k].mean(0) - g, data.acc[i, :k].mean(0) - a])
+    return out
+
+
+def channel_sigmas(res_b: np.ndarray, data: OnboardData, sig: np.ndarray, n_par: int) -> np.ndarray:
+    """The channels' noise levels from the whitened residuals `res_b (T, K)` of the best start,
+    dof-corrected as `jsphere.identify.fit` corrects the capture's."""
+    frac = 1.0 - n_par / data.n_measured
+    n = data.w.sum()
+    return np.array(
+        [math.sqrt(float((b * b).sum()) * s * s / (n * c * frac)) for b, s, c in zip(data.blocks(res_b), sig, data.widths)]
+    )
+
+
+def encoder_quantum(data: OnboardData) -> float:
+    """The encoders' resolution [rad]: the smallest step between consecutive angles (one count),
+    0 where the angles are not quantised (no step repeats to 1e-9 of the largest)."""
+    steps = np.abs(np.diff(data.chi, axis=1))[data.w[:, 1:] > 0].reshape(-1)
+    steps = steps[steps > 1e-12]
+    if not steps.size:
+        return 0.0
+    q = float(steps.min())
+    multiples = steps / q
+    return q if np.all(np.abs(multiples - np.round(multiples)) < 1e-5 * np.maximum(multiples, 1.0)) else 0.0
