@@ -140,6 +140,9 @@ class Trial(eqx.Module):
 def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> Trial:
     """Read one trial CSV (format: `docs/capture.md`).
 
+    A file with the columns of an onboard-sensor trial (`gyro_x`, ..., no pose) is read by
+    `read_onboard_trial` and returned as an `OnboardTrial`.
+
     Lines starting with `#` before the header are comments; `# units: mm` declares the
     position units (`x, y, z`; default metres). Columns `t, x, y, qw, qx, qy, qz` are required,
     then `chi_dot_1..chi_dot_N` or `K_1..K_N`, optionally `z`; other columns are ignored.
@@ -160,6 +163,10 @@ def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> T
     source, meta, rows, header_line = headed_rows(path, "t, x, y, qw, qx, qy, qz, ...")
     header = [h.strip() for h in rows[0]]
     missing = [c for c in POSE_COLUMNS if c not in header]
+    if missing and "gyro_x" in header:  # the robot's own sensors
+        from .onboard import read_onboard_trial
+
+        return read_onboard_trial(path)
     if missing:
         raise ValueError(
             f"{source}, line {header_line}: missing required column(s) {', '.join(missing)}; a trial CSV needs "

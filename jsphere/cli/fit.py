@@ -21,7 +21,8 @@ def add_parser(sub) -> None:
     ft = sub.add_parser(
         NAME,
         help="fit robot parameters to captured trials (docs/identification.md)",
-        description="Fit the free parameters of a robot to captured trials (position and orientation), by "
+        description="Fit the free parameters of a robot to captured trials (position and orientation, or the robot's "
+        "own IMU and wheel encoders), by "
         "Levenberg-Marquardt through the simulation; writes the result JSON, its figures and, while it "
         "runs, a checkpoint from which a killed fit resumes. The last line on stdout is the verdict.",
     )
@@ -95,6 +96,33 @@ def add_parser(sub) -> None:
         help="ignore the checkpoint a killed fit left (by default the fit resumes from it)",
     )
     ft.add_argument("--no-plots", action="store_true", help="skip the figures")
+    sensors = ft.add_argument_group(
+        "onboard-sensor trials", "trials of the robot's own IMU and wheel encoders (docs/onboard.md)"
+    )
+    sensors.add_argument(
+        "--imu-position",
+        nargs=3,
+        type=float,
+        default=(0.0, 0.0, 0.0),
+        metavar=("X", "Y", "Z"),
+        help="the IMU's position [m], platform components from the shell's centre (default 0 0 0)",
+    )
+    sensors.add_argument(
+        "--imu-rotation",
+        nargs=4,
+        type=float,
+        default=(1.0, 0.0, 0.0, 0.0),
+        metavar=("QW", "QX", "QY", "QZ"),
+        help="the IMU's orientation: a scalar-first quaternion mapping IMU components to platform components "
+        "(default 1 0 0 0)",
+    )
+    sensors.add_argument("--sigma-gyro", type=float, help="gyro noise [rad/s] (default: estimated)")
+    sensors.add_argument("--sigma-acc", type=float, help="accelerometer noise [m/s^2] (default: estimated)")
+    sensors.add_argument(
+        "--sigma-encoder",
+        type=float,
+        help="encoder noise [rad] (default: estimated); a larger one down-weights encoders whose rollers slip",
+    )
 
 
 def run(args) -> int:
@@ -132,7 +160,9 @@ def run(args) -> int:
     params = robot(args)
     trials = read_trials(args.trials)
     sigma_rot = None if args.sigma_rot_deg is None else math.radians(args.sigma_rot_deg)
-    options = options_of(FitOptions, args, sigma_rot=sigma_rot)
+    options = options_of(
+        FitOptions, args, sigma_rot=sigma_rot, imu_position=tuple(args.imu_position), imu_rotation=tuple(args.imu_rotation)
+    )
     for f in [(out, ".tmp"), *((g, None) for g in figures)]:  # what a killed writer left
         remove_stale_temporaries(*f)
     with warnings.catch_warnings():  # one line per warning (a checkpoint that cannot be used)

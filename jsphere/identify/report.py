@@ -272,14 +272,15 @@ def fit_result(run, st, cost, out, keys: Sequence[str]) -> FitResult:
 
 
 def _onboard_reports(data: OnboardData, readings, nu_b: np.ndarray, b: int) -> list[dict[str, Any]]:
-    """Per onboard trial: the RMS residual of each channel, the biases and the residual series
-    (`t`, `gyro_err`, `acc_err`, `chi_err`) of start `b`."""
+    """Per onboard trial: the RMS residual of each channel, the biases and the series (`t`, the
+    readings `gyro`, `acc`, `chi` and the residuals `gyro_err`, `acc_err`, `chi_err`) of start `b`."""
     sim = [np.asarray(a)[b] for a in readings]
     out = []
     for i, m in enumerate(data.lengths):
         errs = [s[i, :m] - meas[i, :m] for s, meas in zip(sim, (data.gyro, data.acc, data.chi))]
         series = {"t": data.ts[i, :m] + data.t_start[i], "set_aside": np.zeros(m, bool)}
         series |= {f"{k}_err": e for k, e in zip(("gyro", "acc", "chi"), errs)}
+        series |= {k: meas[i, :m] for k, meas in zip(("gyro", "acc", "chi"), (data.gyro, data.acc, data.chi))}
         rms = {f"rms_{c}": _rms(e) for c, e in zip(CHANNELS, errs)}
         nuisance = dict(zip(data.nuisance, map(float, nu_b[i])))
         out.append({"name": data.names[i], "samples": m, **rms, "set_aside": 0, "nuisance": nuisance, "series": series})

@@ -40,7 +40,13 @@ def fit_figures(result, out_dir, *, stem: str = "fit") -> list[Path]:
     comes first in the residual figure, titled with its name and its residual sigmas relative
     to the capture's noise floor, and the fit's status. Frames a robust loss set aside (ghost
     frames, marker swaps: `FitResult.outliers`) are red crosses in both figures, and the
-    residual axes are scaled to the frames kept."""
+    residual axes are scaled to the frames kept.
+
+    For onboard-sensor trials (`result.sigmas` set) the same two files: the worst trial's
+    readings, recorded and fitted (gyro, accelerometer, encoders), and every trial's residuals
+    per channel (`onboard_figures`)."""
+    if getattr(result, "sigmas", None):
+        return onboard_figures(result, out_dir, stem=stem)
     plt = pyplot()
     out_dir = Path(out_dir)
     trials = result.trials
@@ -107,6 +113,59 @@ def fit_figures(result, out_dir, *, stem: str = "fit") -> list[Path]:
         fig.suptitle(f"{status}worst-fitting trial first: {worst_text}", fontsize=9)
     for ax_ in axes[-1]:
         ax_.set_xlabel("t [s]")
+    residuals = out_dir / f"{stem}_residuals.png"
+    finish(plt, fig, residuals)
+    return [overlay, residuals]
+
+
+def onboard_figures(result, out_dir, *, stem: str = "fit") -> list[Path]:
+    """`<stem>_overlay.png`: the worst trial's recorded readings (dots) and fitted ones (lines,
+    biases included) per channel; `<stem>_residuals.png`: every trial's residuals per channel
+    (gyro [rad/s], accelerometer [m/s^2], encoders [mrad]), the worst first, each channel titled
+    with its noise level, floor and ratio."""
+    plt = pyplot()
+    out_dir = Path(out_dir)
+    trials, verdict = result.trials, getattr(result, "verdict", None) or {}
+    names = [t["name"] for t in trials]
+    worst = names.index(verdict["worst_trial"]) if verdict.get("worst_trial") in names else 0
+    status = f"status: {result.status}; " if getattr(result, "status", "") else ""
+    channels = (("gyro", "gyro [rad/s]", 1.0), ("acc", "accelerometer [m/s^2]", 1.0), ("chi", "encoders [mrad]", 1e3))
+    s = trials[worst]["series"]
+    fig, axes = plt.subplots(3, 1, figsize=(8, 7), sharex=True)
+    for ax, (key, label, unit) in zip(axes, channels):
+        meas, fitted = s[key], s[key] + s[f"{key}_err"]
+        for i in range(meas.shape[1]):
+            ax.plot(s["t"], unit * meas[:, i], ".", ms=1.5, color=f"C{i}", alpha=0.5)
+            ax.plot(s["t"], unit * fitted[:, i], "-", lw=0.8, color=f"C{i}")
+        ax.set_ylabel(label, fontsize=8)
+    axes[-1].set_xlabel("t [s]")
+    fig.suptitle(f"{status}trial {names[worst]!r}: recorded (dots) and fitted (lines) readings", fontsize=9)
+    overlay = out_dir / f"{stem}_overlay.png"
+    finish(plt, fig, overlay)
+
+    n = len(trials)
+    order = [worst] + [k for k in range(n) if k != worst]
+    fig, axes = plt.subplots(n, 3, figsize=(12, 1.6 * n + 1.0), sharex="row", squeeze=False)
+    chan = verdict.get("channels", {})
+    for row, k in enumerate(order):
+        s = trials[k]["series"]
+        for ax, (key, label, unit), c in zip(axes[row], channels, ("gyro", "acc", "encoders")):
+            e = s[f"{key}_err"]
+            for i in range(e.shape[1]):
+                ax.plot(s["t"], unit * e[:, i], lw=0.5, label=f"{i + 1}" if key == "chi" else "xyz"[i])
+            if row == 0:
+                v = chan.get(c, {})
+                ax.set_title(
+                    f"{label}: sigma {unit * result.sigmas[c]:.3g}, floor {unit * v.get('noise_floor', np.nan):.3g} "
+                    f"({v.get('ratio', np.nan):.2f}x)",
+                    fontsize=8,
+                )
+                ax.legend(fontsize=6, loc="upper right")
+        emph = {"color": "C3", "fontweight": "bold"} if k == worst and n > 1 else {}
+        axes[row][0].set_ylabel(trials[k]["name"], fontsize=7, **emph)
+    for ax in axes[-1]:
+        ax.set_xlabel("t [s]")
+    fig.suptitle(f"{status}residuals per channel, the worst-fitting trial first", fontsize=9)
     residuals = out_dir / f"{stem}_residuals.png"
     finish(plt, fig, residuals)
     return [overlay, residuals]
