@@ -132,12 +132,13 @@ def onboard_figures(result, out_dir, *, stem: str = "fit") -> list[Path]:
     channels = (("gyro", "gyro [rad/s]", 1.0), ("acc", "accelerometer [m/s^2]", 1.0), ("chi", "encoders [mrad]", 1e3))
     s = trials[worst]["series"]
     fig, axes = plt.subplots(3, 1, figsize=(8, 7), sharex=True)
-    for ax, (key, label, unit) in zip(axes, channels):
+    for ax, (key, label, _) in zip(axes, channels):
         meas, fitted = s[key], s[key] + s[f"{key}_err"]
         for i in range(meas.shape[1]):
-            ax.plot(s["t"], unit * meas[:, i], ".", ms=1.5, color=f"C{i}", alpha=0.5)
-            ax.plot(s["t"], unit * fitted[:, i], "-", lw=0.8, color=f"C{i}")
-        ax.set_ylabel(label, fontsize=8)
+            ax.plot(s["t"], meas[:, i], ".", ms=1.5, color=f"C{i}", alpha=0.5)
+            ax.plot(s["t"], fitted[:, i], "-", lw=0.8, color=f"C{i}", label=f"{i + 1}" if key == "chi" else "xyz"[i])
+        ax.set_ylabel(label.replace("[mrad]", "[rad]"), fontsize=8)
+        ax.legend(fontsize=6, loc="upper left")
     axes[-1].set_xlabel("t [s]")
     fig.suptitle(f"{status}trial {names[worst]!r}: recorded (dots) and fitted (lines) readings", fontsize=9)
     overlay = out_dir / f"{stem}_overlay.png"

@@ -1,0 +1,92 @@
+"""Fits from the robot's own sensors (IMU and wheel encoders), as a user runs them: `jsphere fit`
+on onboard-sensor trial files with the IMU's mounting given. The trials are the paper's robot
+driven by torque multisines from rest (3 trials of 3 s at 100 Hz; gyro 0.003 rad/s and
+accelerometer 0.03 m/s^2 white noise, constant biases, encoders of 4096 counts per turn).
+
+The right mounting gives exit 0, every estimate within 3 standard errors of the truth, the
+biases and the noise levels recovered; a wrong mounting is a misfit put down to a model error
+that names the mounting."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+import jsphere
+from jsphere._runtime.errors import ExitCode, InputError
+from jsphere.capture.onboard import OnboardNoise, synthetic_onboard_trial, write_onboard_trial
+from jsphere.capture.trial import read_trials
+from jsphere.cli.app import main
+from jsphere.identify.fit import fit
+from jsphere.identify.options import FitOptions
+from jsphere.model.names import get_value
+from jsphere.model.sensors import Mounting
+
+FREE = ["I[2,2]", "m0", "j"]
+MOUNTING = Mounting((0.02, -0.01, -0.04), (math.cos(0.3), 0.0, math.sin(0.3), 0.0))
+NOISE = OnboardNoise(0.003, 0.03, (0.01, -0.02, 0.005), (0.1, 0.0, -0.2), counts_per_turn=4096)
+
+
+@pytest.fixture(scope="module")
+def folder(paper, tmp_path_factory):
+    """The trial files, as `jsphere convert` or a robot's logger would leave them."""
+    d = tmp_path_factory.mktemp("onboard")
+    for s in range(3):
+        controls = jsphere.random_inputs(paper, 3.0, kind="torques", seed=s)
+        tr = synthetic_onboard_trial(paper, controls, 3.0, mounting=MOUNTING, noise=NOISE, seed=s, name=f"run{s}")
+        write_onboard_trial(d / f"run{s}.csv", tr)
+    return d
+
+
+@pytest.fixture(scope="module")
+def cli_fit(folder, tmp_path_factory):
+    out = tmp_path_factory.mktemp("fit") / "fit.json"
+    pos = [f"{v:.6g}" for v in np.asarray(MOUNTING.position)]
+    rot = [f"{v:.15g}" for v in np.asarray(MOUNTING.rotation)]
+    argv = ["fit", str(folder), "--free", ",".join(FREE), "--imu-position", *pos, "--imu-rotation", *rot]
+    code = main([*argv, "--out", str(out), "--quiet"])
+    return code, json.loads(out.read_text()), out
+
+
+def test_the_right_mounting_recovers_the_robot_within_its_standard_errors(paper, cli_fit):
+    code, doc, out = cli_fit
+    assert code == ExitCode.OK, doc["status_reason"]
+    assert doc["status"] == "converged" and doc["loss"] == "l2"
+    for name in FREE:
+        truth, value, se = float(get_value(paper, name)), doc["values"][name], doc["stderr"][name]
+        assert 0 < se < 1e-2 * abs(truth), (name, se)
+        assert abs(value - truth) < 3 * se, (name, value, truth, se)
+    for t in doc["trials"]:  # the biases, to 4 sd of a mean over the trial's samples
+        b = t["nuisance"]
+        np.testing.assert_allclose([b[f"gyro_bias_{a}"] for a in "xyz"], NOISE.gyro_bias, atol=4 * 0.003 / 10)
+        np.testing.assert_allclose([b[f"acc_bias_{a}"] for a in "xyz"], NOISE.acc_bias, atol=4 * 0.03 / 10)
+    s = doc["sigmas"]
+    assert abs(s["gyro"] / 0.003 - 1) < 0.1 and abs(s["acc"] / 0.03 - 1) < 0.1
+    assert abs(s["encoders"] / (2 * math.pi / 4096 / math.sqrt(12)) - 1) < 0.1
+    assert all(0.8 < c["ratio"] < 1.2 for c in doc["verdict"]["channels"].values())
+    assert doc["channel_share"]["encoders"]["m0"] > 0.5  # the encoders carry the information
+    assert (out.parent / "fit_overlay.png").stat().st_size > 10_000
+    assert (out.parent / "fit_residuals.png").stat().st_size > 10_000
+
+
+def test_a_wrong_mounting_is_a_model_error_that_names_the_mounting(paper, folder):
+    trials = read_trials([folder])
+    assert all(type(t).__name__ == "OnboardTrial" for t in trials)
+    res = fit(trials, paper, FREE, options=FitOptions(imu_position=(0.0, 0.0, 0.0)), progress=False)
+    assert res.status == "misfit" and res.verdict["diagnosis"] == "model error"
+    assert "--imu-position, --imu-rotation" in res.status_reason
+    assert set(res.verdict["correlated"]) == {"run0", "run1", "run2"}
+
+
+def test_onboard_fits_refuse_what_does_not_apply(paper, folder):
+    trials = read_trials([folder])
+    pose = jsphere.synthetic_trial(paper, jsphere.random_inputs(paper, 1.0, kind="torques", seed=1), 1.0, rate=50.0)
+    with pytest.raises(InputError, match="of one kind"):
+        fit([*trials, pose], paper, FREE, progress=False)
+    with pytest.raises(InputError, match="share one clock"):
+        fit(trials, paper, FREE, options=FitOptions(fit_time_offset=True), progress=False)
+    with pytest.raises(InputError, match="imu_rotation is a zero quaternion"):
+        fit(trials, paper, FREE, options=FitOptions(imu_rotation=(0, 0, 0, 0)), progress=False)
