@@ -161,7 +161,11 @@ def run(args) -> int:
     trials = read_trials(args.trials)
     sigma_rot = None if args.sigma_rot_deg is None else math.radians(args.sigma_rot_deg)
     options = options_of(
-        FitOptions, args, sigma_rot=sigma_rot, imu_position=tuple(args.imu_position), imu_rotation=tuple(args.imu_rotation)
+        FitOptions,
+        args,
+        sigma_rot=sigma_rot,
+        imu_position=tuple(args.imu_position),
+        imu_rotation=tuple(args.imu_rotation),
     )
     for f in [(out, ".tmp"), *((g, None) for g in figures)]:  # what a killed writer left
         remove_stale_temporaries(*f)

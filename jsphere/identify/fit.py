@@ -172,7 +172,9 @@ def _pack(trials: Sequence, params: RobotParams, o: FitOptions, onboard: bool):
             "share one clock."
         )
     if o.shooting == "multiple":
-        raise InputError("fit: onboard-sensor trials are fitted by single shooting from rest; leave shooting at 'auto'.")
+        raise InputError(
+            "fit: onboard-sensor trials are fitted by single shooting from rest; leave shooting at 'auto'."
+        )
     return pack_onboard(trials, params, o.mounting)
 
 

@@ -203,7 +203,10 @@ def onboard_model(p, kind, rtol, atol, max_steps, adjoint, nu, d, sig, solver=No
     gyro, acc, chi = gyro + nu[0:3], acc + nu[3:6], tr.chi - tr.chi[:1]
     w = d["w"][:, None]
     res = jnp.concatenate(
-        [((a - d[k]) * w / s).reshape(-1) for a, k, s in ((gyro, "gyro", sig[0]), (acc, "acc", sig[1]), (chi, "chi", sig[2]))]
+        [
+            ((a - d[k]) * w / s).reshape(-1)
+            for a, k, s in ((gyro, "gyro", sig[0]), (acc, "acc", sig[1]), (chi, "chi", sig[2]))
+        ]
     )
     ok = tr.ok & jnp.all(jnp.isfinite(res))
     return jnp.where(ok, res, 0.0), ok, (gyro, acc, chi), jnp.zeros(1, dt)
@@ -229,7 +232,10 @@ def channel_sigmas(res_b: np.ndarray, data: OnboardData, sig: np.ndarray, n_par:
     frac = 1.0 - n_par / data.n_measured
     n = data.w.sum()
     return np.array(
-        [math.sqrt(float((b * b).sum()) * s * s / (n * c * frac)) for b, s, c in zip(data.blocks(res_b), sig, data.widths)]
+        [
+            math.sqrt(float((b * b).sum()) * s * s / (n * c * frac))
+            for b, s, c in zip(data.blocks(res_b), sig, data.widths)
+        ]
     )
 
 

@@ -164,9 +164,7 @@ def judge_onboard(
         reason = f"the optimiser converged and the residual sigmas are {ratios} the sensors' noise floors, lag-1 autocorrelations {acs}."
 
     def row(sc) -> dict[str, Any]:
-        return {
-            c: {"sigma": s, "ratio": r, "autocorr": a, "unit": u} for c, (r, a, s), u in zip(CHANNELS, sc, UNITS)
-        }
+        return {c: {"sigma": s, "ratio": r, "autocorr": a, "unit": u} for c, (r, a, s), u in zip(CHANNELS, sc, UNITS)}
 
     channels_out = row(overall)
     for c, f in zip(CHANNELS, floors):

@@ -17,7 +17,16 @@ from .data import NUISANCE, FitData, nuisance_from_offset
 from .free import FreeParams
 
 #: typical step of each nuisance parameter (1/s, rad, m): for Adam and the start spread
-_NU_SCALE = {"Omega0": 0.05, "rot0": 0.01, "x0": 0.002, "y0": 0.002, "omega0": 0.05, "time": 0.01, "gyro": 0.005, "acc": 0.05}
+_NU_SCALE = {
+    "Omega0": 0.05,
+    "rot0": 0.01,
+    "x0": 0.002,
+    "y0": 0.002,
+    "omega0": 0.05,
+    "time": 0.01,
+    "gyro": 0.005,
+    "acc": 0.05,
+}
 #: `relative_rate_from_wheel_speeds` of a stack of commands, as one compiled program
 _relative_rates = eqx.filter_jit(jax.vmap(relative_rate_from_wheel_speeds, in_axes=(None, 0)))
 
