@@ -247,3 +247,9 @@ class StraightLine(eqx.Module):
 def straight_line(speed: float, heading: float = 0.0) -> StraightLine:
     """The path of (5.5): see `StraightLine`."""
     return StraightLine(speed, heading)
+
+
+@eqx.filter_jit
+def eval_controls(controls, ts: Float[Array, " T"]) -> Float[Array, "T N"]:
+    """`controls(t)` at each of `ts` (compiled once per control structure)."""
+    return jax.vmap(controls)(ts)

@@ -23,7 +23,7 @@ import numpy as np
 
 from .._runtime.errors import InputError
 from .._runtime.files import atomic_write_text
-from ..controls import Torques, WheelSpeeds
+from ..controls import Torques, WheelSpeeds, eval_controls
 from ..model.params import RobotParams
 from ..model.sensors import Mounting, imu_readings
 from ..model.state import State
@@ -216,7 +216,6 @@ def synthetic_onboard_trial(
     `OnboardNoise()`), the wheel angles from 0 quantised to the encoders' counts, and the
     commanded inputs at the sample times. Deterministic for a given `seed`."""
     from ..solve.simulate import simulate
-    from .synthetic import eval_controls
 
     if not rate > 0 or not t1 > 0:
         raise ValueError(f"synthetic_onboard_trial: rate and t1 must be positive; got rate={rate}, t1={t1}.")

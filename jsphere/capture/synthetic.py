@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ..controls import Torques, WheelSpeeds
+from ..controls import Torques, WheelSpeeds, eval_controls
 from ..model.params import RobotParams
 from ..model.rotations import quat_from_rotvec_np, quat_mul_np, rotmat_np
 from ..model.state import State
@@ -92,12 +92,6 @@ def random_inputs(
     dt = params.R0.dtype
     fn = RandomSines(jnp.asarray(amp, dt), jnp.asarray(freq, dt), jnp.asarray(phase, dt), jnp.asarray(ramp_time, dt))
     return WheelSpeeds(fn) if kind == "wheel_speeds" else Torques(fn)
-
-
-@eqx.filter_jit
-def eval_controls(controls, ts: Float[Array, " T"]) -> Float[Array, "T N"]:
-    """`controls(t)` at each of `ts` (compiled once per control structure)."""
-    return jax.vmap(controls)(ts)
 
 
 def _dropout_mask(rng: np.random.Generator, M: int, dropout: float, max_burst: int = 5) -> np.ndarray:

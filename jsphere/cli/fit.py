@@ -96,6 +96,11 @@ def add_parser(sub) -> None:
         help="ignore the checkpoint a killed fit left (by default the fit resumes from it)",
     )
     ft.add_argument("--no-plots", action="store_true", help="skip the figures")
+    _add_sensor_flags(ft)
+
+
+def _add_sensor_flags(ft) -> None:
+    """The flags of onboard-sensor trials: the IMU's mounting and the channels' noise levels."""
     sensors = ft.add_argument_group(
         "onboard-sensor trials", "trials of the robot's own IMU and wheel encoders (docs/onboard.md)"
     )

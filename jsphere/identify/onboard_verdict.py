@@ -72,6 +72,88 @@ def missing_effects(channels: set[str], free: Sequence[str], kind: str) -> list[
     return out
 
 
+def _scope(trials, frac: float, fl) -> list[tuple[float, float, float]]:
+    """Per channel `(ratio to the floor, lag-1 autocorrelation, sigma)` of the residuals of `trials`."""
+    out = []
+    for c in range(len(CHANNELS)):
+        es = [tr[c] for tr in trials]
+        s = _sigma(es, frac)
+        sums = [lag1(e) for e in es]
+        ac = sum(a for a, _ in sums) / max(sum(b for _, b in sums), 1e-300)
+        out.append((s / fl[c] if fl[c] > 0 else math.nan, ac, s))
+    return out
+
+
+def _white(errors, floors, lags: int) -> list[list[dict[str, Any]]]:
+    """Per trial, the whiteness of each series (`whiteness.channel`); a channel whose floor is
+    at `RESOLUTION` (noise-free readings) gets `p = NaN`, not tested."""
+    judged = [math.isfinite(f) and f > r for f, r in zip(floors, RESOLUTION)]
+    out = []
+    for tr in errors:
+        row = []
+        for c, e in enumerate(tr):
+            for k in range(e.shape[1]):
+                w = whiteness.channel(e[:, k], np.isfinite(e[:, k]), lags)
+                row.append(w if judged[c] else w | {"p": math.nan})
+        out.append(row)
+    return out
+
+
+def _status(overall, hits, correlated, cut, converged, why_not, unphysical, names, worst, series, free, kind):
+    """`(status, diagnosis, reason)` by the module's rules."""
+    ratios = ", ".join(f"{_x(r)} ({c})" for c, (r, _, _) in zip(CHANNELS, overall))
+    if unphysical:
+        return (
+            "misfit",
+            "wrong valley",
+            (
+                f"the fitted values are no physical robot ({unphysical}): the fit is in a wrong valley, or a value held "
+                "fixed is wrong; try more starts (--n-starts), other start values (--params, --fix) or bounds (--bound)."
+            ),
+        )
+    if correlated and converged:
+        channels = {c for ss in correlated.values() for s in ss for c, names_c in zip(CHANNELS, series) if s in names_c}
+        where = "; ".join(f"trial {n!r}: {', '.join(ss)}" for n, ss in correlated.items())
+        return (
+            "misfit",
+            "model error",
+            (
+                f"model error: the residuals are correlated in time ({where}; Ljung-Box p < {cut:.1e}), at {ratios} the "
+                "sensors' noise floors: the model does not describe these trials, and the values and standard errors are "
+                f"biased. What it could be missing: {'; '.join(missing_effects(channels, free, kind))}."
+            ),
+        )
+    if not converged:
+        return (
+            "not_converged",
+            None,
+            (
+                f"the optimiser did not converge ({why_not or 'it stopped before its convergence test was met'}); the "
+                f"residual sigmas are {ratios} the sensors' noise floors: the values and standard errors are not final; "
+                "rerun with more iterations (--max-iter) or more starts (--n-starts)."
+            ),
+        )
+    if hits:
+        return (
+            "misfit",
+            "wrong valley",
+            (
+                f"the residual sigmas are {ratios} the sensors' noise floors (worst trial {names[worst]!r}): the fit is in a "
+                "wrong valley or the model does not describe the trials; try more starts (--n-starts), other start values "
+                "(--params, --fix), and check the IMU's mounting (--imu-position, --imu-rotation) and the inputs."
+            ),
+        )
+    acs = ", ".join(f"{a:.2f}" for _, a, _ in overall)
+    return (
+        "converged",
+        None,
+        (
+            f"the optimiser converged and the residual sigmas are {ratios} the sensors' noise floors, lag-1 "
+            f"autocorrelations {acs}."
+        ),
+    )
+
+
 def judge_onboard(
     errors: Sequence[Sequence[np.ndarray]],
     floors: Sequence[float],
@@ -94,74 +176,24 @@ def judge_onboard(
     n_total = sum(np.asarray(e).size for tr in errors for e in tr)
     frac = max(1.0 - n_params / n_total, 1e-3) if n_total else 1.0
     fl = [max(f, r) if math.isfinite(f) else math.nan for f, r in zip(floors, RESOLUTION)]
-
-    def scope(trials) -> list[tuple[float, float, float]]:
-        out = []
-        for c in range(len(CHANNELS)):
-            es = [tr[c] for tr in trials]
-            s = _sigma(es, frac)
-            sums = [lag1(e) for e in es]
-            ac = sum(a for a, _ in sums) / max(sum(b for _, b in sums), 1e-300)
-            out.append((s / fl[c] if fl[c] > 0 else math.nan, ac, s))
-        return out
-
-    overall = scope(errors)
-    per_trial = [scope([errors[i]]) for i in range(T)]
+    overall = _scope(errors, frac, fl)
+    per_trial = [_scope([errors[i]], frac, fl) for i in range(T)]
     worst = max(range(T), key=lambda i: max((r for r, _, _ in per_trial[i] if math.isfinite(r)), default=-1.0))
     series = series_names(errors[0][2].shape[1]) if T else [[], [], []]
-    judged = [math.isfinite(f) and f > r for f, r in zip(floors, RESOLUTION)]
-    white = []
-    for tr in errors:
-        row = []
-        for c, e in enumerate(tr):
-            for k in range(e.shape[1]):
-                w = whiteness.channel(e[:, k], np.isfinite(e[:, k]), lags)
-                row.append(w if judged[c] else w | {"p": math.nan})
-        white.append(row)
+    white = _white(errors, floors, lags)
     flat = [s for ss in series for s in ss]
     bad, cut = whiteness.rejects([w["p"] for row in white for w in row])
     bad = bad.reshape(T, len(flat)) if T else bad
     correlated = {names[i]: [s for s, b in zip(flat, bad[i]) if b] for i in range(T) if bad[i].any()}
-    hits = []
-    for label, sc in (("", overall), (names[worst], per_trial[worst])):
-        for c, (r, a, _) in enumerate(sc):
-            if r > FAR or (r > MODERATE and a > CORRELATED):
-                hits.append((label, CHANNELS[c], r, a))
-    ratios = ", ".join(f"{_x(r)} ({c})" for c, (r, _, _) in zip(CHANNELS, overall))
-    diagnosis = None
-    if unphysical:
-        status, diagnosis = "misfit", "wrong valley"
-        reason = (
-            f"the fitted values are no physical robot ({unphysical}): the fit is in a wrong valley, or a value held "
-            "fixed is wrong; try more starts (--n-starts), other start values (--params, --fix) or bounds (--bound)."
-        )
-    elif correlated and converged:
-        status, diagnosis = "misfit", "model error"
-        channels = {c for ss in correlated.values() for s in ss for c, names_c in zip(CHANNELS, series) if s in names_c}
-        where = "; ".join(f"trial {n!r}: {', '.join(ss)}" for n, ss in correlated.items())
-        reason = (
-            f"model error: the residuals are correlated in time ({where}; Ljung-Box p < {cut:.1e}), at {ratios} the "
-            "sensors' noise floors: the model does not describe these trials, and the values and standard errors are "
-            f"biased. What it could be missing: {'; '.join(missing_effects(channels, free, kind))}."
-        )
-    elif not converged:
-        status = "not_converged"
-        reason = (
-            f"the optimiser did not converge ({why_not or 'it stopped before its convergence test was met'}); the "
-            f"residual sigmas are {ratios} the sensors' noise floors: the values and standard errors are not final; "
-            "rerun with more iterations (--max-iter) or more starts (--n-starts)."
-        )
-    elif hits:
-        status, diagnosis = "misfit", "wrong valley"
-        reason = (
-            f"the residual sigmas are {ratios} the sensors' noise floors (worst trial {names[worst]!r}): the fit is in a "
-            "wrong valley or the model does not describe the trials; try more starts (--n-starts), other start values "
-            "(--params, --fix), and check the IMU's mounting (--imu-position, --imu-rotation) and the inputs."
-        )
-    else:
-        status = "converged"
-        acs = ", ".join(f"{a:.2f}" for _, a, _ in overall)
-        reason = f"the optimiser converged and the residual sigmas are {ratios} the sensors' noise floors, lag-1 autocorrelations {acs}."
+    hits = [
+        (label, CHANNELS[c], r, a)
+        for label, sc in (("", overall), (names[worst], per_trial[worst]))
+        for c, (r, a, _) in enumerate(sc)
+        if r > FAR or (r > MODERATE and a > CORRELATED)
+    ]
+    status, diagnosis, reason = _status(
+        overall, hits, correlated, cut, converged, why_not, unphysical, names, worst, series, free, kind
+    )
 
     def row(sc) -> dict[str, Any]:
         return {c: {"sigma": s, "ratio": r, "autocorr": a, "unit": u} for c, (r, a, s), u in zip(CHANNELS, sc, UNITS)}

@@ -253,6 +253,9 @@ class FitOptions:
         s = dict(d.pop("solver", None) or {})
         method = s.pop("solver", None)
         solver = SolverOptions(**s, solver=None if method is None else getattr(dfx, method)())
+        for k in ("imu_position", "imu_rotation"):
+            if k in d:
+                d[k] = tuple(float(x) for x in d[k])
         return cls(**d, solver=solver)
 
 

@@ -47,6 +47,11 @@ def fit_figures(result, out_dir, *, stem: str = "fit") -> list[Path]:
     per channel (`onboard_figures`)."""
     if getattr(result, "sigmas", None):
         return onboard_figures(result, out_dir, stem=stem)
+    return _pose_figures(result, out_dir, stem)
+
+
+def _pose_figures(result, out_dir, stem: str) -> list[Path]:
+    """`fit_figures` of a fit to captured poses."""
     plt = pyplot()
     out_dir = Path(out_dir)
     trials = result.trials
