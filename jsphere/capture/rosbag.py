@@ -1,6 +1,7 @@
 """Robot logs in ROS bags, read through `rosbags` (pure Python, no ROS install): poses
-(`read_rosbag_poses`: a pose topic, or one frame of the transforms on `/tf`) and the wheel inputs
-from `sensor_msgs/JointState` (`read_rosbag_inputs`).
+(`read_rosbag_poses`: a pose topic, or one frame of the transforms on `/tf`), the wheel inputs
+from `sensor_msgs/JointState` (`read_rosbag_inputs`), and onboard-sensor trials: a
+`sensor_msgs/Imu` topic with the wheels' encoders and inputs (`read_rosbag_onboard`).
 
 ROS 1 bags (`*.bag`) and ROS 2 bags (a folder with `metadata.yaml` and its sqlite3 `*.db3` or
 MCAP `*.mcap` storage; the storage file itself is accepted too) are read alike. Each message's
@@ -16,6 +17,7 @@ import numpy as np
 
 from .._runtime.errors import InputError
 from .markers import MarkerData
+from .onboard import OnboardTrial
 from .validation import sign_continuous, warn
 
 #: message types that carry one pose (REP 103: metres, X forward, Y left, Z up)
@@ -28,6 +30,7 @@ POSE_TYPES = (
 #: message types that carry the transforms of several frames (`/tf`; `tf/tfMessage` of ROS 1's tf)
 TF_TYPES = ("tf2_msgs/msg/TFMessage", "tf/msg/tfMessage")
 JOINT_STATE = "sensor_msgs/msg/JointState"
+IMU = "sensor_msgs/msg/Imu"
 #: `--input-kind`: the JointState field it reads and the trial's kind of inputs
 INPUT_FIELDS = {"chi_dot": ("velocity", "wheel_speeds"), "K": ("effort", "torques")}
 
@@ -217,6 +220,16 @@ def read_rosbag_inputs(
     if input_kind not in INPUT_FIELDS:
         raise InputError(f"{source}: input kind must be one of {list(INPUT_FIELDS)}; got {input_kind!r}.")
     field, kind = INPUT_FIELDS[input_kind]
+    t, values, names = _joint_values(path, topic, field, joints, n_wheels)
+    return t, values, kind, names
+
+
+def _joint_values(
+    path, topic: str, field: str, joints, n_wheels: int | None
+) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """`(t, values (T, N), joint names)`: the `field` (`position`, `velocity` or `effort`) of
+    the wheels' joints on the `sensor_msgs/JointState` topic (`read_rosbag_inputs`)."""
+    source = str(path)
     if isinstance(joints, str):
         joints = [j.strip() for j in joints.split(",") if j.strip()]
     msgs, bag_t, _ = _messages(path, topic, (JOINT_STATE,), "joint states")
@@ -228,13 +241,13 @@ def read_rosbag_inputs(
         vals = np.asarray(getattr(m, field), float)
         if len(vals) != len(have):
             filled = [f for f in ("position", "velocity", "effort") if len(getattr(m, f)) == len(have) and have]
-            other = {"velocity": "K", "effort": "chi_dot"}[field]
+            other = {"velocity": "K", "effort": "chi_dot"}.get(field)
             raise InputError(
                 f"{source}: message {i + 1} of {topic} has {len(vals)} {field} values for its {len(have)} joints "
                 f"{have} (it fills {', '.join(filled) or 'none of position, velocity, effort'}); "
                 + (
                     f"--input-kind {other} reads {INPUT_FIELDS[other][0]}."
-                    if INPUT_FIELDS[other][0] in filled
+                    if other is not None and INPUT_FIELDS[other][0] in filled
                     else f"record the joint states with {field} filled."
                 )
             )
@@ -259,4 +272,58 @@ def read_rosbag_inputs(
     t = _clock([m.header for m in msgs], bag_t, source, topic)
     if len(t) < 2:
         raise InputError(f"{source}: {topic} holds {len(t)} message; the inputs need at least 2.")
-    return t, values, kind, names
+    return t, values, names
+
+
+def read_rosbag_onboard(
+    path,
+    imu_topic: str,
+    inputs_topic: str,
+    *,
+    input_kind: str = "K",
+    encoder_topic: str | None = None,
+    joints=None,
+    n_wheels: int | None = None,
+    hold: bool = False,
+    name: str | None = None,
+) -> OnboardTrial:
+    """An onboard-sensor trial from a ROS bag: the IMU's `sensor_msgs/Imu` on `imu_topic`
+    (`angular_velocity` as the gyro, `linear_acceleration` as the accelerometer: the specific
+    force, +9.81 up at rest, as REP 145 has it; in the IMU's frame), the wheels' encoders as the
+    `position` of the `JointState` on `encoder_topic` (default: `inputs_topic`), and the inputs
+    as its `effort` (`input_kind="K"`) or `velocity` (`"chi_dot"`) on `inputs_topic`.
+
+    The trial's samples are the IMU's messages within the span every topic covers, its times
+    from the first of them; the encoder angles are unwrapped, interpolated linearly at the IMU's
+    times and taken from 0; the inputs are interpolated linearly, or held (`hold`: a digital
+    controller's torques, the trial says `# hold: zero-order`). `joints`, `n_wheels` as for
+    `read_rosbag_inputs`. `InputError` for topics of other types, spans that do not overlap, or
+    fewer than 4 IMU samples in the overlap."""
+    source = str(path)
+    if input_kind not in INPUT_FIELDS:
+        raise InputError(f"{source}: input kind must be one of {list(INPUT_FIELDS)}; got {input_kind!r}.")
+    msgs, bag_t, _ = _messages(path, imu_topic, (IMU,), "IMU readings")
+    t = _clock([m.header for m in msgs], bag_t, source, imu_topic)
+    gyro = np.array([[m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z] for m in msgs], float)
+    acc = np.array([[m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z] for m in msgs], float)
+    enc_topic = encoder_topic or inputs_topic
+    t_chi, chi, names = _joint_values(path, enc_topic, "position", joints, n_wheels)
+    t_in, u, _ = _joint_values(path, inputs_topic, INPUT_FIELDS[input_kind][0], joints or names, n_wheels)
+    lo, hi = max(t[0], t_chi[0], t_in[0]), min(t[-1], t_chi[-1], t_in[-1])
+    keep = (t >= lo) & (t <= hi)
+    if keep.sum() < 4:
+        raise InputError(
+            f"{source}: {imu_topic} ({t[0]:.3f}-{t[-1]:.3f} s), {enc_topic} ({t_chi[0]:.3f}-{t_chi[-1]:.3f} s) and "
+            f"{inputs_topic} ({t_in[0]:.3f}-{t_in[-1]:.3f} s) overlap in {int(keep.sum())} IMU samples; an onboard "
+            "trial needs at least 4: record the topics together."
+        )
+    t, gyro, acc = t[keep], gyro[keep], acc[keep]
+    chi = np.unwrap(chi, axis=0)
+    chi = np.stack([np.interp(t, t_chi, chi[:, i]) for i in range(chi.shape[1])], axis=1)
+    if hold:
+        inputs = u[np.clip(np.searchsorted(t_in, t, side="right") - 1, 0, len(t_in) - 1)]
+    else:
+        inputs = np.stack([np.interp(t, t_in, u[:, i]) for i in range(u.shape[1])], axis=1)
+    kind = INPUT_FIELDS[input_kind][1]
+    stem = Path(path).stem if Path(path).is_file() else Path(path).name
+    return OnboardTrial(t - t[0], gyro, acc, chi - chi[0], inputs, kind, hold, name or stem, source)

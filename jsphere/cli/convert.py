@@ -20,6 +20,8 @@ EXAMPLES = """
   jsphere convert run_bag/ --format rosbag --pose-topic /tf --child-frame robot --inputs-topic /joint_states \\
       --out trial.csv
   jsphere convert take.tsv --format qualisys --inputs run_bag/ --inputs-topic /joint_states --out trial.csv
+  jsphere convert run_bag/ --format rosbag --imu-topic /imu/data --inputs-topic /joint_states --input-kind K \
+      --joints wheel_1,wheel_2,wheel_3 --out runs/run1.csv
 """
 
 
@@ -102,6 +104,62 @@ def add_parser(sub) -> None:
         "and beyond its spread, and above twice the marker error the export reports: a swapped or ghost marker); by "
         "default they are written as missing, with a warning saying how many",
     )
+    _add_onboard_flags(cv)
+
+
+def _add_onboard_flags(cv) -> None:
+    """The flags of an onboard-sensor trial from a ROS bag (docs/onboard.md)."""
+    g = cv.add_argument_group(
+        "onboard-sensor trials (ROS bag)",
+        "the robot's own IMU and wheel encoders instead of poses: an onboard-sensor trial for jsphere fit",
+    )
+    g.add_argument("--imu-topic", help="the sensor_msgs/Imu topic of the IMU on the platform (instead of --pose-topic)")
+    g.add_argument(
+        "--encoder-topic",
+        help="the sensor_msgs/JointState topic whose position holds the wheels' angles (default: --inputs-topic)",
+    )
+    g.add_argument(
+        "--hold",
+        action="store_true",
+        help="the inputs are held between messages (a digital controller's torques) rather than samples of a smooth "
+        "programme",
+    )
+
+
+def _run_onboard(args) -> int:
+    """`jsphere convert --format rosbag --imu-topic ...`: an onboard-sensor trial."""
+    from .._runtime.errors import InputError
+    from .._runtime.files import check_output
+    from ..capture.onboard import write_onboard_trial
+    from ..capture.rosbag import read_rosbag_onboard
+    from ..model.params import RobotParams
+
+    if args.format != "rosbag":
+        raise InputError(f"--imu-topic reads a ROS bag; give --format rosbag (got --format {args.format}).")
+    if args.pose_topic or not args.inputs_topic:
+        raise InputError(
+            "--imu-topic makes an onboard-sensor trial: give --inputs-topic (the wheels' JointState), not --pose-topic."
+        )
+    out = Path(args.out)
+    check_output(out, inputs={"the ROS bag": args.raw, "the robot": args.params}, example=str(out / "trial.csv"))
+    robot = RobotParams.load(args.params) if args.params else None
+    trial = read_rosbag_onboard(
+        args.raw,
+        args.imu_topic,
+        args.inputs_topic,
+        input_kind=args.input_kind or "K",
+        encoder_topic=args.encoder_topic,
+        joints=args.joints,
+        n_wheels=robot.n_wheels if robot is not None else None,
+        hold=args.hold,
+        name=out.stem,
+    )
+    write_onboard_trial(out, trial)
+    print(
+        f"onboard trial {trial.name!r}: {len(trial.t)} samples over {trial.t[-1]:.3f} s, {trial.n_wheels} wheels, "
+        f"{trial.kind}{' held' if trial.hold else ''} -> {out}"
+    )
+    return 0
 
 
 def run(args) -> int:
@@ -118,6 +176,8 @@ def run(args) -> int:
     from ..capture.validation import CaptureWarning
     from ..model.params import RobotParams
 
+    if args.imu_topic:
+        return _run_onboard(args)
     if not all(math.isfinite(v) for v in args.body_offset):
         raise InputError(
             f"--body-offset X Y Z must be finite numbers [m]; got {' '.join(f'{v:g}' for v in args.body_offset)}."
