@@ -128,3 +128,22 @@ def test_arrays_are_checked_as_a_file_is_naming_the_sample(exact):
     acc[3, 0] = np.nan
     with pytest.raises(InputError, match=r"sample 4, column acc_x: blank or not finite"):
         OnboardTrial(tr.t, tr.gyro, acc, tr.chi, tr.inputs, tr.kind, name=tr.name)
+
+
+def test_synth_writes_onboard_trials_for_rehearsal(tmp_path, capsys):
+    from jsphere.cli.app import main
+
+    argv = ["synth", "--onboard", "--kind", "torques", "--trials", "2", "--duration", "1", "--out", str(tmp_path)]
+    assert main([*argv, "--imu-position", "0.02", "-0.01", "-0.04", "--counts-per-turn", "1024"]) == 0
+    printed = capsys.readouterr().out
+    for i in range(2):
+        tr = read_onboard_trial(tmp_path / f"onboard_torques_0{i}.csv")
+        assert tr.kind == "torques" and tr.t.size == 101 and tr.name == f"onboard_torques_0{i}"
+        steps = tr.chi / (2 * math.pi / 1024)
+        np.testing.assert_allclose(steps, np.round(steps), atol=1e-5)  # whole counts
+        bias = [
+            float(v)
+            for v in printed.splitlines()[i].split("biases (gyro rad/s, acc m/s^2) ")[1].split(" ->")[0].split(", ")
+        ]
+        assert abs(tr.gyro[:5, 0].mean() - bias[0]) < 0.01  # at rest at first: the reading is the bias
+    assert main([*argv[:-2], "--out", str(tmp_path / "x"), "--imu-rotation", "0", "0", "0", "0"]) != 0
