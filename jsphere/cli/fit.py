@@ -121,6 +121,12 @@ def _add_sensor_flags(ft) -> None:
         help="the IMU's orientation: a scalar-first quaternion mapping IMU components to platform components "
         "(default 1 0 0 0)",
     )
+    sensors.add_argument(
+        "--estimate-initial-state",
+        action="store_true",
+        help="fit each trial's initial motion (shell and platform angular velocities, the platform's tilt) instead of "
+        "starting it at rest: for trials cut from a longer run",
+    )
     sensors.add_argument("--sigma-gyro", type=float, help="gyro noise [rad/s] (default: estimated)")
     sensors.add_argument("--sigma-acc", type=float, help="accelerometer noise [m/s^2] (default: estimated)")
     sensors.add_argument(
@@ -171,6 +177,7 @@ def run(args) -> int:
         sigma_rot=sigma_rot,
         imu_position=tuple(args.imu_position),
         imu_rotation=tuple(args.imu_rotation),
+        start_at_rest=not args.estimate_initial_state,
     )
     for f in [(out, ".tmp"), *((g, None) for g in figures)]:  # what a killed writer left
         remove_stale_temporaries(*f)

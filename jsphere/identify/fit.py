@@ -61,7 +61,7 @@ from .checkpoint import (
 )
 from .data import FitData, pack_trials
 from .free import FreeParams, _overlaps, _split_names, apply_fixes
-from .onboard import CHANNELS, START_SIGMA, UNITS, bias_guess, channel_sigmas, pack_onboard
+from .onboard import CHANNELS, START_SIGMA, UNITS, channel_sigmas, nuisance_start, pack_onboard
 from .options import FIT_SOLVER, FIT_TOLERANCES, FitOptions, fit_options
 from .report import FitResult, fit_result
 from .residuals import _Functions, _functions
@@ -175,7 +175,7 @@ def _pack(trials: Sequence, params: RobotParams, o: FitOptions, onboard: bool):
         raise InputError(
             "fit: onboard-sensor trials are fitted by single shooting from rest; leave shooting at 'auto'."
         )
-    return pack_onboard(trials, params, o.mounting)
+    return pack_onboard(trials, params, o.mounting, o.start_at_rest)
 
 
 def _check_free_and_fixed(free, fix) -> None:
@@ -325,7 +325,7 @@ def _setup(
         nu = np.repeat(nuisance_guess(data, params)[None], S, 0)
     else:
         sig = np.array([s or s0 for s, s0 in zip(o.sigmas_onboard, START_SIGMA)])
-        nu = np.repeat(bias_guess(data, params)[None], S, 0)
+        nu = np.repeat(nuisance_start(data, params)[None], S, 0)
     ms, nu_ms = None, None
     if multiple:
         position = np.concatenate([np.arange(len(c) - 1) for c in seg.boundaries])

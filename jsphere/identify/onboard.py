@@ -29,7 +29,9 @@ import numpy as np
 from .._runtime.arrays import to_jax
 from .._runtime.errors import InputError
 from ..controls import Sampled, Torques, WheelSpeeds
+from ..model.kinematics import relative_rate_from_wheel_speeds
 from ..model.params import RobotParams
+from ..model.rotations import quat_exp, quat_mul, rotmat
 from ..model.sensors import Mounting, imu_readings
 from ..model.state import State
 from ..solve.simulate import simulate
@@ -42,8 +44,25 @@ UNITS = ("rad/s", "m/s^2", "rad")
 START_SIGMA = (0.01, 0.1, 1e-3)
 #: nuisance parameters per trial, in order: the gyro's and the accelerometer's constant biases
 NUISANCE = ("gyro_bias_x", "gyro_bias_y", "gyro_bias_z", "acc_bias_x", "acc_bias_y", "acc_bias_z")
-#: the model of a trial, by whether its inputs are held between samples (`_Functions`' `measure`)
-MEASURES = {False: "onboard", True: "onboard-held"}
+#: then, for trials that do not start at rest (`FitOptions.start_at_rest=False`): the shell's
+#: angular velocity, the platform's tilt from the rest attitude (a rotation about its x and y
+#: axes) and, with torques, its angular velocity at the first sample
+MOTION = {
+    "wheel_speeds": ("Omega0_x", "Omega0_y", "Omega0_z", "tilt0_x", "tilt0_y"),
+    "torques": ("Omega0_x", "Omega0_y", "Omega0_z", "tilt0_x", "tilt0_y", "omega0_x", "omega0_y", "omega0_z"),
+}
+
+
+def measure_name(hold: bool, at_rest: bool) -> str:
+    """The model of an onboard trial as `jsphere.identify.residuals` names it (`onboard_options`
+    reads it back)."""
+    return "onboard" + ("-held" if hold else "") + ("" if at_rest else "-moving")
+
+
+def onboard_options(measure: str) -> dict[str, bool]:
+    """`onboard_model`'s `hold` and `at_rest` of a `measure_name`."""
+    return {"hold": "-held" in measure, "at_rest": "-moving" not in measure}
+
 
 ARRAYS = ("ts", "tc", "u", "t1", "gyro", "acc", "chi", "w", "imu_pos", "imu_rot")
 
@@ -73,17 +92,19 @@ class OnboardData:
     names: tuple[str, ...]
     lengths: tuple[int, ...]
     t_start: tuple[float, ...]
+    at_rest: bool = True
     max_offset: float = 0.0
 
     channels = CHANNELS
 
     @property
     def measure(self) -> str:
-        return MEASURES[self.hold]
+        return measure_name(self.hold, self.at_rest)
 
     @property
     def nuisance(self) -> tuple[str, ...]:
-        return NUISANCE
+        """The biases, and the initial motion where the trials do not start at rest (`MOTION`)."""
+        return NUISANCE + (() if self.at_rest else MOTION[self.kind])
 
     @property
     def widths(self) -> tuple[int, int, int]:
@@ -109,7 +130,7 @@ class OnboardData:
         return {k: to_jax(getattr(self, k)) for k in ARRAYS}
 
     def fingerprint(self) -> str:
-        h = hashlib.sha256(f"onboard:{self.kind}:{self.hold}".encode())
+        h = hashlib.sha256(f"onboard:{self.kind}:{self.hold}:{self.at_rest}".encode())
         for k in ("ts", "u", "gyro", "acc", "chi", "imu_pos", "imu_rot"):
             h.update(np.ascontiguousarray(getattr(self, k)).tobytes())
         return h.hexdigest()
@@ -124,8 +145,9 @@ class OnboardData:
         return out
 
 
-def pack_onboard(trials: Sequence, params: RobotParams, mounting: Mounting) -> OnboardData:
-    """Check onboard trials (`jsphere.capture.onboard.OnboardTrial`) against `params` and pack them."""
+def pack_onboard(trials: Sequence, params: RobotParams, mounting: Mounting, at_rest: bool = True) -> OnboardData:
+    """Check onboard trials (`jsphere.capture.onboard.OnboardTrial`) against `params` and pack
+    them; `at_rest`: they start at rest (otherwise their initial motion is fitted)."""
     trials = list(trials)
     kinds = {t.kind for t in trials}
     holds = {bool(t.hold) for t in trials}
@@ -173,21 +195,29 @@ def pack_onboard(trials: Sequence, params: RobotParams, mounting: Mounting) -> O
         names=tuple(t.name for t in trials),
         lengths=tuple(len(t.t) for t in trials),
         t_start=tuple(float(t.t[0]) for t in trials),
+        at_rest=bool(at_rest),
     )
 
 
-def onboard_model(p, kind, rtol, atol, max_steps, adjoint, nu, d, sig, solver=None, hold=False):
+def onboard_model(p, kind, rtol, atol, max_steps, adjoint, nu, d, sig, solver=None, hold=False, at_rest=True):
     """The model of one onboard trial with parameters `p` (a `RobotParams`): its whitened
     residuals `(M (6 + N),)` (gyro, accelerometer, encoders, each sample-major), its solver
     status, the simulated readings `(gyro (M, 3), acc (M, 3), chi (M, N))` with the biases `nu`
     added, and an empty end state (onboard trials are single-shot). `sig`: the channels' noise
-    levels (`CHANNELS`); `hold`: the inputs are held between samples."""
+    levels (`CHANNELS`); `hold`: the inputs are held between samples; `at_rest`: the trial
+    starts at rest, else from the initial motion of `nu[6:]` (`MOTION`)."""
     dt = p.R0.dtype
     table = Sampled(d["tc"], d["u"], "zoh" if hold else "cubic")
     controls = WheelSpeeds(table, ()) if kind == "wheel_speeds" else Torques(table, ())
+    state0 = State.at_rest(p)
+    if not at_rest:
+        Omega = nu[6:9]
+        q0 = quat_mul(state0.q, quat_exp(jnp.concatenate([nu[9:11], jnp.zeros(1, dt)])))
+        omega = Omega + relative_rate_from_wheel_speeds(p, d["u"][0]) if kind == "wheel_speeds" else nu[11:14]
+        state0 = State(q=q0, q_shell=state0.q_shell, omega=omega, Omega=Omega, x=state0.x, y=state0.y, chi=state0.chi)
     tr = simulate(
         p,
-        State.at_rest(p),
+        state0,
         controls,
         d["t1"],
         ts=d["ts"],
@@ -212,17 +242,25 @@ def onboard_model(p, kind, rtol, atol, max_steps, adjoint, nu, d, sig, solver=No
     return jnp.where(ok, res, 0.0), ok, (gyro, acc, chi), jnp.zeros(1, dt)
 
 
-def bias_guess(data: OnboardData, params: RobotParams, *, samples: int = 5) -> np.ndarray:
-    """Initial biases `(T, 6)`: the mean of each trial's first `samples` readings minus what the
-    model reads at its start (at rest, under its first input)."""
+def nuisance_start(data: OnboardData, params: RobotParams, *, samples: int = 5) -> np.ndarray:
+    """Initial nuisance values `(T, n)`. At rest: the biases are the mean of each trial's first
+    `samples` readings minus what the model reads at its start (at rest, under its first input).
+    In motion: the gyro's bias starts at 0 and the platform's angular velocity at the mean of
+    those readings (in platform axes), the accelerometer's bias as at rest, the rest at 0."""
     mounting = Mounting(data.imu_pos[0], data.imu_rot[0])
     s0 = State.at_rest(params)
     K0 = data.u[:, 0] if data.kind == "torques" else np.zeros_like(data.u[:, 0])
-    out = np.zeros((data.ts.shape[0], 6))
+    R = np.asarray(rotmat(mounting.rotation))  # IMU -> platform
+    out = np.zeros((data.ts.shape[0], len(data.nuisance)))
     for i in range(data.ts.shape[0]):
         g, a = (np.asarray(x) for x in imu_readings(params, mounting, s0.gamma, s0.omega, s0.Omega, K0[i]))
         k = min(samples, data.lengths[i])
-        out[i] = np.concatenate([data.gyro[i, :k].mean(0) - g, data.acc[i, :k].mean(0) - a])
+        gyro = data.gyro[i, :k].mean(0)
+        out[i, :6] = np.concatenate([gyro - g, data.acc[i, :k].mean(0) - a])
+        if not data.at_rest:
+            out[i, :3] = 0.0
+            if data.kind == "torques":
+                out[i, 11:14] = R @ gyro
     return out
 
 

@@ -117,6 +117,11 @@ class FitOptions:
     imu_rotation: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
     """Onboard-sensor trials: the IMU's orientation, a scalar-first quaternion whose matrix maps
     IMU components to platform components (`jsphere.Mounting`)."""
+    start_at_rest: bool = True
+    """Onboard-sensor trials: each starts at rest (upright: `State.at_rest`). `False` fits each
+    trial's initial motion too (the shell's angular velocity, the platform's tilt and, with
+    torques, its angular velocity: `jsphere.identify.onboard.MOTION`), for trials cut from a
+    longer run; the standard errors grow (`docs/onboard.md`)."""
     sigma_gyro: float | None = None
     """Onboard-sensor trials: the gyro's noise level [rad/s]; if not given it starts at 0.01 and
     is estimated from the residuals after the first stage (as `sigma_pos`)."""
@@ -145,8 +150,9 @@ class FitOptions:
         for name, unit in (("sigma_gyro", "rad/s"), ("sigma_acc", "m/s^2"), ("sigma_encoder", "rad")):
             if getattr(self, name) is not None:
                 real("fit", name, getattr(self, name), strict=True, unit=unit)
-        if not isinstance(self.fit_time_offset, (bool, np.bool_)):
-            raise InputError(f"fit: fit_time_offset must be True or False; got {self.fit_time_offset!r}.")
+        for name in ("fit_time_offset", "start_at_rest"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise InputError(f"fit: {name} must be True or False; got {getattr(self, name)!r}.")
         real("fit", "max_time_offset", self.max_time_offset, strict=True, unit="s")
         counts = {k: whole("fit", k, getattr(self, k), low) for k, low in (("n_starts", 1), ("max_iter", 1))}
         counts |= {k: whole("fit", k, getattr(self, k), 0) for k in ("adam_steps", "seed")}

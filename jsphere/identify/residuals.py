@@ -39,7 +39,7 @@ from ..solve.simulate import simulate
 from . import shooting as _shooting
 from .data import offset_from_nuisance
 from .free import FreeParams
-from .onboard import MEASURES, onboard_model
+from .onboard import onboard_model, onboard_options
 from .shooting import end_vector
 
 
@@ -144,8 +144,9 @@ class _Functions:
         def model(p, nu, d, sig):
             if measure == "pose":
                 return trial_model(p, kind, rtol, atol, max_steps, dfx.ForwardMode(), nu, d, sig, solver, max_offset)
-            hold = measure == MEASURES[True]
-            return onboard_model(p, kind, rtol, atol, max_steps, dfx.ForwardMode(), nu, d, sig, solver, hold)
+            return onboard_model(
+                p, kind, rtol, atol, max_steps, dfx.ForwardMode(), nu, d, sig, solver, **onboard_options(measure)
+            )
 
         def jac_one(base, th, nu, d, sig, ends):
             def f(z):
@@ -253,7 +254,7 @@ def _functions(
     """The compiled functions of a configuration; `solver`: a diffrax solver (hashable, as
     diffrax's are), None for `simulate`'s default; `max_offset` > 0: the clock offsets are
     fitted; `split`: see `_Functions`; `measure`: `"pose"` (captured poses, `trial_model`) or
-    one of `jsphere.identify.onboard.MEASURES` (onboard sensors, `onboard_model`)."""
+    an onboard trial's `jsphere.identify.onboard.measure_name` (`onboard_model`)."""
     key = (free.slots, kind, rtol, atol, max_steps, solver, max_offset, split, measure)
     if key not in _CACHE:
         _CACHE[key] = _Functions(free, kind, rtol, atol, max_steps, solver, max_offset, split, measure)

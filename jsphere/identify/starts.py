@@ -26,6 +26,7 @@ _NU_SCALE = {
     "time": 0.01,
     "gyro": 0.005,
     "acc": 0.05,
+    "tilt0": 0.01,
 }
 #: `relative_rate_from_wheel_speeds` of a stack of commands, as one compiled program
 _relative_rates = eqx.filter_jit(jax.vmap(relative_rate_from_wheel_speeds, in_axes=(None, 0)))
