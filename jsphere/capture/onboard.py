@@ -213,7 +213,8 @@ def synthetic_onboard_trial(
     """An onboard-sensor trial from a simulation: `controls` from `state0` (default at rest),
     solved at rtol 1e-10, atol 1e-12 and sampled at `rate` [Hz] from 0 to `t1`; the readings of
     `jsphere.imu_readings` at `mounting` (default: the centre, level) with `noise` (default
-    `OnboardNoise()`), the wheel angles from 0 quantised to the encoders' counts, and the
+    `OnboardNoise()`), the wheel angles from 0 as the encoders count them (each wheel starting
+    at a random angle: the first count is a rounded angle too), and the
     commanded inputs at the sample times. Deterministic for a given `seed`."""
     from ..solve.simulate import simulate
 
@@ -229,9 +230,10 @@ def synthetic_onboard_trial(
     gyro = gyro + np.asarray(noise.gyro_bias) + rng.normal(0.0, noise.gyro_sd, gyro.shape)
     acc = acc + np.asarray(noise.acc_bias) + rng.normal(0.0, noise.acc_sd, acc.shape)
     chi = np.asarray(tr.chi) - np.asarray(tr.chi[0])
-    if noise.counts_per_turn:
+    if noise.counts_per_turn:  # counts of the wheels' angles from where each happened to stand
         step = 2 * math.pi / noise.counts_per_turn
-        chi = np.round(chi / step) * step
+        start = rng.uniform(0.0, 2 * math.pi, chi.shape[1])
+        chi = (np.round((start + chi) / step) - np.round(start / step)) * step
     u = np.asarray(eval_controls(controls, jnp.asarray(ts, params.R0.dtype)))
     kind = "wheel_speeds" if isinstance(controls, WheelSpeeds) else "torques"
     return OnboardTrial(ts, gyro, acc, chi, u, kind, name=name)

@@ -8,9 +8,10 @@ trial's constant biases, and the encoders' angles from 0), whitened by each chan
 
     r_gyro = (R^T omega + b_gyro - gyro) / sigma_gyro
     r_acc  = (R^T (a_r + g gamma) + b_acc - acc) / sigma_acc
-    r_enc  = (chi - chi_meas) / sigma_encoder
+    r_enc  = (chi - chi(0) + chi0 - chi_meas) / sigma_encoder
 
-The nuisance parameters of a trial are its six biases (IMU axes). Heading and position do not
+The nuisance parameters of a trial are its six biases (IMU axes) and its encoders' offsets at
+the first sample (each encoder's first count is a rounded angle). Heading and position do not
 enter the readings, nor do `m` and `m0` separately beyond `m + m0` and `m r_m`: one of them is
 held fixed (`docs/onboard.md`).
 """
@@ -44,6 +45,8 @@ UNITS = ("rad/s", "m/s^2", "rad")
 START_SIGMA = (0.01, 0.1, 1e-3)
 #: nuisance parameters per trial, in order: the gyro's and the accelerometer's constant biases
 NUISANCE = ("gyro_bias_x", "gyro_bias_y", "gyro_bias_z", "acc_bias_x", "acc_bias_y", "acc_bias_z")
+#: then each wheel's encoder offset `chi0_i` [rad]: the wheel's true angle at the first sample less
+#: the encoder's, within a count either way (the count at the start is a rounded angle too);
 #: then, for trials that do not start at rest (`FitOptions.start_at_rest=False`): the shell's
 #: angular velocity, the platform's tilt from the rest attitude (a rotation about its x and y
 #: axes) and, with torques, its angular velocity at the first sample
@@ -103,8 +106,10 @@ class OnboardData:
 
     @property
     def nuisance(self) -> tuple[str, ...]:
-        """The biases, and the initial motion where the trials do not start at rest (`MOTION`)."""
-        return NUISANCE + (() if self.at_rest else MOTION[self.kind])
+        """The biases, the encoders' offsets and the initial motion where the trials do not start
+        at rest (`MOTION`)."""
+        offsets = tuple(f"chi0_{i + 1}" for i in range(self.widths[2]))
+        return NUISANCE + offsets + (() if self.at_rest else MOTION[self.kind])
 
     @property
     def widths(self) -> tuple[int, int, int]:
@@ -205,15 +210,16 @@ def onboard_model(p, kind, rtol, atol, max_steps, adjoint, nu, d, sig, solver=No
     status, the simulated readings `(gyro (M, 3), acc (M, 3), chi (M, N))` with the biases `nu`
     added, and an empty end state (onboard trials are single-shot). `sig`: the channels' noise
     levels (`CHANNELS`); `hold`: the inputs are held between samples; `at_rest`: the trial
-    starts at rest, else from the initial motion of `nu[6:]` (`MOTION`)."""
-    dt = p.R0.dtype
+    starts at rest, else from the initial motion of `nu[6 + N:]` (`MOTION`)."""
+    dt, N = p.R0.dtype, p.n_wheels
     table = Sampled(d["tc"], d["u"], "zoh" if hold else "cubic")
     controls = WheelSpeeds(table, ()) if kind == "wheel_speeds" else Torques(table, ())
     state0 = State.at_rest(p)
     if not at_rest:
-        Omega = nu[6:9]
-        q0 = quat_mul(state0.q, quat_exp(jnp.concatenate([nu[9:11], jnp.zeros(1, dt)])))
-        omega = Omega + relative_rate_from_wheel_speeds(p, d["u"][0]) if kind == "wheel_speeds" else nu[11:14]
+        m = nu[6 + N :]
+        Omega = m[0:3]
+        q0 = quat_mul(state0.q, quat_exp(jnp.concatenate([m[3:5], jnp.zeros(1, dt)])))
+        omega = Omega + relative_rate_from_wheel_speeds(p, d["u"][0]) if kind == "wheel_speeds" else m[5:8]
         state0 = State(q=q0, q_shell=state0.q_shell, omega=omega, Omega=Omega, x=state0.x, y=state0.y, chi=state0.chi)
     tr = simulate(
         p,
@@ -230,7 +236,7 @@ def onboard_model(p, kind, rtol, atol, max_steps, adjoint, nu, d, sig, solver=No
         batch_steps="diffrax",
     )
     gyro, acc = imu_readings(p, Mounting(d["imu_pos"], d["imu_rot"]), tr.gamma, tr.omega, tr.Omega, tr.K)
-    gyro, acc, chi = gyro + nu[0:3], acc + nu[3:6], tr.chi - tr.chi[:1]
+    gyro, acc, chi = gyro + nu[0:3], acc + nu[3:6], tr.chi - tr.chi[:1] + nu[6 : 6 + N]
     w = d["w"][:, None]
     res = jnp.concatenate(
         [
@@ -251,7 +257,7 @@ def nuisance_start(data: OnboardData, params: RobotParams, *, samples: int = 5) 
     s0 = State.at_rest(params)
     K0 = data.u[:, 0] if data.kind == "torques" else np.zeros_like(data.u[:, 0])
     R = np.asarray(rotmat(mounting.rotation))  # IMU -> platform
-    out = np.zeros((data.ts.shape[0], len(data.nuisance)))
+    out, N = np.zeros((data.ts.shape[0], len(data.nuisance))), data.widths[2]
     for i in range(data.ts.shape[0]):
         g, a = (np.asarray(x) for x in imu_readings(params, mounting, s0.gamma, s0.omega, s0.Omega, K0[i]))
         k = min(samples, data.lengths[i])
@@ -260,7 +266,7 @@ def nuisance_start(data: OnboardData, params: RobotParams, *, samples: int = 5) 
         if not data.at_rest:
             out[i, :3] = 0.0
             if data.kind == "torques":
-                out[i, 11:14] = R @ gyro
+                out[i, 6 + N + 5 : 6 + N + 8] = R @ gyro
     return out
 
 

@@ -27,6 +27,7 @@ _NU_SCALE = {
     "gyro": 0.005,
     "acc": 0.05,
     "tilt0": 0.01,
+    "chi0": 5e-4,
 }
 #: `relative_rate_from_wheel_speeds` of a stack of commands, as one compiled program
 _relative_rates = eqx.filter_jit(jax.vmap(relative_rate_from_wheel_speeds, in_axes=(None, 0)))

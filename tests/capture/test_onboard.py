@@ -59,7 +59,9 @@ def test_noise_biases_and_encoder_counts_are_what_was_asked(paper, torques, exac
     assert 0.8 < dg.std(0).mean() / 0.003 < 1.2 and 0.8 < da.std(0).mean() / 0.03 < 1.2
     step = 2 * math.pi / 4096
     np.testing.assert_allclose(tr.chi / step, np.round(tr.chi / step), atol=1e-6)
-    assert np.abs(tr.chi - clean.chi).max() <= step / 2 + 1e-12
+    # counts from where each wheel stood: two roundings, the first a constant offset per wheel
+    err = tr.chi - clean.chi
+    assert np.abs(err).max() <= step + 1e-12 and np.abs(err - np.median(err, axis=0)).max() <= step + 1e-12
 
 
 def test_the_csv_reads_back_as_written(paper, exact, tmp_path):

@@ -90,3 +90,24 @@ def test_onboard_fits_refuse_what_does_not_apply(paper, folder):
         fit(trials, paper, FREE, options=FitOptions(fit_time_offset=True), progress=False)
     with pytest.raises(InputError, match="imu_rotation is a zero quaternion"):
         fit(trials, paper, FREE, options=FitOptions(imu_rotation=(0, 0, 0, 0)), progress=False)
+
+
+@pytest.mark.slow
+def test_trials_cut_from_a_run_need_their_initial_motion_fitted(paper, folder):
+    """Trials cut 1 s into the runs (the robot in motion): started at rest the fit is a misfit;
+    with `start_at_rest=False` (`--estimate-initial-state`) it recovers the robot within 3
+    standard errors, with larger standard errors."""
+    cut = []
+    for t in read_trials([folder]):
+        k = 100
+        cut.append(
+            type(t)(t.t[k:] - t.t[k], t.gyro[k:], t.acc[k:], t.chi[k:] - t.chi[k], t.inputs[k:], t.kind, name=t.name)
+        )
+    mount = {"imu_position": tuple(np.asarray(MOUNTING.position)), "imu_rotation": tuple(np.asarray(MOUNTING.rotation))}
+    rest = fit(cut, paper, FREE, options=FitOptions(**mount), progress=False)
+    assert rest.status == "misfit"
+    moving = fit(cut, paper, FREE, options=FitOptions(**mount, start_at_rest=False), progress=False)
+    assert moving.status == "converged", moving.status_reason
+    for name in FREE:
+        assert abs(moving.values[name] - float(get_value(paper, name))) < 3 * moving.stderr[name], name
+    assert {"Omega0_x", "tilt0_y", "omega0_z", "chi0_3"} <= set(moving.trials[0]["nuisance"])
