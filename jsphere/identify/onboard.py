@@ -1,5 +1,6 @@
-"""Onboard-sensor trials as the fit sees them: packed into arrays (`OnboardData`), the model of
-one trial (`onboard_model`), the start of its nuisance parameters and the channels' noise levels.
+"""Onboard-sensor trials as the fit sees them: packed into arrays (`OnboardData`), the start of
+their nuisance parameters and the channels' noise levels; the model of one trial is
+`jsphere.identify.residuals.onboard_model`.
 
 A trial starts at rest (`State.at_rest` of the parameters being fitted: upright for a robot whose
 mass centre lies on the platform's axis) and runs under its recorded inputs; the residuals are
@@ -24,18 +25,14 @@ import math
 from collections.abc import Sequence
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from .._runtime.arrays import to_jax
 from .._runtime.errors import InputError
-from ..controls import Sampled, Torques, WheelSpeeds
-from ..model.kinematics import relative_rate_from_wheel_speeds
 from ..model.params import RobotParams
-from ..model.rotations import quat_exp, quat_mul, rotmat
+from ..model.rotations import rotmat
 from ..model.sensors import Mounting, imu_readings
 from ..model.state import State
-from ..solve.simulate import simulate
 
 #: the channels of an onboard trial, in the order of the residuals and of the noise levels
 CHANNELS = ("gyro", "acc", "encoders")
@@ -202,50 +199,6 @@ def pack_onboard(trials: Sequence, params: RobotParams, mounting: Mounting, at_r
         t_start=tuple(float(t.t[0]) for t in trials),
         at_rest=bool(at_rest),
     )
-
-
-def onboard_model(p, kind, rtol, atol, max_steps, adjoint, nu, d, sig, solver=None, hold=False, at_rest=True):
-    """The model of one onboard trial with parameters `p` (a `RobotParams`): its whitened
-    residuals `(M (6 + N),)` (gyro, accelerometer, encoders, each sample-major), its solver
-    status, the simulated readings `(gyro (M, 3), acc (M, 3), chi (M, N))` with the biases `nu`
-    added, and an empty end state (onboard trials are single-shot). `sig`: the channels' noise
-    levels (`CHANNELS`); `hold`: the inputs are held between samples; `at_rest`: the trial
-    starts at rest, else from the initial motion of `nu[6 + N:]` (`MOTION`)."""
-    dt, N = p.R0.dtype, p.n_wheels
-    table = Sampled(d["tc"], d["u"], "zoh" if hold else "cubic")
-    controls = WheelSpeeds(table, ()) if kind == "wheel_speeds" else Torques(table, ())
-    state0 = State.at_rest(p)
-    if not at_rest:
-        m = nu[6 + N :]
-        Omega = m[0:3]
-        q0 = quat_mul(state0.q, quat_exp(jnp.concatenate([m[3:5], jnp.zeros(1, dt)])))
-        omega = Omega + relative_rate_from_wheel_speeds(p, d["u"][0]) if kind == "wheel_speeds" else m[5:8]
-        state0 = State(q=q0, q_shell=state0.q_shell, omega=omega, Omega=Omega, x=state0.x, y=state0.y, chi=state0.chi)
-    tr = simulate(
-        p,
-        state0,
-        controls,
-        d["t1"],
-        ts=d["ts"],
-        rtol=rtol,
-        atol=atol,
-        solver=solver,
-        max_steps=max_steps,
-        throw=False,
-        adjoint=adjoint,
-        batch_steps="diffrax",
-    )
-    gyro, acc = imu_readings(p, Mounting(d["imu_pos"], d["imu_rot"]), tr.gamma, tr.omega, tr.Omega, tr.K)
-    gyro, acc, chi = gyro + nu[0:3], acc + nu[3:6], tr.chi - tr.chi[:1] + nu[6 : 6 + N]
-    w = d["w"][:, None]
-    res = jnp.concatenate(
-        [
-            ((a - d[k]) * w / s).reshape(-1)
-            for a, k, s in ((gyro, "gyro", sig[0]), (acc, "acc", sig[1]), (chi, "chi", sig[2]))
-        ]
-    )
-    ok = tr.ok & jnp.all(jnp.isfinite(res))
-    return jnp.where(ok, res, 0.0), ok, (gyro, acc, chi), jnp.zeros(1, dt)
 
 
 def nuisance_start(data: OnboardData, params: RobotParams, *, samples: int = 5) -> np.ndarray:

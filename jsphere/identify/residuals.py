@@ -1,4 +1,5 @@
-"""The model of a trial as the fit sees it, and its compiled Jacobians.
+"""The model of a trial as the fit sees it, and its compiled Jacobians: `trial_model` for
+captured poses, `onboard_model` for the robot's own sensors (`jsphere.identify.onboard`).
 
 The model of a trial is `simulate(params, state0(nu), controls)` sampled at the capture times;
 the residuals are the simulated minus the captured position and orientation, whitened by
@@ -33,13 +34,14 @@ from .._runtime.quick_compile import eager_jit, run_program
 from ..controls import Sampled, Torques, WheelSpeeds
 from ..model.kinematics import relative_rate_from_wheel_speeds
 from ..model.rotations import quat_conj, quat_exp, quat_log, quat_mul
+from ..model.sensors import Mounting, imu_readings
 from ..model.state import State
 from ..numerics.lm import arrow_step, solve_arrow
 from ..solve.simulate import simulate
 from . import shooting as _shooting
 from .data import offset_from_nuisance
 from .free import FreeParams
-from .onboard import onboard_model, onboard_options
+from .onboard import onboard_options
 from .shooting import end_vector
 
 
@@ -78,20 +80,7 @@ def trial_model(p, kind, rtol, atol, max_steps, adjoint, nu, d, sig, solver=None
         y=d["xy0"][1] + nu[7],
         chi=jnp.zeros(p.n_wheels, dt),
     )
-    tr = simulate(
-        p,
-        state0,
-        controls,
-        d["t1"],
-        ts=d["ts"],
-        rtol=rtol,
-        atol=atol,
-        solver=solver,
-        max_steps=max_steps,
-        throw=False,
-        adjoint=adjoint,
-        batch_steps="diffrax",  # (forward mode: per-trial steps, which diffrax's own vmap gives)
-    )
+    tr = _solve(p, state0, controls, d, rtol, atol, max_steps, adjoint, solver)
     ex = (tr.x - d["x"]) * d["wpos"] / sig[0]
     ey = (tr.y - d["y"]) * d["wpos"] / sig[0]
     er = quat_log(quat_mul(quat_conj(tr.q), d["q"])) * d["wrot"][:, None] / sig[1]
@@ -103,6 +92,56 @@ def trial_model(p, kind, rtol, atol, max_steps, adjoint, nu, d, sig, solver=None
     res = jnp.where(ok, res, 0.0)
     end = jnp.where(ok, end, 0.0)
     return res, ok, (tr.x, tr.y, tr.q), end
+
+
+def _solve(p, state0, controls, d, rtol, atol, max_steps, adjoint, solver):
+    """A trial's motion at its sample times `d["ts"]`, as every model of a trial solves it: no
+    exception on failure (`tr.ok`), per-trial steps (forward mode: diffrax's own vmap)."""
+    return simulate(
+        p,
+        state0,
+        controls,
+        d["t1"],
+        ts=d["ts"],
+        rtol=rtol,
+        atol=atol,
+        solver=solver,
+        max_steps=max_steps,
+        throw=False,
+        adjoint=adjoint,
+        batch_steps="diffrax",
+    )
+
+
+def onboard_model(p, kind, rtol, atol, max_steps, adjoint, nu, d, sig, solver=None, hold=False, at_rest=True):
+    """The model of one onboard trial with parameters `p` (a `RobotParams`): its whitened
+    residuals `(M (6 + N),)` (gyro, accelerometer, encoders, each sample-major), its solver
+    status, the simulated readings `(gyro (M, 3), acc (M, 3), chi (M, N))` with the biases `nu`
+    added, and an empty end state (onboard trials are single-shot). `sig`: the channels' noise
+    levels (`CHANNELS`); `hold`: the inputs are held between samples; `at_rest`: the trial
+    starts at rest, else from the initial motion of `nu[6 + N:]` (`MOTION`)."""
+    dt, N = p.R0.dtype, p.n_wheels
+    table = Sampled(d["tc"], d["u"], "zoh" if hold else "cubic")
+    controls = WheelSpeeds(table, ()) if kind == "wheel_speeds" else Torques(table, ())
+    state0 = State.at_rest(p)
+    if not at_rest:
+        m = nu[6 + N :]
+        Omega = m[0:3]
+        q0 = quat_mul(state0.q, quat_exp(jnp.concatenate([m[3:5], jnp.zeros(1, dt)])))
+        omega = Omega + relative_rate_from_wheel_speeds(p, d["u"][0]) if kind == "wheel_speeds" else m[5:8]
+        state0 = State(q=q0, q_shell=state0.q_shell, omega=omega, Omega=Omega, x=state0.x, y=state0.y, chi=state0.chi)
+    tr = _solve(p, state0, controls, d, rtol, atol, max_steps, adjoint, solver)
+    gyro, acc = imu_readings(p, Mounting(d["imu_pos"], d["imu_rot"]), tr.gamma, tr.omega, tr.Omega, tr.K)
+    gyro, acc, chi = gyro + nu[0:3], acc + nu[3:6], tr.chi - tr.chi[:1] + nu[6 : 6 + N]
+    w = d["w"][:, None]
+    res = jnp.concatenate(
+        [
+            ((a - d[k]) * w / s).reshape(-1)
+            for a, k, s in ((gyro, "gyro", sig[0]), (acc, "acc", sig[1]), (chi, "chi", sig[2]))
+        ]
+    )
+    ok = tr.ok & jnp.all(jnp.isfinite(res))
+    return jnp.where(ok, res, 0.0), ok, (gyro, acc, chi), jnp.zeros(1, dt)
 
 
 class _Functions:
