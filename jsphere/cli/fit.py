@@ -12,6 +12,7 @@ EXAMPLES = """
   jsphere fit --free j --fix m=2.5 examples/data/ws_01.csv --out fit.json
   jsphere fit trials/*.csv --free 'R_m,j,I[0,0],I[1,1],I[2,2],I0' --fix m=2.5,m0=0.8 --bound j=0:1e-3 --out fit.json
   jsphere fit trials/*.csv --free R_m,j --fix m0=0.8 --fit-time-offset --out fit.json
+  jsphere fit runs/*.csv --free 'r_m[2],j,I[2,2],m0' --imu-position 0.02 -0.01 -0.04 --out fit.json   (onboard sensors)
 """
 #: what an interrupted fit keeps
 RESUMES = "the finished stages are kept in the checkpoint beside --out: rerun the same command to resume"
