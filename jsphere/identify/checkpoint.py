@@ -47,7 +47,13 @@ def _config_fingerprint(data: FitData, free: FreeParams, cfg: dict) -> str:
 
 
 def _checkpoint_layout(
-    stage: int, S: int, P: int, nu_shape: tuple, adam_shapes: Sequence[tuple], evaluation: dict[str, tuple]
+    stage: int,
+    S: int,
+    P: int,
+    nu_shape: tuple,
+    adam_shapes: Sequence[tuple],
+    evaluation: dict[str, tuple],
+    n_sig: int = 2,
 ) -> dict[str, tuple]:
     """The arrays a checkpoint at `stage` holds, with their shapes: everything the optimiser
     reads from one step to the next (`S` starts, `P` free parameters, `nu_shape` the nuisance
@@ -56,8 +62,9 @@ def _checkpoint_layout(
     Levenberg-Marquardt stages of single shooting, 4 + k level k of multiple shooting (the
     per-start damping, flags, counters and costs, and the evaluation at the current points,
     shapes `evaluation`: kept, not recomputed, because a vmapped solve's steps and so its
-    last digits depend on the other starts it ran with), stage 3 the finished optimisation."""
-    out = {"stage": (), "total_it": (), "sig": (2,), "theta": (S, P), "nu": (S, *nu_shape), "max_defect": ()}
+    last digits depend on the other starts it ran with), stage 3 the finished optimisation.
+    `n_sig`: the noise levels (2 for captured poses, one per channel for onboard sensors)."""
+    out = {"stage": (), "total_it": (), "sig": (n_sig,), "theta": (S, P), "nu": (S, *nu_shape), "max_defect": ()}
     if stage == 0:
         out |= {"adam_k": (), "adam_best_cost": (S,), "adam_best_theta": (S, P), "adam_best_nu": (S, *nu_shape)}
         out |= {f"adam_{i}": tuple(shape) for i, shape in enumerate(adam_shapes)}

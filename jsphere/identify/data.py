@@ -79,6 +79,8 @@ class FitData:
     measure = "pose"
     #: the residuals of one frame: position (2) and orientation (3)
     width = 5
+    #: the channels, each with its noise level
+    channels = ("position", "orientation")
 
     @property
     def nuisance(self) -> tuple[str, ...]:

@@ -385,7 +385,7 @@ def _layout(run: _Run, stage: int) -> dict[str, tuple]:
         ev = {"res": (S, T, K), "J": (S, T, K, P + n_nu)}
         ev |= {f"pose_{c}": (S, T, *shape) for c, shape in zip("xyq", run.data.aux_shapes())}
         nu_shape = (T, n_nu)
-    return _checkpoint_layout(stage, S, P, nu_shape, run.adam_shapes, ev)
+    return _checkpoint_layout(stage, S, P, nu_shape, run.adam_shapes, ev, len(run.data.channels))
 
 
 def _resume(run: _Run, st: _State, restart: bool) -> None:

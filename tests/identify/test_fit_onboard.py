@@ -111,3 +111,21 @@ def test_trials_cut_from_a_run_need_their_initial_motion_fitted(paper, folder):
     for name in FREE:
         assert abs(moving.values[name] - float(get_value(paper, name))) < 3 * moving.stderr[name], name
     assert {"Omega0_x", "tilt0_y", "omega0_z", "chi0_3"} <= set(moving.trials[0]["nuisance"])
+
+
+def test_a_killed_onboard_fit_resumes_to_the_same_result(paper, folder, tmp_path):
+    trials = read_trials([folder])
+    mount = {"imu_position": tuple(np.asarray(MOUNTING.position)), "imu_rotation": tuple(np.asarray(MOUNTING.rotation))}
+    options, ckpt = FitOptions(**mount), tmp_path / "fit.ckpt.npz"
+
+    def kill(line):
+        if "LM stage 1 it   2" in line:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit(trials, paper, FREE, options=options, checkpoint=ckpt, progress=kill)
+    lines = []
+    resumed = fit(trials, paper, FREE, options=options, checkpoint=ckpt, progress=lines.append)
+    assert any("resuming from" in line for line in lines)
+    whole = fit(trials, paper, FREE, options=options, progress=False)
+    assert resumed.values == whole.values and resumed.stderr == whole.stderr
