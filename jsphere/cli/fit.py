@@ -128,6 +128,11 @@ def _add_sensor_flags(ft) -> None:
         help="fit each trial's initial motion (shell and platform angular velocities, the platform's tilt) instead of "
         "starting it at rest: for trials cut from a longer run",
     )
+    sensors.add_argument(
+        "--zero-order-hold",
+        action="store_true",
+        help="the torques are held between samples (a digital controller's), whatever the trial files say",
+    )
     sensors.add_argument("--sigma-gyro", type=float, help="gyro noise [rad/s] (default: estimated)")
     sensors.add_argument("--sigma-acc", type=float, help="accelerometer noise [m/s^2] (default: estimated)")
     sensors.add_argument(

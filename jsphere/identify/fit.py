@@ -175,6 +175,8 @@ def _pack(trials: Sequence, params: RobotParams, o: FitOptions, onboard: bool):
         raise InputError(
             "fit: onboard-sensor trials are fitted by single shooting from rest; leave shooting at 'auto'."
         )
+    if o.zero_order_hold:
+        trials = [t if t.hold else dataclasses.replace(t, hold=True) for t in trials]
     return pack_onboard(trials, params, o.mounting, o.start_at_rest)
 
 

@@ -122,6 +122,9 @@ class FitOptions:
     trial's initial motion too (the shell's angular velocity, the platform's tilt and, with
     torques, its angular velocity: `jsphere.identify.onboard.MOTION`), for trials cut from a
     longer run; the standard errors grow (`docs/onboard.md`)."""
+    zero_order_hold: bool = False
+    """Onboard-sensor trials: their torques are held between samples (a digital controller's),
+    whatever the trial files say (a file says it itself with `# hold: zero-order`)."""
     sigma_gyro: float | None = None
     """Onboard-sensor trials: the gyro's noise level [rad/s]; if not given it starts at 0.01 and
     is estimated from the residuals after the first stage (as `sigma_pos`)."""
@@ -150,7 +153,7 @@ class FitOptions:
         for name, unit in (("sigma_gyro", "rad/s"), ("sigma_acc", "m/s^2"), ("sigma_encoder", "rad")):
             if getattr(self, name) is not None:
                 real("fit", name, getattr(self, name), strict=True, unit=unit)
-        for name in ("fit_time_offset", "start_at_rest"):
+        for name in ("fit_time_offset", "start_at_rest", "zero_order_hold"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise InputError(f"fit: {name} must be True or False; got {getattr(self, name)!r}.")
         real("fit", "max_time_offset", self.max_time_offset, strict=True, unit="s")

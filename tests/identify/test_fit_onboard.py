@@ -129,3 +129,12 @@ def test_a_killed_onboard_fit_resumes_to_the_same_result(paper, folder, tmp_path
     assert any("resuming from" in line for line in lines)
     whole = fit(trials, paper, FREE, options=options, progress=False)
     assert resumed.values == whole.values and resumed.stderr == whole.stderr
+
+
+def test_zero_order_hold_is_an_option_of_the_fit_as_of_the_file(paper, folder):
+    from jsphere.identify.fit import _pack
+
+    trials = read_trials([folder])
+    assert _pack(trials, paper, FitOptions().checked(onboard=True), True).measure == "onboard"
+    held = _pack(trials, paper, FitOptions(zero_order_hold=True).checked(onboard=True), True)
+    assert held.hold and held.measure == "onboard-held"
