@@ -95,6 +95,17 @@ class OnboardTrial(eqx.Module):
         return cls.from_samples(jnp.asarray(self.t), jnp.asarray(self.inputs), kind="zoh" if self.hold else "cubic")
 
 
+def refuse_onboard(trials, where: str) -> None:
+    """An `InputError` naming the first onboard-sensor trial of `trials`, for a command (`where`)
+    that needs captured poses."""
+    for t in trials:
+        if isinstance(t, OnboardTrial):
+            raise InputError(
+                f"{t.source or repr(t.name)}: an onboard-sensor trial (IMU and encoders, no poses); {where} needs "
+                "motion-capture trials: fit onboard trials with jsphere fit, whose verdict judges them (docs/onboard.md)."
+            )
+
+
 def _check_values(t, values, kind: str, where: str, lines: np.ndarray | None = None) -> None:
     """Check the times and the columns `gyro_x..acc_z, chi_1..N, inputs` of `values` `(M, 6 +
     2N)`; errors name the file's `lines` where given, else the samples."""

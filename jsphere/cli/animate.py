@@ -245,11 +245,13 @@ def _plan_record(info: Path, target: tuple[float, float]) -> tuple[tuple[float, 
 def _fit_trials(fit_path: Path, record: dict, given) -> list:
     """The trials of the fit `record`: the files `given` (or those in the folders given), else
     `<name>.csv` beside the fit's JSON; an error names the trials that are missing."""
+    from ..capture.onboard import refuse_onboard
     from ..capture.trial import read_trials
 
     names = [t.get("name") for t in record.get("trials", []) if isinstance(t, dict)]
     if given:
         trials = read_trials(given)
+        refuse_onboard(trials, "jsphere animate")
         known = {t.name for t in trials}
         if names and not known & set(names):
             raise InputError(
@@ -264,7 +266,9 @@ def _fit_trials(fit_path: Path, record: dict, given) -> list:
             f"{fit_path}: the fit's trials {', '.join(missing)} are missing (looked for <name>.csv beside it); give "
             f"the trial files after the fit: jsphere animate {fit_path} trials/*.csv --out fit.mp4."
         )
-    return read_trials([fit_path.parent / f"{n}.csv" for n in names])
+    trials = read_trials([fit_path.parent / f"{n}.csv" for n in names])
+    refuse_onboard(trials, "jsphere animate")
+    return trials
 
 
 def fit_file_scenes(path: Path, extra=(), *, params: RobotParams | None = None, trials=None) -> list[Scene]:
@@ -291,6 +295,7 @@ def scenes_from_path(path, extra=(), *, params: RobotParams | None = None, trial
     """The scenes of a file or folder (`animate`). `extra`: a fit's trial files, or a
     Monte-Carlo folder's study file; `params`: the robot drawn (default: the file's own, else
     the paper's); `trials`: the names of a fit's trials to show (default all)."""
+    from ..capture.onboard import refuse_onboard
     from ..capture.trial import read_trial
     from ..model.params import RobotParams
     from ..plots.animation.sources import trial_scene
@@ -313,6 +318,7 @@ def scenes_from_path(path, extra=(), *, params: RobotParams | None = None, trial
         if {"heading", "gamma_1"} <= set(_csv_header(path)):
             return [plan_table_scene(path, params)]
         trial = read_trial(path)
+        refuse_onboard([trial], "jsphere animate")
         return [trial_scene(trial, params if params is not None else RobotParams.paper())]
     if suffix == ".json":
         return fit_file_scenes(path, extra, params=params, trials=trials)

@@ -169,7 +169,9 @@ def compare(
         real("compare", name, v, strict=True, unit=unit)
     check_loss(loss, "compare")
     trials = list(trials)
-    data = pack_trials(trials, params, max_offset=float(max_time_offset) if fit_time_offset else 0.0)
+    data = pack_trials(
+        trials, params, max_offset=float(max_time_offset) if fit_time_offset else 0.0, where="jsphere compare"
+    )
     sig = np.array([float(sigma_pos), float(sigma_rot)])
     est = functools.partial(
         _estimate_nuisance, params, data, sig, int(max_iter), float(rtol), float(atol), int(max_steps)

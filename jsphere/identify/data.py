@@ -14,6 +14,7 @@ import numpy as np
 
 from .._runtime.arrays import to_jax
 from .._runtime.errors import InputError
+from ..capture.onboard import refuse_onboard
 from ..capture.validation import KINDS
 from ..model.params import RobotParams
 from ..model.rotations import quat_conj_np, quat_log_np, quat_mul_np
@@ -117,16 +118,18 @@ class FitData:
         return h.hexdigest()
 
 
-def pack_trials(trials: Sequence, params: RobotParams, *, max_offset: float = 0.0) -> FitData:
+def pack_trials(trials: Sequence, params: RobotParams, *, max_offset: float = 0.0, where: str = "fit") -> FitData:
     """Check the trials against `params` and pack them (see `FitData`; `max_offset` > 0: each
     trial's clock offset is fitted within `+- max_offset` seconds).
 
     A trial needs `t (M,)`, `x, y (M,)` [m] (NaN at gaps), `q (M, 4)` (platform -> fixed,
-    NaN rows at gaps), `inputs (M, N)`, `kind` and `name` (the `Trial` of `jsphere.capture.trial`).
+    NaN rows at gaps), `inputs (M, N)`, `kind` and `name` (the `Trial` of `jsphere.capture.trial`);
+    an onboard-sensor trial is an `InputError` naming the command `where`.
     """
     trials = list(trials)
     if not trials:
         raise InputError("fit: no trials given.")
+    refuse_onboard(trials, where)
     kinds = {getattr(t, "kind", None) for t in trials}
     if len(kinds) != 1 or next(iter(kinds)) not in KINDS:
         raise InputError(

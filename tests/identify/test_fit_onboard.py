@@ -138,3 +138,12 @@ def test_zero_order_hold_is_an_option_of_the_fit_as_of_the_file(paper, folder):
     assert _pack(trials, paper, FitOptions().checked(onboard=True), True).measure == "onboard"
     held = _pack(trials, paper, FitOptions(zero_order_hold=True).checked(onboard=True), True)
     assert held.hold and held.measure == "onboard-held"
+
+
+def test_commands_that_need_poses_refuse_onboard_trials_in_one_line(folder, cli_fit, tmp_path, capsys):
+    _, _, fit_json = cli_fit
+    trial = str(folder / "run0.csv")
+    assert main(["compare", trial, "--params", str(fit_json), "--out", str(tmp_path / "c.json")]) == ExitCode.BAD_INPUT
+    assert main(["animate", trial, "--out", str(tmp_path / "a.gif")]) == ExitCode.BAD_INPUT
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all("an onboard-sensor trial (IMU and encoders, no poses)" in e for e in err)
