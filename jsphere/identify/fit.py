@@ -1,4 +1,5 @@
-"""System identification: fit `RobotParams` to captured trials (`fit`).
+"""System identification: fit `RobotParams` to captured trials, or to the robot's own
+sensors (`fit`; onboard-sensor trials: `jsphere.identify.onboard`).
 
 The cost `1/2 sum r^2` of the whitened residuals of all trials (`jsphere.identify.residuals`)
 is minimised over the free parameters `theta` (see `FreeParams`) and, per trial, the nuisance
@@ -86,10 +87,14 @@ def fit(
     progress: bool | None | Callable[[str], None] = None,
     **deprecated,
 ) -> FitResult:
-    """Fit the free parameters of `params` to captured trials (position and orientation).
+    """Fit the free parameters of `params` to captured trials (position and orientation), or to
+    onboard-sensor trials (the robot's own IMU and wheel encoders: `jsphere.identify.onboard`,
+    docs/onboard.md).
 
     **Arguments:**
-    - `trials`: `Trial`s (same input kind, wheel count of `params`).
+    - `trials`: `Trial`s (same input kind, wheel count of `params`), or `OnboardTrial`s (the
+      IMU's mounting and the channels' noise levels are `FitOptions`' `imu_position`,
+      `imu_rotation`, `sigma_gyro`, `sigma_acc`, `sigma_encoder`); not both kinds together.
     - `params`: start values of every parameter; `fix` sets some first (`{"m": 2.5}`).
     - `free`: names to fit, `"r_m[2],j,I"` or a list (see `FreeParams`): whole fields free all
       their independent entries (`I`: 6, kept positive definite).
