@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Iterable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -28,6 +29,9 @@ from ..model.params import RobotParams
 from ..model.state import State
 from .text import _input_columns, _numbers, cells, check_unique_columns, headed_rows, separator_hint
 from .units import TRIAL_UNITS, detect_position_units, resolve_units
+
+if TYPE_CHECKING:
+    from .onboard import OnboardTrial
 from .validation import INPUT_PREFIX, POSE_COLUMNS, _checked, warn_implausible
 from .validation import CaptureWarning as CaptureWarning  # (the warning of every trial reader)
 
@@ -137,7 +141,7 @@ class Trial(eqx.Module):
 # --------------------------------------------------------------------------- CSV format
 
 
-def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> Trial:
+def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> Trial | OnboardTrial:
     """Read one trial CSV (format: `docs/capture.md`).
 
     A file with the columns of an onboard-sensor trial (`gyro_x`, ..., no pose) is read by
@@ -213,7 +217,7 @@ def _table(rows, header: list[str], in_cols: list[int], header_line: int, source
     return data, line_no
 
 
-def read_trials(paths: Iterable, **kwargs) -> list[Trial]:
+def read_trials(paths: Iterable, **kwargs) -> list[Trial | OnboardTrial]:
     """`read_trial` on each path (a directory stands for its `*.csv` files, sorted; hidden
     files, such as a temporary file a killed writer left, are skipped). A directory without
     such files is an `InputError` naming it."""
