@@ -89,7 +89,8 @@ def add_parser(sub) -> None:
         choices=("l2", "huber", "cauchy", "soft_l1"),
         default="cauchy",
         help="how each frame's residuals enter the cost: cauchy (default), huber or soft_l1 set aside ghost frames and "
-        "marker swaps, listed under 'outliers' in the result JSON by trial file; l2: plain least squares",
+        "marker swaps, listed under 'outliers' in the result JSON by trial file; l2: plain least squares (onboard-sensor "
+        "trials are always fitted by least squares)",
     )
     ft.add_argument(
         "--restart",
