@@ -324,7 +324,9 @@ def _setup(
     kind, S, P, T = data.kind, o.n_starts, free.size, data.ts.shape[0]
     multiple = _use_multiple(o.shooting, data, o.segment)
     seg = _shooting.segment_trials(data, o.segment) if multiple else None
-    fns = _functions(free, kind, o.rtol, o.atol, o.max_steps, o.ode_solver, o.max_offset, True, data.measure)
+    fns = _functions(
+        free, kind, o.rtol, o.atol, o.max_steps, o.ode_solver, o.max_offset, split=True, measure=data.measure
+    )
     rng = np.random.default_rng(o.seed)
     theta = start_design(free, S, o.spread, rng)
     if data.measure == "pose":

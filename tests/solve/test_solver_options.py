@@ -70,7 +70,7 @@ def test_fit_passes_the_solver_options_to_its_compiled_functions(paper, trials, 
     fit's own (`FIT_SOLVER`) is used."""
     seen, configs = [], []
 
-    def record(free, kind, rtol, atol, max_steps, solver=None, max_offset=0.0, split=False):
+    def record(free, kind, rtol, atol, max_steps, solver=None, max_offset=0.0, split=False, measure="pose"):
         seen.append((rtol, atol, max_steps, solver))
         raise Stop
 
