@@ -5,7 +5,8 @@ accelerometer 0.03 m/s^2 white noise, constant biases, encoders of 4096 counts p
 
 The right mounting gives exit 0, every estimate within 3 standard errors of the truth, the
 biases and the noise levels recovered; a wrong mounting is a misfit put down to a model error
-that names the mounting."""
+that names the mounting. The fits run in the slow lane (CI runs it); the refusals in the default
+lane."""
 
 from __future__ import annotations
 
@@ -51,6 +52,7 @@ def cli_fit(folder, tmp_path_factory):
     return code, json.loads(out.read_text()), out
 
 
+@pytest.mark.slow
 def test_the_right_mounting_recovers_the_robot_within_its_standard_errors(paper, cli_fit):
     code, doc, out = cli_fit
     assert code == ExitCode.OK, doc["status_reason"]
@@ -72,6 +74,7 @@ def test_the_right_mounting_recovers_the_robot_within_its_standard_errors(paper,
     assert (out.parent / "fit_residuals.png").stat().st_size > 10_000
 
 
+@pytest.mark.slow
 def test_a_wrong_mounting_is_a_model_error_that_names_the_mounting(paper, folder):
     trials = read_trials([folder])
     assert all(type(t).__name__ == "OnboardTrial" for t in trials)
@@ -113,6 +116,7 @@ def test_trials_cut_from_a_run_need_their_initial_motion_fitted(paper, folder):
     assert {"Omega0_x", "tilt0_y", "omega0_z", "chi0_3"} <= set(moving.trials[0]["nuisance"])
 
 
+@pytest.mark.slow
 def test_a_killed_onboard_fit_resumes_to_the_same_result(paper, folder, tmp_path):
     trials = read_trials([folder])
     mount = {"imu_position": tuple(np.asarray(MOUNTING.position)), "imu_rotation": tuple(np.asarray(MOUNTING.rotation))}
@@ -140,6 +144,7 @@ def test_zero_order_hold_is_an_option_of_the_fit_as_of_the_file(paper, folder):
     assert held.hold and held.measure == "onboard-held"
 
 
+@pytest.mark.slow
 def test_commands_that_need_poses_refuse_onboard_trials_in_one_line(folder, cli_fit, tmp_path, capsys):
     _, _, fit_json = cli_fit
     trial = str(folder / "run0.csv")
