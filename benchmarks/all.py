@@ -42,6 +42,7 @@ STEPS = (
     ("fit_long", ["tasks.py", "fit-long"], "results-fit-long.json"),
     ("robust_fit", ["tasks.py", "robust-fit"], "results-robust-fit.json"),
     ("robust_fit_long", ["tasks.py", "robust-fit", "--long"], "results-robust-fit-long.json"),
+    ("onboard_fit", ["tasks.py", "onboard-fit"], "results-onboard-fit.json"),
     ("montecarlo", ["studies.py"], "results-montecarlo.json"),
     ("montecarlo_workers", ["studies.py", "--workers", "2", "--trials", "1000000"], "results-montecarlo-workers.json"),
     ("track", ["tasks.py", "track"], "results-track.json"),

@@ -18,7 +18,11 @@
 - `design`: `jsphere design` end to end, then its trials and the baseline's fitted on a robot
   6-8 % away: the factor baseline / design standard error, predicted and fitted;
 - `animate`: a 10 s clip as MP4 (blitted, and every frame drawn in full: the baseline), GIF
-  and HTML viewer.
+  and HTML viewer;
+- `onboard-fit`: a fit from onboard sensors (five 8 s torque trials of the paper's robot, gyro,
+  accelerometer and 4096-count encoders, seven free parameters) with the default solver
+  settings and with the motion-capture fit's `Tsit5` at rtol 1e-6, against a fit at rtol 1e-10
+  (the baseline): each estimate's shift from the baseline and its error, in standard errors.
 
 Each prints a table and writes its JSON (`--out`; benchmarks/README.md names the files).
 """
@@ -769,6 +773,67 @@ def animate(argv) -> int:
     return 0
 
 
+ONBOARD_FREE = ["r_m[2]", "j", "I[0,0]", "I[1,1]", "I[2,2]", "m0", "I0"]
+
+
+def onboard_fit(argv) -> int:
+    """`onboard-fit` (module docstring)."""
+    import diffrax
+
+    from jsphere.capture.onboard import OnboardNoise, synthetic_onboard_trial
+
+    ap = argparse.ArgumentParser(prog="tasks.py onboard-fit")
+    ap.add_argument("--trials", type=int, default=5)
+    ap.add_argument("--duration", type=float, default=8.0)
+    ap.add_argument("--out", default=str(HERE / "results-onboard-fit.json"))
+    args = ap.parse_args(argv)
+    p = jsphere.RobotParams.paper()
+    mount = {"imu_position": (0.02, -0.01, -0.04), "imu_rotation": (math.cos(0.3), 0.0, math.sin(0.3), 0.0)}
+    noise = OnboardNoise(0.003, 0.03, (0.01, -0.02, 0.005), (0.1, 0.0, -0.2), counts_per_turn=4096)
+    trials = [
+        synthetic_onboard_trial(
+            p,
+            jsphere.random_inputs(p, args.duration, kind="torques", seed=10 + i),
+            args.duration,
+            mounting=jsphere.Mounting(mount["imu_position"], mount["imu_rotation"]),
+            noise=noise,
+            seed=i,
+            name=f"t{i}",
+        )
+        for i in range(args.trials)
+    ]
+    settings = {
+        "rtol 1e-10 (baseline)": jsphere.SolverOptions(rtol=1e-10, atol=1e-12),
+        "default (Dopri8, rtol 1e-8)": None,
+        "Tsit5, rtol 1e-6": jsphere.SolverOptions(solver=diffrax.Tsit5(), rtol=1e-6, atol=1e-8),
+    }
+    fits = {}
+    for label, solver in settings.items():
+        t0 = time.perf_counter()
+        res = jsphere.fit(trials, p, ONBOARD_FREE, options=jsphere.FitOptions(**mount, solver=solver), progress=False)
+        fits[label] = (res, time.perf_counter() - t0)
+        log(f"{label}: {fits[label][1]:.1f} s, {res.status}")
+    base = fits["rtol 1e-10 (baseline)"][0]
+    rows = []
+    for label, (res, elapsed) in fits.items():
+        shift = max(abs(res.values[n] - base.values[n]) / base.stderr[n] for n in ONBOARD_FREE)
+        error = max(abs(res.values[n] - float(jsphere.get_value(p, n))) / res.stderr[n] for n in ONBOARD_FREE)
+        rows.append({"solver": label, "seconds": elapsed, "shift_se": shift, "error_se": error, "status": res.status})
+    print_table(
+        [
+            ("solver", "solver", ""),
+            ("fit [s]", "seconds", ".1f"),
+            ("largest shift [SE]", "shift_se", ".3f"),
+            ("largest error [SE]", "error_se", ".2f"),
+            ("status", "status", ""),
+        ],
+        rows,
+    )
+    config = {"trials": args.trials, "duration_s": args.duration, "free": ONBOARD_FREE, **mount}
+    write_json(args.out, {**environment(), "config": config, "rows": rows})
+    return 0
+
+
 COMMANDS = {
     "fit": fit,
     "fit-long": fit_long,
@@ -778,6 +843,7 @@ COMMANDS = {
     "track": track,
     "design": design,
     "animate": animate,
+    "onboard-fit": onboard_fit,
 }
 
 if __name__ == "__main__":
