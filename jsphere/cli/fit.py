@@ -31,7 +31,10 @@ def add_parser(sub) -> None:
     ft.add_argument(
         "--free",
         required=True,
-        help="comma-separated names to fit: fields (j, m0, I0, I, r_m, k_tau) or components (I[0,0], r_m[2]), or R_m",
+        help="comma-separated names to fit: fields (j, m0, I0, I, r_m, k_tau) or components (I[0,0], r_m[2]), or R_m; "
+        "with onboard-sensor trials also the IMU's mounting: imu_position (its 3 coordinates [m]) and imu_rotation "
+        "(a rotation [rad] about the IMU's x, y, z axes applied to --imu-rotation), or their components "
+        "(imu_rotation[2])",
     )
     ft.add_argument(
         "--fix",

@@ -125,7 +125,7 @@ def fit(
     o = fit_options(options, deprecated).checked(onboard=onboard)
     _check_free_and_fixed(free, fix)
     params = apply_fixes(params, fix)
-    fp_ = FreeParams(params, free, bounds)
+    fp_ = FreeParams(params, free, bounds, mounting=o.mounting if onboard else None)
     data = _pack(trials, params, o, onboard)
     _check_unknowns(data, fp_)
     warn_if_float32_by_default(params.R0.dtype, "fit")

@@ -11,6 +11,10 @@ free scalar (or one for the whole inertia tensor):
 - `cholesky`:  the whole field `I` (6 entries) as `I = L L^T`, `L` lower triangular with a
   log-diagonal: every value of `theta` gives a symmetric positive definite tensor.
 
+A fit of onboard-sensor trials may also free the IMU's mounting (`MOUNTING`, `mounting_at`):
+`imu_position[k]` [m], and `imu_rotation[k]` [rad], the rotation vector `delta` (IMU axes) of
+the correction to the given orientation, `q = q_given exp(delta)` (0 at the start).
+
 Bounds are never enforced by clipping, so gradients and the Gauss-Newton covariance stay
 smooth; the covariance in `theta` is mapped to physical units by `d physical / d theta`.
 """
@@ -32,8 +36,9 @@ import numpy as np
 from .._runtime.errors import InputError
 from .._runtime.quick_compile import jit_concrete
 from ..model.internal import FIELDS
-from ..model.names import get_value, parse_name, set_value
+from ..model.names import MOUNTING, get_value, parse_name, set_value
 from ..model.params import RobotParams, number_array
+from ..model.rotations import quat_exp, quat_mul
 
 #: fields that must stay > 0 (log transform by default)
 POSITIVE = ("R0", "m0", "I0", "Rw", "m", "R_m", "k_tau")
@@ -66,9 +71,9 @@ def expand(params: RobotParams, names: str | Sequence[str]) -> list[tuple[str, l
             raise ValueError(
                 f"free parameter {given!r}: {field} holds unit vectors and cannot be fitted component by component; fix it."
             )
-        if field != "R_m":
+        if field not in ("R_m",) + MOUNTING:
             get_value(params, given)  # checks the index
-        shape = () if field == "R_m" else tuple(getattr(params, field).shape)
+        shape = () if field == "R_m" else (3,) if field in MOUNTING else tuple(getattr(params, field).shape)
         if index or not shape:
             comps = [_canonical(field, index)]
         elif field == "I":
@@ -225,13 +230,29 @@ class FreeParams:
       inertias, radii, `R_m`, the torque gain `k_tau` and the diagonal of `I`; `>= 0` (open at 0) for `j`, `g`,
       `c_roll`, `c_axle` when they start above 0; none otherwise.
 
+    - `mounting`: the IMU's `jsphere.Mounting` where the fit's trials are onboard-sensor
+      trials: `free` may then name `imu_position` and `imu_rotation` (`MOUNTING`, module
+      docstring), which `mounting_at` applies.
+
     `names` lists the expanded physical names in `theta` order; `given` the names as given
     with their components (for reports of whole fields).
     """
 
-    def __init__(self, params: RobotParams, free: str | Sequence[str], bounds: Mapping[str, Sequence] | None = None):
+    def __init__(
+        self,
+        params: RobotParams,
+        free: str | Sequence[str],
+        bounds: Mapping[str, Sequence] | None = None,
+        mounting=None,
+    ):
         self.base = params
+        self.mounting = mounting
         self.given = expand(params, free)
+        on_imu = [g for g, _ in self.given if parse_name(g)[0] in MOUNTING]
+        if on_imu and mounting is None:
+            raise InputError(
+                f"free parameter {on_imu[0]!r} is the IMU's mounting: it is fitted from onboard-sensor trials only."
+            )
         bounds = dict(bounds or {})
         flat = [c for _, cs in self.given for c in cs]
         for b in bounds:
@@ -252,16 +273,25 @@ class FreeParams:
                 slots.append(Slot(tuple(comps), "cholesky", scale=float(np.max(np.abs(I)))))
                 continue
             for c in comps:
-                slots.append(self._scalar_slot(params, c, bounds.get(c)))
+                slots.append(self._scalar_slot(params, c, bounds.get(c), self._value(params, c)))
         self.slots = tuple(slots)
         self.names = [n for s in self.slots for n in s.names]
         self.theta0 = np.asarray(self.to_theta(params))
 
-    @staticmethod
-    def _scalar_slot(params: RobotParams, name: str, bound) -> Slot:
+    def _value(self, params: RobotParams, name: str) -> float:
+        """The start value of a scalar name (the mounting's rotation: 0, no correction)."""
         field, index = parse_name(name)
-        v = float(get_value(params, name))
-        fv = np.abs(np.asarray(getattr(params, field) if field != "R_m" else params.R_m, np.float64))
+        if field == "imu_position":
+            return float(np.asarray(self.mounting.position)[index[0]])
+        return 0.0 if field == "imu_rotation" else float(get_value(params, name))
+
+    @staticmethod
+    def _scalar_slot(params: RobotParams, name: str, bound, v: float) -> Slot:
+        field, index = parse_name(name)
+        if field in MOUNTING:  # a centimetre, or a hundredth of a radian
+            fv = np.full(1, 0.01)
+        else:
+            fv = np.abs(np.asarray(getattr(params, field) if field != "R_m" else params.R_m, np.float64))
         scale = max(abs(v), 0.1 * float(np.max(fv)) if fv.size else 0.0, 1e-12)
         diag = field == "I" and index[0] == index[1]
         if bound is None:
@@ -305,7 +335,7 @@ class FreeParams:
                 except np.linalg.LinAlgError:
                     raise ValueError("the start value of I is not positive definite.") from None
             else:
-                out.append(_inverse(s.kind, s.lo, s.hi, float(get_value(params, s.names[0]))))
+                out.append(_inverse(s.kind, s.lo, s.hi, self._value(params, s.names[0])))
         return np.asarray(out, np.float64)
 
     def physical(self, theta) -> jax.Array:
@@ -329,10 +359,31 @@ class FreeParams:
             u = theta[k : k + s.size]
             if s.kind == "cholesky":
                 p = eqx.tree_at(lambda q: q.I, p, _chol_to_I(u))
-            else:
+            elif parse_name(s.names[0])[0] not in MOUNTING:
                 p = set_value(p, s.names[0], _forward(s.kind, s.lo, s.hi, u[0]))
             k += s.size
         return p
+
+    def mounting_at(self, theta, position, rotation) -> tuple[jax.Array, jax.Array]:
+        """The IMU's `(position (3,), rotation (4,))` at `theta`: `position` and `rotation` (the
+        given mounting) with the free `imu_position` components replaced and the free
+        `imu_rotation` correction applied, `rotation exp(delta)` (pure JAX, differentiable)."""
+        delta, k = jnp.zeros(3, position.dtype), 0
+        for s in self.slots:
+            field, index = parse_name(s.names[0])
+            if field in MOUNTING:
+                v = _forward(s.kind, s.lo, s.hi, theta[k])
+                if field == "imu_position":
+                    position = position.at[index[0]].set(v)
+                else:
+                    delta = delta.at[index[0]].set(v)
+            k += s.size
+        return position, quat_mul(rotation, quat_exp(delta))
+
+    @property
+    def frees_mounting(self) -> bool:
+        """Whether a name of the IMU's mounting is free."""
+        return any(parse_name(n)[0] in MOUNTING for n in self.names)
 
     def compiled(self) -> tuple[Callable, Callable]:
         """`(physical_and_jacobian(theta), to_params(theta, base))`, compiled once per process

@@ -23,7 +23,7 @@ from .._runtime.arrays import to_jax
 from .._runtime.errors import InputError
 from .._runtime.files import dumps_json
 from ..model.internal import FIELDS
-from ..model.names import parse_name
+from ..model.names import MOUNTING, parse_name
 from ..model.params import RobotParams
 from ..numerics.lm import blocks, marginal_information
 from .data import FitData, nuisance_values, offset_from_nuisance, trial_errors
@@ -66,7 +66,8 @@ class FitResult:
     [rad]); each trial's report its RMS residual per channel and its biases (`nuisance`);
     `channel_share`: per free name, the share of its information (the diagonal of the
     information with the biases eliminated) that each channel gives; `verdict` is per channel
-    (`jsphere.identify.onboard_verdict`)."""
+    (`jsphere.identify.onboard_verdict`); `mounting`: the IMU's `position` [m] and `rotation`
+    (quaternion), as given or, where `imu_position`/`imu_rotation` are free, as fitted."""
 
     params: RobotParams
     free: list[str]
@@ -99,6 +100,7 @@ class FitResult:
     options: Any = dataclasses.field(default=None, repr=False)
     sigmas: dict[str, float] = dataclasses.field(default_factory=dict)
     channel_share: dict[str, dict[str, float]] = dataclasses.field(default_factory=dict)
+    mounting: dict[str, list[float]] = dataclasses.field(default_factory=dict)
 
     def predict(self, trials, **kwargs):
         """The fitted model on `trials` (held out from the fit, or the fit's own): each trial
@@ -120,7 +122,7 @@ class FitResult:
             "starts_cost": self.starts,
         }
         if self.sigmas:
-            doc |= {"sigmas": self.sigmas, "channel_share": self.channel_share}
+            doc |= {"sigmas": self.sigmas, "channel_share": self.channel_share, "mounting": self.mounting}
         else:
             doc |= {
                 "sigma_pos_m": self.sigma_pos,
@@ -147,11 +149,12 @@ class FitResult:
     def table(self) -> str:
         """A plain-text summary: value +- stderr per free name, noise levels, warnings, and last
         the status with its reason."""
-        lines = [f"{'name':<10} {'value':>14} {'stderr':>12} {'rel':>9}"]
+        w = max([10] + [len(n) for n in self.free])
+        lines = [f"{'name':<{w}} {'value':>14} {'stderr':>12} {'rel':>9}"]
         for n in self.free:
             v, s = self.values[n], self.stderr[n]
             rel = abs(s / v) if v else float("inf")
-            lines.append(f"{n:<10} {v:>14.6g} {s:>12.3g} {rel:>9.2%}")
+            lines.append(f"{n:<{w}} {v:>14.6g} {s:>12.3g} {rel:>9.2%}")
         if self.sigmas:
             levels = ", ".join(f"sigma_{c} {v:.4g} {u}" for (c, v), u in zip(self.sigmas.items(), UNITS))
         else:
@@ -160,6 +163,9 @@ class FitResult:
             f"cost {self.cost:.6g} over {self.n_residuals} residuals, {self.iterations} iterations, "
             f"converged: {self.converged}; {levels}"
         )
+        if any(n.startswith("imu_") for n in self.free):
+            pos, rot = (" ".join(f"{x:.6g}" for x in self.mounting[k]) for k in ("position", "rotation"))
+            lines.append(f"IMU mounting as fitted: position {pos} m, rotation {rot}")
         for c, share in self.channel_share.items():
             lines.append(f"information from the {c}: " + ", ".join(f"{n} {v:.0%}" for n, v in share.items()))
         if self.units_note:
@@ -184,7 +190,7 @@ def _assemble_named(free: FreeParams, per_name: dict[str, float], params: RobotP
             if given not in out:  # spelled differently from the canonical name (`I[1,0]`, `I[0, 0]`)
                 out[given] = per_name[comps[0]]
             continue
-        arr = np.full(np.shape(getattr(params, field)), fill)
+        arr = np.full((3,) if field in MOUNTING else np.shape(getattr(params, field)), fill)
         for c in comps:
             ix = parse_name(c)[1]
             arr[ix] = per_name[c]
@@ -268,7 +274,15 @@ def fit_result(run, st, cost, out, keys: Sequence[str]) -> FitResult:
         options=o,
         sigmas=dict(zip(CHANNELS, map(float, st.sig))) if onboard else {},
         channel_share=_channel_share(data, free, res_b, J_b) if onboard else {},
+        mounting=_mounting(data, free, st.theta[b]) if onboard else {},
     )
+
+
+def _mounting(data: OnboardData, free: FreeParams, theta: np.ndarray) -> dict[str, list[float]]:
+    """The IMU's mounting of an onboard fit: as given, with the free names' fitted values."""
+    pos, rot = free.mounting_at(to_jax(theta), to_jax(data.imu_pos[0]), to_jax(data.imu_rot[0]))
+    rot = np.asarray(rot) / np.linalg.norm(np.asarray(rot))
+    return {"position": np.asarray(pos).tolist(), "rotation": rot.tolist()}
 
 
 def _onboard_reports(data: OnboardData, readings, nu_b: np.ndarray, b: int) -> list[dict[str, Any]]:

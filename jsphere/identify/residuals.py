@@ -190,7 +190,11 @@ class _Functions:
         def jac_one(base, th, nu, d, sig, ends):
             def f(z):
                 p = free.to_params(z[:P], base)
-                res, ok, pose, end = model(p, z[P:], d, sig)
+                at = d
+                if free.frees_mounting:
+                    pos, rot = free.mounting_at(z[:P], d["imu_pos"], d["imu_rot"])
+                    at = d | {"imu_pos": pos, "imu_rot": rot}
+                res, ok, pose, end = model(p, z[P:], at, sig)
                 return ((res, end) if ends else res), (res, ok, pose, end)
 
             J, (res, ok, pose, end) = jax.jacfwd(f, has_aux=True)(jnp.concatenate([th, nu]))

@@ -14,11 +14,15 @@ import jax.numpy as jnp
 
 from .fields import FIELDS
 
-__all__ = ["DERIVED", "get_value", "parse_name", "set_value"]
+__all__ = ["DERIVED", "MOUNTING", "get_value", "parse_name", "set_value"]
 
 _NAME = re.compile(r"^\s*([A-Za-z_][A-Za-z0-9_]*)\s*(?:\[\s*([0-9\s,]+)\s*\])?\s*$")
 #: derived names: `R_m = |r_m|` (scales r_m along its direction)
 DERIVED = ("R_m",)
+#: the IMU's mounting (`jsphere.Mounting`), which a fit of onboard-sensor trials may free: its
+#: position [m] and a small rotation [rad] about the IMU's axes applied to the given orientation;
+#: three components each, no values in a `RobotParams`
+MOUNTING = ("imu_position", "imu_rotation")
 
 
 def parse_name(name: str) -> tuple[str, tuple[int, ...]]:
@@ -33,10 +37,15 @@ def parse_name(name: str) -> tuple[str, tuple[int, ...]]:
         )
     field, idx = m.group(1), m.group(2)
     index = tuple(int(i) for i in idx.split(",") if i.strip()) if idx else ()
-    if field not in FIELDS and field not in DERIVED:
-        raise ValueError(f"unknown parameter {field!r} in {name!r}; fields are {', '.join(FIELDS)} (and 'R_m').")
+    if field not in FIELDS and field not in DERIVED and field not in MOUNTING:
+        raise ValueError(
+            f"unknown parameter {field!r} in {name!r}; fields are {', '.join(FIELDS)} (and 'R_m'; "
+            "'imu_position', 'imu_rotation' in a fit of onboard-sensor trials)."
+        )
     if field in DERIVED and index:
         raise ValueError(f"{field} is a scalar; got {name!r}.")
+    if field in MOUNTING and (len(index) > 1 or (index and index[0] > 2)):
+        raise ValueError(f"{name!r}: {field} has 3 components, {field}[0] .. {field}[2].")
     return field, index
 
 
@@ -51,6 +60,7 @@ def get_value(params, name: str):
     field, index = parse_name(name)
     if field == "R_m":
         return params.R_m
+    _robot(field, name)
     check_index(params, field, index, name)
     v = getattr(params, field)
     return v[index] if index else v
@@ -65,6 +75,7 @@ def set_value(params, name: str, value):
     if field == "R_m":
         direction = params.r_m / jnp.linalg.norm(params.r_m)
         return eqx.tree_at(lambda p: p.r_m, params, direction * value)
+    _robot(field, name)
     check_index(params, field, index, name)
     old = getattr(params, field)
     value = jnp.asarray(value, dtype=old.dtype)
@@ -75,3 +86,8 @@ def set_value(params, name: str, value):
         if field == "I" and index[0] != index[1]:
             new = new.at[index[::-1]].set(value)
     return eqx.tree_at(lambda p: getattr(p, field), params, new)
+
+
+def _robot(field: str, name: str) -> None:
+    if field in MOUNTING:
+        raise ValueError(f"{name!r} is the IMU's mounting, not a parameter of the robot (RobotParams).")

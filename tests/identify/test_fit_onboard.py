@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import math
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -24,6 +25,7 @@ from jsphere.cli.app import main
 from jsphere.identify.fit import fit
 from jsphere.identify.options import FitOptions
 from jsphere.model.names import get_value
+from jsphere.model.rotations import quat_exp, quat_mul
 from jsphere.model.sensors import Mounting
 
 FREE = ["I[2,2]", "m0", "j"]
@@ -82,6 +84,48 @@ def test_a_wrong_mounting_is_a_model_error_that_names_the_mounting(paper, folder
     assert res.status == "misfit" and res.verdict["diagnosis"] == "model error"
     assert "--imu-position, --imu-rotation" in res.status_reason
     assert set(res.verdict["correlated"]) == {"run0", "run1", "run2"}
+
+
+@pytest.mark.slow
+def test_a_freed_mounting_is_fitted_from_a_wrong_start_with_the_robot(paper, folder, tmp_path):
+    """`--free imu_rotation,imu_position` from a mounting 3 degrees and 7 mm off: exit 0, the
+    robot and the mounting within 3 standard errors of the truth."""
+    delta = np.array([0.03, -0.02, 0.04])
+    start = np.asarray(quat_mul(MOUNTING.rotation, quat_exp(delta)))
+    pos = np.asarray(MOUNTING.position) + np.array([0.004, -0.003, 0.005])
+    free = [*FREE, "imu_rotation", "imu_position"]
+    out = tmp_path / "fit.json"
+    argv = ["fit", str(folder), "--free", ",".join(free), "--imu-position", *map(str, pos)]
+    code = main([*argv, "--imu-rotation", *map(repr, start.tolist()), "--out", str(out), "--quiet"])
+    doc = json.loads(out.read_text())
+    assert code == ExitCode.OK, doc["status_reason"]
+    truth = {n: float(get_value(paper, n)) for n in FREE}
+    truth |= {f"imu_rotation[{k}]": -delta[k] for k in range(3)}  # the correction that undoes the error
+    truth |= {f"imu_position[{k}]": float(MOUNTING.position[k]) for k in range(3)}
+    for name, v in truth.items():
+        assert abs(doc["values"][name] - v) < 3 * doc["stderr"][name], (name, doc["values"][name], v)
+    assert doc["stderr"]["imu_rotation[0]"] < 1e-3 and doc["stderr"]["imu_position[0]"] < 1e-3
+    rot = np.asarray(doc["mounting"]["rotation"])
+    assert 2 * math.acos(min(1.0, abs(float(rot @ np.asarray(MOUNTING.rotation))))) < 1e-3
+    np.testing.assert_allclose(doc["values"]["imu_position"], doc["mounting"]["position"])
+
+
+def test_the_mounting_is_free_only_in_onboard_fits(paper):
+    from jsphere.identify.free import FreeParams
+
+    with pytest.raises(InputError, match="'imu_rotation' is the IMU's mounting"):
+        FreeParams(paper, "j,imu_rotation")
+    with pytest.raises(ValueError, match="imu_position has 3 components"):
+        FreeParams(paper, "imu_position[3]", mounting=MOUNTING)
+    fp = FreeParams(paper, "j,imu_position[1],imu_rotation[2]", mounting=MOUNTING)
+    assert fp.names == ["j", "imu_position[1]", "imu_rotation[2]"]
+    theta = fp.theta0.copy()
+    assert theta[1] == pytest.approx(-0.01) and theta[2] == 0.0
+    theta[1:] = (0.05, 0.1)
+    pos, rot = fp.mounting_at(jnp.asarray(theta), MOUNTING.position, MOUNTING.rotation)
+    np.testing.assert_allclose(pos, (0.02, 0.05, -0.04))
+    np.testing.assert_allclose(rot, quat_mul(MOUNTING.rotation, quat_exp(jnp.array([0.0, 0.0, 0.1]))))
+    assert float(fp.to_params(jnp.asarray(theta)).j) == pytest.approx(float(paper.j))
 
 
 def test_onboard_fits_refuse_what_does_not_apply(paper, folder):
