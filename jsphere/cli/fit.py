@@ -22,19 +22,16 @@ def add_parser(sub) -> None:
     ft = sub.add_parser(
         NAME,
         help="fit robot parameters to captured trials (docs/identification.md)",
-        description="Fit the free parameters of a robot to captured trials (position and orientation, or the robot's "
-        "own IMU and wheel encoders), by "
-        "Levenberg-Marquardt through the simulation; writes the result JSON, its figures and, while it "
-        "runs, a checkpoint from which a killed fit resumes. The last line on stdout is the verdict.",
+        description="Fit a robot's free parameters to captured trials (poses, the robot's own IMU and encoders, or "
+        "both) by Levenberg-Marquardt through the simulation; writes the result JSON, its figures and, while it runs, "
+        "a checkpoint from which a killed fit resumes. The last line on stdout is the verdict.",
     )
     ft.add_argument("trials", nargs="*", metavar="TRIAL", help="trial CSV files or folders of them (docs/capture.md)")
     ft.add_argument(
         "--free",
         required=True,
         help="comma-separated names to fit: fields (j, m0, I0, I, r_m, k_tau) or components (I[0,0], r_m[2]), or R_m; "
-        "with onboard-sensor trials also the IMU's mounting: imu_position (its 3 coordinates [m]) and imu_rotation "
-        "(a rotation [rad] about the IMU's x, y, z axes applied to --imu-rotation), or their components "
-        "(imu_rotation[2])",
+        "onboard: also imu_position [m], imu_rotation [rad, about the IMU's axes, applied to --imu-rotation]",
     )
     ft.add_argument(
         "--fix",

@@ -82,17 +82,20 @@ def _flat_evaluation(out: dict[str, Any]) -> dict[str, np.ndarray]:
             **dict(zip(("Hgg", "Hgn", "Hnn", "gg", "gn"), map(np.asarray, out["blocks"]))),
             "defect": np.asarray(out["defect"]),
         }
+    # (trials of both kinds: the pose trials' simulated poses, then the onboard trials' readings)
+    parts = out["pose"] if isinstance(out["pose"][0], tuple) else (out["pose"],)
     return {
         "res": np.asarray(out["res"]),
         "J": np.asarray(out["J"]),
-        **{f"pose_{c}": np.asarray(a) for c, a in zip("xyq", out["pose"])},
+        **{f"{key}_{c}": np.asarray(a) for key, part in zip(("pose", "onboard"), parts) for c, a in zip("xyq", part)},
     }
 
 
 def _unflat_evaluation(a: dict[str, np.ndarray]) -> dict[str, Any]:
     if "Hgg" in a:
         return {"blocks": tuple(jnp.asarray(a[k]) for k in ("Hgg", "Hgn", "Hnn", "gg", "gn")), "defect": a["defect"]}
-    return {"res": a["res"], "J": jnp.asarray(a["J"]), "pose": tuple(jnp.asarray(a[f"pose_{c}"]) for c in "xyq")}
+    parts = tuple(tuple(jnp.asarray(a[f"{key}_{c}"]) for c in "xyq") for key in ("pose", "onboard") if f"{key}_x" in a)
+    return {"res": a["res"], "J": jnp.asarray(a["J"]), "pose": parts if len(parts) > 1 else parts[0]}
 
 
 def _load_checkpoint(path: Path, fp: str, layout: Callable[[int], dict[str, tuple]]) -> tuple[dict | None, str | None]:

@@ -62,11 +62,12 @@ from .checkpoint import (
 )
 from .data import FitData, pack_trials
 from .free import FreeParams, _overlaps, _split_names, apply_fixes
+from .mixed import MixedData, mixed_data, n_nuisance, n_res, stacked, weighted
 from .onboard import CHANNELS, START_SIGMA, UNITS, channel_sigmas, nuisance_start, pack_onboard
 from .options import FIT_SOLVER, FIT_TOLERANCES, FitOptions, fit_options
 from .report import FitResult, fit_result
 from .residuals import _Functions, _functions
-from .robust import reweigh, reweigh_with_excess, robust_cost
+from .robust import reweigh_with_excess, robust_cost
 from .shooting import CONTINUATION_RTOL, DEFECT_CLOSED, MU_LEVELS, Segments
 from .starts import _NU_SCALE, nuisance_guess, start_design
 from .verdict import robust_sd
@@ -138,7 +139,10 @@ def fit(
     _multiple_shooting(run, st)
     _adam(run, st)
     _single_shooting(run, st)
-    return _result(run, st, outlier_keys(trials))
+    keys = outlier_keys(trials)
+    if onboard == "mixed":  # (the stack's order: the pose trials first)
+        keys = [k for pose in (True, False) for k, t in zip(keys, trials) if isinstance(t, OnboardTrial) != pose]
+    return _result(run, st, keys)
 
 
 def outlier_keys(trials: Sequence) -> list[str]:
@@ -152,29 +156,28 @@ def outlier_keys(trials: Sequence) -> list[str]:
 # ----------------------------------------------------------------------------- checks
 
 
-def _onboard(trials: Sequence) -> bool:
-    """Whether the trials are onboard-sensor trials (`OnboardTrial`); trials of both kinds
-    together are an `InputError`."""
+def _onboard(trials: Sequence) -> bool | str:
+    """Whether the trials are onboard-sensor trials (`OnboardTrial`): True, False, or `"mixed"`
+    for trials of both kinds."""
     trials = list(trials)
     n = sum(isinstance(t, OnboardTrial) for t in trials)
-    if 0 < n < len(trials):
-        raise InputError(
-            f"fit: {n} onboard-sensor trial(s) and {len(trials) - n} motion-capture trial(s) given together; a fit takes "
-            "trials of one kind: fit them separately (docs/onboard.md)."
-        )
-    return bool(trials) and n == len(trials)
+    return "mixed" if 0 < n < len(trials) else bool(trials) and n == len(trials)
 
 
-def _pack(trials: Sequence, params: RobotParams, o: FitOptions, onboard: bool):
-    """The trials packed: `FitData` (captured poses) or `OnboardData` (onboard sensors, which
+def _pack(trials: Sequence, params: RobotParams, o: FitOptions, onboard: bool | str):
+    """The trials packed: `FitData` (captured poses), `OnboardData` (onboard sensors, which
     need neither a clock offset, their sensors and inputs sharing one clock, nor multiple
-    shooting, their trials starting at rest)."""
+    shooting, their trials starting at rest) or, for trials of both kinds, `MixedData`."""
     if not onboard:
         return pack_trials(trials, params, max_offset=o.max_offset)
+    if onboard == "mixed":
+        pose = [t for t in trials if not isinstance(t, OnboardTrial)]
+        both = _pack([t for t in trials if isinstance(t, OnboardTrial)], params, o, True)
+        return mixed_data(pack_trials(pose, params), both)
     if o.fit_time_offset:
         raise InputError(
-            "fit: fit_time_offset (--fit-time-offset) is for motion-capture trials; an onboard trial's sensors and inputs "
-            "share one clock."
+            "fit: fit_time_offset (--fit-time-offset) is for motion-capture trials alone; an onboard trial's sensors and "
+            "inputs share one clock."
         )
     if o.shooting == "multiple":
         raise InputError(
@@ -196,7 +199,7 @@ def _check_free_and_fixed(free, fix) -> None:
 
 
 def _check_unknowns(data: FitData, free: FreeParams) -> None:
-    P, T, n_nu = free.size, data.ts.shape[0], len(data.nuisance)
+    P, T, n_nu = free.size, len(data.names), n_nuisance(data)
     n_res = data.n_measured
     if n_res <= P + T * n_nu:
         raise InputError(
@@ -269,11 +272,11 @@ class _Run:
 
     @property
     def T(self) -> int:
-        return self.data.ts.shape[0]
+        return len(self.data.names)
 
     @property
     def n_nu(self) -> int:
-        return len(self.data.nuisance)
+        return n_nuisance(self.data)
 
 
 @dataclasses.dataclass
@@ -321,7 +324,7 @@ def _setup(
 ) -> tuple[_Run, _State]:
     """The run and its first state: the starts (the only random numbers of a fit, drawn from
     `seed`, part of the fingerprint), the segments of multiple shooting, Adam."""
-    kind, S, P, T = data.kind, o.n_starts, free.size, data.ts.shape[0]
+    kind, S, P, T = data.kind, o.n_starts, free.size, len(data.names)
     multiple = _use_multiple(o.shooting, data, o.segment)
     seg = _shooting.segment_trials(data, o.segment) if multiple else None
     fns = _functions(
@@ -329,12 +332,8 @@ def _setup(
     )
     rng = np.random.default_rng(o.seed)
     theta = start_design(free, S, o.spread, rng)
-    if data.measure == "pose":
-        sig = np.array([o.sigma_pos or 1e-3, o.sigma_rot or math.radians(0.5)])
-        nu = np.repeat(nuisance_guess(data, params)[None], S, 0)
-    else:
-        sig = np.array([s or s0 for s, s0 in zip(o.sigmas_onboard, START_SIGMA)])
-        nu = np.repeat(nuisance_start(data, params)[None], S, 0)
+    sig, nu = _starts(data, params, o)
+    nu = np.repeat(nu[None], S, 0)
     ms, nu_ms = None, None
     if multiple:
         position = np.concatenate([np.arange(len(c) - 1) for c in seg.boundaries])
@@ -345,8 +344,12 @@ def _setup(
         if offset:  # every segment starts at its trial's estimate
             nu_ms = np.concatenate([nu_ms, nu[0, seg.trial, -1:]], axis=1)
         nu_ms = np.repeat(nu_ms[None], S, 0)
-    nu_scale = np.array([_NU_SCALE[n.split("_")[0]] for n in data.nuisance])
-    n_nu = nu_scale.shape[0]
+    nu_scale = stacked(
+        data,
+        lambda d: np.broadcast_to([_NU_SCALE[n.split("_")[0]] for n in d.nuisance], (len(d.names), len(d.nuisance))),
+        1.0,
+    )
+    n_nu = nu_scale.shape[-1]
     scale_np = {"theta": np.broadcast_to(free.theta_scales(), (S, P)), "nu": np.broadcast_to(nu_scale, (S, T, n_nu))}
     scale = jax.tree_util.tree_map(lambda s: to_jax(s.copy()), scale_np)
     opt = optax.chain(optax.scale_by_adam(), optax.scale(-o.adam_lr))
@@ -372,6 +375,17 @@ def _setup(
     return run, _State(stage=stage, sig=sig, theta=theta, nu=nu, nu_ms=nu_ms, adam=adam)
 
 
+def _starts(data, params: RobotParams, o: FitOptions) -> tuple[np.ndarray, np.ndarray]:
+    """The noise levels a fit starts from (`sigma_pos, sigma_rot` and/or each onboard
+    channel's) and its nuisance values `(T, n)` (`nuisance_guess`, `nuisance_start`)."""
+    if isinstance(data, MixedData):
+        parts = [_starts(d, params, o) for d in data.parts]
+        return np.concatenate([s for s, _ in parts]), stacked(data, lambda d: parts[data.parts.index(d)][1], 0.0)
+    if data.measure == "pose":
+        return np.array([o.sigma_pos or 1e-3, o.sigma_rot or math.radians(0.5)]), nuisance_guess(data, params)
+    return np.array([s or s0 for s, s0 in zip(o.sigmas_onboard, START_SIGMA)]), nuisance_start(data, params)
+
+
 # ----------------------------------------------------------------------------- the checkpoint
 
 
@@ -390,9 +404,10 @@ def _layout(run: _Run, stage: int) -> dict[str, tuple]:
         }
         nu_shape = (G, n_nu)
     else:
-        K = run.data.width * run.data.ts.shape[1]
-        ev = {"res": (S, T, K), "J": (S, T, K, P + n_nu)}
-        ev |= {f"pose_{c}": (S, T, *shape) for c, shape in zip("xyq", run.data.aux_shapes())}
+        ev = {"res": (S, T, n_res(run.data)), "J": (S, T, n_res(run.data), P + n_nu)}
+        parts = run.data.parts if isinstance(run.data, MixedData) else (run.data,)
+        for part, key in zip(parts, ("pose", "onboard")):
+            ev |= {f"{key}_{c}": (S, len(part.names), *shape) for c, shape in zip("xyq", part.aux_shapes())}
         nu_shape = (T, n_nu)
     return _checkpoint_layout(stage, S, P, nu_shape, run.adam_shapes, ev, len(run.data.channels))
 
@@ -465,7 +480,8 @@ def _program(run: _Run, shooting: str) -> str:
     """What identifies the compiled residuals of a fit (for `Progress.compiling`)."""
     o, d = run.options, run.data
     segments = () if run.shooting is None or shooting == "single" else run.shooting.seg.slot.shape
-    return repr((shooting, d.kind, d.ts.shape, run.free.names, o.n_starts, o.rtol, o.atol, o.max_steps, segments))
+    shapes = [p.ts.shape for p in d.parts] if isinstance(d, MixedData) else d.ts.shape
+    return repr((shooting, d.kind, shapes, run.free.names, o.n_starts, o.rtol, o.atol, o.max_steps, segments))
 
 
 def _evaluate_single(run: _Run, st: _State, th, n):
@@ -473,22 +489,29 @@ def _evaluate_single(run: _Run, st: _State, th, n):
     with run.progress.compiling("fit", _program(run, "single"), "fit: single shooting"):
         res, ok, J, pose = run.fns.run("jacobian", run.base, to_jax(th), to_jax(n), run.arrays, to_jax(st.sig))
         res, ok = np.asarray(res), np.asarray(ok)
-    loss = run.options.stage_loss(st.stage)
-    if loss == "l2":
-        cost = np.where(ok.all(1), 0.5 * (res * res).sum((1, 2)), np.inf)
-    else:
-        cost = np.where(ok.all(1), np.asarray(robust_cost(loss, to_jax(res))), np.inf)
+    cost = np.where(ok.all(1), _cost(run.data, run.options.stage_loss(st.stage), res), np.inf)
     st.last.update(pose=pose, ok=ok, data=run.data)
     return cost, {"res": res, "J": J, "pose": pose}
 
 
+def _cost(data, loss: str, res: np.ndarray) -> np.ndarray:
+    """The cost of every start `(S,)`: half the sum of squares, or the robust cost of the pose
+    trials' residuals (an onboard trial's are always least squares)."""
+    if loss == "l2" or data.measure != "pose" and not isinstance(data, MixedData):
+        return 0.5 * (res * res).sum((1, 2))
+    if isinstance(data, MixedData):
+        Tp, Kp = data.n_pose, data.sizes[0]
+        rest = 0.5 * (res[:, Tp:] ** 2).sum((1, 2))
+        return np.asarray(robust_cost(loss, to_jax(res[:, :Tp, :Kp]))) + rest
+    return np.asarray(robust_cost(loss, to_jax(res)))
+
+
 def _weighted(run: _Run, loss: str, res, J):
     """The residuals and Jacobian as Levenberg-Marquardt sees them: reweighted for a robust
-    `loss` (`jsphere.identify.robust.reweigh`), as they are for `l2`. An evaluation holds them
-    unweighted, so that the checkpoint does too and the weights follow from what it holds."""
-    if loss == "l2":
-        return res, J
-    return reweigh(loss, to_jax(res), J)
+    `loss` (`jsphere.identify.robust.reweigh`; the pose trials' only), as they are for `l2`. An
+    evaluation holds them unweighted, so that the checkpoint does too and the weights follow
+    from what it holds."""
+    return weighted(run.data, loss, res, J)
 
 
 def _solve_single(run: _Run, st: _State, out, lam):
@@ -526,6 +549,13 @@ def _solve_multiple(run: _Run, out, lam):
 def _first_failure(data, pose, ok) -> str:
     """Where the first start fails: its first non-finite residual (trial, time, channel), or
     the first trial whose solve did not finish."""
+    if isinstance(data, MixedData):
+        ok = np.asarray(ok)
+        for part, aux, okk in zip(data.parts, pose, data.split(ok, axis=1)):
+            where = _first_failure(part, aux, okk)
+            if not where.startswith("the first start failed"):
+                return where
+        return "the first start failed, but no trial shows where"
     channels = ("x", "y", "orientation") if data.measure == "pose" else CHANNELS
     arrays = [np.asarray(a[0]) for a in pose]
     for i in range(data.ts.shape[0]):
@@ -692,27 +722,50 @@ def _single_shooting(run: _Run, st: _State) -> None:
         cost = np.asarray(cost)
         st.stage_converged = bool(np.asarray(st.lm.converged)[int(np.argmin(cost))])
         st.lm = None
-        onboard = run.data.measure != "pose"
-        if st.stage == 1 and (run.options.estimate_sigma_onboard if onboard else run.options.estimate_sigma):
-            res_b, n_par = np.asarray(out["res"])[int(np.argmin(cost))], run.P + run.T * run.n_nu
-            if onboard:  # (the levels given are kept)
-                est = channel_sigmas(res_b, run.data, st.sig, n_par)
-                est = np.where([s is None for s in run.options.sigmas_onboard], est, st.sig)
-            else:
-                est = _estimate_sigma(res_b, run.data, st.sig, n_par, run.options.loss)
+        o = run.options
+        parts = run.data.parts if isinstance(run.data, MixedData) else (run.data,)
+        wanted = [o.estimate_sigma_onboard if d.measure != "pose" else o.estimate_sigma for d in parts]
+        if st.stage == 1 and any(wanted):
+            res_b = np.asarray(out["res"])[int(np.argmin(cost))]
+            est = _estimate_sigmas(run, res_b, st.sig)
             # residuals of exactly 0 (noise-free data) give no estimate: keep the level used
             usable = np.isfinite(est) & (est > 0)
             st.sig = np.where(usable, est, st.sig)
             st.stage = 2
             kept = "" if usable.all() else " (residuals of 0 give no estimate: the level used is kept)"
-            if onboard:
-                levels = ", ".join(f"{c} {s:.4g} {u}" for c, s, u in zip(CHANNELS, st.sig, UNITS))
-            else:
-                levels = f"sigma_pos {st.sig[0] * 1e3:.4f} mm, sigma_rot {math.degrees(st.sig[1]):.4f} deg"
-            run.say(f"fit: noise estimated: {levels}{kept}; refitting")
+            levels, at = [], 0
+            for d in parts:
+                sig = st.sig[at : at + len(d.channels)]
+                at += len(d.channels)
+                if d.measure != "pose":
+                    levels += [f"{c} {s:.4g} {u}" for c, s, u in zip(CHANNELS, sig, UNITS)]
+                else:
+                    levels += [f"sigma_pos {sig[0] * 1e3:.4f} mm, sigma_rot {math.degrees(sig[1]):.4f} deg"]
+            run.say(f"fit: noise estimated: {', '.join(levels)}{kept}; refitting")
         else:
             st.stage = 3
             _save(run, st)
+
+
+def _estimate_sigmas(run: _Run, res_b: np.ndarray, sig: np.ndarray) -> np.ndarray:
+    """Every part's noise levels from the whitened residuals `res_b (T, K)` of the best start
+    (the levels given are kept). The unknowns a part's estimate is corrected for: its trials'
+    nuisance values and its share of the free parameters (by its measured values)."""
+    o, data = run.options, run.data
+    parts = data.parts if isinstance(data, MixedData) else (data,)
+    chunks = data.split(res_b) if isinstance(data, MixedData) else (res_b,)
+    out, at = [], 0
+    for k, (d, r) in enumerate(zip(parts, chunks)):
+        n_par = run.P * d.n_measured / data.n_measured + len(d.names) * len(d.nuisance)
+        s = sig[at : at + len(d.channels)]
+        r = data.unpad(r, k) if isinstance(data, MixedData) else r
+        if d.measure != "pose":
+            est = np.where([v is None for v in o.sigmas_onboard], channel_sigmas(r, d, s, n_par), s)
+        else:
+            est = _estimate_sigma(r, d, s, n_par, o.loss) if o.estimate_sigma else s
+        out.append(est)
+        at += len(d.channels)
+    return np.concatenate(out)
 
 
 def _estimate_sigma(res_b, data: FitData, sig, n_par: int, loss: str = "l2") -> np.ndarray:

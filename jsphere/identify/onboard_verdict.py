@@ -222,3 +222,29 @@ def judge_onboard(
             "whiteness_lags": lags,
         },
     }
+
+
+#: statuses from the best to the worst
+_ORDER = ("converged", "not_converged", "misfit")
+_PARTS = {"capture": "motion capture", "onboard": "onboard sensors"}
+
+
+def combined_verdict(capture: dict[str, Any], onboard: dict[str, Any]) -> dict[str, Any]:
+    """The verdict of a fit of trials of both kinds from each part's (`jsphere.identify.verdict.judge`
+    on the pose trials, `judge_onboard` on the onboard trials): the worse status, with the reason
+    of each part at that status, named by part; the worse part's `diagnosis` and `worst_trial`,
+    every part's `correlated` series, and each part's own verdict under `parts`."""
+    parts = {"capture": capture, "onboard": onboard}
+    status = max((v["status"] for v in parts.values()), key=_ORDER.index)
+    worst = next(k for k, v in parts.items() if v["status"] == status)
+    reason = "; ".join(f"{_PARTS[k]}: {v['reason'].rstrip('.')}" for k, v in parts.items() if v["status"] == status)
+    return {
+        "status": status,
+        "reason": reason,
+        "optimiser_converged": all(v["optimiser_converged"] for v in parts.values()),
+        "diagnosis": parts[worst].get("diagnosis"),
+        "worst_trial": parts[worst]["worst_trial"],
+        "correlated": {**capture.get("correlated", {}), **onboard.get("correlated", {})},
+        "set_aside": capture.get("set_aside", 0),
+        "parts": {k: dict(v) for k, v in parts.items()},
+    }

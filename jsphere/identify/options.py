@@ -137,10 +137,11 @@ class FitOptions:
 
     # ------------------------------------------------------------------ validation
 
-    def checked(self, onboard: bool = False) -> FitOptions:
+    def checked(self, onboard: bool | str = False) -> FitOptions:
         """These options validated (`InputError` naming the first bad one), with the counts as
         ints and `solver` filled with fit's defaults (for `onboard` trials, `ONBOARD_TOLERANCES`
-        with `simulate`'s solver, and least squares)."""
+        with `simulate`'s solver, and least squares; `"mixed"`: onboard and pose trials, the
+        onboard tolerances and the loss for the pose trials)."""
         check_loss(self.loss, "fit")
         mount = {}
         for name, n in (("imu_position", 3), ("imu_rotation", 4)):
@@ -166,7 +167,7 @@ class FitOptions:
             raise InputError(f"fit: shooting must be 'auto', 'single' or 'multiple'; got {self.shooting!r}.")
         segment = real("fit", "segment", self.segment, low=0.05, unit="s")
         solver = _fit_solver(self.solver, onboard)
-        loss = "l2" if onboard else self.loss
+        loss = "l2" if onboard is True else self.loss  # (with pose trials too: their loss)
         return dataclasses.replace(self, **counts, **mount, segment=segment, solver=solver, loss=loss)
 
     # ------------------------------------------------------------------ what the fit reads

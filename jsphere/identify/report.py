@@ -29,10 +29,11 @@ from ..numerics.lm import blocks, marginal_information
 from .data import FitData, nuisance_values, offset_from_nuisance, trial_errors
 from .free import FreeParams
 from .identifiability import identifiability, scaled_information, units_note
+from .mixed import MixedData, weighted
 from .onboard import CHANNELS, UNITS, OnboardData
-from .onboard_verdict import channel_floors, judge_onboard
+from .onboard_verdict import channel_floors, combined_verdict, judge_onboard
 from .options import save_json
-from .robust import REJECT, frame_weights, reweigh, variance_factor
+from .robust import REJECT, frame_weights, variance_factor
 from .shooting import DEFECT_CLOSED
 from .verdict import judge, missing_effects, noise_floor
 
@@ -123,12 +124,12 @@ class FitResult:
         }
         if self.sigmas:
             doc |= {"sigmas": self.sigmas, "channel_share": self.channel_share, "mounting": self.mounting}
-        else:
+        if math.isfinite(self.sigma_pos):  # pose trials: theirs only
             doc |= {
                 "sigma_pos_m": self.sigma_pos,
                 "sigma_rot_deg": math.degrees(self.sigma_rot),
-                "rms_pos_m": [t["rms_pos_m"] for t in self.trials],
-                "rms_rot_deg": [t["rms_rot_deg"] for t in self.trials],
+                "rms_pos_m": [t["rms_pos_m"] for t in self.trials if "rms_pos_m" in t],
+                "rms_rot_deg": [t["rms_rot_deg"] for t in self.trials if "rms_rot_deg" in t],
             }
         doc |= {k: getattr(self, k) for k in ("elapsed_s", "shooting", "loss", "outliers", "units_note")}
         if self.time_offset is not None:
@@ -155,10 +156,12 @@ class FitResult:
             v, s = self.values[n], self.stderr[n]
             rel = abs(s / v) if v else float("inf")
             lines.append(f"{n:<{w}} {v:>14.6g} {s:>12.3g} {rel:>9.2%}")
+        levels = []
+        if math.isfinite(self.sigma_pos):
+            levels.append(f"sigma_pos {self.sigma_pos * 1e3:.3f} mm, sigma_rot {math.degrees(self.sigma_rot):.3f} deg")
         if self.sigmas:
-            levels = ", ".join(f"sigma_{c} {v:.4g} {u}" for (c, v), u in zip(self.sigmas.items(), UNITS))
-        else:
-            levels = f"sigma_pos {self.sigma_pos * 1e3:.3f} mm, sigma_rot {math.degrees(self.sigma_rot):.3f} deg"
+            levels.append(", ".join(f"sigma_{c} {v:.4g} {u}" for (c, v), u in zip(self.sigmas.items(), UNITS)))
+        levels = ", ".join(levels)
         lines.append(
             f"cost {self.cost:.6g} over {self.n_residuals} residuals, {self.iterations} iterations, "
             f"converged: {self.converged}; {levels}"
@@ -206,17 +209,21 @@ def fit_result(run, st, cost, out, keys: Sequence[str]) -> FitResult:
     (`pose`: simulated `x, y, q`; `res`, `J` unweighted, as `jsphere.identify.residuals` gives
     them); `keys`: each trial's key in `outliers`."""
     free, data, o = run.free, run.data, run.options
-    b, loss, P, T, n_nu = int(np.argmin(cost)), o.loss, free.size, data.ts.shape[0], len(data.nuisance)
-    onboard = data.measure != "pose"
+    b, loss, P = int(np.argmin(cost)), o.loss, free.size
+    parts = data.parts if isinstance(data, MixedData) else (data,)
     n_res = data.n_measured
-    counts = data.w * data.width if onboard else 2 * data.wpos + 3 * data.wrot
     res_b, J_b = np.asarray(out["res"])[b], np.asarray(out["J"])[b]
-    set_aside = np.zeros(counts.shape, bool) if loss == "l2" else (frame_weights(loss, res_b) < REJECT) & (counts > 0)
-    if loss == "l2":
-        s2 = float(2.0 * cost[b] / max(n_res - P - T * n_nu, 1))
-    else:
-        s2 = variance_factor(loss, res_b, counts, P + T * n_nu)
-        res_b, J_b = reweigh(loss, to_jax(res_b[None]), to_jax(J_b[None]))
+    own = _parts(data, res_b, np.asarray(st.nu[b]), out["pose"])  # each part's residuals, nuisance values, readings
+    pose = next((k for k, d in enumerate(parts) if d.measure == "pose"), None)
+    counts = 2 * parts[pose].wpos + 3 * parts[pose].wrot if pose is not None else None
+    set_aside = None
+    if pose is not None:
+        set_aside = np.zeros(counts.shape, bool)
+        if loss != "l2":
+            set_aside = (frame_weights(loss, own[pose][0]) < REJECT) & (counts > 0)
+    s2 = _variance_factor(parts, loss, 2.0 * cost[b], own, counts, P, n_res)
+    if loss != "l2":
+        res_b, J_b = weighted(data, loss, res_b[None], to_jax(J_b[None]))
         res_b, J_b = np.asarray(res_b[0]), J_b[0]
     params = free.compiled()[1](to_jax(st.theta[b]), run.base)
     unphysical = ""
@@ -227,13 +234,11 @@ def fit_result(run, st, cost, out, keys: Sequence[str]) -> FitResult:
     values, F_phys, cov, se, corr = _covariance(free, st.theta[b], res_b, J_b, s2, params=params, kind=data.kind)
     ident = identifiability(free, values, F_phys, s2, params, kind=data.kind)
     ident["sigma_note"] = "relative sd of each direction; warnings list directions with relative sd > 10%"
-    if onboard:
-        trials = _onboard_reports(data, out["pose"], st.nu[b], b)
-        verdict = _onboard_verdict(run, st, trials, unphysical)
-    else:
-        trials = _trial_reports(data, out["pose"], st.nu[b], b, set_aside)
-        verdict = _verdict(run, st, trials, counts, unphysical)
-    offsets = _time_offsets(data, np.asarray(st.nu[b]), res_b, J_b, P, s2) or (None, None)
+    trials, verdict = _reports(run, st, parts, own, b, set_aside, counts, unphysical)
+    offsets = _time_offsets(data, np.asarray(st.nu[b]), res_b, J_b, P, s2) if pose == 0 and len(parts) == 1 else None
+    offsets = offsets or (None, None)
+    onboard = parts[-1] if parts[-1].measure != "pose" else None
+    sig = dict(zip([c for d in parts for c in (CHANNELS if d.measure != "pose" else d.channels)], map(float, st.sig)))
     shooting = {"method": "single"}
     if run.shooting is not None:
         ms, closed = run.shooting, st.max_defect <= DEFECT_CLOSED
@@ -250,8 +255,8 @@ def fit_result(run, st, cost, out, keys: Sequence[str]) -> FitResult:
         cost=float(cost[b]),
         iterations=int(st.total_it),
         converged=bool(st.stage_converged),
-        sigma_pos=math.nan if onboard else float(st.sig[0]),
-        sigma_rot=math.nan if onboard else float(st.sig[1]),
+        sigma_pos=sig.get("position", math.nan),
+        sigma_rot=sig.get("orientation", math.nan),
         n_residuals=n_res,
         identifiability=ident,
         trials=trials,
@@ -272,10 +277,53 @@ def fit_result(run, st, cost, out, keys: Sequence[str]) -> FitResult:
         },
         units_note=units_note(free.names, params, data.kind),
         options=o,
-        sigmas=dict(zip(CHANNELS, map(float, st.sig))) if onboard else {},
+        sigmas={c: sig[c] for c in CHANNELS} if onboard else {},
         channel_share=_channel_share(data, free, res_b, J_b) if onboard else {},
-        mounting=_mounting(data, free, st.theta[b]) if onboard else {},
+        mounting=_mounting(onboard, free, st.theta[b]) if onboard else {},
     )
+
+
+def _reports(run, st, parts, own, b: int, set_aside, counts, unphysical: str) -> tuple[list[dict], dict[str, Any]]:
+    """Every trial's report (`_trial_reports`, `_onboard_reports`) and the verdict (of both
+    parts, `combined_verdict`, where there are two)."""
+    trials, verdicts = [], []
+    for d, (_, nu_d, aux) in zip(parts, own):
+        if d.measure == "pose":
+            part = _trial_reports(d, aux, nu_d, b, set_aside)
+            verdicts.append(_verdict(run, st, d, part, counts, unphysical))
+        else:
+            part = _onboard_reports(d, aux, nu_d, b)
+            verdicts.append(_onboard_verdict(run, st, d, part, unphysical))
+        trials += part
+    return trials, verdicts[0] if len(verdicts) == 1 else combined_verdict(*verdicts)
+
+
+def _parts(data, res_b: np.ndarray, nu_b: np.ndarray, aux) -> list[tuple[np.ndarray, np.ndarray, Any]]:
+    """Per part of the fit (`MixedData.parts`, or the data itself): its trials' residuals and
+    nuisance values without padding, and their simulated poses or readings (every start)."""
+    if not isinstance(data, MixedData):
+        return [(res_b, nu_b, aux)]
+    return [
+        (data.unpad(r, k), data.unpad(n, k, "nu"), a)
+        for k, (r, n, a) in enumerate(zip(data.split(res_b), data.split(nu_b), aux))
+    ]
+
+
+def _variance_factor(parts, loss: str, ssq: float, own, counts, P: int, n_measured: int) -> float:
+    """`s^2`, the scale of the covariance: the sum of squares per degree of freedom, or for a
+    robust loss `variance_factor` of the pose trials' residuals, pooled by degrees of freedom
+    with the other part's sum of squares (its unknowns: its nuisance values and its share of
+    the free parameters, by measured values)."""
+    n_unknown = P + sum(len(d.names) * len(d.nuisance) for d in parts)
+    if loss == "l2":
+        return float(ssq / max(n_measured - n_unknown, 1))
+    num = den = 0.0
+    for d, (r, _, _) in zip(parts, own):
+        n_par = P * d.n_measured / n_measured + len(d.names) * len(d.nuisance)
+        dof = max(d.n_measured - n_par, 1.0)
+        num += variance_factor(loss, r, counts, n_par) * dof if d.measure == "pose" else float((r * r).sum())
+        den += dof
+    return num / den
 
 
 def _mounting(data: OnboardData, free: FreeParams, theta: np.ndarray) -> dict[str, list[float]]:
@@ -301,9 +349,9 @@ def _onboard_reports(data: OnboardData, readings, nu_b: np.ndarray, b: int) -> l
     return out
 
 
-def _onboard_verdict(run, st, trials: list[dict[str, Any]], unphysical: str) -> dict[str, Any]:
-    """`judge_onboard` on the residuals of an onboard fit."""
-    data, free = run.data, run.free
+def _onboard_verdict(run, st, data: OnboardData, trials: list[dict[str, Any]], unphysical: str) -> dict[str, Any]:
+    """`judge_onboard` on the residuals of an onboard fit's trials (`data`)."""
+    free = run.free
     return judge_onboard(
         [[t["series"][f"{k}_err"] for k in ("gyro", "acc", "chi")] for t in trials],
         channel_floors(data),
@@ -317,26 +365,34 @@ def _onboard_verdict(run, st, trials: list[dict[str, Any]], unphysical: str) -> 
     )
 
 
-def _channel_share(data: OnboardData, free: FreeParams, res_b: np.ndarray, J_b) -> dict[str, dict[str, float]]:
+def _channel_share(data, free: FreeParams, res_b: np.ndarray, J_b) -> dict[str, dict[str, float]]:
     """Per channel, the share of each free name's information it gives: the diagonal of the
     channel's information over the whole's, the biases eliminated (each bias enters one
-    channel only, so the channels' informations add up to the whole's)."""
-    P, M, J_b = free.size, data.ts.shape[1], np.asarray(J_b)
+    channel only, so the channels' informations add up to the whole's). With pose trials too
+    (`MixedData`), theirs is the `"capture"` channel's."""
+    P, J_b = free.size, np.asarray(J_b)
     F = np.diag(marginal_information(to_jax(res_b), to_jax(J_b), P))
-    out, at = {}, 0
-    for c, width in zip(CHANNELS, data.widths):
-        rows = slice(at, at + M * width)
+    onboard, trials, groups = data, slice(None), []
+    if isinstance(data, MixedData):
+        onboard, trials = data.onboard, slice(data.n_pose, None)
+        groups.append(("capture", slice(None, data.n_pose), slice(None)))
+    M, at = onboard.ts.shape[1], 0
+    for c, width in zip(CHANNELS, onboard.widths):
+        groups.append((c, trials, slice(at, at + M * width)))
         at += M * width
-        Fc = np.diag(marginal_information(to_jax(res_b[:, rows]), to_jax(J_b[:, rows]), P))
+    out = {}
+    for c, ts, rows in groups:
+        Fc = np.diag(marginal_information(to_jax(res_b[ts, rows]), to_jax(J_b[ts, rows]), P))
         with np.errstate(invalid="ignore", divide="ignore"):
             share = np.where(F > 0, Fc / F, np.nan)
         out[c] = {n: float(v) for n, v in zip(free.names, share)}
     return out
 
 
-def _verdict(run, st, trials: list[dict[str, Any]], counts: np.ndarray, unphysical: str) -> dict[str, Any]:
-    """`judge` on the residuals of the frames a fit kept (`trials`: `_trial_reports`)."""
-    data, free = run.data, run.free
+def _verdict(run, st, data: FitData, trials: list[dict[str, Any]], counts: np.ndarray, unphysical: str) -> dict:
+    """`judge` on the residuals of the frames a fit kept of its pose trials `data` (`trials`:
+    `_trial_reports`)."""
+    free = run.free
     kept = [~t["series"]["set_aside"][:, None] for t in trials]
     return judge(
         [np.where(k, t["series"]["pos_err"], np.nan) for t, k in zip(trials, kept)],

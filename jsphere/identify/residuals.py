@@ -39,9 +39,10 @@ from ..model.state import State
 from ..numerics.lm import arrow_step, solve_arrow
 from ..solve.simulate import simulate
 from . import shooting as _shooting
-from .data import offset_from_nuisance
+from .data import nuisance_names, offset_from_nuisance
 from .free import FreeParams
-from .onboard import onboard_options
+from .mixed import stack
+from .onboard import MOTION, NUISANCE, onboard_options
 from .shooting import end_vector
 
 
@@ -175,19 +176,22 @@ class _Functions:
         measure: str = "pose",
     ):
         P = free.size
-        self.split = split
+        self.split = split and not measure.startswith("mixed")
         # what the programs close over, as a stable text (an object shown by its address has none)
         key = repr((free.slots, kind, rtol, atol, max_steps, solver, max_offset, measure))
-        self.key = None if " at 0x" in key else key
+        self.key = None if " at 0x" in key or measure.startswith("mixed") else key
 
-        def model(p, nu, d, sig):
-            if measure == "pose":
-                return trial_model(p, kind, rtol, atol, max_steps, dfx.ForwardMode(), nu, d, sig, solver, max_offset)
+        onboard = measure.split(":")[-1]
+
+        def pose_model(p, nu, d, sig):
+            return trial_model(p, kind, rtol, atol, max_steps, dfx.ForwardMode(), nu, d, sig, solver, max_offset)
+
+        def onboard_model_(p, nu, d, sig):
             return onboard_model(
-                p, kind, rtol, atol, max_steps, dfx.ForwardMode(), nu, d, sig, solver, **onboard_options(measure)
+                p, kind, rtol, atol, max_steps, dfx.ForwardMode(), nu, d, sig, solver, **onboard_options(onboard)
             )
 
-        def jac_one(base, th, nu, d, sig, ends):
+        def jac_one(base, th, nu, d, sig, ends, model):
             def f(z):
                 p = free.to_params(z[:P], base)
                 at = d
@@ -200,12 +204,16 @@ class _Functions:
             J, (res, ok, pose, end) = jax.jacfwd(f, has_aux=True)(jnp.concatenate([th, nu]))
             return (res, ok, J[0], pose, end, J[1]) if ends else (res, ok, J, pose)
 
-        def every(base, th, nu, d, sig, ends, split):
+        def every(base, th, nu, d, sig, ends, split, model=None):
             """`jac_one` of every start and trial, in one `vmap` over both (one batching of the
-            solve); with `split`, each of `_devices(nu)` solves its share."""
+            solve); with `split`, each of `_devices(nu)` solves its share. Trials of both kinds
+            (`jsphere.identify.mixed`): each part in its own `vmap`, stacked."""
+            if model is None and measure.startswith("mixed"):
+                return every_mixed(base, th, nu, d, sig)
+            model = model or (pose_model if measure == "pose" else onboard_model_)
             S, T = nu.shape[:2]
             d = jax.tree_util.tree_map(lambda a: jnp.tile(a, (S,) + (1,) * (a.ndim - 1)), d)
-            solves = jax.vmap(functools.partial(jac_one, ends=ends), in_axes=(None, 0, 0, 0, None))
+            solves = jax.vmap(functools.partial(jac_one, ends=ends, model=model), in_axes=(None, 0, 0, 0, None))
             devices = _devices(nu) if split else ()
             if len(devices) > 1:
                 one, trials = PartitionSpec(), PartitionSpec("trials")
@@ -218,6 +226,18 @@ class _Functions:
                 )
             out = solves(base, jnp.repeat(th, T, axis=0), nu.reshape((S * T,) + nu.shape[2:]), d, sig)
             return jax.tree_util.tree_map(lambda a: a.reshape((S, T) + a.shape[1:]), out)
+
+        def every_mixed(base, th, nu, d, sig):
+            N, (Tp, Mp), Mo = d["onboard"]["chi"].shape[-1], d["pose"]["ts"].shape, d["onboard"]["ts"].shape[1]
+            own = (len(nuisance_names(kind, max_offset > 0)), len(NUISANCE) + N)
+            own = (own[0], own[1] + (0 if onboard_options(onboard)["at_rest"] else len(MOTION[kind])))
+            n = nu.shape[-1]
+            outs = (
+                every(base, th, nu[:, :Tp, : own[0]], d["pose"], sig[:2], False, False, pose_model),
+                every(base, th, nu[:, Tp:, : own[1]], d["onboard"], sig[2:], False, False, onboard_model_),
+            )
+            n_res = max(5 * Mp + n - own[0], (6 + N) * Mo + n - own[1])
+            return stack(outs, nu, P, Tp, own, n_res)
 
         # (single shooting needs no Jacobian of the trials' end states)
         self.jacobian = eager_jit(functools.partial(every, ends=False, split=False))

@@ -498,6 +498,10 @@ def _numbers(status, reason, converged, floor, sc: _Scores) -> dict[str, Any]:
 def headline(status: str, reason: str, verdict: dict[str, Any]) -> str:
     """The verdict in one line (the last line of `jsphere fit`): for a converged fit its
     residual sigmas relative to the noise floor, otherwise the status and the reason."""
+    if status == "converged" and "parts" in verdict:  # trials of both kinds
+        label = {"capture": "motion capture", "onboard": "onboard sensors"}
+        inner = [headline(v["status"], v["reason"], v)[len("converged (") : -1] for v in verdict["parts"].values()]
+        return f"converged ({'; '.join(f'{label[k]}: {x}' for k, x in zip(verdict['parts'], inner))})"
     if status == "converged" and "channels" in verdict:
         ch = verdict["channels"]
         ratios = " / ".join(f"{ch[c]['ratio']:.2f}x" for c in ch)

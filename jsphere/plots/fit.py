@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +45,15 @@ def fit_figures(result, out_dir, *, stem: str = "fit") -> list[Path]:
 
     For onboard-sensor trials (`result.sigmas` set) the same two files: the worst trial's
     readings, recorded and fitted (gyro, accelerometer, encoders), and every trial's residuals
-    per channel (`onboard_figures`)."""
+    per channel (`onboard_figures`). Trials of both kinds: the pose trials' two files and the
+    onboard trials' as `<stem>_onboard_overlay.png`, `<stem>_onboard_residuals.png`."""
+    parts = (getattr(result, "verdict", None) or {}).get("parts")
+    if parts:
+        pose = [t for t in result.trials if "rms_pos_m" in t]
+        onboard = [t for t in result.trials if "rms_pos_m" not in t]
+        capture = dataclasses.replace(result, trials=pose, verdict=parts["capture"], sigmas={})
+        sensors = dataclasses.replace(result, trials=onboard, verdict=parts["onboard"])
+        return _pose_figures(capture, out_dir, stem) + onboard_figures(sensors, out_dir, stem=f"{stem}_onboard")
     if getattr(result, "sigmas", None):
         return onboard_figures(result, out_dir, stem=stem)
     return _pose_figures(result, out_dir, stem)
