@@ -130,9 +130,6 @@ def test_the_mounting_is_free_only_in_onboard_fits(paper):
 
 def test_onboard_fits_refuse_what_does_not_apply(paper, folder):
     trials = read_trials([folder])
-    pose = jsphere.synthetic_trial(paper, jsphere.random_inputs(paper, 1.0, kind="torques", seed=1), 1.0, rate=50.0)
-    with pytest.raises(InputError, match="of one kind"):
-        fit([*trials, pose], paper, FREE, progress=False)
     with pytest.raises(InputError, match="share one clock"):
         fit(trials, paper, FREE, options=FitOptions(fit_time_offset=True), progress=False)
     with pytest.raises(InputError, match="imu_rotation is a zero quaternion"):

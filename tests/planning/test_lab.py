@@ -300,6 +300,7 @@ def test_the_lab_loop_lands_closer_the_second_time(tmp_path):
         timeout=3000,
     )
     assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    assert "PrecisionWarning" not in run.stderr, run.stderr[-2000:]  # as every example (tests/project/test_docs.py)
     s = json.loads((tmp_path / "loop" / "loop.json").read_text())
     assert s["second_plan_miss_m"] < s["first_plan_miss_m"], s
     total = [a + b for a, b in zip(s["convert_time_offset"], s["fit_time_offset"])]

@@ -49,7 +49,7 @@ EXAMPLES = {
     "montecarlo_stop_points.py": ["--trials", "64", "--out", "{tmp}/study"],
     "montecarlo_fig2.py": ["--trials", "64", "--out", "{tmp}/fig2"],
     "fit_synthetic_capture.py": ["--out", "{tmp}/fit"],
-    "lab_loop.py": ["--out", "{tmp}/lab"],
+    "lab_loop.py": None,  # run, and its results checked, by tests/planning/test_lab.py
 }
 
 
@@ -77,7 +77,7 @@ def test_code_block_runs_as_written(where, index, tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name", sorted(EXAMPLES))
+@pytest.mark.parametrize("name", sorted(k for k, v in EXAMPLES.items() if v is not None))
 def test_example_runs_as_written(name, tmp_path):
     _run([str(ROOT / "examples" / name), *(a.format(tmp=tmp_path) for a in EXAMPLES[name])], tmp_path)
 
