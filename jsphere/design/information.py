@@ -41,6 +41,8 @@ capture rate (`jsphere.design.prediction.fit_information`).
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -62,7 +64,7 @@ from .inputs import Programme, Spec, coefficients, programme
 
 #: the onboard channels' noise levels: gyro [rad/s], accelerometer [m/s^2] per axis, and the
 #: rounding of a 4096-count encoder [rad], one count / sqrt(12)
-ONBOARD_SIGMAS = (0.003, 0.03, 2 * np.pi / 4096 / np.sqrt(12))
+ONBOARD_SIGMAS = (0.003, 0.03, 2 * math.pi / 4096 / math.sqrt(12))
 
 
 class Noise(eqx.Module):
