@@ -219,15 +219,13 @@ class Problem(eqx.Module):
         """One trial's whitened Jacobian `d r / d(theta, nu)` and its rollout at the design point."""
         P = self.free.size
         prog = programme(c, self.spec)
-
         dt, n_pose = self.theta0.dtype, len(nuisance_names(self.kind))
 
         def r(w):
             p = self.free.to_params(w[:P], self.base)
-            if self.onboard:  # from rest: the pose nuisance values at 0
-                ro = rk4_rollout(p, self.kind, prog, jnp.zeros(n_pose, dt), State.at_rest(p).q, self.grid)
-            else:
-                ro = rk4_rollout(p, self.kind, prog, w[P:], self.q_rest, self.grid)
+            # onboard: from the rest of `p`, the pose nuisance values at 0
+            nu, q0 = (jnp.zeros(n_pose, dt), State.at_rest(p).q) if self.onboard else (w[P:], self.q_rest)
+            ro = rk4_rollout(p, self.kind, prog, nu, q0, self.grid)
             return whitened(p, ro, self.noise), ro
 
         if not self.onboard:
