@@ -211,7 +211,7 @@ def test_options_are_checked_and_moved_keywords_warn(paper):
         design_excitation(paper, "j", 4.0, "K", options={"steps": 3})
 
 
-@pytest.mark.slow  # compiles the RK4 information and the fit's onboard Jacobian (about 40 s on 2 cores)
+@pytest.mark.slow  # compiles the RK4 information and the fit's onboard Jacobian (about 50 s on 2 cores)
 def test_onboard_information_matches_the_fits_onboard_jacobian(paper):
     """The search model's information of onboard readings (RK4, biases and encoder offsets
     eliminated) against the fit's own onboard Jacobian (adaptive solver) of noise-free trials
@@ -237,7 +237,7 @@ def test_onboard_information_matches_the_fits_onboard_jacobian(paper):
     assert np.all(np.isfinite(se)) and np.all(se > 0)
 
 
-@pytest.mark.slow  # compiles the criterion's gradient and the fit's onboard Jacobian (about 60 s on 2 cores)
+@pytest.mark.slow  # compiles the criterion's gradient and the fit's onboard Jacobian (about 2 min on 2 cores)
 def test_cli_onboard_writes_the_tables_and_the_json_and_beats_the_baseline(tmp_path, capsys):
     out = tmp_path / "design.csv"
     argv = ["design", "--free", "j,I[2,2]", "--duration", "1.5", "--kind", "K", "--onboard", "--sigma-gyro", "0.005"]
