@@ -6,13 +6,14 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from .options import at_least, check_flags, options_of, positive, progress, robot
+from .options import add_imu_flags, at_least, check_flags, options_of, positive, progress, robot
 
 NAME = "design"
 EXAMPLES = """
   jsphere design --free 'r_m[2],j,I[2,2]' --duration 8 --kind K --trials 2 --out design.csv
   jsphere design --free j --duration 4 --kind K --max-torque 0.05 --restarts 8 --steps 100 --out design.csv
   jsphere design --free 'r_m[2]' --duration 6 --kind chi_dot --params robot.toml --sigma-pos 5e-4 --out d.csv
+  jsphere design --free 'r_m[2],j,I[2,2]' --duration 8 --kind K --onboard --imu-position 0.02 -0.01 -0.04 --out d.csv
 """
 
 
@@ -41,10 +42,15 @@ def add_parser(sub) -> None:
     dp.add_argument("--max-wheel-speed", help="wheel speed limit [rad/s] (default 20; 'none' for no limit with K)")
     dp.add_argument("--max-tilt", help="platform tilt limit [rad] (default 0.35; 'none' for no limit)")
     dp.add_argument("--max-torque-rate", help="torque rate limit [N m/s] (default 1; 'none' for no limit)")
-    dp.add_argument("--sigma-pos", type=float, default=1e-3, help="position noise of the capture [m] (default 1e-3)")
-    dp.add_argument(
-        "--sigma-rot-deg", type=float, default=0.5, help="orientation noise of the capture [deg] (default 0.5)"
+    dp.add_argument("--sigma-pos", type=float, help="position noise of the capture [m] (default 1e-3)")
+    dp.add_argument("--sigma-rot-deg", type=float, help="orientation noise of the capture [deg] (default 0.5)")
+    sensors = dp.add_argument_group(
+        "onboard sensors", "trials of the robot's own IMU and wheel encoders (docs/onboard.md)"
     )
+    sensors.add_argument(
+        "--onboard", action="store_true", help="design for the onboard sensors instead of motion capture"
+    )
+    add_imu_flags(sensors, (0.003, 0.03, 2 * math.pi / 4096 / math.sqrt(12)))  # DesignOptions' defaults
     dp.add_argument("--restarts", type=int, default=4, help="random starts of the search, vmapped (default 4)")
     dp.add_argument("--steps", type=int, default=60, help="Adam steps of the search (default 60)")
     dp.add_argument("--seed", type=int, default=0, help="seed of the starts and of the baseline (default 0)")
@@ -82,6 +88,9 @@ def run(args) -> int:
             "--trials": (at_least(1), whole + "1"),
             "--sigma-pos": (positive, "a number > 0 (metres)"),
             "--sigma-rot-deg": (positive, "a number > 0 (degrees)"),
+            "--sigma-gyro": (positive, "a number > 0 (rad/s)"),
+            "--sigma-acc": (positive, "a number > 0 (m/s^2)"),
+            "--sigma-encoder": (positive, "a number > 0 (rad)"),
             "--restarts": (at_least(1), whole + "1"),
             "--steps": (at_least(0), whole + "0"),
             "--seed": (at_least(0), whole + "0"),
@@ -89,6 +98,13 @@ def run(args) -> int:
             "--capture-rate": (positive, "a positive rate [Hz]"),
         },
     )
+    capture = [
+        f for f, v in (("--sigma-pos", args.sigma_pos), ("--sigma-rot-deg", args.sigma_rot_deg)) if v is not None
+    ]
+    if args.onboard and capture:
+        raise InputError(
+            f"{capture[0]} is the motion capture's noise; with --onboard give --sigma-gyro, --sigma-acc, --sigma-encoder."
+        )
     out = Path(args.out)
     tables = table_paths(out, args.trials)
     baseline = [] if args.baseline_out is None else table_paths(args.baseline_out, args.trials)
@@ -100,7 +116,15 @@ def run(args) -> int:
         inputs={"the parameter file (--params)": args.params},
         example=str(out / "design.csv"),
     )
-    options = options_of(DesignOptions, args, sigma_rot=math.radians(args.sigma_rot_deg))
+    options = options_of(
+        DesignOptions,
+        args,
+        sensors="onboard" if args.onboard else "capture",
+        sigma_pos=1e-3 if args.sigma_pos is None else args.sigma_pos,
+        sigma_rot=math.radians(0.5 if args.sigma_rot_deg is None else args.sigma_rot_deg),
+        imu_position=tuple(args.imu_position),
+        imu_rotation=tuple(args.imu_rotation),
+    )
     result = design_excitation(
         robot(args), args.free, args.duration, args.kind, limits=_limits(args), options=options, progress=progress(args)
     )

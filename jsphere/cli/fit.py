@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from .options import Assignments, options_of, progress, robot
+from .options import Assignments, add_imu_flags, options_of, progress, robot
 
 NAME = "fit"
 EXAMPLES = """
@@ -106,23 +106,7 @@ def _add_sensor_flags(ft) -> None:
     sensors = ft.add_argument_group(
         "onboard-sensor trials", "trials of the robot's own IMU and wheel encoders (docs/onboard.md)"
     )
-    sensors.add_argument(
-        "--imu-position",
-        nargs=3,
-        type=float,
-        default=(0.0, 0.0, 0.0),
-        metavar=("X", "Y", "Z"),
-        help="the IMU's position [m], platform components from the shell's centre (default 0 0 0)",
-    )
-    sensors.add_argument(
-        "--imu-rotation",
-        nargs=4,
-        type=float,
-        default=(1.0, 0.0, 0.0, 0.0),
-        metavar=("QW", "QX", "QY", "QZ"),
-        help="the IMU's orientation: a scalar-first quaternion mapping IMU components to platform components "
-        "(default 1 0 0 0)",
-    )
+    add_imu_flags(sensors)
     sensors.add_argument(
         "--estimate-initial-state",
         action="store_true",
@@ -133,13 +117,6 @@ def _add_sensor_flags(ft) -> None:
         "--zero-order-hold",
         action="store_true",
         help="the torques are held between samples (a digital controller's), whatever the trial files say",
-    )
-    sensors.add_argument("--sigma-gyro", type=float, help="gyro noise [rad/s] (default: estimated)")
-    sensors.add_argument("--sigma-acc", type=float, help="accelerometer noise [m/s^2] (default: estimated)")
-    sensors.add_argument(
-        "--sigma-encoder",
-        type=float,
-        help="encoder noise [rad] (default: estimated); a larger one down-weights encoders whose rollers slip",
     )
 
 

@@ -86,12 +86,12 @@ def at_least(low: int):
 
 def check_flags(args, rules: dict) -> None:
     """`InputError` `"--FLAG must be WHAT; got VALUE."` for the first flag whose value fails its
-    test; `rules` maps each flag to `(test, what)`."""
+    test; `rules` maps each flag to `(test, what)` (a flag not given, None, is not tested)."""
     from .._runtime.errors import InputError
 
     for flag, (test, what) in rules.items():
         value = getattr(args, flag[2:].replace("-", "_"))
-        if not test(value):
+        if value is not None and not test(value):
             raise InputError(f"{flag} must be {what}; got {value:g}.")
 
 
@@ -100,3 +100,35 @@ def robot(args):
     from ..model.params import RobotParams
 
     return RobotParams.load(args.params) if args.params else RobotParams.paper()
+
+
+def add_imu_flags(group, sigmas=(None, None, None)) -> None:
+    """The flags of onboard sensors on the parser `group`: the IMU's mounting (`--imu-position`,
+    `--imu-rotation`) and the channels' noise levels (`--sigma-gyro`, `--sigma-acc`,
+    `--sigma-encoder`) with defaults `sigmas` (None: estimated)."""
+    group.add_argument(
+        "--imu-position",
+        nargs=3,
+        type=float,
+        default=(0.0, 0.0, 0.0),
+        metavar=("X", "Y", "Z"),
+        help="the IMU's position [m], platform components from the shell's centre (default 0 0 0)",
+    )
+    group.add_argument(
+        "--imu-rotation",
+        nargs=4,
+        type=float,
+        default=(1.0, 0.0, 0.0, 0.0),
+        metavar=("QW", "QX", "QY", "QZ"),
+        help="the IMU's orientation: a scalar-first quaternion mapping IMU components to platform components "
+        "(default 1 0 0 0)",
+    )
+    slip = "; a larger one down-weights encoders whose rollers slip"
+    for name, what, default, more in zip(
+        ("gyro", "acc", "encoder"),
+        ("gyro noise [rad/s]", "accelerometer noise [m/s^2]", "encoder noise [rad]"),
+        sigmas,
+        ("", "", slip),
+    ):
+        shown = "estimated" if default is None else f"{default:.3g}"
+        group.add_argument(f"--sigma-{name}", type=float, default=default, help=f"{what} (default: {shown}){more}")

@@ -16,9 +16,11 @@ from .._runtime.errors import InputError, SolverFailure
 from .._runtime.moved_keywords import moved_into, no_other_keywords
 from .._runtime.progress import Progress
 from ..identify.free import FreeParams
+from ..identify.identifiability import exact_symmetries
 from ..model.limits import Limits
 from ..model.params import RobotParams
-from .information import Grid, Noise, problem
+from ..model.sensors import Mounting
+from .information import ONBOARD_SIGMAS, Grid, Noise, problem
 from .inputs import (
     KINDS,
     Spec,
@@ -44,7 +46,13 @@ class DesignOptions:
     """The options of `design_excitation` (`jsphere design`'s flags).
 
     - `trials`: identification trials, one programme each.
+    - `sensors`: `"capture"` (motion capture: poses) or `"onboard"` (the robot's IMU and wheel
+      encoders, trials from rest: `docs/onboard.md`).
     - `sigma_pos` [m], `sigma_rot` [rad]: the capture's noise levels.
+    - `sigma_gyro` [rad/s], `sigma_acc` [m/s^2], `sigma_encoder` [rad]: the onboard sensors'
+      (defaults: a MEMS IMU, and one count of a 4096-count encoder / sqrt(12)).
+    - `imu_position` [m], `imu_rotation`: the IMU's mounting (`jsphere.Mounting`), as the fit's
+      (`FitOptions`).
     - `restarts`, `steps`, `seed`, `learning_rate`: random starts, all vmapped, and Adam steps;
       the result is deterministic for a given `seed`.
     - `n_freqs`, `f_max` [Hz], `ramp` [s]: the programmes' frequencies `j f_max / n_freqs` and
@@ -57,8 +65,14 @@ class DesignOptions:
     """
 
     trials: int = 1
+    sensors: str = "capture"
     sigma_pos: float = 1e-3
     sigma_rot: float = math.radians(0.5)
+    sigma_gyro: float = ONBOARD_SIGMAS[0]
+    sigma_acc: float = ONBOARD_SIGMAS[1]
+    sigma_encoder: float = ONBOARD_SIGMAS[2]
+    imu_position: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    imu_rotation: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
     restarts: int = 4
     steps: int = 60
     seed: int = 0
@@ -114,10 +128,10 @@ def design_excitation(
     t_begin = time.perf_counter()
     prog = Progress(progress)
     spec, lim, o = _checked(params, duration, kind, limits, o)
-    fp = _free(params, free)
-    pr = problem(params, fp, spec, Noise(o.sigma_pos, o.sigma_rot), Grid(o.model_rate, o.substeps))
+    fp = _free(params, free, spec.trial_kind)
+    pr = problem(params, fp, spec, _noise(o), Grid(o.model_rate, o.substeps))
     prog.say(
-        f"design: {o.trials} trial(s) of {duration:g} s ({spec.trial_kind}), {fp.size} free parameters, "
+        f"design: {o.trials} trial(s) of {duration:g} s ({spec.trial_kind}, {o.sensors}), {fp.size} free parameters, "
         f"{spec.size} coefficients, {o.restarts} restart(s) x {o.steps} Adam steps"
     )
     start_obj, zb, obj, phi, pen = _optimise(prog, pr, lim, fp, o)
@@ -143,7 +157,7 @@ def _result(pr, o: DesignOptions, design: _Candidate, base: _Candidate, equal, s
 
     def info(z):
         tables = [values_at(p, t_cap) for p in programmes(jnp.asarray(z), spec)]
-        return fit_information(pr.base, fp, spec.trial_kind, t_cap, tables, o.sigma_pos, o.sigma_rot)
+        return fit_information(pr.base, fp, spec.trial_kind, t_cap, tables, pr.noise)
 
     named = lambda v: {n: float(x) for n, x in zip(fp.names, v)}
     values, F_d, _, se_d, ext_d = info(design.z)
@@ -175,15 +189,21 @@ def _result(pr, o: DesignOptions, design: _Candidate, base: _Candidate, equal, s
 
 
 def _settings(o: DesignOptions, spec: Spec) -> dict:
-    """The `settings` of a `DesignResult` (its JSON names)."""
+    """The `settings` of a `DesignResult` (its JSON names): the sensors' noise levels those of
+    `o.sensors`."""
+    if o.sensors == "capture":
+        noise = {"sigma_pos_m": o.sigma_pos, "sigma_rot_deg": math.degrees(o.sigma_rot)}
+    else:
+        noise = {"sigma_gyro_rad_s": o.sigma_gyro, "sigma_acc_m_s2": o.sigma_acc, "sigma_encoder_rad": o.sigma_encoder}
+        noise |= {"imu_position_m": list(o.imu_position), "imu_rotation": list(o.imu_rotation)}
     return {
         "trials": o.trials,
         "n_freqs": o.n_freqs,
         "f_max_hz": o.f_max,
         "ramp_s": o.ramp,
         "limit": spec.limit,
-        "sigma_pos_m": o.sigma_pos,
-        "sigma_rot_deg": math.degrees(o.sigma_rot),
+        "sensors": o.sensors,
+        **noise,
         "restarts": o.restarts,
         "steps": o.steps,
         "seed": o.seed,
@@ -221,7 +241,7 @@ def _optimise(prog: Progress, pr, lim: Limits, fp: FreeParams, o: DesignOptions)
     spec, grid, steps = pr.spec, pr.grid, o.steps
     rng = np.random.default_rng(o.seed)
     z0s = np.stack([random_start(spec, rng, START_SCALE) for _ in range(o.restarts)])
-    key = repr((spec, fp.names, grid.rate, grid.substeps, o.restarts))
+    key = repr((spec, fp.names, grid.rate, grid.substeps, o.restarts, o.sensors))
     with prog.bar(steps + 1, "design: Adam", "step") as bar:
 
         def on_step(k, obj, phi, pen):
@@ -289,18 +309,36 @@ def _accurate(kind: str, entries, extremes):
     return [(name, swap.get(name, v), limit) for name, v, limit in entries]
 
 
-def _free(params, free) -> FreeParams:
-    """The `FreeParams` of `free`; `InputError` for a bad name."""
+def _free(params, free, kind: str) -> FreeParams:
+    """The `FreeParams` of `free`; `InputError` for a bad name, or for names that only `m + m0`
+    and `m r_m` tell apart (`exact_symmetries`' `"mass_split"`: no trial determines them)."""
     try:
-        return FreeParams(params, free)
+        fp = FreeParams(params, free)
     except ValueError as e:
         raise InputError(f"--free {free}: {e}") from None
+    if "mass_split" in exact_symmetries(fp.names, params, kind):
+        raise InputError(
+            f"--free {free}: only m + m0 and m r_m enter the model, so m, m0 and the platform's centre of mass cannot "
+            "all be free: leave m out of --free (the design holds it at its value in --params)."
+        )
+    return fp
+
+
+def _noise(o: DesignOptions) -> Noise:
+    """The `Noise` of the sensors of `o`."""
+    if o.sensors == "capture":
+        return Noise(o.sigma_pos, o.sigma_rot)
+    sigmas = (o.sigma_gyro, o.sigma_acc, o.sigma_encoder)
+    return Noise(o.sigma_pos, o.sigma_rot, Mounting(o.imu_position, o.imu_rotation), sigmas)
 
 
 #: the fields of `DesignOptions` checked as positive numbers, with their units
 _POSITIVE = (
     ("sigma_pos", "m"),
     ("sigma_rot", "rad"),
+    ("sigma_gyro", "rad/s"),
+    ("sigma_acc", "m/s^2"),
+    ("sigma_encoder", "rad"),
     ("f_max", "Hz"),
     ("ramp", "s"),
     ("model_rate", "Hz"),
@@ -333,6 +371,14 @@ def _checked(params, duration, kind, limits, o: DesignOptions):
         **{n: whole(where, n, getattr(o, n), low) for n, low in _WHOLE},
         **{n: real(where, n, getattr(o, n), strict=True, unit=u) for n, u in _POSITIVE},
     )
+    if o.sensors not in ("capture", "onboard"):
+        raise InputError(f"{where}: sensors must be 'capture' or 'onboard'; got {o.sensors!r}.")
+    for name, n in (("imu_position", 3), ("imu_rotation", 4)):
+        v = np.asarray(getattr(o, name), float).reshape(-1)
+        if v.size != n or not np.all(np.isfinite(v)) or (n == 4 and np.linalg.norm(v) < 1e-6):
+            raise InputError(
+                f"{where}: {name} must be {n} finite numbers (a rotation not 0); got {getattr(o, name)!r}."
+            )
     if 2 * o.ramp > duration:
         raise InputError(
             f"{where}: ramp = {o.ramp:g} s needs a duration of at least {2 * o.ramp:g} s; got {duration:g} s."

@@ -9,7 +9,15 @@ sampled at `rate` [Hz] and whitened as the fit's residuals:
 
     r = ((x - x*) / sigma_pos, (y - y*) / sigma_pos, Log(q*^-1 q) / sigma_rot)
 
-(`*`: the pose at the design's own parameters, so `r = 0` there). `J_t = d r / d(theta, nu_t)`
+(`*`: the pose at the design's own parameters, so `r = 0` there). For onboard sensors
+(`Noise.mounting`, `jsphere.identify.residuals.onboard_model`) the trial starts at rest
+(`State.at_rest` of the parameters) and the outputs are the IMU's and the encoders' readings
+
+    r = ((g - g*) / sigma_gyro, (a - a*) / sigma_acc, (chi - chi(0) - (chi - chi(0))*) / sigma_encoder)
+
+(`g, a = imu_readings(p, mounting, gamma, omega, Omega, K)`), and `nu` are the trial's six IMU
+biases and `N` encoder offsets: they add to the readings, so their columns of `J_t` are
+constant, `1 / sigma` in their channel's rows. `J_t = d r / d(theta, nu_t)`
 (forward mode, `jax.jacfwd`) gives per trial the blocks `H = J_t^T J_t`; the information of
 `theta` with every trial's nuisance values eliminated is the Schur complement
 
@@ -33,6 +41,8 @@ capture rate (`jsphere.design.prediction.fit_information`).
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -45,18 +55,27 @@ from ..identify.free import FreeParams
 from ..model.kinematics import relative_rate_from_wheel_speeds
 from ..model.params import RobotParams, derive
 from ..model.rotations import quat_conj, quat_exp, quat_log, quat_mul, rotmat
+from ..model.sensors import Mounting, imu_readings
 from ..model.state import Flat, State
 from ..solve.field_args import FieldArgs
 from ..solve.fixed_grid import Rollout, integrate
-from ..solve.internal import torque_field, wheel_field
+from ..solve.internal import torque_field, torque_outputs, wheel_field, wheel_outputs
 from .inputs import Programme, Spec, coefficients, programme
+
+#: the onboard channels' noise levels: gyro [rad/s], accelerometer [m/s^2] per axis, and the
+#: rounding of a 4096-count encoder [rad], one count / sqrt(12)
+ONBOARD_SIGMAS = (0.003, 0.03, 2 * math.pi / 4096 / math.sqrt(12))
 
 
 class Noise(eqx.Module):
-    """The capture's noise levels: `sigma_pos` [m] per coordinate, `sigma_rot` [rad] per axis."""
+    """The sensors' noise levels: the capture's `sigma_pos` [m] per coordinate, `sigma_rot` [rad]
+    per axis; with an IMU `mounting` (onboard sensors) the gyro's, the accelerometer's and the
+    encoders' `sigma_onboard` (`ONBOARD_SIGMAS`'s units) instead."""
 
     sigma_pos: float = 1e-3
     sigma_rot: float = float(np.radians(0.5))
+    mounting: Mounting | None = None
+    sigma_onboard: tuple[float, float, float] = ONBOARD_SIGMAS
 
 
 class Grid(eqx.Module):
@@ -108,23 +127,27 @@ def rk4_rollout(p: RobotParams, kind: str, prog: Programme, nu, q_rest, grid: Gr
 
     zs = integrate(lambda t, z: field(t, z, args), z0, ts, substeps=grid.substeps, project=unit_q)
 
-    def outputs(t, z):
-        if kind == "torques":  # (2.4)
-            chi_dot = -(d.Sk @ (z[Flat.omega] - z[Flat.Omega]))
-        else:  # the command itself
-            chi_dot = prog(t)
-        gamma = rotmat(z[Flat.q])[2]
-        c = jnp.clip(jnp.dot(gamma, gm), -1.0, 1.0 - 1e-15)
-        return chi_dot, jnp.arccos(c)
+    def tilt(z):
+        c = jnp.clip(jnp.dot(rotmat(z[Flat.q])[2], gm), -1.0, 1.0 - 1e-15)
+        return jnp.arccos(c)
 
-    chi_dot, tilt = jax.vmap(outputs)(ts, zs)
-    return Rollout(ts=ts, zs=zs, chi_dot=chi_dot, tilt=tilt)
+    outputs = torque_outputs if kind == "torques" else wheel_outputs
+    omega, chi_dot, K = jax.vmap(lambda t, z: outputs(t, z, args))(ts, zs)
+    # the platform's rate of the mode's outputs (wheel speeds: of the command, (2.4)), as `simulate`'s
+    zs = zs.at[:, Flat.omega].set(omega)
+    return Rollout(ts=ts, zs=zs, chi_dot=chi_dot, K=K, tilt=jax.vmap(tilt)(zs))
 
 
-def whitened(ro: Rollout, noise: Noise) -> Float[Array, " R"]:
+def whitened(p: RobotParams, ro: Rollout, noise: Noise) -> Float[Array, " R"]:
     """The whitened residuals of a rollout against itself at the design point (value 0, the fit's
-    Jacobian): positions / `sigma_pos`, `Log(q*^-1 q)` / `sigma_rot`."""
+    Jacobian): positions / `sigma_pos`, `Log(q*^-1 q)` / `sigma_rot`; with onboard sensors the
+    gyro's, the accelerometer's and the encoders' readings (module docstring) / their sigmas."""
     sg = jax.lax.stop_gradient
+    if noise.mounting is not None:
+        R = rotmat(ro.q)
+        gyro, acc = imu_readings(p, noise.mounting, R[:, 2], ro.zs[:, Flat.omega], ro.Omega, ro.K)
+        chi = ro.zs[:, Flat.chi] - ro.zs[:1, Flat.chi]
+        return jnp.concatenate([((y - sg(y)) / s).reshape(-1) for y, s in zip((gyro, acc, chi), noise.sigma_onboard)])
     ex = (ro.x - sg(ro.x)) / noise.sigma_pos
     ey = (ro.y - sg(ro.y)) / noise.sigma_pos
     er = quat_log(quat_mul(quat_conj(sg(ro.q)), ro.q)) / noise.sigma_rot
@@ -161,7 +184,7 @@ class Free:
 class Problem(eqx.Module):
     """What the criterion of a design depends on besides its coefficients: the free parameters
     at the design's values (`theta0`, the map to physical values), the nuisance values at rest,
-    the noise levels and the model grid."""
+    the sensors and their noise levels (`noise`) and the model grid."""
 
     static_free: Free = eqx.field(static=True)
     base: RobotParams
@@ -180,8 +203,12 @@ class Problem(eqx.Module):
         return self.spec.trial_kind
 
     @property
+    def onboard(self) -> bool:
+        return self.noise.mounting is not None
+
+    @property
     def n_nu(self) -> int:
-        return len(nuisance_names(self.kind))
+        return 6 + self.base.n_wheels if self.onboard else len(nuisance_names(self.kind))
 
     def scale(self) -> Float[Array, " P"]:
         """`S`: the scale of each physical value (`|v|`, at least a tenth of its field's size)."""
@@ -192,15 +219,21 @@ class Problem(eqx.Module):
         """One trial's whitened Jacobian `d r / d(theta, nu)` and its rollout at the design point."""
         P = self.free.size
         prog = programme(c, self.spec)
+        dt, n_pose = self.theta0.dtype, len(nuisance_names(self.kind))
 
         def r(w):
             p = self.free.to_params(w[:P], self.base)
-            ro = rk4_rollout(p, self.kind, prog, w[P:], self.q_rest, self.grid)
-            return whitened(ro, self.noise), ro
+            # onboard: from the rest of `p`, the pose nuisance values at 0
+            nu, q0 = (jnp.zeros(n_pose, dt), State.at_rest(p).q) if self.onboard else (w[P:], self.q_rest)
+            ro = rk4_rollout(p, self.kind, prog, nu, q0, self.grid)
+            return whitened(p, ro, self.noise), ro
 
-        w0 = jnp.concatenate([self.theta0, jnp.zeros(self.n_nu, self.theta0.dtype)])
-        J, ro = jax.jacfwd(r, has_aux=True)(w0)
-        return J, ro
+        if not self.onboard:
+            return jax.jacfwd(r, has_aux=True)(jnp.concatenate([self.theta0, jnp.zeros(self.n_nu, dt)]))
+        J, ro = jax.jacfwd(r, has_aux=True)(self.theta0)
+        M, widths = ro.ts.shape[0], (3, 3, self.base.n_wheels)
+        offsets = [jnp.tile(jnp.eye(c, dtype=dt), (M, 1)) / s for c, s in zip(widths, self.noise.sigma_onboard)]
+        return jnp.concatenate([J, jax.scipy.linalg.block_diag(*offsets)], axis=1), ro
 
     def information(self, z: Float[Array, " V"]) -> tuple[Float[Array, "P P"], Rollout]:
         """`S F_v S` (module docstring) of the programmes `z`, and the trials' rollouts."""

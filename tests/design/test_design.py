@@ -209,3 +209,68 @@ def test_options_are_checked_and_moved_keywords_warn(paper):
         design_excitation(paper, "j", 4.0, "K", step=3)
     with pytest.raises(InputError, match=r"options must be a jsphere.DesignOptions"):
         design_excitation(paper, "j", 4.0, "K", options={"steps": 3})
+
+
+@pytest.mark.slow  # compiles the RK4 information and the fit's onboard Jacobian (about 50 s on 2 cores)
+def test_onboard_information_matches_the_fits_onboard_jacobian(paper):
+    """The search model's information of onboard readings (RK4, biases and encoder offsets
+    eliminated) against the fit's own onboard Jacobian (adaptive solver) of noise-free trials
+    at the model's sample times: the same matrix within 0.1 %."""
+    import equinox as eqx
+
+    from jsphere.design.inputs import values_at
+    from jsphere.design.prediction import fit_information
+
+    spec = Spec(kind="K", trials=1, wheels=3, n_freqs=6, duration=1.5, f_max=1.5, ramp=0.5, limit=0.1)
+    grid = Grid(rate=50.0, substeps=2)
+    free = FreeParams(paper, "r_m[2],j,I[2,2]")
+    noise = Noise(mounting=jsphere.Mounting((0.02, -0.01, -0.04), (0.9, 0.1, 0.0, 0.3)))
+    pr = problem(paper, free, spec, noise, grid)
+    z = jnp.asarray(random_start(spec, np.random.default_rng(0), 0.1))
+    Fs = np.asarray(eqx.filter_jit(lambda pr, z: pr.information(z)[0])(pr, z))
+    t = grid.times(spec.duration)
+    values, Fv, _, se, _ = fit_information(
+        paper, free, "torques", t, [values_at(p, t) for p in programmes(z, spec)], noise
+    )
+    S = np.maximum(np.abs(values), 0.1 * free.scales())
+    np.testing.assert_allclose(Fs, S[:, None] * Fv * S[None, :], rtol=1e-3, atol=1e-3 * np.abs(Fs).max())
+    assert np.all(np.isfinite(se)) and np.all(se > 0)
+
+
+@pytest.mark.slow  # compiles the criterion's gradient and the fit's onboard Jacobian (about 2 min on 2 cores)
+def test_cli_onboard_writes_the_tables_and_the_json_and_beats_the_baseline(tmp_path, capsys):
+    out = tmp_path / "design.csv"
+    argv = ["design", "--free", "j,I[2,2]", "--duration", "1.5", "--kind", "K", "--onboard", "--sigma-gyro", "0.005"]
+    argv += ["--imu-position", "0.02", "-0.01", "-0.04", "--restarts", "2", "--steps", "6", "--capture-rate", "20"]
+    assert main([*argv, "--rate", "50", "--out", str(out), "-q"]) == 0
+    t, u, kind, _ = jsphere.read_inputs_csv(out)
+    assert kind == "torques" and u.shape == (76, 3) and np.max(np.abs(u)) < 0.1
+    doc = json.loads((tmp_path / "design.json").read_text())
+    s = doc["settings"]
+    assert s["sensors"] == "onboard" and s["sigma_gyro_rad_s"] == 0.005 and s["sigma_acc_m_s2"] == 0.03
+    assert s["imu_position_m"] == [0.02, -0.01, -0.04] and "sigma_pos_m" not in s
+    assert s["sigma_encoder_rad"] == pytest.approx(2 * math.pi / 4096 / math.sqrt(12))
+    se, base = doc["stderr_predicted"], doc["stderr_predicted_baseline"]
+    assert set(se) == set(base) == {"j", "I[2,2]"} and all(
+        v > 0 and math.isfinite(v) for v in [*se.values(), *base.values()]
+    )
+    gmean = lambda d: math.exp(np.mean(np.log(list(d.values()))))
+    assert gmean(se) <= gmean(base)
+    assert "SE design" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--sigma-pos", "1e-3"], "--sigma-pos is the motion capture's noise; with --onboard give --sigma-gyro"),
+        (["--sigma-rot-deg", "0.5"], "--sigma-rot-deg is the motion capture's noise"),
+        (["--sigma-encoder", "0"], "--sigma-encoder must be a number > 0 (rad)"),
+        (["--free", "m,m0,r_m[2]"], "leave m out of --free"),
+    ],
+)
+def test_cli_onboard_bad_input_is_one_line_and_exit_2(tmp_path, capsys, extra, message):
+    argv = ["design", "--free", "j", "--kind", "K", "--duration", "2", "--onboard", "--out", str(tmp_path / "d.csv")]
+    assert main([*argv, *extra]) == jsphere.ExitCode.BAD_INPUT
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("jsphere design: error:") and message in err and "\n" not in err
+    assert not list(tmp_path.iterdir())
