@@ -111,3 +111,28 @@ def test_a_wrong_mounting_in_a_fit_of_both_kinds_is_put_down_to_the_onboard_sens
     assert res.status_reason.startswith("onboard sensors: ") and "--imu-position" in res.status_reason
     assert res.verdict["parts"]["onboard"]["status"] == "misfit"
     assert set(res.verdict["correlated"]) >= {"imu0", "imu1"}
+
+
+@pytest.mark.slow
+def test_a_killed_fit_of_both_kinds_resumes_to_the_same_result(paper, tmp_path):
+    """The checkpoint holds both parts' simulated poses and readings: a fit killed in its second
+    Levenberg-Marquardt step resumes to the result of a fit never stopped."""
+    controls = jsphere.random_inputs(paper, 1.5, kind="torques", seed=3)
+    trials = [
+        jsphere.synthetic_trial(paper, controls, 1.5, seed=3, name="mocap"),
+        synthetic_onboard_trial(paper, controls, 1.5, mounting=MOUNTING, noise=NOISE, seed=3, name="imu"),
+    ]
+    mount = np.asarray(MOUNTING.position), np.asarray(MOUNTING.rotation)
+    options, ckpt = FitOptions(imu_position=tuple(mount[0]), imu_rotation=tuple(mount[1])), tmp_path / "fit.ckpt.npz"
+
+    def kill(line):
+        if "LM stage 1 it   2" in line:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        fit(trials, paper, "j,I[2,2]", options=options, checkpoint=ckpt, progress=kill)
+    lines = []
+    resumed = fit(trials, paper, "j,I[2,2]", options=options, checkpoint=ckpt, progress=lines.append)
+    assert any("resuming from" in line for line in lines)
+    whole = fit(trials, paper, "j,I[2,2]", options=options, progress=False)
+    assert resumed.values == whole.values and resumed.stderr == whole.stderr
