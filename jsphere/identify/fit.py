@@ -62,7 +62,7 @@ from .checkpoint import (
 )
 from .data import FitData, pack_trials
 from .free import FreeParams, _overlaps, _split_names, apply_fixes
-from .mixed import MixedData, mixed_data, n_nuisance, n_res, stacked, weighted
+from .mixed import MixedData, mixed_data, n_nuisance, n_res, parts_of, stacked, weighted
 from .onboard import CHANNELS, START_SIGMA, UNITS, channel_sigmas, nuisance_start, pack_onboard
 from .options import FIT_SOLVER, FIT_TOLERANCES, FitOptions, fit_options
 from .report import FitResult, fit_result
@@ -172,8 +172,8 @@ def _pack(trials: Sequence, params: RobotParams, o: FitOptions, onboard: bool | 
         return pack_trials(trials, params, max_offset=o.max_offset)
     if onboard == "mixed":
         pose = [t for t in trials if not isinstance(t, OnboardTrial)]
-        both = _pack([t for t in trials if isinstance(t, OnboardTrial)], params, o, True)
-        return mixed_data(pack_trials(pose, params), both)
+        onboard_data = _pack([t for t in trials if isinstance(t, OnboardTrial)], params, o, True)
+        return mixed_data(pack_trials(pose, params), onboard_data)
     if o.fit_time_offset:
         raise InputError(
             "fit: fit_time_offset (--fit-time-offset) is for motion-capture trials alone; an onboard trial's sensors and "
@@ -405,7 +405,7 @@ def _layout(run: _Run, stage: int) -> dict[str, tuple]:
         nu_shape = (G, n_nu)
     else:
         ev = {"res": (S, T, n_res(run.data)), "J": (S, T, n_res(run.data), P + n_nu)}
-        parts = run.data.parts if isinstance(run.data, MixedData) else (run.data,)
+        parts = parts_of(run.data)
         for part, key in zip(parts, ("pose", "onboard")):
             ev |= {f"{key}_{c}": (S, len(part.names), *shape) for c, shape in zip("xyq", part.aux_shapes())}
         nu_shape = (T, n_nu)
@@ -723,7 +723,7 @@ def _single_shooting(run: _Run, st: _State) -> None:
         st.stage_converged = bool(np.asarray(st.lm.converged)[int(np.argmin(cost))])
         st.lm = None
         o = run.options
-        parts = run.data.parts if isinstance(run.data, MixedData) else (run.data,)
+        parts = parts_of(run.data)
         wanted = [o.estimate_sigma_onboard if d.measure != "pose" else o.estimate_sigma for d in parts]
         if st.stage == 1 and any(wanted):
             res_b = np.asarray(out["res"])[int(np.argmin(cost))]
@@ -752,7 +752,7 @@ def _estimate_sigmas(run: _Run, res_b: np.ndarray, sig: np.ndarray) -> np.ndarra
     (the levels given are kept). The unknowns a part's estimate is corrected for: its trials'
     nuisance values and its share of the free parameters (by its measured values)."""
     o, data = run.options, run.data
-    parts = data.parts if isinstance(data, MixedData) else (data,)
+    parts = parts_of(data)
     chunks = data.split(res_b) if isinstance(data, MixedData) else (res_b,)
     out, at = [], 0
     for k, (d, r) in enumerate(zip(parts, chunks)):

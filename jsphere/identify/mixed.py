@@ -137,6 +137,11 @@ def mixed_data(pose: FitData, onboard: OnboardData) -> MixedData:
     return MixedData(pose, onboard)
 
 
+def parts_of(data) -> tuple:
+    """The parts of a fit's data: `MixedData.parts`, or the data itself alone."""
+    return data.parts if isinstance(data, MixedData) else (data,)
+
+
 def n_nuisance(data) -> int:
     """The nuisance values of a trial in the fit's stack (`MixedData.n_nu`)."""
     return data.n_nu if isinstance(data, MixedData) else len(data.nuisance)

@@ -29,7 +29,7 @@ from ..numerics.lm import blocks, marginal_information
 from .data import FitData, nuisance_values, offset_from_nuisance, trial_errors
 from .free import FreeParams
 from .identifiability import identifiability, scaled_information, units_note
-from .mixed import MixedData, weighted
+from .mixed import MixedData, parts_of, weighted
 from .onboard import CHANNELS, UNITS, OnboardData
 from .onboard_verdict import channel_floors, combined_verdict, judge_onboard
 from .options import save_json
@@ -210,7 +210,7 @@ def fit_result(run, st, cost, out, keys: Sequence[str]) -> FitResult:
     them); `keys`: each trial's key in `outliers`."""
     free, data, o = run.free, run.data, run.options
     b, loss, P = int(np.argmin(cost)), o.loss, free.size
-    parts = data.parts if isinstance(data, MixedData) else (data,)
+    parts = parts_of(data)
     n_res = data.n_measured
     res_b, J_b = np.asarray(out["res"])[b], np.asarray(out["J"])[b]
     own = _parts(data, res_b, np.asarray(st.nu[b]), out["pose"])  # each part's residuals, nuisance values, readings
