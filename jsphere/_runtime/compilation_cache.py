@@ -1,8 +1,9 @@
 """A persistent compilation cache for jsphere's programs, shared by the library and the CLI.
 
 `enable_compilation_cache(path)` switches on JAX's persistent compilation cache, so that a new
-process loads the programs an earlier one compiled instead of compiling them again; the command
-line also keeps its solves exported beside them (`jsphere.cli.compilation.fast_start`). JAX
+process loads the programs an earlier one compiled instead of compiling them again, and keeps
+jsphere's eager solves exported beside them, so that it skips tracing them too (the command line
+does the same for its commands, `jsphere.cli.compilation.fast_start`). JAX
 never writes an executable that holds a host callback, and jsphere's programs hold none
 (docs/decisions/jsphere-s-programs-hold-no-host.md): the cache keeps a script's eager solves
 and gradients, and a caller's own `jit` around solves with `throw=False`. With `throw=True`
@@ -30,16 +31,32 @@ def default_cache_dir() -> Path:
     return root / "jsphere" / "jax"
 
 
-def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:
+def enable_compilation_cache(path: str | os.PathLike | None = None, *, export: bool = True) -> Path:
     """Keep compiled programs in `path` (default `default_cache_dir()`) for later processes.
 
-    Switches on JAX's persistent compilation cache (a setting of JAX for the whole process)
-    with no thresholds: every program is written, as the eager operations around a solve
-    compile in milliseconds each, and reloading them is still cheaper than compiling them
-    again. Returns the directory used (created if missing). Inside your own `jax.jit`, pass
-    `throw=False` and read `Trajectory.ok` for the whole program to be kept (module docstring).
-    The cache is trusted code: do not point it at a directory that others can write to.
+    Switches on JAX's persistent compilation cache (`persistent_cache`), and with `export`
+    (default) runs jsphere's eager solves and gradients for the rest of the process through
+    programs exported to `path/aot` (`jsphere._runtime.fast_start.FastStart`, as the command
+    line does), so that a new process skips tracing them as well as compiling them: the
+    README's first gait solve and gradient then take a fraction of a second in a second
+    process. `export=False` keeps JAX's cache alone. Returns the directory used (created if
+    missing). Inside your own `jax.jit`, pass `throw=False` and read `Trajectory.ok` for the
+    whole program to be kept (module docstring). The cache is trusted code: do not point it at
+    a directory that others can write to.
     """
+    from .fast_start import fast_start_in
+    from .quick_compile import run_programs_by
+
+    target = persistent_cache(path)
+    run_programs_by(fast_start_in(target) if export else None)
+    return target
+
+
+def persistent_cache(path: str | os.PathLike | None = None) -> Path:
+    """JAX's persistent compilation cache in `path` (default `default_cache_dir()`, created if
+    missing), with no thresholds: every program is written, as the eager operations around a
+    solve compile in milliseconds each, and reloading them is still cheaper than compiling them
+    again. A setting of JAX for the whole process; returns the directory."""
     import jax
 
     from .private import reset_jax_compilation_cache

@@ -98,6 +98,13 @@ class FastStart:
         return run
 
 
+@functools.cache
+def fast_start_in(folder: Path) -> FastStart:
+    """The one `FastStart` of a cache folder in this process (a process running several
+    commands, or a script and a command, loads each exported program once)."""
+    return FastStart(folder)
+
+
 def _committed(leaves: list) -> list:
     """The arguments as arrays committed to a device. A program's `call` compiles once per
     pattern of committed and uncommitted arguments (an array a program made is committed, one

@@ -92,9 +92,15 @@ def jit_concrete(fn: Callable) -> Callable:
 
 
 #: how the named programs of calls with concrete inputs run in this process (`run_program`):
-#: `[None]`, directly; the command line sets a `jsphere._runtime.fast_start.FastStart` (for
-#: the whole process, every thread)
+#: `[None]`, directly; `jsphere.enable_compilation_cache` (for the rest of the process) and the
+#: command line (for a command) set a `jsphere._runtime.fast_start.FastStart` (every thread)
 _RUNNER: list = [None]
+
+
+def run_programs_by(runner: Callable | None) -> None:
+    """From now on in this process, `run_program(name, fn, rebuild, *args)` is `runner(name, fn,
+    rebuild, *args)` (`None`: `fn(*args)`), outside any `programs_run_by` block."""
+    _RUNNER[0] = runner
 
 
 @contextlib.contextmanager

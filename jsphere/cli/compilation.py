@@ -12,15 +12,11 @@ from typing import Iterator
 
 _ONE_RUN_XLA_FLAG = "--xla_backend_optimization_level=0"
 
-#: one `FastStart` per cache folder, so that a process running several commands (a test suite,
-#: a notebook calling `main`) loads each exported program once
-_FAST_STARTS: dict = {}
-
 
 @contextlib.contextmanager
 def fast_start(cache: bool = True, export: bool = True) -> Iterator:
     """While a command runs, with `cache`: its programs kept for the next run in the library's one
-    cache (`jsphere.enable_compilation_cache`), every one however quick its compilation, and
+    cache (`jsphere._runtime.compilation_cache.persistent_cache`), every one however quick its compilation, and
     with `export` too, its solves' programs run through a `FastStart` of that cache, exported for
     the next process. Yields that `FastStart`, or `None`.
 
@@ -29,8 +25,8 @@ def fast_start(cache: bool = True, export: bool = True) -> Iterator:
     jsphere reports itself) those checks are traced in their `nan` mode unless `EQX_ON_ERROR` is
     set, until the command ends.
     """
-    from .._runtime.compilation_cache import default_cache_dir, enable_compilation_cache
-    from .._runtime.fast_start import FastStart
+    from .._runtime.compilation_cache import default_cache_dir, persistent_cache
+    from .._runtime.fast_start import fast_start_in
     from .._runtime.private import equinox_errors_as, equinox_on_error
     from .._runtime.quick_compile import programs_run_by
 
@@ -38,13 +34,13 @@ def fast_start(cache: bool = True, export: bool = True) -> Iterator:
         yield None
         return
     try:
-        folder = enable_compilation_cache(default_cache_dir())
+        folder = persistent_cache(default_cache_dir())
     except Exception as e:  # a read-only home must not stop the run
         print(f"jsphere: compilation cache disabled ({e})", file=sys.stderr)
         yield None
         return
     quiet = "EQX_ON_ERROR" in os.environ or equinox_on_error() != "raise"
-    runner = _FAST_STARTS.setdefault(folder, FastStart(folder)) if export else None
+    runner = fast_start_in(folder) if export else None
     with contextlib.nullcontext() if quiet else equinox_errors_as("nan"), programs_run_by(runner):
         yield runner
 
