@@ -9,7 +9,7 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from .._runtime.errors import InputError
+from .._runtime.errors import ExitCode, InputError
 from .options import progress
 
 if TYPE_CHECKING:
@@ -63,26 +63,23 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    from .._runtime.errors import ExitCode
     from .._runtime.files import check_output
-    from ..plots.animation.api import SUFFIXES
+    from ..plots.animation.api import check_options
 
-    out = Path(args.out)
-    if out.suffix.lower() not in SUFFIXES:
-        raise InputError(f"--out {out}: an animation ends in .mp4, .gif or .html; got {out.suffix or 'no suffix'!r}.")
+    out = check_options(args.out)[0]  # an animation's suffix, before any file is looked at
+    source = Path(args.input)
     inputs = {
-        "the input": args.input if not Path(args.input).is_dir() else None,
+        "the input": None if source.is_dir() else args.input,
         "the file given": [m for m in args.more if not Path(m).is_dir()],
         "the parameter file (--params)": args.params,
     }
     check_output(out, inputs=inputs, example=str(Path(args.out) / "run.mp4"))
-    folder = Path(args.input)
-    if folder.is_dir() and out.resolve().is_relative_to(folder.resolve()):
+    if source.is_dir() and out.resolve().is_relative_to(source.resolve()):
         raise InputError(
-            f"--out {out}: inside the study folder {folder}, which is input; write the animation elsewhere."
+            f"--out {out}: inside the study folder {source}, which is input; write the animation elsewhere."
         )
     params = None
-    if Path(args.input).suffix.lower() == ".csv" and Path(args.input).is_file():
+    if source.suffix.lower() == ".csv" and source.is_file():
         from .track import plan_robot
 
         params = plan_robot(args.input, args.params)  # a plan's robot, checked against --params
@@ -252,8 +249,7 @@ def _fit_trials(fit_path: Path, record: dict, given) -> list:
     if given:
         trials = read_trials(given)
         refuse_onboard(trials, "jsphere animate")
-        known = {t.name for t in trials}
-        if names and not known & set(names):
+        if names and not {t.name for t in trials} & set(names):
             raise InputError(
                 f"{fit_path}: none of the trial files given is one of the fit's trials ({', '.join(names)})."
             )
@@ -292,9 +288,7 @@ def fit_file_scenes(path: Path, extra=(), *, params: RobotParams | None = None, 
 
 
 def scenes_from_path(path, extra=(), *, params: RobotParams | None = None, trials=None) -> list[Scene]:
-    """The scenes of a file or folder (`animate`). `extra`: a fit's trial files, or a
-    Monte-Carlo folder's study file; `params`: the robot drawn (default: the file's own, else
-    the paper's); `trials`: the names of a fit's trials to show (default all)."""
+    """The scenes of a file or folder: `animate` of a path, `extra` its `captures`."""
     from ..capture.onboard import refuse_onboard
     from ..capture.trial import read_trial
     from ..model.params import RobotParams

@@ -1,13 +1,7 @@
-"""The `jsphere` command line: its parser, the dispatch to one module per command (`reproduce`,
-`montecarlo`, `convert`, `synth`, `fit`, `compare`, `plan`, `track`, `design`, `animate`: each adds
-its sub-parser, with its `EXAMPLES`, and runs it), the options every command has (`-q/--quiet`, `-v/--verbose`: the `jsphere`
-logger's level on stderr), and the mapping of every error to one line on stderr and its exit
-code (`ExitCode`).
-
-A command module imports nothing heavy at its top, and neither does the `jsphere` package:
-`--help`, `--version` and argument errors stay quick, and each command imports what it runs
-when it runs.
-"""
+"""The `jsphere` command line: its parser, the dispatch to one module per command (each adds its
+sub-parser with its `EXAMPLES`, and runs it), the options every command has, and the mapping of
+every error to one line on stderr and its exit code (`ExitCode`). A command module imports
+nothing heavy at its top, so that `--help`, `--version` and argument errors stay quick."""
 
 from __future__ import annotations
 
@@ -18,6 +12,7 @@ import os
 import sys
 import textwrap
 
+from .._runtime.errors import EXIT_CODES_HELP, ExitCode, SolverFailure
 from . import animate, compare, convert, design, fit, montecarlo, plan, reproduce, synth, track
 from .compilation import compile_for_one_run, fast_start
 
@@ -37,8 +32,6 @@ def version() -> str:
 
 def parser() -> argparse.ArgumentParser:
     """The parser of `jsphere` and its commands."""
-    from .._runtime.errors import EXIT_CODES_HELP
-
     top = argparse.ArgumentParser(
         prog="jsphere",
         description=textwrap.fill(
@@ -56,7 +49,7 @@ def parser() -> argparse.ArgumentParser:
         command.add_parser(sub)
         p = sub.choices[command.NAME]
         p.formatter_class = argparse.RawDescriptionHelpFormatter
-        p.description = textwrap.fill(p.description or command.__doc__.strip().splitlines()[0], 88)
+        p.description = textwrap.fill(p.description, 88)
         p.epilog = "examples:\n" + command.EXAMPLES.strip("\n") + "\n\n" + _exit_codes(EXIT_CODES_HELP, command.NAME)
         cache = "do not use the persistent compilation cache" if command is not convert else argparse.SUPPRESS
         p.add_argument("--no-cache", action="store_true", help=cache)
@@ -102,10 +95,8 @@ def main(argv=None) -> int:
 
 
 def _jax_setup() -> None:
-    """Before any JAX array is made: float64 (the paper's numbers are at the 0.1 mm level), and
-    one CPU device per core (`jsphere.use_cpu_cores`), so that `montecarlo`'s batches run on
-    every core; not where the environment sets a count (`JAX_NUM_CPU_DEVICES`, or XLA's
-    `--xla_force_host_platform_device_count`) or JAX has started already (a call from Python)."""
+    """Before any JAX array is made: float64, and one CPU device per core (`use_cpu_cores`) for
+    `montecarlo`'s batches, unless the environment sets a count or JAX runs already."""
     from .._runtime.cores import use_cpu_cores
     from .._runtime.precision import enable_x64
 
@@ -150,8 +141,7 @@ def _messages(args):
         log.propagate = old_propagate
 
 
-#: What a command interrupted by Ctrl-C or SIGTERM has kept (the others write their files only
-#: at the end, each atomically: an interrupted run leaves the previous files as they were).
+#: what a command interrupted by Ctrl-C or SIGTERM has kept (the others write their files at the end)
 _RESUMES = {command.NAME: command.RESUMES for command in COMMANDS if hasattr(command, "RESUMES")}
 
 #: Errors that mean bad input: a file, option or value (the message names it), exit code 2.
@@ -162,8 +152,6 @@ def _run(args) -> int:
     """Run the command; every error becomes one line on stderr and its exit code (`ExitCode`),
     except an internal error (a bug), which keeps its traceback."""
     import traceback
-
-    from .._runtime.errors import ExitCode, SolverFailure
 
     commands = {command.NAME: command.run for command in COMMANDS}
     name = f"jsphere {args.command}"
@@ -196,10 +184,8 @@ def _run(args) -> int:
 
 
 def _interrupts_end_the_command() -> None:
-    """Make SIGTERM (a scheduler's or `kill`'s stop) end a command as Ctrl-C does (the finished
-    work is kept, exit code 130), and deliver again an interruption that Python dropped because
-    it arrived inside a callback (JAX's garbage-collection callback: Python then prints
-    "Exception ignored" and carries on)."""
+    """Make SIGTERM end a command as Ctrl-C does (exit code 130), and deliver again an interruption
+    that Python dropped because it arrived inside a callback (JAX's garbage-collection one)."""
     import signal
     import threading
 
@@ -243,10 +229,8 @@ def _solver_message(e: BaseException) -> str | None:
 
 
 def console() -> int:
-    """The `jsphere` program: `main`, and after an interruption an immediate exit (130), which
-    skips the interpreter's shutdown: with XLA work still in flight that shutdown can crash,
-    and there is nothing left to save (files are written atomically, and the command has
-    already kept what it finished)."""
+    """The `jsphere` program: `main`, and after an interruption an immediate exit (130): with XLA
+    work in flight the interpreter's shutdown can crash, and there is nothing left to save."""
     _interrupts_end_the_command()
     code = main()
     if code == 130:

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from pathlib import Path
+from .._runtime.errors import ExitCode
+from .options import json_result
 
 NAME = "compare"
 EXAMPLES = """
@@ -52,21 +53,12 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    """`jsphere compare`: exit 0 when the model explains the trials (verdict "consistent"), 6 when
-    it does not ("model error", "capture defects"); the scores are written either way."""
-    from .._runtime.errors import ExitCode, InputError
     from .._runtime.files import check_output
     from ..capture.trial import read_trials
     from ..identify.compare import compare
     from ..model.params import RobotParams
 
-    out = Path(args.out)
-    if not out.is_dir() and out.suffix.lower() != ".json":
-        raise InputError(f"--out {out}: the result is JSON; give a path ending in .json.")
-    inputs = {
-        "the trial file": [t for t in args.trials if not Path(t).is_dir()],
-        "the parameter file (--params)": args.params,
-    }
+    out, inputs = json_result(args)
     check_output(out, inputs=inputs, example=str(out / "compare.json"))
     params = RobotParams.load(args.params)
     trials = read_trials(args.trials)

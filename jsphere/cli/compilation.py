@@ -15,16 +15,13 @@ _ONE_RUN_XLA_FLAG = "--xla_backend_optimization_level=0"
 
 @contextlib.contextmanager
 def fast_start(cache: bool = True, export: bool = True) -> Iterator:
-    """While a command runs, with `cache`: its programs kept for the next run in the library's one
-    cache (`jsphere._runtime.compilation_cache.persistent_cache`), every one however quick its compilation, and
-    with `export` too, its solves' programs run through a `FastStart` of that cache, exported for
-    the next process. Yields that `FastStart`, or `None`.
+    """While a command runs, with `cache`: its programs kept for the next run in the persistent
+    cache (`persistent_cache`), and with `export` too, its solves run through a `FastStart` of
+    that cache, exported for the next process. Yields that `FastStart`, or `None`.
 
     JAX does not persist executables that hold host callbacks, as equinox's run-time checks are:
-    for the command (whose inputs are validated before any solve, and whose solver failures
-    jsphere reports itself) those checks are traced in their `nan` mode unless `EQX_ON_ERROR` is
-    set, until the command ends.
-    """
+    for the command (its inputs validated before any solve) those checks are traced in their
+    `nan` mode unless `EQX_ON_ERROR` is set."""
     from .._runtime.compilation_cache import default_cache_dir, persistent_cache
     from .._runtime.fast_start import fast_start_in
     from .._runtime.private import equinox_errors_as, equinox_on_error
@@ -47,15 +44,10 @@ def fast_start(cache: bool = True, export: bool = True) -> Iterator:
 
 def compile_for_one_run() -> bool:
     """Have XLA compile this process's programs quickly rather than make them fast
-    (`--xla_backend_optimization_level=0`, LLVM without its optimisation passes), unless
-    `XLA_FLAGS` already sets the level. Returns whether the flag is in force.
-
-    For `jsphere reproduce`, whose first run is almost all compilation: each of its ~30 solves
-    is a single trajectory of a few milliseconds, so slower programs cost less than the
-    compilation they save. The flag is part of the persistent cache's key (JAX hashes
-    `XLA_FLAGS`), so these executables never serve other commands. It must be set before JAX
-    creates its CPU client; later it changes nothing.
-    """
+    (`--xla_backend_optimization_level=0`) unless `XLA_FLAGS` sets the level; returns whether the
+    flag is in force. For `jsphere reproduce`, whose ~30 solves of a few milliseconds each cost
+    less than their compilation. The flag is part of the persistent cache's key, so these
+    executables serve no other command; set after JAX's CPU client exists, it changes nothing."""
     flags = os.environ.get("XLA_FLAGS", "")
     if "xla_backend_optimization_level" in flags:
         return _ONE_RUN_XLA_FLAG in flags.split()

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+from .._runtime.errors import ExitCode, InputError
 from .options import add_imu_flags, at_least, check_flags, options_of, positive, progress, robot
 
 NAME = "design"
@@ -74,7 +75,6 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    from .._runtime.errors import ExitCode, InputError
     from .._runtime.files import check_output
     from ..design.excitation import DesignOptions, design_excitation
     from ..design.result import json_path, table_paths
@@ -98,9 +98,7 @@ def run(args) -> int:
             "--capture-rate": (positive, "a positive rate [Hz]"),
         },
     )
-    capture = [
-        f for f, v in (("--sigma-pos", args.sigma_pos), ("--sigma-rot-deg", args.sigma_rot_deg)) if v is not None
-    ]
+    capture = [f for f in ("--sigma-pos", "--sigma-rot-deg") if getattr(args, f[2:].replace("-", "_")) is not None]
     if args.onboard and capture:
         raise InputError(
             f"{capture[0]} is the motion capture's noise; with --onboard give --sigma-gyro, --sigma-acc, --sigma-encoder."
@@ -122,8 +120,6 @@ def run(args) -> int:
         sensors="onboard" if args.onboard else "capture",
         sigma_pos=1e-3 if args.sigma_pos is None else args.sigma_pos,
         sigma_rot=math.radians(0.5 if args.sigma_rot_deg is None else args.sigma_rot_deg),
-        imu_position=tuple(args.imu_position),
-        imu_rotation=tuple(args.imu_rotation),
     )
     result = design_excitation(
         robot(args), args.free, args.duration, args.kind, limits=_limits(args), options=options, progress=progress(args)

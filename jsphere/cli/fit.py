@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
-from .options import Assignments, add_imu_flags, options_of, progress, robot
+from .._runtime.errors import ExitCode, InputError
+from .options import Assignments, add_imu_flags, json_result, options_of, progress, robot, warnings_as_lines
 
 NAME = "fit"
 EXAMPLES = """
@@ -102,7 +102,6 @@ def add_parser(sub) -> None:
 
 
 def _add_sensor_flags(ft) -> None:
-    """The flags of onboard-sensor trials: the IMU's mounting and the channels' noise levels."""
     sensors = ft.add_argument_group(
         "onboard-sensor trials", "trials of the robot's own IMU and wheel encoders (docs/onboard.md)"
     )
@@ -121,16 +120,10 @@ def _add_sensor_flags(ft) -> None:
 
 
 def run(args) -> int:
-    """`jsphere fit`. What a user can get wrong is checked before anything is compiled: the
-    output path first, then the options, the parameter file and the trials.
-
-    A finished fit writes its files whatever its verdict; the last line on stdout is the
-    verdict, and the exit code says it: 0 converged, 5 not converged (`ExitCode.NOT_CONVERGED`),
-    6 a misfit (`ExitCode.MISFIT`: residuals far above the capture's noise floor)."""
+    """`jsphere fit`: the output path, options, parameter file and trials checked before anything
+    is compiled; a finished fit writes its files whatever its verdict, the exit code says it."""
     import math
-    import warnings
 
-    from .._runtime.errors import ExitCode, InputError
     from .._runtime.files import check_output, remove_stale_temporaries
     from ..capture.trial import read_trials
     from ..identify.fit import fit
@@ -140,15 +133,9 @@ def run(args) -> int:
     args.trials = [*args.trials, *(getattr(args, "trials_after_options", None) or [])]  # after --fix, --bound
     if not args.trials:
         raise InputError("give at least one trial file or folder (e.g. jsphere fit trials/*.csv --free j).")
-    out = Path(args.out)
+    out, inputs = json_result(args)
     ckpt = out.with_name(out.name + ".ckpt.npz")
     figures = [out.with_name(f"{out.stem}_{k}.png") for k in ("overlay", "residuals")]
-    if not out.is_dir() and out.suffix.lower() != ".json":
-        raise InputError(f"--out {out}: the result is JSON; give a path ending in .json.")
-    inputs = {
-        "the trial file": [t for t in args.trials if not Path(t).is_dir()],
-        "the parameter file (--params)": args.params,
-    }
     check_output(out, writes=[ckpt, *([] if args.no_plots else figures)], inputs=inputs, example=str(out / "fit.json"))
     fix = _parse_assignments(args.fix, "--fix")
     bounds = _parse_bounds(args.bound)
@@ -159,14 +146,11 @@ def run(args) -> int:
         FitOptions,
         args,
         sigma_rot=sigma_rot,
-        imu_position=tuple(args.imu_position),
-        imu_rotation=tuple(args.imu_rotation),
         start_at_rest=not args.estimate_initial_state,
     )
     for f in [(out, ".tmp"), *((g, None) for g in figures)]:  # what a killed writer left
         remove_stale_temporaries(*f)
-    with warnings.catch_warnings():  # one line per warning (a checkpoint that cannot be used)
-        warnings.showwarning = lambda message, *a, **k: print(f"jsphere fit: warning: {message}", file=sys.stderr)
+    with warnings_as_lines(NAME):  # a checkpoint that cannot be used
         res = fit(
             trials,
             params,
@@ -193,8 +177,6 @@ def run(args) -> int:
 
 
 def _parse_assignments(items, option: str) -> dict:
-    from .._runtime.errors import InputError
-
     out = {}
     for item in items or []:
         name, eq, value = item.partition("=")
@@ -208,8 +190,6 @@ def _parse_assignments(items, option: str) -> dict:
 
 def _parse_bounds(items) -> dict:
     import math
-
-    from .._runtime.errors import InputError
 
     out = {}
     for name, value in _parse_assignments(items, "--bound").items():

@@ -1,17 +1,14 @@
-"""`jsphere montecarlo`: a Monte-Carlo study described by a TOML file
-(docs/montecarlo.md), resumable in its output folder. The statistics go to
-`OUT/stats.json` (jsphere's frame, metres), the terminal gets a short summary.
-
-Beyond one process: `--distributed` runs the study on every process of a JAX multi-process job
-(one allocation, e.g. `srun` over several nodes); `--worker` computes the batches no other
-worker holds and exits, and `--gather` joins them (independent jobs, e.g. a SLURM array)."""
+"""`jsphere montecarlo`: a Monte-Carlo study described by a TOML file (docs/montecarlo.md),
+resumable in its output folder, on one process, every process of a JAX multi-process job
+(`--distributed`), or independent jobs (`--worker`, then `--gather`)."""
 
 from __future__ import annotations
 
 import sys
 from pathlib import Path
 
-from .options import progress
+from .._runtime.errors import InputError, SolverFailure
+from .options import progress, warnings_as_lines
 
 NAME = "montecarlo"
 EXAMPLES = """
@@ -83,18 +80,12 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    import warnings
-
     from .._runtime.checks import real
-    from .._runtime.errors import InputError
     from .._runtime.files import check_output
     from ..montecarlo.distributed import start_distributed
     from ..montecarlo.options import Distributed
     from ..montecarlo.run import monte_carlo
     from ..montecarlo.workers import gather, work
-
-    def one_line(message, category, filename, lineno, file=None, line=None):
-        print(f"jsphere montecarlo: warning: {message}", file=sys.stderr, flush=True)
 
     setup = {"--coordinator": args.coordinator, "--num-processes": args.num_processes, "--process-id": args.process_id}
     given = [name for name, v in setup.items() if v is not None]
@@ -107,8 +98,7 @@ def run(args) -> int:
     writes = [out / name for name in ("stats.json", "manifest.json", *(() if args.no_plots else ("stop_points.png",)))]
     check_output(out, folder=True, writes=writes, inputs={"the study file": args.config})
     params, gaits, study = study_of(args)
-    with warnings.catch_warnings():
-        warnings.showwarning = one_line
+    with warnings_as_lines(NAME):
         if args.worker:
             timeout = real(NAME, "--claim-timeout", args.claim_timeout, unit="s")
             report = work(params, gaits, **study, out=out, claim_timeout=timeout, progress=progress(args))
@@ -149,7 +139,6 @@ def _finish(args, params, gaits, study: dict, res, out: Path) -> int:
     its summary; `InputError` or `SolverFailure` when no trial succeeded."""
     import jax
 
-    from .._runtime.errors import InputError, SolverFailure
     from .._runtime.files import atomic_write_json
     from ..gaits.gaits import simulate_gaits
 

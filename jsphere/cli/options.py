@@ -1,14 +1,17 @@
-"""What several commands share: `NAME=VALUE` options (`--fix`, `--bound`) that may be repeated or
-list several assignments without swallowing the positional files after them, the one mapping of
-flags to the library's options objects (`options_of`), the checks of flags' numbers
-(`check_flags`), the robot of `--params`, and the library's `progress` argument from
-`-q/--quiet`."""
+"""What several commands share: repeatable `NAME=VALUE` options (`--fix`, `--bound`), the mapping
+of flags to the library's options objects (`options_of`), the checks of flags' numbers
+(`check_flags`), the robot of `--params`, a result JSON's `--out`, and the library's `progress`
+argument from `-q/--quiet`."""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
+import sys
 from pathlib import Path
+
+from .._runtime.errors import InputError
 
 
 def split_top_level(text: str) -> list[str]:
@@ -64,12 +67,13 @@ def progress(args) -> bool | None:
 
 def options_of(cls, args, **given):
     """The options object `cls` (a dataclass) of a command's flags: each field that has a flag of
-    its name (`--max-iter` -> `max_iter`) set from it, and `given` (fields whose flag needs
-    converting) over them; the other fields keep their defaults."""
+    its name (`--max-iter` -> `max_iter`) set from it (a flag of several values as a tuple), and
+    `given` (fields whose flag needs converting) over them; the other fields keep their defaults."""
     import dataclasses
 
     names = {f.name for f in dataclasses.fields(cls)} - set(given)
-    return cls(**{name: getattr(args, name) for name in names if hasattr(args, name)}, **given)
+    flags = {name: getattr(args, name) for name in names if hasattr(args, name)}
+    return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in flags.items()}, **given)
 
 
 def positive(v) -> bool:
@@ -87,8 +91,6 @@ def at_least(low: int):
 def check_flags(args, rules: dict) -> None:
     """`InputError` `"--FLAG must be WHAT; got VALUE."` for the first flag whose value fails its
     test; `rules` maps each flag to `(test, what)` (a flag not given, None, is not tested)."""
-    from .._runtime.errors import InputError
-
     for flag, (test, what) in rules.items():
         value = getattr(args, flag[2:].replace("-", "_"))
         if value is not None and not test(value):
@@ -100,6 +102,29 @@ def robot(args):
     from ..model.params import RobotParams
 
     return RobotParams.load(args.params) if args.params else RobotParams.paper()
+
+
+def json_result(args) -> tuple[Path, dict]:
+    """The `--out` of a command whose result is JSON (`InputError` for another suffix) and the
+    inputs it must not overwrite: the trial files and `--params`."""
+    out = Path(args.out)
+    if not out.is_dir() and out.suffix.lower() != ".json":
+        raise InputError(f"--out {out}: the result is JSON; give a path ending in .json.")
+    trials = [t for t in args.trials if not Path(t).is_dir()]
+    return out, {"the trial file": trials, "the parameter file (--params)": args.params}
+
+
+@contextlib.contextmanager
+def warnings_as_lines(command: str):
+    """Each warning while the block runs as one line on stderr: `jsphere COMMAND: warning: ...`."""
+    import warnings
+
+    def one_line(message, *args, **kwargs):
+        print(f"jsphere {command}: warning: {message}", file=sys.stderr, flush=True)
+
+    with warnings.catch_warnings():
+        warnings.showwarning = one_line
+        yield
 
 
 def add_imu_flags(group, sigmas=(None, None, None)) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from .._runtime.errors import ExitCode, InputError
 from .options import options_of, progress, robot
 
 NAME = "plan"
@@ -99,7 +100,6 @@ def add_parser(sub) -> None:
 
 
 def run(args) -> int:
-    from .._runtime.errors import ExitCode
     from .._runtime.files import atomic_write_json, check_output
     from ..planning.plan import plan
 
@@ -135,14 +135,12 @@ def run(args) -> int:
         info["robust"] = robust.to_json()
     atomic_write_json(out.with_suffix(".json"), info)
     written = [out, out.with_suffix(".json")]
-    commands_note = ""
+    note = ""
     if args.commands and (pl.feasible or args.write_infeasible):
         written += _write_commands(args, pl, out, info)
-        commands_note = (
-            "" if pl.feasible else f". {args.commands} is written, its first line '# {INFEASIBLE_MARK}: ...'"
-        )
+        note = "" if pl.feasible else f". {args.commands} is written, its first line '# {INFEASIBLE_MARK}: ...'"
     elif args.commands:
-        commands_note = _withhold_commands(Path(args.commands))
+        note = _withhold_commands(Path(args.commands))
     if not args.no_plots:
         from ..plots import plan_figure
 
@@ -152,9 +150,7 @@ def run(args) -> int:
     if not pl.feasible:
         print(
             "jsphere plan: WARNING: the request cannot be met within the limits; "
-            f"{out} and {out.with_suffix('.json')} hold the best plan found: "
-            + "; ".join(pl.shortfall)
-            + commands_note,
+            f"{out} and {out.with_suffix('.json')} hold the best plan found: {'; '.join(pl.shortfall)}{note}",
             file=sys.stderr,
         )
         return ExitCode.INFEASIBLE
@@ -168,8 +164,6 @@ INFEASIBLE_MARK = "NOT FEASIBLE"
 def _check_commands_path(commands, others) -> None:
     """`InputError` for a `--commands` file that is one of the plan's own files, or whose record
     (the `.json` beside it) would be."""
-    from .._runtime.errors import InputError
-
     path = Path(commands)
     if path.suffix.lower() == ".json":
         raise InputError(
@@ -228,7 +222,6 @@ def _withhold_commands(path: Path) -> str:
 def _limits(args):
     """The `Limits` of the flags (of `plan` and `design`; a limit given as 'none', 'off' or 'inf'
     is switched off)."""
-    from .._runtime.errors import InputError
     from ..planning.plan import Limits
 
     limits = {} if getattr(args, "max_time", None) is None else {"max_time": args.max_time}  # (design has none)
@@ -271,7 +264,6 @@ def uncertainty_of(path, params=None):
     """The `Uncertainty` of `--robust FILE` and the nominal robot: a fit result's estimate and
     covariance, or a study's `vary` table, around `params` (`RobotParams`) when given, else
     around the file's own robot (the fit's, or the study's)."""
-    from .._runtime.errors import InputError
     from .._runtime.files import read_mapping
     from ..model.params import RobotParams
     from ..planning.uncertainty import Uncertainty

@@ -36,15 +36,14 @@ def add_parser(sub) -> None:
 
 def _preload_matplotlib():
     """Import matplotlib in a thread while the solves compile (XLA releases the GIL)."""
+    import contextlib
     import threading
 
     def load():
-        try:
-            from ..plots.base import pyplot as _plt
+        with contextlib.suppress(Exception):  # the figures will report it themselves
+            from ..plots.base import pyplot
 
-            _plt()
-        except Exception:  # noqa: BLE001 - the figures will report it themselves
-            pass
+            pyplot()
 
     t = threading.Thread(target=load, name="jsphere-matplotlib", daemon=True)
     t.start()

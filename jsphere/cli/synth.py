@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from .._runtime.errors import InputError
 from .options import at_least, check_flags, nonnegative, positive, robot
 
 NAME = "synth"
@@ -39,11 +40,6 @@ def add_parser(sub) -> None:
         "and 2 marker-swap bursts per trial (5-15 frames, the orientation off by 30-90 deg); the rows spoiled are "
         "printed",
     )
-    _add_onboard_flags(sy)
-
-
-def _add_onboard_flags(sy) -> None:
-    """The flags of onboard-sensor trials (docs/onboard.md)."""
     g = sy.add_argument_group("onboard-sensor trials", "the robot's own IMU and wheel encoders instead of poses")
     g.add_argument(
         "--onboard",
@@ -108,7 +104,6 @@ def _onboard(args, params, out: Path, names: list[str]) -> int:
     """`jsphere synth --onboard`: onboard-sensor trials, each with its own biases."""
     import numpy as np
 
-    from .._runtime.errors import InputError
     from ..capture.onboard import OnboardNoise, synthetic_onboard_trial, write_onboard_trial
     from ..capture.synthetic import random_inputs
     from ..model.sensors import Mounting

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from .._runtime.errors import ExitCode, InputError
+
 NAME = "track"
 EXAMPLES = """
   jsphere track plan.csv --out track.csv
@@ -51,7 +53,6 @@ def add_parser(sub) -> None:
 
 def _weights(args):
     """The `Weights` of the options: a `--weights` file, then the single flags over it."""
-    from .._runtime.errors import InputError
     from .._runtime.files import read_mapping
     from ..planning.tracking import Weights
 
@@ -64,10 +65,7 @@ def _weights(args):
         kw.update(d)
         if "expected" in kw and isinstance(kw["expected"], list):
             kw["expected"] = tuple(kw["expected"])
-    for name in ("q_pos", "q_att", "q_rate", "r"):
-        v = getattr(args, name)
-        if v is not None:
-            kw[name] = v
+    kw.update({k: getattr(args, k) for k in WEIGHT_KEYS[:4] if getattr(args, k) is not None})  # the single flags
     try:
         return Weights(**kw)
     except (TypeError, ValueError) as e:
@@ -75,7 +73,6 @@ def _weights(args):
 
 
 def run(args) -> int:
-    from .._runtime.errors import ExitCode, InputError
     from .._runtime.files import atomic_write_json, check_output
     from ..model.limits import Limits
     from ..planning.tracking import track
@@ -127,7 +124,6 @@ def plan_robot(plan, params_file):
     """The robot for a plan file and a `--params` file (or None): the robot the plan's JSON
     records, checked against `--params` when both are given (`InputError` naming both when they
     differ), else `--params`, else None (the paper's robot)."""
-    from .._runtime.errors import InputError
     from ..model.params import RobotParams
     from ..planning.result import planned_robot, robot_difference
 
