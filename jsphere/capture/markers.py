@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..model.rotations import quat_from_rotmat_np
+from .text import _read_lines
 from .units import EXPORT_UNITS, detect_marker_units, resolve_units
 from .validation import sign_continuous
 
@@ -49,6 +50,13 @@ def check_up_axis(up_axis: str, source: str, quote: str = "") -> None:
         raise ValueError(
             f"{source}: the up axis (--up-axis) must be {quote}y{quote} or {quote}z{quote}; got {up_axis!r}."
         )
+
+
+def open_export(path, up_axis: str, quote: str = "", delimiter: str = ",") -> tuple[str, list[list[str]]]:
+    """`(source, rows)` of a text export (`_read_lines`), its `up_axis` checked (`check_up_axis`)."""
+    path, rows = _read_lines(path, delimiter=delimiter)
+    check_up_axis(up_axis, str(path), quote)
+    return str(path), rows
 
 
 def fixed_markers(

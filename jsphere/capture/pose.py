@@ -1,13 +1,6 @@
-"""Markers -> pose -> trial: rigid-body poses from markers and the `Trial` of a raw export.
-
-Pipeline: a reader (`read_motive_csv`, `read_vicon_csv`, `read_c3d`) parses a raw export into
-`MarkerData` (times, marker trajectories in metres in jsphere's Z-up fixed frame, gaps as NaN),
-`rigid_body_pose` turns the markers of each frame into the platform pose (Kabsch/Umeyama
-without scale, with the reflection fix), and `markers_to_trial` adds the inputs (a separate
-table, `read_inputs_csv`) to make a `Trial`. The body frame's markers (`body_markers`), its
-alignment with the platform (`alignment`) and the shell centre in it (`body_offset`) are
-options of the conversion: `ConvertOptions` gives their conventions.
-"""
+"""Markers -> pose -> trial: `rigid_body_pose` turns each frame's markers (`MarkerData`) into
+the body frame's pose (Kabsch/Umeyama without scale), `markers_to_trial` adds the inputs and
+makes a `Trial`; `ConvertOptions` gives the conventions of the body frame."""
 
 from __future__ import annotations
 
@@ -30,9 +23,6 @@ _KEYWORDS = ("body_markers", "alignment", "body_offset", "max_rms", "time_offset
 _KEYWORDS += ("allow_truncated", "keep_suspect")
 #: smallest second singular value of the centred present markers [m] for a pose (not collinear)
 MIN_SPREAD = 1e-3
-
-
-# --------------------------------------------------------------------------- poses from markers
 
 
 def rigid_body_pose(
@@ -86,36 +76,24 @@ def rigid_body_pose(
     return sign_continuous(q), p, rms
 
 
-# --------------------------------------------------------------------------- markers -> trial
-
-
 def markers_to_trial(
     data: MarkerData, inputs, options: ConvertOptions = ConvertOptions(), *, format: str | None = None, **kwargs
 ) -> Trial:
-    """A `Trial` from raw marker data and an inputs table.
+    """A `Trial` from raw marker data (`data`, from a reader such as `read_motive_csv`) and the
+    `inputs`: an inputs table's path (`read_inputs_csv`) or a tuple `(t, values, kind)`,
+    interpolated linearly to the capture times `t_capture + time_offset`; frames outside the
+    inputs' time range are dropped, with a `CaptureWarning` saying how many.
 
-    **Arguments:**
-    - `data`: from `read_motive_csv`, `read_vicon_csv` or `read_c3d`.
-    - `inputs`: the path of an inputs table (`read_inputs_csv`) or a tuple `(t, values, kind)`.
-      The inputs are interpolated linearly to the capture times; capture frames outside the
-      table's time range are dropped, with a `CaptureWarning` saying how many (the two must
-      share a clock: `t_trial = t_capture + time_offset`).
-    - `options`: a `ConvertOptions`; its fields `body_markers`, `alignment`, `body_offset`,
-      `max_rms`, `keep_suspect`, `time_offset`, `name`, `max_gap_fraction` and
-      `allow_truncated` (for `read_inputs_csv`) apply here. Those fields given as keywords
-      still work, with a `DeprecationWarning`.
-    - `format`: the format of `convert_raw` that `data` came from; it words the advice of the
-      plausibility warnings.
+    `options` (`ConvertOptions`): its fields `body_markers`, `alignment`, `body_offset`,
+    `max_rms`, `keep_suspect`, `time_offset`, `name`, `max_gap_fraction` and `allow_truncated`
+    apply (as keywords they still work, with a `DeprecationWarning`). `format`: the format of
+    `convert_raw` that `data` came from, for the advice of the plausibility warnings.
 
-    If the data carry the exporter's rigid-body pose (`rb_q`), it is used instead of the
-    markers, as the body frame. Where more than half of the frames with a marker fit would be
-    left out (residual above `max_rms`, or suspect), the markers do not move as one rigid body
-    (a subject that is a person, markers of several bodies): an `InputError` saying so.
-
-    Given body markers whose distances from each other disagree with the export's (by more than
-    10%: markers in millimetres, or of another robot) are an `InputError`. The trial is checked
-    for plausibility (`jsphere.capture.trial.implausible`: speeds, turn rates, time units), each
-    finding a `CaptureWarning`.
+    The exporter's rigid-body pose (`data.rb_q`), where there is one, is the body frame's. An
+    `InputError` where more than half of the frames with a marker fit would be left out
+    (`max_rms`, suspect: not one rigid body), or where given body markers lie more than 10%
+    nearer or farther apart than the export's. Each finding of `implausible` is a
+    `CaptureWarning`.
     """
     o = with_keywords(options, kwargs, "markers_to_trial", _KEYWORDS)
     body_offset, time_offset, max_rms = o.body_offset, o.time_offset, o.max_rms

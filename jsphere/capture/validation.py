@@ -9,6 +9,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from .._runtime.errors import InputError
+
 KINDS = ("wheel_speeds", "torques")
 #: column prefix of the inputs for each kind
 INPUT_PREFIX = {"wheel_speeds": "chi_dot_", "torques": "K_"}
@@ -57,9 +59,6 @@ def sign_continuous(q: np.ndarray) -> np.ndarray:
     return q
 
 
-# --------------------------------------------------------------------------- validation
-
-
 def _where(source: str, lines: np.ndarray | None, k: int) -> str:
     """`"file.csv, line 17"` (1-based line of the file) or `"trial 'x', sample 17"` (1-based)."""
     if lines is None:
@@ -67,15 +66,41 @@ def _where(source: str, lines: np.ndarray | None, k: int) -> str:
     return f"{source}, line {int(lines[k])}"
 
 
-def _check_increasing(t: np.ndarray, source: str, lines: np.ndarray | None, hint: str = "") -> None:
-    """Raise a `ValueError` naming the first row whose time stamp is duplicated or goes back."""
+def wheel_columns(kind: str, n: int) -> list[str]:
+    """`["chi_dot_1", ...]` or `["K_1", ...]`: the names of `n` input columns of `kind`."""
+    return [f"{INPUT_PREFIX[kind]}{i + 1}" for i in range(n)]
+
+
+def _check_times(
+    t: np.ndarray,
+    source: str,
+    lines: np.ndarray | None,
+    blank: str = "the time is blank or not finite; every row needs one",
+    hint: str = "",
+) -> None:
+    """Raise an `InputError` naming the first row whose time is blank or not finite (`blank`
+    says so), duplicated or going back (`hint` ends that message)."""
+    bad = np.nonzero(~np.isfinite(t))[0]
+    if bad.size:
+        raise InputError(f"{_where(source, lines, int(bad[0]))}: {blank}.")
     dt = np.diff(t)
     if np.any(dt <= 0):
         k = int(np.nonzero(dt <= 0)[0][0])
         what = "duplicated" if dt[k] == 0 else "not increasing"
-        raise ValueError(
+        raise InputError(
             f"{_where(source, lines, k + 1)}: time stamps are {what}: t = {t[k + 1]:.9g} s follows t = {t[k]:.9g} s "
             f"({_where(source, lines, k).split(', ')[-1]}); times must be strictly increasing{hint}."
+        )
+
+
+def _check_inputs(t: np.ndarray, inputs: np.ndarray, names: Sequence[str], source: str, lines) -> None:
+    """Raise a `ValueError` naming the row and the column of the first blank or non-finite input."""
+    bad = np.argwhere(~np.isfinite(inputs))
+    if bad.size:
+        k, c = int(bad[0, 0]), int(bad[0, 1])
+        raise ValueError(
+            f"{_where(source, lines, k)}: input column {names[c]} is blank or not finite (t = {t[k]:g} s); "
+            "inputs may not have gaps: fill them in (e.g. interpolate the commands) or cut the trial."
         )
 
 
@@ -117,22 +142,9 @@ def _checked(
             raise ValueError(f"{source}: {nm} must have shape {shape} (one row per time); got {arr.shape}.")
     if inputs.ndim != 2 or inputs.shape[0] != M or inputs.shape[1] < 1:
         raise ValueError(f"{source}: inputs must have shape ({M}, N) with N >= 1 wheels; got {inputs.shape}.")
-    names = input_names or [f"{INPUT_PREFIX[kind]}{i + 1}" for i in range(inputs.shape[1])]
-
-    bad_t = np.nonzero(~np.isfinite(t))[0]
-    if bad_t.size:
-        k = int(bad_t[0])
-        raise ValueError(
-            f"{_where(source, lines, k)}: the time t is blank or not finite; every row needs a time (delete the row or fill it in)."
-        )
-    bad_u = np.argwhere(~np.isfinite(inputs))
-    if bad_u.size:
-        k, c = int(bad_u[0, 0]), int(bad_u[0, 1])
-        raise ValueError(
-            f"{_where(source, lines, k)}: input column {names[c]} is blank or not finite (t = {t[k]:g} s); "
-            "inputs may not have gaps: fill them in (e.g. interpolate the commands) or cut the trial."
-        )
-    _check_increasing(t, source, lines, " (remove duplicated frames, sort by time)")
+    blank = "the time t is blank or not finite; every row needs a time (delete the row or fill it in)"
+    _check_times(t, source, lines, blank, " (remove duplicated frames, sort by time)")
+    _check_inputs(t, inputs, input_names or wheel_columns(kind, inputs.shape[1]), source, lines)
 
     gap = ~np.isfinite(x) | ~np.isfinite(y) | ~np.all(np.isfinite(q), axis=1) | ~np.isfinite(1.0 if z is None else z)
     for a in (x, y, q) if z is None else (x, y, q, z):
@@ -165,9 +177,6 @@ def _checked(
                 "check the robot's marker set and its rigid-body definition in the capture software."
             )
     return t, x, y, q, inputs, z
-
-
-# --------------------------------------------------------------------------- plausibility
 
 
 def _tilt_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
