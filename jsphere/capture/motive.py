@@ -9,7 +9,7 @@ import numpy as np
 from .._runtime.errors import InputError
 from .._runtime.files import atomic_write_text
 from ..model.rotations import quat_from_rotmat_np, quat_mul_np, rotmat_np
-from .markers import UP_TO_Z, MarkerData, fixed_markers, fixed_pose, open_export
+from .markers import UP_TO_Z, MarkerData, choose_body, fixed_markers, fixed_pose, open_export
 from .text import _cut_short, _numbers, cells, separator_hint
 from .units import UNIT_SCALE
 from .validation import _check_times
@@ -49,7 +49,7 @@ def read_motive_csv(
         )
     meta, file_units = _line_one(rows, source)
     head = _Header.find(rows, source)
-    body = _rigid_body(head, rigid_body, source)
+    body = choose_body(rigid_body, sorted({head.cell("names", j) for j in head.columns("Rigid Body")}), source)
     mnames, cols, colnames = _marker_columns(head, body)
     _check_has_data(head, body, mnames, source)
     want_rb = use == "rigid_body" or (use == "auto" and len(mnames) < 3)
@@ -179,16 +179,6 @@ class _Header:
     def cell(self, row: str, j: int) -> str:
         r = getattr(self, row)
         return r[j].strip() if j < len(r) else ""
-
-
-def _rigid_body(head: _Header, rigid_body: str | None, source: str) -> str | None:
-    """The rigid body to read: `rigid_body`, or the file's only one (None where it has none)."""
-    bodies = sorted({head.cell("names", j) for j in head.columns("Rigid Body")})
-    if rigid_body is not None and bodies and rigid_body not in bodies:
-        raise InputError(f"{source}: no rigid body named {rigid_body!r}; the file has {bodies}.")
-    if rigid_body is None and len(bodies) > 1:
-        raise InputError(f"{source}: the file has several rigid bodies {bodies}; choose one with --rigid-body NAME.")
-    return rigid_body if rigid_body is not None else (bodies[0] if bodies else None)
 
 
 def _marker_columns(head: _Header, body: str | None) -> tuple[list[str], list[int], list[str]]:

@@ -28,21 +28,15 @@ MIN_SPREAD = 1e-3
 def rigid_body_pose(
     markers: np.ndarray, body_markers: np.ndarray, *, max_rms: float = np.inf
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The rigid motion that best maps `body_markers` onto each frame's markers.
+    """The rigid motion that best maps `body_markers` `(K, 3)` [m] onto each frame's `markers`
+    `(M, K, 3)` [m, NaN where missing]: over the markers present, the `R`, `p` minimising
+    `sum_k |R b_k + p - m_k|^2` (Kabsch/Umeyama without scale: SVD of the cross-covariance, its
+    determinant fixed to +1 so that no reflection is returned).
 
-    For each frame, over the markers present (finite), finds the rotation `R` and translation
-    `p` minimising `sum_k |R b_k + p - m_k|^2` (Kabsch/Umeyama without scale: SVD of the
-    cross-covariance, with the determinant fixed to +1 so that a reflection is never returned).
-
-    **Arguments:**
-    - `markers`: `(M, K, 3)` marker positions [m], NaN where missing.
-    - `body_markers`: `(K, 3)` marker coordinates in the body frame [m].
-    - `max_rms`: frames whose RMS fit residual exceeds this [m] (e.g. a swapped marker) are gaps.
-
-    **Returns:** `(q, p, rms)`: `(M, 4)` quaternions (w, x, y, z) body -> fixed, sign-continuous;
-    `(M, 3)` positions of the body-frame origin; `(M,)` RMS residuals [m]. Frames with fewer
-    than 3 markers, or markers (nearly) collinear (second singular value of the centred body
-    markers below `MIN_SPREAD`), or a residual above `max_rms`, are NaN (gaps).
+    Returns `(q, p, rms)`: `(M, 4)` quaternions (w, x, y, z) body -> fixed, sign-continuous;
+    `(M, 3)` the body-frame origin; `(M,)` RMS residuals [m]. Frames with fewer than 3 markers,
+    markers (nearly) collinear (second singular value of the centred body markers below
+    `MIN_SPREAD`) or a residual above `max_rms` are NaN (gaps).
     """
     m = np.asarray(markers, float)
     b = np.asarray(body_markers, float)
@@ -250,18 +244,13 @@ def suspect_frames(rms: np.ndarray, marker_error: np.ndarray | None = None) -> n
     """Frames whose RMS marker fit residual `rms (M,)` [m] (NaN at gaps) stands out of the take's
     own noise (`suspect_limit`): a marker swapped with another or a ghost marker taken for one.
 
-    The threshold comes from the take's own residuals, by statistics that the suspect frames
-    themselves hardly move (`suspect_limit`). White marker noise gives squared residuals of chi^2 with
-    `3 K - 6` degrees of freedom (`K` markers): their 99.99 % point is 2.3x the median residual
-    for 4 markers, 3x for 3, so a clean take has none, and its threshold is `SUSPECT` times the
-    median. A real take's noise varies from frame to frame (markers near the edge of the volume,
-    seen by fewer cameras): residuals spread log-normally by `s` = 1 keep 0.3 % of the frames
-    above the threshold (19x the median), by `s` = 1.5 0.2 % (90x); such a take cannot tell a
-    ghost marker from its own noise unless the ghost stands that far out. Where the export reports its
-    own marker error per frame (`marker_error (M,)` [m], NaN where not reported), a frame whose
-    residual is within `SUSPECT_ERROR` times it is not suspect: the exporter saw the markers as
-    far apart on that frame, so they are noisy, not swapped (an RMS over `K` markers is at most
-    `sqrt(K)` times their mean distance, twice for 4)."""
+    White marker noise gives squared residuals of chi^2 with `3 K - 6` degrees of freedom (`K`
+    markers): their 99.99 % point is 2.3x the median residual for 4 markers, 3x for 3, below
+    `SUSPECT`. A take whose noise varies from frame to frame spreads log-normally: by `s` = 1,
+    0.3 % of its frames lie above the threshold (19x the median), by `s` = 1.5, 0.2 % (90x). A
+    frame whose residual is within `SUSPECT_ERROR` times the export's own marker error
+    (`marker_error (M,)` [m], NaN where not reported) is noisy, not swapped (an RMS over `K`
+    markers is at most `sqrt(K)` times their mean distance)."""
     r = np.asarray(rms, float)
     ok = np.isfinite(r)
     if not ok.any():

@@ -9,7 +9,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .._runtime.errors import InputError
-from .markers import MarkerData, fixed_markers, fixed_pose, open_export
+from .markers import MarkerData, choose_body, fixed_markers, fixed_pose, open_export
 from .text import _cut_short, _numbers
 from .units import EXPORT_UNITS, resolve_units
 from .validation import _check_times
@@ -190,12 +190,9 @@ def _read_6d(rows, k, columns, meta, rigid_body, units, up_axis, source) -> Mark
     groups = _body_columns(columns, bodies or ["body"], source, k)
     if columns is not None and len(groups) < len(bodies) and not any(" " in c for c in columns):
         groups = _repeated_groups(groups, bodies, rows[k])
-    names = sorted(groups)
-    if rigid_body is None and len(names) > 1:
-        raise InputError(f"{source}: the file holds several 6DOF bodies {names}; choose one with --rigid-body NAME.")
-    body = rigid_body if rigid_body is not None else (names[0] if names else None)
+    body = choose_body(rigid_body, sorted(groups), source, "6DOF body")
     if body not in groups:
-        raise InputError(f"{source}: no 6DOF body named {body!r}; the file has {names}.")
+        raise InputError(f"{source}: no 6DOF body named {body!r}; the file has no 6DOF body columns.")
     g = groups[body]
     rot = [f"Rot[{i}]" for i in range(9)]
     euler = ("Roll", "Pitch", "Yaw")

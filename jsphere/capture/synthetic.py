@@ -122,20 +122,12 @@ def synthetic_trial(
     rtol: float = 1e-10,
     atol: float = 1e-12,
 ) -> Trial:
-    """A capture-like trial from a simulation.
-
-    Simulates `controls` from `state0` (default `State.at_rest(params)`) with `jsphere.simulate`
-    (tolerances `rtol, atol`; errors raised), samples at `rate` [Hz] from 0 to `t1` [s], and
-    records:
-    - positions `x, y` plus Gaussian noise of `pos_sd` [m] per coordinate;
-    - the platform quaternion times a random small rotation (platform frame) with a rotation
-      vector of `rot_sd_deg` [deg] standard deviation per axis;
-    - gaps (NaN poses) in bursts of 1-5 frames covering about a fraction `dropout` of the
-      frames (the first frame is kept);
-    - the *commanded* inputs: `controls(t)` at the sample times (for wheel speeds the commanded
-      `chi_dot`, for torques `K`), without noise.
-
-    Deterministic for a given `seed` (`numpy.random.default_rng`).
+    """A capture-like trial from a simulation: `controls` simulated from `state0` (default at
+    rest; tolerances `rtol, atol`, errors raised) and sampled at `rate` [Hz] from 0 to `t1` [s],
+    with Gaussian noise of `pos_sd` [m] on `x, y`, the platform quaternion turned by a random
+    small rotation (rotation vector of `rot_sd_deg` [deg] per axis, platform frame), gaps in
+    bursts of 1-5 frames covering about a fraction `dropout` (the first frame kept), and the
+    commanded inputs `controls(t)`, without noise. Deterministic for a given `seed`.
     """
     if not rate > 0 or not t1 > 0:
         raise ValueError(f"synthetic_trial: rate and t1 must be positive; got rate={rate}, t1={t1}.")

@@ -18,14 +18,10 @@ from .validation import INPUT_PREFIX, warn
 
 
 def read_text(path) -> str:
-    """The text of a CSV file, for the readers of trials, inputs tables, body markers and raw
-    exports.
-
-    UTF-8 is read with or without a byte-order mark (spreadsheets save "CSV UTF-8" with one),
-    and UTF-16 with its byte-order mark (a spreadsheet's "Unicode text"). Any other encoding is
-    an `InputError` naming the file, the line and the byte (Latin-1 / Windows-1252 text cannot
-    be told from other code pages, so it is not guessed), and so is a binary file (a NUL byte:
-    a C3D or a spreadsheet's own format given as CSV).
+    """The text of a CSV file: UTF-8 with or without a byte-order mark (a spreadsheet's "CSV
+    UTF-8"), or UTF-16 with one. Another encoding (Latin-1 cannot be told from other code pages,
+    so it is not guessed) or a binary file (a NUL byte: a C3D or a spreadsheet's own format) is
+    an `InputError` naming the file, the line and the byte.
     """
     path = Path(path)
     if not path.exists():
@@ -59,14 +55,13 @@ def read_text(path) -> str:
         ) from None
 
 
-def cell(v: float, spec: str) -> str:
-    """A number as a written cell: blank where it is not finite (a gap), never `-0`."""
-    return "" if not np.isfinite(v) else format(v + 0.0, spec)
-
-
 def cells(data: np.ndarray, formats: Sequence[str]) -> list[str]:
-    """The rows of `data` as written lines: each column in its format of `formats` (`cell`)."""
-    return [",".join(cell(v, f) for v, f in zip(row, formats)) for row in np.asarray(data, float)]
+    """The rows of `data` as written lines, each column in its format of `formats`: blank where
+    a value is not finite (a gap), never `-0`."""
+    return [
+        ",".join("" if not np.isfinite(v) else format(v + 0.0, f) for v, f in zip(row, formats))
+        for row in np.asarray(data, float)
+    ]
 
 
 def separator_hint(header: Sequence[str]) -> str:

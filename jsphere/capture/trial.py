@@ -43,10 +43,10 @@ class Trial(eqx.Module):
     - `source`: the file the trial was read from (`read_trial`), or None (static): the fit names
       a trial's frames set aside by its file name (`FitResult.outliers`).
 
-    A frame is a gap if any of its pose values is missing; then all its pose values are NaN.
-    Construction validates (strictly increasing finite times, finite inputs, unit quaternions:
-    a norm off by more than 1e-3 is an error, smaller deviations are normalised) but does not
-    require a minimum length; the file readers do (`MIN_VALID_FRAMES`, `MIN_DURATION`).
+    A frame missing any pose value is a gap: all its pose values are NaN. Construction
+    validates (strictly increasing finite times, finite inputs, unit quaternions: a norm off by
+    more than 1e-3 is an error, smaller deviations are normalised) but does not require a
+    minimum length; the file readers do (`MIN_VALID_FRAMES`, `MIN_DURATION`).
     """
 
     t: np.ndarray

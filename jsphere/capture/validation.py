@@ -227,15 +227,11 @@ def _lean_fit(t, x, y, q, valid) -> float:
 
 def implausible(t, x, y, q, z=None, *, from_markers: bool = False) -> list[tuple[str, str]]:
     """What looks physically wrong in a trial's arrays (gap frames NaN), as `(kind, detail)`
-    pairs; `kind` is `"step"`, `"speed"`, `"rate"`, `"height"`, `"lying"` or `"xyzw"` (the
-    table "Plausibility warnings" of `docs/capture.md` gives each one's test and threshold:
-    `MAX_PLAUSIBLE_STEP`, `MAX_PLAUSIBLE_SPEED` over windows of 0.1 s and `MAX_PLAUSIBLE_RATE`
-    over 0.02 s, 95th percentiles, so that one swapped marker does not count). Used by
-    `warn_implausible`. `from_markers`: the poses were computed from markers (`convert_raw`),
-    so their quaternions cannot be in the wrong order (no `"xyzw"`), but the up axis can be
-    wrong (`"lying"`: tilted beyond 80 deg; random inputs tilt the paper's robot up to 66 deg).
-    Quaternions read in the wrong order (`_quaternion_order`) tilt by the platform's heading
-    instead, and their lean no longer follows the ball's acceleration (`_lean_fit`).
+    pairs, `kind` one of `"step"`, `"speed"`, `"rate"`, `"height"`, `"lying"`, `"xyzw"` (tests
+    and thresholds: `docs/capture.md`, "Plausibility warnings"; 95th percentiles, so that one
+    swapped marker does not count). `from_markers`: poses computed from markers, whose
+    quaternions cannot be out of order (no `"xyzw"`) but whose up axis can be wrong (`"lying"`:
+    tilted beyond 80 deg; random inputs tilt the paper's robot up to 66 deg).
     """
     t, x, y, q = (np.asarray(a, float) for a in (t, x, y, q))
     out = []
@@ -306,9 +302,8 @@ def _quaternion_order(t, x, y, q, v, step: float, tilt: float) -> list[tuple[str
     if step < 0.05 and t[-1] - t[0] >= 1.0:  # enough frames over enough time to see accelerations
         fit = _lean_fit(t, x, y, q, v)
         fit_swapped = _lean_fit(t, x, y, q[:, [3, 0, 1, 2]], v)
-    half_turn = abs(qv[0, 3]) > math.cos(
-        math.radians(5.0)
-    )  # the first pose: a half turn about Z, or x, y, z, w of q = 1
+    # the first pose: a half turn about Z, or x, y, z, w of q = 1
+    half_turn = abs(qv[0, 3]) > math.cos(math.radians(5.0))
     if fit_swapped >= 0.5 and fit <= fit_swapped - 0.3:
         why = (
             f"read as x, y, z, w the platform leans with the ball's acceleration (R^2 {fit_swapped:.2f}); "
