@@ -11,7 +11,7 @@ import numpy as np
 
 from .._runtime.errors import InputError
 from .markers import MarkerData, check_up_axis, fixed_markers
-from .validation import warn
+from .text import cut_short
 
 #: C3D processor types (byte 4 of the parameter section): 84 Intel, 85 DEC (both little-endian
 #: integers), 86 MIPS/SGI (big-endian)
@@ -19,20 +19,14 @@ _C3D_PROCESSORS = {84: "<", 85: "<", 86: ">"}
 
 
 def c3d_layout(path) -> dict:
-    """Check the structure of a C3D file before `ezc3d` reads it, and return what its header
-    declares: `{"frames": declared frame count or None (a header that saturates at 65535),
-    "frames_in_file": whole frames the file holds, "points": ..., "data_start": byte offset,
-    "used": {"GROUP:NAME": value} of the section's scalar integer parameters (`ANALOG:USED`,
-    `FORCE_PLATFORM:USED`, ...)}`.
-
-    ezc3d reads a truncated or corrupt file without a word (it shortens the frame count to what
-    it finds, even in `POINT:FRAMES`), raises assorted errors, and on some corrupt parameter
-    sections crashes the process or never returns. So the header (512 bytes: key byte 0x50,
-    the parameter block, points, analog samples, first and last frame, scale, data start) and
-    every record of the parameter section (names, types, dimensions, offsets inside the
-    section) are checked here; any problem is an `InputError` naming the file. Names are
-    printable ASCII and may hold spaces and lower case, as writers use them (Qualisys Track
-    Manager writes `PROCESSING:Uncropped Measurement Length`).
+    """Check the structure of a C3D file before `ezc3d` reads it (ezc3d reads a truncated or
+    corrupt file without a word, and on some corrupt parameter sections crashes or hangs): the
+    512-byte header (key byte 0x50, parameter block, points, analog samples, first and last
+    frame, scale, data start) and every record of the parameter section (names: printable ASCII,
+    spaces allowed; types, dimensions, offsets inside the section). Any problem is an
+    `InputError` naming the file. Returns `{"frames": the declared frame count or None (a header
+    saturated at 65535), "frames_in_file", "points", "data_start": byte offset, "used":
+    {"GROUP:NAME": value} of the scalar integer parameters (`ANALOG:USED`, ...)}`.
     """
     path = Path(path)
     source = str(path)
@@ -150,15 +144,11 @@ def _other_data(layout: dict) -> str:
 
 
 def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: bool = False) -> MarkerData:
-    """Read marker trajectories from a C3D file through `ezc3d` (`pip install -e ".[c3d]"` in the jsphere source folder).
-
-    Uses `POINT:LABELS`, `POINT:RATE`, `POINT:UNITS` and `data.points` `(4, K, M)`; a point whose
-    residual (`data.meta_points.residuals`) is negative is a gap. Times are frame / rate from 0.
-
-    The file's structure is checked first (`c3d_layout`): an empty, random or corrupt file is
-    an `InputError` naming it; so is a file with no points (force plates or other analog data
-    only), saying what it holds. `allow_truncated`: as in `ConvertOptions` (fewer frames than
-    the header declares).
+    """Read marker trajectories from a C3D file through `ezc3d` (`pip install -e ".[c3d]"` in the
+    jsphere source folder): `POINT:LABELS`, `POINT:RATE`, `POINT:UNITS` and `data.points` `(4, K,
+    M)`, a point whose residual is negative a gap; times are frame / rate from 0. The structure
+    is checked first (`c3d_layout`); a file with no points is an `InputError` saying what it
+    holds. `allow_truncated`: as in `ConvertOptions` (fewer frames than the header declares).
     """
     path = Path(path)
     if not path.exists():
@@ -174,12 +164,7 @@ def read_c3d(path, *, units: str = "auto", up_axis: str = "z", allow_truncated: 
     declared, present = layout["frames"], layout["frames_in_file"]
     if declared is not None and present < declared:
         what = f"the header declares {declared} frames but the file holds {present}"
-        if not allow_truncated or present == 0:
-            raise InputError(
-                f"{source}: the file is cut short: {what} (the copy or the export broke off). Export or copy it again"
-                + (", or pass --allow-truncated to use the frames present." if present else ".")
-            )
-        warn(f"{source}: the file is cut short: {what}; using the {present} frames present.", stacklevel=2)
+        cut_short(source, what, present, "frames present", allow_truncated)
     try:  # after the checks of the file's structure, which need no ezc3d
         import ezc3d
     except ImportError:

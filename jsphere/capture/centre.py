@@ -1,15 +1,11 @@
 """The shell centre's height in a converted capture (`centre_height`, `check_centre_height`).
 
-A shell rolling on a level floor keeps its centre at its radius `R0` above the floor. A
-converted capture whose "centre" sits higher or lower, or rises and falls as the robot rolls,
-tracks another point: the markers' centroid (no `--body-markers`/`--body-offset`), a rigid
-body's pivot point, or a pose topic's frame. A fit of such a trial blames the capture, so
-`jsphere convert --params` checks the height and names the fix.
-
-Heights are measured from height 0 of the capture's fixed frame: the floor, where a
-motion-capture system's ground plane (OptiTrack's calibration square, Vicon's and Qualisys' L
-frame) is set, and where a ROS pose topic's world frame has its origin when it is that system's.
-A floor elsewhere shifts the median height but not its variation, which is checked apart.
+A shell rolling on a level floor keeps its centre at its radius `R0` above the floor; a
+converted "centre" higher or lower, or rising and falling as the robot rolls, is another point
+(the markers' centroid, a rigid body's pivot point, a pose topic's frame), which a fit would
+blame on the model. Heights count from height 0 of the capture's fixed frame: the floor, where
+the ground plane is set (OptiTrack's calibration square, Vicon's and Qualisys' L frame); a floor
+elsewhere shifts the median height but not its variation, which is checked apart.
 """
 
 from __future__ import annotations
@@ -70,13 +66,11 @@ def check_centre_height(
     trial: Trial, R0: float, *, source: str, fix: str, example: Callable[[float], str] | None = None, floor: str = ""
 ) -> list[str]:
     """Compare the height of `trial`'s shell centre with the shell radius `R0` [m]: a
-    `CaptureWarning` where its median differs from `R0` by more than `CENTRE_HEIGHT_TOL`, and
-    one where it varies by more than `CENTRE_HEIGHT_SPREAD` (`centre_height`), each naming
-    `source`, the height and `fix` (what to do, in the options of the format at hand);
-    `example(dz)`, given, completes the first with the options that raise the centre by `dz` [m]
-    (`R0` minus the median); `floor` says in the first where the format's height 0 is. Nothing
-    where the trial has no heights, or where its heights already say that the up axis is wrong
-    (`implausible`: the `"height"` and `"lying"` findings). Returns the messages."""
+    `CaptureWarning` naming `source`, the height and `fix` (what to do) where its median is more
+    than `CENTRE_HEIGHT_TOL` from `R0` (`example(dz)` completes it with the options that raise
+    the centre by `dz` [m]; `floor` says where height 0 is), and one where it varies by more
+    than `CENTRE_HEIGHT_SPREAD`. Nothing where the heights already say that the up axis is wrong
+    (`implausible`'s `"height"` and `"lying"`). Returns the messages."""
     h = centre_height(trial)
     if h is None:
         return []

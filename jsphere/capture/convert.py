@@ -27,26 +27,15 @@ def convert_raw(path, inputs, *, format: str, options: ConvertOptions = ConvertO
     and make a `Trial` with the inputs `inputs` (`markers_to_trial`): an inputs table, a tuple
     `(t, values, kind)`, a ROS bag read with `options.inputs_topic`, or None for the inputs of
     the bag `path` itself. `options` (`ConvertOptions`) says how; its fields given as keywords
-    (`convert_raw(path, inputs, format="motive", units="mm")`) still work, with a
-    `DeprecationWarning`.
+    still work, with a `DeprecationWarning`.
 
-    **ROS bags.** `format="rosbag"` reads the poses on `options.pose_topic` of the bag `path`
-    (`read_rosbag_poses`). With `inputs_topic`, the inputs come from that JointState topic
-    (`read_rosbag_inputs`) of the bag `inputs`, or of `path` itself when `inputs` is None. Times
-    from two bags share the bag clock and start at the earlier first message; a bag beside
-    another file starts at its own first message (align the clocks with `time_offset`).
+    A ROS bag's poses are those on `options.pose_topic` (`read_rosbag_poses`). Times from two
+    bags share the bag clock and start at the earlier first message; a bag beside another file
+    starts at its own first message (align the clocks with `time_offset`).
 
-    A file cut short is an `InputError` naming both counts (`allow_truncated`). Implausible
-    speeds, turn rates or time units in the result are `CaptureWarning`s naming the likely
-    cause. Frames of a suspect marker fit (a swapped or ghost marker) are gaps, with a warning
-    saying how many, unless `keep_suspect` (`markers_to_trial`).
-
-    **The shell centre.** With `shell_radius` (the robot's `R0` [m]), the converted centre's
-    height is compared with it (`check_centre_height`): a `CaptureWarning` where its median is
-    more than 3 mm from `R0`, or where it varies by more than 5 mm, naming the options of
-    `format` that put the centre where it belongs (`body_markers`/`body_offset` for markers,
-    `body_offset` or the rigid body's pivot point for an exporter's pose, the pose topic's frame
-    for a ROS bag)."""
+    With `shell_radius` (the robot's `R0` [m]), the converted centre's height is checked
+    (`check_centre_height`): a `CaptureWarning` naming the options of `format` that put the
+    centre where it belongs."""
     o = with_keywords(options, kwargs, "convert_raw", _KEYWORDS)
     if format not in RAW_FORMATS:
         raise ValueError(f"convert_raw: format must be one of {RAW_FORMATS}; got {format!r}.")

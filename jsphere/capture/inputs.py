@@ -6,19 +6,8 @@ import numpy as np
 
 from .._runtime.errors import InputError
 from .._runtime.files import atomic_write_text
-from .text import (
-    _check_times,
-    _cut_short,
-    _data_end,
-    _input_columns,
-    _numbers,
-    _read_lines,
-    cells,
-    check_unique_columns,
-    comments,
-    separator_hint,
-)
-from .validation import INPUT_PREFIX, KINDS
+from .text import _cut_short, _input_columns, _numbers, cells, check_unique_columns, headed_rows, separator_hint
+from .validation import KINDS, _check_inputs, _check_times, wheel_columns
 
 
 def read_inputs_csv(
@@ -33,28 +22,20 @@ def read_inputs_csv(
     last row with fewer cells than the header (a file cut off mid-row) is an `InputError` naming
     both counts; with `allow_truncated=True` it is a `CaptureWarning` and the row is dropped."""
     want = input_kind(kind)
-    path, rows = _read_lines(path)
-    source = str(path)
-    _, k = comments(rows)
-    if k == len(rows):
-        raise ValueError(f"{source}: no header line; the inputs table needs columns t and chi_dot_1..N or K_1..N.")
-    header = [h.strip() for h in rows[k]]
+    needs = "the inputs table needs columns t and chi_dot_1..N or K_1..N"
+    source, _, rows, k = headed_rows(path, needs, "capture file")
+    header, at = [h.strip() for h in rows[k]], f"{source}, line {k + 1}"
     if "t" not in header:
-        raise ValueError(f"{source}, line {k + 1}: missing required column t (time [s]){separator_hint(rows[k])}.")
-    kind, in_cols = _input_columns(header, f"{source}, line {k + 1}", want, _BOTH)
+        raise ValueError(f"{at}: missing required column t (time [s]){separator_hint(rows[k])}.")
+    kind, in_cols = _input_columns(header, at, want, _BOTH)
     names = [header[j] for j in in_cols]
-    check_unique_columns(header, f"{source}, line {k + 1}", ["t", *names])
-    end = _cut_short(rows, k + 1, _data_end(rows, k + 1), len(header), source, allow_truncated, noun="rows")
+    check_unique_columns(header, at, ["t", *names])
+    end = _cut_short(rows, k + 1, None, len(header), source, allow_truncated, noun="rows")
     data, lines = _numbers(rows[:end], k + 1, [header.index("t")] + in_cols, source, ["t"] + names)
     if data.shape[0] < 2:
         raise ValueError(f"{source}: the inputs table needs at least 2 rows.")
-    _check_times(data[:, 0], lines, source)
-    bad = np.argwhere(~np.isfinite(data[:, 1:]))
-    if bad.size:
-        i, c = int(bad[0, 0]), int(bad[0, 1])
-        raise ValueError(
-            f"{source}, line {lines[i]}: input column {names[c]} is blank or not finite; inputs may not have gaps."
-        )
+    _check_times(data[:, 0], source, lines)
+    _check_inputs(data[:, 0], data[:, 1:], names, source, lines)
     return data[:, 0], data[:, 1:], kind, names
 
 
@@ -79,7 +60,7 @@ def write_inputs_csv(path, t: np.ndarray, values: np.ndarray, kind: str) -> None
     if kind not in KINDS:
         raise ValueError(f"write_inputs_csv: kind must be one of {KINDS}; got {kind!r}.")
     values = np.asarray(values, float).reshape(len(t), -1)
-    cols = ["t"] + [f"{INPUT_PREFIX[kind]}{i + 1}" for i in range(values.shape[1])]
+    cols = ["t", *wheel_columns(kind, values.shape[1])]
     lines = cells(np.column_stack([t, values]), [".6f"] + [".10g"] * values.shape[1])
     atomic_write_text(path, "\n".join([",".join(cols), *lines]) + "\n")
 

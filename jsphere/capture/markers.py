@@ -9,7 +9,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._runtime.errors import InputError
 from ..model.rotations import quat_from_rotmat_np
+from .text import _read_lines
 from .units import EXPORT_UNITS, detect_marker_units, resolve_units
 from .validation import sign_continuous
 
@@ -49,6 +51,24 @@ def check_up_axis(up_axis: str, source: str, quote: str = "") -> None:
         raise ValueError(
             f"{source}: the up axis (--up-axis) must be {quote}y{quote} or {quote}z{quote}; got {up_axis!r}."
         )
+
+
+def choose_body(name: str | None, bodies: list[str], source: str, what: str = "rigid body") -> str | None:
+    """The body to read: `name`, else the only one of `bodies` (None where there is none). A
+    `name` not among `bodies`, or several bodies and no `name`, is an `InputError` listing them."""
+    if name is not None and bodies and name not in bodies:
+        raise InputError(f"{source}: no {what} named {name!r}; the file has {bodies}.")
+    if name is None and len(bodies) > 1:
+        plural = what.removesuffix("body") + "bodies"
+        raise InputError(f"{source}: the file has several {plural} {bodies}; choose one with --rigid-body NAME.")
+    return name if name is not None else (bodies[0] if bodies else None)
+
+
+def open_export(path, up_axis: str, quote: str = "", delimiter: str = ",") -> tuple[str, list[list[str]]]:
+    """`(source, rows)` of a text export (`_read_lines`), its `up_axis` checked (`check_up_axis`)."""
+    path, rows = _read_lines(path, delimiter=delimiter)
+    check_up_axis(up_axis, str(path), quote)
+    return str(path), rows
 
 
 def fixed_markers(

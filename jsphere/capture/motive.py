@@ -9,9 +9,10 @@ import numpy as np
 from .._runtime.errors import InputError
 from .._runtime.files import atomic_write_text
 from ..model.rotations import quat_from_rotmat_np, quat_mul_np, rotmat_np
-from .markers import UP_TO_Z, MarkerData, check_up_axis, fixed_markers, fixed_pose
-from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, cells, separator_hint
+from .markers import UP_TO_Z, MarkerData, choose_body, fixed_markers, fixed_pose, open_export
+from .text import _cut_short, _numbers, cells, separator_hint
 from .units import UNIT_SCALE
+from .validation import _check_times
 
 
 def read_motive_csv(
@@ -23,40 +24,32 @@ def read_motive_csv(
     up_axis: str = "y",
     allow_truncated: bool = False,
 ) -> MarkerData:
-    """Read an OptiTrack Motive CSV export (Motive 2 and 3: CSV format version 1.21 and later).
+    """Read an OptiTrack Motive CSV export (Motive 2 and 3: CSV format 1.21 and later; layout:
+    `docs/capture.md`, after https://docs.optitrack.com/motive/data-export/data-export-csv).
+    Older layouts (Motive 1.x) are an `InputError` naming the version.
 
-    Layout: `docs/capture.md` ("Layouts in detail"), after OptiTrack's
-    https://docs.optitrack.com/motive/data-export/data-export-csv; older layouts (format 1.2
-    and before, Motive 1.x) are an `InputError` naming the version. Rigid-body rotations are
-    quaternions (X, Y, Z, W); an Euler `Rotation Type` is read only where the rigid body's own
-    pose is not needed. The markers read are the labelled `Marker` columns (not the solved
-    `Rigid Body Marker` / `Bone Marker` ones, nor `Unlabeled ...` markers), blank cells gaps;
-    with a rigid body, those named `"<rigid body>:..."` if there are any. A take with neither
-    labelled markers nor a rigid body is an `InputError` saying so. The rigid body's `Mean
-    Marker Error` (`Error Per Marker`) is kept in `MarkerData.marker_error`.
+    The markers read are the labelled `Marker` columns (not the solved `Rigid Body Marker` /
+    `Bone Marker` ones, nor `Unlabeled ...`), blank cells gaps; with a rigid body, those named
+    `"<rigid body>:..."` if there are any. The rigid body's `Mean Marker Error` (`Error Per
+    Marker`) is kept in `MarkerData.marker_error`. A take with neither labelled markers nor a
+    rigid body is an `InputError`.
 
-    **Arguments:**
-    - `rigid_body`: the asset name; selects that rigid body and the markers named `"<name>:..."`.
-      Default: the only rigid body (if any), and every labelled `Marker` column.
-    - `use`: `"markers"` (poses from the `Marker` columns by `rigid_body_pose`), `"rigid_body"`
-      (Motive's own solved pose, kept in `MarkerData.rb_q/rb_p`), or `"auto"` (markers if there
-      are at least 3 marker columns, else the rigid body). The markers are always returned.
-    - `units`: `"auto"` (the file's `Length Units`, else detected), `"m"`, `"cm"` or `"mm"`.
-    - `up_axis`: `"y"` (Motive's default) or `"z"`; Y-up data are turned into jsphere's Z-up frame
-      by `UP_TO_Z["y"]`: `(X, Y, Z) = (X_m, -Z_m, Y_m)`.
-    - `allow_truncated`: as in `ConvertOptions` (fewer data rows than line 1's `Total
-      Exported Frames`, or a last row with fewer cells than the header).
+    - `rigid_body`: the asset to read (default: the only one, if any).
+    - `use`: `"markers"`, `"rigid_body"` (Motive's solved pose, as quaternions X, Y, Z, W, kept
+      in `MarkerData.rb_q/rb_p`) or `"auto"` (markers if there are at least 3, else the rigid
+      body). The markers are always returned.
+    - `units`, `allow_truncated`: as in `ConvertOptions` (`"auto"`: line 1's `Length Units`,
+      else detected; cut short: fewer rows than line 1's `Total Exported Frames`).
+    - `up_axis`: `"y"` (Motive's default: turned Z-up by `UP_TO_Z["y"]`) or `"z"`.
     """
-    path, rows = _read_lines(path)
-    source = str(path)
-    check_up_axis(up_axis, source, quote="'")
+    source, rows = open_export(path, up_axis, quote="'")
     if use not in ("auto", "markers", "rigid_body"):
         raise ValueError(
             f"read_motive_csv: use must be 'auto', 'markers' or 'rigid_body' (what to read of {source}); got {use!r}."
         )
     meta, file_units = _line_one(rows, source)
     head = _Header.find(rows, source)
-    body = _rigid_body(head, rigid_body, source)
+    body = choose_body(rigid_body, sorted({head.cell("names", j) for j in head.columns("Rigid Body")}), source)
     mnames, cols, colnames = _marker_columns(head, body)
     _check_has_data(head, body, mnames, source)
     want_rb = use == "rigid_body" or (use == "auto" and len(mnames) < 3)
@@ -68,20 +61,13 @@ def read_motive_csv(
     cols, colnames = cols + err, colnames + [f"{body} {head.cell('kinds', j)}" for j in err]
     declared = int(meta["Total Exported Frames"]) if meta.get("Total Exported Frames", "").isdigit() else None
     end = _cut_short(
-        rows,
-        head.row + 1,
-        _data_end(rows, head.row + 1),
-        head.ncol,
-        source,
-        allow_truncated,
-        declared=declared,
-        field="Total Exported Frames",
+        rows, head.row + 1, None, head.ncol, source, allow_truncated, declared=declared, field="Total Exported Frames"
     )
     data, lines = _numbers(rows[:end], head.row + 1, cols, source, colnames)
     if data.shape[0] == 0:
         raise InputError(f"{source}: no data rows after the header 'Frame,{head.time},...' (line {head.row + 1}).")
     t = data[:, 1]
-    _check_times(t, lines, source)
+    _check_times(t, source, lines)
     K = len(mnames)
     markers, scale = fixed_markers(data[:, 2 : 2 + 3 * K].reshape(len(t), K, 3), source, units, file_units, up_axis)
     rb_q = rb_p = None
@@ -193,16 +179,6 @@ class _Header:
     def cell(self, row: str, j: int) -> str:
         r = getattr(self, row)
         return r[j].strip() if j < len(r) else ""
-
-
-def _rigid_body(head: _Header, rigid_body: str | None, source: str) -> str | None:
-    """The rigid body to read: `rigid_body`, or the file's only one (None where it has none)."""
-    bodies = sorted({head.cell("names", j) for j in head.columns("Rigid Body")})
-    if rigid_body is not None and bodies and rigid_body not in bodies:
-        raise InputError(f"{source}: no rigid body named {rigid_body!r}; the file has {bodies}.")
-    if rigid_body is None and len(bodies) > 1:
-        raise InputError(f"{source}: the file has several rigid bodies {bodies}; choose one with --rigid-body NAME.")
-    return rigid_body if rigid_body is not None else (bodies[0] if bodies else None)
 
 
 def _marker_columns(head: _Header, body: str | None) -> tuple[list[str], list[int], list[str]]:

@@ -28,7 +28,7 @@ from ..model.params import RobotParams
 from ..model.sensors import Mounting, imu_readings
 from ..model.state import State
 from .text import _input_columns, _numbers, cells, check_unique_columns, headed_rows
-from .validation import INPUT_PREFIX, KINDS, _check_increasing, _where
+from .validation import KINDS, _check_times, _where, wheel_columns
 
 #: the sensor columns of an onboard-sensor trial, before `chi_1..N` and the inputs
 SENSOR_COLUMNS = ("t", "gyro_x", "gyro_y", "gyro_z", "acc_x", "acc_y", "acc_z")
@@ -87,7 +87,7 @@ class OnboardTrial(eqx.Module):
     @property
     def input_names(self) -> list[str]:
         """`["K_1", ...]` or `["chi_dot_1", ...]`."""
-        return [f"{INPUT_PREFIX[self.kind]}{i + 1}" for i in range(self.n_wheels)]
+        return wheel_columns(self.kind, self.n_wheels)
 
     def controls(self) -> WheelSpeeds | Torques:
         """The recorded inputs as a control: held torques (`kind="zoh"`) or cubic Hermite samples."""
@@ -110,21 +110,12 @@ def _check_values(t, values, kind: str, where: str, lines: np.ndarray | None = N
     """Check the times and the columns `gyro_x..acc_z, chi_1..N, inputs` of `values` `(M, 6 +
     2N)`; errors name the file's `lines` where given, else the samples."""
     n = (values.shape[1] - 6) // 2
-    bad_t = np.nonzero(~np.isfinite(t))[0]
-    if bad_t.size:
-        raise InputError(
-            f"{_where(where, lines, int(bad_t[0]))}: the time is blank or not finite; every row needs one."
-        )
-    _check_increasing(t, where, lines)
+    _check_times(t, where, lines)
 
     def row(k):
         return _where(where, lines, int(k))
 
-    columns = [
-        *SENSOR_COLUMNS[1:],
-        *(f"chi_{i + 1}" for i in range(n)),
-        *(f"{INPUT_PREFIX[kind]}{i + 1}" for i in range(n)),
-    ]
+    columns = [*SENSOR_COLUMNS[1:], *(f"chi_{i + 1}" for i in range(n)), *wheel_columns(kind, n)]
     bad = np.argwhere(~np.isfinite(values))
     if bad.size:
         k, j = bad[0]
@@ -150,8 +141,9 @@ def read_onboard_trial(path) -> OnboardTrial:
     header are comments (`# name:`, `# hold: zero-order`). Raises `InputError` (a
     `ValueError`) naming the file, the line and the column of the first problem."""
     path = Path(path)
-    source, meta, rows, header_line = headed_rows(path, ", ".join(SENSOR_COLUMNS) + ", chi_1, ...")
-    header, at = [h.strip() for h in rows[0]], f"{source}, line {header_line}"
+    needs = f"the first non-comment line must name the columns {', '.join(SENSOR_COLUMNS)}, chi_1, ..."
+    source, meta, rows, k = headed_rows(path, needs)
+    header, at = [h.strip() for h in rows[k]], f"{source}, line {k + 1}"
     missing = [c for c in SENSOR_COLUMNS if c not in header]
     if missing:
         raise InputError(
@@ -171,7 +163,7 @@ def read_onboard_trial(path) -> OnboardTrial:
     names = [*SENSOR_COLUMNS, *(f"chi_{i}" for i in range(1, n + 1)), *(header[j] for j in in_cols)]
     check_unique_columns(header, at, names)
     cols = [header.index(c) for c in SENSOR_COLUMNS] + [chi[i] for i in range(1, n + 1)] + in_cols
-    data, lines = _numbers(rows, 1, cols, source, names, width=len(header), line0=header_line - 1)
+    data, lines = _numbers(rows, k + 1, cols, source, names, width=len(header))
     if data.shape[0] < 2:
         raise InputError(f"{source}: the trial is too short: fewer than two data rows after the header.")
     _check_values(data[:, 0], data[:, 1:], kind, source, lines)
@@ -181,20 +173,15 @@ def read_onboard_trial(path) -> OnboardTrial:
     )  # fmt: skip
 
 
-def onboard_trial_to_csv(trial: OnboardTrial) -> str:
-    """The text of `write_onboard_trial`: times to 1 µs, readings and inputs to 10 significant
-    digits, encoder angles to 1e-9 rad."""
+def write_onboard_trial(path, trial: OnboardTrial) -> None:
+    """Write `trial` to `path` in the onboard-sensor trial CSV format, atomically: times to 1 µs,
+    readings and inputs to 10 significant digits, encoder angles to 1e-9 rad."""
     n = trial.n_wheels
     head = ["# jsphere onboard trial v1", f"# name: {trial.name}", f"# hold: {HOLDS[0] if trial.hold else HOLDS[1]}"]
     header = [*SENSOR_COLUMNS, *(f"chi_{i + 1}" for i in range(n)), *trial.input_names]
     data = np.concatenate([trial.t[:, None], trial.gyro, trial.acc, trial.chi, trial.inputs], axis=1)
     body = cells(data, [".6f"] + [".10g"] * 6 + [".9f"] * n + [".10g"] * n)
-    return "\n".join([*head, ",".join(header), *body]) + "\n"
-
-
-def write_onboard_trial(path, trial: OnboardTrial) -> None:
-    """Write `trial` to `path` in the onboard-sensor trial CSV format, atomically."""
-    atomic_write_text(path, onboard_trial_to_csv(trial))
+    atomic_write_text(path, "\n".join([*head, ",".join(header), *body]) + "\n")
 
 
 class OnboardNoise(eqx.Module):
@@ -227,15 +214,11 @@ def synthetic_onboard_trial(
     `OnboardNoise()`), the wheel angles from 0 as the encoders count them (each wheel starting
     at a random angle: the first count is a rounded angle too), and the
     commanded inputs at the sample times. Deterministic for a given `seed`."""
-    from ..solve.simulate import simulate
-
     if not rate > 0 or not t1 > 0:
         raise ValueError(f"synthetic_onboard_trial: rate and t1 must be positive; got rate={rate}, t1={t1}.")
+    ts, tr, u, kind = simulated(params, controls, t1, state0, rate, 1e-10, 1e-12)
     mounting = Mounting() if mounting is None else mounting
     noise = OnboardNoise() if noise is None else noise
-    ts = np.arange(math.floor(t1 * rate + 1e-9) + 1) / rate
-    state0 = State.at_rest(params) if state0 is None else state0
-    tr = simulate(params, state0, controls, float(ts[-1]), ts=ts, rtol=1e-10, atol=1e-12, throw=True)
     gyro, acc = (np.asarray(a) for a in imu_readings(params, mounting, tr.gamma, tr.omega, tr.Omega, tr.K))
     rng = np.random.default_rng(seed)
     gyro = gyro + np.asarray(noise.gyro_bias) + rng.normal(0.0, noise.gyro_sd, gyro.shape)
@@ -245,6 +228,17 @@ def synthetic_onboard_trial(
         step = 2 * math.pi / noise.counts_per_turn
         start = rng.uniform(0.0, 2 * math.pi, chi.shape[1])
         chi = (np.round((start + chi) / step) - np.round(start / step)) * step
-    u = np.asarray(eval_controls(controls, jnp.asarray(ts, params.R0.dtype)))
-    kind = "wheel_speeds" if isinstance(controls, WheelSpeeds) else "torques"
     return OnboardTrial(ts, gyro, acc, chi, u, kind, name=name)
+
+
+def simulated(params: RobotParams, controls, t1: float, state0, rate: float, rtol: float, atol: float):
+    """`(ts, trajectory, inputs, kind)`: `controls` simulated from `state0` (default at rest;
+    errors raised) and sampled at `rate` [Hz] from 0 to `t1` [s], the commanded inputs at the
+    sample times and their kind."""
+    from ..solve.simulate import simulate
+
+    ts = np.arange(math.floor(t1 * rate + 1e-9) + 1) / rate
+    state0 = State.at_rest(params) if state0 is None else state0
+    traj = simulate(params, state0, controls, float(ts[-1]), ts=ts, rtol=rtol, atol=atol, throw=True)
+    u = np.asarray(eval_controls(controls, jnp.asarray(ts, params.R0.dtype)))
+    return ts, traj, u, "wheel_speeds" if isinstance(controls, WheelSpeeds) else "torques"

@@ -1,13 +1,6 @@
-"""Markers -> pose -> trial: rigid-body poses from markers and the `Trial` of a raw export.
-
-Pipeline: a reader (`read_motive_csv`, `read_vicon_csv`, `read_c3d`) parses a raw export into
-`MarkerData` (times, marker trajectories in metres in jsphere's Z-up fixed frame, gaps as NaN),
-`rigid_body_pose` turns the markers of each frame into the platform pose (Kabsch/Umeyama
-without scale, with the reflection fix), and `markers_to_trial` adds the inputs (a separate
-table, `read_inputs_csv`) to make a `Trial`. The body frame's markers (`body_markers`), its
-alignment with the platform (`alignment`) and the shell centre in it (`body_offset`) are
-options of the conversion: `ConvertOptions` gives their conventions.
-"""
+"""Markers -> pose -> trial: `rigid_body_pose` turns each frame's markers (`MarkerData`) into
+the body frame's pose (Kabsch/Umeyama without scale), `markers_to_trial` adds the inputs and
+makes a `Trial`; `ConvertOptions` gives the conventions of the body frame."""
 
 from __future__ import annotations
 
@@ -32,27 +25,18 @@ _KEYWORDS += ("allow_truncated", "keep_suspect")
 MIN_SPREAD = 1e-3
 
 
-# --------------------------------------------------------------------------- poses from markers
-
-
 def rigid_body_pose(
     markers: np.ndarray, body_markers: np.ndarray, *, max_rms: float = np.inf
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The rigid motion that best maps `body_markers` onto each frame's markers.
+    """The rigid motion that best maps `body_markers` `(K, 3)` [m] onto each frame's `markers`
+    `(M, K, 3)` [m, NaN where missing]: over the markers present, the `R`, `p` minimising
+    `sum_k |R b_k + p - m_k|^2` (Kabsch/Umeyama without scale: SVD of the cross-covariance, its
+    determinant fixed to +1 so that no reflection is returned).
 
-    For each frame, over the markers present (finite), finds the rotation `R` and translation
-    `p` minimising `sum_k |R b_k + p - m_k|^2` (Kabsch/Umeyama without scale: SVD of the
-    cross-covariance, with the determinant fixed to +1 so that a reflection is never returned).
-
-    **Arguments:**
-    - `markers`: `(M, K, 3)` marker positions [m], NaN where missing.
-    - `body_markers`: `(K, 3)` marker coordinates in the body frame [m].
-    - `max_rms`: frames whose RMS fit residual exceeds this [m] (e.g. a swapped marker) are gaps.
-
-    **Returns:** `(q, p, rms)`: `(M, 4)` quaternions (w, x, y, z) body -> fixed, sign-continuous;
-    `(M, 3)` positions of the body-frame origin; `(M,)` RMS residuals [m]. Frames with fewer
-    than 3 markers, or markers (nearly) collinear (second singular value of the centred body
-    markers below `MIN_SPREAD`), or a residual above `max_rms`, are NaN (gaps).
+    Returns `(q, p, rms)`: `(M, 4)` quaternions (w, x, y, z) body -> fixed, sign-continuous;
+    `(M, 3)` the body-frame origin; `(M,)` RMS residuals [m]. Frames with fewer than 3 markers,
+    markers (nearly) collinear (second singular value of the centred body markers below
+    `MIN_SPREAD`) or a residual above `max_rms` are NaN (gaps).
     """
     m = np.asarray(markers, float)
     b = np.asarray(body_markers, float)
@@ -86,36 +70,24 @@ def rigid_body_pose(
     return sign_continuous(q), p, rms
 
 
-# --------------------------------------------------------------------------- markers -> trial
-
-
 def markers_to_trial(
     data: MarkerData, inputs, options: ConvertOptions = ConvertOptions(), *, format: str | None = None, **kwargs
 ) -> Trial:
-    """A `Trial` from raw marker data and an inputs table.
+    """A `Trial` from raw marker data (`data`, from a reader such as `read_motive_csv`) and the
+    `inputs`: an inputs table's path (`read_inputs_csv`) or a tuple `(t, values, kind)`,
+    interpolated linearly to the capture times `t_capture + time_offset`; frames outside the
+    inputs' time range are dropped, with a `CaptureWarning` saying how many.
 
-    **Arguments:**
-    - `data`: from `read_motive_csv`, `read_vicon_csv` or `read_c3d`.
-    - `inputs`: the path of an inputs table (`read_inputs_csv`) or a tuple `(t, values, kind)`.
-      The inputs are interpolated linearly to the capture times; capture frames outside the
-      table's time range are dropped, with a `CaptureWarning` saying how many (the two must
-      share a clock: `t_trial = t_capture + time_offset`).
-    - `options`: a `ConvertOptions`; its fields `body_markers`, `alignment`, `body_offset`,
-      `max_rms`, `keep_suspect`, `time_offset`, `name`, `max_gap_fraction` and
-      `allow_truncated` (for `read_inputs_csv`) apply here. Those fields given as keywords
-      still work, with a `DeprecationWarning`.
-    - `format`: the format of `convert_raw` that `data` came from; it words the advice of the
-      plausibility warnings.
+    `options` (`ConvertOptions`): its fields `body_markers`, `alignment`, `body_offset`,
+    `max_rms`, `keep_suspect`, `time_offset`, `name`, `max_gap_fraction` and `allow_truncated`
+    apply (as keywords they still work, with a `DeprecationWarning`). `format`: the format of
+    `convert_raw` that `data` came from, for the advice of the plausibility warnings.
 
-    If the data carry the exporter's rigid-body pose (`rb_q`), it is used instead of the
-    markers, as the body frame. Where more than half of the frames with a marker fit would be
-    left out (residual above `max_rms`, or suspect), the markers do not move as one rigid body
-    (a subject that is a person, markers of several bodies): an `InputError` saying so.
-
-    Given body markers whose distances from each other disagree with the export's (by more than
-    10%: markers in millimetres, or of another robot) are an `InputError`. The trial is checked
-    for plausibility (`jsphere.capture.trial.implausible`: speeds, turn rates, time units), each
-    finding a `CaptureWarning`.
+    The exporter's rigid-body pose (`data.rb_q`), where there is one, is the body frame's. An
+    `InputError` where more than half of the frames with a marker fit would be left out
+    (`max_rms`, suspect: not one rigid body), or where given body markers lie more than 10%
+    nearer or farther apart than the export's. Each finding of `implausible` is a
+    `CaptureWarning`.
     """
     o = with_keywords(options, kwargs, "markers_to_trial", _KEYWORDS)
     body_offset, time_offset, max_rms = o.body_offset, o.time_offset, o.max_rms
@@ -272,18 +244,13 @@ def suspect_frames(rms: np.ndarray, marker_error: np.ndarray | None = None) -> n
     """Frames whose RMS marker fit residual `rms (M,)` [m] (NaN at gaps) stands out of the take's
     own noise (`suspect_limit`): a marker swapped with another or a ghost marker taken for one.
 
-    The threshold comes from the take's own residuals, by statistics that the suspect frames
-    themselves hardly move (`suspect_limit`). White marker noise gives squared residuals of chi^2 with
-    `3 K - 6` degrees of freedom (`K` markers): their 99.99 % point is 2.3x the median residual
-    for 4 markers, 3x for 3, so a clean take has none, and its threshold is `SUSPECT` times the
-    median. A real take's noise varies from frame to frame (markers near the edge of the volume,
-    seen by fewer cameras): residuals spread log-normally by `s` = 1 keep 0.3 % of the frames
-    above the threshold (19x the median), by `s` = 1.5 0.2 % (90x); such a take cannot tell a
-    ghost marker from its own noise unless the ghost stands that far out. Where the export reports its
-    own marker error per frame (`marker_error (M,)` [m], NaN where not reported), a frame whose
-    residual is within `SUSPECT_ERROR` times it is not suspect: the exporter saw the markers as
-    far apart on that frame, so they are noisy, not swapped (an RMS over `K` markers is at most
-    `sqrt(K)` times their mean distance, twice for 4)."""
+    White marker noise gives squared residuals of chi^2 with `3 K - 6` degrees of freedom (`K`
+    markers): their 99.99 % point is 2.3x the median residual for 4 markers, 3x for 3, below
+    `SUSPECT`. A take whose noise varies from frame to frame spreads log-normally: by `s` = 1,
+    0.3 % of its frames lie above the threshold (19x the median), by `s` = 1.5, 0.2 % (90x). A
+    frame whose residual is within `SUSPECT_ERROR` times the export's own marker error
+    (`marker_error (M,)` [m], NaN where not reported) is noisy, not swapped (an RMS over `K`
+    markers is at most `sqrt(K)` times their mean distance)."""
     r = np.asarray(rms, float)
     ok = np.isfinite(r)
     if not ok.any():

@@ -9,9 +9,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .._runtime.errors import InputError
-from .markers import MarkerData, check_up_axis, fixed_markers, fixed_pose
-from .text import _check_times, _cut_short, _data_end, _numbers, csv_rows, read_text
+from .markers import MarkerData, choose_body, fixed_markers, fixed_pose, open_export
+from .text import _cut_short, _numbers
 from .units import EXPORT_UNITS, resolve_units
+from .validation import _check_times
 
 #: a header line of a QTM TSV file: an upper-case variable name, a tab, its values
 _KEY = re.compile(r"^[A-Z][A-Z0-9_]*$")
@@ -29,28 +30,21 @@ def read_qualisys_tsv(
     up_axis: str = "z",
     allow_truncated: bool = False,
 ) -> MarkerData:
-    """Read a Qualisys Track Manager TSV export (with its TSV header; QTM manual, "Motion data
-    (.tsv)"): 3D marker data, or a 6DOF body's pose. `docs/capture.md` ("Layouts in detail")
-    gives the layouts read: QTM's 3D and 6DOF exports, with and without a column row, and QTM
-    2.x's.
+    """Read a Qualisys Track Manager TSV export with its TSV header (QTM manual, "Motion data
+    (.tsv)"; the layouts read, QTM's and QTM 2.x's 3D and 6DOF exports with and without a
+    column row: `docs/capture.md`).
 
-    - **3D**: the markers of `MARKER_NAMES`; a marker written as zeros (QTM's default) or
-      blank cells is a gap.
-    - **6DOF**: the pose of the body `rigid_body` (default: the only one; several are an
-      `InputError` listing them) as `rb_q, rb_p`, no markers: its rotation `R` (`P_global = R
-      P_local + P_origin`) from `Rot[0..8]` column by column, else from its angles (`_rotations`;
-      QTM manual, "Rotation angles in QTM"). A body not seen (NaN, blanks, an all-zero rotation,
-      a residual of -1) is a gap.
+    - **3D**: the markers of `MARKER_NAMES`; zeros (QTM's default) or blank cells are gaps.
+    - **6DOF**: the pose of the body `rigid_body` (default: the only one) as `rb_q, rb_p`, no
+      markers: its rotation `R` (`P_global = R P_local + P_origin`) from `Rot[0..8]` column by
+      column, else from its angles (`_rotations`). A body not seen (NaN, blanks, an all-zero
+      rotation, a residual of -1) is a gap.
 
-    `units`: QTM writes millimetres; `"auto"` detects metres or millimetres from the marker
-    spread (3D; millimetres where the spread cannot tell, and always for 6DOF), `"m"` / `"mm"`
-    declare them. `up_axis`: QTM's global frame is Z-up unless the calibration chose otherwise
-    (`"y"` for a Y-up lab frame). `allow_truncated`: as in `ConvertOptions` (fewer rows than
-    `NO_OF_FRAMES`, or a last row cut off mid-row).
+    `units`: `"auto"` detects metres or millimetres from the marker spread (QTM writes
+    millimetres: those where the spread cannot tell, and always for 6DOF), or `"m"` / `"mm"`.
+    `up_axis`: `"z"` (QTM's default) or `"y"`. `allow_truncated`: as in `ConvertOptions`.
     """
-    source = str(path)
-    check_up_axis(up_axis, source)
-    rows = csv_rows(read_text(path), source, delimiter="\t")
+    source, rows = open_export(path, up_axis, delimiter="\t")
     meta, k = _header(rows, source)
     kind = meta.get("DATA_INCLUDED", ["3D"])[0].strip().upper()
     if kind not in ("3D", "6D"):
@@ -67,9 +61,7 @@ def read_qualisys_tsv(
     first = _width(rows[k]) if k < len(rows) else 0
     ncol = first if columns is None else max(len(columns), first if kind == "6D" else 0)
     declared = int(declared) if declared.isdigit() else None
-    end = _cut_short(
-        rows, k, _data_end(rows, k), ncol, source, allow_truncated, declared=declared, field="NO_OF_FRAMES"
-    )
+    end = _cut_short(rows, k, None, ncol, source, allow_truncated, declared=declared, field="NO_OF_FRAMES")
     if end <= k:
         raise InputError(f"{source}: no data rows after the header (line {k}).")
     read = _read_3d if kind == "3D" else _read_6d
@@ -124,7 +116,7 @@ def _times(data: np.ndarray, lead: list[str], meta: dict[str, list[str]], lines,
         if not rate > 0:
             raise InputError(f"{source}: no Time column and no positive FREQUENCY in the header; export the time data.")
         t = (data[:, 0] - data[0, 0]) / rate if "Frame" in lead else np.arange(data.shape[0]) / rate
-    _check_times(t, lines, source)
+    _check_times(t, source, lines)
     return t
 
 
@@ -198,12 +190,9 @@ def _read_6d(rows, k, columns, meta, rigid_body, units, up_axis, source) -> Mark
     groups = _body_columns(columns, bodies or ["body"], source, k)
     if columns is not None and len(groups) < len(bodies) and not any(" " in c for c in columns):
         groups = _repeated_groups(groups, bodies, rows[k])
-    names = sorted(groups)
-    if rigid_body is None and len(names) > 1:
-        raise InputError(f"{source}: the file holds several 6DOF bodies {names}; choose one with --rigid-body NAME.")
-    body = rigid_body if rigid_body is not None else (names[0] if names else None)
+    body = choose_body(rigid_body, sorted(groups), source, "6DOF body")
     if body not in groups:
-        raise InputError(f"{source}: no 6DOF body named {body!r}; the file has {names}.")
+        raise InputError(f"{source}: no 6DOF body named {body!r}; the file has no 6DOF body columns.")
     g = groups[body]
     rot = [f"Rot[{i}]" for i in range(9)]
     euler = ("Roll", "Pitch", "Yaw")

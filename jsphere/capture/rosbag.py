@@ -1,12 +1,8 @@
-"""Robot logs in ROS bags, read through `rosbags` (pure Python, no ROS install): poses
-(`read_rosbag_poses`: a pose topic, or one frame of the transforms on `/tf`), the wheel inputs
-from `sensor_msgs/JointState` (`read_rosbag_inputs`), and onboard-sensor trials: a
-`sensor_msgs/Imu` topic with the wheels' encoders and inputs (`read_rosbag_onboard`).
-
-ROS 1 bags (`*.bag`) and ROS 2 bags (a folder with `metadata.yaml` and its sqlite3 `*.db3` or
-MCAP `*.mcap` storage; the storage file itself is accepted too) are read alike. Each message's
-header stamp is its time; where the stamps are missing (zero), the time the bag recorded the
-message is used, with a `CaptureWarning`. Times are seconds since the Unix epoch, as in the bag.
+"""Robot logs in ROS bags (ROS 1 `*.bag`; ROS 2 folders with `metadata.yaml` and sqlite3 or
+MCAP storage, or the storage file itself), read through `rosbags` (no ROS install): poses
+(`read_rosbag_poses`), wheel inputs (`read_rosbag_inputs`) and onboard-sensor trials
+(`read_rosbag_onboard`). A message's time is its header stamp, else (stamps of zero) the time
+the bag recorded it, with a `CaptureWarning`; times are seconds since the epoch, as in the bag.
 """
 
 from __future__ import annotations
@@ -16,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from .._runtime.errors import InputError
+from .inputs import interpolate_inputs
 from .markers import MarkerData
 from .onboard import OnboardTrial
 from .validation import sign_continuous, warn
@@ -35,34 +32,23 @@ IMU = "sensor_msgs/msg/Imu"
 INPUT_FIELDS = {"chi_dot": ("velocity", "wheel_speeds"), "K": ("effort", "torques")}
 
 
-def _reader(path):
-    """An unopened `rosbags.highlevel.AnyReader` of the bag at `path`."""
+def _messages(path, topic: str, types: tuple[str, ...], what: str) -> tuple[list, np.ndarray, str]:
+    """The messages of `topic` (deserialised), the bag's receive times [s] and the message type.
+    A topic that is not in the bag, or of another type, is an `InputError` naming what there is."""
     try:
         from rosbags.highlevel import AnyReader, AnyReaderError
     except ImportError:
         raise ImportError(
             'reading ROS bags needs rosbags: pip install rosbags (or pip install -e ".[ros]" in the jsphere source folder).'
         ) from None
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"ROS bag {path} does not exist.")
-    if path.is_file() and path.suffix in (".db3", ".mcap") and (path.parent / "metadata.yaml").exists():
-        path = path.parent  # a ROS 2 bag is its folder
-    try:
-        return AnyReader([path])
-    except AnyReaderError as e:
-        raise InputError(f"{path}: not a readable ROS bag (rosbags: {e}).") from None
-
-
-def _messages(path, topic: str, types: tuple[str, ...], what: str) -> tuple[list, np.ndarray, str]:
-    """The messages of `topic` (deserialised), the bag's receive times [s] and the message type.
-    A topic that is not in the bag, or of another type, is an `InputError` naming what there is."""
+    bag = Path(path)
+    if not bag.exists():
+        raise FileNotFoundError(f"ROS bag {bag} does not exist.")
+    if bag.is_file() and bag.suffix in (".db3", ".mcap") and (bag.parent / "metadata.yaml").exists():
+        bag = bag.parent  # a ROS 2 bag is its folder
     source = str(path)
-    reader = _reader(path)  # (rosbags is imported there, with advice where it is missing)
-    from rosbags.highlevel import AnyReaderError
-
     try:
-        with reader:
+        with AnyReader([bag]) as reader:
             topics = {name: info.msgtype for name, info in reader.topics.items()}
             if topic not in topics:
                 listing = ", ".join(f"{n} ({t})" for n, t in sorted(topics.items())) or "none"
@@ -138,7 +124,7 @@ def read_rosbag_poses(path, topic: str, *, child_frame: str | None = None) -> Ma
     else:
         poses = [(m.transform.translation, m.transform.rotation) for m in msgs]
     t = _clock([m.header for m in msgs], bag_t, source, topic)
-    p = np.array([[v.x, v.y, v.z] for v, _ in poses], float)
+    p = np.array([_xyz(v) for v, _ in poses], float)
     q = np.array([[r.w, r.x, r.y, r.z] for _, r in poses], float)
     norm = np.linalg.norm(q, axis=1)
     gap = ~np.all(np.isfinite(p), axis=1) | ~np.isfinite(norm) | (norm < 0.5)
@@ -195,10 +181,13 @@ def _frame_transforms(msgs: list, bag_t: np.ndarray, source: str, topic: str, ch
 
 def _moves(transforms: list) -> bool:
     """Whether the `geometry_msgs/Transform`s `transforms` are not all the same."""
-    v = np.array(
-        [[*(getattr(t.translation, a) for a in "xyz"), *(getattr(t.rotation, a) for a in "wxyz")] for t in transforms]
-    )
+    v = np.array([[*_xyz(t.translation), t.rotation.w, *_xyz(t.rotation)] for t in transforms])
     return bool(np.any(v != v[0]))
+
+
+def _xyz(v) -> list[float]:
+    """The components `x, y, z` of a message's vector (or of a quaternion's vector part)."""
+    return [v.x, v.y, v.z]
 
 
 def read_rosbag_inputs(
@@ -216,12 +205,16 @@ def read_rosbag_inputs(
     topic of another type, a joint that is not in a message, an empty `velocity`/`effort`, or a
     joint count other than `n_wheels` is an `InputError` saying what there is.
     """
-    source = str(path)
-    if input_kind not in INPUT_FIELDS:
-        raise InputError(f"{source}: input kind must be one of {list(INPUT_FIELDS)}; got {input_kind!r}.")
-    field, kind = INPUT_FIELDS[input_kind]
+    field, kind = _input_field(path, input_kind)
     t, values, names = _joint_values(path, topic, field, joints, n_wheels)
     return t, values, kind, names
+
+
+def _input_field(path, input_kind: str) -> tuple[str, str]:
+    """The JointState field and the trial's kind of inputs of `input_kind` (`INPUT_FIELDS`)."""
+    if input_kind not in INPUT_FIELDS:
+        raise InputError(f"{path}: input kind must be one of {list(INPUT_FIELDS)}; got {input_kind!r}.")
+    return INPUT_FIELDS[input_kind]
 
 
 def _joint_values(
@@ -300,15 +293,14 @@ def read_rosbag_onboard(
     `read_rosbag_inputs`. `InputError` for topics of other types, spans that do not overlap, or
     fewer than 4 IMU samples in the overlap."""
     source = str(path)
-    if input_kind not in INPUT_FIELDS:
-        raise InputError(f"{source}: input kind must be one of {list(INPUT_FIELDS)}; got {input_kind!r}.")
+    field, kind = _input_field(path, input_kind)
     msgs, bag_t, _ = _messages(path, imu_topic, (IMU,), "IMU readings")
     t = _clock([m.header for m in msgs], bag_t, source, imu_topic)
-    gyro = np.array([[m.angular_velocity.x, m.angular_velocity.y, m.angular_velocity.z] for m in msgs], float)
-    acc = np.array([[m.linear_acceleration.x, m.linear_acceleration.y, m.linear_acceleration.z] for m in msgs], float)
+    gyro = np.array([_xyz(m.angular_velocity) for m in msgs], float)
+    acc = np.array([_xyz(m.linear_acceleration) for m in msgs], float)
     enc_topic = encoder_topic or inputs_topic
     t_chi, chi, names = _joint_values(path, enc_topic, "position", joints, n_wheels)
-    t_in, u, _ = _joint_values(path, inputs_topic, INPUT_FIELDS[input_kind][0], joints or names, n_wheels)
+    t_in, u, _ = _joint_values(path, inputs_topic, field, joints or names, n_wheels)
     lo, hi = max(t[0], t_chi[0], t_in[0]), min(t[-1], t_chi[-1], t_in[-1])
     keep = (t >= lo) & (t <= hi)
     if keep.sum() < 4:
@@ -318,12 +310,10 @@ def read_rosbag_onboard(
             "trial needs at least 4: record the topics together."
         )
     t, gyro, acc = t[keep], gyro[keep], acc[keep]
-    chi = np.unwrap(chi, axis=0)
-    chi = np.stack([np.interp(t, t_chi, chi[:, i]) for i in range(chi.shape[1])], axis=1)
+    chi = interpolate_inputs(t_chi, np.unwrap(chi, axis=0), t)
     if hold:
         inputs = u[np.clip(np.searchsorted(t_in, t, side="right") - 1, 0, len(t_in) - 1)]
     else:
-        inputs = np.stack([np.interp(t, t_in, u[:, i]) for i in range(u.shape[1])], axis=1)
-    kind = INPUT_FIELDS[input_kind][1]
+        inputs = interpolate_inputs(t_in, u, t)
     stem = Path(path).stem if Path(path).is_file() else Path(path).name
     return OnboardTrial(t - t[0], gyro, acc, chi - chi[0], inputs, kind, hold, name or stem, source)

@@ -3,22 +3,20 @@ the markers a capture system would see."""
 
 from __future__ import annotations
 
-import math
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from ..controls import Torques, WheelSpeeds, eval_controls
+from ..controls import Torques, WheelSpeeds
+from ..controls import eval_controls as eval_controls  # (tests evaluate the programs through this module)
 from ..model.params import RobotParams
 from ..model.rotations import quat_from_rotvec_np, quat_mul_np, rotmat_np
 from ..model.state import State
+from .onboard import simulated
 from .trial import Trial
 from .validation import KINDS
-
-# --------------------------------------------------------------------------- synthetic trials
 
 
 def _smoothstep(u):
@@ -124,44 +122,27 @@ def synthetic_trial(
     rtol: float = 1e-10,
     atol: float = 1e-12,
 ) -> Trial:
-    """A capture-like trial from a simulation.
-
-    Simulates `controls` from `state0` (default `State.at_rest(params)`) with `jsphere.simulate`
-    (tolerances `rtol, atol`; errors raised), samples at `rate` [Hz] from 0 to `t1` [s], and
-    records:
-    - positions `x, y` plus Gaussian noise of `pos_sd` [m] per coordinate;
-    - the platform quaternion times a random small rotation (platform frame) with a rotation
-      vector of `rot_sd_deg` [deg] standard deviation per axis;
-    - gaps (NaN poses) in bursts of 1-5 frames covering about a fraction `dropout` of the
-      frames (the first frame is kept);
-    - the *commanded* inputs: `controls(t)` at the sample times (for wheel speeds the commanded
-      `chi_dot`, for torques `K`), without noise.
-
-    Deterministic for a given `seed` (`numpy.random.default_rng`).
+    """A capture-like trial from a simulation: `controls` simulated from `state0` (default at
+    rest; tolerances `rtol, atol`, errors raised) and sampled at `rate` [Hz] from 0 to `t1` [s],
+    with Gaussian noise of `pos_sd` [m] on `x, y`, the platform quaternion turned by a random
+    small rotation (rotation vector of `rot_sd_deg` [deg] per axis, platform frame), gaps in
+    bursts of 1-5 frames covering about a fraction `dropout` (the first frame kept), and the
+    commanded inputs `controls(t)`, without noise. Deterministic for a given `seed`.
     """
-    from ..solve.simulate import simulate
-
     if not rate > 0 or not t1 > 0:
         raise ValueError(f"synthetic_trial: rate and t1 must be positive; got rate={rate}, t1={t1}.")
     if not 0.0 <= dropout < 1.0:
         raise ValueError(f"synthetic_trial: dropout must be in [0, 1); got {dropout}.")
-    ts = np.arange(math.floor(t1 * rate + 1e-9) + 1) / rate
-    state0 = State.at_rest(params) if state0 is None else state0
-    traj = simulate(params, state0, controls, float(ts[-1]), ts=ts, rtol=rtol, atol=atol, throw=True)
+    ts, traj, u, kind = simulated(params, controls, t1, state0, rate, rtol, atol)
     rng = np.random.default_rng(seed)
     M = ts.shape[0]
     x = np.asarray(traj.x) + rng.normal(0.0, pos_sd, M)
     y = np.asarray(traj.y) + rng.normal(0.0, pos_sd, M)
     noise = quat_from_rotvec_np(rng.normal(0.0, np.deg2rad(rot_sd_deg), (M, 3)))
     q = quat_mul_np(np.asarray(traj.q), noise)
-    u = np.asarray(eval_controls(controls, jnp.asarray(ts, params.R0.dtype)))
     drop = _dropout_mask(rng, M, dropout)
     x[drop], y[drop], q[drop] = np.nan, np.nan, np.nan
-    kind = "wheel_speeds" if isinstance(controls, WheelSpeeds) else "torques"
     return Trial(ts, x, y, q, u, kind, None, name=name)
-
-
-# --------------------------------------------------------------------------- capture glitches
 
 
 def add_glitches(
@@ -211,9 +192,6 @@ def add_glitches(
     bad |= ghosts
     bad &= trial.valid
     return Trial(trial.t, x, y, q, trial.inputs, trial.kind, trial.z, name=trial.name), np.flatnonzero(bad)
-
-
-# --------------------------------------------------------------------------- synthetic markers
 
 
 def default_marker_set(R0: float = 0.15) -> np.ndarray:

@@ -14,18 +14,14 @@ from pathlib import Path
 import numpy as np
 
 from .._runtime.errors import InputError
-from .validation import INPUT_PREFIX, _check_increasing, warn
+from .validation import INPUT_PREFIX, warn
 
 
 def read_text(path) -> str:
-    """The text of a CSV file, for the readers of trials, inputs tables, body markers and raw
-    exports.
-
-    UTF-8 is read with or without a byte-order mark (spreadsheets save "CSV UTF-8" with one),
-    and UTF-16 with its byte-order mark (a spreadsheet's "Unicode text"). Any other encoding is
-    an `InputError` naming the file, the line and the byte (Latin-1 / Windows-1252 text cannot
-    be told from other code pages, so it is not guessed), and so is a binary file (a NUL byte:
-    a C3D or a spreadsheet's own format given as CSV).
+    """The text of a CSV file: UTF-8 with or without a byte-order mark (a spreadsheet's "CSV
+    UTF-8"), or UTF-16 with one. Another encoding (Latin-1 cannot be told from other code pages,
+    so it is not guessed) or a binary file (a NUL byte: a C3D or a spreadsheet's own format) is
+    an `InputError` naming the file, the line and the byte.
     """
     path = Path(path)
     if not path.exists():
@@ -59,14 +55,13 @@ def read_text(path) -> str:
         ) from None
 
 
-def cell(v: float, spec: str) -> str:
-    """A number as a written cell: blank where it is not finite (a gap), never `-0`."""
-    return "" if not np.isfinite(v) else format(v + 0.0, spec)
-
-
 def cells(data: np.ndarray, formats: Sequence[str]) -> list[str]:
-    """The rows of `data` as written lines: each column in its format of `formats` (`cell`)."""
-    return [",".join(cell(v, f) for v, f in zip(row, formats)) for row in np.asarray(data, float)]
+    """The rows of `data` as written lines, each column in its format of `formats`: blank where
+    a value is not finite (a gap), never `-0`."""
+    return [
+        ",".join("" if not np.isfinite(v) else format(v + 0.0, f) for v, f in zip(row, formats))
+        for row in np.asarray(data, float)
+    ]
 
 
 def separator_hint(header: Sequence[str]) -> str:
@@ -116,19 +111,15 @@ def comments(rows: list[list[str]]) -> tuple[dict[str, str], int]:
     return meta, k
 
 
-def headed_rows(path, columns: str) -> tuple[str, dict[str, str], list[list[str]], int]:
-    """A trial file read up to its header: `(source, comments, rows, header_line)`, the rows
-    from the header row on and its 1-based line. A missing file is a `FileNotFoundError`, a
-    file without a header row an `InputError` saying it must name the `columns`."""
-    path = Path(path)
-    source = str(path)
-    if not path.exists():
-        raise FileNotFoundError(f"trial file {path} does not exist.")
-    rows = csv_rows(read_text(path), source)
+def headed_rows(path, needs: str, what: str = "trial file") -> tuple[str, dict[str, str], list[list[str]], int]:
+    """A table read up to its header: `(source, comments, rows, k)`, `rows[k]` the header row
+    (line `k + 1`). A missing file is a `FileNotFoundError` naming it as
+    `what`, a file without a header row an `InputError` ending in `needs` (what it must name)."""
+    path, rows = _read_lines(path, what)
     meta, k = comments(rows)
     if k == len(rows):
-        raise InputError(f"{source}: no header line; the first non-comment line must name the columns {columns}.")
-    return source, meta, rows[k:], k + 1
+        raise InputError(f"{path}: no header line; {needs}.")
+    return str(path), meta, rows, k
 
 
 #: the end of the error for a trial with both input families
@@ -180,12 +171,13 @@ def _parse_cell(cell: str, source: str, line: int, column: str) -> float:
         raise ValueError(f"{source}, line {line}, column {column}: {s!r} is not a number.") from None
 
 
-def _read_lines(path) -> tuple[Path, list[list[str]]]:
-    """The CSV rows of a text file (`read_text`: UTF-8 with or without a BOM, or UTF-16)."""
+def _read_lines(path, what: str = "capture file", delimiter: str = ",") -> tuple[Path, list[list[str]]]:
+    """The CSV rows of a text file (`read_text`); a missing file is a `FileNotFoundError` naming
+    it as `what`."""
     path = Path(path)
     if not path.exists():
-        raise FileNotFoundError(f"capture file {path} does not exist.")
-    return path, csv_rows(read_text(path), str(path))
+        raise FileNotFoundError(f"{what} {path} does not exist.")
+    return path, csv_rows(read_text(path), str(path), delimiter)
 
 
 def _data_end(rows, start: int, end: int | None = None) -> int:
@@ -199,7 +191,7 @@ def _data_end(rows, start: int, end: int | None = None) -> int:
 def _cut_short(
     rows,
     start: int,
-    end: int,
+    end: int | None,
     ncols: int,
     source: str,
     allow: bool,
@@ -212,7 +204,9 @@ def _cut_short(
     row with fewer cells than the header row (`ncols`: the copy or the export broke off
     mid-row), or fewer rows than the header declares (`declared`, from its `field`). Raises an
     `InputError` naming the file and both counts; with `allow`, issues a `CaptureWarning`
-    instead. Returns the end of the complete rows (the cut row is dropped)."""
+    instead. Returns the end of the complete rows (the cut row is dropped; `end` None: the end
+    of the rows without the trailing empty ones)."""
+    end = _data_end(rows, start) if end is None else end
     cut_row = end > start and len(rows[end - 1]) < ncols
     n = end - start - int(cut_row)
     parts = []
@@ -220,28 +214,31 @@ def _cut_short(
         parts.append(f"the header declares {declared} {noun} ({field}) but the file holds {n}")
     if cut_row:
         parts.append(f"its last row (line {end}) has {len(rows[end - 1])} of {ncols} cells, cut off mid-row")
-    if not parts:
-        return end
-    what = "; ".join(parts)
-    if not allow:
-        raise InputError(
-            f"{source}: the file is cut short: {what} (the copy or the export broke off). Export or copy it again, or "
-            f"pass --allow-truncated to use the {n} complete {noun}."
-        )
-    warn(f"{source}: the file is cut short: {what}; using the {n} complete {noun}.")
+    if parts:
+        cut_short(source, "; ".join(parts), n, f"complete {noun}", allow, stacklevel=4)
     return end - int(cut_row)
 
 
+def cut_short(source: str, what: str, n: int, noun: str, allow: bool, stacklevel: int = 3) -> None:
+    """Raise an `InputError` for a file cut short (`what`: how, with both counts); with `allow`
+    and `n > 0`, issue a `CaptureWarning` instead: the `n` `noun` (`"complete frames"`) are used."""
+    if not allow or n == 0:
+        raise InputError(
+            f"{source}: the file is cut short: {what} (the copy or the export broke off). Export or copy it again"
+            + (f", or pass --allow-truncated to use the {n} {noun}." if n else ".")
+        )
+    warn(f"{source}: the file is cut short: {what}; using the {n} {noun}.", stacklevel=stacklevel)
+
+
 def _numbers(
-    rows, start: int, cols: list[int], source: str, names: list[str], *, width: int | None = None, line0: int = 0
+    rows, start: int, cols: list[int], source: str, names: list[str], *, width: int | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Parse `rows[start:]` at `cols` into floats (blank -> NaN); trailing empty rows dropped.
-    Returns `(data, lines)` with 1-based file lines (`line0`: the file's lines before
-    `rows[0]`). With `width`, a row with another number of cells is an error naming its line
+    Returns `(data, lines)` with the rows' 1-based lines in the file. With `width`, a row with another number of cells is an error naming its line
     (a last row with fewer: a file cut off)."""
     body = rows[start : _data_end(rows, start)]
     data = np.full((len(body), len(cols)), np.nan)
-    lines = np.arange(len(body)) + start + 1 + line0
+    lines = np.arange(len(body)) + start + 1
     for i, row in enumerate(body):
         if width is not None and len(row) != width:
             cut = (
@@ -252,10 +249,3 @@ def _numbers(
             if j < len(row):
                 data[i, jj] = _parse_cell(row[j], source, int(lines[i]), names[jj])
     return data, lines
-
-
-def _check_times(t: np.ndarray, lines: np.ndarray, source: str) -> None:
-    bad = np.nonzero(~np.isfinite(t))[0]
-    if bad.size:
-        raise ValueError(f"{source}, line {lines[bad[0]]}: the time (or frame number) is blank; every row needs one.")
-    _check_increasing(t, source, lines)

@@ -1,15 +1,5 @@
-"""The trial: `Trial` and its CSV format (`read_trial`, `write_trial`).
-
-A *trial* is what a motion-capture session records about the robot plus the inputs that drove
-it: times `t` [s], the shell-centre position `x, y` (optionally `z`) [m] in the fixed frame
-(Z up), the platform orientation as a unit quaternion `(w, x, y, z)` rotating platform
-components into fixed ones (the convention of `jsphere.State.q`; its rotation matrix has rows
-`alpha, beta, gamma`), and per wheel either the commanded/encoder wheel speeds `chi_dot_i`
-[rad/s] or the axle torques `K_i` [N m]. `docs/capture.md` describes the file format.
-
-Frames where the pose is missing (a blank cell, `nan`) are *gaps*: their `x, y, q` (and `z`)
-are NaN and `Trial.valid` is False there. Times and inputs are never missing.
-"""
+"""The trial: `Trial`, a capture's poses with the inputs that drove them (its docstring gives
+the conventions), and its CSV format (`read_trial`, `write_trial`; `docs/capture.md`)."""
 
 from __future__ import annotations
 
@@ -32,20 +22,20 @@ from .units import TRIAL_UNITS, detect_position_units, resolve_units
 
 if TYPE_CHECKING:
     from .onboard import OnboardTrial
-from .validation import INPUT_PREFIX, POSE_COLUMNS, _checked, warn_implausible
+from .validation import POSE_COLUMNS, _checked, warn_implausible, wheel_columns
 from .validation import CaptureWarning as CaptureWarning  # (the warning of every trial reader)
-
-# --------------------------------------------------------------------------- Trial
 
 
 class Trial(eqx.Module):
-    """One captured (or synthetic) trial: poses, inputs and times, as numpy arrays.
+    """One captured (or synthetic) trial: poses, inputs and times, as numpy arrays. Frames whose
+    pose is missing (a blank cell, `nan`) are *gaps*; times and inputs are never missing.
 
     **Fields:**
     - `t`: `(M,)` times [s], strictly increasing.
     - `x`, `y`: `(M,)` shell-centre position in the fixed frame (Z up) [m]; NaN in gap frames.
     - `q`: `(M, 4)` unit quaternion `(w, x, y, z)` of the platform, rotating platform components
-      into fixed ones (as `jsphere.State.q`), sign-continuous; NaN rows are gaps.
+      into fixed ones (as `jsphere.State.q`: its rotation matrix has rows `alpha, beta, gamma`),
+      sign-continuous; NaN rows are gaps.
     - `inputs`: `(M, N)` wheel speeds `chi_dot_i` [rad/s] or axle torques `K_i` [N m]; never NaN.
     - `kind`: `"wheel_speeds"` or `"torques"` (static).
     - `z`: `(M,)` shell-centre height [m] or `None`.
@@ -53,10 +43,10 @@ class Trial(eqx.Module):
     - `source`: the file the trial was read from (`read_trial`), or None (static): the fit names
       a trial's frames set aside by its file name (`FitResult.outliers`).
 
-    A frame is a gap if any of its pose values is missing; then all its pose values are NaN.
-    Construction validates (strictly increasing finite times, finite inputs, unit quaternions:
-    a norm off by more than 1e-3 is an error, smaller deviations are normalised) but does not
-    require a minimum length; the file readers do (`MIN_VALID_FRAMES`, `MIN_DURATION`).
+    A frame missing any pose value is a gap: all its pose values are NaN. Construction
+    validates (strictly increasing finite times, finite inputs, unit quaternions: a norm off by
+    more than 1e-3 is an error, smaller deviations are normalised) but does not require a
+    minimum length; the file readers do (`MIN_VALID_FRAMES`, `MIN_DURATION`).
     """
 
     t: np.ndarray
@@ -74,7 +64,6 @@ class Trial(eqx.Module):
         self.t, self.x, self.y, self.q, self.inputs, self.kind, self.z, self.name = t, x, y, q, inputs, kind, z, name
         self.source = None if source is None else str(source)
 
-    # -------------------------------------------------------------- views
     @property
     def n_wheels(self) -> int:
         return int(self.inputs.shape[1])
@@ -99,7 +88,7 @@ class Trial(eqx.Module):
     @property
     def input_names(self) -> list[str]:
         """`["chi_dot_1", ...]` or `["K_1", ...]`."""
-        return [f"{INPUT_PREFIX[self.kind]}{i + 1}" for i in range(self.n_wheels)]
+        return wheel_columns(self.kind, self.n_wheels)
 
     def controls(self, kind: str = "cubic") -> WheelSpeeds | Torques:
         """The recorded inputs as a control: `WheelSpeeds` or `Torques`, `.from_samples(t,
@@ -138,34 +127,26 @@ class Trial(eqx.Module):
         )
 
 
-# --------------------------------------------------------------------------- CSV format
-
-
 def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> Trial | OnboardTrial:
-    """Read one trial CSV (format: `docs/capture.md`).
+    """Read one trial CSV (format: `docs/capture.md`): `#` lines before the header are comments
+    (`# units: mm` declares the units of `x, y, z`), then columns `t, x, y, qw, qx, qy, qz`,
+    `chi_dot_1..N` or `K_1..N`, optionally `z`; other columns are ignored; blank or `nan` pose
+    cells make the frame a gap. A file with an onboard-sensor trial's columns (`gyro_x`, ..., no
+    pose) is returned as an `OnboardTrial` (`read_onboard_trial`).
 
-    A file with the columns of an onboard-sensor trial (`gyro_x`, ..., no pose) is read by
-    `read_onboard_trial` and returned as an `OnboardTrial`.
+    `units`: `"auto"` (the `# units:` line, else detected, else metres), `"m"` or `"mm"`; one
+    that contradicts the file's line or the detected units is an error. `max_gap_fraction`: the
+    largest fraction of gap frames accepted.
 
-    Lines starting with `#` before the header are comments; `# units: mm` declares the
-    position units (`x, y, z`; default metres). Columns `t, x, y, qw, qx, qy, qz` are required,
-    then `chi_dot_1..chi_dot_N` or `K_1..K_N`, optionally `z`; other columns are ignored.
-    Blank or `nan` pose cells make the frame a gap.
-
-    **Arguments:**
-    - `units`: `"auto"` (the file's `# units:` line, else detected, else metres), `"m"` or
-      `"mm"`. A declared unit that contradicts the file's `# units:` line or the detected one
-      is an error.
-    - `max_gap_fraction`: the largest fraction of gap frames accepted.
-
-    Raises `ValueError` naming the file, the line (1-based, as an editor counts) and the column
-    of the first problem: missing columns, mixed or misnumbered input columns, blank/NaN times
-    or inputs, non-increasing or duplicated times, non-unit quaternions, too-short trials (fewer
-    than 10 valid frames or under 0.2 s), too many gaps, wrong units.
+    Raises `ValueError` naming the file, the line (1-based) and the column of the first problem:
+    missing or misnumbered columns, blank times or inputs, times not increasing, non-unit
+    quaternions, a trial under 10 valid frames or 0.2 s, too many gaps, wrong units.
     """
     path = Path(path)
-    source, meta, rows, header_line = headed_rows(path, "t, x, y, qw, qx, qy, qz, ...")
-    header = [h.strip() for h in rows[0]]
+    source, meta, rows, k = headed_rows(
+        path, "the first non-comment line must name the columns t, x, y, qw, qx, qy, qz, ..."
+    )
+    header, at = [h.strip() for h in rows[k]], f"{source}, line {k + 1}"
     missing = [c for c in POSE_COLUMNS if c not in header]
     if missing and "gyro_x" in header:  # the robot's own sensors
         from .onboard import read_onboard_trial
@@ -173,48 +154,35 @@ def read_trial(path, *, units: str = "auto", max_gap_fraction: float = 0.5) -> T
         return read_onboard_trial(path)
     if missing:
         raise ValueError(
-            f"{source}, line {header_line}: missing required column(s) {', '.join(missing)}; a trial CSV needs "
-            f"{', '.join(POSE_COLUMNS)} and chi_dot_1..N or K_1..N (see docs/capture.md){separator_hint(rows[0])}."
+            f"{at}: missing required column(s) {', '.join(missing)}; a trial CSV needs {', '.join(POSE_COLUMNS)} and "
+            f"chi_dot_1..N or K_1..N (see docs/capture.md){separator_hint(rows[k])}."
         )
-    kind, in_cols = _input_columns(header, f"{source}, line {header_line}")
-    check_unique_columns(header, f"{source}, line {header_line}", [*POSE_COLUMNS, "z", *(header[j] for j in in_cols)])
-    has_z = "z" in header
-    data, line_no = _table(rows, header, in_cols, header_line, source)
-    zcol = data[:, 7] if has_z else None
+    kind, in_cols = _input_columns(header, at)
+    names = [*POSE_COLUMNS, *(["z"] if "z" in header else []), *(header[j] for j in in_cols)]
+    check_unique_columns(header, at, [*names, "z"])
+    data, lines = _numbers(rows, k + 1, [header.index(c) for c in names], source, names, width=len(header))
+    if data.shape[0] == 0:
+        raise ValueError(f"{source}: the trial is too short: no data rows after the header.")
+    zcol = data[:, 7] if "z" in header else None
     evidence = "positions/height" if "units" in meta else "magnitude of the positions/height"
     detected = detect_position_units(data[:, 1:3], zcol)
     scale = resolve_units(units, meta.get("units"), detected, source, TRIAL_UNITS, evidence)
-    x, y = data[:, 1] * scale, data[:, 2] * scale
-    z = zcol * scale if has_z else None
+    z = None if zcol is None else zcol * scale
     t, x, y, q, inputs, z = _checked(
         data[:, 0],
-        x,
-        y,
+        data[:, 1] * scale,
+        data[:, 2] * scale,
         data[:, 3:7],
-        data[:, 8 if has_z else 7 :],
+        data[:, 7 + (zcol is not None) :],
         kind,
         z,
         source=source,
-        lines=line_no,
-        input_names=[header[j] for j in in_cols],
+        lines=lines,
+        input_names=names[7 + (zcol is not None) :],
         max_gap_fraction=max_gap_fraction,
     )
-    name = meta.get("name", path.stem)
     warn_implausible(t, x, y, q, source, z, units_hint="declare '# units: mm' in the file")
-    return Trial(t, x, y, q, inputs, kind, z, name=name, source=source)
-
-
-def _table(rows, header: list[str], in_cols: list[int], header_line: int, source: str):
-    """The pose columns, `z` where present, and the inputs of every data row as floats (blank:
-    NaN), and the rows' 1-based lines."""
-    col = {h: j for j, h in enumerate(header)}
-    extra = ["z"] if "z" in col else []
-    names = [*POSE_COLUMNS, *extra, *(header[j] for j in in_cols)]
-    use = [col[c] for c in POSE_COLUMNS + tuple(extra)] + in_cols
-    data, line_no = _numbers(rows, 1, use, source, names, width=len(header), line0=header_line - 1)
-    if data.shape[0] == 0:
-        raise ValueError(f"{source}: the trial is too short: no data rows after the header.")
-    return data, line_no
+    return Trial(t, x, y, q, inputs, kind, z, name=meta.get("name", path.stem), source=source)
 
 
 def read_trials(paths: Iterable, **kwargs) -> list[Trial | OnboardTrial]:

@@ -9,6 +9,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from .._runtime.errors import InputError
+
 KINDS = ("wheel_speeds", "torques")
 #: column prefix of the inputs for each kind
 INPUT_PREFIX = {"wheel_speeds": "chi_dot_", "torques": "K_"}
@@ -57,9 +59,6 @@ def sign_continuous(q: np.ndarray) -> np.ndarray:
     return q
 
 
-# --------------------------------------------------------------------------- validation
-
-
 def _where(source: str, lines: np.ndarray | None, k: int) -> str:
     """`"file.csv, line 17"` (1-based line of the file) or `"trial 'x', sample 17"` (1-based)."""
     if lines is None:
@@ -67,15 +66,41 @@ def _where(source: str, lines: np.ndarray | None, k: int) -> str:
     return f"{source}, line {int(lines[k])}"
 
 
-def _check_increasing(t: np.ndarray, source: str, lines: np.ndarray | None, hint: str = "") -> None:
-    """Raise a `ValueError` naming the first row whose time stamp is duplicated or goes back."""
+def wheel_columns(kind: str, n: int) -> list[str]:
+    """`["chi_dot_1", ...]` or `["K_1", ...]`: the names of `n` input columns of `kind`."""
+    return [f"{INPUT_PREFIX[kind]}{i + 1}" for i in range(n)]
+
+
+def _check_times(
+    t: np.ndarray,
+    source: str,
+    lines: np.ndarray | None,
+    blank: str = "the time is blank or not finite; every row needs one",
+    hint: str = "",
+) -> None:
+    """Raise an `InputError` naming the first row whose time is blank or not finite (`blank`
+    says so), duplicated or going back (`hint` ends that message)."""
+    bad = np.nonzero(~np.isfinite(t))[0]
+    if bad.size:
+        raise InputError(f"{_where(source, lines, int(bad[0]))}: {blank}.")
     dt = np.diff(t)
     if np.any(dt <= 0):
         k = int(np.nonzero(dt <= 0)[0][0])
         what = "duplicated" if dt[k] == 0 else "not increasing"
-        raise ValueError(
+        raise InputError(
             f"{_where(source, lines, k + 1)}: time stamps are {what}: t = {t[k + 1]:.9g} s follows t = {t[k]:.9g} s "
             f"({_where(source, lines, k).split(', ')[-1]}); times must be strictly increasing{hint}."
+        )
+
+
+def _check_inputs(t: np.ndarray, inputs: np.ndarray, names: Sequence[str], source: str, lines) -> None:
+    """Raise a `ValueError` naming the row and the column of the first blank or non-finite input."""
+    bad = np.argwhere(~np.isfinite(inputs))
+    if bad.size:
+        k, c = int(bad[0, 0]), int(bad[0, 1])
+        raise ValueError(
+            f"{_where(source, lines, k)}: input column {names[c]} is blank or not finite (t = {t[k]:g} s); "
+            "inputs may not have gaps: fill them in (e.g. interpolate the commands) or cut the trial."
         )
 
 
@@ -117,22 +142,9 @@ def _checked(
             raise ValueError(f"{source}: {nm} must have shape {shape} (one row per time); got {arr.shape}.")
     if inputs.ndim != 2 or inputs.shape[0] != M or inputs.shape[1] < 1:
         raise ValueError(f"{source}: inputs must have shape ({M}, N) with N >= 1 wheels; got {inputs.shape}.")
-    names = input_names or [f"{INPUT_PREFIX[kind]}{i + 1}" for i in range(inputs.shape[1])]
-
-    bad_t = np.nonzero(~np.isfinite(t))[0]
-    if bad_t.size:
-        k = int(bad_t[0])
-        raise ValueError(
-            f"{_where(source, lines, k)}: the time t is blank or not finite; every row needs a time (delete the row or fill it in)."
-        )
-    bad_u = np.argwhere(~np.isfinite(inputs))
-    if bad_u.size:
-        k, c = int(bad_u[0, 0]), int(bad_u[0, 1])
-        raise ValueError(
-            f"{_where(source, lines, k)}: input column {names[c]} is blank or not finite (t = {t[k]:g} s); "
-            "inputs may not have gaps: fill them in (e.g. interpolate the commands) or cut the trial."
-        )
-    _check_increasing(t, source, lines, " (remove duplicated frames, sort by time)")
+    blank = "the time t is blank or not finite; every row needs a time (delete the row or fill it in)"
+    _check_times(t, source, lines, blank, " (remove duplicated frames, sort by time)")
+    _check_inputs(t, inputs, input_names or wheel_columns(kind, inputs.shape[1]), source, lines)
 
     gap = ~np.isfinite(x) | ~np.isfinite(y) | ~np.all(np.isfinite(q), axis=1) | ~np.isfinite(1.0 if z is None else z)
     for a in (x, y, q) if z is None else (x, y, q, z):
@@ -165,9 +177,6 @@ def _checked(
                 "check the robot's marker set and its rigid-body definition in the capture software."
             )
     return t, x, y, q, inputs, z
-
-
-# --------------------------------------------------------------------------- plausibility
 
 
 def _tilt_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -218,15 +227,11 @@ def _lean_fit(t, x, y, q, valid) -> float:
 
 def implausible(t, x, y, q, z=None, *, from_markers: bool = False) -> list[tuple[str, str]]:
     """What looks physically wrong in a trial's arrays (gap frames NaN), as `(kind, detail)`
-    pairs; `kind` is `"step"`, `"speed"`, `"rate"`, `"height"`, `"lying"` or `"xyzw"` (the
-    table "Plausibility warnings" of `docs/capture.md` gives each one's test and threshold:
-    `MAX_PLAUSIBLE_STEP`, `MAX_PLAUSIBLE_SPEED` over windows of 0.1 s and `MAX_PLAUSIBLE_RATE`
-    over 0.02 s, 95th percentiles, so that one swapped marker does not count). Used by
-    `warn_implausible`. `from_markers`: the poses were computed from markers (`convert_raw`),
-    so their quaternions cannot be in the wrong order (no `"xyzw"`), but the up axis can be
-    wrong (`"lying"`: tilted beyond 80 deg; random inputs tilt the paper's robot up to 66 deg).
-    Quaternions read in the wrong order (`_quaternion_order`) tilt by the platform's heading
-    instead, and their lean no longer follows the ball's acceleration (`_lean_fit`).
+    pairs, `kind` one of `"step"`, `"speed"`, `"rate"`, `"height"`, `"lying"`, `"xyzw"` (tests
+    and thresholds: `docs/capture.md`, "Plausibility warnings"; 95th percentiles, so that one
+    swapped marker does not count). `from_markers`: poses computed from markers, whose
+    quaternions cannot be out of order (no `"xyzw"`) but whose up axis can be wrong (`"lying"`:
+    tilted beyond 80 deg; random inputs tilt the paper's robot up to 66 deg).
     """
     t, x, y, q = (np.asarray(a, float) for a in (t, x, y, q))
     out = []
@@ -297,9 +302,8 @@ def _quaternion_order(t, x, y, q, v, step: float, tilt: float) -> list[tuple[str
     if step < 0.05 and t[-1] - t[0] >= 1.0:  # enough frames over enough time to see accelerations
         fit = _lean_fit(t, x, y, q, v)
         fit_swapped = _lean_fit(t, x, y, q[:, [3, 0, 1, 2]], v)
-    half_turn = abs(qv[0, 3]) > math.cos(
-        math.radians(5.0)
-    )  # the first pose: a half turn about Z, or x, y, z, w of q = 1
+    # the first pose: a half turn about Z, or x, y, z, w of q = 1
+    half_turn = abs(qv[0, 3]) > math.cos(math.radians(5.0))
     if fit_swapped >= 0.5 and fit <= fit_swapped - 0.3:
         why = (
             f"read as x, y, z, w the platform leans with the ball's acceleration (R^2 {fit_swapped:.2f}); "

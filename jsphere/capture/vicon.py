@@ -7,32 +7,26 @@ import numpy as np
 
 from .._runtime.errors import InputError
 from .._runtime.files import atomic_write_text
-from .markers import MarkerData, check_up_axis, fixed_markers
-from .text import _check_times, _cut_short, _data_end, _numbers, _read_lines, cells, separator_hint
+from .markers import MarkerData, fixed_markers, open_export
+from .text import _cut_short, _data_end, _numbers, cells, separator_hint
+from .validation import _check_times
 
 
 def read_vicon_csv(
     path, *, subject: str | None = None, units: str = "auto", up_axis: str = "z", allow_truncated: bool = False
 ) -> MarkerData:
-    """Read a Vicon Nexus CSV export (Nexus 2): its `Trajectories` section.
+    """Read the `Trajectories` section of a Vicon Nexus 2 CSV export (Vicon Nexus reference
+    guide, "Export data to a CSV file"): a line with the section's name, the rate [Hz], a row of
+    names (`Subject:Marker` in the column of each marker's X), `Frame,Sub Frame,X,Y,Z,...`, a
+    units row and one row per frame, up to a blank line; other sections (`Devices`, `Joints`,
+    ...) are skipped. Blank cells are gaps; unlabelled trajectories (`*N`) are left out. Time is
+    `(Frame - first Frame) / rate` [s] (`Sub Frame` must be 0).
 
-    Layout (Vicon Nexus reference guide, "Export data to a CSV file"): sections `Devices`
-    (force plates, analog channels), `Joints`, `Model Outputs`, `Segments` and `Trajectories`,
-    each a line with its name, the rate [Hz], a row of names, `Frame,Sub Frame,...`, a units row
-    and one row per frame, up to a blank line. Only `Trajectories` is read, wherever it comes:
-    its names row holds each marker's `Subject:Marker` in the column of its X, the units row
-    `mm`. Blank cells are gaps; unlabelled trajectories (names starting with `*`) are left out.
-    Time is `(Frame - first Frame) / rate` [s] (`Sub Frame` is 0 in trajectory exports; other
-    values are an error).
-
-    `subject` keeps the markers named `"<subject>:..."`; default: the only subject, and with
-    several an `InputError` listing them. `units`: `"auto"` (the units row), `"m"` or `"mm"`.
-    `up_axis`: Vicon is Z-up by default. `allow_truncated`: as in `ConvertOptions` (a section
-    that runs to the end of the file with a last row cut off mid-row).
+    `subject`: keeps the markers `"<subject>:..."` (default: the only subject). `units`:
+    `"auto"` (the units row), `"m"` or `"mm"`. `up_axis`: Vicon is Z-up by default.
+    `allow_truncated`: as in `ConvertOptions`.
     """
-    path, rows = _read_lines(path)
-    source = str(path)
-    check_up_axis(up_axis, source)
+    source, rows = open_export(path, up_axis)
     i0, rate, file_units = _section(rows, source)
     mk = _markers(rows[i0 + 2], rows[i0 + 3], subject, source, i0 + 3)
     cols = [0, 1] + [j + a for _, j in mk for a in range(3)]
@@ -49,7 +43,7 @@ def read_vicon_csv(
             f"{source}, line {lines[sub[0]]}: Sub Frame is not 0; export the trajectories at the camera rate."
         )
     t = (data[:, 0] - data[0, 0]) / rate
-    _check_times(t, lines, source)
+    _check_times(t, source, lines)
     markers, _ = fixed_markers(data[:, 2:].reshape(len(t), len(mk), 3), source, units, file_units, up_axis)
     return MarkerData(t, markers, tuple(n for n, _ in mk), source, lines)
 
