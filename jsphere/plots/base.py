@@ -1,8 +1,10 @@
-"""What every figure shares: matplotlib imported lazily (Agg), the x-y axes of a path in jsphere's
-frame or the paper's figure frame, a study's confidence ellipse, the paper's measured stop, and
-the atomic save."""
+"""What every figure shares: matplotlib imported lazily (Agg), the figure made and saved
+atomically, the x-y axes of a path in jsphere's frame or the paper's figure frame, a study's
+confidence ellipse and the paper's measured stop."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 
@@ -16,6 +18,11 @@ def pyplot():
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def subplots(*args, **kwargs):
+    """`plt.subplots` with matplotlib imported lazily: the figure and its axes."""
+    return pyplot().subplots(*args, **kwargs)
 
 
 #: the axis labels of a path in each frame: jsphere's fixed frame (the gaits move along +x) and
@@ -63,12 +70,14 @@ def xy_axes(ax, frame: str = "paper") -> None:
     ax.legend(fontsize=7)
 
 
-def finish(plt, fig, path, margins: dict | None = None) -> None:
-    """Lay out, save atomically, close. `margins` (for `fig.subplots_adjust`) fix the layout
-    by hand; without them `tight_layout` measures every label (~0.1 s a figure)."""
+def finish(fig, path, margins: dict | None = None) -> Path:
+    """Lay out, save atomically to `path`, close; return `Path(path)`. `margins` (for
+    `fig.subplots_adjust`) fix the layout by hand; without them `tight_layout` measures every
+    label (~0.1 s a figure)."""
     if margins is None:
         fig.tight_layout()
     else:
         fig.subplots_adjust(**margins)
-    atomic_savefig(fig, path, dpi=120)
-    plt.close(fig)
+    atomic_savefig(fig, Path(path), dpi=120)
+    pyplot().close(fig)
+    return Path(path)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .base import finish, pyplot
+from .base import finish, subplots
 
 
 def worst_trial(result) -> tuple[int | None, str]:
@@ -43,10 +43,9 @@ def fit_figures(result, out_dir, *, stem: str = "fit") -> list[Path]:
     frames, marker swaps: `FitResult.outliers`) are red crosses in both figures, and the
     residual axes are scaled to the frames kept.
 
-    For onboard-sensor trials (`result.sigmas` set) the same two files: the worst trial's
-    readings, recorded and fitted (gyro, accelerometer, encoders), and every trial's residuals
-    per channel (`onboard_figures`). Trials of both kinds: the pose trials' two files and the
-    onboard trials' as `<stem>_onboard_overlay.png`, `<stem>_onboard_residuals.png`."""
+    For onboard-sensor trials (`result.sigmas` set), the two files of `onboard_figures`; for trials
+    of both kinds, the pose trials' two files and the onboard trials' `<stem>_onboard_overlay.png`
+    and `<stem>_onboard_residuals.png`."""
     parts = (getattr(result, "verdict", None) or {}).get("parts")
     if parts:
         pose = [t for t in result.trials if "rms_pos_m" in t]
@@ -59,14 +58,50 @@ def fit_figures(result, out_dir, *, stem: str = "fit") -> list[Path]:
     return _pose_figures(result, out_dir, stem)
 
 
+def _status(result) -> str:
+    return f"status: {result.status}; " if getattr(result, "status", "") else ""
+
+
+def _residual_figure(trials, worst, panels, titles, path, size, suptitle: str, fontsize: float, lw: float) -> Path:
+    """Every trial's residuals against time, a row per trial (the worst first, named in bold red)
+    and a column per panel `(series key, scale, line labels or None for 1..N, y label)`, titled
+    over the first row; the frames a robust loss set aside are red crosses at the axes' edge,
+    the axes scaled to the frames kept. Written atomically to `path`."""
+    n = len(trials)
+    order = list(range(n)) if worst is None else [worst] + [k for k in range(n) if k != worst]
+    fig, axes = subplots(n, len(panels), figsize=size, sharex="row", squeeze=False)
+    for row, k in enumerate(order):
+        s = trials[k]["series"]
+        out = _set_aside(s)
+        for ax, (key, unit, labels, ylabel) in zip(axes[row], panels):
+            err = s[key]
+            for i, lab in enumerate(labels or [f"{i + 1}" for i in range(err.shape[1])]):
+                ax.plot(s["t"], unit * err[:, i], lw=lw, label=lab)
+            if out.any():
+                kept = unit * err[~out]
+                top = np.nanmax(np.abs(kept)) * 1.1 if np.isfinite(kept).any() else 1.0
+                ax.set_ylim(-top, top)
+                ax.plot(s["t"][out], np.full(int(out.sum()), 0.9 * top), "x", ms=3, color="red", label="set aside")
+            if ylabel:
+                ax.set_ylabel(ylabel, fontsize=7)
+        emph = {"color": "C3", "fontweight": "bold"} if k == worst and n > 1 else {}
+        axes[row][0].set_ylabel(f"{trials[k]['name']}{panels[0][3]}", fontsize=7, **emph)
+    for ax, title in zip(axes[0], titles):
+        ax.set_title(title, fontsize=fontsize)
+        ax.legend(fontsize=6, loc="upper right")
+    for ax in axes[-1]:
+        ax.set_xlabel("t [s]")
+    if suptitle:
+        fig.suptitle(suptitle, fontsize=9)
+    return finish(fig, path)
+
+
 def _pose_figures(result, out_dir, stem: str) -> list[Path]:
     """`fit_figures` of a fit to captured poses."""
-    plt = pyplot()
-    out_dir = Path(out_dir)
-    trials = result.trials
+    out_dir, trials = Path(out_dir), result.trials
     worst, worst_text = worst_trial(result)
-    status = f"status: {result.status}; " if getattr(result, "status", "") else ""
-    fig, ax = plt.subplots(figsize=(6.5, 6))
+    status = _status(result)
+    fig, ax = subplots(figsize=(6.5, 6))
     for k, tr in enumerate(trials):
         s = tr["series"]
         c = f"C{k % 10}"
@@ -88,48 +123,21 @@ def _pose_figures(result, out_dir, stem: str) -> list[Path]:
     ax.axis("equal")
     if len(trials) <= 12:
         ax.legend(fontsize=7)
-    overlay = out_dir / f"{stem}_overlay.png"
-    finish(plt, fig, overlay)
+    overlay = finish(fig, out_dir / f"{stem}_overlay.png")
 
     verdict = getattr(result, "verdict", None) or {}
     fp, fr = verdict.get("noise_floor_pos_m"), verdict.get("noise_floor_rot_deg")
     floor_pos = f", noise floor {1e3 * fp:.3f} mm" if isinstance(fp, float) and np.isfinite(fp) else ""
     floor_rot = f", noise floor {fr:.3f} deg" if isinstance(fr, float) and np.isfinite(fr) else ""
-    n = len(trials)
-    order = list(range(n)) if worst is None else [worst] + [k for k in range(n) if k != worst]
-    fig, axes = plt.subplots(
-        n, 2, figsize=(10, 1.6 * n + 0.8 + (0.3 if worst_text else 0.0)), sharex="row", squeeze=False
+    titles = (
+        f"position residual (sigma {1e3 * result.sigma_pos:.3f} mm{floor_pos})",
+        f"orientation residual (sigma {np.degrees(result.sigma_rot):.3f} deg{floor_rot})",
     )
-    for row, k in enumerate(order):
-        tr = trials[k]
-        s = tr["series"]
-        a, b = axes[row]
-        a.plot(s["t"], 1e3 * s["pos_err"][:, 0], lw=0.6, label="x")
-        a.plot(s["t"], 1e3 * s["pos_err"][:, 1], lw=0.6, label="y")
-        for i, lab in enumerate("xyz"):
-            b.plot(s["t"], s["rot_err_deg"][:, i], lw=0.6, label=lab)
-        out = _set_aside(s)
-        if out.any():  # the frames set aside: crosses at the axis' edge, the axes scaled to the frames kept
-            for ax_, err, unit in ((a, s["pos_err"], 1e3), (b, s["rot_err_deg"], 1.0)):
-                kept = unit * err[~out]
-                top = np.nanmax(np.abs(kept)) * 1.1 if np.isfinite(kept).any() else 1.0
-                ax_.set_ylim(-top, top)
-                ax_.plot(s["t"][out], np.full(int(out.sum()), 0.9 * top), "x", ms=3, color="red", label="set aside")
-        emph = {"color": "C3", "fontweight": "bold"} if k == worst and n > 1 else {}
-        a.set_ylabel(f"{tr['name']}\n[mm]", fontsize=7, **emph)
-        b.set_ylabel("[deg]", fontsize=7)
-        if row == 0:
-            a.set_title(f"position residual (sigma {1e3 * result.sigma_pos:.3f} mm{floor_pos})", fontsize=9)
-            b.set_title(f"orientation residual (sigma {np.degrees(result.sigma_rot):.3f} deg{floor_rot})", fontsize=9)
-            for ax_ in (a, b):
-                ax_.legend(fontsize=6, loc="upper right")
-    if worst_text:
-        fig.suptitle(f"{status}worst-fitting trial first: {worst_text}", fontsize=9)
-    for ax_ in axes[-1]:
-        ax_.set_xlabel("t [s]")
+    panels = (("pos_err", 1e3, "xy", "\n[mm]"), ("rot_err_deg", 1.0, "xyz", "[deg]"))
+    size = (10, 1.6 * len(trials) + 0.8 + (0.3 if worst_text else 0.0))
+    suptitle = f"{status}worst-fitting trial first: {worst_text}" if worst_text else ""
     residuals = out_dir / f"{stem}_residuals.png"
-    finish(plt, fig, residuals)
-    return [overlay, residuals]
+    return [overlay, _residual_figure(trials, worst, panels, titles, residuals, size, suptitle, 9, 0.6)]
 
 
 def onboard_figures(result, out_dir, *, stem: str = "fit") -> list[Path]:
@@ -137,15 +145,13 @@ def onboard_figures(result, out_dir, *, stem: str = "fit") -> list[Path]:
     biases included) per channel; `<stem>_residuals.png`: every trial's residuals per channel
     (gyro [rad/s], accelerometer [m/s^2], encoders [mrad]), the worst first, each channel titled
     with its noise level, floor and ratio."""
-    plt = pyplot()
     out_dir = Path(out_dir)
     trials, verdict = result.trials, getattr(result, "verdict", None) or {}
-    names = [t["name"] for t in trials]
-    worst = names.index(verdict["worst_trial"]) if verdict.get("worst_trial") in names else 0
-    status = f"status: {result.status}; " if getattr(result, "status", "") else ""
+    names, worst = [t["name"] for t in trials], worst_trial(result)[0] or 0
+    status = _status(result)
     channels = (("gyro", "gyro [rad/s]", 1.0), ("acc", "accelerometer [m/s^2]", 1.0), ("chi", "encoders [mrad]", 1e3))
     s = trials[worst]["series"]
-    fig, axes = plt.subplots(3, 1, figsize=(8, 7), sharex=True)
+    fig, axes = subplots(3, 1, figsize=(8, 7), sharex=True)
     for ax, (key, label, _) in zip(axes, channels):
         meas, fitted = s[key], s[key] + s[f"{key}_err"]
         for i in range(meas.shape[1]):
@@ -155,32 +161,14 @@ def onboard_figures(result, out_dir, *, stem: str = "fit") -> list[Path]:
         ax.legend(fontsize=6, loc="upper left")
     axes[-1].set_xlabel("t [s]")
     fig.suptitle(f"{status}trial {names[worst]!r}: recorded (dots) and fitted (lines) readings", fontsize=9)
-    overlay = out_dir / f"{stem}_overlay.png"
-    finish(plt, fig, overlay)
+    overlay = finish(fig, out_dir / f"{stem}_overlay.png")
 
-    n = len(trials)
-    order = [worst] + [k for k in range(n) if k != worst]
-    fig, axes = plt.subplots(n, 3, figsize=(12, 1.6 * n + 1.0), sharex="row", squeeze=False)
-    chan = verdict.get("channels", {})
-    for row, k in enumerate(order):
-        s = trials[k]["series"]
-        for ax, (key, label, unit), c in zip(axes[row], channels, ("gyro", "acc", "encoders")):
-            e = s[f"{key}_err"]
-            for i in range(e.shape[1]):
-                ax.plot(s["t"], unit * e[:, i], lw=0.5, label=f"{i + 1}" if key == "chi" else "xyz"[i])
-            if row == 0:
-                v = chan.get(c, {})
-                ax.set_title(
-                    f"{label}: sigma {unit * result.sigmas[c]:.3g}, floor {unit * v.get('noise_floor', np.nan):.3g} "
-                    f"({v.get('ratio', np.nan):.2f}x)",
-                    fontsize=8,
-                )
-                ax.legend(fontsize=6, loc="upper right")
-        emph = {"color": "C3", "fontweight": "bold"} if k == worst and n > 1 else {}
-        axes[row][0].set_ylabel(trials[k]["name"], fontsize=7, **emph)
-    for ax in axes[-1]:
-        ax.set_xlabel("t [s]")
-    fig.suptitle(f"{status}residuals per channel, the worst-fitting trial first", fontsize=9)
+    chan, titles = verdict.get("channels", {}), []
+    for (key, label, unit), c in zip(channels, ("gyro", "acc", "encoders")):
+        v = chan.get(c, {})
+        floor, ratio = unit * v.get("noise_floor", np.nan), v.get("ratio", np.nan)
+        titles.append(f"{label}: sigma {unit * result.sigmas[c]:.3g}, floor {floor:.3g} ({ratio:.2f}x)")
+    panels = [(f"{key}_err", unit, None if key == "chi" else "xyz", "") for key, _, unit in channels]
+    size, suptitle = (12, 1.6 * len(trials) + 1.0), f"{status}residuals per channel, the worst-fitting trial first"
     residuals = out_dir / f"{stem}_residuals.png"
-    finish(plt, fig, residuals)
-    return [overlay, residuals]
+    return [overlay, _residual_figure(trials, worst, panels, titles, residuals, size, suptitle, 8, 0.5)]

@@ -1,13 +1,11 @@
-"""Figures of Monte-Carlo studies: stop points with their confidence ellipse, Fig. 2 as a study.
-
-Both draw in jsphere's frame by default, the frame of `MonteCarloResult.stats()`; `frame="paper"`
-turns them into the paper's figure frame (`x_fig = -y`, `y_fig = x`, docs/model.md)."""
+"""Figures of Monte-Carlo studies: stop points with their confidence ellipse, Fig. 2 as a study;
+in jsphere's frame (that of `MonteCarloResult.stats()`) or the paper's figure frame (docs/model.md)."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from .base import check_frame, ellipse_points, finish, in_frame, paper_experiment, pyplot, xy_axes
+from .base import check_frame, ellipse_points, finish, in_frame, paper_experiment, subplots, xy_axes
 
 
 def _ellipse(st, frame: str):
@@ -27,10 +25,8 @@ def montecarlo_figure(res, path, *, planned=None, frame: str = "jsphere") -> Non
     the distance from the mean stop [mm]. `planned`: the nominal stop `(x, y)` [m] in
     jsphere's frame; `frame`: `"jsphere"` (default) or `"paper"` (the paper's figure frame)."""
     check_frame(frame)
-    plt = pyplot()
-    xf, yf = _stops(res, frame)
-    st = res.stats()
-    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 4.5))
+    (xf, yf), st = _stops(res, frame), res.stats()
+    fig, (a, b) = subplots(1, 2, figsize=(10, 4.5))
     a.plot(xf, yf, ".", ms=2, alpha=0.4, label=f"{xf.size} trials")
     a.plot(*_ellipse(st, frame), "r-", label=f"{100 * st['ellipse']['level']:.0f}% ellipse")
     mx, my = in_frame(1e3 * st["mean_xy_m"][0], 1e3 * st["mean_xy_m"][1], frame)
@@ -41,7 +37,7 @@ def montecarlo_figure(res, path, *, planned=None, frame: str = "jsphere") -> Non
     d = np.hypot(xf - mx, yf - my)
     b.hist(d, bins=60)
     b.set(xlabel="distance from the mean stop [mm]", ylabel="trials")
-    finish(plt, fig, path)
+    finish(fig, path)
 
 
 def figure2_study(kin, gait, path, *, frame: str = "jsphere") -> None:
@@ -50,8 +46,7 @@ def figure2_study(kin, gait, path, *, frame: str = "jsphere") -> None:
     (b) stop points with their 95 % ellipses and the paper's experiment, in `frame`
     (`"jsphere"`, default, or `"paper"`: the paper's figure frame)."""
     check_frame(frame)
-    plt = pyplot()
-    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.5))
+    fig, (a, b) = subplots(1, 2, figsize=(11, 4.5))
     for res, lab in ((kin, "kinematic control (2.9)"), (gait, "gait control")):
         ok = np.asarray(res.status) == 0
         a.hist(np.asarray(res.gamma3_sd_after)[ok], bins=60, alpha=0.6, label=lab)
@@ -63,4 +58,4 @@ def figure2_study(kin, gait, path, *, frame: str = "jsphere") -> None:
     a.legend(fontsize=7)
     paper_experiment(b, frame, "paper, gaits, experiment (95%)")
     xy_axes(b, frame)
-    finish(plt, fig, path)
+    finish(fig, path)

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .base import finish, paper_experiment, pyplot, xy_axes
+from .base import finish, paper_experiment, subplots, xy_axes
 
 
 def _fig_xy(tr):
@@ -16,9 +16,8 @@ def _fig_xy(tr):
 
 def figure2(rep, path) -> None:
     """Fig. 2: kinematic control (2.9) vs gait control; (a) paths, (b) `gamma_3(t)`."""
-    plt = pyplot()
     kin, gait = rep.trajectories["kinematic"], rep.trajectories["gait_8s"]
-    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 4))
+    fig, (a, b) = subplots(1, 2, figsize=(10, 4))
     for tr, lab, st in ((kin, "kinematic model (2.9)", "-"), (gait, "dynamic model (gaits)", "--")):
         a.plot(*_fig_xy(tr), st, label=lab)
         b.plot(np.asarray(tr.ts), np.asarray(tr.gamma[:, 2]), st, label=lab)
@@ -32,14 +31,13 @@ def figure2(rep, path) -> None:
         fontsize=8,
     )
     b.legend()
-    finish(plt, fig, path, dict(left=0.07, right=0.98, bottom=0.12, top=0.92, wspace=0.22))
+    finish(fig, path, dict(left=0.07, right=0.98, bottom=0.12, top=0.92, wspace=0.22))
 
 
 def figure3(rep, path) -> None:
     """Fig. 3: (a) straight line, (b) straight line with a turn; paper's and measured stops."""
-    plt = pyplot()
-    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 5))
     T = rep.trajectories
+    fig, (a, b) = subplots(1, 2, figsize=(10, 5))
     a.plot(*_fig_xy(T["straight"]), "--", label="jsphere (no reset)")
     a.plot(*_fig_xy(T["straight_reset"]), ":", label="jsphere (reset 5.4)")
     a.plot([-0.0695], [344.6], "rx", label="paper, simulation")
@@ -54,24 +52,21 @@ def figure3(rep, path) -> None:
     b.set_title("(b) rectilinear motion with a turn")
     for ax in (a, b):
         xy_axes(ax)
-    finish(plt, fig, path, dict(left=0.07, right=0.98, bottom=0.1, top=0.94, wspace=0.22))
+    finish(fig, path, dict(left=0.07, right=0.98, bottom=0.1, top=0.94, wspace=0.22))
 
 
 def controls_figure(tr, path, *, title: str = "") -> None:
     """Wheel torques `K(t)`, wheel rates `chi_dot(t)` and tilt `gamma_3(t)` of a trajectory."""
-    plt = pyplot()
-    fig, axs = plt.subplots(3, 1, figsize=(7, 7), sharex=True)
-    t = np.asarray(tr.ts)
-    for ax, v, label in zip(
-        axs, (1e3 * np.asarray(tr.K), tr.chi_dot, tr.gamma[:, 2]), ("K [mN m]", r"$\dot\chi$ [rad/s]", r"$\gamma_3$")
-    ):
-        ax.plot(t, np.asarray(v))
+    fig, axs = subplots(3, 1, figsize=(7, 7), sharex=True)
+    labels = ("K [mN m]", r"$\dot\chi$ [rad/s]", r"$\gamma_3$")
+    for ax, v, label in zip(axs, (1e3 * np.asarray(tr.K), tr.chi_dot, tr.gamma[:, 2]), labels):
+        ax.plot(np.asarray(tr.ts), np.asarray(v))
         ax.set_ylabel(label)
     axs[2].set_xlabel("t [s]")
     axs[0].legend([f"wheel {i + 1}" for i in range(np.asarray(tr.K).shape[1])], fontsize=7)
     if title:
         axs[0].set_title(title)
-    finish(plt, fig, path, dict(left=0.12, right=0.97, bottom=0.08, top=0.95, hspace=0.08))
+    finish(fig, path, dict(left=0.12, right=0.97, bottom=0.08, top=0.95, hspace=0.08))
 
 
 #: The files `write_reproduction_figures` writes in its folder.

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 from .base import finish, pyplot
@@ -14,14 +12,11 @@ def plan_figure(plan, path, *, compare=None, title: str = "") -> None:
     heading arrows; (b) wheel torques `K_i(t)`; (c) wheel rates `chi_dot_i(t)`; (d) tilt
     `theta(t)` [deg] with the limits as dashed lines. `compare`: extra `(label, Trajectory)`
     paths drawn in (a), e.g. the paper's hand-made gaits or a replay of the table."""
-    plt = pyplot()
     cols = plan.table()
-    fig = plt.figure(figsize=(11, 7))
+    fig = pyplot().figure(figsize=(11, 7))
     gs = fig.add_gridspec(3, 2, width_ratios=[1.1, 1])
-    a = fig.add_subplot(gs[:, 0])
-    b = fig.add_subplot(gs[0, 1])
-    c = fig.add_subplot(gs[1, 1], sharex=b)
-    d = fig.add_subplot(gs[2, 1], sharex=b)
+    a, b = fig.add_subplot(gs[:, 0]), fig.add_subplot(gs[0, 1])
+    c, d = fig.add_subplot(gs[1, 1], sharex=b), fig.add_subplot(gs[2, 1], sharex=b)
     a.plot(cols["x"], cols["y"], "-", lw=1.5, label="plan")
     for lab, tr in compare or ():
         a.plot(np.asarray(tr.x), np.asarray(tr.y), "--", lw=1, label=lab)
@@ -31,18 +26,9 @@ def plan_figure(plan, path, *, compare=None, title: str = "") -> None:
     t = cols["t"]
     idx = np.linspace(0, len(t) - 1, 12).astype(int)
     L = 0.05 * max(np.ptp(cols["x"]), np.ptp(cols["y"]), 0.1)
-    a.quiver(
-        cols["x"][idx],
-        cols["y"][idx],
-        np.cos(cols["heading"][idx]),
-        np.sin(cols["heading"][idx]),
-        angles="xy",
-        scale_units="xy",
-        scale=1 / L,
-        width=0.004,
-        color="0.4",
-        label="platform heading",
-    )
+    h = cols["heading"][idx]
+    arrows = dict(angles="xy", scale_units="xy", scale=1 / L, width=0.004, color="0.4", label="platform heading")
+    a.quiver(cols["x"][idx], cols["y"][idx], np.cos(h), np.sin(h), **arrows)
     a.set(xlabel="x [m]", ylabel="y [m]")
     a.axis("equal")
     a.legend(fontsize=7)
@@ -61,4 +47,4 @@ def plan_figure(plan, path, *, compare=None, title: str = "") -> None:
     b.legend(fontsize=7)
     c.set_ylabel(r"$\dot\chi$ [rad/s]")
     d.set(xlabel="t [s]", ylabel="tilt [deg]")
-    finish(plt, fig, Path(path))
+    finish(fig, path)

@@ -236,6 +236,7 @@ def test_the_first_call_estimate_comes_from_the_cache_record(tmp_path, monkeypat
 def test_stop_points_figure_is_in_jsphere_frame_unless_asked(monkeypatch, tmp_path):
     from jsphere.montecarlo.result import MonteCarloResult
     from jsphere.plots import montecarlo as figures
+    from jsphere.plots.base import pyplot
 
     rng = np.random.default_rng(0)
     n = 200
@@ -253,10 +254,10 @@ def test_stop_points_figure_is_in_jsphere_frame_unless_asked(monkeypatch, tmp_pa
     )
     drawn = {}
 
-    def keep(plt, fig, path, margins=None):
+    def keep(fig, path, margins=None):
         ax = fig.axes[0]
         drawn[path.name] = (ax.get_xlabel(), ax.get_ylabel(), np.asarray(ax.lines[0].get_xydata()).mean(0))
-        plt.close(fig)
+        pyplot().close(fig)
 
     monkeypatch.setattr(figures, "finish", keep)
     figures.montecarlo_figure(res, tmp_path / "ours.png", planned=(0.2588, 0.0036))

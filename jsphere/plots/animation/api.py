@@ -1,6 +1,4 @@
-"""`animate`: a run as a video (MP4, GIF) or an interactive HTML viewer, drawn from the result
-objects jsphere computes (`jsphere.animate`, which `jsphere animate` calls, reads files into them
-first)."""
+"""`animate`: a run as a video (MP4, GIF) or an interactive HTML viewer, drawn from result objects."""
 
 from __future__ import annotations
 
@@ -26,10 +24,9 @@ def scenes_of(source, *, params=None, captures=None, trials=None) -> list[Scene]
     from ...solve.trajectory import Trajectory
     from . import sources
 
-    if isinstance(source, Scene):
-        return [source]
-    if isinstance(source, (list, tuple)) and source and all(isinstance(s, Scene) for s in source):
-        return list(source)
+    many = list(source) if isinstance(source, (list, tuple)) and source else [source]
+    if all(isinstance(s, Scene) for s in many):
+        return many
     if isinstance(source, Plan):
         return [sources.plan_scene(source)]
     robot = params if params is not None else RobotParams.paper()
@@ -90,12 +87,11 @@ def animate(
     return its path. The arguments are those of `jsphere.animate`, which also reads files."""
     out, fps, speed, size = check_options(out, fps=fps, speed=speed, size=size, view=view)
     scenes = scenes_of(source, params=params, captures=captures, trials=trials)
-    if out.suffix.lower() == ".html":
-        from .viewer import write_html
+    from .video import render
+    from .viewer import write_html
 
+    if out.suffix.lower() == ".html":
         write_html(scenes, out, fps=fps, speed=speed, size=size, view=view)
     else:
-        from .video import render
-
         render(scenes, out, fps=fps, speed=speed, size=size, view=view, progress=progress)
     return out

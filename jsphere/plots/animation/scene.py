@@ -1,20 +1,12 @@
-"""What an animation shows, as NumPy arrays: the robots of a run (`Body`: the shell's centre and
-attitude, the platform's attitude, the wheel angles and rates at the run's own times), grouped in
-`Scene`s (one run, or a fit's trial with its model, or a handful of Monte-Carlo trials), and the
-geometry of every frame (`Frames`: the shell's meridians, the platform, each omniwheel, the centre
-of mass, the floor path), computed at once for all frames with NumPy so that the video writer
-and the HTML viewer only move their artists.
+"""What an animation shows, as NumPy arrays: the robots of a run (`Body`), grouped in `Scene`s,
+and the geometry of every frame (`BodyFrames`), computed at once for all frames so that the video
+writer and the HTML viewer only move their artists.
 
 Frames: jsphere's fixed frame `OXYZ` (Z up, the floor at `Z = 0`, the shell's centre at
 `Z = R0`), metres. Rotation matrices map body components to fixed ones (`rotmat(q)`: rows
 `alpha, beta, gamma` for the platform, as `jsphere.State.q`; the shell's as `State.q_shell`).
-
-The shell's attitude is the one the state integrates (`Trajectory.q_shell`). A capture or a
-plan table records the platform only; there the shell's attitude is integrated along the
-floor path by the rolling constraint (2.3), `v = R0 Omega x gamma`: over each step the shell turns
-by the floor displacement `(dx, dy)` divided by `R0` about the horizontal axis `(-dy, dx)`, and
-about the vertical by the shell's spin `(Omega, gamma)`, which the wheel rates give through (2.4)
-where they are known (`Omega = omega - (omega - Omega)`, `omega` from the platform's attitude)."""
+A capture or a plan table records the platform only: there the shell's attitude is integrated
+along the floor path by the rolling constraint (2.3) (`rolling_attitude`, `body_from_poses`)."""
 
 from __future__ import annotations
 
@@ -106,12 +98,6 @@ def body_rates(t, R) -> np.ndarray:
     return 0.5 * np.stack([W[:, 2, 1] - W[:, 1, 2], W[:, 0, 2] - W[:, 2, 0], W[:, 1, 0] - W[:, 0, 1]], axis=-1)
 
 
-def _cumulative(t, v) -> np.ndarray:
-    """The running trapezoidal integral of `v (T, N)` over `t`, from 0."""
-    inc = 0.5 * (v[1:] + v[:-1]) * np.diff(t)[:, None]
-    return np.concatenate([np.zeros((1, v.shape[1])), np.cumsum(inc, axis=0)])
-
-
 def body_from_poses(params: RobotParams, t, x, y, R, *, chi_dot=None, label: str = "", ghost: bool = False) -> Body:
     """A `Body` from platform poses (a capture, a plan's table): frames with a missing pose
     (NaN) are left out; the shell's attitude is integrated by `rolling_attitude`, with the spin
@@ -129,21 +115,19 @@ def body_from_poses(params: RobotParams, t, x, y, R, *, chi_dot=None, label: str
     t, x, y, R = t[ok], x[ok], y[ok], R[ok]
     if t.size < 2:
         raise ValueError(f"{label or 'the run'}: fewer than two frames with a pose; nothing to animate.")
-    d = derive(params)
-    omega = body_rates(t, R)
-    R0 = float(params.R0)
+    d, omega, R0, spin = derive(params), body_rates(t, R), float(params.R0), None
     if chi_dot is not None:  # (2.4): omega - Omega = -Sk^+ chi_dot, in platform components
         rel = -np.einsum("ij,tj->ti", np.asarray(d.Sk_pinv), chi_dot)
         spin = np.einsum("tij,tj->ti", R, omega - rel)[:, 2]
-    else:
-        spin = None
     R_shell = rolling_attitude(t, x, y, R0, spin)
     if chi_dot is None:  # the rates (2.4) of this shell motion: Omega (fixed) from the path
         vx, vy = np.gradient(x, t), np.gradient(y, t)
         Om_fixed = np.stack([-vy / R0, vx / R0, np.zeros_like(vx)], axis=-1)
         Om = np.einsum("tji,tj->ti", R, Om_fixed)
         chi_dot = -np.einsum("ij,tj->ti", np.asarray(d.Sk), omega - Om)
-    return Body(t, x, y, R, R_shell, _cumulative(t, chi_dot), chi_dot, label, ghost)
+    inc = 0.5 * (chi_dot[1:] + chi_dot[:-1]) * np.diff(t)[:, None]  # the wheel angles: the rates integrated
+    chi = np.concatenate([np.zeros((1, chi_dot.shape[1])), np.cumsum(inc, axis=0)])
+    return Body(t, x, y, R, R_shell, chi, chi_dot, label, ghost)
 
 
 def body_from_trajectory(traj, *, label: str = "", ghost: bool = False) -> Body:
@@ -172,9 +156,8 @@ def body_from_trial(params: RobotParams, trial, *, label: str | None = None, gho
     R = rotmat_np(np.where(np.isfinite(trial.q), trial.q, np.array([1.0, 0, 0, 0])))
     R[~trial.valid] = np.nan
     chi_dot = trial.inputs if trial.kind == "wheel_speeds" else None
-    return body_from_poses(
-        params, trial.t, trial.x, trial.y, R, chi_dot=chi_dot, label=trial.name if label is None else label, ghost=ghost
-    )
+    label = trial.name if label is None else label
+    return body_from_poses(params, trial.t, trial.x, trial.y, R, chi_dot=chi_dot, label=label, ghost=ghost)
 
 
 def platform_from_table(params: RobotParams, gamma, heading) -> np.ndarray:
@@ -205,8 +188,7 @@ def platform_from_table(params: RobotParams, gamma, heading) -> np.ndarray:
     c, s = np.cos(np.asarray(heading) - yaw0), np.sin(np.asarray(heading) - yaw0)
     Z = np.zeros((g.shape[0], 3, 3))
     Z[:, 0, 0], Z[:, 0, 1], Z[:, 1, 0], Z[:, 1, 1], Z[:, 2, 2] = c, -s, s, c, 1.0
-    M = Z @ B
-    return M @ Qm.T
+    return Z @ B @ Qm.T
 
 
 # ------------------------------------------------------------------------------------- frames
@@ -295,11 +277,9 @@ def shell_lines(R_shell: np.ndarray, centre: np.ndarray, R0: float) -> tuple[np.
     centres `(F, 3)`: `MERIDIANS` great circles through the shell's own poles `+-e3` and its
     equator, carried by the shell's rotation."""
     c = _circle(CIRCLE_POINTS)
-    merid = []
-    for k in range(MERIDIANS):
-        phi = np.pi * k / MERIDIANS
-        merid.append(np.stack([np.cos(phi) * c[:, 0], np.sin(phi) * c[:, 0], c[:, 1]], axis=-1))
-    local = R0 * np.stack(merid)  # (L, P, 3)
+    phi = np.pi * np.arange(MERIDIANS)[:, None] / MERIDIANS
+    cx, cz = c[:, 0], np.broadcast_to(c[:, 1], (MERIDIANS, len(c)))
+    local = R0 * np.stack([np.cos(phi) * cx, np.sin(phi) * cx, cz], axis=-1)  # (L, P, 3)
     eq = R0 * np.stack([c[:, 0], c[:, 1], np.zeros(len(c))], axis=-1)[None]
     m = np.einsum("fij,lpj->flpi", R_shell, local) + centre[:, None, None]
     e = np.einsum("fij,lpj->flpi", R_shell, eq) + centre[:, None, None]
@@ -309,26 +289,19 @@ def shell_lines(R_shell: np.ndarray, centre: np.ndarray, R0: float) -> tuple[np.
 def body_frames(body: Body, params: RobotParams, times: np.ndarray) -> BodyFrames:
     """`BodyFrames` of `body` at the run times `times (F,)` [s] from the body's start (held at
     its last pose after its end)."""
-    at = body.t[0] + np.asarray(times, float)
-    t = body.t
+    t, at = body.t, body.t[0] + np.asarray(times, float)
     x, y = _lerp(t, body.x, at), _lerp(t, body.y, at)
     R0, Rw = float(params.R0), float(params.Rw)
-    F = at.size
-    centre = np.stack([x, y, np.full(F, R0)], axis=-1)
-    R = _slerp(t, body.R, at)
-    R_shell = _slerp(t, body.R_shell, at)
+    centre = np.stack([x, y, np.full(at.size, R0)], axis=-1)
+    R, R_shell = _slerp(t, body.R, at), _slerp(t, body.R_shell, at)
     chi, chi_dot = _lerp(t, body.chi, at), _lerp(t, body.chi_dot, at)
     meridians, equator = shell_lines(R_shell, centre, R0)
 
-    r = np.asarray(params.wheel_r, float)
-    rhat = r / np.linalg.norm(r, axis=-1, keepdims=True)
-    n = np.asarray(params.wheel_n, float)
-    n = n / np.linalg.norm(n, axis=-1, keepdims=True)
-    a = np.asarray(params.wheel_alpha, float)
+    unit = lambda v: v / np.linalg.norm(v, axis=-1, keepdims=True)
+    rhat, n = unit(np.asarray(params.wheel_r, float)), unit(np.asarray(params.wheel_n, float))
     centres = (R0 - Rw) * rhat  # each wheel touches the shell along r_i (platform frame)
     # the rim in the wheel's plane (normal n_i) and two spokes, turned by chi_i about n_i
-    u = rhat - np.einsum("ni,ni->n", rhat, n)[:, None] * n
-    u /= np.linalg.norm(u, axis=-1, keepdims=True)
+    u = unit(rhat - np.einsum("ni,ni->n", rhat, n)[:, None] * n)
     w = np.cross(n, u)
     c = _circle(25)
     rim = centres[:, None] + Rw * (c[None, :, :1] * u[:, None] + c[None, :, 1:] * w[:, None])  # (N, P, 3)
@@ -336,16 +309,15 @@ def body_frames(body: Body, params: RobotParams, times: np.ndarray) -> BodyFrame
     tips = centres[None, :, None] + Rw * (
         np.cos(ang)[..., None] * u[None, :, None] + np.sin(ang)[..., None] * w[None, :, None]
     )
-    spokes = np.stack(
-        [tips[:, :, 0], tips[:, :, 2], np.full_like(tips[:, :, 0], np.nan), tips[:, :, 1], tips[:, :, 3]], axis=2
-    )
-    contact = R0 * rhat
+    gap = np.full_like(tips[:, :, 0], np.nan)
+    spokes = np.stack([tips[:, :, 0], tips[:, :, 2], gap, tips[:, :, 1], tips[:, :, 3]], axis=2)
+    contact, a = R0 * rhat, np.asarray(params.wheel_alpha, float)
     roller = np.stack([contact - 0.35 * Rw * a, contact + 0.35 * Rw * a], axis=1)  # (N, 2, 3)
     # platform components -> fixed: p_fixed = centre + R p
     rot = lambda pts: np.einsum("fij,...j->f...i", R, pts)
     rims = rot(rim) + centre[:, None, None]  # (F, N, P, 3)
     spk = np.einsum("fij,fnpj->fnpi", R, spokes) + centre[:, None, None]
-    wheel_lines = np.concatenate([_gaps(rims), _gaps(spk)], axis=1)
+    wheels = np.concatenate([_gaps(rims), _gaps(spk)], axis=1)
     rollers = _gaps(rot(roller) + centre[:, None, None])
     ring = np.concatenate([centres, centres[:1]], axis=0)
     platform = rot(ring) + centre[:, None]
@@ -357,7 +329,7 @@ def body_frames(body: Body, params: RobotParams, times: np.ndarray) -> BodyFrame
     speed = np.hypot(_lerp(t, body.x, hi) - _lerp(t, body.x, lo), _lerp(t, body.y, hi) - _lerp(t, body.y, lo)) / span
     path = np.stack([x, y], -1)
     return BodyFrames(
-        centre, meridians, equator, platform, wheel_lines, rollers, com, mast, path, speed, chi_dot, R_shell, R
+        centre, meridians, equator, platform, wheels, rollers, com, mast, path, speed, chi_dot, R_shell, R
     )
 
 

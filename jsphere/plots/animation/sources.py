@@ -1,8 +1,5 @@
-"""The runs an animation shows, from the results jsphere computes: a `Trajectory`, a `Trial` (a
-capture or a synthetic trial), a `Plan`, a fit with its trials (each capture with the fitted
-model's replay ghosted over it, the worst-fitting trial first) and a `MonteCarloResult` (a
-handful of trials' paths, the stop points with their 95 % ellipse). Each becomes a list of
-`Scene`s. Files are read into those results by `jsphere.animate` (`jsphere.cli.animate`)."""
+"""The `Scene`s of each kind of result jsphere computes: a `Trajectory`, a `Trial`, a `Plan`, a fit
+with its trials and a `MonteCarloResult` (`jsphere.animate` reads files into those results)."""
 
 from __future__ import annotations
 

@@ -94,10 +94,6 @@ class _Robot:
             lines[k].set_linestyle("--" if ghost else "-")
         lines["path"].set_label(label)
 
-    def visible(self, on: bool) -> None:
-        for art in self.artists:
-            art.set_visible(on)
-
     def show(self, f: BodyFrames, k: int) -> None:
         self.shell.set_verts(self.template + f.centre[k])
         path = f.path[: k + 1]
@@ -145,8 +141,8 @@ class _Video:
             self.writer = animation.FFMpegWriter(fps=fps, codec="libx264", extra_args=extra_args)
         else:
             self.writer = animation.PillowWriter(fps=fps)
-        self.texts = [self.title, self.status, self.extra]
-        for art in [a for r in self.robots for a in r.artists] + [self.target, self.cloud, self.ellipse] + self.texts:
+        self.texts, self.markers = [self.title, self.status, self.extra], [self.target, self.cloud, self.ellipse]
+        for art in [a for r in self.robots for a in r.artists] + self.markers + self.texts:
             art.set_animated(blit)  # left out of the background, drawn over it each frame
 
     def scene(self, scene: Scene, frames: list[BodyFrames]) -> None:
@@ -155,23 +151,18 @@ class _Video:
         ax, n = self.ax, len(scene.bodies)
         lo, hi = _limits(scene, frames)
         R0 = float(scene.params.R0)
-        ax.set_xlim(lo[0], hi[0])
-        ax.set_ylim(lo[1], hi[1])
-        ax.set_zlim(0.0, 2.0 * R0)
+        ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), zlim=(0.0, 2.0 * R0))
         ax.set_box_aspect((hi[0] - lo[0], hi[1] - lo[1], 2.0 * R0), zoom=1.35)
         for i, robot in enumerate(self.robots):
-            robot.visible(i < n)
-            if i < n:
-                b = scene.bodies[i]
-                robot.style(b.ghost, COLOURS[1 if b.ghost else i % len(COLOURS)], b.label, n)
-        if scene.target is not None:
-            self.target.set_data_3d([scene.target[0]], [scene.target[1]], [0.0])
-        self.target.set_visible(scene.target is not None)
-        if scene.cloud is not None:
-            self.cloud.set_data_3d(scene.cloud[:, 0], scene.cloud[:, 1], np.zeros(len(scene.cloud)))
-        if scene.ellipse is not None:
-            e = scene.ellipse
-            self.ellipse.set_data_3d(e[:, 0], e[:, 1], np.zeros(len(e)))
+            for art in robot.artists:
+                art.set_visible(i < n)
+        for i, (robot, b) in enumerate(zip(self.robots, scene.bodies)):
+            robot.style(b.ghost, COLOURS[1 if b.ghost else i % len(COLOURS)], b.label, n)
+        target = None if scene.target is None else np.asarray([scene.target[:2]], float)
+        for art, pts in zip(self.markers, (target, scene.cloud, scene.ellipse)):
+            if pts is not None:
+                art.set_data_3d(pts[:, 0], pts[:, 1], np.zeros(len(pts)))
+        self.target.set_visible(target is not None)
         self.title.set_text(scene.title)
         self.fig.canvas.draw()
         self.background = self.fig.canvas.copy_from_bbox(self.fig.bbox)
@@ -180,7 +171,6 @@ class _Video:
         """Move the artists to frame `k` (run time `t`; the stop points and ellipse are shown from
         `end` on) and hand the picture to the writer: blitted, only the moving artists drawn over
         the background, else the whole figure drawn by the writer."""
-        ax = self.ax
         if self.blit:
             self.fig.canvas.restore_region(self.background)
         last = scene.cloud is not None and t >= end
@@ -193,16 +183,12 @@ class _Video:
         if not self.blit:
             self.writer.grab_frame()
             return
-        for robot in self.robots[: len(frames)]:
+        drawn = self.robots[: len(frames)]
+        for robot in drawn:
             robot.shell.do_3d_projection()
-            ax.draw_artist(robot.shell)
-        for robot in self.robots[: len(frames)]:
-            for art in robot.artists[1:]:
-                ax.draw_artist(art)
-        for art in (self.target, self.cloud, self.ellipse):
-            ax.draw_artist(art)
-        for art in self.texts:
-            self.fig.draw_artist(art)
+        # the shells first (translucent, under every line), then the lines, the markers and the texts
+        for art in [r.shell for r in drawn] + [a for r in drawn for a in r.artists[1:]] + self.markers + self.texts:
+            self.ax.draw_artist(art)
         self._push()
 
     def _push(self) -> None:

@@ -36,22 +36,6 @@ def _xyz(pts: np.ndarray, kind: str = "scatter3d") -> dict:
 PATH_POINTS = 80
 
 
-def _robot_traces(f, k: int, verts: np.ndarray) -> list[dict]:
-    """The data of one robot's traces at frame `k` (`_PARTS` order)."""
-    keep = np.unique(np.linspace(0, k, min(k + 1, PATH_POINTS)).round().astype(int))
-    path = np.concatenate([f.path[keep], np.zeros((keep.size, 1))], axis=1)
-    return [
-        _xyz(verts + f.centre[k], "mesh3d"),
-        _xyz(f.meridians[k]),
-        _xyz(f.equator[k]),
-        _xyz(f.platform[k]),
-        _xyz(f.wheels[k]),
-        _xyz(f.rollers[k]),
-        _xyz(np.concatenate([f.mast[k], f.com[k][None]])),
-        _xyz(path),
-    ]
-
-
 def _traces(go, n_bodies: int, triangles) -> list:
     """The figure's traces, styled and named (the frames hold their data): `_PARTS` of each of
     `n_bodies` robots (`triangles`: the shell mesh's), then the target, the stop points and the
@@ -59,34 +43,17 @@ def _traces(go, n_bodies: int, triangles) -> list:
     from matplotlib.colors import to_hex
 
     ti, tj, tk = triangles
+    shell, hidden = dict(opacity=0.12, hoverinfo="skip", showlegend=False), dict(mode="lines", showlegend=False)
+    com = dict(mode="lines+markers", line=dict(color="#666666", width=3), marker=dict(size=[0, 5], color="black"))
     traces = []
     for b in range(n_bodies):
         c = to_hex(COLOURS[b % len(COLOURS)])  # the video's
-        lines = (
-            (f"meridians {b + 1}", c, 3),
-            ("equator", "black", 3),
-            ("platform", "#444444", 6),
-            ("omniwheels", "#d62728", 4),
-            ("roller axes", "#2ca02c", 5),
-        )
-        traces.append(
-            go.Mesh3d(
-                i=ti, j=tj, k=tk, color=c, opacity=0.12, hoverinfo="skip", name=f"shell {b + 1}", showlegend=False
-            )
-        )
-        traces += [
-            go.Scatter3d(mode="lines", line=dict(color=co, width=w), name=nm, showlegend=False) for nm, co, w in lines
-        ]
-        traces += [
-            go.Scatter3d(
-                mode="lines+markers",
-                line=dict(color="#666666", width=3),
-                marker=dict(size=[0, 5], color="black"),
-                name="centre of mass",
-                showlegend=False,
-            ),
-            go.Scatter3d(mode="lines", line=dict(color=c, width=5), name=f"path {b + 1}"),
-        ]
+        lines = {f"meridians {b + 1}": (c, 3), "equator": ("black", 3), "platform": ("#444444", 6)}
+        lines |= {"omniwheels": ("#d62728", 4), "roller axes": ("#2ca02c", 5)}
+        traces.append(go.Mesh3d(i=ti, j=tj, k=tk, color=c, name=f"shell {b + 1}", **shell))
+        traces += [go.Scatter3d(line=dict(color=co, width=w), name=nm, **hidden) for nm, (co, w) in lines.items()]
+        traces.append(go.Scatter3d(**com, name="centre of mass", showlegend=False))
+        traces.append(go.Scatter3d(mode="lines", line=dict(color=c, width=5), name=f"path {b + 1}"))
     return traces + [
         go.Scatter3d(mode="markers", marker=dict(symbol="x", size=6, color="#d62728"), name="target"),
         go.Scatter3d(mode="markers", marker=dict(size=2, color="#555555"), name="stop points"),
@@ -95,18 +62,22 @@ def _traces(go, n_bodies: int, triangles) -> list:
 
 
 def _frame_data(scene: Scene, fr: list, n_bodies: int, verts: np.ndarray, k: int, show_end: bool) -> list[dict]:
-    """The data of every trace (`_traces` order) at frame `k` of `scene` (`fr`: its bodies'
-    frames; `show_end`: the stop points and ellipse are shown)."""
+    """The data of every trace (`_traces` order: `_PARTS` per robot, then the markers) at frame `k`
+    of `scene` (`fr`: its bodies' frames; `show_end`: the stop points and ellipse are shown)."""
     empty = {"type": "scatter3d", "x": [], "y": [], "z": []}
     data = []
+    keep = np.unique(np.linspace(0, k, min(k + 1, PATH_POINTS)).round().astype(int))  # the path so far, thinned
     for b in range(n_bodies):
-        if b < len(fr):
-            parts = _robot_traces(fr[b], k, verts)
-            if scene.bodies[b].ghost:  # the model over the capture: fainter
-                parts = [p | {"opacity": 0.06 if i == 0 else 0.45} for i, p in enumerate(parts)]
-            data += parts
-        else:
+        if b >= len(fr):
             data += [{"type": "mesh3d", "x": [], "y": [], "z": []}] + [empty] * (len(_PARTS) - 1)
+            continue
+        f = fr[b]
+        path = np.concatenate([f.path[keep], np.zeros((keep.size, 1))], axis=1)
+        lines = [getattr(f, name)[k] for name in _PARTS[1:6]] + [np.concatenate([f.mast[k], f.com[k][None]]), path]
+        parts = [_xyz(verts + f.centre[k], "mesh3d")] + [_xyz(pts) for pts in lines]
+        if scene.bodies[b].ghost:  # the model over the capture: fainter
+            parts = [p | {"opacity": 0.06 if i == 0 else 0.45} for i, p in enumerate(parts)]
+        data += parts
     tgt, el = scene.target, scene.ellipse
     data.append(_xyz(np.array([[tgt[0], tgt[1], 0.0]])) if tgt is not None else empty)
     data.append(_xyz(np.c_[scene.cloud, np.zeros(len(scene.cloud))]) if show_end else empty)
@@ -123,14 +94,8 @@ def _frames(go, prepared: list, n_bodies: int, verts: np.ndarray) -> tuple[list,
         for k, t in enumerate(times):
             data = _frame_data(scene, fr, n_bodies, verts, k, scene.cloud is not None and t >= end)
             text = _status(t, fr[0], k).replace("\n", "<br>") + (f"<br>{residual[k]}" if residual is not None else "")
-            frames.append(
-                go.Frame(
-                    name=f"{len(frames)}",
-                    data=data,
-                    traces=list(range(len(data))),
-                    layout=dict(annotations=[_note(scene.title.replace("\n", "<br>"), 1.0), _note(text, 0.0)]),
-                )
-            )
+            layout = {"annotations": [_note(scene.title.replace("\n", "<br>"), 1.0), _note(text, 0.0)]}
+            frames.append(go.Frame(name=f"{len(frames)}", data=data, traces=list(range(len(data))), layout=layout))
             run_times.append(f"{s_idx + 1}:{t:.2f} s" if len(prepared) > 1 else f"{t:.2f} s")
     return frames, run_times
 
@@ -139,39 +104,18 @@ def _controls(fps: float, frames: list, run_times: list[str]) -> dict:
     """The layout's play/pause buttons and time slider over `frames` (labelled `run_times`)."""
     # a slider step waits for the frames drawn before it ("afterall"): interrupted, plotly's
     # animation promise rejects unhandled (a console error at each click on the rail)
-    step = lambda name: [
-        [name],
-        dict(mode="afterall", frame=dict(duration=0, redraw=True), transition=dict(duration=0)),
-    ]
+    after = dict(mode="afterall", frame=dict(duration=0, redraw=True), transition=dict(duration=0))
     play = dict(frame=dict(duration=1000.0 / fps, redraw=True), transition=dict(duration=0), fromcurrent=True)
     stop = dict(mode="immediate", frame=dict(duration=0, redraw=False), transition=dict(duration=0))
-    return dict(
-        updatemenus=[
-            dict(
-                type="buttons",
-                direction="left",
-                x=0.0,
-                y=0.0,
-                xanchor="left",
-                yanchor="top",
-                buttons=[
-                    dict(label="play", method="animate", args=[None, play]),
-                    dict(label="pause", method="animate", args=[[None], stop]),
-                ],
-            )
-        ],
-        sliders=[
-            dict(
-                active=0,
-                x=0.12,
-                y=0.0,
-                len=0.86,
-                yanchor="top",
-                currentvalue=dict(prefix="t = ", font=dict(size=11)),
-                steps=[dict(label=lab, method="animate", args=step(f.name)) for f, lab in zip(frames, run_times)],
-            )
-        ],
-    )
+    buttons = [
+        dict(label="play", method="animate", args=[None, play]),
+        dict(label="pause", method="animate", args=[[None], stop]),
+    ]
+    menu = dict(type="buttons", direction="left", x=0.0, y=0.0, xanchor="left", yanchor="top", buttons=buttons)
+    steps = [dict(label=lab, method="animate", args=[[f.name], after]) for f, lab in zip(frames, run_times)]
+    current = dict(prefix="t = ", font=dict(size=11))
+    slider = dict(active=0, x=0.12, y=0.0, len=0.86, yanchor="top", currentvalue=current, steps=steps)
+    return dict(updatemenus=[menu], sliders=[slider])
 
 
 def write_html(scenes: list[Scene], path, *, fps: float, speed: float, size=(900, 700), view: str = "3d") -> int:
@@ -194,20 +138,21 @@ def write_html(scenes: list[Scene], path, *, fps: float, speed: float, size=(900
     for tr, d in zip(fig.data, frames[0].data):
         tr.update(d)
     eye = dict(x=1.3, y=-1.6, z=0.9) if view == "3d" else dict(x=0.0, y=0.0, z=2.5)
+    up = dict(x=0, y=1, z=0) if view == "top" else dict(x=0, y=0, z=1)
     span = hi - lo
+    axes = dict(
+        xaxis=dict(title="X [m] (fixed frame)", range=[lo[0], hi[0]]),
+        yaxis=dict(title="Y [m] (fixed frame)", range=[lo[1], hi[1]]),
+        zaxis=dict(title="Z [m]", range=[0.0, 2.0 * R0]),
+    )
+    ratio = dict(x=1.0, y=span[1] / span[0], z=2.0 * R0 / span[0])
+    scene = dict(**axes, aspectmode="manual", aspectratio=ratio, camera=dict(eye=eye, up=up))
     fig.update_layout(
         width=int(size[0]),
         height=int(size[1]),
         margin=dict(l=0, r=0, t=40, b=0),
         annotations=list(frames[0].layout.annotations),
-        scene=dict(
-            xaxis=dict(title="X [m] (fixed frame)", range=[lo[0], hi[0]]),
-            yaxis=dict(title="Y [m] (fixed frame)", range=[lo[1], hi[1]]),
-            zaxis=dict(title="Z [m]", range=[0.0, 2.0 * R0]),
-            aspectmode="manual",
-            aspectratio=dict(x=1.0, y=span[1] / span[0], z=2.0 * R0 / span[0]),
-            camera=dict(eye=eye, up=dict(x=0, y=1, z=0) if view == "top" else dict(x=0, y=0, z=1)),
-        ),
+        scene=scene,
         legend=dict(x=0.0, y=0.9, font=dict(size=10)),
         **_controls(fps, frames, run_times),
     )
@@ -222,15 +167,6 @@ def write_html(scenes: list[Scene], path, *, fps: float, speed: float, size=(900
 
 
 def _note(text: str, y: float) -> dict:
-    return dict(
-        text=text,
-        x=0.01,
-        y=y,
-        xref="paper",
-        yref="paper",
-        xanchor="left",
-        yanchor="top" if y > 0.5 else "bottom",
-        showarrow=False,
-        align="left",
-        font=dict(size=11, family="monospace"),
-    )
+    """A text at the plot's left, at its top (`y = 1`) or bottom (`y = 0`)."""
+    where = dict(x=0.01, y=y, xref="paper", yref="paper", xanchor="left", yanchor="top" if y > 0.5 else "bottom")
+    return dict(text=text, showarrow=False, align="left", font=dict(size=11, family="monospace"), **where)
