@@ -1,21 +1,10 @@
 """Every benchmark behind `docs/performance.md`, one after another, each in a new process.
 
-    python benchmarks/all.py              # every step not yet done for this source (resumes)
-    python benchmarks/all.py --list       # the steps, their commands and result files
-    python benchmarks/all.py --only run,work_precision
-    python benchmarks/all.py --fresh      # every step again, whatever was done before
+    python benchmarks/all.py [--list] [--only run,work_precision] [--fresh]
 
-Each step is one script of this folder with the arguments that write the result file the
-performance page cites (`STEPS`); its numbers are that file's. The steps run in turn, never
-two at once (they time the machine). After each step the state file (default
-`benchmarks/.all-state.json`) records it, with the digest of `jsphere/` it ran on: a run that
-is killed goes on from the first step not done for the same source when started again, and a
-changed source runs every step again. A summary of the run (each step's command, exit status,
-wall time and result file) is written to `--out` (default `benchmarks/results-all.json`),
-both files atomically.
-
-Exit status: 0 if every step selected exited 0, 1 if one failed (the others still run), 2 for
-an unknown step name.
+Each step (`STEPS`) resumes from the state file for the same source of `jsphere/`; exit status
+0 if every step selected exited 0, 1 if one failed, 2 for an unknown step name. benchmarks/README.md
+has the details.
 """
 
 from __future__ import annotations
@@ -24,13 +13,12 @@ import argparse
 import json
 import subprocess
 import sys
-import time
 from datetime import datetime, timezone
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import HERE, ROOT, source_digest, write_json  # noqa: E402  (the digest the result files record)
+from common import HERE, ROOT, source_digest, timed, write_json  # noqa: E402  (the digest the result files record)
 
 #: (name, script and arguments, result file): the commands `docs/performance.md` gives
 STEPS = (
@@ -61,8 +49,8 @@ def read_state(path: Path, digest: str) -> dict:
 
 def run_steps(steps, state_path: Path, out: Path, *, fresh: bool = False, folder: Path = HERE, log=print) -> int:
     """Run `steps` (`(name, argv, result file)`, `argv` a script of `folder` and its arguments)
-    in turn, skipping those the state file records as done for this source unless `fresh`.
-    Returns the exit status (module docstring)."""
+    in turn, skipping those the state file records as done for this source unless `fresh`;
+    1 if one failed, else 0."""
     digest = source_digest()
     done = {} if fresh else read_state(state_path, digest)
     failed = False
@@ -70,15 +58,14 @@ def run_steps(steps, state_path: Path, out: Path, *, fresh: bool = False, folder
         if name in done and done[name]["returncode"] == 0:
             log(f"[{i}/{len(steps)}] {name}: done for this source ({done[name]['finished_utc']}), skipped")
             continue
-        cmd = [sys.executable, str(folder / argv[0]), *argv[1:]]
-        log(f"[{i}/{len(steps)}] {name}: {' '.join(['python', 'benchmarks/' + argv[0], *argv[1:]])} ...")
-        t = time.perf_counter()
-        rc = subprocess.run(cmd, cwd=ROOT).returncode
-        wall = time.perf_counter() - t
+        command = ["python", f"benchmarks/{argv[0]}", *argv[1:]]
+        log(f"[{i}/{len(steps)}] {name}: {' '.join(command)} ...")
+        proc, wall = timed(subprocess.run, [sys.executable, str(folder / argv[0]), *argv[1:]], cwd=ROOT)
+        rc = proc.returncode
         log(f"[{i}/{len(steps)}] {name}: exit {rc}, {wall:.0f} s, {result}")
         failed |= rc != 0
         done[name] = {
-            "command": ["python", f"benchmarks/{argv[0]}", *argv[1:]],
+            "command": command,
             "result_file": f"benchmarks/{result}",
             "returncode": rc,
             "wall_s": wall,

@@ -1,30 +1,19 @@
-"""The other tools' anchors for problem 1 of `run.py`, on the numbers of jsphere's parameter set
-(nothing here imports jsphere).
+"""The other tools' anchors for problem 1 of `run.py` (nothing here imports jsphere).
 
-- `NumpyRobot`: the equations of motion (3.4) in plain numpy, written from the paper's formulas
-  (as documented at the top of `jsphere/model/dynamics.py`), every derived quantity recomputed
-  here; the scipy baseline. State (12 components): `[q (w,x,y,z), omega (3), Omega (3), x, y]`,
-  `q` the platform quaternion (rotation matrix `R`, rows `alpha, beta, gamma`), `omega`,
-  `Omega` the platform and shell angular velocities in platform components:
+- `NumpyRobot`: the equations of motion (3.4) in plain numpy, every derived quantity recomputed
+  from the paper's formulas; the scipy baseline. State: `[q (w,x,y,z), omega, Omega, x, y]`:
 
-      gamma      = R[2]
       M [w'; W'] = [r1 - Sk^T K; r2 + Sk^T K],   M = [[A, B], [B^T, D]]   (numpy.linalg.solve, 6x6)
-      x', y'     = (R v)[:2],  v = R0 Omega x gamma                        (2.2), (2.3)
+      x', y'     = (R v)[:2],  v = R0 Omega x gamma,  gamma = R[2]         (2.2), (2.3)
       q'         = q (x) (0, omega) / 2
 
-- CasADi, the strongest alternative a control engineer would write by hand, on the same
-  right-hand side built symbolically (SX; the 6x6 system solved by CasADi's `solve`, a QR
-  factorisation expanded into the generated code): `rk4`, a fixed-step classical RK4 (400
-  steps over [0, 4] s folded with `mapaccum`, trials mapped over threads, compiled to C with
-  `-O3` through CasADi's `jit` option), and `cvodes`, CasADi's CVODES at problem 1's
-  tolerances, mapped over threads. `run.py` and `work_precision.py` use them when CasADi is
-  installed (`pip install jsphere[bench]`).
+- CasADi on the same right-hand side built symbolically: `rk4_batch`, fixed-step RK4 compiled to
+  C with `-O3`, and `cvodes_batch`, CVODES at problem 1's tolerances, both mapped over threads.
 """
 
 from __future__ import annotations
 
 import contextlib
-import os
 import tempfile
 import time
 
@@ -45,7 +34,7 @@ class NumpyRobot:
     """Parameter-only quantities of (2.4), (3.4), recomputed in numpy."""
 
     def __init__(self, R0, m0, I0, Rw, wheel_r, wheel_n, wheel_alpha, m, I, r_m, j, g):
-        f = lambda x: np.asarray(x, dtype=np.float64)  # noqa: E731
+        f = lambda x: np.asarray(x, dtype=np.float64)
         self.R0, self.m0, self.I0, self.Rw = float(R0), float(m0), float(I0), float(Rw)
         self.m, self.j, self.g = float(m), float(j), float(g)
         self.I, self.r_m = f(I), f(r_m)
@@ -147,6 +136,11 @@ def initial_state(q0, x0=0.0, y0=0.0):
     return np.concatenate([np.asarray(q0, float), np.zeros(6), [x0, y0]])
 
 
+def initial_states(q0, batch: int) -> np.ndarray:
+    """`initial_state(q0)` for `batch` trials, as columns (CasADi's mapped functions)."""
+    return np.tile(initial_state(q0)[:, None], (1, batch))
+
+
 T1 = 4.0
 PHASES = np.array([0.0, 2.1, 4.2])
 RK4_STEPS = 400
@@ -156,11 +150,14 @@ def _sx_cross(a, b):
     return ca.vertcat(a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
+def _symbols():
+    """The symbols of the state, the time and the amplitudes: `y[12], t, a[3]`."""
+    return ca.SX.sym("y", 12), ca.SX.sym("t"), ca.SX.sym("a", 3)
+
+
 def symbolic_rhs(robot):
     """CasADi `Function f(y[12], t, a[3]) -> y_dot` for torques `K_i = a_i sin(pi t + phase_i)`."""
-    y = ca.SX.sym("y", 12)
-    t = ca.SX.sym("t")
-    a = ca.SX.sym("a", 3)
+    y, t, a = _symbols()
     q, w, W = y[0:4], y[4:7], y[7:10]
     qn = q / ca.sqrt(ca.dot(q, q))
     qw, qx, qy, qz = qn[0], qn[1], qn[2], qn[3]
@@ -197,21 +194,15 @@ def symbolic_rhs(robot):
     return ca.Function("rhs", [y, t, a], [ca.vertcat(q_dot, acc, xy_dot)])
 
 
-def _jit_opts():
-    return {
-        "jit": True,
-        "compiler": "shell",
-        "jit_options": {"flags": ["-O3"], "verbose": False, "cleanup": False},
-        "jit_cleanup": False,
-    }  # the temporary folder goes as a whole
+#: C compiled with -O3; the sources kept, since the temporary folder goes as a whole
+JIT = {"jit": True, "compiler": "shell", "jit_cleanup": False}
+JIT["jit_options"] = {"flags": ["-O3"], "verbose": False, "cleanup": False}
 
 
 def rk4_batch(robot, batch: int, threads: int, steps: int = RK4_STEPS):
     """Compiled `Function(y0[12 x B], a[3 x B]) -> y(T1)[12 x B]`: fixed-step RK4."""
     f = symbolic_rhs(robot)
-    y = ca.SX.sym("y", 12)
-    t = ca.SX.sym("t")
-    a = ca.SX.sym("a", 3)
+    y, t, a = _symbols()
     h = T1 / steps
     k1 = f(y, t, a)
     k2 = f(y + h / 2 * k1, t + h / 2, a)
@@ -219,23 +210,19 @@ def rk4_batch(robot, batch: int, threads: int, steps: int = RK4_STEPS):
     k4 = f(y + h * k3, t + h, a)
     step = ca.Function("step", [y, t, a], [y + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)])
     roll = step.mapaccum("roll", steps)  # y accumulated; t and a mapped over the steps
-    y0 = ca.MX.sym("y0", 12)
-    aa = ca.MX.sym("a", 3)
+    y0, aa = ca.MX.sym("y0", 12), ca.MX.sym("a", 3)
     tgrid = ca.DM(np.arange(steps) * h).T
-    trial = ca.Function("trial", [y0, aa], [roll(y0, tgrid, ca.repmat(aa, 1, steps))[:, -1]], _jit_opts())
+    trial = ca.Function("trial", [y0, aa], [roll(y0, tgrid, ca.repmat(aa, 1, steps))[:, -1]], JIT)
     return trial.map(batch, "thread", threads)
 
 
 def cvodes_batch(robot, batch: int, threads: int, rtol: float = 1e-8, atol: float = 1e-10):
     """CVODES over [0, T1] (right-hand side compiled to C), mapped over threads."""
     f = symbolic_rhs(robot)
-    y = ca.SX.sym("y", 12)
-    t = ca.SX.sym("t")
-    a = ca.SX.sym("a", 3)
+    y, t, a = _symbols()
     dae = {"x": y, "t": t, "p": a, "ode": f(y, t, a)}
     integ = ca.integrator("I", "cvodes", dae, 0.0, T1, {"abstol": atol, "reltol": rtol, "max_num_steps": 100000})
-    y0 = ca.MX.sym("y0", 12)
-    aa = ca.MX.sym("a", 3)
+    y0, aa = ca.MX.sym("y0", 12), ca.MX.sym("a", 3)
     trial = ca.Function("trial", [y0, aa], [integ(x0=y0, p=aa)["xf"]])
     return trial.map(batch, "thread", threads)
 
@@ -243,13 +230,8 @@ def cvodes_batch(robot, batch: int, threads: int, rtol: float = 1e-8, atol: floa
 @contextlib.contextmanager
 def in_temporary_folder():
     """CasADi's shell compiler writes its sources to the current folder: keep them out of the checkout."""
-    here = os.getcwd()
-    with tempfile.TemporaryDirectory() as tmp:
-        os.chdir(tmp)
-        try:
-            yield
-        finally:
-            os.chdir(here)
+    with tempfile.TemporaryDirectory() as tmp, contextlib.chdir(tmp):
+        yield
 
 
 def built_and_timed(build, y0, A: np.ndarray, *, repeats: int) -> tuple[dict, np.ndarray]:
@@ -277,7 +259,7 @@ def casadi_rows(robot, q0, A: np.ndarray, *, threads: int = 2, repeats: int = 3,
     if ca is None:
         raise ImportError("CasADi is not installed: pip install 'jsphere[bench]' (or pip install casadi).")
     B, n = A.shape[0], min(cvodes_trials, A.shape[0])
-    y0 = np.tile(np.concatenate([np.asarray(q0, float), np.zeros(8)])[:, None], (1, B))
+    y0 = initial_states(q0, B)
     with in_temporary_folder():
         rk4, rk4_xy = built_and_timed(lambda: rk4_batch(robot, B, threads), y0, A, repeats=repeats)
         cvodes, cvodes_xy = built_and_timed(lambda: cvodes_batch(robot, n, threads), y0[:, :n], A[:n], repeats=repeats)

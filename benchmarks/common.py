@@ -1,14 +1,10 @@
-"""What every benchmark of this folder shares: this checkout's `jsphere` first on the path,
-timing with a steady-state median, the record's head (date, machine, device, versions, the
-source measured), JSON written atomically, tables printed, and `jsphere` commands in new
-processes.
-
-Importing this module imports no JAX: `startup.py`'s parent process times new processes and
-keeps JAX out of its own.
+"""What the benchmarks of this folder share (benchmarks/README.md). Importing it imports no JAX:
+`startup.py`'s parent process keeps JAX out of its own.
 """
 
 from __future__ import annotations
 
+import argparse
 import datetime
 import hashlib
 import json
@@ -65,6 +61,20 @@ def public(d: dict) -> dict:
     return {k: v for k, v in d.items() if not k.startswith("_")}
 
 
+def timed(fn, *args, **kwargs):
+    """`(fn(*args, **kwargs), its wall time in seconds)`."""
+    t = time.perf_counter()
+    out = fn(*args, **kwargs)
+    return out, time.perf_counter() - t
+
+
+def default_device():
+    """The JAX device the benchmark runs on (`--device`, else JAX's default)."""
+    import jax
+
+    return jax.config.jax_default_device or jax.devices()[0]
+
+
 # ------------------------------------------------------------------------ the record's head
 
 
@@ -111,7 +121,7 @@ def environment(source_at_start: str | None = None) -> dict:
         except PackageNotFoundError:
             return None
 
-    dev = jax.config.jax_default_device or jax.devices()[0]
+    dev = default_device()
     return {
         "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "machine": {
@@ -209,6 +219,14 @@ def print_table(columns, rows) -> None:
 def result_path(args, name: str) -> Path:
     """`--out` where given, else `benchmarks/<name>`."""
     return Path(args.out) if getattr(args, "out", None) else HERE / name
+
+
+def parser(prog: str, out: str | None = None, **kwargs) -> argparse.ArgumentParser:
+    """A command's argument parser; with `out`, an `--out` option whose default is `benchmarks/<out>`."""
+    ap = argparse.ArgumentParser(prog=prog, **kwargs)
+    if out:
+        ap.add_argument("--out", type=Path, default=HERE / out, help="the JSON record")
+    return ap
 
 
 # ------------------------------------------------------------------------ new processes

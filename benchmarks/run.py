@@ -1,15 +1,8 @@
-"""Throughput of problem 1 (and problems 2, 3) against scipy's DOP853 and CasADi, in one run.
+"""Throughput of problem 1 (and problems 2, 3) against scipy's DOP853 and CasADi, and start-up,
+in one run; benchmarks/README.md defines the problems and every column and JSON field.
 
     python benchmarks/run.py [--quick] [--out benchmarks/results.json]
     python benchmarks/run.py --device gpu --batches 1024,100000,1000000 --problems 1,3 --no-casadi --no-startup
-
-Problem 1: the paper's robot in torque mode, `jax.jit(jax.vmap(simulate))` of the public API,
-against `solve_ivp(DOP853)` on `casadi_baseline.NumpyRobot` one trial at a time and CasADi's
-compiled RK4 and CVODES; problem 2: the paper's gaits with `theta_max` per trial; problem 3:
-`jax.grad` of problem 1 with respect to 7 parameters over its forward pass; start-up:
-`jsphere reproduce` in new processes (`startup.py`). On a CPU, one device per core, every batch
-that divides among them split over them, and problem 1's 1024 trials on one device too.
-benchmarks/README.md defines the problems and every column and JSON field.
 """
 
 from __future__ import annotations
@@ -22,12 +15,12 @@ import tempfile
 import time
 from pathlib import Path
 
-import common  # noqa: F401  (this checkout's jsphere first on the path)
+import common  # this checkout's jsphere first on the path
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from casadi_baseline import NumpyRobot, initial_state
+from casadi_baseline import PHASES, T1, NumpyRobot, casadi_rows, initial_state
 from common import HERE, environment, finish, log, public, source_digest, table, time_call, write_json
 from scipy.integrate import solve_ivp
 from startup import measure as startup_measure
@@ -36,11 +29,11 @@ import jsphere
 
 jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
 
-T1 = 4.0
 RTOL, ATOL = 1e-8, 1e-10
-PHASES = np.array([0.0, 2.1, 4.2])  # 2.1 (i - 1), i = 1..3
 ACCURACY_TOL = 1e-6  # m, scipy vs jsphere final x, y
 GRAD_FD_TOL = 1e-3  # relative, jax.grad vs central finite differences
+#: the batch that problem 1 also runs on one device when it is split over several
+ONE_DEVICE_BATCH = 1024
 
 
 def amplitudes(z: np.ndarray) -> np.ndarray:
@@ -51,16 +44,8 @@ def rate_row(r: dict, B: int, steps, **extra) -> dict:
     """A table row: timing of `B` trials, their solver steps, and `extra` fields."""
     steps = np.asarray(steps)
     log(f"      {B / r['median_s']:.1f} trials/s, compile {r['compile_s']:.1f} s")
-    return (
-        public(r)
-        | {
-            "batch": B,
-            "trials_per_s": B / r["median_s"],
-            "steps_mean": float(steps.mean()),
-            "steps_max": int(steps.max()),
-        }
-        | extra
-    )
+    row = {"batch": B, "trials_per_s": B / r["median_s"]}
+    return public(r) | row | {"steps_mean": float(steps.mean()), "steps_max": int(steps.max())} | extra
 
 
 # ------------------------------------------------------------------------ problem 1
@@ -104,21 +89,10 @@ def problem1_jsphere(p, Z, batches, repeats):
     return rows, finals
 
 
-#: the batch that problem 1 also runs on one device when it is split over several
-ONE_DEVICE_BATCH = 1024
-
-
-def devices() -> list:
-    """The devices a batch is split over: every device of the platform the benchmark runs on
-    (`--device`; `--cores` CPU devices on a CPU)."""
-    dev = jax.config.jax_default_device or jax.devices()[0]
-    return jax.devices(dev.platform)
-
-
 def split(x):
-    """`(x, k)`: `x` split along its trial axis over the `k` devices of `devices()`
+    """`(x, k)`: `x` split along its trial axis over the `k` devices of the platform it runs on
     (`jsphere.shard_trials`), or on the one device when its length is not a multiple of them."""
-    devs = devices()
+    devs = jax.devices(common.default_device().platform)
     if len(devs) == 1 or x.shape[0] % len(devs):
         return x, 1
     return jsphere.shard_trials(x, devs), len(devs)
@@ -128,13 +102,12 @@ def device_memory() -> dict:
     """The device's peak memory in use so far in this process (bytes), where the backend reports
     it (GPUs do, the CPU backend does not). Batches run in increasing size, so the peak read after
     a batch is that batch's."""
-    dev = jax.config.jax_default_device or jax.devices()[0]
-    stats = dev.memory_stats() or {}
+    stats = common.default_device().memory_stats() or {}
     return {"device_peak_bytes": stats.get("peak_bytes_in_use"), "device_bytes_limit": stats.get("bytes_limit")}
 
 
 def scipy_trial(model, q0, a, rtol=RTOL, atol=ATOL):
-    K = lambda t: a * np.sin(np.pi * t + PHASES)  # noqa: E731
+    K = lambda t: a * np.sin(np.pi * t + PHASES)
     sol = solve_ivp(model.rhs, (0.0, T1), initial_state(q0), method="DOP853", rtol=rtol, atol=atol, args=(K,))
     if sol.status != 0:
         raise RuntimeError(f"solve_ivp failed: {sol.message}")
@@ -142,14 +115,16 @@ def scipy_trial(model, q0, a, rtol=RTOL, atol=ATOL):
 
 
 def scipy_batch(model, q0, A, repeats, rtol=RTOL, atol=ATOL):
-    """`repeats` serial runs of `scipy_trial` over the amplitude rows `A`: their times, the
-    last run's solutions, the median time."""
-    times, sols = [], None
+    """`repeats` serial runs of `scipy_trial` over the amplitude rows `A`: the row of their
+    timings and solver steps, and the final `(x, y)` of the last run."""
+    times = []
     for _ in range(repeats):
-        t = time.perf_counter()
-        sols = [scipy_trial(model, q0, a, rtol, atol) for a in A]
-        times.append(time.perf_counter() - t)
-    return times, sols, statistics.median(times)
+        sols, t = common.timed(lambda: [scipy_trial(model, q0, a, rtol, atol) for a in A])
+        times.append(t)
+    med = statistics.median(times)
+    row = {"repeats": repeats, "times_s": times, "median_s": med, "s_per_trial": med / len(A)}
+    row |= {"trials_per_s": len(A) / med, "steps_mean": float(np.mean([len(s.t) - 1 for s in sols]))}
+    return row | {"nfev_mean": float(np.mean([s.nfev for s in sols]))}, np.array([s.y[10:12, -1] for s in sols])
 
 
 def problem1_scipy(p, Z, n_trials, repeats):
@@ -158,20 +133,9 @@ def problem1_scipy(p, Z, n_trials, repeats):
     A = amplitudes(Z[:n_trials])
     log(f"[P1] scipy DOP853, {n_trials} trials x {repeats} repeats ...")
     scipy_trial(model, q0, A[0])  # warm-up (imports, caches)
-    times, sols, med = scipy_batch(model, q0, A, repeats)
-    finals = np.array([s.y[10:12, -1] for s in sols])
-    row = {
-        "trials": n_trials,
-        "repeats": repeats,
-        "times_s": times,
-        "median_s": med,
-        "s_per_trial": med / n_trials,
-        "trials_per_s": n_trials / med,
-        "steps_mean": float(np.mean([len(s.t) - 1 for s in sols])),
-        "nfev_mean": float(np.mean([s.nfev for s in sols])),
-    }
+    row, finals = scipy_batch(model, q0, A, repeats)
     log(f"      {row['trials_per_s']:.2f} trials/s")
-    return row, finals, model, q0
+    return {"trials": n_trials} | row, finals, model, q0
 
 
 def problem1_checks(model, q0, Z, scipy_finals, js_finals):
@@ -196,11 +160,8 @@ def problem1_checks(model, q0, Z, scipy_finals, js_finals):
     if 1 in js_finals:
         out["batch1_vs_batched_trial0_m"] = float(np.abs(js_finals[1][0] - js_finals[B_ref][0]).max())
     # energy balance: E(T) - E(0) = int_0^T sum_i K_i chi_dot_i dt
-    K = lambda t: a0 * np.sin(np.pi * t + PHASES)  # noqa: E731
-
-    def rhs(t, y):
-        return np.concatenate([model.rhs(t, y[:12], K), [model.power(y[:12], K(t))]])
-
+    K = lambda t: a0 * np.sin(np.pi * t + PHASES)
+    rhs = lambda t, y: np.concatenate([model.rhs(t, y[:12], K), [model.power(y[:12], K(t))]])
     sol = solve_ivp(rhs, (0.0, T1), np.concatenate([initial_state(q0), [0.0]]), method="DOP853", rtol=1e-12, atol=1e-13)
     E0, E1, W = model.energy(sol.y[:12, 0]), model.energy(sol.y[:12, -1]), sol.y[12, -1]
     out["energy_balance_residual_J"] = float(E1 - E0 - W)
@@ -211,14 +172,10 @@ def problem1_checks(model, q0, Z, scipy_finals, js_finals):
 def problem1_casadi(model, q0, Z, B, repeats, sc_row):
     """CasADi baselines (`casadi_baseline.py`): compiled RK4 and CVODES, mapped over threads.
     Skipped with a note in the table when CasADi is not installed."""
-    try:
-        from casadi_baseline import casadi_rows
-    except ImportError as e:  # pragma: no cover
-        return [{"name": "CasADi", "error": f"not run: {e}"}]
     log(f"[P1] CasADi baselines, batch {B} ...")
     try:
         rows, finals = casadi_rows(model, q0, amplitudes(Z[:B]), threads=os.cpu_count() or 2, repeats=repeats)
-    except Exception as e:  # noqa: BLE001  (a missing C compiler, a CasADi without cvodes: report it)
+    except Exception as e:  # noqa: BLE001  (no CasADi, no C compiler, a CasADi without cvodes: report it)
         return [{"name": "CasADi", "error": f"{type(e).__name__}: {e}"}]
     ref = scipy_trial(model, q0, amplitudes(Z[0]), rtol=1e-13, atol=1e-14).y[10:12, -1]
     for r, key in zip(rows, ("rk4", "cvodes")):
@@ -323,15 +280,10 @@ def fmt_table(res) -> str:
             {"problem": r["name"][:33], "devices": f"{r.get('threads', '-')} thr", "compile_s": r.get("build_s")} | r
         )
     rows += [{"problem": "P2 gaits, jsphere jit+vmap"} | r for r in res["problem2"]]
-    steps = lambda r: f"{r['steps_mean']:.0f}/{r['steps_max']}" if "steps_max" in r else None  # noqa: E731
-    cols = [
-        ("problem", "problem", ""),
-        ("batch", "batch", ""),
-        ("devices", "devices", ""),
-        ("trials/s", "trials_per_s", ".1f"),
-    ]
-    cols += [("median s", "median_s", ".4f"), ("compile s", "compile_s", ".2f"), ("reps", "repeats", "")]
-    cols += [("steps mean/max", steps, ""), ("vs scipy", "ratio_vs_scipy", ".1f")]
+    steps = lambda r: f"{r['steps_mean']:.0f}/{r['steps_max']}" if "steps_max" in r else None
+    cols = [("problem", "problem", ""), ("batch", "batch", ""), ("devices", "devices", "")]
+    cols += [("trials/s", "trials_per_s", ".1f"), ("median s", "median_s", ".4f"), ("compile s", "compile_s", ".2f")]
+    cols += [("reps", "repeats", ""), ("steps mean/max", steps, ""), ("vs scipy", "ratio_vs_scipy", ".1f")]
     L = table(cols, [r for r in rows if "error" not in r])
     L += [f"{r['problem']}: {r['error'][:70]}" for r in rows if "error" in r]
     mem = [r for r in res["problem1"]["jsphere"] if r.get("device_peak_bytes")]
@@ -343,8 +295,7 @@ def fmt_table(res) -> str:
     p3 = [("P3 gradient (7 params)", lambda r: "jax.grad of sum(x^2 + y^2)", ""), ("batch", "batch", "")]
     p3 += [("devices", "devices", ""), ("grad s", lambda r: r["grad"]["median_s"], ".4f")]
     p3 += [("forward s", lambda r: r["forward"]["median_s"], ".4f"), ("grad/fwd", "grad_over_forward", ".2f")]
-    L += ["", *table([*p3, ("grad compile s", lambda r: r["grad"]["compile_s"], ".2f")], res["problem3"]["rows"])]
-    L.append("")
+    L += ["", *table([*p3, ("grad compile s", lambda r: r["grad"]["compile_s"], ".2f")], res["problem3"]["rows"]), ""]
     c = res["problem1"]["checks"]
     L.append(
         f"accuracy P1: max |scipy - jsphere| final (x, y) over {c['compared_trials']} trials = {c['max_abs_diff_xy_m']:.2e} m "
@@ -371,13 +322,12 @@ def fmt_table(res) -> str:
     if su:
         L.append(
             f"start-up, `jsphere reproduce` in new processes (figures included): first {su['first_process_s']:.1f} s "
-            f"(empty cache), second {su['second_process_s']:.1f} s (median of "
-            f"{len(su['second_process_runs_s'])})"
+            f"(empty cache), second {su['second_process_s']:.1f} s (median of {len(su['second_process_runs_s'])})"
         )
     return "\n".join(L)
 
 
-def main(argv=None) -> int:
+def parse(argv):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="smaller run (about 2 minutes on 2 CPU cores)")
     ap.add_argument("--out", type=Path, help="JSON output (default results.json; results-quick.json with --quick)")
@@ -394,19 +344,50 @@ def main(argv=None) -> int:
             jax.config.update("jax_default_device", jax.devices(args.device)[0])
         except RuntimeError as e:
             ap.error(f"--device {args.device}: {e}")
-    problems = {int(k) for k in args.problems.split(",")} | {1}
     if args.out is None:
         args.out = HERE / ("results-quick.json" if args.quick else "results.json")
-    t_start = time.perf_counter()
-    env = environment(source_digest())
-    gpu = env["jax"]["platform"] in ("gpu", "cuda", "rocm")
-    repeats = 2 if args.quick else 3
+    return args
+
+
+def settings(args, gpu: bool) -> dict:
+    """The run's repeats, batch sizes and problems, as the JSON records them."""
+    problems = {int(k) for k in args.problems.split(",")} | {1}
     b1 = [1, 64, 1024] + ([] if args.quick else [16384]) + ([10**6] if gpu else [])
     if args.batches:
         b1 = sorted(int(float(b)) for b in args.batches.split(","))
-    b2 = [1, 64, 1024] if 2 in problems else []
-    b3 = ([64] if args.quick else [64, 1024]) if 3 in problems else []
-    n_scipy = 3 if args.quick else 10
+    return {
+        "repeats": 2 if args.quick else 3,
+        "repeat_rule": "at least `repeats` steady-state calls, more (up to 25) while their total is under 1 s",
+        "compile_s": "first call (trace + compile + one run) minus the steady-state median",
+        "problem1": {
+            "t1": T1,
+            "rtol": RTOL,
+            "atol": ATOL,
+            "amplitudes": "0.05 (1 + 0.1 z), z ~ default_rng(0).standard_normal((B, 3)), rows 0..B-1",
+            "phases": PHASES.tolist(),
+            "batches": b1,
+            "scipy_trials": 3 if args.quick else 10,
+        },
+        "problem2": {
+            "gaits": "acceleration(theta_max=th), braking(theta_max=th)",
+            "theta_max": "default_rng(1).uniform(0.05, 0.15)",
+            "tolerances": "simulate_gaits defaults (rtol 1e-10, atol 1e-12)",
+            "batches": [1, 64, 1024] if 2 in problems else [],
+        },
+        "problem3": {
+            "params": GRAD_NAMES,
+            "loss": "sum over batch of x_final^2 + y_final^2",
+            "batches": ([64] if args.quick else [64, 1024]) if 3 in problems else [],
+        },
+    }
+
+
+def main(argv=None) -> int:
+    args = parse(argv)
+    t_start = time.perf_counter()
+    env = environment(source_digest())
+    s = settings(args, gpu=env["jax"]["platform"] in ("gpu", "cuda", "rocm"))
+    repeats, b1 = s["repeats"], s["problem1"]["batches"]
     log(
         f"jsphere benchmark ({'quick' if args.quick else 'full'}): backend {env['jax']['backend']} "
         f"({env['jax']['device_kind']}), {env['machine']['cpu_count']} CPUs"
@@ -415,13 +396,13 @@ def main(argv=None) -> int:
     Z = np.random.default_rng(0).standard_normal((max(b1), 3))
 
     js_rows, js_finals = problem1_jsphere(p, Z, b1, repeats)
-    sc_row, sc_finals, model, q0 = problem1_scipy(p, Z, n_scipy, repeats)
+    sc_row, sc_finals, model, q0 = problem1_scipy(p, Z, s["problem1"]["scipy_trials"], repeats)
     for r in js_rows:
         r["ratio_vs_scipy"] = r["trials_per_s"] / sc_row["trials_per_s"]
     checks = problem1_checks(model, q0, Z, sc_finals, js_finals)
     cas_rows = problem1_casadi(model, q0, Z, 1024, repeats, sc_row) if not args.no_casadi else []
-    p2 = problem2(p, b2, repeats)
-    p3_rows, fd = problem3(p, Z, b3, repeats)
+    p2 = problem2(p, s["problem2"]["batches"], repeats)
+    p3_rows, fd = problem3(p, Z, s["problem3"]["batches"], repeats)
     startup = None
     if not args.no_startup:  # last: new processes, each with the CPUs to itself
         log("[start-up] jsphere reproduce in new processes, empty cache then cached ...")
@@ -436,27 +417,7 @@ def main(argv=None) -> int:
     res = {
         **finish(env),
         "mode": "quick" if args.quick else "full",
-        "settings": {
-            "repeats": repeats,
-            "repeat_rule": "at least `repeats` steady-state calls, more (up to 25) while their total is under 1 s",
-            "compile_s": "first call (trace + compile + one run) minus the steady-state median",
-            "problem1": {
-                "t1": T1,
-                "rtol": RTOL,
-                "atol": ATOL,
-                "amplitudes": "0.05 (1 + 0.1 z), z ~ default_rng(0).standard_normal((B, 3)), rows 0..B-1",
-                "phases": PHASES.tolist(),
-                "batches": b1,
-                "scipy_trials": n_scipy,
-            },
-            "problem2": {
-                "gaits": "acceleration(theta_max=th), braking(theta_max=th)",
-                "theta_max": "default_rng(1).uniform(0.05, 0.15)",
-                "tolerances": "simulate_gaits defaults (rtol 1e-10, atol 1e-12)",
-                "batches": b2,
-            },
-            "problem3": {"params": GRAD_NAMES, "loss": "sum over batch of x_final^2 + y_final^2", "batches": b3},
-        },
+        "settings": s,
         "problem1": {"jsphere": js_rows, "scipy": sc_row, "casadi": cas_rows, "checks": checks},
         "problem2": p2,
         "problem3": {"rows": p3_rows, "fd_check": fd},

@@ -1,21 +1,12 @@
-"""Start-up: what a new process pays before its first result, each entry in new processes.
+"""Start-up: what a new process pays before its first result, each entry in new processes;
+benchmarks/README.md says what each entry measures and records.
 
     python benchmarks/startup.py [reproduce] [--out benchmarks/results-startup.json]
     python benchmarks/startup.py fit [--cached-runs 2] [--out benchmarks/results-fit-startup.json]
     python benchmarks/startup.py first-result [--quick] [--repeat N] [--xla-defaults] [--tasks TASK ...]
 
-`reproduce`: `jsphere reproduce` with an empty persistent compilation cache, then three
-processes reusing it (their median), for the README's command, `--optimize` (the same-run
-baseline of the quick compilation) and `--no-plots`, each with its own cache, and once with
-`--no-cache`. `fit`: `jsphere fit` of five 6 s torque trials (seven free parameters, 2 starts)
-with an empty cache, twice with the cache filled, and with `--no-cache` (the same-run
-baseline); the fitted values must agree to the last digit (exit status 1 otherwise).
-`first-result`: a new process's first `simulate_gaits`, `simulate`, `jax.grad`, `jax.jacfwd`,
-fit iteration and plan, cold and with the persistent cache, against plain diffrax on a field
-of the same size (`_baseline_problem`), and the quickstart as a whole; each child process
-(`startup.py first-result --child TASK`) times its imports, its first call (with the tracing,
-lowering and XLA time of JAX's monitoring events) and a second call. benchmarks/README.md
-says what each entry records.
+`first-result` runs each task in a child process (`startup.py first-result --child TASK`) that
+times its imports, its first call (with JAX's tracing, lowering and XLA time) and a second call.
 """
 
 from __future__ import annotations
@@ -44,31 +35,33 @@ def reproduce_argv(tmp: str, name: str, extra: list[str]) -> list[str]:
     return ["reproduce", "--out", os.path.join(tmp, f"out-{name}"), *extra]
 
 
+def _cache_files(path: str) -> dict:
+    files = [f for f in Path(path).rglob("*") if f.is_file()]
+    return {"cache_files": len(files), "cache_bytes": sum(f.stat().st_size for f in files)}
+
+
 def measure(tmp: str, name: str, extra: list[str], cached_runs: int = 3, command: Callable = reproduce_argv) -> dict:
     """A first process of `command(tmp, name, extra)` (its arguments) with an empty cache in
     `tmp`, then `cached_runs` processes reusing it (their median is `second_process_s`)."""
     cache, argv = os.path.join(tmp, f"cache-{name}"), command(tmp, name, extra)
     first = common.run_cli(argv, cache)
     seconds = [common.run_cli(argv, cache) for _ in range(cached_runs)]
-    size = sum(f.stat().st_size for f in Path(cache).rglob("*") if f.is_file())
     return {
         "args": extra,
         "first_process_s": first,
         "second_process_s": sorted(seconds)[len(seconds) // 2],
         "second_process_runs_s": seconds,
-        "cache_bytes": size,
+        "cache_bytes": _cache_files(cache)["cache_bytes"],
     }
 
 
 def reproduce(argv) -> int:
-    ap = argparse.ArgumentParser(prog="startup.py reproduce", description="`jsphere reproduce` in new processes")
-    ap.add_argument("--out", type=Path, default=HERE / "results-startup.json")
+    ap = common.parser("startup.py reproduce", "results-startup.json", description="jsphere reproduce in new processes")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         runs = {}
         for name, extra in CONFIGS.items():
-            runs[name] = measure(tmp, name, extra)
-            r = runs[name]
+            runs[name] = r = measure(tmp, name, extra)
             print(f"  {name:<9} first {r['first_process_s']:5.1f} s, second {r['second_process_s']:4.1f} s", flush=True)
         no_cache = common.run_cli(reproduce_argv(tmp, "no-cache", ["--no-cache"]), os.path.join(tmp, "unused"))
     d, b = runs["default"], runs["optimize"]
@@ -114,8 +107,7 @@ def make_trials(tmp: str) -> None:
 
 
 def fit(argv) -> int:
-    ap = argparse.ArgumentParser(prog="startup.py fit", description="`jsphere fit` in new processes")
-    ap.add_argument("--out", type=Path, default=HERE / "results-fit-startup.json")
+    ap = common.parser("startup.py fit", "results-fit-startup.json", description="`jsphere fit` in new processes")
     ap.add_argument("--cached-runs", type=int, default=2, help="processes reusing the cache")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
@@ -224,37 +216,23 @@ def _jsphere_child(task: str, cache_dir: str | None) -> dict:
     p = jsphere.RobotParams.paper()
 
     if task == "gaits":
-
-        def f():
-            return jsphere.simulate_gaits(p, [jsphere.acceleration(), jsphere.braking()]).x
-
+        f = lambda: jsphere.simulate_gaits(p, [jsphere.acceleration(), jsphere.braking()]).x
     elif task == "simulate":
         ts = np.concatenate([np.linspace(0.0, 2.0, 201), np.linspace(2.0, 4.0, 201)])
         sign = np.where(np.arange(ts.size) < 201, 1.0, -1.0)
         K = 0.02 * (sign * np.sin(np.pi * ts) ** 2)[:, None] * np.array([1.0, -0.5, -0.5])
         state0 = jsphere.State.at_rest(p)
-
-        def f():
-            return jsphere.simulate(p, state0, jsphere.Torques.from_samples(ts, K), 4.0, ts=ts).x
-
+        f = lambda: jsphere.simulate(p, state0, jsphere.Torques.from_samples(ts, K), 4.0, ts=ts).x
     elif task == "fit":
         ts = np.linspace(0.0, 3.0, 301)
         K = 0.02 * (np.sin(np.pi * ts / 3.0) ** 2 * np.sin(2.0 * ts))[:, None] * np.array([1.0, -0.5, -0.5])
         truth = p.replace(R_m=1.02 * float(p.R_m))
         fit_options = jsphere.FitOptions(n_starts=1, adam_steps=0, max_iter=1)
         trial = jsphere.synthetic_trial(truth, jsphere.Torques.from_samples(ts, K), 3.0, rate=50.0, seed=1)
-
-        def f():
-            r = jsphere.fit([trial], p, "R_m,j", options=fit_options, progress=False)
-            return np.asarray(r.params.R_m)
-
+        f = lambda: np.asarray(jsphere.fit([trial], p, "R_m,j", options=fit_options, progress=False).params.R_m)
     elif task == "plan":
-        settings, two = jsphere.PlanSettings(adam_steps=1, lm_steps=1), jsphere.PlanOptions(restarts=2)
-
-        def f():
-            pl = jsphere.plan(p, (0.3, 0.1), settings=settings, plan_options=two, allow_infeasible=True, progress=False)
-            return np.asarray(pl.trajectory.x)
-
+        kw = dict(settings=jsphere.PlanSettings(adam_steps=1, lm_steps=1), plan_options=jsphere.PlanOptions(restarts=2))
+        f = lambda: np.asarray(jsphere.plan(p, (0.3, 0.1), **kw, allow_infeasible=True, progress=False).trajectory.x)
     else:
         adjoint = dfx.ForwardMode() if task == "jacfwd" else None
 
@@ -263,9 +241,7 @@ def _jsphere_child(task: str, cache_dir: str | None) -> dict:
             return jsphere.simulate_gaits(p, gaits, ts=jnp.array([4.0]), adjoint=adjoint).x[-1]
 
         d = jax.grad(stop) if task == "grad" else jax.jacfwd(stop)
-
-        def f():
-            return d(0.1)
+        f = lambda: d(0.1)
 
     from jsphere._runtime.compilation_cache import callbacks_as_nan
 
@@ -277,7 +253,7 @@ def _baseline_problem():
     """A 13-state ODE of about the cost of jsphere's gait field: a quaternion, two angular
     velocities whose rates come from a 6x6 linear system with a state-dependent matrix,
     a planar position and one more angle; forcing `theta sin^2(pi t)` through trigonometric
-    terms. Returns `(solve(theta, ts), y0)`, `solve` giving the states at `ts`."""
+    terms. Returns `solve(theta, ts, adjoint=None)`, the states at `ts`."""
     import diffrax as dfx
     import jax.numpy as jnp
 
@@ -312,22 +288,10 @@ def _baseline_problem():
     y0 = jnp.zeros(13).at[0].set(1.0)
 
     def solve(theta, ts, adjoint=None):
-        sol = dfx.diffeqsolve(
-            dfx.ODETerm(field),
-            dfx.Dopri8(),
-            0.0,
-            4.0,
-            None,
-            y0,
-            theta,
-            saveat=dfx.SaveAt(ts=ts),
-            stepsize_controller=dfx.PIDController(rtol=1e-10, atol=1e-12),
-            max_steps=16384,
-            adjoint=adjoint or dfx.RecursiveCheckpointAdjoint(),
-        )
-        return sol.ys
+        kw = dict(stepsize_controller=dfx.PIDController(rtol=1e-10, atol=1e-12), max_steps=16384)
+        kw |= dict(saveat=dfx.SaveAt(ts=ts), adjoint=adjoint or dfx.RecursiveCheckpointAdjoint())
+        return dfx.diffeqsolve(dfx.ODETerm(field), dfx.Dopri8(), 0.0, 4.0, None, y0, theta, **kw).ys
 
-    solve.field, solve.y0 = field, y0
     return solve
 
 
@@ -343,21 +307,12 @@ def _dfx_child(task: str, cache_dir: str | None) -> dict:
         rec["cache"] = _enable_cache(cache_dir)
     solve = _baseline_problem()
     if task == "dfx_solve":
-        ts = jnp.linspace(0.0, 4.0, 5)
-
-        def f():
-            return solve(jnp.asarray(0.1), ts)[:, 10]
-
+        f = lambda: solve(jnp.asarray(0.1), jnp.linspace(0.0, 4.0, 5))[:, 10]
     else:
         adjoint = dfx.ForwardMode() if task == "dfx_jacfwd" else None
-
-        def stop(theta):
-            return solve(theta, jnp.array([4.0]), adjoint)[-1, 10]
-
+        stop = lambda theta: solve(theta, jnp.array([4.0]), adjoint)[-1, 10]
         d = jax.grad(stop) if task == "dfx_grad" else jax.jacfwd(stop)
-
-        def f():
-            return d(0.1)
+        f = lambda: d(0.1)
 
     return rec, f, contextlib.nullcontext()
 
@@ -392,11 +347,6 @@ def run_quickstart() -> dict:
     return {"wall_s": wall, "loadavg_1min_before": load}
 
 
-def _cache_files(path: str) -> dict:
-    files = [f for f in Path(path).rglob("*") if f.is_file()]
-    return {"cache_files": len(files), "cache_bytes": sum(f.stat().st_size for f in files)}
-
-
 def run_cached(task: str) -> dict:
     """The task in a process with an empty cache, then in a second process with that cache."""
     with tempfile.TemporaryDirectory(prefix="first-result-cache-") as cache:
@@ -421,24 +371,71 @@ def _ratios(res: dict, key: str = "first_s") -> dict:
     return {f"{a}/{b}": res[a][key] / res[b][key] for a, b in RATIOS.items() if a in res and b in res}
 
 
+def _first_result_runs(tasks, args) -> tuple[dict, dict, dict | None, dict]:
+    """Each task cold (and with XLA's defaults where asked), the quickstart, each task cached:
+    the medians over `args.repeat` processes."""
+    cold, defaults, cached, quickstart = {}, {}, {}, None
+    for task in tasks:
+        cold[task] = r = _median([first_result_child(task) for _ in range(args.repeat)])
+        log(
+            f"  cold   {task:<11} import {r['import_s']:4.1f} s, first {r['first_s']:5.1f} s, "
+            f"second {r['second_s']:6.3f} s, process {r['wall_s']:5.1f} s"
+        )
+        if args.xla_defaults and not task.startswith("dfx_"):
+            runs = [first_result_child(task, extra_env=XLA_DEFAULTS_ENV) for _ in range(args.repeat)]
+            defaults[task] = r = _median(runs)
+            log(f"  cold   {task:<11} with XLA's defaults: first {r['first_s']:5.1f} s, second {r['second_s']:6.3f} s")
+    if not args.quick and not args.tasks:
+        quickstart = _median([run_quickstart() for _ in range(args.repeat)])
+        log(f"  cold   quickstart  process {quickstart['wall_s']:5.1f} s")
+    for task in () if args.no_cache else tasks:
+        cached[task] = r = _median([run_cached(task) for _ in range(args.repeat)])
+        log(
+            f"  cached {task:<11} import {r['import_s']:4.1f} s, first {r['first_s']:5.1f} s, "
+            f"process {r['wall_s']:5.1f} s, {r['cache_files']} cache files"
+        )
+    return cold, defaults, quickstart, cached
+
+
+def _first_result_tables(tasks, cold, cached, quickstart, ratios) -> None:
+    rows = [
+        {"task": t, "ratio": ratios["cold"].get(f"{t}/{RATIOS.get(t)}")}
+        | cold[t]
+        | {f"cached_{k}": v for k, v in cached.get(t, {}).items()}
+        | {"cached_ratio": ratios["cached"].get(f"{t}/{RATIOS.get(t)}")}
+        for t in tasks
+    ] + ([{"task": "quickstart", "wall_s": quickstart["wall_s"]}] if quickstart else [])
+    cols = [("task", "task", ""), ("import", "import_s", ".2f"), ("first", "first_s", ".2f")]
+    cols += [("cpu", "first_cpu_s", ".2f"), ("second", "second_s", ".3f"), ("process", "wall_s", ".2f")]
+    cols += [("ratio", "ratio", ".2f"), ("cached first", "cached_first_s", ".2f")]
+    cols += [("process", "cached_wall_s", ".2f"), ("ratio", "cached_ratio", ".2f")]
+    print("", *common.table(cols, rows), "", sep="\n")
+    cols = [("cold, first call", "task", ""), ("trace", "trace_s", ".2f"), ("lower", "lower_s", ".2f")]
+    cols += [("compile", "compile_s", ".2f"), ("programs", "programs", ".0f")]
+    common.print_table(cols, [{"task": t} | cold[t]["phases"] for t in tasks if cold[t].get("phases")])
+    cpu = ", ".join(f"{k} {v:.2f}" for k, v in ratios["cold_cpu"].items())
+    print(f"ratio: first_s over the baseline's (cpu: {cpu})")
+    for t, r in ratios["options_over_xla_defaults"].items():
+        print(
+            f"{t}: jsphere's compiler options over XLA's defaults: first {r['first_s']:.2f}x "
+            f"(cpu {r['first_cpu_s']:.2f}x), second call {r['second_s']:.2f}x"
+        )
+    print(
+        f"targets: first gaits / grad at most {TARGET_RATIO}x the baseline; cached first grad <= {TARGET_CACHED_GRAD_S} s; "
+        f"quickstart cold < {TARGET_QUICKSTART_S} s"
+    )
+
+
 def first_result(argv) -> int:
     ap = argparse.ArgumentParser(prog="startup.py first-result", description="a new process's first calls")
     ap.add_argument("--repeat", type=int, default=1, help="processes per entry (the median is reported)")
     ap.add_argument("--quick", action="store_true", help=f"only {', '.join(QUICK_TASKS)}; no quickstart")
     ap.add_argument("--no-cache", action="store_true", help="skip the cached part")
     ap.add_argument("--tasks", nargs="+", choices=JSPHERE_TASKS + DFX_TASKS, help="only these tasks; no quickstart")
-    ap.add_argument(
-        "--xla-defaults",
-        action="store_true",
-        help="also run the jsphere tasks cold with XLA's default options (JSPHERE_XLA_DEFAULTS=1), alternating",
-    )
-    ap.add_argument(
-        "--out",
-        type=Path,
-        default=None,
-        help="JSON record (default: benchmarks/results-first-result.json for a full run; "
-        "a run of some tasks, --tasks or --quick, writes one only where --out is given)",
-    )
+    xla_help = "also the jsphere tasks cold with XLA's default options (JSPHERE_XLA_DEFAULTS=1), alternating"
+    ap.add_argument("--xla-defaults", action="store_true", help=xla_help)
+    out_help = "JSON record (default results-first-result.json; with --tasks or --quick only where --out is given)"
+    ap.add_argument("--out", type=Path, help=out_help)
     ap.add_argument("--child", help=argparse.SUPPRESS)
     ap.add_argument("--cache-dir", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -448,34 +445,7 @@ def first_result(argv) -> int:
 
     meta = common.environment_in_child()
     tasks = tuple(args.tasks) if args.tasks else QUICK_TASKS if args.quick else JSPHERE_TASKS + DFX_TASKS
-    cold, cached = {}, {}
-    defaults = {}
-    for task in tasks:
-        cold[task] = _median([first_result_child(task) for _ in range(args.repeat)])
-        r = cold[task]
-        log(
-            f"  cold   {task:<11} import {r['import_s']:4.1f} s, first {r['first_s']:5.1f} s, "
-            f"second {r['second_s']:6.3f} s, process {r['wall_s']:5.1f} s",
-        )
-        if args.xla_defaults and not task.startswith("dfx_"):
-            defaults[task] = _median([first_result_child(task, extra_env=XLA_DEFAULTS_ENV) for _ in range(args.repeat)])
-            r = defaults[task]
-            log(
-                f"  cold   {task:<11} with XLA's defaults: first {r['first_s']:5.1f} s, second {r['second_s']:6.3f} s",
-            )
-    quickstart = None
-    if not args.quick and not args.tasks:
-        quickstart = _median([run_quickstart() for _ in range(args.repeat)])
-        log(f"  cold   quickstart  process {quickstart['wall_s']:5.1f} s")
-    if not args.no_cache:
-        for task in tasks:
-            cached[task] = _median([run_cached(task) for _ in range(args.repeat)])
-            r = cached[task]
-            log(
-                f"  cached {task:<11} import {r['import_s']:4.1f} s, first {r['first_s']:5.1f} s, "
-                f"process {r['wall_s']:5.1f} s, {r['cache_files']} cache files",
-            )
-
+    cold, defaults, quickstart, cached = _first_result_runs(tasks, args)
     ratios = {
         "cold": _ratios(cold),
         "cold_cpu": _ratios(cold, "first_cpu_s"),
@@ -503,42 +473,12 @@ def first_result(argv) -> int:
             "quickstart_cold_s_max": TARGET_QUICKSTART_S,
         },
     }
-
-    rows = [
-        {"task": t, "ratio": ratios["cold"].get(f"{t}/{RATIOS.get(t)}")}
-        | cold[t]
-        | {f"cached_{k}": v for k, v in cached.get(t, {}).items()}
-        | {"cached_ratio": ratios["cached"].get(f"{t}/{RATIOS.get(t)}")}
-        for t in tasks
-    ] + ([{"task": "quickstart", "wall_s": quickstart["wall_s"]}] if quickstart else [])
-    cols = [("task", "task", ""), ("import", "import_s", ".2f"), ("first", "first_s", ".2f")]
-    cols += [("cpu", "first_cpu_s", ".2f"), ("second", "second_s", ".3f"), ("process", "wall_s", ".2f")]
-    cols += [("ratio", "ratio", ".2f"), ("cached first", "cached_first_s", ".2f")]
-    cols += [("process", "cached_wall_s", ".2f"), ("ratio", "cached_ratio", ".2f")]
-    print("", *common.table(cols, rows), "", sep="\n")
-    cols = [("cold, first call", "task", ""), ("trace", "trace_s", ".2f"), ("lower", "lower_s", ".2f")]
-    cols += [("compile", "compile_s", ".2f"), ("programs", "programs", ".0f")]
-    common.print_table(cols, [{"task": t} | cold[t]["phases"] for t in tasks if cold[t].get("phases")])
-    print(
-        "ratio: first_s over the baseline's (cpu: "
-        + ", ".join(f"{k} {v:.2f}" for k, v in ratios["cold_cpu"].items())
-        + ")"
-    )
-    for t, r in ratios["options_over_xla_defaults"].items():
-        print(
-            f"{t}: jsphere's compiler options over XLA's defaults: first {r['first_s']:.2f}x "
-            f"(cpu {r['first_cpu_s']:.2f}x), second call {r['second_s']:.2f}x"
-        )
-    print(
-        f"targets: first gaits / grad at most {TARGET_RATIO}x the baseline; cached first grad <= {TARGET_CACHED_GRAD_S} s; "
-        f"quickstart cold < {TARGET_QUICKSTART_S} s"
-    )
-
+    _first_result_tables(tasks, cold, cached, quickstart, ratios)
     out = args.out or (None if args.tasks or args.quick else HERE / "results-first-result.json")
     if out is None:  # the record of the full run stays whole
         print("not written: a run of some tasks writes its record only to --out")
-        return 0
-    write_json(out, doc)
+    else:
+        write_json(out, doc)
     return 0
 
 

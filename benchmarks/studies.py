@@ -1,15 +1,9 @@
-"""Studies: `jsphere.monte_carlo` throughput (10^5 trials of the paper's 4 s straight line,
-`r_m[2]` varied, per-trial steps, batches split over the local devices) against a loop of
-`simulate_gaits` calls, in one run; `results-montecarlo.json`.
+"""Studies: `jsphere.monte_carlo` throughput against a loop of `simulate_gaits` calls; with
+`--workers K`, `jsphere montecarlo` in K `--worker` processes and `--gather`, alternating with one
+process (one process, workers, one process). benchmarks/README.md says what each records.
 
     python benchmarks/studies.py [--trials 100000] [--cores N]
     python benchmarks/studies.py --workers 2 [--trials 1000000]
-
-`--workers K`: the same study as a study file, run by one `jsphere montecarlo` process and by K
-`--worker` processes followed by `--gather`, alternating (one process, workers, one process),
-each a new process with a warm compilation cache (start-up included, as on a cluster); the
-ratio is the workers' rate over the mean of the two one-process rates;
-`results-montecarlo-workers.json`.
 """
 
 from __future__ import annotations
@@ -25,7 +19,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
-from common import cli_env, environment, result_path, write_json
+from common import cli_env, environment, result_path, timed, write_json
 
 import jsphere
 
@@ -39,12 +33,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--batch-size", type=int, default=8192)
     ap.add_argument("--workers", type=int, default=0, help="compare K --worker processes with one process")
     ap.add_argument("--out", default=None, help="JSON file (default: benchmarks/results-montecarlo[-workers].json)")
-    ap.add_argument(
-        "--cores",
-        type=int,
-        default=None,
-        help="CPU devices, one per core (default: every core; 1: JAX's single device)",
-    )
+    ap.add_argument("--cores", type=int, help="CPU devices, one per core (default: every core; 1: JAX's single device)")
     return ap
 
 
@@ -85,13 +74,9 @@ def workers_against_one_process(n: int, k: int, batch: int, out: str) -> None:
 
     one_a = one("one-a")
     t = time.perf_counter()
-    _wait(
-        *[
-            _jsphere(str(study), "--trials", str(n), "--out", str(tmp / "workers"), "--worker", env=env)
-            for _ in range(k)
-        ]
-    )
-    _wait(_jsphere(str(study), "--trials", str(n), "--out", str(tmp / "workers"), "--gather", env=env))
+    workers_argv = [str(study), "--trials", str(n), "--out", str(tmp / "workers")]
+    _wait(*[_jsphere(*workers_argv, "--worker", env=env) for _ in range(k)])
+    _wait(_jsphere(*workers_argv, "--gather", env=env))
     workers = n / (time.perf_counter() - t)
     one_b = one("one-b")
     same = (tmp / "workers" / "stats.json").read_bytes() == (tmp / "one-a" / "stats.json").read_bytes()
@@ -119,14 +104,12 @@ def monte_carlo_against_a_loop(args) -> None:
     gaits = [jsphere.acceleration(), jsphere.braking()]
     vary = {"r_m[2]": ("normal", float(p.r_m[2]), 1e-4)}
 
-    t = time.perf_counter()
-    options = jsphere.StudyOptions(seed=1, batch_size=args.batch_size)
-    jsphere.monte_carlo(p, gaits, vary=vary, n=args.batch_size, options=options, progress=False)
-    compile_and_one_batch = time.perf_counter() - t
-    t = time.perf_counter()
-    options = jsphere.StudyOptions(seed=0, batch_size=args.batch_size)
-    res = jsphere.monte_carlo(p, gaits, vary=vary, n=args.trials, options=options, progress=False)
-    mc_s = time.perf_counter() - t
+    def study(n: int, seed: int):
+        options = jsphere.StudyOptions(seed=seed, batch_size=args.batch_size)
+        return jsphere.monte_carlo(p, gaits, vary=vary, n=n, options=options, progress=False)
+
+    _, compile_and_one_batch = timed(study, args.batch_size, 1)
+    res, mc_s = timed(study, args.trials, 0)
 
     ts = jax.numpy.array([4.0])
     zs = np.random.default_rng(0).normal(size=args.baseline_trials)
@@ -150,9 +133,8 @@ def monte_carlo_against_a_loop(args) -> None:
     }
     print(f"{'':28s}{'trials':>10s}{'seconds':>10s}{'trials/s':>12s}")
     print(f"{'monte_carlo (gait mode)':28s}{args.trials:>10d}{mc_s:>10.1f}{rate:>12,.0f}")
-    print(
-        f"{'loop of simulate_gaits':28s}{args.baseline_trials:>10d}{args.baseline_trials / loop_rate:>10.1f}{loop_rate:>12,.0f}"
-    )
+    n = args.baseline_trials
+    print(f"{'loop of simulate_gaits':28s}{n:>10d}{n / loop_rate:>10.1f}{loop_rate:>12,.0f}")
     print(
         f"ratio {rate / loop_rate:.1f}x; first call incl. compile {compile_and_one_batch:.1f} s; device {row['jax']['device_kind']} x {row['jax']['device_count']}"
     )

@@ -1,30 +1,8 @@
-"""User tasks end to end, each against a same-run baseline.
+"""User tasks end to end, each against a same-run baseline: fits, plans, tracking, design,
+animations. Each prints a table and writes its JSON (`--out`); benchmarks/README.md says what
+each task measures and the file it writes.
 
     python benchmarks/tasks.py TASK [options]          # TASK --help lists its options
-
-- `fit`: system identification on synthetic captures of `TRUTH` (default 20 wheel-speed
-  trials x 601 samples): time, and the recovery of each free parameter in standard errors;
-- `fit-long`: three 15 s and one 30 s torque trials, seven free parameters, in new processes
-  with one CPU device per core and with one device, alternately;
-- `robust-fit [--long]`: five glitchy 6 s torque trials (ghost frames, marker swaps) against
-  the clean ones, robust losses and `l2`; `--long`: Huber's loss in the warm-up stages then
-  Cauchy's, against Cauchy's in every stage;
-- `plan`: the planner's search, restarts x targets in one vmapped, compiled call, with the
-  time per (problem x iteration) extrapolated to 256 x 16;
-- `robust-plan`: `plan_robust` against the nominal `plan`, and its vmapped RK4 replay of drawn
-  robots against a loop of the adaptive `simulate`;
-- `track`: `jsphere track`'s gains and its open- and closed-loop evaluation on drawn robots
-  against the open-loop wheel-speed replay of the same draws;
-- `design`: `jsphere design` end to end, then its trials and the baseline's fitted on a robot
-  6-8 % away: the factor baseline / design standard error, predicted and fitted;
-- `animate`: a 10 s clip as MP4 (blitted, and every frame drawn in full: the baseline), GIF
-  and HTML viewer;
-- `onboard-fit`: a fit from onboard sensors (five 8 s torque trials of the paper's robot, gyro,
-  accelerometer and 4096-count encoders, seven free parameters) with the default solver
-  settings and with the motion-capture fit's `Tsit5` at rtol 1e-6, against a fit at rtol 1e-10
-  (the baseline): each estimate's shift from the baseline and its error, in standard errors.
-
-Each prints a table and writes its JSON (`--out`; benchmarks/README.md names the files).
 """
 
 from __future__ import annotations
@@ -41,10 +19,11 @@ import time
 from pathlib import Path
 
 import common
+import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
-from common import HERE, dispatch, environment, log, print_pairs, print_table, result_path, write_json
+from common import dispatch, environment, log, parser, print_pairs, print_table, result_path, timed, write_json
 
 import jsphere
 
@@ -72,21 +51,24 @@ def make_trials(truth, n, durations, kind, seed, rate=100.0):
     return out
 
 
+def errors_se(res, truth, names=None) -> dict:
+    """Each fitted value's error against `truth`, in its standard errors (NaN where that is 0)."""
+    se = lambda n: res.stderr[n] if res.stderr[n] > 0 else float("nan")
+    return {n: (res.values[n] - float(jsphere.get_value(truth, n))) / se(n) for n in names or res.free}
+
+
 def run(kind, n, durations, free, fix_names, seed=0, n_starts=2, progress=True, solver=None):
     truth = truth_params()
     trials = make_trials(truth, n, durations, kind, seed)
     fix = {name: np.asarray(jsphere.get_value(truth, name)).tolist() for name in fix_names}
-    t = time.perf_counter()
     options = jsphere.FitOptions(n_starts=n_starts, seed=seed, solver=solver)
-    res = jsphere.fit(trials, jsphere.RobotParams.paper(), free, fix=fix, options=options, progress=progress)
-    elapsed = time.perf_counter() - t
-    rows = []
-    for name in res.free:
-        tv = float(jsphere.get_value(truth, name))
-        v, se = res.values[name], res.stderr[name]
-        rows.append(
-            {"name": name, "truth": tv, "fit": v, "stderr": se, "error_se": (v - tv) / se if se > 0 else float("nan")}
-        )
+    paper = jsphere.RobotParams.paper()
+    res, elapsed = timed(jsphere.fit, trials, paper, free, fix=fix, options=options, progress=progress)
+    truths = {n: float(jsphere.get_value(truth, n)) for n in res.free}
+    rows = [
+        {"name": n, "truth": truths[n], "fit": res.values[n], "stderr": res.stderr[n], "error_se": z}
+        for n, z in errors_se(res, truth).items()
+    ]
     return res, rows, elapsed, trials
 
 
@@ -107,8 +89,8 @@ def torque_trials(robot, lengths, seed: int = 0):
 
 
 def fit(argv) -> int:
-    """`fit` (module docstring)."""
-    ap = argparse.ArgumentParser(prog="tasks.py fit")
+    """System identification on synthetic captures of `TRUTH`: time, and each parameter's error in SE."""
+    ap = parser("tasks.py fit", "results-fit.json")
     ap.add_argument("--kind", default="wheel_speeds", choices=["wheel_speeds", "torques"])
     ap.add_argument("--trials", type=int, default=20)
     ap.add_argument("--duration", default="6", help="seconds, or lo:hi for a uniform draw per trial")
@@ -117,16 +99,11 @@ def fit(argv) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--n-starts", type=int, default=2)
     ap.add_argument("--solver", help="a diffrax solver's name (e.g. Dopri8); default: the fit's own (FIT_SOLVER)")
-    ap.add_argument("--out", default=str(HERE / "results-fit.json"))
     args = ap.parse_args(argv)
     lo, _, hi = args.duration.partition(":")
     durations = (float(lo), float(hi or lo))
     fix_names = [n for n in args.fix.split(",") if n]
-    solver = None
-    if args.solver:
-        import diffrax
-
-        solver = jsphere.SolverOptions(solver=getattr(diffrax, args.solver)())
+    solver = jsphere.SolverOptions(solver=getattr(diffrax, args.solver)()) if args.solver else None
     res, rows, elapsed, trials = run(
         args.kind, args.trials, durations, args.free, fix_names, args.seed, args.n_starts, solver=solver
     )
@@ -174,10 +151,7 @@ def long_fit_child(devices: int) -> dict:
     jsphere.use_cpu_cores(devices or None)
     truth = truth_params()
     trials = make_trials(truth, len(LONG_DURATIONS), LONG_DURATIONS, "torques", seed=7)
-    t0 = time.perf_counter()
-    res = jsphere.fit(trials, jsphere.RobotParams.paper(), LONG_FREE, progress=False)
-    elapsed = time.perf_counter() - t0
-    z = {n: (res.values[n] - float(jsphere.get_value(truth, n))) / res.stderr[n] for n in res.free}
+    res, elapsed = timed(jsphere.fit, trials, jsphere.RobotParams.paper(), LONG_FREE, progress=False)
     return {
         **environment(),
         "fit_s": elapsed,
@@ -185,15 +159,14 @@ def long_fit_child(devices: int) -> dict:
         "converged": bool(res.converged),
         "shooting": res.shooting,
         "values": res.values,
-        "z": z,
+        "z": errors_se(res, truth),
     }
 
 
 def fit_long(argv) -> int:
-    """`fit-long` (module docstring)."""
-    ap = argparse.ArgumentParser(prog="tasks.py fit-long")
+    """The long-capture fit in new processes, one CPU device per core against one device."""
+    ap = parser("tasks.py fit-long", "results-fit-long.json")
     ap.add_argument("--repeat", type=int, default=1, help="pairs of processes (per core, one device)")
-    ap.add_argument("--out", type=Path, default=HERE / "results-fit-long.json")
     ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child is not None:
@@ -243,31 +216,21 @@ def glitchy(clean, seed: int):
 
 
 #: the columns of the robust fits' tables
-ROBUST_COLUMNS = [
-    ("wall s", "wall_s", ".1f"),
-    ("iters", "iterations", "d"),
-    ("max|z|", "max_error_se", ".2f"),
-    ("sigma mm", "sigma_pos_mm", ".3f"),
-    ("named", "named_share", ".0%"),
-    ("clean out", "clean_frames_set_aside", "d"),
-    ("status", "status", ""),
-]
+ROBUST_COLUMNS = [("wall s", "wall_s", ".1f"), ("iters", "iterations", "d"), ("max|z|", "max_error_se", ".2f")]
+ROBUST_COLUMNS += [("sigma mm", "sigma_pos_mm", ".3f"), ("named", "named_share", ".0%")]
+ROBUST_COLUMNS += [("clean out", "clean_frames_set_aside", "d"), ("status", "status", "")]
 
 
 def robust_one(robot, tr, bad, loss):
-    t = time.perf_counter()
-    res = jsphere.fit(
-        tr, jsphere.RobotParams.paper(), ROBUST_FREE, options=jsphere.FitOptions(loss=loss), progress=False
-    )
-    wall = time.perf_counter() - t
-    z = [abs((res.values[k] - float(jsphere.get_value(robot, k))) / res.stderr[k]) for k in res.free]
+    options = jsphere.FitOptions(loss=loss)
+    res, wall = timed(jsphere.fit, tr, jsphere.RobotParams.paper(), ROBUST_FREE, options=options, progress=False)
     named = {k: set(v["frames"]) for k, v in res.outliers.items()}
     injected = sum(len(b) for b in bad.values())
     return {
         "loss": loss,
         "wall_s": wall,
         "iterations": res.iterations,
-        "max_error_se": float(max(z)),
+        "max_error_se": float(max(map(abs, errors_se(res, robot).values()))),
         "status": res.status,
         "sigma_pos_mm": res.sigma_pos * 1e3,
         "sigma_rot_deg": math.degrees(res.sigma_rot),
@@ -280,7 +243,7 @@ def robust_one(robot, tr, bad, loss):
 
 
 def long_capture(out: str) -> None:
-    """`--long` (module docstring)."""
+    """The long capture with Huber's loss in the warm-up stages then Cauchy's, against Cauchy's in every stage."""
     from jsphere.identify import fit as fit_module
 
     robot = other_robot()
@@ -294,25 +257,17 @@ def long_capture(out: str) -> None:
         finally:
             fit_module.REDESCENDING = ("cauchy",)
     print_table([("stages", "stages", ""), *ROBUST_COLUMNS], rows)
-    doc = {
-        **environment(),
-        "config": {"free": ROBUST_FREE, "lengths_s": [15, 15, 15, 30], "rate_hz": 100.0},
-        "rows": rows,
-    }
-    write_json(out, doc)
+    config = {"free": ROBUST_FREE, "lengths_s": [15, 15, 15, 30], "rate_hz": 100.0}
+    write_json(out, {**environment(), "config": config, "rows": rows})
 
 
 def robust_fit(argv) -> int:
-    """`robust-fit` (module docstring)."""
-    ap = argparse.ArgumentParser(prog="tasks.py robust-fit")
-    ap.add_argument(
-        "--losses", nargs="+", default=["cauchy", "huber", "l2"], help="losses fitted to the glitchy capture"
-    )
+    """Glitchy torque trials against the clean ones, robust losses and `l2`; `--long`: `long_capture`."""
+    ap = parser("tasks.py robust-fit")
+    ap.add_argument("--losses", nargs="+", default=["cauchy", "huber", "l2"], help="the glitchy capture's losses")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--long", action="store_true", help="the long capture: Cauchy from Huber's point or in every stage")
-    ap.add_argument(
-        "--out", help="result JSON (default results-robust-fit.json, with --long results-robust-fit-long.json)"
-    )
+    ap.add_argument("--out", help="result JSON (default results-robust-fit.json; results-robust-fit-long.json)")
     args = ap.parse_args(argv)
     if args.long:
         long_capture(result_path(args, "results-robust-fit-long.json"))
@@ -323,9 +278,8 @@ def robust_fit(argv) -> int:
     dirty, bad = glitchy(clean, args.seed)
     log("clean capture, cauchy (compiles) ...")
     first = robust_one(robot, clean, {}, "cauchy")
-    rows = []
     log("clean capture, cauchy, compiled ...")
-    rows.append({"capture": "clean"} | robust_one(robot, clean, {}, "cauchy"))
+    rows = [{"capture": "clean"} | robust_one(robot, clean, {}, "cauchy")]
     for loss in args.losses:
         log(f"glitchy capture, {loss} ...")
         rows.append({"capture": "glitchy"} | robust_one(robot, dirty, bad, loss))
@@ -334,12 +288,10 @@ def robust_fit(argv) -> int:
     rows.append({"capture": "clean"} | l2)
     rob = rows[0]
     # no cost on clean data: the robust fit against least squares, in the latter's standard errors
+    ratios = [rob["stderr"][k] / l2["stderr"][k] for k in l2["values"]]
     clean_vs_l2 = {
         "max_value_difference_se": max(abs(rob["values"][k] - l2["values"][k]) / l2["stderr"][k] for k in l2["values"]),
-        "stderr_ratio_range": [
-            min(rob["stderr"][k] / l2["stderr"][k] for k in l2["values"]),
-            max(rob["stderr"][k] / l2["stderr"][k] for k in l2["values"]),
-        ],
+        "stderr_ratio_range": [min(ratios), max(ratios)],
     }
     base = rows[0]["wall_s"]
     head = [("capture", "capture", ""), ("loss", "loss", ""), ("x clean", lambda r: r["wall_s"] / base, ".2f")]
@@ -362,29 +314,24 @@ def robust_fit(argv) -> int:
 
 # ---------------------------------------------------------------------- planning
 
-PLAN_DEFAULT_ITERATIONS = jsphere.PlanSettings().adam_steps + jsphere.PlanSettings().lm_steps + 1
+PLAN_DEFAULTS = jsphere.PlanSettings()
+PLAN_DEFAULT_ITERATIONS = PLAN_DEFAULTS.adam_steps + PLAN_DEFAULTS.lm_steps + 1
 
 
 def plan(argv) -> int:
-    """`plan` (module docstring)."""
+    """The planner's search, restarts x targets in one vmapped, compiled call, extrapolated to 256 x 16."""
     from jsphere.planning.problem import _vec_targets, gait_from_vector
     from jsphere.planning.rollout import rollout
     from jsphere.planning.search import _initial_guesses, _search
 
-    ap = argparse.ArgumentParser(prog="tasks.py plan")
+    ap = parser("tasks.py plan", "results-plan.json")
     ap.add_argument("--restarts", type=int, default=16)
     ap.add_argument("--targets", type=int, default=16, help="targets on a grid over the 2 m x 2 m square")
-    ap.add_argument("--adam", type=int, default=None, help="Adam steps (default: PlanSettings' 150)")
-    ap.add_argument("--lm", type=int, default=None, help="LM steps (default: PlanSettings' 40)")
-    ap.add_argument("--out", default=str(HERE / "results-plan.json"))
+    ap.add_argument("--adam", type=int, default=PLAN_DEFAULTS.adam_steps, help="Adam steps (default: %(default)s)")
+    ap.add_argument("--lm", type=int, default=PLAN_DEFAULTS.lm_steps, help="LM steps (default: %(default)s)")
     args = ap.parse_args(argv)
     p = jsphere.RobotParams.paper()
-    s = jsphere.PlanSettings()
-    if args.adam is not None or args.lm is not None:
-        s = jsphere.PlanSettings(
-            adam_steps=s.adam_steps if args.adam is None else args.adam,
-            lm_steps=s.lm_steps if args.lm is None else args.lm,
-        )
+    s = jsphere.PlanSettings(adam_steps=args.adam, lm_steps=args.lm)
     lim, obj = jsphere.Limits(), jsphere.Objective()
     lim_a, obj_a = (jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64), m) for m in (lim, obj))
     k = round(np.sqrt(args.targets))
@@ -392,16 +339,11 @@ def plan(argv) -> int:
     tg = _vec_targets([(x, y) for x in xs for y in xs][: args.targets])
     B, R = len(tg), args.restarts
     z0 = _initial_guesses(p, tg, R, lim, s, 0)
-    t0 = time.perf_counter()
-    lowered = _search.lower(p, jnp.asarray(tg), z0, lim_a, obj_a, s)
-    compiled = lowered.compile()
-    t_compile = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    zf, loss, _, _, _ = jax.block_until_ready(compiled(p, jnp.asarray(tg), z0, lim_a, obj_a, s))
-    t_run = time.perf_counter() - t0
+    compiled, t_compile = timed(lambda: _search.lower(p, jnp.asarray(tg), z0, lim_a, obj_a, s).compile())
+    (zf, loss, *_), t_run = timed(lambda: jax.block_until_ready(compiled(p, jnp.asarray(tg), z0, lim_a, obj_a, s)))
     iters = s.adam_steps + s.lm_steps + 1
     per = t_run / (B * R * iters)
-    full = 256 * 16 * (PLAN_DEFAULT_ITERATIONS) * per
+    full = 256 * 16 * PLAN_DEFAULT_ITERATIONS * per
     best_loss = np.asarray(jnp.min(loss, axis=1))
     # search-model terminal errors of the best restart per target
     errs = []
@@ -442,28 +384,23 @@ ROBUST_REL_SD = (0.03, 0.2, 0.1, 0.05)
 
 
 def robust_plan(argv) -> int:
-    """`robust-plan` (module docstring)."""
+    """The robust plan against the nominal one, and its vmapped replay against a loop of `simulate`."""
     from jsphere.planning.uncertainty import Uncertainty
 
-    ap = argparse.ArgumentParser(prog="tasks.py robust-plan")
+    ap = parser("tasks.py robust-plan", "results-robust-plan.json")
     ap.add_argument("--to", nargs=2, type=float, default=(0.6, 0.3))
     ap.add_argument("--samples", type=int, default=64)
     ap.add_argument("--quantile", type=float, default=0.95)
     ap.add_argument("--check-samples", type=int, default=1000)
     ap.add_argument("--loop", type=int, default=3, help="simulate calls timed for the loop baseline")
-    ap.add_argument("--out", default=str(HERE / "results-robust-plan.json"))
     args = ap.parse_args(argv)
     p = jsphere.RobotParams.paper()
     vals = np.array([float(jsphere.get_value(p, n)) for n in ROBUST_NAMES])
-    unc = Uncertainty(
-        ROBUST_NAMES, ("normal",) * 4, vals, np.abs(vals) * np.array(ROBUST_REL_SD), np.eye(4), "benchmark"
-    )
-    to = tuple(args.to)
+    sd = np.abs(vals) * np.array(ROBUST_REL_SD)
+    unc = Uncertainty(ROBUST_NAMES, ("normal",) * 4, vals, sd, np.eye(4), "benchmark")
+    to, four = tuple(args.to), jsphere.PlanOptions(restarts=4)
 
-    t0 = time.perf_counter()
-    four = jsphere.PlanOptions(restarts=4)
-    nominal = jsphere.plan(p, to, plan_options=four, progress=False, allow_infeasible=True)
-    t_nominal = time.perf_counter() - t0
+    nominal, t_nominal = timed(jsphere.plan, p, to, plan_options=four, progress=False, allow_infeasible=True)
     t0 = time.perf_counter()
     robust = jsphere.RobustOptions(
         unc, samples=args.samples, quantile=args.quantile, check_samples=args.check_samples, nominal=nominal
@@ -473,9 +410,7 @@ def robust_plan(argv) -> int:
 
     _, fresh = unc.draw(p, args.check_samples, seed=7)
     jsphere.miss_distribution(rp.plan, jax.tree_util.tree_map(lambda v: v[:2], fresh))  # compile
-    t0 = time.perf_counter()
-    jsphere.miss_distribution(rp.plan, fresh)
-    t_vmap = time.perf_counter() - t0
+    _, t_vmap = timed(jsphere.miss_distribution, rp.plan, fresh)
     cols = rp.plan.table()
     ctrl = jsphere.WheelSpeeds.from_samples(cols["t"], np.stack([cols[f"chi_dot_{i}"] for i in (1, 2, 3)], 1))
     T = float(cols["t"][-1])
@@ -521,52 +456,37 @@ def robust_plan(argv) -> int:
 
 
 def track(argv) -> int:
-    """`track` (module docstring)."""
+    """`jsphere track`'s gains and evaluation on drawn robots against the open-loop wheel-speed replay."""
     from jsphere.planning.tracking.track import default_uncertainty, evaluate, gains
 
-    ap = argparse.ArgumentParser(prog="tasks.py track")
+    ap = parser("tasks.py track", "results-track.json")
     ap.add_argument("--to", nargs=2, type=float, default=(0.4, 0.2))
     ap.add_argument("--samples", type=int, default=1000)
     ap.add_argument("--rate", type=float, default=100.0)
     ap.add_argument("--restarts", type=int, default=16, help="as `jsphere plan`")
-    ap.add_argument("--out", default=str(HERE / "results-track.json"))
     args = ap.parse_args(argv)
     p = jsphere.RobotParams.paper()
-    t0 = time.perf_counter()
-    pl = jsphere.plan(p, tuple(args.to), plan_options=jsphere.PlanOptions(restarts=args.restarts))
-    t_plan = time.perf_counter() - t0
-    tr = pl.trajectory
-    ts, K = np.asarray(tr.ts), np.asarray(tr.K)
+    pl, t_plan = timed(jsphere.plan, p, tuple(args.to), plan_options=jsphere.PlanOptions(restarts=args.restarts))
+    ts, K = np.asarray(pl.trajectory.ts), np.asarray(pl.trajectory.K)
     keep = np.concatenate([np.diff(ts) > 0, [True]])
-    times = {}
+    times, weights = {}, jsphere.TrackWeights()
     for run in ("first", "second"):
-        t0 = time.perf_counter()
-        fields = gains(ts[keep], K[keep], p, rate=args.rate, weights=jsphere.TrackWeights(), target=pl.target[:2])
-        times[f"gains_{run}_s"] = time.perf_counter() - t0
+        fields, times[f"gains_{run}_s"] = timed(
+            gains, ts[keep], K[keep], p, rate=args.rate, weights=weights, target=pl.target[:2]
+        )
     tracker = jsphere.Tracker(**fields)
     unc = default_uncertainty(p)
     _, drawn = unc.draw(p, args.samples, 0)
-    for run, seed in (("first", 0), ("second", 1)):
-        t0 = time.perf_counter()
-        mc = evaluate(tracker, drawn, seed=seed, source=unc.source)
-        times[f"evaluation_{run}_s"] = time.perf_counter() - t0
-        if run == "first":
-            miss_mc = mc
+    miss_mc, times["evaluation_first_s"] = timed(evaluate, tracker, drawn, seed=0, source=unc.source)
+    _, times["evaluation_second_s"] = timed(evaluate, tracker, drawn, seed=1, source=unc.source)
     for run in ("first", "second"):
-        t0 = time.perf_counter()
-        ws = jsphere.miss_distribution(pl, drawn)
-        times[f"wheel_speed_replay_{run}_s"] = time.perf_counter() - t0
+        ws, times[f"wheel_speed_replay_{run}_s"] = timed(jsphere.miss_distribution, pl, drawn)
     o, c = miss_mc["open_loop"], miss_mc["closed_loop"]
+    wheel = [float(np.mean(ws["miss_m"])), *(float(np.percentile(ws[k], 95)) for k in ("miss_m", "speed_m_s"))]
     rows = [
         ("open loop (torques)", o["mean"], o["p95"], o["speed_p95"], o["max_torque_N_m"]),
         ("closed loop", c["mean"], c["p95"], c["speed_p95"], c["max_torque_N_m"]),
-        (
-            "open loop (wheel speeds, exact)",
-            float(np.mean(ws["miss_m"])),
-            float(np.percentile(ws["miss_m"], 95)),
-            float(np.percentile(ws["speed_m_s"], 95)),
-            float("nan"),
-        ),
+        ("open loop (wheel speeds, exact)", *wheel, float("nan")),
     ]
     print(
         f"plan to {tuple(args.to)} m: T = {pl.duration:.3f} s, planned in {t_plan:.1f} s; {args.samples} draws "
@@ -589,7 +509,7 @@ def track(argv) -> int:
         "duration_s": pl.duration,
         "plan_s": t_plan,
         "miss_mc": miss_mc,
-        "wheel_speed_open_loop": {"mean": rows[2][1], "p95": rows[2][2], "speed_p95": rows[2][3]},
+        "wheel_speed_open_loop": dict(zip(("mean", "p95", "speed_p95"), wheel)),
         "ratio_open_over_closed": ratio,
         "times_s": times,
     }
@@ -604,17 +524,45 @@ DESIGN_FREE = "r_m[2],j,I[2,2]"
 DESIGN_TRUTH = {"r_m[2]": 1.06, "j": 0.93, "I[2,2]": 1.08}
 
 
-def design(argv) -> int:
-    """`design` (module docstring)."""
+def _fit_designs(work: Path, trials: int, duration: float, free) -> tuple[dict, dict]:
+    """The design's and the baseline's tables as written, their trials on the robot `DESIGN_TRUTH`
+    away from the paper's, fitted: `free`'s values and standard errors, and each fit's seconds."""
     from jsphere.controls import Sampled, Torques
 
-    ap = argparse.ArgumentParser(prog="tasks.py design")
+    p = truth = jsphere.RobotParams.paper()
+    for name, f in DESIGN_TRUTH.items():
+        truth = jsphere.set_value(truth, name, jsphere.get_value(p, name) * f)
+    noise = {"rate": 100.0, "pos_sd": 1e-3, "rot_sd_deg": 0.5}
+    fitted, t_fit = {}, {}
+    for which in ("design", "baseline"):
+        paths = [work / f"{which}.csv"] if trials == 1 else [work / f"{which}_{k + 1}.csv" for k in range(trials)]
+        synthetic = []
+        for k, path in enumerate(paths):
+            t, u = jsphere.read_inputs_csv(path)[:2]
+            u = Torques(Sampled(jnp.asarray(t), jnp.asarray(u), "cubic"))
+            name = f"{which}_{k + 1}"
+            synthetic.append(jsphere.synthetic_trial(truth, u, duration, **noise, seed=100 + k, name=name))
+        fr, t_fit[which] = timed(jsphere.fit, synthetic, p, DESIGN_FREE, progress=False)
+        fitted[which] = {
+            n: {"value": fr.values[n], "truth": float(jsphere.get_value(truth, n)), "stderr": fr.stderr[n]}
+            for n in free
+        }
+        fitted[which]["status"] = fr.status
+    return fitted, t_fit
+
+
+#: a parameter's standard errors: the design's and the baseline's, predicted and fitted
+SE_KEYS = ("se_design_predicted", "se_design_fitted", "se_baseline_predicted", "se_baseline_fitted")
+
+
+def design(argv) -> int:
+    """`jsphere design` end to end, then its trials and the baseline's fitted on a robot 6-8 % away."""
+    ap = parser("tasks.py design", "results-design.json")
     ap.add_argument("--duration", type=float, default=8.0)
     ap.add_argument("--trials", type=int, default=2)
     ap.add_argument("--restarts", type=int, default=4)
     ap.add_argument("--steps", type=int, default=60)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", default=str(HERE / "results-design.json"))
     args = ap.parse_args(argv)
     work = Path(tempfile.mkdtemp(prefix="jsphere-design-"))
     out = work / "design.csv"
@@ -623,40 +571,7 @@ def design(argv) -> int:
     cmd += ["--out", str(out), "--baseline-out", str(work / "baseline.csv"), "--no-cache", "-q"]
     _, t_design = common.timed_run(cmd)
     doc = json.loads(out.with_suffix(".json").read_text())
-
-    # the design's and the baseline's tables as written
-    p = jsphere.RobotParams.paper()
-    names = lambda stem: (
-        [work / f"{stem}.csv"] if args.trials == 1 else [work / f"{stem}_{k + 1}.csv" for k in range(args.trials)]
-    )
-    design_tables = [jsphere.read_inputs_csv(q)[:2] for q in names("design")]
-    baseline_tables = [jsphere.read_inputs_csv(q)[:2] for q in names("baseline")]
-    truth = p
-    for name, f in DESIGN_TRUTH.items():
-        truth = jsphere.set_value(truth, name, jsphere.get_value(p, name) * f)
-    fitted, t_fit = {}, {}
-    for which, tables in (("design", design_tables), ("baseline", baseline_tables)):
-        trials = [
-            jsphere.synthetic_trial(
-                truth,
-                Torques(Sampled(jnp.asarray(t), jnp.asarray(u), "cubic")),
-                args.duration,
-                rate=100.0,
-                pos_sd=1e-3,
-                rot_sd_deg=0.5,
-                seed=100 + k,
-                name=f"{which}_{k + 1}",
-            )
-            for k, (t, u) in enumerate(tables)
-        ]
-        t0 = time.perf_counter()
-        fr = jsphere.fit(trials, p, DESIGN_FREE, progress=False)
-        t_fit[which] = time.perf_counter() - t0
-        fitted[which] = {
-            n: {"value": fr.values[n], "truth": float(jsphere.get_value(truth, n)), "stderr": fr.stderr[n]}
-            for n in doc["free"]
-        }
-        fitted[which]["status"] = fr.status
+    fitted, t_fit = _fit_designs(work, args.trials, args.duration, doc["free"])
 
     rows = [
         ("command", " ".join(["jsphere", *cmd[3:-6]])),
@@ -666,34 +581,20 @@ def design(argv) -> int:
     ]
     factors = {}
     for n in doc["free"]:
-        pred = doc["stderr_predicted_baseline"][n] / doc["stderr_predicted"][n]
-        fit = fitted["baseline"][n]["stderr"] / fitted["design"][n]["stderr"]
-        factors[n] = {
-            "predicted": pred,
-            "fitted": fit,
-            "se_design_predicted": doc["stderr_predicted"][n],
-            "se_design_fitted": fitted["design"][n]["stderr"],
-            "se_baseline_predicted": doc["stderr_predicted_baseline"][n],
-            "se_baseline_fitted": fitted["baseline"][n]["stderr"],
-        }
-        rows.append(
-            (
-                f"{n}: SE design pred/fit, baseline pred/fit",
-                f"{pred:.2f}x predicted, {fit:.2f}x fitted  ({doc['stderr_predicted'][n]:.3g} / "
-                f"{fitted['design'][n]['stderr']:.3g}, {doc['stderr_predicted_baseline'][n]:.3g} / "
-                f"{fitted['baseline'][n]['stderr']:.3g})",
-            )
-        )
+        se = [doc["stderr_predicted"][n], fitted["design"][n]["stderr"]]
+        se += [doc["stderr_predicted_baseline"][n], fitted["baseline"][n]["stderr"]]
+        pred, fit = se[2] / se[0], se[3] / se[1]
+        factors[n] = {"predicted": pred, "fitted": fit} | dict(zip(SE_KEYS, se))
+        values = f"{pred:.2f}x predicted, {fit:.2f}x fitted  ({se[0]:.3g} / {se[1]:.3g}, {se[2]:.3g} / {se[3]:.3g})"
+        rows.append((f"{n}: SE design pred/fit, baseline pred/fit", values))
     print_pairs(rows)
+    kept = ("criterion", "criterion_model", "rms", "baseline_equal_rms", "limits", "limits_baseline")
     info = {
         **environment(),
         "command": cmd[3:],
         "design_end_to_end_s": t_design,
         "fit_s": t_fit,
-        **{
-            k: doc[k]
-            for k in ("criterion", "criterion_model", "rms", "baseline_equal_rms", "limits", "limits_baseline")
-        },
+        **{k: doc[k] for k in kept},
         "truth_factors": DESIGN_TRUTH,
         "factor_baseline_over_design": factors,
         "fitted": fitted,
@@ -714,10 +615,8 @@ def _cpu() -> float:
 
 
 def animate(argv) -> int:
-    """`animate` (module docstring)."""
-    ap = argparse.ArgumentParser(prog="tasks.py animate")
-    ap.add_argument("--out", default=str(HERE / "results-animate.json"))
-    args = ap.parse_args(argv)
+    """A 10 s clip as MP4 (blitted, and every frame drawn in full: the baseline), GIF and HTML viewer."""
+    args = parser("tasks.py animate", "results-animate.json").parse_args(argv)
 
     from jsphere.plots.animation.scene import Scene, body_from_trajectory
     from jsphere.plots.animation.video import render
@@ -732,14 +631,11 @@ def animate(argv) -> int:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         render([scene], Path(tmp) / "warm.gif", fps=2, speed=1.0, size=(160, 120), progress=False)  # imports
+        video = lambda p, **kw: render([scene], p, fps=fps, speed=speed, size=size, progress=False, **kw)
         cases = [
-            ("mp4", "blitted (jsphere)", lambda p: render([scene], p, fps=fps, speed=speed, size=size, progress=False)),
-            (
-                "mp4",
-                "full redraw (matplotlib's way)",
-                lambda p: render([scene], p, fps=fps, speed=speed, size=size, progress=False, blit=False),
-            ),
-            ("gif", "blitted (jsphere)", lambda p: render([scene], p, fps=fps, speed=speed, size=size, progress=False)),
+            ("mp4", "blitted (jsphere)", video),
+            ("mp4", "full redraw (matplotlib's way)", lambda p: video(p, blit=False)),
+            ("gif", "blitted (jsphere)", video),
             ("html", "plotly, bundle embedded, 30 fps", lambda p: write_html([scene], p, fps=fps, speed=speed)),
             ("html", "plotly, bundle embedded, 15 fps", lambda p: write_html([scene], p, fps=15.0, speed=speed)),
         ]
@@ -751,25 +647,21 @@ def animate(argv) -> int:
             rows.append({"output": suffix, "how": how, "wall_s": wall, "cpu_s": cpu, "bytes": path.stat().st_size})
             log(f"  {suffix} {how}: {wall:.1f} s")
 
-    base = next(r for r in rows if r["how"].startswith("full"))
-    blit = rows[0]
-    ratio = base["wall_s"] / blit["wall_s"]
-    print(
-        f"10 s clip at {fps:.0f} fps ({int(round(10 * fps))} frames, {size[0]} x {size[1]}), load {os.getloadavg()[0]:.2f}"
-    )
+    ratio = next(r for r in rows if r["how"].startswith("full"))["wall_s"] / rows[0]["wall_s"]
+    frames = int(round(10 * fps))
+    print(f"10 s clip at {fps:.0f} fps ({frames} frames, {size[0]} x {size[1]}), load {os.getloadavg()[0]:.2f}")
     cols = [("output", "output", ""), ("how", "how", ""), ("wall [s]", "wall_s", ".1f"), ("CPU [s]", "cpu_s", ".1f")]
     print_table([*cols, ("size [MB]", lambda r: r["bytes"] / 1e6, ".2f")], rows)
     print(f"blitted frames against full redraws (MP4, same run): {ratio:.1f}x faster")
-    write_json(
-        args.out,
-        {
-            **environment(),
-            "clip": {"seconds": 10.0, "fps": fps, "frames": int(round(10 * fps)), "size": list(size), "run_s": run_s},
-            "rows": rows,
-            "blit_speedup_mp4": ratio,
-            "load_average_end": os.getloadavg()[0],
-        },
-    )
+    clip = {"seconds": 10.0, "fps": fps, "frames": frames, "size": list(size), "run_s": run_s}
+    doc = {
+        **environment(),
+        "clip": clip,
+        "rows": rows,
+        "blit_speedup_mp4": ratio,
+        "load_average_end": os.getloadavg()[0],
+    }
+    write_json(args.out, doc)
     return 0
 
 
@@ -777,15 +669,12 @@ ONBOARD_FREE = ["r_m[2]", "j", "I[0,0]", "I[1,1]", "I[2,2]", "m0", "I0"]
 
 
 def onboard_fit(argv) -> int:
-    """`onboard-fit` (module docstring)."""
-    import diffrax
-
+    """A fit from onboard sensors, default settings and Tsit5 at rtol 1e-6, against one at rtol 1e-10."""
     from jsphere.capture.onboard import OnboardNoise, synthetic_onboard_trial
 
-    ap = argparse.ArgumentParser(prog="tasks.py onboard-fit")
+    ap = parser("tasks.py onboard-fit", "results-onboard-fit.json")
     ap.add_argument("--trials", type=int, default=5)
     ap.add_argument("--duration", type=float, default=8.0)
-    ap.add_argument("--out", default=str(HERE / "results-onboard-fit.json"))
     args = ap.parse_args(argv)
     p = jsphere.RobotParams.paper()
     mount = {"imu_position": (0.02, -0.01, -0.04), "imu_rotation": (math.cos(0.3), 0.0, math.sin(0.3), 0.0)}
@@ -809,26 +698,17 @@ def onboard_fit(argv) -> int:
     }
     fits = {}
     for label, solver in settings.items():
-        t0 = time.perf_counter()
-        res = jsphere.fit(trials, p, ONBOARD_FREE, options=jsphere.FitOptions(**mount, solver=solver), progress=False)
-        fits[label] = (res, time.perf_counter() - t0)
-        log(f"{label}: {fits[label][1]:.1f} s, {res.status}")
+        options = jsphere.FitOptions(**mount, solver=solver)
+        fits[label] = res, elapsed = timed(jsphere.fit, trials, p, ONBOARD_FREE, options=options, progress=False)
+        log(f"{label}: {elapsed:.1f} s, {res.status}")
     base = fits["rtol 1e-10 (baseline)"][0]
     rows = []
     for label, (res, elapsed) in fits.items():
         shift = max(abs(res.values[n] - base.values[n]) / base.stderr[n] for n in ONBOARD_FREE)
-        error = max(abs(res.values[n] - float(jsphere.get_value(p, n))) / res.stderr[n] for n in ONBOARD_FREE)
+        error = max(map(abs, errors_se(res, p, ONBOARD_FREE).values()))
         rows.append({"solver": label, "seconds": elapsed, "shift_se": shift, "error_se": error, "status": res.status})
-    print_table(
-        [
-            ("solver", "solver", ""),
-            ("fit [s]", "seconds", ".1f"),
-            ("largest shift [SE]", "shift_se", ".3f"),
-            ("largest error [SE]", "error_se", ".2f"),
-            ("status", "status", ""),
-        ],
-        rows,
-    )
+    cols = [("solver", "solver", ""), ("fit [s]", "seconds", ".1f"), ("largest shift [SE]", "shift_se", ".3f")]
+    print_table([*cols, ("largest error [SE]", "error_se", ".2f"), ("status", "status", "")], rows)
     config = {"trials": args.trials, "duration_s": args.duration, "free": ONBOARD_FREE, **mount}
     write_json(args.out, {**environment(), "config": config, "rows": rows})
     return 0

@@ -1,18 +1,9 @@
-"""Work-precision of problem 1 of `run.py`: accuracy against throughput for jsphere, CasADi's
-compiled fixed-step RK4 and scipy's DOP853, all measured in one run.
+"""Work-precision of problem 1 of `run.py`: accuracy against throughput for jsphere (Dopri8, Tsit5,
+`Vern7`, Dopri5), CasADi's compiled fixed-step RK4 and scipy's DOP853, all measured in one run;
+benchmarks/README.md has the details. Writes the JSON and a log-log figure.
 
     python benchmarks/work_precision.py                  # full run (about 5 min on 2 CPU cores)
     python benchmarks/work_precision.py --quick          # fewer settings, batch 256 (about 1.5 min)
-
-jsphere (`jax.jit(jax.vmap(simulate(..., options=SolverOptions(rtol, atol=rtol / 100,
-solver=S))))`, the batch split over one CPU device per core) with Dopri8, Tsit5, Verner's 7(6) pair (`Vern7` below) and
-Dopri5; CasADi's `rk4_batch` at 25 ... 6400 steps; scipy's DOP853 on `NumpyRobot` one trial
-at a time. Per setting: the largest final-position error over the first trials against DOP853
-at rtol 1e-13 (jsphere at rtol 1e-13 a second reference, their distance the floor of the error
-axis), and trials/s from the steady-state median (`common.time_call`), compilation reported
-apart. Then per accuracy decade the fastest *measured* setting of each method (no
-interpolation) and their ratios, and Vern7 against Dopri8 at equal error. Writes the JSON and
-a log-log figure (`docs/images/work-precision.png`); benchmarks/README.md has the details.
 """
 
 from __future__ import annotations
@@ -35,8 +26,8 @@ import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import run  # noqa: E402  (problem 1: amplitudes, phases, the scipy trial, the devices)
-from casadi_baseline import NumpyRobot  # noqa: E402
-from common import HERE, ROOT, environment, finish, log, public, source_digest, table, time_call, write_json  # noqa: E402
+from casadi_baseline import NumpyRobot, initial_states  # noqa: E402
+from common import HERE, ROOT, environment, finish, log, public, source_digest, table, time_call, timed, write_json  # noqa: E402
 from diffrax import ButcherTableau  # noqa: E402
 
 import jsphere  # noqa: E402
@@ -82,7 +73,7 @@ _bh = np.array([0.04460860660634117628731817597479197781432, 0.0, 0.0, 0.2671640
 
 
 def _fsal_tableau() -> ButcherTableau:
-    """The pair's tableau with the 11th stage appended (module docstring)."""
+    """The pair's tableau with the 11th stage appended (`Vern7`)."""
     s = 11
     a = np.zeros((s, s))
     a[:10, :10] = _a
@@ -94,23 +85,14 @@ def _fsal_tableau() -> ButcherTableau:
 
 
 class Vern7(diffrax.AbstractERK):
-    """Verner's "most efficient" 7(6) Runge-Kutta pair as a diffrax solver; jsphere's batch
-    loop runs it as any user-defined first-same-as-last explicit method.
+    """Verner's "most efficient" 7(6) Runge-Kutta pair as a diffrax solver, for measurement, not for use.
 
     The coefficients are Verner's (J. H. Verner, "Numerically optimal Runge-Kutta pairs with
-    interpolants", Numer. Algorithms 53 (2010) 383-396; the pair RKV76.IIa "Efficient",
-    published at https://www.sfu.ca/~jverner/ as RKV76.IIa.Efficient.00001675585.081206), to the
-    digits published there. The pair has 10 stages, the solution of order 7 from stages 1-9 and
-    the embedded one of order 6 from stages 1-7 and 10. Here an 11th stage at `c = 1` with the
-    solution's weights is appended, the rates at the step's end, so that the tableau is first
-    same as last: each step then costs 10 evaluations of the field, the first stage of the next
-    step included, as Verner's pair does when its rates at the end are reused.
-
-    Dense output: Verner's interpolant of order 7 needs six more stages, which diffrax's
-    interpolation classes cannot evaluate, so save times inside a step use a cubic Hermite
-    interpolant (diffrax's `ThirdOrderHermitePolynomialInterpolation`). The benchmark reads the
-    state at the end time only, which is the step's solution itself, not an interpolated value.
-    This solver is for measurement, not for use.
+    interpolants", Numer. Algorithms 53 (2010) 383-396; RKV76.IIa.Efficient.00001675585.081206 at
+    https://www.sfu.ca/~jverner/), to the digits published there: 10 stages, the solution of order 7
+    from stages 1-9, the embedded one of order 6 from stages 1-7 and 10. An 11th stage at `c = 1`
+    with the solution's weights makes the tableau first same as last (10 evaluations per step).
+    Save times inside a step use a cubic Hermite interpolant; the benchmark reads only the end time.
     """
 
     tableau: ClassVar[ButcherTableau] = _fsal_tableau()
@@ -157,8 +139,7 @@ def final_error(xy: np.ndarray, ref: np.ndarray) -> float:
 
 
 def jsphere_rows(p, A, ref, grid, repeats):
-    rows = []
-    n = ref.shape[0]
+    rows, n = [], ref.shape[0]
     for name, rtols in grid.items():
         for rtol in rtols:
             log(f"[jsphere] {name} rtol {rtol:.0e}, batch {A.shape[0]} ...")
@@ -193,8 +174,7 @@ def casadi_rows(model, q0, A, ref, steps_list, repeats, threads):
     if ca is None:
         return [{"method": "CasADi RK4", "error": "not run: CasADi is not installed (pip install casadi)"}]
     B, n = A.shape[0], ref.shape[0]
-    y0 = np.tile(np.concatenate([np.asarray(q0, float), np.zeros(8)])[:, None], (1, B))
-    rows = []
+    y0, rows = initial_states(q0, B), []
     with in_temporary_folder():
         for steps in steps_list:
             log(f"[CasADi] RK4 {steps} steps, batch {B}, {threads} threads ...")
@@ -215,22 +195,9 @@ def scipy_rows(model, q0, A, ref, rtols, repeats):
     run.scipy_trial(model, q0, A[0])  # warm-up (imports, caches)
     for rtol in rtols:
         log(f"[scipy] DOP853 rtol {rtol:.0e}, {A.shape[0]} trials x {repeats} ...")
-        times, sols, med = run.scipy_batch(model, q0, A, repeats, rtol=rtol, atol=rtol / 100)
-        row = {
-            "method": "scipy DOP853",
-            "setting": f"rtol {rtol:.0e}",
-            "rtol": rtol,
-            "atol": rtol / 100,
-            "batch": int(A.shape[0]),
-            "error_m": final_error(np.array([s.y[10:12, -1] for s in sols]), ref),
-            "trials_per_s": A.shape[0] / med,
-            "s_per_trial": med / A.shape[0],
-            "median_s": med,
-            "compile_s": 0.0,
-            "repeats": repeats,
-            "times_s": times,
-            "steps_mean": float(np.mean([len(s.t) - 1 for s in sols])),
-        }
+        timing, finals = run.scipy_batch(model, q0, A, repeats, rtol=rtol, atol=rtol / 100)
+        head = {"method": "scipy DOP853", "setting": f"rtol {rtol:.0e}", "rtol": rtol, "atol": rtol / 100}
+        row = head | {"batch": int(A.shape[0]), "error_m": final_error(finals, ref), "compile_s": 0.0} | timing
         log(f"      error {row['error_m']:.1e} m, {row['trials_per_s']:.2f} trials/s")
         rows.append(row)
     return rows
@@ -242,29 +209,21 @@ GROUPS = {"jsphere": "jsphere", "CasADi": "CasADi RK4", "scipy": "scipy DOP853"}
 #: solvers measured for comparison, not among jsphere's own: left out of the decade table
 #: ("jsphere (fastest solver)"), compared with Dopri8 at equal error instead (`equal_error`)
 COMPARED_ONLY = ("jsphere Vern7",)
+#: what the decade table keeps of a row
+CROSSOVER_KEYS = ("method", "setting", "error_m", "trials_per_s", "compile_s")
 
 
 def crossover(rows):
     """For each decade, the fastest measured row of each method group with error <= decade
     (jsphere's own solvers only: `COMPARED_ONLY` left out)."""
+    measured = [r for r in rows if "error" not in r and r["method"] not in COMPARED_ONLY]
     out = []
     for d in DECADES:
         entry = {"accuracy_m": d}
         for g, prefix in GROUPS.items():
-            ok = [
-                r
-                for r in rows
-                if "error" not in r
-                and r["method"].startswith(prefix)
-                and r["method"] not in COMPARED_ONLY
-                and r["error_m"] <= d
-            ]
+            ok = [r for r in measured if r["method"].startswith(prefix) and r["error_m"] <= d]
             best = max(ok, key=lambda r: r["trials_per_s"]) if ok else None
-            entry[g] = (
-                None
-                if best is None
-                else {k: best[k] for k in ("method", "setting", "error_m", "trials_per_s", "compile_s")}
-            )
+            entry[g] = {k: best[k] for k in CROSSOVER_KEYS} if best else None
         js = entry["jsphere"]
         for g in ("CasADi", "scipy"):
             other = entry[g]
@@ -290,19 +249,10 @@ def equal_error(rows, method: str, against: str = "jsphere Dopri8") -> list[dict
         at = float(10 ** np.interp(np.log10(r["error_m"]), le, lt))
         work = float(10 ** np.interp(np.log10(r["error_m"]), le, lw))
         evaluations = r["steps_mean"] * r["evaluations_per_step"]
+        row = {"method": method} | {k: r[k] for k in ("setting", "error_m", "trials_per_s")}
+        row |= {"against": against, "against_trials_per_s": at, "ratio": r["trials_per_s"] / at}
         out.append(
-            {
-                "method": method,
-                "setting": r["setting"],
-                "error_m": r["error_m"],
-                "trials_per_s": r["trials_per_s"],
-                "against": against,
-                "against_trials_per_s": at,
-                "ratio": r["trials_per_s"] / at,
-                "evaluations": evaluations,
-                "against_evaluations": work,
-                "evaluations_ratio": evaluations / work,
-            }
+            row | {"evaluations": evaluations, "against_evaluations": work, "evaluations_ratio": evaluations / work}
         )
     return out
 
@@ -340,11 +290,8 @@ def fmt_crossover(cross) -> list[str]:
         f"{'error <=':>9}{'jsphere (fastest solver)':>34}{'CasADi RK4':>34}{'scipy DOP853':>34}"
         f"{'js/CasADi':>11}{'js/scipy':>11}"
     )
-    L = [
-        "fastest measured setting at least this accurate (no interpolation), setting and trials/s:",
-        hdr,
-        "-" * len(hdr),
-    ]
+    title = "fastest measured setting at least this accurate (no interpolation), setting and trials/s:"
+    L = [title, hdr, "-" * len(hdr)]
     for e in cross:
         L.append(
             f"{e['accuracy_m']:>9.0e}{cell(e['jsphere'])}{cell(e['CasADi'])}{cell(e['scipy'])}"
@@ -379,20 +326,9 @@ def figure(rows, path: Path, floor_m: float, title: str) -> None:
             lab = r["setting"].replace("rtol ", "").replace(" steps", "")
             ax.annotate(lab, (xi, yi), textcoords="offset points", xytext=(4, 3), fontsize=6, color=color)
     ax.axvspan(1e-12, max(floor_m, 1e-12), color="0.85", zorder=0, label="reference agreement")
-    ax.text(
-        0.99,
-        0.01,
-        "point labels: rtol (jsphere, scipy), steps over 4 s (CasADi)",
-        transform=ax.transAxes,
-        ha="right",
-        va="bottom",
-        fontsize=7,
-        color="0.3",
-    )
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlim(1e-12, 1e-1)
-    ax.set_xlabel("largest final-position error [m]")
+    note = "point labels: rtol (jsphere, scipy), steps over 4 s (CasADi)"
+    ax.text(0.99, 0.01, note, transform=ax.transAxes, ha="right", va="bottom", fontsize=7, color="0.3")
+    ax.set(xscale="log", yscale="log", xlim=(1e-12, 1e-1), xlabel="largest final-position error [m]")
     ax.set_ylabel("throughput [trials/s] (compilation excluded)")
     ax.set_title(title, fontsize=9)
     ax.grid(True, which="major", alpha=0.4)
@@ -408,30 +344,82 @@ def figure(rows, path: Path, floor_m: float, title: str) -> None:
 # ------------------------------------------------------------------------ main
 
 
-def main(argv=None) -> int:
+def parse(argv):
+    """The arguments, and the settings of the run (`FULL` or `QUICK`, with the arguments' values)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--batch", type=int, default=None, help="trials per jsphere and CasADi call (1024; 256 in --quick)")
+    ap.add_argument("--batch", type=int, help="trials per jsphere and CasADi call (1024; 256 in --quick)")
     ap.add_argument("--repeats", type=int, help="steady-state calls per setting, at least (3; 2 in --quick)")
-    ap.add_argument("--error-trials", type=int, default=None, help="trials the error is taken over (16; 4 in --quick)")
+    ap.add_argument("--error-trials", type=int, help="trials the error is taken over (16; 4 in --quick)")
     ap.add_argument("--quick", action="store_true", help="fewer settings, smaller batch: a smoke run")
-    ap.add_argument("--out", type=Path, default=None, help="JSON output, written atomically")
-    ap.add_argument("--figure", type=Path, default=None, help="the PNG (log-log, error against trials/s)")
+    ap.add_argument("--out", type=Path, help="JSON output, written atomically")
+    ap.add_argument("--figure", type=Path, help="the PNG (log-log, error against trials/s)")
     ap.add_argument("--threads", type=int, default=os.cpu_count() or 2, help="CasADi's map threads (CPU count)")
     ap.add_argument("--cores", type=int, help="CPU devices jsphere's batch is split over (default one per core)")
     args = ap.parse_args(argv)
     jsphere.use_cpu_cores(args.cores)  # before JAX's first operation
     cfg = dict(QUICK if args.quick else FULL)
-    for k in ("batch", "repeats", "error_trials"):
-        if getattr(args, k) is not None:
-            cfg[k] = getattr(args, k)
+    cfg |= {k: getattr(args, k) for k in ("batch", "repeats", "error_trials") if getattr(args, k) is not None}
     if args.out is None:
         args.out = HERE / ("results-work-precision-quick.json" if args.quick else "results-work-precision.json")
     if args.figure is None:
         args.figure = args.out.with_suffix(".png") if args.quick else ROOT / "docs" / "images" / "work-precision.png"
-    B, n_err, repeats = cfg["batch"], cfg["error_trials"], cfg["repeats"]
-    if n_err > B:
+    if cfg["error_trials"] > cfg["batch"]:
         ap.error("--error-trials must not exceed --batch")
+    return args, cfg
 
+
+def references(p, model, q0, A) -> tuple[np.ndarray, dict]:
+    """The final `(x, y)` of the amplitude rows `A` by scipy's DOP853 at rtol 1e-13, and its record
+    with its distance from jsphere's Dopri8 at rtol 1e-13 on the same trials."""
+    n = len(A)
+    log(f"[reference] scipy DOP853 rtol {REF_RTOL:.0e}, atol {REF_ATOL:.0e}, {n} trials ...")
+    sols, wall = timed(lambda: [run.scipy_trial(model, q0, a, rtol=REF_RTOL, atol=REF_ATOL) for a in A])
+    ref = np.array([s.y[10:12, -1] for s in sols])
+    log(f"[reference] jsphere Dopri8 rtol {JS_REF_RTOL:.0e}, atol {JS_REF_ATOL:.0e}, {n} trials ...")
+    f = jax.jit(run.problem1(p, JS_REF_RTOL, JS_REF_ATOL, diffrax.Dopri8()))
+    tr = jax.block_until_ready(f(jnp.asarray(A)))
+    agree = final_error(run.final_xy(tr), ref)
+    log(f"      references agree to {agree:.1e} m")
+    return ref, {
+        "used": f"scipy DOP853 rtol {REF_RTOL:.0e} atol {REF_ATOL:.0e} on casadi_baseline.NumpyRobot",
+        "trials": n,
+        "wall_s": wall,
+        "steps_mean": float(np.mean([len(s.t) - 1 for s in sols])),
+        "final_xy": ref.tolist(),
+        "check": f"jsphere Dopri8 rtol {JS_REF_RTOL:.0e} atol {JS_REF_ATOL:.0e}, same trials (batch {n})",
+        "check_all_ok": bool(np.all(np.asarray(tr.ok))),
+        "max_distance_between_references_m": agree,
+    }
+
+
+def settings(cfg: dict, threads: int) -> dict:
+    return {
+        "problem": "run.py problem 1: paper robot from rest, K_i = a_i sin(pi t + 2.1 (i - 1)), [0, 4] s",
+        "amplitudes": "0.05 (1 + 0.1 z), z ~ default_rng(0).standard_normal((batch, 3)), rows 0..batch-1",
+        "batch": cfg["batch"],
+        "repeats": cfg["repeats"],
+        "error_trials": cfg["error_trials"],
+        "error": "max over the first error_trials trials of the distance |(x, y) - reference| at t = 4 s [m]",
+        "atol": "rtol / 100 (jsphere and scipy)",
+        "jsphere": dict(cfg["jsphere"]),
+        "jsphere_call": "jax.jit(jax.vmap(simulate(..., options=SolverOptions(rtol, atol, solver))))(amplitudes), "
+        "default batch_steps",
+        "casadi_steps": cfg["casadi_steps"],
+        "casadi_threads": threads,
+        "scipy_rtols": cfg["scipy_rtols"],
+        "scipy_trials": cfg["error_trials"],
+        "throughput": "trials per call / median steady-state wall time; compilation excluded",
+        "compile_s": "jsphere: first call minus median; CasADi: construction (C compile) plus first-call excess",
+        "crossover_rule": "fastest measured setting with error <= the decade, no interpolation; "
+        f"jsphere's own solvers only ({', '.join(COMPARED_ONLY)} compared in equal_error)",
+        "equal_error_rule": "Dopri8's trials/s (and field evaluations per trial: accepted steps x "
+        "evaluations_per_step) at the same error, interpolated linearly in log-log",
+    }
+
+
+def main(argv=None) -> int:
+    args, cfg = parse(argv)
+    B, n_err, repeats = cfg["batch"], cfg["error_trials"], cfg["repeats"]
     t_start = time.perf_counter()
     env = environment(source_digest())
     env["versions"]["casadi"] = ca.__version__ if ca is not None else None
@@ -439,34 +427,11 @@ def main(argv=None) -> int:
         f"work-precision ({'quick' if args.quick else 'full'}): batch {B}, error over {n_err} trials, "
         f"backend {jax.default_backend()} ({env['jax']['device']}), {os.cpu_count()} CPUs"
     )
-
     p = jsphere.RobotParams.paper()
     model = NumpyRobot.from_params(p)
     q0 = np.asarray(jsphere.State.at_rest(p).q)
     A = run.amplitudes(np.random.default_rng(0).standard_normal((B, 3)))
-
-    log(f"[reference] scipy DOP853 rtol {REF_RTOL:.0e}, atol {REF_ATOL:.0e}, {n_err} trials ...")
-    t = time.perf_counter()
-    ref_sols = [run.scipy_trial(model, q0, a, rtol=REF_RTOL, atol=REF_ATOL) for a in A[:n_err]]
-    ref = np.array([s.y[10:12, -1] for s in ref_sols])
-    ref_s = time.perf_counter() - t
-    log(f"[reference] jsphere Dopri8 rtol {JS_REF_RTOL:.0e}, atol {JS_REF_ATOL:.0e}, {n_err} trials ...")
-    tr = jax.block_until_ready(
-        jax.jit(run.problem1(p, JS_REF_RTOL, JS_REF_ATOL, diffrax.Dopri8()))(jnp.asarray(A[:n_err]))
-    )
-    ref_js = run.final_xy(tr)
-    agree = final_error(ref_js, ref)
-    log(f"      references agree to {agree:.1e} m")
-    reference = {
-        "used": f"scipy DOP853 rtol {REF_RTOL:.0e} atol {REF_ATOL:.0e} on casadi_baseline.NumpyRobot",
-        "trials": n_err,
-        "wall_s": ref_s,
-        "steps_mean": float(np.mean([len(s.t) - 1 for s in ref_sols])),
-        "final_xy": ref.tolist(),
-        "check": f"jsphere Dopri8 rtol {JS_REF_RTOL:.0e} atol {JS_REF_ATOL:.0e}, same trials (batch {n_err})",
-        "check_all_ok": bool(np.all(np.asarray(tr.ok))),
-        "max_distance_between_references_m": agree,
-    }
+    ref, reference = references(p, model, q0, A[:n_err])
 
     A_split, devices = run.split(jnp.asarray(A))  # over the CPU devices, as CasADi's map over threads
     env["jsphere_devices"] = devices
@@ -478,45 +443,16 @@ def main(argv=None) -> int:
 
     finish(env)
     wall = time.perf_counter() - t_start
+    agree = reference["max_distance_between_references_m"]
     table = fmt_rows(rows) + [""] + fmt_crossover(cross) + [""] + fmt_equal_error(compared)
     table += [
         "",
         f"error: largest |(x, y) - reference| of the final position over the first {n_err} trials; reference "
         f"{reference['used']}; the jsphere reference ({reference['check']}) is {agree:.1e} m from it",
     ]
-    res = {
-        **env,
-        "mode": "quick" if args.quick else "full",
-        "settings": {
-            "problem": "run.py problem 1: paper robot from rest, K_i = a_i sin(pi t + 2.1 (i - 1)), [0, 4] s",
-            "amplitudes": "0.05 (1 + 0.1 z), z ~ default_rng(0).standard_normal((batch, 3)), rows 0..batch-1",
-            "batch": B,
-            "repeats": repeats,
-            "error_trials": n_err,
-            "error": "max over the first error_trials trials of the distance |(x, y) - reference| at t = 4 s [m]",
-            "atol": "rtol / 100 (jsphere and scipy)",
-            "jsphere": {k: v for k, v in cfg["jsphere"].items()},
-            "jsphere_call": "jax.jit(jax.vmap(simulate(..., options=SolverOptions(rtol, atol, solver))))(amplitudes), "
-            "default batch_steps",
-            "casadi_steps": cfg["casadi_steps"],
-            "casadi_threads": args.threads,
-            "scipy_rtols": cfg["scipy_rtols"],
-            "scipy_trials": n_err,
-            "throughput": "trials per call / median steady-state wall time; compilation excluded",
-            "compile_s": "jsphere: first call minus median; CasADi: construction (C compile) plus first-call excess",
-            "crossover_rule": "fastest measured setting with error <= the decade, no interpolation; "
-            f"jsphere's own solvers only ({', '.join(COMPARED_ONLY)} compared in equal_error)",
-            "equal_error_rule": "Dopri8's trials/s (and field evaluations per trial: accepted steps x "
-            "evaluations_per_step) at the same error, interpolated linearly in log-log",
-        },
-        "reference": reference,
-        "rows": rows,
-        "crossover": cross,
-        "equal_error": compared,
-        "wall_time_s": wall,
-        "table": table,
-    }
-    write_json(args.out, res)
+    res = {**env, "mode": "quick" if args.quick else "full", "settings": settings(cfg, args.threads)}
+    res |= {"reference": reference, "rows": rows, "crossover": cross, "equal_error": compared}
+    write_json(args.out, res | {"wall_time_s": wall, "table": table})
     title = (
         f"problem 1 (4 s, batch {B}; scipy one trial at a time): {env['machine']['cpu_count']} CPUs, "
         f"JAX {jax.default_backend()}, load {env['machine']['loadavg_start'][0]:.1f}-"
