@@ -124,19 +124,14 @@ class StudyOptions:
 
     def checked(self, where: str) -> "StudyOptions":
         """These options with every value checked and converted (`InputError` naming it)."""
-        values = {}
-        for f in dataclasses.fields(self):
-            check = f.metadata["check"]
-            values[f.name] = getattr(self, f.name) if check is None else check(where, f.name, getattr(self, f.name))
-        return StudyOptions(**values)
+        check = lambda f, v: v if f.metadata["check"] is None else f.metadata["check"](where, f.name, v)
+        return StudyOptions(**{f.name: check(f, getattr(self, f.name)) for f in dataclasses.fields(self)})
 
 
 def _document(cls):
     """Append the fields' documentation (their metadata) to `cls`'s docstring."""
-    lines = []
-    for f in dataclasses.fields(cls):
-        mark = " (file)" if f.metadata["file"] is not None else ""
-        lines.append(f"- `{f.name}` (default `{f.default!r}`){mark}: {f.metadata['doc']}.")
+    mark = lambda f: " (file)" if f.metadata["file"] is not None else ""
+    lines = [f"- `{f.name}` (default `{f.default!r}`){mark(f)}: {f.metadata['doc']}." for f in dataclasses.fields(cls)]
     cls.__doc__ = f"{inspect.cleandoc(cls.__doc__)}\n\n**Fields:**\n\n" + "\n".join(lines)
     return cls
 

@@ -155,10 +155,9 @@ def prepare(params, gaits, *, vary, n, options: StudyOptions, solver=None, out=N
 
 
 def _batch_size(batch_size: int, n: int, out, distributed: bool) -> int:
-    """A study's batch size: `batch_size` (at most `n`) rounded up to whole chunks, or the one
-    recorded in the manifest of a study folder `out` that exists (process 0's, in a distributed
-    run: the other processes need not see the folder): a study extended to more trials, workers
-    on nodes with other device counts and `--gather` (which computes nothing) keep it."""
+    """A study's batch size: `batch_size` (at most `n`) rounded up to whole chunks, or the one in
+    the manifest of a study folder `out` that exists (process 0's, in a distributed run), which
+    an extended study, workers on other nodes and `--gather` keep."""
     B = -(-max(1, min(batch_size, n)) // CHUNK) * CHUNK
     if out is None:
         return B
@@ -193,22 +192,19 @@ def _check_gaits(gaits) -> list[Gait]:
 def _replay(params, gaits, o: StudyOptions, actuators: Actuators) -> Replay:
     """The commands a replay mode replays: `o.commands`, or the gaits' plan on the nominal robot
     sampled at `o.plan_rate`; the motors stop at its last time stamp."""
-    mode, commands = o.mode, o.commands
-    if commands is None:
+    if o.commands is None:
         nominal = simulate_gaits(params, gaits, reset=o.reset, rate=o.plan_rate)
-        tsn = np.asarray(nominal.ts)
-        u = np.asarray(nominal.K if mode == "torques" else nominal.chi_dot)
+        tsn, u = np.asarray(nominal.ts), np.asarray(nominal.K if o.mode == "torques" else nominal.chi_dot)
     else:
-        tsn, u = np.asarray(commands[0], np.float64), np.asarray(commands[1], np.float64)
+        tsn, u = np.asarray(o.commands[0], np.float64), np.asarray(o.commands[1], np.float64)
         Sampled(jnp.asarray(tsn), jnp.asarray(u))  # validates the table
         check_commands("monte_carlo: commands", tsn, u, params.n_wheels)
     # the motors stop when the plan ends: a jump to zero at its last time stamp
     tsn, u = np.concatenate([tsn, tsn[-1:]]), np.concatenate([u, np.zeros_like(u[:1])])
-    jump_ts = ()
-    if actuators.delay_s == 0 and actuators.delay_sd == 0:  # jumps stay where the plan has them
-        jump_ts = tuple(float(t) for t in tsn[1:][np.diff(tsn) == 0] if t > 0)
+    keep = actuators.delay_s == 0 and actuators.delay_sd == 0  # jumps stay where the plan has them
+    jump_ts = tuple(float(t) for t in tsn[1:][np.diff(tsn) == 0] if t > 0) if keep else ()
     plan = (jnp.asarray(tsn, params.R0.dtype), jnp.asarray(u, params.R0.dtype))
-    return Replay(mode, plan, actuators, o.settle, o.max_steps, jump_ts)
+    return Replay(o.mode, plan, actuators, o.settle, o.max_steps, jump_ts)
 
 
 def _closed_loop(params, o: StudyOptions, actuators: Actuators) -> ClosedLoop:
@@ -243,10 +239,8 @@ def _draws(spec: Sequence[tuple], dtype) -> Uncertainty:
 
 
 def _replay_record(replay: Replay | ClosedLoop, plan_rate: float, commands: bool) -> tuple:
-    """What of a replay changes a study's results, for its fingerprint: the actuators, the plan's
-    rate, the settling time, a hash of the given `commands` (None for the gaits' own plan) and
-    the step limit; for a closed loop, its conditions, torque limit, settling and a hash of its
-    table."""
+    """What of a replay changes a study's results, for its fingerprint: its settings and a hash of
+    its given `commands` (None for the gaits' own plan) or of its closed loop's table."""
     digest = lambda *arrays: hashlib.sha256(b"".join(np.ascontiguousarray(a).tobytes() for a in arrays)).hexdigest()
     if isinstance(replay, ClosedLoop):
         table = digest(replay.K_ff, replay.ref, replay.G)
@@ -305,9 +299,8 @@ class _Run:
 
 def _batches(run: _Run, progress: Progress) -> list[dict]:
     """The batches of a study: those in its folder, read by the writer (which opens the folder
-    and removes the temporary files a killed run left there), then the others computed
-    (`_compute`). In a distributed run process 0 tells the others what it read, and a folder
-    that it refuses ends every process, with its message."""
+    and removes a killed run's temporary files), then the others computed (`_compute`). In a
+    distributed run process 0 shares what it read, or the refusal of its folder."""
     parts: list = [None] * run.n_batches
     refused = None
     if run.writer and run.folder is not None:

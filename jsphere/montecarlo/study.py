@@ -189,10 +189,9 @@ def load_study(path) -> Study:
         [actuators]               # replay modes only; see jsphere.Actuators
         gain_sd = 0.02
 
-    A plan's command table (`study_commands`) has a record beside it (the `.json` of the same
-    name) that names the robot it was planned for: without `params` the study runs that robot,
-    and a `params` that names another robot is an `InputError`. A feedback table (`track`,
-    `study_track`, with `[feedback]`: `FEEDBACK`) takes the place of `gaits` and `commands`.
+    A plan's command table (`study_commands`) brings the robot its record names, which `params`
+    must match; a feedback table (`track`, `study_track`, with `[feedback]`: `FEEDBACK`) takes
+    the place of `gaits` and `commands`.
     """
     path = Path(path)
     cfg = _read_toml(path)
@@ -201,12 +200,13 @@ def load_study(path) -> Study:
     for f in dataclasses.fields(StudyOptions):
         if f.metadata["file"] == "value" and f.name in cfg:
             given[f.name] = f.metadata["check"](str(path), f.name, cfg[f.name])
-    params = _study_params(path, cfg)
+    params = RobotParams.load((path.parent / cfg["params"]).resolve()) if "params" in cfg else RobotParams.paper()
     if "commands" in cfg and "track" not in cfg:
         params = _commands_robot(path, cfg, params)
     gaits = _study_gaits(path, cfg.get("gaits", [{"kind": "acceleration"}, {"kind": "braking"}]))
     if "actuators" in cfg:
-        given["actuators"] = _study_actuators(path, cfg["actuators"])
+        fields = [f.name for f in dataclasses.fields(Actuators)]
+        given["actuators"] = Actuators(**_check_table(str(path), "actuators", cfg["actuators"], fields))
     if "commands" in cfg and "track" not in cfg:
         given["commands"] = study_commands(path, cfg["commands"], given["mode"], params.n_wheels)
     if "track" in cfg:
@@ -240,13 +240,6 @@ def _read_toml(path: Path) -> dict:
         if key in cfg and (not isinstance(cfg[key], kind) or cfg[key] == []):
             raise InputError(f"{path}: {key} must be {form}; got {cfg[key]!r}.")
     return cfg
-
-
-def _study_params(path: Path, cfg: dict) -> RobotParams:
-    """The robot of a study file: its `params` file (relative to the study file), else the paper's."""
-    if "params" not in cfg:
-        return RobotParams.paper()
-    return RobotParams.load((path.parent / cfg["params"]).resolve())
 
 
 def _commands_robot(path: Path, cfg: dict, params: RobotParams) -> RobotParams:
@@ -340,8 +333,3 @@ def study_track(path: Path, cfg: dict, mode: str, n_wheels: int) -> dict:
     tab = _read_table(path, "track", name, read_track_csv)
     check_track(f"{path}: track = {name!r}", tab, n_wheels)
     return tab
-
-
-def _study_actuators(path: Path, act) -> Actuators:
-    """The `Actuators` of a study file's `[actuators]` table."""
-    return Actuators(**_check_table(str(path), "actuators", act, [f.name for f in dataclasses.fields(Actuators)]))

@@ -41,11 +41,8 @@ class WorkReport:
         line = f"{_PROGRESS} this worker computed {len(self.computed)} batch(es); {self.done} of {self.n_batches} done"
         if self.done == self.n_batches:
             return line + "; every batch is there: run with --gather for the statistics"
-        rest = self.n_batches - self.done
-        return (
-            line + f"; {rest} left, {len(self.claimed)} of them claimed by other workers "
-            "(start another worker when they end; a claim older than --claim-timeout is taken over)"
-        )
+        rest = f"; {self.n_batches - self.done} left, {len(self.claimed)} of them claimed by other workers"
+        return line + rest + " (start another worker when they end; a claim older than --claim-timeout is taken over)"
 
 
 def work(
