@@ -60,11 +60,9 @@ class ClosedLoop(eqx.Module):
 
 
 class Trials(eqx.Module):
-    """What every trial of a study shares: the nominal robot, the gaits (executed exactly, or
-    the commands of `replay`), the distributions and seed of the draws, and the solver's
-    settings (`solver`: None for the default; `max_steps`: the step limit of gait mode, the
-    replay's own in the replay modes). `mesh`: the local devices that share every batch (None
-    for one device)."""
+    """What every trial of a study shares: the nominal robot, the gaits (or the commands of
+    `replay`), the draws' distributions and seed, the solver's settings (`solver` None for the
+    default; `max_steps`: gait mode's step limit) and the `mesh` of devices (None for one)."""
 
     params: RobotParams
     gaits: list[Gait]

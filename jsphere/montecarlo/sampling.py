@@ -26,11 +26,10 @@ PERTURBATION_FOLD = 2**20
 class Actuators(eqx.Module):
     """Imperfect execution of a replayed command table (`mode="torques"` or `"wheel_speeds"`).
 
-    Per trial and wheel: a gain `1 + gain_sd z`; per trial: a delay
-    `max(0, delay_s + delay_sd z)` [s]; per sample: white noise of sd `white_sd` and
-    band-limited noise of sd `band_sd` (white noise through a first-order low-pass filter of
-    bandwidth `band_hz`), in the command's units (N m or rad/s). The command is
-    `gain * (plan(t - delay) + noise)`, held at zero before the delayed start.
+    Per trial and wheel a gain `1 + gain_sd z`, per trial a delay `max(0, delay_s + delay_sd z)`
+    [s], per sample white noise of sd `white_sd` and band-limited noise of sd `band_sd` (through
+    a first-order low-pass filter of bandwidth `band_hz`), in the command's units (N m or
+    rad/s): the command is `gain * (plan(t - delay) + noise)`, zero before the delayed start.
     """
 
     gain_sd: float = 0.0
