@@ -1,12 +1,9 @@
 """Monte-Carlo studies: sampled robots and actuators, batched runs, resumable stores.
 
-`run.monte_carlo` runs a study with its `options.StudyOptions`; `study` checks its
-distributions (and reads the study file of `jsphere montecarlo`, whose keys are the options'
-fields), `sampling` draws each trial's robot and actuator errors, `batch` is the compiled
-function of one batch, `store` the study's folder (`store.read_result` reads one back),
-`result` the outcome and its statistics. Beyond one process: `distributed` shards every batch
-over the devices of a JAX multi-process job (one allocation), `workers` lets independent jobs
-share a study's folder (`claims`) and gathers their batches (a scheduler's array of jobs).
+`run.monte_carlo` runs a study with its `options.StudyOptions` (`study`: its checks and the study
+file of `jsphere montecarlo`; `sampling`, `batch`, `store`, `result`: its draws, batches, folder and
+outcome); `distributed` shares its batches over a JAX multi-process job, `workers` (with `claims`)
+over independent jobs that share its folder.
 """
 
 from .options import Distributed as Distributed

@@ -14,10 +14,11 @@ from ..gaits.gaits import Gait, simulate_gaits
 from ..model.linalg import cross
 from ..model.params import RobotParams
 from ..model.state import Flat, State
+from ..model.uncertainty import draw_key
 from ..planning.tracking.evaluate import Conditions, run_one
 from ..solve.simulate import Trajectory, simulate
 from ..solve.status import RESULTS
-from .sampling import PERTURBATION_FOLD, Actuators, Uncertainty, trial_key
+from .sampling import PERTURBATION_FOLD, Actuators, Uncertainty
 
 #: trials per vmapped chunk. Every trial is computed inside a vmap of exactly this width,
 #: whatever the batch size or device count, which keeps results bitwise reproducible (XLA
@@ -42,12 +43,10 @@ class Replay(eqx.Module):
 
 
 class ClosedLoop(eqx.Module):
-    """A feedback table (`track.csv` of `jsphere track`) run closed loop on every trial's robot
-    (a study's `track` key): per control interval of `ts_h` seconds the command
-    `K = K_ff - G e` from the measured state (`conditions`: the start pose, the fed-back state's
-    noise and delay, the motors' gain, delay and white noise), clipped to `max_torque`, held
-    over the interval; after the last row that row is held, for `n_settle` intervals. The step
-    is the tracking evaluation's own (`jsphere.planning.tracking.evaluate.run_one`)."""
+    """A feedback table run closed loop on every trial's robot (`StudyOptions.track`) by the
+    tracking evaluation's step (`jsphere.planning.tracking.evaluate.run_one`): per interval of
+    `ts_h` seconds, `K = K_ff - G e` under `conditions`, clipped to `max_torque`; after the last
+    row that row is held, for `n_settle` intervals."""
 
     ts_h: float
     K_ff: Float[Array, "M N"]
@@ -61,11 +60,9 @@ class ClosedLoop(eqx.Module):
 
 
 class Trials(eqx.Module):
-    """What every trial of a study shares: the nominal robot, the gaits (executed exactly, or
-    the commands of `replay`), the distributions and seed of the draws, and the solver's
-    settings (`solver`: None for the default; `max_steps`: the step limit of gait mode, the
-    replay's own in the replay modes). `mesh`: the local devices that share every batch (None
-    for one device)."""
+    """What every trial of a study shares: the nominal robot, the gaits (or the commands of
+    `replay`), the draws' distributions and seed, the solver's settings (`solver` None for the
+    default; `max_steps`: gait mode's step limit) and the `mesh` of devices (None for one)."""
 
     params: RobotParams
     gaits: list[Gait]
@@ -89,46 +86,22 @@ class Trials(eqx.Module):
         return sum(jnp.asarray(g.T, dt) for g in self.gaits) if self.replay is None else self.replay.plan[0][-1]
 
 
-def _simulate_gaits(trials: Trials, p: RobotParams, ts, dOmega) -> Trajectory:
-    """Trial robot `p` executing the gaits exactly, saved at `ts` (their end)."""
-    # per-trial steps: every trial's result is independent of the other trials of its chunk
-    return simulate_gaits(
-        p,
-        trials.gaits,
-        ts=ts,
-        reset=trials.reset,
-        rtol=trials.rtol,
-        atol=trials.atol,
-        solver=trials.solver,
-        max_steps=trials.max_steps,
-        throw=False,
-        Omega0=dOmega,
-        batch_steps="per_trial",
-    )
-
-
-def _simulate_replay(trials: Trials, p: RobotParams, T, dOmega, key) -> Trajectory:
-    """Trial robot `p` under the replayed commands as its actuators execute them, then settling."""
-    rp, dt = trials.replay, p.R0.dtype
-    table = rp.actuators.table(key, rp.plan[0], rp.plan[1])
+def _solve(trials: Trials, p: RobotParams, T, dOmega, key) -> Trajectory:
+    """Trial robot `p` executing the gaits exactly, saved at their end `T`, or under the replayed
+    commands as its actuators execute them, then settling. Every trial takes its own steps, so
+    that its result is independent of the other trials of its chunk."""
+    common = dict(rtol=trials.rtol, atol=trials.atol, solver=trials.solver, throw=False, batch_steps="per_trial")
+    rp = trials.replay
+    if rp is None:
+        ts = jnp.reshape(T, (1,))
+        return simulate_gaits(
+            p, trials.gaits, ts=ts, reset=trials.reset, max_steps=trials.max_steps, Omega0=dOmega, **common
+        )
     s0 = State.at_rest(p)
     s0 = eqx.tree_at(lambda s: s.Omega, s0, s0.Omega + dOmega)
-    ctrl = (Torques if rp.mode == "torques" else WheelSpeeds)(table, rp.jump_ts)
-    ts_after = T + rp.settle * jnp.linspace(0.0, 1.0, SETTLE_SAMPLES, dtype=dt)  # the settling phase
-    # per-trial steps: every trial's result is independent of the other trials of its chunk
-    return simulate(
-        p,
-        s0,
-        ctrl,
-        T + rp.settle,
-        ts=ts_after,
-        rtol=trials.rtol,
-        atol=trials.atol,
-        solver=trials.solver,
-        throw=False,
-        max_steps=rp.max_steps,
-        batch_steps="per_trial",
-    )
+    ctrl = (Torques if rp.mode == "torques" else WheelSpeeds)(rp.actuators.table(key, *rp.plan), rp.jump_ts)
+    ts_after = T + rp.settle * jnp.linspace(0.0, 1.0, SETTLE_SAMPLES, dtype=p.R0.dtype)  # the settling phase
+    return simulate(p, s0, ctrl, T + rp.settle, ts=ts_after, max_steps=rp.max_steps, **common)
 
 
 def _closed_loop(trials: Trials, p: RobotParams, key) -> tuple:
@@ -147,25 +120,19 @@ def _closed_loop(trials: Trials, p: RobotParams, key) -> tuple:
 
 def _trial(trials: Trials, T, i: Int[Array, ""]) -> tuple:
     """Trial `i`, whose gaits or commands end at `T`: `(vals, x, y, speed, status, gamma3_sd,
-    reject_code)`.
-
-    A draw that breaks a rule of `RobotParams` is not simulated as drawn: the nominal
-    parameters stand in for it (so that its solve is an ordinary one and does not hold up its
-    chunk), and its outcomes are replaced by NaN and the status `RESULTS.rejected`."""
+    reject_code)`. A draw that breaks a rule of `RobotParams` is solved with the nominal robot
+    (so as not to hold up its chunk), its outcomes NaN and its status `RESULTS.rejected`."""
     params = trials.params
     dt = params.R0.dtype
     vals, code = trials.draws.draw_one(params, trials.seed, i)
     valid = code == 0
     p = trials.draws.robot(params, vals, valid)
-    k_omega, k_act = jax.random.split(jax.random.fold_in(trial_key(trials.seed, i), PERTURBATION_FOLD))
+    k_omega, k_act = jax.random.split(jax.random.fold_in(draw_key(trials.seed, i), PERTURBATION_FOLD))
     dOmega = trials.Omega0_sd * jax.random.normal(k_omega, (3,), dt)
     if isinstance(trials.replay, ClosedLoop):
         x, y, speed, status, g3sd = _closed_loop(trials, p, k_act)
     else:
-        if trials.replay is None:
-            tr = _simulate_gaits(trials, p, jnp.reshape(T, (1,)), dOmega)
-        else:
-            tr = _simulate_replay(trials, p, T, dOmega, k_act)
+        tr = _solve(trials, p, T, dOmega, k_act)
         x, y, status, g3sd = tr.x[-1], tr.y[-1], tr.status, jnp.std(tr.gamma[:, 2])
         speed = p.R0 * jnp.linalg.norm(cross(tr.Omega[-1], tr.gamma[-1]))
     x, y, speed, g3sd = (jnp.where(valid, v, jnp.asarray(jnp.nan, dt)) for v in (x, y, speed, g3sd))

@@ -1,13 +1,11 @@
 """Claim files: how workers that share a study folder split its batches without waiting for
 each other (`jsphere montecarlo --worker`).
 
-A worker claims batch `k` by creating `claim_000042.json` exclusively (`create_exclusively`),
-writing its host, pid and the time into it; it removes the claim once the batch file is written. A claim older than the claim timeout
-whose batch file is still missing belongs to a worker that died or was cancelled: another
-worker takes it over. The takeover renames the stale claim away first, which only one worker
-can do; the worker that renamed a claim other than the stale one it read puts it back. Should
-two workers ever compute the same batch, they write the same bytes (a trial depends only on
-the seed and its index), atomically, so nothing is lost but time.
+A worker claims batch `k` by creating `claim_000042.json` exclusively (`create_exclusively`)
+with its host, pid and the time, and removes it once the batch file is written. A claim older
+than the claim timeout whose batch is still missing is taken over: the stale claim is renamed
+away first, which only one worker can do (one that renamed a fresher claim puts it back). Two
+workers that compute the same batch write the same bytes, so nothing is lost but time.
 """
 
 from __future__ import annotations

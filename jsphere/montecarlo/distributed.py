@@ -1,16 +1,14 @@
 """One study on several processes of a JAX multi-process job (`monte_carlo(..., distributed=True)`,
-`jsphere montecarlo --distributed`): JAX's distributed runtime, a batch's trial indices sharded
-over a global mesh of every process's devices, and the whole batch gathered back on every
-process with `jax.experimental.multihost_utils`.
-
-Every process runs the same sequence of batches in lockstep (the collectives of one batch
-pair up across processes), so every decision about what to compute is made by process 0 and
-shared (`share_from_process_0`).
+`jsphere montecarlo --distributed`): each batch's trial indices sharded over a global mesh of
+every process's devices and gathered back whole on every process. The processes run the same
+batches in lockstep (the collectives of a batch pair up), so process 0 decides what to compute
+and shares it (`share_from_process_0`).
 """
 
 from __future__ import annotations
 
 import itertools
+import math
 
 import equinox as eqx
 import jax
@@ -23,10 +21,8 @@ from .._runtime.private import distributed_barrier
 
 
 def start_distributed(distributed) -> bool:
-    """Whether the study runs distributed (`monte_carlo`'s `distributed`: True, False, None or a
-    `Distributed`); with True or a `Distributed`, start JAX's distributed runtime unless it is
-    running (`jax.distributed.initialize`, with the cluster's settings or the `Distributed`'s
-    coordinator "host:port", number of processes and process id)."""
+    """Whether the study runs distributed (`monte_carlo`'s `distributed`); with True or a
+    `Distributed`, start JAX's distributed runtime unless it is running."""
     from .options import Distributed
 
     if distributed is None:
@@ -37,18 +33,15 @@ def start_distributed(distributed) -> bool:
         return distributed is not False
     setup = distributed if isinstance(distributed, Distributed) else Distributed()
     coordinator, num_processes, process_id = setup.coordinator, setup.num_processes, setup.process_id
-    if coordinator is not None:
-        host, _, port = str(coordinator).rpartition(":")
-        if not host or not port.isdigit():
-            raise InputError(f"monte_carlo: coordinator must be HOST:PORT (of process 0); got {coordinator!r}.")
+    host, _, port = str(coordinator).rpartition(":")
+    if coordinator is not None and (not host or not port.isdigit()):
+        raise InputError(f"monte_carlo: coordinator must be HOST:PORT (of process 0); got {coordinator!r}.")
     if num_processes is not None:
         num_processes = whole("monte_carlo", "num_processes", num_processes, 1)
     if process_id is not None:
         process_id = whole("monte_carlo", "process_id", process_id, 0)
-        if num_processes is not None and process_id >= num_processes:
-            raise InputError(
-                f"monte_carlo: process_id must be below num_processes; got {process_id} of {num_processes}."
-            )
+    if (process_id or 0) >= (num_processes or math.inf):
+        raise InputError(f"monte_carlo: process_id must be below num_processes; got {process_id} of {num_processes}.")
     try:
         jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes, process_id=process_id)
     except RuntimeError as e:

@@ -1,8 +1,6 @@
-"""The options of a Monte-Carlo study (`StudyOptions`) and of a study on several processes of
-one JAX job (`Distributed`), each option written once, with its documentation and its check.
-
-The study file of `jsphere montecarlo` reads its keys from these fields (`study.load_study`):
-a field whose metadata names a `file` form is a key of the file, under the field's name.
+"""The options of a Monte-Carlo study (`StudyOptions`, each written once with its documentation,
+its check and its form in the study file of `jsphere montecarlo`) and of a study on several
+processes of one JAX job (`Distributed`).
 """
 
 from __future__ import annotations
@@ -56,20 +54,18 @@ class StudyOptions:
     )
     batch_size: int = _option(
         1024,
-        "trials per batch (memory stays bounded for any `n`); rounded up to a multiple of 64. Each batch is "
-        "sharded over as many local devices as divide it into whole chunks of 64 (a distributed batch over every "
-        "device, the next trials' draws filling its last chunks and dropped). A study folder that exists keeps "
-        "the batch size of its manifest. Inside, trials run in vmapped chunks of 64 (`CHUNK`), so results are "
-        "bitwise identical for any batch size and device count (a study file's default: 4096)",
+        "trials per batch (memory stays bounded for any `n`), rounded up to whole vmapped chunks of 64 (`CHUNK`: "
+        "results are bitwise the same for any batch size and device count), sharded over as many local devices as "
+        "divide it into chunks (or every device of a distributed run). A study folder that exists keeps the batch "
+        "size of its manifest (a study file's default: 4096)",
         lambda w, k, v: whole(w, k, v, 1),
     )
     mode: str = _option(
         "gait",
-        '`"gait"`: each trial executes the gaits exactly (the paper\'s model: `gamma(t)` prescribed, the motors '
-        'supply whatever torque it takes). `"torques"` or `"wheel_speeds"`: the commands planned once with the '
-        "nominal robot (sampled at `plan_rate` Hz) are replayed open loop on each perturbed robot, through "
-        '`actuators`, for the gaits\' duration plus `settle` seconds: "where does the real robot stop?" '
-        '(a study file with `track` defaults to "torques")',
+        '`"gait"`: each trial executes the gaits exactly (`gamma(t)` prescribed). `"torques"` or `"wheel_speeds"`: '
+        "the commands planned once with the nominal robot (sampled at `plan_rate` Hz) are replayed open loop on "
+        'each perturbed robot, through `actuators`, then `settle` seconds without commands: "where does the real '
+        'robot stop?" (a study file with `track` defaults to "torques")',
         _mode,
     )
     reset: bool | list = _option(False, "as `simulate_gaits(reset=...)`", _reset)
@@ -92,9 +88,8 @@ class StudyOptions:
     )
     max_steps: int | None = _option(
         None,
-        "solver step limit per trial in the replay modes, default `solver.max_steps` where set, else 65536 "
-        "(noisy commands need many steps: the noise is interpolated smoothly and the solver follows it). Gait "
-        "mode solves with `simulate_gaits`' limit (16384) unless `solver.max_steps` sets it",
+        "solver step limit per trial in the replay modes (noisy commands need many), default `solver.max_steps` "
+        "where set, else 65536. Gait mode solves with `simulate_gaits`' limit unless `solver.max_steps` sets it",
         lambda w, k, v: None if v is None else whole(w, k, v, 1),
         file=None,
     )
@@ -106,20 +101,17 @@ class StudyOptions:
     )
     commands: tuple | None = _option(
         None,
-        "`(ts, values)`, a command table to replay instead of the gaits' plan (e.g. the kinematic control (2.9) "
-        "for the paper's Fig. 2 comparison); starts at `t = 0`, repeat a time stamp to encode a jump (wheel-speed "
-        "jumps are impulses, see `simulate`); the motors stop at its last time. The gaits are then the record "
-        'only (a study file names a table: `commands = "FILE"`, relative to the file)',
+        "`(ts, values)`, a command table to replay instead of the gaits' plan, from `t = 0` (a repeated time "
+        "stamp encodes a jump, as for `simulate`); the motors stop at its last time, and the gaits are the "
+        'record only (a study file names a table: `commands = "FILE"`, relative to the file)',
         file="commands",
     )
     track: Mapping | None = _option(
         None,
-        "a feedback table as `jsphere.planning.tracking.read_track_csv` returns it (`track.csv` of "
-        '`jsphere track`), run closed loop instead of the gaits\' plan (`mode` "torques"): every `1/rate` '
-        "seconds the command `K = K_ff - G e` from the measured state, clipped to the torque limit, held over "
-        "the period, through `actuators` (gain, `delay_s` rounded to whole periods, white noise); after the last "
-        "row that row is held for `settle` seconds. `Omega0_sd`, `actuators.delay_sd` and `band_sd` must be 0 "
-        '(a study file names a table: `track = "FILE"`)',
+        "a feedback table (`read_track_csv` of `track.csv` of `jsphere track`) run closed loop instead of the "
+        'gaits\' plan (`mode` "torques"): every period the command `K = K_ff - G e` of the measured state, clipped '
+        "and held, through `actuators` (gain, `delay_s` in whole periods, white noise); the last row is held for "
+        '`settle` seconds. `Omega0_sd`, `delay_sd` and `band_sd` must be 0 (a study file: `track = "FILE"`)',
         file="track",
     )
     feedback: Mapping | None = _option(
@@ -132,19 +124,14 @@ class StudyOptions:
 
     def checked(self, where: str) -> "StudyOptions":
         """These options with every value checked and converted (`InputError` naming it)."""
-        values = {}
-        for f in dataclasses.fields(self):
-            check = f.metadata["check"]
-            values[f.name] = getattr(self, f.name) if check is None else check(where, f.name, getattr(self, f.name))
-        return StudyOptions(**values)
+        check = lambda f, v: v if f.metadata["check"] is None else f.metadata["check"](where, f.name, v)
+        return StudyOptions(**{f.name: check(f, getattr(self, f.name)) for f in dataclasses.fields(self)})
 
 
 def _document(cls):
     """Append the fields' documentation (their metadata) to `cls`'s docstring."""
-    lines = []
-    for f in dataclasses.fields(cls):
-        mark = " (file)" if f.metadata["file"] is not None else ""
-        lines.append(f"- `{f.name}` (default `{f.default!r}`){mark}: {f.metadata['doc']}.")
+    mark = lambda f: " (file)" if f.metadata["file"] is not None else ""
+    lines = [f"- `{f.name}` (default `{f.default!r}`){mark(f)}: {f.metadata['doc']}." for f in dataclasses.fields(cls)]
     cls.__doc__ = f"{inspect.cleandoc(cls.__doc__)}\n\n**Fields:**\n\n" + "\n".join(lines)
     return cls
 

@@ -11,30 +11,24 @@ import numpy as np
 from ..solve.status import RESULTS
 from .sampling import REASONS
 
-#: `MonteCarloResult.status` of a successful solve (`RESULTS.successful`)
-SUCCESS = RESULTS.successful
-#: `MonteCarloResult.status` of a trial whose drawn parameters break a rule of `RobotParams`
-#: (`RESULTS.rejected`: not simulated; `reject_code` says which rule). Solver outcomes are >= 0.
-REJECTED = RESULTS.rejected
+#: `MonteCarloResult.status` of a successful solve, and of a draw that breaks a rule of
+#: `RobotParams` (not simulated; `reject_code` says which rule). Solver outcomes are >= 0.
+SUCCESS, REJECTED = RESULTS.successful, RESULTS.rejected
 
 
 def outcome_masks(status) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """`(ok, failed, rejected)`: the trials whose solve succeeded, whose solve failed, and whose
     draw was rejected (not simulated), from their `status`."""
-    status = np.asarray(status)
-    ok = status == RESULTS.successful
-    rejected = status == RESULTS.rejected
+    ok, rejected = np.asarray(status) == SUCCESS, np.asarray(status) == REJECTED
     return ok, ~ok & ~rejected, rejected
 
 
 @dataclasses.dataclass(frozen=True)
 class ComputeTime:
-    """The computation of a study's batches as their time records in its folder tell it
-    (`jsphere.montecarlo.store.TIME_KEYS`): `batches` of the study, `recorded` of them with a
-    record, `sum_s`: the sum of the recorded batches' compute times [s] (what the processes
-    spent on them together; a process's first batch includes its compilation), `span_s`: from
-    the first recorded batch's start to the last one's end [s] (wall clock, the processes'
-    clocks taken as one), `processes`: how many processes (host and pid) computed them."""
+    """The computation of a study's batches as their time records tell it (`store.TIME_KEYS`):
+    `batches` of the study, `recorded` of them with a record, `sum_s`: the sum of their compute
+    times [s] (a process's first batch includes its compilation), `span_s`: from the first
+    one's start to the last one's end [s], `processes`: how many processes computed them."""
 
     batches: int
     recorded: int
@@ -44,16 +38,11 @@ class ComputeTime:
 
     @classmethod
     def of(cls, records) -> "ComputeTime":
-        """The `ComputeTime` of the time records of a study's batches (None for a batch with
-        none)."""
+        """The `ComputeTime` of the time records of a study's batches (None for a batch with none)."""
         got = [r for r in records if r is not None]
-        return cls(
-            batches=len(records),
-            recorded=len(got),
-            sum_s=float(sum(r["compute_s"] for r in got)),
-            span_s=float(max(r["end_unix_s"] for r in got) - min(r["start_unix_s"] for r in got)) if got else 0.0,
-            processes=len({(r["host"], r["pid"]) for r in got}),
-        )
+        span = max(r["end_unix_s"] for r in got) - min(r["start_unix_s"] for r in got) if got else 0.0
+        processes = len({(r["host"], r["pid"]) for r in got})
+        return cls(len(records), len(got), float(sum(r["compute_s"] for r in got)), float(span), processes)
 
 
 @dataclasses.dataclass
@@ -61,19 +50,16 @@ class MonteCarloResult:
     """Per-trial outcomes of `monte_carlo` (NumPy arrays of length `n`).
 
     `samples[name]`: the drawn values; `x_final, y_final` [m]: stop point; `speed_final` [m/s]:
-    speed of the shell centre at the end; `status`: the `RESULTS` code of each trial as an
-    integer array: `successful` (0), a solver failure (`max_steps_reached` 1, `nonfinite` 2,
-    as `Trajectory.status`), or `rejected` (-1, `REJECTED`) for a draw whose parameters break
-    a rule of `RobotParams` (not simulated; its outcomes are NaN); `results`: the same as
-    `RESULTS` members; `gamma3_sd_after`: standard
-    deviation of `gamma_3` over the settling time after the commands end (replay modes; the
-    paper's sigma of Fig. 2; 0 in gait mode, where the gaits end on exact stationary motions);
-    `reject_code`: 0 for a valid draw, else the index in `REASONS` of the rule it breaks.
-    `elapsed_s`: the wall time of the call that returned the result (for `workers.gather`, the
-    gather's own: it computes nothing; 0 for `store.read_result`); `compute_time`: with a study
-    folder, the batches' computation as recorded there (`ComputeTime`), else None; `trials`:
-    the index of each trial in its study where they are not all of `0 .. n - 1` in order (a
-    study folder read before every batch is there, `store.read_result`), else None.
+    speed of the shell centre at the end; `status`: the `RESULTS` code of each trial:
+    `successful` (0), a solver failure (`max_steps_reached` 1, `nonfinite` 2), or `rejected`
+    (-1, `REJECTED`) for a draw that breaks a rule of `RobotParams` (not simulated; outcomes
+    NaN); `results`: the same as `RESULTS` members; `gamma3_sd_after`: standard deviation of
+    `gamma_3` over the settling time after the commands end (replay modes; the paper's sigma
+    of Fig. 2; 0 in gait mode); `reject_code`: 0 for a valid draw, else the index in `REASONS`
+    of the rule it breaks. `elapsed_s`: the wall time of the call that returned the result (0
+    for `store.read_result`); `compute_time`: with a study folder, its batches' `ComputeTime`;
+    `trials`: the index of each trial in its study where they are not `0 .. n - 1` (a study
+    folder read before every batch is there, `store.read_result`), else None.
     """
 
     REJECTED: ClassVar[int] = REJECTED
@@ -94,9 +80,8 @@ class MonteCarloResult:
 
     @classmethod
     def of_batches(cls, parts: list[dict], names, n: int, seed: int, **more) -> "MonteCarloResult":
-        """The result of a study's batches `parts` (their arrays by `store.BATCH_KEYS`) joined and
-        cut to `n` trials, `names` the varied names of their `vals` columns; `more`: the other
-        fields."""
+        """The result of a study's batches `parts` (arrays by `store.BATCH_KEYS`) joined and cut to
+        `n` trials, `names` the varied names of their `vals` columns; `more`: the other fields."""
         cat = {key: np.concatenate([p[key] for p in parts])[:n] for key in parts[0]}
         return cls(
             n=n,
@@ -114,9 +99,7 @@ class MonteCarloResult:
     @property
     def results(self) -> np.ndarray:
         """`status` as `RESULTS` members (an object array of length `n`)."""
-        out = np.empty(len(self.status), object)
-        out[:] = [RESULTS(int(c)) for c in np.asarray(self.status)]
-        return out
+        return np.array([RESULTS(int(c)) for c in np.asarray(self.status)], object)
 
     def outcomes(self) -> dict[str, int]:
         """`{RESULTS name: number of trials}` of the outcomes that occur, by code."""
@@ -158,7 +141,7 @@ class MonteCarloResult:
         cov = np.cov(xy, rowvar=False) if len(xy) > 1 else np.zeros((2, 2))
         evals, evecs = np.linalg.eigh(cov)
         s = -2.0 * math.log(1.0 - level)  # chi-squared quantile with 2 degrees of freedom
-        q = [0.025, 0.5, 0.975]
+        q, d, g = [0.025, 0.5, 0.975], np.hypot(*xy.T), self.gamma3_sd_after[ok]
         return {
             "mean_xy_m": mean.tolist(),
             "cov_xy_m2": cov.tolist(),
@@ -169,14 +152,7 @@ class MonteCarloResult:
                 "angle_rad": float(math.atan2(evecs[1, -1], evecs[0, -1])),
             },
             "quantiles": {"q": q, "x_m": np.quantile(xy[:, 0], q).tolist(), "y_m": np.quantile(xy[:, 1], q).tolist()},
-            "distance_m": {
-                "mean": float(np.hypot(*xy.T).mean()),
-                "sd": float(np.hypot(*xy.T).std(ddof=1)) if len(xy) > 1 else 0.0,
-            },
+            "distance_m": {"mean": float(d.mean()), "sd": float(d.std(ddof=1)) if len(d) > 1 else 0.0},
             "speed_final_m_s": {"mean": float(self.speed_final[ok].mean()), "max": float(self.speed_final[ok].max())},
-            "gamma3_sd_after": {
-                "mean": float(self.gamma3_sd_after[ok].mean()),
-                "q": q,
-                "quantiles": np.quantile(self.gamma3_sd_after[ok], q).tolist(),
-            },
+            "gamma3_sd_after": {"mean": float(g.mean()), "q": q, "quantiles": np.quantile(g, q).tolist()},
         }

@@ -1,15 +1,7 @@
-"""Monte-Carlo studies of gait motions: vmapped batches, deterministic seeds, resumable files.
-
-Each trial `i` draws its parameters from `jax.random.fold_in(PRNGKey(seed), i)`, so a study is
-the same whatever the batch size, the number of devices or processes, and whether it ran in one
-go; a draw that breaks a rule of `RobotParams` is rejected (not simulated) or, for "truncate"
-distributions, drawn again; batches are sharded over the devices; finished batches are written
-atomically to `out/` and a killed study resumes there (a corrupt batch file is recomputed).
-
-`monte_carlo` checks its arguments and lays the study out in batches (`prepare`, a `_Run`),
-then computes the batches that are not in its folder yet (`_batches`), on this process's
-devices or, with JAX's distributed runtime, on every process's (`distributed`), and joins them
-into a `MonteCarloResult` (the modules beside this one: `jsphere.montecarlo`).
+"""Monte-Carlo studies of gait motions (`monte_carlo`): the arguments checked and the study laid
+out in batches (`prepare`, a `_Run`), the batches missing from its folder computed (`_batches`)
+on this process's devices or, with JAX's distributed runtime, on every process's
+(`distributed`), and joined into a `MonteCarloResult`.
 """
 
 from __future__ import annotations
@@ -18,7 +10,6 @@ import dataclasses
 import hashlib
 import math
 import os
-import socket
 import time
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -76,43 +67,31 @@ def monte_carlo(
     **Arguments:**
     - `params`: the nominal `RobotParams`; `gaits`: a list as for `simulate_gaits`.
     - `vary`: `{name: ("normal", mean, sd) | ("uniform", low, high)}` with names as in
-      `jsphere fit --free`: `"j"`, `"m0"`, `"I[0,0]"`, `"r_m[2]"`, or `"R_m"` (the distance
-      `|r_m|`, keeping its direction). Every drawn parameter set is checked against the rules
-      of `RobotParams` (`jsphere.model.params.RULES`: positive masses, a valid inertia tensor, the
-      centre of mass inside the shell, ...); a draw that breaks one is not simulated: its
-      status is `REJECTED` and `stats()` counts it by the rule it breaks. A distribution
-      followed by `"truncate"` (`("normal", 0.8, 0.3, "truncate")`) is truncated to the valid
-      range instead: while a draw is invalid, every "truncate" distribution is drawn again
-      (at most `MAX_REDRAWS` times), which samples it conditioned on a valid robot.
-    - `n`: the number of trials.
-    - `options`: a `StudyOptions` (seed, batch size, mode, actuators, replayed commands or
-      feedback table, ...; each field documented there).
+      `jsphere fit --free` (`"j"`, `"I[0,0]"`, `"r_m[2]"`, `"R_m"`: `|r_m|`, keeping its
+      direction). Trial `i` draws from `fold_in(PRNGKey(seed), i)`: the same study whatever the
+      batch size, devices or processes. A draw that breaks a rule of `RobotParams`
+      (`jsphere.model.params.RULES`) is not simulated: its status is `REJECTED`, counted by
+      `stats()` by the rule it breaks. A distribution followed by `"truncate"` is drawn again
+      instead while the draw is invalid (at most `MAX_REDRAWS` times).
+    - `n`: the number of trials; `options`: a `StudyOptions` (each field documented there).
     - `solver`: a `SolverOptions`; its `rtol`, `atol`, `max_steps` and `solver` are used
-      (tolerances by default 1e-8, 1e-10; float32 parameters: 1e-5, 1e-7, as `simulate`).
-      `throw` and `batch_steps` are monte_carlo's own: a failed trial is reported in `status`,
-      and every trial takes its own steps, so that its result does not depend on the other
-      trials of its chunk. `adjoint` set is an error (nothing is differentiated). A solver other than `Dopri8` is part of the study's fingerprint.
-    - `out`: a folder. Each finished batch is written there atomically, with a manifest; run
-      the same call again after an interruption and it resumes (a folder holding a different
-      study is refused). A finished study run again with a larger `n` computes only the new
-      batches: its first trials are those of the smaller study, bit for bit. A batch file that
-      cannot be read (cut short, overwritten) is recomputed, with a `MonteCarloWarning` naming
-      it; the hidden temporary files a killed run leaves are removed.
+      (tolerances as `simulate`'s). A failed trial is reported in `status` (no `throw`) and
+      every trial takes its own steps (no `batch_steps`); `adjoint` set is an error.
+    - `out`: a folder. Each finished batch is written there atomically, with a manifest; the
+      same call after an interruption resumes (a folder of a different study is refused), and
+      with a larger `n` computes only the new batches. A batch file that cannot be read is
+      recomputed, with a `MonteCarloWarning` naming it; a killed run's temporary files go.
     - `progress`: `None` (default): a progress bar on stderr when it is a terminal; `True`: the
-      bar, or a line every few seconds where stderr is not a terminal; `False`: none.
-      The first batch, which compiles, is shown apart and left out of the rate.
+      bar, or a line every few seconds; `False`: none. The first batch (it compiles) is apart.
     - `distributed`: run the study on every device of every process of a JAX multi-process
-      job (one process per node or per GPU, all calling `monte_carlo` with the same arguments;
-      `jsphere.montecarlo.distributed`): each process runs its shard of every batch, process 0
-      writes `out` (a folder that only it needs to see), and every process returns the whole
-      study, bitwise that of a single process. `True` or a `Distributed` starts JAX's
-      distributed runtime unless it is running (`start_distributed`: JAX starts it only before
-      it has made any array, so call `jax.distributed.initialize()` at the top of the script
-      when in doubt); `None` (default): distributed when it runs with several processes.
-    - `**deprecated`: the keywords that moved into `options` (`seed=`, `batch_size=`, `mode=`,
-      ...), `solver` (`rtol=`, `atol=`; `options=SolverOptions(...)`) and `distributed`
-      (`coordinator=`, `num_processes=`, `process_id=`) keep working for one release, with a
-      `DeprecationWarning` naming the new spelling.
+      job, all calling `monte_carlo` with the same arguments (`jsphere.montecarlo.distributed`):
+      process 0 writes `out`, and every process returns the whole study, bitwise that of one
+      process. `True` or a `Distributed` starts JAX's distributed runtime unless it is running
+      (`start_distributed`; JAX starts it only before it makes any array); `None` (default):
+      distributed when it runs with several processes.
+    - `**deprecated`: the keywords that moved into `options` (`seed=`, ...), `solver` (`rtol=`,
+      `atol=`; `options=SolverOptions(...)`) and `distributed` (`coordinator=`, ...) work for
+      one release, with a `DeprecationWarning` naming the new spelling.
 
     Every argument is checked before any work; a bad one raises `InputError` naming it.
 
@@ -129,34 +108,25 @@ def monte_carlo(
     return res
 
 
-def prepare(
-    params: RobotParams,
-    gaits: Sequence[Gait],
-    *,
-    vary: Mapping[str, Sequence],
-    n: int,
-    options: StudyOptions,
-    solver: SolverOptions | None = None,
-    out: str | os.PathLike | None = None,
-    distributed: bool = False,
-) -> "_Run":
+def prepare(params, gaits, *, vary, n, options: StudyOptions, solver=None, out=None, distributed=False) -> "_Run":
     """Check the arguments of a study (those of `monte_carlo`, `options` a `StudyOptions`) and
     lay it out in batches (`_batch_size`), over this process's devices or (`distributed`) every
     process's."""
     n = whole("monte_carlo", "n", n, 1)
     o = options.checked("monte_carlo")
-    opts = _solver_options(solver, o.max_steps)
+    unused(solver, where="monte_carlo", adjoint="monte_carlo does not differentiate its solves")
+    # the replay modes' step limit: `max_steps` where given, else `solver.max_steps`, else `MAX_STEPS`
+    opts = solver_options(solver, where="monte_carlo", max_steps=o.max_steps).or_defaults(max_steps=MAX_STEPS)
     o = dataclasses.replace(o, max_steps=opts.max_steps)
-    actuators = _check_mode(o.mode, o.actuators, opts.rtol, opts.atol)
+    for name, tol in (("rtol", opts.rtol), ("atol", opts.atol)):
+        if tol is not None:
+            real("monte_carlo", name, tol, strict=True)
+    actuators = _check_actuators(o)
     spec = check_vary(params, vary)
     rtol, atol = tolerances(params.R0.dtype, opts.rtol, opts.atol, where="monte_carlo")
     gaits = _check_gaits(gaits)
-    if o.commands is not None and o.mode == "gait":
-        raise ValueError("monte_carlo: `commands` are replayed; use mode='torques' or 'wheel_speeds'.")
     if o.track is not None:
         replay = _closed_loop(params, o, actuators)
-    elif o.feedback is not None:
-        raise InputError("monte_carlo: `feedback` sets up the closed loop of a `track` table; give `track`.")
     else:
         replay = None if o.mode == "gait" else _replay(params, gaits, o, actuators)
     # gait mode's step limit: simulate_gaits' unless the solver sets one
@@ -166,20 +136,9 @@ def prepare(
     # each device runs its share of every batch: locally, as many devices as divide it into whole chunks
     devices = jax.devices() if distributed else split_devices(B // CHUNK, jax.local_devices())
     mesh = trial_mesh(devices) if len(devices) > 1 else None
-    draws = _draws(spec, params.R0.dtype)
+    draws, seed = _draws(spec, params.R0.dtype), jnp.asarray(o.seed, jnp.uint32)
     trials = Trials(
-        params,
-        gaits,
-        draws,
-        jnp.asarray(o.seed, jnp.uint32),
-        o.reset,
-        rtol,
-        atol,
-        o.Omega0_sd,
-        replay,
-        mesh,
-        opts.solver,
-        gait_max_steps,
+        params, gaits, draws, seed, o.reset, rtol, atol, o.Omega0_sd, replay, mesh, opts.solver, gait_max_steps
     )
     # the fingerprint: what of the options changes a study's results (the defaults leave it as it is)
     record = () if replay is None else _replay_record(replay, o.plan_rate, o.commands is not None)
@@ -196,10 +155,9 @@ def prepare(
 
 
 def _batch_size(batch_size: int, n: int, out, distributed: bool) -> int:
-    """A study's batch size: `batch_size` (at most `n`) rounded up to whole chunks, or the one
-    recorded in the manifest of a study folder `out` that exists (process 0's, in a distributed
-    run: the other processes need not see the folder): a study extended to more trials, workers
-    on nodes with other device counts and `--gather` (which computes nothing) keep it."""
+    """A study's batch size: `batch_size` (at most `n`) rounded up to whole chunks, or the one in
+    the manifest of a study folder `out` that exists (process 0's, in a distributed run), which
+    an extended study, workers on other nodes and `--gather` keep."""
     B = -(-max(1, min(batch_size, n)) // CHUNK) * CHUNK
     if out is None:
         return B
@@ -209,57 +167,44 @@ def _batch_size(batch_size: int, n: int, out, distributed: bool) -> int:
     return recorded if recorded is not None and recorded % CHUNK == 0 else B
 
 
-def _solver_options(solver: SolverOptions | None, max_steps: int | None) -> SolverOptions:
-    """The solver settings of a study: `solver` with the replay modes' step limit `max_steps`
-    where given (else `solver.max_steps`, else `MAX_STEPS`)."""
-    unused(solver, where="monte_carlo", adjoint="monte_carlo does not differentiate its solves")
-    opts = solver_options(solver, where="monte_carlo", max_steps=max_steps)
-    return opts.or_defaults(max_steps=MAX_STEPS)
-
-
-def _check_mode(mode: str, actuators: Actuators | None, rtol, atol) -> Actuators:
-    """Check the tolerances and `actuators` (`mode` is checked); the actuators of the study (ideal ones by
-    default)."""
-    for name, tol in (("rtol", rtol), ("atol", atol)):
-        if tol is not None:
-            real("monte_carlo", name, tol, strict=True)
-    if actuators is not None and mode == "gait":
-        raise InputError("monte_carlo: actuators apply to replayed commands; use mode='torques' or 'wheel_speeds'.")
-    if actuators is not None and not isinstance(actuators, Actuators):
-        raise InputError(f"monte_carlo: actuators must be a jsphere.Actuators; got {type(actuators).__name__}.")
-    return actuators or Actuators()
+def _check_actuators(o: StudyOptions) -> Actuators:
+    """The actuators of the study (ideal ones by default), with the options that gait mode does
+    not take (actuators, commands) and `feedback` without `track` refused."""
+    if o.mode == "gait" and (o.actuators is not None or o.commands is not None):
+        what = "actuators apply to replayed commands" if o.actuators is not None else "`commands` are replayed"
+        raise InputError(f"monte_carlo: {what}; use mode='torques' or 'wheel_speeds'.")
+    if o.actuators is not None and not isinstance(o.actuators, Actuators):
+        raise InputError(f"monte_carlo: actuators must be a jsphere.Actuators; got {type(o.actuators).__name__}.")
+    if o.feedback is not None and o.track is None:
+        raise InputError("monte_carlo: `feedback` sets up the closed loop of a `track` table; give `track`.")
+    return o.actuators or Actuators()
 
 
 def _check_gaits(gaits) -> list[Gait]:
-    if isinstance(gaits, (str, bytes)) or not isinstance(gaits, Sequence):
-        raise InputError(f"monte_carlo: gaits must be a non-empty list of jsphere.Gait; got {type(gaits).__name__}.")
-    gaits = list(gaits)
-    if not gaits or not all(isinstance(g, Gait) for g in gaits):
+    ok = isinstance(gaits, Sequence) and not isinstance(gaits, (str, bytes)) and len(gaits) > 0
+    if not ok or not all(isinstance(g, Gait) for g in gaits):
         raise InputError(
             "monte_carlo: gaits must be a non-empty list of jsphere.Gait (e.g. [acceleration(), braking()])."
         )
-    return gaits
+    return list(gaits)
 
 
 def _replay(params, gaits, o: StudyOptions, actuators: Actuators) -> Replay:
     """The commands a replay mode replays: `o.commands`, or the gaits' plan on the nominal robot
     sampled at `o.plan_rate`; the motors stop at its last time stamp."""
-    mode, commands = o.mode, o.commands
-    if commands is None:
+    if o.commands is None:
         nominal = simulate_gaits(params, gaits, reset=o.reset, rate=o.plan_rate)
-        tsn = np.asarray(nominal.ts)
-        u = np.asarray(nominal.K if mode == "torques" else nominal.chi_dot)
+        tsn, u = np.asarray(nominal.ts), np.asarray(nominal.K if o.mode == "torques" else nominal.chi_dot)
     else:
-        tsn, u = np.asarray(commands[0], np.float64), np.asarray(commands[1], np.float64)
+        tsn, u = np.asarray(o.commands[0], np.float64), np.asarray(o.commands[1], np.float64)
         Sampled(jnp.asarray(tsn), jnp.asarray(u))  # validates the table
         check_commands("monte_carlo: commands", tsn, u, params.n_wheels)
     # the motors stop when the plan ends: a jump to zero at its last time stamp
     tsn, u = np.concatenate([tsn, tsn[-1:]]), np.concatenate([u, np.zeros_like(u[:1])])
-    jump_ts = ()
-    if actuators.delay_s == 0 and actuators.delay_sd == 0:  # jumps stay where the plan has them
-        jump_ts = tuple(float(t) for t in tsn[1:][np.diff(tsn) == 0] if t > 0)
+    keep = actuators.delay_s == 0 and actuators.delay_sd == 0  # jumps stay where the plan has them
+    jump_ts = tuple(float(t) for t in tsn[1:][np.diff(tsn) == 0] if t > 0) if keep else ()
     plan = (jnp.asarray(tsn, params.R0.dtype), jnp.asarray(u, params.R0.dtype))
-    return Replay(mode, plan, actuators, o.settle, o.max_steps, jump_ts)
+    return Replay(o.mode, plan, actuators, o.settle, o.max_steps, jump_ts)
 
 
 def _closed_loop(params, o: StudyOptions, actuators: Actuators) -> ClosedLoop:
@@ -270,33 +215,18 @@ def _closed_loop(params, o: StudyOptions, actuators: Actuators) -> ClosedLoop:
     if o.mode != "torques" or o.commands is not None:
         raise InputError("monte_carlo: a `track` table commands torques; use mode='torques' and no `commands`.")
     check_closed_loop("monte_carlo", o.Omega0_sd, actuators)
-    fb = check_feedback("monte_carlo: feedback", o.feedback or {})
+    fb = check_feedback("monte_carlo", o.feedback or {})
     h = check_track("monte_carlo: track", track, params.n_wheels)
     t, K_ff, G = (np.asarray(track[k], np.float64) for k in ("t", "K_ff", "G"))
-    N = params.n_wheels
     dt = params.R0.dtype
-    ref = np.zeros((len(t), Flat.size + N))
-    ref[:, Flat.q] = track["q"]
+    ref = np.zeros((len(t), Flat.size + params.n_wheels))
     ref[:, Flat.q_shell] = [1.0, 0.0, 0.0, 0.0]
-    ref[:, Flat.omega], ref[:, Flat.Omega] = track["omega"], track["Omega"]
-    ref[:, Flat.x], ref[:, Flat.y] = track["x"], track["y"]
-    conditions = Conditions(
-        **{k: v for k, v in fb.items() if k != "max_torque"},
-        gain_sd=actuators.gain_sd,
-        motor_delay_s=actuators.delay_s,
-        white_sd=actuators.white_sd,
-        settle=o.settle,
-    )
-    return ClosedLoop(
-        h,
-        jnp.asarray(K_ff, dt),
-        jnp.asarray(ref, dt),
-        jnp.asarray(G, dt),
-        jnp.asarray([ref[-1, Flat.x], ref[-1, Flat.y]], dt),
-        conditions,
-        fb["max_torque"],
-        int(math.ceil(o.settle / h - 1e-9)),
-    )
+    for name in ("q", "omega", "Omega", "x", "y"):
+        ref[:, getattr(Flat, name)] = track[name]
+    motors = {"gain_sd": actuators.gain_sd, "motor_delay_s": actuators.delay_s, "white_sd": actuators.white_sd}
+    conditions = Conditions(**{k: v for k, v in fb.items() if k != "max_torque"}, **motors, settle=o.settle)
+    K_ff, ref, G, target = (jnp.asarray(a, dt) for a in (K_ff, ref, G, [ref[-1, Flat.x], ref[-1, Flat.y]]))
+    return ClosedLoop(h, K_ff, ref, G, target, conditions, fb["max_torque"], int(math.ceil(o.settle / h - 1e-9)))
 
 
 def _draws(spec: Sequence[tuple], dtype) -> Uncertainty:
@@ -309,18 +239,13 @@ def _draws(spec: Sequence[tuple], dtype) -> Uncertainty:
 
 
 def _replay_record(replay: Replay | ClosedLoop, plan_rate: float, commands: bool) -> tuple:
-    """What of a replay changes a study's results, for its fingerprint: the actuators, the plan's
-    rate, the settling time, a hash of the given `commands` (None for the gaits' own plan) and
-    the step limit; for a closed loop, its conditions, torque limit, settling and a hash of its
-    table."""
+    """What of a replay changes a study's results, for its fingerprint: its settings and a hash of
+    its given `commands` (None for the gaits' own plan) or of its closed loop's table."""
+    digest = lambda *arrays: hashlib.sha256(b"".join(np.ascontiguousarray(a).tobytes() for a in arrays)).hexdigest()
     if isinstance(replay, ClosedLoop):
-        arrays = (replay.K_ff, replay.ref, replay.G)
-        table = hashlib.sha256(b"".join(np.ascontiguousarray(a).tobytes() for a in arrays)).hexdigest()
+        table = digest(replay.K_ff, replay.ref, replay.G)
         return ("track", replay.ts_h, replay.conditions.to_json(), replay.max_torque, replay.n_settle, table)
-    cmd_fp = None
-    if commands:
-        ts, u = replay.plan
-        cmd_fp = hashlib.sha256(np.ascontiguousarray(u).tobytes() + np.ascontiguousarray(ts).tobytes()).hexdigest()
+    cmd_fp = digest(replay.plan[1], replay.plan[0]) if commands else None
     return (replay.actuators, plan_rate, replay.settle, cmd_fp, replay.max_steps)
 
 
@@ -328,10 +253,10 @@ def _replay_record(replay: Replay | ClosedLoop, plan_rate: float, commands: bool
 class _Run:
     """A checked study laid out in batches: `n` trials with seed `seed` in `n_batches` batches of
     `batch_size` (a multiple of `CHUNK`; computed as `padded` trials, whole chunks on every
-    device), with `vary` as given;
-    with a `folder`, batches are read from it and written to it (by the `writer`: process 0 of
-    a `distributed` job, the only process otherwise). `fingerprint` identifies the study in its
-    folder's manifest; `program` the compiled batch (the study but its seed, and the devices)."""
+    device), with `vary` as given; with a `folder`, batches are read from it and written to it
+    (by the `writer`: process 0 of a `distributed` job, the only process otherwise).
+    `fingerprint` identifies the study in its folder's manifest; `program` the compiled batch
+    (the study but its seed, and the devices)."""
 
     trials: Trials
     vary: Mapping
@@ -367,27 +292,22 @@ class _Run:
         part = dict(zip(BATCH_KEYS, (np.asarray(a)[: self.batch_size] for a in out)))
         seconds = time.perf_counter() - t0
         if self.folder is not None and self.writer:  # the time record first: a batch file always has one
-            record = {"batch": k, "trials": self.trials_of(k), "compute_s": seconds, "start_unix_s": start}
-            record |= {"end_unix_s": start + seconds, "host": socket.gethostname(), "pid": os.getpid()}
-            self.folder.save_time(k, record)
+            self.folder.save_time(k, self.trials_of(k), start, seconds)
             self.folder.save_batch(k, part)
         return part
 
 
 def _batches(run: _Run, progress: Progress) -> list[dict]:
     """The batches of a study: those in its folder, read by the writer (which opens the folder
-    and removes the temporary files a killed run left there), then the others computed
-    (`_compute`). In a distributed run process 0 tells the others what it read, and a folder
-    that it refuses ends every process, with its message."""
+    and removes a killed run's temporary files), then the others computed (`_compute`). In a
+    distributed run process 0 shares what it read, or the refusal of its folder."""
     parts: list = [None] * run.n_batches
     refused = None
     if run.writer and run.folder is not None:
         try:
             run.folder.open(run.fingerprint, run.n, run.seed, run.vary)
             run.folder.remove_temporary_files(range(run.n_batches), others=True)
-            for k in range(run.n_batches):
-                if run.folder.has_batch(k):
-                    parts[k] = run.folder.load_batch(k, stacklevel=3)
+            parts = run.folder.load_batches(range(run.n_batches), stacklevel=3)
         except InputError as e:
             if not run.distributed:
                 raise

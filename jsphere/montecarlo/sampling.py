@@ -1,8 +1,5 @@
 """What a Monte-Carlo trial draws: the robot's parameters (`jsphere.model.uncertainty`) and the
-actuators' errors (`Actuators`), each from its own key, deterministic in the study's seed and the
-trial's index.
-
-Trial `i` of a study with seed `s` draws varied name `j` from
+actuators' errors (`Actuators`). Trial `i` of a study with seed `s` draws varied name `j` from
 `fold_in(fold_in(PRNGKey(s), i), j)` and its initial-velocity and actuator perturbations from
 `fold_in(fold_in(PRNGKey(s), i), 2**20)`, so a trial is the same whatever the batch it runs in.
 """
@@ -20,23 +17,19 @@ from ..model.uncertainty import MAX_REDRAWS as MAX_REDRAWS
 from ..model.uncertainty import REASONS as REASONS
 from ..model.uncertainty import Uncertainty as Uncertainty
 from ..model.uncertainty import draw_code as draw_code
-from ..model.uncertainty import draw_key
 
 #: the fold of a trial's key that seeds its initial-velocity and actuator perturbations
 #: (the varied names use the folds 0, 1, ...)
 PERTURBATION_FOLD = 2**20
-#: the key of trial `i` of a study with seed `s`: `fold_in(PRNGKey(s), i)`
-trial_key = draw_key
 
 
 class Actuators(eqx.Module):
     """Imperfect execution of a replayed command table (`mode="torques"` or `"wheel_speeds"`).
 
-    Per trial and wheel: a gain `1 + gain_sd z`; per trial: a delay
-    `max(0, delay_s + delay_sd z)` [s]; per sample: white noise of sd `white_sd` and
-    band-limited noise of sd `band_sd` (white noise through a first-order low-pass filter of
-    bandwidth `band_hz`), in the command's units (N m or rad/s). The command is
-    `gain * (plan(t - delay) + noise)`, held at zero before the delayed start.
+    Per trial and wheel a gain `1 + gain_sd z`, per trial a delay `max(0, delay_s + delay_sd z)`
+    [s], per sample white noise of sd `white_sd` and band-limited noise of sd `band_sd` (through
+    a first-order low-pass filter of bandwidth `band_hz`), in the command's units (N m or
+    rad/s): the command is `gain * (plan(t - delay) + noise)`, zero before the delayed start.
     """
 
     gain_sd: float = 0.0

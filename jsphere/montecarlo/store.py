@@ -13,6 +13,8 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import os
+import socket
 import warnings
 import zipfile
 from pathlib import Path
@@ -29,9 +31,8 @@ from .sampling import MAX_REDRAWS, REASONS
 
 #: the arrays of a batch file
 BATCH_KEYS = ("vals", "x", "y", "speed", "status", "gamma3_sd", "reject")
-#: the fields of a batch's time record: its trials, the seconds its computation took (the first
-#: batch a process computes includes the compilation), when it started and ended (Unix time [s]),
-#: and the process that computed it
+#: the fields of a batch's time record: its trials, the seconds its computation took (a process's
+#: first batch includes the compilation), its start and end (Unix time [s]), and its process
 TIME_KEYS = ("batch", "trials", "compute_s", "start_unix_s", "end_unix_s", "host", "pid")
 #: the hidden temporary files of `jsphere._runtime.files.atomic_write` in a study folder, by the file they become
 _TEMPORARY = temporary_pattern(r"((?:batch|time)_(\d{6})|manifest|stats|stop_points)", r"\.(npz|tmp|png)")
@@ -45,23 +46,18 @@ def fingerprint(params, gaits, spec, seed, batch_size, options, rtol, atol) -> s
     """A hash of everything that changes a study's results (also the rules a draw must meet, the
     redraw limit of "truncate" and the chunk width); `options`: the other settings."""
     leaves = [np.asarray(x).tolist() for x in jax.tree_util.tree_leaves((params, gaits)) if hasattr(x, "shape")]
-    text = json.dumps(
-        [
-            leaves,
-            str(params.R0.dtype),
-            str(jax.tree_util.tree_structure(gaits)),
-            spec,
-            seed,
-            batch_size,
-            repr(options),
-            rtol,
-            atol,
-            REASONS,
-            MAX_REDRAWS,
-            CHUNK,
-        ]
-    )
+    study = [leaves, str(params.R0.dtype), str(jax.tree_util.tree_structure(gaits)), spec, seed, batch_size]
+    text = json.dumps([*study, repr(options), rtol, atol, REASONS, MAX_REDRAWS, CHUNK])
     return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _manifest(folder) -> dict:
+    """The manifest of the study folder `folder`; `OSError` if it cannot be read, `ValueError` if it
+    is not a JSON object."""
+    record = json.loads((Path(folder) / "manifest.json").read_text())
+    if not isinstance(record, dict):
+        raise ValueError("not a JSON object")
+    return record
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,11 +72,9 @@ class StudyFolder:
         return self.path / f"batch_{k:06d}.npz"
 
     def open(self, fp: str, n: int, seed: int, vary) -> None:
-        """Create the folder with its manifest, or check that it holds the study `fp` with at
-        most `n` trials; a study of fewer trials is extended to `n` (its manifest rewritten: the
-        batches it has are the first ones of the larger study, whose trials depend only on the
-        seed and their index). Two processes that create the same folder at once write one
-        manifest (created exclusively), and the second checks it."""
+        """Create the folder with its manifest (exclusively: of two processes, the second checks
+        it), or check that it holds the study `fp` with at most `n` trials, extending one of fewer
+        (its batches are the first ones of the larger study)."""
         folder = self.path
         if folder.exists() and not folder.is_dir():
             raise InputError(
@@ -88,13 +82,8 @@ class StudyFolder:
             )
         folder.mkdir(parents=True, exist_ok=True)
         manifest = folder / "manifest.json"
-        record = {
-            "fingerprint": fp,
-            "n": n,
-            "seed": seed,
-            "batch_size": self.batch_size,
-            "vary": {k: list(v) for k, v in vary.items()},
-        }
+        vary = {k: list(v) for k, v in vary.items()}
+        record = {"fingerprint": fp, "n": n, "seed": seed, "batch_size": self.batch_size, "vary": vary}
         if not manifest.exists():
             if any(folder.glob("batch_*.npz")):
                 raise InputError(
@@ -111,22 +100,19 @@ class StudyFolder:
     def manifest_batch_size(path) -> int | None:
         """The batch size recorded in the manifest of the folder `path`, if it has a readable one."""
         try:
-            size = json.loads((Path(path) / "manifest.json").read_text()).get("batch_size")
-        except (OSError, ValueError, AttributeError):
+            size = _manifest(path).get("batch_size")
+        except (OSError, ValueError):
             return None
         return size if isinstance(size, int) and not isinstance(size, bool) and size > 0 else None
 
     def check_manifest(self, fp: str, n: int) -> int:
         """The number of trials of the study in the folder's manifest, which must be `fp` with at
         most `n`."""
-        manifest = self.path / "manifest.json"
         try:
-            old = json.loads(manifest.read_text())
-            if not isinstance(old, dict):
-                raise ValueError("not a JSON object")
-        except (ValueError, UnicodeDecodeError) as e:
+            old = _manifest(self.path)
+        except ValueError as e:
             raise InputError(
-                f"monte_carlo: {manifest} is not a valid study manifest ({e}), so the batches in {self.path} cannot be "
+                f"monte_carlo: {self.path / 'manifest.json'} is not a valid study manifest ({e}), so the batches in {self.path} cannot be "
                 "trusted; delete the folder (or choose another `out`) to run the study again."
             ) from None
         old_n = old.get("n")
@@ -155,6 +141,20 @@ class StudyFolder:
     def has_batch(self, k: int) -> bool:
         return self.batch_path(k).exists()
 
+    def load_batches(self, batches, *, stacklevel: int = 2) -> list[dict | None]:
+        """The arrays of `batches` (`read_batch`), None for each that is missing or cannot be
+        read; a `MonteCarloWarning` names each file that cannot be read (it is recomputed) and
+        points `stacklevel` frames above this method."""
+        out = []
+        for k in batches:
+            try:
+                out.append(self.read_batch(k) if self.has_batch(k) else None)
+            except ValueError as e:
+                message = f"monte_carlo: {e}; recomputing that batch."
+                warnings.warn(message, MonteCarloWarning, stacklevel=stacklevel + 1)
+                out.append(None)
+        return out
+
     def read_batch(self, k: int) -> dict:
         """The arrays of batch `k`; `ValueError` saying why if the file cannot be read or does not
         hold a batch of this study (a truncated copy, a full disk, random bytes)."""
@@ -176,15 +176,6 @@ class StudyFolder:
             raise ValueError(f"{self.batch_path(k)} is corrupt or incomplete ({reason})") from None
         return part
 
-    def load_batch(self, k: int, *, stacklevel: int = 2) -> dict | None:
-        """The arrays of batch `k` (`read_batch`), or `None` with a `MonteCarloWarning` naming the
-        file, which is recomputed. The warning points `stacklevel` frames above this method."""
-        try:
-            return self.read_batch(k)
-        except ValueError as e:
-            warnings.warn(f"monte_carlo: {e}; recomputing that batch.", MonteCarloWarning, stacklevel=stacklevel + 1)
-            return None
-
     def save_batch(self, k: int, part: dict) -> None:
         """Write batch `k` atomically as an `.npz` file whose bytes depend on its arrays only
         (fixed member order and time stamps), so a resumed study's files equal an uninterrupted
@@ -202,10 +193,12 @@ class StudyFolder:
     def time_path(self, k: int) -> Path:
         return self.path / f"time_{k:06d}.json"
 
-    def save_time(self, k: int, record: dict) -> None:
-        """Write the time record of batch `k` (`TIME_KEYS`) atomically beside its batch file. A
-        record of its own, so that the batch files stay the same bytes whatever run wrote them."""
-        atomic_write_json(self.time_path(k), {key: record[key] for key in TIME_KEYS})
+    def save_time(self, k: int, trials: int, start: float, seconds: float) -> None:
+        """Write the time record of batch `k` (`TIME_KEYS`: its `trials`, computed by this process
+        in `seconds` from the Unix time `start`) atomically beside its batch file. A record of its
+        own, so that the batch files stay the same bytes whatever run wrote them."""
+        record = (k, trials, seconds, start, start + seconds, socket.gethostname(), os.getpid())
+        atomic_write_json(self.time_path(k), dict(zip(TIME_KEYS, record)))
 
     def load_times(self, batches) -> list[dict | None]:
         """The time records of `batches` (`save_time`), None for each that is missing or cannot
@@ -226,21 +219,19 @@ class StudyFolder:
 
 
 def read_result(folder) -> MonteCarloResult:
-    """The trials of a study folder (`monte_carlo(out=...)`, `jsphere montecarlo --out`) that its
-    batch files hold, as a `MonteCarloResult` whose `samples` are named by the manifest's
-    `vary`. A folder whose batches are all there gives the study's result, bitwise; one still
-    being computed gives the trials of the batches written so far (`n` of them, their indices
-    in `trials`). `InputError` naming the file when the folder has no manifest, no batch file,
-    or a batch file that cannot be read."""
+    """The trials that the batch files of a study folder (`monte_carlo(out=...)`) hold, as a
+    `MonteCarloResult`: the study's result, bitwise, once every batch is there, else the batches
+    written so far (their indices in `trials`). `InputError` naming the file when the folder has
+    no manifest, no batch file, or a batch file that cannot be read."""
     path = Path(folder)
     try:
-        manifest = json.loads((path / "manifest.json").read_text())
+        manifest = _manifest(path)
         n, seed, B, names = int(manifest["n"]), int(manifest["seed"]), int(manifest["batch_size"]), manifest["vary"]
     except FileNotFoundError:
         raise InputError(
             f"{path}: not a Monte-Carlo study (no manifest.json); give a folder that jsphere montecarlo wrote."
         ) from None
-    except (ValueError, KeyError, TypeError, UnicodeDecodeError) as e:
+    except (ValueError, KeyError, TypeError) as e:
         raise InputError(f"{path / 'manifest.json'}: not a valid study manifest ({e}).") from None
     study = StudyFolder(path, B, len(names))
     ks = [k for k in range(-(-n // B)) if study.has_batch(k)]

@@ -1,19 +1,16 @@
-"""A study's description: its distributions (`check_vary`), the feedback of a closed loop
-(`check_feedback`) and the study file of `jsphere montecarlo` (`load_study`, whose keys are
-`StudyOptions`' fields), each checked before any work, with an `InputError` that names the
-value."""
+"""A study's description, checked before any work with an `InputError` that names the value: its
+distributions (`check_vary`), its tables and the study file of `jsphere montecarlo` (`load_study`)."""
 
 from __future__ import annotations
 
 import dataclasses
-import math
 import warnings
 from pathlib import Path
 from typing import Mapping, Sequence
 
 import numpy as np
 
-from .._runtime.checks import is_number, real, whole
+from .._runtime.checks import real, whole
 from .._runtime.errors import InputError
 from .._runtime.files import tomllib
 from ..gaits.gaits import acceleration, braking, turn
@@ -28,41 +25,31 @@ from .sampling import Actuators
 DISTRIBUTIONS = {"normal": ("mean", "sd"), "uniform": ("low", "high")}
 #: the optional last entry of a distribution: redraw until the parameter set is valid
 TRUNCATE = "truncate"
-#: the keys of a study's `[feedback]` table (the closed loop of a `track` table) and their
-#: defaults: the start pose's spread and the fed-back state's delay and noise of `jsphere
+#: the keys of a study's `[feedback]` table (the closed loop of a `track` table) and their units
+_FEEDBACK_UNITS = {"start_sd": "m", "heading_sd": "rad", "delay_s": "s", "pos_sd": "m", "att_sd": "rad"}
+_FEEDBACK_UNITS |= {"omega_sd": "rad/s", "wheel_sd": "rad/s", "max_torque": "N m"}
+#: their defaults: the start pose's spread and the fed-back state's delay and noise of `jsphere
 #: track`'s evaluation (`jsphere.planning.tracking.Conditions`), the torque limit of `Limits`
-FEEDBACK = {
-    **{
-        k: getattr(Conditions(), k)
-        for k in ("start_sd", "heading_sd", "delay_s", "pos_sd", "att_sd", "omega_sd", "wheel_sd")
-    },
-    "max_torque": Limits().max_torque,
-}
-#: their units
-_FEEDBACK_UNITS = {
-    "start_sd": "m",
-    "heading_sd": "rad",
-    "delay_s": "s",
-    "pos_sd": "m",
-    "att_sd": "rad",
-    "omega_sd": "rad/s",
-    "wheel_sd": "rad/s",
-    "max_torque": "N m",
-}
+FEEDBACK = {k: getattr(Conditions(), k) for k in list(_FEEDBACK_UNITS)[:-1]} | {"max_torque": Limits().max_torque}
+
+
+def _check_table(where: str, name: str, values, keys: list, units: Mapping | None = None) -> dict:
+    """The table `name` of a study (`where`: the study file or `monte_carlo`), `values`, with
+    known `keys` only, each a finite number >= 0 in `units` (`max_torque` > 0); else an
+    `InputError` naming the key."""
+    if not isinstance(values, Mapping):
+        raise InputError(f"{where}: {name} must be a table (e.g. [{name}] {keys[0]} = 0.01); got {values!r}.")
+    unknown = sorted(set(values) - set(keys))
+    if unknown:
+        raise InputError(f"{where}: [{name}]: unknown key(s) {unknown}; expected {keys}.")
+    label = f"{where}: [{name}]"
+    return {k: real(label, k, v, strict=k == "max_torque", unit=units[k] if units else "") for k, v in values.items()}
 
 
 def check_feedback(where: str, values: Mapping) -> dict:
     """The `FEEDBACK` settings `values` checked (finite numbers >= 0, the torque limit > 0) and
     completed with the defaults; `InputError` naming the key under `where`."""
-    if not isinstance(values, Mapping):
-        raise InputError(f"{where} must be a table (e.g. [feedback] delay_s = 0.01); got {values!r}.")
-    unknown = sorted(set(values) - set(FEEDBACK))
-    if unknown:
-        raise InputError(f"{where}: unknown key(s) {unknown}; expected {sorted(FEEDBACK)}.")
-    out = dict(FEEDBACK)
-    for k, v in values.items():
-        out[k] = real(where, k, v, strict=k == "max_torque", unit=_FEEDBACK_UNITS[k])
-    return out
+    return FEEDBACK | _check_table(where, "feedback", values, sorted(FEEDBACK), _FEEDBACK_UNITS)
 
 
 def check_commands(where: str, ts: np.ndarray, values: np.ndarray, n_wheels: int) -> None:
@@ -98,16 +85,6 @@ def check_closed_loop(where: str, Omega0_sd: float, actuators) -> None:
         )
 
 
-def _target(params: RobotParams, name: str) -> tuple:
-    """What a name sets, for finding two names that set the same value."""
-    field, index = parse_name(name)
-    if field == "R_m":
-        return ("r_m",)
-    if field == "I" and len(index) == 2:
-        index = tuple(sorted(index))
-    return (field, index)
-
-
 def _check_distribution(name: str, spec) -> tuple[str, float, float, bool]:
     """`(kind, a, b, truncate)` of one valid entry of `vary`, else `InputError` naming it."""
     form = f"vary[{name!r}] must be ['normal', mean, sd] or ['uniform', low, high], optionally followed by '{TRUNCATE}'"
@@ -116,10 +93,7 @@ def _check_distribution(name: str, spec) -> tuple[str, float, float, bool]:
     if len(spec) == 4 and spec[3] != TRUNCATE:
         raise InputError(f"{form}; got {spec[3]!r} as its last entry.")
     kind = spec[0]
-    for label, v in zip(DISTRIBUTIONS[kind], spec[1:3]):
-        if not is_number(v) or not math.isfinite(v):
-            raise InputError(f"vary[{name!r}]: the {label} must be a finite number; got {v!r}.")
-    a, b = float(spec[1]), float(spec[2])
+    a, b = (real(f"vary[{name!r}]", f"the {label}", v, low=None) for label, v in zip(DISTRIBUTIONS[kind], spec[1:3]))
     if kind == "normal" and not b >= 0:
         raise InputError(f"vary[{name!r}]: the standard deviation must be >= 0; got {b}.")
     if kind == "uniform" and not b >= a:
@@ -137,16 +111,16 @@ def check_vary(params: RobotParams, vary: Mapping[str, Sequence]) -> list[tuple[
     for name, spec in vary.items():
         if not isinstance(name, str):
             raise InputError(f"vary: parameter names are strings such as 'j' or 'I[0,0]'; got {name!r}.")
-        parse_name(name)
+        field, index = parse_name(name)
         if name != "R_m":
             get_value(params, name)  # checks the index fits
         kind, a, b, truncate = _check_distribution(name, spec)
         if get_value(params, name).ndim != 0:
             raise InputError(f"vary[{name!r}]: vary scalar components (e.g. 'I[0,0]'), not a whole field.")
-        t = _target(params, name)
-        other = next(
-            (o for o, ot in seen.items() if ot == t or (t[0] == ot[0] == "r_m" and (len(t) == 1 or len(ot) == 1))), None
-        )
+        # what the name sets: `R_m` sets every `r_m[i]`, and `I` is symmetric
+        t = ("r_m", None) if field == "R_m" else (field, tuple(sorted(index)) if field == "I" else index)
+        clash = lambda u: u == t or (t[0] == u[0] == "r_m" and None in (t[1], u[1]))
+        other = next((o for o, u in seen.items() if clash(u)), None)
         if other is not None:
             raise InputError(f"vary: {other!r} and {name!r} set the same value; vary one of them.")
         seen[name] = t
@@ -158,11 +132,20 @@ def check_vary(params: RobotParams, vary: Mapping[str, Sequence]) -> list[tuple[
 
 #: the gaits a study file names, by their `kind`
 GAITS = {"acceleration": acceleration, "braking": braking, "turn": turn}
-GAIT_KINDS = tuple(GAITS)
 #: the keys of a study file: the study's own (`trials`, the robot, the gaits, the
 #: distributions) and every field of `StudyOptions` that a file gives
 STUDY_KEYS = {"trials", "params", "gaits", "vary"} | {
     f.name for f in dataclasses.fields(StudyOptions) if f.metadata["file"] is not None
+}
+#: the keys of a study file that name a file or hold a table or a list: their type and form
+_FORMS = {
+    "params": (str, "the path of a parameter file (.toml or .json)"),
+    "gaits": (list, 'a non-empty list of tables, e.g. gaits = [{kind = "acceleration"}, {kind = "braking"}]'),
+    "vary": (dict, 'a table of distributions, e.g. [vary] "r_m[2]" = ["normal", -0.027, 1e-4]'),
+    "actuators": (dict, "a table (e.g. [actuators] gain_sd = 0.02)"),
+    "commands": (str, "the path of a command table (.csv)"),
+    "track": (str, "the path of a feedback table (track.csv of jsphere track)"),
+    "feedback": (dict, "a table (e.g. [feedback] delay_s = 0.01)"),
 }
 
 
@@ -181,47 +164,34 @@ class Study:
     def __getitem__(self, key: str):
         """`study["params"]`, `["gaits"]`, `["n"]` and `["kwargs"]` (the keywords of the study:
         `vary` and the options set) of a study read as a dict; kept for one release."""
-        warnings.warn(
-            f'load_study(...)["{key}"] is deprecated; use the attributes of the Study (params, gaits, n, vary, '
-            "options).",
-            DeprecationWarning,
-            stacklevel=2,
-        )
+        use = "use the attributes of the Study (params, gaits, n, vary, options)"
+        warnings.warn(f'load_study(...)["{key}"] is deprecated; {use}.', DeprecationWarning, stacklevel=2)
         if key != "kwargs":
             return getattr(self, key)
         return {"vary": self.vary} | {f.name: getattr(self.options, f.name) for f in dataclasses.fields(StudyOptions)}
 
 
 def load_study(path) -> Study:
-    """Read a Monte-Carlo study description (TOML) into a `Study`. Its keys (every one optional
-    but `vary`) are `trials` (1000 unless given; `--trials` overrides it), `params` (the path
-    of a parameter file relative to this file; default: the paper's robot, or the robot of a
-    plan's command table), `gaits` (a list of tables `{kind = "acceleration", theta_max = 0.1,
-    T = 2.0}`, default acceleration and braking), `[vary]`, and the fields of `StudyOptions`
-    that a file gives, under their names (`seed`, `batch_size` (4096 unless given), `mode`,
-    `reset`, `Omega0_sd`, `settle`, `[actuators]`, `commands`, `track`, `[feedback]`); e.g.
+    """Read a Monte-Carlo study description (TOML) into a `Study`, checking every value before
+    any work (an `InputError` names the file and the key). Its keys, each optional but `[vary]`:
+    `trials` (1000; `--trials` overrides it), `params` (a parameter file relative to this file;
+    default: the paper's robot, or the robot of a plan's command table), `gaits` (tables such as
+    `{kind = "acceleration", theta_max = 0.1, T = 2.0}`; default acceleration and braking),
+    `[vary]` (names as in `jsphere fit --free`, distributions as `monte_carlo` takes them) and
+    the fields of `StudyOptions` marked "(file)" (`batch_size` 4096 unless given); e.g.
 
         trials = 10000
-        seed = 0
         mode = "torques"
         commands = "plan-commands.csv"
-        [vary]                    # names as in `jsphere fit --free`
+        [vary]
         "r_m[2]" = ["normal", -0.0270146, 1e-4]
         m0 = ["normal", 0.8, 0.3, "truncate"]   # truncated to valid robots (m0 > 0)
         [actuators]               # replay modes only; see jsphere.Actuators
         gain_sd = 0.02
 
-    A distribution is `["normal", mean, sd]` or `["uniform", low, high]` with finite numbers
-    (`sd >= 0`, `low <= high`), optionally followed by `"truncate"` (docs/montecarlo.md).
-    `commands` names a command table, as `jsphere plan --commands` or `jsphere design` write it
-    (`study_commands`): a plan's table has a record beside it (the `.json` of the same name)
-    that names the robot the plan was made for: without `params` the study runs that robot; a
-    `params` that names another robot is an `InputError`. `track` names a feedback table
-    (`study_track`), with the measurement model of `[feedback]` (`FEEDBACK`); it takes the
-    place of `gaits` and `commands`.
-
-    Every value is checked here, before any work: a bad one raises `InputError` naming the file
-    and the key.
+    A plan's command table (`study_commands`) brings the robot its record names, which `params`
+    must match; a feedback table (`track`, `study_track`, with `[feedback]`: `FEEDBACK`) takes
+    the place of `gaits` and `commands`.
     """
     path = Path(path)
     cfg = _read_toml(path)
@@ -230,17 +200,18 @@ def load_study(path) -> Study:
     for f in dataclasses.fields(StudyOptions):
         if f.metadata["file"] == "value" and f.name in cfg:
             given[f.name] = f.metadata["check"](str(path), f.name, cfg[f.name])
-    params = _study_params(path, cfg)
+    params = RobotParams.load((path.parent / cfg["params"]).resolve()) if "params" in cfg else RobotParams.paper()
     if "commands" in cfg and "track" not in cfg:
         params = _commands_robot(path, cfg, params)
     gaits = _study_gaits(path, cfg.get("gaits", [{"kind": "acceleration"}, {"kind": "braking"}]))
     if "actuators" in cfg:
-        given["actuators"] = _study_actuators(path, cfg["actuators"])
+        fields = [f.name for f in dataclasses.fields(Actuators)]
+        given["actuators"] = Actuators(**_check_table(str(path), "actuators", cfg["actuators"], fields))
     if "commands" in cfg and "track" not in cfg:
         given["commands"] = study_commands(path, cfg["commands"], given["mode"], params.n_wheels)
     if "track" in cfg:
         given["track"] = study_track(path, cfg, given["mode"], params.n_wheels)
-        given["feedback"] = check_feedback(f"{path}: [feedback]", cfg.get("feedback", {}))
+        given["feedback"] = check_feedback(str(path), cfg.get("feedback", {}))
         check_closed_loop(str(path), given.get("Omega0_sd", 0.0), given.get("actuators"))
     elif "feedback" in cfg:
         raise InputError(f'{path}: [feedback] sets up the closed loop of a feedback table; add track = "track.csv".')
@@ -253,7 +224,7 @@ def load_study(path) -> Study:
 
 
 def _read_toml(path: Path) -> dict:
-    """The study file's table, with only known keys and a `[vary]` table."""
+    """The study file's table, with only known keys, a `[vary]` table and each key of `_FORMS` of its form."""
     try:
         cfg = tomllib.loads(path.read_text())
     except FileNotFoundError:
@@ -265,35 +236,18 @@ def _read_toml(path: Path) -> dict:
         raise InputError(f"{path}: unknown key(s) {unknown}; expected {sorted(STUDY_KEYS)}.")
     if "vary" not in cfg:
         raise InputError(f'{path}: a study needs a [vary] table, e.g. "r_m[2]" = ["normal", -0.027, 1e-4].')
-    if not isinstance(cfg["vary"], dict):
-        raise InputError(
-            f'{path}: vary must be a table of distributions, e.g. [vary] "r_m[2]" = ["normal", -0.027, 1e-4]; '
-            f"got {cfg['vary']!r}."
-        )
+    for key, (kind, form) in _FORMS.items():
+        if key in cfg and (not isinstance(cfg[key], kind) or cfg[key] == []):
+            raise InputError(f"{path}: {key} must be {form}; got {cfg[key]!r}.")
     return cfg
 
 
-def _study_params(path: Path, cfg: dict) -> RobotParams:
-    """The robot of a study file: its `params` file (relative to the study file), else the paper's."""
-    if "params" not in cfg:
-        return RobotParams.paper()
-    if not isinstance(cfg["params"], str):
-        raise InputError(
-            f"{path}: params must be the path of a parameter file (.toml or .json); got {cfg['params']!r}."
-        )
-    return RobotParams.load((path.parent / cfg["params"]).resolve())
-
-
 def _commands_robot(path: Path, cfg: dict, params: RobotParams) -> RobotParams:
-    """The robot of a study that replays a plan's command table: the robot the plan records
-    beside the table (`planned_robot`) when the study names no `params`; `params` when it names
-    the same robot; an `InputError` naming both when it names another. `params` as it is for a
-    table without such a record."""
+    """The robot of a study that replays a plan's command table: the one the plan records beside
+    the table (`planned_robot`) unless the study names `params`, which must be the same robot."""
     from ..planning.result import planned_robot, robot_difference
 
     name = cfg["commands"]
-    if not isinstance(name, str):
-        return params  # study_commands names the bad value
     try:
         recorded = planned_robot((path.parent / name).resolve())
     except InputError as e:
@@ -314,11 +268,6 @@ def _commands_robot(path: Path, cfg: dict, params: RobotParams) -> RobotParams:
 
 def _study_gaits(path: Path, gait_list) -> list:
     """The gaits of a study file's `gaits` list."""
-    if not isinstance(gait_list, list) or not gait_list:
-        raise InputError(
-            f'{path}: gaits must be a non-empty list of tables, e.g. gaits = [{{kind = "acceleration"}}, '
-            f'{{kind = "braking"}}]; got {gait_list!r}.'
-        )
     gaits = []
     for k, g in enumerate(gait_list):
         if not isinstance(g, dict):
@@ -327,8 +276,8 @@ def _study_gaits(path: Path, gait_list) -> list:
             )
         g = dict(g)
         kind = g.pop("kind", None)
-        if kind not in GAIT_KINDS:
-            raise InputError(f"{path}: gaits[{k}].kind must be one of {GAIT_KINDS}; got {kind!r}.")
+        if kind not in GAITS:
+            raise InputError(f"{path}: gaits[{k}].kind must be one of {tuple(GAITS)}; got {kind!r}.")
         try:
             gaits.append(GAITS[kind](**g))
         except (TypeError, ValueError) as e:
@@ -336,12 +285,9 @@ def _study_gaits(path: Path, gait_list) -> list:
     return gaits
 
 
-def _read_table(path: Path, key: str, name, what: str, read):
-    """The file that a study file's `key` names (`name`, relative to the study file; `what`: what
-    it names), as `read` reads it; `InputError` naming the file and the key when `name` is no
-    path, or the file is missing or cannot be read."""
-    if not isinstance(name, str):
-        raise InputError(f"{path}: {key} must be the path of {what}; got {name!r}.")
+def _read_table(path: Path, key: str, name: str, read):
+    """The file that a study file's `key` names (`name`, relative to the study file), as `read`
+    reads it; `InputError` naming the file and the key when it is missing or cannot be read."""
     table = (path.parent / name).resolve()
     if not table.is_file():
         raise InputError(f"{path}: {key} = {name!r}: no such file {table}.")
@@ -352,11 +298,9 @@ def _read_table(path: Path, key: str, name, what: str, read):
 
 
 def study_commands(path: Path, name, mode: str, n_wheels: int) -> tuple[np.ndarray, np.ndarray]:
-    """`(ts, values)` of the command table a study file's `commands` key names (relative to the
-    study file): its `K_1..N` columns with `mode = "torques"`, its `chi_dot_1..N` columns with
-    `mode = "wheel_speeds"` (`read_inputs_csv`). `InputError` naming the file and the key when the
-    mode replays nothing, the file cannot be read, or the table does not start at `t = 0` with
-    one column per wheel."""
+    """`(ts, values)` of the command table a study file's `commands` key names: its `K_1..N` or
+    `chi_dot_1..N` columns, as `mode` replays them (`read_inputs_csv`, `check_commands`), else an
+    `InputError` naming the file and the key."""
     from ..capture.inputs import read_inputs_csv
 
     if mode == "gait":
@@ -364,17 +308,15 @@ def study_commands(path: Path, name, mode: str, n_wheels: int) -> tuple[np.ndarr
             f'{path}: commands are replayed through the actuators; set mode = "torques" (columns K_1..K_N) or '
             f'mode = "wheel_speeds" (columns chi_dot_1..N).'
         )
-    read = lambda table: read_inputs_csv(table, kind=mode)[:2]
-    ts, values = _read_table(path, "commands", name, "a command table (.csv)", read)
+    ts, values = _read_table(path, "commands", name, lambda table: read_inputs_csv(table, kind=mode)[:2])
     check_commands(f"{path}: commands = {name!r}", ts, values, n_wheels)
     return ts, values
 
 
 def study_track(path: Path, cfg: dict, mode: str, n_wheels: int) -> dict:
-    """The feedback table a study file's `track` key names (relative to the study file), read by
-    `jsphere.planning.tracking.read_track_csv`. `InputError` naming the file and the key when the
-    study also has `gaits` or `commands`, its mode is not "torques", the file cannot be read, or
-    the table has not one torque column per wheel, at least two rows and one rate."""
+    """The feedback table a study file's `track` key names (`read_track_csv`, `check_track`), in
+    place of `gaits` and `commands` and in mode "torques", else an `InputError` naming the file
+    and the key."""
     from ..planning.tracking.table import read_track_csv
 
     name = cfg["track"]
@@ -388,17 +330,6 @@ def study_track(path: Path, cfg: dict, mode: str, n_wheels: int) -> dict:
         raise InputError(
             f'{path}: track: a feedback table commands axle torques; set mode = "torques" or leave it out.'
         )
-    tab = _read_table(path, "track", name, "a feedback table (track.csv of jsphere track)", read_track_csv)
+    tab = _read_table(path, "track", name, read_track_csv)
     check_track(f"{path}: track = {name!r}", tab, n_wheels)
     return tab
-
-
-def _study_actuators(path: Path, act) -> Actuators:
-    """The `Actuators` of a study file's `[actuators]` table."""
-    if not isinstance(act, dict):
-        raise InputError(f"{path}: actuators must be a table (e.g. [actuators] gain_sd = 0.02); got {act!r}.")
-    fields = [f.name for f in dataclasses.fields(Actuators)]
-    unknown = sorted(set(act) - set(fields))
-    if unknown:
-        raise InputError(f"{path}: [actuators]: unknown key(s) {unknown}; expected {fields}.")
-    return Actuators(**{k: real(f"{path}: [actuators]", k, v) for k, v in act.items()})

@@ -1,16 +1,15 @@
 """A study shared by independent jobs through its folder (`jsphere montecarlo --worker` and
-`--gather`): each worker computes the batches no other worker holds and exits, whatever the
-others do; the gather joins the batches once they are all there.
-
-Workers never wait for one another, so any number of them, started in any order, at any time,
-one at a time if the queue allows no more, finish the study between them (a SLURM array whose
-concurrency limit is below its task count included). A worker claims a batch before computing
-it (`claims`); a claim older than `claim_timeout` whose batch is still missing is taken over.
+`--gather`): each worker claims (`claims`) and computes the batches no other worker holds and
+exits, never waiting, so any number of workers started in any order finish the study between
+them (a SLURM array whose concurrency limit is below its task count included); the gather joins
+the batches once they are all there.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import itertools
 import time
 from typing import Sequence
 
@@ -42,11 +41,8 @@ class WorkReport:
         line = f"{_PROGRESS} this worker computed {len(self.computed)} batch(es); {self.done} of {self.n_batches} done"
         if self.done == self.n_batches:
             return line + "; every batch is there: run with --gather for the statistics"
-        rest = self.n_batches - self.done
-        return (
-            line + f"; {rest} left, {len(self.claimed)} of them claimed by other workers "
-            "(start another worker when they end; a claim older than --claim-timeout is taken over)"
-        )
+        rest = f"; {self.n_batches - self.done} left, {len(self.claimed)} of them claimed by other workers"
+        return line + rest + " (start another worker when they end; a claim older than --claim-timeout is taken over)"
 
 
 def work(
@@ -63,19 +59,18 @@ def work(
     **deprecated,
 ) -> WorkReport:
     """Compute the batches of the study in `out` that are missing and not claimed by another
-    worker (claims older than `claim_timeout` seconds are taken over), then return; no
-    waiting. `vary`, `n`, `options`, `solver` (and the keywords that moved into them): the
-    study, as `monte_carlo` takes it. The first worker creates the folder; the others check
-    that it holds the same study. Batches follow the folder's batch size where this node's
-    devices can share it."""
+    worker (claims older than `claim_timeout` seconds are taken over), then return. `vary`, `n`,
+    `options`, `solver` (and the keywords that moved into them): the study, as `monte_carlo`
+    takes it. The first worker creates the folder; the others check that it holds the study."""
     claim_timeout = real("monte_carlo", "claim_timeout", claim_timeout, unit="s")
     run = _prepare("work", params, gaits, vary, n, out, options, solver, deprecated)
     run.folder.open(run.fingerprint, run.n, run.seed, run.vary)
     progress = Progress(progress)
     computed, claimed = [], {}
     path = run.folder.path
+    finished = lambda k: run.folder.load_batches([k], stacklevel=4)[0] is not None  # a corrupt one is computed again
     for k in range(run.n_batches):
-        if _finished(run, k):
+        if finished(k):
             continue
         if not claims.try_claim(path, k, claim_timeout):
             claim = claims.read_claim(claims.claim_path(path, k))
@@ -83,17 +78,14 @@ def work(
                 claimed[k] = claim
             continue
         try:
-            if _finished(run, k):  # written since the first look
+            if finished(k):  # written since the first look
                 continue
             run.folder.remove_temporary_files([k], others=False)
             t = time.perf_counter()
-            if computed:
+            first = progress.compiling("montecarlo", run.program, f"{_PROGRESS} batch {k} (compiles)")
+            with contextlib.nullcontext() if computed else first:
                 run.compute(k)
-                rate = f", {run.trials_of(k) / (time.perf_counter() - t):,.0f} trials/s"
-            else:
-                with progress.compiling("montecarlo", run.program, f"{_PROGRESS} batch {k} (compiles)"):
-                    run.compute(k)
-                rate = ""
+            rate = f", {run.trials_of(k) / (time.perf_counter() - t):,.0f} trials/s" if computed else ""
             computed.append(k)
             progress.step(f"{_PROGRESS} {run.folder.batch_path(k).name} written ({len(computed)} by this worker{rate})")
         finally:
@@ -110,11 +102,6 @@ def _prepare(where: str, params, gaits, vary, n: int, out, options, solver, depr
     return prepare(params, gaits, vary=vary, n=n, options=options, solver=solver, out=out)
 
 
-def _finished(run: _Run, k: int) -> bool:
-    """Whether batch `k` is in the folder and can be read (a corrupt one is computed again)."""
-    return run.folder.has_batch(k) and run.folder.load_batch(k, stacklevel=4) is not None
-
-
 def gather(
     params,
     gaits,
@@ -126,11 +113,9 @@ def gather(
     solver: SolverOptions | None = None,
     **deprecated,
 ) -> MonteCarloResult:
-    """The study in `out` joined from its batch files, its statistics written to
-    `out/stats.json`; `InputError` naming the missing batches (and who claims them) if any are.
-    `vary`, `n`, `options`, `solver` (and the keywords that moved into them): the study, as
-    `monte_carlo` takes it. Removes what workers leave behind (temporary files, claims) once
-    every batch is there."""
+    """The study in `out` joined from its batch files (the arguments as `work`'s), its statistics
+    written to `out/stats.json`, and what workers leave behind (temporary files, claims)
+    removed; `InputError` naming the missing batches (and who claims them) if any are."""
     t0 = time.perf_counter()
     run = _prepare("gather", params, gaits, vary, n, out, options, solver, deprecated)
     path = run.folder.path
@@ -142,7 +127,7 @@ def gather(
             f"monte_carlo: {path} holds this study with {recorded} trials; run workers with n = {run.n} (--trials) "
             f"first, or gather {recorded}."
         )
-    parts = [run.folder.load_batch(k, stacklevel=3) if run.folder.has_batch(k) else None for k in range(run.n_batches)]
+    parts = run.folder.load_batches(range(run.n_batches), stacklevel=3)
     missing = [k for k, p in enumerate(parts) if p is None]
     if missing:
         raise InputError(f"monte_carlo: {path}: {_describe_missing(path, missing, run.n_batches)}")
@@ -168,10 +153,5 @@ def _describe_missing(path, missing: Sequence[int], n_batches: int) -> str:
 
 def _ranges(ks: Sequence[int]) -> str:
     """`[2, 5, 6, 7]` -> `"2, 5-7"`."""
-    out, start = [], None
-    for i, k in enumerate(ks):
-        start = k if start is None else start
-        if i + 1 == len(ks) or ks[i + 1] != k + 1:
-            out.append(f"{start}" if start == k else f"{start}-{k}")
-            start = None
-    return ", ".join(out)
+    runs = [[k for _, k in g] for _, g in itertools.groupby(enumerate(ks), lambda ik: ik[1] - ik[0])]
+    return ", ".join(f"{r[0]}" if len(r) == 1 else f"{r[0]}-{r[-1]}" for r in runs)
