@@ -108,7 +108,17 @@ def monte_carlo(
     return res
 
 
-def prepare(params, gaits, *, vary, n, options: StudyOptions, solver=None, out=None, distributed=False) -> "_Run":
+def prepare(
+    params: RobotParams,
+    gaits: Sequence[Gait],
+    *,
+    vary: Mapping[str, Sequence],
+    n: int,
+    options: StudyOptions,
+    solver: SolverOptions | None = None,
+    out: str | os.PathLike | None = None,
+    distributed: bool = False,
+) -> "_Run":
     """Check the arguments of a study (those of `monte_carlo`, `options` a `StudyOptions`) and
     lay it out in batches (`_batch_size`), over this process's devices or (`distributed`) every
     process's."""
