@@ -1,4 +1,5 @@
 import atexit
+import gc
 import json
 import os
 import shutil
@@ -21,6 +22,34 @@ import jsphere  # noqa: E402
 REFERENCE = Path(__file__).resolve().parents[1].parent / "shared" / "reference" / "reference_cases.json"
 if "JSPHERE_REFERENCE" in os.environ:
     REFERENCE = Path(os.environ["JSPHERE_REFERENCE"])
+
+
+#: memory maps of a test process above which JAX's compiled programs are dropped after a test file
+MAX_MAPS = 16_000
+
+
+def memory_maps() -> int | None:
+    """The number of memory maps of this process (Linux), else None."""
+    try:
+        with open("/proc/self/maps") as f:
+            return sum(1 for _ in f)
+    except OSError:
+        return None
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _bounded_compiled_programs():
+    """Every program XLA compiles for the CPU holds memory maps of its own (its code and
+    data), and a test worker that runs half the slow lane keeps thousands of programs: past the
+    kernel's limit on maps (`vm.max_map_count`, 65,530 by default) XLA's next compilation
+    crashes the worker. After a test file that leaves this process with more than `MAX_MAPS`,
+    JAX's caches are cleared, which frees them (later files compile again, or load from the
+    persistent cache)."""
+    yield
+    n = memory_maps()
+    if n is not None and n > MAX_MAPS:
+        jax.clear_caches()
+        gc.collect()
 
 
 @pytest.fixture(scope="session")
