@@ -90,6 +90,7 @@ _EXPORTS = {
     "paper.reproduce": ("reproduce", "to_figure_frame"),
     "planning.optimise": ("optimise_gaits",),
     "planning.plan": (
+        "DirectSettings",
         "Objective",
         "Plan",
         "PlanInfeasibleError",

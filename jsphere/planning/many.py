@@ -11,6 +11,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._runtime.errors import InputError
 from .._runtime.moved_keywords import moved_into, no_other_keywords
 from .._runtime.precision import warn_if_float32_by_default
 from .._runtime.progress import Progress
@@ -20,7 +21,7 @@ from .problem import Limits, Objective, PlanOptions, PlanSettings, _check_reques
 from .result import Plan, manoeuvre_plan
 from .rollout import heading, rollout
 from .search import _initial_guesses, _search
-from .verify import _accurate, _correct_bias, _limit_report, _terminal_errors, exceeded, verification_options
+from .verify import _accurate, _correct_bias, _limit_report, _terminal_errors, missed, verification_options
 
 
 @dataclasses.dataclass
@@ -89,25 +90,6 @@ def _search_model_errors(b: _Batch, k: int, gait) -> dict:
     }
 
 
-def _shortfall(b: _Batch, k: int, err: dict, rep: dict) -> list[str]:
-    """What keeps a plan from being feasible: missed tolerances, exceeded limits, and (if any)
-    the limits that bind."""
-    o, out = b.o, []
-    if err["position_m"] > o.tol_position:
-        out.append(
-            f"final position misses by {1e3 * err['position_m']:.3f} mm (tolerance {1e3 * o.tol_position:.3f} mm)"
-        )
-    if err["speed_m_s"] > o.tol_speed:
-        out.append(f"final speed {1e3 * err['speed_m_s']:.3f} mm/s (tolerance {1e3 * o.tol_speed:.3f} mm/s)")
-    if b.targets[k, 3] and err["heading_rad"] > o.tol_heading:
-        out.append(f"final heading misses by {err['heading_rad']:.4f} rad (tolerance {o.tol_heading} rad)")
-    out += exceeded(rep)
-    binding = [n for n, r in rep.items() if r["ok"] and r["max"] > 0.95 * r["limit"]]
-    if out and binding:
-        out.append(f"binding limit(s): {', '.join(binding)}")
-    return out
-
-
 def _plan_for(b: _Batch, k: int, z, J, loss) -> Plan:
     """Target `k`'s plan from its best decision vector `z` (verified if `verify`)."""
     if b.o.verify:
@@ -116,7 +98,7 @@ def _plan_for(b: _Batch, k: int, z, J, loss) -> Plan:
     else:
         gait = gait_from_vector(jnp.asarray(z), b.lim, b.s)
         tr, err, rep = None, _search_model_errors(b, k, gait), {}
-    shortfall = _shortfall(b, k, err, rep)
+    shortfall = missed(b.o, bool(b.targets[k, 3]), err, rep)
     return manoeuvre_plan(
         b.params,
         gait,
@@ -139,6 +121,8 @@ def plan_batch(where: str, params: RobotParams, targets, lim, obj, s, o: PlanOpt
     the caller in messages."""
     options = verification_options(where, options)
     warn_if_float32_by_default(params.R0.dtype, where)
+    if s is not None and not isinstance(s, PlanSettings):
+        raise InputError(f"{where}: routes and many targets are planned with gaits; settings must be a PlanSettings.")
     s = s or PlanSettings()
     b = _Batch(
         params=params,

@@ -26,12 +26,15 @@ from .._runtime.moved_keywords import moved_into, no_other_keywords
 from ..model.params import RobotParams
 from ..solve.options import SolverOptions
 from ..solve.simulate import Trajectory
+from .direct import DirectSettings, plan_direct
 from .many import plan_batch, plan_many
 from .problem import Limits, Objective, PlanOptions, PlanSettings, _check_request, check_target
 from .result import Plan, PlanInfeasibleError
 from .robust import RobustOptions, robust_plan
+from .verify import verification_options
 
 __all__ = [
+    "DirectSettings",
     "Limits",
     "Objective",
     "Plan",
@@ -65,9 +68,14 @@ def plan(
     (as `plan_route`).
 
     **Arguments:**
-    - `limits`, `objective`, `settings`: see `Limits`, `Objective`, `PlanSettings`.
-    - `plan_options`: a `PlanOptions` (restarts, rate, seed, tolerances); its fields given as
-      keywords (`restarts=32`) still work, with a `DeprecationWarning`.
+    - `limits`, `objective`: see `Limits`, `Objective`.
+    - `plan_options`: a `PlanOptions` (family, rate, tolerances, restarts, seed); its fields
+      given as keywords (`restarts=32`) still work, with a `DeprecationWarning`. Its `family`
+      picks the manoeuvre: `"direct"` (default; free torque profiles, the shortest manoeuvre
+      within the limits, `jsphere.planning.direct`) or `"gait"` (the paper's tilt gaits;
+      routes and robust plans always use them).
+    - `settings`: the search's sizes, a `DirectSettings` (direct) or a `PlanSettings` (gaits;
+      given, it asks for the gait family).
     - `robust`: a `RobustOptions` (the parameter distribution and the robust search): plan a
       manoeuvre that still lands on the robots it allows, and return a `RobustPlan`
       (`jsphere.planning.robust`; one target only).
@@ -111,7 +119,20 @@ def plan(
             options=options,
         )
     targets = _check_request("plan", [(x, y, heading)], limits, objective, settings, o)
-    pl = plan_batch("plan", params, targets, limits, objective, settings, o, progress, options)[0]
+    if o.family == "direct" and not isinstance(settings, PlanSettings):
+        pl = plan_direct(
+            "plan",
+            params,
+            (x, y, heading),
+            limits or Limits(),
+            objective or Objective(),
+            o,
+            settings or DirectSettings(),
+            progress,
+            verification_options("plan", options),
+        )
+    else:
+        pl = plan_batch("plan", params, targets, limits, objective, settings, o, progress, options)[0]
     if not pl.feasible and not allow_infeasible:
         raise PlanInfeasibleError(
             "jsphere.plan: the request cannot be met: "

@@ -97,7 +97,10 @@ class PlanOptions:
     - `tol_position` [m], `tol_speed` [m/s], `tol_heading` [rad]: terminal tolerances for
       `Plan.feasible`.
     - `verify`: re-simulate with the accurate solver (needed for the table; `False` returns the
-      search model's result only, for benchmarks).
+      search model's result only, for benchmarks; gait plans).
+    - `family`: `"direct"` (default): free torque profiles, minimum time by multiple shooting
+      (`jsphere.planning.direct`); `"gait"`: the paper's tilt gaits searched with restarts
+      (`PlanSettings`). Routes, `plan_many` and robust plans use the gait family.
 
     The values are checked by the planner, before any work.
     """
@@ -109,8 +112,11 @@ class PlanOptions:
     tol_speed: float = TOL_SPEED
     tol_heading: float = 1e-3
     verify: bool = True
+    family: str = "direct"
 
 
+#: the plan families of `PlanOptions.family`
+FAMILIES = ("direct", "gait")
 #: the most rows a plan's table may have (`max_time * rate`): about 1 GB of trajectory
 MAX_ROWS = 10_000_000
 
@@ -130,13 +136,18 @@ def _check_request(where: str, targets, limits, objective, settings, o: PlanOpti
     numbers (`psi` None, or NaN with `nan_free`, for a free heading), `restarts >= 1`,
     `rate > 0`, `seed >= 0`, positive tolerances, and `Limits`, `Objective`, `PlanSettings`
     instances."""
+    from .direct import DirectSettings
+
     for name, v, cls in (
         ("limits", limits, Limits),
         ("objective", objective, Objective),
-        ("settings", settings, PlanSettings),
+        ("settings", settings, (PlanSettings, DirectSettings)),
     ):
         if v is not None and not isinstance(v, cls):
-            raise InputError(f"{where}: {name} must be a jsphere.{cls.__name__}; got {type(v).__name__}.")
+            names = " or jsphere.".join(c.__name__ for c in (cls if isinstance(cls, tuple) else (cls,)))
+            raise InputError(f"{where}: {name} must be a jsphere.{names}; got {type(v).__name__}.")
+    if o.family not in FAMILIES:
+        raise InputError(f"{where}: family must be one of {', '.join(FAMILIES)}; got {o.family!r}.")
     whole(where, "restarts", o.restarts, 1)
     whole(where, "seed", o.seed, 0)
     rate = real(where, "rate", o.rate, strict=True, unit="Hz")

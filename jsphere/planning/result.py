@@ -63,6 +63,8 @@ class Plan:
     - `iterations`: Adam, L-BFGS, LM counts; `elapsed_s`: wall time; `loss`: final objective.
     - `at_rest`: every manoeuvre ends at rest (its terminal speed within the planner's
       tolerance); the commands of `table` and `commands` then end on exactly 0.
+    - `family`: `"direct"` (free torque profiles; `gaits` is empty and `profile` holds the
+      knots `(t (n+1,), K (n+1, N))`, linear between them) or `"gait"` (`TiltGait`s).
     """
 
     params: RobotParams
@@ -80,6 +82,8 @@ class Plan:
     loss: float
     restarts: int = 1
     at_rest: bool = False
+    profile: tuple | None = None
+    family: str = "gait"
 
     @property
     def duration(self) -> float:
@@ -173,7 +177,7 @@ class Plan:
     def record(self, params_source: str) -> dict:
         """What `plan.json` holds: `feasible`, `shortfall`, `target` (a free heading as None),
         `duration_s`, `errors`, `limits` (`limits_report`), `iterations`, `elapsed_s`,
-        `restarts`, `rate_hz`, and the robot the plan was made for: `params` (every field,
+        `restarts`, `family`, `rate_hz`, and the robot the plan was made for: `params` (every field,
         `RobotParams.to_dict`; `RobotParams.load("plan.json")` reads it) and `params_source`
         (where it came from, in words: a parameter file, the paper's robot, ...)."""
         return {
@@ -186,6 +190,7 @@ class Plan:
             "iterations": self.iterations,
             "elapsed_s": self.elapsed_s,
             "restarts": self.restarts,
+            "family": self.family,
             "rate_hz": self.rate,
             "params": self.params.to_dict(),
             "params_source": str(params_source),
@@ -195,7 +200,7 @@ class Plan:
         """A few lines for a terminal: target, errors, limits, feasibility, iterations, time."""
         e = self.errors
         out = [
-            f"plan: {len(self.gaits)} manoeuvre(s), T = {self.duration:.3f} s, "
+            f"plan ({self.family}): {max(len(self.gaits), 1)} manoeuvre(s), T = {self.duration:.3f} s, "
             f"target ({self.target[0]:.4f}, {self.target[1]:.4f}) m"
             + ("" if np.isnan(self.target[2]) else f", heading {self.target[2]:.4f} rad"),
             (
@@ -207,8 +212,13 @@ class Plan:
         for name, r in self.limits_report.items():
             out.append(f"  {name:<16} max {r['max']:.5g} / limit {r['limit']:.5g}  {'ok' if r['ok'] else 'VIOLATED'}")
         it = self.iterations
+        searched = (
+            f"IPOPT {it['ipopt']} iterations in {it['solves']} solve(s)"
+            if self.family == "direct"
+            else f"{self.restarts} restarts; Adam {it['adam']}, L-BFGS {it['lbfgs']}, LM {it['lm']} iterations"
+        )
         out.append(
-            f"  {self.restarts} restarts; Adam {it['adam']}, L-BFGS {it['lbfgs']}, LM {it['lm']} iterations; "
+            f"  {searched}; "
             f"{self.elapsed_s:.1f} s; {'FEASIBLE' if self.feasible else 'NOT FEASIBLE: ' + '; '.join(self.shortfall)}"
         )
         return "\n".join(out)

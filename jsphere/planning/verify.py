@@ -64,6 +64,25 @@ def exceeded(rep: dict) -> list[str]:
     ]
 
 
+def missed(o, has_heading: bool, err: dict, rep: dict) -> list[str]:
+    """What keeps a plan from being feasible (its `shortfall`): missed tolerances of `o` (a
+    `PlanOptions`), exceeded limits, and (if any) the limits that bind."""
+    out = []
+    if err["position_m"] > o.tol_position:
+        out.append(
+            f"final position misses by {1e3 * err['position_m']:.3f} mm (tolerance {1e3 * o.tol_position:.3f} mm)"
+        )
+    if err["speed_m_s"] > o.tol_speed:
+        out.append(f"final speed {1e3 * err['speed_m_s']:.3f} mm/s (tolerance {1e3 * o.tol_speed:.3f} mm/s)")
+    if has_heading and err["heading_rad"] > o.tol_heading:
+        out.append(f"final heading misses by {err['heading_rad']:.4f} rad (tolerance {o.tol_heading} rad)")
+    out += exceeded(rep)
+    binding = [n for n, r in rep.items() if r["ok"] and r["max"] > 0.95 * r["limit"]]
+    if out and binding:
+        out.append(f"binding limit(s): {', '.join(binding)}")
+    return out
+
+
 def _accurate(params, gait, rate, max_time, options: SolverOptions | None = None):
     """`simulate_gaits` (Dopri8, rtol 1e-10, or as `options` say) from rest (`State.at_rest`),
     sampled at `k / rate` for
