@@ -12,7 +12,8 @@ from .options import options_of, progress, robot
 NAME = "plan"
 EXAMPLES = """
   jsphere plan --to 0.8 -0.5 --heading 1.0 --out plan.csv
-  jsphere plan --to 0.5 0 --max-torque 0.05 --max-time 8 --restarts 32 --no-plots --out plan.csv
+  jsphere plan --to 0.5 0 --max-torque 0.05 --max-time 8 --no-plots --out plan.csv
+  jsphere plan --to 0.5 0 --family gait --restarts 32 --out gait-plan.csv
   jsphere plan --to 0.8 0 --rate 100 --commands commands.csv --command-kind chi_dot --out plan.csv
   jsphere plan --to 0.8 0 --params fit.json --out plan.csv && jsphere track plan.csv --out track.csv
   jsphere plan --to 0.6 0.3 --robust fit.json --samples 64 --quantile 0.95 --out robust.csv
@@ -24,7 +25,8 @@ def add_parser(sub) -> None:
         NAME,
         help="plan a rest-to-rest manoeuvre to (X, Y) within motor limits; CSV of wheel commands",
         description="Plan a rest-to-rest manoeuvre from rest at the origin to (X, Y) [m], optionally with a final "
-        "heading, within motor limits, by gradients through the gait dynamics (docs/planning.md). Writes the "
+        "heading, within motor limits: the shortest one over free torque profiles (direct multiple shooting), or "
+        "one of the paper's gaits (--family gait) (docs/planning.md). Writes the "
         "wheel commands as CSV, a JSON report (with the robot planned for, which jsphere track and animate use) "
         "and a figure. When the request cannot be met within the limits, the best plan found is still written "
         "but the --commands table is not (unless --write-infeasible), and the exit code is 3.",
@@ -46,7 +48,16 @@ def add_parser(sub) -> None:
     pp.add_argument("--energy-weight", type=float, default=0.0, help="cost per joule of motor energy (default 0)")
     pp.add_argument("--time-weight", type=float, default=1e-3, help="cost per second of duration (default 1e-3)")
     pp.add_argument("--rate", type=float, default=1000.0, help="rows per second of the CSV (default 1000)")
-    pp.add_argument("--restarts", type=int, default=16, help="random restarts, the best is kept (default 16)")
+    pp.add_argument(
+        "--family",
+        choices=("direct", "gait"),
+        default="direct",
+        help="direct: free torque profiles, the shortest manoeuvre within the limits (default); gait: the paper's "
+        "tilt gaits, searched with --restarts (docs/planning.md). --robust plans with gaits",
+    )
+    pp.add_argument(
+        "--restarts", type=int, default=16, help="random restarts of the gait search, the best is kept (default 16)"
+    )
     pp.add_argument("--seed", type=int, default=0, help="seed of the restarts (default 0)")
     pp.add_argument(
         "--params",
@@ -239,11 +250,13 @@ def _request(args) -> dict:
     """The keywords of `plan` that the flags give (`--robust`'s in `_robust`)."""
     from ..planning.plan import Objective, PlanOptions
 
+    # a robust plan starts from a nominal gait plan
+    family = "gait" if args.robust else args.family
     return {
         "heading": args.heading,
         "limits": _limits(args),
         "objective": Objective(energy=args.energy_weight, time=args.time_weight),
-        "plan_options": options_of(PlanOptions, args),
+        "plan_options": options_of(PlanOptions, args, family=family),
         "progress": progress(args),
     }
 

@@ -438,7 +438,7 @@ def plan_direct(
         with prog.phase(f"jsphere plan: IPOPT, solve {rounds}"):
             res = ipopt.minimise(tr_.problem(), z, bounds, cbounds, tol=ds.tol, max_iter=ds.max_iter)
         iterations += res.iterations
-        z = res.z
+        z = np.clip(res.z, *bounds)  # IPOPT may pass a bound by its relaxation (1e-8)
         ts, K = _knots(lay, z)
         tr = _replay(p, ts, K, o.rate, float(lim.max_time), options)
         target4 = np.array([tg[0], tg[1], tg[2], float(heading)])

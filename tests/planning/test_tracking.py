@@ -191,7 +191,7 @@ TARGET = (0.4, 0.2)
 
 @pytest.fixture(scope="module")
 def planned(tmp_path_factory):
-    pl = jsphere.plan(P, TARGET, plan_options=jsphere.PlanOptions(restarts=4))
+    pl = jsphere.plan(P, TARGET, plan_options=jsphere.PlanOptions(restarts=4, family="gait"))  # torque to spare
     folder = tmp_path_factory.mktemp("plan")
     pl.to_csv(folder / "plan.csv")
     (folder / "plan.json").write_text(json.dumps({"target": [*TARGET, None]}))

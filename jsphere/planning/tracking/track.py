@@ -200,7 +200,8 @@ def gains(
     else:
         raise InputError(
             f"track: the gains ask for {float(jnp.max(ask)):.4g} N m under the expected errors {weights.expected} even "
-            f"with r x {scale:g}, above the torque limit {max_torque} N m; lower Weights.expected or raise the limit."
+            f"with r x {scale:g}, above the torque limit {max_torque} N m; lower Weights.expected or raise the limit, or "
+            "plan with torque to spare (a lower --max-torque, or --family gait: a direct plan uses the whole limit)."
         )
     from .lqr import closed_loop_eigenvalues
 
