@@ -1,4 +1,5 @@
-"""The other tools' anchors for problem 1 of `run.py` (nothing here imports jsphere).
+"""The other tools' anchors for problem 1 of `run.py` and the `plan` task of `tasks.py` (nothing here
+imports jsphere).
 
 - `NumpyRobot`: the equations of motion (3.4) in plain numpy, every derived quantity recomputed
   from the paper's formulas; the scipy baseline. State: `[q (w,x,y,z), omega, Omega, x, y]`:
@@ -7,8 +8,9 @@
       x', y'     = (R v)[:2],  v = R0 Omega x gamma,  gamma = R[2]         (2.2), (2.3)
       q'         = q (x) (0, omega) / 2
 
-- CasADi on the same right-hand side built symbolically: `rk4_batch`, fixed-step RK4 compiled to
-  C with `-O3`, and `cvodes_batch`, CVODES at problem 1's tolerances, both mapped over threads.
+- CasADi on the same right-hand side built symbolically (`torque_rhs`): `rk4_batch`, fixed-step
+  RK4 compiled to C with `-O3`, and `cvodes_batch`, CVODES at problem 1's tolerances, both mapped
+  over threads; `plan_nlp`, the plan of `jsphere plan` by multiple shooting with IPOPT.
 """
 
 from __future__ import annotations
@@ -28,6 +30,10 @@ except ImportError:  # pragma: no cover - optional benchmark dependency
 def _cross(a, b):
     # np.cross is slow for single 3-vectors; this is the same product written out.
     return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+#: the `RobotParams` fields that make a `NumpyRobot`
+PARAM_NAMES = ("R0", "m0", "I0", "Rw", "wheel_r", "wheel_n", "wheel_alpha", "m", "I", "r_m", "j", "g")
 
 
 class NumpyRobot:
@@ -53,8 +59,7 @@ class NumpyRobot:
     @classmethod
     def from_params(cls, p) -> "NumpyRobot":
         """From any object with the `RobotParams` field names (values converted to numpy)."""
-        names = ("R0", "m0", "I0", "Rw", "wheel_r", "wheel_n", "wheel_alpha", "m", "I", "r_m", "j", "g")
-        return cls(**{k: np.asarray(getattr(p, k)) for k in names})
+        return cls(**{k: np.asarray(getattr(p, k)) for k in PARAM_NAMES})
 
     # ------------------------------------------------------------------ model pieces
     @staticmethod
@@ -155,17 +160,23 @@ def _symbols():
     return ca.SX.sym("y", 12), ca.SX.sym("t"), ca.SX.sym("a", 3)
 
 
-def symbolic_rhs(robot):
-    """CasADi `Function f(y[12], t, a[3]) -> y_dot` for torques `K_i = a_i sin(pi t + phase_i)`."""
-    y, t, a = _symbols()
-    q, w, W = y[0:4], y[4:7], y[7:10]
+def _sx_rotmat(q):
+    """The rotation matrix (platform -> fixed) of the quaternion `q` (normalised here); `gamma` its last row."""
     qn = q / ca.sqrt(ca.dot(q, q))
     qw, qx, qy, qz = qn[0], qn[1], qn[2], qn[3]
-    R = ca.vertcat(
+    return ca.vertcat(
         ca.horzcat(1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)),
         ca.horzcat(2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)),
         ca.horzcat(2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)),
     )
+
+
+def torque_rhs(robot):
+    """CasADi `Function f(y[12], K[3]) -> y_dot` of the axle torques `K`: the right-hand side that
+    problem 1's sine torques and `plan_nlp`'s knot torques share."""
+    y, K = ca.SX.sym("y", 12), ca.SX.sym("K", 3)
+    q, w, W = y[0:4], y[4:7], y[7:10]
+    R = _sx_rotmat(q)
     gamma = R[2, :].T
     p = robot
     DM = ca.DM
@@ -184,14 +195,19 @@ def symbolic_rhs(robot):
         - p.m * p.R0 * _sx_cross(gamma, _sx_cross(w, _sx_cross(w, r_m)))
         - p.I0 * _sx_cross(w, W)
     )
-    K = a * ca.sin(np.pi * t + DM(PHASES))
     tau = ca.mtimes(Sk.T, K)
     M = ca.vertcat(ca.horzcat(A, B), ca.horzcat(B.T, D))
     acc = ca.solve(M, ca.vertcat(r1 - tau, r2 + tau))
     v = p.R0 * _sx_cross(W, gamma)
     xy_dot = ca.mtimes(R, v)[0:2]
     q_dot = 0.5 * ca.vertcat(-ca.dot(q[1:4], w), q[0] * w + _sx_cross(q[1:4], w))
-    return ca.Function("rhs", [y, t, a], [ca.vertcat(q_dot, acc, xy_dot)])
+    return ca.Function("rhs", [y, K], [ca.vertcat(q_dot, acc, xy_dot)])
+
+
+def symbolic_rhs(robot):
+    """CasADi `Function f(y[12], t, a[3]) -> y_dot` for torques `K_i = a_i sin(pi t + phase_i)`."""
+    y, t, a = _symbols()
+    return ca.Function("rhs", [y, t, a], [torque_rhs(robot)(y, a * ca.sin(np.pi * t + ca.DM(PHASES)))])
 
 
 #: C compiled with -O3; the sources kept, since the temporary folder goes as a whole
@@ -268,3 +284,76 @@ def casadi_rows(robot, q0, A: np.ndarray, *, threads: int = 2, repeats: int = 3,
         {"name": f"CasADi CVODES rtol 1e-8, {threads} threads", "threads": threads} | cvodes,
     ]
     return rows, {"rk4": rk4_xy, "cvodes": cvodes_xy}
+
+
+#: `jsphere.Limits()`: torque [N m], wheel speed [rad/s], tilt [rad], torque rate [N m/s], duration [s]
+PLAN_LIMITS = {"max_torque": 0.1, "max_wheel_speed": 20.0, "max_tilt": 0.35, "max_torque_rate": 1.0}
+PLAN_LIMITS |= {"min_time": 1.0, "max_time": 12.0}
+
+
+def plan_nlp(
+    robot,
+    q0,
+    gamma_m,
+    target,
+    limits: dict | None = None,
+    intervals: int = 60,
+    smoothing: float = 1e-3,
+    tol: float = 1e-8,
+) -> dict:
+    """The minimum-time rest-to-rest plan from rest (attitude `q0`, `gamma = gamma_m`) at the origin
+    to `target = (x, y)` within `limits` (`PLAN_LIMITS`' keys): `jsphere.planning.direct`'s multiple
+    shooting transcription (its module docstring) as a CasADi user writes it, for the two to solve
+    one problem. IPOPT with CasADi's exact Hessian, MUMPS, the adaptive barrier. An interval's
+    constraints are one SX function mapped over the intervals in an MX graph: it builds in a
+    fraction of a second, where one SX graph of every interval (or `expand`) takes ~12 s to build
+    to solve ~1 s faster, and C code (`jit`) compiles for longer than it saves. Returns `T`,
+    IPOPT's iterations and status, the knots (`t`, `K`) and the seconds to build and to solve."""
+    if ca is None:
+        raise ImportError("CasADi is not installed: pip install 'jsphere[bench]' (or pip install casadi).")
+    t0 = time.perf_counter()
+    n, f, lim = intervals, torque_rhs(robot), PLAN_LIMITS | (limits or {})
+    max_torque, max_time, min_time = lim["max_torque"], lim["max_time"], lim["min_time"]
+    x, K0, xe, K1, T = ca.SX.sym("x", 12), ca.SX.sym("K0", 3), ca.SX.sym("xe", 12), ca.SX.sym("K1", 3), ca.SX.sym("T")
+    h, Km, Sk, gm = T / n, (K0 + K1) / 2, ca.DM(robot.Sk), ca.DM(np.asarray(gamma_m, float))
+    k1 = f(x, K0)
+    k2 = f(x + h / 2 * k1, Km)
+    k3 = f(x + h / 2 * k2, Km)
+    k4 = f(x + h * k3, K1)
+    defect = xe - (x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4))
+    tilt = ca.dot(_sx_rotmat(xe[0:4])[2, :].T, gm)
+    block = ca.Function(
+        "block", [x, K0, xe, K1, T], [ca.vertcat(defect, (K1 - K0) / h, -Sk @ (xe[4:7] - xe[7:10]), tilt)]
+    )
+    Z, T = ca.MX.sym("Z", 15, n + 1), ca.MX.sym("T")  # Z's columns: (x_k, K_k)
+    X, U = Z[:12, :], Z[12:, :]
+    e1 = np.cross(gamma_m, [1.0, 0.0, 0.0] if abs(gamma_m[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    across = ca.DM(np.stack([e1, np.cross(gamma_m, e1)]))
+    blocks = block.map(n)(X[:, :-1], U[:, :-1], X[:, 1:], U[:, 1:], ca.repmat(T, 1, n))  # one column per interval
+    xn = X[:, n]
+    g = [ca.vec(blocks), xn[10:12] - ca.DM(target), xn[4:10], across @ _sx_rotmat(xn[0:4])[2, :].T]
+    J = T + smoothing * ca.sumsqr((U[:, 1:] - U[:, :-1]) / max_torque)
+    per = np.r_[np.zeros(12), np.full(3, lim["max_torque_rate"]), np.full(3, lim["max_wheel_speed"])]
+    cl = np.r_[np.tile(np.r_[-per, np.cos(lim["max_tilt"])], n), np.zeros(10)]
+    cu = np.r_[np.tile(np.r_[per, np.inf], n), np.zeros(10)]
+    rest = initial_state(q0)
+    lb, ub = np.full((15, n + 1), -np.inf), np.full((15, n + 1), np.inf)
+    lb[12:], ub[12:] = -max_torque, max_torque
+    lb[:12, 0] = ub[:12, 0] = rest
+    lb[12:, [0, n]] = ub[12:, [0, n]] = 0.0
+    s = np.linspace(0.0, 1.0, n + 1)
+    z0 = np.zeros((15, n + 1))
+    z0[:12], z0[10:12] = rest[:, None], np.outer(target, 3 * s**2 - 2 * s**3)  # at rest along a smoothstep
+    T0 = min(max(4.5 * np.sqrt(np.hypot(*target)), 1.2 * min_time), 0.9 * max_time)
+    ipopt = {"tol": tol, "mu_strategy": "adaptive", "linear_solver": "mumps", "max_iter": 500, "sb": "yes"}
+    nlp = {"x": ca.vertcat(ca.vec(Z), T), "f": J, "g": ca.vertcat(*g)}
+    solver = ca.nlpsol("plan", "ipopt", nlp, {"ipopt": ipopt | {"print_level": 0}, "print_time": False})
+    t1 = time.perf_counter()
+    flat = lambda v, last: np.r_[v.ravel(order="F"), last]  # (x_k, K_k) by columns, then T
+    sol = solver(x0=flat(z0, T0), lbx=flat(lb, min_time), ubx=flat(ub, max_time), lbg=cl, ubg=cu)
+    t2 = time.perf_counter()
+    z, stats = np.asarray(sol["x"]).ravel(), solver.stats()
+    out = {"T": float(z[-1]), "iterations": int(stats["iter_count"]), "status": stats["return_status"]}
+    out |= {"success": bool(stats["success"]), "t": np.linspace(0.0, z[-1], n + 1).tolist()}
+    return out | {"K": z[:-1].reshape(n + 1, 15)[:, 12:].tolist(), "build_s": t1 - t0, "solve_s": t2 - t1}

@@ -274,14 +274,7 @@ def _baseline_problem():
             [force - jnp.cross(w, A0 @ w) - 0.1 * w, -jnp.cross(W, A0 @ W) + 0.3 * jnp.cross(g, W) - 0.05 * W]
         )
         acc = jnp.linalg.solve(M, rhs)
-        qdot = 0.5 * jnp.stack(
-            [
-                -q[1] * w[0] - q[2] * w[1] - q[3] * w[2],
-                q[0] * w[0] + q[2] * w[2] - q[3] * w[1],
-                q[0] * w[1] - q[1] * w[2] + q[3] * w[0],
-                q[0] * w[2] + q[1] * w[1] - q[2] * w[0],
-            ]
-        )
+        qdot = 0.5 * jnp.concatenate([-(q[1:] @ w)[None], q[0] * w + jnp.cross(q[1:], w)])  # q (x) (0, w)
         xydot = 0.15 * jnp.stack([W[1] * cp + W[0] * sp, -W[0] * cp + W[1] * sp])
         return jnp.concatenate([qdot, acc, xydot, (w[2] - W[2])[None]])
 

@@ -57,21 +57,6 @@ def errors_se(res, truth, names=None) -> dict:
     return {n: (res.values[n] - float(jsphere.get_value(truth, n))) / se(n) for n in names or res.free}
 
 
-def run(kind, n, durations, free, fix_names, seed=0, n_starts=2, progress=True, solver=None):
-    truth = truth_params()
-    trials = make_trials(truth, n, durations, kind, seed)
-    fix = {name: np.asarray(jsphere.get_value(truth, name)).tolist() for name in fix_names}
-    options = jsphere.FitOptions(n_starts=n_starts, seed=seed, solver=solver)
-    paper = jsphere.RobotParams.paper()
-    res, elapsed = timed(jsphere.fit, trials, paper, free, fix=fix, options=options, progress=progress)
-    truths = {n: float(jsphere.get_value(truth, n)) for n in res.free}
-    rows = [
-        {"name": n, "truth": truths[n], "fit": res.values[n], "stderr": res.stderr[n], "error_se": z}
-        for n, z in errors_se(res, truth).items()
-    ]
-    return res, rows, elapsed, trials
-
-
 def other_robot() -> jsphere.RobotParams:
     """A robot 5-20 % away from the paper's: the truth of `robust-fit`."""
     return jsphere.RobotParams.paper().replace(
@@ -104,9 +89,19 @@ def fit(argv) -> int:
     durations = (float(lo), float(hi or lo))
     fix_names = [n for n in args.fix.split(",") if n]
     solver = jsphere.SolverOptions(solver=getattr(diffrax, args.solver)()) if args.solver else None
-    res, rows, elapsed, trials = run(
-        args.kind, args.trials, durations, args.free, fix_names, args.seed, args.n_starts, solver=solver
+    truth = truth_params()
+    trials = make_trials(truth, args.trials, durations, args.kind, args.seed)
+    fix = {name: np.asarray(jsphere.get_value(truth, name)).tolist() for name in fix_names}
+    options, paper = (
+        jsphere.FitOptions(n_starts=args.n_starts, seed=args.seed, solver=solver),
+        jsphere.RobotParams.paper(),
     )
+    res, elapsed = timed(jsphere.fit, trials, paper, args.free, fix=fix, options=options, progress=True)
+    rows = [
+        {"name": n, "truth": float(jsphere.get_value(truth, n)), "fit": res.values[n], "stderr": res.stderr[n]}
+        | {"error_se": z}
+        for n, z in errors_se(res, truth).items()
+    ]
     print(
         f"\n{args.trials} trials ({args.kind}), {sum(len(t.t) for t in trials)} samples; fit {elapsed:.1f} s "
         f"({res.iterations} LM iterations, {args.n_starts} starts, converged {res.converged})"
@@ -318,8 +313,51 @@ PLAN_DEFAULTS = jsphere.PlanSettings()
 PLAN_DEFAULT_ITERATIONS = PLAN_DEFAULTS.adam_steps + PLAN_DEFAULTS.lm_steps + 1
 
 
+#: the request `plan` times end to end, `jsphere plan` against CasADi, each in a new process
+PLAN_TO = (0.4, 0.2)
+#: the CasADi process: its arguments are this folder and the JSON of the robot, rest attitude and target
+CASADI_PLAN = (
+    "import json, sys; sys.path.insert(0, sys.argv[1]); import casadi_baseline as cb; a = json.loads(sys.argv[2]); "
+    "print(json.dumps(cb.plan_nlp(cb.NumpyRobot(**a['robot']), a['q0'], a['gamma_m'], a['to'])))"
+)
+
+
+def plan_processes(p: jsphere.RobotParams) -> tuple[list[dict], dict]:
+    """`jsphere plan --to 0.4 0.2 --no-plots` in a new process on an empty compilation cache, then
+    in another on the cache it left, against a new process that builds and solves the same
+    transcription with CasADi (`casadi_baseline.plan_nlp`), whose knot torques `simulate` replays
+    to measure where it lands. Returns the rows and their ratios."""
+    from casadi_baseline import PARAM_NAMES
+
+    from jsphere.model.kinematics import rest_attitude
+
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        argv = ["plan", "--to", *map(str, PLAN_TO), "--no-plots", "--out", os.path.join(tmp, "plan.csv")]
+        for how in ("new process, empty cache", "new process, cache filled"):
+            wall = common.run_cli(argv, os.path.join(tmp, "cache"))
+            rec = json.loads(Path(tmp, "plan.json").read_text())
+            e, status = rec["errors"], "feasible" if rec["feasible"] else "infeasible"
+            row = {"name": f"jsphere plan, {how}", "wall_s": wall, "T_s": rec["duration_s"], "status": status}
+            rows.append(row | {"iterations": rec["iterations"]["ipopt"], "miss_mm": 1e3 * e["position_m"]})
+            rows[-1]["speed_mm_s"] = 1e3 * e["speed_m_s"]
+    arg = {"robot": {k: np.asarray(getattr(p, k)).tolist() for k in PARAM_NAMES}, "to": PLAN_TO}
+    arg |= {"q0": np.asarray(jsphere.State.at_rest(p).q).tolist(), "gamma_m": np.asarray(rest_attitude(p)).tolist()}
+    text, wall = common.timed_run([sys.executable, "-c", CASADI_PLAN, str(common.HERE), json.dumps(arg)])
+    cas = json.loads(text.strip().splitlines()[-1])
+    ctrl = jsphere.Torques.from_samples(np.asarray(cas["t"]), np.asarray(cas["K"]), kind="linear")
+    tr = jsphere.simulate(p, jsphere.State.at_rest(p), ctrl, cas["T"])
+    miss = math.hypot(float(tr.x[-1]) - PLAN_TO[0], float(tr.y[-1]) - PLAN_TO[1])
+    speed = float(p.R0) * float(np.linalg.norm(np.cross(tr.Omega[-1], tr.gamma[-1])))
+    row = {"name": "CasADi + IPOPT, new process", "wall_s": wall, "T_s": cas["T"], "miss_mm": 1e3 * miss}
+    rows.append(row | {"speed_mm_s": 1e3 * speed} | {k: v for k, v in cas.items() if k != "T"})
+    ratios = {"wall_fresh_over_casadi": rows[0]["wall_s"] / wall, "wall_cached_over_casadi": rows[1]["wall_s"] / wall}
+    return rows, ratios | {"duration_over_casadi": rows[0]["T_s"] / cas["T"]}
+
+
 def plan(argv) -> int:
-    """The planner's search, restarts x targets in one vmapped, compiled call, extrapolated to 256 x 16."""
+    """`jsphere plan` end to end against CasADi's solve of the same transcription (`plan_processes`),
+    then the gait planner's search, restarts x targets in one vmapped, compiled call, extrapolated to 256 x 16."""
     from jsphere.planning.problem import _vec_targets, gait_from_vector
     from jsphere.planning.rollout import rollout
     from jsphere.planning.search import _initial_guesses, _search
@@ -331,6 +369,12 @@ def plan(argv) -> int:
     ap.add_argument("--lm", type=int, default=PLAN_DEFAULTS.lm_steps, help="LM steps (default: %(default)s)")
     args = ap.parse_args(argv)
     p = jsphere.RobotParams.paper()
+    processes, ratios = plan_processes(p)
+    cols = [("plan to (0.4, 0.2) m", "name", ""), ("wall [s]", "wall_s", ".1f"), ("T [s]", "T_s", ".4f")]
+    cols += [("IPOPT iters", "iterations", "d"), ("miss [mm]", "miss_mm", ".4f"), ("at [mm/s]", "speed_mm_s", ".4f")]
+    cols += [("build [s]", "build_s", ".2f"), ("solve [s]", "solve_s", ".2f"), ("status", "status", "")]
+    print_table(cols, processes)
+    print(", ".join(f"{k} {v:.3f}" for k, v in ratios.items()) + "\n")
     s = jsphere.PlanSettings(adam_steps=args.adam, lm_steps=args.lm)
     lim, obj = jsphere.Limits(), jsphere.Objective()
     lim_a, obj_a = (jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float64), m) for m in (lim, obj))
@@ -374,6 +418,8 @@ def plan(argv) -> int:
         "extrapolated_256x16_s": full,
         "max_position_error_m": max(errs),
         "best_loss": best_loss.tolist(),
+        "processes": processes,
+        "ratios": ratios,
     }
     write_json(args.out, info)
     return 0

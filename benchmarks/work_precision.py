@@ -279,25 +279,15 @@ def fmt_rows(rows) -> list[str]:
 def fmt_crossover(cross) -> list[str]:
     def cell(e):
         if e is None:
-            return f"{'not reached':>34}"
+            return "not reached"
         name = e["method"].replace("jsphere ", "").replace("CasADi RK4", "RK4").replace("scipy DOP853", "DOP853")
-        return f"{name + ' ' + e['setting']:>22}{e['trials_per_s']:>12.1f}"
+        return f"{name} {e['setting']}: {e['trials_per_s']:.1f}"
 
-    def ratio(x):
-        return f"{x:>10.1f}x" if x is not None else f"{'-':>11}"
-
-    hdr = (
-        f"{'error <=':>9}{'jsphere (fastest solver)':>34}{'CasADi RK4':>34}{'scipy DOP853':>34}"
-        f"{'js/CasADi':>11}{'js/scipy':>11}"
-    )
-    title = "fastest measured setting at least this accurate (no interpolation), setting and trials/s:"
-    L = [title, hdr, "-" * len(hdr)]
-    for e in cross:
-        L.append(
-            f"{e['accuracy_m']:>9.0e}{cell(e['jsphere'])}{cell(e['CasADi'])}{cell(e['scipy'])}"
-            f"{ratio(e['jsphere_over_CasADi'])}{ratio(e['jsphere_over_scipy'])}"
-        )
-    return L
+    heads = {"jsphere": "jsphere (fastest solver)", "CasADi": "CasADi RK4", "scipy": "scipy DOP853"}
+    cols = [("error <=", "accuracy_m", ".0e"), *((h, lambda e, g=g: cell(e[g]), "") for g, h in heads.items())]
+    cols += [("js/CasADi", "jsphere_over_CasADi", ".1f"), ("js/scipy", "jsphere_over_scipy", ".1f")]
+    title = "fastest measured setting at least this accurate (no interpolation), setting: trials/s:"
+    return [title, *table(cols, cross)]
 
 
 def figure(rows, path: Path, floor_m: float, title: str) -> None:
