@@ -121,9 +121,11 @@ def minimise(
     tol: float = 1e-8,
     max_iter: int = 500,
     on_iteration: Callable[[int, float, float], None] | None = None,
+    options: dict | None = None,
 ) -> IpoptResult:
     """IPOPT (MUMPS, adaptive barrier) from `z0`; `on_iteration(k, f, violation)` after each
-    iteration. Never raises on a failed solve: the result's `status` says what happened."""
+    iteration; `options`: IPOPT's options over these. Never raises on a failed solve: the
+    result's `status` says what happened."""
     import cyipopt
 
     lb, ub = (np.clip(np.asarray(b, float), -INF, INF) for b in bounds)
@@ -137,6 +139,7 @@ def minimise(
         ("max_iter", int(max_iter)),
         ("mu_strategy", "adaptive"),
         ("linear_solver", "mumps"),
+        *(options or {}).items(),
     ):
         nlp.add_option(k, v)
     z, info = nlp.solve(np.asarray(z0, float))

@@ -47,6 +47,7 @@ from .._runtime.checks import whole
 from .._runtime.errors import InputError
 from .._runtime.precision import HOW_TO_ENABLE
 from .._runtime.progress import Progress
+from .._runtime.quick_compile import eager_jit, run_program
 from ..controls import Torques
 from ..model.dynamics import solve_accelerations
 from ..model.kinematics import rest_attitude
@@ -165,7 +166,6 @@ def _terminal(x, a: _Args, heading: bool):
     return jnp.concatenate(out)
 
 
-@functools.partial(jax.jit, static_argnums=(3, 4, 5))
 def _evaluate(W, xN, a: _Args, n: int, substeps: int, heading: bool):
     """Constraint values, their Jacobian's values (blocks, then the end), the objective's block
     sum and its gradient per block: one program."""
@@ -184,15 +184,20 @@ def _evaluate(W, xN, a: _Args, n: int, substeps: int, heading: bool):
     )
 
 
-@functools.partial(jax.jit, static_argnums=(4, 5))
-def _lagrangian_gradients(W, L, sigma, a: _Args, n: int, substeps: int):
-    """`grad_w (sigma cost + l . block)` of every block `W (B, 2 nv + 1)` with its multipliers `L`."""
-    return jax.vmap(jax.grad(lambda w, l: sigma * _block_cost(w, a, n) + l @ _block(w, a, n, substeps)))(W, L)
+def _second(WB, LB, sigma, xN, lt, a: _Args, n: int, substeps: int, heading: bool):
+    """What the Hessian of the Lagrangian is made of: `grad_w (sigma cost + l . block)` of every
+    block `WB (B, 2 nv + 1)` with its multipliers `LB`, and the end's Hessian `lt . terminal''`."""
+    lagrangian = lambda w, l: sigma * _block_cost(w, a, n) + l @ _block(w, a, n, substeps)
+    He = jax.hessian(lambda x: lt @ _terminal(x, a, heading))(xN)
+    return jax.vmap(jax.grad(lagrangian))(WB, LB), He
 
 
-@functools.partial(jax.jit, static_argnums=(3,))
-def _terminal_hessian(xN, lt, a: _Args, heading: bool):
-    return jax.hessian(lambda x: lt @ _terminal(x, a, heading))(xN)
+#: the programs, compiled for a short first call and exported where the application keeps them
+_PROGRAMS = {"direct plan: constraints": eager_jit(_evaluate), "direct plan: Hessian": eager_jit(_second)}
+
+
+def _run(name: str, *args):
+    return run_program(name, _PROGRAMS[name], tuple, *args)
 
 
 # ----------------------------------------------------------------------------- the sparse layout
@@ -268,7 +273,7 @@ class _Transcription:
         key = z.tobytes()
         if key != self._key:
             lay = self.lay
-            out = _evaluate(z[lay.blocks], z[lay.end], self.a, lay.n, self.substeps, lay.heading)
+            out = _run("direct plan: constraints", z[lay.blocks], z[lay.end], self.a, lay.n, self.substeps, lay.heading)
             self._key, self._val = key, [np.asarray(v) for v in out]
         return self._val
 
@@ -295,10 +300,12 @@ class _Transcription:
         pert = np.concatenate([np.zeros((lay.n, 1, lw)), scale[:, :, None] * np.eye(lw)[None]], axis=1)
         WB = (W[:, None, :] + pert).reshape(-1, lw)
         LB = np.repeat(lam[: lay.n * lay.nc].reshape(lay.n, lay.nc), lw + 1, axis=0)
-        G = np.asarray(_lagrangian_gradients(WB, LB, sigma, self.a, lay.n, self.substeps)).reshape(lay.n, lw + 1, lw)
+        lt = lam[lay.n * lay.nc :]
+        args = (WB, LB, np.asarray(sigma, float), z[lay.end], lt, self.a, lay.n, self.substeps, lay.heading)
+        G, He = (np.asarray(v) for v in _run("direct plan: Hessian", *args))
+        G = G.reshape(lay.n, lw + 1, lw)
         H = (G[:, 1:, :] - G[:, :1, :]) / scale[:, :, None]
         H = 0.5 * (H + np.swapaxes(H, 1, 2))
-        He = np.asarray(_terminal_hessian(z[lay.end], lam[lay.n * lay.nc :], self.a, lay.heading))
         unique, inverse, tri, tri_e = lay._hessian_map
         vals = np.concatenate([H[:, tri[0], tri[1]].reshape(-1), He[tri_e]])
         return np.bincount(inverse, weights=vals, minlength=len(unique))
@@ -352,9 +359,15 @@ def _start(p: RobotParams, lay: _Layout, target, lim: Limits) -> np.ndarray:
     ease = 3 * s**2 - 2 * s**3
     z = np.zeros(lay.nvar)
     knots = z[:-1].reshape(lay.n + 1, lay.nv)
-    for k, e in enumerate(ease):
-        st = State.at_rest(p, psi=float(psi) * e if lay.heading else 0.0)
-        knots[k, :NX] = np.asarray(st.flatten())[REDUCED]
+    rest = np.asarray(State.at_rest(p).flatten())[REDUCED]
+    knots[:, :NX] = rest
+    if lay.heading:  # turned about the vertical by psi e: q = (cos(a/2), 0, 0, sin(a/2)) (x) q_rest
+        half = 0.5 * float(psi) * ease
+        w, v = rest[0], rest[1:4]
+        knots[:, 0] = np.cos(half) * w - np.sin(half) * v[2]
+        knots[:, 1:4] = np.cos(half)[:, None] * v + np.sin(half)[:, None] * (
+            w * np.array([0.0, 0.0, 1.0]) + np.cross([0.0, 0.0, 1.0], v)
+        )
     knots[:, 10], knots[:, 11] = x * ease, y * ease
     T = 4.5 * math.sqrt(math.hypot(x, y))
     z[-1] = min(max(T, 1.2 * float(lim.min_time)), 0.9 * float(lim.max_time))
