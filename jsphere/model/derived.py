@@ -6,6 +6,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from .._runtime.quick_compile import eager_jit
 from .linalg import cross, dot, inv3, outer
 
 
@@ -40,8 +41,11 @@ class Derived(eqx.Module):
     mg: Float[Array, ""]
 
 
+@eager_jit
 def derive(p) -> Derived:
-    """Compute the parameter-only quantities of (2.4) and (3.4) once (jit folds them)."""
+    """Compute the parameter-only quantities of (2.4) and (3.4) once (jit folds them). An eager
+    call is one compiled program, not one per operation: a new process's first `derive` costs
+    one small compilation instead of about twenty."""
     s = cross(p.wheel_r, p.wheel_alpha)
     k = p.R0 / (p.Rw * dot(s, p.wheel_n))
     j = p.j
