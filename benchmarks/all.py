@@ -9,7 +9,6 @@ has the details.
 
 from __future__ import annotations
 
-import argparse
 import json
 import subprocess
 import sys
@@ -18,7 +17,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from common import HERE, ROOT, source_digest, timed, write_json  # noqa: E402  (the digest the result files record)
+from common import HERE, ROOT, parser, source_digest, timed, write_json  # noqa: E402  (the digest the result files record)
 
 #: (name, script and arguments, result file): the commands `docs/performance.md` gives
 STEPS = (
@@ -79,16 +78,14 @@ def run_steps(steps, state_path: Path, out: Path, *, fresh: bool = False, folder
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = parser("all.py", "results-all.json", description=__doc__.split("\n\n")[0])
     ap.add_argument("--list", action="store_true", help="print the steps and exit")
     ap.add_argument("--only", default="", help="comma-separated step names (default: all)")
     ap.add_argument("--fresh", action="store_true", help="run every selected step again")
     ap.add_argument("--state", type=Path, default=HERE / ".all-state.json")
-    ap.add_argument("--out", type=Path, default=HERE / "results-all.json")
     args = ap.parse_args(argv)
     names = [n for n in args.only.split(",") if n]
-    known = {s[0] for s in STEPS}
-    if unknown := [n for n in names if n not in known]:
+    if unknown := [n for n in names if n not in {s[0] for s in STEPS}]:
         print(f"all.py: unknown step {unknown[0]!r}; the steps are {', '.join(s[0] for s in STEPS)}", file=sys.stderr)
         return 2
     steps = [s for s in STEPS if not names or s[0] in names]

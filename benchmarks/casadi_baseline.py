@@ -20,6 +20,7 @@ import tempfile
 import time
 
 import numpy as np
+from common import timed
 
 try:
     import casadi as ca
@@ -30,6 +31,16 @@ except ImportError:  # pragma: no cover - optional benchmark dependency
 def _cross(a, b):
     # np.cross is slow for single 3-vectors; this is the same product written out.
     return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def _rotation_rows(w, x, y, z) -> list[list]:
+    """The rows of the rotation matrix (platform -> fixed) of the unit quaternion `(w, x, y, z)`,
+    of numpy or CasADi scalars."""
+    return [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]
 
 
 #: the `RobotParams` fields that make a `NumpyRobot`
@@ -65,14 +76,7 @@ class NumpyRobot:
     @staticmethod
     def rotmat(q):
         """Rotation matrix (platform -> fixed) of the normalised quaternion `q = (w, x, y, z)`."""
-        w, x, y, z = q / np.sqrt(q @ q)
-        return np.array(
-            [
-                [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-            ]
-        )
+        return np.array(_rotation_rows(*(q / np.sqrt(q @ q))))
 
     def mass_matrix(self, gamma):
         B = self.Jns - self.Jss + self.m * self.R0 * ((gamma @ self.r_m) * self.E - np.outer(gamma, self.r_m))
@@ -163,12 +167,7 @@ def _symbols():
 def _sx_rotmat(q):
     """The rotation matrix (platform -> fixed) of the quaternion `q` (normalised here); `gamma` its last row."""
     qn = q / ca.sqrt(ca.dot(q, q))
-    qw, qx, qy, qz = qn[0], qn[1], qn[2], qn[3]
-    return ca.vertcat(
-        ca.horzcat(1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)),
-        ca.horzcat(2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)),
-        ca.horzcat(2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)),
-    )
+    return ca.vertcat(*(ca.horzcat(*row) for row in _rotation_rows(qn[0], qn[1], qn[2], qn[3])))
 
 
 def torque_rhs(robot):
@@ -253,20 +252,13 @@ def in_temporary_folder():
 def built_and_timed(build, y0, A: np.ndarray, *, repeats: int) -> tuple[dict, np.ndarray]:
     """`build()` (a compiled batch `Function`, timed as `build_s`), then its first call and
     `repeats` more on `(y0, A.T)`: the timings, and the final `(x, y)` of every trial."""
-    t = time.perf_counter()
-    F = build()
-    row = {"batch": A.shape[0], "build_s": time.perf_counter() - t}
-    t = time.perf_counter()
-    F(y0, A.T)
-    row["first_call_s"] = time.perf_counter() - t
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = F(y0, A.T)
-        times.append(time.perf_counter() - t)
+    F, build_s = timed(build)
+    row = {"batch": A.shape[0], "build_s": build_s, "first_call_s": timed(F, y0, A.T)[1]}
+    runs = [timed(F, y0, A.T) for _ in range(repeats)]
+    times = [s for _, s in runs]
     med = float(np.median(times))
     row |= {"median_s": med, "repeats": repeats, "times_s": times, "trials_per_s": A.shape[0] / med}
-    return row, np.asarray(out)[10:12].T
+    return row, np.asarray(runs[-1][0])[10:12].T
 
 
 def casadi_rows(robot, q0, A: np.ndarray, *, threads: int = 2, repeats: int = 3, cvodes_trials: int = 64):

@@ -7,7 +7,6 @@ in one run; benchmarks/README.md defines the problems and every column and JSON 
 
 from __future__ import annotations
 
-import argparse
 import os
 import statistics
 import sys
@@ -21,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from casadi_baseline import PHASES, T1, NumpyRobot, casadi_rows, initial_state
-from common import HERE, environment, finish, log, public, source_digest, table, time_call, write_json
+from common import environment, finish, log, public, result_path, source_digest, table, time_call, write_json
 from scipy.integrate import solve_ivp
 from startup import measure as startup_measure
 
@@ -46,9 +45,6 @@ def rate_row(r: dict, B: int, steps, **extra) -> dict:
     log(f"      {B / r['median_s']:.1f} trials/s, compile {r['compile_s']:.1f} s")
     row = {"batch": B, "trials_per_s": B / r["median_s"]}
     return public(r) | row | {"steps_mean": float(steps.mean()), "steps_max": int(steps.max())} | extra
-
-
-# ------------------------------------------------------------------------ problem 1
 
 
 def problem1(p, rtol=RTOL, atol=ATOL, solver=None):
@@ -117,10 +113,8 @@ def scipy_trial(model, q0, a, rtol=RTOL, atol=ATOL):
 def scipy_batch(model, q0, A, repeats, rtol=RTOL, atol=ATOL):
     """`repeats` serial runs of `scipy_trial` over the amplitude rows `A`: the row of their
     timings and solver steps, and the final `(x, y)` of the last run."""
-    times = []
-    for _ in range(repeats):
-        sols, t = common.timed(lambda: [scipy_trial(model, q0, a, rtol, atol) for a in A])
-        times.append(t)
+    runs = [common.timed(lambda: [scipy_trial(model, q0, a, rtol, atol) for a in A]) for _ in range(repeats)]
+    sols, times = runs[-1][0], [t for _, t in runs]
     med = statistics.median(times)
     row = {"repeats": repeats, "times_s": times, "median_s": med, "s_per_trial": med / len(A)}
     row |= {"trials_per_s": len(A) / med, "steps_mean": float(np.mean([len(s.t) - 1 for s in sols]))}
@@ -140,7 +134,8 @@ def problem1_scipy(p, Z, n_trials, repeats):
 
 def problem1_checks(model, q0, Z, scipy_finals, js_finals):
     """Accuracy: scipy vs jsphere; both vs a tight DOP853 reference on trial 0; vmap consistency;
-    energy balance of the numpy model (an independent check of r1, r2 of (3.4))."""
+    energy balance of the numpy model (an independent check of r1, r2 of (3.4)). Returns the
+    checks and the reference's final `(x, y)` of trial 0."""
     n = scipy_finals.shape[0]
     B_ref = min(b for b in js_finals if b >= n) if any(b >= n for b in js_finals) else max(js_finals)
     n = min(n, B_ref)
@@ -164,28 +159,23 @@ def problem1_checks(model, q0, Z, scipy_finals, js_finals):
     rhs = lambda t, y: np.concatenate([model.rhs(t, y[:12], K), [model.power(y[:12], K(t))]])
     sol = solve_ivp(rhs, (0.0, T1), np.concatenate([initial_state(q0), [0.0]]), method="DOP853", rtol=1e-12, atol=1e-13)
     E0, E1, W = model.energy(sol.y[:12, 0]), model.energy(sol.y[:12, -1]), sol.y[12, -1]
-    out["energy_balance_residual_J"] = float(E1 - E0 - W)
-    out["energy_work_J"] = float(W)
-    return out
+    out |= {"energy_balance_residual_J": float(E1 - E0 - W), "energy_work_J": float(W)}
+    return out, ref
 
 
-def problem1_casadi(model, q0, Z, B, repeats, sc_row):
-    """CasADi baselines (`casadi_baseline.py`): compiled RK4 and CVODES, mapped over threads.
-    Skipped with a note in the table when CasADi is not installed."""
+def problem1_casadi(model, q0, Z, B, repeats, sc_row, ref):
+    """CasADi baselines (`casadi_baseline.py`): compiled RK4 and CVODES, mapped over threads; their
+    trial 0 error against `ref`. Skipped with a note in the table when CasADi is not installed."""
     log(f"[P1] CasADi baselines, batch {B} ...")
     try:
         rows, finals = casadi_rows(model, q0, amplitudes(Z[:B]), threads=os.cpu_count() or 2, repeats=repeats)
     except Exception as e:  # noqa: BLE001  (no CasADi, no C compiler, a CasADi without cvodes: report it)
         return [{"name": "CasADi", "error": f"{type(e).__name__}: {e}"}]
-    ref = scipy_trial(model, q0, amplitudes(Z[0]), rtol=1e-13, atol=1e-14).y[10:12, -1]
     for r, key in zip(rows, ("rk4", "cvodes")):
         r["ratio_vs_scipy"] = r["trials_per_s"] / sc_row["trials_per_s"]
         r["trial0_err_m"] = float(np.abs(finals[key][0] - ref).max())
         log(f"      {r['name']}: {r['trials_per_s']:.1f} trials/s, trial 0 error {r['trial0_err_m']:.1e} m")
     return rows
-
-
-# ------------------------------------------------------------------------ problem 2
 
 
 def problem2(p, batches, repeats):
@@ -211,8 +201,6 @@ def problem2(p, batches, repeats):
         rows.append(rate_row(r, B, steps, devices=k, x_final_first=float(x[0]), theta_max_first=float(TH[0])))
     return rows
 
-
-# ------------------------------------------------------------------------ problem 3
 
 GRAD_NAMES = ["r_m[2] (= -R_m)", "j", "I[0,0]", "I[1,1]", "I[2,2]", "m0", "I0"]
 
@@ -286,8 +274,7 @@ def fmt_table(res) -> str:
     cols += [("reps", "repeats", ""), ("steps mean/max", steps, ""), ("vs scipy", "ratio_vs_scipy", ".1f")]
     L = table(cols, [r for r in rows if "error" not in r])
     L += [f"{r['problem']}: {r['error'][:70]}" for r in rows if "error" in r]
-    mem = [r for r in res["problem1"]["jsphere"] if r.get("device_peak_bytes")]
-    if mem:
+    if mem := [r for r in res["problem1"]["jsphere"] if r.get("device_peak_bytes")]:
         L.append(
             "  device memory, peak in use after the batch: "
             + ", ".join(f"{r['batch']}: {r['device_peak_bytes'] / 2**30:.2f} GiB" for r in mem)
@@ -306,20 +293,17 @@ def fmt_table(res) -> str:
         f"energy balance residual {c['energy_balance_residual_J']:.1e} J"
         + (f"; batch 1 vs batched {c['batch1_vs_batched_trial0_m']:.1e} m" if "batch1_vs_batched_trial0_m" in c else "")
     )
-    cas = [r for r in res["problem1"].get("casadi", []) if "trial0_err_m" in r]
-    if cas:
+    if cas := [r for r in res["problem1"].get("casadi", []) if "trial0_err_m" in r]:
         L.append(
             "  CasADi trial 0 vs the same reference: "
             + ", ".join(f"{r['name'].split(',')[0]} {r['trial0_err_m']:.1e} m" for r in cas)
         )
-    fd = res["problem3"]["fd_check"]
-    if fd:
+    if fd := res["problem3"]["fd_check"]:
         L.append(
             f"gradient P3 vs central differences (batch {fd['batch']}): max rel diff {fd['max_rel_diff']:.1e} "
             f"(< {fd['tolerance']:.0e}: {'PASS' if fd['pass'] else 'FAIL'})"
         )
-    su = res.get("startup")
-    if su:
+    if su := res.get("startup"):
         L.append(
             f"start-up, `jsphere reproduce` in new processes (figures included): first {su['first_process_s']:.1f} s "
             f"(empty cache), second {su['second_process_s']:.1f} s (median of {len(su['second_process_runs_s'])})"
@@ -328,7 +312,7 @@ def fmt_table(res) -> str:
 
 
 def parse(argv):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = common.parser("run.py", description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="smaller run (about 2 minutes on 2 CPU cores)")
     ap.add_argument("--out", type=Path, help="JSON output (default results.json; results-quick.json with --quick)")
     ap.add_argument("--no-casadi", action="store_true", help="skip the CasADi baselines (run when CasADi is installed)")
@@ -344,8 +328,7 @@ def parse(argv):
             jax.config.update("jax_default_device", jax.devices(args.device)[0])
         except RuntimeError as e:
             ap.error(f"--device {args.device}: {e}")
-    if args.out is None:
-        args.out = HERE / ("results-quick.json" if args.quick else "results.json")
+    args.out = result_path(args, "results-quick.json" if args.quick else "results.json")
     return args
 
 
@@ -399,8 +382,8 @@ def main(argv=None) -> int:
     sc_row, sc_finals, model, q0 = problem1_scipy(p, Z, s["problem1"]["scipy_trials"], repeats)
     for r in js_rows:
         r["ratio_vs_scipy"] = r["trials_per_s"] / sc_row["trials_per_s"]
-    checks = problem1_checks(model, q0, Z, sc_finals, js_finals)
-    cas_rows = problem1_casadi(model, q0, Z, 1024, repeats, sc_row) if not args.no_casadi else []
+    checks, ref = problem1_checks(model, q0, Z, sc_finals, js_finals)
+    cas_rows = problem1_casadi(model, q0, Z, 1024, repeats, sc_row, ref) if not args.no_casadi else []
     p2 = problem2(p, s["problem2"]["batches"], repeats)
     p3_rows, fd = problem3(p, Z, s["problem3"]["batches"], repeats)
     startup = None
@@ -410,8 +393,7 @@ def main(argv=None) -> int:
             startup = startup_measure(tmp, "default", [], cached_runs=1 if args.quick else 3)
         log(f"      first {startup['first_process_s']:.1f} s, second {startup['second_process_s']:.1f} s")
     for r in p3_rows:
-        match = [j for j in js_rows if j["batch"] == r["batch"]]
-        if match:
+        if match := [j for j in js_rows if j["batch"] == r["batch"]]:
             r["problem1_forward_median_s"] = match[0]["median_s"]
 
     res = {

@@ -121,8 +121,7 @@ def fit(argv) -> int:
         **common.environment_in_child(),
         "command": "python -m jsphere.cli.app " + " ".join(fit_argv("TMP", "cached", [])),
         "cached": cached,
-        "first_process_s": cached["first_process_s"],
-        "second_process_s": cached["second_process_s"],
+        **{k: cached[k] for k in ("first_process_s", "second_process_s")},
         "no_cache_process_s": no_cache,
         "second_over_no_cache": cached["second_process_s"] / no_cache,
         "values": values["cached"],
@@ -150,9 +149,6 @@ XLA_DEFAULTS_ENV = {"JSPHERE_XLA_DEFAULTS": "1"}
 TARGET_RATIO = 2.5
 #: target: a second process's first gradient with the cache on, and the quickstart cold [s]
 TARGET_CACHED_GRAD_S, TARGET_QUICKSTART_S = 3.0, 15.0
-
-
-# ------------------------------------------------------------------------------ children
 
 
 def _enable_cache(cache_dir: str, jsphere=None) -> str:
@@ -200,55 +196,6 @@ def _phases(jax) -> dict:
     return totals
 
 
-def _jsphere_child(task: str, cache_dir: str | None) -> dict:
-    t = time.perf_counter()
-    import diffrax as dfx
-    import jax
-    import jax.numpy as jnp
-    import numpy as np
-
-    import jsphere
-
-    jax.config.update("jax_enable_x64", True)  # float64, as in the diffrax child
-    rec = {"import_s": time.perf_counter() - t}
-    if cache_dir:
-        rec["cache"] = _enable_cache(cache_dir, jsphere)
-    p = jsphere.RobotParams.paper()
-
-    if task == "gaits":
-        f = lambda: jsphere.simulate_gaits(p, [jsphere.acceleration(), jsphere.braking()]).x
-    elif task == "simulate":
-        ts = np.concatenate([np.linspace(0.0, 2.0, 201), np.linspace(2.0, 4.0, 201)])
-        sign = np.where(np.arange(ts.size) < 201, 1.0, -1.0)
-        K = 0.02 * (sign * np.sin(np.pi * ts) ** 2)[:, None] * np.array([1.0, -0.5, -0.5])
-        state0 = jsphere.State.at_rest(p)
-        f = lambda: jsphere.simulate(p, state0, jsphere.Torques.from_samples(ts, K), 4.0, ts=ts).x
-    elif task == "fit":
-        ts = np.linspace(0.0, 3.0, 301)
-        K = 0.02 * (np.sin(np.pi * ts / 3.0) ** 2 * np.sin(2.0 * ts))[:, None] * np.array([1.0, -0.5, -0.5])
-        truth = p.replace(R_m=1.02 * float(p.R_m))
-        fit_options = jsphere.FitOptions(n_starts=1, adam_steps=0, max_iter=1)
-        trial = jsphere.synthetic_trial(truth, jsphere.Torques.from_samples(ts, K), 3.0, rate=50.0, seed=1)
-        f = lambda: np.asarray(jsphere.fit([trial], p, "R_m,j", options=fit_options, progress=False).params.R_m)
-    elif task == "plan":
-        kw = dict(settings=jsphere.PlanSettings(adam_steps=1, lm_steps=1), plan_options=jsphere.PlanOptions(restarts=2))
-        f = lambda: np.asarray(jsphere.plan(p, (0.3, 0.1), **kw, allow_infeasible=True, progress=False).trajectory.x)
-    else:
-        adjoint = dfx.ForwardMode() if task == "jacfwd" else None
-
-        def stop(theta_max):
-            gaits = [jsphere.acceleration(theta_max=theta_max), jsphere.braking(theta_max=theta_max)]
-            return jsphere.simulate_gaits(p, gaits, ts=jnp.array([4.0]), adjoint=adjoint).x[-1]
-
-        d = jax.grad(stop) if task == "grad" else jax.jacfwd(stop)
-        f = lambda: d(0.1)
-
-    from jsphere._runtime.compilation_cache import callbacks_as_nan
-
-    # equinox's checks traced without host callbacks, so that JAX can write the solves to its cache
-    return rec, f, callbacks_as_nan() if cache_dir else contextlib.nullcontext()
-
-
 def _baseline_problem():
     """A 13-state ODE of about the cost of jsphere's gait field: a quaternion, two angular
     velocities whose rates come from a 6x6 linear system with a state-dependent matrix,
@@ -288,26 +235,66 @@ def _baseline_problem():
     return solve
 
 
-def _dfx_child(task: str, cache_dir: str | None) -> dict:
+def _task(task: str, cache_dir: str | None) -> tuple[dict, Callable, contextlib.AbstractContextManager]:
+    """A child's imports (timed: `import_s`), its compilation cache where asked, and the call of
+    `task`: `(record, f, context)`, the first call made in `context`. The `dfx_` tasks solve the
+    baseline problem (`_baseline_problem`) with diffrax alone, the others call jsphere."""
+    baseline = task.startswith("dfx_")
     t = time.perf_counter()
     import diffrax as dfx
     import jax
     import jax.numpy as jnp
+    import numpy as np
 
-    jax.config.update("jax_enable_x64", True)  # float64, as in the jsphere child
+    if not baseline:
+        import jsphere
+    jax.config.update("jax_enable_x64", True)  # float64 in every task
     rec = {"import_s": time.perf_counter() - t}
     if cache_dir:
-        rec["cache"] = _enable_cache(cache_dir)
-    solve = _baseline_problem()
+        rec["cache"] = _enable_cache(cache_dir, None if baseline else jsphere)
+    kind = task.removeprefix("dfx_")
+    adjoint = dfx.ForwardMode() if kind == "jacfwd" else None
+    if baseline:
+        solve = _baseline_problem()
+        stop = lambda theta: solve(theta, jnp.array([4.0]), adjoint)[-1, 10]
+    else:
+        p = jsphere.RobotParams.paper()
+
     if task == "dfx_solve":
         f = lambda: solve(jnp.asarray(0.1), jnp.linspace(0.0, 4.0, 5))[:, 10]
-    else:
-        adjoint = dfx.ForwardMode() if task == "dfx_jacfwd" else None
-        stop = lambda theta: solve(theta, jnp.array([4.0]), adjoint)[-1, 10]
-        d = jax.grad(stop) if task == "dfx_grad" else jax.jacfwd(stop)
-        f = lambda: d(0.1)
+    elif task == "gaits":
+        f = lambda: jsphere.simulate_gaits(p, [jsphere.acceleration(), jsphere.braking()]).x
+    elif task == "simulate":
+        ts = np.concatenate([np.linspace(0.0, 2.0, 201), np.linspace(2.0, 4.0, 201)])
+        sign = np.where(np.arange(ts.size) < 201, 1.0, -1.0)
+        K = 0.02 * (sign * np.sin(np.pi * ts) ** 2)[:, None] * np.array([1.0, -0.5, -0.5])
+        state0 = jsphere.State.at_rest(p)
+        f = lambda: jsphere.simulate(p, state0, jsphere.Torques.from_samples(ts, K), 4.0, ts=ts).x
+    elif task == "fit":
+        ts = np.linspace(0.0, 3.0, 301)
+        K = 0.02 * (np.sin(np.pi * ts / 3.0) ** 2 * np.sin(2.0 * ts))[:, None] * np.array([1.0, -0.5, -0.5])
+        truth = p.replace(R_m=1.02 * float(p.R_m))
+        fit_options = jsphere.FitOptions(n_starts=1, adam_steps=0, max_iter=1)
+        trial = jsphere.synthetic_trial(truth, jsphere.Torques.from_samples(ts, K), 3.0, rate=50.0, seed=1)
+        f = lambda: np.asarray(jsphere.fit([trial], p, "R_m,j", options=fit_options, progress=False).params.R_m)
+    elif task == "plan":
+        kw = dict(settings=jsphere.PlanSettings(adam_steps=1, lm_steps=1), plan_options=jsphere.PlanOptions(restarts=2))
+        f = lambda: np.asarray(jsphere.plan(p, (0.3, 0.1), **kw, allow_infeasible=True, progress=False).trajectory.x)
+    elif not baseline:  # grad, jacfwd
 
-    return rec, f, contextlib.nullcontext()
+        def stop(theta_max):
+            gaits = [jsphere.acceleration(theta_max=theta_max), jsphere.braking(theta_max=theta_max)]
+            return jsphere.simulate_gaits(p, gaits, ts=jnp.array([4.0]), adjoint=adjoint).x[-1]
+
+    if kind in ("grad", "jacfwd"):
+        d = jax.grad(stop) if kind == "grad" else jax.jacfwd(stop)
+        f = lambda: d(0.1)
+    if baseline:
+        return rec, f, contextlib.nullcontext()
+    from jsphere._runtime.compilation_cache import callbacks_as_nan
+
+    # equinox's checks traced without host callbacks, so that JAX can write the solves to its cache
+    return rec, f, callbacks_as_nan() if cache_dir else contextlib.nullcontext()
 
 
 def child(task: str, cache_dir: str | None) -> None:
@@ -316,7 +303,7 @@ def child(task: str, cache_dir: str | None) -> None:
     import jax
     import numpy as np
 
-    rec, f, context = (_dfx_child if task.startswith("dfx_") else _jsphere_child)(task, cache_dir)
+    rec, f, context = _task(task, cache_dir)
     phases = _phases(jax)
     with context:
         out, rec["first_s"], rec["first_cpu_s"] = _timed(f)
@@ -324,9 +311,6 @@ def child(task: str, cache_dir: str | None) -> None:
     _, rec["second_s"], _ = _timed(f)
     rec["value"] = float(np.ravel(np.asarray(out))[-1])
     print(json.dumps(rec), flush=True)
-
-
-# ------------------------------------------------------------------------------- parent
 
 
 def first_result_child(task: str, cache_dir: str | None = None, extra_env: dict | None = None) -> dict:

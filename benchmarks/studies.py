@@ -8,7 +8,6 @@ process (one process, workers, one process). benchmarks/README.md says what each
 
 from __future__ import annotations
 
-import argparse
 import os
 import shutil
 import subprocess
@@ -19,22 +18,11 @@ from pathlib import Path
 
 import jax
 import numpy as np
-from common import cli_env, environment, result_path, timed, write_json
+from common import cli_env, environment, parser, result_path, timed, write_json
 
 import jsphere
 
 jsphere.enable_x64()  # float64, which jsphere's accuracy needs (JAX's default is float32)
-
-
-def parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="studies.py")
-    ap.add_argument("--trials", type=int, default=100_000)
-    ap.add_argument("--baseline-trials", type=int, default=200)
-    ap.add_argument("--batch-size", type=int, default=8192)
-    ap.add_argument("--workers", type=int, default=0, help="compare K --worker processes with one process")
-    ap.add_argument("--out", default=None, help="JSON file (default: benchmarks/results-montecarlo[-workers].json)")
-    ap.add_argument("--cores", type=int, help="CPU devices, one per core (default: every core; 1: JAX's single device)")
-    return ap
 
 
 #: the study of the comparison of workers with one process, as a study file
@@ -68,9 +56,7 @@ def workers_against_one_process(n: int, k: int, batch: int, out: str) -> None:
     _wait(_jsphere(str(study), "--trials", str(batch), "--out", str(tmp / "warm"), env=env))  # fills the cache
 
     def one(name):
-        t = time.perf_counter()
-        _wait(_jsphere(str(study), "--trials", str(n), "--out", str(tmp / name), env=env))
-        return n / (time.perf_counter() - t)
+        return n / timed(lambda: _wait(_jsphere(str(study), "--trials", str(n), "--out", str(tmp / name), env=env)))[1]
 
     one_a = one("one-a")
     t = time.perf_counter()
@@ -142,7 +128,14 @@ def monte_carlo_against_a_loop(args) -> None:
 
 
 def main(argv=None) -> int:
-    args = parser().parse_args(argv)
+    ap = parser("studies.py")
+    ap.add_argument("--trials", type=int, default=100_000)
+    ap.add_argument("--baseline-trials", type=int, default=200)
+    ap.add_argument("--batch-size", type=int, default=8192)
+    ap.add_argument("--workers", type=int, default=0, help="compare K --worker processes with one process")
+    ap.add_argument("--out", default=None, help="JSON file (default: benchmarks/results-montecarlo[-workers].json)")
+    ap.add_argument("--cores", type=int, help="CPU devices, one per core (default: every core; 1: JAX's single device)")
+    args = ap.parse_args(argv)
     jsphere.use_cpu_cores(args.cores)  # before JAX's first operation: monte_carlo splits its batches over them
     if args.workers:
         args.out = result_path(args, "results-montecarlo-workers.json")

@@ -26,17 +26,10 @@ import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import run  # noqa: E402  (problem 1: amplitudes, phases, the scipy trial, the devices)
-from casadi_baseline import NumpyRobot, initial_states  # noqa: E402
+from casadi_baseline import NumpyRobot, built_and_timed, ca, in_temporary_folder, initial_states, rk4_batch  # noqa: E402
 from common import HERE, ROOT, environment, finish, log, public, source_digest, table, time_call, timed, write_json  # noqa: E402
-from diffrax import ButcherTableau  # noqa: E402
 
 import jsphere  # noqa: E402
-
-try:
-    import casadi as ca
-    from casadi_baseline import built_and_timed, in_temporary_folder, rk4_batch
-except ImportError:  # pragma: no cover - optional benchmark dependency
-    ca = None
 
 # fmt: off
 _c = np.array([0.0, 0.005, 0.1088888888888888888888888888888888888889, 0.1633333333333333333333333333333333333333,
@@ -72,7 +65,7 @@ _bh = np.array([0.04460860660634117628731817597479197781432, 0.0, 0.0, 0.2671640
 # fmt: on
 
 
-def _fsal_tableau() -> ButcherTableau:
+def _fsal_tableau() -> diffrax.ButcherTableau:
     """The pair's tableau with the 11th stage appended (`Vern7`)."""
     s = 11
     a = np.zeros((s, s))
@@ -81,7 +74,7 @@ def _fsal_tableau() -> ButcherTableau:
     b_sol = np.concatenate([_b, [0.0]])
     b_error = np.concatenate([_b - _bh, [0.0]])
     c = np.concatenate([_c, [1.0]])
-    return ButcherTableau(c=c[1:], b_sol=b_sol, b_error=b_error, a_lower=tuple(a[i, :i] for i in range(1, s)))
+    return diffrax.ButcherTableau(c=c[1:], b_sol=b_sol, b_error=b_error, a_lower=tuple(a[i, :i] for i in range(1, s)))
 
 
 class Vern7(diffrax.AbstractERK):
@@ -95,7 +88,7 @@ class Vern7(diffrax.AbstractERK):
     Save times inside a step use a cubic Hermite interpolant; the benchmark reads only the end time.
     """
 
-    tableau: ClassVar[ButcherTableau] = _fsal_tableau()
+    tableau: ClassVar[diffrax.ButcherTableau] = _fsal_tableau()
     interpolation_cls: ClassVar = diffrax.ThirdOrderHermitePolynomialInterpolation.from_k
 
     def order(self, terms):
@@ -106,19 +99,16 @@ REF_RTOL, REF_ATOL = 1e-13, 1e-14  # scipy DOP853 reference
 JS_REF_RTOL, JS_REF_ATOL = 1e-13, 1e-15  # jsphere Dopri8, the second reference
 DECADES = [1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9]
 SOLVERS = {"Dopri8": diffrax.Dopri8, "Tsit5": diffrax.Tsit5, "Dopri5": diffrax.Dopri5, "Vern7": Vern7}
+#: the full run's tolerances: each decade from 1e-3 to 1e-11
+RTOLS = [10.0**-k for k in range(3, 12)]
 
 FULL = {
     "batch": 1024,
     "repeats": 3,
     "error_trials": 16,
-    "jsphere": {
-        "Dopri8": [10.0**-k for k in range(3, 12)],
-        "Tsit5": [10.0**-k for k in range(3, 12)],
-        "Dopri5": [10.0**-k for k in range(3, 12, 2)],
-        "Vern7": [10.0**-k for k in range(3, 12)],
-    },
+    "jsphere": {"Dopri8": RTOLS, "Tsit5": RTOLS, "Dopri5": RTOLS[::2], "Vern7": RTOLS},
     "casadi_steps": [25, 50, 100, 200, 400, 800, 1600, 3200, 6400],
-    "scipy_rtols": [10.0**-k for k in range(3, 12)],
+    "scipy_rtols": RTOLS,
 }
 QUICK = {
     "batch": 256,
@@ -135,7 +125,7 @@ def final_error(xy: np.ndarray, ref: np.ndarray) -> float:
     return float(np.max(np.hypot(*(np.asarray(xy) - ref).T)))
 
 
-# ------------------------------------------------------------------------ jsphere
+# ------------------------------------------------------------------------ the rows: jsphere, CasADi, scipy
 
 
 def jsphere_rows(p, A, ref, grid, repeats):
@@ -167,9 +157,6 @@ def jsphere_rows(p, A, ref, grid, repeats):
     return rows
 
 
-# ------------------------------------------------------------------------ CasADi
-
-
 def casadi_rows(model, q0, A, ref, steps_list, repeats, threads):
     if ca is None:
         return [{"method": "CasADi RK4", "error": "not run: CasADi is not installed (pip install casadi)"}]
@@ -185,9 +172,6 @@ def casadi_rows(model, q0, A, ref, steps_list, repeats, threads):
             rows.append(head | r | {"error_m": err, "compile_s": compile_s})
             log(f"      error {err:.1e} m, {r['trials_per_s']:.0f} trials/s, build {r['build_s']:.1f} s")
     return rows
-
-
-# ------------------------------------------------------------------------ scipy
 
 
 def scipy_rows(model, q0, A, ref, rtols, repeats):
@@ -386,9 +370,7 @@ def settings(cfg: dict, threads: int) -> dict:
     return {
         "problem": "run.py problem 1: paper robot from rest, K_i = a_i sin(pi t + 2.1 (i - 1)), [0, 4] s",
         "amplitudes": "0.05 (1 + 0.1 z), z ~ default_rng(0).standard_normal((batch, 3)), rows 0..batch-1",
-        "batch": cfg["batch"],
-        "repeats": cfg["repeats"],
-        "error_trials": cfg["error_trials"],
+        **{k: cfg[k] for k in ("batch", "repeats", "error_trials")},
         "error": "max over the first error_trials trials of the distance |(x, y) - reference| at t = 4 s [m]",
         "atol": "rtol / 100 (jsphere and scipy)",
         "jsphere": dict(cfg["jsphere"]),
