@@ -444,7 +444,7 @@ def robust_plan(argv) -> int:
     vals = np.array([float(jsphere.get_value(p, n)) for n in ROBUST_NAMES])
     sd = np.abs(vals) * np.array(ROBUST_REL_SD)
     unc = Uncertainty(ROBUST_NAMES, ("normal",) * 4, vals, sd, np.eye(4), "benchmark")
-    to, four = tuple(args.to), jsphere.PlanOptions(restarts=4)
+    to, four = tuple(args.to), jsphere.PlanOptions(restarts=4, family="gait")
 
     nominal, t_nominal = timed(jsphere.plan, p, to, plan_options=four, progress=False, allow_infeasible=True)
     t0 = time.perf_counter()
@@ -512,7 +512,7 @@ def track(argv) -> int:
     ap.add_argument("--restarts", type=int, default=16, help="as `jsphere plan`")
     args = ap.parse_args(argv)
     p = jsphere.RobotParams.paper()
-    pl, t_plan = timed(jsphere.plan, p, tuple(args.to), plan_options=jsphere.PlanOptions(restarts=args.restarts))
+    pl, t_plan = timed(jsphere.plan, p, tuple(args.to), plan_options=jsphere.PlanOptions(restarts=args.restarts, family="gait"))
     ts, K = np.asarray(pl.trajectory.ts), np.asarray(pl.trajectory.K)
     keep = np.concatenate([np.diff(ts) > 0, [True]])
     times, weights = {}, jsphere.TrackWeights()

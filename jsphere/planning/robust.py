@@ -381,6 +381,11 @@ def robust_plan(
     if r.nominal is None:
         targets = _check_request(where, [to3], lim, obj, s, o)
         nominal = plan_batch(where, p_nom, targets, lim, obj, s, o, progress, options)[0]
+    elif not r.nominal.gaits:
+        raise InputError(
+            f"{where}: RobustOptions.nominal is a {r.nominal.family} plan; a robust plan starts from a gait plan: "
+            "plan the nominal with PlanOptions(family='gait'), or leave nominal out."
+        )
     else:
         nominal = r.nominal
     target = jnp.asarray(_vec_targets([to3])[0], p_nom.R0.dtype)

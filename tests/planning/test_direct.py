@@ -126,3 +126,11 @@ def test_gaits_on_request_and_float32_refused(paper):
     with pytest.raises(InputError, match="settings must be a PlanSettings"):
         jsphere.plan_many(paper, [(0.4, 0.2)], settings=jsphere.DirectSettings())
     assert dataclasses.replace(jsphere.PlanOptions(), family="gait").family == "gait"
+
+
+def test_a_robust_plan_refuses_a_direct_nominal(paper, planned):
+    """A robust plan perturbs a gait plan: a direct plan given as its nominal is named."""
+    u = jsphere.planning.uncertainty.Uncertainty(("j",), ("normal",), np.array([4e-4]), np.array([2e-5]))
+    robust = jsphere.RobustOptions(u, nominal=planned)
+    with pytest.raises(InputError, match="nominal is a direct plan; a robust plan starts from a gait plan"):
+        jsphere.plan(paper, (0.4, 0.2), robust=robust)
