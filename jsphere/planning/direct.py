@@ -26,8 +26,8 @@ blocks and their perturbations: one small program; `docs/decisions/direct-plans-
 The plan is then replayed with the accurate solver (`simulate`, the knots' torques
 interpolated linearly). Between knots the wheel speed and tilt can pass their limits slightly,
 and the search model's RK4 leaves a small bias at the end: while the replay misses, the bounds
-are tightened by the excess and the target moved by the miss, and the problem solved again from
-the last answer (at most `DirectSettings.rounds` times).
+are tightened by the excess and the end (position, heading and angular velocities) moved by the
+miss, and the problem solved again from the last answer (at most `DirectSettings.rounds` times).
 """
 
 from __future__ import annotations
@@ -115,6 +115,7 @@ class _Args(eqx.Module):
     gm: Float[Array, " 3"]  # the rest attitude gamma_m
     across: Float[Array, "2 3"]  # two unit vectors across gamma_m
     target: Float[Array, " 3"]  # x, y, heading
+    rates: Float[Array, " 6"]  # omega, Omega asked at the end (0, less the replay's miss)
     weights: Float[Array, " 4"]  # time, energy, effort, smoothing (divided by the torque scale^2)
 
 
@@ -160,7 +161,7 @@ def _block_cost(w, a: _Args, n: int):
 def _terminal(x, a: _Args, heading: bool):
     """The end: position on the target, `omega = Omega = 0`, `gamma` on `gamma_m`, heading."""
     g = rotmat(x[0:4])[2]
-    out = [x[10:12] - a.target[:2], x[4:10], a.across @ g]
+    out = [x[10:12] - a.target[:2], x[4:10] - a.rates, a.across @ g]
     if heading:
         out.append(jnp.sin(0.5 * (yaw(a.params, x[0:4]) - a.target[2]))[None])
     return jnp.concatenate(out)
@@ -266,7 +267,8 @@ class _Transcription:
     asks for the constraints, their Jacobian and the objective at the same point)."""
 
     def __init__(self, lay: _Layout, a: _Args, substeps: int):
-        self.lay, self.a, self.substeps = lay, a, substeps
+        # committed to the device once: an exported program's call commits every argument
+        self.lay, self.a, self.substeps = lay, jax.device_put(a, jax.devices()[0]), substeps
         self._key, self._val = None, None
 
     def _at(self, z):
@@ -374,7 +376,7 @@ def _start(p: RobotParams, lay: _Layout, target, lim: Limits) -> np.ndarray:
     return z
 
 
-def _args(p: RobotParams, target, obj: Objective, lim: Limits) -> _Args:
+def _args(p: RobotParams, target, rates, obj: Objective, lim: Limits) -> _Args:
     dt = p.R0.dtype
     gm = np.asarray(rest_attitude(p))
     e1 = np.cross(gm, [1.0, 0.0, 0.0] if abs(gm[0]) < 0.9 else [0.0, 1.0, 0.0])
@@ -388,6 +390,7 @@ def _args(p: RobotParams, target, obj: Objective, lim: Limits) -> _Args:
         gm=jnp.asarray(gm, dt),
         across=jnp.asarray(np.stack([e1, np.cross(gm, e1)]), dt),
         target=jnp.asarray(target, dt),
+        rates=jnp.asarray(rates, dt),
         weights=jnp.asarray(w, dt),
     )
 
@@ -442,11 +445,11 @@ def plan_direct(
     rest = np.asarray(State.at_rest(p).flatten())[REDUCED]
     z = _start(p, lay, tg, lim)
     shrink = {"wheel_speed_rad_s": 1.0, "tilt_rad": 1.0}
-    aim = list(tg)
+    aim, rates = list(tg), np.zeros(6)
     iterations, rounds = 0, 0
     prog.say(f"jsphere plan: direct, {lay.n} intervals, {lay.nvar} unknowns, {lay.n * lay.nc + lay.nt} constraints")
     for rounds in range(1, ds.rounds + 1):
-        tr_ = _Transcription(lay, _args(p, aim, obj, lim), ds.substeps)
+        tr_ = _Transcription(lay, _args(p, aim, rates, obj, lim), ds.substeps)
         bounds, cbounds = _bounds(lay, rest, lim, shrink)
         with prog.phase(f"jsphere plan: IPOPT, solve {rounds}"):
             res = ipopt.minimise(tr_.problem(), z, bounds, cbounds, tol=ds.tol, max_iter=ds.max_iter)
@@ -471,6 +474,7 @@ def plan_direct(
         aim[1] -= err["final"][1] - tg[1]
         if heading:
             aim[2] -= math.remainder(err["final"][2] - tg[2], 2 * math.pi)
+        rates -= np.concatenate([np.asarray(tr.omega[-1]), np.asarray(tr.Omega[-1])])
     shortfall = missed(o, heading, err, rep)
     if not res.success:
         shortfall.insert(0, f"the direct search ended {res.status.replace('_', ' ')} after {iterations} iterations")

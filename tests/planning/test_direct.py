@@ -26,7 +26,7 @@ def planned(paper):
 
 def _small(paper, heading=True, n=3):
     lay = direct._Layout(n, paper.n_wheels, heading)
-    a = direct._args(paper, [0.3, 0.1, 0.4], jsphere.Objective(effort=0.5), jsphere.Limits())
+    a = direct._args(paper, [0.3, 0.1, 0.4], np.zeros(6), jsphere.Objective(effort=0.5), jsphere.Limits())
     z = direct._start(paper, lay, [0.3, 0.1, 0.4], jsphere.Limits())
     rng = np.random.default_rng(0)
     z[:-1] += 1e-3 * rng.normal(size=z.size - 1)  # off the start's symmetries
@@ -134,3 +134,12 @@ def test_a_robust_plan_refuses_a_direct_nominal(paper, planned):
     robust = jsphere.RobustOptions(u, nominal=planned)
     with pytest.raises(InputError, match="nominal is a direct plan; a robust plan starts from a gait plan"):
         jsphere.plan(paper, (0.4, 0.2), robust=robust)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("to, heading", [((-1.0, -1.0), None), ((1.0, 1.0), 1.0), ((-1.0, 0.35), -2.0)])
+def test_far_targets_behind_and_turned_are_met(paper, to, heading):
+    """Up to 1.41 m away, behind the robot, with and without a final heading: feasible, on the
+    target at rest on the accurate replay (its end moved by the replay's miss, solve by solve)."""
+    pl = jsphere.plan(paper, to, heading=heading, plan_options=jsphere.PlanOptions(rate=100.0))
+    assert pl.feasible and pl.errors["position_m"] < 1e-4 and pl.errors["speed_m_s"] < 1e-4, pl.summary()
