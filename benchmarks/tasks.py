@@ -512,7 +512,9 @@ def track(argv) -> int:
     ap.add_argument("--restarts", type=int, default=16, help="as `jsphere plan`")
     args = ap.parse_args(argv)
     p = jsphere.RobotParams.paper()
-    pl, t_plan = timed(jsphere.plan, p, tuple(args.to), plan_options=jsphere.PlanOptions(restarts=args.restarts, family="gait"))
+    pl, t_plan = timed(
+        jsphere.plan, p, tuple(args.to), plan_options=jsphere.PlanOptions(restarts=args.restarts, family="gait")
+    )
     ts, K = np.asarray(pl.trajectory.ts), np.asarray(pl.trajectory.K)
     keep = np.concatenate([np.diff(ts) > 0, [True]])
     times, weights = {}, jsphere.TrackWeights()
