@@ -32,6 +32,7 @@ STEPS = (
     ("onboard_fit", ["tasks.py", "onboard-fit"], "results-onboard-fit.json"),
     ("montecarlo", ["studies.py"], "results-montecarlo.json"),
     ("montecarlo_workers", ["studies.py", "--workers", "2", "--trials", "1000000"], "results-montecarlo-workers.json"),
+    ("plan", ["tasks.py", "plan", "--restarts", "8"], "results-plan.json"),
     ("track", ["tasks.py", "track"], "results-track.json"),
     ("animate", ["tasks.py", "animate"], "results-animate.json"),
 )

@@ -88,6 +88,11 @@ def add_parser(sub) -> None:
         help="the commands' family: wheel speeds chi_dot [rad/s] or axle torques K [N m] (default chi_dot)",
     )
     pp.add_argument("--no-plots", action="store_true", help="skip the figure")
+    _add_robust_flags(pp)
+
+
+def _add_robust_flags(pp) -> None:
+    """The flags of a plan robust to the robot's uncertainty."""
     rb = pp.add_argument_group("robust to the robot's uncertainty (docs/planning.md)")
     rb.add_argument(
         "--robust",

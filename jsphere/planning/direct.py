@@ -43,7 +43,6 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from .._runtime.checks import whole
 from .._runtime.errors import InputError
 from .._runtime.precision import HOW_TO_ENABLE
 from .._runtime.progress import Progress
@@ -58,7 +57,7 @@ from ..model.state import State
 from ..numerics import ipopt
 from ..solve.fixed_grid import rk4_step
 from ..solve.simulate import simulate
-from .problem import Limits, Objective, PlanOptions
+from .problem import DirectSettings, Limits, Objective, PlanOptions
 from .result import Plan, manoeuvre_plan
 from .rollout import yaw
 from .verify import _limit_report, _terminal_errors, missed
@@ -72,25 +71,6 @@ FD_STEP = 1e-6
 BACK_OFF = 1e-6
 #: the weight of the torque-step penalty, per (step / max_torque)^2, relative to a second of T
 SMOOTHING = 1e-3
-
-
-class DirectSettings(eqx.Module):
-    """Sizes of a direct plan (static: they fix the compiled functions).
-
-    `intervals`: knots - 1; `substeps`: RK4 steps per interval; `tol`, `max_iter`: IPOPT's;
-    `rounds`: solves at most, each tightening the limits and moving the target by what the
-    accurate replay missed.
-    """
-
-    intervals: int = eqx.field(static=True, default=60)
-    substeps: int = eqx.field(static=True, default=1)
-    tol: float = eqx.field(static=True, default=1e-8)
-    max_iter: int = eqx.field(static=True, default=500)
-    rounds: int = eqx.field(static=True, default=4)
-
-    def __check_init__(self):
-        for name, low in (("intervals", 2), ("substeps", 1), ("max_iter", 1), ("rounds", 1)):
-            whole("DirectSettings", name, getattr(self, name), low)
 
 
 # ----------------------------------------------------------------------------- the model

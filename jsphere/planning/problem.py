@@ -81,6 +81,25 @@ class PlanSettings(eqx.Module):
         real("PlanSettings", "learning_rate", self.learning_rate, strict=True)
 
 
+class DirectSettings(eqx.Module):
+    """Sizes of a direct plan (static: they fix the compiled functions).
+
+    `intervals`: knots - 1; `substeps`: RK4 steps per interval; `tol`, `max_iter`: IPOPT's;
+    `rounds`: solves at most, each tightening the limits and moving the target by what the
+    accurate replay missed.
+    """
+
+    intervals: int = eqx.field(static=True, default=60)
+    substeps: int = eqx.field(static=True, default=1)
+    tol: float = eqx.field(static=True, default=1e-8)
+    max_iter: int = eqx.field(static=True, default=500)
+    rounds: int = eqx.field(static=True, default=4)
+
+    def __check_init__(self):
+        for name, low in (("intervals", 2), ("substeps", 1), ("max_iter", 1), ("rounds", 1)):
+            whole("DirectSettings", name, getattr(self, name), low)
+
+
 #: the default terminal speed tolerance of a plan [m/s] (`R0 |Omega x gamma|` at the end): a plan
 #: whose end is within it ends at rest (`Plan.at_rest`)
 TOL_SPEED = 5e-4
@@ -136,8 +155,6 @@ def _check_request(where: str, targets, limits, objective, settings, o: PlanOpti
     numbers (`psi` None, or NaN with `nan_free`, for a free heading), `restarts >= 1`,
     `rate > 0`, `seed >= 0`, positive tolerances, and `Limits`, `Objective`, `PlanSettings`
     instances."""
-    from .direct import DirectSettings
-
     for name, v, cls in (
         ("limits", limits, Limits),
         ("objective", objective, Objective),
