@@ -60,7 +60,7 @@ from ..solve.simulate import simulate
 from .problem import DirectSettings, Limits, Objective, PlanOptions
 from .result import Plan, manoeuvre_plan
 from .rollout import yaw
-from .verify import _limit_report, _terminal_errors, missed
+from .verify import _limit_report, _terminal_errors, missed, padded_grid
 
 #: the reduced state's size and its places in the flat state (`Flat`): q, omega, Omega, x, y
 NX = 12
@@ -333,15 +333,14 @@ def _bounds(lay: _Layout, rest: np.ndarray, lim: Limits, shrink: dict):
     return (lb, ub), (np.r_[np.tile(cl, lay.n), np.zeros(lay.nt)], np.r_[np.tile(cu, lay.n), np.zeros(lay.nt)])
 
 
-def _start(p: RobotParams, lay: _Layout, target, lim: Limits) -> np.ndarray:
-    """The start: at rest along a smooth path to the target (turning to the heading asked),
+def _start(lay: _Layout, rest: np.ndarray, target, lim: Limits) -> np.ndarray:
+    """The start: at rest (`rest`, the reduced state) along a smooth path to the target (turning to the heading asked),
     torques 0, `T` from the distance (`4.5 sqrt(d)` s, within the time limits)."""
     x, y, psi = target
     s = np.linspace(0.0, 1.0, lay.n + 1)
     ease = 3 * s**2 - 2 * s**3
     z = np.zeros(lay.nvar)
     knots = z[:-1].reshape(lay.n + 1, lay.nv)
-    rest = np.asarray(State.at_rest(p).flatten())[REDUCED]
     knots[:, :NX] = rest
     if lay.heading:  # turned about the vertical by psi e: q = (cos(a/2), 0, 0, sin(a/2)) (x) q_rest
         half = 0.5 * float(psi) * ease
@@ -383,10 +382,7 @@ def _replay(p: RobotParams, ts, K, rate: float, max_time: float, options):
     at `k / rate` and at the end; the grid padded to `max_time * rate` so that every duration
     shares one compiled solve."""
     T = float(ts[-1])
-    n_max = math.ceil(max_time * rate) + 2
-    grid = np.arange(n_max) / rate
-    m = int(np.sum(grid < T - 1e-9)) + 1
-    grid = np.minimum(grid, T)
+    grid, m = padded_grid(T, rate, max_time)
     ctrl = Torques.from_samples(ts, K, kind="linear")
     tr = simulate(p, State.at_rest(p), ctrl, T, ts=grid, options=options)
     return jax.tree_util.tree_map(lambda v: v[:m] if jnp.ndim(v) >= 1 else v, tr)
@@ -423,7 +419,7 @@ def plan_direct(
     lay = _Layout(ds.intervals, p.n_wheels, heading)
     tg = [float(x), float(y), float(psi) if heading else 0.0]
     rest = np.asarray(State.at_rest(p).flatten())[REDUCED]
-    z = _start(p, lay, tg, lim)
+    z = _start(lay, rest, tg, lim)
     shrink = {"wheel_speed_rad_s": 1.0, "tilt_rad": 1.0}
     aim, rates = list(tg), np.zeros(6)
     iterations, rounds = 0, 0

@@ -83,6 +83,17 @@ def missed(o, has_heading: bool, err: dict, rep: dict) -> list[str]:
     return out
 
 
+def padded_grid(T: float, rate: float, max_time: float) -> tuple[np.ndarray, int]:
+    """The output grid `k / rate` for `k / rate < T`, plus the end `T`, padded with `T` to the
+    fixed length `ceil(max_time * rate) + 2`, so that plans of every duration share one compiled
+    solve; and the number of its samples before the padding."""
+    grid = np.arange(math.ceil(max_time * rate) + 2) / rate
+    n = int(np.sum(grid < T - 1e-9)) + 1
+    ts = np.minimum(grid, T)
+    ts[n - 1 :] = T
+    return ts, n
+
+
 def _accurate(params, gait, rate, max_time, options: SolverOptions | None = None):
     """`simulate_gaits` (Dopri8, rtol 1e-10, or as `options` say) from rest (`State.at_rest`),
     sampled at `k / rate` for
@@ -90,11 +101,7 @@ def _accurate(params, gait, rate, max_time, options: SolverOptions | None = None
     so that plans of every duration share one compiled function; the padding is cut off
     afterwards."""
     T = float(gait.T)
-    n_max = math.ceil(max_time * rate) + 2
-    grid = np.arange(n_max) / rate
-    n = int(np.sum(grid < T - 1e-9)) + 1
-    ts = np.minimum(grid, T)
-    ts[n - 1 :] = T
+    ts, n = padded_grid(T, rate, max_time)
     st0 = State.at_rest(params)
     alpha0, beta0 = np.asarray(st0.alpha), np.asarray(st0.beta)
     tr = simulate_gaits(params, [gait], ts=ts, alpha0=alpha0, beta0=beta0, options=options)

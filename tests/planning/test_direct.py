@@ -27,7 +27,8 @@ def planned(paper):
 def _small(paper, heading=True, n=3):
     lay = direct._Layout(n, paper.n_wheels, heading)
     a = direct._args(paper, [0.3, 0.1, 0.4], np.zeros(6), jsphere.Objective(effort=0.5), jsphere.Limits())
-    z = direct._start(paper, lay, [0.3, 0.1, 0.4], jsphere.Limits())
+    rest = np.asarray(jsphere.State.at_rest(paper).flatten())[direct.REDUCED]
+    z = direct._start(lay, rest, [0.3, 0.1, 0.4], jsphere.Limits())
     rng = np.random.default_rng(0)
     z[:-1] += 1e-3 * rng.normal(size=z.size - 1)  # off the start's symmetries
     return lay, a, z, direct._Transcription(lay, a, 1)
